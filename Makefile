@@ -1,0 +1,31 @@
+# The two commands a user needs on a fresh clone: `make demo` and `make test`.
+# Both create the virtual environment when it is missing.
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: setup demo test lint clean
+
+setup: $(STAMP)
+
+# torch first, pinned, so the CPU wheel is used and nothing pulls a CUDA build;
+# then the package with its dev extras (editable, so robots/ stays next to it).
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q torch==2.13.0
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	$(BIN)/torchcal demo --out runs/demo
+
+lint: $(STAMP)
+	$(BIN)/ruff check torchcal tests scripts
+
+test: $(STAMP) lint
+	$(BIN)/python -m pytest -q
+
+clean:
+	rm -rf runs build *.egg-info .pytest_cache
