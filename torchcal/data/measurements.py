@@ -1,0 +1,715 @@
+"""Measurement files: the CSV format of the contract (section 1), read, validated and written.
+
+A file holds one header row and one row per measured pose::
+
+    # robot: ur5            <- '# key: value' comment lines before the header go to ``meta``
+    q1,q2,...,qN,x,y,z[,t][,temperature][,sx,sy,sz][,other numeric columns]
+
+Inside torchcal everything is SI (m, rad, s); millimetres and degrees are converted here,
+at the I/O edge, and only when asked for. Every problem raises
+:class:`~torchcal.errors.MeasurementFileError` naming the file, the 1-based line as an
+editor shows it (comment and header lines count) and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+import re
+import uuid
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchcal.errors import MeasurementFileError, OptionError, ShapeError
+
+__all__ = ["ANGLE_UNITS", "LENGTH_UNITS", "Measurements", "read_measurements", "write_measurements"]
+
+#: Accepted ``length_unit`` values and the divisor that turns them into metres.
+LENGTH_UNITS: dict[str, float] = {"m": 1.0, "mm": 1000.0}
+#: Accepted ``angle_unit`` values and the factor that turns them into radians.
+ANGLE_UNITS: dict[str, float] = {"rad": 1.0, "deg": math.pi / 180.0}
+
+_POSITION = ("x", "y", "z")
+_SIGMA = ("sx", "sy", "sz")
+_RESERVED = frozenset(_POSITION + _SIGMA + ("t", "temperature"))
+_JOINT_RE = re.compile(r"q([0-9]+)")
+_META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*")
+
+# Unit mix-up thresholds (declared unit -> what would be absurd in it).
+_MAX_MEDIAN_DISTANCE_M = 50.0  # a laser tracker does not measure a robot from 50 m away
+_MIN_MEDIAN_DISTANCE_MM = 20.0  # ... nor from 2 cm
+_MAX_MEDIAN_SIGMA_M = 0.01  # a 1 cm standard deviation is not a tracker measurement
+_MAX_ABS_ANGLE_RAD = 2.0 * math.pi + 1e-9
+_JOINT_LIMIT_TOL = 1e-12
+
+
+def _check_option(name: str, value: str, valid: Mapping[str, float]) -> None:
+    if value not in valid:
+        choices = ", ".join(repr(v) for v in valid)
+        raise OptionError(f"{name} must be one of {choices}, got {value!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Measurements:
+    """A measurement set in SI units, one row per pose.
+
+    Attributes:
+        q: (N, dof) float64 joint readings [rad].
+        p: (N, 3) float64 probe positions in the tracker frame [m], or None when absent.
+        t: (N,) float64 acquisition times [s], or None.
+        temperature: (N,) float64 temperatures [degC], or None.
+        sigma: (N, 3) float64 per-point standard deviations (sx, sy, sz) [m], or None.
+        meta: metadata from the file's ``# key: value`` comment lines.
+        source: the path the set was read from, or None.
+        lines: 1-based file line of each row, for error messages downstream.
+        extra: other numeric columns, (N,) float64 each, in file order.
+    """
+
+    q: torch.Tensor
+    p: torch.Tensor | None = None
+    t: torch.Tensor | None = None
+    temperature: torch.Tensor | None = None
+    sigma: torch.Tensor | None = None
+    meta: dict[str, str] = field(default_factory=dict)
+    source: str | None = None
+    lines: tuple[int, ...] = ()
+    extra: dict[str, torch.Tensor] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        q = self.q
+        if not isinstance(q, torch.Tensor) or q.dim() != 2 or q.dtype != torch.float64:
+            raise ShapeError(f"q must be a float64 tensor of shape (N, dof), got {_describe(q)}")
+        n = q.shape[0]
+        for name, value, shape in (
+            ("p", self.p, (n, 3)),
+            ("t", self.t, (n,)),
+            ("temperature", self.temperature, (n,)),
+            ("sigma", self.sigma, (n, 3)),
+            *((f"extra[{k!r}]", v, (n,)) for k, v in self.extra.items()),
+        ):
+            if value is None and not name.startswith("extra"):
+                continue
+            ok = isinstance(value, torch.Tensor) and tuple(value.shape) == shape
+            if not ok or value.dtype != torch.float64:
+                raise ShapeError(
+                    f"{name} must be a float64 tensor of shape {_shape_text(shape)} to match "
+                    f"q {_describe(q)}, got {_describe(value)}"
+                )
+            if value.device != q.device:
+                raise ShapeError(f"{name} is on {value.device} but q is on {q.device}")
+        if len(self.lines) not in (0, n):
+            raise ShapeError(f"lines must hold one line number per row ({n}), got {len(self.lines)}")
+        if not self.lines:
+            object.__setattr__(self, "lines", tuple(range(2, n + 2)))
+        for key in self.extra:
+            if not _valid_extra_name(key):
+                raise ShapeError(
+                    f"extra column name {key!r} is not allowed: it must be non-empty, must not be a "
+                    "standard column (q1.., x, y, z, t, temperature, sx, sy, sz) and must not contain "
+                    "',', quotes, '#' at its start or line breaks"
+                )
+
+    @property
+    def n(self) -> int:
+        """Number of rows (poses)."""
+        return self.q.shape[0]
+
+    @property
+    def dof(self) -> int:
+        """Number of joints."""
+        return self.q.shape[1]
+
+    def subset(self, index: torch.Tensor | slice | Sequence[int]) -> Measurements:
+        """Rows picked by ``index`` (LongTensor, bool mask, slice or list of ints), in that order."""
+        if isinstance(index, slice):
+            lines = self.lines[index]
+        else:
+            index = torch.as_tensor(index, device=self.q.device)
+            if index.dtype == torch.bool:
+                if tuple(index.shape) != (self.n,):
+                    raise ShapeError(f"a bool index must have shape ({self.n},), got {tuple(index.shape)}")
+                index = index.nonzero().squeeze(1)
+            elif index.dtype != torch.int64 or index.dim() != 1:
+                raise ShapeError(
+                    f"index must be a 1-D LongTensor, bool mask or slice, got {_describe(index)}"
+                )
+            lines = tuple(self.lines[i] for i in index.tolist())
+
+        def pick(x: torch.Tensor | None) -> torch.Tensor | None:
+            return None if x is None else x[index]
+
+        return dataclasses.replace(
+            self,
+            q=self.q[index],
+            p=pick(self.p),
+            t=pick(self.t),
+            temperature=pick(self.temperature),
+            sigma=pick(self.sigma),
+            meta=dict(self.meta),
+            lines=lines,
+            extra={k: v[index] for k, v in self.extra.items()},
+        )
+
+    def with_positions(self, p: torch.Tensor | None) -> Measurements:
+        """The same rows with positions ``p`` ((N, 3) float64 [m], or None to drop them)."""
+        return dataclasses.replace(self, p=p, meta=dict(self.meta), extra=dict(self.extra))
+
+
+def _describe(x: object) -> str:
+    if isinstance(x, torch.Tensor):
+        return f"{x.dtype} tensor of shape {tuple(x.shape)}"
+    return type(x).__name__
+
+
+def _shape_text(shape: tuple[int, ...]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+
+
+def _valid_extra_name(name: str) -> bool:
+    return (
+        isinstance(name, str)
+        and name == name.strip()
+        and name != ""
+        and name not in _RESERVED
+        and not _JOINT_RE.fullmatch(name)
+        and not name.startswith("#")
+        and not any(c in name for c in ",\"'\r\n")
+    )
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def read_measurements(
+    path: str | os.PathLike,
+    *,
+    dof: int | None = None,
+    joint_limits: torch.Tensor | None = None,
+    length_unit: str = "m",
+    angle_unit: str = "rad",
+    require_positions: bool = True,
+    min_poses: int = 1,
+    robot_name: str | None = None,
+    purpose: str | None = None,
+) -> Measurements:
+    """Read and validate a measurement file; return it in SI units.
+
+    Args:
+        path: the CSV file (UTF-8, optional BOM, LF or CRLF line ends).
+        dof: number of joints the robot has; the file must have exactly ``q1..q<dof>``.
+        joint_limits: (dof, 2) float64 [lower, upper] per joint [rad]; readings outside
+            (beyond a 1e-12 tolerance) are errors.
+        length_unit: ``"m"`` or ``"mm"``, the unit of x, y, z, sx, sy, sz in the file.
+        angle_unit: ``"rad"`` or ``"deg"``, the unit of q1..qN in the file.
+        require_positions: whether x, y, z must be present (fitting) or may be absent (predict).
+        min_poses: fewer rows than this is an error.
+        robot_name: named in messages about the joint count and limits.
+        purpose: what the poses are needed for, named in the too-few-poses message.
+
+    Returns:
+        The measurements, with ``source`` set to ``str(path)``.
+
+    Raises:
+        MeasurementFileError: anything wrong with the file (names file, line and column).
+        OptionError: an unknown unit.
+        ShapeError: ``joint_limits`` of the wrong shape or dtype.
+    """
+    _check_option("length_unit", length_unit, LENGTH_UNITS)
+    _check_option("angle_unit", angle_unit, ANGLE_UNITS)
+    if dof is not None and (not isinstance(dof, int) or dof < 1):
+        raise OptionError(f"dof must be a positive int, got {dof!r}")
+    if joint_limits is not None:
+        if isinstance(joint_limits, torch.Tensor) and joint_limits.dtype != torch.float64:
+            raise ShapeError(f"joint_limits must be float64, got {joint_limits.dtype}")
+        joint_limits = torch.as_tensor(joint_limits, dtype=torch.float64)
+        if joint_limits.dim() != 2 or joint_limits.shape[1] != 2 or (
+            dof is not None and joint_limits.shape[0] != dof
+        ):
+            want = f"({dof}, 2)" if dof is not None else "(dof, 2)"
+            raise ShapeError(f"joint_limits must have shape {want}, got {tuple(joint_limits.shape)}")
+
+    path_str = str(path)
+    text = _read_text(path_str)
+    # Editors count '\n', '\r\n' and a lone '\r' as one line break each.
+    raw_lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+
+    meta: dict[str, str] = {}
+    header_index = None
+    for i, line in enumerate(raw_lines):
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            match = _META_RE.fullmatch(stripped)
+            if match:
+                meta[match.group(1)] = match.group(2)
+            continue
+        header_index = i
+        break
+    if header_index is None:
+        what = "is empty" if not text.strip() else "has only comments"
+        raise MeasurementFileError(
+            path_str, f"the file {what}; expected a header row such as 'q1,...,q6,x,y,z'"
+        )
+
+    header_line = header_index + 1
+    header = _parse_header(path_str, raw_lines[header_index], header_line)
+    layout = _Layout.from_header(path_str, header, header_line, require_positions)
+    _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
+
+    values, lines = _parse_rows(path_str, raw_lines, header_index + 1, header)
+    n = len(lines)
+    table = torch.tensor(values, dtype=torch.float64).reshape(n, len(header))
+
+    def column(name: str) -> torch.Tensor:
+        return table[:, layout.index[name]].clone()
+
+    def columns(names: Sequence[str]) -> torch.Tensor:
+        return table[:, [layout.index[c] for c in names]].clone()
+
+    q = columns(layout.joints)
+    p = columns(_POSITION) if layout.has_positions else None
+    t = column("t") if "t" in layout.index else None
+    temperature = column("temperature") if "temperature" in layout.index else None
+    sigma = columns(_SIGMA) if layout.has_sigma else None
+    extra = {name: column(name) for name in layout.extra}
+
+    if t is not None:
+        _check_monotonic(path_str, t, lines)
+    if sigma is not None:
+        _check_positive_sigma(path_str, sigma, lines, layout, length_unit)
+    if n < min_poses:
+        for_what = f" for {purpose}" if purpose else ""
+        raise MeasurementFileError(
+            path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}"
+        )
+
+    # Unit mix-ups first: they explain joint-limit violations and absurd positions better.
+    if p is not None and n:
+        _check_length_unit(path_str, p, lines, layout, length_unit)
+    if sigma is not None and n and length_unit == "m":
+        _check_sigma_unit(path_str, sigma, lines, layout)
+    if angle_unit == "rad" and n:
+        _check_angle_unit(path_str, q, lines, layout)
+
+    divisor = LENGTH_UNITS[length_unit]
+    if divisor != 1.0:
+        # Division (not multiplication by 1e-3) keeps e.g. 1234.5 mm -> 1.2345 m correctly rounded.
+        p = None if p is None else p / divisor
+        sigma = None if sigma is None else sigma / divisor
+    if angle_unit != "rad":
+        q = q * ANGLE_UNITS[angle_unit]
+
+    if joint_limits is not None and n:
+        _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name)
+
+    return Measurements(
+        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str,
+        lines=tuple(lines), extra=extra,
+    )
+
+
+def _read_text(path: str) -> str:
+    try:
+        with open(path, "rb") as f:
+            raw = f.read()
+    except OSError as err:
+        raise MeasurementFileError(path, f"cannot read the file: {err.strerror or err}") from err
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = raw.count(b"\n", 0, err.start) + 1
+        raise MeasurementFileError(
+            path, f"the file is not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start})",
+            line=line, hint="save the file as UTF-8",
+        ) from err
+
+
+def _parse_header(path: str, line: str, line_no: int) -> list[str]:
+    cells = next(csv.reader([line]))
+    header = [c.strip() for c in cells]
+    if len(header) == 1 and (";" in line or "\t" in line):
+        raise MeasurementFileError(
+            path, "the header has a single column; values must be separated by ','",
+            line=line_no, hint="the file looks ';'- or tab-separated; save it as comma-separated",
+        )
+    seen: dict[str, int] = {}
+    for k, name in enumerate(header, start=1):
+        if not name:
+            trailing = k == len(header)
+            raise MeasurementFileError(
+                path, f"column {k} of the header has no name", line=line_no,
+                hint="a trailing ',' at the end of the header adds an empty column" if trailing else None,
+            )
+        if name in seen:
+            raise MeasurementFileError(
+                path, f"duplicate column name (columns {seen[name]} and {k} are both '{name}')",
+                line=line_no, column=name,
+            )
+        seen[name] = k
+    return header
+
+
+@dataclass
+class _Layout:
+    """Where each known column sits in the header."""
+
+    index: dict[str, int]
+    joints: list[str]
+    has_positions: bool
+    has_sigma: bool
+    extra: list[str]
+
+    @classmethod
+    def from_header(cls, path: str, header: list[str], line: int, require_positions: bool) -> _Layout:
+        index = {name: k for k, name in enumerate(header)}
+        numbers = {}
+        for name in header:
+            match = _JOINT_RE.fullmatch(name)
+            if not match:
+                continue
+            digits = match.group(1)
+            if digits.startswith("0"):
+                raise MeasurementFileError(
+                    path, f"joint columns are named q1, q2, ... without leading zeros, got '{name}'",
+                    line=line, column=name,
+                )
+            numbers[int(digits)] = name
+        if not numbers:
+            _missing(path, header, line, ["q1"], "joint readings q1..qN are required")
+        for k in range(1, max(numbers) + 1):
+            if k not in numbers:
+                present = ", ".join(numbers[j] for j in sorted(numbers))
+                _missing(path, header, line, [f"q{k}"],
+                         f"joint columns must run q1..qN without gaps (found {present})")
+        joints = [numbers[k] for k in range(1, len(numbers) + 1)]
+
+        has_positions = _all_or_none(path, header, line, _POSITION, "probe positions")
+        if require_positions and not has_positions:
+            _missing(path, header, line, list(_POSITION), "probe positions x, y, z are required here")
+        has_sigma = _all_or_none(path, header, line, _SIGMA, "standard deviations")
+        extra = [n for n in header if n not in _RESERVED and n not in numbers.values()]
+        return cls(index, joints, has_positions, has_sigma, extra)
+
+
+def _all_or_none(path: str, header: list[str], line: int, names: Sequence[str], what: str) -> bool:
+    present = [n for n in names if n in header]
+    if present and len(present) != len(names):
+        missing = [n for n in names if n not in header]
+        _missing(path, header, line, missing,
+                 f"{what} need all of {', '.join(names)} (found {', '.join(present)})")
+    return bool(present)
+
+
+def _missing(path: str, header: list[str], line: int, missing: list[str], why: str) -> None:
+    names = ", ".join(f"'{m}'" for m in missing)
+    lower = {h.lower(): h for h in header}
+    near = [f"'{lower[m.lower()]}'" for m in missing if m.lower() in lower]
+    hint = f"column names are case-sensitive; found {', '.join(near)}" if near else None
+    raise MeasurementFileError(
+        path, f"missing column{'s' if len(missing) > 1 else ''} {names}: {why}",
+        line=line, column=missing[0], hint=hint,
+    )
+
+
+def _check_joint_count(path, layout: _Layout, line: int, dof, joint_limits, robot_name) -> None:
+    n = len(layout.joints)
+    if dof is not None:
+        expected = dof
+        who = f"robot '{robot_name}' has {dof} joints" if robot_name else f"{dof} joints are expected"
+    elif joint_limits is not None:
+        expected = joint_limits.shape[0]
+        who = f"the joint limits cover {expected} joints"
+    else:
+        return
+    if n != expected:
+        columns = "q1" if n == 1 else f"q1..q{n}"
+        raise MeasurementFileError(
+            path, f"file has {n} joint column{'s' if n != 1 else ''} ({columns}) but {who}",
+            line=line, column=f"q{min(n, expected) + 1}",
+        )
+
+
+def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
+    """Parse every data row after the header; return (row-major values, line numbers)."""
+    ncol = len(header)
+    data_lines = []
+    line_numbers = []
+    for i in range(start, len(raw_lines)):
+        line = raw_lines[i]
+        if line and not line.isspace():
+            data_lines.append(line)
+            line_numbers.append(i + 1)
+
+    values: list[float] = []
+    rows: list[int] = []
+    reader = csv.reader(data_lines)
+    consumed = 0
+    for row in reader:
+        index = consumed
+        consumed = reader.line_num
+        line_no = line_numbers[index]
+        if consumed != index + 1:
+            raise MeasurementFileError(path, "unterminated quote in this row", line=line_no)
+        if data_lines[index].lstrip().startswith("#"):
+            raise MeasurementFileError(
+                path, "a comment line after the header", line=line_no,
+                hint="comment lines are allowed only before the header",
+            )
+        if len(row) != ncol:
+            _wrong_cell_count(path, row, header, line_no, data_lines[index])
+        try:
+            vals = [float(cell) for cell in row]
+        except ValueError:
+            vals = None
+        # sum() is nan/inf when a value is; a rare overflow only costs the slow path.
+        if vals is None or "_" in data_lines[index] or not math.isfinite(sum(vals)):
+            _check_cells(path, row, header, line_no)
+            if vals is None:  # pragma: no cover - float() and _check_cells agree on what parses
+                raise MeasurementFileError(path, "unreadable row", line=line_no)
+        values.extend(vals)
+        rows.append(line_no)
+    return values, rows
+
+
+def _check_cells(path: str, row: list[str], header: list[str], line: int) -> None:
+    """Slow path: find the first bad cell of a row and raise (fsum overflow may bring us here)."""
+    for cell, name in zip(row, header):
+        text = cell.strip()
+        if not text:
+            raise MeasurementFileError(path, "empty cell; every column needs a value", line=line, column=name)
+        try:
+            value = float(text)
+        except ValueError:
+            value = None
+        if value is None or "_" in text:
+            raise MeasurementFileError(path, f"'{text}' is not a number", line=line, column=name)
+        if math.isnan(value):
+            raise MeasurementFileError(
+                path, f"'{text}' is NaN; values must be finite", line=line, column=name
+            )
+        if math.isinf(value):
+            raise MeasurementFileError(
+                path, f"'{text}' is infinite; values must be finite", line=line, column=name
+            )
+
+
+def _wrong_cell_count(path: str, row: list[str], header: list[str], line: int, raw: str) -> None:
+    n, ncol = len(row), len(header)
+    if n < ncol:
+        raise MeasurementFileError(
+            path,
+            f"row has {n} values but the header has {ncol} columns; '{header[n]}' and after are missing",
+            line=line, column=header[n],
+        )
+    hint = None
+    if re.search(r"\d,\d", raw):
+        hint = "use '.' as the decimal point; ',' only separates values"
+    raise MeasurementFileError(
+        path, f"row has {n} values but the header has {ncol} columns (extra values after '{header[-1]}')",
+        line=line, hint=hint,
+    )
+
+
+def _first_bad(mask: torch.Tensor, order: Sequence[int]) -> tuple[int, int]:
+    """First True of an (N, k) mask in file order: by row, then by file column position."""
+    row = int(mask.any(dim=1).nonzero()[0, 0])
+    cols = [j for j in sorted(range(mask.shape[1]), key=lambda j: order[j]) if mask[row, j]]
+    return row, cols[0]
+
+
+def _check_monotonic(path: str, t: torch.Tensor, lines: list[int]) -> None:
+    back = (t[1:] < t[:-1]).nonzero()
+    if back.numel():
+        i = int(back[0, 0]) + 1
+        raise MeasurementFileError(
+            path, f"t = {t[i].item()!r} s is earlier than {t[i - 1].item()!r} s on line {lines[i - 1]}; "
+            "t must be non-decreasing within a file", line=lines[i], column="t",
+        )
+
+
+def _check_positive_sigma(path, sigma, lines, layout: _Layout, unit: str) -> None:
+    bad = ~(sigma > 0)
+    if bad.any():
+        i, j = _first_bad(bad, [layout.index[c] for c in _SIGMA])
+        raise MeasurementFileError(
+            path, f"{_SIGMA[j]} = {sigma[i, j].item()!r} {unit}; a standard deviation must be > 0",
+            line=lines[i], column=_SIGMA[j],
+        )
+
+
+def _check_length_unit(path, p, lines, layout: _Layout, unit: str) -> None:
+    distance = p.norm(dim=1)
+    median = distance.median().item()
+    if unit == "m" and median > _MAX_MEDIAN_DISTANCE_M:
+        i = int((distance > _MAX_MEDIAN_DISTANCE_M).nonzero()[0, 0])
+        problem, hint = (
+            f"positions look like millimetres: the median distance from the tracker origin is "
+            f"{median:.6g} m, more than {_MAX_MEDIAN_DISTANCE_M:g} m",
+            "if x, y, z (and sx, sy, sz) are in millimetres, pass --length-unit mm (length_unit='mm')",
+        )
+    elif unit == "mm" and median < _MIN_MEDIAN_DISTANCE_MM:
+        i = int((distance < _MIN_MEDIAN_DISTANCE_MM).nonzero()[0, 0])
+        problem, hint = (
+            f"positions look like metres: the median distance from the tracker origin is {median:.6g} mm, "
+            f"less than {_MIN_MEDIAN_DISTANCE_MM:g} mm, closer than a tracker measures",
+            "if x, y, z (and sx, sy, sz) are in metres, pass --length-unit m (length_unit='m')",
+        )
+    else:
+        return
+    j = int(p[i].abs().argmax())
+    raise MeasurementFileError(path, problem, line=lines[i], column=_POSITION[j], hint=hint)
+
+
+def _check_sigma_unit(path, sigma, lines, layout: _Layout) -> None:
+    median = sigma.median().item()
+    if median > _MAX_MEDIAN_SIGMA_M:
+        i, j = _first_bad(sigma > _MAX_MEDIAN_SIGMA_M, [layout.index[c] for c in _SIGMA])
+        raise MeasurementFileError(
+            path, f"standard deviations look like millimetres: their median is {median:.6g} m, "
+            f"more than {_MAX_MEDIAN_SIGMA_M:g} m (1 cm)", line=lines[i], column=_SIGMA[j],
+            hint="if x, y, z and sx, sy, sz are in millimetres, pass --length-unit mm (length_unit='mm')",
+        )
+
+
+def _check_angle_unit(path, q, lines, layout: _Layout) -> None:
+    bad = q.abs() > _MAX_ABS_ANGLE_RAD
+    if bad.any():
+        i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
+        raise MeasurementFileError(
+            path, f"{layout.joints[j]} = {q[i, j].item()!r} rad is more than one turn (2*pi); "
+            "the joint readings look like degrees", line=lines[i], column=layout.joints[j],
+            hint="if q1..qN are in degrees, pass --angle-unit deg (angle_unit='deg')",
+        )
+
+
+def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, robot_name) -> None:
+    lower, upper = limits[:, 0], limits[:, 1]
+    bad = (q < lower - _JOINT_LIMIT_TOL) | (q > upper + _JOINT_LIMIT_TOL)
+    if not bad.any():
+        return
+    i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
+    name = layout.joints[j]
+    value, lo, hi = q[i, j].item(), lower[j].item(), upper[j].item()
+    if angle_unit == "deg":
+        shown = f"{math.degrees(value):.6g} deg ({value:.6g} rad)"
+        bounds = f"[{math.degrees(lo):.6g}, {math.degrees(hi):.6g}] deg"
+    else:
+        shown = f"{value:.6g} rad"
+        bounds = f"[{lo:.6g}, {hi:.6g}] rad"
+    whose = f"robot '{robot_name}'" if robot_name else "the robot"
+    raise MeasurementFileError(
+        path, f"{name} = {shown} is outside the limits of {whose}, {bounds}", line=lines[i], column=name,
+    )
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _format_row(values: Sequence[float]) -> str:
+    # repr(float) is the shortest text that reads back to the same double: round trips are exact.
+    return ",".join([repr(v) for v in values]) + "\n"
+
+
+def write_measurements(
+    path: str | os.PathLike,
+    m: Measurements,
+    *,
+    meta: Mapping[str, str] | None = None,
+    columns: Sequence[str] | None = None,
+) -> None:
+    """Write ``m`` in the contract format, SI units, atomically.
+
+    The header is ``q1..qN,x,y,z[,t][,temperature][,sx,sy,sz][,extra...]`` (x, y, z left
+    out when ``m.p`` is None). Values are written with ``repr(float)``, so reading the file
+    back gives bit-identical tensors. The file is written to a temporary file in the same
+    directory and moved into place with ``os.replace``: a failure never leaves partial output.
+
+    Args:
+        path: the file to write (replaced if it exists).
+        m: the measurements.
+        meta: ``# key: value`` lines; merged over ``m.meta`` (its keys win).
+        columns: the columns to write and their order (default: all, in the order above).
+
+    Raises:
+        OptionError: a name in ``columns`` that ``m`` does not have.
+        MeasurementFileError: a non-finite value, a meta entry that cannot be written, or the
+            file cannot be written.
+    """
+    path_str = str(path)
+    available: dict[str, torch.Tensor] = {f"q{k + 1}": m.q[:, k] for k in range(m.dof)}
+    if m.p is not None:
+        available.update({c: m.p[:, k] for k, c in enumerate(_POSITION)})
+    if m.t is not None:
+        available["t"] = m.t
+    if m.temperature is not None:
+        available["temperature"] = m.temperature
+    if m.sigma is not None:
+        available.update({c: m.sigma[:, k] for k, c in enumerate(_SIGMA)})
+    available.update(m.extra)
+
+    if columns is None:
+        columns = list(available)
+    else:
+        columns = list(columns)
+        unknown = [c for c in columns if c not in available]
+        if unknown:
+            raise OptionError(
+                f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}"
+            )
+        if len(set(columns)) != len(columns):
+            raise OptionError(f"columns lists a name twice: {columns}")
+
+    merged = {**m.meta, **(meta or {})}
+    head = []
+    for key, value in merged.items():
+        key, value = str(key), str(value)
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.\-]*", key) or "\n" in value or "\r" in value:
+            raise MeasurementFileError(
+                path_str, f"meta entry {key!r}: {value!r} cannot be written as a '# key: value' line "
+                "(keys are letters, digits, '_', '.', '-'; values are one line)",
+            )
+        head.append(f"# {key}: {value}\n")
+    head.append(",".join(columns) + "\n")
+
+    table = torch.stack([available[c] for c in columns], dim=1) if columns else torch.empty(m.n, 0)
+    finite = torch.isfinite(table)
+    if not finite.all():
+        i, j = _first_bad(~finite, list(range(len(columns))))
+        raise MeasurementFileError(
+            path_str, f"cannot write {table[i, j].item()!r}: values must be finite",
+            line=len(head) + i + 1, column=columns[j],
+        )
+
+    _atomic_write(path_str, head, table.tolist())
+
+
+def _atomic_write(path: str, head: list[str], rows: list[list[float]]) -> None:
+    target = Path(path)
+    tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
+    try:
+        # os.open with 0o666 lets the umask decide the permissions, as for a plain open().
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+    except OSError as err:
+        raise MeasurementFileError(path, f"cannot write the file: {err.strerror or err}") from err
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.writelines(head)
+            for row in rows:
+                f.write(_format_row(row))
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    except BaseException as err:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        if isinstance(err, OSError):
+            raise MeasurementFileError(path, f"cannot write the file: {err.strerror or err}") from err
+        raise

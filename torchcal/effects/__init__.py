@@ -1,0 +1,15 @@
+"""Non-geometric effect models: compliance, backlash, cyclic, drift, learned (CorrectionNet)."""
+
+from torchcal.effects.base import Context, Effect, motion_direction
+from torchcal.effects.drift import Drift
+from torchcal.effects.joint import Backlash, Compliance, Cyclic
+from torchcal.effects.learned import CorrectionNet, LearnedEffect
+from torchcal.effects.model import MeasurementModel
+
+#: effect kinds as named in report.json (CONTRACT §4)
+KINDS = ("compliance", "backlash", "cyclic", "drift", "learned")
+
+__all__ = [
+    "KINDS", "Backlash", "Compliance", "Context", "CorrectionNet", "Cyclic", "Drift", "Effect", "LearnedEffect",
+    "MeasurementModel", "motion_direction",
+]

@@ -1,0 +1,108 @@
+"""What every non-geometric effect shares, and the context it reads.
+
+An effect is an ``nn.Module`` with its own parameters that acts where it physically
+does: on the joint angles (``joint``: returns ``dq (N, dof)`` added to the readings), on
+the probe position in the robot base frame (``cartesian``: returns ``dp (N, 3)``), or on
+the instrument pose (``instrument``: returns a per-sample correction ``(N, 6)``
+``[t, r]`` applied as ``T_tracker_base @ [exp(r) | t]``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+Tensor = torch.Tensor
+
+
+@dataclass
+class Context:
+    """Per-sample inputs an effect may read.
+
+    Attributes:
+        q: joint readings ``(N, dof)`` [rad].
+        t: acquisition time ``(N,)`` [s] or None.
+        temperature: ``(N,)`` [degC] or None.
+        direction: sign of each joint's motion ``(N, dof)`` in {-1, 0, +1} (trajectories), or None.
+    """
+
+    q: Tensor
+    t: Tensor | None = None
+    temperature: Tensor | None = None
+    direction: Tensor | None = None
+
+    @classmethod
+    def from_measurements(cls, m, *, trajectory: bool | None = None) -> Context:
+        """Context of a :class:`~torchcal.data.Measurements`; motion direction when it is a trajectory."""
+        traj = (m.t is not None) if trajectory is None else trajectory
+        return cls(q=m.q, t=m.t, temperature=m.temperature, direction=motion_direction(m.q) if traj else None)
+
+    def subset(self, idx) -> Context:
+        def pick(x):
+            return None if x is None else x[idx]
+
+        return Context(q=self.q[idx], t=pick(self.t), temperature=pick(self.temperature),
+                       direction=pick(self.direction))
+
+
+def motion_direction(q: Tensor, deadband: float = 0.0) -> Tensor:
+    """Sign of each joint's motion along a sampled trajectory ``(N, dof)``.
+
+    Where a joint stands still (|dq| <= deadband) the previous sign is held, because a
+    gear stays on the flank it last loaded; the first sample takes the first motion's sign.
+    """
+    dq = torch.diff(q, dim=0, prepend=q[:1])
+    s = torch.where(dq.abs() > deadband, torch.sign(dq), torch.zeros_like(dq))
+    out = s.clone()
+    # forward fill of zeros (hold last non-zero sign), then back fill the leading zeros
+    idx = torch.arange(len(q), device=q.device).unsqueeze(1).expand_as(s)
+    last = torch.where(s != 0, idx, torch.zeros_like(idx))
+    last = torch.cummax(last, dim=0).values
+    out = torch.gather(s, 0, last)
+    first_nonzero = torch.where(s != 0, idx, torch.full_like(idx, len(q))).min(dim=0).values
+    lead = idx < first_nonzero.unsqueeze(0)
+    first_sign = torch.gather(s, 0, first_nonzero.clamp(max=len(q) - 1).unsqueeze(0)).expand_as(s)
+    return torch.where(lead, first_sign, out)
+
+
+class Effect(nn.Module):
+    """Base class. Subclasses set ``kind`` and ``acts_on`` and implement ``forward(robot, ctx)``.
+
+    Args:
+        joint: 1-based joint the effect belongs to, or None.
+    """
+
+    kind: str = "effect"
+    acts_on: str = "joint"  # "joint" | "cartesian" | "instrument"
+
+    def __init__(self, joint: int | None = None):
+        super().__init__()
+        self.joint = joint
+
+    @property
+    def j(self) -> int:
+        """0-based joint index."""
+        return int(self.joint) - 1
+
+    def forward(self, robot, ctx: Context) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def scale_(self, factor: float) -> None:
+        """Multiply the effect's magnitude by ``factor`` (the simulator sizes effects this way)."""
+        with torch.no_grad():
+            for p in self.parameters():
+                p.mul_(factor)
+
+    def describe(self) -> dict:
+        """The effect's parameters as plain numbers, for truth.json and reports."""
+        return {name: p.detach().cpu().tolist() for name, p in self.named_parameters()}
+
+    def label(self) -> str:
+        return self.kind if self.joint is None else f"{self.kind}(joint {self.joint})"
+
+    def _joint_delta(self, ctx: Context, value: Tensor) -> Tensor:
+        dq = torch.zeros_like(ctx.q)
+        dq[:, self.j] = value
+        return dq

@@ -1,0 +1,134 @@
+"""Effects that act on one joint angle: compliance, backlash, cyclic transmission errors."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from torchcal.effects.base import Context, Effect
+
+Tensor = torch.Tensor
+
+
+class Compliance(Effect):
+    """Joint compliance under gravity.
+
+    A harmonic drive and its bearings twist elastically under load: the gravity torque
+    of the links beyond joint j (from the masses and centres of mass of the robot
+    description, plus an optional payload at the probe) deflects the joint by
+    ``dq_j = k * tau_j(q)``, with ``k`` the joint's compliance [rad / (N m)]. The encoder
+    sits on the motor side, so the reading misses this twist and the arm sags.
+
+    Args:
+        joint: 1-based joint.
+        k: compliance [rad/(N m)].
+        payload: mass at the probe [kg].
+    """
+
+    kind = "compliance"
+
+    def __init__(self, joint: int, k: float = 0.0, payload: float = 0.0):
+        super().__init__(joint)
+        self.k = nn.Parameter(torch.tensor(float(k), dtype=torch.float64))
+        self.payload = float(payload)
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """The gravity torque at this joint ``(N,)`` [N m]: the term multiplied by ``k``."""
+        with torch.no_grad():
+            return robot.gravity_torques(ctx.q, payload=self.payload)[:, self.j]
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        return self._joint_delta(ctx, self.k * self.regressor(robot, ctx))
+
+    def describe(self) -> dict:
+        return {"k_rad_per_Nm": float(self.k), "payload_kg": self.payload}
+
+
+class Backlash(Effect):
+    """Gear backlash: a dead zone of width ``b`` between the gear flanks.
+
+    The joint rests on one flank or the other, so its angle is offset by ``+b/2`` or
+    ``-b/2`` depending on which way the load pushes it: the sign of the gravity torque
+    for static poses, the direction of motion along a trajectory (``source="motion"``),
+    or the motion where it is known and the torque otherwise (``source="auto"``).
+
+    Args:
+        joint: 1-based joint.
+        b: backlash width [rad].
+        source: "torque", "motion" or "auto".
+    """
+
+    kind = "backlash"
+    SOURCES = ("torque", "motion", "auto")
+
+    def __init__(self, joint: int, b: float = 0.0, source: str = "auto"):
+        super().__init__(joint)
+        if source not in self.SOURCES:
+            from torchcal.errors import OptionError
+
+            raise OptionError(f"backlash source '{source}' is not one of {self.SOURCES}")
+        self.b = nn.Parameter(torch.tensor(float(b), dtype=torch.float64))
+        self.source = source
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """The flank sign ``(N,)`` in {-1, +1} (the term multiplied by ``b / 2``)."""
+        if self.source != "torque" and ctx.direction is not None:
+            s = ctx.direction[:, self.j]
+        elif self.source == "motion":
+            from torchcal.errors import EstimationError
+
+            raise EstimationError("backlash with source='motion' needs a trajectory (a 't' column)")
+        else:
+            with torch.no_grad():
+                s = torch.sign(robot.gravity_torques(ctx.q)[:, self.j])
+        return torch.where(s == 0, torch.ones_like(s), s)
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        return self._joint_delta(ctx, 0.5 * self.b * self.regressor(robot, ctx))
+
+    def describe(self) -> dict:
+        return {"b_rad": float(self.b), "source": self.source}
+
+
+class Cyclic(Effect):
+    """Cyclic transmission errors: ``dq_j = sum_k a_k sin(k q_j) + b_k cos(k q_j)``.
+
+    Eccentric gears, encoders mounted off-centre and the flexspline's two-lobe wave
+    make the true joint angle run ahead and behind the reading periodically, once or
+    twice per revolution of the output (and at the gear ratio's multiples on the motor
+    side, too fast to see at the flange). The first harmonics are the ones a
+    calibration can resolve.
+
+    Args:
+        joint: 1-based joint.
+        harmonics: the orders k (default 1 and 2).
+        a, b: sine and cosine amplitudes [rad], one per harmonic.
+    """
+
+    kind = "cyclic"
+
+    def __init__(self, joint: int, harmonics: Sequence[int] = (1, 2), a=None, b=None):
+        super().__init__(joint)
+        h = torch.tensor([int(k) for k in harmonics], dtype=torch.float64)
+        self.register_buffer("harmonics", h)
+        n = len(harmonics)
+        def init(v):
+            return torch.zeros(n, dtype=torch.float64) if v is None else torch.as_tensor(v, dtype=torch.float64)
+
+        self.a = nn.Parameter(init(a).clone())
+        self.b = nn.Parameter(init(b).clone())
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """``[sin(k q_j), cos(k q_j)]`` per harmonic ``(N, 2 * n_harmonics)``."""
+        arg = ctx.q[:, self.j : self.j + 1] * self.harmonics
+        return torch.cat([torch.sin(arg), torch.cos(arg)], dim=-1)
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        coef = torch.cat([self.a, self.b])
+        return self._joint_delta(ctx, self.regressor(robot, ctx) @ coef)
+
+    def describe(self) -> dict:
+        return {"harmonics": [int(k) for k in self.harmonics], "a_rad": self.a.detach().tolist(),
+                "b_rad": self.b.detach().tolist()}

@@ -1,0 +1,68 @@
+"""The full observation model: geometry + effects -> probe position in the tracker frame."""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import torch
+from torch import nn
+
+from torchcal.effects.base import Context, Effect
+from torchcal.effects.drift import Drift
+from torchcal.robot import transforms as tf
+from torchcal.robot.model import RobotModel
+
+Tensor = torch.Tensor
+
+
+class MeasurementModel(nn.Module):
+    """``p_tracker = T_tracker_base(ctx) @ (T_base_flange(q + dq) @ t_flange_probe + dp)``.
+
+    ``dq`` sums the joint effects, ``dp`` the Cartesian ones (base frame), and instrument
+    effects perturb ``T_tracker_base`` per sample.
+
+    Args:
+        robot: the :class:`RobotModel` (geometry, instrument pose, lever arm).
+        effects: non-geometric effects.
+    """
+
+    def __init__(self, robot: RobotModel, effects: Iterable[Effect] = ()):
+        super().__init__()
+        self.robot = robot
+        self.effects = nn.ModuleList(list(effects))
+
+    def add(self, effect: Effect) -> None:
+        self.effects.append(effect)
+
+    def joint_offsets(self, ctx: Context) -> Tensor:
+        dq = torch.zeros_like(ctx.q)
+        for e in self.effects:
+            if e.acts_on == "joint":
+                dq = dq + e(self.robot, ctx)
+        return dq
+
+    def probe_in_base(self, ctx: Context, *, with_cartesian: bool = True) -> Tensor:
+        """Probe position in the base frame ``(N, 3)`` with joint and Cartesian effects applied."""
+        q = ctx.q + self.joint_offsets(ctx)
+        p = self.robot.probe_in_base(q)
+        if with_cartesian:
+            for e in self.effects:
+                if e.acts_on != "cartesian":
+                    continue
+                p = p + (e(self.robot, ctx, p_base=p) if isinstance(e, Drift) else e(self.robot, ctx))
+        return p
+
+    def forward(self, ctx: Context) -> Tensor:
+        """Probe position in the tracker frame ``(N, 3)`` [m]."""
+        p = self.probe_in_base(ctx)
+        T = self.robot.T_tracker_base()
+        inst = [e for e in self.effects if e.acts_on == "instrument"]
+        if not inst:
+            return tf.transform_points(T, p)
+        xi = sum(e(self.robot, ctx) for e in inst)
+        return tf.transform_points(T @ tf.se3_from_vector(xi), p)
+
+    def predict(self, q: Tensor, **kw) -> Tensor:
+        """Convenience: ``forward(Context(q, **kw))`` without gradients."""
+        with torch.no_grad():
+            return self(Context(q=q, **kw))

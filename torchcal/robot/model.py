@@ -1,0 +1,417 @@
+"""The differentiable robot model: geometry, instrument pose and lever arm as ``nn.Parameter``s.
+
+Every serial arm, whether described by a DH table or a URDF, is reduced to one form::
+
+    T_base_flange(q) = O_1 R_1(q_1) O_2 R_2(q_2) ... O_n R_n(q_n) O_tip
+
+where ``O_i`` is the constant transform in front of joint ``i`` (it depends on the
+calibration parameters) and ``R_i`` the rotation about the joint's unit axis. The
+parameterisation of the ``O_i`` is what differs:
+
+* :class:`DHGeometry`: per joint ``[a, alpha, d, theta, beta]`` (Hayati's ``beta``, a
+  rotation about y, for nearly parallel consecutive axes, which DH cannot represent);
+* :class:`URDFGeometry`: a small 6-DoF error ``[tx, ty, tz, rx, ry, rz]`` on each joint origin.
+
+pytorch-kinematics bakes its offsets and cuts their gradients, so torchcal computes
+FK itself in float64 and keeps a pytorch-kinematics chain built from the same
+float64 matrices for structure, limits, Jacobians and IK (:attr:`RobotModel.chain`).
+
+Measured quantity: the probe position in the tracker frame,
+``p_tracker = T_tracker_base @ T_base_flange(q) @ t_flange_probe``.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from torchcal.errors import ShapeError
+from torchcal.robot import transforms as tf
+
+Tensor = torch.Tensor
+GRAVITY = 9.80665  # m/s^2, standard gravity, along -z of the robot base frame
+
+
+class DHConvention(enum.Enum):
+    """Denavit-Hartenberg conventions.
+
+    STANDARD: link i = Rz(q_i + theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i) [Ry(beta_i)]
+    MODIFIED (Craig): link i = Rx(alpha_{i-1}) [Ry(beta_{i-1})] Tx(a_{i-1}) Rz(q_i + theta_i) Tz(d_i),
+    where the table row i holds alpha_{i-1}, a_{i-1}, theta_i, d_i.
+    """
+
+    STANDARD = "standard"
+    MODIFIED = "modified"
+
+
+def _check_dtype(name: str, t: Tensor, ref: Tensor) -> None:
+    if t.dtype != ref.dtype or t.device != ref.device:
+        raise ShapeError(
+            f"{name} has dtype {t.dtype} on {t.device}, but the model is {ref.dtype} on {ref.device}; "
+            "torchcal computes in float64 and never converts silently"
+        )
+
+
+class _Group(nn.Module):
+    """A parameter group: zero-initialised corrections ``delta`` and a boolean ``mask`` of free elements.
+
+    Fixed elements keep their current value (zero unless set): ``mask`` tells the
+    estimators what they may vary, it does not zero anything in the forward pass.
+    """
+
+    names: list[str]
+
+    def _init_group(self, shape: Sequence[int], names: list[str], mask: Tensor, dtype, device) -> None:
+        self.delta = nn.Parameter(torch.zeros(*shape, dtype=dtype, device=device))
+        self.register_buffer("mask", mask.to(device=device, dtype=torch.bool).reshape(*shape).clone())
+        self.names = names
+
+    def reset(self) -> None:
+        with torch.no_grad():
+            self.delta.zero_()
+
+
+class DHGeometry(_Group):
+    """Per-joint DH errors ``[a, alpha, d, theta, beta]`` on nominal buffers.
+
+    Args:
+        a, alpha, d, theta: nominal values, shape (dof,), metres and radians.
+        convention: :class:`DHConvention`.
+    """
+
+    COLUMNS = ("a", "alpha", "d", "theta", "beta")
+
+    def __init__(self, *, a, alpha, d, theta, convention: DHConvention, dtype=torch.float64, device="cpu"):
+        super().__init__()
+        if dtype != torch.float64:
+            raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
+        nominal = torch.stack([torch.as_tensor(v, dtype=dtype) for v in (a, alpha, d, theta)], dim=-1)
+        dof = nominal.shape[0]
+        nominal = torch.cat([nominal, torch.zeros(dof, 1, dtype=dtype)], dim=-1)
+        self.register_buffer("nominal", nominal.to(device))
+        self.convention = DHConvention(convention)
+        # beta only where consecutive axes are (nearly) parallel: there DH's d is ill-defined
+        # and the tilt about y is not representable by alpha; elsewhere beta is redundant.
+        parallel = torch.sin(nominal[:, 1]).abs() < 0.1
+        mask = torch.ones(dof, 5, dtype=torch.bool)
+        mask[:, 4] = parallel
+        if self.convention is DHConvention.MODIFIED:
+            mask[0, 4] = False  # alpha_0 relates the base frame, not two joint axes
+        else:
+            mask[-1, 4] = False  # the flange frame has no next joint axis to be parallel to
+        names = [f"{c}{i + 1}" for i in range(dof) for c in self.COLUMNS]
+        self._init_group((dof, 5), names, mask, dtype, device)
+        self.register_buffer("axes", torch.tensor([[0.0, 0.0, 1.0]] * dof, dtype=dtype, device=device))
+
+    @property
+    def dof(self) -> int:
+        return self.nominal.shape[0]
+
+    @property
+    def values(self) -> Tensor:
+        """Current DH table ``(dof, 5)``: nominal + correction."""
+        return self.nominal + self.delta
+
+    def origins(self) -> Tensor:
+        """Constant transforms ``(dof + 1, 4, 4)``: ``O_1 .. O_n`` then ``O_tip``."""
+        v = self.values
+        a, alpha, d, theta, beta = v.unbind(-1)
+        zero = torch.zeros_like(a)
+        Tz_d = tf.translation(torch.stack([zero, zero, d], -1))
+        Tx_a = tf.translation(torch.stack([a, zero, zero], -1))
+        Rz_th = tf.homogeneous(tf.rot_z(theta), torch.zeros_like(v[:, :3]))
+        Rx_al = tf.homogeneous(tf.rot_x(alpha), torch.zeros_like(v[:, :3]))
+        Ry_be = tf.homogeneous(tf.rot_y(beta), torch.zeros_like(v[:, :3]))
+        eye = torch.eye(4, dtype=v.dtype, device=v.device).unsqueeze(0)
+        if self.convention is DHConvention.STANDARD:
+            M = Rz_th @ Tz_d @ Tx_a @ Rx_al @ Ry_be  # link i after its joint rotation
+            return torch.cat([eye, M], dim=0)
+        M = Rx_al @ Ry_be @ Tx_a @ Rz_th @ Tz_d  # link i before its joint rotation
+        return torch.cat([M, eye], dim=0)
+
+    def set_values(self, table: Tensor) -> None:
+        """Set the corrections so that :attr:`values` equals ``table (dof, 5)``."""
+        with torch.no_grad():
+            self.delta.copy_(table - self.nominal)
+
+
+class URDFGeometry(_Group):
+    """Small 6-DoF errors ``[tx, ty, tz, rx, ry, rz]`` on each joint origin: ``O_i = O_i,nom @ [exp(r) | t]``.
+
+    Args:
+        origins: nominal ``(dof + 1, 4, 4)`` (fixed joints folded in), the last one ``O_tip``.
+        axes: unit joint axes ``(dof, 3)`` in the joint frames.
+        joint_names: the URDF joint names, used to name the parameters.
+    """
+
+    COLUMNS = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+    def __init__(self, *, origins: Tensor, axes: Tensor, joint_names: Sequence[str], dtype=torch.float64,
+                 device="cpu"):
+        super().__init__()
+        if dtype != torch.float64:
+            raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
+        dof = axes.shape[0]
+        self.register_buffer("nominal", origins.to(dtype=dtype, device=device).clone())
+        self.register_buffer("axes", axes.to(dtype=dtype, device=device).clone())
+        names = [f"{j}.{c}" for j in joint_names for c in self.COLUMNS]
+        self._init_group((dof, 6), names, torch.ones(dof, 6, dtype=torch.bool), dtype, device)
+
+    @property
+    def dof(self) -> int:
+        return self.axes.shape[0]
+
+    def origins(self) -> Tensor:
+        err = tf.se3_from_vector(self.delta)
+        return torch.cat([self.nominal[:-1] @ err, self.nominal[-1:]], dim=0)
+
+
+class Instrument(_Group):
+    """The instrument pose ``T_tracker_base = T_nominal @ [exp(r) | t]``, correction ``[tx, ty, tz, rx, ry, rz]``.
+
+    The correction acts in robot-base coordinates, so that its components line up with the
+    robot's own parameters (``tz`` with ``d1``, ``rz`` with ``theta1``) whatever the tracker's
+    orientation.
+    """
+
+    COLUMNS = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+    def __init__(self, T_nominal: Tensor | None = None, dtype=torch.float64, device="cpu"):
+        super().__init__()
+        T = torch.eye(4, dtype=dtype) if T_nominal is None else torch.as_tensor(T_nominal, dtype=dtype)
+        self.register_buffer("nominal", T.to(device).clone())
+        self._init_group((6,), [f"instrument.{c}" for c in self.COLUMNS], torch.ones(6, dtype=torch.bool),
+                         dtype, device)
+
+    def matrix(self) -> Tensor:
+        """``T_tracker_base (4, 4)``."""
+        return self.nominal @ tf.se3_from_vector(self.delta)
+
+    def set_matrix(self, T: Tensor) -> None:
+        """Make ``T`` the new nominal and zero the correction (used after a closed-form initial fit)."""
+        with torch.no_grad():
+            self.nominal.copy_(T)
+            self.delta.zero_()
+
+
+class Tool(_Group):
+    """The lever arm ``t_flange_probe = nominal + delta`` (probe position in the flange frame, m)."""
+
+    COLUMNS = ("x", "y", "z")
+
+    def __init__(self, t_nominal: Tensor | None = None, dtype=torch.float64, device="cpu"):
+        super().__init__()
+        t = torch.zeros(3, dtype=dtype) if t_nominal is None else torch.as_tensor(t_nominal, dtype=dtype)
+        self.register_buffer("nominal", t.to(device).clone())
+        self._init_group((3,), [f"tool.{c}" for c in self.COLUMNS], torch.ones(3, dtype=torch.bool), dtype,
+                         device)
+
+    def vector(self) -> Tensor:
+        return self.nominal + self.delta
+
+
+@dataclass(frozen=True)
+class ParameterInfo:
+    """One element of a calibration parameter group, for reports and estimators."""
+
+    group: str  # "geometry" | "instrument" | "tool"
+    name: str  # e.g. "d1", "shoulder_pan_joint.tz", "instrument.rz", "tool.x"
+    index: tuple[int, ...]  # index into the group's delta tensor
+    unit: str  # "m" or "rad"
+
+
+class RobotModel(nn.Module):
+    """A serial robot arm with calibration parameters, float64, batched over poses.
+
+    Calling the module gives ``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)``.
+    """
+
+    def __init__(self, *, name: str, geometry: DHGeometry | URDFGeometry, limits: Tensor,
+                 joint_names: Sequence[str], link_names: Sequence[str], masses: Tensor | None = None,
+                 coms: Tensor | None = None, source: str | None = None, kind: str = "dh",
+                 base_link: str = "base", tip_link: str = "flange", dtype=torch.float64, device="cpu"):
+        super().__init__()
+        if dtype != torch.float64:
+            raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
+        self.name = name
+        self.kind = kind
+        self.source = source
+        self.geometry = geometry
+        self.instrument = Instrument(dtype=dtype, device=device)
+        self.tool = Tool(dtype=dtype, device=device)
+        dof = geometry.dof
+        self.joint_names = list(joint_names)
+        self.link_names = list(link_names)  # dof + 2: base, the link moved by each joint, tip
+        self.base_link = base_link
+        self.tip_link = tip_link
+        self.register_buffer("limits", torch.as_tensor(limits, dtype=dtype).reshape(dof, 2).to(device).clone())
+        # link masses [kg] and centres of mass in each joint's child frame (the frame that
+        # rotates with joint i, F_i below): what gravity-torque effects need
+        m = torch.zeros(dof, dtype=dtype) if masses is None else torch.as_tensor(masses, dtype=dtype)
+        c = torch.zeros(dof, 3, dtype=dtype) if coms is None else torch.as_tensor(coms, dtype=dtype)
+        self.register_buffer("masses", m.to(device).clone())
+        self.register_buffer("coms", c.to(device).clone())
+        self.has_masses = masses is not None
+        self._chain_cache: tuple[bytes, object] | None = None
+
+    # ----------------------------------------------------------------- basics
+    @property
+    def dof(self) -> int:
+        return self.geometry.dof
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.limits.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.limits.device
+
+    def _check_q(self, q: Tensor) -> Tensor:
+        if not isinstance(q, Tensor):
+            raise ShapeError(f"q must be a torch.Tensor of shape (N, {self.dof}), got {type(q).__name__}")
+        _check_dtype("q", q, self.limits)
+        if q.ndim < 1 or q.shape[-1] != self.dof:
+            raise ShapeError(f"q must have shape (N, {self.dof}) for robot '{self.name}', got {tuple(q.shape)}")
+        return q
+
+    # --------------------------------------------------------------------- FK
+    def joint_frames(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """Frames of every joint's child link and the flange.
+
+        Args:
+            q: joints ``(..., dof)`` [rad].
+
+        Returns:
+            ``F (..., dof, 4, 4)`` with ``F_i = T_base_(link moved by joint i)`` (the joint
+            rotation included; its origin lies on joint i's axis), and ``T_base_flange (..., 4, 4)``.
+        """
+        q = self._check_q(q)
+        O = self.geometry.origins()
+        axes = self.geometry.axes
+        batch = q.shape[:-1]
+        T = O[0].expand(*batch, 4, 4)
+        frames = []
+        zero3 = torch.zeros(*batch, 3, dtype=q.dtype, device=q.device)
+        for i in range(self.dof):
+            if i > 0:
+                T = T @ O[i]
+            R = tf.axis_angle(axes[i], q[..., i])
+            T = T @ tf.homogeneous(R, zero3)
+            frames.append(T)
+        return torch.stack(frames, dim=-3), T @ O[-1]
+
+    def forward(self, q: Tensor) -> Tensor:
+        """``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)`` [rad], current geometry."""
+        return self.joint_frames(q)[1]
+
+    def T_tracker_base(self) -> Tensor:
+        return self.instrument.matrix()
+
+    def t_flange_probe(self) -> Tensor:
+        return self.tool.vector()
+
+    def probe_in_base(self, q: Tensor) -> Tensor:
+        """Probe position in the robot base frame ``(..., 3)`` [m]."""
+        return tf.transform_points(self.forward(q), self.t_flange_probe())
+
+    def probe_position(self, q: Tensor) -> Tensor:
+        """Probe position in the tracker frame ``(..., 3)`` [m]: what a laser tracker measures."""
+        return tf.transform_points(self.T_tracker_base(), self.probe_in_base(q))
+
+    # ---------------------------------------------------------------- gravity
+    def gravity_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
+        """Static gravity torque at each joint ``(..., dof)`` [N m], robot base z pointing up.
+
+        ``tau_j = z_j . sum_{k >= j} (c_k - o_j) x (m_k g)`` with ``z_j, o_j`` the axis and a point
+        of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe.
+        """
+        F, T_flange = self.joint_frames(q)
+        com = tf.transform_points(F, self.coms)  # (..., dof, 3)
+        mg = torch.zeros(3, dtype=q.dtype, device=q.device)
+        mg[2] = -GRAVITY
+        force = self.masses[:, None] * mg  # (dof, 3)
+        axes_w = (F[..., :3, :3] @ self.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (..., dof, 3)
+        origins_w = F[..., :3, 3]
+        # moment of link k about joint j, summed over k >= j (suffix sums)
+        rel = com.unsqueeze(-3) - origins_w.unsqueeze(-2)  # (..., j, k, 3)
+        moments = torch.linalg.cross(rel, force.expand_as(rel))
+        upper = torch.triu(torch.ones(self.dof, self.dof, dtype=torch.bool, device=q.device))
+        total = (moments * upper[..., None]).sum(-2)  # (..., j, 3)
+        if payload:
+            p = tf.transform_points(T_flange, self.t_flange_probe())
+            arm = p.unsqueeze(-2) - origins_w
+            total = total + torch.linalg.cross(arm, (payload * mg).expand_as(arm))
+        return (total * axes_w).sum(-1)
+
+    # ------------------------------------------------------------- parameters
+    def groups(self) -> dict[str, _Group]:
+        return {"geometry": self.geometry, "instrument": self.instrument, "tool": self.tool}
+
+    def parameter_info(self) -> list[ParameterInfo]:
+        """Every calibration parameter element, in a fixed order (geometry, instrument, tool)."""
+        out = []
+        for gname, g in self.groups().items():
+            shape = g.delta.shape
+            for flat, name in enumerate(g.names):
+                idx = tuple(int(i) for i in torch.unravel_index(torch.tensor(flat), shape))
+                col = name.rsplit(".", 1)[-1] if "." in name else name.rstrip("0123456789")
+                unit = "rad" if col in ("alpha", "theta", "beta", "rx", "ry", "rz") else "m"
+                out.append(ParameterInfo(gname, name, idx, unit))
+        return out
+
+    def reset_parameters(self) -> None:
+        for g in self.groups().values():
+            g.reset()
+
+    # ------------------------------------------------------- pytorch-kinematics
+    @property
+    def chain(self):
+        """The pytorch-kinematics ``SerialChain`` of this robot with its current geometry.
+
+        Built from the float64 origin matrices (not through pk's URDF parser, which goes
+        through float32), rebuilt when the parameters change.
+        """
+        with torch.no_grad():
+            O = self.geometry.origins().detach()
+        key = O.cpu().numpy().tobytes()
+        if self._chain_cache is None or self._chain_cache[0] != key:
+            self._chain_cache = (key, build_pk_chain(self, O))
+        return self._chain_cache[1]
+
+
+def build_pk_chain(robot: RobotModel, origins: Tensor):
+    """A pytorch-kinematics SerialChain from float64 origin matrices ``(dof + 1, 4, 4)``."""
+    import pytorch_kinematics as pk
+
+    dtype, device = origins.dtype, origins.device
+    root = pk.Frame(name=robot.link_names[0], link=pk.Link(name=robot.link_names[0]),
+                    joint=pk.Joint(name="root", dtype=dtype, device=device))
+    parent = root
+    for i in range(robot.dof):
+        joint = pk.Joint(
+            name=robot.joint_names[i],
+            offset=pk.Transform3d(matrix=origins[i].clone(), dtype=dtype, device=device),
+            joint_type="revolute",
+            axis=robot.geometry.axes[i].clone(),
+            dtype=dtype,
+            device=device,
+            limits=(float(robot.limits[i, 0]), float(robot.limits[i, 1])),
+        )
+        frame = pk.Frame(name=robot.link_names[i + 1], link=pk.Link(name=robot.link_names[i + 1]), joint=joint)
+        parent.add_child(frame)
+        parent = frame
+    tip = pk.Frame(
+        name=robot.link_names[-1],
+        link=pk.Link(name=robot.link_names[-1]),
+        joint=pk.Joint(name=f"{robot.link_names[-1]}_fixed",
+                       offset=pk.Transform3d(matrix=origins[-1].clone(), dtype=dtype, device=device),
+                       joint_type="fixed", dtype=dtype, device=device),
+    )
+    parent.add_child(tip)
+    chain = pk.Chain(root, dtype=dtype, device=device)
+    return pk.SerialChain(chain, robot.link_names[-1], robot.link_names[0], dtype=dtype, device=device)
