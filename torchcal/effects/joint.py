@@ -43,7 +43,7 @@ class Compliance(Effect):
         return self._joint_delta(ctx, self.k * self.regressor(robot, ctx))
 
     def describe(self) -> dict:
-        return {"k_rad_per_Nm": float(self.k), "payload_kg": self.payload}
+        return {"k_rad_per_Nm": float(self.k.detach()), "payload_kg": self.payload}
 
 
 class Backlash(Effect):
@@ -89,7 +89,7 @@ class Backlash(Effect):
         return self._joint_delta(ctx, 0.5 * self.b * self.regressor(robot, ctx))
 
     def describe(self) -> dict:
-        return {"b_rad": float(self.b), "source": self.source}
+        return {"b_rad": float(self.b.detach()), "source": self.source}
 
 
 class Cyclic(Effect):

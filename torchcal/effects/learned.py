@@ -76,5 +76,11 @@ class LearnedEffect(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         return self.net(ctx.q)
 
+    def scale_(self, factor: float) -> None:
+        """Scale the field linearly: the output layer only (scaling hidden weights would bend it)."""
+        with torch.no_grad():
+            self.net.fc2.weight.mul_(factor)
+            self.net.fc2.bias.mul_(factor)
+
     def describe(self) -> dict:
         return {"dof": self.net.dof, "hidden": self.net.hidden, "n_weights": self.net.n_weights}
