@@ -73,12 +73,13 @@ def cmd_simulate(args) -> int:
         sigma_angle_deg=args.angle_bias, effects=[EffectSpec.parse(e) for e in args.effect],
         write_sigma=not args.no_sigma, base_link=args.base_link, tip_link=args.tip_link,
     )
-    _console.info(f"simulating {'a trajectory' if cfg.trajectory else 'static poses'} for '{cfg.robot}' (seed {cfg.seed})")
+    what = "a trajectory" if cfg.trajectory else "static poses"
+    _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")
     campaign = simulate(cfg)
     if args.length_unit == "mm":
         campaign = _to_mm(campaign)
     paths = write_campaign(campaign, args.out)
-    for key, path in paths.items():
+    for path in paths.values():
         _console.info(f"wrote {path}")
     return 0
 

@@ -53,7 +53,10 @@ class EffectSpec:
 
     @classmethod
     def parse(cls, text: str) -> EffectSpec:
-        """``KIND[:JOINT|:VARIABLE][=SIZE UNIT]``, e.g. ``compliance:2=50um``, ``field=0.6mm``, ``drift:temperature``."""
+        """Parse ``KIND[:JOINT|:VARIABLE][=SIZE UNIT]``.
+
+        Examples: ``compliance:2=50um``, ``field=0.6mm``, ``drift:temperature``.
+        """
         m = re.fullmatch(r"\s*([a-z]+)(?::([A-Za-z0-9_]+))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um))?\s*", text)
         if not m:
             if re.fullmatch(r".*=\s*[0-9.eE+-]+\s*", text):
