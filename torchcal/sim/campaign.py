@@ -39,7 +39,7 @@ F64 = torch.float64
 #: default sizes (RMS probe displacement, m) when an effect spec gives none
 DEFAULT_SIZES = {"compliance": 5e-5, "backlash": 3e-5, "cyclic": 3e-5, "drift": 5e-5, "field": 1.5e-4}
 EFFECT_NAMES = tuple(DEFAULT_SIZES)
-_UNITS = {"m": 1.0, "mm": 1e-3, "um": 1e-6}
+_UNITS = {"m": 1.0, "mm": 1e3, "um": 1e6}  # divisors to metres (exact for decimal input)
 
 
 @dataclass
@@ -65,7 +65,7 @@ class EffectSpec:
         kind, arg, size, unit = m.groups()
         if kind not in EFFECT_NAMES:
             raise OptionError(f"effect kind '{kind}' is not one of {', '.join(EFFECT_NAMES)}")
-        spec = cls(kind=kind, size=None if size is None else float(size) * _UNITS[unit])
+        spec = cls(kind=kind, size=None if size is None else float(size) / _UNITS[unit])
         if kind in ("compliance", "backlash", "cyclic"):
             if arg is None or not arg.isdigit():
                 raise OptionError(f"effect '{text}': {kind} needs a joint number, e.g. '{kind}:2'")
