@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -24,6 +25,11 @@ def _add_robot(p: argparse.ArgumentParser, required: bool = True) -> None:
                    help="built-in name (ur5, ur10, panda, ...), a URDF file or a DH YAML file")
     p.add_argument("--base-link", default=None, help="URDF: first link of the chain (default: the root)")
     p.add_argument("--tip-link", default=None, help="URDF: last link of the chain (default: the only deepest leaf)")
+
+
+def _add_units(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the file")
+    p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the joint columns")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,6 +60,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
     _add_common(s)
 
+    c = sub.add_parser("calibrate", help="fit the robot to measurements and write a run directory",
+                       description="Fit the robot to laser-tracker measurements (CONTRACT §1 file) and write the run "
+                       "directory: report.json, report.md with plots, robot_calibrated.urdf, model for predict.")
+    c.add_argument("data", help="measurement file (CSV, CONTRACT §1)")
+    _add_robot(c)
+    c.add_argument("--out", required=True, help="run directory to write")
+    c.add_argument("--method", default=None, help="kinematic (default), pcm, kinematic+ann")
+    c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
+    c.add_argument("--holdout", type=float, default=0.2, help="held-out fraction (default 0.2)")
+    c.add_argument("--tracker-noise", type=float, default=15.0,
+                   help="tracker noise per axis [um] when the file has no sx,sy,sz (default 15)")
+    c.add_argument("--joint-noise", type=float, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
+    c.add_argument("--rank-tol", type=float, default=None, help="identifiability tolerance (default 1e-6)")
+    _add_units(c)
+    _add_common(c)
+
+    pr = sub.add_parser("predict", help="predict probe positions with a calibrated run",
+                        description="Predict the probe position in the tracker frame for every row of DATA with "
+                        "everything the run learned (geometry, effects, network).")
+    pr.add_argument("run", help="run directory written by calibrate")
+    pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
+    pr.add_argument("--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns")
+    _add_units(pr)
+    _add_common(pr)
+
     d = sub.add_parser("demo", help="run the main job end to end on built-in simulated data",
                        description="Simulate a UR5 campaign with an effect the nominal model lacks and report the "
                        "error of the nominal model.")
@@ -61,6 +92,47 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     _add_common(d)
     return parser
+
+
+def cmd_calibrate(args) -> int:
+    from torchcal import calibrate as C
+    from torchcal.data import read_measurements
+    from torchcal.report import write_run
+    from torchcal.robot import load_robot
+
+    robot = load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link)
+    opts = C.Options(method=args.method or C.DEFAULT_METHOD, seed=args.seed, holdout=args.holdout,
+                     sigma_tracker=args.tracker_noise * 1e-6, sigma_joint=math.radians(args.joint_noise))
+    if args.rank_tol is not None:
+        opts.rank_tol = args.rank_tol
+    data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,
+                             angle_unit=args.angle_unit, require_positions=True,
+                             min_poses=C.min_poses(robot, opts.holdout), robot_name=robot.name,
+                             purpose=f"a {opts.method} calibration of '{robot.name}'")
+    run = C.calibrate(args.robot, data, opts, base_link=args.base_link, tip_link=args.tip_link)
+    out = write_run(run, args.out)
+    st = {s.name: s for s in run.stages}
+    _console.info(f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
+                  f"{st['geometric'].rmse * 1e3:.4f} mm, final {run.stages[-1].rmse * 1e3:.4f} mm")
+    _console.info(f"wrote {out / 'report.json'} and {out / 'report.md'}")
+    return 0
+
+
+def cmd_predict(args) -> int:
+    from dataclasses import replace
+
+    from torchcal.data import read_measurements, write_measurements
+    from torchcal.report import load_model, predict
+
+    model, _ = load_model(args.run)
+    robot = model.robot
+    data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,
+                             angle_unit=args.angle_unit, require_positions=False, robot_name=robot.name)
+    p = predict(args.run, data)
+    out = replace(data, p=p, sigma=None, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
+    write_measurements(args.out, out)
+    _console.info(f"wrote {len(p)} predictions to {args.out}")
+    return 0
 
 
 def cmd_simulate(args) -> int:
@@ -133,7 +205,7 @@ def cmd_demo(args) -> int:
     return 0
 
 
-COMMANDS = {"simulate": cmd_simulate, "demo": cmd_demo}
+COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "predict": cmd_predict, "demo": cmd_demo}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,6 +1,6 @@
 """Non-geometric effect models: compliance, backlash, cyclic, drift, learned (CorrectionNet)."""
 
-from torchcal.effects.base import Context, Effect, motion_direction
+from torchcal.effects.base import Context, Effect, effect_from_config, motion_direction
 from torchcal.effects.drift import Drift
 from torchcal.effects.joint import Backlash, Compliance, Cyclic
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
@@ -11,5 +11,5 @@ KINDS = ("compliance", "backlash", "cyclic", "drift", "learned")
 
 __all__ = [
     "KINDS", "Backlash", "Compliance", "Context", "CorrectionNet", "Cyclic", "Drift", "Effect", "LearnedEffect",
-    "MeasurementModel", "motion_direction",
+    "MeasurementModel", "effect_from_config", "motion_direction",
 ]

@@ -99,6 +99,10 @@ class Effect(nn.Module):
         """The effect's parameters as plain numbers, for truth.json and reports."""
         return {name: p.detach().cpu().tolist() for name, p in self.named_parameters()}
 
+    def config(self) -> dict:
+        """Constructor arguments (besides parameter values) to rebuild the module; see :func:`effect_from_config`."""
+        return {"joint": self.joint}
+
     def label(self) -> str:
         return self.kind if self.joint is None else f"{self.kind}(joint {self.joint})"
 
@@ -106,3 +110,19 @@ class Effect(nn.Module):
         dq = torch.zeros_like(ctx.q)
         dq[:, self.j] = value
         return dq
+
+
+def effect_from_config(cfg: dict) -> Effect:
+    """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``."""
+    from torchcal import effects as E
+
+    classes = {c.__name__: c for c in (E.Compliance, E.Backlash, E.Cyclic, E.Drift, E.LearnedEffect)}
+    cfg = dict(cfg)
+    name = cfg.pop("class")
+    if name not in classes:
+        from torchcal.errors import OptionError
+
+        raise OptionError(f"unknown effect class '{name}'; known: {', '.join(classes)}")
+    if name == "LearnedEffect":
+        return E.LearnedEffect(E.CorrectionNet(cfg["dof"], cfg["hidden"]))
+    return classes[name](**cfg)

@@ -65,6 +65,9 @@ class Drift(Effect):
             raise ValueError("scale drift needs the probe position in the base frame")
         return p_base * (self.rates * dv)[:, None]
 
+    def config(self) -> dict:
+        return {"variable": self.variable, "target": self.target}
+
     def describe(self) -> dict:
         return {"variable": self.variable, "target": self.target, "rates": self.rates.detach().tolist(),
                 "reference": float(self.reference)}

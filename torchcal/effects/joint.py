@@ -42,6 +42,9 @@ class Compliance(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         return self._joint_delta(ctx, self.k * self.regressor(robot, ctx))
 
+    def config(self) -> dict:
+        return {"joint": self.joint, "payload": self.payload}
+
     def describe(self) -> dict:
         return {"k_rad_per_Nm": float(self.k.detach()), "payload_kg": self.payload}
 
@@ -88,6 +91,9 @@ class Backlash(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         return self._joint_delta(ctx, 0.5 * self.b * self.regressor(robot, ctx))
 
+    def config(self) -> dict:
+        return {"joint": self.joint, "source": self.source}
+
     def describe(self) -> dict:
         return {"b_rad": float(self.b.detach()), "source": self.source}
 
@@ -128,6 +134,9 @@ class Cyclic(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         coef = torch.cat([self.a, self.b])
         return self._joint_delta(ctx, self.regressor(robot, ctx) @ coef)
+
+    def config(self) -> dict:
+        return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics]}
 
     def describe(self) -> dict:
         return {"harmonics": [int(k) for k in self.harmonics], "a_rad": self.a.detach().tolist(),

@@ -76,6 +76,9 @@ class LearnedEffect(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         return self.net(ctx.q)
 
+    def config(self) -> dict:
+        return {"dof": self.net.dof, "hidden": self.net.hidden}
+
     def scale_(self, factor: float) -> None:
         """Scale the field linearly: the output layer only (scaling hidden weights would bend it)."""
         with torch.no_grad():

@@ -1,0 +1,123 @@
+"""A calibration as a least-squares problem: free parameters <-> flat vector, whitened residuals.
+
+Stochastic model per pose ``i``: ``Sigma_i = diag(s_x^2, s_y^2, s_z^2) + sigma_q^2 J_q,i J_q,i^T``, the
+tracker's own precision plus the joint noise propagated to the probe (``J_q = dp/dq``, tracker
+frame). Residuals are whitened with ``L_i^-1`` (``Sigma_i = L_i L_i^T``), so the variance factor
+of a correct model is 1.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from torchcal.effects.base import Context
+from torchcal.effects.model import MeasurementModel
+from torchcal.errors import EstimationError
+
+Tensor = torch.Tensor
+
+
+@dataclass
+class _Entry:
+    name: str  # qualified parameter name in the module
+    index: Tensor  # flat indices of the free elements
+    shape: torch.Size
+
+
+class FreeParameters:
+    """The free elements of selected parameters of a module, as one flat vector.
+
+    Args:
+        module: the module owning the parameters (e.g. a :class:`MeasurementModel`).
+        selection: qualified parameter name -> boolean mask of the same shape (True = free).
+        labels: qualified parameter name -> list of element names (flat order), for reports.
+    """
+
+    def __init__(self, module: nn.Module, selection: dict[str, Tensor], labels: dict[str, list[str]] | None = None):
+        self.module = module
+        params = dict(module.named_parameters())
+        self.entries: list[_Entry] = []
+        self.names: list[str] = []
+        labels = labels or {}
+        for name, mask in selection.items():
+            if name not in params:
+                raise KeyError(f"no parameter '{name}'; parameters: {', '.join(params)}")
+            p = params[name]
+            mask = torch.as_tensor(mask, dtype=torch.bool).reshape(p.shape)
+            idx = torch.nonzero(mask.flatten()).flatten()
+            if len(idx) == 0:
+                continue
+            self.entries.append(_Entry(name, idx, p.shape))
+            lab = labels.get(name) or [f"{name}[{i}]" for i in range(p.numel())]
+            self.names += [lab[int(i)] for i in idx]
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def vector(self) -> Tensor:
+        params = dict(self.module.named_parameters())
+        parts = [params[e.name].detach().flatten()[e.index] for e in self.entries]
+        return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
+
+    def params(self, x: Tensor) -> dict[str, Tensor]:
+        """Full parameter tensors with ``x`` put into the free places (differentiable in ``x``)."""
+        current = dict(self.module.named_parameters())
+        out, k = {}, 0
+        for e in self.entries:
+            base = current[e.name].detach().flatten()
+            n = len(e.index)
+            out[e.name] = base.index_put((e.index,), x[k : k + n]).reshape(e.shape)
+            k += n
+        return out
+
+    def assign(self, x: Tensor) -> None:
+        """Write ``x`` into the module's parameters."""
+        params = dict(self.module.named_parameters())
+        with torch.no_grad():
+            for name, value in self.params(x.detach()).items():
+                params[name].copy_(value)
+
+
+def probe_joint_jacobian(model: MeasurementModel, ctx: Context) -> Tensor:
+    """``dp_tracker / dq`` per pose ``(N, 3, dof)`` of the geometric model (the effects' share is negligible)."""
+
+    def one(q):
+        return model.robot.probe_position(q[None])[0]
+
+    with torch.no_grad():
+        return torch.func.vmap(torch.func.jacfwd(one))(ctx.q)
+
+
+def whitening(model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma_tracker: float,
+              sigma_joint: float) -> Tensor:
+    """Per-pose whitening matrices ``L_i^-1 (N, 3, 3)`` of the stochastic model (module docstring).
+
+    Args:
+        sigma: per-pose tracker standard deviations ``(N, 3)`` [m], or None to use ``sigma_tracker``.
+        sigma_joint: joint reading noise [rad].
+    """
+    n = ctx.q.shape[0]
+    s = torch.full((n, 3), float(sigma_tracker), dtype=ctx.q.dtype) if sigma is None else sigma
+    C = torch.diag_embed(s.square())
+    if sigma_joint > 0:
+        Jq = probe_joint_jacobian(model, ctx)
+        C = C + sigma_joint**2 * Jq @ Jq.transpose(1, 2)
+    L, info = torch.linalg.cholesky_ex(C)
+    if bool((info != 0).any()):
+        bad = int(torch.nonzero(info).flatten()[0])
+        raise EstimationError(f"observation covariance of pose {bad} is not positive definite")
+    eye = torch.eye(3, dtype=C.dtype).expand_as(C)
+    return torch.linalg.solve_triangular(L, eye, upper=False)
+
+
+def residual_function(model: MeasurementModel, free: FreeParameters, ctx: Context, p: Tensor, W: Tensor):
+    """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``."""
+
+    def fun(x: Tensor) -> Tensor:
+        pred = torch.func.functional_call(model, free.params(x), (ctx,))
+        return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+
+    return fun

@@ -1,0 +1,5 @@
+"""Run directories: report.json, report.md with plots, the calibrated URDF, and reloading for predict."""
+
+from torchcal.report.rundir import build_report, load_model, predict, write_run
+
+__all__ = ["build_report", "load_model", "predict", "write_run"]
