@@ -85,6 +85,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(pr)
     _add_common(pr)
 
+    cv = sub.add_parser("convert", help="convert a third-party data set into a measurement file",
+                        description="Convert a third-party data set into a CONTRACT §1 measurement file.")
+    cv.add_argument("source", help="the file to convert")
+    cv.add_argument("--from", dest="fmt", required=True, choices=["ipa-robot-accuracy"],
+                    help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
+                    "(Landgraf et al., IEEE CASE 2021, MIT licence)")
+    cv.add_argument("--out", required=True, help="measurement file to write")
+    _add_common(cv)
+
     d = sub.add_parser("demo", help="run the main job end to end on built-in simulated data",
                        description="Simulate a UR5 campaign with an effect the nominal model lacks and report the "
                        "error of the nominal model.")
@@ -132,6 +141,14 @@ def cmd_predict(args) -> int:
     out = replace(data, p=p, sigma=None, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
     write_measurements(args.out, out)
     _console.info(f"wrote {len(p)} predictions to {args.out}")
+    return 0
+
+
+def cmd_convert(args) -> int:
+    from torchcal.data import convert_ipa
+
+    m = convert_ipa(args.source, args.out)
+    _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")
     return 0
 
 
@@ -205,7 +222,8 @@ def cmd_demo(args) -> int:
     return 0
 
 
-COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "predict": cmd_predict, "demo": cmd_demo}
+COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "predict": cmd_predict, "convert": cmd_convert,
+            "demo": cmd_demo}
 
 
 def main(argv: list[str] | None = None) -> int:
