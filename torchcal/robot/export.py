@@ -1,0 +1,250 @@
+"""Write a robot's current (calibrated) geometry as a URDF that reads back to the same float64 numbers.
+
+The file holds the chain exactly as torchcal computes it, ``T_base_flange(q) = O_1 R_1(q_1) ... O_n R_n(q_n)
+O_tip``: one revolute joint per robot joint with origin ``O_i`` and the joint's axis, a fixed joint to the
+tip with ``O_tip``, and optionally two extra fixed frames carrying the rest of the calibration:
+
+* ``probe``, fixed to the tip at the lever arm ``t_flange_probe`` (no rotation);
+* ``tracker``, fixed to the base at ``T_base_tracker = inv(T_tracker_base)``.
+
+Every number is written with ``repr(float)``, the shortest string that parses back to the same float64,
+and every origin rotation is written as an ``rpy`` triple that reproduces the rotation matrix to 1e-15
+(checked per origin; see :func:`exact_rpy`), so reloading with :func:`torchcal.robot.load_urdf` gives
+the same forward kinematics to rounding (~1e-15 m).
+
+Not calibrated, hence placeholders: joint ``effort`` and ``velocity`` limits (written as 0) and the link
+inertia tensors (a tiny diagonal, :data:`PLACEHOLDER_INERTIA`); link masses and centres of mass are the
+robot's own when it has them.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import torch
+
+from torchcal.errors import RobotSpecError, ShapeError
+from torchcal.robot import transforms as tf
+from torchcal.robot.model import RobotModel
+
+#: Diagonal of the placeholder inertia tensor [kg m^2] written for each moving link: torchcal does not
+#: model link inertias (only masses and centres of mass, for gravity torques); URDF consumers need one.
+PLACEHOLDER_INERTIA = 1e-6
+
+#: How closely the written ``rpy`` must reproduce each origin's rotation matrix (max abs element).
+RPY_TOLERANCE = 1e-15
+
+_IDENTITY_RPY = (0.0, 0.0, 0.0)
+
+
+def _num(x) -> str:
+    return repr(float(x))
+
+
+def _vec(v) -> str:
+    return " ".join(_num(x) for x in v)
+
+
+def _rpy_error(R: torch.Tensor, rpy: torch.Tensor) -> float:
+    return float((tf.rpy_to_matrix(rpy) - R).abs().max())
+
+
+def _sequential_rpy(R: torch.Tensor) -> torch.Tensor:
+    """Pitch and yaw from the first column, then roll from what is left: exact also at (near) gimbal lock.
+
+    Near pitch = +-pi/2 the first column ``(cy cp, sy cp, -sp)`` fixes yaw only to ~eps / cp, but the
+    roll computed from ``Ry(pitch)^T Rz(yaw)^T R`` absorbs that error, so the product reproduces ``R``
+    to rounding (the yaw error only enters the elements of size ~cp, multiplied by cp).
+    """
+    cp = torch.hypot(R[0, 0], R[1, 0])
+    pitch = torch.atan2(-R[2, 0], cp)
+    yaw = torch.atan2(R[1, 0], R[0, 0])
+    M = tf.rot_y(pitch).T @ tf.rot_z(yaw).T @ R  # = Rx(roll) up to rounding
+    roll = torch.atan2(M[2, 1] - M[1, 2], M[1, 1] + M[2, 2])
+    return torch.stack([roll, pitch, yaw])
+
+
+def exact_rpy(R: torch.Tensor) -> tuple[float, float, float]:
+    """URDF ``rpy`` of a rotation ``R (3, 3)`` such that ``rpy_to_matrix(rpy)`` reproduces ``R`` to 1e-15.
+
+    Tries :func:`torchcal.robot.transforms.matrix_to_rpy` first; where it loses digits (near gimbal lock
+    it zeroes the roll, an error of the order of cos(pitch)) it falls back to :func:`_sequential_rpy`.
+
+    Raises:
+        ShapeError: ``R`` is not a rotation matrix (no decomposition reproduces it to 1e-12).
+    """
+    R = R.detach().to(dtype=torch.float64, device="cpu")
+    best, best_err = None, math.inf
+    for decompose in (tf.matrix_to_rpy, _sequential_rpy):
+        rpy = decompose(R)
+        err = _rpy_error(R, rpy)
+        if err < best_err:
+            best, best_err = rpy, err
+        if err <= RPY_TOLERANCE:
+            break
+    if best_err > 1e-12:
+        raise ShapeError(f"expected a rotation matrix, got one that no roll-pitch-yaw reproduces better than "
+                         f"{best_err:.3g}: {R.tolist()}")
+    return tuple(float(a) for a in best)
+
+
+def _origin(T: torch.Tensor) -> str:
+    rpy = exact_rpy(T[:3, :3])
+    return f'<origin xyz="{_vec(T[:3, 3])}" rpy="{_vec(rpy)}"/>'
+
+
+def _comment(text: str) -> str:
+    return text.replace("--", "- -")
+
+
+def urdf_string(robot: RobotModel, *, probe: bool = True, tracker: bool = True, name: str | None = None) -> str:
+    """The URDF text that :func:`write_urdf` writes (deterministic: no date, fixed formatting)."""
+    import torchcal
+
+    with torch.no_grad():
+        O = robot.geometry.origins().detach().to("cpu", torch.float64)
+        axes = robot.geometry.axes.detach().to("cpu", torch.float64)
+        limits = robot.limits.detach().to("cpu", torch.float64)
+        masses = robot.masses.detach().to("cpu", torch.float64)
+        coms = robot.coms.detach().to("cpu", torch.float64)
+        T_base_tracker = tf.invert(robot.instrument.matrix().detach().to("cpu", torch.float64))
+        t_flange_probe = robot.tool.vector().detach().to("cpu", torch.float64)
+
+    dof = robot.dof
+    links = list(robot.link_names)
+    if len(links) != dof + 2:
+        raise RobotSpecError(f"robot '{robot.name}' has {len(links)} link names, expected dof + 2 = {dof + 2} "
+                             "(base, the link moved by each joint, tip)")
+    base, tip, last = links[0], links[-1], links[-2]
+    # a chain that ends on its last moving link has O_tip = I and no separate tip link to write
+    tip_is_last = tip == last
+    if tip_is_last and not torch.equal(O[-1], torch.eye(4, dtype=O.dtype)):
+        raise RobotSpecError(f"robot '{robot.name}': tip link '{tip}' is the last moving link but O_tip is not "
+                             "the identity")
+    link_list = links[:-1] if tip_is_last else links
+    joint_list = list(robot.joint_names) + ([] if tip_is_last else [f"{tip}_joint"])
+    if probe:
+        link_list.append("probe")
+        joint_list.append("probe_joint")
+    if tracker:
+        link_list.append("tracker")
+        joint_list.append("tracker_joint")
+    for kind, names in (("link", link_list), ("joint", joint_list)):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise RobotSpecError(f"cannot write robot '{robot.name}' as URDF: {kind} names {dup} occur twice"
+                                 + ("; pass probe=False / tracker=False if the robot already has such frames"
+                                    if {"probe", "tracker", "probe_joint", "tracker_joint"} & set(dup) else ""))
+
+    robot_name = robot.name if name is None else name
+    source = robot.source or "constructed in memory"
+    header = [
+        f"Generated by torchcal {torchcal.__version__} from robot '{robot.name}' ({robot.kind} geometry, "
+        f"source: {source}).",
+        "Joint origins, axes and limits are the robot's current (calibrated) geometry; every number is",
+        "written with repr() and reads back to the same float64.",
+    ]
+    if tracker:
+        header.append(f"Link 'tracker': the calibrated instrument pose, fixed to '{base}' at "
+                      "T_base_tracker = inv(T_tracker_base).")
+    if probe:
+        header.append(f"Link 'probe': the calibrated lever arm t_flange_probe, fixed to '{tip}' without rotation.")
+    header.append("Joint effort/velocity limits (0) are placeholders, not calibrated.")
+    if robot.has_masses:
+        header.append(f"Link masses and centres of mass are the robot's; inertia tensors are a placeholder "
+                      f"diagonal ({PLACEHOLDER_INERTIA!r} kg m^2), not calibrated.")
+    out = ['<?xml version="1.0"?>', "<!--"]
+    out += [f"  {_comment(line)}" for line in header]
+    out += ["-->", f"<robot name={quoteattr(robot_name)}>"]
+
+    def link(name: str, inertial: str | None = None) -> None:
+        if inertial is None:
+            out.append(f"  <link name={quoteattr(name)}/>")
+        else:
+            out.extend([f"  <link name={quoteattr(name)}>", inertial, "  </link>"])
+
+    def joint(name: str, kind: str, parent: str, child: str, origin: str, extra: list[str]) -> None:
+        out.extend([f"  <joint name={quoteattr(name)} type={quoteattr(kind)}>",
+                f"    <parent link={quoteattr(parent)}/>", f"    <child link={quoteattr(child)}/>",
+                f"    {origin}", *[f"    {e}" for e in extra], "  </joint>"])
+
+    link(base)
+    for i in range(dof):
+        inertial = None
+        if robot.has_masses:
+            inertial = "\n".join([
+                "    <inertial>",
+                f'      <origin xyz="{_vec(coms[i])}" rpy="{_vec(_IDENTITY_RPY)}"/>',
+                f'      <mass value="{_num(masses[i])}"/>',
+                f'      <inertia ixx="{_num(PLACEHOLDER_INERTIA)}" ixy="0.0" ixz="0.0" '
+                f'iyy="{_num(PLACEHOLDER_INERTIA)}" iyz="0.0" izz="{_num(PLACEHOLDER_INERTIA)}"/>',
+                "    </inertial>",
+            ])
+        link(links[i + 1], inertial)
+        joint(robot.joint_names[i], "revolute", links[i], links[i + 1], _origin(O[i]), [
+            f'<axis xyz="{_vec(axes[i])}"/>',
+            f'<limit lower="{_num(limits[i, 0])}" upper="{_num(limits[i, 1])}" effort="0.0" velocity="0.0"/>',
+        ])
+    if not tip_is_last:
+        link(tip)
+        joint(f"{tip}_joint", "fixed", last, tip, _origin(O[-1]), [])
+    if probe:
+        link("probe")
+        lever = f'<origin xyz="{_vec(t_flange_probe)}" rpy="{_vec(_IDENTITY_RPY)}"/>'
+        joint("probe_joint", "fixed", tip, "probe", lever, [])
+    if tracker:
+        link("tracker")
+        joint("tracker_joint", "fixed", base, "tracker", _origin(T_base_tracker), [])
+    out.append("</robot>")
+    return "\n".join(out) + "\n"
+
+
+def write_urdf(robot: RobotModel, path: str | os.PathLike, *, probe: bool = True, tracker: bool = True,
+               name: str | None = None) -> Path:
+    """Write the robot's current (calibrated) geometry, instrument pose and lever arm as a URDF.
+
+    Links: ``robot.link_names`` (base, each moving link, tip), plus ``probe`` fixed to the tip at
+    ``t_flange_probe`` and ``tracker`` fixed to the base at ``T_base_tracker = inv(T_tracker_base)``.
+    Joints: one revolute joint per robot joint, named ``robot.joint_names[i]``, origin ``O_i``; a fixed
+    ``<tip>_joint`` with ``O_tip``; ``probe_joint``, ``tracker_joint``. With masses, each moving link
+    gets an ``<inertial>`` with its mass and centre of mass (inertia: a placeholder, see
+    :data:`PLACEHOLDER_INERTIA`). Effort and velocity limits are written as 0: not calibrated.
+
+    Reloading: with the extra leaves, :func:`torchcal.load_robot` picks ``probe`` as the tip (the leaf
+    reached through the most joints); pass ``tip_link=<the original tip>`` for ``T_base_flange``.
+
+    Args:
+        robot: the robot, its current corrections included.
+        path: the ``.urdf`` file to write; written atomically (temporary file, then ``os.replace``).
+        probe: add the ``probe`` link.
+        tracker: add the ``tracker`` link.
+        name: the URDF robot name (default ``robot.name``).
+
+    Returns:
+        The path written.
+    """
+    if not isinstance(robot, RobotModel):
+        raise RobotSpecError(f"write_urdf expects a torchcal RobotModel, got {type(robot).__name__}")
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise RobotSpecError(f"{path}: cannot write URDF, directory '{path.parent}' does not exist")
+    text = urdf_string(robot, probe=probe, tracker=tracker, name=name)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
