@@ -28,7 +28,7 @@ from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.identifiability import DEFAULT_TOL, Identifiability, analyse, preference_order
 from torchcal.estimate.lm import LMResult, global_test, levenberg_marquardt
 from torchcal.estimate.netfit import fit_net
-from torchcal.estimate.problem import FreeParameters, residual_function, whitening
+from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.robot import load_robot
 from torchcal.robot.model import RobotModel
@@ -50,6 +50,9 @@ class Options:
     rank_tol: float = DEFAULT_TOL
     max_iter: int = 100
     hidden: int = 29
+    prior_length: float | None = 1e-3  # m: a-priori sigma of the geometric length corrections (None: no prior)
+    prior_angle: float | None = math.radians(0.1)  # rad: likewise for angles
+    stat_tol: float = 1e-2  # stop LM when a step gains less than 1 % of the variance factor
     net_method: str = "lm"
     net_iterations: int = 100
     trajectory: bool | None = None  # None: decide from a monotonic t column
@@ -168,8 +171,12 @@ def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opt
         ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
         sel, labels = _selection(model, groups, dict(zip(free.names, ida.free.tolist())))
         free = FreeParameters(model, sel, labels)
-    fun = residual_function(model, free, ctx, m.p, W)
-    res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter)
+    prior = None
+    if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
+        units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+    fun = residual_function(model, free, ctx, m.p, W, prior)
+    res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
     if res.status in ("diverged", "failed_solve"):
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
     free.assign(res.x)

@@ -113,11 +113,33 @@ def whitening(model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma
     return torch.linalg.solve_triangular(L, eye, upper=False)
 
 
-def residual_function(model: MeasurementModel, free: FreeParameters, ctx: Context, p: Tensor, W: Tensor):
-    """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``."""
+def residual_function(model: MeasurementModel, free: FreeParameters, ctx: Context, p: Tensor, W: Tensor,
+                      prior_sigma: Tensor | None = None):
+    """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``.
+
+    With ``prior_sigma (u,)`` the a-priori information ``x_j ~ N(0, prior_sigma_j^2)`` is appended as
+    pseudo-observations ``x_j / prior_sigma_j`` for every finite entry (inf: no prior).
+    """
+    has_prior = prior_sigma is not None and bool(torch.isfinite(prior_sigma).any())
+    if has_prior:
+        idx = torch.nonzero(torch.isfinite(prior_sigma)).flatten()
+        inv = 1.0 / prior_sigma[idx]
 
     def fun(x: Tensor) -> Tensor:
         pred = torch.func.functional_call(model, free.params(x), (ctx,))
-        return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+        r = (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+        return torch.cat([r, x[idx] * inv]) if has_prior else r
 
     return fun
+
+
+def prior_sigmas(free: FreeParameters, units: dict[str, str], sigma_length: float, sigma_angle: float) -> Tensor:
+    """Prior standard deviations per free element: geometry by unit, inf (no prior) elsewhere."""
+    out = torch.full((len(free),), float("inf"), dtype=torch.float64)
+    for i, name in enumerate(free.names):
+        unit = units.get(name)
+        if unit == "m":
+            out[i] = sigma_length
+        elif unit == "rad":
+            out[i] = sigma_angle
+    return out

@@ -246,7 +246,7 @@ def simulate(cfg: SimConfig) -> Campaign:
     noise_q = torch.randn(q_true.shape, generator=g, dtype=F64) * sigma_q
     q_read = q_true + noise_q
     p_meas = p_true + noise_p
-    sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma else None
+    sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma and cfg.sigma_tracker > 0 else None
 
     def part(idx: slice, name: str) -> Measurements:
         n = len(q_read[idx])

@@ -1,0 +1,86 @@
+"""Levenberg-Marquardt: known answers, agreement with LBFGS, statuses, statistics."""
+
+import math
+
+import pytest
+import torch
+
+from torchcal.estimate.lm import chi2_quantile, global_test, levenberg_marquardt
+
+F64 = torch.float64
+
+
+def test_linear_toy_equals_closed_form_least_squares():
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(200, 4, generator=g, dtype=F64)
+    x_true = torch.tensor([1.0, -2.0, 0.5, 3.0], dtype=F64)
+    sigma = 0.1
+    b = A @ x_true + sigma * torch.randn(200, generator=g, dtype=F64)
+    res = levenberg_marquardt(lambda x: (A @ x - b) / sigma, torch.zeros(4, dtype=F64))
+    x_ls = torch.linalg.lstsq(A, b[:, None]).solution[:, 0]
+    assert res.status == "converged"
+    assert torch.allclose(res.x, x_ls, atol=1e-10)
+    # cofactor (A^T A / sigma^2)^-1 and the variance factor near 1 for the right sigma
+    assert torch.allclose(res.cofactor, torch.linalg.inv(A.T @ A) * sigma**2, rtol=1e-8)
+    assert abs(res.sigma0_sq - 1.0) < 0.25
+    assert global_test(res)["passed"]
+
+
+def test_lm_and_lbfgs_agree_on_a_well_posed_nonlinear_problem():
+    x = torch.linspace(0, 2, 50, dtype=F64)
+    y = 2.5 * torch.exp(-1.3 * x) + 0.4 + 0.001 * torch.sin(17 * x)
+
+    def fun(p):
+        return p[0] * torch.exp(-p[1] * x) + p[2] - y
+
+    res = levenberg_marquardt(fun, torch.tensor([1.0, 1.0, 0.0], dtype=F64))
+    p = torch.tensor([1.0, 1.0, 0.0], dtype=F64, requires_grad=True)
+    opt = torch.optim.LBFGS([p], max_iter=500, tolerance_grad=1e-14, tolerance_change=1e-16,
+                            line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = fun(p).square().sum()
+        loss.backward()
+        return loss
+
+    for _ in range(5):
+        opt.step(closure)
+    assert res.status == "converged"
+    assert torch.allclose(res.x, p.detach(), atol=1e-7)
+
+
+def test_rank_deficiency_is_reported_not_hidden():
+    A = torch.tensor([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]], dtype=F64)  # two identical columns
+    b = torch.tensor([1.0, 2.0, 3.1], dtype=F64)
+    res = levenberg_marquardt(lambda x: A @ x - b, torch.zeros(2, dtype=F64))
+    assert res.status == "failed_solve"
+    with pytest.raises(Exception, match="not positive definite"):
+        _ = res.std
+
+
+def test_non_finite_start_is_divergence():
+    res = levenberg_marquardt(lambda x: x / 0.0 * 0.0, torch.zeros(2, dtype=F64))
+    assert res.status == "diverged"
+
+
+def test_max_iterations_status():
+    res = levenberg_marquardt(lambda x: torch.stack([10 * (x[1] - x[0] ** 2), 1 - x[0]]),
+                              torch.tensor([-1.2, 1.0], dtype=F64), max_iter=2)
+    assert res.status == "max_iterations" and res.iterations == 2
+
+
+@pytest.mark.parametrize("dof,expected", [(10, 18.307), (100, 124.342), (1000, 1074.679)])
+def test_chi2_quantile(dof, expected):
+    assert chi2_quantile(0.95, dof) == pytest.approx(expected, rel=2e-3)
+
+
+def test_standardized_residuals_flag_an_outlier():
+    g = torch.Generator().manual_seed(1)
+    A = torch.randn(100, 3, generator=g, dtype=F64)
+    b = A @ torch.ones(3, dtype=F64) + torch.randn(100, generator=g, dtype=F64)
+    b[17] += 8.0
+    res = levenberg_marquardt(lambda x: A @ x - b, torch.zeros(3, dtype=F64))
+    w = res.standardized_residuals()
+    assert int(w.abs().argmax()) == 17 and float(w.abs().max()) > 3.29
+    assert not math.isnan(res.sigma0_sq)
