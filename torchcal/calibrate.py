@@ -8,6 +8,10 @@ Methods (``--method``):
   arm with the nominal geometry, then a :class:`CorrectionNet` on the position corrections.
 * ``kinematic+ann``: the literature's sequential "kinCalib+": ``kinematic``, then the network
   on what remains.
+* ``auto`` (default): ``kinematic``, then a ``learned`` residual model only where the data demand
+  it: a kernel regression (:mod:`torchcal.effects.kernel`) and the correction network are fitted
+  on 80 % of the training poses and judged on the other 20 %; the better one is kept when it
+  lowers the validation RMSE by at least 5 % and a one-sided paired test gives p < 0.01.
 
 Held-out split: a seeded random 20 % of the poses (static data) or the last 20 % of the
 samples (trajectories, see :func:`is_trajectory`), never used for fitting.
@@ -36,8 +40,8 @@ from torchcal.robot.model import RobotModel
 Tensor = torch.Tensor
 F64 = torch.float64
 
-METHODS = ("kinematic", "pcm", "kinematic+ann")
-DEFAULT_METHOD = "kinematic"
+METHODS = ("auto", "kinematic", "pcm", "kinematic+ann")
+DEFAULT_METHOD = "auto"
 
 
 @dataclass
@@ -102,6 +106,7 @@ class CalibrationRun:
     stages: list[Stage] = field(default_factory=list)
     fits: list[Fit] = field(default_factory=list)
     effects_report: list[dict] = field(default_factory=list)
+    rejected: list[dict] = field(default_factory=list)  # candidates that did not earn their place
     notes: list[str] = field(default_factory=list)
 
 
@@ -215,12 +220,20 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
     record("nominal")
 
     # 2. geometry
-    if opts.method in ("kinematic", "kinematic+ann"):
+    if opts.method in ("auto", "kinematic", "kinematic+ann"):
         _console.info("kinematic calibration: identifiability analysis and weighted LM")
         run.fits.append(solve(model, train, ("geometry", "instrument", "tool"), opts, "geometric", trajectory))
     record("geometric")
 
-    # 3. the correction network on what remains (paper Eq. 22: corrections in the base frame)
+    # 3. a learned residual model where the data demand it
+    if opts.method == "auto":
+        _console.info("residual model: kernel regression and correction network judged on validation poses")
+        if select_learned(run, train, trajectory):
+            record("learned")
+            run.effects_report[-1]["rmse_before_mm"] = run.stages[-2].rmse * 1e3
+            run.effects_report[-1]["rmse_after_mm"] = run.stages[-1].rmse * 1e3
+
+    # 3'. the correction network on what remains (paper Eq. 22: corrections in the base frame)
     if opts.method in ("pcm", "kinematic+ann"):
         _console.info(f"correction network 6-{opts.hidden}-3 on the remaining position corrections")
         fit_correction_net(run, train, trajectory)
@@ -234,6 +247,57 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
             "rmse_before_mm": s_before.rmse * 1e3, "rmse_after_mm": s_after.rmse * 1e3,
         })
     return run
+
+
+def corrections(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
+    """What the model misses, in the robot base frame ``(N, 3)`` [m] (paper Eq. 22)."""
+    with torch.no_grad():
+        pred = model(Context.from_measurements(m, trajectory=trajectory))
+        return (m.p - pred) @ model.robot.T_tracker_base()[:3, :3]
+
+
+def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, min_gain: float = 0.05,
+                   alpha: float = 0.01) -> bool:
+    """Add the better of a kernel correction and a correction network if it earns its place (module docstring)."""
+    from torchcal.effects.kernel import fit_kernel_correction, paired_improvement
+
+    model, opts = run.model, run.options
+    corr = corrections(model, train, trajectory)
+    perm = torch.randperm(train.n, generator=torch.Generator().manual_seed(int(opts.seed) + 2))
+    n_val = max(3, int(0.2 * train.n))
+    fi, va = perm[n_val:], perm[:n_val]
+    e0 = corr[va].norm(dim=-1)
+
+    kern, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
+                                       seed=opts.seed)
+    net = CorrectionNet(model.robot.dof, opts.hidden)
+    net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + 3), gain=0.5)
+    res = fit_net(net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method,
+                  iterations=opts.net_iterations)
+    with torch.no_grad():
+        e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
+    candidates = {
+        "kernel": (kern, info["val_errors"], kern.describe()),
+        "network": (LearnedEffect(net), e_net, {"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
+                                                "fit": res.method, "best_iteration": res.best_iteration}),
+    }
+    name = min(candidates, key=lambda k: rmse(candidates[k][1]))
+    effect, e1, params = candidates[name]
+    rmse0, rmse1 = rmse(e0), rmse(e1)
+    test = paired_improvement(e0, e1)
+    evidence = {"candidates_validation_rmse_mm": {k: rmse(v[1]) * 1e3 for k, v in candidates.items()},
+                "chosen": name, "validation_rmse_before_mm": rmse0 * 1e3, "validation_rmse_after_mm": rmse1 * 1e3,
+                "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0, **test,
+                "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}", "n_validation": int(n_val)}
+    accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
+    run.notes.append(f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
+                     f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
+    if not accepted:
+        run.rejected.append({"kind": "learned", "joint": None, "evidence": evidence})
+        return False
+    model.add(effect)
+    run.effects_report.append({"kind": "learned", "joint": None, "params": params, "evidence": evidence})
+    return True
 
 
 def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:

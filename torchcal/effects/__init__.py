@@ -3,6 +3,7 @@
 from torchcal.effects.base import Context, Effect, effect_from_config, motion_direction
 from torchcal.effects.drift import Drift
 from torchcal.effects.joint import Backlash, Compliance, Cyclic
+from torchcal.effects.kernel import KernelCorrection, fit_kernel_correction
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.model import MeasurementModel
 
@@ -10,6 +11,6 @@ from torchcal.effects.model import MeasurementModel
 KINDS = ("compliance", "backlash", "cyclic", "drift", "learned")
 
 __all__ = [
-    "KINDS", "Backlash", "Compliance", "Context", "CorrectionNet", "Cyclic", "Drift", "Effect", "LearnedEffect",
-    "MeasurementModel", "effect_from_config", "motion_direction",
+    "KINDS", "Backlash", "Compliance", "Context", "CorrectionNet", "Cyclic", "Drift", "Effect", "KernelCorrection",
+    "LearnedEffect", "MeasurementModel", "effect_from_config", "fit_kernel_correction", "motion_direction",
 ]

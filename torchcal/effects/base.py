@@ -116,7 +116,8 @@ def effect_from_config(cfg: dict) -> Effect:
     """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``."""
     from torchcal import effects as E
 
-    classes = {c.__name__: c for c in (E.Compliance, E.Backlash, E.Cyclic, E.Drift, E.LearnedEffect)}
+    classes = {c.__name__: c for c in (E.Compliance, E.Backlash, E.Cyclic, E.Drift, E.LearnedEffect,
+                                        E.KernelCorrection)}
     cfg = dict(cfg)
     name = cfg.pop("class")
     if name not in classes:
