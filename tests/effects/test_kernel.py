@@ -72,4 +72,4 @@ def test_real_ur10_series_c_default_method_beats_045mm():
     st = {s.name: s.rmse for s in run.stages}
     assert st["geometric"] < 0.55e-3 < st["nominal"]
     assert run.stages[-1].rmse <= 0.45e-3
-    assert run.effects_report[0]["kind"] == "learned"
+    assert "learned" in [e["kind"] for e in run.effects_report]

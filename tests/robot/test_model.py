@@ -282,3 +282,15 @@ def test_rotation_round_trips():
     assert torch.allclose(tf.rpy_to_matrix(tf.matrix_to_rpy(R)), R, atol=1e-14)
     T = tf.se3_from_vector(torch.randn(5, 6, generator=g, dtype=F64))
     assert torch.allclose(tf.invert(T) @ T, torch.eye(4, dtype=F64).expand(5, 4, 4), atol=1e-14)
+
+
+@pytest.mark.parametrize("spec", ["ur10", "panda.urdf"])
+def test_geometric_probe_jacobian_equals_autograd(spec):
+    robot = torchcal.load_robot(spec)
+    _set_random(robot, seed=3)
+    q = random_q(robot, 10, seed=11)
+    with torch.no_grad():
+        p, J = robot.probe_jacobian(q)
+    ref = torch.func.vmap(torch.func.jacfwd(lambda qi: robot.probe_in_base(qi[None])[0]))(q)
+    assert torch.allclose(p, robot.probe_in_base(q).detach(), atol=1e-15)
+    assert (J - ref).abs().max() < 1e-13

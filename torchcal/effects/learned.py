@@ -58,6 +58,53 @@ class CorrectionNet(nn.Module):
     def n_weights(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
+    def flat(self) -> Tensor:
+        """The weights as one vector ``(n_weights,)``: fc1.weight (row-major), fc1.bias, fc2.weight, fc2.bias."""
+        return torch.nn.utils.parameters_to_vector(self.parameters()).detach().clone()
+
+    def set_flat(self, w: Tensor) -> None:
+        torch.nn.utils.vector_to_parameters(w.detach().clone(), self.parameters())
+
+    def _unpack(self, w: Tensor):
+        H, D = self.hidden, self.dof
+        i = 0
+        W1 = w[..., i : i + H * D].reshape(*w.shape[:-1], H, D)
+        i += H * D
+        b1 = w[..., i : i + H]
+        i += H
+        W2 = w[..., i : i + 3 * H].reshape(*w.shape[:-1], 3, H)
+        i += 3 * H
+        return W1, b1, W2, w[..., i : i + 3]
+
+    def forward_flat(self, w: Tensor, q: Tensor) -> Tensor:
+        """Output ``(..., N, 3)`` for flat weights ``w (..., n_weights)`` and joints ``q (..., N, dof)``."""
+        W1, b1, W2, b2 = self._unpack(w)
+        x = (q - self.q_offset) / self.q_scale
+        a = torch.tanh(x @ W1.transpose(-1, -2) + b1.unsqueeze(-2))
+        return (a @ W2.transpose(-1, -2) + b2.unsqueeze(-2)) * self.out_scale
+
+    def jacobian_flat(self, w: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
+        """Output and its analytic Jacobian with respect to the flat weights.
+
+        Args:
+            w: ``(..., n_weights)``; q: ``(..., N, dof)``.
+
+        Returns:
+            ``g (..., N, 3)`` and ``dg/dw (..., N, 3, n_weights)`` in the order of :meth:`flat`.
+        """
+        W1, b1, W2, b2 = self._unpack(w)
+        x = (q - self.q_offset) / self.q_scale  # (..., N, D)
+        a = torch.tanh(x @ W1.transpose(-1, -2) + b1.unsqueeze(-2))  # (..., N, H)
+        g = (a @ W2.transpose(-1, -2) + b2.unsqueeze(-2)) * self.out_scale
+        os = self.out_scale
+        ds = (1.0 - a * a).unsqueeze(-2) * W2.unsqueeze(-3) * os  # (..., N, 3, H): dg_k/dz_m
+        dW1 = ds.unsqueeze(-1) * x.unsqueeze(-2).unsqueeze(-2)  # (..., N, 3, H, D)
+        eye3 = torch.eye(3, dtype=w.dtype, device=w.device)
+        dW2 = eye3.unsqueeze(-1) * a.unsqueeze(-2).unsqueeze(-2) * os  # (..., N, 3, 3, H)
+        db2 = (eye3 * os).expand(*a.shape[:-1], 3, 3)
+        J = torch.cat([dW1.flatten(-2), ds, dW2.flatten(-2), db2], dim=-1)
+        return g, J
+
     def forward(self, q: Tensor) -> Tensor:
         x = (q - self.q_offset) / self.q_scale
         return self.fc2(torch.tanh(self.fc1(x))) * self.out_scale

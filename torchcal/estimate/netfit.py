@@ -47,12 +47,8 @@ def net_forward(net: CorrectionNet, w: Tensor, q: Tensor) -> Tensor:
 
 
 def net_jacobian(net: CorrectionNet, w: Tensor, q: Tensor) -> Tensor:
-    """Per-sample Jacobians ``d net(q_i) / dw`` ``(N, 3, n_weights)`` by ``vmap(jacrev)``."""
-
-    def one(wv, qi):
-        return net_forward(net, wv, qi[None])[0]
-
-    return torch.func.vmap(torch.func.jacrev(one), in_dims=(None, 0))(w, q)
+    """Per-sample Jacobians ``d net(q_i) / dw`` ``(N, 3, n_weights)``, analytic (``CorrectionNet.jacobian_flat``)."""
+    return net.jacobian_flat(w, q)[1]
 
 
 def _rmse(e: Tensor) -> float:
@@ -61,7 +57,7 @@ def _rmse(e: Tensor) -> float:
 
 def fit_net(net: CorrectionNet, q: Tensor, target: Tensor, *, val: tuple[Tensor, Tensor] | None = None,
             method: str = "lm", iterations: int = 100, ridge: float = 1e-6, patience: int = 15,
-            generator: torch.Generator | None = None) -> NetFitResult:
+            generator: torch.Generator | None = None, ftol: float = 1e-10) -> NetFitResult:
     """Fit ``net(q) ~ target`` [m] in place; keep the weights of the best validation error.
 
     Args:
@@ -71,6 +67,8 @@ def fit_net(net: CorrectionNet, q: Tensor, target: Tensor, *, val: tuple[Tensor,
         iterations: LM iterations or LBFGS outer steps.
         ridge: weight of ``|w|^2`` relative to the squared residuals in mm^2.
         patience: stop after this many iterations without a better validation error.
+        ftol: stop when an LM step lowers the cost by less than this fraction (warm-started refits
+            converge in a few iterations with ftol ~ 1e-6).
     """
     if method not in ("lm", "lbfgs"):
         from torchcal.errors import OptionError
@@ -103,9 +101,10 @@ def fit_net(net: CorrectionNet, q: Tensor, target: Tensor, *, val: tuple[Tensor,
         n_w = len(w)
         for it in range(1, iterations + 1):
             Jnet = net_jacobian(net, w, q).reshape(-1, n_w) * scale
-            J = torch.cat([Jnet, math.sqrt(ridge) * torch.eye(n_w, dtype=w.dtype)])
-            g = J.T @ r
-            N = J.T @ J
+            # the ridge rows sqrt(ridge) * w enter the normal equations directly (no stacked Jacobian)
+            g = Jnet.T @ r[:-n_w] + ridge * w
+            N = Jnet.T @ Jnet
+            N.diagonal().add_(ridge)
             d = N.diagonal().clamp(min=1e-12)
             accepted = False
             while lam < 1e12:
@@ -135,7 +134,7 @@ def fit_net(net: CorrectionNet, q: Tensor, target: Tensor, *, val: tuple[Tensor,
                 best_w, best_val, res.best_iteration, since_best = w.clone(), v, it, 0
             else:
                 since_best += 1
-            if rel < 1e-10:
+            if rel < ftol:
                 res.status = "converged"
                 break
             if val is not None and since_best >= patience:

@@ -83,12 +83,9 @@ class FreeParameters:
 
 def probe_joint_jacobian(model: MeasurementModel, ctx: Context) -> Tensor:
     """``dp_tracker / dq`` per pose ``(N, 3, dof)`` of the geometric model (the effects' share is negligible)."""
-
-    def one(q):
-        return model.robot.probe_position(q[None])[0]
-
     with torch.no_grad():
-        return torch.func.vmap(torch.func.jacfwd(one))(ctx.q)
+        _, J = model.robot.probe_jacobian(ctx.q)
+        return model.robot.T_tracker_base()[:3, :3] @ J
 
 
 def whitening(model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma_tracker: float,

@@ -319,6 +319,18 @@ class RobotModel(nn.Module):
         """Probe position in the robot base frame ``(..., 3)`` [m]."""
         return tf.transform_points(self.forward(q), self.t_flange_probe())
 
+    def probe_jacobian(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """Probe position in the base frame ``(..., 3)`` and its joint Jacobian ``(..., 3, dof)``.
+
+        The geometric Jacobian of revolute joints, ``dp/dq_j = z_j x (p - o_j)`` with ``z_j`` the axis and
+        ``o_j`` a point of joint j: exact, and far cheaper than differentiating the FK per pose.
+        """
+        F, T = self.joint_frames(q)
+        p = tf.transform_points(T, self.t_flange_probe())
+        z = (F[..., :3, :3] @ self.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (..., dof, 3)
+        J = torch.linalg.cross(z, p.unsqueeze(-2) - F[..., :3, 3])
+        return p, J.transpose(-1, -2)
+
     def probe_position(self, q: Tensor) -> Tensor:
         """Probe position in the tracker frame ``(..., 3)`` [m]: what a laser tracker measures."""
         return tf.transform_points(self.T_tracker_base(), self.probe_in_base(q))
