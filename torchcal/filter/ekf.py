@@ -74,6 +74,7 @@ class EKFResult:
     nis: Tensor  # (D, N), NaN in the test phase
     q_yy: Tensor  # (D, N)
     w: Tensor  # (D, n_w) final weights
+    t: Tensor  # (D, 3) final probe position (after the last update, or the last prediction)
     P: Tensor  # (D, n, n) final covariance
     n_train: int
     status: list[str] = field(default_factory=list)  # per draw: "ok" or "diverged at sample i: why"
@@ -244,9 +245,10 @@ class EKFTrainer:
             # health and the compatibility test of the window's variance factor (Sec. 2.1.3)
             if (i + 1) % cfg.nis_window == 0:
                 P = 0.5 * (P + P.transpose(-1, -2))  # the rank-6 update is symmetric up to round-off
-                neg = (P.diagonal(dim1=-2, dim2=-1).min(dim=-1).values <= 0) & alive
+                pd = P.diagonal(dim1=-2, dim2=-1)  # zero variances are fixed states; negative ones are trouble
+                neg = (pd.min(dim=-1).values < -1e-9 * pd.max(dim=-1).values) & alive
                 for d in torch.nonzero(neg).flatten().tolist():
-                    status[d] = f"diverged by sample {i}: non-positive state variance"
+                    status[d] = f"diverged by sample {i}: negative state variance"
                 alive &= ~neg
                 ratio = nis[:, i + 1 - cfg.nis_window : i + 1].nanmean(dim=-1) / 3.0
                 runaway = (ratio > 1e4) & alive
@@ -263,7 +265,7 @@ class EKFTrainer:
                 corr = (y[:, : i + 1] - geo[:, : i + 1]) @ R  # R^T (y - t_bar), base frame
                 w, info_r = self._reiterate(w, q[:, : i + 1], corr, iters)
                 reiters.append({"sample": i + 1, "iterations": iters, **info_r})
-        return EKFResult(geo, ngo, nis, qyy_hist, w, P, n_train, status, reiters, time.perf_counter() - t_start)
+        return EKFResult(geo, ngo, nis, qyy_hist, w, t, P, n_train, status, reiters, time.perf_counter() - t_start)
 
     def _reiterate(self, w: Tensor, q: Tensor, corr: Tensor, iterations: int) -> tuple[Tensor, dict]:
         """Re-fit the network per draw from its current weights; returns the new weights."""
