@@ -23,7 +23,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.data.measurements import Measurements, write_measurements
+from torchcal.data.measurements import Measurements, _read_text, write_measurements
 from torchcal.errors import MeasurementFileError
 from torchcal.robot import transforms as tf
 
@@ -222,21 +222,6 @@ def matrix_to_rotvec(R: torch.Tensor) -> torch.Tensor:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _read_text(path: str) -> str:
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except OSError as err:
-        raise MeasurementFileError(path, f"cannot read the file: {err.strerror or err}") from err
-    try:
-        return raw.decode("utf-8-sig")
-    except UnicodeDecodeError as err:
-        line = raw.count(b"\n", 0, err.start) + 1
-        raise MeasurementFileError(
-            path, f"the file is not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start})", line=line,
-        ) from err
 
 
 def _check_header(path: str, header: list[str], line: int) -> dict[str, int]:
