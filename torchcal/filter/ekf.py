@@ -165,82 +165,85 @@ class EKFTrainer:
         N = q.shape[1]
         nw = w.shape[-1]
         n = nw + 3
-        dt = q.dtype
+        dt, dev = q.dtype, q.device
+        kw = {"dtype": dt, "device": dev}
         pb, Jq, R = self.kinematics(q)
         t = (y[:, 0].clone() if t0 is None else _batch(t0, 2).expand(D, 3).clone())
         if P0 is None:
-            diag = torch.cat([torch.full((nw,), cfg.sigma_w0**2, dtype=dt),
-                              torch.full((3,), cfg.sigma_t0**2, dtype=dt)])
+            diag = torch.cat([torch.full((nw,), cfg.sigma_w0**2, **kw), torch.full((3,), cfg.sigma_t0**2, **kw)])
             P = torch.diag(diag).expand(D, n, n).clone()
         else:
             P = _batch(P0, 3).expand(D, n, n).clone()
-        Ryy = torch.eye(3, dtype=dt) * cfg.sigma_tracker**2
+        Ryy = torch.eye(3, **kw) * cfg.sigma_tracker**2
         # process noise of the position per step (Eq. 19): joint noise at both ends of the step
         JJ = Jq @ Jq.transpose(-1, -2)
-        Qt = cfg.sigma_joint**2 * R @ (JJ[:, 1:] + JJ[:, :-1]) @ R.T + torch.eye(3, dtype=dt) * cfg.q_t**2
-        geo = torch.full((D, N, 3), float("nan"), dtype=dt)
-        ngo = torch.full((D, N, 3), float("nan"), dtype=dt)
-        nis = torch.full((D, N), float("nan"), dtype=dt)
-        qyy_hist = torch.full((D, N), float("nan"), dtype=dt)
-        qyy = torch.ones(D, dtype=dt)
+        Qt = cfg.sigma_joint**2 * R @ (JJ[:, 1:] + JJ[:, :-1]) @ R.T + torch.eye(3, **kw) * cfg.q_t**2
+        geo_l, ngo_l, nis_l, qyy_l = [], [], [], []  # per-sample outputs, stacked at the end
+        qyy = torch.ones(D, **kw)
         status = ["ok"] * D
-        alive = torch.ones(D, dtype=torch.bool)
+        alive = torch.ones(D, dtype=torch.bool, device=dev)
         band = _nis_band(cfg.nis_window, cfg.nis_alpha)
         reiters = []
-        eye_n = torch.eye(n, dtype=dt)
-        eye3 = torch.eye(3, dtype=dt).expand(D, 3, 3)
+        eye_n = torch.eye(n, **kw)
+        eye3 = torch.eye(3, **kw).expand(D, 3, 3)
         fast = cfg.jacobian == "analytic"
+        step = torch.diff(pb, dim=1) @ R.T  # kinematic increments R (p_i - p_{i-1}), all at once
+        if fast:
+            jac = _StepJacobian(self.net, q, R, D)
+        all_alive = True
         for i in range(N):
             if i > 0:  # prediction (Eqs. 15-19)
-                t = t + (pb[:, i] - pb[:, i - 1]) @ R.T
+                t = t + step[:, i - 1]
                 if i < n_train:
                     P[:, nw:, nw:] += Qt[:, i - 1]
                     if cfg.q_w > 0:
                         P.diagonal(dim1=-2, dim2=-1)[:, :nw] += cfg.q_w**2
-            geo[:, i] = t
+            geo_l.append(t)
             if i >= n_train:  # test phase: prediction only
-                ngo[:, i] = self.net.forward_flat(w, q[:, i : i + 1])[:, 0] @ R.T
+                ngo_l.append(self.net.forward_flat(w, q[:, i : i + 1])[:, 0] @ R.T)
                 continue
+            qyy_l.append(qyy)
             # observation (Eq. 20) and its Jacobian (Eq. 21)
             if fast:
-                g, Jg = self.net.jacobian_flat(w, q[:, i : i + 1])
-                g, Jg = g[:, 0], Jg[:, 0]
+                ng, H = jac(w, i)  # R g and H = [R dg/dw, I]
             else:
                 g, Jg = _autograd_jacobian(self.net, w, q[:, i])
-            G = R @ Jg  # (D, 3, nw)
-            ng = g @ R.T
-            ngo[:, i] = ng
+                ng = g @ R.T
+            ngo_l.append(ng)
             e = y[:, i] - t - ng
-            # gain and update (Eqs. 7-9); U = P H^T, S = H U + q_yy R
+            # gain and update (Eqs. 7-9) with Ut = (P H^T)^T = H P (P symmetric), S = H P H^T + q_yy R
             if fast:
-                U = torch.baddbmm(P[:, :, nw:], P[:, :, :nw], G.transpose(-1, -2))
-                S = torch.baddbmm(U[:, nw:], G, U[:, :nw]) + qyy[:, None, None] * Ryy
-            else:  # the baseline: full H and dense products
-                H = torch.cat([G, eye3], dim=-1)
-                U = P @ H.transpose(-1, -2)
-                S = H @ U + qyy[:, None, None] * Ryy
+                Ut = H @ P
+                S = torch.baddbmm(qyy[:, None, None] * Ryy, Ut, H.transpose(-1, -2))
+            else:  # the baseline: H built from the autograd Jacobian, dense products
+                H = torch.cat([R @ Jg, eye3], dim=-1)
+                Ut = H @ P
+                S = H @ Ut.transpose(-1, -2) + qyy[:, None, None] * Ryy
             L, info = torch.linalg.cholesky_ex(S)
-            if bool((info != 0).any()):
+            if bool(info.any()):
                 for d in torch.nonzero((info != 0) & alive).flatten().tolist():
                     status[d] = f"diverged at sample {i}: innovation covariance not positive definite"
                 alive &= info == 0
                 if not bool(alive.any()):
                     break
+            if not all_alive or not bool(alive.all()):  # frozen draws keep their state
+                all_alive = False
                 L = torch.where(alive[:, None, None], L, eye3)
-            K = torch.cholesky_solve(U.transpose(-1, -2), L).transpose(-1, -2) * alive[:, None, None]  # (D, n, 3)
+            Kt = torch.cholesky_solve(Ut, L)  # K^T = S^-1 U^T, (D, 3, n)
+            if not all_alive:
+                Kt = Kt * alive[:, None, None]
             v = torch.cholesky_solve(e.unsqueeze(-1), L)
-            nis[:, i] = (e.unsqueeze(-2) @ v)[:, 0, 0]
-            qyy_hist[:, i] = qyy
-            dx = (K @ e.unsqueeze(-1))[..., 0]
+            nis_l.append((e.unsqueeze(-2) @ v)[:, 0, 0])
+            dx = (e.unsqueeze(-2) @ Kt)[:, 0]
             w = w + dx[:, :nw]
             t = t + dx[:, nw:]
             if fast:  # Joseph form as one rank-6 update: P - K U^T - U K^T + K S K^T = P + [-K, KS - U] [U, K]^T
-                A = torch.cat([-K, K @ S - U], dim=-1)
-                B = torch.cat([U, K], dim=-1)
-                P = torch.baddbmm(P, A, B.transpose(-1, -2))
+                At = torch.cat([-Kt, S @ Kt - Ut], dim=-2)
+                Bt = torch.cat([Ut, Kt], dim=-2)
+                P.baddbmm_(At.transpose(-1, -2), Bt)  # in place: the GEMM accumulates into P, no copy of P
             else:
-                IKH = eye_n - K @ H
-                P = IKH @ P @ IKH.transpose(-1, -2) + K @ (qyy[:, None, None] * Ryy) @ K.transpose(-1, -2)
+                IKH = eye_n - Kt.transpose(-1, -2) @ H
+                P = IKH @ P @ IKH.transpose(-1, -2) + Kt.transpose(-1, -2) @ (qyy[:, None, None] * Ryy) @ Kt
                 P = 0.5 * (P + P.transpose(-1, -2))
             # health and the compatibility test of the window's variance factor (Sec. 2.1.3)
             if (i + 1) % cfg.nis_window == 0:
@@ -250,7 +253,7 @@ class EKFTrainer:
                 for d in torch.nonzero(neg).flatten().tolist():
                     status[d] = f"diverged by sample {i}: negative state variance"
                 alive &= ~neg
-                ratio = nis[:, i + 1 - cfg.nis_window : i + 1].nanmean(dim=-1) / 3.0
+                ratio = torch.stack(nis_l[-cfg.nis_window :], dim=-1).mean(dim=-1) / 3.0
                 runaway = (ratio > 1e4) & alive
                 for d in torch.nonzero(runaway).flatten().tolist():
                     status[d] = f"diverged at sample {i}: NIS {float(ratio[d]) * 3:.3g} far outside its chi2 band"
@@ -262,9 +265,11 @@ class EKFTrainer:
             if cfg.reiterate_every and (i + 1) % cfg.reiterate_every == 0 and i + 1 < n_train:
                 k = len(reiters)
                 iters = cfg.reiterate_iterations[0 if k < cfg.reiterate_switch else 1]
-                corr = (y[:, : i + 1] - geo[:, : i + 1]) @ R  # R^T (y - t_bar), base frame
+                corr = (y[:, : i + 1] - torch.stack(geo_l, dim=1)) @ R  # R^T (y - t_bar), base frame
                 w, info_r = self._reiterate(w, q[:, : i + 1], corr, iters)
                 reiters.append({"sample": i + 1, "iterations": iters, **info_r})
+        geo, ngo = _stack(geo_l, (D, N, 3), kw), _stack(ngo_l, (D, N, 3), kw)
+        nis, qyy_hist = _stack(nis_l, (D, N), kw), _stack(qyy_l, (D, N), kw)
         return EKFResult(geo, ngo, nis, qyy_hist, w, t, P, n_train, status, reiters, time.perf_counter() - t_start)
 
     def _reiterate(self, w: Tensor, q: Tensor, corr: Tensor, iterations: int) -> tuple[Tensor, dict]:
@@ -281,6 +286,49 @@ class EKFTrainer:
             rmse.append(res.train_rmse[-1])
             its.append(res.iterations)
         return torch.stack(out), {"train_rmse_m": rmse, "lm_iterations": its}
+
+
+class _StepJacobian:
+    """The rotated network output ``R g`` and the observation Jacobian ``H = [R dg/dw, I]`` at one sample.
+
+    Written straight into a preallocated ``H`` buffer: the rotation folds into the blocks
+    (``R (ds x^T) = (R ds) x^T`` for the first layer, ``R (I kron a) = R kron a`` for the second),
+    the constant blocks (output bias, the identity for the position) are set once, the inputs are
+    normalised once. Same values as ``R @ CorrectionNet.jacobian_flat``.
+    """
+
+    def __init__(self, net: CorrectionNet, q: Tensor, R: Tensor, D: int):
+        H, Dq = net.hidden, net.dof
+        self.Hn, self.Dq, self.R = H, Dq, R
+        self.x = (q - net.q_offset) / net.q_scale  # (D, N, dof)
+        self.os = float(net.out_scale)
+        nw = net.n_weights
+        self.o1, self.o2, self.o3 = H * Dq, H * Dq + H, H * Dq + H + 3 * H
+        self.Hbuf = torch.zeros(D, 3, nw + 3, dtype=q.dtype, device=q.device)
+        self.Hbuf[:, :, self.o3 : nw] = R * self.os  # output bias block: R os
+        self.Hbuf[:, :, nw:] = torch.eye(3, dtype=q.dtype, device=q.device)  # the position block
+
+    def __call__(self, w: Tensor, i: int) -> tuple[Tensor, Tensor]:
+        Hn, Dq, Hb, os = self.Hn, self.Dq, self.Hbuf, self.os
+        W2 = w[:, self.o2 : self.o3].reshape(-1, 3, Hn)
+        x = self.x[:, i]
+        a = torch.tanh(torch.baddbmm(w[:, self.o1 : self.o2, None], w[:, : self.o1].reshape(-1, Hn, Dq),
+                                     x[:, :, None]))[..., 0]  # (D, H)
+        RW2 = self.R @ W2  # (D, 3, H)
+        ng = (torch.baddbmm(w[:, self.o3 :, None], W2, a[:, :, None])[..., 0]) @ self.R.T * os
+        Rds = RW2 * ((1.0 - a * a) * os)[:, None, :]  # d(R g)/dz, (D, 3, H)
+        Hb[:, :, : self.o1].view(-1, 3, Hn, Dq).copy_(Rds[..., None] * x[:, None, None, :])
+        Hb[:, :, self.o1 : self.o2] = Rds
+        Hb[:, :, self.o2 : self.o3].view(-1, 3, 3, Hn).copy_(self.R[None, :, :, None] * (a * os)[:, None, None, :])
+        return ng, Hb
+
+
+def _stack(items: list[Tensor], shape: tuple, kw: dict) -> Tensor:
+    """Per-sample outputs stacked along dimension 1, NaN-padded to ``shape`` (a pass stopped early, or no update)."""
+    out = torch.full(shape, float("nan"), **kw)
+    if items:
+        out[:, : len(items)] = torch.stack(items, dim=1)
+    return out
 
 
 def _batch(x: Tensor, ndim: int) -> Tensor:
