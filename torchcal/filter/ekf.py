@@ -224,10 +224,10 @@ class EKFTrainer:
                 for d in torch.nonzero((info != 0) & alive).flatten().tolist():
                     status[d] = f"diverged at sample {i}: innovation covariance not positive definite"
                 alive &= info == 0
+                all_alive = False
                 if not bool(alive.any()):
                     break
-            if not all_alive or not bool(alive.all()):  # frozen draws keep their state
-                all_alive = False
+            if not all_alive:  # frozen draws keep their state
                 L = torch.where(alive[:, None, None], L, eye3)
             Kt = torch.cholesky_solve(Ut, L)  # K^T = S^-1 U^T, (D, 3, n)
             if not all_alive:
@@ -258,6 +258,7 @@ class EKFTrainer:
                 for d in torch.nonzero(runaway).flatten().tolist():
                     status[d] = f"diverged at sample {i}: NIS {float(ratio[d]) * 3:.3g} far outside its chi2 band"
                 alive &= ~runaway
+                all_alive = bool(alive.all())
                 if cfg.adapt_qyy:
                     out = (ratio < band[0]) | (ratio > band[1])
                     qyy = torch.where(out & alive, (qyy * ratio).clamp(1e-2, 1e6), qyy)
@@ -302,6 +303,7 @@ class _StepJacobian:
         self.Hn, self.Dq, self.R = H, Dq, R
         self.x = (q - net.q_offset) / net.q_scale  # (D, N, dof)
         self.os = float(net.out_scale)
+        self.Ros = R * self.os  # the rotation with the network's output scale folded in
         nw = net.n_weights
         self.o1, self.o2, self.o3 = H * Dq, H * Dq + H, H * Dq + H + 3 * H
         self.Hbuf = torch.zeros(D, 3, nw + 3, dtype=q.dtype, device=q.device)
@@ -309,17 +311,16 @@ class _StepJacobian:
         self.Hbuf[:, :, nw:] = torch.eye(3, dtype=q.dtype, device=q.device)  # the position block
 
     def __call__(self, w: Tensor, i: int) -> tuple[Tensor, Tensor]:
-        Hn, Dq, Hb, os = self.Hn, self.Dq, self.Hbuf, self.os
+        Hn, Dq, Hb, Ros = self.Hn, self.Dq, self.Hbuf, self.Ros
         W2 = w[:, self.o2 : self.o3].reshape(-1, 3, Hn)
         x = self.x[:, i]
         a = torch.tanh(torch.baddbmm(w[:, self.o1 : self.o2, None], w[:, : self.o1].reshape(-1, Hn, Dq),
                                      x[:, :, None]))[..., 0]  # (D, H)
-        RW2 = self.R @ W2  # (D, 3, H)
-        ng = (torch.baddbmm(w[:, self.o3 :, None], W2, a[:, :, None])[..., 0]) @ self.R.T * os
-        Rds = RW2 * ((1.0 - a * a) * os)[:, None, :]  # d(R g)/dz, (D, 3, H)
+        ng = torch.baddbmm(w[:, self.o3 :, None], W2, a[:, :, None])[..., 0] @ Ros.T
+        Rds = (Ros @ W2) * (1.0 - a * a)[:, None, :]  # d(R g)/dz, (D, 3, H)
         Hb[:, :, : self.o1].view(-1, 3, Hn, Dq).copy_(Rds[..., None] * x[:, None, None, :])
         Hb[:, :, self.o1 : self.o2] = Rds
-        Hb[:, :, self.o2 : self.o3].view(-1, 3, 3, Hn).copy_(self.R[None, :, :, None] * (a * os)[:, None, None, :])
+        Hb[:, :, self.o2 : self.o3].view(-1, 3, 3, Hn).copy_(Ros[None, :, :, None] * a[:, None, None, :])
         return ng, Hb
 
 
