@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Calibrate the real UR10 (ipa-robot-accuracy data, Leica tracker + T-Mac) and test across series.
 
-Part 1, per series and method (``kinematic``, ``pcm``, ``kinematic+ann``): a seeded random 80/20
+Part 1, per series and method (``auto``, ``kinematic``, ``pcm``, ``kinematic+ann``): a seeded random 80/20
 split; held-out RMSE and max before (nominal geometry, fitted tracker pose and lever arm), after
 the geometric fit and at the end, the global test of the last least-squares fit, the runtime.
 
@@ -44,7 +44,7 @@ from torchcal.robot import load_robot
 
 ROBOT = "ur10"
 SERIES = ("A", "B", "C", "D")
-METHODS = ("kinematic", "pcm", "kinematic+ann")
+METHODS = ("auto", "kinematic", "pcm", "kinematic+ann")
 PAIRS = (("C", "B"), ("B", "C"), ("C", "D"), ("C", "A"))
 SAME_PLACEMENT = {("B", "C"), ("C", "B")}  # README: the home pose agrees within 0.2 mm
 SEED = 0
