@@ -8,10 +8,13 @@ Methods (``--method``):
   arm with the nominal geometry, then a :class:`CorrectionNet` on the position corrections.
 * ``kinematic+ann``: the literature's sequential "kinCalib+": ``kinematic``, then the network
   on what remains.
-* ``auto`` (default): ``kinematic``, then a ``learned`` residual model only where the data demand
-  it: a kernel regression (:mod:`torchcal.effects.kernel`) and the correction network are fitted
-  on 80 % of the training poses and judged on the other 20 %; the better one is kept when it
-  lowers the validation RMSE by at least 5 % and a one-sided paired test gives p < 0.01.
+* ``auto`` (default): ``kinematic``, then the closed loop (:mod:`torchcal.diagnose`): the named
+  effects (compliance, backlash, cyclic, drift) the residuals demand, each chosen by a score test,
+  refitted jointly with the geometry and confirmed on validation poses; then a ``learned``
+  residual model only where the data demand it: a kernel regression (:mod:`torchcal.effects.kernel`)
+  and the correction network are fitted on 80 % of the training poses and judged on the other
+  20 %; the better one is kept when it lowers the validation RMSE by at least 5 % and a one-sided
+  paired test gives p < 0.01.
 
 Held-out split: a seeded random 20 % of the poses (static data) or the last 20 % of the
 samples (trajectories, see :func:`is_trajectory`), never used for fitting.
@@ -60,6 +63,9 @@ class Options:
     net_method: str = "lm"
     net_iterations: int = 100
     trajectory: bool | None = None  # None: decide from a monotonic t column
+    diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
+    alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
+    alpha_validation: float = 0.05  # closed loop: level of the paired validation test
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -77,6 +83,7 @@ class Fit:
     free: FreeParameters
     identifiability: Identifiability | None = None
     global_test: dict = field(default_factory=dict)
+    whitening: Tensor | None = None  # (N, 3, 3) the L_i^-1 the residuals were whitened with
 
 
 @dataclass
@@ -108,6 +115,7 @@ class CalibrationRun:
     effects_report: list[dict] = field(default_factory=list)
     rejected: list[dict] = field(default_factory=list)  # candidates that did not earn their place
     notes: list[str] = field(default_factory=list)
+    diagnosis: object | None = None  # torchcal.diagnose.Diagnosis of the auto method
 
 
 def rmse(e: Tensor) -> float:
@@ -150,7 +158,27 @@ def min_poses(robot: RobotModel, holdout: float) -> int:
     return int(math.ceil(2 * n_par / 3 / (1.0 - holdout)))
 
 
-def _selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, bool] | None = None):
+#: effect kinds whose parameters the least-squares fit estimates jointly with the geometry
+NAMED_KINDS = ("compliance", "backlash", "cyclic", "drift")
+
+
+def effect_parameter_labels(model: MeasurementModel) -> tuple[dict[str, Tensor], dict[str, list[str]]]:
+    """Selection masks (all free) and element names of the named effects' parameters, e.g.
+    ``effects.0.k`` -> ``["compliance(joint 2).k"]``."""
+    sel, labels = {}, {}
+    for i, e in enumerate(model.effects):
+        if e.kind not in NAMED_KINDS:
+            continue
+        for pname, p in e.named_parameters(recurse=False):
+            key = f"effects.{i}.{pname}"
+            sel[key] = torch.ones(p.shape, dtype=torch.bool)
+            n = p.numel()
+            labels[key] = [f"{e.label()}.{pname}" + (f"[{k}]" if n > 1 else "") for k in range(n)]
+    return sel, labels
+
+
+def _selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, bool] | None = None,
+               effects: bool = False):
     sel, labels = {}, {}
     for g in groups:
         grp = model.robot.groups()[g]
@@ -159,22 +187,45 @@ def _selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str,
             mask &= torch.tensor([keep.get(n, False) for n in grp.names]).reshape(mask.shape)
         sel[f"robot.{g}.delta"] = mask
         labels[f"robot.{g}.delta"] = grp.names
+    if effects:
+        esel, elab = effect_parameter_labels(model)
+        for key, mask in esel.items():
+            if keep is not None:
+                mask = torch.tensor([keep.get(n, True) for n in elab[key]]).reshape(mask.shape)
+            sel[key], labels[key] = mask, elab[key]
     return sel, labels
 
 
 def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opts: Options, stage: str,
-          trajectory: bool, identify: bool = True) -> Fit:
-    """Weighted LM over the free elements of ``groups`` (identifiable ones only when ``identify``)."""
+          trajectory: bool, identify: bool = True, effects: bool = False,
+          identifiability: Identifiability | None = None) -> Fit:
+    """Weighted LM over the free elements of ``groups`` (identifiable ones only when ``identify``).
+
+    With ``effects`` the parameters of the model's named effects (:data:`NAMED_KINDS`) are estimated
+    jointly with the groups; in the identifiability analysis they come after the geometry, so an effect
+    parameter that the geometry already explains is held at its current value.
+
+    ``identifiability`` reuses an earlier analysis (that of the geometric fit) for the robot's
+    parameters instead of analysing again: after a fit the nominally parallel axes of a UR arm are no
+    longer exactly parallel, and a new analysis would free parameters that are only determined to
+    1e-5 (``d3``, ``d4``), which turns the refit into a crawl along a flat valley.
+    """
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
-    sel, labels = _selection(model, groups)
+    sel, labels = _selection(model, groups, effects=effects)
     free = FreeParameters(model, sel, labels)
     ida = None
-    if identify:
+    if identifiability is not None:
+        ida = identifiability
+        keep = dict(zip(ida.names, ida.free.tolist()))
+        keep.update({n: True for n in free.names if n not in keep})  # effect parameters: checked when scored
+        sel, labels = _selection(model, groups, keep, effects=effects)
+        free = FreeParameters(model, sel, labels)
+    elif identify:
         fun = residual_function(model, free, ctx, m.p, W)
         J = torch.func.jacfwd(fun)(free.vector())
         ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
-        sel, labels = _selection(model, groups, dict(zip(free.names, ida.free.tolist())))
+        sel, labels = _selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
     prior = None
     if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
@@ -185,7 +236,7 @@ def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opt
     if res.status in ("diverged", "failed_solve"):
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
     free.assign(res.x)
-    return Fit(stage, res, free, ida, global_test(res))
+    return Fit(stage, res, free, ida, global_test(res), W)
 
 
 def _clone(model: MeasurementModel) -> MeasurementModel:
@@ -225,10 +276,20 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
         run.fits.append(solve(model, train, ("geometry", "instrument", "tool"), opts, "geometric", trajectory))
     record("geometric")
 
-    # 3. a learned residual model where the data demand it
+    # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation
+    if opts.method == "auto" and opts.diagnose:
+        from torchcal.diagnose import close_loop
+
+        _console.info("diagnosis: score tests of the candidate effects, joint refits, validation")
+        close_loop(run, train, trajectory, record, alpha=opts.alpha, alpha_val=opts.alpha_validation)
+
+    # 4. a learned residual model where the data demand it
     if opts.method == "auto":
         _console.info("residual model: kernel regression and correction network judged on validation poses")
         if select_learned(run, train, trajectory):
+            e_val = refine_learned(run, train, trajectory)
+            if any(e.kind in NAMED_KINDS for e in model.effects):
+                prune_named(run, train, trajectory, e_val)
             record("learned")
             run.effects_report[-1]["rmse_before_mm"] = run.stages[-2].rmse * 1e3
             run.effects_report[-1]["rmse_after_mm"] = run.stages[-1].rmse * 1e3
@@ -296,8 +357,133 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
         run.rejected.append({"kind": "learned", "joint": None, "evidence": evidence})
         return False
     model.add(effect)
-    run.effects_report.append({"kind": "learned", "joint": None, "params": params, "evidence": evidence})
+    run.effects_report.append({"kind": "learned", "joint": None, "name": "learned", "label": "learned",
+                               "params": params, "evidence": evidence})
     return True
+
+
+def _learned_split(train: Measurements, seed: int) -> tuple[Tensor, Tensor]:
+    """The fitting and validation poses of the learned stage (as in :func:`select_learned`)."""
+    perm = torch.randperm(train.n, generator=torch.Generator().manual_seed(int(seed) + 2))
+    n_val = max(3, int(0.2 * train.n))
+    return perm[n_val:], perm[:n_val]
+
+
+def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool):
+    """One alternating round on ``model`` (its last effect is the learned one): the geometry and the named
+    effects with the learned correction in place, then the learned model on the new corrections.
+
+    Returns the least-squares fit and the learned model's validation errors per pose ``(n_val,)`` [m];
+    a refitted kernel replaces the old one in ``model``.
+    """
+    from torchcal.effects.kernel import fit_kernel_correction
+
+    opts = run.options
+    index = len(model.effects) - 1
+    eff = model.effects[index]
+    fi, va = _learned_split(train, opts.seed)
+    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    groups = ("geometry", "instrument", "tool") if ida is not None else ("instrument", "tool")
+    fit = solve(model, train, groups, opts, "learned (alternating refit)", trajectory, effects=True,
+                identifiability=ida)
+    others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
+    corr = corrections(others, train, trajectory)
+    if isinstance(eff, LearnedEffect):
+        fit_net(eff.net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method,
+                iterations=opts.net_iterations, ftol=1e-6)
+        with torch.no_grad():
+            e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
+    else:
+        new, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
+                                          seed=opts.seed)
+        model.effects[index] = new
+        e_val = info["val_errors"]
+    return fit, e_val
+
+
+def refine_learned(run: CalibrationRun, train: Measurements, trajectory: bool, rounds: int = 3) -> Tensor:
+    """Refit the geometry (and the named effects) and the learned model in turn, while validation improves.
+
+    The geometric fit has already bent the geometry towards the part of the non-geometric field
+    that looks geometric, and the learned model was fitted to what was left. Alternating the two
+    fits (geometry with the learned correction in place, then the learned model on the new
+    corrections, on the same fitting and validation poses as :func:`select_learned`) moves the
+    pair towards their joint least-squares solution; a round is kept only when the validation
+    RMSE of the learned model falls. Returns the learned model's validation errors per pose.
+    """
+    model = run.model
+    best = run.effects_report[-1]["evidence"]["validation_rmse_after_mm"] * 1e-3
+    best_e = None
+    history = [best * 1e3]
+    for _ in range(rounds):
+        trial = copy.deepcopy(model)
+        fit, e_val = _refit_with_learned(run, trial, train, trajectory)
+        v = rmse(e_val)
+        if not v < best * (1.0 - 1e-3):
+            break
+        _adopt(model, trial)
+        best, best_e = v, e_val
+        history.append(v * 1e3)
+        run.fits.append(fit)
+    if best_e is None:  # no round helped: the errors of the model as it stands
+        _, best_e = _refit_with_learned(run, copy.deepcopy(model), train, trajectory)
+    run.effects_report[-1]["evidence"]["alternating_refit_validation_rmse_mm"] = history
+    run.notes.append(f"learned residual model: {len(history) - 1} alternating refits of geometry and learned model, "
+                     f"validation {history[0]:.4f} -> {history[-1]:.4f} mm")
+    return best_e
+
+
+def _adopt(model: MeasurementModel, other: MeasurementModel) -> None:
+    """Make ``model`` hold ``other``'s effects and parameter values (the robot stays the same object)."""
+    model.robot.load_state_dict(other.robot.state_dict())
+    model.effects = torch.nn.ModuleList(list(other.effects))
+    for e in model.effects:
+        e.train(False)
+
+
+def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_val: Tensor) -> None:
+    """With a learned model in place, drop each named effect the learned model explains as well.
+
+    A smooth field that no named effect describes still projects onto some of their regressors,
+    and the loop may accept one for that share. For each named effect in turn, the model without
+    it (geometry and learned model refitted as in :func:`refine_learned`) is compared with the
+    model with it on the learned stage's validation poses: the effect stays only when the model
+    with it is better by a one-sided paired test at ``alpha_validation``.
+    """
+    from torchcal.effects.kernel import paired_improvement
+
+    model, opts = run.model, run.options
+    for label in [e.label() for e in model.effects if e.kind in NAMED_KINDS]:
+        k = next(i for i, e in enumerate(model.effects) if e.label() == label)
+        eff = model.effects[k]
+        trial = copy.deepcopy(model)
+        del trial.effects[k]
+        fit, e_without = _refit_with_learned(run, trial, train, trajectory)
+        test = paired_improvement(e_without, e_val)
+        evidence = {"validation_rmse_with_mm": rmse(e_val) * 1e3, "validation_rmse_without_mm": rmse(e_without) * 1e3,
+                    "z": test["z"], "p_value": test["p_value"], "n": test["n"],
+                    "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}"}
+        entry = next((r for r in run.effects_report if r.get("label") == eff.label()), None)
+        if entry is not None:
+            entry["evidence"]["with_learned_model"] = evidence
+        if test["p_value"] < opts.alpha_validation:
+            continue
+        _adopt(model, trial)
+        run.fits.append(fit)
+        e_val = e_without
+        reason = (f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
+                  f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})")
+        run.notes.append(f"diagnosis: {eff.label()} dropped: {reason}")
+        if entry is not None:
+            run.effects_report.remove(entry)
+            run.rejected.append({"kind": entry["kind"], "joint": entry["joint"], "name": entry.get("name"),
+                                 "reason": f"accepted in round {entry['evidence'].get('round')}, then dropped: "
+                                           f"{reason}", "evidence": entry["evidence"]})
+        run.stages[:] = [st for st in run.stages if st.name != eff.label()]
+        if run.diagnosis is not None:
+            for d in run.diagnosis.decisions:
+                if d.stage == eff.label():
+                    d.reason += f"; dropped after the learned stage: {reason}"
 
 
 def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:

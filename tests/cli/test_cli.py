@@ -55,11 +55,19 @@ def test_demo_runs_and_reports(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "report:" in printed and str(tmp_path / "demo" / "run" / "report.md") in printed
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
-    rmse = summary["holdout_rmse_mm"]
-    # the field is not geometry: the kinematic calibration leaves much of it, the learned model takes it
-    assert rmse["nominal"] > rmse["geometric"] > 2 * rmse["learned"]
-    assert summary["test_file_rmse_mm"] < 0.06
-    assert (tmp_path / "demo" / "run" / "report.json").is_file()
+    truth = json.loads((tmp_path / "demo" / "data" / "truth.json").read_text())
+    # the loop names the undeclared compliance of joint 2 (kind and joint as truth.json has them), then the
+    # learned model takes the smooth field; each step lowers the held-out error
+    assert [(e["kind"], e["joint"]) for e in truth["effects"]] == [("compliance", 2), ("learned", None)]
+    assert summary["effects"] == [{"kind": "compliance", "joint": 2}, {"kind": "learned", "joint": None}]
+    assert summary["stages"] == ["nominal", "geometric", "compliance(joint 2)", "learned"]
+    rmse = [summary["holdout_rmse_mm"][s] for s in summary["stages"]]
+    assert rmse == sorted(rmse, reverse=True) and rmse[1] > 1.5 * rmse[-1]
+    assert summary["test_file_rmse_mm"] < 0.035
+    assert "+ compliance(joint 2)" in printed and "effects found: compliance (joint 2), learned" in printed
+    report = json.loads((tmp_path / "demo" / "run" / "report.json").read_text())
+    assert report["effects"][0]["kind"] == "compliance" and report["effects"][0]["rmse_after_mm"] < \
+        report["effects"][0]["rmse_before_mm"]
 
 
 def test_console_script_and_module_entry_points():

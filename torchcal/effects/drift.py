@@ -68,6 +68,9 @@ class Drift(Effect):
     def config(self) -> dict:
         return {"variable": self.variable, "target": self.target}
 
+    def label(self) -> str:
+        return f"drift({self.variable}, {self.target})"
+
     def describe(self) -> dict:
         return {"variable": self.variable, "target": self.target, "rates": self.rates.detach().tolist(),
                 "reference": float(self.reference)}

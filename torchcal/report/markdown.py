@@ -23,7 +23,9 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(9, 3.2))
     x = torch.arange(len(run.holdout_idx))
-    for s, color in zip(run.stages, ("0.6", "tab:orange", "tab:blue", "tab:green")):
+    colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
+    for k, s in enumerate(run.stages):
+        color = "tab:blue" if k == len(run.stages) - 1 and k > 1 else colors[k % len(colors)]
         ax.plot(x, s.holdout_errors * 1e3, ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)")
     ax.set_xlabel("held-out pose")
     ax.set_ylabel("|position error| [mm]")
@@ -75,16 +77,84 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
     plt.close(fig)
 
 
+def plot_error_map(run: CalibrationRun, path: Path) -> None:
+    """Held-out probe positions seen from above and from the side, coloured by the error before and after."""
+    plt = _plt()
+    hold = run.data.subset(run.holdout_idx)
+    with torch.no_grad():
+        p = run.model.robot.probe_in_base(hold.q)
+    geo = next(s for s in run.stages if s.name == "geometric")
+    shown = [geo, run.stages[-1]] if run.stages[-1] is not geo else [geo]
+    vmax = float(max(s.holdout_errors.max() for s in shown)) * 1e3
+    fig, axes = plt.subplots(2, len(shown), figsize=(5.6 * len(shown), 8), squeeze=False, layout="constrained")
+    radius = p[:, :2].norm(dim=-1)
+    for k, s in enumerate(shown):
+        e = (s.holdout_errors * 1e3).tolist()
+        sc = axes[0][k].scatter(p[:, 0].tolist(), p[:, 1].tolist(), c=e, s=9, cmap="viridis", vmin=0, vmax=vmax)
+        axes[0][k].set_xlabel("x [m] (robot base)")
+        axes[0][k].set_ylabel("y [m]")
+        name = s.name if k == 0 or s.name == "geometric" else f"final ({s.name})"
+        axes[0][k].set_title(f"{name}: RMSE {s.rmse * 1e3:.4f} mm", fontsize=10)
+        axes[1][k].scatter(radius.tolist(), p[:, 2].tolist(), c=e, s=9, cmap="viridis", vmin=0, vmax=vmax)
+        axes[1][k].set_xlabel("distance from the base axis [m]")
+        axes[1][k].set_ylabel("z [m]")
+    fig.colorbar(sc, ax=axes, label="|position error| [mm], held-out poses", shrink=0.6)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
+    """Residual along the effect's direction against its regressor, before and after (one decision)."""
+    from torchcal.diagnose.views import residual_view
+    from torchcal.effects import Context
+
+    plt = _plt()
+    train = run.data.subset(run.train_idx)
+    ctx = Context.from_measurements(train, trajectory=run.trajectory)
+    before, after = decision.models
+    v = residual_view(decision.candidate, before, after, ctx, train.p)
+    x = v["x"].tolist()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    for ax, key, title in ((axes[0], "before", "before"), (axes[1], "after", "after")):
+        ax.plot(x, (v[key] * 1e6).tolist(), ".", ms=2.5, color="0.45" if key == "before" else "tab:blue",
+                label="residual along the effect's direction")
+        order = torch.argsort(v["x"])
+        ax.plot([x[i] for i in order.tolist()], (v["effect"][order] * 1e6).tolist(), ".", ms=2, color="tab:red",
+                label="fitted effect")
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_xlabel(v["xlabel"])
+        ax.set_title(f"{decision.candidate.name} {title}")
+    axes[0].set_ylabel("[um]")
+    axes[0].legend(fontsize=7)
+    verdict = "accepted" if decision.accepted else "rejected"
+    fig.suptitle(f"{decision.candidate.name}: {verdict} (training poses)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def _fmt(v: float, unit: str) -> str:
     if unit == "rad":
         return f"{math.degrees(v) * 3600:.2f}″"
     return f"{v * 1e3:.4f} mm"
 
 
+STAGE_TEXT = {
+    "nominal": "nominal geometry; tracker pose and lever arm fitted",
+    "geometric": "kinematic calibration: identifiable geometric errors, tracker pose, lever arm",
+    "learned": "learned residual model (kernel regression or correction network)",
+}
+
+
+def _g(v, fmt=".3g") -> str:
+    return "-" if v is None else format(v, fmt)
+
+
 def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     plot_errors_per_pose(run, out / "errors_per_pose.png")
     plot_histograms(run, out / "histogram.png")
     plot_error_vs_joints(run, out / "error_vs_joints.png")
+    plot_error_map(run, out / "error_map.png")
     gt = report["global_test"]
     lines = [
         f"# Calibration of {report['robot']} ({report['method']})",
@@ -92,16 +162,24 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         f"{report['n_train']} poses fitted, {report['n_holdout']} held out ({report['split']['kind']} split, "
         f"seed {report['split']['seed']}). All errors below are on the held-out poses.",
         "",
-        "| model | RMSE [mm] | max [mm] |",
-        "|---|---:|---:|",
+        "## The story",
+        "",
+        "| step | model | RMSE [mm] | max [mm] |",
+        "|---:|---|---:|---:|",
     ]
-    for s in run.stages:
-        lines.append(f"| {s.name} | {s.rmse * 1e3:.4f} | {float(s.holdout_errors.max()) * 1e3:.4f} |")
+    for k, s in enumerate(run.stages):
+        what = STAGE_TEXT.get(s.name, f"+ {s.name}, refitted jointly with the geometry")
+        lines.append(f"| {k} | {s.name}: {what} | {s.rmse * 1e3:.4f} | {float(s.holdout_errors.max()) * 1e3:.4f} |")
     lines += [
         "",
-        "*nominal*: nominal geometry with the tracker pose and lever arm fitted; *geometric*: after the "
-        "kinematic calibration (unchanged when the method fits no geometry); *learned*: with the correction network.",
+        f"Before: {report['rmse_before_mm']:.4f} mm; after the geometric fit: {report['rmse_geometric_mm']:.4f} mm; "
+        f"final: {report['rmse_after_mm']:.4f} mm.",
         "",
+        "![error map](error_map.png)",
+        "",
+    ]
+    lines += _diagnosis_section(run, report, out)
+    lines += [
         "## Global test",
         "",
         f"Variance factor {gt['statistic']:.3f} against the bound {gt['threshold']:.3f} (chi-square, "
@@ -130,12 +208,63 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         for c in par["largest_correlations"][:5]:
             lines.append(f"- {c['a']} / {c['b']}: {c['rho']:+.3f}")
     if report["effects"]:
-        lines += ["", "## Effects", "", "| kind | joint | RMSE before [mm] | RMSE after [mm] |", "|---|---|---:|---:|"]
+        lines += ["", "## Effects", "", "| kind | joint | parameters (value ± std) | RMSE before [mm] | "
+                  "RMSE after [mm] |", "|---|---|---|---:|---:|"]
         for e in report["effects"]:
-            lines.append(f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | "
+            params = ", ".join(f"{k} = {v['value']:.3g} ± {_g(v['std'])}" for k, v in e["params"].items()
+                               if isinstance(v, dict))
+            lines.append(f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
                          f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |")
     lines += ["", "## Plots", "", "![errors per pose](errors_per_pose.png)", "", "![histogram](histogram.png)", "",
               "![error against joints](error_vs_joints.png)", ""]
     if report["notes"]:
         lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+
+
+def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
+    diag = run.diagnosis
+    if diag is None:
+        return []
+    lines = [
+        "## Closing the loop",
+        "",
+        f"Candidates ({len(diag.candidates)}): {', '.join(c.name for c in diag.candidates) or 'none'}. "
+        f"Each round scores every remaining candidate at the current fit (score test, chi-square, Bonferroni "
+        f"over the candidates at alpha {diag.alpha}); the significant ones, strongest first, are refitted "
+        f"jointly with the geometry on {diag.n_fit} training poses and must lower the error on the other "
+        f"{diag.n_validation} (validation poses; paired one-sided test at {diag.alpha_validation}).",
+        "",
+    ]
+    if diag.skipped:
+        lines += ["Left out: " + "; ".join(f"{s['name']} ({s['reason']})" for s in diag.skipped), ""]
+    for r in diag.rounds:
+        gt = r["global_test"]
+        lines += [f"### Round {r['round']}", "",
+                  f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).", "",
+                  "| candidate | k | chi2 | log10 p | Bonferroni p | BIC change | identifiable |",
+                  "|---|---:|---:|---:|---:|---:|---|"]
+        for s in r["scores"][:6]:
+            lines.append(f"| {s.candidate.name} | {s.k} | {s.statistic:.1f} | {s.log10_p:.1f} | {s.p_bonferroni:.2g} | "
+                         f"{s.bic_change:.1f} | {'yes' if s.identifiable else 'no'} |")
+        lines.append("")
+        for k, d in enumerate(diag.decisions):
+            if d.round != r["round"]:
+                continue
+            v = d.validation
+            verdict = "**accepted**" if d.accepted else "**rejected**"
+            lines += [f"{d.candidate.name}: {verdict}: {d.reason}. Validation RMSE {v['rmse_before_mm']:.4f} -> "
+                      f"{v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, p = {v['p_value']:.2g}).", ""]
+            if d.models is not None:
+                name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
+                plot_decision(run, d, out / name)
+                lines += [f"![{d.candidate.name}]({name})", ""]
+    lines += [f"Stopped: {diag.stop}.", ""]
+    learned = [e for e in report["effects"] if e["kind"] == "learned"]
+    rejected = [e for e in report.get("rejected", []) if e["kind"] == "learned"]
+    if learned or rejected:
+        ev = (learned or rejected)[0]["evidence"]
+        lines += [f"Learned residual model: {ev['chosen']} {'accepted' if learned else 'rejected'} "
+                  f"(validation {ev['validation_rmse_before_mm']:.4f} -> {ev['validation_rmse_after_mm']:.4f} mm, "
+                  f"p = {ev['p_value']:.2g}; rule: {ev['rule']}).", ""]
+    return lines

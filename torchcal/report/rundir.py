@@ -17,6 +17,7 @@ end, so a failure leaves no partial run directory.
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 import tempfile
@@ -80,6 +81,19 @@ def _param_table(run: CalibrationRun) -> dict:
     }
 
 
+def _json_safe(x):
+    """Plain JSON: non-finite floats become None (``json`` would write the non-standard ``Infinity``)."""
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_json_safe(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, torch.Tensor):
+        return _json_safe(x.tolist())
+    return x
+
+
 def build_report(run: CalibrationRun) -> dict:
     st = {s.name: s for s in run.stages}
     final = run.stages[-1]
@@ -108,7 +122,9 @@ def build_report(run: CalibrationRun) -> dict:
             "joint_sigma_rad": run.options.sigma_joint,
         },
         "outliers": {"test": "Baarda data snooping |w| > 3.29 on the final least-squares fit", "lines": outliers},
-        "effects": run.effects_report,
+        "effects": _json_safe(run.effects_report),
+        "rejected": _json_safe(run.rejected),
+        "diagnosis": _json_safe(run.diagnosis.to_dict()) if run.diagnosis is not None else None,
         "parameters": _param_table(run),
         "stages": [{"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_train_mm": rmse(s.train_errors) * 1e3}
                    for s in run.stages],

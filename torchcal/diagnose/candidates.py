@@ -1,0 +1,147 @@
+"""The effects a calibration could lack, for one robot and one data set.
+
+Every named effect family of :mod:`torchcal.effects` that the data could reveal becomes a
+candidate: ``compliance`` per joint whose gravity torque varies over the poses (the robot
+description must carry masses), ``backlash`` per joint whose loaded flank changes (the sign of
+the gravity torque for static poses, the direction of motion along a trajectory),
+``cyclic`` per joint (harmonics 1 and 2), ``drift`` of the instrument pose with the
+acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
+
+A candidate is left out, with the reason recorded, where it cannot matter: a joint whose
+motion does not move the probe (less than 0.1 mm per radian), a regressor that is constant
+over the data (then the effect is a joint offset or an instrument pose the geometry already
+has), a variable the file does not have.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchcal.effects import Backlash, Compliance, Context, Cyclic, Drift
+from torchcal.effects.base import Effect
+
+Tensor = torch.Tensor
+
+#: a joint that moves the probe by less than this (RMS over the poses, m/rad) cannot show an effect
+MIN_LEVER = 1e-4
+#: drift variables the data may carry, the effect form each one drives, and its unit
+DRIFT_FORMS = {"t": ("instrument", "s"), "temperature": ("scale", "degC")}
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One effect the model could be missing.
+
+    Attributes:
+        kind: effect kind (CONTRACT §4): compliance, backlash, cyclic or drift.
+        joint: 1-based joint, or None for drift.
+        variable: drift variable (``t`` or ``temperature``), else None.
+        reference: drift reference value (the variable at the first training sample).
+    """
+
+    kind: str
+    joint: int | None = None
+    variable: str | None = None
+    reference: float = 0.0
+
+    @property
+    def name(self) -> str:
+        """Short name as the simulator spells it: ``compliance:2``, ``drift:t``."""
+        return f"{self.kind}:{self.joint if self.joint is not None else self.variable}"
+
+    @property
+    def n_params(self) -> int:
+        return len(torch.nn.utils.parameters_to_vector(self.make().parameters()))
+
+    def make(self) -> Effect:
+        """A fresh effect of this form with zero parameters."""
+        if self.kind == "compliance":
+            return Compliance(self.joint)
+        if self.kind == "backlash":
+            return Backlash(self.joint, source="auto")
+        if self.kind == "cyclic":
+            return Cyclic(self.joint, harmonics=(1, 2))
+        if self.kind == "drift":
+            return Drift(self.variable, DRIFT_FORMS[self.variable][0], reference=self.reference)
+        raise ValueError(f"unknown candidate kind {self.kind!r}")
+
+    def regressor(self, robot, ctx: Context) -> tuple[Tensor, str]:
+        """The variable the effect follows, one value per pose ``(N,)``, and its axis label (for plots)."""
+        eff = self.make()
+        if self.kind == "compliance":
+            return eff.regressor(robot, ctx), f"gravity torque at joint {self.joint} [N m]"
+        if self.kind == "backlash":
+            what = "motion direction" if ctx.direction is not None else "sign of the gravity torque"
+            return eff.regressor(robot, ctx), f"loaded flank of joint {self.joint} ({what})"
+        if self.kind == "cyclic":
+            return ctx.q[:, self.joint - 1], f"q{self.joint} [rad]"
+        return eff.regressor(robot, ctx), f"{self.variable} - {self.reference:g} [{DRIFT_FORMS[self.variable][1]}]"
+
+    def to_dict(self) -> dict:
+        out = {"name": self.name, "kind": self.kind, "joint": self.joint}
+        if self.variable is not None:
+            out["variable"] = self.variable
+            out["form"] = DRIFT_FORMS[self.variable][0]
+        return out
+
+
+def _varies(x: Tensor, rel: float = 1e-9) -> bool:
+    return bool(len(x) > 1) and float(x.std()) > rel * (1.0 + float(x.abs().max()))
+
+
+def joint_levers(robot, q: Tensor) -> Tensor:
+    """RMS over the poses of ``|dp/dq_j|`` per joint ``(dof,)`` [m/rad]."""
+    from torchcal.effects.kernel import joint_metric
+
+    return joint_metric(robot, q)
+
+
+def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
+    """The candidate effects for ``robot`` at the samples of ``ctx`` (module docstring).
+
+    Returns:
+        The candidates, and the ones left out as ``{"name", "reason"}`` dicts.
+    """
+    out: list[Candidate] = []
+    skipped: list[dict] = []
+
+    def skip(name, reason):
+        skipped.append({"name": name, "reason": reason})
+
+    levers = joint_levers(robot, ctx.q)
+    tau = robot.gravity_torques(ctx.q).detach() if robot.has_masses else None
+    for j in range(1, robot.dof + 1):
+        if float(levers[j - 1]) < MIN_LEVER:
+            for kind in ("compliance", "backlash", "cyclic"):
+                skip(f"{kind}:{j}", f"joint {j} moves the probe by {float(levers[j - 1]) * 1e3:.2g} mm/rad "
+                     f"(< {MIN_LEVER * 1e3:g})")
+            continue
+        if tau is None:
+            skip(f"compliance:{j}", "the robot description has no link masses")
+        elif not _varies(tau[:, j - 1]):
+            skip(f"compliance:{j}", f"the gravity torque at joint {j} does not vary over the poses")
+        else:
+            out.append(Candidate("compliance", j))
+        if ctx.direction is None and tau is None:
+            skip(f"backlash:{j}", "static poses and no link masses: the loaded flank is unknown")
+        else:
+            flank = Backlash(j, source="auto").regressor(robot, ctx)
+            if bool((flank == flank[0]).all()):
+                skip(f"backlash:{j}", f"joint {j} rests on the same flank in every pose (a joint offset)")
+            else:
+                out.append(Candidate("backlash", j))
+        if not _varies(ctx.q[:, j - 1]):
+            skip(f"cyclic:{j}", f"joint {j} does not move over the data")
+        else:
+            out.append(Candidate("cyclic", j))
+    for var in DRIFT_FORMS:
+        v = ctx.t if var == "t" else ctx.temperature
+        if v is None:
+            skip(f"drift:{var}", f"the data have no '{var}' column")
+        elif not _varies(v):
+            skip(f"drift:{var}", f"'{var}' does not vary over the data")
+        else:
+            out.append(Candidate("drift", None, var, float(v[0])))
+    return out, skipped

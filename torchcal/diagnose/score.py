@@ -1,0 +1,138 @@
+"""Score tests of candidate effects at the current least-squares fit.
+
+Legend: ``r`` whitened residuals ``(n,)`` and ``J`` their Jacobian ``(n, u)`` with respect to the
+current free parameters, both at the solution; ``C (n, k)`` the whitened Jacobian of the
+predictions with respect to one candidate's ``k`` parameters at zero; ``s0^2 = r^T r / (n - u)``.
+
+Adding the candidate and refitting lowers the weighted sum of squares, to first order, by
+
+    dSS = r^T P r,   P the orthogonal projector onto the part of span(C) orthogonal to span(J)
+
+(the Lagrange multiplier or score test of the linearised model; Rao 1948, Breusch & Pagan
+1980). When the candidate is absent, ``dSS / s0^2`` is chi-square with ``k`` degrees of
+freedom. The ``K`` candidates are tested at once, so their p-values are Bonferroni-corrected
+(``min(1, K p)``) before any is compared with the level. The change of the Bayesian information
+criterion ``-dSS / s0^2 + k ln n`` is reported next to it (negative: the candidate pays for its
+parameters).
+
+A candidate the current model already explains cannot be tested: its columns are checked with
+:func:`torchcal.estimate.identifiability.analyse` against the current ones, and a candidate with
+any column dependent on them (sine of the angle to their span <= tol) is marked not identifiable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torchcal.diagnose.candidates import Candidate
+from torchcal.effects import Context, MeasurementModel
+from torchcal.estimate.identifiability import DEFAULT_TOL, analyse
+from torchcal.estimate.lm import LMResult
+
+Tensor = torch.Tensor
+
+
+@dataclass
+class Score:
+    """The evidence for one candidate (module docstring)."""
+
+    candidate: Candidate
+    k: int
+    delta_ss: float  # first-order decrease of the whitened sum of squares
+    statistic: float  # delta_ss / s0^2, chi-square(k) without the effect
+    p_value: float
+    log10_p: float  # for ranking where p underflows
+    p_bonferroni: float
+    bic_change: float
+    independence: float  # smallest sine of a candidate column to the current span
+    identifiable: bool
+    n_candidates: int
+
+    def significant(self, alpha: float) -> bool:
+        return self.identifiable and self.p_bonferroni < alpha
+
+    def to_dict(self) -> dict:
+        return {**self.candidate.to_dict(), "test": "score test (chi-square) on the linearised model",
+                "n_params": self.k, "delta_ss": self.delta_ss, "statistic": self.statistic, "dof": self.k,
+                "p_value": self.p_value, "log10_p": self.log10_p, "p_bonferroni": self.p_bonferroni,
+                "n_candidates": self.n_candidates, "bic_change": self.bic_change,
+                "independence": self.independence, "identifiable": self.identifiable}
+
+
+def chi2_sf_log10(x: float, k: int) -> tuple[float, float]:
+    """Upper tail ``P(chi2_k > x)`` and its log10, the latter valid far into the tail."""
+    a = 0.5 * k
+    p = float(torch.special.gammaincc(torch.tensor(a, dtype=torch.float64), torch.tensor(0.5 * x, dtype=torch.float64)))
+    if p > 1e-280:
+        return p, math.log10(p)
+    # Q(a, y) ~ y^(a-1) e^-y / Gamma(a) (1 + (a-1)/y + ...) for large y
+    y = 0.5 * x
+    ln = (a - 1) * math.log(y) - y - math.lgamma(a) + math.log1p((a - 1) / y)
+    return p, ln / math.log(10.0)
+
+
+def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor) -> Tensor:
+    """Whitened Jacobian ``C (3N, k)`` of the predictions w.r.t. the candidate's parameters at zero."""
+    eff = cand.make()
+    trial = MeasurementModel(model.robot, [*model.effects, eff])
+    i = len(model.effects)
+    names = [n for n, _ in eff.named_parameters()]
+    shapes = [q.shape for _, q in eff.named_parameters()]
+    sizes = [q.numel() for _, q in eff.named_parameters()]
+
+    def fun(theta: Tensor) -> Tensor:
+        parts = torch.split(theta, sizes)
+        params = {f"effects.{i}.{n}": v.reshape(s) for n, v, s in zip(names, parts, shapes)}
+        pred = torch.func.functional_call(trial, params, (ctx,))
+        return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+
+    theta0 = torch.zeros(sum(sizes), dtype=torch.float64)
+    return torch.func.jacfwd(fun)(theta0).detach()
+
+
+def score_candidates(model: MeasurementModel, result: LMResult, ctx: Context, p: Tensor, W: Tensor,
+                     cands: list[Candidate], tol: float = DEFAULT_TOL) -> list[Score]:
+    """Score every candidate at the fit ``result`` of ``model`` to ``p`` (module docstring); best first.
+
+    Args:
+        result: the least-squares fit, with whitened residuals and Jacobian at its solution (prior
+            pseudo-observations, if any, come after the ``3N`` observations).
+        ctx, p, W: the samples, measured positions ``(N, 3)`` and whitening ``(N, 3, 3)`` of that fit.
+    """
+    r, J = result.residuals, result.jacobian
+    n_obs = 3 * ctx.q.shape[0]
+    extra = len(r) - n_obs
+    s0sq = result.sigma0_sq
+    scale = J.norm(dim=0).clamp(min=1e-300)
+    Q, _ = torch.linalg.qr(J / scale)
+    K = len(cands)
+    out = []
+    for cand in cands:
+        C = candidate_columns(model, cand, ctx, p, W)
+        if extra:
+            C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype)])
+        k = C.shape[1]
+        # analyse() on the triangular factor of [J, C]: orthogonal Q keeps every norm and angle, and the
+        # (u + k) x (u + k) factor makes the column walk cheap next to the 3N-row matrix
+        _, R = torch.linalg.qr(torch.cat([J / scale, C / C.norm(dim=0).clamp(min=1e-300)], dim=1))
+        ida = analyse(R, [f"x{i}" for i in range(J.shape[1] + k)], tol=tol)
+        indep = float(ida.independence[J.shape[1]:].min())
+        identifiable = bool(ida.free[J.shape[1]:].all())
+        Cn = C / C.norm(dim=0).clamp(min=1e-300)
+        for _ in range(2):
+            Cn = Cn - Q @ (Q.T @ Cn)
+        if identifiable:
+            Qc, Rc = torch.linalg.qr(Cn)
+            keep = Rc.diagonal().abs() > tol
+            dss = float((Qc[:, keep].T @ r).square().sum())
+        else:
+            dss = 0.0
+        stat = dss / s0sq if s0sq > 0 else float("inf")
+        pv, l10 = chi2_sf_log10(stat, k)
+        out.append(Score(cand, k, dss, stat, pv, l10, min(1.0, K * pv), -stat + k * math.log(n_obs), indep,
+                         identifiable, K))
+    out.sort(key=lambda s: (not s.identifiable, s.log10_p, -s.statistic))
+    return out
