@@ -1,5 +1,6 @@
 """The integrated ANN-EKF (Horvath & Neuner 2024): EKFTrainer, its configuration and result."""
 
+from torchcal.filter.adaptive import AdaptiveConfig, AdaptiveEKF, AdaptiveResult, random_features
 from torchcal.filter.ekf import EKFConfig, EKFResult, EKFTrainer
 
-__all__ = ["EKFConfig", "EKFResult", "EKFTrainer"]
+__all__ = ["AdaptiveConfig", "AdaptiveEKF", "AdaptiveResult", "EKFConfig", "EKFResult", "EKFTrainer", "random_features"]
