@@ -50,14 +50,28 @@ class KernelCorrection(Effect):
         self.register_buffer("metric", torch.ones(dof, dtype=torch.float64))  # S / l per joint
         self.register_buffer("length_scale", torch.tensor(1.0, dtype=torch.float64))
         self.register_buffer("noise_ratio", torch.tensor(1.0, dtype=torch.float64))
+        self._cache: tuple | None = None  # (inputs with their versions, output) of the last plain call
 
     def kernel(self, q: Tensor) -> Tensor:
         return torch.exp(-0.5 * torch.cdist(q * self.metric, self.support * self.metric).square())
 
     def forward(self, robot, ctx: Context) -> Tensor:
+        q = ctx.q
         if len(self.support) == 0:
-            return torch.zeros(ctx.q.shape[0], 3, dtype=ctx.q.dtype)
-        return self.kernel(ctx.q) @ self.alpha
+            return torch.zeros(q.shape[0], 3, dtype=q.dtype)
+        # The output depends on q and the buffers only, never on a calibration parameter, and a
+        # least-squares fit with the kernel in place evaluates it at the same q dozens of times:
+        # the last result is reused while q and the buffers are the same tensor objects, unmodified
+        # (in-place version counters). Tensors under a torch.func transform are never cached.
+        if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
+            return self.kernel(q) @ self.alpha
+        key = [(t, t._version) for t in (q, self.support, self.alpha, self.metric)]
+        if self._cache is not None and all(a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key)):
+            return self._cache[1]
+        out = self.kernel(q) @ self.alpha
+        if not out.requires_grad:
+            self._cache = (key, out)
+        return out
 
     def scale_(self, factor: float) -> None:
         with torch.no_grad():
