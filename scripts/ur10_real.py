@@ -103,6 +103,12 @@ def within_series(name: str, m: Measurements, method: str) -> dict:
         "geometric": st["geometric"] if method != "pcm" else None,
         "final": stats(run.stages[-1].holdout_errors), "final_stage": run.stages[-1].name,
         "global_test": {**fit.global_test, "fit": fit.stage}, "runtime_s": runtime,
+        # what the closed loop named, each with the held-out RMSE before and after it, and what it dropped
+        "stages": [{"name": s.name, "rmse_mm": stats(s.holdout_errors)["rmse_mm"]} for s in run.stages],
+        "effects": [{"kind": e["kind"], "joint": e["joint"], "label": e.get("label", e["kind"]),
+                     "rmse_before_mm": e.get("rmse_before_mm"), "rmse_after_mm": e.get("rmse_after_mm")}
+                    for e in run.effects_report],
+        "rejected": [{"name": r.get("name", r["kind"]), "reason": r.get("reason", "")} for r in run.rejected],
     }
 
 
@@ -178,6 +184,13 @@ def markdown(res: dict) -> str:
             lines.append(f"| {r['series']} | {r['method']} | {r['n_train']}/{r['n_holdout']} | {_rm(r['nominal'])} "
                          f"| {_rm(r['geometric'])} | {_rm(r['final'])} | {_f(g['statistic'], 1)} "
                          f"({_f(g['threshold'])}, {g['fit']}) | {_f(r['runtime_s'], 1)} |")
+        looped = [r for r in res["within"] if r["method"] == "auto"]
+        if looped:
+            lines += ["", "### What the closed loop (`auto`) found", "",
+                      "| series | stages: held-out RMSE [mm] | dropped or rejected |", "|---|---|---|"]
+            for r in looped:
+                story = " → ".join(f"{st['name']} {_f(st['rmse_mm'])}" for st in r["stages"])
+                lines.append(f"| {r['series']} | {story} | {', '.join(x['name'] for x in r['rejected']) or '—'} |")
         lines += ["", "nominal: nominal geometry with the tracker pose and lever arm fitted on the training poses. "
                   "pcm fits no geometry (geometric: —). The global test is that of the last least-squares fit named "
                   "(the correction network is not one); s0² is the a-posteriori variance factor, thr its 95 % bound.",
@@ -216,6 +229,8 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object on the last stdout line")
     ap.add_argument("--quick", action="store_true", help="series C, kinematic only, plus C -> B")
     ap.add_argument("--series", default=",".join(SERIES), help="series for part 1, comma separated (default A,B,C,D)")
+    ap.add_argument("--methods", default=",".join(METHODS), help="methods for part 1 (default all)")
+    ap.add_argument("--no-transfer", action="store_true", help="skip part 2 (across series)")
     ap.add_argument("--a-rows", type=int, default=3000, help="subsample Series A to this many rows (0: all)")
     ap.add_argument("--threads", type=int, default=0,
                     help="torch CPU threads (default 0: torch's choice); 1 is steadier on a shared, busy machine")
@@ -233,7 +248,10 @@ def main(argv=None) -> int:
         bad = [s for s in names if s not in SERIES]
         if bad:
             ap.error(f"unknown series {', '.join(bad)}; valid: {', '.join(SERIES)}")
-        methods, pairs = METHODS, PAIRS
+        methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+        if any(m not in METHODS for m in methods):
+            ap.error(f"unknown method in {args.methods!r}; valid: {', '.join(METHODS)}")
+        pairs = () if args.no_transfer else PAIRS
     needed = sorted(set(names) | {s for p in pairs for s in p})
     data, subsampled = load_series(args.data_dir, needed, args.a_rows)
 
