@@ -1,6 +1,8 @@
 """Robot model: known answers, independent DH, pytorch-kinematics, gradients, gravity torques."""
 
+import importlib.util
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,25 +14,17 @@ from torchcal.robot import transforms as tf
 
 F64 = torch.float64
 
-UR_DH = {
-    "ur5": [(0, math.pi / 2, 0.089159), (-0.425, 0, 0), (-0.39225, 0, 0), (0, math.pi / 2, 0.10915),
-            (0, -math.pi / 2, 0.09465), (0, 0, 0.0823)],
-    "ur10": [(0, math.pi / 2, 0.1273), (-0.612, 0, 0), (-0.5723, 0, 0), (0, math.pi / 2, 0.163941),
-             (0, -math.pi / 2, 0.1157), (0, 0, 0.0922)],
-}
+def _load_reference():
+    """The independent numpy standard DH and UR's tables live in scripts/fk_agreement.py (one copy)."""
+    path = Path(__file__).resolve().parents[2] / "scripts" / "fk_agreement.py"
+    spec = importlib.util.spec_from_file_location("fk_agreement", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
-def numpy_standard_dh(table, q):
-    """Textbook standard DH, written independently of torchcal."""
-    out = []
-    for qq in q:
-        T = np.eye(4)
-        for (a, al, d), th in zip(table, qq):
-            ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(al), np.sin(al)
-            T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
-                              [0, sa, ca, d], [0, 0, 0, 1]])
-        out.append(T)
-    return np.stack(out)
+_REF = _load_reference()
+UR_DH, numpy_standard_dh = _REF.UR_DH, _REF.numpy_standard_dh
 
 
 def numpy_modified_dh(table, q):
