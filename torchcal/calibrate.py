@@ -15,6 +15,8 @@ Methods (``--method``):
   and the correction network are fitted on 80 % of the training poses and judged on the other
   20 %; the better one is kept when it lowers the validation RMSE by at least 5 % and a one-sided
   paired test gives p < 0.01.
+* ``integrated``: ``kinematic``, then the integrated ANN-EKF of the paper (Sec. 2.3) on a continuous
+  trajectory (:mod:`torchcal.filter.integrated`).
 
 Held-out split: a seeded random 20 % of the poses (static data) or the last 20 % of the
 samples (trajectories, see :func:`is_trajectory`), never used for fitting.
@@ -24,7 +26,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import torch
 
@@ -43,7 +45,7 @@ from torchcal.robot.model import RobotModel
 Tensor = torch.Tensor
 F64 = torch.float64
 
-METHODS = ("auto", "kinematic", "pcm", "kinematic+ann")
+METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
 DEFAULT_METHOD = "auto"
 
 
@@ -115,7 +117,9 @@ class CalibrationRun:
     effects_report: list[dict] = field(default_factory=list)
     rejected: list[dict] = field(default_factory=list)  # candidates that did not earn their place
     notes: list[str] = field(default_factory=list)
+    learned_validation_errors: Tensor | None = None  # per pose, of the learned stage's validation poses [m]
     diagnosis: object | None = None  # torchcal.diagnose.Diagnosis of the auto method
+    filter: object | None = None  # torchcal.filter.integrated.IntegratedFilter of the integrated method
 
 
 def rmse(e: Tensor) -> float:
@@ -253,6 +257,10 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
     if data.dof != robot.dof:
         raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
     trajectory = is_trajectory(data) if opts.trajectory is None else bool(opts.trajectory)
+    if opts.method == "integrated":
+        from torchcal.filter.integrated import require_trajectory
+
+        require_trajectory(data, trajectory)
     tr, ho = split(data, opts.holdout, opts.seed, trajectory)
     train, hold = data.subset(tr), data.subset(ho)
     model = MeasurementModel(robot)
@@ -271,10 +279,16 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
     record("nominal")
 
     # 2. geometry
-    if opts.method in ("auto", "kinematic", "kinematic+ann"):
+    if opts.method in ("auto", "kinematic", "kinematic+ann", "integrated"):
         _console.info("kinematic calibration: identifiability analysis and weighted LM")
         run.fits.append(solve(model, train, ("geometry", "instrument", "tool"), opts, "geometric", trajectory))
     record("geometric")
+
+    # 2'. the integrated ANN-EKF on the trajectory (network from the training corrections, then the filter)
+    if opts.method == "integrated":
+        from torchcal.filter.integrated import integrate
+
+        run.filter = integrate(run, train, hold, record)
 
     # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation
     if opts.method == "auto" and opts.diagnose:
@@ -324,9 +338,7 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
 
     model, opts = run.model, run.options
     corr = corrections(model, train, trajectory)
-    perm = torch.randperm(train.n, generator=torch.Generator().manual_seed(int(opts.seed) + 2))
-    n_val = max(3, int(0.2 * train.n))
-    fi, va = perm[n_val:], perm[:n_val]
+    fi, va = _learned_split(train, opts.seed)
     e0 = corr[va].norm(dim=-1)
 
     kern, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
@@ -349,7 +361,7 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
     evidence = {"candidates_validation_rmse_mm": {k: rmse(v[1]) * 1e3 for k, v in candidates.items()},
                 "chosen": name, "validation_rmse_before_mm": rmse0 * 1e3, "validation_rmse_after_mm": rmse1 * 1e3,
                 "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0, **test,
-                "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}", "n_validation": int(n_val)}
+                "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}", "n_validation": len(va)}
     accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
     run.notes.append(f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
                      f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
@@ -357,9 +369,14 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
         run.rejected.append({"kind": "learned", "joint": None, "evidence": evidence})
         return False
     model.add(effect)
+    run.learned_validation_errors = e1
     run.effects_report.append({"kind": "learned", "joint": None, "name": "learned", "label": "learned",
                                "params": params, "evidence": evidence})
     return True
+
+
+#: LM iterations of a refit with the learned model in place (:func:`_refit_with_learned`)
+REFIT_MAX_ITER = 10
 
 
 def _learned_split(train: Measurements, seed: int) -> tuple[Tensor, Tensor]:
@@ -384,8 +401,10 @@ def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Mea
     fi, va = _learned_split(train, opts.seed)
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
     groups = ("geometry", "instrument", "tool") if ida is not None else ("instrument", "tool")
-    fit = solve(model, train, groups, opts, "learned (alternating refit)", trajectory, effects=True,
-                identifiability=ida)
+    # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
+    # data its valley is flat and an uncapped LM crawls for minutes without changing the comparison
+    fit = solve(model, train, groups, replace(opts, max_iter=min(opts.max_iter, REFIT_MAX_ITER)),
+                "learned (alternating refit)", trajectory, effects=True, identifiability=ida)
     others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
     corr = corrections(others, train, trajectory)
     if isinstance(eff, LearnedEffect):
@@ -426,7 +445,7 @@ def refine_learned(run: CalibrationRun, train: Measurements, trajectory: bool, r
         history.append(v * 1e3)
         run.fits.append(fit)
     if best_e is None:  # no round helped: the errors of the model as it stands
-        _, best_e = _refit_with_learned(run, copy.deepcopy(model), train, trajectory)
+        best_e = run.learned_validation_errors
     run.effects_report[-1]["evidence"]["alternating_refit_validation_rmse_mm"] = history
     run.notes.append(f"learned residual model: {len(history) - 1} alternating refits of geometry and learned model, "
                      f"validation {history[0]:.4f} -> {history[-1]:.4f} mm")

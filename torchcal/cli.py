@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--out", required=True, help="run directory to write")
     c.add_argument("--method", default=None,
                    help="auto (default: geometry, then a learned residual model where validation data demand it), "
-                   "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+)")
+                   "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
+                   "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)")
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
     c.add_argument("--holdout", type=float, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument("--tracker-noise", type=float, default=15.0,

@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from torchcal.calibrate import CalibrationRun
+from torchcal.report.ekf_plots import ekf_section
 
 
 def _plt():
@@ -143,6 +144,7 @@ STAGE_TEXT = {
     "nominal": "nominal geometry; tracker pose and lever arm fitted",
     "geometric": "kinematic calibration: identifiable geometric errors, tracker pose, lever arm",
     "learned": "learned residual model (kernel regression or correction network)",
+    "integrated": "integrated ANN-EKF: network refined with the geometry, then filtered along the trajectory",
 }
 
 
@@ -179,6 +181,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
     ]
     lines += _diagnosis_section(run, report, out)
+    lines += ekf_section(run, out)
     lines += [
         "## Global test",
         "",
