@@ -99,7 +99,10 @@ def build_report(run: CalibrationRun) -> dict:
     final = run.stages[-1]
     last = run.fits[-1]
     # outliers by Baarda's data snooping on the final least-squares fit, per pose (max over x, y, z)
-    w = last.result.standardized_residuals().reshape(-1, 3).abs().max(dim=-1).values
+    sr = last.result.standardized_residuals()
+    if last.whitening is not None:  # the prior's pseudo-observations follow the poses' residuals: not poses
+        sr = sr[: 3 * len(last.whitening)]
+    w = sr.reshape(-1, 3).abs().max(dim=-1).values
     outliers = [int(run.data.lines[int(run.train_idx[i])]) for i in torch.nonzero(w > 3.29).flatten()]
     return {
         "robot": run.robot.name,
