@@ -80,19 +80,20 @@ def field_for(samples: int, seed: int, target_mm: float, probe: str = "0.26mm") 
     return f"{size:.4f}mm"
 
 
-def one_seed(samples: int, field: str, seed: int) -> dict:
+def one_seed(samples: int, field: str, seed: int, engine: str = "adaptive") -> dict:
     t0 = time.perf_counter()
     if field.startswith("auto"):
         field = field_for(samples, seed, float(field.split(":")[1]) if ":" in field else 0.19)
     c, data = trajectory_data(samples, field, seed)
-    run = calibrate("ur5", data, Options(method="integrated", seed=seed))
+    run = calibrate("ur5", data, Options(method="integrated", seed=seed, engine=engine))
     hold = data.subset(run.holdout_idx)
     with torch.no_grad():
         oracle = (c.model(Context.from_measurements(hold, trajectory=True)) - hold.p).norm(dim=-1)
     ev = run.effects_report[-1]["evidence"]
     return {
         "holdout_rmse_mm": {s.name: s.rmse * 1e3 for s in run.stages},
-        "steps_mm": {**ev["holdout_rmse_steps_mm"], "filter (final model)": run.stages[-1].rmse * 1e3},
+        "engine": engine,
+        "steps_mm": {**ev.get("holdout_rmse_steps_mm", {}), "filter (final model)": run.stages[-1].rmse * 1e3},
         "filter_prediction_mm": ev["holdout_rmse_filter_prediction_mm"],
         "oracle_mm": float(oracle.square().mean().sqrt()) * 1e3,
         "field": field,
@@ -110,6 +111,7 @@ def main(argv=None) -> int:
     ap.add_argument("--field", default="auto", help="RMS of the non-geometric field at the probe with a unit (in mm), "
                     "or auto[:MM]: sized per seed so that the kinematic calibration leaves MM (default 0.19) held out")
     ap.add_argument("--samples", type=int, default=7342)
+    ap.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive", help="integrated engine")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = ap.parse_args(argv)
     before = torch.get_num_threads()
@@ -117,7 +119,7 @@ def main(argv=None) -> int:
     try:
         seeds = {}
         for seed in args.seeds:
-            r = seeds[str(seed)] = one_seed(args.samples, args.field, seed)
+            r = seeds[str(seed)] = one_seed(args.samples, args.field, seed, args.engine)
             h = r["holdout_rmse_mm"]
             print(f"seed {seed}: held-out RMSE nominal {h['nominal']:.4f}, geometric {h['geometric']:.4f}, "
                   f"integrated {h['integrated']:.4f} mm (oracle {r['oracle_mm']:.4f}); steps "

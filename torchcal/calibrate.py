@@ -15,8 +15,9 @@ Methods (``--method``):
   and the correction network are fitted on 80 % of the training poses and judged on the other
   20 %; the better one is kept when it lowers the validation RMSE by at least 5 % and a one-sided
   paired test gives p < 0.01.
-* ``integrated``: ``kinematic``, then the integrated ANN-EKF of the paper (Sec. 2.3) on a continuous
-  trajectory (:mod:`torchcal.filter.integrated`).
+* ``integrated``: ``kinematic`` (the reference stage), then the integrated ANN-EKF on a continuous
+  trajectory (:mod:`torchcal.filter.integrated`): by default the adaptive filter with the geometry in its
+  state (``engine="adaptive"``), or the paper's filter on the kinematic geometry (``engine="ekf"``).
 
 Held-out split: a seeded random 20 % of the poses (static data) or the last 20 % of the
 samples (trajectories, see :func:`is_trajectory`), never used for fitting.
@@ -68,10 +69,13 @@ class Options:
     diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
+    engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
+        if self.engine not in ("adaptive", "ekf"):
+            raise OptionError(f"engine '{self.engine}' is not one of adaptive, ekf")
         if not 0.0 < self.holdout < 0.9:
             raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
 
@@ -286,9 +290,10 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
 
     # 2'. the integrated ANN-EKF on the trajectory (network from the training corrections, then the filter)
     if opts.method == "integrated":
-        from torchcal.filter.integrated import integrate
+        from torchcal.filter.integrated import integrate, integrate_adaptive
 
-        run.filter = integrate(run, train, hold, record)
+        engine = integrate_adaptive if opts.engine == "adaptive" else integrate
+        run.filter = engine(run, train, hold, record)
 
     # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation
     if opts.method == "auto" and opts.diagnose:

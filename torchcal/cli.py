@@ -70,6 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (default: geometry, then a learned residual model where validation data demand it), "
                    "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
                    "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)")
+    c.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive",
+                   help="integrated method: adaptive (geometry and network in one filter state, default) or ekf "
+                   "(the paper's filter on the kinematic calibration's geometry)")
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
     c.add_argument("--holdout", type=float, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument("--tracker-noise", type=float, default=15.0,
@@ -114,7 +117,8 @@ def cmd_calibrate(args) -> int:
 
     robot = load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link)
     opts = C.Options(method=args.method or C.DEFAULT_METHOD, seed=args.seed, holdout=args.holdout,
-                     sigma_tracker=args.tracker_noise * 1e-6, sigma_joint=math.radians(args.joint_noise))
+                     sigma_tracker=args.tracker_noise * 1e-6, sigma_joint=math.radians(args.joint_noise),
+                     engine=args.engine)
     if args.rank_tol is not None:
         opts.rank_tol = args.rank_tol
     data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,

@@ -144,7 +144,7 @@ STAGE_TEXT = {
     "nominal": "nominal geometry; tracker pose and lever arm fitted",
     "geometric": "kinematic calibration: identifiable geometric errors, tracker pose, lever arm",
     "learned": "learned residual model (kernel regression or correction network)",
-    "integrated": "integrated ANN-EKF: network refined with the geometry, then filtered along the trajectory",
+    "integrated": "integrated ANN-EKF: geometry and network estimated along the trajectory",
 }
 
 
