@@ -55,7 +55,6 @@ Sec. 2.2.2, Table 1 and Fig. 5.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import math
 import sys
@@ -67,6 +66,7 @@ import numpy as np
 import torch
 
 import torchcal
+from torchcal._threads import torch_threads
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
@@ -376,17 +376,6 @@ def write_outputs(result: dict, out: Path) -> None:
     (out / "table1.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
     (out / "table1.md").write_text(markdown(result), encoding="utf-8")
     plot_fig5(result, out / "fig5.png")
-
-
-@contextlib.contextmanager
-def torch_threads(n: int):
-    """Run with ``n`` torch threads, then restore the previous number."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(max(1, n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

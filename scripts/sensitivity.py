@@ -63,7 +63,6 @@ Reference: S. Horvath and H. Neuner, J. Intell. Robot. Syst. (2024), Sec. 3.3 an
 from __future__ import annotations
 
 import argparse
-import contextlib
 import copy
 import json
 import math
@@ -73,6 +72,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal._threads import torch_threads
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.problem import FreeParameters, residual_function, whitening
@@ -253,16 +253,6 @@ def plot(result: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
-
-
-@contextlib.contextmanager
-def torch_threads(n: int):
-    before = torch.get_num_threads()
-    torch.set_num_threads(max(1, n))
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def main(argv: list[str] | None = None) -> int:

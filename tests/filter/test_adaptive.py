@@ -26,16 +26,6 @@ F64 = torch.float64
 N, N_TRAIN = 1500, 1200
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """The filter is thousands of tiny kernels: a second thread only adds synchronisation (and on a shared
-    2-core machine it is many times slower)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def setup(one_thread):
     c = simulate(SimConfig(robot="ur5", trajectory=True, samples=N, train_samples=N_TRAIN, seed=13,

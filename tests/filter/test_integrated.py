@@ -24,16 +24,6 @@ from torchcal.sim import EffectSpec, SimConfig, simulate
 SAMPLES = 2000
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """One torch thread: the filter's and the joint refinement's many small operations crawl when two threads
-    share two busy cores (measured: 190 s instead of 17 s for one calibration)."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def trajectory(tmp_path_factory):
     """A UR5 trajectory with biased geometry and a smooth field, as one file (the run holds out its last 20 %)."""
