@@ -41,6 +41,7 @@ held-out error after each step.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 
@@ -355,12 +356,12 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
     with torch.no_grad():
         kin_q = torch.cat([train.q, hold.q])
         kinematic = model(Context(q=kin_q))  # the kinematic calibration's prediction: the report's reference G
-    start = copy_nominal(robot)
+    start = _nominal_copy(robot)
     with torch.no_grad():
         T, lever, _ = fit_instrument_and_tool(start(train.q), train.p)
         start.instrument.set_matrix(T)
         start.tool.nominal.copy_(lever)
-    cfg = AdaptiveConfig(sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint)
+    cfg = AdaptiveConfig(sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol)
     net = random_features(dof=robot.dof, hidden=hidden, seed=int(opts.seed) + 1)
     flt = AdaptiveEKF(start, net, cfg)
     _console.info(f"integrated ANN-EKF (adaptive): geometry and a {robot.dof}-{hidden}-3 random-feature network "
@@ -376,8 +377,10 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
         net.set_flat(res.w)
     model.add(LearnedEffect(net))
     record("integrated")
-    as_ekf = EKFResult(res.geometric[None], res.nongeometric[None], res.nis[None], res.q_yy[None], res.w[None],
-                       res.t[None], res.P[None], res.n_train, [res.status], [], res.seconds)
+    # the report's filter plots read an EKFResult with a draw dimension of one
+    as_ekf = EKFResult(geometric=res.geometric[None], nongeometric=res.nongeometric[None], nis=res.nis[None],
+                       q_yy=res.q_yy[None], w=res.w[None], t=res.t[None], P=res.P[None], n_train=res.n_train,
+                       status=[res.status], seconds=res.seconds)
     filt = IntegratedFilter(as_ekf, torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w)
     before, after = next(s for s in run.stages if s.name == "geometric"), run.stages[-1]
     e_filter = (filt.prediction[train.n :] - hold.p).norm(dim=-1)
@@ -404,10 +407,8 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
     return filt
 
 
-def copy_nominal(robot):
+def _nominal_copy(robot):
     """A copy of ``robot`` with every correction at zero (its nominal geometry, instrument and lever arm)."""
-    import copy
-
     out = copy.deepcopy(robot)
     with torch.no_grad():
         for g in out.groups().values():
