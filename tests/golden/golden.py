@@ -1,0 +1,53 @@
+"""Regenerate the golden reports: ``python tests/golden/golden.py`` (writes ``*.json`` next to this file).
+
+A small, fast, seeded run per method on a simulated UR5 campaign (200 poses, joint-2 compliance and a
+smooth field the nominal model lacks), reduced to the run's ``report.json`` (:func:`build_report`).
+``tests/test_golden.py`` compares a fresh run against the stored report key by key, so a refactoring
+that changes a number, a stage, an effect or a note shows up. Regenerate only when a change of the
+results is intended, and say why in the commit.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+#: method -> calibration options (beside the method) of each golden run
+CASES = {
+    "kinematic": {},
+    "auto": {},
+    "kinematic+ann": {"net_iterations": 30},
+}
+SIM = {"robot": "ur5", "poses": 200, "test_poses": 20, "seed": 7, "effects": ("compliance:2=60um", "field=0.05mm")}
+
+
+def golden_report(method: str) -> dict:
+    """The report of the golden run of ``method`` (one torch thread: reductions in a fixed order)."""
+    from torchcal._threads import torch_threads
+    from torchcal.calibrate import Options, calibrate
+    from torchcal.report import build_report
+    from torchcal.sim import EffectSpec, SimConfig, simulate
+
+    cfg = SimConfig(robot=SIM["robot"], poses=SIM["poses"], test_poses=SIM["test_poses"], seed=SIM["seed"],
+                    effects=[EffectSpec.parse(e) for e in SIM["effects"]])
+    with torch_threads(1):
+        campaign = simulate(cfg)
+        run = calibrate(SIM["robot"], campaign.train, Options(method=method, seed=SIM["seed"], **CASES[method]))
+        return json.loads(json.dumps(build_report(run)))
+
+
+def path(method: str) -> Path:
+    return HERE / f"report_{method.replace('+', '_')}.json"
+
+
+def main(argv: list[str]) -> int:
+    for method in argv or list(CASES):
+        path(method).write_text(json.dumps(golden_report(method), indent=1) + "\n", encoding="utf-8")
+        print(f"wrote {path(method)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
