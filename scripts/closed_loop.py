@@ -28,7 +28,7 @@ import torch
 
 import torchcal
 from torchcal import _console
-from torchcal.diagnose.evaluate import run_cases
+from torchcal.experiments.closed_loop import run_cases
 
 SINGLE = ["compliance:2=50um", "compliance:3=40um", "backlash:2=40um", "backlash:4=40um", "cyclic:1=40um",
           "cyclic:5=40um", "drift:t=50um", "drift:temperature=50um"]

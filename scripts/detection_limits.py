@@ -24,7 +24,7 @@ import torch
 
 import torchcal
 from torchcal import _console
-from torchcal.diagnose.evaluate import run_cases
+from torchcal.experiments.closed_loop import run_cases
 
 #: joints per family on a UR arm where the effect moves the probe in a way geometry cannot absorb
 #: (joint 1's gravity torque is zero: its compliance and backlash are a constant offset; joint 6

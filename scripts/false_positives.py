@@ -23,7 +23,7 @@ import torch
 
 import torchcal
 from torchcal import _console
-from torchcal.diagnose.evaluate import run_cases
+from torchcal.experiments.closed_loop import run_cases
 
 
 def binom_cdf(k: int, n: int, p: float) -> float:

@@ -47,9 +47,9 @@ import time
 
 import torch
 
-from torchcal.calibrate import Options, calibrate
 from torchcal.data import Measurements
 from torchcal.effects import Context
+from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 

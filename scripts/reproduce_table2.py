@@ -5,7 +5,7 @@ a kinematic calibration (Eq. 11) instead of before it, under three variants of b
 Variants (each draw biases every parameter of the variant at once, sigma 0.1 mm for lengths, 0.01 deg for
 angles): ``remaining`` (a1-a5, d2-d5, alpha1-alpha5, theta2-theta5), ``absorbed`` (theta1, d1, theta6, d6,
 alpha6, a6) and ``all``. Per draw: the tracker pose and lever arm are initialised by the closed-form fit with
-the nominal geometry (the PCM's transformation), then ``torchcal.calibrate.solve`` estimates the identifiable
+the nominal geometry (the PCM's transformation), then ``torchcal.estimate.fit.solve`` estimates the identifiable
 DH corrections, the tracker pose and the lever arm by weighted LM after its identifiability analysis, which
 fixes d1, d3, d4, d6, theta1, theta6, alpha6 and a6 on a UR5 as the paper does. We record the mean |deviation|
 of the transformation and lever-arm components from the truth, and the held-out position RMSE of the nominal
@@ -50,10 +50,11 @@ import numpy as np
 import torch
 
 import torchcal
-from torchcal.calibrate import Options, solve
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
+from torchcal.estimate.fit import solve
 from torchcal.estimate.rigid import fit_instrument_and_tool
+from torchcal.pipeline import Options
 
 
 def _load_table1():
@@ -139,7 +140,7 @@ def run(draws: int, poses: int, test_poses: int, seed: int, posture: str = "any"
     return {
         "experiment": "Table 2 of " + t1.PAPER,
         "config": {**setup.config, "draws": draws,
-                   "calibration": "torchcal.calibrate.solve(geometry, instrument, tool), no prior, stat_tol=0"},
+                   "calibration": "torchcal.estimate.fit.solve(geometry, instrument, tool), no prior, stat_tol=0"},
         "components": dict(zip(COMPONENTS, UNITS)),
         "fixed_parameters": sorted(fixed),
         "fixed_as_in_paper": fixed == set(PAPER_FIXED),

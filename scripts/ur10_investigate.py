@@ -52,9 +52,9 @@ from pathlib import Path
 
 import torch
 
-from torchcal.calibrate import Options, calibrate
 from torchcal.data import read_ipa
 from torchcal.effects import Context
+from torchcal.pipeline import Options, calibrate
 from torchcal.robot import transforms as tf
 
 ROBOT = "ur10"

@@ -36,10 +36,11 @@ from pathlib import Path
 
 import torch
 
-from torchcal.calibrate import Options, calibrate, errors
 from torchcal.data import Measurements, read_ipa
 from torchcal.effects import MeasurementModel
 from torchcal.estimate import fit_instrument_and_tool
+from torchcal.estimate.fit import errors
+from torchcal.pipeline import Options, calibrate
 from torchcal.robot import load_robot
 
 ROBOT = "ur10"

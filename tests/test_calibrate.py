@@ -6,9 +6,10 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.calibrate import Options, calibrate, errors
 from torchcal.cli import main
 from torchcal.effects import Context
+from torchcal.estimate.fit import errors
+from torchcal.pipeline import Options, calibrate
 from torchcal.report import predict
 from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
 

@@ -5,6 +5,7 @@ lever arm as parameters, named non-geometric effects, a correction network, and 
 integrated ANN-EKF of Horvath & Neuner (2024).
 """
 
+from torchcal._version import __version__ as __version__  # stated once, in _version.py
 from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context, CorrectionNet, MeasurementModel
 from torchcal.errors import (
@@ -17,10 +18,17 @@ from torchcal.errors import (
 )
 from torchcal.robot import RobotModel, load_robot
 
-__version__ = "0.1.0"
-
 __all__ = [
     "Context", "CorrectionNet", "MeasurementModel", "Measurements", "read_measurements", "write_measurements",
     "EstimationError", "MeasurementFileError", "OptionError", "RobotModel", "RobotSpecError", "ShapeError",
     "TorchcalError", "load_robot",
 ]
+
+
+def __getattr__(name: str):
+    # torchcal.calibrate, the pipeline's entry point, imported on first use: `import torchcal` stays light
+    if name == "calibrate":
+        from torchcal.pipeline import calibrate
+
+        return calibrate
+    raise AttributeError(f"module 'torchcal' has no attribute '{name}'")

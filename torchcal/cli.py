@@ -110,7 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def cmd_calibrate(args) -> int:
-    from torchcal import calibrate as C
+    from torchcal import pipeline as C
     from torchcal.data import read_measurements
     from torchcal.report import write_run
     from torchcal.robot import load_robot
@@ -125,7 +125,7 @@ def cmd_calibrate(args) -> int:
                              angle_unit=args.angle_unit, require_positions=True,
                              min_poses=C.min_poses(robot, opts.holdout), robot_name=robot.name,
                              purpose=f"a {opts.method} calibration of '{robot.name}'")
-    run = C.calibrate(args.robot, data, opts, base_link=args.base_link, tip_link=args.tip_link)
+    run = C.calibrate(robot, data, opts, robot_spec=args.robot)
     out = write_run(run, args.out)
     st = {s.name: s for s in run.stages}
     _console.info(f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
@@ -196,7 +196,7 @@ DEMO_EFFECTS = ("compliance:2=60um", "field=0.05mm")
 
 
 def cmd_demo(args) -> int:
-    from torchcal import calibrate as C
+    from torchcal import pipeline as C
     from torchcal.report import predict, write_run
     from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
 

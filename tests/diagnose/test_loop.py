@@ -12,12 +12,14 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.calibrate import Options, calibrate, errors, rmse
 from torchcal.cli import main
-from torchcal.diagnose.evaluate import found_names, run_case, truth_names
+from torchcal.experiments.closed_loop import found_names, run_case, truth_names
 from torchcal.effects import Context
+from torchcal.estimate.fit import errors
+from torchcal.pipeline import Options, calibrate
 from torchcal.report import load_model, predict, write_run
 from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
+from torchcal.stats import rmse
 
 STATIC = [
     # each family alone, on different joints and robots, at sizes a few um above what 320 training poses resolve

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.calibrate import Options, calibrate
 from torchcal.effects import Context, MeasurementModel
 from torchcal.effects.kernel import fit_kernel_correction, paired_improvement
+from torchcal.pipeline import Options, calibrate
 
 F64 = torch.float64
 IPA = Path(os.environ.get("TORCHCAL_IPA_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"

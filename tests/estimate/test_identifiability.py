@@ -3,11 +3,12 @@
 import torch
 
 import torchcal
-from torchcal.calibrate import Options, solve
 from torchcal.effects import Context, MeasurementModel
+from torchcal.estimate.fit import solve
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.problem import FreeParameters, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
+from torchcal.pipeline import Options
 from torchcal.sim import SimConfig, simulate
 
 F64 = torch.float64

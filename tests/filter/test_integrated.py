@@ -15,10 +15,10 @@ import math
 import pytest
 import torch
 
-from torchcal.calibrate import Options, calibrate
 from torchcal.cli import main
 from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.errors import OptionError
+from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 SAMPLES = 2000

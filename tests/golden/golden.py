@@ -26,7 +26,7 @@ SIM = {"robot": "ur5", "poses": 200, "test_poses": 20, "seed": 7, "effects": ("c
 def golden_report(method: str) -> dict:
     """The report of the golden run of ``method`` (one torch thread: reductions in a fixed order)."""
     from torchcal._threads import torch_threads
-    from torchcal.calibrate import Options, calibrate
+    from torchcal.pipeline import Options, calibrate
     from torchcal.report import build_report
     from torchcal.sim import EffectSpec, SimConfig, simulate
 

@@ -10,6 +10,7 @@ the instrument pose (``instrument``: returns a per-sample correction ``(N, 6)``
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 
 import torch
 from torch import nn
@@ -67,15 +68,31 @@ def motion_direction(q: Tensor, deadband: float = 0.0) -> Tensor:
     return torch.where(lead, first_sign, out)
 
 
+class Acts(str, Enum):
+    """Where an effect acts in :class:`~torchcal.effects.model.MeasurementModel` (str-valued: ``"joint"`` etc.)."""
+
+    JOINT = "joint"  #: adds a joint offset ``dq (N, dof)`` [rad] before the kinematics
+    CARTESIAN = "cartesian"  #: adds a probe offset ``dp (N, 3)`` [m] in the base frame
+    INSTRUMENT = "instrument"  #: perturbs the tracker pose by ``xi (N, 6)`` (se(3) vector)
+
+    def __str__(self) -> str:  # f-strings and str() give the value on every Python version
+        return self.value
+
+
 class Effect(nn.Module):
-    """Base class. Subclasses set ``kind`` and ``acts_on`` and implement ``forward(robot, ctx)``.
+    """Base class. Subclasses set ``kind`` and ``acts_on`` and implement the one signature
+    ``forward(robot, ctx, p_base=None)``.
+
+    ``p_base`` ``(N, 3)`` [m] is the probe position in the base frame with the joint effects applied; the
+    measurement model passes it to every Cartesian effect (a scale drift is proportional to it), the
+    others ignore it.
 
     Args:
         joint: 1-based joint the effect belongs to, or None.
     """
 
     kind: str = "effect"
-    acts_on: str = "joint"  # "joint" | "cartesian" | "instrument"
+    acts_on: Acts = Acts.JOINT  # a plain string compares equal to its Acts member
 
     def __init__(self, joint: int | None = None):
         super().__init__()
@@ -86,7 +103,7 @@ class Effect(nn.Module):
         """0-based joint index."""
         return int(self.joint) - 1
 
-    def forward(self, robot, ctx: Context) -> Tensor:  # pragma: no cover - abstract
+    def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def scale_(self, factor: float) -> None:
@@ -100,7 +117,8 @@ class Effect(nn.Module):
         return {name: p.detach().cpu().tolist() for name, p in self.named_parameters()}
 
     def config(self) -> dict:
-        """Constructor arguments (besides parameter values) to rebuild the module; see :func:`effect_from_config`."""
+        """Constructor arguments (besides parameter values) to rebuild the module (see
+        :func:`~torchcal.effects.registry.effect_from_config`)."""
         return {"joint": self.joint}
 
     def label(self) -> str:
@@ -110,20 +128,3 @@ class Effect(nn.Module):
         dq = torch.zeros_like(ctx.q)
         dq[:, self.j] = value
         return dq
-
-
-def effect_from_config(cfg: dict) -> Effect:
-    """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``."""
-    from torchcal import effects as E
-
-    classes = {c.__name__: c for c in (E.Compliance, E.Backlash, E.Cyclic, E.Drift, E.LearnedEffect,
-                                        E.KernelCorrection)}
-    cfg = dict(cfg)
-    name = cfg.pop("class")
-    if name not in classes:
-        from torchcal.errors import OptionError
-
-        raise OptionError(f"unknown effect class '{name}'; known: {', '.join(classes)}")
-    if name == "LearnedEffect":
-        return E.LearnedEffect(E.CorrectionNet(cfg["dof"], cfg["hidden"]))
-    return classes[name](**cfg)

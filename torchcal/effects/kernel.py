@@ -18,11 +18,10 @@ validation data (:func:`fit_kernel_correction`).
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from torchcal.effects.base import Context, Effect
+from torchcal.stats import paired_improvement  # noqa: F401 (the paired test's old home, kept importable)
 
 Tensor = torch.Tensor
 
@@ -55,7 +54,7 @@ class KernelCorrection(Effect):
     def kernel(self, q: Tensor) -> Tensor:
         return torch.exp(-0.5 * torch.cdist(q * self.metric, self.support * self.metric).square())
 
-    def forward(self, robot, ctx: Context) -> Tensor:
+    def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         q = ctx.q
         if len(self.support) == 0:
             return torch.zeros(q.shape[0], 3, dtype=q.dtype)
@@ -146,17 +145,3 @@ def fit_kernel_correction(robot, q: Tensor, y: Tensor, *, q_val: Tensor, y_val: 
         eff.noise_ratio.fill_(best["noise_ratio"])
     return eff, {"grid": grid, "best": best, "metric_m_per_rad": scale.tolist(), "val_errors": best_errors,
                  "support": len(qa), "max_support": MAX_SUPPORT, "rmse_unit": "m"}
-
-
-def paired_improvement(e_before: Tensor, e_after: Tensor) -> dict:
-    """One-sided paired test that ``e_after`` (per-pose errors) is smaller than ``e_before``.
-
-    Statistic: mean of ``e_before^2 - e_after^2`` over its standard error; with many poses it is
-    close to standard normal under 'no improvement'. Returns the z value and the p-value.
-    """
-    d = e_before.square() - e_after.square()
-    n = len(d)
-    se = float(d.std(unbiased=True)) / math.sqrt(n) if n > 1 else float("inf")
-    z = float(d.mean()) / se if se > 0 else (float("inf") if float(d.mean()) > 0 else 0.0)
-    p = 0.5 * math.erfc(z / math.sqrt(2.0))
-    return {"z": z, "p_value": p, "n": n}

@@ -120,7 +120,7 @@ class LearnedEffect(Effect):
         super().__init__(joint=None)
         self.net = net
 
-    def forward(self, robot, ctx: Context) -> Tensor:
+    def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         return self.net(ctx.q)
 
     def config(self) -> dict:

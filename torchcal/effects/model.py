@@ -7,8 +7,7 @@ from collections.abc import Iterable
 import torch
 from torch import nn
 
-from torchcal.effects.base import Context, Effect
-from torchcal.effects.drift import Drift
+from torchcal.effects.base import Acts, Context, Effect
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
 
@@ -19,7 +18,8 @@ class MeasurementModel(nn.Module):
     """``p_tracker = T_tracker_base(ctx) @ (T_base_flange(q + dq) @ t_flange_probe + dp)``.
 
     ``dq`` sums the joint effects, ``dp`` the Cartesian ones (base frame), and instrument
-    effects perturb ``T_tracker_base`` per sample.
+    effects perturb ``T_tracker_base`` per sample (each effect's :class:`~torchcal.effects.base.Acts`).
+    Every Cartesian effect is called with the probe position reached so far, ``p_base``.
 
     Args:
         robot: the :class:`RobotModel` (geometry, instrument pose, lever arm).
@@ -37,7 +37,7 @@ class MeasurementModel(nn.Module):
     def joint_offsets(self, ctx: Context) -> Tensor:
         dq = torch.zeros_like(ctx.q)
         for e in self.effects:
-            if e.acts_on == "joint":
+            if e.acts_on == Acts.JOINT:
                 dq = dq + e(self.robot, ctx)
         return dq
 
@@ -47,16 +47,15 @@ class MeasurementModel(nn.Module):
         p = self.robot.probe_in_base(q)
         if with_cartesian:
             for e in self.effects:
-                if e.acts_on != "cartesian":
-                    continue
-                p = p + (e(self.robot, ctx, p_base=p) if isinstance(e, Drift) else e(self.robot, ctx))
+                if e.acts_on == Acts.CARTESIAN:
+                    p = p + e(self.robot, ctx, p_base=p)
         return p
 
     def forward(self, ctx: Context) -> Tensor:
         """Probe position in the tracker frame ``(N, 3)`` [m]."""
         p = self.probe_in_base(ctx)
         T = self.robot.T_tracker_base()
-        inst = [e for e in self.effects if e.acts_on == "instrument"]
+        inst = [e for e in self.effects if e.acts_on == Acts.INSTRUMENT]
         if not inst:
             return tf.transform_points(T, p)
         xi = sum(e(self.robot, ctx) for e in inst)

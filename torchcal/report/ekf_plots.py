@@ -1,4 +1,4 @@
-"""Plots and the report.md section of an ``integrated`` run (the ANN-EKF, :mod:`torchcal.filter.integrated`).
+"""Plots and the report.md section of an ``integrated`` run (the ANN-EKF, :mod:`torchcal.pipeline.integrated`).
 
 The paper's Figs. 9 and 11 show, per sample, the deviations of the geometric part (devG), the non-geometric
 part (devNG) and their sum (devAll) from the simulated truth, with the training (filtered) samples first and

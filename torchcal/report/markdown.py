@@ -7,7 +7,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.calibrate import CalibrationRun
+from torchcal.pipeline import CalibrationRun
 from torchcal.report.ekf_plots import ekf_section
 
 

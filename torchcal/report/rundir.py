@@ -25,11 +25,12 @@ from pathlib import Path
 
 import torch
 
-from torchcal.calibrate import CalibrationRun, rmse
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import OptionError
+from torchcal.pipeline import CalibrationRun
 from torchcal.robot import load_robot, resolve_robot_spec
+from torchcal.stats import rmse
 
 F64 = torch.float64
 

@@ -44,16 +44,23 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchcal import _console
+from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
 from torchcal.errors import EstimationError, OptionError
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
 from torchcal.filter.ekf import EKFConfig, EKFResult, EKFTrainer
+from torchcal.pipeline.records import EffectRecord, StageName
+
+if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
+    from torchcal.pipeline.run import CalibrationRun
 
 Tensor = torch.Tensor
 
@@ -161,25 +168,23 @@ def filter_config(model: MeasurementModel, data: Measurements, sigma_tracker: fl
                      sigma_tracker=math.hypot(sigma_tracker, joint_at_probe), reiterate_every=reiterate_every)
 
 
-def integrate(run, train: Measurements, hold: Measurements, record, *, joint_iterations: int = JOINT_ITERATIONS,
-              reiterate_every: int = 0, pcm_iterations: int | None = None) -> IntegratedFilter:
+def integrate(run: CalibrationRun, train: Measurements, hold: Measurements, *,
+              joint_iterations: int = JOINT_ITERATIONS, reiterate_every: int = 0,
+              pcm_iterations: int | None = None) -> IntegratedFilter:
     """Steps 2-5 of the module docstring on a run whose geometric stage is done; adds the ``integrated`` stage.
 
     Args:
-        run: the :class:`~torchcal.calibrate.CalibrationRun` (its model holds the calibrated geometry and no
+        run: the :class:`~torchcal.pipeline.run.CalibrationRun` (its model holds the calibrated geometry and no
             effects yet).
         train, hold: the training samples and the held-out last samples of the trajectory, in time order.
-        record: the run's stage recorder (``record(name)``).
         joint_iterations: LM iterations of the joint refinement (0: none).
         reiterate_every: the paper's ANN re-iteration period in samples (0, the default: none; module docstring).
         pcm_iterations: LM iterations of the network's initial fit (default ``run.options.net_iterations``).
     """
-    from torchcal.calibrate import solve
-
     model, robot, opts = run.model, run.model.robot, run.options
     cfg = filter_config(model, train, opts.sigma_tracker, opts.sigma_joint, reiterate_every)
     net = CorrectionNet(robot.dof, opts.hidden)
-    net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + 3), gain=0.5)
+    net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     trainer = EKFTrainer(robot, net, cfg)
     steps = {}
     _console.info(f"integrated ANN-EKF: network {robot.dof}-{opts.hidden}-3 initialised by LM on the training "
@@ -200,8 +205,8 @@ def integrate(run, train: Measurements, hold: Measurements, record, *, joint_ite
         joint_info["status"] = joint.status
         steps["joint_refinement"] = _rmse(_errors(model, hold))
     # the geometry's final least-squares fit with the network in place: its statistics go into the report
-    run.fits.append(solve(model, train, ("geometry", "instrument", "tool"), opts, "integrated (geometry with the "
-                          "network in place)", True, identifiability=ida))
+    run.fits.append(solve(model, train, GEOMETRIC_GROUPS, opts, "integrated (geometry with the network in place)",
+                          True, identifiability=ida))
     steps["geometry_refit"] = _rmse(_errors(model, hold))
 
     _console.info(f"integrated ANN-EKF: filtering {train.n} samples, then predicting {hold.n} held-out ones")
@@ -215,16 +220,16 @@ def integrate(run, train: Measurements, hold: Measurements, record, *, joint_ite
         raise EstimationError(f"integrated ANN-EKF: the filter {res.status[0]}")
     filt = IntegratedFilter(res, torch.cat([train.p, hold.p]), kin, train.n, cfg, net.flat())
     net.set_flat(res.w[0])  # the final model: calibrated geometry + the filter's last weights
-    record("integrated")
-    before, after = next(s for s in run.stages if s.name == "geometric"), run.stages[-1]
+    after = run.add_stage(StageName.INTEGRATED)
+    before = run.stage(StageName.GEOMETRIC)
     e_filter = (filt.prediction[train.n :] - hold.p).norm(dim=-1)
     nis = res.nis[0, : train.n]
-    run.effects_report.append({
-        "kind": "learned", "joint": None, "name": "integrated", "label": "learned",
-        "params": {"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
-                   "fit": "integrated ANN-EKF (Horvath & Neuner 2024, Sec. 2.3) after an LM initialisation and a "
-                          "joint LM refinement with the geometry"},
-        "evidence": {
+    run.effects.append(EffectRecord(
+        "learned", None, name="integrated", label="learned",
+        params={"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
+                "fit": "integrated ANN-EKF (Horvath & Neuner 2024, Sec. 2.3) after an LM initialisation and a "
+                       "joint LM refinement with the geometry"},
+        evidence={
             "holdout_rmse_steps_mm": {k: v * 1e3 for k, v in steps.items()},
             "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
             "joint_refinement": joint_info,
@@ -235,8 +240,7 @@ def integrate(run, train: Measurements, hold: Measurements, record, *, joint_ite
                        "q_w": cfg.q_w, "q_t_m": cfg.q_t, "sigma_observation_m": cfg.sigma_tracker,
                        "final_state_offset_from_kinematics_mm": float((res.t[0] - kin[-1]).norm()) * 1e3},
         },
-        "rmse_before_mm": before.rmse * 1e3, "rmse_after_mm": after.rmse * 1e3,
-    })
+        rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
     text = ", ".join(f"{k.replace('_', ' ')} {v * 1e3:.4f}" for k, v in steps.items())
     run.notes.append(f"integrated ANN-EKF: held-out RMSE [mm] after {text}, after the filter {after.rmse * 1e3:.4f} "
                      f"(final model); the filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f}; mean NIS "
@@ -318,12 +322,10 @@ def refine_jointly(model: MeasurementModel, m: Measurements, identifiability, op
 
 
 def _errors(model: MeasurementModel, m: Measurements) -> Tensor:
-    with torch.no_grad():
-        return (model(Context.from_measurements(m, trajectory=True)) - m.p).norm(dim=-1)
+    return errors(model, m, trajectory=True)
 
 
-def _rmse(e: Tensor) -> float:
-    return float(e.square().mean().sqrt()) if len(e) else math.nan
+_rmse = S.rmse
 
 
 #: engines of the ``integrated`` method: ``adaptive`` (default) estimates geometry and network together in the
@@ -332,7 +334,8 @@ def _rmse(e: Tensor) -> float:
 ENGINES = ("adaptive", "ekf")
 
 
-def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, hidden: int = 128) -> IntegratedFilter:
+def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measurements, *,
+                       hidden: int = 128) -> IntegratedFilter:
     """The ``integrated`` method with the adaptive filter: geometry in the state (the paper's future work).
 
     The kinematic calibration of the ``geometric`` stage stays the reference the report compares with; the
@@ -348,7 +351,6 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
     ``ekf`` engine reaches 0.068-0.176 mm; on a short 2000-sample trajectory (tests/filter/test_integrated.py)
     the ``ekf`` engine happened to extrapolate better (0.110 against 0.175 mm).
     """
-    from torchcal.estimate import fit_instrument_and_tool
     from torchcal.filter.adaptive import AdaptiveConfig, AdaptiveEKF, random_features
 
     model, opts = run.model, run.options
@@ -357,10 +359,7 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
         kin_q = torch.cat([train.q, hold.q])
         kinematic = model(Context(q=kin_q))  # the kinematic calibration's prediction: the report's reference G
     start = _nominal_copy(robot)
-    with torch.no_grad():
-        T, lever, _ = fit_instrument_and_tool(start(train.q), train.p)
-        start.instrument.set_matrix(T)
-        start.tool.nominal.copy_(lever)
+    place_instrument_and_tool(start, train.q, train.p)
     cfg = AdaptiveConfig(sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol)
     net = random_features(dof=robot.dof, hidden=hidden, seed=int(opts.seed) + 1)
     flt = AdaptiveEKF(start, net, cfg)
@@ -376,22 +375,22 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
         robot.load_state_dict(calibrated.state_dict())
         net.set_flat(res.w)
     model.add(LearnedEffect(net))
-    record("integrated")
+    after = run.add_stage(StageName.INTEGRATED)
     # the report's filter plots read an EKFResult with a draw dimension of one
     as_ekf = EKFResult(geometric=res.geometric[None], nongeometric=res.nongeometric[None], nis=res.nis[None],
                        q_yy=res.q_yy[None], w=res.w[None], t=res.t[None], P=res.P[None], n_train=res.n_train,
                        status=[res.status], seconds=res.seconds)
     filt = IntegratedFilter(as_ekf, torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w)
-    before, after = next(s for s in run.stages if s.name == "geometric"), run.stages[-1]
+    before = run.stage(StageName.GEOMETRIC)
     e_filter = (filt.prediction[train.n :] - hold.p).norm(dim=-1)
     nis = res.nis[: train.n]
-    run.effects_report.append({
-        "kind": "learned", "joint": None, "name": "integrated", "label": "learned",
-        "params": {"model": "network (fixed random tanh features, output layer estimated)", "hidden": hidden,
-                   "n_weights": net.n_weights,
-                   "fit": "adaptive ANN-EKF: identifiable geometry, lever arm, instrument rotation and the network "
-                          "in one filter state (Horvath & Neuner 2024, Sec. 4 future work)"},
-        "evidence": {
+    run.effects.append(EffectRecord(
+        "learned", None, name="integrated", label="learned",
+        params={"model": "network (fixed random tanh features, output layer estimated)", "hidden": hidden,
+                "n_weights": net.n_weights,
+                "fit": "adaptive ANN-EKF: identifiable geometry, lever arm, instrument rotation and the network "
+                       "in one filter state (Horvath & Neuner 2024, Sec. 4 future work)"},
+        evidence={
             "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
             "geometry": {name: {"value": float(v), "std": float(s)}
                          for name, v, s in zip(res.names, res.gamma, res.gamma_std)},
@@ -399,8 +398,7 @@ def integrate_adaptive(run, train: Measurements, hold: Measurements, record, *, 
                        "seconds": res.seconds, "nis_mean": float(nis.nanmean()), "nis_expected": 3.0,
                        "linearisation_remainder_m": [r.get("total_remainder_m") for r in res.relinearisations]},
         },
-        "rmse_before_mm": before.rmse * 1e3, "rmse_after_mm": after.rmse * 1e3,
-    })
+        rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
     run.notes.append(f"integrated ANN-EKF (adaptive): held-out RMSE {after.rmse * 1e3:.4f} mm (final model), the "
                      f"filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f} mm; mean NIS "
                      f"{float(nis.nanmean()):.2f} (3 expected)")

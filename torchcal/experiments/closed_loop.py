@@ -20,11 +20,14 @@ import time
 
 import torch
 
-from torchcal.calibrate import Options, calibrate, errors, rmse, solve
 from torchcal.diagnose.candidates import Candidate
+from torchcal.effects.registry import NAMED_KINDS
+from torchcal.estimate.fit import errors, solve
+from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
+from torchcal.stats import rmse
 
-NAMED = ("compliance", "backlash", "cyclic", "drift")
+NAMED = NAMED_KINDS
 
 
 def truth_effects(truth: dict) -> list[tuple[str, int | None]]:

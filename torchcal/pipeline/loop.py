@@ -9,7 +9,7 @@ After the geometric fit, repeat:
    turn, refit the whole model with it (geometry, instrument, lever arm, the effects accepted so
    far and the candidate, jointly) on 80 % of the training poses; it is accepted when the other
    20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a one-sided
-   paired test (:func:`~torchcal.effects.kernel.paired_improvement`) below ``alpha_val``;
+   paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``;
 3. an accepted effect is refitted jointly on all training poses and becomes a stage of the story;
    a rejected one is recorded with its evidence and not tried again;
 
@@ -17,26 +17,31 @@ until no candidate is significant or none of the significant ones passes validat
 test is reported after every step but does not stop the search: for an alternative with one to
 six parameters spread over thousands of observations it has little power, the score test much more.
 The split into fitting and validation poses is the calibration's own rule applied to the training
-poses (a seeded random 20 %, or the last 20 % of a trajectory).
+poses (a seeded random 20 %, or the last 20 % of a trajectory; revisits kept on one side).
 """
 
 from __future__ import annotations
 
 import copy
-import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchcal import _console
+from torchcal import stats as S
+from torchcal.data import Measurements
 from torchcal.diagnose.candidates import Candidate, candidates
 from torchcal.diagnose.score import Score, score_candidates
 from torchcal.effects import Context, MeasurementModel
-from torchcal.effects.kernel import paired_improvement
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
+from torchcal.pipeline.records import EffectRecord, Rejection
+
+if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
+    from torchcal.pipeline.run import CalibrationRun
 
 Tensor = torch.Tensor
-GROUPS = ("geometry", "instrument", "tool")
+GROUPS = GEOMETRIC_GROUPS
 DESCRIPTORS = ("source", "harmonics", "variable", "target", "reference", "payload_kg")  # fixed settings of effects
 
 
@@ -48,10 +53,16 @@ class Decision:
     candidate: Candidate
     score: Score
     accepted: bool
-    reason: str
+    why: str  # the loop's verdict
     validation: dict
     stage: str | None = None  # the stage an accepted effect opened
     models: tuple | None = None  # (before, after) models for the plots; after fitted on the training poses
+    dropped: str | None = None  # why a later stage dropped the accepted effect again
+
+    @property
+    def reason(self) -> str:
+        """The verdict, and the later drop if any."""
+        return self.why if self.dropped is None else f"{self.why}; {self.dropped}"
 
     def to_dict(self) -> dict:
         return {"round": self.round, **self.candidate.to_dict(), "accepted": self.accepted, "reason": self.reason,
@@ -85,72 +96,33 @@ class Diagnosis:
             "stop": self.stop,
         }
 
-
-def paired_test(e_before: Tensor, e_after: Tensor, ordered: bool) -> dict:
-    """One-sided paired test that ``e_after`` is smaller (:func:`~torchcal.effects.kernel.paired_improvement`).
-
-    With ``ordered`` samples (a trajectory: neighbours share their error) the differences are
-    autocorrelated and the plain test is overconfident; the standard error is then inflated by
-    ``sqrt((1 + rho) / (1 - rho))``, the AR(1) variance factor of a mean, with ``rho`` the lag-one
-    autocorrelation of the differences (clamped to [0, 0.99]).
-    """
-    test = paired_improvement(e_before, e_after)
-    if not ordered or len(e_before) < 4:
-        return test
-    d = e_before.square() - e_after.square()
-    d = d - d.mean()
-    rho = float((d[1:] * d[:-1]).sum() / d.square().sum().clamp(min=1e-300))
-    rho = min(max(rho, 0.0), 0.99)
-    z = test["z"] / math.sqrt((1 + rho) / (1 - rho))
-    return {**test, "z": z, "p_value": 0.5 * math.erfc(z / math.sqrt(2.0)), "lag1_autocorrelation": rho,
-            "z_uncorrected": test["z"]}
+    def drop(self, stage: str, why: str) -> None:
+        """Mark the decisions that opened ``stage`` as dropped by a later stage, with ``why``."""
+        for d in self.decisions:
+            if d.stage == stage:
+                d.dropped = why
 
 
-def _rmse(e: Tensor) -> float:
-    return float(e.square().mean().sqrt()) if len(e) else float("nan")
-
-
-def effect_parameters(model: MeasurementModel, index: int, fit) -> dict:
-    """Estimates with standard deviations of the parameters of ``model.effects[index]`` from ``fit``."""
-    from torchcal.calibrate import effect_parameter_labels
-
-    _, labels = effect_parameter_labels(model)
-    res = fit.result
-    std = res.std
-    pos = {n: i for i, n in enumerate(res.names)}
-    out = {}
-    for key, names in labels.items():
-        if not key.startswith(f"effects.{index}."):
-            continue
-        pname = key.split(".")[-1]
-        values = dict(model.named_parameters())[key].detach().flatten().tolist()
-        for name, v in zip(names, values):
-            short = pname + name[len(f"{model.effects[index].label()}.{pname}"):]
-            i = pos.get(name)
-            out[short] = {"value": v, "std": float(std[i]) if i is not None else None,
-                          **({} if i is not None else {"note": "held fixed: not identifiable"})}
-    return out
-
-
-def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, alpha: float = 0.01,
+def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, alpha: float = 0.01,
                alpha_val: float = 0.05, max_effects: int = 8, max_tries: int = 3) -> Diagnosis:
     """Add the effects the training data demand to ``run.model`` (module docstring).
 
+    Each accepted effect becomes a stage of the run, with its :class:`EffectRecord`; each candidate that
+    validation does not confirm, a :class:`Rejection`.
+
     Args:
-        run: a :class:`~torchcal.calibrate.CalibrationRun` whose last fit is the geometric one.
+        run: a :class:`~torchcal.pipeline.run.CalibrationRun` whose last fit is the geometric one.
         train: the training measurements (the held-out poses are never seen here).
-        record: called with a stage name after each accepted effect (the run's stage recorder).
         alpha: family-wise level of the score tests (Bonferroni over the candidates).
         alpha_val: level of the paired validation test.
         max_effects: at most this many effects are added.
         max_tries: significant candidates validated per round before the loop gives up.
     """
-    from torchcal import calibrate as CAL
-
     opts, model = run.options, run.model
     ctx = Context.from_measurements(train, trajectory=trajectory)
     cands, skipped = candidates(model.robot, ctx)
-    fi, va = CAL.split(train, 0.2, opts.seed + 2, trajectory)
+    fi, va = S.split(train.n, S.holdout_count(train.n, 0.2), seed=opts.seed + S.Stream.VALIDATION, last=trajectory,
+                     q=train.q, group_tol=opts.group_tol)
     fit_part, val_part = train.subset(fi), train.subset(va)
     diag = Diagnosis(alpha, alpha_val, len(fi), len(va), list(cands), skipped)
     run.diagnosis = diag
@@ -161,11 +133,11 @@ def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, a
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
 
     def fit_on(m: MeasurementModel, data, stage: str):
-        return CAL.solve(m, data, GROUPS, opts, stage, trajectory, effects=True, identifiability=ida)
+        return solve(m, data, GROUPS, opts, stage, trajectory, effects=True, identifiability=ida)
 
     base = copy.deepcopy(model)
     fit_on(base, fit_part, "validation baseline")
-    e_base = CAL.errors(base, val_part, trajectory)
+    e_base = errors(base, val_part, trajectory)
     tried: set[str] = set()
     for rnd in range(1, max_effects + 1):
         fit = run.fits[-1]
@@ -190,9 +162,9 @@ def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, a
             trial = copy.deepcopy(base)
             trial.add(cand.make())
             fit_on(trial, fit_part, f"validation {cand.name}")
-            e_trial = CAL.errors(trial, val_part, trajectory)
-            test = paired_test(e_base, e_trial, ordered=trajectory)
-            r0, r1 = _rmse(e_base), _rmse(e_trial)
+            e_trial = errors(trial, val_part, trajectory)
+            test = S.paired_test(e_base, e_trial, ordered=trajectory)
+            r0, r1 = S.rmse(e_base), S.rmse(e_trial)
             validation = {"rmse_before_mm": r0 * 1e3, "rmse_after_mm": r1 * 1e3,
                           "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0, "z": test["z"],
                           "p_value": test["p_value"], "n": test["n"],
@@ -201,8 +173,8 @@ def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, a
                 reason = (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, "
                           f"p = {test['p_value']:.2g})")
                 diag.decisions.append(Decision(rnd, cand, s, False, reason, validation, None, (base, trial)))
-                run.rejected.append({"kind": cand.kind, "joint": cand.joint, "name": cand.name, "reason": reason,
-                                     "evidence": {**s.to_dict(), "validation": validation}})
+                run.rejections.append(Rejection(cand.kind, cand.joint, {**s.to_dict(), "validation": validation},
+                                                name=cand.name, reason=reason))
                 run.notes.append(f"diagnosis: {cand.name} rejected, {reason}")
                 continue
             accepted = (s, trial, e_trial, validation)
@@ -218,19 +190,17 @@ def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, a
         label = eff.label()
         new_fit = fit_on(model, train, label)
         run.fits.append(new_fit)
-        record(label)
+        st_before = run.stages[-1]
+        st_after = run.add_stage(label)
         base, e_base = trial, e_trial
         diag.decisions.append(Decision(rnd, cand, s, True, "significant and confirmed on validation poses",
                                        validation, label, (before, copy.deepcopy(model))))
-        st_before, st_after = run.stages[-2], run.stages[-1]
-        run.effects_report.append({
-            "kind": cand.kind, "joint": cand.joint, "name": cand.name, "label": label,
-            "params": {**effect_parameters(model, len(model.effects) - 1, new_fit),
-                       **{k: v for k, v in eff.describe().items() if k in DESCRIPTORS}},
-            "evidence": {**s.to_dict(), "round": rnd, "validation": validation,
-                         "global_test_after": new_fit.global_test},
-            "rmse_before_mm": st_before.rmse * 1e3, "rmse_after_mm": st_after.rmse * 1e3,
-        })
+        run.effects.append(EffectRecord(
+            cand.kind, cand.joint,
+            {**effect_parameters(model, len(model.effects) - 1, new_fit),
+             **{k: v for k, v in eff.describe().items() if k in DESCRIPTORS}},
+            {**s.to_dict(), "round": rnd, "validation": validation, "global_test_after": new_fit.global_test},
+            name=cand.name, label=label, rmse_before_mm=st_before.rmse * 1e3, rmse_after_mm=st_after.rmse * 1e3))
         run.notes.append(f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k} dof, "
                          f"Bonferroni p = {s.p_bonferroni:.2g}; validation {validation['rmse_before_mm']:.4f} -> "
                          f"{validation['rmse_after_mm']:.4f} mm, p = {validation['p_value']:.2g})")

@@ -1,0 +1,71 @@
+"""The one table of effect kinds: their classes, where they act, whether least squares fits them.
+
+``report.json`` names effects by kind (CONTRACT §4); ``model.json`` rebuilds them by class
+(:func:`effect_from_config`). Both read this table, and so does the calibration when it decides which
+effects' parameters to fit jointly with the geometry (:data:`NAMED_KINDS`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torchcal.effects.base import Acts, Effect
+from torchcal.effects.drift import Drift
+from torchcal.effects.joint import Backlash, Compliance, Cyclic
+from torchcal.effects.kernel import KernelCorrection
+from torchcal.effects.learned import CorrectionNet, LearnedEffect
+from torchcal.errors import OptionError
+
+
+@dataclass(frozen=True)
+class EffectKind:
+    """One kind of effect.
+
+    Attributes:
+        name: the kind as ``report.json`` writes it.
+        classes: the effect classes of this kind (the first is the default one).
+        acts: where its classes act (:class:`Acts`); a drift acts on the instrument or, as a scale, in Cartesian
+            space, chosen per instance.
+        named: a few physically meaningful parameters, fitted by least squares jointly with the geometry
+            (False: a learned residual model with its own fit).
+    """
+
+    name: str
+    classes: tuple[type[Effect], ...]
+    acts: tuple[Acts, ...]
+    named: bool
+
+
+KIND_TABLE: tuple[EffectKind, ...] = (
+    EffectKind("compliance", (Compliance,), (Acts.JOINT,), True),
+    EffectKind("backlash", (Backlash,), (Acts.JOINT,), True),
+    EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
+    EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),
+    EffectKind("learned", (LearnedEffect, KernelCorrection), (Acts.CARTESIAN,), False),
+)
+
+#: effect kinds as named in report.json (CONTRACT §4)
+KINDS: tuple[str, ...] = tuple(k.name for k in KIND_TABLE)
+#: effect kinds whose parameters the least-squares fit estimates jointly with the geometry
+NAMED_KINDS: tuple[str, ...] = tuple(k.name for k in KIND_TABLE if k.named)
+#: effect classes by class name, for model.json
+CLASSES: dict[str, type[Effect]] = {c.__name__: c for k in KIND_TABLE for c in k.classes}
+
+
+def kind(name: str) -> EffectKind:
+    """The table entry of kind ``name``."""
+    for k in KIND_TABLE:
+        if k.name == name:
+            return k
+    raise OptionError(f"unknown effect kind '{name}'; known: {', '.join(KINDS)}")
+
+
+def effect_from_config(cfg: dict) -> Effect:
+    """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``."""
+    cfg = dict(cfg)
+    name = cfg.pop("class")
+    if name not in CLASSES:
+        raise OptionError(f"unknown effect class '{name}'; known: {', '.join(CLASSES)}")
+    if name == "LearnedEffect":
+        return LearnedEffect(CorrectionNet(cfg["dof"], cfg["hidden"]))
+    return CLASSES[name](**cfg)

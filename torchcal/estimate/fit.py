@@ -1,0 +1,189 @@
+"""Fitting selected parameter groups of a measurement model, and the errors of a model on measurements.
+
+The primitives the calibration pipeline (:mod:`torchcal.pipeline`) is built from: the rigid start
+(:func:`place_instrument_and_tool`), the weighted least-squares fit of parameter groups with their
+identifiability analysis (:func:`solve`), the names of the named effects' parameters
+(:func:`effect_parameter_labels`, :func:`effect_parameters`) and the per-pose errors (:func:`errors`,
+:func:`corrections`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import torch
+
+from torchcal.data import Measurements
+from torchcal.effects import Context, MeasurementModel
+from torchcal.effects.registry import NAMED_KINDS
+from torchcal.errors import EstimationError
+from torchcal.estimate.identifiability import Identifiability, analyse, preference_order
+from torchcal.estimate.lm import LMResult, global_test, levenberg_marquardt
+from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
+from torchcal.estimate.rigid import fit_instrument_and_tool
+from torchcal.robot.model import RobotModel
+
+Tensor = torch.Tensor
+#: the groups a kinematic calibration fits
+GEOMETRIC_GROUPS = ("geometry", "instrument", "tool")
+
+
+class FitOptions(Protocol):
+    """The settings :func:`solve` reads (:class:`torchcal.pipeline.Options` has them all)."""
+
+    sigma_tracker: float  # m per axis, when the data carry no sx, sy, sz
+    sigma_joint: float  # rad
+    rank_tol: float
+    max_iter: int
+    prior_length: float | None  # m
+    prior_angle: float | None  # rad
+    stat_tol: float
+
+
+@dataclass
+class Fit:
+    """One least-squares fit: what was free, the solver's result, the identifiability analysis."""
+
+    stage: str
+    result: LMResult
+    free: FreeParameters
+    identifiability: Identifiability | None = None
+    global_test: dict = field(default_factory=dict)
+    whitening: Tensor | None = None  # (N, 3, 3) the L_i^-1 the residuals were whitened with
+
+
+def place_instrument_and_tool(robot: RobotModel, q: Tensor, p: Tensor, lever: Tensor | None = None) -> float:
+    """Fit the tracker pose and the lever arm for the robot's current geometry and write them into ``robot``.
+
+    Closed form (:func:`~torchcal.estimate.rigid.fit_instrument_and_tool`): the start of every calibration.
+
+    Args:
+        robot: its instrument pose and the nominal lever arm are overwritten; the lever arm's correction is
+            set to zero, so the lever arm is the fitted one.
+        q: ``(N, dof)`` joint positions [rad].
+        p: ``(N, 3)`` measured probe positions in the tracker frame [m].
+        lever: initial lever arm ``(3,)`` [m] (default zero).
+
+    Returns:
+        The RMS residual of the fit [m].
+    """
+    with torch.no_grad():
+        T, t, rms = fit_instrument_and_tool(robot(q), p, lever)
+        robot.instrument.set_matrix(T)
+        robot.tool.nominal.copy_(t)
+        robot.tool.delta.zero_()
+    return rms
+
+
+def errors(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
+    """Norm of the position error per pose ``(N,)`` [m]."""
+    with torch.no_grad():
+        return (model(Context.from_measurements(m, trajectory=trajectory)) - m.p).norm(dim=-1)
+
+
+def corrections(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
+    """What the model misses, in the robot base frame ``(N, 3)`` [m] (paper Eq. 22)."""
+    with torch.no_grad():
+        pred = model(Context.from_measurements(m, trajectory=trajectory))
+        return (m.p - pred) @ model.robot.T_tracker_base()[:3, :3]
+
+
+def effect_parameter_labels(model: MeasurementModel) -> tuple[dict[str, Tensor], dict[str, list[str]]]:
+    """Selection masks (all free) and element names of the named effects' parameters, e.g.
+    ``effects.0.k`` -> ``["compliance(joint 2).k"]``."""
+    sel, labels = {}, {}
+    for i, e in enumerate(model.effects):
+        if e.kind not in NAMED_KINDS:
+            continue
+        for pname, p in e.named_parameters(recurse=False):
+            key = f"effects.{i}.{pname}"
+            sel[key] = torch.ones(p.shape, dtype=torch.bool)
+            n = p.numel()
+            labels[key] = [f"{e.label()}.{pname}" + (f"[{k}]" if n > 1 else "") for k in range(n)]
+    return sel, labels
+
+
+def effect_parameters(model: MeasurementModel, index: int, fit: Fit) -> dict:
+    """Estimates with standard deviations of the parameters of ``model.effects[index]`` from ``fit``."""
+    _, labels = effect_parameter_labels(model)
+    res = fit.result
+    std = res.std
+    pos = {n: i for i, n in enumerate(res.names)}
+    out = {}
+    for key, names in labels.items():
+        if not key.startswith(f"effects.{index}."):
+            continue
+        pname = key.split(".")[-1]
+        values = dict(model.named_parameters())[key].detach().flatten().tolist()
+        for name, v in zip(names, values):
+            short = pname + name[len(f"{model.effects[index].label()}.{pname}"):]
+            i = pos.get(name)
+            out[short] = {"value": v, "std": float(std[i]) if i is not None else None,
+                          **({} if i is not None else {"note": "held fixed: not identifiable"})}
+    return out
+
+
+def selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, bool] | None = None,
+              effects: bool = False) -> tuple[dict[str, Tensor], dict[str, list[str]]]:
+    """Masks and element names of the free parameters: the robot's ``groups`` (their free elements, and of those
+    only the ones ``keep`` marks True) and with ``effects`` the named effects' parameters (those ``keep`` does
+    not mark False)."""
+    sel, labels = {}, {}
+    for g in groups:
+        grp = model.robot.groups()[g]
+        mask = grp.mask.clone()
+        if keep is not None:
+            mask &= torch.tensor([keep.get(n, False) for n in grp.names]).reshape(mask.shape)
+        sel[f"robot.{g}.delta"] = mask
+        labels[f"robot.{g}.delta"] = grp.names
+    if effects:
+        esel, elab = effect_parameter_labels(model)
+        for key, mask in esel.items():
+            if keep is not None:
+                mask = torch.tensor([keep.get(n, True) for n in elab[key]]).reshape(mask.shape)
+            sel[key], labels[key] = mask, elab[key]
+    return sel, labels
+
+
+def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opts: FitOptions, stage: str,
+          trajectory: bool, identify: bool = True, effects: bool = False,
+          identifiability: Identifiability | None = None) -> Fit:
+    """Weighted LM over the free elements of ``groups`` (identifiable ones only when ``identify``).
+
+    With ``effects`` the parameters of the model's named effects (:data:`NAMED_KINDS`) are estimated
+    jointly with the groups; in the identifiability analysis they come after the geometry, so an effect
+    parameter that the geometry already explains is held at its current value.
+
+    ``identifiability`` reuses an earlier analysis (that of the geometric fit) for the robot's
+    parameters instead of analysing again: after a fit the nominally parallel axes of a UR arm are no
+    longer exactly parallel, and a new analysis would free parameters that are only determined to
+    1e-5 (``d3``, ``d4``), which turns the refit into a crawl along a flat valley.
+    """
+    ctx = Context.from_measurements(m, trajectory=trajectory)
+    W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
+    sel, labels = selection(model, groups, effects=effects)
+    free = FreeParameters(model, sel, labels)
+    ida = None
+    if identifiability is not None:
+        ida = identifiability
+        keep = dict(zip(ida.names, ida.free.tolist()))
+        keep.update({n: True for n in free.names if n not in keep})  # effect parameters: checked when scored
+        sel, labels = selection(model, groups, keep, effects=effects)
+        free = FreeParameters(model, sel, labels)
+    elif identify:
+        fun = residual_function(model, free, ctx, m.p, W)
+        J = torch.func.jacfwd(fun)(free.vector())
+        ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
+        sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
+        free = FreeParameters(model, sel, labels)
+    prior = None
+    if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
+        units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+    fun = residual_function(model, free, ctx, m.p, W, prior)
+    res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
+    if res.status in ("diverged", "failed_solve"):
+        raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
+    free.assign(res.x)
+    return Fit(stage, res, free, ida, global_test(res), W)

@@ -1,0 +1,248 @@
+"""The learned stage of a run: a residual model where the data demand it, and the correction network.
+
+* ``auto``: :func:`learned_stage`: a kernel regression (:mod:`torchcal.effects.kernel`) and the correction
+  network are fitted on 80 % of the training poses and judged on the other 20 %; the better one is kept when
+  it lowers the validation RMSE by at least 5 % and a one-sided paired test gives p < 0.01; then geometry and
+  learned model are refitted in turn (:func:`refine_learned`) and each named effect the learned model explains
+  as well is dropped (:func:`prune_named`).
+* ``pcm``, ``kinematic+ann``: :func:`correction_net_stage`: the paper's correction network on what remains,
+  early-stopped on a seeded 20 % of the training poses.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import replace
+from typing import TYPE_CHECKING
+
+import torch
+
+from torchcal import stats as S
+from torchcal.data import Measurements
+from torchcal.effects import CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects.kernel import fit_kernel_correction
+from torchcal.effects.registry import NAMED_KINDS
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, corrections, solve
+from torchcal.estimate.netfit import fit_net
+from torchcal.pipeline.records import EffectRecord, Rejection, StageName
+
+if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
+    from torchcal.pipeline.run import CalibrationRun
+
+Tensor = torch.Tensor
+
+#: LM iterations of a refit with the learned model in place (:func:`_refit_with_learned`)
+REFIT_MAX_ITER = 10
+#: share of the training poses that judge a learned model
+VALIDATION_FRACTION = 0.2
+
+
+def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
+    """The ``auto`` method's learned stage (module docstring); adds the ``learned`` stage when a model is kept."""
+    record = select_learned(run, train, trajectory)
+    if record is None:
+        return
+    e_val = refine_learned(run, record, train, trajectory)
+    if any(e.kind in NAMED_KINDS for e in run.model.effects):
+        prune_named(run, train, trajectory, e_val)
+    before = run.stages[-1]
+    after = run.add_stage(StageName.LEARNED)
+    record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
+
+
+def _learned_split(train: Measurements, seed: int, group_tol: float) -> tuple[Tensor, Tensor]:
+    """The fitting and validation poses of the learned stage (in random order, as drawn)."""
+    n_val = S.holdout_count(train.n, VALIDATION_FRACTION, minimum=3, rounding="floor")
+    return tuple(S.split(train.n, n_val, seed=seed + S.Stream.VALIDATION, q=train.q, group_tol=group_tol,
+                         sort=False))
+
+
+def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, min_gain: float = 0.05,
+                   alpha: float = 0.01) -> EffectRecord | None:
+    """Add the better of a kernel correction and a correction network if it earns its place (module docstring).
+
+    Returns the record of the kept model (appended to the run), or None when neither earned its place.
+    """
+    model, opts = run.model, run.options
+    corr = corrections(model, train, trajectory)
+    fi, va = _learned_split(train, opts.seed, opts.group_tol)
+    e0 = corr[va].norm(dim=-1)
+
+    kern, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
+                                       seed=opts.seed)
+    net = CorrectionNet(model.robot.dof, opts.hidden)
+    net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
+    res = fit_net(net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method,
+                  iterations=opts.net_iterations)
+    with torch.no_grad():
+        e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
+    candidates = {
+        "kernel": (kern, info["val_errors"], kern.describe()),
+        "network": (LearnedEffect(net), e_net, {"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
+                                                "fit": res.method, "best_iteration": res.best_iteration}),
+    }
+    name = min(candidates, key=lambda k: S.rmse(candidates[k][1]))
+    effect, e1, params = candidates[name]
+    rmse0, rmse1 = S.rmse(e0), S.rmse(e1)
+    test = S.paired_improvement(e0, e1)
+    evidence = {"candidates_validation_rmse_mm": {k: S.rmse(v[1]) * 1e3 for k, v in candidates.items()},
+                "chosen": name, "validation_rmse_before_mm": rmse0 * 1e3, "validation_rmse_after_mm": rmse1 * 1e3,
+                "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0, **test,
+                "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}", "n_validation": len(va)}
+    accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
+    run.notes.append(f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
+                     f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
+    if not accepted:
+        run.rejections.append(Rejection("learned", None, evidence))
+        return None
+    model.add(effect)
+    run.learned_validation_errors = e1
+    record = EffectRecord("learned", None, params, evidence, name="learned", label="learned")
+    run.effects.append(record)
+    return record
+
+
+def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Measurements,
+                        trajectory: bool) -> tuple[Fit, Tensor]:
+    """One alternating round on ``model`` (its last effect is the learned one): the geometry and the named
+    effects with the learned correction in place, then the learned model on the new corrections.
+
+    Returns the least-squares fit and the learned model's validation errors per pose ``(n_val,)`` [m];
+    a refitted kernel replaces the old one in ``model``.
+    """
+    opts = run.options
+    index = len(model.effects) - 1
+    eff = model.effects[index]
+    fi, va = _learned_split(train, opts.seed, opts.group_tol)
+    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
+    # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
+    # data its valley is flat and an uncapped LM crawls for minutes without changing the comparison
+    fit = solve(model, train, groups, replace(opts, max_iter=min(opts.max_iter, REFIT_MAX_ITER)),
+                "learned (alternating refit)", trajectory, effects=True, identifiability=ida)
+    others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
+    corr = corrections(others, train, trajectory)
+    if isinstance(eff, LearnedEffect):
+        fit_net(eff.net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method,
+                iterations=opts.net_iterations, ftol=1e-6)
+        with torch.no_grad():
+            e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
+    else:
+        new, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
+                                          seed=opts.seed)
+        model.effects[index] = new
+        e_val = info["val_errors"]
+    return fit, e_val
+
+
+def refine_learned(run: CalibrationRun, record: EffectRecord, train: Measurements, trajectory: bool,
+                   rounds: int = 3) -> Tensor:
+    """Refit the geometry (and the named effects) and the learned model in turn, while validation improves.
+
+    The geometric fit has already bent the geometry towards the part of the non-geometric field
+    that looks geometric, and the learned model was fitted to what was left. Alternating the two
+    fits (geometry with the learned correction in place, then the learned model on the new
+    corrections, on the same fitting and validation poses as :func:`select_learned`) moves the
+    pair towards their joint least-squares solution; a round is kept only when the validation
+    RMSE of the learned model falls. Returns the learned model's validation errors per pose.
+    """
+    model = run.model
+    best = record.evidence["validation_rmse_after_mm"] * 1e-3
+    best_e = None
+    history = [best * 1e3]
+    for _ in range(rounds):
+        trial = copy.deepcopy(model)
+        fit, e_val = _refit_with_learned(run, trial, train, trajectory)
+        v = S.rmse(e_val)
+        if not v < best * (1.0 - 1e-3):
+            break
+        _adopt(model, trial)
+        best, best_e = v, e_val
+        history.append(v * 1e3)
+        run.fits.append(fit)
+    if best_e is None:  # no round helped: the errors of the model as it stands
+        best_e = run.learned_validation_errors
+    record.evidence["alternating_refit_validation_rmse_mm"] = history
+    run.notes.append(f"learned residual model: {len(history) - 1} alternating refits of geometry and learned model, "
+                     f"validation {history[0]:.4f} -> {history[-1]:.4f} mm")
+    return best_e
+
+
+def _adopt(model: MeasurementModel, other: MeasurementModel) -> None:
+    """Make ``model`` hold ``other``'s effects and parameter values (the robot stays the same object)."""
+    model.robot.load_state_dict(other.robot.state_dict())
+    model.effects = torch.nn.ModuleList(list(other.effects))
+    for e in model.effects:
+        e.train(False)
+
+
+def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_val: Tensor) -> None:
+    """With a learned model in place, drop each named effect the learned model explains as well.
+
+    A smooth field that no named effect describes still projects onto some of their regressors,
+    and the loop may accept one for that share. For each named effect in turn, the model without
+    it (geometry and learned model refitted as in :func:`refine_learned`) is compared with the
+    model with it on the learned stage's validation poses: the effect stays only when the model
+    with it is better by a one-sided paired test at ``alpha_validation``.
+    """
+    model, opts = run.model, run.options
+    for label in [e.label() for e in model.effects if e.kind in NAMED_KINDS]:
+        k = next(i for i, e in enumerate(model.effects) if e.label() == label)
+        eff = model.effects[k]
+        trial = copy.deepcopy(model)
+        del trial.effects[k]
+        fit, e_without = _refit_with_learned(run, trial, train, trajectory)
+        test = S.paired_improvement(e_without, e_val)
+        evidence = {"validation_rmse_with_mm": S.rmse(e_val) * 1e3,
+                    "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
+                    "z": test["z"], "p_value": test["p_value"], "n": test["n"],
+                    "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}"}
+        entry = next((r for r in run.effects if r.label == eff.label()), None)
+        if entry is not None:
+            entry.evidence["with_learned_model"] = evidence
+        if test["p_value"] < opts.alpha_validation:
+            continue
+        _adopt(model, trial)
+        run.fits.append(fit)
+        e_val = e_without
+        reason = (f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
+                  f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})")
+        run.notes.append(f"diagnosis: {eff.label()} dropped: {reason}")
+        if entry is not None:
+            run.effects.remove(entry)
+            run.rejections.append(Rejection(entry.kind, entry.joint, entry.evidence, name=entry.name,
+                                            reason=f"accepted in round {entry.evidence.get('round')}, then dropped: "
+                                                   f"{reason}"))
+        run.stages[:] = [st for st in run.stages if st.name != eff.label()]
+        if run.diagnosis is not None:
+            run.diagnosis.drop(eff.label(), f"dropped after the learned stage: {reason}")
+
+
+def correction_net_stage(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
+    """The ``pcm`` / ``kinematic+ann`` step: a correction network on what remains, as the ``learned`` stage."""
+    model, opts = run.model, run.options
+    fit_correction_net(run, train, trajectory)
+    before = run.stages[-1]
+    after = run.add_stage(StageName.LEARNED)
+    run.effects.append(EffectRecord(
+        "learned", None,
+        {"hidden": opts.hidden, "n_weights": model.effects[-1].net.n_weights, "fit": opts.net_method},
+        {"validation": "early stopping on a seeded 20 % of the training poses"},
+        rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
+
+
+def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
+    """Add a :class:`LearnedEffect` fitted to the training corrections, early-stopped on a validation share."""
+    model, opts = run.model, run.options
+    corr = corrections(model, train, trajectory)  # R^T (y - f): the correction in the base frame
+    g = torch.Generator().manual_seed(int(opts.seed) + S.Stream.CORRECTION_NET)
+    # the generator goes on to the network's initial weights and to the fit
+    fit_i, val_i = S.split(train.n, S.holdout_count(train.n, VALIDATION_FRACTION, rounding="floor"), generator=g,
+                           q=train.q, group_tol=opts.group_tol, sort=False)
+    net = CorrectionNet(model.robot.dof, opts.hidden)
+    net.reset_parameters(g, gain=0.5)
+    res = fit_net(net, train.q[fit_i], corr[fit_i], val=(train.q[val_i], corr[val_i]), method=opts.net_method,
+                  iterations=opts.net_iterations, generator=g)
+    run.notes.append(f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
+                     f"best validation at {res.best_iteration}")
+    model.add(LearnedEffect(net))

@@ -1,0 +1,253 @@
+"""Calibration runs: data split, baseline, geometric fit, correction network, held-out errors.
+
+Methods (``--method``):
+
+* ``kinematic``: kinematic calibration (Horvath & Neuner 2024, Eq. 11): the identifiable DH /
+  joint-origin errors, the instrument pose and the lever arm, by weighted LM.
+* ``pcm``: the paper's position correction model (Eq. 10 + Sec. 2.2): instrument pose and lever
+  arm with the nominal geometry, then a :class:`CorrectionNet` on the position corrections.
+* ``kinematic+ann``: the literature's sequential "kinCalib+": ``kinematic``, then the network
+  on what remains.
+* ``auto`` (default): ``kinematic``, then the closed loop (:mod:`torchcal.diagnose`): the named
+  effects (compliance, backlash, cyclic, drift) the residuals demand, each chosen by a score test,
+  refitted jointly with the geometry and confirmed on validation poses; then a ``learned``
+  residual model only where the data demand it: a kernel regression (:mod:`torchcal.effects.kernel`)
+  and the correction network are fitted on 80 % of the training poses and judged on the other
+  20 %; the better one is kept when it lowers the validation RMSE by at least 5 % and a one-sided
+  paired test gives p < 0.01.
+* ``integrated``: ``kinematic`` (the reference stage), then the integrated ANN-EKF on a continuous
+  trajectory (:mod:`torchcal.pipeline.integrated`): by default the adaptive filter with the geometry in its
+  state (``engine="adaptive"``), or the paper's filter on the kinematic geometry (``engine="ekf"``).
+
+Held-out split: a seeded random 20 % of the poses (static data) or the last 20 % of the
+samples (trajectories, see :func:`is_trajectory`), never used for fitting. Poses that revisit a joint
+configuration (all joints within ``Options.group_tol``) go wholly to one side (:func:`torchcal.stats.split`).
+
+The run is the only place that imports the closed loop (:mod:`torchcal.pipeline.loop`), the learned stage
+(:mod:`torchcal.pipeline.learned`) and the filters (:mod:`torchcal.pipeline.integrated`); every step appends
+its stages and records to the :class:`CalibrationRun`.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+from dataclasses import dataclass, field
+
+import torch
+
+from torchcal import _console
+from torchcal import stats as S
+from torchcal.data import Measurements
+from torchcal.effects import MeasurementModel
+from torchcal.errors import OptionError
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, place_instrument_and_tool, solve
+from torchcal.estimate.identifiability import DEFAULT_TOL
+from torchcal.pipeline.integrated import integrate, integrate_adaptive, require_trajectory
+from torchcal.pipeline.learned import correction_net_stage, learned_stage
+from torchcal.pipeline.loop import close_loop
+from torchcal.pipeline.records import EffectRecord, Rejection, StageName
+from torchcal.robot.model import RobotModel
+
+Tensor = torch.Tensor
+F64 = torch.float64
+
+METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
+DEFAULT_METHOD = "auto"
+
+
+@dataclass
+class Options:
+    method: str = DEFAULT_METHOD
+    seed: int = 0
+    holdout: float = 0.2
+    sigma_tracker: float = 15e-6  # m per axis, when the data carry no sx, sy, sz
+    sigma_joint: float = math.radians(0.0005)  # rad, joint reading noise
+    rank_tol: float = DEFAULT_TOL
+    max_iter: int = 100
+    hidden: int = 29
+    prior_length: float | None = 1e-3  # m: a-priori sigma of the geometric length corrections (None: no prior)
+    prior_angle: float | None = math.radians(0.1)  # rad: likewise for angles
+    stat_tol: float = 1e-2  # stop LM when a step gains less than 1 % of the variance factor
+    net_method: str = "lm"
+    net_iterations: int = 100
+    trajectory: bool | None = None  # None: decide from a monotonic t column
+    diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
+    alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
+    alpha_validation: float = 0.05  # closed loop: level of the paired validation test
+    engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
+    group_tol: float = S.GROUP_TOL  # rad: rows whose joints all agree within it stay on one side of every split
+
+    def __post_init__(self):
+        if self.method not in METHODS:
+            raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
+        if self.engine not in ("adaptive", "ekf"):
+            raise OptionError(f"engine '{self.engine}' is not one of adaptive, ekf")
+        if not 0.0 < self.holdout < 0.9:
+            raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
+
+
+@dataclass
+class Stage:
+    """A model state with its held-out errors, for the before/after story."""
+
+    name: str  # a StageName, or the label of the named effect the stage added
+    model: MeasurementModel
+    holdout_errors: Tensor  # (N_holdout,) m
+    train_errors: Tensor
+
+    @property
+    def rmse(self) -> float:
+        return S.rmse(self.holdout_errors)
+
+
+@dataclass
+class CalibrationRun:
+    """Everything a calibration did, for the report: stages, fits, the effects kept and the candidates rejected."""
+
+    robot_spec: str
+    robot: RobotModel
+    model: MeasurementModel
+    options: Options
+    data: Measurements
+    train_idx: Tensor
+    holdout_idx: Tensor
+    trajectory: bool
+    stages: list[Stage] = field(default_factory=list)
+    fits: list[Fit] = field(default_factory=list)
+    effects: list[EffectRecord] = field(default_factory=list)
+    rejections: list[Rejection] = field(default_factory=list)  # candidates that did not earn their place
+    notes: list[str] = field(default_factory=list)
+    learned_validation_errors: Tensor | None = None  # per pose, of the learned stage's validation poses [m]
+    diagnosis: object | None = None  # torchcal.pipeline.loop.Diagnosis of the auto method
+    filter: object | None = None  # torchcal.pipeline.integrated.IntegratedFilter of the integrated method
+    split: S.Split | None = None  # the held-out split, with its revisit groups
+
+    @property
+    def train(self) -> Measurements:
+        return self.data.subset(self.train_idx)
+
+    @property
+    def hold(self) -> Measurements:
+        return self.data.subset(self.holdout_idx)
+
+    def add_stage(self, name: str) -> Stage:
+        """Append the model as it stands as stage ``name``, with its held-out and training errors."""
+        st = Stage(name, copy.deepcopy(self.model), errors(self.model, self.hold, self.trajectory),
+                   errors(self.model, self.train, self.trajectory))
+        self.stages.append(st)
+        return st
+
+    def stage(self, name: str) -> Stage:
+        """The first stage called ``name``."""
+        return next(s for s in self.stages if s.name == name)
+
+    @property
+    def effects_report(self) -> list[dict]:
+        """The kept effects as ``report.json`` writes them."""
+        return [r.to_dict() for r in self.effects]
+
+    @property
+    def rejected(self) -> list[dict]:
+        """The rejected candidates as ``report.json`` writes them."""
+        return [r.to_dict() for r in self.rejections]
+
+
+def is_trajectory(m: Measurements, max_step: float = 0.05) -> bool:
+    """A continuous trajectory: a non-decreasing ``t`` and consecutive samples close in joint space.
+
+    Static poses are taken one after another too (their ``t`` also grows), but the robot moves
+    far between them; along a sampled trajectory the median largest joint step between two
+    samples is small (below ``max_step`` rad).
+    """
+    if m.t is None or m.n < 3 or not bool((torch.diff(m.t) >= 0).all()):
+        return False
+    steps = torch.diff(m.q, dim=0).abs().max(dim=-1).values
+    return float(steps.median()) < max_step
+
+
+def holdout_split(m: Measurements, holdout: float, seed: int, trajectory: bool,
+                  group_tol: float = S.GROUP_TOL) -> S.Split:
+    """Training and held-out indices (module docstring): the run's split, also of its training poses."""
+    return S.split(m.n, S.holdout_count(m.n, holdout), seed=seed, last=trajectory, q=m.q, group_tol=group_tol)
+
+
+def min_poses(robot: RobotModel, holdout: float) -> int:
+    """Poses needed for a kinematic calibration: 3 observations each, twice the parameters, then the holdout."""
+    n_par = int(robot.geometry.mask.sum()) + 9
+    return int(math.ceil(2 * n_par / 3 / (1.0 - holdout)))
+
+
+def _robot(robot: RobotModel | str | os.PathLike, base_link: str | None, tip_link: str | None) -> RobotModel:
+    if isinstance(robot, RobotModel):
+        return robot
+    from torchcal.robot import load_robot  # a spec: the old signature, kept for scripts that pass a name
+
+    return load_robot(robot, base_link=base_link, tip_link=tip_link)
+
+
+def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: Options | None = None, *,
+              robot_spec: str | os.PathLike | None = None, base_link: str | None = None,
+              tip_link: str | None = None) -> CalibrationRun:
+    """Run a calibration (module docstring) and return everything the report needs.
+
+    Args:
+        robot: the robot, nominal (its instrument pose, lever arm and corrections are overwritten); a built-in
+            name or description file is loaded with ``base_link`` and ``tip_link``.
+        data: measurements with positions.
+        opts: the run's options (default :class:`Options`).
+        robot_spec: how the report names the robot's description (default: the spec passed as ``robot``, or the
+            robot's source file).
+    """
+    opts = opts or Options()
+    if data.p is None:
+        raise OptionError("calibration needs measured positions (x, y, z columns)")
+    spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
+    robot = _robot(robot, base_link, tip_link)
+    if data.dof != robot.dof:
+        raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
+    trajectory = is_trajectory(data) if opts.trajectory is None else bool(opts.trajectory)
+    if opts.method == "integrated":
+        require_trajectory(data, trajectory)
+    split = holdout_split(data, opts.holdout, opts.seed + S.Stream.HOLDOUT, trajectory, opts.group_tol)
+    tr, ho = split
+    model = MeasurementModel(robot)
+    run = CalibrationRun(spec, robot, model, opts, data, tr, ho, trajectory, split=split)
+    train, hold = run.train, run.hold
+    if split.merged_groups:
+        run.notes.append(f"split: {split.merged_groups} revisited joint configurations ({split.merged_rows} poses) "
+                         f"kept wholly on one side")
+
+    # 1. the baseline: nominal geometry, tracker pose and lever arm fitted (closed form, then LM)
+    _console.info(f"{robot.name}: {train.n} training and {hold.n} held-out poses; fitting tracker pose and lever arm")
+    place_instrument_and_tool(robot, train.q, train.p)
+    run.fits.append(solve(model, train, ("instrument", "tool"), opts, StageName.NOMINAL, trajectory, identify=False))
+    run.add_stage(StageName.NOMINAL)
+
+    # 2. geometry
+    if opts.method in ("auto", "kinematic", "kinematic+ann", "integrated"):
+        _console.info("kinematic calibration: identifiability analysis and weighted LM")
+        run.fits.append(solve(model, train, GEOMETRIC_GROUPS, opts, StageName.GEOMETRIC, trajectory))
+    run.add_stage(StageName.GEOMETRIC)
+
+    # 2'. the integrated ANN-EKF on the trajectory (network from the training corrections, then the filter)
+    if opts.method == "integrated":
+        engine = integrate_adaptive if opts.engine == "adaptive" else integrate
+        run.filter = engine(run, train, hold)
+
+    # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation
+    if opts.method == "auto" and opts.diagnose:
+        _console.info("diagnosis: score tests of the candidate effects, joint refits, validation")
+        close_loop(run, train, trajectory, alpha=opts.alpha, alpha_val=opts.alpha_validation)
+
+    # 4. a learned residual model where the data demand it
+    if opts.method == "auto":
+        _console.info("residual model: kernel regression and correction network judged on validation poses")
+        learned_stage(run, train, trajectory)
+
+    # 3'. the correction network on what remains (paper Eq. 22: corrections in the base frame)
+    if opts.method in ("pcm", "kinematic+ann"):
+        _console.info(f"correction network 6-{opts.hidden}-3 on the remaining position corrections")
+        correction_net_stage(run, train, trajectory)
+    return run
