@@ -35,7 +35,7 @@ import torch
 
 import torchcal
 from torchcal.effects import Context, MeasurementModel
-from torchcal.estimate.rigid import fit_instrument_and_tool
+from torchcal.estimate.fit import place_instrument_and_tool
 from torchcal.filter import AdaptiveConfig, AdaptiveEKF, random_features
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
@@ -57,10 +57,7 @@ def run(args) -> dict:
         truth_y = c.model(Context(q=c.q_true))  # with the field
 
     start = torchcal.load_robot("ur5")  # nominal geometry; tracker pose and lever arm by a rigid fit
-    with torch.no_grad():
-        T, lever, _ = fit_instrument_and_tool(start(c.train.q), c.train.p)
-        start.instrument.set_matrix(T)
-        start.tool.nominal.copy_(lever)
+    place_instrument_and_tool(start, c.train.q, c.train.p)
     cfg = AdaptiveConfig(passes=args.passes, sigma_misfit=args.misfit_mm * 1e-3)
     net = random_features(hidden=args.hidden, seed=args.seed + 1)
     joint = AdaptiveEKF(start, net, cfg)

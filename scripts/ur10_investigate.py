@@ -54,6 +54,7 @@ import torch
 
 from torchcal.data import read_ipa
 from torchcal.effects import Context
+from torchcal.experiments.ipa_series import series_file, subsample_idx
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import transforms as tf
 
@@ -79,13 +80,6 @@ LONG_GAP = 50  # rows: revisits further apart than this are also reported on the
 # ----------------------------------------------------------------------------- data
 
 
-def series_file(data_dir: Path, name: str) -> Path:
-    files = sorted((data_dir / f"Series_{name}").glob("measurements_*.csv"))
-    if len(files) != 1:
-        raise SystemExit(f"expected one Series_{name}/measurements_*.csv under {data_dir}, found {len(files)}")
-    return files[0]
-
-
 def read_goal_rotation(path: Path, n: int) -> torch.Tensor:
     """Commanded T-Mac orientation ``(n, 3, 3)`` in base_link from the Goal roll/pitch/yaw columns.
 
@@ -103,12 +97,6 @@ def read_goal_rotation(path: Path, n: int) -> torch.Tensor:
     if len(rows) != n:
         raise SystemExit(f"{path}: {len(rows)} goal rows but read_ipa gave {n}")
     return tf.rpy_to_matrix(torch.tensor(rows, dtype=torch.float64))
-
-
-def subsample_idx(n: int, rows: int, seed: int) -> torch.Tensor:
-    if rows <= 0 or rows >= n:
-        return torch.arange(n)
-    return torch.sort(torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:rows]).values
 
 
 # ----------------------------------------------------------------------------- statistics

@@ -38,8 +38,8 @@ import torch
 
 from torchcal.data import Measurements, read_ipa
 from torchcal.effects import MeasurementModel
-from torchcal.estimate import fit_instrument_and_tool
-from torchcal.estimate.fit import errors
+from torchcal.estimate.fit import errors, place_instrument_and_tool
+from torchcal.experiments.ipa_series import series_file, subsample
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import load_robot
 
@@ -54,21 +54,6 @@ MM = 1e3
 
 
 # ----------------------------------------------------------------------------- data
-
-
-def series_file(data_dir: Path, name: str) -> Path:
-    files = sorted((data_dir / f"Series_{name}").glob("measurements_*.csv"))
-    if len(files) != 1:
-        raise SystemExit(f"expected one Series_{name}/measurements_*.csv under {data_dir}, found {len(files)}")
-    return files[0]
-
-
-def subsample(m: Measurements, rows: int, seed: int) -> tuple[Measurements, dict | None]:
-    """A seeded random ``rows`` of ``m`` in file order (all of them when ``rows`` is 0 or not smaller)."""
-    if rows <= 0 or rows >= m.n:
-        return m, None
-    idx = torch.randperm(m.n, generator=torch.Generator().manual_seed(seed))[:rows]
-    return m.subset(torch.sort(idx).values), {"rows": rows, "of": m.n, "seed": seed}
 
 
 def load_series(data_dir: Path, names, a_rows: int) -> tuple[dict[str, Measurements], dict[str, dict]]:
@@ -120,12 +105,8 @@ def refit_tracker(model, fit: Measurements):
     """A copy of ``model`` whose tracker pose and lever arm are re-fitted on ``fit`` (geometry fixed)."""
     model = copy.deepcopy(model)
     robot = model.robot
-    with torch.no_grad():
-        T, lever, rms = fit_instrument_and_tool(robot(fit.q), fit.p)
-        robot.instrument.set_matrix(T)
-        robot.tool.nominal.copy_(lever)
-        robot.tool.delta.zero_()
-    return model, lever, rms
+    rms = place_instrument_and_tool(robot, fit.q, fit.p)
+    return model, robot.tool.nominal.clone(), rms
 
 
 def transfer(src: str, dst: str, source_run, target: Measurements) -> dict:
