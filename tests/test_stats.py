@@ -86,3 +86,11 @@ def test_chi2_helpers_are_exact():
     p, l10 = S.chi2_sf_log10(2000.0, 2)  # far in the tail: p underflows, its log does not
     assert p == 0.0 and l10 == pytest.approx(-1000.0 / math.log(10.0), rel=1e-9)
     assert math.isnan(S.chi2_quantile(0.5, 0))
+
+
+def test_fit_statuses_name_the_solvers_statuses():
+    from torchcal.estimate.fit import FitStatus
+    from torchcal.estimate.lm import STATUSES
+
+    assert {s.value for s in FitStatus} == set(STATUSES)
+    assert "diverged" in (FitStatus.DIVERGED,) and f"{FitStatus.CONVERGED}" == "converged"

@@ -10,6 +10,7 @@ identifiability analysis (:func:`solve`), the names of the named effects' parame
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 from typing import Protocol
 
 import torch
@@ -27,6 +28,25 @@ from torchcal.robot.model import RobotModel
 Tensor = torch.Tensor
 #: the groups a kinematic calibration fits
 GEOMETRIC_GROUPS = ("geometry", "instrument", "tool")
+
+
+class FitStatus(str, Enum):
+    """How a least-squares or network fit ended (str-valued: ``report.json`` writes the plain name).
+
+    The solvers (:mod:`~torchcal.estimate.lm`, :mod:`~torchcal.estimate.netfit`) return these names.
+    """
+
+    CONVERGED = "converged"
+    MAX_ITERATIONS = "max_iterations"
+    DIVERGED = "diverged"
+    FAILED_SOLVE = "failed_solve"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+#: the endings after which the fitted values are unusable
+FAILED = (FitStatus.DIVERGED, FitStatus.FAILED_SOLVE)
 
 
 class FitOptions(Protocol):
@@ -183,7 +203,7 @@ def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opt
         prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
     fun = residual_function(model, free, ctx, m.p, W, prior)
     res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
-    if res.status in ("diverged", "failed_solve"):
+    if res.status in FAILED:
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
     free.assign(res.x)
     return Fit(stage, res, free, ida, global_test(res), W)
