@@ -81,7 +81,7 @@ def chi2_sf_log10(x: float, k: int) -> tuple[float, float]:
     from scipy.stats import chi2
 
     p = float(chi2.sf(x, k))
-    if p > 1e-300:
+    if p > 1e-280:
         return p, math.log10(p)
     # scipy's logsf underflows with the tail: the leading terms of the asymptotic series of the upper incomplete
     # gamma function, ln Gamma(a, y) ~ (a - 1) ln y - y + ln(1 + (a - 1) / y), over Gamma(a)

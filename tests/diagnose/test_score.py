@@ -7,11 +7,11 @@ import math
 import pytest
 
 from torchcal.diagnose import Candidate, candidates, score_candidates
-from torchcal.diagnose.score import chi2_sf_log10
 from torchcal.effects import Context
 from torchcal.estimate.fit import solve
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
+from torchcal.stats import chi2_sf_log10
 
 
 def test_chi2_tail_known_values_and_far_tail():

@@ -31,6 +31,7 @@ from torchcal.diagnose.candidates import Candidate
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse
 from torchcal.estimate.lm import LMResult
+from torchcal.stats import chi2_sf_log10
 
 Tensor = torch.Tensor
 
@@ -60,18 +61,6 @@ class Score:
                 "p_value": self.p_value, "log10_p": self.log10_p, "p_bonferroni": self.p_bonferroni,
                 "n_candidates": self.n_candidates, "bic_change": self.bic_change,
                 "independence": self.independence, "identifiable": self.identifiable}
-
-
-def chi2_sf_log10(x: float, k: int) -> tuple[float, float]:
-    """Upper tail ``P(chi2_k > x)`` and its log10, the latter valid far into the tail."""
-    a = 0.5 * k
-    p = float(torch.special.gammaincc(torch.tensor(a, dtype=torch.float64), torch.tensor(0.5 * x, dtype=torch.float64)))
-    if p > 1e-280:
-        return p, math.log10(p)
-    # Q(a, y) ~ y^(a-1) e^-y / Gamma(a) (1 + (a-1)/y + ...) for large y
-    y = 0.5 * x
-    ln = (a - 1) * math.log(y) - y - math.lgamma(a) + math.log1p((a - 1) / y)
-    return p, ln / math.log(10.0)
 
 
 def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor) -> Tensor:
