@@ -60,3 +60,22 @@ def test_report_matches_the_golden_report(method):
     got = golden.golden_report(method)
     diff = differences(expected, got)
     assert not diff, f"{len(diff)} differences from {golden.path(method).name}:\n" + "\n".join(diff[:30])
+
+
+@pytest.mark.slow
+def test_a_loaded_robot_gives_the_same_report_as_its_name():
+    from torchcal._threads import torch_threads
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.report import build_report
+    from torchcal.robot import load_robot
+    from torchcal.sim import SimConfig, simulate
+
+    with torch_threads(1):
+        c = simulate(SimConfig(robot="ur5", poses=120, test_poses=10, seed=3))
+        by_name = build_report(calibrate("ur5", c.train, Options(method="kinematic", seed=3)))
+        robot = load_robot("ur5")
+        run = calibrate(robot, c.train, Options(method="kinematic", seed=3))
+    assert run.robot is robot and run.robot_spec == robot.source
+    got = json.loads(json.dumps(build_report(run)))
+    assert got.pop("robot_spec") == str(robot.source) and by_name.pop("robot_spec") == "ur5"
+    assert differences(json.loads(json.dumps(by_name)), got) == []

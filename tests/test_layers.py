@@ -149,3 +149,10 @@ def test_the_checker_sees_an_upward_import(tmp_path):
         assert imports(f, {"torchcal.pipeline.run"}) == {"torchcal.pipeline.run"}
     finally:
         PACKAGE = old
+
+
+def test_torchcal_calibrate_is_the_pipeline_function():
+    import torchcal
+    from torchcal.pipeline import calibrate
+
+    assert torchcal.calibrate is calibrate
