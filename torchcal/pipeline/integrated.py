@@ -16,8 +16,8 @@ geometry, the instrument pose and the lever arm to be known, and network weights
 3. a joint LM refinement of geometry, instrument pose, lever arm and network weights on the training part:
    the batch form of the simultaneous estimation the paper aims at. The kinematic calibration of step 1 has
    taken the share of the non-geometric field that looks geometric into the geometry, and a network fitted
-   to what is left extrapolates badly (with the *true* geometry, the same network fit reaches 0.03-0.04 mm
-   held-out where the calibrated geometry leaves it at 0.14-0.28 mm); estimating both together can move
+   to what is left extrapolates badly (with the *true* geometry the same network fit extrapolates several times
+   better, ``scripts/integrated_trajectory.py``); estimating both together can move
    that share back, but it can also make things worse, so the last 10 % of the training samples judge it
    after every restart and the best state (possibly the unrefined start) is kept;
 4. the EKF pass over the training samples (:class:`~torchcal.filter.EKFTrainer`) from the refined weights,
@@ -28,9 +28,9 @@ geometry, the instrument pose and the lever arm to be known, and network weights
 
 The paper's ANN re-iteration (Fig. 10: an LM re-fit every 500 samples to the corrections of Eq. 22, taken
 against the filter's own geometric state, without a validation share) is off by default
-(``reiterate_every=0``; the argument switches it on). In one trial (seed 0, field 0.4 mm, network from step
-2, an earlier stochastic model) it raised the held-out error from 0.13 mm to 0.73 mm with the position pinned
-and to 2.56 mm with the paper's joint process noise, and each pass took about 3 minutes instead of 5 s.
+(``reiterate_every=0``; the argument switches it on): on measured data, re-fitting to the filter's own
+corrections without a validation share raised the held-out error several-fold in our trials, and each pass
+costs an LM fit every 500 samples.
 
 The final model is the refined geometry plus a :class:`~torchcal.effects.LearnedEffect` with the filter's
 last weights; ``torchcal predict`` reloads it, and its held-out error is the ``integrated`` stage. The
@@ -69,20 +69,15 @@ Tensor = torch.Tensor
 #: which the held-out ones continue. The probe position: pinned to the refined kinematics (20 um a-priori, 1 nm
 #: per step). The joint reading noise of a sample enters the relative prediction (Eq. 15) of two consecutive
 #: steps with opposite signs, so it does not accumulate: it goes into the observation noise here, not into the
-#: process noise of Eq. 19, where it would let the position wander off the kinematics by ~10 um per step.
-#: Measured on three simulated 7342-sample trajectories (seeds 0-2, field 0.26 mm, before the forward validation
-#: below): the filter took the held-out RMSE from 0.093 to 0.071, 0.140 to 0.112, 0.184 to 0.177 mm, where
-#: weights fixed in time (q_w = 0, sigma_w0 = 0.01) with the paper's placement of the joint noise gave 0.092,
-#: 0.138, 0.187 mm.
+#: process noise of Eq. 19, where it would let the position wander off the kinematics step by step.
+#: ``scripts/integrated_trajectory.py --engine ekf`` measures this stochastic model against fixed weights.
 SIGMA_W0 = 0.05
 Q_W = 1e-3
 SIGMA_T0 = 2e-5
 Q_T = 1e-9
 #: LM iterations of the joint refinement of geometry and network (step 3), restarted with a fresh damping every
 #: JOINT_RESTART iterations: the fit crawls along the valley where geometry and network trade places, and a
-#: damping that grew in its curved stretches otherwise keeps the later steps short (one trial, seed 0, from
-#: slightly different network starts: 0.091 mm held-out after 50 iterations in restarts of 10, 0.110 mm after
-#: one run of 50)
+#: damping that grew in its curved stretches otherwise keeps the later steps short
 JOINT_ITERATIONS = 150
 JOINT_RESTART = 10
 #: the joint refinement uses every JOINT_STRIDE-th training sample: neighbouring samples of a trajectory carry
@@ -346,10 +341,7 @@ def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measureme
     geometry (instrument translation back-substituted) plus a :class:`LearnedEffect` with its network, so
     ``predict`` reloads it like any run.
 
-    Measured on five 7342-sample UR5 trajectories whose field leaves 0.19 mm after the kinematic calibration
-    (``scripts/integrated_trajectory.py --seeds 0 1 2 3 4``): held-out 0.032-0.047 mm (mean 0.039), where the
-    ``ekf`` engine reaches 0.068-0.176 mm; on a short 2000-sample trajectory (tests/filter/test_integrated.py)
-    the ``ekf`` engine happened to extrapolate better (0.110 against 0.175 mm).
+    ``scripts/integrated_trajectory.py`` measures both engines on simulated trajectories (README, "integrated").
     """
     from torchcal.filter.adaptive import AdaptiveConfig, AdaptiveEKF, random_features
 
