@@ -1,33 +1,8 @@
-"""Reproduce (and beat) Table 4 and Figs. 9, 11, 12 of Horvath & Neuner (2024): the integrated ANN-EKF.
+#!/usr/bin/env python3
+"""The command line of :mod:`torchcal.experiments.table4`: reproduce (and beat) Table 4 and Figs. 9, 11, 12 of
+Horvath & Neuner (2024): the integrated ANN-EKF.
 
-Setting (paper Sec. 2.2.1 and 3): a continuous UR5 trajectory (7342 samples, the first 5874 filtered, the
-rest test data predicted without updates), the geometry, tracker pose and lever arm known exactly
-(scenarios a and b), the non-geometric part a 6-29-3 tanh network ``w_nom`` whose corrections vary by
-0.6 mm over the trajectory, 15 um tracker noise per axis and 0.0005 deg joint noise. Our trajectory comes
-from torchcal's simulator (point to point through random visible waypoints), not from the paper's RoboDK
-path, so the numbers are comparable in kind, not digit for digit.
-
-Scenario a: the filter starts from ``w_nom`` (Fig. 9). Scenario b: it starts from ``w_nom`` perturbed by
-5, 10, 15 % (``w_nom * (1 + p N(0, 1))`` per weight, ``--draws`` draws each; Table 4, Figs. 11-12) and,
-beyond the paper, from a random network. Three ways to run the filter:
-
-* ``plain``: torchcal's EKF started from the perturbed weights (prior sigma 0.05 per weight, the probe
-  position from the first measurement with 1 mm prior), no re-iteration;
-* ``paper`` (``--paper-mode``, slow): the same with the paper's ANN re-iteration every 500 samples
-  (LM, 100 then 200 iterations, stopped early once converged);
-* ``torchcal``: the initial weights from the position correction model (the network fitted by LM to the
-  training corrections, starting from the perturbed or random weights -- the paper's own suggestion in
-  Sec. 4), the probe position pinned to the kinematic model (prior 20 um), then the EKF.
-
-RMSE(NG), RMSE(G), RMSE(All) on the test samples are those of the paper's Table 4 (deviation of the
-non-geometric part, of the geometric state, of their sum from the noise-free truth); ``learned`` is the
-fraction of the non-geometric part learnt, ``1 - RMSE(NG) / variation(NG on test)`` as the paper
-computes its 32.5 % and 55 %.
-
-    python scripts/reproduce_table4.py [--quick] [--draws 10] [--paper-mode] [--json] [--out runs/paper]
-
-With ``--json`` the last line is ``{"5": {"rmse_ng_test_mm": .., "rmse_g_test_mm": .., "rmse_all_test_mm": ..},
-"10": {..}, "15": {..}, ...}`` for the ``torchcal`` mode, other modes nested inside.
+The experiment and its outputs are described there; this script parses the arguments, runs it and prints.
 """
 
 from __future__ import annotations
@@ -41,79 +16,13 @@ from pathlib import Path
 import torch
 
 from torchcal.effects import CorrectionNet
+from torchcal.experiments import table4
+from torchcal.experiments.table4 import PAPER, campaign, metrics, plot, plot_ann
 from torchcal.filter import EKFConfig, EKFTrainer
-from torchcal.sim import EffectSpec, SimConfig, simulate
-
-PAPER = {"5": (0.18, 0.34, 0.38), "10": (0.27, 0.51, 0.53), "15": (0.52, 0.69, 0.86)}  # NG, G, All [mm]
-
-
-def campaign(samples: int, seed: int):
-    train = round(samples * 5874 / 7342)
-    cfg = dict(robot="ur5", trajectory=True, samples=samples, train_samples=train, seed=seed, sigma_length=0.0,
-               sigma_angle_deg=0.0)
-    probe = simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=1e-4)]))
-    size = 1e-4 * 0.6e-3 / probe.truth["effects"][0]["variation_m"]  # the paper's 0.6 mm variation
-    return simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=size)]))
-
-
-def metrics(res, G_true, NG_true, n_train):
-    te = slice(n_train, None)
-
-    def rmse(a):  # per draw
-        return a[:, te].norm(dim=-1).square().mean(dim=-1).sqrt()
-
-    ng = rmse(res.nongeometric - NG_true)
-    var = float(NG_true[te].norm(dim=-1).max() - NG_true[te].norm(dim=-1).min())
-    return {"rmse_ng_test_mm": float(ng.mean()) * 1e3,
-            "rmse_g_test_mm": float(rmse(res.geometric - G_true).mean()) * 1e3,
-            "rmse_all_test_mm": float(rmse(res.prediction - G_true - NG_true).mean()) * 1e3,
-            "learned": 1.0 - float(ng.mean()) / var, "draws": int(ng.numel()),
-            "worst_all_test_mm": float(rmse(res.prediction - G_true - NG_true).max()) * 1e3,
-            "diverged": sum(s != "ok" for s in res.status)}
-
-
-def plot(res, G_true, NG_true, n_train, path, title, d=0):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
-    for k, (name, a) in enumerate([("devG", res.geometric - G_true), ("devNG", res.nongeometric - NG_true),
-                                   ("devAll", res.prediction - G_true - NG_true)]):
-        for j, c in enumerate("xyz"):
-            ax[k].plot((a[d, :, j] * 1e3).tolist(), lw=0.6, label=c)
-        ax[k].axvline(n_train, color="k", lw=0.8)
-        ax[k].set_ylabel(f"{name} [mm]")
-    ax[0].legend(ncol=3, fontsize=7)
-    ax[0].set_title(title)
-    ax[-1].set_xlabel("sample (vertical line: end of filtering, test data after it)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def plot_ann(res, NG_true, n_train, path, d=0):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(3, 1, figsize=(9, 5), sharex=True)
-    for j, c in enumerate("xyz"):
-        ax[j].plot((NG_true[:, j] * 1e3).tolist(), lw=0.8, label="ANN nominal")
-        ax[j].plot((res.nongeometric[d, :, j] * 1e3).tolist(), lw=0.8, label="ANN estimated")
-        ax[j].axvline(n_train, color="k", lw=0.8)
-        ax[j].set_ylabel(f"{c} [mm]")
-    ax[0].legend(fontsize=7)
-    ax[-1].set_xlabel("sample")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(description=table4.__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=10)
     ap.add_argument("--samples", type=int, default=7342)
     ap.add_argument("--seed", type=int, default=0)

@@ -1,7 +1,8 @@
-"""scripts/ur10_investigate.py: its pair search and correlation helpers on synthetic data, and a run on the real
+"""scripts/ur10_investigate.py (torchcal.experiments.ur10_investigate): its pair search and correlation helpers
+on synthetic data, and a run on the real
 UR10 Series D (ISO cubes, 632 poses) when the ur10-ipa data are present."""
 
-import importlib.util
+import importlib
 import json
 import math
 import os
@@ -18,14 +19,8 @@ DEFAULT_DATA = ROOT.parent / "shared" / "data" / "real" / "ur10-ipa"
 
 
 def load_script():
-    name = "ur10_investigate"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+    """The experiment behind the script (its helpers live in the package)."""
+    return importlib.import_module("torchcal.experiments.ur10_investigate")
 
 
 # ----------------------------------------------------------------------------- helpers, no data needed
