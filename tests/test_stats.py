@@ -94,3 +94,25 @@ def test_fit_statuses_name_the_solvers_statuses():
 
     assert {s.value for s in FitStatus} == set(STATUSES)
     assert "diverged" in (FitStatus.DIVERGED,) and f"{FitStatus.CONVERGED}" == "converged"
+
+
+@pytest.mark.slow
+def test_a_calibration_keeps_revisited_configurations_on_one_side():
+    from torchcal._threads import torch_threads
+    from torchcal.data import Measurements
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.report import build_report
+    from torchcal.sim import SimConfig, simulate
+
+    with torch_threads(1):
+        c = simulate(SimConfig(robot="ur5", poses=150, test_poses=10, seed=4))
+        m = c.train
+        # every third pose measured again (same joints, the second reading 0.1 mrad off, a new position reading)
+        again = torch.arange(0, m.n, 3)
+        data = Measurements(q=torch.cat([m.q, m.q[again] + 1e-4]), p=torch.cat([m.p, m.p[again] + 1e-5]))
+        run = calibrate("ur5", data, Options(method="kinematic", seed=0))
+    assert run.split.merged_groups == len(again) and run.split.merged_rows == 2 * len(again)
+    labels = S.revisit_groups(data.q)
+    assert not set(labels[run.train_idx].tolist()) & set(labels[run.holdout_idx].tolist())
+    assert build_report(run)["split"]["merged_groups"] == len(again)
+    assert any("revisited joint configurations" in n for n in run.notes)
