@@ -155,55 +155,86 @@ def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, al
             break
         accepted = None
         for s in significant[:max_tries]:
-            cand = s.candidate
-            tried.add(cand.name)
-            _console.info(f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k}, "
-                          f"log10 p {s.log10_p:.1f}); validating")
-            trial = copy.deepcopy(base)
-            trial.add(cand.make())
-            fit_on(trial, fit_part, f"validation {cand.name}")
-            e_trial = errors(trial, val_part, trajectory)
-            test = S.paired_test(e_base, e_trial, ordered=trajectory)
-            r0, r1 = S.rmse(e_base), S.rmse(e_trial)
-            validation = {"rmse_before_mm": r0 * 1e3, "rmse_after_mm": r1 * 1e3,
-                          "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0, "z": test["z"],
-                          "p_value": test["p_value"], "n": test["n"],
-                          "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}"}
-            if not (r1 < r0 and test["p_value"] < alpha_val):
-                reason = (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, "
-                          f"p = {test['p_value']:.2g})")
-                diag.decisions.append(Decision(rnd, cand, s, False, reason, validation, None, (base, trial)))
-                run.rejections.append(Rejection(cand.kind, cand.joint, {**s.to_dict(), "validation": validation},
-                                                name=cand.name, reason=reason))
-                run.notes.append(f"diagnosis: {cand.name} rejected, {reason}")
-                continue
-            accepted = (s, trial, e_trial, validation)
-            break
+            tried.add(s.candidate.name)
+            v = _validate(s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val)
+            if v.passed:
+                accepted = v
+                break
+            _reject(run, diag, v)
         if accepted is None:
             diag.stop = f"round {rnd}: no significant candidate passed validation"
             break
-        s, trial, e_trial, validation = accepted
-        cand = s.candidate
-        before = copy.deepcopy(model)
-        eff = cand.make()
-        model.add(eff)
-        label = eff.label()
-        new_fit = fit_on(model, train, label)
-        run.fits.append(new_fit)
-        st_before = run.stages[-1]
-        st_after = run.add_stage(label)
-        base, e_base = trial, e_trial
-        diag.decisions.append(Decision(rnd, cand, s, True, "significant and confirmed on validation poses",
-                                       validation, label, (before, copy.deepcopy(model))))
-        run.effects.append(EffectRecord(
-            cand.kind, cand.joint,
-            {**effect_parameters(model, len(model.effects) - 1, new_fit),
-             **{k: v for k, v in eff.describe().items() if k in DESCRIPTORS}},
-            {**s.to_dict(), "round": rnd, "validation": validation, "global_test_after": new_fit.global_test},
-            name=cand.name, label=label, rmse_before_mm=st_before.rmse * 1e3, rmse_after_mm=st_after.rmse * 1e3))
-        run.notes.append(f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k} dof, "
-                         f"Bonferroni p = {s.p_bonferroni:.2g}; validation {validation['rmse_before_mm']:.4f} -> "
-                         f"{validation['rmse_after_mm']:.4f} mm, p = {validation['p_value']:.2g})")
+        _accept(run, diag, accepted, fit_on, train)
+        base, e_base = accepted.trial, accepted.errors
     else:
         diag.stop = f"reached the limit of {max_effects} effects"
     return diag
+
+
+@dataclass
+class _Validation:
+    """One candidate refitted on the fitting poses and judged on the validation poses."""
+
+    score: Score
+    round: int
+    base: MeasurementModel  # the model before it, fitted on the fitting poses
+    trial: MeasurementModel  # with it
+    errors: Tensor  # (n_validation,) m: the trial's validation errors
+    validation: dict  # the numbers of the test, for the report
+    passed: bool
+    reason: str
+
+
+def _validate(s: Score, rnd: int, base: MeasurementModel, e_base: Tensor, fit_on, fit_part: Measurements,
+              val_part: Measurements, trajectory: bool, alpha_val: float) -> _Validation:
+    """Refit ``base`` with the candidate of ``s`` on the fitting poses; compare on the validation poses."""
+    cand = s.candidate
+    _console.info(f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k}, "
+                  f"log10 p {s.log10_p:.1f}); validating")
+    trial = copy.deepcopy(base)
+    trial.add(cand.make())
+    fit_on(trial, fit_part, f"validation {cand.name}")
+    e_trial = errors(trial, val_part, trajectory)
+    test = S.paired_test(e_base, e_trial, ordered=trajectory)
+    r0, r1 = S.rmse(e_base), S.rmse(e_trial)
+    validation = {"rmse_before_mm": r0 * 1e3, "rmse_after_mm": r1 * 1e3,
+                  "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0, "z": test["z"],
+                  "p_value": test["p_value"], "n": test["n"],
+                  "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}"}
+    passed = r1 < r0 and test["p_value"] < alpha_val
+    reason = "" if passed else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, "
+                                f"p = {test['p_value']:.2g})")
+    return _Validation(s, rnd, base, trial, e_trial, validation, passed, reason)
+
+
+def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
+    """Record a candidate that validation did not confirm."""
+    cand = v.score.candidate
+    diag.decisions.append(Decision(v.round, cand, v.score, False, v.reason, v.validation, None, (v.base, v.trial)))
+    run.rejections.append(Rejection(cand.kind, cand.joint, {**v.score.to_dict(), "validation": v.validation},
+                                    name=cand.name, reason=v.reason))
+    run.notes.append(f"diagnosis: {cand.name} rejected, {v.reason}")
+
+
+def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> None:
+    """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it."""
+    model, s, cand = run.model, v.score, v.score.candidate
+    before = copy.deepcopy(model)
+    eff = cand.make()
+    model.add(eff)
+    label = eff.label()
+    new_fit = fit_on(model, train, label)
+    run.fits.append(new_fit)
+    st_before = run.stages[-1]
+    st_after = run.add_stage(label)
+    diag.decisions.append(Decision(v.round, cand, s, True, "significant and confirmed on validation poses",
+                                   v.validation, label, (before, copy.deepcopy(model))))
+    run.effects.append(EffectRecord(
+        cand.kind, cand.joint,
+        {**effect_parameters(model, len(model.effects) - 1, new_fit),
+         **{k: val for k, val in eff.describe().items() if k in DESCRIPTORS}},
+        {**s.to_dict(), "round": v.round, "validation": v.validation, "global_test_after": new_fit.global_test},
+        name=cand.name, label=label, rmse_before_mm=st_before.rmse * 1e3, rmse_after_mm=st_after.rmse * 1e3))
+    run.notes.append(f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k} dof, "
+                     f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
+                     f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})")
