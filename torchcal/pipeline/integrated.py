@@ -215,32 +215,39 @@ def integrate(run: CalibrationRun, train: Measurements, hold: Measurements, *,
         raise EstimationError(f"integrated ANN-EKF: the filter {res.status[0]}")
     filt = IntegratedFilter(res, torch.cat([train.p, hold.p]), kin, train.n, cfg, net.flat())
     net.set_flat(res.w[0])  # the final model: calibrated geometry + the filter's last weights
-    after = run.add_stage(StageName.INTEGRATED)
-    before = run.stage(StageName.GEOMETRIC)
-    e_filter = (filt.prediction[train.n :] - hold.p).norm(dim=-1)
-    nis = res.nis[0, : train.n]
+    run.add_stage(StageName.INTEGRATED)
+    _record_ekf(run, filt, steps, joint_info, hold, net.n_weights)
+    return filt
+
+
+def _record_ekf(run: CalibrationRun, filt: IntegratedFilter, steps: dict, joint_info: dict | None,
+                hold: Measurements, n_weights: int) -> None:
+    """The ``ekf`` engine's effect record and note: held-out RMSE after each step, the filter's statistics."""
+    opts, res, cfg, n_train = run.options, filt.result, filt.config, filt.n_train
+    after, before = run.stages[-1], run.stage(StageName.GEOMETRIC)
+    e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
+    nis = res.nis[0, :n_train]
     run.effects.append(EffectRecord(
         "learned", None, name="integrated", label="learned",
-        params={"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
+        params={"model": "network", "hidden": opts.hidden, "n_weights": n_weights,
                 "fit": "integrated ANN-EKF (Horvath & Neuner 2024, Sec. 2.3) after an LM initialisation and a "
                        "joint LM refinement with the geometry"},
         evidence={
             "holdout_rmse_steps_mm": {k: v * 1e3 for k, v in steps.items()},
             "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
             "joint_refinement": joint_info,
-            "filter": {"status": res.status[0], "samples_filtered": train.n, "seconds": res.seconds,
+            "filter": {"status": res.status[0], "samples_filtered": n_train, "seconds": res.seconds,
                        "nis_mean": float(nis.mean()), "nis_expected": 3.0,
-                       "q_yy_final": float(res.q_yy[0, train.n - 1]), "reiterations": len(res.reiterations),
+                       "q_yy_final": float(res.q_yy[0, n_train - 1]), "reiterations": len(res.reiterations),
                        "reiterate_every": cfg.reiterate_every, "sigma_w0": cfg.sigma_w0, "sigma_t0_m": cfg.sigma_t0,
                        "q_w": cfg.q_w, "q_t_m": cfg.q_t, "sigma_observation_m": cfg.sigma_tracker,
-                       "final_state_offset_from_kinematics_mm": float((res.t[0] - kin[-1]).norm()) * 1e3},
+                       "final_state_offset_from_kinematics_mm": float((res.t[0] - filt.kinematic[-1]).norm()) * 1e3},
         },
         rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
     text = ", ".join(f"{k.replace('_', ' ')} {v * 1e3:.4f}" for k, v in steps.items())
     run.notes.append(f"integrated ANN-EKF: held-out RMSE [mm] after {text}, after the filter {after.rmse * 1e3:.4f} "
                      f"(final model); the filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f}; mean NIS "
                      f"{float(nis.mean()):.2f} (3 expected)")
-    return filt
 
 
 def refine_jointly(model: MeasurementModel, m: Measurements, identifiability, opts, iterations: int,
