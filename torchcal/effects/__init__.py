@@ -7,7 +7,7 @@ from torchcal.effects.kernel import KernelCorrection, fit_kernel_correction
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.model import MeasurementModel
 
-#: effect kinds as named in report.json (CONTRACT §4)
+#: effect kinds as named in report.json
 KINDS = ("compliance", "backlash", "cyclic", "drift", "learned")
 
 __all__ = [

@@ -149,7 +149,9 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
 
     tmp = Path(directory)
     state = run.model.state_dict()
-    bad = [k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+    # joint limits may be infinite (continuous joints); every estimated value must be finite
+    bad = [k for k, v in state.items() if v.is_floating_point() and not k.endswith("limits")
+           and not bool(torch.isfinite(v).all())]
     if bad:
         raise EstimationError(f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit "
                               "diverged, nothing was written")

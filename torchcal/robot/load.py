@@ -110,7 +110,7 @@ def _number(path, where: str, key: str, value) -> float:
 
 
 def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") -> RobotModel:
-    """Load a DH table (CONTRACT §2): ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
+    """Load a DH table: ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
 
     Optional per joint: ``lower``, ``upper`` [rad] (default +-2 pi), ``mass`` [kg] and ``com``
     [m, in DH frame i] (all joints or none), ``name``.
