@@ -2,9 +2,10 @@
 
 Every directory torchcal writes (a calibration run, a simulated campaign, the demo) carries a
 marker file, :data:`MARKER`, holding the format and version. ``--out`` is replaced only when it
-does not exist, is an empty directory, or is a directory with that marker; anything else (a
-directory with other content, a file, the working directory or one of its parents, a directory
-holding an input file, a parent that is a file, a place the user cannot write) is refused with an
+does not exist or is a directory with that marker (the outside contract: "replaced only when it is a
+previous run directory of torchcal (or absent)"); anything else (any unmarked directory, even an
+empty one, a file, the working directory or one of its parents, a directory holding an input file,
+a parent that is a file, a place the user cannot write) is refused with an
 :class:`~torchcal.errors.OptionError` *before* any work is done, touching nothing.
 
 Writing happens in a temporary directory beside ``--out`` (``.NAME.XXXX.tmp``, marked first) while
@@ -101,14 +102,15 @@ def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike]
         if not out.is_dir():
             raise OptionError(f"{where}: exists and is not a directory; torchcal will not replace it. "
                               "Name a new directory")
-        try:
-            empty = not any(out.iterdir())
-        except OSError as e:
-            raise OptionError(f"{where}: cannot be read: {e.strerror or e}") from None
-        if not empty and not is_marked(out):
-            raise OptionError(f"{where}: exists, is not empty and is not a torchcal output directory (no "
-                              f"{MARKER} marker); torchcal replaces only its own run directories. Name a new "
-                              "directory or remove this one yourself")
+        if not is_marked(out):
+            try:
+                empty = not any(out.iterdir())
+            except OSError as e:
+                raise OptionError(f"{where}: cannot be read: {e.strerror or e}") from None
+            what = "is an empty directory" if empty else "exists, is not empty"
+            raise OptionError(f"{where}: {what} and is not a torchcal output directory (no {MARKER} "
+                              "marker); torchcal replaces only its own run directories. Name a new directory "
+                              + ("or remove this empty one (rmdir)" if empty else "or remove this one yourself"))
     # the nearest existing ancestor must be a directory we may create entries in
     parent = absolute.parent
     while not parent.exists() and not parent.is_symlink():
@@ -226,14 +228,12 @@ def replace_dir(out: str | os.PathLike, *, kind: str, inputs: Sequence[str | os.
             (tmp / MARKER).write_text(_marker_text(kind), encoding="utf-8")
             yield tmp
             target = parent / name
+            check_out_dir(out, inputs=inputs)  # still absent or marked: the block may have taken long
             if target.exists():
-                if is_marked(target):
-                    old = Path(str(tmp)[: -len(".tmp")] + ".old")
-                    os.rename(target, old)
-                    os.rename(tmp, target)
-                    shutil.rmtree(old, ignore_errors=True)
-                else:  # empty (check_out_dir passed): rename replaces an empty directory
-                    os.replace(tmp, target)
+                old = Path(str(tmp)[: -len(".tmp")] + ".old")
+                os.rename(target, old)
+                os.rename(tmp, target)
+                shutil.rmtree(old, ignore_errors=True)
             else:
                 os.rename(tmp, target)
         except BaseException:

@@ -59,8 +59,8 @@ def _count(text: str) -> int:
 
 _count.__name__ = "count"
 POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _number("fraction")
-OUT_HELP = ("output directory; replaced only when absent, empty or an earlier torchcal output (marked by "
-            ".torchcal-run), anything else is refused")
+OUT_HELP = ("output directory; an existing one is replaced only when it is an earlier torchcal output "
+            "(marked by .torchcal-run), anything else is refused")
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:

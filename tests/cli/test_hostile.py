@@ -130,9 +130,13 @@ def test_read_only_location_is_refused_before_fitting(campaign, tmp_path, capsys
         ro.chmod(0o755)
 
 
-def test_empty_directory_and_marked_run_are_replaced(campaign, tmp_path):
+def test_empty_directory_is_refused_and_marked_run_is_replaced(campaign, tmp_path, capsys):
     out = tmp_path / "empty"
     out.mkdir()
+    # the outside contract: replaced only when absent or an earlier torchcal run, so not even an empty one
+    assert calibrate(campaign / "train.csv", out) == 2
+    assert "is an empty directory" in capsys.readouterr().err and out.is_dir() and not any(out.iterdir())
+    out.rmdir()
     assert calibrate(campaign / "train.csv", out) == 0
     assert (out / "report.json").is_file() and _outdir.is_marked(out)
     (out / "stale-note.txt").write_text("from an earlier run")  # a marked run is torchcal's to replace
@@ -189,6 +193,20 @@ def test_two_concurrent_writers_serialise(tmp_path):
     for a, b in zip(inside[::2], inside[1::2]):
         assert a[0] == "enter" and b == ("leave", a[1])
     assert (out / "who").read_text() in {"0", "1", "2", "3"} and _outdir.is_marked(out)
+    no_temporaries(tmp_path)
+
+
+@pytest.mark.slow
+def test_two_torchcal_processes_writing_the_same_out(tmp_path):
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torchcal", "simulate", "--robot", "ur5", "--out", "same", "--poses", "30",
+           "--test-poses", "10", "--quiet"]
+    procs = [subprocess.Popen([*cmd, "--seed", str(k)], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
+             for k in range(2)]
+    errs = [p.communicate(timeout=300)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], errs
+    assert sorted(p.name for p in (tmp_path / "same").iterdir()) == [_outdir.MARKER, "test.csv", "train.csv",
+                                                                    "truth.json"]
     no_temporaries(tmp_path)
 
 

@@ -12,8 +12,8 @@ Layout::
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
-end, so a failure leaves no partial run directory; ``out`` is replaced only when it is absent,
-empty, or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
+end, so a failure leaves no partial run directory; ``out`` is replaced only when it is absent
+or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
 :mod:`torchcal._outdir`).
 """
 
@@ -180,7 +180,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
 def write_run(run: CalibrationRun, out: str | os.PathLike, *, inputs=()) -> Path:
     """Write the run directory (module docstring), all or nothing.
 
-    ``out`` is replaced only when it is absent, empty or an earlier torchcal run (see
+    ``out`` is replaced only when it is absent or an earlier torchcal run (see
     :mod:`torchcal._outdir`); anything else raises :class:`~torchcal.errors.OptionError`.
     """
     with replace_dir(out, kind="calibrate", inputs=inputs) as tmp:

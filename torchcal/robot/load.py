@@ -220,8 +220,7 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
     try:
         tree = etree.fromstring(raw, parser=parser)
     except etree.XMLSyntaxError as e:
-        line = f", line {e.lineno}" if getattr(e, "lineno", None) else ""
-        raise RobotSpecError(f"{path}{line}: not well-formed XML: {e.msg if hasattr(e, 'msg') else e}") from None
+        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
     if tree.getroottree().docinfo.internalDTD is not None or tree.getroottree().docinfo.doctype:
         raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
     if tree.tag != "robot":
