@@ -63,7 +63,8 @@ def _probe_writable(parent: Path, where: str) -> None:
         os.mkdir(probe)
     except OSError as e:
         raise OptionError(f"{where}: cannot write in {parent} ({e.strerror or e})") from None
-    os.rmdir(probe)
+    with contextlib.suppress(OSError):
+        os.rmdir(probe)
 
 
 def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (),

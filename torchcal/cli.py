@@ -176,11 +176,16 @@ def _robot_key(name: str) -> str:
     return n
 
 
-def check_header_robot(data, spec: str, robot) -> None:
+def check_header_robot(data, spec: str, robot, described: str) -> None:
     """Refuse a file whose ``# robot:`` line names another robot than ``--robot``.
 
     A mismatch would otherwise be "calibrated" away as huge geometric corrections. Names are compared
     without directory, extension and case (``ur5``, ``robots/ur5.urdf`` and a URDF named ``UR5`` agree).
+
+    Args:
+        data: the measurements (``data.meta['robot']`` is the file's line).
+        spec: the robot as given (built-in name or file path); robot: the loaded robot.
+        described: how the message names it, e.g. ``--robot ur5``.
     """
     from torchcal.errors import MeasurementFileError
 
@@ -190,7 +195,7 @@ def check_header_robot(data, spec: str, robot) -> None:
     ours = {_robot_key(spec), _robot_key(robot.name)}
     if _robot_key(named) not in ours:
         raise MeasurementFileError(
-            data.source, f"the file's '# robot: {named}' line names another robot than --robot {spec} "
+            data.source, f"the file's '# robot: {named}' line names another robot than {described} "
             f"('{robot.name}')", hint="pass the robot the data were measured with, or correct the '# robot:' "
             "line if the name differs but the robot is the same")
 
@@ -213,7 +218,7 @@ def cmd_calibrate(args) -> int:
                              angle_unit=args.angle_unit, require_positions=True,
                              min_poses=C.min_poses(robot, opts.holdout), robot_name=robot.name,
                              purpose=f"a {opts.method} calibration of '{robot.name}'")
-    check_header_robot(data, args.robot, robot)
+    check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
     run = C.calibrate(args.robot, data, opts, base_link=args.base_link, tip_link=args.tip_link)
     out = write_run(run, args.out, inputs=inputs)
     st = {s.name: s for s in run.stages}
@@ -230,10 +235,11 @@ def cmd_predict(args) -> int:
     from torchcal.report import load_model, predict
 
     check_out_file(args.out, inputs=[args.data, args.run])
-    model, _ = load_model(args.run)
+    model, meta = load_model(args.run)
     robot = model.robot
     data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,
                              angle_unit=args.angle_unit, require_positions=False, robot_name=robot.name)
+    check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     p = predict(args.run, data)
     if not bool(torch.isfinite(p).all()):
         raise OptionError(f"{args.run}: the run's model predicts non-finite positions for {args.data}; "

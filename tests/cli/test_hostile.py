@@ -432,6 +432,13 @@ def test_header_robot_that_disagrees_with_robot_is_an_error(campaign, tmp_path, 
     assert "names another robot than --robot ur5" in capsys.readouterr().err
 
 
+def test_predict_refuses_data_of_another_robot(run_dir, campaign, tmp_path, capsys):
+    text = (campaign / "test.csv").read_text().replace("# robot: ur5", "# robot: panda")
+    f = write(tmp_path / "panda.csv", text)
+    assert main(["predict", str(run_dir), str(f), "--out", str(tmp_path / "p.csv"), "--quiet"]) == 2
+    assert "names another robot than the run's robot robot/ur5.yaml" in capsys.readouterr().err
+
+
 def test_simulate_without_line_of_sight_names_real_options(tmp_path, capsys):
     assert main(["simulate", "--robot", "ur5.urdf", "--base-link", "wrist_2_link", "--out", str(tmp_path / "s"),
                  "--poses", "20", "--quiet"]) == 2
