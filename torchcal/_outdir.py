@@ -38,10 +38,41 @@ def _marker_text(kind: str) -> str:
     return json.dumps({"format": MARKER_FORMAT, "version": MARKER_VERSION, "written_by": kind}) + "\n"
 
 
+#: What a calibration run directory held before the marker existed (torchcal 0.1 before this module).
+_LEGACY_RUN_FILES = {"report.json", "report.md", "robot_calibrated.urdf", "model.pt", "model.json", "robot"}
+
+
+def _is_legacy_run(path: Path) -> bool:
+    """An unmarked run directory of an earlier torchcal: its model.json format, and nothing else in it."""
+    try:
+        names = {p.name for p in path.iterdir()}
+        meta = json.loads((path / "model.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    extra = {n for n in names - _LEGACY_RUN_FILES if not n.endswith(".png")}
+    return isinstance(meta, dict) and meta.get("format") == "torchcal-run-1" and not extra and not any(
+        (path / n).is_symlink() for n in names)
+
+
+def _is_legacy_demo(path: Path) -> bool:
+    """An unmarked ``torchcal demo`` output of an earlier torchcal: data/, run/ (a legacy run), summary.json."""
+    try:
+        names = {p.name for p in path.iterdir()}
+    except OSError:
+        return False
+    return names == {"data", "run", "summary.json"} and _is_legacy_run(path / "run") and {
+        p.name for p in (path / "data").iterdir()} <= {"train.csv", "test.csv", "truth.json"}
+
+
 def is_marked(path: Path) -> bool:
-    """Whether ``path`` is a directory carrying a readable torchcal marker."""
+    """Whether ``path`` is a directory carrying a readable torchcal marker (or is an unmarked run
+    directory or demo output of an earlier torchcal holding nothing but its own files)."""
     marker = path / MARKER
-    if path.is_symlink() or not path.is_dir() or marker.is_symlink() or not marker.is_file():
+    if path.is_symlink() or not path.is_dir():
+        return False
+    if not marker.exists() and (_is_legacy_run(path) or _is_legacy_demo(path)):
+        return True
+    if marker.is_symlink() or not marker.is_file():
         return False
     try:
         doc = json.loads(marker.read_text(encoding="utf-8"))

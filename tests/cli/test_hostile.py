@@ -154,6 +154,29 @@ def test_a_damaged_marker_does_not_count(tmp_path):
         _outdir.check_out_dir(out)
 
 
+def test_an_unmarked_run_of_an_earlier_torchcal_is_replaced_but_not_with_foreign_files(run_dir, campaign, tmp_path):
+    legacy = tmp_path / "legacy"
+    shutil.copytree(run_dir, legacy)
+    (legacy / _outdir.MARKER).unlink()
+    assert _outdir.is_marked(legacy)  # only its own files and model.json's format: an earlier run
+    (legacy / "thesis.txt").write_text("draft")
+    assert not _outdir.is_marked(legacy)
+    with pytest.raises(OptionError):
+        _outdir.check_out_dir(legacy)
+    (legacy / "thesis.txt").unlink()
+    assert calibrate(campaign / "train.csv", legacy) == 0 and (legacy / _outdir.MARKER).is_file()
+    demo = tmp_path / "demo"  # an earlier demo output: data/, run/, summary.json
+    shutil.copytree(run_dir, demo / "run")
+    (demo / "run" / _outdir.MARKER).unlink()
+    (demo / "data").mkdir()
+    for f in ("train.csv", "test.csv"):
+        shutil.copy(campaign / f, demo / "data" / f)
+    (demo / "summary.json").write_text("{}")
+    assert _outdir.is_marked(demo)
+    (demo / "data" / "notes.txt").write_text("mine")
+    assert not _outdir.is_marked(demo)
+
+
 def test_predict_never_writes_over_its_inputs(run_dir, campaign, tmp_path, capsys):
     data = tmp_path / "test.csv"
     shutil.copy(campaign / "test.csv", data)
