@@ -20,6 +20,7 @@ import contextlib
 import fcntl
 import json
 import os
+import re
 import secrets
 import shutil
 from collections.abc import Iterator, Sequence
@@ -215,9 +216,18 @@ def _locked(lock_path: Path) -> Iterator[None]:
 
 
 def _clean_stale(parent: Path, name: str) -> None:
-    """Remove marked temporaries of earlier killed runs for ``name`` (the caller holds the lock)."""
-    for p in parent.glob(f".{name}.*"):
-        if p.suffix in (".tmp", ".old") and not p.is_symlink() and is_marked(p):
+    """Remove marked temporaries of earlier killed runs for ``name`` (the caller holds the lock).
+
+    Only names this module makes for ``name`` (``.NAME.<8 hex>.tmp|old``; and ``.NAME.<8 chars>`` /
+    ``.NAME.old`` of the writer before it): the temporaries of ``NAME.x`` are not ours to remove.
+    """
+    pattern = re.compile(rf"\.{re.escape(name)}\.(?:[0-9a-f]{{8}}\.(?:tmp|old)|[a-z0-9_]{{8}}|old)")
+    try:
+        entries = list(parent.iterdir())
+    except OSError:
+        return
+    for p in entries:
+        if pattern.fullmatch(p.name) and not p.is_symlink() and is_marked(p):
             shutil.rmtree(p, ignore_errors=True)
 
 

@@ -249,10 +249,13 @@ def test_a_killed_writer_leaves_temporaries_that_the_next_run_removes(tmp_path):
     _outdir.mark(old, "test")
     mine = tmp_path / ".out.mine.tmp"
     mine.mkdir()
+    other = tmp_path / ".out.x.0badf00d.tmp"  # a temporary of another --out, out.x: not this run's to remove
+    other.mkdir()
+    _outdir.mark(other, "test")
     with _outdir.replace_dir(out, kind="test") as tmp:
         (tmp / "done").write_text("y")
     assert (out / "done").read_text() == "y"
-    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.mine.tmp", "out"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".out.mine.tmp", ".out.x.0badf00d.tmp", "out"]
 
 
 def test_simulate_and_demo_output_follow_the_same_rule(tmp_path, capsys):
