@@ -163,6 +163,13 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def calibration_module():
+    """The module with ``calibrate``, ``Options``, ``min_poses``, ``DEFAULT_METHOD`` (one place to change)."""
+    from torchcal import calibrate as C
+
+    return C
+
+
 def _robot_input(spec: str) -> list[str]:
     """The robot description as an input file when ``spec`` is a path (built-in names are not inputs)."""
     return [spec] if Path(spec).is_file() else []
@@ -201,7 +208,7 @@ def check_header_robot(data, spec: str, robot, described: str) -> None:
 
 
 def cmd_calibrate(args) -> int:
-    from torchcal import calibrate as C
+    C = calibration_module()
     from torchcal.data import read_measurements
     from torchcal.report import write_run
     from torchcal.robot import load_robot
@@ -318,7 +325,7 @@ DEMO_EFFECTS = ("compliance:2=60um", "field=0.05mm")
 
 
 def cmd_demo(args) -> int:
-    from torchcal import calibrate as C
+    C = calibration_module()
     from torchcal._outdir import mark, replace_dir
     from torchcal.report import predict, write_run_files
     from torchcal.sim import EffectSpec, SimConfig, write_campaign

@@ -20,7 +20,7 @@ import torch
 
 import torchcal
 from torchcal import _outdir
-from torchcal.cli import main
+from torchcal.cli import calibration_module, main
 from torchcal.errors import MeasurementFileError, OptionError, RobotSpecError, ShapeError
 
 ROBOTS = Path(__file__).resolve().parents[2] / "robots"
@@ -81,7 +81,7 @@ def test_unmarked_directory_is_refused_and_untouched(campaign, tmp_path, capsys,
     (precious / "thesis.txt").write_text("draft")
     before = snapshot(tmp_path)
     # refused before any fitting: the fit is never reached
-    monkeypatch.setattr("torchcal.calibrate.calibrate", lambda *a, **k: pytest.fail("fitted before refusing"))
+    monkeypatch.setattr(calibration_module(), "calibrate", lambda *a, **k: pytest.fail("fitted before refusing"))
     assert calibrate(campaign / "train.csv", precious) == 2
     assert "not a torchcal output directory" in capsys.readouterr().err
     assert snapshot(tmp_path) == before
@@ -414,7 +414,7 @@ def test_unexpected_errors_are_summarised_and_debug_shows_the_traceback(campaign
     def broken(*a, **k):
         raise ZeroDivisionError("something internal")
 
-    monkeypatch.setattr("torchcal.calibrate.calibrate", broken)
+    monkeypatch.setattr(calibration_module(), "calibrate", broken)
     assert calibrate(campaign / "train.csv", tmp_path / "o") == 1
     err = capsys.readouterr().err
     assert "internal error: ZeroDivisionError: something internal" in err and "please report" in err
