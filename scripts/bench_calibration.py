@@ -21,9 +21,9 @@ import time
 from pathlib import Path
 
 import torch
+from torchcal.calibrate import Options, calibrate, errors
 
 import torchcal
-from torchcal.calibrate import Options, calibrate, errors
 from torchcal.sim import SimConfig, simulate, write_campaign
 
 

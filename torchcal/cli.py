@@ -1,4 +1,9 @@
-"""The ``torchcal`` command (CONTRACT §3). Messages go to stderr, results to files under ``--out``."""
+"""The ``torchcal`` command. Messages go to stderr, results to files under ``--out``.
+
+Exit codes: 0 success; 2 a usage error or a :class:`~torchcal.errors.TorchcalError` (bad input, option or
+file, with a message saying what was expected and what came); 1 an unexpected internal error (a one-line
+summary and where to report it; the traceback with ``--debug``); 130 interrupted.
+"""
 
 from __future__ import annotations
 
@@ -6,18 +11,62 @@ import argparse
 import json
 import math
 import sys
+import traceback
 from pathlib import Path
 
 import torch
 
 from torchcal import _console
-from torchcal.errors import TorchcalError
+from torchcal._outdir import check_out_dir, check_out_file
+from torchcal.errors import OptionError, TorchcalError
 
 F64 = torch.float64
 
+#: Where unexpected errors should be reported (printed with the one-line summary).
+REPORT_TO = "the torchcal issue tracker (see README.md, 'Reporting problems')"
+
+
+def _number(kind: str):
+    """An argparse type: a finite float that is positive (``kind='positive'``), >= 0 or in (0, 1)."""
+    def parse(text: str) -> float:
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(v):
+            raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+        if kind == "positive" and v <= 0:
+            raise argparse.ArgumentTypeError(f"must be > 0, got {text}")
+        if kind == "nonnegative" and v < 0:
+            raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
+        if kind == "fraction" and not 0 < v < 1:
+            raise argparse.ArgumentTypeError(f"must be between 0 and 1 (exclusive), got {text}")
+        return v
+
+    parse.__name__ = f"{kind} number"
+    return parse
+
+
+def _count(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    return v
+
+
+_count.__name__ = "count"
+POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _number("fraction")
+OUT_HELP = ("output directory; an existing one is replaced only when it is an earlier torchcal output "
+            "(marked by .torchcal-run), anything else is refused")
+
 
 def _add_common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--quiet", action="store_true", help="no progress bars or messages on stderr")
+    p.add_argument("--quiet", action="store_true", help="no messages on stderr")
+    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                   help="print the full traceback of an unexpected error")
 
 
 def _add_robot(p: argparse.ArgumentParser, required: bool = True) -> None:
@@ -34,38 +83,41 @@ def _add_units(p: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchcal", description="Robot arm calibration from laser-tracker data.")
+    parser.add_argument("--debug", action="store_true", help="print the full traceback of an unexpected error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("simulate", help="simulate a laser-tracker campaign (train.csv, test.csv, truth.json)",
                        description="Simulate a laser-tracker campaign: biased geometry, unknown tracker pose and lever "
                        "arm, tracker and joint noise, and the non-geometric effects asked for.")
     _add_robot(s)
-    s.add_argument("--out", required=True, help="output directory")
-    s.add_argument("--poses", type=int, default=800, help="static poses in train.csv (default 800)")
-    s.add_argument("--test-poses", type=int, default=200, help="static poses in test.csv (default 200)")
+    s.add_argument("--out", required=True, help=OUT_HELP)
+    s.add_argument("--poses", type=_count, default=800, help="static poses in train.csv (default 800)")
+    s.add_argument("--test-poses", type=_count, default=200, help="static poses in test.csv (default 200)")
     s.add_argument("--trajectory", action="store_true",
                    help="a continuous trajectory instead of static poses (train = first --train-samples)")
-    s.add_argument("--samples", type=int, default=7342, help="trajectory samples (default 7342, as the paper)")
-    s.add_argument("--train-samples", type=int, default=5874, help="trajectory samples for training (default 5874)")
+    s.add_argument("--samples", type=_count, default=7342, help="trajectory samples (default 7342, as the paper)")
+    s.add_argument("--train-samples", type=_count, default=5874, help="trajectory samples for training (default 5874)")
     s.add_argument("--seed", type=int, default=0, help="random seed; the campaign is reproducible from it")
     s.add_argument("--effect", action="append", default=[], metavar="KIND[:JOINT][=SIZE]",
                    help="inject an effect; repeatable. KIND: compliance, backlash, cyclic (need :JOINT), "
                    "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
                    "displacement with a unit, e.g. compliance:2=50um, field=0.6mm")
-    s.add_argument("--tracker-noise", type=float, default=15.0, help="tracker noise per axis [um] (default 15)")
-    s.add_argument("--joint-noise", type=float, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
-    s.add_argument("--length-bias", type=float, default=0.1, help="sigma of the geometric length biases [mm]")
-    s.add_argument("--angle-bias", type=float, default=0.01, help="sigma of the geometric angle biases [deg]")
+    s.add_argument("--tracker-noise", type=NONNEG, default=15.0, help="tracker noise per axis [um] (default 15)")
+    s.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
+    s.add_argument("--length-bias", type=NONNEG, default=0.1, help="sigma of the geometric length biases [mm]")
+    s.add_argument("--angle-bias", type=NONNEG, default=0.01, help="sigma of the geometric angle biases [deg]")
     s.add_argument("--no-sigma", action="store_true", help="leave out the sx,sy,sz columns")
     s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
     _add_common(s)
 
     c = sub.add_parser("calibrate", help="fit the robot to measurements and write a run directory",
-                       description="Fit the robot to laser-tracker measurements (CONTRACT §1 file) and write the run "
+                       description="Fit the robot to laser-tracker measurements (a CSV file: q1..qN, x, y, z, "
+                       "optional t, temperature, sx, sy, sz) and write the run "
                        "directory: report.json, report.md with plots, robot_calibrated.urdf, model for predict.")
-    c.add_argument("data", help="measurement file (CSV, CONTRACT §1)")
+    c.add_argument("data", help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature]"
+                   "[,sx,sy,sz]; '# key: value' comment lines before it)")
     _add_robot(c)
-    c.add_argument("--out", required=True, help="run directory to write")
+    c.add_argument("--out", required=True, help="run directory to write; " + OUT_HELP)
     c.add_argument("--method", default=None,
                    help="auto (default: geometry, then a learned residual model where validation data demand it), "
                    "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
@@ -74,11 +126,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="integrated method: adaptive (geometry and network in one filter state, default) or ekf "
                    "(the paper's filter on the kinematic calibration's geometry)")
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
-    c.add_argument("--holdout", type=float, default=0.2, help="held-out fraction (default 0.2)")
-    c.add_argument("--tracker-noise", type=float, default=15.0,
+    c.add_argument("--holdout", type=FRACTION, default=0.2, help="held-out fraction (default 0.2)")
+    c.add_argument("--tracker-noise", type=POSITIVE, default=15.0,
                    help="tracker noise per axis [um] when the file has no sx,sy,sz (default 15)")
-    c.add_argument("--joint-noise", type=float, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
-    c.add_argument("--rank-tol", type=float, default=None, help="identifiability tolerance (default 1e-6)")
+    c.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
+    c.add_argument("--rank-tol", type=POSITIVE, default=None,
+                   help="identifiability tolerance, > 0 (default 1e-6)")
     _add_units(c)
     _add_common(c)
 
@@ -87,12 +140,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "everything the run learned (geometry, effects, network).")
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
-    pr.add_argument("--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns")
+    pr.add_argument("--out", required=True,
+                    help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)")
     _add_units(pr)
     _add_common(pr)
 
     cv = sub.add_parser("convert", help="convert a third-party data set into a measurement file",
-                        description="Convert a third-party data set into a CONTRACT §1 measurement file.")
+                        description="Convert a third-party data set into a torchcal measurement file (CSV).")
     cv.add_argument("source", help="the file to convert")
     cv.add_argument("--from", dest="fmt", required=True, choices=["ipa-robot-accuracy"],
                     help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
@@ -103,18 +157,64 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("demo", help="run the main job end to end on built-in simulated data",
                        description="Simulate a UR5 campaign with effects the nominal model lacks (joint-2 compliance "
                        "and a smooth field), close the loop and print the error before and after every step.")
-    d.add_argument("--out", default="runs/demo", help="output directory (default runs/demo)")
+    d.add_argument("--out", default="runs/demo", help="output directory (default runs/demo); " + OUT_HELP)
     d.add_argument("--seed", type=int, default=0)
     _add_common(d)
     return parser
 
 
-def cmd_calibrate(args) -> int:
+def calibration_module():
+    """The module with ``calibrate``, ``Options``, ``min_poses``, ``DEFAULT_METHOD`` (one place to change)."""
     from torchcal import pipeline as C
+
+    return C
+
+
+def _robot_input(spec: str) -> list[str]:
+    """The robot description as an input file when ``spec`` is a path (built-in names are not inputs)."""
+    return [spec] if Path(spec).is_file() else []
+
+
+def _robot_key(name: str) -> str:
+    n = Path(str(name).strip()).name.lower()
+    for ext in (".urdf", ".yaml", ".yml"):
+        if n.endswith(ext):
+            n = n[: -len(ext)]
+    return n
+
+
+def check_header_robot(data, spec: str, robot, described: str) -> None:
+    """Refuse a file whose ``# robot:`` line names another robot than ``--robot``.
+
+    A mismatch would otherwise be "calibrated" away as huge geometric corrections. Names are compared
+    without directory, extension and case (``ur5``, ``robots/ur5.urdf`` and a URDF named ``UR5`` agree).
+
+    Args:
+        data: the measurements (``data.meta['robot']`` is the file's line).
+        spec: the robot as given (built-in name or file path); robot: the loaded robot.
+        described: how the message names it, e.g. ``--robot ur5``.
+    """
+    from torchcal.errors import MeasurementFileError
+
+    named = data.meta.get("robot")
+    if not named:
+        return
+    ours = {_robot_key(spec), _robot_key(robot.name)}
+    if _robot_key(named) not in ours:
+        raise MeasurementFileError(
+            data.source, f"the file's '# robot: {named}' line names another robot than {described} "
+            f"('{robot.name}')", hint="pass the robot the data were measured with, or correct the '# robot:' "
+            "line if the name differs but the robot is the same")
+
+
+def cmd_calibrate(args) -> int:
+    C = calibration_module()
     from torchcal.data import read_measurements
     from torchcal.report import write_run
     from torchcal.robot import load_robot
 
+    inputs = [args.data, *_robot_input(args.robot)]
+    check_out_dir(args.out, inputs=inputs)  # before any fitting: refuse, touching nothing
     robot = load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link)
     opts = C.Options(method=args.method or C.DEFAULT_METHOD, seed=args.seed, holdout=args.holdout,
                      sigma_tracker=args.tracker_noise * 1e-6, sigma_joint=math.radians(args.joint_noise),
@@ -125,8 +225,9 @@ def cmd_calibrate(args) -> int:
                              angle_unit=args.angle_unit, require_positions=True,
                              min_poses=C.min_poses(robot, opts.holdout), robot_name=robot.name,
                              purpose=f"a {opts.method} calibration of '{robot.name}'")
+    check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
     run = C.calibrate(robot, data, opts, robot_spec=args.robot)
-    out = write_run(run, args.out)
+    out = write_run(run, args.out, inputs=inputs)
     st = {s.name: s for s in run.stages}
     _console.info(f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
                   f"{st['geometric'].rmse * 1e3:.4f} mm, final {run.stages[-1].rmse * 1e3:.4f} mm")
@@ -140,12 +241,18 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.report import load_model, predict
 
-    model, _ = load_model(args.run)
+    check_out_file(args.out, inputs=[args.data, args.run])
+    model, meta = load_model(args.run)
     robot = model.robot
     data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,
                              angle_unit=args.angle_unit, require_positions=False, robot_name=robot.name)
+    check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     p = predict(args.run, data)
+    if not bool(torch.isfinite(p).all()):
+        raise OptionError(f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
+                          "the run directory is damaged or the fit diverged")
     out = replace(data, p=p, sigma=None, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_measurements(args.out, out)
     _console.info(f"wrote {len(p)} predictions to {args.out}")
     return 0
@@ -154,14 +261,35 @@ def cmd_predict(args) -> int:
 def cmd_convert(args) -> int:
     from torchcal.data import convert_ipa
 
+    check_out_file(args.out, inputs=[args.source])
     m = convert_ipa(args.source, args.out)
     _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")
     return 0
 
 
-def cmd_simulate(args) -> int:
-    from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
+def _simulate(cfg):
+    """``simulate(cfg)``, with the line-of-sight failure told in terms of the command's options."""
+    from torchcal.sim import simulate
 
+    try:
+        return simulate(cfg)
+    except RuntimeError as e:
+        if "line-of-sight" not in str(e):
+            raise
+        raise OptionError(f"robot '{cfg.robot}': {e.args[0].split(';')[0]}: the simulated tracker cannot see the "
+                          "probe in enough poses. Check --robot, --base-link and --tip-link (the chain must end "
+                          "at the tool flange of an upright arm), or ask for fewer --poses/--samples") from None
+
+
+def cmd_simulate(args) -> int:
+    from torchcal._outdir import replace_dir
+    from torchcal.sim import EffectSpec, SimConfig, write_campaign
+
+    inputs = _robot_input(args.robot)
+    check_out_dir(args.out, inputs=inputs)
+    if args.trajectory and args.train_samples >= args.samples:
+        raise OptionError(f"--train-samples {args.train_samples} must be below --samples {args.samples} "
+                          "(the rest is the test phase)")
     cfg = SimConfig(
         robot=args.robot, poses=args.poses, test_poses=args.test_poses, trajectory=args.trajectory,
         samples=args.samples, train_samples=args.train_samples, seed=args.seed,
@@ -171,12 +299,13 @@ def cmd_simulate(args) -> int:
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")
-    campaign = simulate(cfg)
+    campaign = _simulate(cfg)
     if args.length_unit == "mm":
         campaign = _to_mm(campaign)
-    paths = write_campaign(campaign, args.out)
-    for path in paths.values():
-        _console.info(f"wrote {path}")
+    with replace_dir(args.out, kind="simulate", inputs=inputs) as tmp:
+        names = {k: p.name for k, p in write_campaign(campaign, tmp).items()}
+    for name in names.values():
+        _console.info(f"wrote {Path(args.out) / name}")
     return 0
 
 
@@ -196,27 +325,34 @@ DEMO_EFFECTS = ("compliance:2=60um", "field=0.05mm")
 
 
 def cmd_demo(args) -> int:
-    from torchcal import pipeline as C
-    from torchcal.report import predict, write_run
-    from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
+    C = calibration_module()
+    from torchcal._outdir import mark, replace_dir
+    from torchcal.report import predict, write_run_files
+    from torchcal.sim import EffectSpec, SimConfig, write_campaign
 
     out = Path(args.out)
+    check_out_dir(out)
     cfg = SimConfig(robot="ur5", poses=800, test_poses=200, seed=args.seed,
                     effects=[EffectSpec.parse(e) for e in DEMO_EFFECTS])
     _console.info("torchcal demo: a simulated UR5 laser-tracker campaign (800 + 200 poses) with biased geometry, "
                   "joint-2 compliance (60 um RMS at the probe) and a smooth non-geometric field (0.05 mm RMS), "
                   "neither of which the nominal model declares")
-    campaign = simulate(cfg)
-    paths = write_campaign(campaign, out / "data")
+    campaign = _simulate(cfg)
     run = C.calibrate(cfg.robot, campaign.train, C.Options(seed=args.seed))
-    run_dir = write_run(run, out / "run")
-    p = predict(run_dir, campaign.test)
-    test_rmse = float((p - campaign.test.p).norm(dim=-1).square().mean().sqrt())
-    summary = {"data": {k: str(v) for k, v in paths.items()}, "run": str(run_dir), "simulated": list(DEMO_EFFECTS),
-               "holdout_rmse_mm": {s.name: s.rmse * 1e3 for s in run.stages}, "test_file_rmse_mm": test_rmse * 1e3,
-               "stages": [s.name for s in run.stages],
-               "effects": [{"kind": e["kind"], "joint": e["joint"]} for e in run.effects_report]}
-    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n", encoding="utf-8")
+    run_dir = out / "run"
+    with replace_dir(out, kind="demo") as tmp:
+        names = {k: p.name for k, p in write_campaign(campaign, tmp / "data").items()}
+        (tmp / "run").mkdir()
+        mark(tmp / "run", "calibrate")
+        write_run_files(run, tmp / "run")
+        p = predict(tmp / "run", campaign.test)
+        test_rmse = float((p - campaign.test.p).norm(dim=-1).square().mean().sqrt())
+        summary = {"data": {k: str(out / "data" / v) for k, v in names.items()}, "run": str(run_dir),
+                   "simulated": list(DEMO_EFFECTS),
+                   "holdout_rmse_mm": {s.name: s.rmse * 1e3 for s in run.stages},
+                   "test_file_rmse_mm": test_rmse * 1e3, "stages": [s.name for s in run.stages],
+                   "effects": [{"kind": e["kind"], "joint": e["joint"]} for e in run.effects_report]}
+        (tmp / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     print(f"simulated, undeclared: {', '.join(DEMO_EFFECTS)}")
     print("model                                          held-out RMSE [mm]   max [mm]")
     labels = {"nominal": "nominal geometry (tracker, lever fitted)", "geometric": "after the kinematic calibration",
@@ -239,14 +375,29 @@ COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "predict": cmd
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command line; return the exit code (module docstring) instead of raising."""
     parser = build_parser()
     args = parser.parse_args(argv)
     _console.set_quiet(getattr(args, "quiet", False))
+    debug = bool(getattr(args, "debug", False))
     try:
         return COMMANDS[args.command](args)
     except TorchcalError as e:
+        if debug:
+            traceback.print_exc()
         print(f"torchcal {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"torchcal {args.command}: interrupted; the output was left as it was", file=sys.stderr)
+        return 130
+    except Exception as e:  # the last line of defence: a summary, never a bare traceback
+        if debug:
+            traceback.print_exc()
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        print(f"torchcal {args.command}: internal error: {type(e).__name__}: {first[:300]}", file=sys.stderr)
+        print(f"torchcal {args.command}: this is a bug; please report it at {REPORT_TO} with the command line"
+              + ("" if debug else " and the output of the same command with --debug"), file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

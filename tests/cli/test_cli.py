@@ -1,4 +1,4 @@
-"""The torchcal command: simulate and demo, errors and exit codes (CONTRACT §3)."""
+"""The torchcal command: simulate and demo, errors and exit codes."""
 
 import json
 import subprocess
@@ -16,7 +16,7 @@ def test_simulate_writes_the_contract_files(tmp_path, capsys):
     out = tmp_path / "sim"
     assert main(["simulate", "--robot", "ur5", "--out", str(out), "--seed", "1", "--poses", "120",
                  "--effect", "compliance:2=50um", "--quiet"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["test.csv", "train.csv", "truth.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".torchcal-run", "test.csv", "train.csv", "truth.json"]
     truth = json.loads((out / "truth.json").read_text())
     assert truth["effects"][0]["kind"] == "compliance" and truth["effects"][0]["joint"] == 2
     assert capsys.readouterr().out == ""  # results go to files, messages to stderr

@@ -13,9 +13,9 @@ import torch
 
 import torchcal
 from torchcal.cli import main
-from torchcal.experiments.closed_loop import found_names, run_case, truth_names
 from torchcal.effects import Context
 from torchcal.estimate.fit import errors
+from torchcal.experiments.closed_loop import found_names, run_case, truth_names
 from torchcal.pipeline import Options, calibrate
 from torchcal.report import load_model, predict, write_run
 from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign

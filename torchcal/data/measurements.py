@@ -295,7 +295,7 @@ def read_measurements(
     if sigma is not None and n and length_unit == "m":
         _check_sigma_unit(path_str, sigma, lines, layout)
     if angle_unit == "rad" and n:
-        _check_angle_unit(path_str, q, lines, layout)
+        _check_angle_unit(path_str, q, lines, layout, joint_limits)
 
     divisor = LENGTH_UNITS[length_unit]
     if divisor != 1.0:
@@ -331,7 +331,10 @@ def _read_text(path: str) -> str:
 
 
 def _parse_header(path: str, line: str, line_no: int) -> list[str]:
-    cells = next(csv.reader([line]))
+    try:
+        cells = next(csv.reader([line]))
+    except csv.Error as err:
+        raise MeasurementFileError(path, f"the header row cannot be read as CSV: {err}", line=line_no) from None
     header = [c.strip() for c in cells]
     if len(header) == 1 and (";" in line or "\t" in line):
         raise MeasurementFileError(
@@ -448,9 +451,18 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
 
     values: list[float] = []
     rows: list[int] = []
-    reader = csv.reader(data_lines)
+    reader = csv.reader(data_lines, strict=True)
     consumed = 0
-    for row in reader:
+    while True:
+        try:
+            row = next(reader)
+        except StopIteration:
+            break
+        except csv.Error as err:
+            # a cell beyond csv's field size limit, or a quote still open at the end of the file
+            index = min(consumed, len(line_numbers) - 1)
+            why = "unterminated quote in this row" if "end of data" in str(err) else f"not readable as CSV: {err}"
+            raise MeasurementFileError(path, why, line=line_numbers[index]) from None
         index = consumed
         consumed = reader.line_num
         line_no = line_numbers[index]
@@ -577,8 +589,11 @@ def _check_sigma_unit(path, sigma, lines, layout: _Layout) -> None:
         )
 
 
-def _check_angle_unit(path, q, lines, layout: _Layout) -> None:
+def _check_angle_unit(path, q, lines, layout: _Layout, limits=None) -> None:
     bad = q.abs() > _MAX_ABS_ANGLE_RAD
+    if limits is not None:
+        # a joint whose limits allow more than one turn each way (a continuous joint) may read past 2 pi
+        bad &= ~((limits[:, 0] < -_MAX_ABS_ANGLE_RAD) & (limits[:, 1] > _MAX_ABS_ANGLE_RAD))
     if bad.any():
         i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
         raise MeasurementFileError(

@@ -35,7 +35,7 @@ class Candidate:
     """One effect the model could be missing.
 
     Attributes:
-        kind: effect kind (CONTRACT §4): compliance, backlash, cyclic or drift.
+        kind: effect kind (as report.json names it): compliance, backlash, cyclic or drift.
         joint: 1-based joint, or None for drift.
         variable: drift variable (``t`` or ``temperature``), else None.
         reference: drift reference value (the variable at the first training sample).

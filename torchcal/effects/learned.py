@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from torchcal.effects.base import Context, Effect
+from torchcal.errors import ShapeError
 
 Tensor = torch.Tensor
 
@@ -28,11 +29,16 @@ class CorrectionNet(nn.Module):
     Args:
         dof: number of joints (paper: 6).
         hidden: hidden units (paper: 29).
-        dtype: float64 on the calibration path.
+        dtype: must be float64 (the calibration path is float64; anything else raises ShapeError).
+
+    Raises:
+        ShapeError: ``dtype`` is not float64; at call time, ``q`` is not float64.
     """
 
     def __init__(self, dof: int = 6, hidden: int = 29, *, out_scale: float = 1e-3, dtype=torch.float64,
                  device="cpu", seed: int | None = None):
+        if dtype != torch.float64:
+            raise ShapeError(f"CorrectionNet computes in float64 (the calibration path), got dtype={dtype}")
         super().__init__()
         self.dof = dof
         self.hidden = hidden
@@ -78,6 +84,7 @@ class CorrectionNet(nn.Module):
 
     def forward_flat(self, w: Tensor, q: Tensor) -> Tensor:
         """Output ``(..., N, 3)`` for flat weights ``w (..., n_weights)`` and joints ``q (..., N, dof)``."""
+        self._check_q(q)
         W1, b1, W2, b2 = self._unpack(w)
         x = (q - self.q_offset) / self.q_scale
         a = torch.tanh(x @ W1.transpose(-1, -2) + b1.unsqueeze(-2))
@@ -105,7 +112,13 @@ class CorrectionNet(nn.Module):
         J = torch.cat([dW1.flatten(-2), ds, dW2.flatten(-2), db2], dim=-1)
         return g, J
 
+    def _check_q(self, q: Tensor) -> None:
+        if q.dtype != self.q_scale.dtype:
+            raise ShapeError(f"q has dtype {q.dtype}, but the CorrectionNet is {self.q_scale.dtype}; torchcal "
+                             "computes in float64 and never converts silently")
+
     def forward(self, q: Tensor) -> Tensor:
+        self._check_q(q)
         x = (q - self.q_offset) / self.q_scale
         return self.fc2(torch.tanh(self.fc1(x))) * self.out_scale
 

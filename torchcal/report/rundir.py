@@ -1,8 +1,9 @@
-"""The run directory of a calibration (CONTRACT §4) and reloading it for ``predict``.
+"""A calibration's run directory (files and report fields are an outside contract) and reloading it.
 
 Layout::
 
-    report.json            the numbers (CONTRACT §4)
+    .torchcal-run          marker: a torchcal output directory, safe to replace
+    report.json            the numbers
     report.md              the same in words and tables, with the plots below
     *.png                  residual plots
     robot_calibrated.urdf  the calibrated geometry (+ probe and tracker frames)
@@ -11,7 +12,9 @@ Layout::
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
-end, so a failure leaves no partial run directory.
+end, so a failure leaves no partial run directory; ``out`` is replaced only when it is absent
+or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
+:mod:`torchcal._outdir`).
 """
 
 from __future__ import annotations
@@ -19,15 +22,16 @@ from __future__ import annotations
 import json
 import math
 import os
+import pickle
 import shutil
-import tempfile
 from pathlib import Path
 
 import torch
 
+from torchcal._outdir import replace_dir
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
-from torchcal.errors import OptionError
+from torchcal.errors import EstimationError, OptionError, TorchcalError
 from torchcal.pipeline import CalibrationRun
 from torchcal.robot import load_robot, resolve_robot_spec
 from torchcal.stats import rmse
@@ -140,57 +144,113 @@ def build_report(run: CalibrationRun) -> dict:
     }
 
 
-def write_run(run: CalibrationRun, out: str | os.PathLike) -> Path:
-    """Write the run directory (module docstring), all or nothing."""
+def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
+    """Write the run's files (module docstring) into the existing empty ``directory``."""
     from torchcal.report.markdown import write_markdown
     from torchcal.robot.export import write_urdf
 
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        report = build_report(run)
-        (tmp / "report.json").write_text(json.dumps(report, indent=1) + "\n", encoding="utf-8")
-        write_markdown(run, report, tmp)
-        write_urdf(run.robot, tmp / "robot_calibrated.urdf")
-        src = resolve_robot_spec(run.robot_spec)
-        (tmp / "robot").mkdir()
-        shutil.copy2(src, tmp / "robot" / src.name)
-        torch.save(run.model.state_dict(), tmp / "model.pt")
-        meta = {
-            "format": "torchcal-run-1",
-            "robot_file": f"robot/{src.name}",
-            "base_link": run.robot.base_link if run.robot.kind == "urdf" else None,
-            "tip_link": run.robot.tip_link if run.robot.kind == "urdf" else None,
-            "trajectory": run.trajectory,
-            "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
-            "method": run.options.method,
-        }
-        (tmp / "model.json").write_text(json.dumps(meta, indent=1) + "\n", encoding="utf-8")
-        if out.exists():
-            old = out.with_name(f".{out.name}.old")
-            shutil.rmtree(old, ignore_errors=True)
-            out.rename(old)
-            tmp.rename(out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    tmp = Path(directory)
+    state = run.model.state_dict()
+    # joint limits may be infinite (continuous joints); every estimated value must be finite
+    bad = [k for k, v in state.items() if v.is_floating_point() and not k.endswith("limits")
+           and not bool(torch.isfinite(v).all())]
+    if bad:
+        raise EstimationError(f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit "
+                              "diverged, nothing was written")
+    report = build_report(run)
+    text = json.dumps(_json_safe(report), indent=1, allow_nan=False)
+    (tmp / "report.json").write_text(text + "\n", encoding="utf-8")
+    write_markdown(run, report, tmp)
+    write_urdf(run.robot, tmp / "robot_calibrated.urdf")
+    src = resolve_robot_spec(run.robot_spec)
+    (tmp / "robot").mkdir()
+    shutil.copy2(src, tmp / "robot" / src.name)
+    torch.save(state, tmp / "model.pt")
+    meta = {
+        "format": "torchcal-run-1",
+        "robot_file": f"robot/{src.name}",
+        "base_link": run.robot.base_link if run.robot.kind == "urdf" else None,
+        "tip_link": run.robot.tip_link if run.robot.kind == "urdf" else None,
+        "trajectory": run.trajectory,
+        "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
+        "method": run.options.method,
+    }
+    (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    return tmp
+
+
+def write_run(run: CalibrationRun, out: str | os.PathLike, *, inputs=()) -> Path:
+    """Write the run directory (module docstring), all or nothing.
+
+    ``out`` is replaced only when it is absent or an earlier torchcal run (see
+    :mod:`torchcal._outdir`); anything else raises :class:`~torchcal.errors.OptionError`.
+    """
+    with replace_dir(out, kind="calibrate", inputs=inputs) as tmp:
+        write_run_files(run, tmp)
+    return Path(out)
+
+
+def _run_error(run_dir: Path, what: str) -> OptionError:
+    return OptionError(f"{run_dir}: {what}; expected a run directory written by 'torchcal calibrate'")
 
 
 def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
-    """Rebuild the calibrated measurement model of a run directory."""
+    """Rebuild the calibrated measurement model of a run directory.
+
+    Raises:
+        OptionError: not a run directory, or one whose ``model.json``/``model.pt`` is missing, malformed,
+            truncated, not a plain tensor file, or names a robot file outside the run directory.
+    """
     run_dir = Path(run_dir)
     meta_path = run_dir / "model.json"
+    if not run_dir.is_dir():
+        raise _run_error(run_dir, "not a directory")
     if not meta_path.is_file():
-        raise OptionError(f"{run_dir}: not a torchcal run directory (no model.json)")
-    meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    robot = load_robot(run_dir / meta["robot_file"], base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
-    model = MeasurementModel(robot, [effect_from_config(c) for c in meta["effects"]])
-    model.load_state_dict(torch.load(run_dir / "model.pt", weights_only=True))
+        raise _run_error(run_dir, "not a torchcal run directory (no model.json)")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as e:
+        raise _run_error(run_dir, f"model.json cannot be read: {e}") from None
+    if not isinstance(meta, dict):
+        raise _run_error(run_dir, "model.json is not a JSON object")
+    missing = [k for k in ("robot_file", "effects") if k not in meta]
+    if missing:
+        raise _run_error(run_dir, f"model.json lacks {', '.join(missing)}")
+    rf = meta["robot_file"]
+    if not isinstance(rf, str) or not rf:
+        raise _run_error(run_dir, f"model.json: robot_file must be a relative path, got {rf!r}")
+    robot_path = Path(os.path.realpath(run_dir / rf))
+    if Path(rf).is_absolute() or Path(os.path.realpath(run_dir)) not in robot_path.parents:
+        raise _run_error(run_dir, f"model.json: robot_file {rf!r} points outside the run directory; refused")
+    for key in ("base_link", "tip_link"):
+        if meta.get(key) is not None and not isinstance(meta[key], str):
+            raise _run_error(run_dir, f"model.json: {key} must be a link name, got {meta[key]!r}")
+    if not isinstance(meta["effects"], list) or not all(isinstance(c, dict) for c in meta["effects"]):
+        raise _run_error(run_dir, "model.json: effects must be a list of objects")
+    robot = load_robot(robot_path, base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
+    try:
+        effects = [effect_from_config(c) for c in meta["effects"]]
+    except TorchcalError:
+        raise
+    except (KeyError, TypeError, ValueError) as e:
+        raise _run_error(run_dir, f"model.json: an effect cannot be rebuilt ({type(e).__name__}: {e})") from None
+    model = MeasurementModel(robot, effects)
+    pt = run_dir / "model.pt"
+    if not pt.is_file():
+        raise _run_error(run_dir, "model.pt is missing")
+    try:
+        state = torch.load(pt, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError:
+        raise _run_error(run_dir, "model.pt holds more than tensors (a pickled object); refused to load it") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        raise _run_error(run_dir, f"model.pt cannot be read (truncated or not a torch file: {e})") from None
+    if not isinstance(state, dict):
+        raise _run_error(run_dir, "model.pt does not hold a state dict")
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"model.pt does not match model.json ({first})") from None
     return model, meta
 
 

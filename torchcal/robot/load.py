@@ -12,8 +12,25 @@ import torch
 from torchcal.errors import RobotSpecError
 from torchcal.robot.model import DHConvention, DHGeometry, RobotModel, URDFGeometry
 
-#: Where the built-in robot descriptions live; ``TORCHCAL_ROBOTS`` overrides it.
-ROBOTS_DIR = Path(os.environ.get("TORCHCAL_ROBOTS", Path(__file__).resolve().parents[2] / "robots"))
+#: Largest robot description file accepted [bytes]: real URDFs and DH tables are kilobytes.
+MAX_DESCRIPTION_BYTES = 8 * 1024 * 1024
+
+
+def _robots_dir() -> Path:
+    """The built-in descriptions: ``TORCHCAL_ROBOTS``, else the package data ``torchcal/robots`` of an
+    installed wheel, else the source tree's top-level ``robots/`` (checkouts and editable installs)."""
+    if "TORCHCAL_ROBOTS" in os.environ:
+        return Path(os.environ["TORCHCAL_ROBOTS"])
+    from importlib.resources import files
+
+    packaged = files("torchcal") / "robots"
+    if packaged.is_dir():
+        return Path(str(packaged))
+    return Path(__file__).resolve().parents[2] / "robots"
+
+
+#: Where the built-in robot descriptions live (see :func:`_robots_dir`).
+ROBOTS_DIR = _robots_dir()
 
 
 def builtin_robots() -> list[str]:
@@ -62,6 +79,28 @@ def load_robot(spec: str | os.PathLike, *, base_link: str | None = None, tip_lin
 
 
 # --------------------------------------------------------------------------- DH
+def _read_description(path: Path) -> bytes:
+    """The file's bytes, refusing what cannot be read and files beyond :data:`MAX_DESCRIPTION_BYTES`."""
+    try:
+        size = path.stat().st_size
+        if size > MAX_DESCRIPTION_BYTES:
+            raise RobotSpecError(f"{path}: {size} bytes is larger than a robot description can be "
+                                 f"(at most {MAX_DESCRIPTION_BYTES // (1024 * 1024)} MiB)")
+        with open(path, "rb") as f:
+            return f.read(MAX_DESCRIPTION_BYTES + 1)
+    except OSError as e:
+        raise RobotSpecError(f"{path}: cannot read: {e.strerror or e}") from None
+
+
+def _decode(path: Path, raw: bytes) -> str:
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise RobotSpecError(f"{path}, line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at offset "
+                             f"{e.start}); save the file as UTF-8") from None
+
+
 def _number(path, where: str, key: str, value) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise RobotSpecError(f"{path}: {where}: '{key}' must be a number, got {value!r}")
@@ -71,7 +110,7 @@ def _number(path, where: str, key: str, value) -> float:
 
 
 def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") -> RobotModel:
-    """Load a DH table (CONTRACT §2): ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
+    """Load a DH table: ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
 
     Optional per joint: ``lower``, ``upper`` [rad] (default +-2 pi), ``mass`` [kg] and ``com``
     [m, in DH frame i] (all joints or none), ``name``.
@@ -79,12 +118,17 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     import yaml
 
     path = Path(path)
+    text = _decode(path, _read_description(path))
     try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+        # Aliases ('*name') can expand a kilobyte into gigabytes; a DH table never needs them.
+        for event in yaml.parse(text, Loader=yaml.SafeLoader):
+            if isinstance(event, yaml.AliasEvent):
+                mark = event.start_mark
+                raise RobotSpecError(f"{path}, line {mark.line + 1}, column {mark.column + 1}: YAML aliases "
+                                     "('*name') are not accepted in a robot description; write the values out")
+        doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise RobotSpecError(f"{path}: not valid YAML: {e}") from None
-    except OSError as e:
-        raise RobotSpecError(f"{path}: cannot read: {e.strerror}") from None
     if not isinstance(doc, dict) or "joints" not in doc:
         raise RobotSpecError(f"{path}: expected a mapping with 'name', 'convention' and 'joints'")
     conv = str(doc.get("convention", "standard")).lower()
@@ -162,20 +206,53 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
     are folded into the neighbouring origins; revolute and continuous joints are the
     robot's joints (prismatic joints are not supported yet and raise).
     """
+    import io
+
     import yourdfpy
+    from lxml import etree
 
     path = Path(path)
+    raw = _read_description(path)
+    # Parse strictly first: yourdfpy falls back to a recovering parser that accepts truncated files
+    # and trailing junk. No DTD, no entities, no network.
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
+                             recover=False)
     try:
-        urdf = yourdfpy.URDF.load(str(path), load_meshes=False, build_scene_graph=False,
-                                  build_collision_scene_graph=False, load_collision_meshes=False)
+        tree = etree.fromstring(raw, parser=parser)
+    except etree.XMLSyntaxError as e:
+        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
+    if tree.getroottree().docinfo.internalDTD is not None or tree.getroottree().docinfo.doctype:
+        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    if tree.tag != "robot":
+        raise RobotSpecError(f"{path}: the root element is <{tree.tag}>, expected <robot>")
+    try:
+        urdf = yourdfpy.URDF.load(io.BytesIO(raw), load_meshes=False, build_scene_graph=False,
+                                  build_collision_scene_graph=False, load_collision_meshes=False,
+                                  mesh_dir=str(path.parent))
     except Exception as e:  # yourdfpy raises assorted exception types on malformed files
-        raise RobotSpecError(f"{path}: cannot parse URDF: {e}") from None
+        raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
     joints = urdf.robot.joints
-    child_of = {j.child: j for j in joints}
+    child_of = {}
+    for j in joints:
+        if j.child in child_of:
+            raise RobotSpecError(f"{path}: link '{j.child}' is the child of two joints, '{child_of[j.child].name}' "
+                                 f"and '{j.name}'; a URDF is a tree")
+        child_of[j.child] = j
     children: dict[str, list] = {}
     for j in joints:
         children.setdefault(j.parent, []).append(j)
     links = [lk.name for lk in urdf.robot.links]
+    # a URDF is a tree: following parents from any link must end at a root, never come back
+    done: set[str] = set()
+    for start in links:
+        trail, link = [], start
+        while link in child_of and link not in done:
+            if link in trail:
+                cycle = " -> ".join(trail[trail.index(link):] + [link])
+                raise RobotSpecError(f"{path}: the links form a cycle ({cycle}); a URDF must be a tree")
+            trail.append(link)
+            link = child_of[link].parent
+        done.update(trail)
     roots = [lk for lk in links if lk not in child_of]
     if base_link is None:
         if len(roots) != 1:
@@ -185,13 +262,17 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
         raise RobotSpecError(f"{path}: base link '{base_link}' not found; links: {', '.join(links)}")
 
     def path_to(link: str) -> list:
-        out = []
+        out, seen = [], {link}
         while link != base_link:
             if link not in child_of:
                 return []
             j = child_of[link]
             out.append(j)
             link = j.parent
+            if link in seen:
+                cycle = " -> ".join([jj.child for jj in out] + [link])
+                raise RobotSpecError(f"{path}: the links form a cycle ({cycle}); a URDF is a tree")
+            seen.add(link)
         return out[::-1]
 
     if tip_link is None:
@@ -216,19 +297,37 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
     pending = np.eye(4)
     for j in chain:
         origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
+        if not np.isfinite(origin).all():
+            raise RobotSpecError(f"{path}: joint '{j.name}': the origin has non-finite values (xyz/rpy must be "
+                                 "finite numbers)")
         if j.type == "fixed":
             pending = pending @ origin
             continue
         if j.type not in ("revolute", "continuous"):
             raise RobotSpecError(f"{path}: joint '{j.name}' is {j.type}; torchcal supports revolute chains")
+        if getattr(j, "mimic", None) is not None:
+            raise RobotSpecError(f"{path}: joint '{j.name}' mimics joint '{j.mimic.joint}'; torchcal does not "
+                                 "model mimic joints (they are not independent degrees of freedom). End the "
+                                 "chain before it with --tip-link, or make it fixed")
         origins.append(pending @ origin)
         pending = np.eye(4)
         axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=np.float64)
-        axes.append(axis / np.linalg.norm(axis))
-        if j.type == "continuous" or j.limit is None or j.limit.lower is None or j.limit.upper is None:
+        norm = float(np.linalg.norm(axis)) if np.isfinite(axis).all() else float("nan")
+        if not norm > 1e-12:
+            raise RobotSpecError(f"{path}: joint '{j.name}': axis xyz=\"{' '.join(map(str, axis))}\" is not a "
+                                 "direction; expected a finite non-zero vector such as \"0 0 1\"")
+        axes.append(axis / norm)
+        if j.type == "continuous":
+            # no limit at all: readings past one turn are fine (and not taken for degrees)
+            lims.append((-math.inf, math.inf))
+        elif j.limit is None or j.limit.lower is None or j.limit.upper is None:
             lims.append((-2 * math.pi, 2 * math.pi))
         else:
-            lims.append((float(j.limit.lower), float(j.limit.upper)))
+            lo, hi = float(j.limit.lower), float(j.limit.upper)
+            if math.isnan(lo) or math.isnan(hi) or lo > hi:
+                raise RobotSpecError(f"{path}: joint '{j.name}': limit lower={lo} upper={hi}; lower must not be "
+                                     "above upper")
+            lims.append((lo, hi))
         jnames.append(j.name)
         lnames.append(j.child)
     if not origins:

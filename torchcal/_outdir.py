@@ -1,0 +1,288 @@
+"""Output directories that never destroy what they did not write.
+
+Every directory torchcal writes (a calibration run, a simulated campaign, the demo) carries a
+marker file, :data:`MARKER`, holding the format and version. ``--out`` is replaced only when it
+does not exist or is a directory with that marker (the outside contract: "replaced only when it is a
+previous run directory of torchcal (or absent)"); anything else (any unmarked directory, even an
+empty one, a file, the working directory or one of its parents, a directory holding an input file,
+a parent that is a file, a place the user cannot write) is refused with an
+:class:`~torchcal.errors.OptionError` *before* any work is done, touching nothing.
+
+Writing happens in a temporary directory beside ``--out`` (``.NAME.XXXX.tmp``, marked first) while
+``.NAME.lock`` is locked with ``fcntl.flock``; the temporary then replaces ``--out`` by ``rename``.
+Temporaries of killed runs (``.NAME.*.tmp`` / ``.NAME.*.old`` that carry the marker) are removed by
+the next run that takes the lock: while it holds the lock no other writer can own them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import os
+import re
+import secrets
+import shutil
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+from torchcal.errors import OptionError
+
+#: The marker file of a torchcal output directory.
+MARKER = ".torchcal-run"
+#: What the marker holds; ``format`` identifies it, ``version`` the layout.
+MARKER_FORMAT = "torchcal-run"
+MARKER_VERSION = 1
+
+
+def _marker_text(kind: str) -> str:
+    return json.dumps({"format": MARKER_FORMAT, "version": MARKER_VERSION, "written_by": kind}) + "\n"
+
+
+#: What a calibration run directory held before the marker existed (torchcal 0.1 before this module).
+_LEGACY_RUN_FILES = {"report.json", "report.md", "robot_calibrated.urdf", "model.pt", "model.json", "robot"}
+
+
+def _is_legacy_run(path: Path) -> bool:
+    """An unmarked run directory of an earlier torchcal: its model.json format, and nothing else in it."""
+    try:
+        names = {p.name for p in path.iterdir()}
+        meta = json.loads((path / "model.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    extra = {n for n in names - _LEGACY_RUN_FILES if not n.endswith(".png")}
+    return isinstance(meta, dict) and meta.get("format") == "torchcal-run-1" and not extra and not any(
+        (path / n).is_symlink() for n in names)
+
+
+def _is_legacy_demo(path: Path) -> bool:
+    """An unmarked ``torchcal demo`` output of an earlier torchcal: data/, run/ (a legacy run), summary.json."""
+    try:
+        names = {p.name for p in path.iterdir()}
+    except OSError:
+        return False
+    return names == {"data", "run", "summary.json"} and _is_legacy_run(path / "run") and {
+        p.name for p in (path / "data").iterdir()} <= {"train.csv", "test.csv", "truth.json"}
+
+
+def is_marked(path: Path) -> bool:
+    """Whether ``path`` is a directory carrying a readable torchcal marker (or is an unmarked run
+    directory or demo output of an earlier torchcal holding nothing but its own files)."""
+    marker = path / MARKER
+    if path.is_symlink() or not path.is_dir():
+        return False
+    if not marker.exists() and (_is_legacy_run(path) or _is_legacy_demo(path)):
+        return True
+    if marker.is_symlink() or not marker.is_file():
+        return False
+    try:
+        doc = json.loads(marker.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and doc.get("format") == MARKER_FORMAT
+
+
+def _within(child: Path, parent: Path) -> bool:
+    return child == parent or parent in child.parents
+
+
+def _probe_writable(parent: Path, where: str) -> None:
+    """Create and remove a directory in ``parent``: ``os.access`` says yes to root and on read-only mounts."""
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OptionError(f"{where}: cannot write in {parent} (permission denied)")
+    probe = parent / f".torchcal-probe.{secrets.token_hex(4)}"
+    try:
+        os.mkdir(probe)
+    except OSError as e:
+        raise OptionError(f"{where}: cannot write in {parent} ({e.strerror or e})") from None
+    with contextlib.suppress(OSError):
+        os.rmdir(probe)
+
+
+def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (),
+                  option: str = "--out") -> Path:
+    """Refuse an output directory that may not be replaced; return it as a :class:`Path`.
+
+    Args:
+        out: the directory to write.
+        inputs: files the command reads; ``out`` must not contain any of them.
+        option: the option's name, for the messages.
+
+    Raises:
+        OptionError: ``out`` holds something torchcal did not write, contains an input, is the
+            working directory or above it, or its nearest existing parent is not a writable directory.
+    """
+    out = Path(out)
+    where = f"{option} {out}"
+    absolute = Path(os.path.abspath(out))
+    real = Path(os.path.realpath(out))
+    if absolute.parent == absolute or real.parent == real:
+        raise OptionError(f"{where}: a filesystem root cannot be a run directory; name a new directory")
+    cwd = Path(os.path.realpath(os.getcwd()))
+    if _within(cwd, real):
+        raise OptionError(f"{where}: is the working directory or one of its parents; name a new directory "
+                          "(e.g. runs/cal)")
+    for f in inputs:
+        if f is None:
+            continue
+        fr = Path(os.path.realpath(f))
+        if _within(fr, real):
+            raise OptionError(f"{where}: contains the input {f}; replacing it would delete the input. "
+                              "Name a new directory")
+    if out.is_symlink():
+        raise OptionError(f"{where}: is a symbolic link; torchcal replaces only directories it wrote")
+    if out.exists():
+        if not out.is_dir():
+            raise OptionError(f"{where}: exists and is not a directory; torchcal will not replace it. "
+                              "Name a new directory")
+        if not is_marked(out):
+            try:
+                empty = not any(out.iterdir())
+            except OSError as e:
+                raise OptionError(f"{where}: cannot be read: {e.strerror or e}") from None
+            what = "is an empty directory" if empty else "exists, is not empty"
+            raise OptionError(f"{where}: {what} and is not a torchcal output directory (no {MARKER} "
+                              "marker); torchcal replaces only its own run directories. Name a new directory "
+                              + ("or remove this empty one (rmdir)" if empty else "or remove this one yourself"))
+    # the nearest existing ancestor must be a directory we may create entries in
+    parent = absolute.parent
+    while not parent.exists() and not parent.is_symlink():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OptionError(f"{where}: {parent} is not a directory, so nothing can be created below it")
+    _probe_writable(parent, where)
+    return out
+
+
+def check_out_file(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (),
+                   option: str = "--out") -> Path:
+    """Refuse an output file that is an input, a directory, or under a parent that is not writable.
+
+    An existing regular file that is not an input is replaced (atomically, by the writer).
+    """
+    out = Path(out)
+    where = f"{option} {out}"
+    if out.is_dir():
+        raise OptionError(f"{where}: is a directory; name the file to write")
+    real = Path(os.path.realpath(out))
+    for f in inputs:
+        if f is None:
+            continue
+        fr = Path(os.path.realpath(f))
+        if fr == real:
+            raise OptionError(f"{where}: is the input file {f}; writing it would destroy the input. "
+                              "Name another file")
+        if fr.is_dir() and _within(real, fr) and real.exists():
+            raise OptionError(f"{where}: is a file of the input directory {f}; name a file outside it")
+    if out.exists() and not out.is_file():
+        raise OptionError(f"{where}: exists and is not a regular file")
+    parent = Path(os.path.abspath(out)).parent
+    while not parent.exists() and not parent.is_symlink():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OptionError(f"{where}: {parent} is not a directory, so nothing can be created below it")
+    _probe_writable(parent, where)
+    return out
+
+
+@contextlib.contextmanager
+def _locked(lock_path: Path) -> Iterator[None]:
+    """Hold an exclusive ``flock`` on ``lock_path``; the file is removed on release.
+
+    Removing a lock file is safe only when every holder checks, after locking, that the path still
+    names the inode it locked (otherwise a waiter could lock a removed file while a newcomer locks a
+    new one): hence the loop.
+    """
+    while True:
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX)
+            try:
+                same = os.fstat(fd).st_ino == os.stat(lock_path).st_ino
+            except FileNotFoundError:
+                same = False
+        except BaseException:
+            os.close(fd)
+            raise
+        if same:
+            break
+        os.close(fd)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(lock_path)
+        os.close(fd)
+
+
+def _clean_stale(parent: Path, name: str) -> None:
+    """Remove marked temporaries of earlier killed runs for ``name`` (the caller holds the lock).
+
+    Only names this module makes for ``name`` (``.NAME.<8 hex>.tmp|old``; and ``.NAME.<8 chars>`` /
+    ``.NAME.old`` of the writer before it): the temporaries of ``NAME.x`` are not ours to remove.
+    """
+    pattern = re.compile(rf"\.{re.escape(name)}\.(?:[0-9a-f]{{8}}\.(?:tmp|old)|[a-z0-9_]{{8}}|old)")
+    try:
+        entries = list(parent.iterdir())
+    except OSError:
+        return
+    for p in entries:
+        if pattern.fullmatch(p.name) and not p.is_symlink() and is_marked(p):
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _make_temp_dir(parent: Path, name: str) -> Path:
+    """A new ``.NAME.XXXXXXXX.tmp`` directory; unlike ``mkdtemp`` its mode follows the umask like ``mkdir``."""
+    for _ in range(100):
+        tmp = parent / f".{name}.{secrets.token_hex(4)}.tmp"
+        try:
+            os.mkdir(tmp)
+        except FileExistsError:
+            continue
+        return tmp
+    raise OptionError(f"cannot create a temporary directory in {parent}")  # pragma: no cover
+
+
+@contextlib.contextmanager
+def replace_dir(out: str | os.PathLike, *, kind: str, inputs: Sequence[str | os.PathLike] = ()) -> Iterator[Path]:
+    """Yield a fresh marked temporary directory that replaces ``out`` when the block succeeds.
+
+    Args:
+        out: the output directory (checked again with :func:`check_out_dir` under the lock).
+        kind: the command that writes it, recorded in the marker.
+        inputs: files that ``out`` must not contain.
+
+    On an exception the temporary is removed and ``out`` is left as it was.
+    """
+    out = Path(out)
+    check_out_dir(out, inputs=inputs)
+    parent = Path(os.path.abspath(out)).parent
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise OptionError(f"--out {out}: cannot create {parent}: {e.strerror or e}") from None
+    name = out.name
+    with _locked(parent / f".{name}.lock"):
+        _clean_stale(parent, name)
+        check_out_dir(out, inputs=inputs)  # another writer may have changed it while we waited
+        tmp = _make_temp_dir(parent, name)
+        try:
+            (tmp / MARKER).write_text(_marker_text(kind), encoding="utf-8")
+            yield tmp
+            target = parent / name
+            check_out_dir(out, inputs=inputs)  # still absent or marked: the block may have taken long
+            if target.exists():
+                old = Path(str(tmp)[: -len(".tmp")] + ".old")
+                os.rename(target, old)
+                os.rename(tmp, target)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.rename(tmp, target)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+
+
+def mark(directory: str | os.PathLike, kind: str) -> None:
+    """Write the marker into ``directory`` (a sub-directory that is itself a run, e.g. the demo's ``run/``)."""
+    (Path(directory) / MARKER).write_text(_marker_text(kind), encoding="utf-8")
