@@ -38,7 +38,7 @@ from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.identifiability import DEFAULT_TOL, Identifiability, analyse, preference_order
 from torchcal.estimate.lm import LMResult, global_test, levenberg_marquardt
 from torchcal.estimate.netfit import fit_net
-from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
+from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.robot import load_robot
 from torchcal.robot.model import RobotModel
@@ -231,7 +231,7 @@ def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opt
         free = FreeParameters(model, sel, labels)
     elif identify:
         fun = residual_function(model, free, ctx, m.p, W)
-        J = torch.func.jacfwd(fun)(free.vector())
+        J = jacobian_of(fun)(free.vector())
         ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
         sel, labels = _selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
