@@ -232,7 +232,11 @@ def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opt
     elif identify:
         fun = residual_function(model, free, ctx, m.p, W)
         J = jacobian_of(fun)(free.vector())
-        ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
+        ps = None  # the identifiability tolerance from the noise and the priors (estimate.identifiability)
+        if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
+            units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+            ps = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+        ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
         sel, labels = _selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
     prior = None
