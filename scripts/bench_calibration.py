@@ -7,12 +7,17 @@ reference is the error of the *true* model at the same held-out poses, i.e. the 
 noise; the ratio ``rmse_after / floor`` is the figure of merit (1.0 = as good as knowing the truth).
 
     python scripts/bench_calibration.py [--seeds 5] [--json]
+
+With ``--stages DATA --robot R [--method kinematic] [--load]`` it instead times one calibration of DATA in a fresh
+process, stage by stage (import, robot, read, fit, report: wall and CPU seconds, peak resident memory after each),
+and with ``--load`` the same run again while a busy Python process holds one core; prints JSON.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -21,9 +26,10 @@ import time
 from pathlib import Path
 
 import torch
-from torchcal.calibrate import Options, calibrate, errors
 
 import torchcal
+from torchcal.estimate.fit import errors
+from torchcal.pipeline import Options, calibrate
 from torchcal.sim import SimConfig, simulate, write_campaign
 
 
@@ -57,11 +63,70 @@ def one(seed: int, work: Path) -> dict:
     }
 
 
+_STAGES = r"""
+import json, resource, sys, time
+def now():
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return time.perf_counter(), r.ru_utime + r.ru_stime, r.ru_maxrss / 1024
+out, last = [], now()
+def mark(name):
+    global last
+    t = now()
+    out.append({"stage": name, "wall_s": t[0] - last[0], "cpu_s": t[1] - last[1], "peak_mb": t[2]})
+    last = t
+import torch
+from torchcal import pipeline as C
+from torchcal.data import read_measurements
+from torchcal.report import write_run
+from torchcal.robot import load_robot
+mark("import")
+data_path, spec, method, out_dir = sys.argv[1:5]
+robot = load_robot(spec)
+mark("robot")
+data = read_measurements(data_path, dof=robot.dof, require_positions=True)
+mark("read")
+run = C.calibrate(robot, data, C.Options(method=method), robot_spec=spec)
+mark("fit")
+write_run(run, out_dir)
+mark("report")
+print(json.dumps({"stages": out, "rmse_holdout_mm": run.stages[-1].rmse * 1e3}))
+"""
+
+
+def stages(data: str, robot: str, method: str, work: Path) -> dict:
+    """One calibration in a fresh process (one torch thread), timed stage by stage."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", _STAGES, data, robot, method, str(work / "run")], check=True,
+                          capture_output=True, text=True, env=env)
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    out["total_wall_s"] = time.perf_counter() - t0
+    out["peak_mb"] = max(s["peak_mb"] for s in out["stages"])
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
+    ap.add_argument("--stages", metavar="DATA", help="time one calibration of DATA stage by stage instead")
+    ap.add_argument("--robot", default="ur10")
+    ap.add_argument("--method", default="kinematic")
+    ap.add_argument("--load", action="store_true", help="with --stages: run again beside a busy process")
     args = ap.parse_args(argv)
+    if args.stages:
+        with tempfile.TemporaryDirectory() as tmp:
+            res = {"data": args.stages, "robot": args.robot, "method": args.method,
+                   "quiet": stages(args.stages, args.robot, args.method, Path(tmp))}
+            if args.load:
+                busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                try:
+                    res["loaded"] = stages(args.stages, args.robot, args.method, Path(tmp))
+                finally:
+                    busy.kill()
+                    busy.wait()
+        print(json.dumps(res))
+        return res
     torch.set_num_threads(2)
     with tempfile.TemporaryDirectory() as tmp:
         rows = [one(s, Path(tmp)) for s in range(100, 100 + args.seeds)]

@@ -1,12 +1,17 @@
 """Identifiability: the paper's dependent groups on a UR5, duplicates, URDF robots."""
 
+import math
+import re
+from pathlib import Path
+
 import torch
 
 import torchcal
 from torchcal.effects import Context, MeasurementModel
+from torchcal.estimate.fit import selection as _selection
 from torchcal.estimate.fit import solve
-from torchcal.estimate.identifiability import analyse, preference_order
-from torchcal.estimate.problem import FreeParameters, residual_function, whitening
+from torchcal.estimate.identifiability import DEFAULT_PRIOR_RATIO, analyse, preference_order
+from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.pipeline import Options
 from torchcal.sim import SimConfig, simulate
@@ -74,3 +79,74 @@ def test_urdf_robot_redundant_errors_are_resolved_and_noise_free_data_recovered(
     with torch.no_grad():
         err = (model(Context(q=c.test.q)) - c.test.p).norm(dim=-1).max()
     assert float(err) < 1e-9
+
+
+GEN3 = Path(__file__).resolve().parent / "data" / "gen3_rounded.urdf"
+
+
+def _exact_gen3(tmp_path: Path) -> Path:
+    """The fixture with exact constants: 1.5708 -> pi/2, 3.1416 -> pi."""
+    def exact(v: str) -> str:
+        x = float(v)
+        if abs(abs(x) - 1.5708) < 1e-12:
+            return repr(math.copysign(math.pi / 2, x))
+        return repr(math.pi) if abs(x - 3.1416) < 1e-12 else v
+
+    text = re.sub(r'rpy="(\S+) (\S+) (\S+)"', lambda m: 'rpy="' + " ".join(map(exact, m.groups())) + '"',
+                  GEN3.read_text())
+    assert not re.findall(r'rpy="[^"]*(1\.5708|3\.1416)', text) and text.count(repr(math.pi / 2)) == 6
+    out = tmp_path / "gen3_exact.urdf"
+    out.write_text(text)
+    return out
+
+
+def _geometric_fit(spec, train):
+    robot = torchcal.load_robot(str(spec))
+    model = MeasurementModel(robot)
+    with torch.no_grad():
+        T, t, _ = fit_instrument_and_tool(robot(train.q), train.p)
+        robot.instrument.set_matrix(T)
+        robot.tool.nominal.copy_(t)
+    return solve(model, train, ("geometry", "instrument", "tool"), Options(method="kinematic"), "geometric",
+                 trajectory=False)
+
+
+def test_rounded_constants_keep_what_exact_constants_keep(tmp_path):
+    # issue 14.5: a vendor URDF with 1.5708 for pi/2 turns exact dependencies into near ones (sine ~4e-6, above
+    # the structural 1e-6); the fit kept pairs correlated at +-1.000 whose sigma was their prior
+    c = simulate(SimConfig(robot=str(GEN3), poses=300, test_poses=0, seed=3))
+    rounded = _geometric_fit(GEN3, c.train)
+    exact = _geometric_fit(_exact_gen3(tmp_path), c.train)
+    kept_r = [n for n, f in zip(rounded.identifiability.names, rounded.identifiability.free.tolist()) if f]
+    kept_e = [n for n, f in zip(exact.identifiability.names, exact.identifiability.free.tolist()) if f]
+    assert kept_r == kept_e
+    assert rounded.result.status == "converged"
+    # the structural tolerance alone keeps the rounded constants' near-dependencies
+    robot = rounded.free.module.robot
+    ctx = Context(q=c.train.q)
+    sel, labels = _selection(rounded.free.module, ("geometry", "instrument", "tool"))
+    free = FreeParameters(rounded.free.module, sel, labels)
+    W = whitening(rounded.free.module, ctx, c.train.sigma, 15e-6, math.radians(0.0005))
+    J = jacobian_of(residual_function(rounded.free.module, free, ctx, c.train.p, W))(free.vector())
+    structural = analyse(J, free.names, preference_order(free.names))
+    assert structural.rank >= rounded.identifiability.rank + 4
+    assert "Actuator2.ty" in [n for n, f in zip(structural.names, structural.free.tolist()) if f]
+    assert "Actuator2.ty" not in kept_r
+    reason = next(f["reason"] for f in rounded.identifiability.fixed if f["name"] == "Actuator2.ty")
+    assert "no better than its prior" in reason
+    # every kept parameter with a prior is determined by the data, not by its prior alone
+    units = {i.name: i.unit for i in robot.parameter_info() if i.group == "geometry"}
+    ps = prior_sigmas(rounded.free, units, 1e-3, math.radians(0.1))
+    ratio = rounded.result.cofactor.diagonal().sqrt() / ps
+    assert float(ratio[torch.isfinite(ps)].max()) < 0.9
+
+
+def test_prior_tolerance_keeps_the_clean_ur_sets():
+    # clean campaigns: the tolerance from noise and prior fixes nothing the structural one keeps
+    for robot_name in ("ur5", "ur10"):
+        c = simulate(SimConfig(robot=robot_name, poses=200, test_poses=0, seed=21))
+        fit = _geometric_fit(robot_name, c.train)
+        ida = fit.identifiability
+        assert sorted(f["name"] for f in ida.fixed) == sorted(["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6",
+                                                              "a6"])
+        assert ida.prior_ratio == DEFAULT_PRIOR_RATIO == ida.to_dict()["prior_ratio"]

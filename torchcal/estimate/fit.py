@@ -21,7 +21,7 @@ from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
 from torchcal.estimate.identifiability import Identifiability, analyse, preference_order
 from torchcal.estimate.lm import LMResult, global_test, levenberg_marquardt
-from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
+from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.robot.model import RobotModel
 
@@ -193,8 +193,12 @@ def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opt
         free = FreeParameters(model, sel, labels)
     elif identify:
         fun = residual_function(model, free, ctx, m.p, W)
-        J = torch.func.jacfwd(fun)(free.vector())
-        ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
+        J = jacobian_of(fun)(free.vector())
+        ps = None  # the identifiability tolerance from the noise and the priors (estimate.identifiability)
+        if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
+            units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+            ps = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+        ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
         sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
     prior = None

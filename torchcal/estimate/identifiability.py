@@ -3,7 +3,7 @@
 Method: normalise every column of the Jacobian to unit length (so metres and radians
 compare), then walk the parameters in order of preference and keep a parameter when its
 column is independent of the columns kept so far: the sine of the angle between the column
-and their span (the norm of its component orthogonal to them) must exceed ``tol``. The
+and their span (the norm of its component orthogonal to them) must exceed a tolerance. The
 others are held fixed at their current values. This keeps a maximal identifiable set and,
 among the possible ones, the one the preference order asks for.
 
@@ -11,14 +11,33 @@ The default preference keeps the instrument pose, then the lever arm, then the r
 geometry from base to tip, as Horvath & Neuner (2024, Sec. 2.2.3) do: for a UR5 that fixes
 ``d1, d3, d4, d6, theta1, theta6, alpha6, a6`` in favour of the instrument and lever arm.
 
-Tolerance: ``tol = 1e-6`` by default. Exact dependencies come out at 1e-16..1e-12 (round-off),
-so anything below 1e-6 is structural, not a matter of measurement design. Parameters that are
-independent but weakly determined are kept and show up through their standard deviations
-and correlations in the report.
+Tolerance. Exact dependencies come out at 1e-16..1e-12 (round-off); ``tol = 1e-6`` separates
+them from anything a measurement design produces. A robot description with rounded constants
+(``1.5708`` for pi/2, as vendors' URDFs write them) turns exact dependencies into near ones
+(sine ~ 4e-6) that pass ``tol`` but that no realistic data determine: the fit then keeps pairs
+correlated at +-1.000 whose standard deviation is just their prior. So with the a-priori
+standard deviations of the parameters (``prior_sigma``) the tolerance comes from the data's
+noise and the prior: the Jacobian is whitened by the noise, so the norm ``|v_j|`` of a
+column's part orthogonal to the kept span is the data's information on that direction, and
+``sigma_data = 1 / |v_j|`` its standard deviation with the kept parameters free. Combined with
+the prior, ``sigma_post = (|v_j|^2 + 1 / sigma_prior^2)^-1/2``; the parameter is kept only when
+``sigma_post < prior_ratio * sigma_prior``, i.e. its sine must exceed
+``sqrt(1 / prior_ratio^2 - 1) / (|J_j| sigma_prior)``. The default ``prior_ratio = 1/sqrt(2)``
+keeps a parameter when the data alone determine it better than its prior does
+(``sigma_data < sigma_prior``, the data at least halve its variance); otherwise the prior
+mostly holds it, and fixing it loses little. Parameters without a prior (inf) keep the
+structural ``tol`` alone. The test is conditional on the parameters kept before (greedy): a
+later, nearly collinear parameter can still raise an earlier one's marginal deviation.
+Parameters that are independent and determined better than their prior are kept and show
+their precision through standard deviations and correlations in the report.
+
+For ``n`` rows much more than ``P`` columns the analysis runs on the triangular factor ``R`` of
+``J = QR`` (``P x P``): an orthogonal ``Q`` keeps every norm and angle.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -26,6 +45,9 @@ import torch
 Tensor = torch.Tensor
 
 DEFAULT_TOL = 1e-6
+#: keep a parameter with a prior when data and prior together give it a standard deviation below this fraction of
+#: the prior's (module docstring)
+DEFAULT_PRIOR_RATIO = 1.0 / math.sqrt(2.0)
 
 
 @dataclass
@@ -37,6 +59,8 @@ class Identifiability:
     groups: list[list[str]] = field(default_factory=list)
     singular_values: Tensor | None = None  # of the normalised Jacobian, all candidates
     tol: float = DEFAULT_TOL
+    prior_ratio: float | None = None  # None: no priors given, the structural tolerance alone
+    sigma_data: Tensor | None = None  # (P,) 1/|v_j|: the data's standard deviation of each direction [m or rad]
 
     @property
     def rank(self) -> int:
@@ -45,8 +69,11 @@ class Identifiability:
     def to_dict(self) -> dict:
         sv = self.singular_values
         return {
-            "method": "column-normalised Jacobian; greedy independence test in preference order",
+            "method": "column-normalised Jacobian; greedy independence test in preference order" +
+                      ("; a parameter with a prior is kept only when the data determine it better than the prior"
+                       if self.prior_ratio is not None else ""),
             "tol": self.tol,
+            "prior_ratio": self.prior_ratio,
             "n_candidates": len(self.names),
             "rank": self.rank,
             "fixed": self.fixed,
@@ -56,20 +83,39 @@ class Identifiability:
         }
 
 
-def analyse(J: Tensor, names: list[str], order: list[int] | None = None, tol: float = DEFAULT_TOL) -> Identifiability:
+def analyse(J: Tensor, names: list[str], order: list[int] | None = None, tol: float = DEFAULT_TOL,
+            prior_sigma: Tensor | None = None, prior_ratio: float = DEFAULT_PRIOR_RATIO) -> Identifiability:
     """Decide which columns of ``J (n, P)`` to keep (module docstring).
 
     Args:
-        J: Jacobian of the (whitened) residuals with respect to the candidate parameters.
+        J: Jacobian of the (whitened) residuals with respect to the candidate parameters, without the
+            priors' pseudo-observations.
         names: the P parameter names.
         order: preference order (indices, most wanted first); default the given order.
-        tol: independence threshold.
+        tol: structural independence threshold (sine of the angle to the kept span).
+        prior_sigma: a-priori standard deviations ``(P,)`` in the parameters' units (inf: no prior), or None
+            for the structural test alone.
+        prior_ratio: with ``prior_sigma``, keep a parameter only when data and prior together give it a
+            standard deviation below ``prior_ratio`` times its prior's (0 < prior_ratio < 1).
     """
     n, P = J.shape
     order = list(range(P)) if order is None else list(order)
+    if n > P:  # the same norms and angles in P dimensions (module docstring)
+        J = torch.linalg.qr(J, mode="r").R
+        n = P
     norms = J.norm(dim=0)
     scale = float(norms.max()) if P else 1.0
     Jn = J / norms.clamp(min=1e-300)
+    # the sine each column needs: the structural tolerance, and where there is a prior, the one from noise and prior
+    need = torch.full((P,), float(tol), dtype=J.dtype)
+    if prior_sigma is not None:
+        if not 0.0 < prior_ratio < 1.0:
+            raise ValueError(f"prior_ratio must lie in (0, 1), got {prior_ratio}")
+        ps = torch.as_tensor(prior_sigma, dtype=J.dtype).reshape(P)
+        has = torch.isfinite(ps) & (ps > 0)
+        gain = math.sqrt(1.0 / prior_ratio**2 - 1.0)
+        from_prior = gain / (norms * ps).clamp(min=1e-300)
+        need = torch.where(has, torch.maximum(need, from_prior), need)
     free = torch.zeros(P, dtype=torch.bool)
     indep = torch.zeros(P, dtype=J.dtype)
     basis = torch.zeros(n, 0, dtype=J.dtype)
@@ -81,9 +127,10 @@ def analyse(J: Tensor, names: list[str], order: list[int] | None = None, tol: fl
             v = v - basis @ (basis.T @ v)
         s = float(v.norm())
         indep[j] = s
-        if s > tol:
+        if s > float(need[j]):
             free[j] = True
             basis = torch.cat([basis, (v / s)[:, None]], dim=1)
+    sigma_data = 1.0 / (indep * norms).clamp(min=1e-300)
 
     kept = torch.nonzero(free).flatten()
     fixed, links = [], []
@@ -97,17 +144,19 @@ def analyse(J: Tensor, names: list[str], order: list[int] | None = None, tol: fl
         c = coef[:, k]
         big = (c.abs() >= 1e-3 * c.abs().max()).nonzero().flatten()
         deps = [names[int(kept[i])] for i in big]
-        fixed.append({
-            "name": names[j],
-            "reason": f"linearly dependent on {', '.join(deps)} at these poses "
-                      f"(independence {float(indep[j]):.1e} <= tol {tol:.0e}); held at its current value",
-            "depends_on": deps,
-            "independence": float(indep[j]),
-        })
+        if float(indep[j]) > tol:
+            why = (f"nearly dependent on {', '.join(deps)} at these poses (independence {float(indep[j]):.1e}): the "
+                   f"data determine it to {float(sigma_data[j]):.2g}, no better than its prior "
+                   f"{float(ps[j]):.2g}; held at its current value")
+        else:
+            why = (f"linearly dependent on {', '.join(deps)} at these poses "
+                   f"(independence {float(indep[j]):.1e} <= tol {tol:.0e}); held at its current value")
+        fixed.append({"name": names[j], "reason": why, "depends_on": deps, "independence": float(indep[j])})
         links.append([names[j], *deps])
     groups = _merge(links)
     sv = torch.linalg.svdvals(Jn[:, norms > 1e-14 * scale]) if P else None
-    return Identifiability(list(names), free, indep, fixed, groups, sv, tol)
+    return Identifiability(list(names), free, indep, fixed, groups, sv, tol,
+                           prior_ratio if prior_sigma is not None else None, sigma_data)
 
 
 def _merge(links: list[list[str]]) -> list[list[str]]:

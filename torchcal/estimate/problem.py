@@ -8,6 +8,7 @@ of a correct model is 1.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -110,24 +111,71 @@ def whitening(model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma
     return torch.linalg.solve_triangular(L, eye, upper=False)
 
 
+#: residual functions differentiated by ``torch.func.jacfwd`` do so in chunks of this many poses: ``jacfwd`` keeps
+#: one copy of every intermediate of the forward pass per parameter, so its memory grows with poses x parameters
+JACOBIAN_CHUNK = 1024
+
+_ROBOT_GROUPS = {"robot.geometry.delta": "geometry", "robot.instrument.delta": "instrument",
+                 "robot.tool.delta": "tool"}
+
+
 def residual_function(model: MeasurementModel, free: FreeParameters, ctx: Context, p: Tensor, W: Tensor,
-                      prior_sigma: Tensor | None = None):
+                      prior_sigma: Tensor | None = None, chunk: int = JACOBIAN_CHUNK):
     """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``.
 
     With ``prior_sigma (u,)`` the a-priori information ``x_j ~ N(0, prior_sigma_j^2)`` is appended as
     pseudo-observations ``x_j / prior_sigma_j`` for every finite entry (inf: no prior).
+
+    The returned function carries its Jacobian ``fun.jacobian: x -> J (3N [+ priors], u)`` (used by
+    :func:`~torchcal.estimate.lm.levenberg_marquardt` and :func:`jacobian_of`): analytic
+    (:meth:`~torchcal.robot.model.RobotModel.tracker_jacobian`) when the model has no effects and only
+    the robot's groups are free, else ``torch.func.jacfwd`` over ``chunk`` poses at a time.
     """
     has_prior = prior_sigma is not None and bool(torch.isfinite(prior_sigma).any())
     if has_prior:
         idx = torch.nonzero(torch.isfinite(prior_sigma)).flatten()
         inv = 1.0 / prior_sigma[idx]
 
+    def residuals(x: Tensor, c: Context, pp: Tensor, WW: Tensor) -> Tensor:
+        pred = torch.func.functional_call(model, free.params(x), (c,))
+        return (WW @ (pred - pp).unsqueeze(-1)).reshape(-1)
+
     def fun(x: Tensor) -> Tensor:
-        pred = torch.func.functional_call(model, free.params(x), (ctx,))
-        r = (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+        r = residuals(x, ctx, p, W)
         return torch.cat([r, x[idx] * inv]) if has_prior else r
 
+    def prior_rows(x: Tensor) -> Tensor:
+        rows = torch.zeros(len(idx), len(x), dtype=x.dtype, device=x.device)
+        rows[torch.arange(len(idx), device=x.device), idx] = inv
+        return rows
+
+    analytic = len(model.effects) == 0 and all(e.name in _ROBOT_GROUPS for e in free.entries)
+    columns = [(_ROBOT_GROUPS[e.name], int(i)) for e in free.entries for i in e.index] if analytic else []
+
+    def jacobian(x: Tensor) -> Tensor:
+        x = x.detach()
+        n = ctx.q.shape[0]
+        if analytic:
+            values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items()}
+            _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values)
+            J = (W @ Jp).reshape(3 * n, len(x))
+        else:
+            parts = []
+            for lo in range(0, n, max(1, int(chunk))):
+                sl = slice(lo, min(n, lo + max(1, int(chunk))))
+                part = functools.partial(residuals, c=ctx.subset(sl), pp=p[sl], WW=W[sl])
+                parts.append(torch.func.jacfwd(part)(x).detach())
+            J = torch.cat(parts) if parts else torch.zeros(0, len(x), dtype=x.dtype, device=x.device)
+        return torch.cat([J, prior_rows(x)]) if has_prior else J
+
+    fun.jacobian = jacobian
     return fun
+
+
+def jacobian_of(fun):
+    """The Jacobian function of a residual function: its own ``fun.jacobian`` when it has one
+    (:func:`residual_function`), else ``torch.func.jacfwd(fun)``."""
+    return getattr(fun, "jacobian", None) or torch.func.jacfwd(fun)
 
 
 def prior_sigmas(free: FreeParameters, units: dict[str, str], sigma_length: float, sigma_angle: float) -> Tensor:

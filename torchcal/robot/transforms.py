@@ -39,9 +39,22 @@ def rot_z(angle: Tensor) -> Tensor:
     return torch.stack([c, -s, z, s, c, z, z, z, o], dim=-1).reshape(*c.shape, 3, 3)
 
 
+def _broadcast(a: torch.Size, b: torch.Size) -> tuple[int, ...]:
+    """NumPy broadcasting of two shapes, in plain Python: ``torch.broadcast_shapes`` imports sympy (0.3 s and
+    40 MB at the first call)."""
+    n = max(len(a), len(b))
+    a, b = (1,) * (n - len(a)) + tuple(a), (1,) * (n - len(b)) + tuple(b)
+    out = []
+    for x, y in zip(a, b):
+        if x != y and x != 1 and y != 1:
+            raise ValueError(f"shapes {a} and {b} do not broadcast")
+        out.append(y if x == 1 else x)
+    return tuple(out)
+
+
 def homogeneous(R: Tensor, t: Tensor) -> Tensor:
     """Stack ``R (..., 3, 3)`` and ``t (..., 3)`` into ``(..., 4, 4)``."""
-    batch = torch.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    batch = _broadcast(R.shape[:-2], t.shape[:-1])
     R = R.expand(*batch, 3, 3)
     t = t.expand(*batch, 3)
     top = torch.cat([R, t.unsqueeze(-1)], dim=-1)
