@@ -9,8 +9,8 @@ own inner loop to one thread and restores the caller's):
   ``(I - K H) P (I - K H)^T + K R K^T`` (O(n^3) per step);
 * fast path (``pass_s``): the network's hand-derived Jacobian and the Joseph form as one rank-6 update
   (O(n^2) per step);
-* user module (``module_pass_s``): the same network as a plain ``nn.Sequential`` through the ``torch.func``
-  path (any ``nn.Module``), the ratio to the fast path as ``module_ratio``.
+* user module (``module_pass_s``): the same network as a plain ``nn.Sequential`` through the path for any
+  ``nn.Module`` (reverse-mode autodiff per step), the ratio to the fast path as ``module_ratio``.
 
 They must give the same estimates (the JSON reports the largest differences). No ANN re-iteration here: it is
 the same for all and would hide the filter's own cost. ``--load`` also measures the fast path with the default

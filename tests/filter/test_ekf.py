@@ -155,7 +155,7 @@ def _user_net(seed=0, width=32):
     return net
 
 
-def test_func_path_equals_hand_derived_jacobian_on_correction_net():
+def test_module_path_equals_hand_derived_jacobian_on_correction_net():
     robot, truth, q, y = _setup(n=150, seed=8)
     w = torch.stack([truth.flat(), truth.flat() * 1.03])
     # the step Jacobians themselves, at a few samples and both draws
@@ -169,7 +169,7 @@ def test_func_path_equals_hand_derived_jacobian_on_correction_net():
         assert (H_h - H_f).abs().max() < 1e-15 * H_h.abs().max()
     # and whole passes
     a = EKFTrainer(robot, truth, EKFConfig(reiterate_every=0, jacobian="analytic")).run(q, y, 120, w)
-    b = EKFTrainer(robot, truth, EKFConfig(reiterate_every=0, jacobian="func")).run(q, y, 120, w)
+    b = EKFTrainer(robot, truth, EKFConfig(reiterate_every=0, jacobian="module")).run(q, y, 120, w)
     assert a.status == b.status == ["ok", "ok"]
     assert (a.prediction - b.prediction).abs().max() < 1e-12
     assert (a.P - b.P).abs().max() < 1e-12 * a.P.abs().max()

@@ -10,8 +10,9 @@ filtered together); the adaptive engine uses ``D = 1``.
   Horvath & Neuner 2024), the variance factor it adapts, and the divergence checks;
 * :func:`joseph_update_`: the Joseph-form covariance update as one rank-6 GEMM, in place;
 * :class:`NetworkJacobian` (the hand-derived one of :class:`~torchcal.effects.CorrectionNet`) and
-  :class:`ModuleJacobian` (any ``nn.Module`` through ``torch.func``): the rotated network output ``R g`` and the
-  observation Jacobian ``H = [R dg/dw, I]`` of one step, written into a preallocated ``H``;
+  :class:`ModuleJacobian` (any ``nn.Module``, by reverse-mode autodiff): the rotated network output ``R g`` and
+  the observation Jacobian ``H = [R dg/dw, I]`` of one step, written into a preallocated ``H``;
+* :class:`Gain`: the gain, the NIS and the Joseph update of one step in preallocated buffers;
 * :class:`FlatModule`: any ``nn.Module`` seen through one flat weight vector, with the interface of
   :class:`~torchcal.effects.CorrectionNet` that the filters and :func:`~torchcal.estimate.netfit.fit_net` use.
 """
@@ -284,12 +285,14 @@ class NetworkJacobian:
 class ModuleJacobian:
     """The same as :class:`NetworkJacobian` for any network, by reverse-mode autodiff.
 
-    Exact, like the hand-derived one. Per step: one forward of the module per draw, then one backward with the
-    three output rows batched by ``vmap`` (``torch.autograd.grad(..., is_grads_batched=True)``). The module runs
-    as a private copy whose parameters are leaves sharing storage with the filter's weights, so a step neither
-    copies weights nor goes through ``torch.func.functional_call`` + ``jacrev``, which gives the same numbers
-    but whose per-call parameter swapping and transforms cost several Kalman steps (``scripts/bench_ekf.py``
-    measures this path against the hand-derived one).
+    Exact, like the hand-derived one. Per step: one forward of the module per draw, then three backward passes
+    through the same graph whose cotangents are the rows of ``R``, so they give the rows of ``R dg/dw`` directly,
+    written into ``H``. The module runs as a private copy whose parameters are leaves sharing storage with the
+    filter's weights, so a step copies no weights. ``torch.func`` (``vmap(jacrev)`` of ``functional_call``, as
+    :meth:`FlatModule.jacobian_flat` and the baseline use) gives the same numbers, but its per-call parameter
+    swapping and transforms cost several Kalman steps, and a ``vmap``-batched backward
+    (``is_grads_batched``) no less than three plain ones; ``scripts/bench_ekf.py`` measures this path against
+    the hand-derived one.
 
     Args:
         net: a :class:`FlatModule` (or a :class:`CorrectionNet`, to compare with the hand-derived Jacobian).

@@ -24,10 +24,11 @@ Every run carries a leading *draw* dimension D (Monte Carlo draws filtered toget
 
 The network is any ``nn.Module`` mapping joints ``(N, dof)`` [rad] to corrections ``(N, 3)`` [m] in the base
 frame. The fast path (O(n^2) per step: one ``H P`` product and one rank-6 update of ``P``, into preallocated
-buffers) takes its per-step Jacobian ``dg/dw`` from ``torch.func`` (``vmap`` of ``jacrev`` over
-``functional_call``), or, for :class:`~torchcal.effects.CorrectionNet`, from its hand-derived form, which
-gives the same numbers for less. The Jacobian is evaluated every step at the predicted weights: they change
-with every update, so a Jacobian computed ahead of the pass would linearise at the wrong point.
+buffers) takes its per-step Jacobian ``dg/dw`` from reverse-mode autodiff through the module
+(:class:`~torchcal.filter._kalman.ModuleJacobian`), or, for :class:`~torchcal.effects.CorrectionNet`, from its
+hand-derived form, which gives the same numbers for less. The Jacobian is evaluated every step at the
+predicted weights: they change with every update, so a Jacobian computed ahead of the pass would linearise at
+the wrong point.
 ``jacobian="autograd"`` is the baseline: a per-step ``jacrev``, dense ``H`` and the textbook Joseph form,
 O(n^3) per step.
 
@@ -58,7 +59,7 @@ from torchcal.robot.model import RobotModel
 
 Tensor = torch.Tensor
 
-_JACOBIANS = ("auto", "analytic", "func", "autograd")
+_JACOBIANS = ("auto", "analytic", "module", "autograd")
 _STARTS = ("check", "fit", "none")
 
 
@@ -80,8 +81,8 @@ class EKFConfig:
     adapt_qyy: bool = True
     nis_window: int = 100
     nis_alpha: float = 0.01
-    # "auto": hand-derived for CorrectionNet, torch.func for any other module; "analytic" (CorrectionNet only);
-    # "func" (torch.func for any module); "autograd" (per-step jacrev and the dense Joseph form: the baseline)
+    # "auto": hand-derived for CorrectionNet, reverse-mode autodiff for any other module; "analytic" (CorrectionNet
+    # only); "module" (autodiff, any module); "autograd" (per-step torch.func.jacrev, dense Joseph form: the baseline)
     jacobian: str = "auto"
     # "check": raise when the start cannot work (module docstring); "fit": fit tracker pose and lever arm first;
     # "none": no check
@@ -174,7 +175,7 @@ class EKFTrainer:
         self._net = as_flat(net, robot.dof)
         if self.config.jacobian == "analytic" and not isinstance(net, CorrectionNet):
             raise OptionError(f"jacobian 'analytic' is the hand-derived Jacobian of CorrectionNet, the network is "
-                              f"a {type(net).__name__}; use 'auto' or 'func'")
+                              f"a {type(net).__name__}; use 'auto' or 'module'")
 
     # ------------------------------------------------------------------ kinematics, batched once
     def kinematics(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -304,7 +305,7 @@ class EKFTrainer:
         return out
 
     def _step_jacobian(self, q: Tensor, R: Tensor, D: int):
-        """The fast path's per-step Jacobian (hand-derived or ``torch.func``), or None for the baseline."""
+        """The fast path's per-step Jacobian (hand-derived or autodiff), or None for the baseline."""
         kind = self.config.jacobian
         if kind == "autograd":
             return None
