@@ -1,15 +1,19 @@
 """The integrated ANN-EKF: linear toy = batch least squares, Jacobians, relative kinematics, re-iteration,
-divergence, equivalent paths."""
+divergence, equivalent paths, any nn.Module, the start check, the docstring example."""
 
+import doctest
 import math
 
 import pytest
 import torch
 
 import torchcal
+import torchcal.filter.ekf as ekf_module
+from torchcal._threads import torch_threads
 from torchcal.effects import CorrectionNet
 from torchcal.estimate import check_jacobian
-from torchcal.filter import EKFConfig, EKFTrainer
+from torchcal.filter import EKFConfig, EKFTrainer, FlatModule
+from torchcal.filter._kalman import ModuleJacobian, NetworkJacobian
 from torchcal.robot import transforms as tf
 
 F64 = torch.float64
@@ -136,3 +140,125 @@ def test_fast_and_baseline_paths_agree_and_draws_batch():
 def test_config_validation():
     with pytest.raises(torchcal.OptionError):
         EKFConfig(jacobian="magic")
+
+
+# ------------------------------------------------------------------------------ any nn.Module
+def _user_net(seed=0, width=32):
+    """A user's network: 2 hidden layers of ``width``, SiLU, output scaled to sub-millimetre corrections."""
+    torch.manual_seed(seed)
+    net = torch.nn.Sequential(torch.nn.Linear(6, width, dtype=F64), torch.nn.SiLU(),
+                              torch.nn.Linear(width, width, dtype=F64), torch.nn.SiLU(),
+                              torch.nn.Linear(width, 3, dtype=F64))
+    with torch.no_grad():
+        net[4].weight.mul_(1e-3)
+        net[4].bias.zero_()
+    return net
+
+
+def test_module_path_equals_hand_derived_jacobian_on_correction_net():
+    robot, truth, q, y = _setup(n=150, seed=8)
+    w = torch.stack([truth.flat(), truth.flat() * 1.03])
+    # the step Jacobians themselves, at a few samples and both draws
+    R = robot.T_tracker_base()[:3, :3].detach()
+    qD = q.expand(2, *q.shape)
+    hand, func = NetworkJacobian(truth, qD, R, 2), ModuleJacobian(truth, qD, R, 2)
+    for i in (0, 37, 149):
+        ng_h, H_h = hand(w, i)
+        ng_f, H_f = func(w, i)
+        assert (ng_h - ng_f).abs().max() < 1e-18
+        assert (H_h - H_f).abs().max() < 1e-15 * H_h.abs().max()
+    # and whole passes
+    a = EKFTrainer(robot, truth, EKFConfig(reiterate_every=0, jacobian="analytic")).run(q, y, 120, w)
+    b = EKFTrainer(robot, truth, EKFConfig(reiterate_every=0, jacobian="module")).run(q, y, 120, w)
+    assert a.status == b.status == ["ok", "ok"]
+    assert (a.prediction - b.prediction).abs().max() < 1e-12
+    assert (a.P - b.P).abs().max() < 1e-12 * a.P.abs().max()
+
+
+def test_user_module_jacobian_against_finite_differences_and_a_pass_against_the_baseline():
+    net = _user_net()
+    flat = FlatModule(net, 6)
+    w = flat.flat()
+    q = torch.rand(5, 6, dtype=F64, generator=torch.Generator().manual_seed(1)) * 2 - 1
+    g, J = flat.jacobian_flat(w, q)
+    assert J.shape == (5, 3, flat.n_weights)
+    assert check_jacobian(lambda ww: flat.forward_flat(ww, q), w, J) < 1e-7
+    # the per-step Jacobian of the fast path, rotated, against central finite differences
+    robot, truth, qt, y = _setup(n=200, seed=9)
+    R = robot.T_tracker_base()[:3, :3].detach()
+    step = ModuleJacobian(flat, qt[None], R, 1)
+    x = torch.cat([w, torch.zeros(3, dtype=F64)])[None].clone()
+    _, H = step(x[:, : flat.n_weights], 17)
+    assert check_jacobian(lambda ww: flat.forward_flat(ww, qt[17:18])[0] @ R.T, w, H[0, :, : flat.n_weights]) < 1e-7
+    # a short pass: the fast path with a user's module equals the slow reference (per-step jacrev, dense Joseph
+    # form, O(n^3) per step: a narrower network of the same form keeps it quick)
+    net = _user_net(width=8)
+    w = FlatModule(net, 6).flat()
+    fast = EKFTrainer(robot, net, EKFConfig(reiterate_every=0)).run(qt, y, 150, w)
+    slow = EKFTrainer(robot, net, EKFConfig(reiterate_every=0, jacobian="autograd")).run(qt, y, 150, w)
+    assert fast.status == slow.status == ["ok"]
+    # the two Joseph forms round differently and many weight directions are unobserved, so round-off grows along
+    # the pass: 1e-10 m over the first 20 updates, within 1e-8 m (1/1500 of the tracker noise) after 150
+    diff = (fast.prediction - slow.prediction).abs()
+    assert diff[:, :20].max() < 1e-10 and diff.max() < 1e-8
+    # the user's module is untouched (the filter works on its own copies)
+    assert torch.equal(torch.nn.utils.parameters_to_vector(net.parameters()).detach(), w)
+
+
+def test_user_module_reiteration_and_pcm_weights():
+    robot, truth, q, y = _setup(n=300, seed=10, noise=1e-5)
+    net = _user_net(1, width=8)
+    tr = EKFTrainer(robot, net, EKFConfig(reiterate_every=100, reiterate_iterations=(5, 5)))
+    w0 = tr.pcm_weights(q[:200], y[:200], FlatModule(net, 6).flat(), iterations=10)
+    res = tr.run(q, y, 250, w0)
+    assert res.status == ["ok"] and len(res.reiterations) == 2
+    assert torch.isfinite(res.prediction).all()
+
+
+def test_analytic_jacobian_needs_a_correction_net():
+    robot, *_ = _setup(n=10)
+    with pytest.raises(torchcal.OptionError, match="CorrectionNet"):
+        EKFTrainer(robot, _user_net(), EKFConfig(jacobian="analytic"))
+
+
+# ------------------------------------------------------------------------------------- the start
+def test_start_is_checked_and_can_be_fitted():
+    robot, truth, q, y = _setup(n=300, seed=11)
+    nominal = torchcal.load_robot("ur5")  # tracker pose and lever arm not fitted
+    with pytest.raises(torchcal.EstimationError, match="tracker pose and the lever arm"):
+        EKFTrainer(nominal, truth, EKFConfig(reiterate_every=0)).run(q, y, 250, truth.flat())
+    fitted = EKFTrainer(nominal, truth, EKFConfig(reiterate_every=0, start="fit"))
+    res = fitted.run(q, y, 250, truth.flat())
+    # the rigid fit also absorbs part of the network's field: the fitted start is near, not at, the simulated one
+    assert res.status == ["ok"] and res.start_misfit < 1e-3
+    assert (res.robot.T_tracker_base() - robot.T_tracker_base()).abs().max() < 1e-2
+    assert float((res.prediction - y)[0, :250].norm(dim=-1).square().mean().sqrt()) < 1e-4
+    assert torch.equal(nominal.T_tracker_base(), torchcal.load_robot("ur5").T_tracker_base())  # robot untouched
+    good = EKFTrainer(robot, truth, EKFConfig(reiterate_every=0)).run(q, y, 250, truth.flat())
+    assert good.start_misfit < 1e-4
+
+
+def test_docstring_example_runs():
+    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS)
+    tests = doctest.DocTestFinder().find(ekf_module.EKFTrainer, "EKFTrainer", module=ekf_module)
+    for t in tests:
+        runner.run(t)
+    result = runner.summarize(verbose=False)
+    assert result.attempted >= 10 and result.failed == 0
+
+
+def test_pass_pins_one_thread_and_restores_the_callers():
+    robot, truth, q, y = _setup(n=50, seed=12)
+    seen = []
+
+    class Spy(EKFTrainer):
+        def kinematics(self, qq):
+            seen.append(torch.get_num_threads())
+            return super().kinematics(qq)
+
+    before = torch.get_num_threads()
+    with torch_threads(2):
+        Spy(robot, truth, EKFConfig(reiterate_every=0)).run(q, y, 40, truth.flat())
+        assert torch.get_num_threads() == 2
+    assert seen and set(seen) == {1}
+    assert torch.get_num_threads() == before

@@ -43,9 +43,9 @@ instead let ``t`` random-walk by ``sigma sqrt(i)`` and absorb the slowly varying
 block's start; inside a block the prediction uses ``u + U (gamma - gamma_lin)``. The increments telescope, so
 the error of ``t`` is the second-order remainder of ``u`` over a block, ``~ |gamma - gamma_lin|^2 x 1 m``:
 geometric errors are ~1e-4 (m or rad), so even the first block, linearised at the nominal geometry, is good to
-a few 1e-7 m (measured 1e-7 .. 9e-7 m on UR5 trajectories), far below the tracker's 15 um, and later blocks
-move ``gamma`` by much less. Every pass measures that remainder at its final estimate
-(:attr:`AdaptiveResult.relinearisations`), so the claim is checked on every run. Relinearising more often buys
+~1e-7 m, far below a laser tracker's noise, and later blocks move ``gamma`` by much less. Every pass measures
+that remainder at its final estimate (:attr:`AdaptiveResult.relinearisations`), so the claim is checked on every
+run. Relinearising more often buys
 nothing measurable; the cost is one batched ``jacfwd`` over the trajectory per pass whatever the block size.
 
 *Keeping geometry and network apart.* The network can mimic part of the geometry; what the data cannot separate,
@@ -58,24 +58,26 @@ jointly). (4) The output layer has a Gaussian prior whose scale is a stated a-pr
 correction (``sigma_field``, RMS per axis over the training poses; 0.5 mm), the geometry one of 1 mm / 0.1 deg:
 the part of the signal that both could explain is shared as these priors say, and -- the point -- the shared
 uncertainty shows in ``P``: the geometry's standard deviations grow where the network could stand in for it
-(median twofold in the default run of ``scripts/adaptive_geometry.py``), instead of the network silently
-biasing the geometry or the geometry silently absorbing the field. (5) No LM re-iteration of the network
+(``scripts/adaptive_geometry.py`` measures by how much), instead of the network silently biasing the geometry or
+the geometry silently absorbing the field. (5) No LM re-iteration of the network
 (Fig. 10): a refit to the corrections would pull the geometric part of the residual into the weights without
 touching ``P``.
 
 What is left is the network's misfit to the field, which the filter treats as white noise; it is correlated
-along the trajectory, so with too few features the geometry's standard deviations come out too small (the
-paper's 29 features with Glorot gain 1 left ~5 um of a 0.15 mm field and ~30-40 um of a 0.6 mm one, and errors
-up to 4 and 12-21 standard deviations on 5874 samples). 128 features with gain 5 leave ~4 um of a 0.6 mm field;
-``sigma_misfit`` adds the misfit as a first-order Gauss-Markov state ``d`` (``d_i = phi d_{i-1} + noise``,
-correlation length ``misfit_samples``, observed with ``H_d = I``) where a smaller network must be used. Letting
-the hidden layer move (``sigma_hidden > 0``, the analytic per-step Jacobian of :mod:`torchcal.filter.ekf`) makes
-the model non-linear again; in a 0.15 mm-field run it moved a constant offset of 0.4 mm between the network and
-the back-substituted instrument translation, 9 standard deviations, so it is off by default.
+along the trajectory, so with too few features the geometry's standard deviations come out too small: the
+paper's 29 features with Glorot gain 1 leave a misfit several times the tracker noise on a sub-millimetre field,
+and the geometry's errors then reach many of its standard deviations. Many features with a larger gain (the
+default of :func:`random_features`) leave a misfit of the order of the noise; ``sigma_misfit`` adds the misfit
+as a first-order Gauss-Markov state ``d`` (``d_i = phi d_{i-1} + noise``, correlation length
+``misfit_samples``, observed with ``H_d = I``) where a smaller network must be used. Letting the hidden layer
+move (``sigma_hidden > 0``, the hand-derived per-step Jacobian of :mod:`torchcal.filter._kalman`) makes the
+model non-linear again: the network and the back-substituted instrument translation can then trade a constant
+offset that the data cannot separate, so it is off by default. ``scripts/adaptive_geometry.py`` measures these
+effects.
 
 *Passes.* One pass is a filter: each block is linearised at the running estimate, so the first block is
-linearised at the start (nominal) geometry. That costs ~0.2 standard deviations in weakly determined parameters
-against the converged batch solution (:meth:`AdaptiveEKF.batch`). ``passes = 2`` runs the filter again from
+linearised at the start (nominal) geometry. That costs a fraction of a standard deviation in weakly determined
+parameters against the converged batch solution (:meth:`AdaptiveEKF.batch`). ``passes = 2`` runs the filter again from
 the same priors, linearised at the first pass's result: a Gauss-Newton step, after which the filter agrees with
 batch least squares (noise-free data: the biases to 1e-9).
 
@@ -93,10 +95,11 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from torchcal._threads import torch_threads
 from torchcal.effects.learned import CorrectionNet
 from torchcal.errors import EstimationError, OptionError, ShapeError
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse, preference_order
-from torchcal.filter.ekf import _nis_band, _StepJacobian
+from torchcal.filter._kalman import NetworkJacobian, joseph_update_, nis_band, window_health
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import ParameterInfo, RobotModel
 
@@ -217,7 +220,8 @@ def random_features(dof: int = 6, hidden: int = 128, gain: float = 5.0, seed: in
     features, so the filter stays a linear Kalman filter and its covariance honest (module docstring). Random
     features need to be many and non-linear to cover what training the hidden layer would otherwise buy: with
     ``gain = 5`` the pre-activations are of order one over the joint range (the default Glorot gain 1 leaves
-    ``tanh`` almost linear), and 128 of them fit a 0.6 mm field to ~4 um where the paper's 29 leave ~20 um.
+    ``tanh`` almost linear), and 128 of them fit a sub-millimetre field several times more closely than the
+    paper's 29 (``scripts/adaptive_geometry.py``).
 
     Args:
         dof: joints; hidden: features; gain: Glorot gain of the hidden layer; seed: reproducible draw.
@@ -328,7 +332,8 @@ class AdaptiveEKF:
         """Filter the first ``n_train`` samples, predict the rest with the final state.
 
         With ``config.passes > 1`` the pass is repeated from the same priors, linearised throughout at the previous
-        pass's result (module docstring); the outputs are those of the last pass.
+        pass's result (module docstring); the outputs are those of the last pass. The pass runs with one torch
+        thread (its kernels are small) and restores the caller's thread count.
 
         Args:
             q: joint readings ``(N, dof)`` [rad] along a continuous trajectory.
@@ -341,13 +346,29 @@ class AdaptiveEKF:
             :class:`AdaptiveResult`; a divergence stops the pass and is reported in its ``status``.
         """
         t_start = time.perf_counter()
+        with torch_threads(1):
+            setup = self._setup(q, y, n_train, w0, sigma_w0, t0)
+            lin_point = None  # pass 1: linearise at the running estimate; later passes: at the last pass's result
+            relin = []
+            for k in range(self.config.passes):
+                p = _Pass(self, setup, lin_point)
+                status = p.filter()
+                relin.append(self._remainders(setup.index, p.blocks, p.xg, q, k + 1))
+                if status != "ok":
+                    break
+                lin_point = p.xg.clone()
+            result = self._finish(setup, p, relin)
+        result.seconds = time.perf_counter() - t_start
+        return result
+
+    def _setup(self, q: Tensor, y: Tensor, n_train: int, w0: Tensor | None, sigma_w0: Tensor | None,
+               t0: Tensor | None) -> _Setup:
+        """What every pass shares: the checked inputs, the parameters, the priors, the state's layout, the
+        observation noise and the network's form."""
         cfg, robot, net = self.config, self.robot, self.net
         self._check(q, y, n_train)
-        N = len(q)
         kw = {"dtype": q.dtype, "device": q.device}
         params = self.parameters if self.parameters is not None else self.identify(q[:n_train])
-        index = _Index(robot, params)
-        k = len(params)
         if w0 is None or sigma_w0 is None:
             w_def, s_def = self.initial_weights(q[:n_train])
             w0 = w_def if w0 is None else w0
@@ -356,159 +377,55 @@ class AdaptiveEKF:
             raise ShapeError(f"w0 and sigma_w0 must have shape ({len(w0) if net is None else net.n_weights},), got "
                              f"{tuple(w0.shape)} and {tuple(sigma_w0.shape)}")
         active = torch.nonzero(sigma_w0 > 0).flatten()  # weights in the state; the others are held (variance 0)
-        nw = len(active)
-        nd = 3 if cfg.sigma_misfit > 0 else 0
-        n = nw + 3 + nd + k
-        iw, it, id_, ig = slice(0, nw), slice(nw, nw + 3), slice(nw + 3, nw + 3 + nd), slice(nw + 3 + nd, n)
-        phi = math.exp(-1.0 / cfg.misfit_samples)  # Gauss-Markov misfit: d_i = phi d_{i-1} + noise
-        unit_sig = torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params], **kw)
-        gamma0 = index.values()
+        nw, nd, k = len(active), 3 if cfg.sigma_misfit > 0 else 0, len(params)
+        s = _Setup(q=q, y=y, n_train=n_train, kw=kw, params=list(params), index=_Index(robot, params), w0=w0,
+                   sigma_w0=sigma_w0, active=active, nw=nw, nd=nd, n=nw + 3 + nd + k)
+        s.unit_sig = torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params], **kw)
+        s.gamma0 = s.index.values()
         with torch.no_grad():
             R0 = robot.T_tracker_base()[:3, :3]
-            t = (robot.probe_position(q[0]) if t0 is None else t0).clone()
+            s.t0 = (robot.probe_position(q[0]) if t0 is None else t0).clone()
             _, Jq = robot.probe_jacobian(q[:n_train])
         RJ = R0 @ Jq
-        Ryy_q = cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2)  # joint noise at the probe (N_train, 3, 3)
-        eye3 = torch.eye(3, **kw)
+        s.Ryy_q = cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2)  # joint noise at the probe (N_train, 3, 3)
         rot = [(nw + 3 + nd + j, _ROTATION.index(p.name[-2:])) for j, p in enumerate(params)
                if p.group == "instrument" and p.name[-2:] in _ROTATION]
-        rot_cols, rot_axes = [c for c, _ in rot], [a for _, a in rot]
-        band = _nis_band(cfg.nis_window, cfg.nis_alpha)
-        H = torch.zeros(3, n, **kw)
-        H[:, it] = eye3
-        H[:, id_] = eye3[:, :nd]
-        features, direct, Hn, zero3 = None, False, 0, torch.zeros(3, **kw)
+        s.rot_cols, s.rot_axes = [c for c, _ in rot], [a for _, a in rot]
         if net is not None:
             Hn, Dq = net.hidden, net.dof
-            o2, o3 = Hn * Dq + Hn, Hn * Dq + 4 * Hn
-            if nw and int(active.min()) >= o2 and int(active.max()) < o3:  # fixed hidden layer: linear in W2
+            s.Hn, s.o2, s.o3 = Hn, Hn * Dq + Hn, Hn * Dq + 4 * Hn
+            if nw and int(active.min()) >= s.o2 and int(active.max()) < s.o3:  # fixed hidden layer: linear in W2
                 with torch.no_grad():
-                    features = torch.tanh(((q - net.q_offset) / net.q_scale) @ w0[: Hn * Dq].view(Hn, Dq).T
-                                          + w0[Hn * Dq : o2])  # (N, H)
-                w2_cols = active - o2
-                direct = nw == 3 * Hn  # the whole output layer: its Jacobian block is written in place
-        lin_point = None  # pass 1: linearise at the running estimate; later passes: at the last pass's result
-        relin = []
-        for _pass in range(cfg.passes):
-            w_full = w0.clone()
-            x = torch.cat([w0[active], t, torch.zeros(nd, **kw), gamma0])
-            P = torch.diag(torch.cat([sigma_w0[active], torch.full((3,), cfg.sigma_t0, **kw),
-                                      torch.full((nd,), cfg.sigma_misfit, **kw), unit_sig]).square())
-            xw, xt, xd, xg = x[iw], x[it], x[id_], x[ig]  # views: x is only ever updated in place
-            Pt_rows, Pg_rows, Pt_cols, Pg_cols = P[it, :], P[ig, :], P[:, it], P[:, ig]
-            W2 = xw.view(3, Hn) if direct else None
-            Hw = H[:, iw].view(3, 3, Hn) if direct else None
-            qyy = 1.0
-            status = "ok"
-            geo = torch.full((N, 3), float("nan"), **kw)
-            ngo = torch.full((N, 3), float("nan"), **kw)
-            nis = torch.full((N,), float("nan"), **kw)
-            qyy_h = torch.full((N,), float("nan"), **kw)
-            blocks = []  # (first row's sample, gamma_lin, u, U) of each linearisation block
-            B = cfg.relinearise_every
-            for i in range(n_train):
-                if i % B == 0:  # (re)linearise u (module docstring)
-                    g_lin = xg.clone() if lin_point is None else lin_point
-                    lo, hi = max(i - 1, 0), min(i + B, n_train)  # rows: the sample before the block, then the block
-                    u, U = self._linearise(index, g_lin, q[lo:hi])
-                    blocks.append((lo, g_lin, u, U))
-                    du, dU = u.diff(dim=0), U.diff(dim=0)  # the block's increments (row j: sample lo + j + 1)
-                    with torch.no_grad():
-                        R_lin = index.rotation(g_lin)
-                    R_axes = R_lin[:, rot_axes]
-                    if features is not None:
-                        Ros = R_lin * float(net.out_scale)
-                        ng_bias = Ros @ w_full[o3:]
-                    elif net is not None:
-                        jac = _StepJacobian(net, q[None], R_lin, 1)
-                if i > 0:  # prediction (Eqs. 14-19)
-                    j = i - lo - 1
-                    xt += du[j] + dU[j] @ (xg - g_lin)
-                    Pt_rows += dU[j] @ Pg_rows  # P = F P F^T, F = I + (rows t, columns gamma: dU)
-                    Pt_cols += Pg_cols @ dU[j].T
-                    if nd:  # the correlated misfit decays towards zero
-                        xd *= phi
-                        P[id_, :] *= phi
-                        P[:, id_] *= phi
-                        P[id_, id_] += (1.0 - phi**2) * cfg.sigma_misfit**2 * eye3
-                    if cfg.q_t > 0:
-                        P[it, it] += cfg.q_t**2 * eye3
-                    if cfg.q_w > 0:
-                        P.diagonal()[iw] += cfg.q_w**2
-                geo[i] = xt
-                qyy_h[i] = qyy
-                # observation (Eq. 20) and its Jacobian (Eq. 21)
-                if direct:  # fixed features, the whole output layer in the state
-                    a = features[i]
-                    ng = Ros @ (W2 @ a) + ng_bias
-                    torch.mul(Ros[:, :, None], a, out=Hw)
-                elif features is not None:
-                    a = features[i]
-                    w_full[active] = xw
-                    ng = Ros @ (w_full[o2:o3].view(3, Hn) @ a) + ng_bias
-                    H[:, iw] = torch.kron(Ros, a[None, :])[:, w2_cols]
-                elif net is not None:
-                    w_full[active] = xw
-                    ng, Hwt = jac(w_full[None], i)
-                    ng = ng[0]
-                    H[:, iw] = Hwt[0, :, active]
-                else:
-                    ng = zero3
-                if rot:
-                    H[:, rot_cols] = _rotation_columns(R_axes, ng)
-                ngo[i] = ng
-                e = y[i] - xt - ng - xd if nd else y[i] - xt - ng
-                Ut = H @ P
-                S = torch.addmm(Ryy_q[i], Ut, H.T).add_(eye3, alpha=qyy * cfg.sigma_tracker**2)
-                L, info = torch.linalg.cholesky_ex(S)
-                if int(info) != 0:
-                    status = f"diverged at sample {i}: innovation covariance not positive definite"
-                    break
-                Kt = torch.cholesky_solve(Ut, L)  # K^T = S^-1 H P, (3, n)
-                v = torch.cholesky_solve(e[:, None], L)
-                nis[i] = e @ v[:, 0]
-                x += e @ Kt
-                # Joseph form as one rank-6 update (as in ekf.py): P - K U^T - U K^T + K S K^T
-                P.addmm_(torch.cat([-Kt, S @ Kt - Ut]).T, torch.cat([Ut, Kt]))
-                if (i + 1) % cfg.nis_window == 0:
-                    P.copy_(0.5 * (P + P.T))
-                    pd = P.diagonal()
-                    if float(pd.min()) < -1e-9 * float(pd.max()):
-                        status = f"diverged by sample {i}: negative state variance"
-                        break
-                    ratio = float(nis[i + 1 - cfg.nis_window : i + 1].mean()) / 3.0
-                    if ratio > 1e4:
-                        status = f"diverged at sample {i}: NIS {ratio * 3:.3g} far outside its chi2 band"
-                        break
-                    if cfg.adapt_qyy and not band[0] <= ratio <= band[1]:
-                        qyy = min(max(qyy * ratio, 1e-2), 1e6)
-            w_full[active] = xw
-            relin.append(self._remainders(index, blocks, x[ig], q, _pass + 1))
-            if status != "ok":
-                break
-            lin_point = x[ig].clone()
-        P = 0.5 * (P + P.T)
-        t, gamma = x[it].clone(), x[ig].clone()
-        last = i  # the last sample filtered (all of the training part unless diverged)
+                    s.features = torch.tanh(((q - net.q_offset) / net.q_scale) @ w0[: Hn * Dq].view(Hn, Dq).T
+                                            + w0[Hn * Dq : s.o2])  # (N, H)
+                s.w2_cols = active - s.o2
+                s.direct = nw == 3 * Hn  # the whole output layer: its Jacobian block is written in place
+        return s
+
+    def _finish(self, s: _Setup, p: _Pass, relin: list[dict]) -> AdaptiveResult:
+        """Back-substitute the instrument translation, predict the test phase, collect the result."""
+        q, n_train, kw = s.q, s.n_train, s.kw
+        P = 0.5 * (p.P + p.P.T)
+        t, gamma = p.xt.clone(), p.xg.clone()
         with torch.no_grad():
-            u_end, U_end = self._linearise(index, gamma, q[last:])  # exact u at the final gamma
-            R_end = index.rotation(gamma)
+            u_end, U_end = self._linearise(s.index, gamma, q[p.last :])  # exact u at the final gamma
+            R_end = s.index.rotation(gamma)
         # back-substitution: c = t - R(gamma) p(theta_last; gamma) = R_nom t_delta + t_nom
-        T_nom = robot.instrument.nominal
+        T_nom = self.robot.instrument.nominal
         G = torch.cat([torch.eye(3, **kw), -U_end[0]], dim=1)  # dc/d[t; gamma]
-        tg = torch.cat([torch.arange(nw, nw + 3), torch.arange(ig.start, n)])
+        tg = torch.cat([torch.arange(s.nw, s.nw + 3), torch.arange(s.ig.start, s.n)])
         C = G @ P[tg][:, tg] @ G.T
         trans = T_nom[:3, :3].T @ (t - u_end[0] - T_nom[:3, 3])
         trans_std = (T_nom[:3, :3].T @ C @ T_nom[:3, :3]).diagonal().clamp(min=0).sqrt()
-        if status == "ok":  # test phase: the relative kinematics at the final gamma, no updates
-            geo[n_train:] = t + u_end[1:] - u_end[0]
-            ngo[n_train:] = 0.0 if net is None else net.forward_flat(w_full, q[n_train:]) @ R_end.T
+        if p.status == "ok":  # test phase: the relative kinematics at the final gamma, no updates
+            p.geo[n_train:] = t + u_end[1:] - u_end[0]
+            p.ngo[n_train:] = 0.0 if self.net is None else self.net.forward_flat(p.w_full, q[n_train:]) @ R_end.T
         return AdaptiveResult(
-            names=[p.name for p in params], units=[p.unit for p in params], gamma0=gamma0, gamma=gamma,
-            gamma_std=P.diagonal()[ig].clamp(min=0).sqrt(), instrument_translation=trans,
-            instrument_translation_std=trans_std, geometric=geo, nongeometric=ngo, nis=nis, q_yy=qyy_h, w=w_full,
-            active=active, t=t, P=P, n_train=n_train, status=status, relinearisations=relin,
-            seconds=time.perf_counter() - t_start, parameters=list(params))
+            names=[i.name for i in s.params], units=[i.unit for i in s.params], gamma0=s.gamma0, gamma=gamma,
+            gamma_std=P.diagonal()[s.ig].clamp(min=0).sqrt(), instrument_translation=trans,
+            instrument_translation_std=trans_std, geometric=p.geo, nongeometric=p.ngo, nis=p.nis, q_yy=p.qyy_h,
+            w=p.w_full, active=s.active, t=t, P=P, n_train=n_train, status=p.status, relinearisations=relin,
+            parameters=list(s.params))
 
     # ------------------------------------------------------------------- the batch counterpart
     def batch(self, q: Tensor, y: Tensor, parameters: list[ParameterInfo] | None = None, iterations: int = 10,
@@ -649,6 +566,202 @@ class _Index:
         """``R(gamma)`` of ``T_tracker_base`` with the selected instrument rotation set from ``x``."""
         inst = self.params(x).get("instrument.delta", self.robot.instrument.delta.detach())
         return self.robot.instrument.nominal[:3, :3] @ tf.so3_exp(inst[3:])
+
+
+@dataclass
+class _Setup:
+    """What every pass of :meth:`AdaptiveEKF.run` shares (built by :meth:`AdaptiveEKF._setup`).
+
+    State layout ``x = [w[active]; t; d; gamma]`` with the slices ``iw, it, id_, ig``; ``features`` are the
+    fixed hidden layer's activations ``(N, H)`` when only output weights are in the state (``direct`` when all of
+    them are), else None.
+    """
+
+    q: Tensor
+    y: Tensor
+    n_train: int
+    kw: dict
+    params: list[ParameterInfo]
+    index: _Index
+    w0: Tensor
+    sigma_w0: Tensor
+    active: Tensor
+    nw: int
+    nd: int
+    n: int
+    unit_sig: Tensor | None = None
+    gamma0: Tensor | None = None
+    t0: Tensor | None = None
+    Ryy_q: Tensor | None = None  # joint noise at the probe per training sample (N_train, 3, 3)
+    rot_cols: list[int] = field(default_factory=list)  # state columns of the instrument rotation
+    rot_axes: list[int] = field(default_factory=list)  # and their axes
+    features: Tensor | None = None
+    w2_cols: Tensor | None = None
+    direct: bool = False
+    Hn: int = 0
+    o2: int = 0  # end of the hidden layer in the flat weights
+    o3: int = 0  # end of the output weights
+
+    @property
+    def iw(self) -> slice:
+        return slice(0, self.nw)
+
+    @property
+    def it(self) -> slice:
+        return slice(self.nw, self.nw + 3)
+
+    @property
+    def id_(self) -> slice:
+        return slice(self.nw + 3, self.nw + 3 + self.nd)
+
+    @property
+    def ig(self) -> slice:
+        return slice(self.nw + 3 + self.nd, self.n)
+
+
+class _Pass:
+    """One filter pass over the training samples: the state, its covariance and the per-sample outputs.
+
+    :meth:`filter` runs the steps of the module docstring per sample: :meth:`relinearise` (at block starts),
+    :meth:`predict`, :meth:`observe`, :meth:`update`, and :meth:`check_window` at the end of each NIS window.
+    ``x`` is only ever updated in place, so its blocks ``xw, xt, xd, xg`` (and ``P``'s row and column blocks)
+    are views set up once.
+    """
+
+    def __init__(self, flt: AdaptiveEKF, s: _Setup, lin_point: Tensor | None):
+        cfg, kw = flt.config, s.kw
+        self.flt, self.s, self.cfg, self.net, self.lin_point = flt, s, cfg, flt.net, lin_point
+        self.phi = math.exp(-1.0 / cfg.misfit_samples)  # Gauss-Markov misfit: d_i = phi d_{i-1} + noise
+        self.band = nis_band(cfg.nis_window, cfg.nis_alpha)
+        self.w_full = s.w0.clone()
+        self.x = torch.cat([s.w0[s.active], s.t0, torch.zeros(s.nd, **kw), s.gamma0])
+        self.P = torch.diag(torch.cat([s.sigma_w0[s.active], torch.full((3,), cfg.sigma_t0, **kw),
+                                       torch.full((s.nd,), cfg.sigma_misfit, **kw), s.unit_sig]).square())
+        x, P = self.x, self.P
+        self.xw, self.xt, self.xd, self.xg = x[s.iw], x[s.it], x[s.id_], x[s.ig]
+        self.Pt_rows, self.Pg_rows, self.Pt_cols, self.Pg_cols = P[s.it, :], P[s.ig, :], P[:, s.it], P[:, s.ig]
+        self.eye3, self.zero3 = torch.eye(3, **kw), torch.zeros(3, **kw)
+        self.H = torch.zeros(3, s.n, **kw)
+        self.H[:, s.it] = self.eye3
+        self.H[:, s.id_] = self.eye3[:, : s.nd]
+        self.W2 = self.xw.view(3, s.Hn) if s.direct else None
+        self.Hw = self.H[:, s.iw].view(3, 3, s.Hn) if s.direct else None
+        self.qyy = 1.0
+        self.status = "ok"
+        N = len(s.q)
+        self.geo = torch.full((N, 3), float("nan"), **kw)
+        self.ngo = torch.full((N, 3), float("nan"), **kw)
+        self.nis = torch.full((N,), float("nan"), **kw)
+        self.qyy_h = torch.full((N,), float("nan"), **kw)
+        self.blocks = []  # (first row's sample, gamma_lin, u, U) of each linearisation block
+        self.last = 0  # the last sample filtered
+
+    def filter(self) -> str:
+        """Run the pass; returns its status ("ok" or why it stopped)."""
+        s, cfg = self.s, self.cfg
+        for i in range(s.n_train):
+            self.last = i
+            if i % cfg.relinearise_every == 0:
+                self.relinearise(i)
+            if i > 0:
+                self.predict(i)
+            self.geo[i] = self.xt
+            self.qyy_h[i] = self.qyy
+            e = self.observe(i)
+            if not self.update(i, e):
+                break
+            if (i + 1) % cfg.nis_window == 0 and not self.check_window(i):
+                break
+        self.w_full[s.active] = self.xw
+        return self.status
+
+    def relinearise(self, i: int) -> None:
+        """Linearise ``u`` over the block starting at sample ``i`` (module docstring, *Linearisation*)."""
+        s, net = self.s, self.net
+        self.g_lin = self.xg.clone() if self.lin_point is None else self.lin_point
+        self.lo = max(i - 1, 0)  # rows: the sample before the block, then the block
+        hi = min(i + self.cfg.relinearise_every, s.n_train)
+        u, U = self.flt._linearise(s.index, self.g_lin, s.q[self.lo : hi])
+        self.blocks.append((self.lo, self.g_lin, u, U))
+        self.du, self.dU = u.diff(dim=0), U.diff(dim=0)  # the block's increments (row j: sample lo + j + 1)
+        with torch.no_grad():
+            R_lin = s.index.rotation(self.g_lin)
+        self.R_axes = R_lin[:, s.rot_axes]
+        if s.features is not None:
+            self.Ros = R_lin * float(net.out_scale)
+            self.ng_bias = self.Ros @ self.w_full[s.o3 :]
+        elif net is not None:
+            self.jac = NetworkJacobian(net, s.q[None], R_lin, 1)
+
+    def predict(self, i: int) -> None:
+        """Prediction (Eqs. 14-19): ``t += du + dU (gamma - gamma_lin)``, ``P = F P F^T`` (+ Q)."""
+        cfg, s, P = self.cfg, self.s, self.P
+        j = i - self.lo - 1
+        self.xt += self.du[j] + self.dU[j] @ (self.xg - self.g_lin)
+        self.Pt_rows += self.dU[j] @ self.Pg_rows  # F = I + (rows t, columns gamma: dU)
+        self.Pt_cols += self.Pg_cols @ self.dU[j].T
+        if s.nd:  # the correlated misfit decays towards zero
+            phi = self.phi
+            self.xd *= phi
+            P[s.id_, :] *= phi
+            P[:, s.id_] *= phi
+            P[s.id_, s.id_] += (1.0 - phi**2) * cfg.sigma_misfit**2 * self.eye3
+        if cfg.q_t > 0:
+            P[s.it, s.it] += cfg.q_t**2 * self.eye3
+        if cfg.q_w > 0:
+            P.diagonal()[s.iw] += cfg.q_w**2
+
+    def observe(self, i: int) -> Tensor:
+        """Observation (Eq. 20) and its Jacobian (Eq. 21) into ``H``; returns the innovation ``e (3,)``."""
+        s, H = self.s, self.H
+        if s.direct:  # fixed features, the whole output layer in the state
+            a = s.features[i]
+            ng = self.Ros @ (self.W2 @ a) + self.ng_bias
+            torch.mul(self.Ros[:, :, None], a, out=self.Hw)
+        elif s.features is not None:
+            a = s.features[i]
+            self.w_full[s.active] = self.xw
+            ng = self.Ros @ (self.w_full[s.o2 : s.o3].view(3, s.Hn) @ a) + self.ng_bias
+            H[:, s.iw] = torch.kron(self.Ros, a[None, :])[:, s.w2_cols]
+        elif self.net is not None:
+            self.w_full[s.active] = self.xw
+            ng, Hwt = self.jac(self.w_full[None], i)
+            ng = ng[0]
+            H[:, s.iw] = Hwt[0, :, s.active]
+        else:
+            ng = self.zero3
+        if s.rot_cols:
+            H[:, s.rot_cols] = _rotation_columns(self.R_axes, ng)
+        self.ngo[i] = ng
+        return s.y[i] - self.xt - ng - self.xd if s.nd else s.y[i] - self.xt - ng
+
+    def update(self, i: int, e: Tensor) -> bool:
+        """Gain and update (Eqs. 7-9) with the Joseph form; False (and ``status``) when ``S`` is not PD."""
+        H, P = self.H, self.P
+        Ut = H @ P
+        S = torch.addmm(self.s.Ryy_q[i], Ut, H.T).add_(self.eye3, alpha=self.qyy * self.cfg.sigma_tracker**2)
+        L, info = torch.linalg.cholesky_ex(S)
+        if int(info) != 0:
+            self.status = f"diverged at sample {i}: innovation covariance not positive definite"
+            return False
+        Kt = torch.cholesky_solve(Ut, L)  # K^T = S^-1 H P, (3, n)
+        v = torch.cholesky_solve(e[:, None], L)
+        self.nis[i] = e @ v[:, 0]
+        self.x += e @ Kt
+        joseph_update_(P, Ut, Kt, S)
+        return True
+
+    def check_window(self, i: int) -> bool:
+        """End of a NIS window (:func:`~torchcal.filter._kalman.window_health`); False (and ``status``) on
+        divergence, else the variance factor adapted."""
+        W = self.cfg.nis_window
+        health = window_health(self.P[None], self.nis[None, i + 1 - W : i + 1], torch.tensor([self.qyy]), i,
+                               self.band, self.cfg.adapt_qyy)
+        if bool(health.failed[0]):
+            self.status = health.reasons[0]
+            return False
+        self.qyy = float(health.qyy[0])
+        return True
 
 
 def _rotation_columns(R_axes: Tensor, ng: Tensor) -> Tensor:
