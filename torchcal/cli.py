@@ -145,6 +145,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(pr)
     _add_common(pr)
 
+    cp = sub.add_parser("compensate", help="joint commands that reach targets by the calibrated model",
+                        description="For every row of TARGETS (x,y,z in the instrument frame, and/or nominal joints "
+                        "q1..qN of a robot program), write the joint commands that the calibrated model (geometry, "
+                        "effects, learned correction) says put the probe there, with the remaining miss [m] and a "
+                        "status (converged, limit, unreachable). x,y,z with q1..qN: reach x,y,z starting from q. "
+                        "q1..qN alone: reach the point the nominal model reaches with q. x,y,z alone: start from "
+                        "--start or from the nominal inverse kinematics. t and temperature columns feed effects "
+                        "that read them. Output in SI units (rad, m); rows not reached are named on stderr and "
+                        "kept in the file.")
+    cp.add_argument("run", help="run directory written by calibrate")
+    cp.add_argument("targets", help="CSV with x,y,z and/or q1..qN (CONTRACT §1 units)")
+    cp.add_argument("--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], "
+                    "status")
+    cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
+    _add_units(cp)
+    _add_common(cp)
+
     cv = sub.add_parser("convert", help="convert a third-party data set into a measurement file",
                         description="Convert a third-party data set into a torchcal measurement file (CSV).")
     cv.add_argument("source", help="the file to convert")
@@ -255,6 +272,40 @@ def cmd_predict(args) -> int:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_measurements(args.out, out)
     _console.info(f"wrote {len(p)} predictions to {args.out}")
+    return 0
+
+
+def cmd_compensate(args) -> int:
+    from torchcal.compensate import Status, compensate, program_targets, write_joints
+    from torchcal.data import read_measurements
+    from torchcal.report import load_model
+
+    check_out_file(args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []))
+    model, meta = load_model(args.run)
+    robot = model.robot
+    kw = dict(dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit, angle_unit=args.angle_unit,
+              require_positions=False, robot_name=robot.name)
+    data = read_measurements(args.targets, require_joints=False, **kw)
+    has_q = data.dof > 0
+    q_start = data.q if has_q else None
+    if args.start is not None:
+        start = read_measurements(args.start, **kw)
+        if start.n != data.n:
+            raise TorchcalError(f"{args.start}: {start.n} start rows for {data.n} targets in {args.targets}; "
+                                "give one start row per target")
+        q_start = start.q
+    targets = data.p if data.p is not None else program_targets(model, data.q)
+    trajectory = bool(meta.get("trajectory")) and data.t is not None
+    context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
+    res = compensate(model, targets, q_start, context=context)
+    write_joints(args.out, res, targets=data.p, t=data.t, temperature=data.temperature, extra=data.extra,
+                 meta={"compensated_by": str(args.run)})
+    bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
+    for i in bad:
+        print(f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
+              f"the target by {float(res.miss[i]) * 1e3:.4f} mm", file=sys.stderr)
+    _console.info(f"wrote {data.n} joint commands to {args.out}: " + ", ".join(f"{v} {k}" for k, v in
+                                                                            res.counts().items()))
     return 0
 
 
@@ -371,6 +422,7 @@ def cmd_demo(args) -> int:
 
 
 COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "predict": cmd_predict, "convert": cmd_convert,
+            "compensate": cmd_compensate,
             "demo": cmd_demo}
 
 

@@ -1,6 +1,7 @@
 """URDF export: the calibrated robot written as URDF reads back to the same float64 geometry."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -192,7 +193,7 @@ def test_options_and_errors(tmp_path):
 
 
 def test_tip_on_the_last_moving_link(tmp_path):
-    # a URDF chain may end on the last joint's child: then O_tip = I and no separate tip joint is written
+    # a URDF chain may end on the last joint's child: then O_tip = I and no tip joint is added
     nominal = write_urdf(torchcal.load_robot("ur5"), tmp_path / "ur5.urdf", probe=False, tracker=False)
     robot = perturb(torchcal.load_robot(nominal, tip_link="link6"), 6)
     assert robot.link_names[-2:] == ["link6", "link6"]
@@ -202,4 +203,96 @@ def test_tip_on_the_last_moving_link(tmp_path):
     q = random_q(robot, 20)
     with torch.no_grad():
         assert (back(q) - robot(q)).abs().max().item() <= 1e-9
-        assert (torchcal.load_robot(path)(q) - robot(q) @ tf.translation(robot.t_flange_probe())).abs().max() <= 1e-9
+        # the user's own file keeps its flange leaf beside the added probe: name the tip
+        probe = torchcal.load_robot(path, tip_link="probe")
+        assert (probe(q) - robot(q) @ tf.translation(robot.t_flange_probe())).abs().max() <= 1e-9
+
+
+# ------------------------------------------------------------------ the user's own URDF, written back
+KINOVA_LIKE = Path(__file__).parent / "data" / "kinova_like.urdf"
+
+
+def _canonical(path, skip_joints=(), skip_frames=("probe", "tracker")):
+    """The URDF's XML as nested tuples, without comments, the origins of ``skip_joints`` and the added frames."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(path).getroot()
+
+    def node(el):
+        kids = [c for c in el if isinstance(c.tag, str)]
+        if el.tag == "joint" and el.get("name") in skip_joints:
+            kids = [c for c in kids if c.tag != "origin"]
+        return (el.tag, tuple(sorted(el.attrib.items())), (el.text or "").strip(), tuple(node(c) for c in kids))
+
+    kids = [c for c in root if isinstance(c.tag, str)
+            and not (c.tag == "link" and c.get("name") in skip_frames)
+            and not (c.tag == "joint" and c.get("name") in {f"{f}_joint" for f in skip_frames})]
+    return root.tag, tuple(sorted(root.attrib.items())), tuple(node(c) for c in kids)
+
+
+@pytest.mark.parametrize("source", ["panda.urdf", "ur5.urdf", "kinova"])
+def test_user_urdf_kept_apart_from_the_origins(source, tmp_path):
+    import yourdfpy
+
+    path_in = KINOVA_LIKE if source == "kinova" else resolve_robot_spec(source)
+    robot = perturb(torchcal.load_robot(path_in), 11)
+    out = write_urdf(robot, tmp_path / "calibrated.urdf")
+    # equal as XML apart from the chain's joint origins and the two added frames
+    assert _canonical(out, robot.joint_names) == _canonical(path_in, robot.joint_names)
+    # and the origins did change (the calibration is in the file)
+    assert _canonical(out) != _canonical(path_in)
+    a = yourdfpy.URDF.load(str(path_in), load_meshes=False, build_scene_graph=False)
+    b = yourdfpy.URDF.load(str(out), load_meshes=False, build_scene_graph=False)
+    assert [lk.name for lk in b.robot.links] == [lk.name for lk in a.robot.links] + ["probe", "tracker"]
+    assert [j.name for j in b.robot.joints] == [j.name for j in a.robot.joints] + ["probe_joint", "tracker_joint"]
+    for ja in a.robot.joints:
+        jb = b.joint_map[ja.name]
+        assert (jb.type, jb.parent, jb.child) == (ja.type, ja.parent, ja.child)
+        assert np.array_equal(np.asarray(jb.axis), np.asarray(ja.axis))
+        assert (ja.limit is None) == (jb.limit is None)
+        if ja.limit is not None:
+            assert (jb.limit.effort, jb.limit.velocity, jb.limit.lower, jb.limit.upper) == \
+                (ja.limit.effort, ja.limit.velocity, ja.limit.lower, ja.limit.upper)
+        if ja.name not in robot.joint_names:  # fixed joints keep their origin exactly
+            assert np.array_equal(jb.origin, ja.origin)
+    for la in a.robot.links:
+        lb = b.link_map[la.name]
+        assert (la.inertial is None) == (lb.inertial is None)
+        if la.inertial is not None:
+            assert la.inertial.mass == lb.inertial.mass
+            assert np.array_equal(la.inertial.inertia, lb.inertial.inertia)
+        assert [v.geometry.mesh.filename for v in la.visuals if v.geometry.mesh] == \
+            [v.geometry.mesh.filename for v in lb.visuals if v.geometry.mesh]
+    # FK through the file equals the calibrated model's
+    back = torchcal.load_robot(out, tip_link=robot.tip_link)
+    q = random_q(robot, 30, seed=2)
+    with torch.no_grad():
+        assert (back(q) - robot(q)).abs().max().item() <= 1e-12
+        assert (torchcal.load_robot(out, tip_link="probe")(q)
+                - robot(q) @ tf.translation(robot.t_flange_probe())).abs().max().item() <= 1e-12
+
+
+def test_kinova_like_details_survive(tmp_path):
+    robot = perturb(torchcal.load_robot(KINOVA_LIKE), 12)
+    text = write_urdf(robot, tmp_path / "k.urdf").read_text()
+    for kept in ('type="continuous"', 'effort="39" velocity="1.3963"', "package://kortex_description",
+                 'name="EndEffector" type="fixed"', '<link name="Shoulder Link">', "<transmission",
+                 "<gazebo reference", "safety_controller", 'xmlns:xacro="http://www.ros.org/wiki/xacro"',
+                 "values invented"):
+        assert kept in text, kept
+    assert "EndEffector_Link_joint" not in text
+    assert "1e-06" not in text  # no placeholder inertia
+
+
+def test_user_urdf_notes_and_reexport(tmp_path):
+    robot = perturb(torchcal.load_robot("ur5.urdf"), 13)
+    first = write_urdf(robot, tmp_path / "a.urdf", notes=["NOT in this URDF: compliance(joint 2)."])
+    assert "NOT in this URDF: compliance(joint 2)." in first.read_text().split("-->")[0]
+    # calibrating an exported file again updates its probe/tracker frames instead of adding twins
+    again = perturb(torchcal.load_robot(first, tip_link="tool0"), 14)
+    second = write_urdf(again, tmp_path / "b.urdf")
+    assert second.read_text().count('<link name="probe"/>') == 1
+    q = random_q(again, 10)
+    with torch.no_grad():
+        assert (torchcal.load_robot(second, tip_link="probe")(q)
+                - again(q) @ tf.translation(again.t_flange_probe())).abs().max().item() <= 1e-12

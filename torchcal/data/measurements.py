@@ -196,6 +196,7 @@ def read_measurements(
     min_poses: int = 1,
     robot_name: str | None = None,
     purpose: str | None = None,
+    require_joints: bool = True,
 ) -> Measurements:
     """Read and validate a measurement file; return it in SI units.
 
@@ -210,6 +211,8 @@ def read_measurements(
         min_poses: fewer rows than this is an error.
         robot_name: named in messages about the joint count and limits.
         purpose: what the poses are needed for, named in the too-few-poses message.
+        require_joints: whether q1..qN must be present; False lets a file of x, y, z alone through
+            (compensation targets), with ``q`` of shape (N, 0).
 
     Returns:
         The measurements, with ``source`` set to ``str(path)``.
@@ -259,8 +262,9 @@ def read_measurements(
 
     header_line = header_index + 1
     header = _parse_header(path_str, raw_lines[header_index], header_line)
-    layout = _Layout.from_header(path_str, header, header_line, require_positions)
-    _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
+    layout = _Layout.from_header(path_str, header, header_line, require_positions, require_joints)
+    if layout.joints or require_joints:
+        _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
 
     values, lines = _parse_rows(path_str, raw_lines, header_index + 1, header)
     n = len(lines)
@@ -305,7 +309,7 @@ def read_measurements(
     if angle_unit != "rad":
         q = q * ANGLE_UNITS[angle_unit]
 
-    if joint_limits is not None and n:
+    if joint_limits is not None and n and layout.joints:
         _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name)
 
     return Measurements(
@@ -369,7 +373,8 @@ class _Layout:
     extra: list[str]
 
     @classmethod
-    def from_header(cls, path: str, header: list[str], line: int, require_positions: bool) -> _Layout:
+    def from_header(cls, path: str, header: list[str], line: int, require_positions: bool,
+                    require_joints: bool = True) -> _Layout:
         index = {name: k for k, name in enumerate(header)}
         numbers = {}
         for name in header:
@@ -383,9 +388,12 @@ class _Layout:
                     line=line, column=name,
                 )
             numbers[int(digits)] = name
-        if not numbers:
-            _missing(path, header, line, ["q1"], "joint readings q1..qN are required")
-        for k in range(1, max(numbers) + 1):
+        if not numbers and not require_joints:  # x, y alone: name the missing z rather than q1
+            _all_or_none(path, header, line, _POSITION, "probe positions")
+        if not numbers and (require_joints or not all(c in header for c in _POSITION)):
+            why = "joint readings q1..qN are required" if require_joints else "give x, y, z or q1..qN (or both)"
+            _missing(path, header, line, ["q1"], why)
+        for k in range(1, max(numbers, default=0) + 1):
             if k not in numbers:
                 present = ", ".join(numbers[j] for j in sorted(numbers))
                 _missing(path, header, line, [f"q{k}"],

@@ -158,10 +158,18 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         raise EstimationError(f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit "
                               "diverged, nothing was written")
     report = build_report(run)
+    # the URDF carries the geometry only: say what it leaves out and what that costs on the training poses
+    from torchcal.compensate import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
+
+    ctx = Context.from_measurements(run.data.subset(run.train_idx), trajectory=run.trajectory)
+    write_urdf(run.robot, tmp / "robot_calibrated.urdf", notes=urdf_notes(urdf_gap(run.model, ctx)))
+    report["urdf"] = {"file": "robot_calibrated.urdf", **urdf_fk_difference(tmp / "robot_calibrated.urdf", run.model,
+                                                                              ctx)}
     text = json.dumps(_json_safe(report), indent=1, allow_nan=False)
     (tmp / "report.json").write_text(text + "\n", encoding="utf-8")
     write_markdown(run, report, tmp)
-    write_urdf(run.robot, tmp / "robot_calibrated.urdf")
+    with open(tmp / "report.md", "a", encoding="utf-8") as f:
+        f.write(urdf_markdown(report["urdf"]))
     src = resolve_robot_spec(run.robot_spec)
     (tmp / "robot").mkdir()
     shutil.copy2(src, tmp / "robot" / src.name)

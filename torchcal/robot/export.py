@@ -1,6 +1,15 @@
 """Write a robot's current (calibrated) geometry as a URDF that reads back to the same float64 numbers.
 
-The file holds the chain exactly as torchcal computes it, ``T_base_flange(q) = O_1 R_1(q_1) ... O_n R_n(q_n)
+Two routes:
+
+* A robot loaded from a URDF (``robot.kind == "urdf"`` and its source file still there): the user's own
+  description is written back with only the origins of the chain's movable joints changed to their
+  calibrated values (:func:`user_urdf_string`); meshes, inertias, limits, joint types, names, materials,
+  transmissions, plugins and comments survive as they were. Two fixed frames are added (or, where the file
+  is a previous torchcal export that already has them, updated): ``probe`` and ``tracker`` as below.
+* A DH robot: a URDF is generated (:func:`urdf_string`), as follows.
+
+The generated file holds the chain exactly as torchcal computes it, ``T_base_flange(q) = O_1 R_1(q_1) ... O_n R_n(q_n)
 O_tip``: one revolute joint per robot joint with origin ``O_i`` and the joint's axis, a fixed joint to the
 tip with ``O_tip``, and optionally two extra fixed frames carrying the rest of the calibration:
 
@@ -101,8 +110,12 @@ def _comment(text: str) -> str:
     return text.replace("--", "- -")
 
 
-def urdf_string(robot: RobotModel, *, probe: bool = True, tracker: bool = True, name: str | None = None) -> str:
-    """The URDF text that :func:`write_urdf` writes (deterministic: no date, fixed formatting)."""
+def urdf_string(robot: RobotModel, *, probe: bool = True, tracker: bool = True, name: str | None = None,
+                notes: list[str] | None = None) -> str:
+    """The URDF text that :func:`write_urdf` writes for a DH robot (deterministic: no date, fixed formatting).
+
+    ``notes``: extra lines for the header comment (what the URDF leaves out of the calibration).
+    """
     from torchcal._version import __version__
 
     with torch.no_grad():
@@ -157,6 +170,7 @@ def urdf_string(robot: RobotModel, *, probe: bool = True, tracker: bool = True, 
     if robot.has_masses:
         header.append(f"Link masses and centres of mass are the robot's; inertia tensors are a placeholder "
                       f"diagonal ({PLACEHOLDER_INERTIA!r} kg m^2), not calibrated.")
+    header += list(notes or [])
     out = ['<?xml version="1.0"?>', "<!--"]
     out += [f"  {_comment(line)}" for line in header]
     out += ["-->", f"<robot name={quoteattr(robot_name)}>"]
@@ -204,7 +218,7 @@ def urdf_string(robot: RobotModel, *, probe: bool = True, tracker: bool = True, 
 
 
 def write_urdf(robot: RobotModel, path: str | os.PathLike, *, probe: bool = True, tracker: bool = True,
-               name: str | None = None) -> Path:
+               name: str | None = None, notes: list[str] | None = None) -> Path:
     """Write the robot's current (calibrated) geometry, instrument pose and lever arm as a URDF.
 
     Links: ``robot.link_names`` (base, each moving link, tip), plus ``probe`` fixed to the tip at
@@ -213,6 +227,9 @@ def write_urdf(robot: RobotModel, path: str | os.PathLike, *, probe: bool = True
     ``<tip>_joint`` with ``O_tip``; ``probe_joint``, ``tracker_joint``. With masses, each moving link
     gets an ``<inertial>`` with its mass and centre of mass (inertia: a placeholder, see
     :data:`PLACEHOLDER_INERTIA`). Effort and velocity limits are written as 0: not calibrated.
+
+    A URDF robot whose source file exists is written as the user's own file with calibrated joint
+    origins (:func:`user_urdf_string`; ``name`` then renames nothing unless given).
 
     Reloading: with the extra leaves, :func:`torchcal.load_robot` picks ``probe`` as the tip (the leaf
     reached through the most joints); pass ``tip_link=<the original tip>`` for ``T_base_flange``.
@@ -223,6 +240,7 @@ def write_urdf(robot: RobotModel, path: str | os.PathLike, *, probe: bool = True
         probe: add the ``probe`` link.
         tracker: add the ``tracker`` link.
         name: the URDF robot name (default ``robot.name``).
+        notes: extra lines for the header comment.
 
     Returns:
         The path written.
@@ -232,7 +250,10 @@ def write_urdf(robot: RobotModel, path: str | os.PathLike, *, probe: bool = True
     path = Path(path)
     if not path.parent.is_dir():
         raise RobotSpecError(f"{path}: cannot write URDF, directory '{path.parent}' does not exist")
-    text = urdf_string(robot, probe=probe, tracker=tracker, name=name)
+    if robot.kind == "urdf" and robot.source is not None and Path(robot.source).is_file():
+        text = user_urdf_string(robot, probe=probe, tracker=tracker, name=name, notes=notes)
+    else:
+        text = urdf_string(robot, probe=probe, tracker=tracker, name=name, notes=notes)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
@@ -248,3 +269,152 @@ def write_urdf(robot: RobotModel, path: str | os.PathLike, *, probe: bool = True
             os.unlink(tmp)
         raise
     return path
+
+
+# ------------------------------------------------------------------------------ the user's own URDF
+def _xml_origin(T: torch.Tensor, near: str | None = None) -> dict[str, str]:
+    """xyz/rpy attributes of ``T``; with ``near`` (the file's old rpy), the equivalent rpy triple closest to it.
+
+    ``(r, p, y)`` and ``(r + pi, pi - p, y + pi)`` (each wrapped by 2 pi) are the same rotation; keeping the
+    file's own form (e.g. ``pi/2 pi pi``) leaves the diff to the calibration's small change.
+    """
+    rpy = torch.tensor(exact_rpy(T[:3, :3]), dtype=torch.float64)
+    if near is not None:
+        ref = torch.tensor([float(v) for v in near.split()], dtype=torch.float64)
+        twin = rpy + torch.tensor([math.pi, 0.0, math.pi], dtype=torch.float64)
+        twin[1] = math.pi - rpy[1]
+        best, best_d = rpy, math.inf
+        for cand in (rpy, twin):
+            c = ref + torch.remainder(cand - ref + math.pi, 2 * math.pi) - math.pi  # nearest 2 pi wrap
+            if _rpy_error(T[:3, :3], c) <= RPY_TOLERANCE * 4 and float((c - ref).abs().max()) < best_d:
+                best, best_d = c, float((c - ref).abs().max())
+        rpy = best
+    return {"xyz": _vec(T[:3, 3]), "rpy": _vec(rpy)}
+
+
+def _origin_matrix(el) -> torch.Tensor:
+    """``(4, 4)`` of a URDF ``<origin>`` element (None: identity)."""
+    if el is None:
+        return torch.eye(4, dtype=torch.float64)
+    xyz = [float(v) for v in el.get("xyz", "0 0 0").split()]
+    rpy = [float(v) for v in el.get("rpy", "0 0 0").split()]
+    return tf.homogeneous(tf.rpy_to_matrix(torch.tensor(rpy, dtype=torch.float64)),
+                          torch.tensor(xyz, dtype=torch.float64))
+
+
+def user_urdf_string(robot: RobotModel, *, probe: bool = True, tracker: bool = True, name: str | None = None,
+                     notes: list[str] | None = None) -> str:
+    """The robot's own URDF file (``robot.source``) with calibrated joint origins and added probe/tracker frames.
+
+    Only the ``<origin>`` of the movable joints between ``robot.base_link`` and ``robot.tip_link`` changes:
+    with ``P_i`` the product of the fixed joints in front of joint ``i`` (the loader folds them into
+    ``O_i``), the new origin is ``inv(P_i) @ O_i``, so the file's FK equals the model's to rounding. The
+    XML is edited in place (ElementTree, comments kept), so everything the loader does not model survives.
+
+    Raises:
+        RobotSpecError: the file does not hold the robot's chain any more, or the added frame names clash.
+    """
+    import re
+    import xml.etree.ElementTree as ET
+
+    from torchcal._version import __version__
+
+    src = Path(robot.source)
+    raw = src.read_text(encoding="utf-8")
+    for _, (prefix, uri) in ET.iterparse(src, events=("start-ns",)):
+        ET.register_namespace(prefix, uri)
+    root = ET.fromstring(raw, parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
+    joints = {j.get("name"): j for j in root.findall("joint")}
+    by_child = {j.find("child").get("link"): j for j in root.findall("joint") if j.find("child") is not None}
+    links = {lk.get("name") for lk in root.findall("link")}
+    chain, link = [], robot.tip_link
+    while link != robot.base_link:
+        if link not in by_child:
+            raise RobotSpecError(f"{src}: no joint leads to link '{link}' on the way from '{robot.tip_link}' to "
+                                 f"'{robot.base_link}'; the file no longer holds the calibrated chain")
+        chain.append(by_child[link])
+        link = by_child[link].find("parent").get("link")
+    chain.reverse()
+    movable = [j for j in chain if j.get("type") != "fixed"]
+    if [j.get("name") for j in movable] != list(robot.joint_names):
+        raise RobotSpecError(f"{src}: the chain's movable joints {[j.get('name') for j in movable]} are not the "
+                             f"robot's {list(robot.joint_names)}; the file no longer holds the calibrated chain")
+    with torch.no_grad():
+        O = robot.geometry.origins().detach().to("cpu", torch.float64)
+        T_base_tracker = tf.invert(robot.instrument.matrix().detach().to("cpu", torch.float64))
+        t_flange_probe = robot.tool.vector().detach().to("cpu", torch.float64)
+    pending = torch.eye(4, dtype=torch.float64)
+    i = 0
+    for j in chain:
+        if j.get("type") == "fixed":
+            pending = pending @ _origin_matrix(j.find("origin"))
+            continue
+        new = tf.invert(pending) @ O[i]
+        el = j.find("origin")
+        if el is None:
+            el = ET.Element("origin")
+            j.insert(2, el)
+            el.tail = "\n    "
+        old_rpy = el.get("rpy")
+        el.attrib.clear()
+        el.attrib.update(_xml_origin(new, near=old_rpy))
+        pending = torch.eye(4, dtype=torch.float64)
+        i += 1
+
+    def frame(kind: str, parent: str, T: torch.Tensor) -> None:
+        jname, lname = f"{kind}_joint", kind
+        old = joints.get(jname)
+        if old is not None and old.find("child").get("link") == lname and old.find("parent").get("link") == parent:
+            old.find("origin").attrib.update(_xml_origin(T))  # a previous torchcal export: update in place
+            return
+        if old is not None or lname in links:
+            raise RobotSpecError(f"{src}: cannot add the '{lname}' frame: the file already has a "
+                                 f"{'joint' if old is not None else 'link'} of that name; pass {kind}=False")
+        tail = root[-1].tail if len(root) else "\n"
+        if len(root):
+            root[-1].tail = "\n  "
+        what = ("lever arm t_flange_probe (probe position)" if kind == "probe"
+                else "instrument pose, T_base_tracker = inv(T_tracker_base)")
+        c = ET.Comment(f" added by torchcal: the calibrated {what} ")
+        c.tail = "\n  "
+        lk = ET.Element("link", {"name": lname})
+        lk.tail = "\n  "
+        jt = ET.Element("joint", {"name": jname, "type": "fixed"})
+        jt.text = "\n    "
+        for k, (tag, attrs) in enumerate((("parent", {"link": parent}), ("child", {"link": lname}),
+                                          ("origin", _xml_origin(T)))):
+            e = ET.SubElement(jt, tag, attrs)
+            e.tail = "\n    " if k < 2 else "\n  "
+        jt.tail = tail
+        root.extend([c, lk, jt])
+
+    if probe:
+        frame("probe", robot.tip_link, tf.translation(t_flange_probe))
+    if tracker:
+        frame("tracker", robot.base_link, T_base_tracker)
+    if name is not None:
+        root.set("name", name)
+    # keep the comments in front of <robot>: licence and provenance notices of the original file
+    prolog = raw[: raw.find("<robot")] if "<robot" in raw else ""
+    prolog = re.sub(r"<\?xml[^>]*\?>\s*", "", prolog).strip()
+    header = [
+        f"Written by torchcal {__version__}: the calibrated robot '{robot.name}', in its own URDF "
+        f"({src.name}).",
+        f"Changed: the origins of the movable joints {', '.join(robot.joint_names)} (calibrated values, "
+        "repr() floats).",
+        "Everything else is the original file's. Added frames: 'probe' (the calibrated lever arm, fixed to "
+        f"'{robot.tip_link}') and 'tracker' (the instrument pose, fixed to '{robot.base_link}')."
+        if probe and tracker else "",
+        *(notes or []),
+    ]
+    out = ['<?xml version="1.0"?>', "<!--", *[f"  {_comment(line)}" for line in header if line], "-->"]
+    if prolog:
+        out.append(prolog)
+    # ElementTree writes empty elements as "<x />": back to the usual "<x/>", to keep the diff to the origins
+    body = ET.tostring(root, encoding="unicode").replace(" />", "/>")
+    start = re.search(r"<robot\b[^>]*>", raw)
+    if name is None and start is not None:
+        # the original start tag, with namespace declarations ElementTree drops when nothing uses them
+        body = re.sub(r"<robot\b[^>]*>", lambda _: start.group(0), body, count=1)
+    out.append(body)
+    return "\n".join(out) + "\n"
