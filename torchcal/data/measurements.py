@@ -298,7 +298,7 @@ def read_measurements(
         _check_length_unit(path_str, p, lines, layout, length_unit)
     if sigma is not None and n and length_unit == "m":
         _check_sigma_unit(path_str, sigma, lines, layout)
-    if angle_unit == "rad" and n:
+    if angle_unit == "rad" and n and q.shape[1]:
         _check_angle_unit(path_str, q, lines, layout, joint_limits)
 
     divisor = LENGTH_UNITS[length_unit]
