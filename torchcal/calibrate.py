@@ -70,6 +70,7 @@ class Options:
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
     engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
+    outlier_alpha: float | None = 1e-3  # gross-error screening's family-wise level (None: no screening)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -124,6 +125,7 @@ class CalibrationRun:
     learned_validation_errors: Tensor | None = None  # per pose, of the learned stage's validation poses [m]
     diagnosis: object | None = None  # torchcal.diagnose.Diagnosis of the auto method
     filter: object | None = None  # torchcal.filter.integrated.IntegratedFilter of the integrated method
+    screening: object | None = None  # torchcal.estimate.robust.Screening: the gross errors left out
 
 
 def rmse(e: Tensor) -> float:
@@ -266,9 +268,10 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
 
         require_trajectory(data, trajectory)
     tr, ho = split(data, opts.holdout, opts.seed, trajectory)
+    tr, ho, screening = screen_gross_errors(robot, data, tr, ho, opts, trajectory)
     train, hold = data.subset(tr), data.subset(ho)
     model = MeasurementModel(robot)
-    run = CalibrationRun(robot_spec, robot, model, opts, data, tr, ho, trajectory)
+    run = CalibrationRun(robot_spec, robot, model, opts, data, tr, ho, trajectory, screening=screening)
 
     def record(name):
         run.stages.append(Stage(name, _clone(model), errors(model, hold, trajectory), errors(model, train, trajectory)))
@@ -327,6 +330,30 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
             "rmse_before_mm": s_before.rmse * 1e3, "rmse_after_mm": s_after.rmse * 1e3,
         })
     return run
+
+
+def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: Tensor, opts: Options,
+                        trajectory: bool):
+    """The training and held-out rows without their gross errors (:func:`torchcal.estimate.robust.screen_geometric`).
+
+    Returns the kept training and held-out indices into ``data`` and the screening (None when
+    ``opts.outlier_alpha`` is None). Every later stage sees only the kept rows, and the held-out errors
+    leave the rejected held-out rows out; on data without gross errors nothing changes.
+    """
+    if opts.outlier_alpha is None:
+        return tr, ho, None
+    from torchcal.estimate.robust import screen_geometric
+
+    _console.info("screening for gross errors: robust geometric fit, data snooping")
+    sc = screen_geometric(MeasurementModel(robot), data.subset(tr), data.subset(ho), sigma_tracker=opts.sigma_tracker,
+                          sigma_joint=opts.sigma_joint, trajectory=trajectory, rank_tol=opts.rank_tol,
+                          prior_length=opts.prior_length, prior_angle=opts.prior_angle, alpha=opts.outlier_alpha,
+                          max_iter=opts.max_iter, stat_tol=opts.stat_tol)
+    for name, part in (("training", sc.training), ("held-out", sc.holdout)):
+        if part.rejected:
+            lines = ", ".join(str(r.line) for r in part.rejected[:10]) + (" ..." if len(part.rejected) > 10 else "")
+            _console.info(f"{len(part.rejected)} {name} rows rejected as gross errors (file lines {lines})")
+    return tr[sc.training.kept], ho[sc.holdout.kept], sc
 
 
 def corrections(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
