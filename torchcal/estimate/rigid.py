@@ -131,6 +131,7 @@ def robust_instrument_and_tool(T_base_flange: Tensor, p_tracker: Tensor, t_flang
     Raises:
         EstimationError: when fewer than 3 rows survive, or they do not fix a rotation.
     """
+    T_base_flange, p_tracker = T_base_flange.detach(), p_tracker.detach()
     n = len(p_tracker)
     w0 = torch.ones(n, dtype=p_tracker.dtype) if weights is None else weights.to(p_tracker.dtype)
     centre = p_tracker.median(dim=0).values

@@ -193,7 +193,8 @@ def snooping_statistics(fun: Callable[[Tensor], Tensor], x: Tensor, kept: Tensor
 
 def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: int, *, group: int = 3,
                          names: list[str] | None = None, weights0: Tensor | None = None,
-                         alpha: float = DEFAULT_ALPHA, huber_rounds: int = 2, max_rounds: int = 30,
+                         alpha: float = DEFAULT_ALPHA, huber_rounds: int = 2, irls_rounds: int = 8,
+                         max_rounds: int = 30,
                          max_iter: int = 100, round_iter: int = 10, stat_tol: float = 0.0,
                          sigma0_floor: float = 1.0, max_reject_fraction: float = 0.5,
                          gross: float = GROSS_FACTOR) -> RobustResult:
@@ -206,8 +207,11 @@ def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: 
         x0: start ``(u,)``.
         weights0: starting weights ``(n_groups,)`` (e.g. those of a robust start); default all 1.
         alpha: family-wise level of the snooping test (Bonferroni over the groups).
-        huber_rounds: reweighting rounds with Huber's weights before Tukey's.
-        max_rounds: reweighting rounds at most, and snooping rounds at most.
+        huber_rounds: reweighting rounds with Huber's weights before Tukey's (none when ``weights0`` is given:
+            a robust start needs no convex phase).
+        irls_rounds: reweighting rounds at most; they stop earlier once the rows with zero weight stay the
+            same and no weight moves by 0.05 (the weights only choose where the snooping starts).
+        max_rounds: snooping rounds at most.
         max_iter: LM iterations of a snooping fit; ``round_iter`` those of a reweighting round.
         stat_tol: passed to :func:`levenberg_marquardt`.
         sigma0_floor: the smallest variance factor the statistics are scaled by (module docstring).
@@ -223,8 +227,10 @@ def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: 
     med = _chi2_median(group)
     x = x0.detach().clone()
     w = torch.ones(n, dtype=F64) if weights0 is None else weights0.detach().to(F64).clone()
+    # a robust start's weights already exclude the gross errors: Huber's convex phase is for a plain start
+    huber_rounds = huber_rounds if weights0 is None else 0
     rounds = 0
-    for rnd in range(max_rounds):
+    for rnd in range(irls_rounds):
         rounds += 1
         res = levenberg_marquardt(_weighted(fun, w.sqrt(), group), x, names=names, max_iter=round_iter,
                                   stat_tol=stat_tol)
@@ -241,8 +247,10 @@ def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: 
         else:
             w_new = torch.where(u < c_tukey, (1.0 - (u / c_tukey).square()).square(), torch.zeros_like(u))
         change = float((w_new - w).abs().max())
+        same_zeros = bool(((w_new == 0) == (w == 0)).all())
         w = w_new
-        if rnd >= huber_rounds and change < 1e-3:
+        # the weights only choose where snooping starts: stop once Tukey's zero set is settled
+        if rnd >= huber_rounds and (change < 1e-3 or (same_zeros and change < 0.05)):
             break
 
     # data snooping from the rows the M-estimator kept
