@@ -77,6 +77,7 @@ class Options:
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
     engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
+    outlier_alpha: float | None = 1e-3  # gross-error screening's family-wise level (None: no screening)
     group_tol: float = S.GROUP_TOL  # rad: rows whose joints all agree within it stay on one side of every split
 
     def __post_init__(self):
@@ -123,6 +124,7 @@ class CalibrationRun:
     diagnosis: object | None = None  # torchcal.pipeline.loop.Diagnosis of the auto method
     filter: object | None = None  # torchcal.pipeline.integrated.IntegratedFilter of the integrated method
     split: S.Split | None = None  # the held-out split, with its revisit groups
+    screening: object | None = None  # torchcal.estimate.robust.Screening: the gross errors left out
 
     @property
     def train(self) -> Measurements:
@@ -212,8 +214,9 @@ def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: O
         require_trajectory(data, trajectory)
     split = holdout_split(data, opts.holdout, opts.seed + S.Stream.HOLDOUT, trajectory, opts.group_tol)
     tr, ho = split
+    tr, ho, screening = screen_gross_errors(robot, data, tr, ho, opts, trajectory)
     model = MeasurementModel(robot)
-    run = CalibrationRun(spec, robot, model, opts, data, tr, ho, trajectory, split=split)
+    run = CalibrationRun(spec, robot, model, opts, data, tr, ho, trajectory, split=split, screening=screening)
     train, hold = run.train, run.hold
     if split.merged_groups:
         run.notes.append(f"split: {split.merged_groups} revisited joint configurations ({split.merged_rows} poses) "
@@ -251,3 +254,27 @@ def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: O
         _console.info(f"correction network 6-{opts.hidden}-3 on the remaining position corrections")
         correction_net_stage(run, train, trajectory)
     return run
+
+
+def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: Tensor, opts: Options,
+                        trajectory: bool):
+    """The training and held-out rows without their gross errors (:func:`torchcal.estimate.robust.screen_geometric`).
+
+    Returns the kept training and held-out indices into ``data`` and the screening (None when
+    ``opts.outlier_alpha`` is None). Every later stage sees only the kept rows, and the held-out errors
+    leave the rejected held-out rows out; on data without gross errors nothing changes.
+    """
+    if opts.outlier_alpha is None:
+        return tr, ho, None
+    from torchcal.estimate.robust import screen_geometric
+
+    _console.info("screening for gross errors: robust geometric fit, data snooping")
+    sc = screen_geometric(MeasurementModel(robot), data.subset(tr), data.subset(ho), sigma_tracker=opts.sigma_tracker,
+                          sigma_joint=opts.sigma_joint, trajectory=trajectory, rank_tol=opts.rank_tol,
+                          prior_length=opts.prior_length, prior_angle=opts.prior_angle, alpha=opts.outlier_alpha,
+                          max_iter=opts.max_iter, stat_tol=opts.stat_tol)
+    for name, part in (("training", sc.training), ("held-out", sc.holdout)):
+        if part.rejected:
+            lines = ", ".join(str(r.line) for r in part.rejected[:10]) + (" ..." if len(part.rejected) > 10 else "")
+            _console.info(f"{len(part.rejected)} {name} rows rejected as gross errors (file lines {lines})")
+    return tr[sc.training.kept], ho[sc.holdout.kept], sc

@@ -192,8 +192,13 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
            "measurement precision is overstated."),
         "",
     ]
-    if report["outliers"]["lines"]:
-        lines += [f"Possible outliers (|w| > 3.29), file lines: {report['outliers']['lines'][:30]}", ""]
+    for part, what in (("training", "training"), ("holdout", "held-out")):
+        rows = (report["outliers"].get(part) or {}).get("rows") or []
+        if rows:
+            lines += [f"Gross errors left out of the {what} rows ({len(rows)}; file line: size): "
+                      + ", ".join(f"{r['line']}: {r['size_mm']:.3g} mm" for r in rows[:30])
+                      + (" ..." if len(rows) > 30 else "")
+                      + ("; " + rows[0]["hint"] if rows[0].get("hint") else ""), ""]
     par = report["parameters"]
     lines += ["## Parameters", "", "| parameter | correction | std |", "|---|---:|---:|"]
     for e in par["estimated"]:

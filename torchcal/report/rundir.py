@@ -103,12 +103,10 @@ def build_report(run: CalibrationRun) -> dict:
     st = {s.name: s for s in run.stages}
     final = run.stages[-1]
     last = run.fits[-1]
-    # outliers by Baarda's data snooping on the final least-squares fit, per pose (max over x, y, z)
-    sr = last.result.standardized_residuals()
-    if last.whitening is not None:  # the prior's pseudo-observations follow the poses' residuals: not poses
-        sr = sr[: 3 * len(last.whitening)]
-    w = sr.reshape(-1, 3).abs().max(dim=-1).values
-    outliers = [int(run.data.lines[int(run.train_idx[i])]) for i in torch.nonzero(w > 3.29).flatten()]
+    # gross errors: the robust screening's rejected rows, training and held-out (torchcal.estimate.robust)
+    screening = getattr(run, "screening", None)
+    outliers = (screening.to_dict() if screening is not None else
+                {"method": "none (screening switched off)", "training": None, "holdout": None, "lines": []})
     return {
         "robot": run.robot.name,
         "robot_spec": str(run.robot_spec),
@@ -130,7 +128,7 @@ def build_report(run: CalibrationRun) -> dict:
             "tracker_sigma_m": "per point (sx, sy, sz)" if run.data.sigma is not None else run.options.sigma_tracker,
             "joint_sigma_rad": run.options.sigma_joint,
         },
-        "outliers": {"test": "Baarda data snooping |w| > 3.29 on the final least-squares fit", "lines": outliers},
+        "outliers": _json_safe(outliers),
         "effects": _json_safe(run.effects_report),
         "rejected": _json_safe(run.rejected),
         "diagnosis": _json_safe(run.diagnosis.to_dict()) if run.diagnosis is not None else None,
