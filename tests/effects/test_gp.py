@@ -21,26 +21,27 @@ def _rms(e):
 
 @pytest.mark.parametrize("additive", ["rbf", "periodic"])
 def test_recovers_a_harmonic_on_one_joint(additive):
-    q, g = _joints(500, 0)
-    f = torch.zeros(500, 3, dtype=F64)
+    q, g = _joints(400, 0)
+    f = torch.zeros(400, 3, dtype=F64)
     f[:, 0] = 3e-5 * torch.sin(3 * q[:, 4] + 0.7)
     f[:, 2] = 2e-5 * torch.cos(3 * q[:, 4])
-    y = f + 1e-5 * torch.randn(500, 3, generator=g, dtype=F64)
-    eff, info = fit_gp_correction(Context(q=q[:400]), y[:400], GPSettings(additive=additive))
+    y = f + 1e-5 * torch.randn(400, 3, generator=g, dtype=F64)
+    eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], GPSettings(additive=additive))
     with torch.no_grad():
-        pred = eff(None, Context(q=q[400:]))
-    assert _rms(pred - f[400:]) < 0.2 * _rms(f[400:])
+        pred = eff(None, Context(q=q[300:]))
+    assert _rms(pred - f[300:]) < 0.25 * _rms(f[300:])
     share = info["variable_share"]
-    assert share["q5"] > 0.9, share
-    assert max(v for k, v in share.items() if k != "q5") < 0.05
+    # the one-joint structure goes to joint 5's own component (the ARD part may keep a little of it)
+    assert share["q5"] > 0.7, share
+    assert max(v for k, v in share.items() if k not in ("q5", "ard")) < 0.02
 
 
 def test_ard_length_scales_rank_relevant_joints():
     # an interaction of joints 1 and 2 that no sum of 1-D functions represents: only the ARD part can
-    q, g = _joints(400, 1, span=2.0)
+    q, g = _joints(300, 1, span=2.0)
     f = 1e-4 * (torch.sin(1.5 * q[:, 0]) * torch.sin(1.5 * q[:, 1])).unsqueeze(1) * torch.tensor([1.0, -0.5, 0.3],
                                                                                                 dtype=F64)
-    y = f + 5e-6 * torch.randn(400, 3, generator=g, dtype=F64)
+    y = f + 5e-6 * torch.randn(300, 3, generator=g, dtype=F64)
     eff, info = fit_gp_correction(Context(q=q), y, GPSettings())
     ell = eff.ard_len
     assert float(ell[2:].min()) > 3 * float(ell[:2].max()), ell.tolist()
@@ -98,14 +99,18 @@ def test_fitted_exact_and_sparse_models_agree_when_inducing_is_everything():
 
 
 def test_predictive_std_covers_held_out_data():
-    q, g = _joints(700, 6)
+    q, g = _joints(600, 6)
     f = 1e-4 * torch.stack([torch.sin(2 * q[:, 1]) * torch.cos(q[:, 2]), torch.cos(2 * q[:, 0]),
                             torch.sin(3 * q[:, 5])], 1)
-    y = f + 2e-5 * torch.randn(700, 3, generator=g, dtype=F64)
-    _, info = fit_gp_correction(Context(q=q[:500]), y[:500], GPSettings(), ctx_val=Context(q=q[500:]),
-                                y_val=y[500:])
+    y = f + 2e-5 * torch.randn(600, 3, generator=g, dtype=F64)
+    eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], GPSettings(), ctx_val=Context(q=q[300:]),
+                                  y_val=y[300:])
     assert 0.9 <= info["val_coverage_2sigma"] <= 0.99
-    assert info["val_rmse_m"] < 0.6 * _rms(f[500:])
+    assert info["val_rmse_m"] < 0.6 * _rms(f[300:])
+    # an alternating refit starts from these hyperparameters and needs few evaluations of the evidence
+    again, info2 = fit_gp_correction(Context(q=q[:300]), y[:300] * 1.01, GPSettings(), warm=eff, warm_iterations=5)
+    assert info2["evidence_evaluations"] <= 8
+    assert torch.allclose(again.ard_len, eff.ard_len, rtol=0.2)
 
 
 def test_config_and_state_dict_round_trip_with_time_input():

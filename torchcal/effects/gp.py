@@ -47,7 +47,7 @@ F64 = torch.float64
 ADDITIVE_FORMS = ("rbf", "periodic")
 EXTRA_INPUTS = ("t", "temperature")
 _JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite in float64
-_BLOCK = 2048  # rows per block when streaming K_uf (memory O(m * block))
+_BLOCK = 512  # rows per block when streaming K_uf (memory O(m * block * variables))
 
 
 @dataclass
@@ -92,22 +92,32 @@ class GPSettings:
 # ----------------------------------------------------------------------------- kernel
 
 
-def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool) -> Tensor:
-    """``k(x, z)`` ``(n, m)`` of the module docstring; ``h`` holds the positive hyperparameters."""
-    out = None
-    for j in range(x.shape[1]):
-        d = x[:, j : j + 1] - z[:, j].unsqueeze(0)
-        if bool(periodic[j]):
-            r2 = 4.0 * torch.sin(0.5 * d).square() / h["add_len"][j].square()
-        else:
-            r2 = (d / h["add_len"][j]).square()
-        term = h["add_var"][j] * torch.exp(-0.5 * r2)
-        out = term if out is None else out + term
+def _dist(x: Tensor, z: Tensor, periodic: Tensor) -> Tensor:
+    """Per-variable squared distances ``(n, m, d)``: ``(x_j - z_j)^2``, or ``4 sin^2((x_j - z_j) / 2)`` where periodic.
+
+    They do not depend on the hyperparameters, so the evidence fit computes them once.
+    """
+    d = x.unsqueeze(1) - z.unsqueeze(0)
+    if bool(periodic.any()):
+        d = torch.where(periodic, 2.0 * torch.sin(0.5 * d), d)
+    return d.square()
+
+
+def _kern(D: Tensor, h: dict[str, Tensor], ard: bool) -> Tensor:
+    """``k`` of the module docstring ``(n, m)`` from the distances of :func:`_dist`."""
+    K = torch.exp(D * (-0.5 / h["add_len"].square())) @ h["add_var"]
     if ard:
-        lx, lz = x / h["ard_len"], z / h["ard_len"]
-        sq = (lx.square().sum(1, keepdim=True) + lz.square().sum(1).unsqueeze(0) - 2.0 * lx @ lz.T).clamp_min(0.0)
-        out = out + h["ard_var"] * torch.exp(-0.5 * sq)
-    return out
+        K = K + h["ard_var"] * torch.exp(-0.5 * (D @ (1.0 / h["ard_len"].square())))
+    return K
+
+
+def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool) -> Tensor:
+    """``k(x, z)`` ``(n, m)`` of the module docstring; ``h`` holds the positive hyperparameters.
+
+    Where the additive form is periodic the ARD component uses the same periodic distance (a product of
+    periodic kernels, positive definite as well).
+    """
+    return _kern(_dist(x, z, periodic), h, ard)
 
 
 def _prior_var(h: dict[str, Tensor], ard: bool) -> Tensor:
@@ -116,26 +126,35 @@ def _prior_var(h: dict[str, Tensor], ard: bool) -> Tensor:
 
 
 def _chol(K: Tensor, jitter: Tensor) -> Tensor:
-    K = K + jitter * torch.eye(len(K), dtype=K.dtype)
-    L, info = torch.linalg.cholesky_ex(K)
-    if int(info) != 0:  # rare: duplicated inducing inputs; a larger jitter, then give up
-        L, info = torch.linalg.cholesky_ex(K + 1e3 * jitter * torch.eye(len(K), dtype=K.dtype))
-        if int(info) != 0:
-            from torchcal.errors import EstimationError
+    """Cholesky factor of ``K + jitter I``; where that fails (near-duplicate inducing inputs, or length scales so
+    long that ``K`` is numerically singular) the jitter grows tenfold, up to 1e-4 of the prior variance."""
+    eye = torch.eye(len(K), dtype=K.dtype)
+    jitter = jitter.detach()  # a numerical guard, not a hyperparameter
+    scale = float(jitter) if float(jitter) > 0 else 0.0
+    for _ in range(5):
+        L, info = torch.linalg.cholesky_ex(K + jitter * eye)
+        if int(info) == 0:
+            return L
+        scale = max(scale * 10.0, 1e-10 * float(K.diagonal().mean()))
+        jitter = torch.tensor(scale, dtype=K.dtype)
+    from torchcal.errors import EstimationError
 
-            raise EstimationError(f"GP: inducing covariance ({len(K)}x{len(K)}) is not positive definite")
-    return L
+    raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
 
 
 def _bound(x: Tensor, y: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool,
-           exact: bool) -> Tensor:
-    """Titsias's collapsed evidence bound (exact log marginal likelihood when ``exact``), summed over outputs."""
+           exact: bool, dists: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """Titsias's collapsed evidence bound (exact log marginal likelihood when ``exact``), summed over outputs.
+
+    ``dists``: the distances ``(_dist(z, z), _dist(z, x))`` when precomputed.
+    """
     n, p = y.shape
     s2 = h["noise"]
     kxx = _prior_var(h, ard)
-    Kuu = _kernel(z, z, h, periodic, ard)
+    Duu, Duf = dists if dists is not None else (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
+    Kuu = _kern(Duu, h, ard)
     Lu = _chol(Kuu, _JITTER * kxx)
-    Kuf = Kuu if exact else _kernel(z, x, h, periodic, ard)
+    Kuf = Kuu if exact else _kern(Duf, h, ard)
     A = torch.linalg.solve_triangular(Lu, Kuf, upper=False) / s2.sqrt()  # (m, n)
     B = A @ A.T
     B.diagonal().add_(1.0)
@@ -332,28 +351,36 @@ def _initial(d: int, n_joints: int, periodic: bool) -> Tensor:
 
 
 def fit_hyperparameters(x: Tensor, y: Tensor, z: Tensor, *, periodic: Tensor, ard: bool, iterations: int,
-                        n_joints: int) -> tuple[dict[str, Tensor], dict]:
+                        n_joints: int, start: dict[str, Tensor] | None = None) -> tuple[dict[str, Tensor], dict]:
     """Maximise the (collapsed) evidence over the log hyperparameters with L-BFGS.
 
     Args:
         x: inputs ``(n, d)``, standardised; y: outputs ``(n, p)``, standardised; z: inducing inputs ``(m, d)``
             (``z is x`` gives the exact marginal likelihood).
+        start: hyperparameters to start from (a previous fit's :meth:`GPCorrection.hyper`), else a default.
 
     Returns:
         The hyperparameters and ``{"log_evidence_per_row", "evaluations"}``.
     """
     d = x.shape[1]
     exact = z is x
-    theta = _initial(d, n_joints, bool(periodic[:n_joints].any())).requires_grad_(True)
+    theta = _initial(d, n_joints, bool(periodic[:n_joints].any()))
+    if start is not None:
+        noise = (start["noise"] - 1e-6).clamp_min(1e-6)
+        theta = torch.cat([start["add_var"].clamp_min(1e-12).log(), start["add_len"].log(),
+                           start["ard_var"].clamp_min(1e-12).log().reshape(1), start["ard_len"].log(),
+                           noise.log().reshape(1)]).to(F64)
+    theta = theta.detach().clone().requires_grad_(True)
     opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
                             tolerance_grad=1e-6, tolerance_change=1e-9)
     count = [0]
+    dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
 
     def closure():
         opt.zero_grad()
         # a weak log-normal prior keeps the length scales and variances off 0 and infinity where the data say little
         prior = 0.5 * ((theta[:-1] - _initial(d, n_joints, False)[:-1]) / 3.0).square().sum()
-        loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact) / len(x) + prior / len(x)
+        loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact, dists) / len(x) + prior / len(x)
         loss.backward()
         count[0] += 1
         return loss
@@ -387,7 +414,8 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
 
 
 def fit_gp_correction(ctx: Context, y: Tensor, settings: GPSettings | None = None, *,
-                      ctx_val: Context | None = None, y_val: Tensor | None = None) -> tuple[GPCorrection, dict]:
+                      ctx_val: Context | None = None, y_val: Tensor | None = None,
+                      warm: GPCorrection | None = None, warm_iterations: int = 10) -> tuple[GPCorrection, dict]:
     """Fit a :class:`GPCorrection` to corrections ``y`` at the poses of ``ctx``.
 
     Args:
@@ -396,6 +424,8 @@ def fit_gp_correction(ctx: Context, y: Tensor, settings: GPSettings | None = Non
         settings: :class:`GPSettings`.
         ctx_val, y_val: optional validation poses; only evaluated (the evidence chooses the hyperparameters),
             so that the caller can judge the model on poses it has not seen.
+        warm: a previous fit of the same structure (an alternating refit): its hyperparameters are the start,
+            and ``warm_iterations`` L-BFGS iterations replace ``settings.iterations``.
 
     Returns:
         The fitted effect and a dict: the hyperparameters (``describe()``), the evidence, the rows and inducing
@@ -407,10 +437,10 @@ def fit_gp_correction(ctx: Context, y: Tensor, settings: GPSettings | None = Non
     if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
         raise ShapeError(f"GP correction: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
     with torch_threads(s.threads):
-        return _fit(ctx, y.to(F64), s, ctx_val, y_val)
+        return _fit(ctx, y.to(F64), s, ctx_val, y_val, warm, warm_iterations)
 
 
-def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val) -> tuple[GPCorrection, dict]:
+def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iterations) -> tuple[GPCorrection, dict]:
     g = torch.Generator().manual_seed(int(s.seed))
     n, dof = ctx.q.shape
     eff = GPCorrection(dof, min(n, s.max_inducing), s.extras, s.additive, s.ard)
@@ -430,8 +460,11 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val) -> tuple[GPCorr
     sub = torch.randperm(n, generator=g)[: s.max_fit] if n > s.max_fit else torch.arange(n)
     xf, yf = x[sub], ys[sub]
     zf = xf if len(xf) <= s.m_fit else kmeans(xf, s.m_fit, g, s.kmeans_iterations)
-    h, info = fit_hyperparameters(xf, yf, zf, periodic=eff.periodic, ard=s.ard, iterations=s.iterations,
-                                  n_joints=dof)
+    if warm is not None and warm.config() != eff.config() | {"n_inducing": warm.config()["n_inducing"]}:
+        raise OptionError(f"GP warm start: the previous model's structure {warm.config()} differs from {eff.config()}")
+    h, info = fit_hyperparameters(xf, yf, zf, periodic=eff.periodic, ard=s.ard, n_joints=dof,
+                                  iterations=s.iterations if warm is None else warm_iterations,
+                                  start=None if warm is None else warm.hyper())
     with torch.no_grad():
         for k, v in h.items():
             getattr(eff, k).copy_(v)
