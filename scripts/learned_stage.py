@@ -6,6 +6,7 @@ Usage::
     python scripts/learned_stage.py --case harmonic3 --case field           # simulated UR5
     python scripts/learned_stage.py --case C --data ../shared/data/real/ur10-ipa
     python scripts/learned_stage.py --case A --data ../shared/data/real/ur10-ipa --methods geometry,gp
+    python scripts/learned_stage.py --case synthetic-50000                   # time and memory at scale
 """
 
 from __future__ import annotations
@@ -17,12 +18,12 @@ import torch
 
 from torchcal._threads import torch_threads
 from torchcal.effects.gp import GPSettings
-from torchcal.experiments.learned_stage import real_case, simulated_case
+from torchcal.experiments.learned_stage import real_case, scale_case, simulated_case
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--case", action="append", required=True, help="harmonic3, field, or a UR10 series A-D")
+    ap.add_argument("--case", action="append", required=True, help="harmonic3, field, synthetic-N, or UR10 series A-D")
     ap.add_argument("--data", default="../shared/data/real/ur10-ipa", help="ur10-ipa directory (real series)")
     ap.add_argument("--methods", default="geometry,kernel,gp")
     ap.add_argument("--seed", type=int, default=0)
@@ -35,7 +36,9 @@ def main(argv=None) -> int:
     out = []
     with torch_threads(a.threads):
         for case in a.case:
-            if case in ("harmonic3", "field"):
+            if case.startswith("synthetic-"):
+                out.append(scale_case(int(case.split("-", 1)[1]), a.seed, s))
+            elif case in ("harmonic3", "field"):
                 out.append(simulated_case(case, a.seed, methods=methods, gp_settings=s))
             else:
                 out.append(real_case(a.data, case, a.seed, methods=methods, gp_settings=s))

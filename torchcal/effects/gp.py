@@ -47,7 +47,7 @@ F64 = torch.float64
 ADDITIVE_FORMS = ("rbf", "periodic")
 EXTRA_INPUTS = ("t", "temperature")
 _JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite in float64
-_BLOCK = 512  # rows per block when streaming K_uf (memory O(m * block * variables))
+_BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variables))
 
 
 @dataclass
@@ -117,7 +117,23 @@ def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: b
     Where the additive form is periodic the ARD component uses the same periodic distance (a product of
     periodic kernels, positive definite as well).
     """
-    return _kern(_dist(x, z, periodic), h, ard)
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (x, z, *h.values())):
+        return _kern(_dist(x, z, periodic), h, ard)
+    # no gradient (posterior, prediction): one variable at a time and in place, three (n, m) temporaries
+    # instead of (n, m, d) ones, so that streaming many blocks does not fragment the heap
+    K = torch.zeros(len(x), len(z), dtype=x.dtype)
+    S = torch.zeros_like(K) if ard else None
+    for j in range(x.shape[1]):
+        d = x[:, j : j + 1] - z[:, j].unsqueeze(0)
+        if bool(periodic[j]):
+            d = torch.sin(d.mul_(0.5)).mul_(2.0)
+        d.square_()
+        if ard:
+            S.add_(d, alpha=float(1.0 / h["ard_len"][j].square()))
+        K.add_(d.mul_(float(-0.5 / h["add_len"][j].square())).exp_(), alpha=float(h["add_var"][j]))
+    if ard:
+        K.add_(S.mul_(-0.5).exp_(), alpha=float(h["ard_var"]))
+    return K
 
 
 def _prior_var(h: dict[str, Tensor], ard: bool) -> Tensor:
@@ -395,7 +411,7 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     """Weights and Cholesky factors of the posterior given all rows ``x, y`` (standardised), streamed in blocks."""
     h, z = eff.hyper(), eff.inducing
     m = len(z)
-    Kuu = _kernel(z, z, h, eff.periodic, eff.ard)
+    Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
     Lu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
     B = torch.eye(m, dtype=F64)
     Ay = torch.zeros(m, y.shape[1], dtype=F64)
@@ -476,7 +492,8 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
             eff.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
         # 3. posterior over all rows
         _posterior(eff, x, ys)
-        comp = eff.component_means(ctx)
+        # each variable's share, a summary, from the rows of the evidence fit (memory and time stay bounded)
+        comp = eff.component_means(ctx.subset(sub))
         var = comp.square().sum(-1).mean(1)
         share = (var / var.sum().clamp_min(1e-30)).tolist()
     names = eff.variable_names() + (["ard"] if s.ard else [])
