@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 from torchcal.effects.base import Acts, Effect
 from torchcal.effects.drift import Drift
+from torchcal.effects.gp import GPCorrection
 from torchcal.effects.joint import Backlash, Compliance, Cyclic
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
@@ -41,7 +42,7 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("backlash", (Backlash,), (Acts.JOINT,), True),
     EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),
-    EffectKind("learned", (LearnedEffect, KernelCorrection), (Acts.CARTESIAN,), False),
+    EffectKind("learned", (LearnedEffect, KernelCorrection, GPCorrection), (Acts.CARTESIAN,), False),
 )
 
 #: effect kinds as named in report.json (CONTRACT §4)

@@ -1,0 +1,130 @@
+"""The sparse additive + ARD GP correction: one-joint structure, relevance, exactness, coverage, reload."""
+
+import math
+
+import pytest
+import torch
+
+from torchcal.effects import Context, GPCorrection, GPSettings, effect_from_config, fit_gp_correction, gp
+
+F64 = torch.float64
+
+
+def _joints(n, seed, span=3.0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(n, 6, generator=g, dtype=F64) * 2 - 1) * span, g
+
+
+def _rms(e):
+    return float(e.norm(dim=-1).square().mean().sqrt())
+
+
+@pytest.mark.parametrize("additive", ["rbf", "periodic"])
+def test_recovers_a_harmonic_on_one_joint(additive):
+    q, g = _joints(400, 0)
+    f = torch.zeros(400, 3, dtype=F64)
+    f[:, 0] = 3e-5 * torch.sin(3 * q[:, 4] + 0.7)
+    f[:, 2] = 2e-5 * torch.cos(3 * q[:, 4])
+    y = f + 1e-5 * torch.randn(400, 3, generator=g, dtype=F64)
+    eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], GPSettings(additive=additive))
+    with torch.no_grad():
+        pred = eff(None, Context(q=q[300:]))
+    assert _rms(pred - f[300:]) < 0.25 * _rms(f[300:])
+    share = info["variable_share"]
+    # the one-joint structure goes to joint 5's own component (the ARD part may keep a little of it)
+    assert share["q5"] > 0.7, share
+    assert max(v for k, v in share.items() if k not in ("q5", "ard")) < 0.02
+
+
+def test_ard_length_scales_rank_relevant_joints():
+    # an interaction of joints 1 and 2 that no sum of 1-D functions represents: only the ARD part can
+    q, g = _joints(300, 1, span=2.0)
+    f = 1e-4 * (torch.sin(1.5 * q[:, 0]) * torch.sin(1.5 * q[:, 1])).unsqueeze(1) * torch.tensor([1.0, -0.5, 0.3],
+                                                                                                dtype=F64)
+    y = f + 5e-6 * torch.randn(300, 3, generator=g, dtype=F64)
+    eff, info = fit_gp_correction(Context(q=q), y, GPSettings())
+    ell = eff.ard_len
+    assert float(ell[2:].min()) > 3 * float(ell[:2].max()), ell.tolist()
+    assert info["variable_share"]["ard"] > 0.5
+
+
+def test_sparse_bound_and_posterior_equal_the_dense_gp(monkeypatch):
+    q, g = _joints(60, 2)
+    y = torch.randn(60, 3, generator=g, dtype=F64)
+    h = {"add_var": torch.tensor([0.1, 0.2, 0.05, 0.1, 0.3, 0.1], dtype=F64),
+         "add_len": torch.tensor([0.5, 1.0, 0.7, 2.0, 0.4, 1.0], dtype=F64), "ard_var": torch.tensor(0.4, dtype=F64),
+         "ard_len": torch.tensor([1.0, 2.0, 1.5, 3.0, 1.0, 2.0], dtype=F64), "noise": torch.tensor(0.05, dtype=F64)}
+    per = torch.zeros(6, dtype=torch.bool)
+    K = gp._kernel(q, q, h, per, True)
+    C = K + h["noise"] * torch.eye(60, dtype=F64)
+    dense = sum(torch.distributions.MultivariateNormal(torch.zeros(60, dtype=F64), C).log_prob(y[:, k])
+                for k in range(3))
+    # inducing inputs = the rows: the collapsed bound is the exact log marginal likelihood (both code paths)
+    assert float(gp._bound(q, y, q, h, per, True, exact=True)) == pytest.approx(float(dense), rel=1e-6)
+    assert float(gp._bound(q, y, q.clone(), h, per, True, exact=False)) == pytest.approx(float(dense), rel=1e-6)
+    # fewer inducing inputs: a lower bound
+    assert float(gp._bound(q, y, q[:20], h, per, True, exact=False)) < float(dense)
+
+    # the streamed posterior (blocks of 7 rows) against the dense formulas
+    monkeypatch.setattr(gp, "_BLOCK", 7)
+    eff = GPCorrection(6, 60)
+    with torch.no_grad():
+        for k, v in h.items():
+            getattr(eff, k).copy_(v)
+        eff.inducing.copy_(q)
+        gp._posterior(eff, q, y)
+        qs, _ = _joints(25, 3)
+        mean, sd = eff.predict(Context(q=qs))
+    Ks = gp._kernel(qs, q, h, per, True)
+    mean_d = Ks @ torch.linalg.solve(C, y)
+    var_d = gp._prior_var(h, True) - (Ks * torch.linalg.solve(C, Ks.T).T).sum(1)
+    assert torch.allclose(mean, mean_d, rtol=1e-6, atol=1e-9)
+    assert torch.allclose(sd[:, 0], var_d.clamp_min(0).sqrt(), rtol=1e-5, atol=1e-7)
+
+
+def test_fitted_exact_and_sparse_models_agree_when_inducing_is_everything():
+    q, g = _joints(150, 4)
+    y = 1e-4 * torch.stack([torch.sin(q[:, 1]), torch.cos(2 * q[:, 3]), q[:, 0] * 0.1], 1)
+    y = y + 1e-5 * torch.randn(150, 3, generator=g, dtype=F64)
+    a, ia = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=150, max_fit=150, m_fit=150))
+    assert ia["exact"]
+    b, ib = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=149, max_fit=150, m_fit=150))
+    assert not ib["exact"]
+    qs, _ = _joints(40, 5)
+    with torch.no_grad():
+        pa, pb = a(None, Context(q=qs)), b(None, Context(q=qs))
+    # the same hyperparameters (fitted on the same rows) and 149 of 150 rows as inducing inputs
+    assert torch.allclose(a.ard_len, b.ard_len)
+    assert _rms(pa - pb) < 0.05 * _rms(pa)
+
+
+def test_predictive_std_covers_held_out_data():
+    q, g = _joints(600, 6)
+    f = 1e-4 * torch.stack([torch.sin(2 * q[:, 1]) * torch.cos(q[:, 2]), torch.cos(2 * q[:, 0]),
+                            torch.sin(3 * q[:, 5])], 1)
+    y = f + 2e-5 * torch.randn(600, 3, generator=g, dtype=F64)
+    eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], GPSettings(), ctx_val=Context(q=q[300:]),
+                                  y_val=y[300:])
+    assert 0.9 <= info["val_coverage_2sigma"] <= 0.99
+    assert info["val_rmse_m"] < 0.6 * _rms(f[300:])
+    # an alternating refit starts from these hyperparameters and needs few evaluations of the evidence
+    again, info2 = fit_gp_correction(Context(q=q[:300]), y[:300] * 1.01, GPSettings(), warm=eff, warm_iterations=5)
+    assert info2["evidence_evaluations"] <= 8
+    assert torch.allclose(again.ard_len, eff.ard_len, rtol=0.2)
+
+
+def test_config_and_state_dict_round_trip_with_time_input():
+    q, g = _joints(120, 7)
+    t = torch.arange(120, dtype=F64) * 6.0
+    y = 1e-4 * torch.stack([1 - torch.exp(-t / 300.0), torch.sin(q[:, 2]), torch.zeros(120, dtype=F64)], 1)
+    eff, _ = fit_gp_correction(Context(q=q, t=t), y, GPSettings(extras=("t",), additive="periodic"))
+    twin = effect_from_config({"class": "GPCorrection", **eff.config()})
+    twin.load_state_dict(eff.state_dict())
+    ctx = Context(q=q[:30] + 0.01, t=t[:30] + 1.0)
+    with torch.no_grad():
+        assert torch.equal(twin(None, ctx), eff(None, ctx))
+        assert torch.equal(twin.predict(ctx)[1], eff.predict(ctx)[1])
+    assert twin.kind == "learned" and twin.acts_on == "cartesian"
+    assert math.isfinite(twin.describe()["noise_std"])
+    with pytest.raises(Exception, match="carry no 't'"):
+        eff(None, Context(q=q))

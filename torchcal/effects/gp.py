@@ -1,0 +1,511 @@
+"""A scalable Gaussian-process residual model with per-joint structure: the ``learned`` effect.
+
+The correction in the robot base frame is the posterior mean of a Gaussian process over the
+inputs ``x`` (the joint angles [rad], optionally ``t`` and ``temperature``, standardised) with the
+kernel
+
+    k(x, x') = sum_j s_j^2 k_j(x_j, x'_j)  +  s_0^2 exp(-1/2 sum_j ((x_j - x'_j) / L_j)^2),
+
+an additive part (one 1-D kernel per variable, each with its own variance ``s_j^2`` and length
+scale ``l_j``; squared-exponential, or periodic in the joint angle ``exp(-2 sin^2((q - q')/2) / l^2)``
+whose period is one revolution, the period of a transmission harmonic) plus a full-joint
+squared-exponential with one length scale per variable (automatic relevance determination).
+A structure that lives on one joint (a harmonic on a wrist joint) gets a large variance on that
+joint's 1-D component; a short-range structure over all joints is left to the ARD component.
+
+The three Cartesian outputs are independent processes that share the kernel; each output is
+standardised by its own RMS before the fit, so the predictive standard deviation is per output.
+All hyperparameters (variances, length scales, the noise variance) are fitted by maximising the
+evidence with L-BFGS (gradients through a Cholesky in float64), not chosen from a grid.
+
+Scale: the sparse variational bound of Titsias (2009) with ``m`` inducing inputs ``Z`` (SGPR):
+
+    log p(y) >= log N(y | 0, Q + sigma^2 I) - tr(K - Q) / (2 sigma^2),   Q = K_fu K_uu^-1 K_uf,
+
+costs ``O(n m^2)`` time and ``O(m^2 + m b)`` memory when the ``n`` training rows are streamed in
+blocks of ``b``. The hyperparameters are fitted on a seeded subset (at most ``max_fit`` rows with
+``m_fit`` inducing inputs); the posterior then uses every training row with ``max_inducing``
+inducing inputs placed by k-means in the metric of the fitted ARD length scales. With at least as
+many inducing inputs as training rows the inducing inputs are the rows themselves and the bound
+and the posterior are those of the exact (dense) Gaussian process.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from torchcal._threads import torch_threads
+from torchcal.effects.base import Context, Effect
+from torchcal.errors import OptionError, ShapeError
+
+Tensor = torch.Tensor
+F64 = torch.float64
+
+ADDITIVE_FORMS = ("rbf", "periodic")
+EXTRA_INPUTS = ("t", "temperature")
+_JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite in float64
+_BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variables))
+
+
+@dataclass
+class GPSettings:
+    """How :func:`fit_gp_correction` fits (defaults suit 100 to 50,000 training poses).
+
+    Attributes:
+        additive: form of the 1-D components on the joints, ``"rbf"`` or ``"periodic"`` (period 2 pi).
+        extras: extra inputs read from the context, a subset of ``("t", "temperature")``.
+        ard: include the full-joint ARD component.
+        max_inducing: inducing inputs of the posterior; with ``n <= max_inducing`` the GP is exact.
+        max_fit: training rows used to fit the hyperparameters (a seeded subset beyond that).
+        m_fit: inducing inputs while fitting the hyperparameters (exact when ``max_fit <= m_fit``).
+        iterations: L-BFGS iterations on the evidence.
+        kmeans_iterations: Lloyd iterations placing the inducing inputs.
+        threads: torch threads while fitting (restored afterwards).
+        seed: seeds the subsets and the k-means initialisation.
+    """
+
+    additive: str = "rbf"
+    extras: tuple[str, ...] = ()
+    ard: bool = True
+    max_inducing: int = 1500
+    max_fit: int = 1000
+    m_fit: int = 300
+    iterations: int = 40
+    kmeans_iterations: int = 10
+    threads: int = 1
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.additive not in ADDITIVE_FORMS:
+            raise OptionError(f"additive form '{self.additive}' is not one of {', '.join(ADDITIVE_FORMS)}")
+        bad = [e for e in self.extras if e not in EXTRA_INPUTS]
+        if bad:
+            raise OptionError(f"extra GP inputs {bad} are not among {', '.join(EXTRA_INPUTS)}")
+        if min(self.max_inducing, self.max_fit, self.m_fit, self.iterations) < 1:
+            raise OptionError("max_inducing, max_fit, m_fit and iterations must be >= 1, got "
+                              f"{self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}")
+
+
+# ----------------------------------------------------------------------------- kernel
+
+
+def _dist(x: Tensor, z: Tensor, periodic: Tensor) -> Tensor:
+    """Per-variable squared distances ``(n, m, d)``: ``(x_j - z_j)^2``, or ``4 sin^2((x_j - z_j) / 2)`` where periodic.
+
+    They do not depend on the hyperparameters, so the evidence fit computes them once.
+    """
+    d = x.unsqueeze(1) - z.unsqueeze(0)
+    if bool(periodic.any()):
+        d = torch.where(periodic, 2.0 * torch.sin(0.5 * d), d)
+    return d.square()
+
+
+def _kern(D: Tensor, h: dict[str, Tensor], ard: bool) -> Tensor:
+    """``k`` of the module docstring ``(n, m)`` from the distances of :func:`_dist`."""
+    K = torch.exp(D * (-0.5 / h["add_len"].square())) @ h["add_var"]
+    if ard:
+        K = K + h["ard_var"] * torch.exp(-0.5 * (D @ (1.0 / h["ard_len"].square())))
+    return K
+
+
+def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool) -> Tensor:
+    """``k(x, z)`` ``(n, m)`` of the module docstring; ``h`` holds the positive hyperparameters.
+
+    Where the additive form is periodic the ARD component uses the same periodic distance (a product of
+    periodic kernels, positive definite as well).
+    """
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (x, z, *h.values())):
+        return _kern(_dist(x, z, periodic), h, ard)
+    # no gradient (posterior, prediction): one variable at a time and in place, three (n, m) temporaries
+    # instead of (n, m, d) ones, so that streaming many blocks does not fragment the heap
+    K = torch.zeros(len(x), len(z), dtype=x.dtype)
+    S = torch.zeros_like(K) if ard else None
+    for j in range(x.shape[1]):
+        d = x[:, j : j + 1] - z[:, j].unsqueeze(0)
+        if bool(periodic[j]):
+            d = torch.sin(d.mul_(0.5)).mul_(2.0)
+        d.square_()
+        if ard:
+            S.add_(d, alpha=float(1.0 / h["ard_len"][j].square()))
+        K.add_(d.mul_(float(-0.5 / h["add_len"][j].square())).exp_(), alpha=float(h["add_var"][j]))
+    if ard:
+        K.add_(S.mul_(-0.5).exp_(), alpha=float(h["ard_var"]))
+    return K
+
+
+def _prior_var(h: dict[str, Tensor], ard: bool) -> Tensor:
+    """``k(x, x)``, the same for every ``x`` (stationary components)."""
+    return h["add_var"].sum() + (h["ard_var"] if ard else 0.0)
+
+
+def _chol(K: Tensor, jitter: Tensor) -> Tensor:
+    """Cholesky factor of ``K + jitter I``; where that fails (near-duplicate inducing inputs, or length scales so
+    long that ``K`` is numerically singular) the jitter grows tenfold, up to 1e-4 of the prior variance."""
+    eye = torch.eye(len(K), dtype=K.dtype)
+    jitter = jitter.detach()  # a numerical guard, not a hyperparameter
+    scale = float(jitter) if float(jitter) > 0 else 0.0
+    for _ in range(5):
+        L, info = torch.linalg.cholesky_ex(K + jitter * eye)
+        if int(info) == 0:
+            return L
+        scale = max(scale * 10.0, 1e-10 * float(K.diagonal().mean()))
+        jitter = torch.tensor(scale, dtype=K.dtype)
+    from torchcal.errors import EstimationError
+
+    raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
+
+
+def _bound(x: Tensor, y: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool,
+           exact: bool, dists: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """Titsias's collapsed evidence bound (exact log marginal likelihood when ``exact``), summed over outputs.
+
+    ``dists``: the distances ``(_dist(z, z), _dist(z, x))`` when precomputed.
+    """
+    n, p = y.shape
+    s2 = h["noise"]
+    kxx = _prior_var(h, ard)
+    Duu, Duf = dists if dists is not None else (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
+    Kuu = _kern(Duu, h, ard)
+    Lu = _chol(Kuu, _JITTER * kxx)
+    Kuf = Kuu if exact else _kern(Duf, h, ard)
+    A = torch.linalg.solve_triangular(Lu, Kuf, upper=False) / s2.sqrt()  # (m, n)
+    B = A @ A.T
+    B.diagonal().add_(1.0)
+    LB = _chol(B, torch.tensor(0.0, dtype=F64))
+    c = torch.linalg.solve_triangular(LB, A @ y, upper=False) / s2.sqrt()  # (m, p)
+    logdet = 2.0 * torch.log(LB.diagonal()).sum() + n * torch.log(s2)
+    quad = y.square().sum() / s2 - c.square().sum()
+    trace = 0.0 if exact else (n * kxx / s2 - A.square().sum())
+    return -0.5 * (p * (logdet + n * math.log(2 * math.pi)) + quad + p * trace)
+
+
+# ----------------------------------------------------------------------------- the effect
+
+
+class GPCorrection(Effect):
+    """The ``learned`` effect as a sparse additive + ARD Gaussian process (module docstring); base frame.
+
+    Everything the prediction needs is a buffer, so ``state_dict`` and :meth:`config` rebuild it
+    exactly (:func:`~torchcal.effects.effect_from_config`).
+
+    Args:
+        dof: joints.
+        n_inducing: inducing inputs ``m``.
+        extras: extra inputs after the joints, a subset of ``("t", "temperature")``.
+        additive: form of the joints' 1-D components, ``"rbf"`` or ``"periodic"``.
+        ard: whether the full-joint ARD component is present.
+    """
+
+    kind = "learned"
+    acts_on = "cartesian"
+
+    def __init__(self, dof: int, n_inducing: int = 0, extras: tuple[str, ...] | list[str] = (),
+                 additive: str = "rbf", ard: bool = True):
+        super().__init__(joint=None)
+        if additive not in ADDITIVE_FORMS:
+            raise OptionError(f"additive form '{additive}' is not one of {', '.join(ADDITIVE_FORMS)}")
+        self.dof, self.extras, self.additive, self.ard = int(dof), tuple(extras), additive, bool(ard)
+        d, m = self.dof + len(self.extras), int(n_inducing)
+        self.register_buffer("inducing", torch.zeros(m, d, dtype=F64))
+        self.register_buffer("weights", torch.zeros(m, 3, dtype=F64))  # posterior mean = k(x, Z) @ weights [m]
+        self.register_buffer("chol_uu", torch.eye(m, dtype=F64))  # chol(K_uu)
+        self.register_buffer("chol_b", torch.eye(m, dtype=F64))  # chol(I + K_uu^-1/2 K_uf K_fu K_uu^-T/2 / s2)
+        self.register_buffer("y_mean", torch.zeros(3, dtype=F64))  # [m]
+        self.register_buffer("y_scale", torch.ones(3, dtype=F64))  # [m] per output
+        self.register_buffer("x_offset", torch.zeros(d, dtype=F64))  # joints: 0; extras: their mean
+        self.register_buffer("x_scale", torch.ones(d, dtype=F64))  # joints: 1; extras: their std
+        self.register_buffer("periodic", torch.tensor([additive == "periodic"] * self.dof + [False] * len(self.extras)))
+        self.register_buffer("add_var", torch.zeros(d, dtype=F64))  # per-variable 1-D component variance
+        self.register_buffer("add_len", torch.ones(d, dtype=F64))  # their length scales [rad / standard units]
+        self.register_buffer("ard_var", torch.tensor(0.0, dtype=F64))
+        self.register_buffer("ard_len", torch.ones(d, dtype=F64))
+        self.register_buffer("noise", torch.tensor(1.0, dtype=F64))  # noise variance (standardised outputs)
+        self._cache: tuple | None = None
+
+    # -- inputs and hyperparameters
+
+    def hyper(self) -> dict[str, Tensor]:
+        return {"add_var": self.add_var, "add_len": self.add_len, "ard_var": self.ard_var,
+                "ard_len": self.ard_len, "noise": self.noise}
+
+    def inputs(self, ctx: Context) -> Tensor:
+        """The standardised GP inputs ``(N, dof + len(extras))`` of a context."""
+        cols = [ctx.q]
+        for name in self.extras:
+            v = getattr(ctx, name)
+            if v is None:
+                raise ShapeError(f"the GP correction reads '{name}', and the data carry no '{name}' column")
+            cols.append(v.reshape(-1, 1).to(ctx.q.dtype))
+        return (torch.cat(cols, 1) - self.x_offset) / self.x_scale
+
+    def _kxu(self, x: Tensor) -> Tensor:
+        return _kernel(x, self.inducing, self.hyper(), self.periodic, self.ard)
+
+    # -- prediction
+
+    def predict(self, ctx: Context, *, std: bool = True, noise: bool = False) -> tuple[Tensor, Tensor | None]:
+        """Posterior mean ``(N, 3)`` [m] and standard deviation ``(N, 3)`` [m] (of the function, or of a new
+        observation with ``noise``), in row blocks so that memory stays ``O(block * m)``."""
+        x = self.inputs(ctx)
+        means, stds = [], []
+        kxx = _prior_var(self.hyper(), self.ard)
+        for i in range(0, len(x), _BLOCK):
+            Kxu = self._kxu(x[i : i + _BLOCK])
+            means.append(Kxu @ self.weights * self.y_scale + self.y_mean)
+            if std:
+                a = torch.linalg.solve_triangular(self.chol_uu, Kxu.T, upper=False)
+                b = torch.linalg.solve_triangular(self.chol_b, a, upper=False)
+                var = (kxx - a.square().sum(0) + b.square().sum(0)).clamp_min(0.0)
+                if noise:
+                    var = var + self.noise
+                stds.append(var.sqrt().unsqueeze(1) * self.y_scale)
+        mean = torch.cat(means) if means else torch.zeros(0, 3, dtype=F64)
+        return mean, (torch.cat(stds) if std and stds else (torch.zeros(0, 3, dtype=F64) if std else None))
+
+    def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
+        q = ctx.q
+        if len(self.inducing) == 0:
+            return torch.zeros(q.shape[0], 3, dtype=q.dtype)
+        # as KernelCorrection: the output depends on the context and the buffers only, and a least-squares
+        # fit evaluates it at the same q dozens of times, so the last plain result is reused
+        if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
+            return self.predict(ctx, std=False)[0]
+        key = [(t, t._version) for t in (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
+               if t is not None]
+        if self._cache is not None and len(self._cache[0]) == len(key) and all(
+                a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key)):
+            return self._cache[1]
+        out = self.predict(ctx, std=False)[0]
+        if not out.requires_grad:
+            self._cache = (key, out)
+        return out
+
+    def component_means(self, ctx: Context) -> Tensor:
+        """Posterior mean of each additive component and of the ARD one ``(n_vars + 1, N, 3)`` [m].
+
+        The components of a sum of kernels share the weights: component ``c``'s mean is ``k_c(x, Z) @ weights``.
+        """
+        x = self.inputs(ctx)
+        h = self.hyper()
+        out = []
+        for c in range(x.shape[1] + 1):
+            hc = dict(h)
+            if c < x.shape[1]:
+                hc["add_var"] = torch.zeros_like(h["add_var"])
+                hc["add_var"][c] = h["add_var"][c]
+                ard = False
+            else:
+                hc["add_var"] = torch.zeros_like(h["add_var"])
+                ard = self.ard
+            if c == x.shape[1] and not self.ard:
+                out.append(torch.zeros(len(x), 3, dtype=F64))
+                continue
+            out.append(torch.cat([_kernel(x[i : i + _BLOCK], self.inducing, hc, self.periodic, ard) @ self.weights
+                                  for i in range(0, len(x), _BLOCK)]) * self.y_scale)
+        return torch.stack(out)
+
+    def variable_names(self) -> list[str]:
+        return [f"q{j + 1}" for j in range(self.dof)] + list(self.extras)
+
+    def scale_(self, factor: float) -> None:
+        with torch.no_grad():
+            self.y_scale.mul_(factor)
+            self.y_mean.mul_(factor)
+
+    def config(self) -> dict:
+        return {"dof": self.dof, "n_inducing": int(self.inducing.shape[0]), "extras": list(self.extras),
+                "additive": self.additive, "ard": self.ard}
+
+    def describe(self) -> dict:
+        names = self.variable_names()
+        return {"model": "Gaussian process (additive + ARD, sparse)", "additive": self.additive,
+                "n_inducing": int(self.inducing.shape[0]),
+                "additive_std": dict(zip(names, (self.add_var.sqrt() * 1.0).tolist())),
+                "additive_length_scale": dict(zip(names, self.add_len.tolist())),
+                "ard_std": float(self.ard_var.sqrt()) if self.ard else 0.0,
+                "ard_length_scale": dict(zip(names, self.ard_len.tolist())) if self.ard else {},
+                "noise_std": float(self.noise.sqrt()), "output_scale_m": self.y_scale.tolist(),
+                "units": "std relative to each output's RMS; length scales in rad (joints) or standard units"}
+
+
+# ----------------------------------------------------------------------------- fitting
+
+
+def kmeans(x: Tensor, m: int, generator: torch.Generator, iterations: int = 10) -> Tensor:
+    """``m`` centres of ``x`` ``(n, d)`` by Lloyd's algorithm from a seeded random subset; ``x`` itself if ``n <= m``.
+
+    An empty cluster keeps its previous centre. Memory ``O(block * m)``.
+    """
+    if len(x) <= m:
+        return x.clone()
+    c = x[torch.randperm(len(x), generator=generator)[:m]].clone()
+    for _ in range(iterations):
+        lab = torch.cat([torch.cdist(x[i : i + _BLOCK], c).argmin(1) for i in range(0, len(x), _BLOCK)])
+        s = torch.zeros_like(c).index_add_(0, lab, x)
+        k = torch.bincount(lab, minlength=m).to(x.dtype)
+        c = torch.where(k.unsqueeze(1) > 0, s / k.clamp_min(1).unsqueeze(1), c)
+    return c
+
+
+def _unpack(theta: Tensor, d: int, ard: bool) -> dict[str, Tensor]:
+    e = theta.exp()
+    return {"add_var": e[:d], "add_len": e[d : 2 * d], "ard_var": e[2 * d] if ard else e[2 * d] * 0.0,
+            "ard_len": e[2 * d + 1 : 3 * d + 1], "noise": e[3 * d + 1] + 1e-6}
+
+
+def _initial(d: int, n_joints: int, periodic: bool) -> Tensor:
+    """Log hyperparameters to start from: the signal shared by the components, noise 10 % of the variance."""
+    add_var = torch.full((d,), 0.4 / d, dtype=F64)
+    add_len = torch.full((d,), 0.5 if periodic else 0.5, dtype=F64)
+    add_len[n_joints:] = 1.0
+    theta = torch.cat([add_var.log(), add_len.log(), torch.tensor([math.log(0.5)], dtype=F64),
+                       torch.full((d,), math.log(1.0), dtype=F64), torch.tensor([math.log(0.1)], dtype=F64)])
+    return theta
+
+
+def fit_hyperparameters(x: Tensor, y: Tensor, z: Tensor, *, periodic: Tensor, ard: bool, iterations: int,
+                        n_joints: int, start: dict[str, Tensor] | None = None) -> tuple[dict[str, Tensor], dict]:
+    """Maximise the (collapsed) evidence over the log hyperparameters with L-BFGS.
+
+    Args:
+        x: inputs ``(n, d)``, standardised; y: outputs ``(n, p)``, standardised; z: inducing inputs ``(m, d)``
+            (``z is x`` gives the exact marginal likelihood).
+        start: hyperparameters to start from (a previous fit's :meth:`GPCorrection.hyper`), else a default.
+
+    Returns:
+        The hyperparameters and ``{"log_evidence_per_row", "evaluations"}``.
+    """
+    d = x.shape[1]
+    exact = z is x
+    theta = _initial(d, n_joints, bool(periodic[:n_joints].any()))
+    if start is not None:
+        noise = (start["noise"] - 1e-6).clamp_min(1e-6)
+        theta = torch.cat([start["add_var"].clamp_min(1e-12).log(), start["add_len"].log(),
+                           start["ard_var"].clamp_min(1e-12).log().reshape(1), start["ard_len"].log(),
+                           noise.log().reshape(1)]).to(F64)
+    theta = theta.detach().clone().requires_grad_(True)
+    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
+                            tolerance_grad=1e-6, tolerance_change=1e-9)
+    count = [0]
+    dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
+
+    def closure():
+        opt.zero_grad()
+        # a weak log-normal prior keeps the length scales and variances off 0 and infinity where the data say little
+        prior = 0.5 * ((theta[:-1] - _initial(d, n_joints, False)[:-1]) / 3.0).square().sum()
+        loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact, dists) / len(x) + prior / len(x)
+        loss.backward()
+        count[0] += 1
+        return loss
+
+    final = opt.step(closure)
+    with torch.no_grad():
+        h = {k: v.detach().clone() for k, v in _unpack(theta.detach(), d, ard).items()}
+    return h, {"log_evidence_per_row": -float(final.detach()), "evaluations": count[0]}
+
+
+def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
+    """Weights and Cholesky factors of the posterior given all rows ``x, y`` (standardised), streamed in blocks."""
+    h, z = eff.hyper(), eff.inducing
+    m = len(z)
+    Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
+    Lu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
+    B = torch.eye(m, dtype=F64)
+    Ay = torch.zeros(m, y.shape[1], dtype=F64)
+    s = h["noise"].sqrt()
+    for i in range(0, len(x), _BLOCK):
+        A = torch.linalg.solve_triangular(Lu, _kernel(z, x[i : i + _BLOCK], h, eff.periodic, eff.ard),
+                                          upper=False) / s
+        B += A @ A.T
+        Ay += A @ y[i : i + _BLOCK]
+    LB = _chol(B, torch.tensor(0.0, dtype=F64))
+    c = torch.cholesky_solve(Ay, LB) / s  # B^-1 A y / s
+    w = torch.linalg.solve_triangular(Lu.T, c, upper=True)  # K_uu^-T/2 B^-1 A y / s
+    eff.weights.copy_(w)
+    eff.chol_uu.copy_(Lu)
+    eff.chol_b.copy_(LB)
+
+
+def fit_gp_correction(ctx: Context, y: Tensor, settings: GPSettings | None = None, *,
+                      ctx_val: Context | None = None, y_val: Tensor | None = None,
+                      warm: GPCorrection | None = None, warm_iterations: int = 10) -> tuple[GPCorrection, dict]:
+    """Fit a :class:`GPCorrection` to corrections ``y`` at the poses of ``ctx``.
+
+    Args:
+        ctx: training context (joints ``q (N, dof)`` [rad]; ``t``, ``temperature`` when ``settings.extras`` name them).
+        y: corrections ``(N, 3)`` [m, robot base frame] (what the model misses, as ``corrections`` computes).
+        settings: :class:`GPSettings`.
+        ctx_val, y_val: optional validation poses; only evaluated (the evidence chooses the hyperparameters),
+            so that the caller can judge the model on poses it has not seen.
+        warm: a previous fit of the same structure (an alternating refit): its hyperparameters are the start,
+            and ``warm_iterations`` L-BFGS iterations replace ``settings.iterations``.
+
+    Returns:
+        The fitted effect and a dict: the hyperparameters (``describe()``), the evidence, the rows and inducing
+        inputs used, each variable's share of the fitted correction's variance (``variable_share``), and with
+        validation data the validation errors per pose ``val_errors (n_val,)`` [m], ``val_rmse_m`` and the
+        fraction of validation coordinates within two predictive standard deviations ``val_coverage_2sigma``.
+    """
+    s = settings or GPSettings()
+    if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
+        raise ShapeError(f"GP correction: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
+    with torch_threads(s.threads):
+        return _fit(ctx, y.to(F64), s, ctx_val, y_val, warm, warm_iterations)
+
+
+def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iterations) -> tuple[GPCorrection, dict]:
+    g = torch.Generator().manual_seed(int(s.seed))
+    n, dof = ctx.q.shape
+    eff = GPCorrection(dof, min(n, s.max_inducing), s.extras, s.additive, s.ard)
+    with torch.no_grad():
+        for k, name in enumerate(s.extras):
+            v = getattr(ctx, name)
+            if v is None:
+                raise ShapeError(f"GP settings name the extra input '{name}', and the data carry none")
+            eff.x_offset[dof + k] = v.mean()
+            eff.x_scale[dof + k] = v.std().clamp_min(1e-12)
+        x = eff.inputs(ctx)
+        eff.y_mean.copy_(y.mean(0))
+        eff.y_scale.copy_((y - eff.y_mean).square().mean(0).sqrt().clamp_min(1e-12))
+        ys = (y - eff.y_mean) / eff.y_scale
+
+    # 1. hyperparameters by the evidence on a seeded subset
+    sub = torch.randperm(n, generator=g)[: s.max_fit] if n > s.max_fit else torch.arange(n)
+    xf, yf = x[sub], ys[sub]
+    zf = xf if len(xf) <= s.m_fit else kmeans(xf, s.m_fit, g, s.kmeans_iterations)
+    if warm is not None and warm.config() != eff.config() | {"n_inducing": warm.config()["n_inducing"]}:
+        raise OptionError(f"GP warm start: the previous model's structure {warm.config()} differs from {eff.config()}")
+    h, info = fit_hyperparameters(xf, yf, zf, periodic=eff.periodic, ard=s.ard, n_joints=dof,
+                                  iterations=s.iterations if warm is None else warm_iterations,
+                                  start=None if warm is None else warm.hyper())
+    with torch.no_grad():
+        for k, v in h.items():
+            getattr(eff, k).copy_(v)
+        # 2. inducing inputs for the posterior: every row when they fit, else k-means in the ARD metric
+        if n <= s.max_inducing:
+            eff.inducing.copy_(x)
+        else:
+            metric = 1.0 / eff.ard_len if s.ard else 1.0 / eff.add_len
+            eff.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
+        # 3. posterior over all rows
+        _posterior(eff, x, ys)
+        # each variable's share, a summary, from the rows of the evidence fit (memory and time stay bounded)
+        comp = eff.component_means(ctx.subset(sub))
+        var = comp.square().sum(-1).mean(1)
+        share = (var / var.sum().clamp_min(1e-30)).tolist()
+    names = eff.variable_names() + (["ard"] if s.ard else [])
+    out = {**eff.describe(), "log_evidence_per_row": info["log_evidence_per_row"],
+           "evidence_evaluations": info["evaluations"], "rows": n, "rows_for_hyperparameters": len(xf),
+           "inducing_for_hyperparameters": len(zf), "exact": n <= s.max_inducing,
+           "variable_share": dict(zip(names, share[: len(names)])), "rmse_unit": "m"}
+    if ctx_val is not None and y_val is not None:
+        with torch.no_grad():
+            mean, sd = eff.predict(ctx_val, noise=True)
+            e = (y_val - mean).norm(dim=-1)
+            out["val_errors"] = e
+            out["val_rmse_m"] = float(e.square().mean().sqrt())
+            out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
+    return eff, out
