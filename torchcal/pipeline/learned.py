@@ -19,7 +19,8 @@ import torch
 
 from torchcal import stats as S
 from torchcal.data import Measurements
-from torchcal.effects import CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
 from torchcal.effects.kernel import fit_kernel_correction
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, corrections, solve
@@ -50,9 +51,18 @@ def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) ->
     record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
 
 
-def _learned_split(train: Measurements, seed: int, group_tol: float) -> tuple[Tensor, Tensor]:
-    """The fitting and validation poses of the learned stage (in random order, as drawn)."""
+def _learned_split(train: Measurements, seed: int, group_tol: float,
+                   trajectory: bool = False) -> tuple[Tensor, Tensor]:
+    """The fitting and validation poses of the learned stage (in random order, as drawn).
+
+    On a trajectory the validation poses are the last block of the training samples: neighbouring samples
+    share their error, and a random share of them lets a learned model be judged on samples it has all but
+    seen (it then wins validation and loses on the path's continuation).
+    """
     n_val = S.holdout_count(train.n, VALIDATION_FRACTION, minimum=3, rounding="floor")
+    if trajectory:
+        idx = torch.arange(train.n)
+        return idx[: train.n - n_val], idx[train.n - n_val :]
     return tuple(S.split(train.n, n_val, seed=seed + S.Stream.VALIDATION, q=train.q, group_tol=group_tol,
                          sort=False))
 
@@ -65,7 +75,7 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
     """
     model, opts = run.model, run.options
     corr = corrections(model, train, trajectory)
-    fi, va = _learned_split(train, opts.seed, opts.group_tol)
+    fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     e0 = corr[va].norm(dim=-1)
 
     kern, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
@@ -76,7 +86,12 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
                   iterations=opts.net_iterations)
     with torch.no_grad():
         e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
+    gp, gp_info = fit_gp_correction(Context(q=train.q[fi]), corr[fi], GPSettings(seed=int(opts.seed)),
+                                    ctx_val=Context(q=train.q[va]), y_val=corr[va])
     candidates = {
+        "gp": (gp, gp_info["val_errors"], {**gp.describe(), "model": "sparse additive + ARD Gaussian process",
+                                           "variable_share": gp_info.get("variable_share"),
+                                           "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma")}),
         "kernel": (kern, info["val_errors"], kern.describe()),
         "network": (LearnedEffect(net), e_net, {"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
                                                 "fit": res.method, "best_iteration": res.best_iteration}),
@@ -113,7 +128,7 @@ def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Mea
     opts = run.options
     index = len(model.effects) - 1
     eff = model.effects[index]
-    fi, va = _learned_split(train, opts.seed, opts.group_tol)
+    fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
     groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
     # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
@@ -127,6 +142,11 @@ def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Mea
                 iterations=opts.net_iterations, ftol=1e-6)
         with torch.no_grad():
             e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
+    elif isinstance(eff, GPCorrection):
+        new, info = fit_gp_correction(Context(q=train.q[fi]), corr[fi], GPSettings(seed=int(opts.seed)),
+                                      ctx_val=Context(q=train.q[va]), y_val=corr[va], warm=eff)
+        model.effects[index] = new
+        e_val = info["val_errors"]
     else:
         new, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
                                           seed=opts.seed)
