@@ -117,7 +117,7 @@ def effect_from_config(cfg: dict) -> Effect:
     from torchcal import effects as E
 
     classes = {c.__name__: c for c in (E.Compliance, E.Backlash, E.Cyclic, E.Drift, E.LearnedEffect,
-                                        E.KernelCorrection)}
+                                        E.KernelCorrection, E.Transmission)}
     cfg = dict(cfg)
     name = cfg.pop("class")
     if name not in classes:
