@@ -167,7 +167,7 @@ def min_poses(robot: RobotModel, holdout: float) -> int:
 
 
 #: effect kinds whose parameters the least-squares fit estimates jointly with the geometry
-NAMED_KINDS = ("compliance", "backlash", "cyclic", "drift")
+NAMED_KINDS = ("compliance", "backlash", "cyclic", "drift", "transmission")
 
 
 def effect_parameter_labels(model: MeasurementModel) -> tuple[dict[str, Tensor], dict[str, list[str]]]:
