@@ -29,6 +29,7 @@ from torchcal.diagnose.localise import (
     workspace,
 )
 from torchcal.effects import Context
+from torchcal.errors import OptionError
 from torchcal.sim.campaign import SimConfig
 from torchcal.sim.outside import OutsideEffect, simulate_outside
 
@@ -220,3 +221,29 @@ def test_outside_clean_campaign_names_nothing():
     g = geometric_fit(train)
     locs, _ = localise_fit(g)
     assert family_wise_p(locs) > ALPHA
+
+
+def test_combination_localises_both_variables():
+    effects = [OutsideEffect("harmonic", joint=5, order=6, size=3e-5),
+               OutsideEffect("warmup", axis=2, tau=1200.0, size=3e-5)]
+    c = simulate_outside(effects, SimConfig(poses=800, test_poses=0, seed=21))
+    g = geometric_fit(c.train)
+    locs, _ = localise_fit(g)
+    assert {loc.name for loc in locs[:2]} == {"q5", "t"}
+    assert all(loc.significant(ALPHA) for loc in locs[:2])
+
+
+def test_outside_generator_trajectory_and_truth():
+    cfg = SimConfig(trajectory=True, samples=400, train_samples=300, seed=4)
+    c = simulate_outside([OutsideEffect("polynomial", joint=3, coeffs=(1.0, 0.5), size=2e-5)], cfg)
+    assert c.train.n == 300 and c.test.n == 100
+    assert bool((torch.diff(c.train.t) > 0).all())
+    e = c.truth["effects"][0]
+    assert e["form"] == "polynomial" and e["degree"] == 2 and e["coeffs"][1] == pytest.approx(0.5 * e["coeffs"][0])
+    ctx = Context.from_measurements(c.train, trajectory=True)
+    variables = candidate_variables(c.model, ctx)
+    flanks = [v for v in variables if v.name.startswith("flank")]
+    assert flanks and all("motion direction" in v.label for v in flanks)
+    assert "q3" in {v.name for v in variables}
+    with pytest.raises(OptionError, match="joint"):
+        OutsideEffect("harmonic", order=3)
