@@ -26,6 +26,7 @@ from torchcal.diagnose.localise import (
     family_wise_p,
     localise,
     localise_variable,
+    unexplained,
     workspace,
 )
 from torchcal.effects import Context
@@ -231,6 +232,9 @@ def test_combination_localises_both_variables():
     locs, _ = localise_fit(g)
     assert {loc.name for loc in locs[:2]} == {"q5", "t"}
     assert all(loc.significant(ALPHA) for loc in locs[:2])
+    left = unexplained(locs, ALPHA)
+    assert [d["variable"] for d in left[:2]] == [loc.name for loc in locs[:2]]
+    assert all(d["share"] > 0 and len(d["smooth"]) == len(d["grid"]) for d in left)
 
 
 def test_outside_generator_trajectory_and_truth():

@@ -394,6 +394,12 @@ def localise(model: MeasurementModel, ctx: Context, residuals: Tensor, *, W: Ten
     return out
 
 
+def unexplained(locs: list[Localisation], alpha: float = 0.01, with_smooth: bool = True) -> list[dict]:
+    """The significant variables (Bonferroni level ``alpha``) as report entries, strongest first: where the
+    residual still has structure, its share and the smooth to plot (for ``report.json``'s ``unexplained``)."""
+    return [loc.to_dict(with_smooth=with_smooth) for loc in locs if loc.significant(alpha)]
+
+
 def family_wise_p(locs: list[Localisation]) -> float:
     """The smallest Bonferroni-corrected p-value (1.0 for an empty list)."""
     return min((loc.p_bonferroni for loc in locs), default=1.0)
@@ -401,4 +407,4 @@ def family_wise_p(locs: list[Localisation]) -> float:
 
 __all__ = ["Localisation", "Variable", "Workspace", "bspline_basis", "candidate_variables", "family_wise_p",
            "fit_smooth", "fourier_basis", "localise", "localise_variable", "satterthwaite_tail",
-           "tracker_joint_jacobian", "workspace", "MAX_HARMONIC", "N_SPLINE"]
+           "tracker_joint_jacobian", "unexplained", "workspace", "MAX_HARMONIC", "N_SPLINE"]
