@@ -67,6 +67,7 @@ class Options:
     net_iterations: int = 100
     trajectory: bool | None = None  # None: decide from a monotonic t column
     diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
+    learned: bool = True  # auto: the learned residual model after the closed loop (False: the loop alone)
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
     engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
@@ -303,7 +304,7 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
         close_loop(run, train, trajectory, record, alpha=opts.alpha, alpha_val=opts.alpha_validation)
 
     # 4. a learned residual model where the data demand it
-    if opts.method == "auto":
+    if opts.method == "auto" and opts.learned:
         _console.info("residual model: kernel regression and correction network judged on validation poses")
         if select_learned(run, train, trajectory):
             e_val = refine_learned(run, train, trajectory)
@@ -312,6 +313,10 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
             record("learned")
             run.effects_report[-1]["rmse_before_mm"] = run.stages[-2].rmse * 1e3
             run.effects_report[-1]["rmse_after_mm"] = run.stages[-1].rmse * 1e3
+            if run.diagnosis is not None and run.diagnosis.unexplained:
+                from torchcal.diagnose.tracing import refresh_unexplained
+
+                refresh_unexplained(run, train, trajectory, opts.alpha)
 
     # 3'. the correction network on what remains (paper Eq. 22: corrections in the base frame)
     if opts.method in ("pcm", "kinematic+ann"):
