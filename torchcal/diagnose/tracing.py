@@ -86,7 +86,7 @@ class OpenCandidate:
         """What ``params`` of the report carry besides the fitted values: the form and its order."""
         out = {"form": self.choice.form, "order": self.choice.order, "variable": self.choice.variable.name}
         if self.choice.best.tau is not None:
-            out["tau_form_fit"] = {"value": self.choice.best.tau, "sigma": self.choice.best.tau_sigma}
+            out["tau_form_fit"] = {"value": self.choice.best.tau, "std": self.choice.best.tau_sigma}
         return out
 
     def to_dict(self) -> dict:
