@@ -239,9 +239,6 @@ def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, a
                 top += " (significant, but no form with an effect class that was not tried)"
             diag.stop = f"round {rnd}: no candidate significant ({best} >= {alpha}{top})"
             break
-        # the open form at a place replaces the menu's fixed form there (same effect name)
-        open_names = {c.name for c in opens}
-        menu = [s for s in significant if s.candidate.name not in open_names]
         passed = []  # (validation rmse, score, candidate, trial, e_trial, validation)
         for c in opens[:1]:
             tried_open.add(c.name)
@@ -249,6 +246,9 @@ def close_loop(run, train, trajectory: bool, record: Callable[[str], None], *, a
             validation, trial, e_trial = validate(rnd, c, s)
             if trial is not None:
                 passed.append((validation["rmse_after_mm"], s, c, trial, e_trial, validation))
+        # a confirmed open form at a place replaces the menu's fixed form there (same effect name)
+        open_names = {x[2].name for x in passed}
+        menu = [s for s in significant if s.candidate.name not in open_names]
         for s in menu[:max_tries]:
             tried.add(s.candidate.name)
             validation, trial, e_trial = validate(rnd, s.candidate, s)

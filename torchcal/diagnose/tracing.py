@@ -127,6 +127,7 @@ class LocalisationScore:
         loc = self.localisation.to_dict()
         return {"test": "localisation, then form selection by BIC", "p_bonferroni": loc["p_bonferroni"],
                 "log10_p": loc["log10_p"], "statistic": loc["statistic"], "localisation": loc,
+                "bic_change": self.choice.best.bic - next(f.bic for f in self.choice.table if f.form == "none"),
                 "form": self.choice.to_dict()}
 
 
