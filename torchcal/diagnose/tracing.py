@@ -173,6 +173,11 @@ def open_candidates(model: MeasurementModel, locs: list[Localisation], ws: Works
             notes.append({"variable": loc.name, "form": fc.form, "reason": f"no effect class for a {fc.form} form "
                                                                             f"in {loc.name}"})
             continue
+        if fc.kind == "drift" and loc.name == "temperature":
+            # the menu's temperature drift is the arm's scale; an instrument translation along temperature would
+            # only compete with the time drift (temperature follows time in a warm-up)
+            notes.append({"variable": loc.name, "form": fc.form, "reason": "left to the scale drift"})
+            continue
         eff = fc.effect(model)
         if eff is None:
             notes.append({"variable": loc.name, "form": fc.form, "reason": "no effect class for this form"})
