@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -27,23 +29,44 @@ class Drift(Effect):
     ``dv = v - reference`` with ``reference`` the variable's value at the first sample
     used for fitting, so the geometry refers to the start of the campaign.
 
+    Time course (``form``):
+
+    * ``"linear"`` (default): the drift grows as ``dv``;
+    * ``"exponential"``: a warm-up that settles, ``g(dv) = tau (1 - exp(-dv / tau))`` in place of
+      ``dv``, with the time constant ``tau`` (unit of ``v``) a fitted parameter (stored as
+      ``log_tau``). ``rates`` keep their meaning (the initial rate of change); the drift settles at
+      ``rates * tau``, and for ``tau`` much longer than the campaign the form tends to the linear one.
+
     Args:
         variable: "t" or "temperature".
         target: "instrument" or "scale".
+        rates: initial rates, 6 (instrument ``[t, r]``) or 1 (scale).
+        reference: value of the variable where the drift is zero.
+        form: "linear" or "exponential".
+        tau: initial time constant of the exponential form (unit of the variable, > 0).
     """
 
     kind = "drift"
     VARIABLES = ("t", "temperature")
     TARGETS = ("instrument", "scale")
+    FORMS = ("linear", "exponential")
 
-    def __init__(self, variable: str = "t", target: str = "instrument", rates=None, reference: float = 0.0):
+    def __init__(self, variable: str = "t", target: str = "instrument", rates=None, reference: float = 0.0,
+                 form: str = "linear", tau: float = 1800.0):
         super().__init__(joint=None)
         if variable not in self.VARIABLES:
             raise OptionError(f"drift variable '{variable}' is not one of {self.VARIABLES}")
         if target not in self.TARGETS:
             raise OptionError(f"drift target '{target}' is not one of {self.TARGETS}")
+        if form not in self.FORMS:
+            raise OptionError(f"drift form '{form}' is not one of {self.FORMS}")
+        if form == "exponential" and not float(tau) > 0.0:
+            raise OptionError(f"drift time constant must be positive, got {tau}")
         self.variable = variable
         self.target = target
+        self.form = form
+        if form == "exponential":
+            self.log_tau = nn.Parameter(torch.tensor(math.log(float(tau)), dtype=torch.float64))
         self.acts_on = "instrument" if target == "instrument" else "cartesian"
         n = 6 if target == "instrument" else 1
         r = torch.zeros(n, dtype=torch.float64) if rates is None else torch.as_tensor(rates, dtype=torch.float64)
@@ -57,8 +80,25 @@ class Drift(Effect):
             raise EstimationError(f"drift with '{self.variable}' needs a '{self.variable}' column in the data")
         return v - self.reference
 
+    def time_course(self, dv: Tensor) -> Tensor:
+        """``dv`` (linear form) or ``tau (1 - exp(-dv / tau))`` (exponential form), ``(N,)``."""
+        if self.form == "linear":
+            return dv
+        tau = torch.exp(self.log_tau)
+        return -tau * torch.expm1(-dv / tau)
+
+    @property
+    def tau(self) -> float | None:
+        """The time constant (unit of the variable), or None for the linear form."""
+        return float(torch.exp(self.log_tau.detach())) if self.form == "exponential" else None
+
+    def scale_(self, factor: float) -> None:
+        """Scale the rates only: the time constant is a shape, not a size."""
+        with torch.no_grad():
+            self.rates.mul_(factor)
+
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
-        dv = self.regressor(robot, ctx)
+        dv = self.time_course(self.regressor(robot, ctx))
         if self.target == "instrument":
             return dv[:, None] * self.rates
         if p_base is None:
@@ -66,11 +106,18 @@ class Drift(Effect):
         return p_base * (self.rates * dv)[:, None]
 
     def config(self) -> dict:
-        return {"variable": self.variable, "target": self.target}
+        cfg = {"variable": self.variable, "target": self.target}
+        if self.form != "linear":  # the linear default keeps the older config unchanged
+            cfg["form"] = self.form
+        return cfg
 
     def label(self) -> str:
-        return f"drift({self.variable}, {self.target})"
+        form = "" if self.form == "linear" else f", {self.form}"
+        return f"drift({self.variable}, {self.target}{form})"
 
     def describe(self) -> dict:
-        return {"variable": self.variable, "target": self.target, "rates": self.rates.detach().tolist(),
-                "reference": float(self.reference)}
+        out = {"variable": self.variable, "target": self.target, "form": self.form,
+               "rates": self.rates.detach().tolist(), "reference": float(self.reference)}
+        if self.form == "exponential":
+            out["tau"] = self.tau
+        return out

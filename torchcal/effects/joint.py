@@ -103,13 +103,14 @@ class Cyclic(Effect):
 
     Eccentric gears, encoders mounted off-centre and the flexspline's two-lobe wave
     make the true joint angle run ahead and behind the reading periodically, once or
-    twice per revolution of the output (and at the gear ratio's multiples on the motor
-    side, too fast to see at the flange). The first harmonics are the ones a
-    calibration can resolve.
+    twice per revolution of the output; gear tooth and bearing patterns add higher orders
+    (3rd to about 10th) at the output, and the gear ratio's multiples on the motor side
+    are too fast to see at the flange. Any set of orders is allowed; the default (1, 2)
+    is the classic pair, and order selection (:mod:`torchcal.diagnose.forms`) picks others.
 
     Args:
         joint: 1-based joint.
-        harmonics: the orders k (default 1 and 2).
+        harmonics: the orders k, distinct positive integers (default 1 and 2).
         a, b: sine and cosine amplitudes [rad], one per harmonic.
     """
 
@@ -117,7 +118,12 @@ class Cyclic(Effect):
 
     def __init__(self, joint: int, harmonics: Sequence[int] = (1, 2), a=None, b=None):
         super().__init__(joint)
-        h = torch.tensor([int(k) for k in harmonics], dtype=torch.float64)
+        orders = [int(k) for k in harmonics]
+        if not orders or min(orders) < 1 or len(set(orders)) != len(orders):
+            from torchcal.errors import OptionError
+
+            raise OptionError(f"cyclic harmonics must be distinct positive integers, got {list(harmonics)}")
+        h = torch.tensor(orders, dtype=torch.float64)
         self.register_buffer("harmonics", h)
         n = len(harmonics)
         def init(v):
@@ -141,3 +147,44 @@ class Cyclic(Effect):
     def describe(self) -> dict:
         return {"harmonics": [int(k) for k in self.harmonics], "a_rad": self.a.detach().tolist(),
                 "b_rad": self.b.detach().tolist()}
+
+
+class Transmission(Effect):
+    """A joint-angle error polynomial in the joint's reading: ``dq_j = sum_{d=1..D} c_d q_j^d``.
+
+    A transmission ratio that differs from the controller's value scales the angle
+    (degree 1: ``dq_j = c_1 q_j``, ``c_1`` the relative ratio error); a slightly
+    non-linear encoder or a cam-like drive adds degrees 2 and 3. The constant term is
+    the joint offset, which the geometry already carries, so degrees start at 1.
+
+    Args:
+        joint: 1-based joint.
+        degree: highest degree D (>= 1).
+        c: coefficients ``(D,)`` [rad / rad^d].
+    """
+
+    kind = "transmission"
+
+    def __init__(self, joint: int, degree: int = 1, c=None):
+        super().__init__(joint)
+        if int(degree) < 1:
+            from torchcal.errors import OptionError
+
+            raise OptionError(f"transmission degree must be >= 1, got {degree}")
+        self.degree = int(degree)
+        c0 = torch.zeros(self.degree, dtype=torch.float64) if c is None else torch.as_tensor(c, dtype=torch.float64)
+        self.c = nn.Parameter(c0.reshape(self.degree).clone())
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """``[q_j, q_j^2, ..., q_j^D]`` ``(N, D)``."""
+        qj = ctx.q[:, self.j : self.j + 1]
+        return qj ** torch.arange(1, self.degree + 1, dtype=qj.dtype, device=qj.device)
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        return self._joint_delta(ctx, self.regressor(robot, ctx) @ self.c)
+
+    def config(self) -> dict:
+        return {"joint": self.joint, "degree": self.degree}
+
+    def describe(self) -> dict:
+        return {"degree": self.degree, "c": self.c.detach().tolist()}

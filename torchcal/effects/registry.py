@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from torchcal.effects.base import Acts, Effect
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
-from torchcal.effects.joint import Backlash, Compliance, Cyclic
+from torchcal.effects.joint import Backlash, Compliance, Cyclic, Transmission
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.errors import OptionError
@@ -43,6 +43,8 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),
     EffectKind("learned", (LearnedEffect, KernelCorrection, GPCorrection), (Acts.CARTESIAN,), False),
+    # a joint-angle error polynomial in the joint's own angle (transmission ratio / scale, README)
+    EffectKind("transmission", (Transmission,), (Acts.JOINT,), True),
 )
 
 #: effect kinds as named in report.json (CONTRACT §4)

@@ -91,10 +91,7 @@ def grouped_split(q: torch.Tensor, holdout: float, seed: int,
 
 def _kinematic(robot_spec: str, train):
     """The kinematic calibration of ``train`` (the pipeline's ``kinematic`` method; 1 % of it held out there)."""
-    try:
-        from torchcal.pipeline import Options, calibrate  # after the pipeline move (issue 10)
-    except ImportError:
-        from torchcal.calibrate import Options, calibrate
+    from torchcal.pipeline import Options, calibrate
     return calibrate(robot_spec, train, Options(method="kinematic", holdout=0.01)).model
 
 

@@ -19,6 +19,7 @@ import torch
 
 from torchcal import stats as S
 from torchcal.data import Measurements
+from torchcal.diagnose.tracing import refresh_unexplained
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
 from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
 from torchcal.effects.kernel import fit_kernel_correction
@@ -49,6 +50,8 @@ def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) ->
     before = run.stages[-1]
     after = run.add_stage(StageName.LEARNED)
     record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
+    if run.diagnosis is not None and run.diagnosis.unexplained:
+        refresh_unexplained(run, train, trajectory, run.options.alpha)
 
 
 def _learned_split(train: Measurements, seed: int, group_tol: float,

@@ -4,20 +4,27 @@ After the geometric fit, repeat:
 
 1. score every remaining candidate (:mod:`torchcal.diagnose.candidates`) at the current fit of
    the training poses (:func:`~torchcal.diagnose.score.score_candidates`: score test, Bonferroni
-   over the candidates, identifiability against the current parameters);
-2. take the significant candidates in order of evidence (smallest p first) and, for each in
-   turn, refit the whole model with it (geometry, instrument, lever arm, the effects accepted so
-   far and the candidate, jointly) on 80 % of the training poses; it is accepted when the other
-   20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a one-sided
-   paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``;
-3. an accepted effect is refitted jointly on all training poses and becomes a stage of the story;
-   a rejected one is recorded with its evidence and not tried again;
+   over the candidates, identifiability against the current parameters), and localise the training
+   residual (:mod:`torchcal.diagnose.tracing`: a penalised smooth per variable, Bonferroni over the
+   variables); at the strongest significant variable whose BIC-chosen form has an effect class, that
+   form is an open candidate (it replaces the menu's fixed form of the same name this round);
+2. refit the whole model (geometry, instrument, lever arm, the effects accepted so far and the
+   candidate, jointly) on 80 % of the training poses with the open candidate and with the significant
+   menu candidates in order of evidence (smallest p first) until one of them passes; a candidate passes
+   when the other 20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a
+   one-sided paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``;
+3. of those that passed, the one with the lowest validation RMSE is refitted jointly on all training
+   poses and becomes a stage of the story (the other stays untried); a rejected one is recorded with its
+   evidence and not tried again;
 
-until no candidate is significant or none of the significant ones passes validation. The global
-test is reported after every step but does not stop the search: for an alternative with one to
+until neither the score tests nor the localisation propose a candidate, or none passes validation. The
+global test is reported after every step but does not stop the search: for an alternative with one to
 six parameters spread over thousands of observations it has little power, the score test much more.
+When the loop ends with the global test failing, ``Diagnosis.unexplained`` lists the significant
+variables of the final model's training residual, with their share and evidence
+(:func:`~torchcal.diagnose.tracing.unexplained_entries`).
 The split into fitting and validation poses is the calibration's own rule applied to the training
-poses (a seeded random 20 %, or the last 20 % of a trajectory; revisits kept on one side).
+poses (a seeded random 20 %, or the last 20 % of a trajectory).
 """
 
 from __future__ import annotations
@@ -33,6 +40,14 @@ from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.diagnose.candidates import Candidate, candidates
 from torchcal.diagnose.score import Score, score_candidates
+from torchcal.diagnose.tracing import (
+    LocalisationScore,
+    OpenCandidate,
+    effect_form_params,
+    localise_fit,
+    open_candidates,
+    unexplained_entries,
+)
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.records import EffectRecord, Rejection
@@ -82,6 +97,7 @@ class Diagnosis:
     rounds: list[dict] = field(default_factory=list)  # per round: scores and the global test before it
     decisions: list[Decision] = field(default_factory=list)
     stop: str = ""
+    unexplained: list[dict] = field(default_factory=list)  # tracing.unexplained_entries of the final model
 
     def to_dict(self) -> dict:
         return {
@@ -91,7 +107,9 @@ class Diagnosis:
             "n_fit": self.n_fit, "n_validation": self.n_validation,
             "candidates": [c.name for c in self.candidates], "skipped": self.skipped,
             "rounds": [{"round": r["round"], "global_test": r["global_test"],
-                        "scores": [s.to_dict() for s in r["scores"]]} for r in self.rounds],
+                        "scores": [s.to_dict() for s in r["scores"]],
+                        **{k: r[k] for k in ("localisation", "open_candidates", "open_notes") if k in r}}
+                       for r in self.rounds],
             "decisions": [d.to_dict() for d in self.decisions],
             "stop": self.stop,
         }
@@ -104,7 +122,7 @@ class Diagnosis:
 
 
 def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, alpha: float = 0.01,
-               alpha_val: float = 0.05, max_effects: int = 8, max_tries: int = 3) -> Diagnosis:
+               alpha_val: float = 0.05, max_effects: int = 8, max_tries: int = 3, open_forms: bool = True) -> Diagnosis:
     """Add the effects the training data demand to ``run.model`` (module docstring).
 
     Each accepted effect becomes a stage of the run, with its :class:`EffectRecord`; each candidate that
@@ -117,6 +135,8 @@ def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, al
         alpha_val: level of the paired validation test.
         max_effects: at most this many effects are added.
         max_tries: significant candidates validated per round before the loop gives up.
+        open_forms: also localise the residual each round and propose the form chosen there
+            (:mod:`torchcal.diagnose.tracing`); at the end, report what is left (``Diagnosis.unexplained``).
     """
     opts, model = run.options, run.model
     ctx = Context.from_measurements(train, trajectory=trajectory)
@@ -138,36 +158,74 @@ def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, al
     base = copy.deepcopy(model)
     fit_on(base, fit_part, "validation baseline")
     e_base = errors(base, val_part, trajectory)
-    tried: set[str] = set()
+    tried: set[str] = set()  # menu candidates tried
+    tried_open: set[str] = set()  # open candidates tried (by effect name)
+    accepted_names: set[str] = set()
+    open_notes: dict[str, str] = {}  # variable -> why no open effect came from it (for ``unexplained``)
+
+    def validate(rnd: int, cand, s) -> _Validation:
+        v = _validate(s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand)
+        if not v.passed:
+            _reject(run, diag, v)
+            if isinstance(cand, OpenCandidate):
+                open_notes[cand.choice.variable.name] = f"{cand.name} ({cand.choice.form}) rejected: {v.reason}"
+        return v
+
     for rnd in range(1, max_effects + 1):
         fit = run.fits[-1]
-        remaining = [c for c in cands if c.name not in tried]
-        if not remaining:
-            diag.stop = "every candidate has been tried"
-            break
-        scores = score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining, tol=opts.rank_tol)
-        diag.rounds.append({"round": rnd, "scores": scores, "global_test": fit.global_test})
+        remaining = [c for c in cands if c.name not in tried and c.name not in accepted_names]
+        scores = score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining,
+                                  tol=opts.rank_tol) if remaining else []
+        locs, ws = localise_fit(model, ctx, train.p, fit)
+        opens, notes = (open_candidates(model, locs, ws, alpha, tried_open | accepted_names)
+                        if open_forms else ([], []))
+        for n in notes:
+            open_notes.setdefault(n["variable"], n["reason"])
+        diag.rounds.append({"round": rnd, "scores": scores, "global_test": fit.global_test,
+                            "localisation": [loc.to_dict() for loc in locs[:6]],
+                            "open_candidates": [c.to_dict() for c in opens], "open_notes": notes})
         significant = [s for s in scores if s.significant(alpha)]
-        if not significant:
-            best = scores[0]
-            diag.stop = (f"round {rnd}: no candidate significant (best {best.candidate.name}: Bonferroni p = "
-                         f"{best.p_bonferroni:.2g} >= {alpha})")
+        if not significant and not opens:
+            best = (f"best {scores[0].candidate.name}: Bonferroni p = {scores[0].p_bonferroni:.2g}" if scores
+                    else "no menu candidate left")
+            top = (f"; localisation: {locs[0].name}, Bonferroni p = {locs[0].p_bonferroni:.2g}" if locs else "")
+            if any(loc.significant(alpha) for loc in locs):
+                top += " (significant, but no form with an effect class that was not tried)"
+            diag.stop = f"round {rnd}: no candidate significant ({best} >= {alpha}{top})"
             break
-        accepted = None
-        for s in significant[:max_tries]:
-            tried.add(s.candidate.name)
-            v = _validate(s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val)
+        passed: list[_Validation] = []
+        for c in opens[:1]:
+            tried_open.add(c.name)
+            v = validate(rnd, c, LocalisationScore(c.localisation, c.choice))
             if v.passed:
-                accepted = v
+                passed.append(v)
+        # a confirmed open form at a place replaces the menu's fixed form there (same effect name)
+        open_names = {v.candidate.name for v in passed}
+        menu = [s for s in significant if s.candidate.name not in open_names]
+        for s in menu[:max_tries]:
+            tried.add(s.candidate.name)
+            v = validate(rnd, s.candidate, s)
+            if v.passed:
+                passed.append(v)
                 break
-            _reject(run, diag, v)
-        if accepted is None:
+        if not passed:
             diag.stop = f"round {rnd}: no significant candidate passed validation"
             break
+        # the candidate that validates best; the others stay untried for the next round
+        accepted = min(passed, key=lambda v: v.validation["rmse_after_mm"])
+        for v in passed:
+            if v is not accepted:
+                (tried_open if isinstance(v.candidate, OpenCandidate) else tried).discard(v.candidate.name)
         _accept(run, diag, accepted, fit_on, train)
+        accepted_names.add(accepted.candidate.name)
         base, e_base = accepted.trial, accepted.errors
     else:
         diag.stop = f"reached the limit of {max_effects} effects"
+        for loc in (localise_fit(model, ctx, train.p, run.fits[-1])[0] if open_forms else []):
+            open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
+    final = run.fits[-1]
+    if open_forms and not final.global_test.get("passed", True):
+        diag.unexplained = unexplained_entries(model, ctx, train.p, final, alpha, open_notes)
     return diag
 
 
@@ -177,6 +235,7 @@ class _Validation:
 
     score: Score
     round: int
+    candidate: Candidate  # a menu candidate, or an open form (tracing.OpenCandidate)
     base: MeasurementModel  # the model before it, fitted on the fitting poses
     trial: MeasurementModel  # with it
     errors: Tensor  # (n_validation,) m: the trial's validation errors
@@ -186,10 +245,11 @@ class _Validation:
 
 
 def _validate(s: Score, rnd: int, base: MeasurementModel, e_base: Tensor, fit_on, fit_part: Measurements,
-              val_part: Measurements, trajectory: bool, alpha_val: float) -> _Validation:
-    """Refit ``base`` with the candidate of ``s`` on the fitting poses; compare on the validation poses."""
-    cand = s.candidate
-    _console.info(f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k}, "
+              val_part: Measurements, trajectory: bool, alpha_val: float, cand=None) -> _Validation:
+    """Refit ``base`` with ``cand`` (default: the candidate of ``s``) on the fitting poses; compare on the
+    validation poses."""
+    cand = cand if cand is not None else s.candidate
+    _console.info(f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k:.3g}, "
                   f"log10 p {s.log10_p:.1f}); validating")
     trial = copy.deepcopy(base)
     trial.add(cand.make())
@@ -204,12 +264,12 @@ def _validate(s: Score, rnd: int, base: MeasurementModel, e_base: Tensor, fit_on
     passed = r1 < r0 and test["p_value"] < alpha_val
     reason = "" if passed else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, "
                                 f"p = {test['p_value']:.2g})")
-    return _Validation(s, rnd, base, trial, e_trial, validation, passed, reason)
+    return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason)
 
 
 def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
     """Record a candidate that validation did not confirm."""
-    cand = v.score.candidate
+    cand = v.candidate
     diag.decisions.append(Decision(v.round, cand, v.score, False, v.reason, v.validation, None, (v.base, v.trial)))
     run.rejections.append(Rejection(cand.kind, cand.joint, {**v.score.to_dict(), "validation": v.validation},
                                     name=cand.name, reason=v.reason))
@@ -218,7 +278,7 @@ def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
 
 def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> None:
     """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it."""
-    model, s, cand = run.model, v.score, v.score.candidate
+    model, s, cand = run.model, v.score, v.candidate
     before = copy.deepcopy(model)
     eff = cand.make()
     model.add(eff)
@@ -229,12 +289,15 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     st_after = run.add_stage(label)
     diag.decisions.append(Decision(v.round, cand, s, True, "significant and confirmed on validation poses",
                                    v.validation, label, (before, copy.deepcopy(model))))
+    index = len(model.effects) - 1
+    params = {**effect_parameters(model, index, new_fit),
+              **{k: val for k, val in eff.describe().items() if k in DESCRIPTORS}}
+    if isinstance(cand, OpenCandidate):
+        params = effect_form_params(model, index, cand, params)
     run.effects.append(EffectRecord(
-        cand.kind, cand.joint,
-        {**effect_parameters(model, len(model.effects) - 1, new_fit),
-         **{k: val for k, val in eff.describe().items() if k in DESCRIPTORS}},
+        cand.kind, cand.joint, params,
         {**s.to_dict(), "round": v.round, "validation": v.validation, "global_test_after": new_fit.global_test},
         name=cand.name, label=label, rmse_before_mm=st_before.rmse * 1e3, rmse_after_mm=st_after.rmse * 1e3))
-    run.notes.append(f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k} dof, "
+    run.notes.append(f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
                      f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
                      f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})")

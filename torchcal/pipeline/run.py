@@ -74,6 +74,7 @@ class Options:
     net_iterations: int = 100
     trajectory: bool | None = None  # None: decide from a monotonic t column
     diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
+    learned: bool = True  # auto: the learned residual model after the closed loop (False: the loop alone)
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
     engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
@@ -245,7 +246,7 @@ def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: O
         close_loop(run, train, trajectory, alpha=opts.alpha, alpha_val=opts.alpha_validation)
 
     # 4. a learned residual model where the data demand it
-    if opts.method == "auto":
+    if opts.method == "auto" and opts.learned:
         _console.info("residual model: kernel regression and correction network judged on validation poses")
         learned_stage(run, train, trajectory)
 

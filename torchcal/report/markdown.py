@@ -181,6 +181,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
     ]
     lines += _diagnosis_section(run, report, out)
+    lines += _unexplained_section(report, out)
     lines += ekf_section(run, out)
     lines += [
         "## Global test",
@@ -256,6 +257,13 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             lines.append(f"| {s.candidate.name} | {s.k} | {s.statistic:.1f} | {s.log10_p:.1f} | {s.p_bonferroni:.2g} | "
                          f"{s.bic_change:.1f} | {'yes' if s.identifiable else 'no'} |")
         lines.append("")
+        if r.get("localisation"):
+            lines += ["Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
+                      + ", ".join(f"{loc['variable']} (share {loc['share']:.1%}, p = {loc['p_bonferroni']:.2g})"
+                                  for loc in r["localisation"][:3])
+                      + ". Open candidates: "
+                      + (", ".join(f"{c['name']} ({c['form']}, order {c['order']})" for c in r["open_candidates"])
+                         or "none") + ".", ""]
         for k, d in enumerate(diag.decisions):
             if d.round != r["round"]:
                 continue
@@ -275,4 +283,52 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
         lines += [f"Learned residual model: {ev['chosen']} {'accepted' if learned else 'rejected'} "
                   f"(validation {ev['validation_rmse_before_mm']:.4f} -> {ev['validation_rmse_after_mm']:.4f} mm, "
                   f"p = {ev['p_value']:.2g}; rule: {ev['rule']}).", ""]
+    return lines
+
+
+def plot_unexplained(entry: dict, path: Path) -> None:
+    """The smooth of the residual in one unexplained variable, with a 2-sigma band (``report.json`` entry)."""
+    plt = _plt()
+    sm = entry["smooth"]
+    x = torch.tensor(sm["grid"], dtype=torch.float64)
+    f = torch.tensor(sm["value"], dtype=torch.float64)
+    se = torch.tensor(sm["se"], dtype=torch.float64)
+    joint = sm["unit"] == "rad"
+    scale, unit = (1e6, "urad") if joint else (1e6, "um")
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    cols = [f[:, None], se[:, None]] if f.dim() == 1 else [f, se]
+    names = ["joint error"] if joint else ["x", "y", "z"]
+    for c, name in enumerate(names):
+        v, s = cols[0][:, c] * scale, cols[1][:, c] * scale
+        style = "o-" if len(x) <= 2 else "-"
+        ax.plot(x.tolist(), v.tolist(), style, lw=1.2, label=name)
+        ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel(entry["label"])
+    ax.set_ylabel(f"residual smooth [{unit}]" + (" (tracker frame)" if not joint else ""))
+    ax.set_title(f"unexplained: {entry['variable']} (share {entry['share']:.1%} of the residual, "
+                 f"p = {entry['p_bonferroni']:.2g})", fontsize=10)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _unexplained_section(report: dict, out: Path) -> list[str]:
+    """What the final model leaves unexplained (``report["unexplained"]``), with a plot of the strongest."""
+    entries = report.get("unexplained") or []
+    if not entries:
+        return []
+    lines = ["## Unexplained structure", "",
+             "The global test fails and the final model's training residual still depends on these variables "
+             "(penalised smooth per variable, Bonferroni over the variables):", "",
+             "| variable | share of the residual | Bonferroni p | form chosen there (BIC) | why it is not an effect |",
+             "|---|---:|---:|---|---|"]
+    for e in entries:
+        form = e.get("form") or {}
+        lines.append(f"| {e['variable']} | {e['share']:.1%} | {e['p_bonferroni']:.2g} | {form.get('form', '-')} "
+                     f"(order {form.get('order')}) | {e.get('reason', '-')} |")
+    name = f"unexplained_{entries[0]['variable']}.png"
+    plot_unexplained(entries[0], out / name)
+    lines += ["", f"![unexplained {entries[0]['variable']}]({name})", ""]
     return lines

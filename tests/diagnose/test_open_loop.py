@@ -1,0 +1,66 @@
+"""The closed loop with open-form candidates (torchcal.diagnose.tracing) on formula campaigns of torchcal.sim.outside.
+
+The loop alone (``Options(learned=False)``): the effect named at the right place with its form, the held-out error
+next to the true-form model, nothing named on clean data, and an ``unexplained`` entry where no form fits.
+"""
+
+import copy
+import dataclasses
+
+import pytest
+import torch
+
+from torchcal.effects import Cyclic
+from torchcal.estimate.fit import errors, solve
+from torchcal.pipeline import Options, calibrate
+from torchcal.sim.campaign import SimConfig
+from torchcal.sim.outside import OutsideEffect, simulate_outside
+from torchcal.stats import rmse
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _loop(train):
+    return calibrate("ur5", train, Options(seed=1, learned=False, holdout=0.01))
+
+
+def test_third_harmonic_on_a_wrist_joint_is_named_with_its_order():
+    c = simulate_outside([OutsideEffect("harmonic", joint=6, order=3, size=3e-5)],
+                         SimConfig(poses=800, test_poses=200, seed=5))
+    run = _loop(c.train)
+    assert [e["name"] for e in run.effects_report] == ["cyclic:6"]
+    e = run.effects_report[0]
+    assert e["params"]["order"] == [3] and e["params"]["form"] == "fourier"
+    assert e["evidence"]["form"]["bic_table"] and e["evidence"]["localisation"]["variable"] == "q6"
+    assert run.diagnosis.unexplained == []
+    # the true form (3rd harmonic on joint 6) refitted jointly with the geometry, no search
+    true = copy.deepcopy(run.stages[1].model)
+    true.add(Cyclic(6, harmonics=[3]))
+    tr = c.train.subset(run.train_idx)
+    solve(true, tr, ("geometry", "instrument", "tool"), run.options, "true", False, effects=True,
+          identifiability=run.fits[1].identifiability)
+    assert rmse(errors(run.model, c.test, False)) <= 1.2 * rmse(errors(true, c.test, False))
+
+
+def test_clean_campaign_names_nothing_and_leaves_nothing_unexplained():
+    c = simulate_outside([], SimConfig(poses=800, test_poses=200, seed=5))
+    run = _loop(c.train)
+    assert run.effects_report == [] and run.diagnosis.unexplained == []
+
+
+def test_structure_without_a_form_is_reported_unexplained():
+    c = simulate_outside([], SimConfig(poses=800, test_poses=200, seed=7))
+    q3 = c.train.q[:, 2]
+    dp = torch.zeros_like(c.train.p)
+    dp[:, 2] = 80e-6 * torch.exp(-(((q3 - float(q3.median())) / 0.15) ** 2))  # a sharp bump no form describes
+    run = _loop(dataclasses.replace(c.train, p=c.train.p + dp))
+    assert not run.fits[-1].global_test["passed"]
+    unx = run.diagnosis.unexplained
+    assert unx and all(0 < u["share"] < 1 and u["p_bonferroni"] < 0.01 and u["reason"] for u in unx)
+    assert {"variable", "share", "evidence", "smooth"} <= set(unx[0])
