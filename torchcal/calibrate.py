@@ -48,6 +48,8 @@ F64 = torch.float64
 
 METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
 DEFAULT_METHOD = "auto"
+#: engines of the integrated method (torchcal.filter.integrated)
+ENGINES = ("auto", "adaptive", "ekf")
 
 
 @dataclass
@@ -69,13 +71,14 @@ class Options:
     diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
-    engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
+    engine: str = "auto"  # integrated: "auto" (chosen on validation, geometry alone included), "adaptive"
+    # (geometry in the filter state) or "ekf" (the paper's filter)
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
-        if self.engine not in ("adaptive", "ekf"):
-            raise OptionError(f"engine '{self.engine}' is not one of adaptive, ekf")
+        if self.engine not in ENGINES:
+            raise OptionError(f"engine '{self.engine}' is not one of {', '.join(ENGINES)}")
         if not 0.0 < self.holdout < 0.9:
             raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
 
@@ -290,9 +293,9 @@ def calibrate(robot_spec: str, data: Measurements, opts: Options | None = None, 
 
     # 2'. the integrated ANN-EKF on the trajectory (network from the training corrections, then the filter)
     if opts.method == "integrated":
-        from torchcal.filter.integrated import integrate, integrate_adaptive
+        from torchcal.filter.integrated import integrate, integrate_adaptive, integrate_selected
 
-        engine = integrate_adaptive if opts.engine == "adaptive" else integrate
+        engine = {"auto": integrate_selected, "adaptive": integrate_adaptive, "ekf": integrate}[opts.engine]
         run.filter = engine(run, train, hold, record)
 
     # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation

@@ -73,9 +73,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (default: geometry, then a learned residual model where validation data demand it), "
                    "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
                    "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)")
-    c.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive",
-                   help="integrated method: adaptive (geometry and network in one filter state, default) or ekf "
-                   "(the paper's filter on the kinematic calibration's geometry)")
+    c.add_argument("--engine", choices=("auto", "adaptive", "ekf"), default="auto",
+                   help="integrated method: auto (default: the engines and their settings, and geometry alone, "
+                   "judged on the last 20 %% of the training samples; the best is kept only if it beats geometry), "
+                   "adaptive (geometry and network in one filter state) or ekf (the paper's filter on the kinematic "
+                   "calibration's geometry)")
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
     c.add_argument("--holdout", type=float, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument("--tracker-noise", type=float, default=15.0,
