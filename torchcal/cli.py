@@ -95,6 +95,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--test-poses", type=_count, default=200, help="static poses in test.csv (default 200)")
     s.add_argument("--trajectory", action="store_true",
                    help="a continuous trajectory instead of static poses (train = first --train-samples)")
+    s.add_argument("--path", default="p2p", choices=("p2p", "multisine", "randomwalk", "sweeps"),
+                   help="trajectory family: p2p (point-to-point program, default), multisine (smooth, never "
+                   "repeating, most of the joint range), randomwalk (slow), sweeps (one cycle repeated)")
     s.add_argument("--samples", type=_count, default=7342, help="trajectory samples (default 7342, as the paper)")
     s.add_argument("--train-samples", type=_count, default=5874, help="trajectory samples for training (default 5874)")
     s.add_argument("--seed", type=int, default=0, help="random seed; the campaign is reproducible from it")
@@ -122,9 +125,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto (default: geometry, then a learned residual model where validation data demand it), "
                    "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
                    "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)")
-    c.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive",
-                   help="integrated method: adaptive (geometry and network in one filter state, default) or ekf "
-                   "(the paper's filter on the kinematic calibration's geometry)")
+    c.add_argument("--engine", choices=("auto", "adaptive", "ekf"), default="auto",
+                   help="integrated method: auto (default: the engines and their settings, and geometry alone, "
+                   "judged on the last 20 %% of the training samples; the best is kept only if it beats geometry), "
+                   "adaptive (geometry and network in one filter state) or ekf (the paper's filter on the kinematic "
+                   "calibration's geometry)")
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
     c.add_argument("--holdout", type=FRACTION, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument("--tracker-noise", type=POSITIVE, default=15.0,
@@ -343,7 +348,7 @@ def cmd_simulate(args) -> int:
                           "(the rest is the test phase)")
     cfg = SimConfig(
         robot=args.robot, poses=args.poses, test_poses=args.test_poses, trajectory=args.trajectory,
-        samples=args.samples, train_samples=args.train_samples, seed=args.seed,
+        path=args.path, samples=args.samples, train_samples=args.train_samples, seed=args.seed,
         sigma_tracker=args.tracker_noise * 1e-6, sigma_joint_deg=args.joint_noise, sigma_length=args.length_bias * 1e-3,
         sigma_angle_deg=args.angle_bias, effects=[EffectSpec.parse(e) for e in args.effect],
         write_sigma=not args.no_sigma, base_link=args.base_link, tip_link=args.tip_link,

@@ -129,3 +129,38 @@ def test_effect_spec_parsing():
             EffectSpec.parse(bad)
     with pytest.raises(OptionError, match="joint 7 is outside 1..6"):
         simulate(SimConfig(robot="ur5", poses=5, effects=[EffectSpec.parse("cyclic:7")]))
+
+
+@pytest.mark.parametrize("kind", ["multisine", "randomwalk", "sweeps"])
+def test_trajectory_families_are_visible_continuous_paths_within_limits(kind):
+    """Each family is a sampled path (mostly small steps; a gap only where the line of sight breaks), every
+    sample visible and within the limits, and the same seed gives the same path."""
+    from torchcal.calibrate import is_trajectory  # moves to torchcal.pipeline with issue 10
+
+    cfg = SimConfig(robot="ur5", trajectory=True, path=kind, samples=1500, train_samples=1200, seed=3)
+    c = simulate(cfg)
+    q = c.q_true
+    assert q.shape == (1500, 6)
+    steps = torch.diff(q, dim=0).abs().max(dim=-1).values
+    assert float(steps.median()) < 0.02
+    assert float((steps > 0.05).double().mean()) < 0.02  # gaps are rare
+    lo, hi = c.model.robot.limits[:, 0], c.model.robot.limits[:, 1]
+    assert bool(((q >= lo) & (q <= hi)).all())
+    tracker = torch.tensor(c.truth["instrument"]["tracker_in_base_m"], dtype=torch.float64)
+    lever = torch.tensor(cfg.lever_arm, dtype=torch.float64)
+    assert bool(visible(c.model.robot, q, tracker, lever).all())
+    assert is_trajectory(c.train)
+    assert torch.equal(simulate(cfg).q_true, q)
+
+
+def test_families_differ_in_how_they_revisit():
+    """Sweeps repeat one cycle (the continuation revisits the training path); a multi-sine does not."""
+    def nearest_gap(kind):
+        c = simulate(SimConfig(robot="ur5", trajectory=True, path=kind, samples=2000, train_samples=1600, seed=4))
+        tr, te = c.q_true[:1600], c.q_true[1600:]
+        return float(torch.cdist(te, tr).min(dim=1).values.median())
+
+    assert nearest_gap("sweeps") < 1e-9
+    assert nearest_gap("multisine") > 1e-3
+    with pytest.raises(OptionError, match="multisine"):
+        SimConfig(trajectory=True, path="zigzag")

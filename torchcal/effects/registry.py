@@ -15,6 +15,7 @@ from torchcal.effects.gp import GPCorrection
 from torchcal.effects.joint import Backlash, Compliance, Cyclic, Transmission
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
+from torchcal.effects.support import SupportGate
 from torchcal.errors import OptionError
 
 
@@ -42,7 +43,7 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("backlash", (Backlash,), (Acts.JOINT,), True),
     EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),
-    EffectKind("learned", (LearnedEffect, KernelCorrection, GPCorrection), (Acts.CARTESIAN,), False),
+    EffectKind("learned", (LearnedEffect, KernelCorrection, GPCorrection, SupportGate), (Acts.CARTESIAN,), False),
     # a joint-angle error polynomial in the joint's own angle (transmission ratio / scale, README)
     EffectKind("transmission", (Transmission,), (Acts.JOINT,), True),
 )
@@ -63,12 +64,26 @@ def kind(name: str) -> EffectKind:
     raise OptionError(f"unknown effect kind '{name}'; known: {', '.join(KINDS)}")
 
 
-def effect_from_config(cfg: dict) -> Effect:
-    """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``."""
+def effect_from_config(cfg: dict, robot=None) -> Effect:
+    """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``.
+
+    ``robot``: the run's robot, the skeleton of a :class:`SupportGate`'s fallback geometry (its values come with
+    the state dict).
+    """
     cfg = dict(cfg)
     name = cfg.pop("class")
     if name not in CLASSES:
         raise OptionError(f"unknown effect class '{name}'; known: {', '.join(CLASSES)}")
     if name == "LearnedEffect":
         return LearnedEffect(CorrectionNet(cfg["dof"], cfg["hidden"]))
+    if name == "SupportGate":
+        if cfg.get("fallback") and robot is None:
+            raise OptionError("a SupportGate with a fallback geometry needs the run's robot to be rebuilt")
+        import copy
+
+        import torch
+
+        return SupportGate(effect_from_config(cfg["inner"], robot),
+                           torch.zeros(cfg["n_support"], cfg["dof"], dtype=torch.float64), cfg["length"],
+                           max_support=cfg["n_support"], fallback=copy.deepcopy(robot) if cfg.get("fallback") else None)
     return CLASSES[name](**cfg)

@@ -52,12 +52,13 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects.support import SupportGate, choose_gate_length
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
 from torchcal.filter.ekf import EKFConfig, EKFResult, EKFTrainer
-from torchcal.pipeline.records import EffectRecord, StageName
+from torchcal.pipeline.records import EffectRecord, Rejection, StageName
 
 if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
     from torchcal.pipeline.run import CalibrationRun
@@ -330,14 +331,8 @@ def _errors(model: MeasurementModel, m: Measurements) -> Tensor:
 _rmse = S.rmse
 
 
-#: engines of the ``integrated`` method: ``adaptive`` (default) estimates geometry and network together in the
-#: filter (:class:`~torchcal.filter.adaptive.AdaptiveEKF`); ``ekf`` is the paper's filter with the geometry of
-#: the kinematic calibration (:func:`integrate`)
-ENGINES = ("adaptive", "ekf")
-
-
 def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measurements, *,
-                       hidden: int = 128) -> IntegratedFilter:
+                       hidden: int = 128, gain: float = 5.0, sigma_field: float = 5e-4) -> IntegratedFilter:
     """The ``integrated`` method with the adaptive filter: geometry in the state (the paper's future work).
 
     The kinematic calibration of the ``geometric`` stage stays the reference the report compares with; the
@@ -348,7 +343,10 @@ def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measureme
     geometry (instrument translation back-substituted) plus a :class:`LearnedEffect` with its network, so
     ``predict`` reloads it like any run.
 
-    ``scripts/integrated_trajectory.py`` measures both engines on simulated trajectories (README, "integrated").
+    ``hidden`` and ``gain`` set the random features (more and sharper features fit more, fewer and smoother ones
+    extrapolate more gently), ``sigma_field`` the prior of the output layer (the field's expected RMS): the
+    regularisation settings :func:`integrate_selected` chooses among on validation samples.
+    ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (README, "integrated").
     """
     from torchcal.filter.adaptive import AdaptiveConfig, AdaptiveEKF, random_features
 
@@ -359,8 +357,9 @@ def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measureme
         kinematic = model(Context(q=kin_q))  # the kinematic calibration's prediction: the report's reference G
     start = _nominal_copy(robot)
     place_instrument_and_tool(start, train.q, train.p)
-    cfg = AdaptiveConfig(sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol)
-    net = random_features(dof=robot.dof, hidden=hidden, seed=int(opts.seed) + 1)
+    cfg = AdaptiveConfig(sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol,
+                         sigma_field=sigma_field)
+    net = random_features(dof=robot.dof, hidden=hidden, gain=gain, seed=int(opts.seed) + 1)
     flt = AdaptiveEKF(start, net, cfg)
     _console.info(f"integrated ANN-EKF (adaptive): geometry and a {robot.dof}-{hidden}-3 random-feature network "
                   f"estimated together along {train.n} samples, then {hold.n} held-out ones predicted")
@@ -386,7 +385,7 @@ def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measureme
     run.effects.append(EffectRecord(
         "learned", None, name="integrated", label="learned",
         params={"model": "network (fixed random tanh features, output layer estimated)", "hidden": hidden,
-                "n_weights": net.n_weights,
+                "feature_gain": gain, "sigma_field_m": sigma_field, "n_weights": net.n_weights,
                 "fit": "adaptive ANN-EKF: identifiable geometry, lever arm, instrument rotation and the network "
                        "in one filter state (Horvath & Neuner 2024, Sec. 4 future work)"},
         evidence={
@@ -411,3 +410,139 @@ def _nominal_copy(robot):
         for g in out.groups().values():
             g.delta.zero_()
     return out
+
+
+#: the last VALIDATION_FRACTION of the training samples choose the integrated model: a block at the end, in time
+#: order, so that the choice is judged on how a model predicts the *continuation* of the path it was fitted on,
+#: which is what the held-out samples (and a user's next program) ask of it
+VALIDATION_FRACTION = 0.2
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One candidate of the integrated method: an engine and its capacity / regularisation."""
+
+    engine: str  # "adaptive" or "ekf"
+    hidden: int = 128
+    gain: float = 5.0  # random features' Glorot gain (adaptive)
+    sigma_field: float = 5e-4  # prior RMS of the network's correction [m] (adaptive)
+
+    @property
+    def name(self) -> str:
+        if self.engine == "ekf":
+            return f"ekf (paper's filter, 6-{self.hidden}-3 network)"
+        return f"adaptive ({self.hidden} features, gain {self.gain:g}, prior {self.sigma_field * 1e3:g} mm)"
+
+
+#: the candidates :func:`integrate_selected` tries besides geometry alone: the adaptive engine as designed, with a
+#: tighter prior, with smoother features, with fewer smoother features, and the paper's engine
+SETTINGS = (
+    Setting("adaptive"),
+    Setting("adaptive", sigma_field=1e-4),
+    Setting("adaptive", gain=2.0),
+    Setting("adaptive", hidden=32, gain=2.0),
+    Setting("ekf", hidden=29),
+)
+
+
+def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements,
+                 setting: Setting) -> IntegratedFilter:
+    if setting.engine == "ekf":
+        return integrate(run, train, hold)
+    return integrate_adaptive(run, train, hold, hidden=setting.hidden, gain=setting.gain,
+                              sigma_field=setting.sigma_field)
+
+
+def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> CalibrationRun:
+    """A throw-away copy of ``run`` for one candidate: its own model, the first ``n_fit`` training samples its
+    training set and the rest of them its held-out set, its own records."""
+    trial = copy.copy(run)
+    trial.model = copy.deepcopy(model)
+    trial.robot = trial.model.robot
+    trial.train_idx, trial.holdout_idx = run.train_idx[:n_fit], run.train_idx[n_fit:]
+    trial.fits, trial.effects, trial.rejections, trial.notes, trial.stages = list(run.fits), [], [], [], []
+    trial.add_stage(StageName.GEOMETRIC)
+    return trial
+
+
+def _gated(model: MeasurementModel, support: Tensor, length: float, fallback) -> MeasurementModel:
+    """``model`` with its last (learned) effect behind a :class:`SupportGate` falling back to ``fallback``."""
+    out = copy.copy(model)
+    out.effects = torch.nn.ModuleList(list(model.effects))
+    out.effects[-1] = SupportGate(model.effects[-1], support, length, fallback=fallback)
+    return out
+
+
+def integrate_selected(run: CalibrationRun, train: Measurements, hold: Measurements, *,
+                       settings: tuple[Setting, ...] = SETTINGS) -> IntegratedFilter | None:
+    """The ``integrated`` method that keeps only what validation supports: never worse than geometry by design.
+
+    The training samples are split in time: the first ``1 - VALIDATION_FRACTION`` fit, the last block validates.
+    Geometry alone (the kinematic calibration refitted on the fitting samples) and every ``settings`` candidate
+    (an engine with its capacity and prior, fitted on the fitting samples, the validation block its test phase)
+    predict the validation block. Each is also tried behind a :class:`~torchcal.effects.support.SupportGate` of
+    the lengths in :data:`~torchcal.effects.support.GATE_LENGTHS` (no gate among them), which fades the
+    prediction back to the kinematic calibration where the path leaves the joints the filter was trained on. The
+    candidate with the lowest validation RMSE is kept only if it beats geometry alone by a one-sided paired test
+    at ``run.options.alpha_validation``, with the standard error inflated for the autocorrelation of
+    neighbouring samples (:func:`torchcal.stats.paired_test`); it is then fitted again on all training samples
+    (the held-out samples its test phase) with the gate length chosen. Otherwise the run ends with the geometric
+    model and says why. The table of candidates goes into the report (the effect's or the rejection's
+    ``evidence["selection"]``).
+    """
+    opts = run.options
+    n_val = max(1, int(round(VALIDATION_FRACTION * train.n)))
+    n_fit = train.n - n_val
+    fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
+    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    geo = copy.deepcopy(run.model)
+    solve(geo, fit, GEOMETRIC_GROUPS, opts, "integrated: geometry on the fitting samples", True,
+          identifiability=ida)
+    e_geo = _errors(geo, val)
+    table = [{"candidate": "geometry alone", "validation_rmse_mm": _rmse(e_geo) * 1e3}]
+    best = None
+    for setting in settings:
+        _console.info(f"integrated: validating {setting.name} on the last {val.n} training samples")
+        trial = _scratch(run, geo, n_fit)
+        try:
+            _run_setting(trial, fit, val, setting)
+        except EstimationError as err:
+            table.append({"candidate": setting.name, "failed": str(err)})
+            continue
+        length, gates = choose_gate_length(lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot),
+                                           lambda m: _rmse(_errors(m, val)))
+        e = _errors(_gated(trial.model, fit.q, length, geo.robot), val)
+        row = {"candidate": setting.name, "validation_rmse_mm": _rmse(e) * 1e3, "gate_length": length,
+               "gates": [{"length": g["length"], "validation_rmse_mm": g["validation_rmse_m"] * 1e3} for g in gates]}
+        table.append(row)
+        if best is None or _rmse(e) < _rmse(best[2]):
+            best = (setting, length, e, row)
+    evidence = {"rule": f"lowest validation RMSE, kept when it beats geometry alone by a one-sided paired test "
+                        f"(autocorrelation-corrected) at p < {opts.alpha_validation}",
+                "n_fit": fit.n, "n_validation": val.n, "candidates": table}
+    accepted = False
+    if best is not None:
+        test = S.paired_test(e_geo, best[2], ordered=True)
+        evidence.update(chosen=best[3]["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
+        accepted = _rmse(best[2]) < _rmse(e_geo) and test["p_value"] < opts.alpha_validation
+    if not accepted:
+        why = ("no candidate ran" if best is None else
+               f"the best candidate, {best[3]['candidate']}, does not beat geometry alone on the validation block "
+               f"({_rmse(e_geo) * 1e3:.4f} -> {best[3]['validation_rmse_mm']:.4f} mm, p = "
+               f"{evidence['test']['p_value']:.2g})")
+        run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
+        run.notes.append(f"integrated: geometry alone kept: {why}")
+        return None
+    setting, length = best[0], best[1]
+    _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
+    kinematic = copy.deepcopy(run.model.robot)  # the kinematic calibration on all training samples
+    filt = _run_setting(run, train, hold, setting)
+    record = run.effects[-1]
+    if math.isfinite(length):
+        run.model.effects[-1] = SupportGate(run.model.effects[-1], train.q, length, fallback=kinematic)
+        run.stages.pop()
+        after = run.add_stage(StageName.INTEGRATED)
+        record.rmse_after_mm = after.rmse * 1e3
+    record.params["support_gate_length"] = length
+    record.evidence["selection"] = evidence
+    return filt

@@ -16,8 +16,10 @@ Methods (``--method``):
   20 %; the better one is kept when it lowers the validation RMSE by at least 5 % and a one-sided
   paired test gives p < 0.01.
 * ``integrated``: ``kinematic`` (the reference stage), then the integrated ANN-EKF on a continuous
-  trajectory (:mod:`torchcal.pipeline.integrated`): by default the adaptive filter with the geometry in its
-  state (``engine="adaptive"``), or the paper's filter on the kinematic geometry (``engine="ekf"``).
+  trajectory (:mod:`torchcal.pipeline.integrated`): by default (``engine="auto"``) the engines and their settings
+  and geometry alone judged on the last block of the training samples, the best kept only where it beats
+  geometry; or the adaptive filter with the geometry in its state (``engine="adaptive"``), or the paper's filter
+  on the kinematic geometry (``engine="ekf"``).
 
 Held-out split: a seeded random 20 % of the poses (static data) or the last 20 % of the
 samples (trajectories, see :func:`is_trajectory`), never used for fitting. Poses that revisit a joint
@@ -44,7 +46,7 @@ from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, place_instrument_and_tool, solve
 from torchcal.estimate.identifiability import DEFAULT_TOL
-from torchcal.pipeline.integrated import integrate, integrate_adaptive, require_trajectory
+from torchcal.pipeline.integrated import integrate, integrate_adaptive, integrate_selected, require_trajectory
 from torchcal.pipeline.learned import correction_net_stage, learned_stage
 from torchcal.pipeline.loop import close_loop
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
@@ -54,6 +56,8 @@ Tensor = torch.Tensor
 F64 = torch.float64
 
 METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
+#: engines of the integrated method (:mod:`torchcal.pipeline.integrated`)
+ENGINES = ("auto", "adaptive", "ekf")
 DEFAULT_METHOD = "auto"
 
 
@@ -77,15 +81,16 @@ class Options:
     learned: bool = True  # auto: the learned residual model after the closed loop (False: the loop alone)
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
-    engine: str = "adaptive"  # integrated: "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
+    engine: str = "auto"  # integrated: "auto" (chosen on validation, geometry alone among the candidates),
+    # "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
     outlier_alpha: float | None = 1e-3  # gross-error screening's family-wise level (None: no screening)
     group_tol: float = S.GROUP_TOL  # rad: rows whose joints all agree within it stay on one side of every split
 
     def __post_init__(self):
         if self.method not in METHODS:
             raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
-        if self.engine not in ("adaptive", "ekf"):
-            raise OptionError(f"engine '{self.engine}' is not one of adaptive, ekf")
+        if self.engine not in ENGINES:
+            raise OptionError(f"engine '{self.engine}' is not one of {', '.join(ENGINES)}")
         if not 0.0 < self.holdout < 0.9:
             raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
 
@@ -237,7 +242,7 @@ def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: O
 
     # 2'. the integrated ANN-EKF on the trajectory (network from the training corrections, then the filter)
     if opts.method == "integrated":
-        engine = integrate_adaptive if opts.engine == "adaptive" else integrate
+        engine = {"auto": integrate_selected, "adaptive": integrate_adaptive, "ekf": integrate}[opts.engine]
         run.filter = engine(run, train, hold)
 
     # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation

@@ -237,7 +237,7 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
         raise _run_error(run_dir, "model.json: effects must be a list of objects")
     robot = load_robot(robot_path, base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
     try:
-        effects = [effect_from_config(c) for c in meta["effects"]]
+        effects = [effect_from_config(c, robot) for c in meta["effects"]]
     except TorchcalError:
         raise
     except (KeyError, TypeError, ValueError) as e:

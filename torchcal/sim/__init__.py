@@ -9,9 +9,10 @@ from torchcal.sim.campaign import (
     simulate,
     write_campaign,
 )
-from torchcal.sim.poses import SightRule, random_poses, trajectory, visible
+from torchcal.sim.poses import PATHS, SightRule, path, random_poses, trajectory, visible
 
 __all__ = [
-    "DEFAULT_SIZES", "EFFECT_NAMES", "Campaign", "EffectSpec", "SightRule", "SimConfig", "random_poses", "simulate",
+    "DEFAULT_SIZES", "EFFECT_NAMES", "PATHS", "path",
+    "Campaign", "EffectSpec", "SightRule", "SimConfig", "random_poses", "simulate",
     "trajectory", "visible", "write_campaign",
 ]

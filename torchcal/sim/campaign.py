@@ -31,7 +31,7 @@ from torchcal.errors import OptionError
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
-from torchcal.sim.poses import SightRule, random_poses, trajectory
+from torchcal.sim.poses import PATHS, SightRule, path, random_poses
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -89,6 +89,7 @@ class SimConfig:
     poses: int = 800
     test_poses: int = 200
     trajectory: bool = False
+    path: str = "p2p"  # trajectory family (torchcal.sim.poses.PATHS)
     samples: int = 7342
     train_samples: int = 5874
     seed: int = 0
@@ -112,6 +113,8 @@ class SimConfig:
     def __post_init__(self):
         if self.poses < 1 or self.test_poses < 0:
             raise OptionError(f"poses must be >= 1 and test_poses >= 0, got {self.poses} and {self.test_poses}")
+        if self.path not in PATHS:
+            raise OptionError(f"trajectory path '{self.path}' is not one of {', '.join(PATHS)}")
         if self.trajectory and not 0 < self.train_samples < self.samples:
             raise OptionError(f"train_samples must lie in (0, samples={self.samples}), got {self.train_samples}")
 
@@ -194,7 +197,7 @@ def simulate(cfg: SimConfig) -> Campaign:
 
     # poses, planned with the nominal model as a robot program would be
     if cfg.trajectory:
-        q_true = trajectory(nominal, cfg.samples, tracker_in_base, lever_nominal, g, cfg.sight)
+        q_true = path(cfg.path, nominal, cfg.samples, tracker_in_base, lever_nominal, g, cfg.sight)
         n_train = cfg.train_samples
         t = torch.arange(len(q_true), dtype=F64) * cfg.sample_interval_s
     else:

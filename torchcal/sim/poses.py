@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal.errors import OptionError
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
 
@@ -97,19 +98,21 @@ def random_poses(robot: RobotModel, n: int, tracker_in_base: Tensor, t_flange_pr
 
 def trajectory(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
                generator: torch.Generator, rule: SightRule | None = None, step: float = 0.01,
-               max_segment: float = 1.2) -> Tensor:
+               max_segment: float = 1.2, stop_after: int | None = None) -> Tensor:
     """A continuous visible trajectory ``(n_samples, dof)`` through random visible waypoints.
 
     Point-to-point motion as a robot program runs it: between consecutive waypoints every
     joint follows the same smooth cosine profile (zero velocity at the waypoints, C1), with
     the number of samples set by the largest joint move (``step`` rad per sample). A
     segment is accepted only if every sample on it is visible; waypoints are drawn among
-    visible poses within ``max_segment`` rad (largest joint move) of the current one.
+    visible poses within ``max_segment`` rad (largest joint move) of the current one. ``stop_after``: end
+    at that many waypoints instead (the path then has as many samples as the moves take).
     """
     current = random_poses(robot, 1, tracker_in_base, t_flange_probe, generator, rule)[0]
     samples = [current[None]]
     total = 1
-    while total < n_samples:
+    reached = 0
+    while total < n_samples and (stop_after is None or reached < stop_after):
         pool = random_poses(robot, 64, tracker_in_base, t_flange_probe, generator, rule)
         moves = (pool - current).abs().max(dim=-1).values
         near = torch.nonzero(moves <= max_segment).flatten()
@@ -124,5 +127,127 @@ def trajectory(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_fla
                 samples.append(seg)
                 total += len(seg)
                 current = target
+                reached += 1
                 break
     return torch.cat(samples)[:n_samples]
+
+
+#: trajectory families (``SimConfig.path``, ``torchcal simulate --path``)
+PATHS = ("p2p", "multisine", "randomwalk", "sweeps")
+
+
+def _visible_runs(robot: RobotModel, q: Tensor, tracker_in_base: Tensor, t_flange_probe: Tensor,
+                  rule: SightRule | None) -> Tensor:
+    """The samples of a planned path the tracker sees: a laser tracker loses the beam where the line of sight
+    breaks and picks it up again after, so the measured trajectory is the path with those samples missing."""
+    ok = torch.zeros(len(q), dtype=torch.bool)
+    for i in range(0, len(q), 4096):
+        ok[i : i + 4096] = visible(robot, q[i : i + 4096], tracker_in_base, t_flange_probe, rule)
+    return q[ok]
+
+
+def _joint_box(robot: RobotModel) -> tuple[Tensor, Tensor]:
+    lo = robot.limits[:, 0].clamp(min=-math.pi)
+    hi = robot.limits[:, 1].clamp(max=math.pi)
+    return lo, hi
+
+
+def multisine_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
+                   generator: torch.Generator, rule: SightRule | None = None, dt: float = 0.1,
+                   span: float = 0.8) -> Tensor:
+    """A smooth multi-sine path through most of the joint range ``(n_samples, dof)``.
+
+    Every joint is the sum of three sines of incommensurate periods (60-600 s at the sampling interval ``dt``)
+    around the middle of a visible start pose, with amplitudes that together cover ``span`` of the half range
+    (limits clipped to one turn). Unlike the point-to-point programs, the path never stops at waypoints and
+    never repeats; samples without line of sight are left out, as the tracker would.
+    """
+    lo, hi = _joint_box(robot)
+    centre = random_poses(robot, 1, tracker_in_base, t_flange_probe, generator, rule)[0]
+    half = 0.5 * (hi - lo)
+    mid = 0.5 * (hi + lo)
+    centre = mid + 0.5 * (centre - mid)  # halfway to the middle: room for the swing on both sides
+    dof = robot.dof
+    periods = 60.0 + 540.0 * torch.rand(dof, 3, generator=generator, dtype=robot.dtype)
+    phases = 2 * math.pi * torch.rand(dof, 3, generator=generator, dtype=robot.dtype)
+    weights = torch.rand(dof, 3, generator=generator, dtype=robot.dtype) + 0.2
+    room = torch.minimum(hi - centre, centre - lo).clamp(min=0.0)
+    amp = weights / weights.sum(-1, keepdim=True) * torch.minimum(span * half, room)[:, None]
+    got, start = [], 0.0
+    while sum(len(g) for g in got) < n_samples:
+        t = start + torch.arange(8192, dtype=robot.dtype) * dt
+        q = centre + (amp[None] * torch.sin(2 * math.pi * t[:, None, None] / periods[None] + phases[None])).sum(-1)
+        got.append(_visible_runs(robot, q, tracker_in_base, t_flange_probe, rule))
+        start = float(t[-1]) + dt
+        if start > 1e3 * n_samples * dt:
+            raise RuntimeError("the multi-sine path is almost never visible; move the tracker or relax the rule")
+    return torch.cat(got)[:n_samples]
+
+
+def random_walk_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
+                     generator: torch.Generator, rule: SightRule | None = None, speed: float = 0.004,
+                     correlation: float = 0.995) -> Tensor:
+    """A slow random walk in joint space ``(n_samples, dof)``: each joint's velocity is a first-order
+    autoregressive process (smooth, ``speed`` rad per sample RMS), reflected at the limits; a step that
+    would lose the line of sight turns the velocity around instead."""
+    lo, hi = _joint_box(robot)
+    q = random_poses(robot, 1, tracker_in_base, t_flange_probe, generator, rule)[0]
+    v = torch.zeros_like(q)
+    innov = speed * math.sqrt(1.0 - correlation**2)
+    out = torch.empty(n_samples, robot.dof, dtype=robot.dtype)
+    block = 256
+    i = 0
+    stuck = 0
+    while i < n_samples:
+        noise = torch.randn(block, robot.dof, generator=generator, dtype=robot.dtype) * innov
+        seg = torch.empty(block, robot.dof, dtype=robot.dtype)
+        qq, vv = q.clone(), v.clone()
+        for k in range(block):
+            vv = correlation * vv + noise[k]
+            qq = qq + vv
+            over, under = qq > hi, qq < lo
+            qq = torch.where(over, 2 * hi - qq, torch.where(under, 2 * lo - qq, qq))
+            vv = torch.where(over | under, -vv, vv)
+            seg[k] = qq
+        ok = visible(robot, seg, tracker_in_base, t_flange_probe, rule)
+        n_ok = int(ok.long().cumprod(0).sum())  # the visible run from the start of the block
+        if n_ok == 0:
+            v = -v
+            stuck += 1
+            if stuck > 200:
+                raise RuntimeError("the random walk is stuck without line of sight; move the tracker")
+            continue
+        stuck = 0
+        take = min(n_ok, n_samples - i)
+        out[i : i + take] = seg[:take]
+        i += take
+        q = seg[take - 1].clone()
+        v = -vv if n_ok < block else vv
+    return out
+
+
+def sweeps_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
+                generator: torch.Generator, rule: SightRule | None = None, waypoints: int = 6) -> Tensor:
+    """Repeated sweeps ``(n_samples, dof)``: one closed point-to-point cycle through ``waypoints`` visible
+    poses, run again and again as a production program does; the continuation revisits the same path."""
+    cycle = trajectory(robot, 10**9, tracker_in_base, t_flange_probe, generator, rule, stop_after=waypoints)
+    back = _visible_runs(robot, trajectory_between(robot, cycle[-1], cycle[0]), tracker_in_base, t_flange_probe, rule)
+    loop = torch.cat([cycle, back])
+    reps = -(-n_samples // len(loop))
+    return loop.repeat(reps, 1)[:n_samples]
+
+
+def trajectory_between(robot: RobotModel, a: Tensor, b: Tensor, step: float = 0.01) -> Tensor:
+    """The point-to-point move from ``a`` to ``b`` (cosine profile, as :func:`trajectory`), ``b`` included."""
+    m = max(20, int(math.ceil(float((b - a).abs().max()) / step)))
+    s = torch.linspace(0.0, 1.0, m + 1, dtype=a.dtype)[1:]
+    return a + (0.5 - 0.5 * torch.cos(math.pi * s))[:, None] * (b - a)
+
+
+def path(kind: str, robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
+         generator: torch.Generator, rule: SightRule | None = None) -> Tensor:
+    """A trajectory of the family ``kind`` (one of :data:`PATHS`)."""
+    makers = {"p2p": trajectory, "multisine": multisine_path, "randomwalk": random_walk_path, "sweeps": sweeps_path}
+    if kind not in makers:
+        raise OptionError(f"trajectory path '{kind}' is not one of {', '.join(PATHS)}")
+    return makers[kind](robot, n_samples, tracker_in_base, t_flange_probe, generator, rule)

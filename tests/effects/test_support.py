@@ -1,0 +1,87 @@
+"""SupportGate: a learned correction fades back to geometry where it has seen no data."""
+
+import math
+
+import pytest
+import torch
+
+from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects.support import SupportGate, choose_gate_length
+from torchcal.robot import load_robot
+
+F64 = torch.float64
+
+
+def _net(seed=0):
+    net = CorrectionNet(6, 29)
+    net.reset_parameters(torch.Generator().manual_seed(seed), gain=2.0)
+    return LearnedEffect(net)
+
+
+def test_gate_is_one_on_the_support_and_fades_away_from_it():
+    g = torch.Generator().manual_seed(1)
+    support = torch.rand(500, 6, generator=g, dtype=F64) * 0.4  # a small box of joint space
+    gate = SupportGate(_net(), support, length=0.1)
+    assert torch.allclose(gate.gate(support[::10]), torch.ones(50, dtype=F64))
+    far = support[:5] + 3.0
+    assert float(gate.gate(far).max()) < 1e-6
+    robot = load_robot("ur5")
+    ctx = Context(q=far)
+    with torch.no_grad():
+        assert float(gate(robot, ctx).abs().max()) < 1e-12
+    ctx_in = Context(q=support[:7])
+    assert torch.allclose(gate(robot, ctx_in), gate.inner(robot, ctx_in))
+
+
+def test_infinite_length_is_no_gate_and_a_state_dict_round_trip_rebuilds_it():
+    support = torch.rand(100, 6, generator=torch.Generator().manual_seed(2), dtype=F64)
+    q = support + 2.0
+    robot = load_robot("ur5")
+    open_gate = SupportGate(_net(), support)
+    assert torch.equal(open_gate(robot, Context(q=q)), open_gate.inner(robot, Context(q=q)))
+    gate = SupportGate(_net(), support, length=0.3)
+    cfg = gate.config()
+    assert cfg["inner"]["class"] == "LearnedEffect" and cfg["n_support"] == 100
+    rebuilt = SupportGate(LearnedEffect(CorrectionNet(6, 29)), torch.zeros(cfg["n_support"], cfg["dof"], dtype=F64),
+                          cfg["length"], max_support=cfg["n_support"])
+    rebuilt.load_state_dict(gate.state_dict())
+    assert torch.equal(rebuilt(robot, Context(q=q[:9])), gate(robot, Context(q=q[:9])))
+
+
+def test_thinning_keeps_at_most_max_support_points():
+    support = torch.rand(10_000, 6, dtype=F64)
+    assert len(SupportGate(_net(), support, max_support=3000).support) <= 3000
+
+
+def test_refuses_effects_that_do_not_act_on_the_position():
+    from torchcal.effects import Compliance
+
+    with pytest.raises(ValueError, match="position correction"):
+        SupportGate(Compliance(2, k=1e-6), torch.zeros(3, 6, dtype=F64))
+
+
+def test_validation_chooses_a_gate_only_where_it_helps():
+    """Truth: a field that exists only near the training box. A network that extrapolates a made-up correction
+    away from it is beaten by the gated one on the continuation; where the correction holds everywhere, no gate."""
+    robot = load_robot("ur5")
+    g = torch.Generator().manual_seed(3)
+    train_q = torch.rand(400, 6, generator=g, dtype=F64) * 0.3
+    valid_q = 0.6 + torch.rand(200, 6, generator=g, dtype=F64) * 0.3  # the path went on elsewhere
+    inner = _net(4)
+    model_of = lambda eff: MeasurementModel(robot, [eff])  # noqa: E731
+    geometric = MeasurementModel(robot, [])
+
+    def score_against(truth):
+        def score(gate):
+            with torch.no_grad():
+                e = model_of(gate)(Context(q=valid_q)) - truth
+            return float(e.norm(dim=-1).square().mean().sqrt())
+        return score
+
+    with torch.no_grad():
+        truth_none = geometric(Context(q=valid_q))  # no field out there
+        truth_all = model_of(inner)(Context(q=valid_q))  # the network is right everywhere
+    length, table = choose_gate_length(lambda ell: SupportGate(inner, train_q, ell), score_against(truth_none))
+    assert math.isfinite(length) and len(table) >= 3
+    length, _ = choose_gate_length(lambda ell: SupportGate(inner, train_q, ell), score_against(truth_all))
+    assert math.isinf(length)
