@@ -85,3 +85,28 @@ def test_validation_chooses_a_gate_only_where_it_helps():
     assert math.isfinite(length) and len(table) >= 3
     length, _ = choose_gate_length(lambda ell: SupportGate(inner, train_q, ell), score_against(truth_all))
     assert math.isinf(length)
+
+
+def test_with_a_fallback_the_whole_prediction_fades_to_the_fallback_geometry_and_reloads():
+    """Away from the support, model(q) -> the fallback robot's prediction (tracker frame); on it, the model's own."""
+    import copy
+
+    from torchcal.effects import effect_from_config
+
+    own = load_robot("ur5")
+    fallback = load_robot("ur5")
+    with torch.no_grad():
+        own.geometry.delta.add_(1e-4 * own.geometry.mask)  # the filter's own geometry differs from the kinematic one
+        fallback.instrument.delta.add_(torch.tensor([1e-3, 0, 0, 0, 0, 0], dtype=F64).reshape(
+            fallback.instrument.delta.shape))
+    support = torch.rand(300, 6, generator=torch.Generator().manual_seed(5), dtype=F64) * 0.4
+    gate = SupportGate(_net(6), support, length=0.1, fallback=copy.deepcopy(fallback))
+    model = MeasurementModel(own, [gate])
+    far, near = Context(q=support[:4] + 2.5), Context(q=support[:4])
+    with torch.no_grad():
+        assert torch.allclose(model(far), MeasurementModel(fallback, [])(far), atol=1e-12)
+        assert torch.allclose(model(near), MeasurementModel(own, [gate.inner])(near), atol=1e-12)
+        cfg = {"class": "SupportGate", **gate.config()}
+        rebuilt = MeasurementModel(load_robot("ur5"), [effect_from_config(cfg, load_robot("ur5"))])
+        rebuilt.load_state_dict(model.state_dict())
+        assert torch.equal(rebuilt(far), model(far)) and torch.equal(rebuilt(near), model(near))

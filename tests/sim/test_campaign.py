@@ -135,7 +135,7 @@ def test_effect_spec_parsing():
 def test_trajectory_families_are_visible_continuous_paths_within_limits(kind):
     """Each family is a sampled path (mostly small steps; a gap only where the line of sight breaks), every
     sample visible and within the limits, and the same seed gives the same path."""
-    from torchcal.calibrate import is_trajectory  # moves to torchcal.pipeline with issue 10
+    from torchcal.pipeline import is_trajectory
 
     cfg = SimConfig(robot="ur5", trajectory=True, path=kind, samples=1500, train_samples=1200, seed=3)
     c = simulate(cfg)
