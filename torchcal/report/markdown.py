@@ -221,7 +221,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
                   "RMSE after [mm] |", "|---|---|---|---:|---:|"]
         for e in report["effects"]:
             params = ", ".join(f"{k} = {v['value']:.3g} ± {_g(v['std'])}" for k, v in e["params"].items()
-                               if isinstance(v, dict))
+                               if isinstance(v, dict) and "value" in v)
             lines.append(f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
                          f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |")
     lines += ["", "## Plots", "", "![errors per pose](errors_per_pose.png)", "", "![histogram](histogram.png)", "",
