@@ -10,6 +10,8 @@ from setuptools import find_packages, setup
 setup(
     packages=[*find_packages(include=["torchcal", "torchcal.*"]), "torchcal.robots"],
     package_dir={"torchcal.robots": "robots"},
-    package_data={"torchcal.robots": ["*.urdf", "*.yaml", "*.yml", "README.md"]},
+    # package data lives here, not in pyproject.toml: a [tool.setuptools.package-data] table there replaces
+    # this argument as a whole, and the wheel then ships without its robots
+    package_data={"torchcal": ["py.typed"], "torchcal.robots": ["*.urdf", "*.yaml", "*.yml", "README.md"]},
     include_package_data=False,
 )

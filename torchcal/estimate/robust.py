@@ -57,6 +57,7 @@ import torch
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
+from torchcal.estimate.fit import selection
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
@@ -333,16 +334,6 @@ def _name_rows(res: RobustResult, m, pred: Tensor, file_unit_hint: bool = True) 
     res.rejected.sort(key=lambda x: x.line)
 
 
-def _selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, bool] | None = None):
-    sel, labels = {}, {}
-    for g in groups:
-        grp = model.robot.groups()[g]
-        mask = grp.mask.clone()
-        if keep is not None:
-            mask &= torch.tensor([keep.get(n, False) for n in grp.names]).reshape(mask.shape)
-        sel[f"robot.{g}.delta"] = mask
-        labels[f"robot.{g}.delta"] = grp.names
-    return sel, labels
 
 
 def screen_geometric(model: MeasurementModel, train, hold, *, sigma_tracker: float, sigma_joint: float,
@@ -376,12 +367,12 @@ def screen_geometric(model: MeasurementModel, train, hold, *, sigma_tracker: flo
         robot.tool.nominal.copy_(lever)
     ctx = Context.from_measurements(train, trajectory=trajectory)
     W = whitening(model, ctx, train.sigma, sigma_tracker, sigma_joint)
-    sel, labels = _selection(model, groups)
+    sel, labels = selection(model, groups)
     free = FreeParameters(model, sel, labels)
     fun = residual_function(model, free, ctx, train.p, W)
     J = torch.func.jacfwd(fun)(free.vector())  # the Jacobian does not depend on the measured points
     ida = analyse(J, free.names, preference_order(free.names), tol=rank_tol)
-    sel, labels = _selection(model, groups, dict(zip(free.names, ida.free.tolist())))
+    sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())))
     free = FreeParameters(model, sel, labels)
     prior = None
     if prior_length is not None and prior_angle is not None:
