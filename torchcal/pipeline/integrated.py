@@ -467,10 +467,10 @@ def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> Calibr
 
 def _gated(model: MeasurementModel, support: Tensor, length: float, fallback) -> MeasurementModel:
     """``model`` with its last (learned) effect behind a :class:`SupportGate` falling back to ``fallback``."""
-    out = copy.copy(model)
-    out.effects = torch.nn.ModuleList(list(model.effects))
-    out.effects[-1] = SupportGate(model.effects[-1], support, length, fallback=fallback)
-    return out
+    # a new model around the same robot and effects (copy.copy of a Module would share its submodule table, and
+    # replacing the effect there would wrap the original model's effect too)
+    return MeasurementModel(model.robot, [*model.effects[:-1], SupportGate(model.effects[-1], support, length,
+                                                                            fallback=fallback)])
 
 
 def integrate_selected(run: CalibrationRun, train: Measurements, hold: Measurements, *,
