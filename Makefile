@@ -22,7 +22,8 @@ demo: $(STAMP)
 	$(BIN)/torchcal demo --out runs/demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check torchcal tests scripts
+	$(BIN)/ruff check torchcal tests scripts setup.py
+	$(BIN)/ruff format --check torchcal tests scripts setup.py
 
 test: $(STAMP) lint
 	$(BIN)/python -m pytest -q

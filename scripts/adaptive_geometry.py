@@ -24,8 +24,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--hidden", type=int, default=128, help="random features of the correction network")
     ap.add_argument("--passes", type=int, default=1, help="filter passes (> 1: iterated, Gauss-Newton)")
-    ap.add_argument("--misfit-mm", type=float, default=0.0,
-                    help="std of the network's correlated misfit (Gauss-Markov state, 50 samples); 0: none")
+    ap.add_argument(
+        "--misfit-mm",
+        type=float,
+        default=0.0,
+        help="std of the network's correlated misfit (Gauss-Markov state, 50 samples); 0: none",
+    )
     ap.add_argument("--threads", type=int, default=1, help="torch threads (the filter's kernels are tiny)")
     ap.add_argument("--quick", action="store_true", help="2500 samples")
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")

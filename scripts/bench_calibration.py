@@ -43,11 +43,43 @@ def one(seed: int, work: Path) -> dict:
     floor = float(errors(c.model, hold, trajectory=False).square().mean().sqrt())
     # the same campaign through the command line in millimetres
     mm_dir = work / f"mm{seed}"
-    subprocess.run([sys.executable, "-m", "torchcal", "simulate", "--robot", "ur5", "--out", str(mm_dir), "--seed",
-                    str(seed), "--length-unit", "mm", "--quiet"], check=True)
-    subprocess.run([sys.executable, "-m", "torchcal", "calibrate", str(mm_dir / "train.csv"), "--robot", "ur5",
-                    "--out", str(work / f"run_mm{seed}"), "--length-unit", "mm", "--seed", str(seed), "--quiet"],
-                   check=True)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torchcal",
+            "simulate",
+            "--robot",
+            "ur5",
+            "--out",
+            str(mm_dir),
+            "--seed",
+            str(seed),
+            "--length-unit",
+            "mm",
+            "--quiet",
+        ],
+        check=True,
+    )
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "torchcal",
+            "calibrate",
+            str(mm_dir / "train.csv"),
+            "--robot",
+            "ur5",
+            "--out",
+            str(work / f"run_mm{seed}"),
+            "--length-unit",
+            "mm",
+            "--seed",
+            str(seed),
+            "--quiet",
+        ],
+        check=True,
+    )
     rep_mm = json.loads((work / f"run_mm{seed}" / "report.json").read_text())
     return {
         "seed": seed,
@@ -97,8 +129,13 @@ def stages(data: str, robot: str, method: str, work: Path) -> dict:
     """One calibration in a fresh process (one torch thread), timed stage by stage."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", _STAGES, data, robot, method, str(work / "run")], check=True,
-                          capture_output=True, text=True, env=env)
+    proc = subprocess.run(
+        [sys.executable, "-c", _STAGES, data, robot, method, str(work / "run")],
+        check=True,
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     out = json.loads(proc.stdout.strip().splitlines()[-1])
     out["total_wall_s"] = time.perf_counter() - t0
     out["peak_mb"] = max(s["peak_mb"] for s in out["stages"])
@@ -116,8 +153,12 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
     if args.stages:
         with tempfile.TemporaryDirectory() as tmp:
-            res = {"data": args.stages, "robot": args.robot, "method": args.method,
-                   "quiet": stages(args.stages, args.robot, args.method, Path(tmp))}
+            res = {
+                "data": args.stages,
+                "robot": args.robot,
+                "method": args.method,
+                "quiet": stages(args.stages, args.robot, args.method, Path(tmp)),
+            }
             if args.load:
                 busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
                 try:
@@ -141,9 +182,12 @@ def main(argv=None) -> dict:
         "false_effects": sum(r["effects_added"] for r in rows),
     }
     for r in rows:
-        print(f"seed {r['seed']}: before {r['rmse_before_mm']:.4f} mm, after {r['rmse_after_mm']:.4f} mm, floor "
-              f"{r['floor_mm']:.4f} mm (x{r['ratio_to_floor']:.3f}), global test {r['global_test']:.3f}, "
-              f"{r['seconds']:.1f} s", file=sys.stderr)
+        print(
+            f"seed {r['seed']}: before {r['rmse_before_mm']:.4f} mm, after {r['rmse_after_mm']:.4f} mm, floor "
+            f"{r['floor_mm']:.4f} mm (x{r['ratio_to_floor']:.3f}), global test {r['global_test']:.3f}, "
+            f"{r['seconds']:.1f} s",
+            file=sys.stderr,
+        )
     print(json.dumps(out) if args.json else json.dumps(out, indent=1))
     return out
 

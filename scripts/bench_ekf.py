@@ -56,11 +56,24 @@ class _Scale(nn.Module):
 
 def user_module(net) -> nn.Module:
     """The :class:`CorrectionNet` ``net`` rebuilt as a plain ``nn.Sequential`` (same weights, same order)."""
-    seq = nn.Sequential(_Normalise(net.q_offset, net.q_scale), nn.Linear(net.dof, net.hidden, dtype=torch.float64),
-                        nn.Tanh(), nn.Linear(net.hidden, 3, dtype=torch.float64), _Scale(net.out_scale))
-    seq.load_state_dict({"0.offset": net.q_offset, "0.scale": net.q_scale, "1.weight": net.fc1.weight,
-                         "1.bias": net.fc1.bias, "3.weight": net.fc2.weight, "3.bias": net.fc2.bias,
-                         "4.s": net.out_scale})
+    seq = nn.Sequential(
+        _Normalise(net.q_offset, net.q_scale),
+        nn.Linear(net.dof, net.hidden, dtype=torch.float64),
+        nn.Tanh(),
+        nn.Linear(net.hidden, 3, dtype=torch.float64),
+        _Scale(net.out_scale),
+    )
+    seq.load_state_dict(
+        {
+            "0.offset": net.q_offset,
+            "0.scale": net.q_scale,
+            "1.weight": net.fc1.weight,
+            "1.bias": net.fc1.bias,
+            "3.weight": net.fc2.weight,
+            "3.bias": net.fc2.bias,
+            "4.s": net.out_scale,
+        }
+    )
     return seq.to(net.q_offset.device)
 
 
@@ -76,9 +89,18 @@ def main(argv=None) -> dict:
     default_threads = torch.get_num_threads()
     if args.threads:
         torch.set_num_threads(args.threads)
-    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=args.samples,
-                           train_samples=args.samples - 1, seed=0, sigma_length=0.0, sigma_angle_deg=0.0,
-                           effects=[EffectSpec("field", size=2.5e-4)]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            trajectory=True,
+            samples=args.samples,
+            train_samples=args.samples - 1,
+            seed=0,
+            sigma_length=0.0,
+            sigma_angle_deg=0.0,
+            effects=[EffectSpec("field", size=2.5e-4)],
+        )
+    )
     robot = c.model.robot.to(args.device)
     net = c.model.effects[0].net.to(args.device)
     q = torch.cat([c.train.q, c.test.q]).to(args.device)
@@ -88,14 +110,30 @@ def main(argv=None) -> dict:
     cfg = EKFConfig(reiterate_every=0)
     fast = EKFTrainer(robot, net, cfg).run(q, y, n, w0)
     user = EKFTrainer(robot, user_module(net), cfg).run(q, y, n, w0)
-    out = {"pass_s": fast.seconds, "module_pass_s": user.seconds, "module_ratio": user.seconds / fast.seconds,
-           "module_max_abs_diff_m": float((fast.prediction - user.prediction).abs().max())}
+    out = {
+        "pass_s": fast.seconds,
+        "module_pass_s": user.seconds,
+        "module_ratio": user.seconds / fast.seconds,
+        "module_max_abs_diff_m": float((fast.prediction - user.prediction).abs().max()),
+    }
     if not args.no_baseline:
         slow = EKFTrainer(robot, net, EKFConfig(reiterate_every=0, jacobian="autograd")).run(q, y, n, w0)
-        out.update({"baseline_pass_s": slow.seconds, "speedup": slow.seconds / fast.seconds,
-                    "max_abs_diff_m": float((fast.prediction - slow.prediction).abs().max())})
-    out.update({"samples": n, "state_dim": net.n_weights + 3, "device": args.device,
-                "threads": torch.get_num_threads(), "status": fast.status[0]})
+        out.update(
+            {
+                "baseline_pass_s": slow.seconds,
+                "speedup": slow.seconds / fast.seconds,
+                "max_abs_diff_m": float((fast.prediction - slow.prediction).abs().max()),
+            }
+        )
+    out.update(
+        {
+            "samples": n,
+            "state_dim": net.n_weights + 3,
+            "device": args.device,
+            "threads": torch.get_num_threads(),
+            "status": fast.status[0],
+        }
+    )
     if args.load:
         spin = subprocess.Popen([sys.executable, "-c", "while True: pass"])
         try:
@@ -105,8 +143,13 @@ def main(argv=None) -> dict:
         finally:
             spin.kill()
             spin.wait()
-        out.update({"loaded_pass_s": loaded.seconds, "loaded_ratio": loaded.seconds / fast.seconds,
-                    "loaded_threads": default_threads})
+        out.update(
+            {
+                "loaded_pass_s": loaded.seconds,
+                "loaded_ratio": loaded.seconds / fast.seconds,
+                "loaded_threads": default_threads,
+            }
+        )
     print(", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in out.items()), file=sys.stderr)
     if args.json:
         print(json.dumps(out))

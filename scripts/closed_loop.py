@@ -30,8 +30,16 @@ import torchcal
 from torchcal import _console
 from torchcal.experiments.closed_loop import run_cases
 
-SINGLE = ["compliance:2=50um", "compliance:3=40um", "backlash:2=40um", "backlash:4=40um", "cyclic:1=40um",
-          "cyclic:5=40um", "drift:t=50um", "drift:temperature=50um"]
+SINGLE = [
+    "compliance:2=50um",
+    "compliance:3=40um",
+    "backlash:2=40um",
+    "backlash:4=40um",
+    "cyclic:1=40um",
+    "cyclic:5=40um",
+    "drift:t=50um",
+    "drift:temperature=50um",
+]
 THREE = ["compliance:3=40um,backlash:2=40um,cyclic:5=40um", "compliance:2=40um,cyclic:4=40um,drift:t=40um"]
 FIELD = ["field=0.16mm"]
 CLEAN = [""]
@@ -63,24 +71,43 @@ def main(argv=None) -> dict:
     for group, specs in groups.items():
         for spec in specs:
             for i in range(args.seeds):
-                cases.append({"robot": "ur5", "effects": [e for e in spec.split(",") if e], "poses": args.poses,
-                              "seed": args.first_seed + i})
+                cases.append(
+                    {
+                        "robot": "ur5",
+                        "effects": [e for e in spec.split(",") if e],
+                        "poses": args.poses,
+                        "seed": args.first_seed + i,
+                    }
+                )
                 tags.append(group)
     t0 = time.perf_counter()
 
     def show(r):
         tf = "-" if r["true_form_mm"] is None else f"{r['true_form_mm']:.4f}"
-        print(f"{','.join(r['effects']) or 'clean':48s} seed {r['seed']}: found {r['found']}; loop "
-              f"{r['loop_mm']:.4f}, true form {tf}, geometry {r['geometric_mm']:.4f}, floor {r['oracle_mm']:.4f} mm; "
-              f"{r['seconds']:.1f} s", file=sys.stderr)
+        print(
+            f"{','.join(r['effects']) or 'clean':48s} seed {r['seed']}: found {r['found']}; loop "
+            f"{r['loop_mm']:.4f}, true form {tf}, geometry {r['geometric_mm']:.4f}, floor {r['oracle_mm']:.4f} mm; "
+            f"{r['seconds']:.1f} s",
+            file=sys.stderr,
+        )
 
     rows = run_cases(cases, args.workers, show)
     summary = {}
     for group, r in zip(tags, rows):
         r["group"] = group
         r["meets_target"] = verdict(group, r)
-        s = summary.setdefault(group, {"runs": 0, "meets_target": 0, "named_right": 0, "loop_mm": [],
-                                       "true_form_mm": [], "geometric_mm": [], "oracle_mm": []})
+        s = summary.setdefault(
+            group,
+            {
+                "runs": 0,
+                "meets_target": 0,
+                "named_right": 0,
+                "loop_mm": [],
+                "true_form_mm": [],
+                "geometric_mm": [],
+                "oracle_mm": [],
+            },
+        )
         s["runs"] += 1
         s["meets_target"] += int(r["meets_target"])
         s["named_right"] += int(r["correct"])
@@ -94,14 +121,25 @@ def main(argv=None) -> dict:
             s[f"{k}_max"] = max(v) if v else None
         ratios = [r["loop_mm"] / r["true_form_mm"] for r in rows if r["group"] == group and r["true_form_mm"]]
         s["ratio_to_true_form_max"] = max(ratios) if ratios else None
-        print(f"{group:7s}: target met {s['meets_target']}/{s['runs']}, named right {s['named_right']}/{s['runs']}, "
-              f"loop mean {s['loop_mm_mean']:.4f} max {s['loop_mm_max']:.4f} mm, geometry mean "
-              f"{s['geometric_mm_mean']:.4f} mm, loop / true form max {s['ratio_to_true_form_max']}", file=sys.stderr)
-    out = {"torchcal": torchcal.__version__, "poses": args.poses, "seeds": args.seeds, "summary": summary,
-           "seconds_max": max(r["seconds"] for r in rows), "all_targets_met": all(r["meets_target"] for r in rows),
-           "wall_seconds": time.perf_counter() - t0, "rows": rows}
-    print(f"slowest calibration: {out['seconds_max']:.1f} s; all targets met: {out['all_targets_met']}",
-          file=sys.stderr)
+        print(
+            f"{group:7s}: target met {s['meets_target']}/{s['runs']}, named right {s['named_right']}/{s['runs']}, "
+            f"loop mean {s['loop_mm_mean']:.4f} max {s['loop_mm_max']:.4f} mm, geometry mean "
+            f"{s['geometric_mm_mean']:.4f} mm, loop / true form max {s['ratio_to_true_form_max']}",
+            file=sys.stderr,
+        )
+    out = {
+        "torchcal": torchcal.__version__,
+        "poses": args.poses,
+        "seeds": args.seeds,
+        "summary": summary,
+        "seconds_max": max(r["seconds"] for r in rows),
+        "all_targets_met": all(r["meets_target"] for r in rows),
+        "wall_seconds": time.perf_counter() - t0,
+        "rows": rows,
+    }
+    print(
+        f"slowest calibration: {out['seconds_max']:.1f} s; all targets met: {out['all_targets_met']}", file=sys.stderr
+    )
     print(json.dumps(out) if args.json else json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=1))
     return out
 

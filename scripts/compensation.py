@@ -25,9 +25,15 @@ def main() -> None:
     ap.add_argument("--path-targets", type=int, default=1000)
     ap.add_argument("--method", default=None, help="calibration method (default: the package default)")
     args = ap.parse_args()
-    cfg = ExperimentConfig(robot=args.robot, seed=args.seed, poses=args.poses,
-                           effects=tuple(args.effect) if args.effect else DEFAULT_EFFECTS,
-                           static_targets=args.static_targets, path_targets=args.path_targets, method=args.method)
+    cfg = ExperimentConfig(
+        robot=args.robot,
+        seed=args.seed,
+        poses=args.poses,
+        effects=tuple(args.effect) if args.effect else DEFAULT_EFFECTS,
+        static_targets=args.static_targets,
+        path_targets=args.path_targets,
+        method=args.method,
+    )
     with torch_threads(1):
         print(json.dumps(run(cfg), indent=1))
 

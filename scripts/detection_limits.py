@@ -65,14 +65,23 @@ def main(argv=None) -> dict:
         for size in sizes:
             for i in range(args.seeds):
                 joint = rng.choice(FAMILIES[fam])
-                cases.append({"robot": args.robot, "effects": [spec(fam, joint, size)], "poses": args.poses,
-                              "seed": args.first_seed + i})
+                cases.append(
+                    {
+                        "robot": args.robot,
+                        "effects": [spec(fam, joint, size)],
+                        "poses": args.poses,
+                        "seed": args.first_seed + i,
+                    }
+                )
                 keys.append((fam, size))
     t0 = time.perf_counter()
 
     def show(r):
-        print(f"{r['effects'][0]:28s} seed {r['seed']}: found {r['found'] or 'nothing'} "
-              f"({'ok' if r['correct'] else 'MISS'}), {r['seconds']:.1f} s", file=sys.stderr)
+        print(
+            f"{r['effects'][0]:28s} seed {r['seed']}: found {r['found'] or 'nothing'} "
+            f"({'ok' if r['correct'] else 'MISS'}), {r['seconds']:.1f} s",
+            file=sys.stderr,
+        )
 
     rows = run_cases(cases, args.workers, show)
     table = {}
@@ -97,13 +106,22 @@ def main(argv=None) -> dict:
             t = by_size[size]
             t["rate"] = t["detected"] / t["runs"]
             t["ratio_true_form_max"] = max(t["ratio_true_form"]) if t["ratio_true_form"] else None
-            print(f"{fam:18s} {size:5g} um: detected {t['detected']}/{t['runs']}, held-out RMSE / true form max "
-                  f"{t['ratio_true_form_max']:.3f}", file=sys.stderr)
+            print(
+                f"{fam:18s} {size:5g} um: detected {t['detected']}/{t['runs']}, held-out RMSE / true form max "
+                f"{t['ratio_true_form_max']:.3f}",
+                file=sys.stderr,
+            )
         print(f"{fam:18s} detection limit: {limit} um", file=sys.stderr)
-    out = {"torchcal": torchcal.__version__, "robot": args.robot, "poses": args.poses, "seeds": args.seeds,
-           "reliable": args.reliable, "limits_um": limits,
-           "table": {f: {str(s): v for s, v in t.items()} for f, t in table.items()},
-           "wall_seconds": time.perf_counter() - t0}
+    out = {
+        "torchcal": torchcal.__version__,
+        "robot": args.robot,
+        "poses": args.poses,
+        "seeds": args.seeds,
+        "reliable": args.reliable,
+        "limits_um": limits,
+        "table": {f: {str(s): v for s, v in t.items()} for f, t in table.items()},
+        "wall_seconds": time.perf_counter() - t0,
+    }
     print(json.dumps(out) if args.json else json.dumps(out, indent=1))
     return out
 

@@ -59,8 +59,9 @@ def summarise(rows: list[dict]) -> dict:
         "max_ratio_to_geometric": max(r["loop_mm"] / r["geometric_mm"] for r in rows) if rows else float("nan"),
         "seconds_median": statistics.median(r["seconds"] for r in rows) if rows else float("nan"),
         "seconds_max": max(r["seconds"] for r in rows) if rows else float("nan"),
-        "false_positives": [{"seed": r["seed"], "trajectory": r["trajectory"], "found": r["found"]}
-                            for r in any_effect],
+        "false_positives": [
+            {"seed": r["seed"], "trajectory": r["trajectory"], "found": r["found"]} for r in any_effect
+        ],
     }
 
 
@@ -79,26 +80,40 @@ def main(argv=None) -> dict:
     if args.workers <= 1:
         torch.set_num_threads(1)
     cases = [{"robot": args.robot, "poses": args.poses, "seed": args.first_seed + i} for i in range(args.seeds)]
-    cases += [{"robot": args.robot, "trajectory": True, "samples": args.samples, "seed": args.first_seed + 5000 + i}
-              for i in range(args.trajectories)]
+    cases += [
+        {"robot": args.robot, "trajectory": True, "samples": args.samples, "seed": args.first_seed + 5000 + i}
+        for i in range(args.trajectories)
+    ]
     t0 = time.perf_counter()
 
     def show(r):
-        print(f"seed {r['seed']}{' (trajectory)' if r['trajectory'] else ''}: found {r['found'] or 'nothing'}, "
-              f"geometric {r['geometric_mm']:.4f} mm, final {r['loop_mm']:.4f} mm, {r['seconds']:.1f} s",
-              file=sys.stderr)
+        print(
+            f"seed {r['seed']}{' (trajectory)' if r['trajectory'] else ''}: found {r['found'] or 'nothing'}, "
+            f"geometric {r['geometric_mm']:.4f} mm, final {r['loop_mm']:.4f} mm, {r['seconds']:.1f} s",
+            file=sys.stderr,
+        )
 
     rows = run_cases(cases, args.workers, show)
     static = [r for r in rows if not r["trajectory"]]
     traj = [r for r in rows if r["trajectory"]]
-    out = {"torchcal": torchcal.__version__, "robot": args.robot, "poses": args.poses, "samples": args.samples,
-           "all": summarise(rows), "static": summarise(static), "trajectory": summarise(traj),
-           "wall_seconds": time.perf_counter() - t0, "rows": rows}
+    out = {
+        "torchcal": torchcal.__version__,
+        "robot": args.robot,
+        "poses": args.poses,
+        "samples": args.samples,
+        "all": summarise(rows),
+        "static": summarise(static),
+        "trajectory": summarise(traj),
+        "wall_seconds": time.perf_counter() - t0,
+        "rows": rows,
+    }
     a = out["all"]
-    print(f"{a['runs']} clean campaigns: {a['false_positive_runs']} named something "
-          f"(rate {a['false_positive_rate']:.3f}, 95 % upper bound {a['false_positive_rate_upper95']:.3f}); "
-          f"named effects {a['named_effect_runs']}; worse than geometric {a['runs_worse_than_geometric']}",
-          file=sys.stderr)
+    print(
+        f"{a['runs']} clean campaigns: {a['false_positive_runs']} named something "
+        f"(rate {a['false_positive_rate']:.3f}, 95 % upper bound {a['false_positive_rate_upper95']:.3f}); "
+        f"named effects {a['named_effect_runs']}; worse than geometric {a['runs_worse_than_geometric']}",
+        file=sys.stderr,
+    )
     print(json.dumps(out) if args.json else json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=1))
     return out
 

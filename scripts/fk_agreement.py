@@ -23,10 +23,22 @@ import torchcal
 F64 = torch.float64
 #: UR's published nominal DH tables (a, alpha, d), typed in here independently of robots/*.yaml
 UR_DH = {
-    "ur5": [(0, math.pi / 2, 0.089159), (-0.425, 0, 0), (-0.39225, 0, 0), (0, math.pi / 2, 0.10915),
-            (0, -math.pi / 2, 0.09465), (0, 0, 0.0823)],
-    "ur10": [(0, math.pi / 2, 0.1273), (-0.612, 0, 0), (-0.5723, 0, 0), (0, math.pi / 2, 0.163941),
-             (0, -math.pi / 2, 0.1157), (0, 0, 0.0922)],
+    "ur5": [
+        (0, math.pi / 2, 0.089159),
+        (-0.425, 0, 0),
+        (-0.39225, 0, 0),
+        (0, math.pi / 2, 0.10915),
+        (0, -math.pi / 2, 0.09465),
+        (0, 0, 0.0823),
+    ],
+    "ur10": [
+        (0, math.pi / 2, 0.1273),
+        (-0.612, 0, 0),
+        (-0.5723, 0, 0),
+        (0, math.pi / 2, 0.163941),
+        (0, -math.pi / 2, 0.1157),
+        (0, 0, 0.0922),
+    ],
 }
 
 
@@ -36,8 +48,9 @@ def numpy_standard_dh(table, q: np.ndarray) -> np.ndarray:
         T = np.eye(4)
         for (a, al, d), th in zip(table, qq):
             ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(al), np.sin(al)
-            T = T @ np.array([[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st],
-                              [0, sa, ca, d], [0, 0, 0, 1]])
+            T = T @ np.array(
+                [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1]]
+            )
         out.append(T)
     return np.stack(out)
 

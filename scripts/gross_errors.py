@@ -25,16 +25,28 @@ def main(argv=None) -> int:
     ap.add_argument("--fraction", type=float, default=0.05, help="share of the rows to contaminate (default 0.05)")
     ap.add_argument("--count", type=int, default=None, help="number of rows to contaminate (overrides --fraction)")
     ap.add_argument("--size-mm", type=float, default=10.0, help="shift in mm (default 10)")
-    ap.add_argument("--where", choices=("all", "training", "holdout"), default="all",
-                    help="contaminate any row, or only training or held-out rows of the calibration's split")
+    ap.add_argument(
+        "--where",
+        choices=("all", "training", "holdout"),
+        default="all",
+        help="contaminate any row, or only training or held-out rows of the calibration's split",
+    )
     ap.add_argument("--method", default="kinematic", help="calibration method (default kinematic)")
     ap.add_argument("--poses", type=int, default=800, help="training-file poses (default 800)")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     args = ap.parse_args(argv)
     with torch_threads(args.threads):
         for seed in args.seeds:
-            r = gross_error_trial(seed, mode=args.mode, fraction=args.fraction, count=args.count,
-                                  size=args.size_mm * 1e-3, where=args.where, method=args.method, poses=args.poses)
+            r = gross_error_trial(
+                seed,
+                mode=args.mode,
+                fraction=args.fraction,
+                count=args.count,
+                size=args.size_mm * 1e-3,
+                where=args.where,
+                method=args.method,
+                poses=args.poses,
+            )
             print(json.dumps(r), flush=True)
     return 0
 

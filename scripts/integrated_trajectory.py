@@ -20,8 +20,12 @@ from torchcal.experiments.integrated_trajectory import one_seed
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=integrated_trajectory.__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--field", default="auto", help="RMS of the non-geometric field at the probe with a unit (in mm), "
-                    "or auto[:MM]: sized per seed so that the kinematic calibration leaves MM (default 0.19) held out")
+    ap.add_argument(
+        "--field",
+        default="auto",
+        help="RMS of the non-geometric field at the probe with a unit (in mm), "
+        "or auto[:MM]: sized per seed so that the kinematic calibration leaves MM (default 0.19) held out",
+    )
     ap.add_argument("--samples", type=int, default=7342)
     ap.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive", help="integrated engine")
     ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
@@ -33,19 +37,36 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             r = seeds[str(seed)] = one_seed(args.samples, args.field, seed, args.engine)
             h = r["holdout_rmse_mm"]
-            print(f"seed {seed}: held-out RMSE nominal {h['nominal']:.4f}, geometric {h['geometric']:.4f}, "
-                  f"integrated {h['integrated']:.4f} mm (oracle {r['oracle_mm']:.4f}); steps "
-                  + ", ".join(f"{k} {v:.4f}" for k, v in r["steps_mm"].items()) + f"; {r['seconds']:.0f} s",
-                  file=sys.stderr, flush=True)
+            print(
+                f"seed {seed}: held-out RMSE nominal {h['nominal']:.4f}, geometric {h['geometric']:.4f}, "
+                f"integrated {h['integrated']:.4f} mm (oracle {r['oracle_mm']:.4f}); steps "
+                + ", ".join(f"{k} {v:.4f}" for k, v in r["steps_mm"].items())
+                + f"; {r['seconds']:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
     finally:
         torch.set_num_threads(before)
-    mean = {k: sum(s["holdout_rmse_mm"][k] for s in seeds.values()) / len(seeds)
-            for k in ("nominal", "geometric", "integrated")}
-    out = {"seeds": seeds, "mean": mean,
-           "target": {"integrated_mm_at_most": 0.10, "geometric_mm_about": 0.19,
-                      "met_per_seed": {k: s["holdout_rmse_mm"]["integrated"] <= 0.10 for k, s in seeds.items()}},
-           "config": {"robot": "ur5", "samples": args.samples, "field": args.field, "holdout": "last 20 %",
-                      "threads": args.threads}}
+    mean = {
+        k: sum(s["holdout_rmse_mm"][k] for s in seeds.values()) / len(seeds)
+        for k in ("nominal", "geometric", "integrated")
+    }
+    out = {
+        "seeds": seeds,
+        "mean": mean,
+        "target": {
+            "integrated_mm_at_most": 0.10,
+            "geometric_mm_about": 0.19,
+            "met_per_seed": {k: s["holdout_rmse_mm"]["integrated"] <= 0.10 for k, s in seeds.items()},
+        },
+        "config": {
+            "robot": "ur5",
+            "samples": args.samples,
+            "field": args.field,
+            "holdout": "last 20 %",
+            "threads": args.threads,
+        },
+    }
     print(json.dumps(out))
     return 0
 

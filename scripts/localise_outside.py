@@ -45,8 +45,16 @@ SIMULATED = {
 def _refit(run, train, fit, opts, effect, test) -> float:
     model = copy.deepcopy(run.model)
     model.add(effect)
-    solve(model, train, ("geometry", "instrument", "tool"), opts, "joint", False, effects=True,
-          identifiability=fit.identifiability)
+    solve(
+        model,
+        train,
+        ("geometry", "instrument", "tool"),
+        opts,
+        "joint",
+        False,
+        effects=True,
+        identifiability=fit.identifiability,
+    )
     return rmse(errors(model, test, False))
 
 
@@ -64,10 +72,13 @@ def one(train, test, oracle_mm=None, true_effect=None) -> dict:
     fc = identify_form(workspace(run.model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian), locs[0].variable)
     t2 = time.perf_counter()
     eff = fc.effect(run.model)
-    out = {"top": [loc.to_dict() for loc in locs[:3]], "form": fc.to_dict(),
-           "rmse_geometric_mm": rmse(errors(run.model, test, False)) * 1e3,
-           "rmse_identified_mm": None if eff is None else _refit(run, tr, fit, opts, eff, test) * 1e3,
-           "seconds_localise_and_form": t2 - t1}
+    out = {
+        "top": [loc.to_dict() for loc in locs[:3]],
+        "form": fc.to_dict(),
+        "rmse_geometric_mm": rmse(errors(run.model, test, False)) * 1e3,
+        "rmse_identified_mm": None if eff is None else _refit(run, tr, fit, opts, eff, test) * 1e3,
+        "seconds_localise_and_form": t2 - t1,
+    }
     if true_effect is not None:
         oracle_mm = _refit(run, tr, fit, opts, true_effect, test) * 1e3
     out["rmse_oracle_mm"] = oracle_mm
@@ -106,8 +117,11 @@ def true_form(truth: dict, t0: float):
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--outside", type=Path, help="folder of outside campaigns (with index.json)")
-    ap.add_argument("--campaigns", nargs="*", default=["cyclic-s808", "cyclic_hi-s404", "warmup-s404",
-                                                        "jointscale-s404", "drift-s808", "none-s808"])
+    ap.add_argument(
+        "--campaigns",
+        nargs="*",
+        default=["cyclic-s808", "cyclic_hi-s404", "warmup-s404", "jointscale-s404", "drift-s808", "none-s808"],
+    )
     ap.add_argument("--simulated", action="store_true", help="also the formula campaigns of torchcal.sim.outside")
     ap.add_argument("--seed", type=int, default=100)
     ap.add_argument("--clean", type=int, default=0, help="N clean formula campaigns: family-wise p of localisation")
@@ -118,8 +132,11 @@ def main() -> None:
             index = {e["dir"]: e for e in json.loads((args.outside / "index.json").read_text())}
             for name in args.campaigns:
                 d = args.outside / name
-                res[name] = one(read_measurements(d / "train.csv"), read_measurements(d / "test.csv"),
-                                index[name].get("rmse_oracle_mm"))
+                res[name] = one(
+                    read_measurements(d / "train.csv"),
+                    read_measurements(d / "test.csv"),
+                    index[name].get("rmse_oracle_mm"),
+                )
         if args.simulated:
             for i, (name, effects) in enumerate(SIMULATED.items()):
                 c = simulate_outside(effects, SimConfig(poses=800, test_poses=200, seed=args.seed + i))

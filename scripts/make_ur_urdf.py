@@ -51,16 +51,24 @@ MODELS = ("ur5", "ur10")
 PI = math.pi
 HALF_PI = math.pi / 2
 
-JOINT_NAMES = ("shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint",
-               "wrist_3_joint")
+JOINT_NAMES = (
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
+)
 LINK_NAMES = ("shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "wrist_3_link")
 
 # Effort [Nm] and velocity [rad/s] limits per joint, as in Universal_Robots_ROS2_Description
 # config/urX/joint_limits.yaml (from UR's user manuals and "Max. joint torques" article).
 DRIVE_LIMITS = {
     "ur5": {"effort": (150.0, 150.0, 150.0, 28.0, 28.0, 28.0), "velocity": (PI,) * 6},
-    "ur10": {"effort": (330.0, 330.0, 150.0, 56.0, 56.0, 56.0),
-             "velocity": (math.radians(120.0), math.radians(120.0), PI, PI, PI, PI)},
+    "ur10": {
+        "effort": (330.0, 330.0, 150.0, 56.0, 56.0, 56.0),
+        "velocity": (math.radians(120.0), math.radians(120.0), PI, PI, PI, PI),
+    },
 }
 
 TITLES = {"ur5": "Universal Robots UR5 (CB3)", "ur10": "Universal Robots UR10 (CB3)"}
@@ -101,10 +109,9 @@ def urdf_origin(xyz, rpy) -> np.ndarray:
 def dh_standard(a: float, alpha: float, d: float, theta: float) -> np.ndarray:
     """Standard DH link transform T = Rz(theta) Tz(d) Tx(a) Rx(alpha)."""
     ct, st, ca, sa = math.cos(theta), math.sin(theta), math.cos(alpha), math.sin(alpha)
-    return np.array([[ct, -st * ca, st * sa, a * ct],
-                     [st, ct * ca, -ct * sa, a * st],
-                     [0.0, sa, ca, d],
-                     [0.0, 0.0, 0.0, 1.0]])
+    return np.array(
+        [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0.0, sa, ca, d], [0.0, 0.0, 0.0, 1.0]]
+    )
 
 
 def dh_frames(table: list[dict], q) -> list[np.ndarray]:
@@ -132,8 +139,10 @@ def load_table(path: Path) -> dict:
         ok = row["alpha"] == UR_ALPHA[i] and row["theta"] == 0.0
         ok &= row["a"] == 0.0 if i in (0, 3, 4, 5) else row["d"] == 0.0
         if not ok:
-            raise SystemExit(f"{path}: joint {i + 1} does not follow UR's DH pattern "
-                             f"(alpha {UR_ALPHA}, theta 0, a1=a4=a5=a6=0, d2=d3=0)")
+            raise SystemExit(
+                f"{path}: joint {i + 1} does not follow UR's DH pattern "
+                f"(alpha {UR_ALPHA}, theta 0, a1=a4=a5=a6=0, d2=d3=0)"
+            )
     return {"name": str(doc.get("name", path.stem)), "path": path, "joints": rows}
 
 
@@ -147,8 +156,15 @@ def chain_joints(model: dict) -> list[dict]:
         return {"name": name, "type": "fixed", "parent": parent, "child": child, "xyz": xyz, "rpy": rpy}
 
     def revolute(i, parent, xyz, rpy):
-        return {"name": JOINT_NAMES[i], "type": "revolute", "parent": parent, "child": LINK_NAMES[i],
-                "xyz": xyz, "rpy": rpy, "index": i}
+        return {
+            "name": JOINT_NAMES[i],
+            "type": "revolute",
+            "parent": parent,
+            "child": LINK_NAMES[i],
+            "xyz": xyz,
+            "rpy": rpy,
+            "index": i,
+        }
 
     return [
         fixed("base_link-base_link_inertia", "base_link", "base_link_inertia", zero, (0.0, 0.0, PI)),
@@ -192,19 +208,19 @@ def cylinder(model: dict, i: int) -> tuple[int, float, float]:
     d5 = j[4]["d"]
     big, small = round(0.6 * d5, 4), round(0.45 * d5, 4)
     return [
-        (2, j[0]["d"], big),      # shoulder_link: along the pan axis (z)
+        (2, j[0]["d"], big),  # shoulder_link: along the pan axis (z)
         (0, abs(j[1]["a"]), big),  # upper_arm_link: along x, towards the elbow
         (0, abs(j[2]["a"]), small),  # forearm_link: along x, towards wrist 1
-        (2, j[4]["d"], small),    # wrist_1_link: along z
-        (2, j[5]["d"], small),    # wrist_2_link: along z
+        (2, j[4]["d"], small),  # wrist_1_link: along z
+        (2, j[5]["d"], small),  # wrist_2_link: along z
         (2, 0.5 * j[5]["d"], small),  # wrist_3_link: short disc along z
     ][i]
 
 
 def cylinder_inertia(mass: float, axis: int, length: float, radius: float) -> np.ndarray:
     """Principal moments [ixx, iyy, izz] of a solid cylinder about its centre, its axis along ``axis``."""
-    along = 0.5 * mass * radius ** 2
-    across = mass * (3.0 * radius ** 2 + length ** 2) / 12.0
+    along = 0.5 * mass * radius**2
+    across = mass * (3.0 * radius**2 + length**2) / 12.0
     moments = np.full(3, across)
     moments[axis] = along
     return moments
@@ -224,8 +240,14 @@ def inertials(model: dict) -> list[dict]:
         # rounded to 1e-12 m: drops floating-point noise such as -0.24225000000000005
         com = [round(float(c), 12) for c in R @ np.asarray(row["com"]) + X[:3, 3]]
         axis, length, radius = cylinder(model, i)
-        out.append({"mass": row["mass"], "com": com, "inertia": cylinder_inertia(row["mass"], axis, length, radius),
-                    "cylinder": (("x", "y", "z")[axis], length, radius)})
+        out.append(
+            {
+                "mass": row["mass"],
+                "com": com,
+                "inertia": cylinder_inertia(row["mass"], axis, length, radius),
+                "cylinder": (("x", "y", "z")[axis], length, radius),
+            }
+        )
     return out
 
 
@@ -254,7 +276,7 @@ def render(model: dict) -> str:
         "  and rerun the script (its check mode verifies that this file is up to date).",
         "",
         "  Nominal values from Universal Robots' published DH table (\"DH parameters for",
-        "  calculations of kinematics and dynamics\", universal-robots.com): link lengths, masses and",
+        '  calculations of kinematics and dynamics", universal-robots.com): link lengths, masses and',
         "  centres of mass (moved from DH frame i into the URDF link frames). Effort and velocity limits",
         "  as in Universal_Robots_ROS2_Description config/" + name + "/joint_limits.yaml; position limits",
         "  from the YAML.",
@@ -297,8 +319,10 @@ def render(model: dict) -> str:
             i = jt["index"]
             row = model["joints"][i]
             out.append('    <axis xyz="0 0 1"/>')
-            out.append(f'    <limit lower="{num(row["lower"])}" upper="{num(row["upper"])}" '
-                       f'effort="{num(lim["effort"][i])}" velocity="{num(lim["velocity"][i])}"/>')
+            out.append(
+                f'    <limit lower="{num(row["lower"])}" upper="{num(row["upper"])}" '
+                f'effort="{num(lim["effort"][i])}" velocity="{num(lim["velocity"][i])}"/>'
+            )
             out.append('    <dynamics damping="0.0" friction="0.0"/>')
         out.append("  </joint>")
     out.append("</robot>")
@@ -309,6 +333,7 @@ def render(model: dict) -> str:
 #: float64 everywhere except pytorch_kinematics' URDF reader, which parses rpy as float32
 TOLERANCE = {"pytorch_kinematics": 1e-6}
 
+
 def parse_urdf(text: str) -> list[dict]:
     """Joints of a URDF text (stdlib XML; independent of the generator's joint list)."""
     root = ET.fromstring(text)
@@ -317,8 +342,14 @@ def parse_urdf(text: str) -> list[dict]:
         o = el.find("origin")
         xyz = [float(v) for v in o.get("xyz", "0 0 0").split()] if o is not None else [0.0] * 3
         rpy = [float(v) for v in o.get("rpy", "0 0 0").split()] if o is not None else [0.0] * 3
-        jt = {"name": el.get("name"), "type": el.get("type"), "parent": el.find("parent").get("link"),
-              "child": el.find("child").get("link"), "xyz": xyz, "rpy": rpy}
+        jt = {
+            "name": el.get("name"),
+            "type": el.get("type"),
+            "parent": el.find("parent").get("link"),
+            "child": el.find("child").get("link"),
+            "xyz": xyz,
+            "rpy": rpy,
+        }
         if jt["type"] == "revolute":
             axis = [float(v) for v in el.find("axis").get("xyz").split()]
             if axis != [0.0, 0.0, 1.0]:
@@ -342,8 +373,11 @@ def check_numerics(model: dict, text: str, path: Path, n: int = 20, seed: int = 
     qs = lo + (hi - lo) * rng.random((n, 6))
     Rz_pi = homogeneous(rot_z(PI))
     root = ET.fromstring(text)
-    com_urdf = {lk.get("name"): np.array([float(v) for v in lk.find("inertial/origin").get("xyz").split()])
-                for lk in root.iter("link") if lk.find("inertial") is not None}
+    com_urdf = {
+        lk.get("name"): np.array([float(v) for v in lk.find("inertial/origin").get("xyz").split()])
+        for lk in root.iter("link")
+        if lk.find("inertial") is not None
+    }
     worst = {"urdf": 0.0, "base": 0.0, "com": 0.0}
     refs = []
     for q in qs:
@@ -379,15 +413,17 @@ def check_numerics(model: dict, text: str, path: Path, n: int = 20, seed: int = 
         order = [JOINT_NAMES.index(nm) for nm in chain.get_joint_parameter_names()]
         T = chain.forward_kinematics(torch.tensor(qs[:, order], dtype=torch.float64)).get_matrix().numpy()
         worst["pytorch_kinematics"] = float(np.abs(T - refs).max())
-    print("  max |T - Rz(pi) T_DH| over", n, "random q:",
-          ", ".join(f"{k} {v:.2e}" for k, v in worst.items()))
+    print("  max |T - Rz(pi) T_DH| over", n, "random q:", ", ".join(f"{k} {v:.2e}" for k, v in worst.items()))
     return worst
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--check", action="store_true",
-                    help="regenerate in memory; exit 1 if a file differs or the URDF FK != the DH FK (1e-12)")
+    ap.add_argument(
+        "--check",
+        action="store_true",
+        help="regenerate in memory; exit 1 if a file differs or the URDF FK != the DH FK (1e-12)",
+    )
     args = ap.parse_args(argv)
     status = 0
     for name in MODELS:

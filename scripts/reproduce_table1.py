@@ -25,13 +25,18 @@ from torchcal.experiments.table1 import (
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=table1.__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=table1.__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
+    )
     ap.add_argument("--draws", type=int, default=None, help="Monte Carlo draws per parameter (default 20, quick 5)")
     ap.add_argument("--poses", type=int, default=None, help="random visible poses (default 300, quick 150)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the poses, tracker, lever arm and biases")
-    ap.add_argument("--posture", choices=POSTURES, default="any",
-                    help="any: every visible pose (default); single: one shoulder configuration only")
+    ap.add_argument(
+        "--posture",
+        choices=POSTURES,
+        default="any",
+        help="any: every visible pose (default); single: one shoulder configuration only",
+    )
     ap.add_argument("--quick", action="store_true", help="5 draws, 150 poses")
     add_common_arguments(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
@@ -49,8 +54,10 @@ def main(argv: list[str] | None = None) -> int:
         result = run(args.draws, args.poses, args.seed, args.posture)
     write_outputs(result, args.out)
     print(text_table(result))
-    print(f"absorbed (remaining < 1 %): {', '.join(result['summary']['absorbed_ours'])}; "
-          f"{result['runtime_s']:.1f} s; written to {args.out}")
+    print(
+        f"absorbed (remaining < 1 %): {', '.join(result['summary']['absorbed_ours'])}; "
+        f"{result['runtime_s']:.1f} s; written to {args.out}"
+    )
     emit_json(result, args)
     return 0
 

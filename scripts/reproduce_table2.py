@@ -20,14 +20,19 @@ from torchcal.experiments.table2 import run, text_table, write_outputs
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=table2.__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawTextHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=table2.__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
+    )
     ap.add_argument("--draws", type=int, default=None, help="Monte Carlo draws per variant (default 20, quick 3)")
     ap.add_argument("--poses", type=int, default=None, help="calibration poses (default 300, quick 150)")
     ap.add_argument("--test-poses", type=int, default=None, help="held-out poses (default 100, quick 50)")
     ap.add_argument("--seed", type=int, default=0, help="seed of the poses, tracker, lever arm and biases")
-    ap.add_argument("--posture", choices=POSTURES, default="any",
-                    help="any: every visible pose (default); single: one shoulder configuration only")
+    ap.add_argument(
+        "--posture",
+        choices=POSTURES,
+        default="any",
+        help="any: every visible pose (default); single: one shoulder configuration only",
+    )
     ap.add_argument("--quick", action="store_true", help="3 draws, 150 poses, 50 held out")
     add_common_arguments(ap)
     ap.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
@@ -36,8 +41,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args.poses = args.poses or (150 if args.quick else 300)
     args.test_poses = args.test_poses or (50 if args.quick else 100)
     if args.draws < 1 or args.poses < 60 or args.test_poses < 1:
-        ap.error(f"need --draws >= 1, --poses >= 60 and --test-poses >= 1, got {args.draws}, {args.poses} and "
-                 f"{args.test_poses}")
+        ap.error(
+            f"need --draws >= 1, --poses >= 60 and --test-poses >= 1, got {args.draws}, {args.poses} and "
+            f"{args.test_poses}"
+        )
     return args
 
 

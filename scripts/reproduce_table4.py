@@ -73,26 +73,40 @@ def main(argv=None) -> dict:
         if level == "5":
             plot(res, G_true, NG_true, n_tr, out_dir / "fig11_scenario_b5.png", "scenario b, 5 %: torchcal mode")
             plot_ann(res, NG_true, n_tr, out_dir / "fig12_ann_b5.png")
-        print(f"{level:>6}: torchcal NG {entry['rmse_ng_test_mm']:.3f} G {entry['rmse_g_test_mm']:.3f} All "
-              f"{entry['rmse_all_test_mm']:.3f} mm (learned {entry['learned']:.0%}); plain All "
-              f"{entry['plain']['rmse_all_test_mm']:.3f} mm", file=sys.stderr)
-    results["setup"] = {"samples": len(q), "train": n_tr, "draws": args.draws, "seed": args.seed,
-                        "field_variation_mm": c.truth["effects"][0]["variation_m"] * 1e3,
-                        "seconds": time.perf_counter() - t_start}
+        print(
+            f"{level:>6}: torchcal NG {entry['rmse_ng_test_mm']:.3f} G {entry['rmse_g_test_mm']:.3f} All "
+            f"{entry['rmse_all_test_mm']:.3f} mm (learned {entry['learned']:.0%}); plain All "
+            f"{entry['plain']['rmse_all_test_mm']:.3f} mm",
+            file=sys.stderr,
+        )
+    results["setup"] = {
+        "samples": len(q),
+        "train": n_tr,
+        "draws": args.draws,
+        "seed": args.seed,
+        "field_variation_mm": c.truth["effects"][0]["variation_m"] * 1e3,
+        "seconds": time.perf_counter() - t_start,
+    }
     (out_dir / "table4.json").write_text(json.dumps(results, indent=1) + "\n")
-    lines = ["| w_1 | mode | RMSE(NG) test | RMSE(G) test | RMSE(All) test | learned |",
-             "|---|---|---:|---:|---:|---:|"]
+    lines = [
+        "| w_1 | mode | RMSE(NG) test | RMSE(G) test | RMSE(All) test | learned |",
+        "|---|---|---:|---:|---:|---:|",
+    ]
     for level in ("5", "10", "15", "random"):
         e = results[level]
         rows = [("torchcal", e), ("plain EKF", e["plain"])]
         rows += [("paper re-iteration", e["paper_mode"])] if "paper_mode" in e else []
         for name, m in rows:
-            lines.append(f"| {level} | {name} | {m['rmse_ng_test_mm']:.3f} | {m['rmse_g_test_mm']:.3f} | "
-                         f"{m['rmse_all_test_mm']:.3f} | {m['learned']:.0%} |")
+            lines.append(
+                f"| {level} | {name} | {m['rmse_ng_test_mm']:.3f} | {m['rmse_g_test_mm']:.3f} | "
+                f"{m['rmse_all_test_mm']:.3f} | {m['learned']:.0%} |"
+            )
         if "paper" in e:
             pp = e["paper"]
-            lines.append(f"| {level} | paper (Table 4) | {pp['rmse_ng_test_mm']:.2f} | {pp['rmse_g_test_mm']:.2f} | "
-                         f"{pp['rmse_all_test_mm']:.2f} | |")
+            lines.append(
+                f"| {level} | paper (Table 4) | {pp['rmse_ng_test_mm']:.2f} | {pp['rmse_g_test_mm']:.2f} | "
+                f"{pp['rmse_all_test_mm']:.2f} | |"
+            )
     (out_dir / "table4.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines), file=sys.stderr)
     print(json.dumps(results) if args.json else json.dumps(results, indent=1))

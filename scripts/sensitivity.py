@@ -37,8 +37,11 @@ def main(argv: list[str] | None = None) -> int:
     (out / "sensitivity.json").write_text(json.dumps(result, indent=1) + "\n")
     plot(result, out / "fig13_sensitivity.png")
     print(text_table(result))
-    print(f"largest DH influences here: {', '.join(result['ranking_dh'][:5])}; paper: {', '.join(PAPER_LARGEST)}; "
-          f"exactness check {result['check_max_abs_diff_m']:.1e} m; {result['seconds']:.1f} s", file=sys.stderr)
+    print(
+        f"largest DH influences here: {', '.join(result['ranking_dh'][:5])}; paper: {', '.join(PAPER_LARGEST)}; "
+        f"exactness check {result['check_max_abs_diff_m']:.1e} m; {result['seconds']:.1f} s",
+        file=sys.stderr,
+    )
     if args.json:
         print(json.dumps(result))
     return 0

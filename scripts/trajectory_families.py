@@ -1,7 +1,7 @@
 """The integrated method on trajectory families, judged on the continuation of each path (JSON).
 
-    python scripts/trajectory_families.py --paths p2p multisine randomwalk sweeps --seeds 0 1
-    python scripts/trajectory_families.py --outside ../shared/data/outside/trajectory-ann-s31
+python scripts/trajectory_families.py --paths p2p multisine randomwalk sweeps --seeds 0 1
+python scripts/trajectory_families.py --outside ../shared/data/outside/trajectory-ann-s31
 """
 
 import argparse

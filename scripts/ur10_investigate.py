@@ -21,8 +21,9 @@ from torchcal.experiments.ur10_investigate import ROBOT, SEED, SERIES, _clean, i
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=ur10_investigate.__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=ur10_investigate.__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")
     ap.add_argument("--series", default=",".join(SERIES), help="comma separated (default A,B,C,D)")
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object on the last stdout line")
@@ -42,8 +43,17 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     out = [investigate(s, series_file(args.data_dir, s), args.a_rows, args.pair_rows, args.tol) for s in names]
-    res = _clean({"robot": ROBOT, "data_dir": str(args.data_dir), "seed": SEED, "tol_rad": args.tol,
-                  "threads": torch.get_num_threads(), "series": out, "runtime_s": time.perf_counter() - t0})
+    res = _clean(
+        {
+            "robot": ROBOT,
+            "data_dir": str(args.data_dir),
+            "seed": SEED,
+            "tol_rad": args.tol,
+            "threads": torch.get_num_threads(),
+            "series": out,
+            "runtime_s": time.perf_counter() - t0,
+        }
+    )
     print(summary(res), file=sys.stderr)
     if args.json:
         print(json.dumps(res))

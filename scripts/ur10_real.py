@@ -33,8 +33,9 @@ from torchcal.experiments.ur10_real import (
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=ur10_real.__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=ur10_real.__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")
     ap.add_argument("--out", type=Path, default=Path("runs/ur10"), help="output folder (default runs/ur10/)")
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object on the last stdout line")
@@ -43,8 +44,12 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default=",".join(METHODS), help="methods for part 1 (default all)")
     ap.add_argument("--no-transfer", action="store_true", help="skip part 2 (across series)")
     ap.add_argument("--a-rows", type=int, default=3000, help="subsample Series A to this many rows (0: all)")
-    ap.add_argument("--threads", type=int, default=0,
-                    help="torch CPU threads (default 0: torch's choice); 1 is steadier on a shared, busy machine")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=0,
+        help="torch CPU threads (default 0: torch's choice); 1 is steadier on a shared, busy machine",
+    )
     args = ap.parse_args(argv)
     if args.threads > 0:
         torch.set_num_threads(args.threads)
@@ -79,10 +84,19 @@ def main(argv=None) -> int:
         r["target_self"] = self_cal.get(dst)
         transfers.append(r)
 
-    res = {"robot": ROBOT, "data_dir": str(args.data_dir), "seed": SEED, "holdout": HOLDOUT, "quick": args.quick,
-           "threads": torch.get_num_threads(),
-           "subsampled": subsampled, "within": within, "sources": sources, "transfer": transfers,
-           "runtime_s": time.perf_counter() - t_start}
+    res = {
+        "robot": ROBOT,
+        "data_dir": str(args.data_dir),
+        "seed": SEED,
+        "holdout": HOLDOUT,
+        "quick": args.quick,
+        "threads": torch.get_num_threads(),
+        "subsampled": subsampled,
+        "within": within,
+        "sources": sources,
+        "transfer": transfers,
+        "runtime_s": time.perf_counter() - t_start,
+    }
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "ur10_real.json").write_text(json.dumps(res, indent=2) + "\n")
     md = markdown(res)

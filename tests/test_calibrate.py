@@ -53,8 +53,19 @@ def test_kinematic_calibration_reaches_the_noise_floor(ur5_campaign, ur5_run):
 
 def test_report_has_the_contract_fields(ur5_run):
     report = json.loads((ur5_run / "report.json").read_text())
-    for key in ("robot", "method", "n_train", "n_holdout", "rmse_before_mm", "rmse_geometric_mm", "rmse_after_mm",
-                "max_after_mm", "global_test", "effects", "parameters"):
+    for key in (
+        "robot",
+        "method",
+        "n_train",
+        "n_holdout",
+        "rmse_before_mm",
+        "rmse_geometric_mm",
+        "rmse_after_mm",
+        "max_after_mm",
+        "global_test",
+        "effects",
+        "parameters",
+    ):
         assert key in report, key
     assert report["n_train"] == 640 and report["n_holdout"] == 160
     assert set(report["global_test"]) >= {"statistic", "threshold", "passed"}
@@ -75,10 +86,41 @@ def test_calibrated_urdf_reproduces_the_calibrated_geometry(ur5_run):
 
 def test_millimetre_files_give_the_same_calibration(tmp_path):
     for unit in ("m", "mm"):
-        assert main(["simulate", "--robot", "ur5", "--out", str(tmp_path / unit), "--seed", "5", "--poses", "300",
-                     "--length-unit", unit, "--quiet"]) == 0
-        assert main(["calibrate", str(tmp_path / unit / "train.csv"), "--robot", "ur5", "--out",
-                     str(tmp_path / f"run_{unit}"), "--length-unit", unit, "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--robot",
+                    "ur5",
+                    "--out",
+                    str(tmp_path / unit),
+                    "--seed",
+                    "5",
+                    "--poses",
+                    "300",
+                    "--length-unit",
+                    unit,
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
+        assert (
+            main(
+                [
+                    "calibrate",
+                    str(tmp_path / unit / "train.csv"),
+                    "--robot",
+                    "ur5",
+                    "--out",
+                    str(tmp_path / f"run_{unit}"),
+                    "--length-unit",
+                    unit,
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
     a = json.loads((tmp_path / "run_m" / "report.json").read_text())
     b = json.loads((tmp_path / "run_mm" / "report.json").read_text())
     assert b["rmse_after_mm"] == pytest.approx(a["rmse_after_mm"], rel=1e-6)
@@ -105,12 +147,15 @@ def _set_cell(lines, row, col, value):
     return out
 
 
-@pytest.mark.parametrize("case,expect", [
-    ("nan", ["line 10", "'y'"]),
-    ("text", ["line 12", "'q3'"]),
-    ("missing_q", ["q6"]),
-    ("mm_as_m", ["--length-unit mm"]),
-])
+@pytest.mark.parametrize(
+    "case,expect",
+    [
+        ("nan", ["line 10", "'y'"]),
+        ("text", ["line 12", "'q3'"]),
+        ("missing_q", ["q6"]),
+        ("mm_as_m", ["--length-unit mm"]),
+    ],
+)
 def test_bad_measurement_files_exit_nonzero_and_write_nothing(tmp_path, capsys, case, expect):
     def mutate(lines, h):
         header = lines[h].split(",")
@@ -120,8 +165,9 @@ def test_bad_measurement_files_exit_nonzero_and_write_nothing(tmp_path, capsys, 
             return _set_cell(lines, 11, header.index("q3"), "1.2.3")  # file line 12
         if case == "missing_q":
             k = header.index("q6")
-            return [ln if ln.startswith("#") else ",".join(c for i, c in enumerate(ln.split(",")) if i != k)
-                    for ln in lines]
+            return [
+                ln if ln.startswith("#") else ",".join(c for i, c in enumerate(ln.split(",")) if i != k) for ln in lines
+            ]
         if case == "mm_as_m":
             xyz = [header.index(c) for c in ("x", "y", "z")]
             out = list(lines)
@@ -147,8 +193,12 @@ def test_bad_measurement_files_exit_nonzero_and_write_nothing(tmp_path, capsys, 
 
 def test_too_few_poses_is_an_error(tmp_path, capsys):
     main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "s"), "--seed", "7", "--poses", "10", "--quiet"])
-    assert main(["calibrate", str(tmp_path / "s" / "train.csv"), "--robot", "ur5", "--out", str(tmp_path / "r"),
-                 "--quiet"]) == 2
+    assert (
+        main(
+            ["calibrate", str(tmp_path / "s" / "train.csv"), "--robot", "ur5", "--out", str(tmp_path / "r"), "--quiet"]
+        )
+        == 2
+    )
     assert "at least" in capsys.readouterr().err
     assert not (tmp_path / "r").exists()
 

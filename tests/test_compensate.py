@@ -42,10 +42,12 @@ def calibrated_model(seed=0, effects=True):
     g = torch.Generator().manual_seed(seed)
     robot = torchcal.load_robot("ur5")
     with torch.no_grad():
-        robot.geometry.delta.copy_(torch.randn(robot.geometry.delta.shape, generator=g, dtype=F64) * 1e-3
-                                   * robot.geometry.mask)
-        robot.instrument.set_matrix(tf.homogeneous(tf.rot_z(torch.tensor(0.7, dtype=F64)),
-                                                   torch.tensor([2.0, -1.0, 0.3], dtype=F64)))
+        robot.geometry.delta.copy_(
+            torch.randn(robot.geometry.delta.shape, generator=g, dtype=F64) * 1e-3 * robot.geometry.mask
+        )
+        robot.instrument.set_matrix(
+            tf.homogeneous(tf.rot_z(torch.tensor(0.7, dtype=F64)), torch.tensor([2.0, -1.0, 0.3], dtype=F64))
+        )
         robot.tool.nominal.copy_(torch.tensor([0.01, 0.0, 0.12], dtype=F64))
     if not effects:
         return MeasurementModel(robot, [])
@@ -114,8 +116,15 @@ def test_out_of_reach_is_named_not_dropped():
 
 
 def test_branch_kept_on_1000_campaign_poses_and_fast():
-    c = simulate(SimConfig(robot="ur5", poses=1000, test_poses=0, seed=4,
-                           effects=[EffectSpec.parse("compliance:2=60um"), EffectSpec.parse("field=0.05mm")]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            poses=1000,
+            test_poses=0,
+            seed=4,
+            effects=[EffectSpec.parse("compliance:2=60um"), EffectSpec.parse("field=0.05mm")],
+        )
+    )
     model = c.model
     q0 = c.train.q
     compensate(model, c.train.p[:10], q0[:10])  # warm-up
@@ -163,8 +172,9 @@ def test_program_rows_mean_the_nominal_point():
     nominal = copy.deepcopy(model.robot)
     nominal.geometry.reset()
     with torch.no_grad():
-        p_nom = tf.transform_points(model.robot.T_tracker_base(),
-                                    tf.transform_points(nominal(q_prog), model.robot.t_flange_probe()))
+        p_nom = tf.transform_points(
+            model.robot.T_tracker_base(), tf.transform_points(nominal(q_prog), model.robot.t_flange_probe())
+        )
         assert float((model(Context(q=res.q)) - p_nom).norm(dim=-1).max()) <= 1e-9
     assert float((res.q - q_prog).abs().max()) > 1e-5  # the calibration did change the commands
 
@@ -206,10 +216,16 @@ def test_urdf_gap_and_pk_agree_without_effects(tmp_path):
     goal = chain.forward_kinematics(res.q)
     found = []
     for i in range(len(res.q)):
-        ik = pk.PseudoInverseIK(chain, max_iterations=100, retry_configs=(q_true[i] + 1e-3)[None],
-                                joint_limits=robot.limits, early_stopping_any_converged=True, pos_tolerance=1e-9,
-                                rot_tolerance=1e-9)
-        found.append(ik.solve(pk.Transform3d(matrix=goal.get_matrix()[i:i + 1])).solutions[0, 0])
+        ik = pk.PseudoInverseIK(
+            chain,
+            max_iterations=100,
+            retry_configs=(q_true[i] + 1e-3)[None],
+            joint_limits=robot.limits,
+            early_stopping_any_converged=True,
+            pos_tolerance=1e-9,
+            rot_tolerance=1e-9,
+        )
+        found.append(ik.solve(pk.Transform3d(matrix=goal.get_matrix()[i : i + 1])).solutions[0, 0])
     assert float((torch.stack(found) - res.q).abs().max()) <= 1e-5
     # compensate on the URDF read back by torchcal (no effects: the URDF is the whole model) agrees to rounding
     back = torchcal.load_robot(path, tip_link="probe")
@@ -239,10 +255,41 @@ def run_dir(tmp_path_factory):
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        assert main(["simulate", "--robot", "ur5", "--out", str(d / "data"), "--poses", "120", "--test-poses", "20",
-                     "--seed", "2", "--quiet"]) == 0
-        assert main(["calibrate", str(d / "data" / "train.csv"), "--robot", "ur5", "--out", str(d / "run"),
-                     "--method", "kinematic", "--quiet"]) == 0
+        assert (
+            main(
+                [
+                    "simulate",
+                    "--robot",
+                    "ur5",
+                    "--out",
+                    str(d / "data"),
+                    "--poses",
+                    "120",
+                    "--test-poses",
+                    "20",
+                    "--seed",
+                    "2",
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
+        assert (
+            main(
+                [
+                    "calibrate",
+                    str(d / "data" / "train.csv"),
+                    "--robot",
+                    "ur5",
+                    "--out",
+                    str(d / "run"),
+                    "--method",
+                    "kinematic",
+                    "--quiet",
+                ]
+            )
+            == 0
+        )
     finally:
         torch.set_num_threads(before)
     return d
@@ -283,8 +330,9 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
     assert float(rows[3][10]) > 3.0
 
     # a program: q only means the nominal model's point; x,y,z only starts from the nominal IK
-    (tmp_path / "prog.csv").write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(repr(float(v)) for v in r)
-                                                                          for r in q) + "\n")
+    (tmp_path / "prog.csv").write_text(
+        "q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(repr(float(v)) for v in r) for r in q) + "\n"
+    )
     assert main(["compensate", str(run_dir / "run"), str(tmp_path / "prog.csv"), "--out", str(out), "--quiet"]) == 0
     header, rows = _read(out)
     assert header[-2:] == ["miss", "status"] and all(r[-1] == "converged" for r in rows)
@@ -292,12 +340,31 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
     assert main(["compensate", str(run_dir / "run"), str(tmp_path / "xyz.csv"), "--out", str(out), "--quiet"]) == 0
     assert all(r[-1] == "converged" for r in _read(out)[1])
     # ... or from --start, in degrees and millimetres
-    (tmp_path / "xyz_mm.csv").write_text("x,y,z\n" + "\n".join(",".join(repr(float(v) * 1e3) for v in r)
-                                                               for r in p) + "\n")
-    (tmp_path / "start.csv").write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(
-        ",".join(repr(math.degrees(float(v))) for v in r) for r in q) + "\n")
-    assert main(["compensate", str(run_dir / "run"), str(tmp_path / "xyz_mm.csv"), "--out", str(out), "--start",
-                 str(tmp_path / "start.csv"), "--length-unit", "mm", "--angle-unit", "deg", "--quiet"]) == 0
+    (tmp_path / "xyz_mm.csv").write_text(
+        "x,y,z\n" + "\n".join(",".join(repr(float(v) * 1e3) for v in r) for r in p) + "\n"
+    )
+    (tmp_path / "start.csv").write_text(
+        "q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(repr(math.degrees(float(v))) for v in r) for r in q) + "\n"
+    )
+    assert (
+        main(
+            [
+                "compensate",
+                str(run_dir / "run"),
+                str(tmp_path / "xyz_mm.csv"),
+                "--out",
+                str(out),
+                "--start",
+                str(tmp_path / "start.csv"),
+                "--length-unit",
+                "mm",
+                "--angle-unit",
+                "deg",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     header, rows = _read(out)
     qs = torch.tensor([[float(v) for v in r[:6]] for r in rows], dtype=F64)
     assert float((qs - qc).abs()[[0, 1, 2, 4, 5]].max()) <= 1e-6  # the same solutions as from the file's q
@@ -322,8 +389,10 @@ def test_cli_bad_files(run_dir, tmp_path, capsys):
         assert not out.exists()
     (tmp_path / "xyz.csv").write_text("x,y,z\n1.0,0.5,0.2\n1.0,0.4,0.3\n")
     (tmp_path / "start.csv").write_text("q1,q2,q3,q4,q5,q6\n0,0,0,0,0,0\n")
-    assert main(["compensate", run, str(tmp_path / "xyz.csv"), "--out", str(out), "--start",
-                 str(tmp_path / "start.csv")]) == 2
+    assert (
+        main(["compensate", run, str(tmp_path / "xyz.csv"), "--out", str(out), "--start", str(tmp_path / "start.csv")])
+        == 2
+    )
     assert "1 start rows for 2 targets" in capsys.readouterr().err
     assert not out.exists()
 

@@ -27,8 +27,11 @@ def differences(expected, got, where: str = "report") -> list[str]:
     if isinstance(expected, dict):
         if not isinstance(got, dict):
             return [f"{where}: expected an object, got {type(got).__name__}"]
-        out = [f"{where}: keys {sorted(set(expected) ^ set(got))} in only one of the two"] \
-            if set(expected) != set(got) else []
+        out = (
+            [f"{where}: keys {sorted(set(expected) ^ set(got))} in only one of the two"]
+            if set(expected) != set(got)
+            else []
+        )
         for k in expected:
             if k in got and k not in VOLATILE:
                 out += differences(expected[k], got[k], f"{where}.{k}")
@@ -37,10 +40,14 @@ def differences(expected, got, where: str = "report") -> list[str]:
         if not isinstance(got, list) or len(got) != len(expected):
             return [f"{where}: expected a list of {len(expected)}, got {got!r:.200}"]
         return [d for i, (a, b) in enumerate(zip(expected, got)) for d in differences(a, b, f"{where}[{i}]")]
-    if isinstance(expected, float) or (isinstance(expected, int) and not isinstance(expected, bool)
-                                       and isinstance(got, float)):
-        if isinstance(got, bool) or not isinstance(got, int | float) or \
-                not math.isclose(expected, got, rel_tol=REL, abs_tol=ABS):
+    if isinstance(expected, float) or (
+        isinstance(expected, int) and not isinstance(expected, bool) and isinstance(got, float)
+    ):
+        if (
+            isinstance(got, bool)
+            or not isinstance(got, int | float)
+            or not math.isclose(expected, got, rel_tol=REL, abs_tol=ABS)
+        ):
             return [f"{where}: expected {expected!r}, got {got!r}"]
         return []
     return [] if expected == got and type(expected) is type(got) else [f"{where}: expected {expected!r}, got {got!r}"]

@@ -42,8 +42,9 @@ def unit(module: str) -> str:
 
 def _type_checking_only(node: ast.If) -> bool:
     t = node.test
-    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or \
-        (isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING")
+    return (isinstance(t, ast.Name) and t.id == "TYPE_CHECKING") or (
+        isinstance(t, ast.Attribute) and t.attr == "TYPE_CHECKING"
+    )
 
 
 def imports(path: Path, modules: set[str]) -> set[str]:
@@ -64,8 +65,9 @@ def imports(path: Path, modules: set[str]) -> set[str]:
             elif isinstance(child, ast.ImportFrom):
                 base = child.module or ""
                 if child.level:
-                    base = ".".join(package.split(".")[: len(package.split(".")) - child.level + 1] + ([base] if base
-                                                                                                       else []))
+                    base = ".".join(
+                        package.split(".")[: len(package.split(".")) - child.level + 1] + ([base] if base else [])
+                    )
                 if base.split(".")[0] != "torchcal":
                     continue
                 for a in child.names:
@@ -126,7 +128,7 @@ def test_no_import_cycle():
             if d not in g:
                 continue
             if state.get(d) == 1:
-                cycles.append(" -> ".join(stack[stack.index(d):] + [d]))
+                cycles.append(" -> ".join(stack[stack.index(d) :] + [d]))
             elif d not in state:
                 dfs(d, stack)
         stack.pop()
@@ -141,8 +143,10 @@ def test_no_import_cycle():
 def test_the_checker_sees_an_upward_import(tmp_path):
     f = tmp_path / "torchcal" / "robot" / "x.py"
     f.parent.mkdir(parents=True)
-    f.write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from torchcal.pipeline import Options\n"
-                 "def f():\n    from torchcal.pipeline.run import calibrate\n")
+    f.write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from torchcal.pipeline import Options\n"
+        "def f():\n    from torchcal.pipeline.run import calibrate\n"
+    )
     global PACKAGE
     old, PACKAGE = PACKAGE, tmp_path / "torchcal"
     try:

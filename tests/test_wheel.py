@@ -31,24 +31,45 @@ def _run(cmd, cwd, env, timeout=300):
 @pytest.mark.slow
 def test_wheel_installs_and_runs_outside_the_source_tree(tmp_path):
     # a copy of the tracked sources, so the build leaves nothing (build/, *.egg-info) in the checkout
-    pytest.importorskip("setuptools", minversion="77", reason="building the wheel offline needs setuptools>=77 "
-                        "in the test environment (the dev extra installs it)")
+    pytest.importorskip(
+        "setuptools",
+        minversion="77",
+        reason="building the wheel offline needs setuptools>=77 in the test environment (the dev extra installs it)",
+    )
     src = tmp_path / "src"
-    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True,
-                            text=True)
+    listed = subprocess.run(["git", "ls-files", "-co", "--exclude-standard"], cwd=ROOT, capture_output=True, text=True)
     if listed.returncode == 0:
         for f in listed.stdout.splitlines():
             if (ROOT / f).is_file():
                 (src / f).parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(ROOT / f, src / f)
     else:  # not a git checkout (an unpacked sdist): everything but environments and outputs
-        shutil.copytree(ROOT, src, ignore=shutil.ignore_patterns(".venv", "runs", "build", "*.egg-info", ".git",
-                                                                  "__pycache__", ".pytest_cache", ".ruff_cache"))
+        shutil.copytree(
+            ROOT,
+            src,
+            ignore=shutil.ignore_patterns(
+                ".venv", "runs", "build", "*.egg-info", ".git", "__pycache__", ".pytest_cache", ".ruff_cache"
+            ),
+        )
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "TORCHCAL_ROBOTS")}
     env["OMP_NUM_THREADS"] = "1"
     dist = tmp_path / "dist"
-    r = _run([sys.executable, "-m", "pip", "wheel", str(src), "--no-deps", "--no-build-isolation", "--no-index",
-              "-w", str(dist)], cwd=tmp_path, env=env)
+    r = _run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            str(src),
+            "--no-deps",
+            "--no-build-isolation",
+            "--no-index",
+            "-w",
+            str(dist),
+        ],
+        cwd=tmp_path,
+        env=env,
+    )
     assert "project.license" not in r.stderr  # the licence is an SPDX string, not the deprecated table
     wheel = next(dist.glob("torchcal-*.whl"))
     names = zipfile.ZipFile(wheel).namelist()
@@ -61,25 +82,41 @@ def test_wheel_installs_and_runs_outside_the_source_tree(tmp_path):
     venv = tmp_path / "venv"
     _run([sys.executable, "-m", "venv", "--without-pip", str(venv)], cwd=tmp_path, env=env)
     py = venv / "bin" / "python"
-    vsite = Path(subprocess.run([str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                                capture_output=True, text=True, check=True, env=env).stdout.strip())
+    vsite = Path(
+        subprocess.run(
+            [str(py), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+            capture_output=True,
+            text=True,
+            check=True,
+            env=env,
+        ).stdout.strip()
+    )
     (vsite / "outer.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
-    _run([sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index", str(wheel)],
-         cwd=tmp_path, env=env)
+    _run(
+        [sys.executable, "-m", "pip", "--python", str(py), "install", "--no-deps", "--no-index", str(wheel)],
+        cwd=tmp_path,
+        env=env,
+    )
 
     elsewhere = tmp_path / "elsewhere"
     elsewhere.mkdir()
     where = _run([str(py), "-c", "import torchcal; print(torchcal.__file__)"], cwd=elsewhere, env=env).stdout
     assert Path(where.strip()).is_relative_to(venv), where
     exe = str(venv / "bin" / "torchcal")
-    listed = _run([str(py), "-c", "from torchcal.robot import builtin_robots; print(builtin_robots())"],
-                  cwd=elsewhere, env=env).stdout
+    listed = _run(
+        [str(py), "-c", "from torchcal.robot import builtin_robots; print(builtin_robots())"], cwd=elsewhere, env=env
+    ).stdout
     assert "ur5" in listed and "panda.urdf" in listed
-    _run([exe, "simulate", "--robot", "ur5", "--out", "sim", "--poses", "120", "--test-poses", "30", "--quiet"],
-         cwd=elsewhere, env=env)
-    _run([exe, "calibrate", "sim/train.csv", "--robot", "ur5", "--method", "kinematic", "--out", "cal", "--quiet"],
-         cwd=elsewhere, env=env)
+    _run(
+        [exe, "simulate", "--robot", "ur5", "--out", "sim", "--poses", "120", "--test-poses", "30", "--quiet"],
+        cwd=elsewhere,
+        env=env,
+    )
+    _run(
+        [exe, "calibrate", "sim/train.csv", "--robot", "ur5", "--method", "kinematic", "--out", "cal", "--quiet"],
+        cwd=elsewhere,
+        env=env,
+    )
     _run([exe, "predict", "cal", "sim/test.csv", "--out", "pred.csv", "--quiet"], cwd=elsewhere, env=env)
     assert (elsewhere / "cal" / "report.json").is_file() and (elsewhere / "pred.csv").is_file()
-    _run([str(py), "-c", "import torchcal; assert torchcal.load_robot('panda.urdf').dof == 7"], cwd=elsewhere,
-         env=env)
+    _run([str(py), "-c", "import torchcal; assert torchcal.load_robot('panda.urdf').dof == 7"], cwd=elsewhere, env=env)

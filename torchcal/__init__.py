@@ -20,9 +20,21 @@ from torchcal.filter import EKFTrainer
 from torchcal.robot import RobotModel, load_robot
 
 __all__ = [
-    "Context", "CorrectionNet", "EKFTrainer", "MeasurementModel", "Measurements", "read_measurements",
-    "write_measurements", "EstimationError", "MeasurementFileError", "OptionError", "RobotModel", "RobotSpecError",
-    "ShapeError", "TorchcalError", "load_robot",
+    "Context",
+    "CorrectionNet",
+    "EKFTrainer",
+    "MeasurementModel",
+    "Measurements",
+    "read_measurements",
+    "write_measurements",
+    "EstimationError",
+    "MeasurementFileError",
+    "OptionError",
+    "RobotModel",
+    "RobotSpecError",
+    "ShapeError",
+    "TorchcalError",
+    "load_robot",
 ]
 
 

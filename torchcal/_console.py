@@ -21,5 +21,6 @@ def info(msg: str) -> None:
 
 def progress(iterable=None, *, total=None, desc: str | None = None):
     """A tqdm bar on stderr, shown only on a terminal and when not quiet."""
-    return tqdm(iterable, total=total, desc=desc, file=sys.stderr, leave=False,
-                disable=_quiet or not sys.stderr.isatty())
+    return tqdm(
+        iterable, total=total, desc=desc, file=sys.stderr, leave=False, disable=_quiet or not sys.stderr.isatty()
+    )

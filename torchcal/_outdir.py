@@ -51,8 +51,12 @@ def _is_legacy_run(path: Path) -> bool:
     except (OSError, ValueError):
         return False
     extra = {n for n in names - _LEGACY_RUN_FILES if not n.endswith(".png")}
-    return isinstance(meta, dict) and meta.get("format") == "torchcal-run-1" and not extra and not any(
-        (path / n).is_symlink() for n in names)
+    return (
+        isinstance(meta, dict)
+        and meta.get("format") == "torchcal-run-1"
+        and not extra
+        and not any((path / n).is_symlink() for n in names)
+    )
 
 
 def _is_legacy_demo(path: Path) -> bool:
@@ -61,8 +65,11 @@ def _is_legacy_demo(path: Path) -> bool:
         names = {p.name for p in path.iterdir()}
     except OSError:
         return False
-    return names == {"data", "run", "summary.json"} and _is_legacy_run(path / "run") and {
-        p.name for p in (path / "data").iterdir()} <= {"train.csv", "test.csv", "truth.json"}
+    return (
+        names == {"data", "run", "summary.json"}
+        and _is_legacy_run(path / "run")
+        and {p.name for p in (path / "data").iterdir()} <= {"train.csv", "test.csv", "truth.json"}
+    )
 
 
 def is_marked(path: Path) -> bool:
@@ -99,8 +106,7 @@ def _probe_writable(parent: Path, where: str) -> None:
         os.rmdir(probe)
 
 
-def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (),
-                  option: str = "--out") -> Path:
+def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (), option: str = "--out") -> Path:
     """Refuse an output directory that may not be replaced; return it as a :class:`Path`.
 
     Args:
@@ -120,30 +126,35 @@ def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike]
         raise OptionError(f"{where}: a filesystem root cannot be a run directory; name a new directory")
     cwd = Path(os.path.realpath(os.getcwd()))
     if _within(cwd, real):
-        raise OptionError(f"{where}: is the working directory or one of its parents; name a new directory "
-                          "(e.g. runs/cal)")
+        raise OptionError(
+            f"{where}: is the working directory or one of its parents; name a new directory (e.g. runs/cal)"
+        )
     for f in inputs:
         if f is None:
             continue
         fr = Path(os.path.realpath(f))
         if _within(fr, real):
-            raise OptionError(f"{where}: contains the input {f}; replacing it would delete the input. "
-                              "Name a new directory")
+            raise OptionError(
+                f"{where}: contains the input {f}; replacing it would delete the input. Name a new directory"
+            )
     if out.is_symlink():
         raise OptionError(f"{where}: is a symbolic link; torchcal replaces only directories it wrote")
     if out.exists():
         if not out.is_dir():
-            raise OptionError(f"{where}: exists and is not a directory; torchcal will not replace it. "
-                              "Name a new directory")
+            raise OptionError(
+                f"{where}: exists and is not a directory; torchcal will not replace it. Name a new directory"
+            )
         if not is_marked(out):
             try:
                 empty = not any(out.iterdir())
             except OSError as e:
                 raise OptionError(f"{where}: cannot be read: {e.strerror or e}") from None
             what = "is an empty directory" if empty else "exists, is not empty"
-            raise OptionError(f"{where}: {what} and is not a torchcal output directory (no {MARKER} "
-                              "marker); torchcal replaces only its own run directories. Name a new directory "
-                              + ("or remove this empty one (rmdir)" if empty else "or remove this one yourself"))
+            raise OptionError(
+                f"{where}: {what} and is not a torchcal output directory (no {MARKER} "
+                "marker); torchcal replaces only its own run directories. Name a new directory "
+                + ("or remove this empty one (rmdir)" if empty else "or remove this one yourself")
+            )
     # the nearest existing ancestor must be a directory we may create entries in
     parent = absolute.parent
     while not parent.exists() and not parent.is_symlink():
@@ -154,8 +165,7 @@ def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike]
     return out
 
 
-def check_out_file(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (),
-                   option: str = "--out") -> Path:
+def check_out_file(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (), option: str = "--out") -> Path:
     """Refuse an output file that is an input, a directory, or under a parent that is not writable.
 
     An existing regular file that is not an input is replaced (atomically, by the writer).
@@ -170,8 +180,7 @@ def check_out_file(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike
             continue
         fr = Path(os.path.realpath(f))
         if fr == real:
-            raise OptionError(f"{where}: is the input file {f}; writing it would destroy the input. "
-                              "Name another file")
+            raise OptionError(f"{where}: is the input file {f}; writing it would destroy the input. Name another file")
         if fr.is_dir() and _within(real, fr) and real.exists():
             raise OptionError(f"{where}: is a file of the input directory {f}; name a file outside it")
     if out.exists() and not out.is_file():

@@ -28,6 +28,7 @@ REPORT_TO = "the torchcal issue tracker (see README.md, 'Reporting problems')"
 
 def _number(kind: str):
     """An argparse type: a finite float that is positive (``kind='positive'``), >= 0 or in (0, 1)."""
+
     def parse(text: str) -> float:
         try:
             v = float(text)
@@ -59,19 +60,29 @@ def _count(text: str) -> int:
 
 _count.__name__ = "count"
 POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _number("fraction")
-OUT_HELP = ("output directory; an existing one is replaced only when it is an earlier torchcal output "
-            "(marked by .torchcal-run), anything else is refused")
+OUT_HELP = (
+    "output directory; an existing one is replaced only when it is an earlier torchcal output "
+    "(marked by .torchcal-run), anything else is refused"
+)
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no messages on stderr")
-    p.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                   help="print the full traceback of an unexpected error")
+    p.add_argument(
+        "--debug",
+        action="store_true",
+        default=argparse.SUPPRESS,
+        help="print the full traceback of an unexpected error",
+    )
 
 
 def _add_robot(p: argparse.ArgumentParser, required: bool = True) -> None:
-    p.add_argument("--robot", required=required, default=None if required else "ur5",
-                   help="built-in name (ur5, ur10, panda, ...), a URDF file or a DH YAML file")
+    p.add_argument(
+        "--robot",
+        required=required,
+        default=None if required else "ur5",
+        help="built-in name (ur5, ur10, panda, ...), a URDF file or a DH YAML file",
+    )
     p.add_argument("--base-link", default=None, help="URDF: first link of the chain (default: the root)")
     p.add_argument("--tip-link", default=None, help="URDF: last link of the chain (default: the only deepest leaf)")
 
@@ -86,25 +97,40 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="print the full traceback of an unexpected error")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    s = sub.add_parser("simulate", help="simulate a laser-tracker campaign (train.csv, test.csv, truth.json)",
-                       description="Simulate a laser-tracker campaign: biased geometry, unknown tracker pose and lever "
-                       "arm, tracker and joint noise, and the non-geometric effects asked for.")
+    s = sub.add_parser(
+        "simulate",
+        help="simulate a laser-tracker campaign (train.csv, test.csv, truth.json)",
+        description="Simulate a laser-tracker campaign: biased geometry, unknown tracker pose and lever "
+        "arm, tracker and joint noise, and the non-geometric effects asked for.",
+    )
     _add_robot(s)
     s.add_argument("--out", required=True, help=OUT_HELP)
     s.add_argument("--poses", type=_count, default=800, help="static poses in train.csv (default 800)")
     s.add_argument("--test-poses", type=_count, default=200, help="static poses in test.csv (default 200)")
-    s.add_argument("--trajectory", action="store_true",
-                   help="a continuous trajectory instead of static poses (train = first --train-samples)")
-    s.add_argument("--path", default="p2p", choices=("p2p", "multisine", "randomwalk", "sweeps"),
-                   help="trajectory family: p2p (point-to-point program, default), multisine (smooth, never "
-                   "repeating, most of the joint range), randomwalk (slow), sweeps (one cycle repeated)")
+    s.add_argument(
+        "--trajectory",
+        action="store_true",
+        help="a continuous trajectory instead of static poses (train = first --train-samples)",
+    )
+    s.add_argument(
+        "--path",
+        default="p2p",
+        choices=("p2p", "multisine", "randomwalk", "sweeps"),
+        help="trajectory family: p2p (point-to-point program, default), multisine (smooth, never "
+        "repeating, most of the joint range), randomwalk (slow), sweeps (one cycle repeated)",
+    )
     s.add_argument("--samples", type=_count, default=7342, help="trajectory samples (default 7342, as the paper)")
     s.add_argument("--train-samples", type=_count, default=5874, help="trajectory samples for training (default 5874)")
     s.add_argument("--seed", type=int, default=0, help="random seed; the campaign is reproducible from it")
-    s.add_argument("--effect", action="append", default=[], metavar="KIND[:JOINT][=SIZE]",
-                   help="inject an effect; repeatable. KIND: compliance, backlash, cyclic (need :JOINT), "
-                   "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
-                   "displacement with a unit, e.g. compliance:2=50um, field=0.6mm")
+    s.add_argument(
+        "--effect",
+        action="append",
+        default=[],
+        metavar="KIND[:JOINT][=SIZE]",
+        help="inject an effect; repeatable. KIND: compliance, backlash, cyclic (need :JOINT), "
+        "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
+        "displacement with a unit, e.g. compliance:2=50um, field=0.6mm",
+    )
     s.add_argument("--tracker-noise", type=NONNEG, default=15.0, help="tracker noise per axis [um] (default 15)")
     s.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
     s.add_argument("--length-bias", type=NONNEG, default=0.1, help="sigma of the geometric length biases [mm]")
@@ -113,72 +139,107 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
     _add_common(s)
 
-    c = sub.add_parser("calibrate", help="fit the robot to measurements and write a run directory",
-                       description="Fit the robot to laser-tracker measurements (a CSV file: q1..qN, x, y, z, "
-                       "optional t, temperature, sx, sy, sz) and write the run "
-                       "directory: report.json, report.md with plots, robot_calibrated.urdf, model for predict.")
-    c.add_argument("data", help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature]"
-                   "[,sx,sy,sz]; '# key: value' comment lines before it)")
+    c = sub.add_parser(
+        "calibrate",
+        help="fit the robot to measurements and write a run directory",
+        description="Fit the robot to laser-tracker measurements (a CSV file: q1..qN, x, y, z, "
+        "optional t, temperature, sx, sy, sz) and write the run "
+        "directory: report.json, report.md with plots, robot_calibrated.urdf, model for predict.",
+    )
+    c.add_argument(
+        "data",
+        help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature]"
+        "[,sx,sy,sz]; '# key: value' comment lines before it)",
+    )
     _add_robot(c)
     c.add_argument("--out", required=True, help="run directory to write; " + OUT_HELP)
-    c.add_argument("--method", default=None,
-                   help="auto (default: geometry, then a learned residual model where validation data demand it), "
-                   "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
-                   "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)")
-    c.add_argument("--engine", choices=("auto", "adaptive", "ekf"), default="auto",
-                   help="integrated method: auto (default: the engines and their settings, and geometry alone, "
-                   "judged on the last 20 %% of the training samples; the best is kept only if it beats geometry), "
-                   "adaptive (geometry and network in one filter state) or ekf (the paper's filter on the kinematic "
-                   "calibration's geometry)")
+    c.add_argument(
+        "--method",
+        default=None,
+        help="auto (default: geometry, then a learned residual model where validation data demand it), "
+        "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
+        "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)",
+    )
+    c.add_argument(
+        "--engine",
+        choices=("auto", "adaptive", "ekf"),
+        default="auto",
+        help="integrated method: auto (default: the engines and their settings, and geometry alone, "
+        "judged on the last 20 %% of the training samples; the best is kept only if it beats geometry), "
+        "adaptive (geometry and network in one filter state) or ekf (the paper's filter on the kinematic "
+        "calibration's geometry)",
+    )
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
     c.add_argument("--holdout", type=FRACTION, default=0.2, help="held-out fraction (default 0.2)")
-    c.add_argument("--tracker-noise", type=POSITIVE, default=15.0,
-                   help="tracker noise per axis [um] when the file has no sx,sy,sz (default 15)")
+    c.add_argument(
+        "--tracker-noise",
+        type=POSITIVE,
+        default=15.0,
+        help="tracker noise per axis [um] when the file has no sx,sy,sz (default 15)",
+    )
     c.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
-    c.add_argument("--rank-tol", type=POSITIVE, default=None,
-                   help="identifiability tolerance, > 0 (default 1e-6)")
+    c.add_argument("--rank-tol", type=POSITIVE, default=None, help="identifiability tolerance, > 0 (default 1e-6)")
     _add_units(c)
     _add_common(c)
 
-    pr = sub.add_parser("predict", help="predict probe positions with a calibrated run",
-                        description="Predict the probe position in the tracker frame for every row of DATA with "
-                        "everything the run learned (geometry, effects, network).")
+    pr = sub.add_parser(
+        "predict",
+        help="predict probe positions with a calibrated run",
+        description="Predict the probe position in the tracker frame for every row of DATA with "
+        "everything the run learned (geometry, effects, network).",
+    )
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
-    pr.add_argument("--out", required=True,
-                    help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)")
+    pr.add_argument(
+        "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
+    )
     _add_units(pr)
     _add_common(pr)
 
-    cp = sub.add_parser("compensate", help="joint commands that reach targets by the calibrated model",
-                        description="For every row of TARGETS (x,y,z in the instrument frame, and/or nominal joints "
-                        "q1..qN of a robot program), write the joint commands that the calibrated model (geometry, "
-                        "effects, learned correction) says put the probe there, with the remaining miss [m] and a "
-                        "status (converged, limit, unreachable). x,y,z with q1..qN: reach x,y,z starting from q. "
-                        "q1..qN alone: reach the point the nominal model reaches with q. x,y,z alone: start from "
-                        "--start or from the nominal inverse kinematics. t and temperature columns feed effects "
-                        "that read them. Output in SI units (rad, m); rows not reached are named on stderr and "
-                        "kept in the file.")
+    cp = sub.add_parser(
+        "compensate",
+        help="joint commands that reach targets by the calibrated model",
+        description="For every row of TARGETS (x,y,z in the instrument frame, and/or nominal joints "
+        "q1..qN of a robot program), write the joint commands that the calibrated model (geometry, "
+        "effects, learned correction) says put the probe there, with the remaining miss [m] and a "
+        "status (converged, limit, unreachable). x,y,z with q1..qN: reach x,y,z starting from q. "
+        "q1..qN alone: reach the point the nominal model reaches with q. x,y,z alone: start from "
+        "--start or from the nominal inverse kinematics. t and temperature columns feed effects "
+        "that read them. Output in SI units (rad, m); rows not reached are named on stderr and "
+        "kept in the file.",
+    )
     cp.add_argument("run", help="run directory written by calibrate")
     cp.add_argument("targets", help="CSV with x,y,z and/or q1..qN (CONTRACT §1 units)")
-    cp.add_argument("--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], "
-                    "status")
+    cp.add_argument(
+        "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
+    )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     _add_units(cp)
     _add_common(cp)
 
-    cv = sub.add_parser("convert", help="convert a third-party data set into a measurement file",
-                        description="Convert a third-party data set into a torchcal measurement file (CSV).")
+    cv = sub.add_parser(
+        "convert",
+        help="convert a third-party data set into a measurement file",
+        description="Convert a third-party data set into a torchcal measurement file (CSV).",
+    )
     cv.add_argument("source", help="the file to convert")
-    cv.add_argument("--from", dest="fmt", required=True, choices=["ipa-robot-accuracy"],
-                    help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
-                    "(Landgraf et al., IEEE CASE 2021, MIT licence)")
+    cv.add_argument(
+        "--from",
+        dest="fmt",
+        required=True,
+        choices=["ipa-robot-accuracy"],
+        help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
+        "(Landgraf et al., IEEE CASE 2021, MIT licence)",
+    )
     cv.add_argument("--out", required=True, help="measurement file to write")
     _add_common(cv)
 
-    d = sub.add_parser("demo", help="run the main job end to end on built-in simulated data",
-                       description="Simulate a UR5 campaign with effects the nominal model lacks (joint-2 compliance "
-                       "and a smooth field), close the loop and print the error before and after every step.")
+    d = sub.add_parser(
+        "demo",
+        help="run the main job end to end on built-in simulated data",
+        description="Simulate a UR5 campaign with effects the nominal model lacks (joint-2 compliance "
+        "and a smooth field), close the loop and print the error before and after every step.",
+    )
     d.add_argument("--out", default="runs/demo", help="output directory (default runs/demo); " + OUT_HELP)
     d.add_argument("--seed", type=int, default=0)
     _add_common(d)
@@ -224,9 +285,11 @@ def check_header_robot(data, spec: str, robot, described: str) -> None:
     ours = {_robot_key(spec), _robot_key(robot.name)}
     if _robot_key(named) not in ours:
         raise MeasurementFileError(
-            data.source, f"the file's '# robot: {named}' line names another robot than {described} "
-            f"('{robot.name}')", hint="pass the robot the data were measured with, or correct the '# robot:' "
-            "line if the name differs but the robot is the same")
+            data.source,
+            f"the file's '# robot: {named}' line names another robot than {described} ('{robot.name}')",
+            hint="pass the robot the data were measured with, or correct the '# robot:' "
+            "line if the name differs but the robot is the same",
+        )
 
 
 def cmd_calibrate(args) -> int:
@@ -238,21 +301,35 @@ def cmd_calibrate(args) -> int:
     inputs = [args.data, *_robot_input(args.robot)]
     check_out_dir(args.out, inputs=inputs)  # before any fitting: refuse, touching nothing
     robot = load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link)
-    opts = C.Options(method=args.method or C.DEFAULT_METHOD, seed=args.seed, holdout=args.holdout,
-                     sigma_tracker=args.tracker_noise * 1e-6, sigma_joint=math.radians(args.joint_noise),
-                     engine=args.engine)
+    opts = C.Options(
+        method=args.method or C.DEFAULT_METHOD,
+        seed=args.seed,
+        holdout=args.holdout,
+        sigma_tracker=args.tracker_noise * 1e-6,
+        sigma_joint=math.radians(args.joint_noise),
+        engine=args.engine,
+    )
     if args.rank_tol is not None:
         opts.rank_tol = args.rank_tol
-    data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,
-                             angle_unit=args.angle_unit, require_positions=True,
-                             min_poses=C.min_poses(robot, opts.holdout), robot_name=robot.name,
-                             purpose=f"a {opts.method} calibration of '{robot.name}'")
+    data = read_measurements(
+        args.data,
+        dof=robot.dof,
+        joint_limits=robot.limits,
+        length_unit=args.length_unit,
+        angle_unit=args.angle_unit,
+        require_positions=True,
+        min_poses=C.min_poses(robot, opts.holdout),
+        robot_name=robot.name,
+        purpose=f"a {opts.method} calibration of '{robot.name}'",
+    )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
     run = C.calibrate(robot, data, opts, robot_spec=args.robot)
     out = write_run(run, args.out, inputs=inputs)
     st = {s.name: s for s in run.stages}
-    _console.info(f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
-                  f"{st['geometric'].rmse * 1e3:.4f} mm, final {run.stages[-1].rmse * 1e3:.4f} mm")
+    _console.info(
+        f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
+        f"{st['geometric'].rmse * 1e3:.4f} mm, final {run.stages[-1].rmse * 1e3:.4f} mm"
+    )
     _console.info(f"wrote {out / 'report.json'} and {out / 'report.md'}")
     return 0
 
@@ -266,13 +343,22 @@ def cmd_predict(args) -> int:
     check_out_file(args.out, inputs=[args.data, args.run])
     model, meta = load_model(args.run)
     robot = model.robot
-    data = read_measurements(args.data, dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit,
-                             angle_unit=args.angle_unit, require_positions=False, robot_name=robot.name)
+    data = read_measurements(
+        args.data,
+        dof=robot.dof,
+        joint_limits=robot.limits,
+        length_unit=args.length_unit,
+        angle_unit=args.angle_unit,
+        require_positions=False,
+        robot_name=robot.name,
+    )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     p = predict(args.run, data)
     if not bool(torch.isfinite(p).all()):
-        raise OptionError(f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
-                          "the run directory is damaged or the fit diverged")
+        raise OptionError(
+            f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
+            "the run directory is damaged or the fit diverged"
+        )
     out = replace(data, p=p, sigma=None, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_measurements(args.out, out)
@@ -288,29 +374,48 @@ def cmd_compensate(args) -> int:
     check_out_file(args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []))
     model, meta = load_model(args.run)
     robot = model.robot
-    kw = dict(dof=robot.dof, joint_limits=robot.limits, length_unit=args.length_unit, angle_unit=args.angle_unit,
-              require_positions=False, robot_name=robot.name)
+    kw = dict(
+        dof=robot.dof,
+        joint_limits=robot.limits,
+        length_unit=args.length_unit,
+        angle_unit=args.angle_unit,
+        require_positions=False,
+        robot_name=robot.name,
+    )
     data = read_measurements(args.targets, require_joints=False, **kw)
     has_q = data.dof > 0
     q_start = data.q if has_q else None
     if args.start is not None:
         start = read_measurements(args.start, **kw)
         if start.n != data.n:
-            raise TorchcalError(f"{args.start}: {start.n} start rows for {data.n} targets in {args.targets}; "
-                                "give one start row per target")
+            raise TorchcalError(
+                f"{args.start}: {start.n} start rows for {data.n} targets in {args.targets}; "
+                "give one start row per target"
+            )
         q_start = start.q
     targets = data.p if data.p is not None else program_targets(model, data.q)
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
     res = compensate(model, targets, q_start, context=context)
-    write_joints(args.out, res, targets=data.p, t=data.t, temperature=data.temperature, extra=data.extra,
-                 meta={"compensated_by": str(args.run)})
+    write_joints(
+        args.out,
+        res,
+        targets=data.p,
+        t=data.t,
+        temperature=data.temperature,
+        extra=data.extra,
+        meta={"compensated_by": str(args.run)},
+    )
     bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
     for i in bad:
-        print(f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
-              f"the target by {float(res.miss[i]) * 1e3:.4f} mm", file=sys.stderr)
-    _console.info(f"wrote {data.n} joint commands to {args.out}: " + ", ".join(f"{v} {k}" for k, v in
-                                                                            res.counts().items()))
+        print(
+            f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
+            f"the target by {float(res.miss[i]) * 1e3:.4f} mm",
+            file=sys.stderr,
+        )
+    _console.info(
+        f"wrote {data.n} joint commands to {args.out}: " + ", ".join(f"{v} {k}" for k, v in res.counts().items())
+    )
     return 0
 
 
@@ -332,9 +437,11 @@ def _simulate(cfg):
     except RuntimeError as e:
         if "line-of-sight" not in str(e):
             raise
-        raise OptionError(f"robot '{cfg.robot}': {e.args[0].split(';')[0]}: the simulated tracker cannot see the "
-                          "probe in enough poses. Check --robot, --base-link and --tip-link (the chain must end "
-                          "at the tool flange of an upright arm), or ask for fewer --poses/--samples") from None
+        raise OptionError(
+            f"robot '{cfg.robot}': {e.args[0].split(';')[0]}: the simulated tracker cannot see the "
+            "probe in enough poses. Check --robot, --base-link and --tip-link (the chain must end "
+            "at the tool flange of an upright arm), or ask for fewer --poses/--samples"
+        ) from None
 
 
 def cmd_simulate(args) -> int:
@@ -344,14 +451,26 @@ def cmd_simulate(args) -> int:
     inputs = _robot_input(args.robot)
     check_out_dir(args.out, inputs=inputs)
     if args.trajectory and args.train_samples >= args.samples:
-        raise OptionError(f"--train-samples {args.train_samples} must be below --samples {args.samples} "
-                          "(the rest is the test phase)")
+        raise OptionError(
+            f"--train-samples {args.train_samples} must be below --samples {args.samples} (the rest is the test phase)"
+        )
     cfg = SimConfig(
-        robot=args.robot, poses=args.poses, test_poses=args.test_poses, trajectory=args.trajectory,
-        path=args.path, samples=args.samples, train_samples=args.train_samples, seed=args.seed,
-        sigma_tracker=args.tracker_noise * 1e-6, sigma_joint_deg=args.joint_noise, sigma_length=args.length_bias * 1e-3,
-        sigma_angle_deg=args.angle_bias, effects=[EffectSpec.parse(e) for e in args.effect],
-        write_sigma=not args.no_sigma, base_link=args.base_link, tip_link=args.tip_link,
+        robot=args.robot,
+        poses=args.poses,
+        test_poses=args.test_poses,
+        trajectory=args.trajectory,
+        path=args.path,
+        samples=args.samples,
+        train_samples=args.train_samples,
+        seed=args.seed,
+        sigma_tracker=args.tracker_noise * 1e-6,
+        sigma_joint_deg=args.joint_noise,
+        sigma_length=args.length_bias * 1e-3,
+        sigma_angle_deg=args.angle_bias,
+        effects=[EffectSpec.parse(e) for e in args.effect],
+        write_sigma=not args.no_sigma,
+        base_link=args.base_link,
+        tip_link=args.tip_link,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")
@@ -369,8 +488,9 @@ def _to_mm(campaign):
     from dataclasses import replace
 
     def mm(m):
-        return replace(m, p=m.p * 1000.0, sigma=None if m.sigma is None else m.sigma * 1000.0,
-                       meta={**m.meta, "length_unit": "mm"})
+        return replace(
+            m, p=m.p * 1000.0, sigma=None if m.sigma is None else m.sigma * 1000.0, meta={**m.meta, "length_unit": "mm"}
+        )
 
     campaign.train, campaign.test = mm(campaign.train), mm(campaign.test)
     campaign.truth["files"]["length_unit"] = "mm"
@@ -388,11 +508,14 @@ def cmd_demo(args) -> int:
 
     out = Path(args.out)
     check_out_dir(out)
-    cfg = SimConfig(robot="ur5", poses=800, test_poses=200, seed=args.seed,
-                    effects=[EffectSpec.parse(e) for e in DEMO_EFFECTS])
-    _console.info("torchcal demo: a simulated UR5 laser-tracker campaign (800 + 200 poses) with biased geometry, "
-                  "joint-2 compliance (60 um RMS at the probe) and a smooth non-geometric field (0.05 mm RMS), "
-                  "neither of which the nominal model declares")
+    cfg = SimConfig(
+        robot="ur5", poses=800, test_poses=200, seed=args.seed, effects=[EffectSpec.parse(e) for e in DEMO_EFFECTS]
+    )
+    _console.info(
+        "torchcal demo: a simulated UR5 laser-tracker campaign (800 + 200 poses) with biased geometry, "
+        "joint-2 compliance (60 um RMS at the probe) and a smooth non-geometric field (0.05 mm RMS), "
+        "neither of which the nominal model declares"
+    )
     campaign = _simulate(cfg)
     run = C.calibrate(cfg.robot, campaign.train, C.Options(seed=args.seed))
     run_dir = out / "run"
@@ -403,16 +526,23 @@ def cmd_demo(args) -> int:
         write_run_files(run, tmp / "run")
         p = predict(tmp / "run", campaign.test)
         test_rmse = float((p - campaign.test.p).norm(dim=-1).square().mean().sqrt())
-        summary = {"data": {k: str(out / "data" / v) for k, v in names.items()}, "run": str(run_dir),
-                   "simulated": list(DEMO_EFFECTS),
-                   "holdout_rmse_mm": {s.name: s.rmse * 1e3 for s in run.stages},
-                   "test_file_rmse_mm": test_rmse * 1e3, "stages": [s.name for s in run.stages],
-                   "effects": [{"kind": e["kind"], "joint": e["joint"]} for e in run.effects_report]}
+        summary = {
+            "data": {k: str(out / "data" / v) for k, v in names.items()},
+            "run": str(run_dir),
+            "simulated": list(DEMO_EFFECTS),
+            "holdout_rmse_mm": {s.name: s.rmse * 1e3 for s in run.stages},
+            "test_file_rmse_mm": test_rmse * 1e3,
+            "stages": [s.name for s in run.stages],
+            "effects": [{"kind": e["kind"], "joint": e["joint"]} for e in run.effects_report],
+        }
         (tmp / "summary.json").write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     print(f"simulated, undeclared: {', '.join(DEMO_EFFECTS)}")
     print("model                                          held-out RMSE [mm]   max [mm]")
-    labels = {"nominal": "nominal geometry (tracker, lever fitted)", "geometric": "after the kinematic calibration",
-              "learned": "+ learned residual model"}
+    labels = {
+        "nominal": "nominal geometry (tracker, lever fitted)",
+        "geometric": "after the kinematic calibration",
+        "learned": "+ learned residual model",
+    }
     found = {e.get("label"): e for e in run.effects_report}
     for s in run.stages:
         label = labels.get(s.name, f"+ {s.name}")
@@ -426,9 +556,14 @@ def cmd_demo(args) -> int:
     return 0
 
 
-COMMANDS = {"simulate": cmd_simulate, "calibrate": cmd_calibrate, "predict": cmd_predict, "convert": cmd_convert,
-            "compensate": cmd_compensate,
-            "demo": cmd_demo}
+COMMANDS = {
+    "simulate": cmd_simulate,
+    "calibrate": cmd_calibrate,
+    "predict": cmd_predict,
+    "convert": cmd_convert,
+    "compensate": cmd_compensate,
+    "demo": cmd_demo,
+}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -452,8 +587,11 @@ def main(argv: list[str] | None = None) -> int:
             traceback.print_exc()
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         print(f"torchcal {args.command}: internal error: {type(e).__name__}: {first[:300]}", file=sys.stderr)
-        print(f"torchcal {args.command}: this is a bug; please report it at {REPORT_TO} with the command line"
-              + ("" if debug else " and the output of the same command with --debug"), file=sys.stderr)
+        print(
+            f"torchcal {args.command}: this is a bug; please report it at {REPORT_TO} with the command line"
+            + ("" if debug else " and the output of the same command with --debug"),
+            file=sys.stderr,
+        )
         return 1
 
 

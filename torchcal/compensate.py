@@ -121,8 +121,10 @@ def _context(model: MeasurementModel, q: Tensor, context: dict | None) -> Contex
     for e in model.effects:
         var = getattr(e, "variable", None)
         if var in ("t", "temperature") and e.acts_on != "instrument" and ctx.get(var) is None:
-            raise OptionError(f"the model has a {e.label()} in '{var}': give the targets a '{var}' column "
-                              f"(context['{var}']) so that compensation knows its value per row")
+            raise OptionError(
+                f"the model has a {e.label()} in '{var}': give the targets a '{var}' column "
+                f"(context['{var}']) so that compensation knows its value per row"
+            )
     return Context(q=q, t=ctx.get("t"), temperature=ctx.get("temperature"), direction=ctx.get("direction"))
 
 
@@ -172,8 +174,9 @@ def targets_in_base(model: MeasurementModel, targets: Tensor, frame: str) -> Ten
 
 
 # ------------------------------------------------------------------------------------------------ solver
-def _solve(model: MeasurementModel, target: Tensor, q0: Tensor, context: dict | None, *, tol: float,
-           max_iter: int, lam0: float) -> tuple[Tensor, Tensor, int]:
+def _solve(
+    model: MeasurementModel, target: Tensor, q0: Tensor, context: dict | None, *, tol: float, max_iter: int, lam0: float
+) -> tuple[Tensor, Tensor, int]:
     """Batched LM on ``probe_in_base(q) = target``; returns ``q``, the miss ``(N,)`` and the iterations."""
     lo, hi = model.robot.limits[:, 0], model.robot.limits[:, 1]
     q = q0.clone()
@@ -227,8 +230,16 @@ def _context_factory(model: MeasurementModel, context: dict | None):
 
 
 # ------------------------------------------------------------------------------------------------ public
-def nominal_ik(robot: RobotModel, targets_base: Tensor, *, reference: Tensor | None = None, seeds: int = 16,
-               seed: int = 0, tol: float = 1e-9, max_iter: int = 100) -> Tensor:
+def nominal_ik(
+    robot: RobotModel,
+    targets_base: Tensor,
+    *,
+    reference: Tensor | None = None,
+    seeds: int = 16,
+    seed: int = 0,
+    tol: float = 1e-9,
+    max_iter: int = 100,
+) -> Tensor:
     """Joints that put the probe of ``robot``'s current geometry on base-frame targets, for x,y,z-only input.
 
     A position has many solutions; every target is solved from the same deterministic set of start
@@ -250,8 +261,10 @@ def nominal_ik(robot: RobotModel, targets_base: Tensor, *, reference: Tensor | N
     ref = (0.5 * (lo + hi)) if reference is None else torch.as_tensor(reference, dtype=F64)
     g = torch.Generator().manual_seed(seed)
     # draws from the middle half of each range: ranges of +-2 pi would otherwise start on wrapped twins
-    starts = [ref] + [ref + (torch.rand(robot.dof, generator=g, dtype=F64) - 0.5) * (hi - lo).clamp(max=2 * math.pi)
-                      for _ in range(seeds - 1)]
+    starts = [ref] + [
+        ref + (torch.rand(robot.dof, generator=g, dtype=F64) - 0.5) * (hi - lo).clamp(max=2 * math.pi)
+        for _ in range(seeds - 1)
+    ]
     n = targets_base.shape[0]
     model = MeasurementModel(robot, [])
     starts_t = torch.stack(starts).clamp(lo, hi)  # (S, dof)
@@ -266,10 +279,20 @@ def nominal_ik(robot: RobotModel, targets_base: Tensor, *, reference: Tensor | N
     return q[best, torch.arange(n)]
 
 
-def compensate(model: MeasurementModel | RobotModel, targets: Tensor, q_seed: Tensor | None = None, *,
-               frame: str = "instrument", context: dict | None = None, tol: float = 1e-10, max_iter: int = 30,
-               max_joint_change: float = 0.3, branch_tol: float = 0.05, damping: float = 1e-6,
-               threads: int | None = 1) -> CompensationResult:
+def compensate(
+    model: MeasurementModel | RobotModel,
+    targets: Tensor,
+    q_seed: Tensor | None = None,
+    *,
+    frame: str = "instrument",
+    context: dict | None = None,
+    tol: float = 1e-10,
+    max_iter: int = 30,
+    max_joint_change: float = 0.3,
+    branch_tol: float = 0.05,
+    damping: float = 1e-6,
+    threads: int | None = 1,
+) -> CompensationResult:
     """Joint commands that make the full calibrated model put the probe on each target.
 
     Args:
@@ -296,19 +319,22 @@ def compensate(model: MeasurementModel | RobotModel, targets: Tensor, q_seed: Te
     model = _as_model(model)
     robot = model.robot
     if not isinstance(targets, Tensor) or targets.dtype != F64 or targets.ndim != 2 or targets.shape[1] != 3:
-        raise ShapeError(f"targets must be a float64 tensor (N, 3) [m], got {getattr(targets, 'shape', targets)} "
-                         f"{getattr(targets, 'dtype', '')}")
+        raise ShapeError(
+            f"targets must be a float64 tensor (N, 3) [m], got {getattr(targets, 'shape', targets)} "
+            f"{getattr(targets, 'dtype', '')}"
+        )
     if not bool(torch.isfinite(targets).all()):
         row = int((~torch.isfinite(targets)).any(dim=-1).nonzero()[0])
         raise ShapeError(f"targets row {row} is not finite: {targets[row].tolist()}")
-    with (torch_threads(threads) if threads is not None else contextlib.nullcontext()):
+    with torch_threads(threads) if threads is not None else contextlib.nullcontext():
         tgt = targets_in_base(model, targets, frame)
         if q_seed is None:
             q0 = nominal_ik(robot, tgt)
         else:
             if not isinstance(q_seed, Tensor) or q_seed.shape != (targets.shape[0], robot.dof):
-                raise ShapeError(f"q_seed must have shape ({targets.shape[0]}, {robot.dof}), "
-                                 f"got {getattr(q_seed, 'shape', q_seed)}")
+                raise ShapeError(
+                    f"q_seed must have shape ({targets.shape[0]}, {robot.dof}), got {getattr(q_seed, 'shape', q_seed)}"
+                )
             q0 = q_seed.to(F64)
         lo, hi = robot.limits[:, 0], robot.limits[:, 1]
         q0 = torch.minimum(torch.maximum(q0, lo), hi)
@@ -335,12 +361,14 @@ def compensate(model: MeasurementModel | RobotModel, targets: Tensor, q_seed: Te
             status.append(Status.LIMIT)
         else:
             status.append(Status.UNREACHABLE)
-    return CompensationResult(q=q.detach(), miss=err.detach(), status=status, q_start=q0, iterations=it,
-                              branch_kept=kept)
+    return CompensationResult(
+        q=q.detach(), miss=err.detach(), status=status, q_start=q0, iterations=it, branch_kept=kept
+    )
 
 
-def program_targets(model: MeasurementModel, q_program: Tensor, *, nominal: RobotModel | None = None,
-                    frame: str = "instrument") -> Tensor:
+def program_targets(
+    model: MeasurementModel, q_program: Tensor, *, nominal: RobotModel | None = None, frame: str = "instrument"
+) -> Tensor:
     """The points a robot program means: where the nominal model puts the probe for its joints ``(N, 3)``.
 
     Args:
@@ -365,8 +393,9 @@ def program_targets(model: MeasurementModel, q_program: Tensor, *, nominal: Robo
     return p
 
 
-def model_miss(model: MeasurementModel, q: Tensor, targets: Tensor, *, frame: str = "instrument",
-               context: dict | None = None) -> Tensor:
+def model_miss(
+    model: MeasurementModel, q: Tensor, targets: Tensor, *, frame: str = "instrument", context: dict | None = None
+) -> Tensor:
     """Distance ``(N,)`` [m] between where ``model`` puts the probe for ``q`` and the targets."""
     model = _as_model(model)
     with torch.no_grad():
@@ -374,13 +403,28 @@ def model_miss(model: MeasurementModel, q: Tensor, targets: Tensor, *, frame: st
     return (targets_in_base(model, targets, frame) - p).norm(dim=-1)
 
 
-__all__: Sequence[str] = ("Status", "CompensationResult", "compensate", "nominal_ik", "program_targets",
-                          "model_miss", "configuration_sign", "full_jacobian")
+__all__: Sequence[str] = (
+    "Status",
+    "CompensationResult",
+    "compensate",
+    "nominal_ik",
+    "program_targets",
+    "model_miss",
+    "configuration_sign",
+    "full_jacobian",
+)
 
 
-def write_joints(path, result: CompensationResult, *, targets: Tensor | None = None, t: Tensor | None = None,
-                 temperature: Tensor | None = None, extra: dict[str, Tensor] | None = None,
-                 meta: dict[str, str] | None = None) -> None:
+def write_joints(
+    path,
+    result: CompensationResult,
+    *,
+    targets: Tensor | None = None,
+    t: Tensor | None = None,
+    temperature: Tensor | None = None,
+    extra: dict[str, Tensor] | None = None,
+    meta: dict[str, str] | None = None,
+) -> None:
     """Write the compensated joints as CSV, atomically: ``q1..qN[,x,y,z][,t][,temperature][,extra...],miss,status``.
 
     Joints in rad, positions and ``miss`` in m, every number with ``repr`` (reads back bit-identical);
@@ -439,8 +483,12 @@ def urdf_gap(model: MeasurementModel, ctx: Context) -> dict:
         full = model(ctx)
         geo = MeasurementModel(model.robot, [])(ctx)
     d = (full - geo).norm(dim=-1)
-    return {"n_poses": int(d.shape[0]), "rms_mm": float(d.square().mean().sqrt()) * 1e3 if len(d) else 0.0,
-            "max_mm": float(d.max()) * 1e3 if len(d) else 0.0, "left_out": urdf_left_out(model)}
+    return {
+        "n_poses": int(d.shape[0]),
+        "rms_mm": float(d.square().mean().sqrt()) * 1e3 if len(d) else 0.0,
+        "max_mm": float(d.max()) * 1e3 if len(d) else 0.0,
+        "left_out": urdf_left_out(model),
+    }
 
 
 def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
@@ -458,8 +506,12 @@ def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
         p_base = urdf(ctx.q)[..., :3, 3]
         p = tf.transform_points(model.robot.T_tracker_base(), p_base)
         d = (model(ctx) - p).norm(dim=-1)
-    return {"n_poses": int(d.shape[0]), "rms_mm": float(d.square().mean().sqrt()) * 1e3,
-            "max_mm": float(d.max()) * 1e3, "left_out": urdf_left_out(model)}
+    return {
+        "n_poses": int(d.shape[0]),
+        "rms_mm": float(d.square().mean().sqrt()) * 1e3,
+        "max_mm": float(d.max()) * 1e3,
+        "left_out": urdf_left_out(model),
+    }
 
 
 def urdf_notes(gap: dict) -> list[str]:
@@ -478,8 +530,10 @@ def urdf_markdown(gap: dict) -> str:
     """A report.md section on what ``robot_calibrated.urdf`` carries and leaves out."""
     lines = ["", "## The calibrated URDF", ""]
     if not gap["left_out"]:
-        lines.append("`robot_calibrated.urdf` carries the whole calibrated model (geometry, lever arm as the "
-                     "`probe` frame, tracker pose as the `tracker` frame): the run found no other effect.")
+        lines.append(
+            "`robot_calibrated.urdf` carries the whole calibrated model (geometry, lever arm as the "
+            "`probe` frame, tracker pose as the `tracker` frame): the run found no other effect."
+        )
     else:
         lines += [
             f"`robot_calibrated.urdf` carries the geometry, the lever arm (`probe` frame) and the tracker pose "

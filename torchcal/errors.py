@@ -28,8 +28,9 @@ class MeasurementFileError(TorchcalError, ValueError):
         column: the column name, or None.
     """
 
-    def __init__(self, path, message: str, *, line: int | None = None, column: str | None = None,
-                 hint: str | None = None):
+    def __init__(
+        self, path, message: str, *, line: int | None = None, column: str | None = None, hint: str | None = None
+    ):
         self.path = str(path)
         self.line = line
         self.column = column

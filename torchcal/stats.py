@@ -167,8 +167,17 @@ def holdout_count(n: int, fraction: float, *, minimum: int = 1, rounding: str = 
     return max(minimum, int(round(x)) if rounding == "round" else int(x))
 
 
-def split(n: int, held: int, *, seed: int | None = None, generator: torch.Generator | None = None,
-          last: bool = False, q: Tensor | None = None, group_tol: float = GROUP_TOL, sort: bool = True) -> Split:
+def split(
+    n: int,
+    held: int,
+    *,
+    seed: int | None = None,
+    generator: torch.Generator | None = None,
+    last: bool = False,
+    q: Tensor | None = None,
+    group_tol: float = GROUP_TOL,
+    sort: bool = True,
+) -> Split:
     """Split ``n`` rows into ``n - held`` kept and ``held`` held-out ones (module docstring).
 
     Args:

@@ -14,8 +14,25 @@ from torchcal.errors import MeasurementFileError
 
 def test_simulate_writes_the_contract_files(tmp_path, capsys):
     out = tmp_path / "sim"
-    assert main(["simulate", "--robot", "ur5", "--out", str(out), "--seed", "1", "--poses", "120",
-                 "--effect", "compliance:2=50um", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                "ur5",
+                "--out",
+                str(out),
+                "--seed",
+                "1",
+                "--poses",
+                "120",
+                "--effect",
+                "compliance:2=50um",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert sorted(p.name for p in out.iterdir()) == [".torchcal-run", "test.csv", "train.csv", "truth.json"]
     truth = json.loads((out / "truth.json").read_text())
     assert truth["effects"][0]["kind"] == "compliance" and truth["effects"][0]["joint"] == 2
@@ -24,8 +41,22 @@ def test_simulate_writes_the_contract_files(tmp_path, capsys):
 
 def test_simulate_in_millimetres_reads_back_with_the_unit_option(tmp_path):
     main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "m"), "--seed", "2", "--poses", "50", "--quiet"])
-    main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "mm"), "--seed", "2", "--poses", "50",
-          "--length-unit", "mm", "--quiet"])
+    main(
+        [
+            "simulate",
+            "--robot",
+            "ur5",
+            "--out",
+            str(tmp_path / "mm"),
+            "--seed",
+            "2",
+            "--poses",
+            "50",
+            "--length-unit",
+            "mm",
+            "--quiet",
+        ]
+    )
     a = torchcal.read_measurements(tmp_path / "m" / "train.csv")
     b = torchcal.read_measurements(tmp_path / "mm" / "train.csv", length_unit="mm")
     assert torch.allclose(a.p, b.p, rtol=1e-15, atol=0)
@@ -35,8 +66,26 @@ def test_simulate_in_millimetres_reads_back_with_the_unit_option(tmp_path):
 
 def test_simulate_trajectory_and_urdf_robot(tmp_path):
     out = tmp_path / "traj"
-    assert main(["simulate", "--robot", "panda.urdf", "--out", str(out), "--trajectory", "--samples", "400",
-                 "--train-samples", "300", "--seed", "3", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                "panda.urdf",
+                "--out",
+                str(out),
+                "--trajectory",
+                "--samples",
+                "400",
+                "--train-samples",
+                "300",
+                "--seed",
+                "3",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     m = torchcal.read_measurements(out / "train.csv")
     assert m.q.shape == (300, 7) and m.t is not None
 
@@ -66,13 +115,18 @@ def test_demo_runs_and_reports(tmp_path, capsys):
     assert summary["test_file_rmse_mm"] < 0.035
     assert "+ compliance(joint 2)" in printed and "effects found: compliance (joint 2), learned" in printed
     report = json.loads((tmp_path / "demo" / "run" / "report.json").read_text())
-    assert report["effects"][0]["kind"] == "compliance" and report["effects"][0]["rmse_after_mm"] < \
-        report["effects"][0]["rmse_before_mm"]
+    assert (
+        report["effects"][0]["kind"] == "compliance"
+        and report["effects"][0]["rmse_after_mm"] < report["effects"][0]["rmse_before_mm"]
+    )
 
 
 def test_console_script_and_module_entry_points():
     for cmd in (["torchcal", "--help"], [sys.executable, "-m", "torchcal", "simulate", "--help"]):
-        exe = cmd if cmd[0] != "torchcal" else [str(__import__("pathlib").Path(sys.executable).parent / "torchcal"),
-                                                 "--help"]
+        exe = (
+            cmd
+            if cmd[0] != "torchcal"
+            else [str(__import__("pathlib").Path(sys.executable).parent / "torchcal"), "--help"]
+        )
         r = subprocess.run(exe, capture_output=True, text=True, timeout=60)
         assert r.returncode == 0 and "usage" in r.stdout

@@ -29,6 +29,7 @@ ROBOTS = Path(__file__).resolve().parents[2] / "robots"
 @contextmanager
 def deadline(seconds: int):
     """Fail instead of hanging (a cycle that loops forever would otherwise stall the suite)."""
+
     def boom(*_):
         raise TimeoutError(f"took more than {seconds} s")
 
@@ -49,22 +50,54 @@ def snapshot(root: Path) -> dict:
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     root = tmp_path_factory.mktemp("campaign")
-    assert main(["simulate", "--robot", "ur5", "--out", str(root / "sim"), "--poses", "100", "--test-poses", "20",
-                 "--seed", "4", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                "ur5",
+                "--out",
+                str(root / "sim"),
+                "--poses",
+                "100",
+                "--test-poses",
+                "20",
+                "--seed",
+                "4",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return root / "sim"
 
 
 @pytest.fixture(scope="module")
 def run_dir(campaign, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "cal"
-    assert main(["calibrate", str(campaign / "train.csv"), "--robot", "ur5", "--method", "kinematic",
-                 "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(campaign / "train.csv"),
+                "--robot",
+                "ur5",
+                "--method",
+                "kinematic",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return out
 
 
 def calibrate(data, out, *extra):
-    return main(["calibrate", str(data), "--robot", "ur5", "--method", "kinematic", "--out", str(out), "--quiet",
-                 *extra])
+    return main(
+        ["calibrate", str(data), "--robot", "ur5", "--method", "kinematic", "--out", str(out), "--quiet", *extra]
+    )
 
 
 def no_temporaries(parent: Path):
@@ -103,8 +136,12 @@ def test_out_that_is_not_a_replaceable_directory(case, campaign, tmp_path, capsy
     work.mkdir()
     (work / "existing").write_text("keep me")
     (work / "target").mkdir()
-    out = {"file": work / "existing", "dot": Path("."), "parent-file": work / "existing" / "run",
-           "symlink": work / "link"}[case]
+    out = {
+        "file": work / "existing",
+        "dot": Path("."),
+        "parent-file": work / "existing" / "run",
+        "symlink": work / "link",
+    }[case]
     if case == "symlink":
         (work / "link").symlink_to(work / "target")
     monkeypatch.chdir(work)
@@ -222,22 +259,43 @@ def test_two_concurrent_writers_serialise(tmp_path):
 @pytest.mark.slow
 def test_two_torchcal_processes_writing_the_same_out(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2]), "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", "torchcal", "simulate", "--robot", "ur5", "--out", "same", "--poses", "30",
-           "--test-poses", "10", "--quiet"]
-    procs = [subprocess.Popen([*cmd, "--seed", str(k)], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
-             for k in range(2)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "torchcal",
+        "simulate",
+        "--robot",
+        "ur5",
+        "--out",
+        "same",
+        "--poses",
+        "30",
+        "--test-poses",
+        "10",
+        "--quiet",
+    ]
+    procs = [
+        subprocess.Popen([*cmd, "--seed", str(k)], cwd=tmp_path, env=env, stderr=subprocess.PIPE, text=True)
+        for k in range(2)
+    ]
     errs = [p.communicate(timeout=300)[1] for p in procs]
     assert [p.returncode for p in procs] == [0, 0], errs
-    assert sorted(p.name for p in (tmp_path / "same").iterdir()) == [_outdir.MARKER, "test.csv", "train.csv",
-                                                                    "truth.json"]
+    assert sorted(p.name for p in (tmp_path / "same").iterdir()) == [
+        _outdir.MARKER,
+        "test.csv",
+        "train.csv",
+        "truth.json",
+    ]
     no_temporaries(tmp_path)
 
 
 def test_a_killed_writer_leaves_temporaries_that_the_next_run_removes(tmp_path):
     out = tmp_path / "out"
-    code = ("import os, signal, sys; from torchcal import _outdir\n"
-            "with _outdir.replace_dir(sys.argv[1], kind='test') as tmp:\n"
-            "    (tmp / 'half').write_text('x'); os.kill(os.getpid(), signal.SIGKILL)\n")
+    code = (
+        "import os, signal, sys; from torchcal import _outdir\n"
+        "with _outdir.replace_dir(sys.argv[1], kind='test') as tmp:\n"
+        "    (tmp / 'half').write_text('x'); os.kill(os.getpid(), signal.SIGKILL)\n"
+    )
     env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     r = subprocess.run([sys.executable, "-c", code, str(out)], env=env, capture_output=True, timeout=120)
     assert r.returncode == -signal.SIGKILL
@@ -275,10 +333,13 @@ def write(path: Path, text: str | bytes) -> Path:
     return path
 
 
-@pytest.mark.parametrize("body, line", [
-    ('q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,1,"' + "9" * 200_000 + '"\n', 2),
-    ('q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,1,1\n0,0,0,0,0,0,1,1,"1\n', 3),
-])
+@pytest.mark.parametrize(
+    "body, line",
+    [
+        ('q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,1,"' + "9" * 200_000 + '"\n', 2),
+        ('q1,q2,q3,q4,q5,q6,x,y,z\n0,0,0,0,0,0,1,1,1\n0,0,0,0,0,0,1,1,"1\n', 3),
+    ],
+)
 def test_csv_level_garbage_names_the_line(body, line, tmp_path, capsys):
     f = write(tmp_path / "bad.csv", body)
     with pytest.raises(MeasurementFileError) as e:
@@ -288,8 +349,16 @@ def test_csv_level_garbage_names_the_line(body, line, tmp_path, capsys):
     assert f"bad.csv, line {line}" in capsys.readouterr().err
 
 
-def urdf(tmp_path: Path, name="r.urdf", *, axis="0 0 1", origin="0 0 0.1", limit='lower="-3" upper="3"',
-         extra_joint="", tail="</robot>\n") -> Path:
+def urdf(
+    tmp_path: Path,
+    name="r.urdf",
+    *,
+    axis="0 0 1",
+    origin="0 0 0.1",
+    limit='lower="-3" upper="3"',
+    extra_joint="",
+    tail="</robot>\n",
+) -> Path:
     text = f"""<?xml version="1.0"?>
 <robot name="two">
   <link name="base"/><link name="l1"/><link name="l2"/><link name="tool"/>
@@ -307,16 +376,25 @@ def test_a_good_test_urdf_loads(tmp_path):
     assert torchcal.load_robot(urdf(tmp_path)).dof == 2
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"axis": "0 0 0"}, "is not a direction"),
-    ({"origin": "0 nan 0.1"}, "non-finite"),
-    ({"limit": 'lower="2" upper="-2"'}, r"r\.urdf: joint 'j1': limit lower=2.0 upper=-2.0"),
-    ({"tail": ""}, "not well-formed XML"),
-    ({"tail": "</robot>\n<junk/>\n"}, "not well-formed XML"),
-    ({"extra_joint": '<joint name="j4" type="revolute"><parent link="tool"/><child link="l3"/><axis xyz="0 0 1"/>'
-                     '<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="j2"/></joint>'
-                     '<link name="l3"/>'}, "mimics joint 'j2'"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"axis": "0 0 0"}, "is not a direction"),
+        ({"origin": "0 nan 0.1"}, "non-finite"),
+        ({"limit": 'lower="2" upper="-2"'}, r"r\.urdf: joint 'j1': limit lower=2.0 upper=-2.0"),
+        ({"tail": ""}, "not well-formed XML"),
+        ({"tail": "</robot>\n<junk/>\n"}, "not well-formed XML"),
+        (
+            {
+                "extra_joint": '<joint name="j4" type="revolute"><parent link="tool"/><child link="l3"/>'
+                '<axis xyz="0 0 1"/>'
+                '<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="j2"/></joint>'
+                '<link name="l3"/>'
+            },
+            "mimics joint 'j2'",
+        ),
+    ],
+)
 def test_bad_urdfs_are_refused_naming_the_urdf(kwargs, match, tmp_path):
     with deadline(60), pytest.raises(RobotSpecError, match=match):
         torchcal.load_robot(urdf(tmp_path, **kwargs))
@@ -381,6 +459,7 @@ def damage(run_dir: Path, tmp_path: Path, how: str) -> Path:
         raw = (bad / "model.pt").read_bytes()
         (bad / "model.pt").write_bytes(raw[: len(raw) // 2])
     elif how == "pickle":
+
         class Payload:
             def __reduce__(self):
                 return (print, ("pwned",))
@@ -396,11 +475,17 @@ def damage(run_dir: Path, tmp_path: Path, how: str) -> Path:
     return bad
 
 
-@pytest.mark.parametrize("how, match", [
-    ("no-model.pt", "model.pt is missing"), ("truncated", "model.pt cannot be read"),
-    ("pickle", "model.pt"), ("no-key", "lacks effects"), ("outside", "outside the run directory"),
-    ("not-json", "model.json cannot be read"),
-])
+@pytest.mark.parametrize(
+    "how, match",
+    [
+        ("no-model.pt", "model.pt is missing"),
+        ("truncated", "model.pt cannot be read"),
+        ("pickle", "model.pt"),
+        ("no-key", "lacks effects"),
+        ("outside", "outside the run directory"),
+        ("not-json", "model.json cannot be read"),
+    ],
+)
 def test_damaged_run_directories_are_refused(how, match, run_dir, campaign, tmp_path, capsys):
     bad = damage(run_dir, tmp_path, how)
     assert main(["predict", str(bad), str(campaign / "test.csv"), "--out", str(tmp_path / "p.csv"), "--quiet"]) == 2
@@ -419,15 +504,38 @@ def test_unexpected_errors_are_summarised_and_debug_shows_the_traceback(campaign
     err = capsys.readouterr().err
     assert "internal error: ZeroDivisionError: something internal" in err and "please report" in err
     assert "Traceback" not in err
-    assert main(["--debug", "calibrate", str(campaign / "train.csv"), "--robot", "ur5", "--out",
-                 str(tmp_path / "o"), "--quiet"]) == 1
+    assert (
+        main(
+            [
+                "--debug",
+                "calibrate",
+                str(campaign / "train.csv"),
+                "--robot",
+                "ur5",
+                "--out",
+                str(tmp_path / "o"),
+                "--quiet",
+            ]
+        )
+        == 1
+    )
     assert "Traceback" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("opt", [["--joint-noise", "nan"], ["--joint-noise", "-1"], ["--tracker-noise", "0"],
-                                 ["--tracker-noise", "inf"], ["--rank-tol", "-1"], ["--rank-tol", "0"],
-                                 ["--holdout", "1.5"], ["--holdout", "0"]])
+@pytest.mark.parametrize(
+    "opt",
+    [
+        ["--joint-noise", "nan"],
+        ["--joint-noise", "-1"],
+        ["--tracker-noise", "0"],
+        ["--tracker-noise", "inf"],
+        ["--rank-tol", "-1"],
+        ["--rank-tol", "0"],
+        ["--holdout", "1.5"],
+        ["--holdout", "0"],
+    ],
+)
 def test_options_are_validated_up_front(opt, campaign, tmp_path, capsys):
     with pytest.raises(SystemExit) as e:
         calibrate(campaign / "train.csv", tmp_path / "o", *opt)
@@ -439,8 +547,24 @@ def test_simulate_options_are_validated(tmp_path):
     for opt in (["--poses", "0"], ["--joint-noise", "nan"], ["--tracker-noise", "-1"]):
         with pytest.raises(SystemExit):
             main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "s"), *opt])
-    assert main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "s"), "--trajectory", "--samples", "50",
-                 "--train-samples", "60", "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                "ur5",
+                "--out",
+                str(tmp_path / "s"),
+                "--trajectory",
+                "--samples",
+                "50",
+                "--train-samples",
+                "60",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
 
 
 def test_report_json_is_strict_json(run_dir):
@@ -466,8 +590,23 @@ def test_predict_refuses_data_of_another_robot(run_dir, campaign, tmp_path, caps
 
 
 def test_simulate_without_line_of_sight_names_real_options(tmp_path, capsys):
-    assert main(["simulate", "--robot", "ur5.urdf", "--base-link", "wrist_2_link", "--out", str(tmp_path / "s"),
-                 "--poses", "20", "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                "ur5.urdf",
+                "--base-link",
+                "wrist_2_link",
+                "--out",
+                str(tmp_path / "s"),
+                "--poses",
+                "20",
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "line-of-sight" in err and "--base-link" in err and "Traceback" not in err
 

@@ -19,17 +19,63 @@ from torchcal.robot import transforms as tf
 # ----------------------------------------------------------------------------- synthetic files
 
 JOINTS = ["shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint"]
-HEAD = ["Timestamp", "Goal x", "Goal y", "Goal z", "Goal roll", "Goal pitch", "Goal yaw", *JOINTS,
-        "measurement_temperature"]
-HEADER_A = [*HEAD, "measurement_x", "measurement_y", "measurement_z", "measurement_rx", "measurement_ry",
-            "measurement_rz"]
-HEADER_B = [*HEAD, "measurement_x", "measurement_std_x", "measurement_y", "measurement_std_y", "measurement_z",
-            "measurement_std_z", "measurement_rx", "measurement_std_rx", "measurement_ry", "measurement_std_ry",
-            "measurement_rz", "measurement_std_rz"]
-HANDEYE_D = ["flange_x", "flange_y", "flange_z", "flange_qx", "flange_qy", "flange_qz", "flange_qw",
-             "measurement_temperature", "measurement_x", "measurement_std_x", "measurement_y", "measurement_std_y",
-             "measurement_z", "measurement_std_z", "measurement_rx", "measurement_std_rx", "measurement_ry",
-             "measurement_std_ry", "measurement_rz", "measurement_std_rz"]
+HEAD = [
+    "Timestamp",
+    "Goal x",
+    "Goal y",
+    "Goal z",
+    "Goal roll",
+    "Goal pitch",
+    "Goal yaw",
+    *JOINTS,
+    "measurement_temperature",
+]
+HEADER_A = [
+    *HEAD,
+    "measurement_x",
+    "measurement_y",
+    "measurement_z",
+    "measurement_rx",
+    "measurement_ry",
+    "measurement_rz",
+]
+HEADER_B = [
+    *HEAD,
+    "measurement_x",
+    "measurement_std_x",
+    "measurement_y",
+    "measurement_std_y",
+    "measurement_z",
+    "measurement_std_z",
+    "measurement_rx",
+    "measurement_std_rx",
+    "measurement_ry",
+    "measurement_std_ry",
+    "measurement_rz",
+    "measurement_std_rz",
+]
+HANDEYE_D = [
+    "flange_x",
+    "flange_y",
+    "flange_z",
+    "flange_qx",
+    "flange_qy",
+    "flange_qz",
+    "flange_qw",
+    "measurement_temperature",
+    "measurement_x",
+    "measurement_std_x",
+    "measurement_y",
+    "measurement_std_y",
+    "measurement_z",
+    "measurement_std_z",
+    "measurement_rx",
+    "measurement_std_rx",
+    "measurement_ry",
+    "measurement_std_ry",
+    "measurement_rz",
+    "measurement_std_rz",
+]
 
 # Three poses in the Series B-D layout; the first and third share a goal (second visit, other IK branch).
 ROWS_B = [
@@ -53,8 +99,18 @@ ROWS_A = [
 ]
 
 
-def write_ipa(tmp_path: Path, header, rows, *, name="measurements_test.csv", series="Series_X", bom=False,
-              nul=False, newline="\r\n", tail="") -> Path:
+def write_ipa(
+    tmp_path: Path,
+    header,
+    rows,
+    *,
+    name="measurements_test.csv",
+    series="Series_X",
+    bom=False,
+    nul=False,
+    newline="\r\n",
+    tail="",
+) -> Path:
     """Write an IPA-layout file (``;``, decimal commas, CRLF) under ``tmp_path/series``."""
     folder = tmp_path / series
     folder.mkdir(exist_ok=True)
@@ -106,14 +162,21 @@ def test_series_b_layout_units_and_columns(tmp_path):
     assert "sigma_replaced" not in m.meta
     # the T-Mac orientation: intrinsic XYZ degrees -> rotation vector [rad]
     rotvec = torch.stack([m.extra[f"tmac_r{a}"] for a in "xyz"], dim=1)
-    expected = euler_xyz_deg([-90.14477, -90.179302, -90.213735], [-30.089752, -20.118749, -30.006856],
-                             [-90.358505, -90.169308, -90.255949])
+    expected = euler_xyz_deg(
+        [-90.14477, -90.179302, -90.213735], [-30.089752, -20.118749, -30.006856], [-90.358505, -90.169308, -90.255949]
+    )
     torch.testing.assert_close(tf.so3_exp(rotvec), expected, rtol=0, atol=1e-14)
 
 
 def test_goal_ids_group_equal_goals_in_order_of_first_appearance(tmp_path):
-    goals = ["0,4;-0,4;0,8;2,96706;1,5708;1,5708", "0,1;0,2;0,3;0;0;0", "0,4000000004;-0,4;0,8;2,96706;1,5708;1,5708",
-             "0,1;0,2;0,3;0;0;0,000001", "0,1;0,2;0,3;0;0;-0", "0,4;-0,4;0,8;2,96706;1,5708;1,5708"]
+    goals = [
+        "0,4;-0,4;0,8;2,96706;1,5708;1,5708",
+        "0,1;0,2;0,3;0;0;0",
+        "0,4000000004;-0,4;0,8;2,96706;1,5708;1,5708",
+        "0,1;0,2;0,3;0;0;0,000001",
+        "0,1;0,2;0,3;0;0;-0",
+        "0,4;-0,4;0,8;2,96706;1,5708;1,5708",
+    ]
     rest = ";0,1;0,2;0,3;0,4;0,5;0,6;22;2000;-1000;100;-90;-60;-90"
     rows = [f"20200714163904;{g}{rest}" for g in goals]
     m = read_ipa(write_ipa(tmp_path, HEADER_A, rows))
@@ -143,15 +206,19 @@ def test_zero_std_is_replaced_by_the_column_median(tmp_path):
     rows[1] = rows[1].replace(";0,031674;", ";0;").replace(";0,013252;", ";-0,0;")
     m = read_ipa(write_ipa(tmp_path, HEADER_B, rows))
     assert (m.sigma > 0).all()
-    torch.testing.assert_close(m.sigma[1, :2], f64([(0.011904 + 0.0068993) / 2, (0.0080769 + 0.016631) / 2]) / 1000,
-                               rtol=1e-15, atol=0)
+    torch.testing.assert_close(
+        m.sigma[1, :2], f64([(0.011904 + 0.0068993) / 2, (0.0080769 + 0.016631) / 2]) / 1000, rtol=1e-15, atol=0
+    )
     assert m.meta["sigma_replaced"].startswith("2 ")
 
 
 def test_bom_nul_bytes_trailing_spaces_lf_and_blank_lines(tmp_path):
     plain = read_ipa(write_ipa(tmp_path, HEADER_B, ROWS_B, name="plain.csv"))
-    messy = read_ipa(write_ipa(tmp_path, HEADER_B, ROWS_B, name="messy.csv", bom=True, nul=True, newline="\n",
-                               tail="\r\n \r\n\x00\r\n"))
+    messy = read_ipa(
+        write_ipa(
+            tmp_path, HEADER_B, ROWS_B, name="messy.csv", bom=True, nul=True, newline="\n", tail="\r\n \r\n\x00\r\n"
+        )
+    )
     for name in ("q", "p", "sigma", "temperature"):
         assert torch.equal(getattr(plain, name), getattr(messy, name)), name
     assert messy.lines == (2, 3, 4)
@@ -159,8 +226,16 @@ def test_bom_nul_bytes_trailing_spaces_lf_and_blank_lines(tmp_path):
 
 @pytest.mark.parametrize(
     ("cell", "message"),
-    [("abc", "not a number"), ("", "empty cell"), ("nan", "not a number"), ("inf", "not a number"),
-     ("1,2,3", "not a number"), ("1.234,5", "not a number"), ("1\x002", "not a number"), ("1_0", "not a number")],
+    [
+        ("abc", "not a number"),
+        ("", "empty cell"),
+        ("nan", "not a number"),
+        ("inf", "not a number"),
+        ("1,2,3", "not a number"),
+        ("1.234,5", "not a number"),
+        ("1\x002", "not a number"),
+        ("1_0", "not a number"),
+    ],
 )
 def test_bad_cell_names_line_and_column(tmp_path, cell, message):
     cells = ROWS_B[2].split(";")
@@ -195,17 +270,22 @@ def test_missing_and_duplicate_columns(tmp_path):
 
 
 def test_handeye_files_are_rejected_clearly(tmp_path):
-    row = ("4,73E-05;0,256;1,4273;-0,7071;6,37E-05;-2,09E-05;0,7071;20,74;2577,6154;0,00072644;-1073,9765;0,0016938;"
-           "207,59394;0,0022376;-90,2738;0,0008138;-78,802752;0,0017754;-90,384222;0,0030775")
+    row = (
+        "4,73E-05;0,256;1,4273;-0,7071;6,37E-05;-2,09E-05;0,7071;20,74;2577,6154;0,00072644;-1073,9765;0,0016938;"
+        "207,59394;0,0022376;-90,2738;0,0008138;-78,802752;0,0017754;-90,384222;0,0030775"
+    )
     path = write_ipa(tmp_path, HANDEYE_D, [row], name="calibration_handeye.csv", nul=True, newline="\n")
     err = expect_error(path, line=1, column=None)
     assert "hand-eye" in str(err) and "no joint angles" in str(err)
 
 
 def test_positions_in_metres_are_an_error_with_a_hint(tmp_path):
-    rows = [r.replace("2361,9831;-1368,5474;119,39713", "2,3619831;-1,3685474;0,11939713")
-            .replace("1685,2797;-1665,3456;-415,81103", "1,6852797;-1,6653456;-0,41581103")
-            .replace("1686,8735;-1663,0997;-415,93957", "1,6868735;-1,6630997;-0,41593957") for r in ROWS_A]
+    rows = [
+        r.replace("2361,9831;-1368,5474;119,39713", "2,3619831;-1,3685474;0,11939713")
+        .replace("1685,2797;-1665,3456;-415,81103", "1,6852797;-1,6653456;-0,41581103")
+        .replace("1686,8735;-1663,0997;-415,93957", "1,6868735;-1,6630997;-0,41593957")
+        for r in ROWS_A
+    ]
     err = expect_error(write_ipa(tmp_path, HEADER_A, rows), line=2, column="measurement_x")
     assert "millimetres" in err.hint
 
@@ -252,8 +332,9 @@ def test_matrix_to_rotvec_round_trips_at_every_angle():
         if angle < math.pi - 1e-3:
             torch.testing.assert_close(got, rotvec, rtol=0, atol=1e-12)
         else:  # at pi the sign of the axis is a free choice
-            torch.testing.assert_close(got.norm(dim=1), torch.full((64,), angle, dtype=torch.float64),
-                                       rtol=0, atol=1e-7)
+            torch.testing.assert_close(
+                got.norm(dim=1), torch.full((64,), angle, dtype=torch.float64), rtol=0, atol=1e-7
+            )
             assert (got * axes).sum(1).abs().sub(angle).abs().max() < 1e-7
             torch.testing.assert_close(tf.so3_exp(got), tf.so3_exp(rotvec), rtol=0, atol=1e-12)
 

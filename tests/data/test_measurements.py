@@ -48,19 +48,22 @@ def expect_error(path, *, line, column, **kwargs) -> MeasurementFileError:
 
 
 def test_reads_good_file_with_comments_meta_and_blank_lines(tmp_path):
-    path = write(tmp_path, [
-        "# robot: ur5",
-        "# measured with a Leica AT960, free text: with a colon",
-        "#tracker_serial:  AT960-123  ",
-        "",
-        HEADER + ",t,temperature,pose_id",
-        GOOD_ROWS[0] + ",0.0,21.5,7",
-        "",
-        GOOD_ROWS[1] + ",1.0,21.6,3",
-        "   ",
-        GOOD_ROWS[2] + ",1.0,21.7,5",
-        "",
-    ])
+    path = write(
+        tmp_path,
+        [
+            "# robot: ur5",
+            "# measured with a Leica AT960, free text: with a colon",
+            "#tracker_serial:  AT960-123  ",
+            "",
+            HEADER + ",t,temperature,pose_id",
+            GOOD_ROWS[0] + ",0.0,21.5,7",
+            "",
+            GOOD_ROWS[1] + ",1.0,21.6,3",
+            "   ",
+            GOOD_ROWS[2] + ",1.0,21.7,5",
+            "",
+        ],
+    )
     m = read_measurements(path, dof=3)
     assert m.n == 3 and m.dof == 3
     assert m.source == str(path)
@@ -78,10 +81,13 @@ def test_reads_good_file_with_comments_meta_and_blank_lines(tmp_path):
 
 
 def test_column_order_is_free_and_extras_keep_file_order(tmp_path):
-    path = write(tmp_path, [
-        "b_extra,z,q2,x,a_extra,q1,y",
-        "1,3.0,0.2,1.0,2,0.1,2.0",
-    ])
+    path = write(
+        tmp_path,
+        [
+            "b_extra,z,q2,x,a_extra,q1,y",
+            "1,3.0,0.2,1.0,2,0.1,2.0",
+        ],
+    )
     m = read_measurements(path)
     assert m.q.tolist() == [[0.1, 0.2]]
     assert m.p.tolist() == [[1.0, 2.0, 3.0]]
@@ -90,8 +96,7 @@ def test_column_order_is_free_and_extras_keep_file_order(tmp_path):
 
 def test_bom_and_crlf_are_tolerated(tmp_path):
     plain = read_measurements(write(tmp_path, ["# k: v", HEADER, *GOOD_ROWS], name="plain.csv"))
-    dos = read_measurements(write(tmp_path, ["# k: v", HEADER, *GOOD_ROWS], name="dos.csv",
-                                  newline="\r\n", bom=True))
+    dos = read_measurements(write(tmp_path, ["# k: v", HEADER, *GOOD_ROWS], name="dos.csv", newline="\r\n", bom=True))
     assert dos.meta == {"k": "v"}
     assert dos.lines == plain.lines == (3, 4, 5)
     assert torch.equal(dos.q, plain.q) and torch.equal(dos.p, plain.p)
@@ -203,10 +208,13 @@ def test_semicolon_separated_file_gets_a_hint(tmp_path):
     assert "comma-separated" in err.hint
 
 
-@pytest.mark.parametrize("robot_name, expected", [
-    ("ur5", "file has 7 joint columns (q1..q7) but robot 'ur5' has 6 joints"),
-    (None, "file has 7 joint columns (q1..q7) but 6 joints are expected"),
-])
+@pytest.mark.parametrize(
+    "robot_name, expected",
+    [
+        ("ur5", "file has 7 joint columns (q1..q7) but robot 'ur5' has 6 joints"),
+        (None, "file has 7 joint columns (q1..q7) but 6 joints are expected"),
+    ],
+)
 def test_too_many_joint_columns(tmp_path, robot_name, expected):
     header = ",".join(f"q{k}" for k in range(1, 8)) + ",x,y,z"
     path = write(tmp_path, ["# robot: ur5", header, ",".join(["0.1"] * 7) + ",1,2,3"])
@@ -231,13 +239,12 @@ def test_empty_cell(tmp_path):
 
 @pytest.mark.parametrize("cell", ["abc", "1,5e-3x", "1_000", "0x10", "--1"])
 def test_non_numeric_value(tmp_path, cell):
-    path = write(tmp_path, [HEADER, GOOD_ROWS[0], GOOD_ROWS[1], f"0.1,0.2,0.3,1.0,\"{cell}\",3.0"])
+    path = write(tmp_path, [HEADER, GOOD_ROWS[0], GOOD_ROWS[1], f'0.1,0.2,0.3,1.0,"{cell}",3.0'])
     err = expect_error(path, line=4, column="y")
     assert cell in str(err)
 
 
-@pytest.mark.parametrize("cell, word", [("nan", "NaN"), ("NaN", "NaN"), ("inf", "infinite"),
-                                        ("-Infinity", "infinite")])
+@pytest.mark.parametrize("cell, word", [("nan", "NaN"), ("NaN", "NaN"), ("inf", "infinite"), ("-Infinity", "infinite")])
 def test_nan_and_inf(tmp_path, cell, word):
     path = write(tmp_path, ["# c", "", HEADER, GOOD_ROWS[0], f"0.1,0.2,0.3,1.0,2.0,{cell}"])
     err = expect_error(path, line=5, column="z")
@@ -301,14 +308,14 @@ def test_missing_file(tmp_path):
 
 @pytest.mark.parametrize("value", ["0", "-1e-5", "0.0"])
 def test_sigma_must_be_positive(tmp_path, value):
-    path = write(tmp_path, [HEADER + ",sx,sy,sz", GOOD_ROWS[0] + ",1e-5,1e-5,1e-5",
-                            GOOD_ROWS[1] + f",1e-5,{value},1e-5"])
+    path = write(
+        tmp_path, [HEADER + ",sx,sy,sz", GOOD_ROWS[0] + ",1e-5,1e-5,1e-5", GOOD_ROWS[1] + f",1e-5,{value},1e-5"]
+    )
     expect_error(path, line=3, column="sy")
 
 
 def test_t_must_be_non_decreasing(tmp_path):
-    path = write(tmp_path, ["# c", HEADER + ",t", GOOD_ROWS[0] + ",0.0", GOOD_ROWS[1] + ",2.0",
-                            GOOD_ROWS[2] + ",1.5"])
+    path = write(tmp_path, ["# c", HEADER + ",t", GOOD_ROWS[0] + ",0.0", GOOD_ROWS[1] + ",2.0", GOOD_ROWS[2] + ",1.5"])
     err = expect_error(path, line=5, column="t")
     assert "line 4" in str(err)  # names the earlier row too
 
@@ -365,8 +372,9 @@ def test_joint_limits_of_wrong_shape_or_dtype(tmp_path):
 # --------------------------------------------------------------------------- units
 
 
-@pytest.mark.parametrize("kwargs, valid", [({"length_unit": "cm"}, "'m', 'mm'"),
-                                           ({"angle_unit": "grad"}, "'rad', 'deg'")])
+@pytest.mark.parametrize(
+    "kwargs, valid", [({"length_unit": "cm"}, "'m', 'mm'"), ({"angle_unit": "grad"}, "'rad', 'deg'")]
+)
 def test_unknown_unit_lists_valid_values(tmp_path, kwargs, valid):
     path = write(tmp_path, [HEADER, GOOD_ROWS[0]])
     with pytest.raises(OptionError, match=valid):
@@ -395,8 +403,7 @@ def test_mm_and_deg_files_give_the_same_si_tensors(tmp_path):
 
 def test_mm_conversion_is_correctly_rounded_for_short_decimals(tmp_path):
     a = read_measurements(write(tmp_path, ["q1,x,y,z", "0.5,1.2345,0.0625,-0.7"], name="m.csv"))
-    b = read_measurements(write(tmp_path, ["q1,x,y,z", "0.5,1234.5,62.5,-700"], name="mm.csv"),
-                          length_unit="mm")
+    b = read_measurements(write(tmp_path, ["q1,x,y,z", "0.5,1234.5,62.5,-700"], name="mm.csv"), length_unit="mm")
     assert torch.equal(a.p, b.p)
 
 
@@ -424,8 +431,7 @@ def test_full_turn_in_rad_is_accepted(tmp_path):
 
 
 def test_sigma_in_mm_declared_as_m(tmp_path):
-    path = write(tmp_path, [HEADER + ",sx,sy,sz", GOOD_ROWS[0] + ",0.005,0.02,0.03",
-                            GOOD_ROWS[1] + ",0.02,0.02,0.02"])
+    path = write(tmp_path, [HEADER + ",sx,sy,sz", GOOD_ROWS[0] + ",0.005,0.02,0.03", GOOD_ROWS[1] + ",0.02,0.02,0.02"])
     err = expect_error(path, line=2, column="sy")
     assert "--length-unit mm" in err.hint
 
@@ -451,8 +457,11 @@ def random_measurements(n=40, dof=6, seed=2, **overrides):
     q[1, 1] = 5e-324  # smallest subnormal
     q[2, 1] = 1.0 / 3.0
     fields = dict(
-        q=q, p=r(n, 3) + torch.tensor([2.0, 0.0, 1.0], dtype=torch.float64),
-        t=torch.cumsum(r(n).abs(), 0), temperature=20 + r(n), sigma=r(n, 3).abs() * 1e-5 + 1e-6,
+        q=q,
+        p=r(n, 3) + torch.tensor([2.0, 0.0, 1.0], dtype=torch.float64),
+        t=torch.cumsum(r(n).abs(), 0),
+        temperature=20 + r(n),
+        sigma=r(n, 3).abs() * 1e-5 + 1e-6,
         meta={"robot": "ur5", "tracker": "AT960 #3: front"},
         extra={"pose_id": torch.arange(n, dtype=torch.float64), "load_kg": r(n)},
     )

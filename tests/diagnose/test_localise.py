@@ -60,8 +60,16 @@ def geometric_fit(train):
     fit = run.fits[-1]
     with torch.no_grad():
         r = tr.p - run.model(ctx)
-    return {"run": run, "opts": opts, "train": tr, "ctx": ctx, "r": r, "W": fit.whitening,
-            "J": fit.result.jacobian, "fit": fit}
+    return {
+        "run": run,
+        "opts": opts,
+        "train": tr,
+        "ctx": ctx,
+        "r": r,
+        "W": fit.whitening,
+        "J": fit.result.jacobian,
+        "fit": fit,
+    }
 
 
 def joint_refit_rmse(g, effect, test) -> float:
@@ -71,8 +79,16 @@ def joint_refit_rmse(g, effect, test) -> float:
 
     model = copy.deepcopy(g["run"].model)
     model.add(effect)
-    solve(model, g["train"], ("geometry", "instrument", "tool"), g["opts"], "joint", False, effects=True,
-          identifiability=g["fit"].identifiability)
+    solve(
+        model,
+        g["train"],
+        ("geometry", "instrument", "tool"),
+        g["opts"],
+        "joint",
+        False,
+        effects=True,
+        identifiability=g["fit"].identifiability,
+    )
     return rmse(errors(model, test, False))
 
 
@@ -96,10 +112,16 @@ CASES = {
     "harmonic5-wrist4": ([OutsideEffect("harmonic", joint=4, order=5, size=3e-5)], "q4", ("cyclic", [5])),
     "harmonic8-wrist5": ([OutsideEffect("harmonic", joint=5, order=8, size=3e-5)], "q5", ("cyclic", [8])),
     "harmonic8-base1": ([OutsideEffect("harmonic", joint=1, order=8, size=3e-5)], "q1", ("cyclic", [8])),
-    "polynomial-shoulder2": ([OutsideEffect("polynomial", joint=2, coeffs=(1.0,), size=3e-5)], "q2",
-                             ("transmission", 1)),
-    "warmup-horizontal": ([OutsideEffect("warmup", axis="horizontal", tau=1800.0, size=3e-5)], "t",
-                          ("drift", "exponential")),
+    "polynomial-shoulder2": (
+        [OutsideEffect("polynomial", joint=2, coeffs=(1.0,), size=3e-5)],
+        "q2",
+        ("transmission", 1),
+    ),
+    "warmup-horizontal": (
+        [OutsideEffect("warmup", axis="horizontal", tau=1800.0, size=3e-5)],
+        "t",
+        ("drift", "exponential"),
+    ),
     "warmup-z": ([OutsideEffect("warmup", axis=2, tau=2700.0, size=3e-5)], "t", ("drift", "exponential")),
 }
 
@@ -138,8 +160,9 @@ def test_clean_campaign_names_nothing():
 
 
 def test_localise_is_fast_and_reports_its_smooth():
-    c = simulate_outside([OutsideEffect("harmonic", joint=3, order=6, size=3e-5)],
-                         SimConfig(poses=800, test_poses=0, seed=7))
+    c = simulate_outside(
+        [OutsideEffect("harmonic", joint=3, order=6, size=3e-5)], SimConfig(poses=800, test_poses=0, seed=7)
+    )
     g = geometric_fit(c.train)
     t0 = time.perf_counter()
     locs = localise(g["run"].model, g["ctx"], g["r"], W=g["W"], jacobian=g["J"])
@@ -227,8 +250,10 @@ def test_outside_clean_campaign_names_nothing():
 
 
 def test_combination_localises_both_variables():
-    effects = [OutsideEffect("harmonic", joint=5, order=6, size=3e-5),
-               OutsideEffect("warmup", axis=2, tau=1200.0, size=3e-5)]
+    effects = [
+        OutsideEffect("harmonic", joint=5, order=6, size=3e-5),
+        OutsideEffect("warmup", axis=2, tau=1200.0, size=3e-5),
+    ]
     c = simulate_outside(effects, SimConfig(poses=800, test_poses=0, seed=21))
     g = geometric_fit(c.train)
     locs, _ = localise_fit(g)

@@ -80,10 +80,45 @@ def test_trajectories(robot, effects, seed):
 
 def test_millimetre_files_through_the_command_line(tmp_path):
     sim, run_dir = tmp_path / "sim", tmp_path / "run"
-    assert main(["simulate", "--robot", "ur5", "--out", str(sim), "--seed", "24", "--poses", "400", "--test-poses",
-                 "100", "--effect", "backlash:4=30um", "--length-unit", "mm", "--quiet"]) == 0
-    assert main(["calibrate", str(sim / "train.csv"), "--robot", "ur5", "--out", str(run_dir), "--length-unit", "mm",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--robot",
+                "ur5",
+                "--out",
+                str(sim),
+                "--seed",
+                "24",
+                "--poses",
+                "400",
+                "--test-poses",
+                "100",
+                "--effect",
+                "backlash:4=30um",
+                "--length-unit",
+                "mm",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "calibrate",
+                str(sim / "train.csv"),
+                "--robot",
+                "ur5",
+                "--out",
+                str(run_dir),
+                "--length-unit",
+                "mm",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     truth = json.loads((sim / "truth.json").read_text())
     report = json.loads((run_dir / "report.json").read_text())
     assert [(e["kind"], e["joint"]) for e in report["effects"]] == [(e["kind"], e["joint"]) for e in truth["effects"]]
@@ -95,15 +130,23 @@ def test_millimetre_files_through_the_command_line(tmp_path):
     # predict applies the effect: the test file's error equals the true model's up to the estimation error
     test = torchcal.read_measurements(sim / "test.csv", length_unit="mm")
     p = predict(run_dir, test)
-    c = simulate(SimConfig(robot="ur5", poses=400, test_poses=100, seed=24,
-                           effects=[EffectSpec.parse("backlash:4=30um")]))
+    c = simulate(
+        SimConfig(robot="ur5", poses=400, test_poses=100, seed=24, effects=[EffectSpec.parse("backlash:4=30um")])
+    )
     floor = rmse(errors(c.model, c.test, trajectory=False))
     assert float((p - test.p).norm(dim=-1).square().mean().sqrt()) < 1.1 * floor
 
 
 def test_report_tells_the_story_and_the_model_reloads(tmp_path):
-    c = simulate(SimConfig(robot="ur5", poses=400, test_poses=50, seed=25,
-                           effects=[EffectSpec.parse("compliance:3=40um"), EffectSpec.parse("drift:t=40um")]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            poses=400,
+            test_poses=50,
+            seed=25,
+            effects=[EffectSpec.parse("compliance:3=40um"), EffectSpec.parse("drift:t=40um")],
+        )
+    )
     write_campaign(c, tmp_path / "sim")
     run = calibrate("ur5", c.train, Options(seed=25))
     assert sorted(found_names(run)) == sorted(truth_names(c.truth))
@@ -121,8 +164,9 @@ def test_report_tells_the_story_and_the_model_reloads(tmp_path):
     md = (out / "report.md").read_text()
     assert "## Closing the loop" in md and "error_map.png" in md
     for d in report["diagnosis"]["decisions"]:
-        assert (out / f"decision_{report['diagnosis']['decisions'].index(d) + 1}_"
-                      f"{d['name'].replace(':', '_')}.png").is_file()
+        assert (
+            out / f"decision_{report['diagnosis']['decisions'].index(d) + 1}_{d['name'].replace(':', '_')}.png"
+        ).is_file()
     # the reloaded model predicts exactly what the run's model does, drift reference and all
     model, _ = load_model(out)
     ctx = Context.from_measurements(c.test, trajectory=False)

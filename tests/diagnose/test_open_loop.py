@@ -31,8 +31,9 @@ def _loop(train):
 
 
 def test_third_harmonic_on_a_wrist_joint_is_named_with_its_order():
-    c = simulate_outside([OutsideEffect("harmonic", joint=6, order=3, size=3e-5)],
-                         SimConfig(poses=800, test_poses=200, seed=5))
+    c = simulate_outside(
+        [OutsideEffect("harmonic", joint=6, order=3, size=3e-5)], SimConfig(poses=800, test_poses=200, seed=5)
+    )
     run = _loop(c.train)
     assert [e["name"] for e in run.effects_report] == ["cyclic:6"]
     e = run.effects_report[0]
@@ -43,8 +44,16 @@ def test_third_harmonic_on_a_wrist_joint_is_named_with_its_order():
     true = copy.deepcopy(run.stages[1].model)
     true.add(Cyclic(6, harmonics=[3]))
     tr = c.train.subset(run.train_idx)
-    solve(true, tr, ("geometry", "instrument", "tool"), run.options, "true", False, effects=True,
-          identifiability=run.fits[1].identifiability)
+    solve(
+        true,
+        tr,
+        ("geometry", "instrument", "tool"),
+        run.options,
+        "true",
+        False,
+        effects=True,
+        identifiability=run.fits[1].identifiability,
+    )
     assert rmse(errors(run.model, c.test, False)) <= 1.2 * rmse(errors(true, c.test, False))
 
 

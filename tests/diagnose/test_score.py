@@ -53,8 +53,9 @@ def test_candidates_static_poses_and_trajectory():
 
 def test_score_statistic_predicts_the_refit_gain():
     """Score test = first-order decrease of the weighted sum of squares: compare with the actual joint refit."""
-    c = simulate(SimConfig(robot="ur5", poses=300, test_poses=0, seed=2,
-                           effects=[EffectSpec.parse("compliance:3=20um")]))
+    c = simulate(
+        SimConfig(robot="ur5", poses=300, test_poses=0, seed=2, effects=[EffectSpec.parse("compliance:3=20um")])
+    )
     opts = Options(method="kinematic", stat_tol=0.0)
     run = calibrate("ur5", c.train, opts)
     train = c.train.subset(run.train_idx)
@@ -64,8 +65,16 @@ def test_score_statistic_predicts_the_refit_gain():
     score = score_candidates(run.model, geo.result, ctx, train.p, geo.whitening, [cand])[0]
     ss0 = float(geo.result.residuals.square().sum())
     run.model.add(cand.make())
-    refit = solve(run.model, train, ("geometry", "instrument", "tool"), opts, "x", False, effects=True,
-                  identifiability=geo.identifiability)
+    refit = solve(
+        run.model,
+        train,
+        ("geometry", "instrument", "tool"),
+        opts,
+        "x",
+        False,
+        effects=True,
+        identifiability=geo.identifiability,
+    )
     ss1 = float(refit.result.residuals.square().sum())
     assert score.delta_ss == pytest.approx(ss0 - ss1, rel=0.02)
     assert score.statistic > 100 and score.identifiable and score.k == 1

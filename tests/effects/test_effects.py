@@ -105,8 +105,13 @@ def test_motion_direction_holds_sign_at_rest():
 
 def test_effect_gradients_reach_their_parameters():
     robot = torchcal.load_robot("ur10")
-    effects = [Compliance(2, 1e-6), Backlash(3, 1e-4, source="torque"), Cyclic(5, a=[1e-5, 0], b=[0, 1e-5]),
-               Drift("t", "instrument", rates=[1e-7] * 6), LearnedEffect(CorrectionNet(seed=1))]
+    effects = [
+        Compliance(2, 1e-6),
+        Backlash(3, 1e-4, source="torque"),
+        Cyclic(5, a=[1e-5, 0], b=[0, 1e-5]),
+        Drift("t", "instrument", rates=[1e-7] * 6),
+        LearnedEffect(CorrectionNet(seed=1)),
+    ]
     m = MeasurementModel(robot, effects)
     q = _q(32)
     m(Context(q=q, t=torch.linspace(0, 100, 32, dtype=F64))).square().sum().backward()

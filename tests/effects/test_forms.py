@@ -38,8 +38,12 @@ def test_cyclic_any_orders_and_default_unchanged():
     q = torch.linspace(-3, 3, 50, dtype=F64)[:, None].repeat(1, 6)
     ctx = Context(q=q)
     eff = Cyclic(3, harmonics=[3, 7], a=[1e-4, 2e-5], b=[-3e-5, 4e-5])
-    want = 1e-4 * torch.sin(3 * q[:, 2]) + 2e-5 * torch.sin(7 * q[:, 2]) - 3e-5 * torch.cos(3 * q[:, 2]) \
+    want = (
+        1e-4 * torch.sin(3 * q[:, 2])
+        + 2e-5 * torch.sin(7 * q[:, 2])
+        - 3e-5 * torch.cos(3 * q[:, 2])
         + 4e-5 * torch.cos(7 * q[:, 2])
+    )
     dq = eff(None, ctx)
     assert torch.allclose(dq[:, 2], want) and bool((dq[:, [0, 1, 3, 4, 5]] == 0).all())
     assert Cyclic(2).config() == {"joint": 2, "harmonics": [1, 2]}

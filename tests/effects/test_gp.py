@@ -39,8 +39,11 @@ def test_recovers_a_harmonic_on_one_joint(additive):
 def test_ard_length_scales_rank_relevant_joints():
     # an interaction of joints 1 and 2 that no sum of 1-D functions represents: only the ARD part can
     q, g = _joints(300, 1, span=2.0)
-    f = 1e-4 * (torch.sin(1.5 * q[:, 0]) * torch.sin(1.5 * q[:, 1])).unsqueeze(1) * torch.tensor([1.0, -0.5, 0.3],
-                                                                                                dtype=F64)
+    f = (
+        1e-4
+        * (torch.sin(1.5 * q[:, 0]) * torch.sin(1.5 * q[:, 1])).unsqueeze(1)
+        * torch.tensor([1.0, -0.5, 0.3], dtype=F64)
+    )
     y = f + 5e-6 * torch.randn(300, 3, generator=g, dtype=F64)
     eff, info = fit_gp_correction(Context(q=q), y, GPSettings())
     ell = eff.ard_len
@@ -51,14 +54,19 @@ def test_ard_length_scales_rank_relevant_joints():
 def test_sparse_bound_and_posterior_equal_the_dense_gp(monkeypatch):
     q, g = _joints(60, 2)
     y = torch.randn(60, 3, generator=g, dtype=F64)
-    h = {"add_var": torch.tensor([0.1, 0.2, 0.05, 0.1, 0.3, 0.1], dtype=F64),
-         "add_len": torch.tensor([0.5, 1.0, 0.7, 2.0, 0.4, 1.0], dtype=F64), "ard_var": torch.tensor(0.4, dtype=F64),
-         "ard_len": torch.tensor([1.0, 2.0, 1.5, 3.0, 1.0, 2.0], dtype=F64), "noise": torch.tensor(0.05, dtype=F64)}
+    h = {
+        "add_var": torch.tensor([0.1, 0.2, 0.05, 0.1, 0.3, 0.1], dtype=F64),
+        "add_len": torch.tensor([0.5, 1.0, 0.7, 2.0, 0.4, 1.0], dtype=F64),
+        "ard_var": torch.tensor(0.4, dtype=F64),
+        "ard_len": torch.tensor([1.0, 2.0, 1.5, 3.0, 1.0, 2.0], dtype=F64),
+        "noise": torch.tensor(0.05, dtype=F64),
+    }
     per = torch.zeros(6, dtype=torch.bool)
     K = gp._kernel(q, q, h, per, True)
     C = K + h["noise"] * torch.eye(60, dtype=F64)
-    dense = sum(torch.distributions.MultivariateNormal(torch.zeros(60, dtype=F64), C).log_prob(y[:, k])
-                for k in range(3))
+    dense = sum(
+        torch.distributions.MultivariateNormal(torch.zeros(60, dtype=F64), C).log_prob(y[:, k]) for k in range(3)
+    )
     # inducing inputs = the rows: the collapsed bound is the exact log marginal likelihood (both code paths)
     assert float(gp._bound(q, y, q, h, per, True, exact=True)) == pytest.approx(float(dense), rel=1e-6)
     assert float(gp._bound(q, y, q.clone(), h, per, True, exact=False)) == pytest.approx(float(dense), rel=1e-6)
@@ -100,11 +108,11 @@ def test_fitted_exact_and_sparse_models_agree_when_inducing_is_everything():
 
 def test_predictive_std_covers_held_out_data():
     q, g = _joints(600, 6)
-    f = 1e-4 * torch.stack([torch.sin(2 * q[:, 1]) * torch.cos(q[:, 2]), torch.cos(2 * q[:, 0]),
-                            torch.sin(3 * q[:, 5])], 1)
+    f = 1e-4 * torch.stack(
+        [torch.sin(2 * q[:, 1]) * torch.cos(q[:, 2]), torch.cos(2 * q[:, 0]), torch.sin(3 * q[:, 5])], 1
+    )
     y = f + 2e-5 * torch.randn(600, 3, generator=g, dtype=F64)
-    eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], GPSettings(), ctx_val=Context(q=q[300:]),
-                                  y_val=y[300:])
+    eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], GPSettings(), ctx_val=Context(q=q[300:]), y_val=y[300:])
     assert 0.9 <= info["val_coverage_2sigma"] <= 0.99
     assert info["val_rmse_m"] < 0.6 * _rms(f[300:])
     # an alternating refit starts from these hyperparameters and needs few evaluations of the evidence

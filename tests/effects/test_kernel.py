@@ -12,19 +12,25 @@ from torchcal.effects.kernel import fit_kernel_correction, paired_improvement
 from torchcal.pipeline import Options, calibrate
 
 F64 = torch.float64
-IPA = Path(os.environ.get("TORCHCAL_IPA_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data"
-                          / "real" / "ur10-ipa"))
+IPA = Path(
+    os.environ.get(
+        "TORCHCAL_IPA_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "ur10-ipa"
+    )
+)
 
 
 def test_kernel_learns_a_local_field_and_ignores_noise():
     robot = torchcal.load_robot("ur5")
     g = torch.Generator().manual_seed(0)
     q = (torch.rand(900, 6, generator=g, dtype=F64) * 2 - 1) * 1.5
-    field = 2e-4 * torch.stack([torch.sin(2 * q[:, 1]) * torch.cos(1.5 * q[:, 2]), torch.cos(2 * q[:, 0]),
-                                torch.sin(1.5 * q[:, 3] + q[:, 1])], -1)
+    field = 2e-4 * torch.stack(
+        [torch.sin(2 * q[:, 1]) * torch.cos(1.5 * q[:, 2]), torch.cos(2 * q[:, 0]), torch.sin(1.5 * q[:, 3] + q[:, 1])],
+        -1,
+    )
     noise = 2e-5 * torch.randn(900, 3, generator=g, dtype=F64)
-    eff, info = fit_kernel_correction(robot, q[:600], (field + noise)[:600], q_val=q[600:750],
-                                      y_val=(field + noise)[600:750])
+    eff, info = fit_kernel_correction(
+        robot, q[:600], (field + noise)[:600], q_val=q[600:750], y_val=(field + noise)[600:750]
+    )
     with torch.no_grad():
         pred = eff(robot, Context(q=q[750:]))
     before = float(field[750:].norm(dim=-1).square().mean().sqrt())
@@ -53,8 +59,13 @@ def test_auto_adds_nothing_to_clean_data_and_a_kernel_reloads_exactly(tmp_path):
     # a kernel effect saved in a run directory comes back bit for bit
     from torchcal.report import load_model, write_run
 
-    kern, _ = fit_kernel_correction(run.robot, c.train.q[:300], 1e-4 * torch.sin(c.train.q[:300, :3]),
-                                    q_val=c.train.q[300:], y_val=1e-4 * torch.sin(c.train.q[300:, :3]))
+    kern, _ = fit_kernel_correction(
+        run.robot,
+        c.train.q[:300],
+        1e-4 * torch.sin(c.train.q[:300, :3]),
+        q_val=c.train.q[300:],
+        y_val=1e-4 * torch.sin(c.train.q[300:, :3]),
+    )
     run.model.add(kern)
     write_run(run, tmp_path / "run")
     model, _ = load_model(tmp_path / "run")

@@ -42,8 +42,12 @@ def test_infinite_length_is_no_gate_and_a_state_dict_round_trip_rebuilds_it():
     gate = SupportGate(_net(), support, length=0.3)
     cfg = gate.config()
     assert cfg["inner"]["class"] == "LearnedEffect" and cfg["n_support"] == 100
-    rebuilt = SupportGate(LearnedEffect(CorrectionNet(6, 29)), torch.zeros(cfg["n_support"], cfg["dof"], dtype=F64),
-                          cfg["length"], max_support=cfg["n_support"])
+    rebuilt = SupportGate(
+        LearnedEffect(CorrectionNet(6, 29)),
+        torch.zeros(cfg["n_support"], cfg["dof"], dtype=F64),
+        cfg["length"],
+        max_support=cfg["n_support"],
+    )
     rebuilt.load_state_dict(gate.state_dict())
     assert torch.equal(rebuilt(robot, Context(q=q[:9])), gate(robot, Context(q=q[:9])))
 
@@ -76,6 +80,7 @@ def test_validation_chooses_a_gate_only_where_it_helps():
             with torch.no_grad():
                 e = model_of(gate)(Context(q=valid_q)) - truth
             return float(e.norm(dim=-1).square().mean().sqrt())
+
         return score
 
     with torch.no_grad():
@@ -97,8 +102,9 @@ def test_with_a_fallback_the_whole_prediction_fades_to_the_fallback_geometry_and
     fallback = load_robot("ur5")
     with torch.no_grad():
         own.geometry.delta.add_(1e-4 * own.geometry.mask)  # the filter's own geometry differs from the kinematic one
-        fallback.instrument.delta.add_(torch.tensor([1e-3, 0, 0, 0, 0, 0], dtype=F64).reshape(
-            fallback.instrument.delta.shape))
+        fallback.instrument.delta.add_(
+            torch.tensor([1e-3, 0, 0, 0, 0, 0], dtype=F64).reshape(fallback.instrument.delta.shape)
+        )
     support = torch.rand(300, 6, generator=torch.Generator().manual_seed(5), dtype=F64) * 0.4
     gate = SupportGate(_net(6), support, length=0.1, fallback=copy.deepcopy(fallback))
     model = MeasurementModel(own, [gate])

@@ -29,8 +29,19 @@ def test_duplicate_columns_keep_the_preferred_one():
 
 
 def _ur5_problem(lever=(0.05, 0.0, 0.1)):
-    c = simulate(SimConfig(robot="ur5", poses=300, test_poses=0, seed=11, lever_arm=lever, lever_arm_sigma=0.0,
-                           sigma_tracker=0.0, sigma_joint_deg=0.0, tracker_tilt_deg=0.0))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            poses=300,
+            test_poses=0,
+            seed=11,
+            lever_arm=lever,
+            lever_arm_sigma=0.0,
+            sigma_tracker=0.0,
+            sigma_joint_deg=0.0,
+            tracker_tilt_deg=0.0,
+        )
+    )
     robot = torchcal.load_robot("ur5")
     model = MeasurementModel(robot)
     with torch.no_grad():
@@ -54,8 +65,14 @@ def test_ur5_with_a_vertical_tracker_finds_the_papers_groups():
     fixed = sorted(f["name"] for f in ida.fixed)
     assert fixed == sorted(["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6", "a6"])
     groups = sorted(sorted(g) for g in ida.groups)
-    expected = [["instrument.rz", "theta1"], ["d1", "instrument.tz"], ["d2", "d3", "d4"], ["a6", "tool.x"],
-                ["d6", "tool.z"], ["alpha6", "theta6", "tool.y"]]
+    expected = [
+        ["instrument.rz", "theta1"],
+        ["d1", "instrument.tz"],
+        ["d2", "d3", "d4"],
+        ["a6", "tool.x"],
+        ["d6", "tool.z"],
+        ["alpha6", "theta6", "tool.y"],
+    ]
     assert groups == sorted(sorted(g) for g in expected)
     # every structural dependency is exact to round-off, every kept parameter clearly independent
     assert max(f["independence"] for f in ida.fixed) < 1e-12
@@ -63,8 +80,9 @@ def test_ur5_with_a_vertical_tracker_finds_the_papers_groups():
 
 
 def test_urdf_robot_redundant_errors_are_resolved_and_noise_free_data_recovered():
-    c = simulate(SimConfig(robot="panda.urdf", poses=250, test_poses=50, seed=12, sigma_tracker=0.0,
-                           sigma_joint_deg=0.0))
+    c = simulate(
+        SimConfig(robot="panda.urdf", poses=250, test_poses=50, seed=12, sigma_tracker=0.0, sigma_joint_deg=0.0)
+    )
     robot = torchcal.load_robot("panda.urdf")
     model = MeasurementModel(robot)
     with torch.no_grad():
@@ -86,14 +104,16 @@ GEN3 = Path(__file__).resolve().parent / "data" / "gen3_rounded.urdf"
 
 def _exact_gen3(tmp_path: Path) -> Path:
     """The fixture with exact constants: 1.5708 -> pi/2, 3.1416 -> pi."""
+
     def exact(v: str) -> str:
         x = float(v)
         if abs(abs(x) - 1.5708) < 1e-12:
             return repr(math.copysign(math.pi / 2, x))
         return repr(math.pi) if abs(x - 3.1416) < 1e-12 else v
 
-    text = re.sub(r'rpy="(\S+) (\S+) (\S+)"', lambda m: 'rpy="' + " ".join(map(exact, m.groups())) + '"',
-                  GEN3.read_text())
+    text = re.sub(
+        r'rpy="(\S+) (\S+) (\S+)"', lambda m: 'rpy="' + " ".join(map(exact, m.groups())) + '"', GEN3.read_text()
+    )
     assert not re.findall(r'rpy="[^"]*(1\.5708|3\.1416)', text) and text.count(repr(math.pi / 2)) == 6
     out = tmp_path / "gen3_exact.urdf"
     out.write_text(text)
@@ -107,8 +127,9 @@ def _geometric_fit(spec, train):
         T, t, _ = fit_instrument_and_tool(robot(train.q), train.p)
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(t)
-    return solve(model, train, ("geometry", "instrument", "tool"), Options(method="kinematic"), "geometric",
-                 trajectory=False)
+    return solve(
+        model, train, ("geometry", "instrument", "tool"), Options(method="kinematic"), "geometric", trajectory=False
+    )
 
 
 def test_rounded_constants_keep_what_exact_constants_keep(tmp_path):
@@ -147,6 +168,7 @@ def test_prior_tolerance_keeps_the_clean_ur_sets():
         c = simulate(SimConfig(robot=robot_name, poses=200, test_poses=0, seed=21))
         fit = _geometric_fit(robot_name, c.train)
         ida = fit.identifiability
-        assert sorted(f["name"] for f in ida.fixed) == sorted(["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6",
-                                                              "a6"])
+        assert sorted(f["name"] for f in ida.fixed) == sorted(
+            ["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6", "a6"]
+        )
         assert ida.prior_ratio == DEFAULT_PRIOR_RATIO == ida.to_dict()["prior_ratio"]

@@ -68,8 +68,11 @@ def test_analytic_jacobian_of_a_subset_of_parameters():
     g = robot.groups()
     keep = torch.zeros_like(g["geometry"].mask)
     keep[1:4, 0] = True  # a2..a4 only, instrument rotation and tool z
-    sel = {"robot.geometry.delta": keep, "robot.instrument.delta": torch.tensor([0, 0, 0, 1, 1, 1], dtype=torch.bool),
-           "robot.tool.delta": torch.tensor([0, 0, 1], dtype=torch.bool)}
+    sel = {
+        "robot.geometry.delta": keep,
+        "robot.instrument.delta": torch.tensor([0, 0, 0, 1, 1, 1], dtype=torch.bool),
+        "robot.tool.delta": torch.tensor([0, 0, 1], dtype=torch.bool),
+    }
     free = FreeParameters(model, sel)
     fun = residual_function(model, free, ctx, p, W)
     x = free.vector()
@@ -118,8 +121,9 @@ def test_lm_restores_the_callers_thread_count():
     torch.set_num_threads(2)
     try:
         seen = []
-        levenberg_marquardt(lambda x: x - 1.0, torch.zeros(2, dtype=F64),
-                            callback=lambda *a: seen.append(torch.get_num_threads()))
+        levenberg_marquardt(
+            lambda x: x - 1.0, torch.zeros(2, dtype=F64), callback=lambda *a: seen.append(torch.get_num_threads())
+        )
         assert seen and set(seen) == {1}
         assert torch.get_num_threads() == 2
     finally:

@@ -35,8 +35,9 @@ def test_lm_and_lbfgs_agree_on_a_well_posed_nonlinear_problem():
 
     res = levenberg_marquardt(fun, torch.tensor([1.0, 1.0, 0.0], dtype=F64))
     p = torch.tensor([1.0, 1.0, 0.0], dtype=F64, requires_grad=True)
-    opt = torch.optim.LBFGS([p], max_iter=500, tolerance_grad=1e-14, tolerance_change=1e-16,
-                            line_search_fn="strong_wolfe")
+    opt = torch.optim.LBFGS(
+        [p], max_iter=500, tolerance_grad=1e-14, tolerance_change=1e-16, line_search_fn="strong_wolfe"
+    )
 
     def closure():
         opt.zero_grad()
@@ -65,8 +66,9 @@ def test_non_finite_start_is_divergence():
 
 
 def test_max_iterations_status():
-    res = levenberg_marquardt(lambda x: torch.stack([10 * (x[1] - x[0] ** 2), 1 - x[0]]),
-                              torch.tensor([-1.2, 1.0], dtype=F64), max_iter=2)
+    res = levenberg_marquardt(
+        lambda x: torch.stack([10 * (x[1] - x[0] ** 2), 1 - x[0]]), torch.tensor([-1.2, 1.0], dtype=F64), max_iter=2
+    )
     assert res.status == "max_iterations" and res.iterations == 2
 
 

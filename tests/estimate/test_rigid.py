@@ -27,8 +27,18 @@ def test_rigid_fit_refuses_collinear_points():
 
 
 def test_instrument_and_lever_arm_recovered_without_noise():
-    c = simulate(SimConfig(robot="ur10", poses=100, test_poses=0, seed=2, sigma_tracker=0.0, sigma_joint_deg=0.0,
-                           sigma_length=0.0, sigma_angle_deg=0.0))
+    c = simulate(
+        SimConfig(
+            robot="ur10",
+            poses=100,
+            test_poses=0,
+            seed=2,
+            sigma_tracker=0.0,
+            sigma_joint_deg=0.0,
+            sigma_length=0.0,
+            sigma_angle_deg=0.0,
+        )
+    )
     robot = torchcal.load_robot("ur10")
     with torch.no_grad():
         T, lever, rms = fit_instrument_and_tool(robot(c.train.q), c.train.p)

@@ -88,8 +88,9 @@ def test_robust_rigid_start_survives_shifts_and_millimetre_rows():
     q = (torch.rand(300, 6, generator=g, dtype=F64) - 0.5) * 4.0
     with torch.no_grad():
         T_fl = robot(q)
-    T_true = tf.homogeneous(tf.rpy_to_matrix(torch.tensor([0.01, -0.02, 2.0], dtype=F64)),
-                            torch.tensor([2.0, -1.0, 0.3], dtype=F64))
+    T_true = tf.homogeneous(
+        tf.rpy_to_matrix(torch.tensor([0.01, -0.02, 2.0], dtype=F64)), torch.tensor([2.0, -1.0, 0.3], dtype=F64)
+    )
     lever = torch.tensor([0.01, -0.02, 0.1], dtype=F64)
     p = tf.transform_points(T_true, T_fl[:, :3, :3] @ lever + T_fl[:, :3, 3])
     p = p + 15e-6 * torch.randn(p.shape, generator=g, dtype=F64)

@@ -28,8 +28,16 @@ N, N_TRAIN = 1500, 1200
 
 @pytest.fixture(scope="module")
 def setup(one_thread):
-    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=N, train_samples=N_TRAIN, seed=13,
-                           effects=[EffectSpec.parse("field=0.15mm")]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            trajectory=True,
+            samples=N,
+            train_samples=N_TRAIN,
+            seed=13,
+            effects=[EffectSpec.parse("field=0.15mm")],
+        )
+    )
     geometric = MeasurementModel(c.model.robot, [])  # the true robot without the field
     with torch.no_grad():
         clean = geometric(Context(q=c.q_true))  # noise-free, field-free
@@ -44,11 +52,21 @@ def setup(one_thread):
         start.tool.nominal.copy_(lever)
     params = AdaptiveEKF(start).identify(c.train.q)
     # the true robot in the identifiable parameters: an exact fit, so every 4th training pose is enough
-    truth = AdaptiveEKF(start, None, AdaptiveConfig(), params).batch(c.q_true[:N_TRAIN:4], clean[:N_TRAIN:4],
-                                                                     priors=False)
+    truth = AdaptiveEKF(start, None, AdaptiveConfig(), params).batch(
+        c.q_true[:N_TRAIN:4], clean[:N_TRAIN:4], priors=False
+    )
     assert truth.sigma0_sq < 1e-18  # an exact fit: the identifiable parameterisation holds the true robot
-    return {"c": c, "clean": clean, "with_field": with_field, "noise": noise, "q_read": q_read, "y": y_meas,
-            "start": start, "params": params, "truth": truth}
+    return {
+        "c": c,
+        "clean": clean,
+        "with_field": with_field,
+        "noise": noise,
+        "q_read": q_read,
+        "y": y_meas,
+        "start": start,
+        "params": params,
+        "truth": truth,
+    }
 
 
 def _net():
@@ -59,8 +77,12 @@ def _net():
 
 def _z(res, truth):
     """Errors over predicted standard deviations: gamma, then the back-substituted instrument translation."""
-    return torch.cat([(res.gamma - truth.gamma) / res.gamma_std,
-                      (res.instrument_translation - truth.instrument_translation) / res.instrument_translation_std])
+    return torch.cat(
+        [
+            (res.gamma - truth.gamma) / res.gamma_std,
+            (res.instrument_translation - truth.instrument_translation) / res.instrument_translation_std,
+        ]
+    )
 
 
 def _nees(res, truth):
@@ -79,8 +101,17 @@ def test_identifiable_set_is_the_papers(setup):
     robot = torchcal.load_robot("ur5")
     q = torch.rand(200, 6, generator=torch.Generator().manual_seed(0), dtype=F64) * 4 - 2
     names = {p.name for p in AdaptiveEKF(robot).identify(q)}
-    assert not names & {"d1", "theta1", "d6", "theta6", "alpha6", "a6", "instrument.tx", "instrument.ty",
-                        "instrument.tz"}
+    assert not names & {
+        "d1",
+        "theta1",
+        "d6",
+        "theta6",
+        "alpha6",
+        "a6",
+        "instrument.tx",
+        "instrument.ty",
+        "instrument.tz",
+    }
     assert {"instrument.rx", "instrument.ry", "instrument.rz", "tool.x", "tool.y", "tool.z", "a2", "alpha4"} <= names
 
 
@@ -180,8 +211,13 @@ def test_filter_equals_batch_least_squares_of_its_linear_model(setup):
     b = (y - (u - u[0]) + (U - U[0]) @ g0).reshape(-1)
     ow = slice(net.hidden * 7, net.hidden * 10)
     x0 = torch.cat([w0[ow], s["start"].probe_position(q[:1])[0].detach(), g0])
-    s0 = torch.cat([sig_w[ow], torch.full((3,), cfg.sigma_t0, dtype=F64),
-                    torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params])])
+    s0 = torch.cat(
+        [
+            sig_w[ow],
+            torch.full((3,), cfg.sigma_t0, dtype=F64),
+            torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params]),
+        ]
+    )
     Nm = A.T @ A / cfg.sigma_tracker**2 + torch.diag(s0**-2)
     x = torch.linalg.solve(Nm, A.T @ b / cfg.sigma_tracker**2 + x0 / s0**2)
     std = torch.linalg.inv(Nm).diagonal().sqrt()
@@ -228,8 +264,14 @@ def test_instrument_rotation_columns_against_finite_differences():
     gb = torch.randn(3, generator=g, dtype=F64) * 1e-4  # the network's correction, base frame
     r = torch.zeros(3, dtype=F64)
     cols = _rotation_columns(R0[:, [0, 2]], R0 @ gb)
-    assert check_jacobian(lambda rr: R0 @ tf.so3_exp(rr) @ gb, r, torch.stack([cols[:, 0], _rotation_columns(
-        R0[:, [1]], R0 @ gb)[:, 0], cols[:, 1]], dim=1)) < 1e-7
+    assert (
+        check_jacobian(
+            lambda rr: R0 @ tf.so3_exp(rr) @ gb,
+            r,
+            torch.stack([cols[:, 0], _rotation_columns(R0[:, [1]], R0 @ gb)[:, 0], cols[:, 1]], dim=1),
+        )
+        < 1e-7
+    )
 
 
 def test_geometry_jacobian_against_finite_differences(setup):

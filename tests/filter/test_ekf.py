@@ -28,7 +28,8 @@ def _setup(n=300, seed=0, noise=15e-6):
         robot.tool.nominal.copy_(torch.tensor([0.0, 0.0, 0.1], dtype=F64))
     s = torch.linspace(0, 1, n, dtype=F64)[:, None]
     q = torch.tensor([0.3, -1.2, 1.4, -1.0, 1.2, 0.2], dtype=F64) + 0.8 * torch.sin(
-        2 * math.pi * s * torch.tensor([1.0, 0.7, 0.5, 1.3, 0.9, 0.4], dtype=F64))
+        2 * math.pi * s * torch.tensor([1.0, 0.7, 0.5, 1.3, 0.9, 0.4], dtype=F64)
+    )
     truth = CorrectionNet(seed=seed + 1)
     with torch.no_grad():
         R = robot.T_tracker_base()[:3, :3]
@@ -146,9 +147,13 @@ def test_config_validation():
 def _user_net(seed=0, width=32):
     """A user's network: 2 hidden layers of ``width``, SiLU, output scaled to sub-millimetre corrections."""
     torch.manual_seed(seed)
-    net = torch.nn.Sequential(torch.nn.Linear(6, width, dtype=F64), torch.nn.SiLU(),
-                              torch.nn.Linear(width, width, dtype=F64), torch.nn.SiLU(),
-                              torch.nn.Linear(width, 3, dtype=F64))
+    net = torch.nn.Sequential(
+        torch.nn.Linear(6, width, dtype=F64),
+        torch.nn.SiLU(),
+        torch.nn.Linear(width, width, dtype=F64),
+        torch.nn.SiLU(),
+        torch.nn.Linear(width, 3, dtype=F64),
+    )
     with torch.no_grad():
         net[4].weight.mul_(1e-3)
         net[4].bias.zero_()

@@ -28,11 +28,23 @@ SAMPLES = 2000
 def trajectory(tmp_path_factory):
     """A UR5 trajectory with biased geometry and a smooth field, as one file (the run holds out its last 20 %)."""
     out = tmp_path_factory.mktemp("traj")
-    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=SAMPLES, train_samples=SAMPLES - 1, seed=4,
-                           effects=[EffectSpec.parse("field=0.3mm")]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            trajectory=True,
+            samples=SAMPLES,
+            train_samples=SAMPLES - 1,
+            seed=4,
+            effects=[EffectSpec.parse("field=0.3mm")],
+        )
+    )
     parts = (c.train, c.test)
-    data = Measurements(q=torch.cat([m.q for m in parts]), p=torch.cat([m.p for m in parts]),
-                        t=torch.cat([m.t for m in parts]), sigma=torch.cat([m.sigma for m in parts]))
+    data = Measurements(
+        q=torch.cat([m.q for m in parts]),
+        p=torch.cat([m.p for m in parts]),
+        t=torch.cat([m.t for m in parts]),
+        sigma=torch.cat([m.sigma for m in parts]),
+    )
     write_measurements(out / "trajectory.csv", data)
     return data, out
 
@@ -41,8 +53,24 @@ def trajectory(tmp_path_factory):
 def run_dir(trajectory, tmp_path_factory):
     _, data_dir = trajectory
     out = tmp_path_factory.mktemp("run") / "run"
-    assert main(["calibrate", str(data_dir / "trajectory.csv"), "--robot", "ur5", "--method", "integrated",
-                 "--engine", "adaptive", "--out", str(out), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "calibrate",
+                str(data_dir / "trajectory.csv"),
+                "--robot",
+                "ur5",
+                "--method",
+                "integrated",
+                "--engine",
+                "adaptive",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -68,8 +96,19 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
 
 def test_report_has_the_contract_fields_and_the_three_stages(run_dir):
     report = json.loads((run_dir / "report.json").read_text())
-    for key in ("robot", "method", "n_train", "n_holdout", "rmse_before_mm", "rmse_geometric_mm", "rmse_after_mm",
-                "max_after_mm", "global_test", "effects", "parameters"):
+    for key in (
+        "robot",
+        "method",
+        "n_train",
+        "n_holdout",
+        "rmse_before_mm",
+        "rmse_geometric_mm",
+        "rmse_after_mm",
+        "max_after_mm",
+        "global_test",
+        "effects",
+        "parameters",
+    ):
         assert key in report, key
     assert report["method"] == "integrated"
     assert (report["n_train"], report["n_holdout"]) == (SAMPLES - SAMPLES // 5, SAMPLES // 5)
@@ -98,8 +137,9 @@ def test_predict_reproduces_the_held_out_error_of_the_run(run_dir, trajectory, t
     report = json.loads((run_dir / "report.json").read_text())
     hold = data.subset(slice(report["n_train"], None))
     write_measurements(tmp_path / "hold.csv", hold)
-    assert main(["predict", str(run_dir), str(tmp_path / "hold.csv"), "--out", str(tmp_path / "pred.csv"),
-                 "--quiet"]) == 0
+    assert (
+        main(["predict", str(run_dir), str(tmp_path / "hold.csv"), "--out", str(tmp_path / "pred.csv"), "--quiet"]) == 0
+    )
     pred = read_measurements(tmp_path / "pred.csv", require_positions=True)
     rmse = float((pred.p - hold.p).norm(dim=-1).square().mean().sqrt()) * 1e3
     assert rmse == pytest.approx(report["rmse_after_mm"], rel=1e-6)
@@ -110,8 +150,22 @@ def test_static_file_without_t_is_a_clear_error_and_writes_nothing(tmp_path, cap
     c = simulate(SimConfig(robot="ur5", poses=60, test_poses=0, seed=4))
     write_measurements(tmp_path / "static.csv", Measurements(q=c.train.q, p=c.train.p))
     out = tmp_path / "run"
-    assert main(["calibrate", str(tmp_path / "static.csv"), "--robot", "ur5", "--method", "integrated",
-                 "--out", str(out), "--quiet"]) == 2
+    assert (
+        main(
+            [
+                "calibrate",
+                str(tmp_path / "static.csv"),
+                "--robot",
+                "ur5",
+                "--method",
+                "integrated",
+                "--out",
+                str(out),
+                "--quiet",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "static.csv" in err and "needs a continuous trajectory" in err and "no t column" in err
     assert not out.exists()

@@ -30,8 +30,13 @@ def golden_report(method: str) -> dict:
     from torchcal.report import build_report
     from torchcal.sim import EffectSpec, SimConfig, simulate
 
-    cfg = SimConfig(robot=SIM["robot"], poses=SIM["poses"], test_poses=SIM["test_poses"], seed=SIM["seed"],
-                    effects=[EffectSpec.parse(e) for e in SIM["effects"]])
+    cfg = SimConfig(
+        robot=SIM["robot"],
+        poses=SIM["poses"],
+        test_poses=SIM["test_poses"],
+        seed=SIM["seed"],
+        effects=[EffectSpec.parse(e) for e in SIM["effects"]],
+    )
     with torch_threads(1):
         campaign = simulate(cfg)
         run = calibrate(SIM["robot"], campaign.train, Options(method=method, seed=SIM["seed"], **CASES[method]))

@@ -224,9 +224,13 @@ def _canonical(path, skip_joints=(), skip_frames=("probe", "tracker")):
             kids = [c for c in kids if c.tag != "origin"]
         return (el.tag, tuple(sorted(el.attrib.items())), (el.text or "").strip(), tuple(node(c) for c in kids))
 
-    kids = [c for c in root if isinstance(c.tag, str)
-            and not (c.tag == "link" and c.get("name") in skip_frames)
-            and not (c.tag == "joint" and c.get("name") in {f"{f}_joint" for f in skip_frames})]
+    kids = [
+        c
+        for c in root
+        if isinstance(c.tag, str)
+        and not (c.tag == "link" and c.get("name") in skip_frames)
+        and not (c.tag == "joint" and c.get("name") in {f"{f}_joint" for f in skip_frames})
+    ]
     return root.tag, tuple(sorted(root.attrib.items())), tuple(node(c) for c in kids)
 
 
@@ -251,8 +255,12 @@ def test_user_urdf_kept_apart_from_the_origins(source, tmp_path):
         assert np.array_equal(np.asarray(jb.axis), np.asarray(ja.axis))
         assert (ja.limit is None) == (jb.limit is None)
         if ja.limit is not None:
-            assert (jb.limit.effort, jb.limit.velocity, jb.limit.lower, jb.limit.upper) == \
-                (ja.limit.effort, ja.limit.velocity, ja.limit.lower, ja.limit.upper)
+            assert (jb.limit.effort, jb.limit.velocity, jb.limit.lower, jb.limit.upper) == (
+                ja.limit.effort,
+                ja.limit.velocity,
+                ja.limit.lower,
+                ja.limit.upper,
+            )
         if ja.name not in robot.joint_names:  # fixed joints keep their origin exactly
             assert np.array_equal(jb.origin, ja.origin)
     for la in a.robot.links:
@@ -261,24 +269,34 @@ def test_user_urdf_kept_apart_from_the_origins(source, tmp_path):
         if la.inertial is not None:
             assert la.inertial.mass == lb.inertial.mass
             assert np.array_equal(la.inertial.inertia, lb.inertial.inertia)
-        assert [v.geometry.mesh.filename for v in la.visuals if v.geometry.mesh] == \
-            [v.geometry.mesh.filename for v in lb.visuals if v.geometry.mesh]
+        assert [v.geometry.mesh.filename for v in la.visuals if v.geometry.mesh] == [
+            v.geometry.mesh.filename for v in lb.visuals if v.geometry.mesh
+        ]
     # FK through the file equals the calibrated model's
     back = torchcal.load_robot(out, tip_link=robot.tip_link)
     q = random_q(robot, 30, seed=2)
     with torch.no_grad():
         assert (back(q) - robot(q)).abs().max().item() <= 1e-12
-        assert (torchcal.load_robot(out, tip_link="probe")(q)
-                - robot(q) @ tf.translation(robot.t_flange_probe())).abs().max().item() <= 1e-12
+        assert (
+            torchcal.load_robot(out, tip_link="probe")(q) - robot(q) @ tf.translation(robot.t_flange_probe())
+        ).abs().max().item() <= 1e-12
 
 
 def test_kinova_like_details_survive(tmp_path):
     robot = perturb(torchcal.load_robot(KINOVA_LIKE), 12)
     text = write_urdf(robot, tmp_path / "k.urdf").read_text()
-    for kept in ('type="continuous"', 'effort="39" velocity="1.3963"', "package://kortex_description",
-                 'name="EndEffector" type="fixed"', '<link name="Shoulder Link">', "<transmission",
-                 "<gazebo reference", "safety_controller", 'xmlns:xacro="http://www.ros.org/wiki/xacro"',
-                 "values invented"):
+    for kept in (
+        'type="continuous"',
+        'effort="39" velocity="1.3963"',
+        "package://kortex_description",
+        'name="EndEffector" type="fixed"',
+        '<link name="Shoulder Link">',
+        "<transmission",
+        "<gazebo reference",
+        "safety_controller",
+        'xmlns:xacro="http://www.ros.org/wiki/xacro"',
+        "values invented",
+    ):
         assert kept in text, kept
     assert "EndEffector_Link_joint" not in text
     assert "1e-06" not in text  # no placeholder inertia
@@ -294,5 +312,6 @@ def test_user_urdf_notes_and_reexport(tmp_path):
     assert second.read_text().count('<link name="probe"/>') == 1
     q = random_q(again, 10)
     with torch.no_grad():
-        assert (torchcal.load_robot(second, tip_link="probe")(q)
-                - again(q) @ tf.translation(again.t_flange_probe())).abs().max().item() <= 1e-12
+        assert (
+            torchcal.load_robot(second, tip_link="probe")(q) - again(q) @ tf.translation(again.t_flange_probe())
+        ).abs().max().item() <= 1e-12

@@ -14,6 +14,7 @@ from torchcal.robot import transforms as tf
 
 F64 = torch.float64
 
+
 def _load_reference():
     """The independent numpy standard DH and UR's tables live in scripts/fk_agreement.py (one copy)."""
     path = Path(__file__).resolve().parents[2] / "scripts" / "fk_agreement.py"
@@ -34,8 +35,9 @@ def numpy_modified_dh(table, q):
         T = np.eye(4)
         for (a, al, d), th in zip(table, qq):
             ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(al), np.sin(al)
-            T = T @ np.array([[ct, -st, 0, a], [st * ca, ct * ca, -sa, -sa * d], [st * sa, ct * sa, ca, ca * d],
-                              [0, 0, 0, 1]])
+            T = T @ np.array(
+                [[ct, -st, 0, a], [st * ca, ct * ca, -sa, -sa * d], [st * sa, ct * sa, ca, ca * d], [0, 0, 0, 1]]
+            )
         out.append(T)
     return np.stack(out)
 
@@ -68,9 +70,11 @@ def test_ur5_zero_pose_known_answer():
 
 def test_planar_two_link_known_answer(tmp_path):
     spec = tmp_path / "planar.yaml"
-    spec.write_text("name: planar\nconvention: standard\njoints:\n"
-                    "  - {a: 1.0, alpha: 0.0, d: 0.0, theta: 0.0}\n"
-                    "  - {a: 0.5, alpha: 0.0, d: 0.0, theta: 0.0}\n")
+    spec.write_text(
+        "name: planar\nconvention: standard\njoints:\n"
+        "  - {a: 1.0, alpha: 0.0, d: 0.0, theta: 0.0}\n"
+        "  - {a: 0.5, alpha: 0.0, d: 0.0, theta: 0.0}\n"
+    )
     robot = torchcal.load_robot(spec)
     q = torch.tensor([[math.pi / 2, -math.pi / 2], [0.0, math.pi]], dtype=F64)
     p = robot(q)[:, :3, 3].detach()
@@ -78,8 +82,15 @@ def test_planar_two_link_known_answer(tmp_path):
 
 
 def test_modified_dh_matches_craig(tmp_path):
-    table = [(0.0, 0.0, 0.333), (0.0, -math.pi / 2, 0.0), (0.0, math.pi / 2, 0.316), (0.0825, math.pi / 2, 0.0),
-             (-0.0825, -math.pi / 2, 0.384), (0.0, math.pi / 2, 0.0), (0.088, math.pi / 2, 0.0)]
+    table = [
+        (0.0, 0.0, 0.333),
+        (0.0, -math.pi / 2, 0.0),
+        (0.0, math.pi / 2, 0.316),
+        (0.0825, math.pi / 2, 0.0),
+        (-0.0825, -math.pi / 2, 0.384),
+        (0.0, math.pi / 2, 0.0),
+        (0.088, math.pi / 2, 0.0),
+    ]
     rows = "".join(f"  - {{a: {a!r}, alpha: {al!r}, d: {d!r}, theta: 0.0}}\n" for a, al, d in table)
     spec = tmp_path / "arm7.yaml"
     spec.write_text(f"name: arm7\nconvention: modified\njoints:\n{rows}")
@@ -210,8 +221,9 @@ def test_float32_and_bad_shapes_are_errors():
     with pytest.raises(ShapeError, match=r"\(N, 6\).*'ur5'.*\(3, 7\)"):
         robot(torch.zeros(3, 7, dtype=F64))
     with pytest.raises(ShapeError):
-        torchcal.robot.DHGeometry(a=[0.0], alpha=[0.0], d=[0.0], theta=[0.0], convention="standard",
-                                  dtype=torch.float32)
+        torchcal.robot.DHGeometry(
+            a=[0.0], alpha=[0.0], d=[0.0], theta=[0.0], convention="standard", dtype=torch.float32
+        )
 
 
 def test_batched_and_looped_fk_agree():
@@ -252,7 +264,8 @@ def test_urdf_tip_choice_and_ambiguity(tmp_path):
         "<joint name='j1' type='revolute'><parent link='b'/><child link='l1'/><axis xyz='0 0 1'/>"
         "<limit lower='-1' upper='1' effort='1' velocity='1'/></joint>"
         "<joint name='j2' type='revolute'><parent link='b'/><child link='l2'/><axis xyz='0 0 1'/>"
-        "<limit lower='-1' upper='1' effort='1' velocity='1'/></joint></robot>")
+        "<limit lower='-1' upper='1' effort='1' velocity='1'/></joint></robot>"
+    )
     with pytest.raises(RobotSpecError, match="--tip-link"):
         torchcal.load_robot(two_tips)
     robot = torchcal.load_robot(two_tips, tip_link="l2")

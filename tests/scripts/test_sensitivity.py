@@ -44,8 +44,9 @@ def test_json_line_files_and_table(quick):
     assert [n for n in par if not n.startswith(("instrument.", "tool."))][:3] == ["a1", "alpha1", "a2"]
     for fixed in ("d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6", "a6"):
         assert fixed not in par
-    assert [n for n in par if n.startswith("instrument.")] == [f"instrument.{c}" for c in ("tx", "ty", "tz", "rx",
-                                                                                          "ry", "rz")]
+    assert [n for n in par if n.startswith("instrument.")] == [
+        f"instrument.{c}" for c in ("tx", "ty", "tz", "rx", "ry", "rz")
+    ]
     assert [n for n in par if n.startswith("tool.")] == ["tool.x", "tool.y", "tool.z"]
     assert result["filter_status"] == ["ok"]
     for p in par.values():

@@ -62,8 +62,10 @@ def test_correlation_curves_see_a_smooth_field_and_skip_revisits():
 
 def test_half_distance_interpolates_in_log_distance():
     mod = load_script()
-    curve = [{"lo": 0.01, "hi": 0.04, "n_pairs": 100, "corr": 0.9},
-             {"lo": 0.04, "hi": 0.16, "n_pairs": 100, "corr": 0.1}]
+    curve = [
+        {"lo": 0.01, "hi": 0.04, "n_pairs": 100, "corr": 0.9},
+        {"lo": 0.04, "hi": 0.16, "n_pairs": 100, "corr": 0.1},
+    ]
     # centres 0.02 and 0.08; 0.5 lies halfway, so at their geometric mean
     assert mod.half_distance(curve) == pytest.approx(0.04)
     assert mod.half_distance([{"lo": 0.01, "hi": 0.04, "n_pairs": 100, "corr": 0.9}]) is None
@@ -77,8 +79,13 @@ def series_d():
     data = Path(os.environ.get("TORCHCAL_IPA_DATA", DEFAULT_DATA))
     if not (data / "Series_D").is_dir():
         pytest.skip(f"ur10-ipa data (Series_D) not found at {data}; set TORCHCAL_IPA_DATA")
-    proc = subprocess.run([sys.executable, str(SCRIPT), str(data), "--series", "D", "--json", "--threads", "1"],
-                          capture_output=True, text=True, timeout=240, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), str(data), "--series", "D", "--json", "--threads", "1"],
+        capture_output=True,
+        text=True,
+        timeout=240,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "=== Series D" in proc.stderr
     res = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -88,12 +95,22 @@ def series_d():
 
 def test_series_d_json_has_the_four_parts(series_d):
     s = series_d
-    for key in ("rms_mm", "rms_nominal_mm", "pairs", "covariates", "joint_regression", "drift", "correlation",
-                "components_rms_mm", "large_residual_lines"):
+    for key in (
+        "rms_mm",
+        "rms_nominal_mm",
+        "pairs",
+        "covariates",
+        "joint_regression",
+        "drift",
+        "correlation",
+        "components_rms_mm",
+        "large_residual_lines",
+    ):
         assert key in s
     assert set(s["pairs"]) == {"revisit", "other_orientation", "other_ik_branch"}
     assert {"reach_m", "tracker_distance_m", "view_angle_rad", "tool_tilt_rad", "temperature_c", "row"} <= set(
-        s["covariates"])
+        s["covariates"]
+    )
     assert s["n"] == 632 and s["n_fit"] == 631  # all rows but the one calibrate() keeps out
 
 

@@ -19,9 +19,13 @@ def quick(tmp_path_factory):
     if not (data / "Series_B").is_dir() or not (data / "Series_C").is_dir():
         pytest.skip(f"ur10-ipa data (Series_B and Series_C) not found at {data}; set TORCHCAL_IPA_DATA")
     out = tmp_path_factory.mktemp("ur10")
-    proc = subprocess.run([sys.executable, str(SCRIPT), str(data), "--quick", "--json", "--threads", "1",
-                           "--out", str(out)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), str(data), "--quick", "--json", "--threads", "1", "--out", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     res = json.loads(proc.stdout.strip().splitlines()[-1])
     return res, out

@@ -17,8 +17,15 @@ F64 = torch.float64
 
 @pytest.fixture(scope="module")
 def campaign():
-    return simulate(SimConfig(robot="ur5", poses=300, test_poses=100, seed=3,
-                              effects=[EffectSpec.parse("compliance:2=40um"), EffectSpec.parse("cyclic:4=20um")]))
+    return simulate(
+        SimConfig(
+            robot="ur5",
+            poses=300,
+            test_poses=100,
+            seed=3,
+            effects=[EffectSpec.parse("compliance:2=40um"), EffectSpec.parse("cyclic:4=20um")],
+        )
+    )
 
 
 def test_same_seed_same_files_other_seed_other_files(tmp_path):
@@ -45,8 +52,11 @@ def test_files_follow_the_contract(campaign, tmp_path):
 
 def test_truth_reproduces_the_measurements_within_noise(campaign):
     # the true model at the true joints leaves exactly the tracker noise
-    ctx = Context(q=campaign.q_true, t=torch.cat([campaign.train.t, campaign.test.t]),
-                  temperature=torch.cat([campaign.train.temperature, campaign.test.temperature]))
+    ctx = Context(
+        q=campaign.q_true,
+        t=torch.cat([campaign.train.t, campaign.test.t]),
+        temperature=torch.cat([campaign.train.temperature, campaign.test.temperature]),
+    )
     with torch.no_grad():
         p = campaign.model(ctx)
     meas = torch.cat([campaign.train.p, campaign.test.p])
@@ -104,8 +114,16 @@ def test_line_of_sight_rule_rejects_hidden_and_averted_probes():
 
 
 def test_trajectory_is_continuous_and_split_as_the_paper():
-    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=1500, train_samples=1200, seed=5,
-                           effects=[EffectSpec.parse("backlash:2")]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            trajectory=True,
+            samples=1500,
+            train_samples=1200,
+            seed=5,
+            effects=[EffectSpec.parse("backlash:2")],
+        )
+    )
     assert c.train.n == 1200 and c.test.n == 300
     steps = (c.q_true[1:] - c.q_true[:-1]).abs().max()
     assert float(steps) < 0.02  # rad per sample
@@ -114,8 +132,9 @@ def test_trajectory_is_continuous_and_split_as_the_paper():
 
 
 def test_urdf_robot_and_7_dof(tmp_path):
-    c = simulate(SimConfig(robot="panda.urdf", poses=60, test_poses=10, seed=6,
-                           effects=[EffectSpec.parse("compliance:4")]))
+    c = simulate(
+        SimConfig(robot="panda.urdf", poses=60, test_poses=10, seed=6, effects=[EffectSpec.parse("compliance:4")])
+    )
     assert c.train.q.shape == (60, 7)
 
 
@@ -123,8 +142,13 @@ def test_effect_spec_parsing():
     assert EffectSpec.parse("compliance:2=50um") == EffectSpec("compliance", 2, None, 50e-6)
     assert EffectSpec.parse("field=0.6mm").size == pytest.approx(0.6e-3)
     assert EffectSpec.parse("drift:temperature").variable == "temperature"
-    for bad, msg in [("compliance", "needs a joint"), ("wobble:2", "not one of"), ("compliance:2=5", "unit"),
-                     ("drift:humidity", "drift variable"), ("field:3", "takes no joint")]:
+    for bad, msg in [
+        ("compliance", "needs a joint"),
+        ("wobble:2", "not one of"),
+        ("compliance:2=5", "unit"),
+        ("drift:humidity", "drift variable"),
+        ("field:3", "takes no joint"),
+    ]:
         with pytest.raises(OptionError, match=msg):
             EffectSpec.parse(bad)
     with pytest.raises(OptionError, match="joint 7 is outside 1..6"):
@@ -155,6 +179,7 @@ def test_trajectory_families_are_visible_continuous_paths_within_limits(kind):
 
 def test_families_differ_in_how_they_revisit():
     """Sweeps repeat one cycle (the continuation revisits the training path); a multi-sine does not."""
+
     def nearest_gap(kind):
         c = simulate(SimConfig(robot="ur5", trajectory=True, path=kind, samples=2000, train_samples=1600, seed=4))
         tr, te = c.q_true[:1600], c.q_true[1600:]

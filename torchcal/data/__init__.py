@@ -10,6 +10,11 @@ from torchcal.data.measurements import (
 )
 
 __all__ = [
-    "ANGLE_UNITS", "LENGTH_UNITS", "Measurements", "convert_ipa", "read_ipa", "read_measurements",
+    "ANGLE_UNITS",
+    "LENGTH_UNITS",
+    "Measurements",
+    "convert_ipa",
+    "read_ipa",
+    "read_measurements",
     "write_measurements",
 ]

@@ -31,7 +31,12 @@ __all__ = ["IPA_JOINTS", "convert_ipa", "read_ipa"]
 
 #: Joint columns of the IPA files, base to tip (UR controller names).
 IPA_JOINTS = (
-    "shoulder_pan_joint", "shoulder_lift_joint", "elbow_joint", "wrist_1_joint", "wrist_2_joint", "wrist_3_joint",
+    "shoulder_pan_joint",
+    "shoulder_lift_joint",
+    "elbow_joint",
+    "wrist_1_joint",
+    "wrist_2_joint",
+    "wrist_3_joint",
 )
 _GOAL = ("Goal x", "Goal y", "Goal z", "Goal roll", "Goal pitch", "Goal yaw")
 _POSITION = ("measurement_x", "measurement_y", "measurement_z")
@@ -132,8 +137,10 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
     if median_mm < _MIN_MEDIAN_DISTANCE_MM:
         i = int((p_mm.norm(dim=1) < _MIN_MEDIAN_DISTANCE_MM).nonzero()[0, 0])
         raise MeasurementFileError(
-            path_str, f"measured positions look like metres: median distance from the tracker {median_mm:.6g} mm",
-            line=lines[i], column=_POSITION[int(p_mm[i].abs().argmax())],
+            path_str,
+            f"measured positions look like metres: median distance from the tracker {median_mm:.6g} mm",
+            line=lines[i],
+            column=_POSITION[int(p_mm[i].abs().argmax())],
             hint="the IPA files give measurement_x/_y/_z in millimetres",
         )
     p = p_mm / 1000.0
@@ -173,8 +180,15 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
         meta["time"] = "no Timestamp column; t left out"
 
     return Measurements(
-        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str,
-        lines=tuple(lines), extra=extra,
+        q=q,
+        p=p,
+        t=t,
+        temperature=temperature,
+        sigma=sigma,
+        meta=meta,
+        source=path_str,
+        lines=tuple(lines),
+        extra=extra,
     )
 
 
@@ -204,12 +218,15 @@ def matrix_to_rotvec(R: torch.Tensor) -> torch.Tensor:
     s = torch.sqrt(candidates.gather(-1, branch).clamp_min(1e-300)).squeeze(-1) * 2.0  # 4 |q_k|
     d21, d02, d10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
     s10, s02, s21 = R[..., 1, 0] + R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] + R[..., 1, 2]
-    quats = torch.stack([
-        torch.stack([s * s / 4, d21, d02, d10], -1),
-        torch.stack([d21, s * s / 4, s10, s02], -1),
-        torch.stack([d02, s10, s * s / 4, s21], -1),
-        torch.stack([d10, s02, s21, s * s / 4], -1),
-    ], -2)  # (..., branch, [w x y z]) each times 4 q_k
+    quats = torch.stack(
+        [
+            torch.stack([s * s / 4, d21, d02, d10], -1),
+            torch.stack([d21, s * s / 4, s10, s02], -1),
+            torch.stack([d02, s10, s * s / 4, s21], -1),
+            torch.stack([d10, s02, s21, s * s / 4], -1),
+        ],
+        -2,
+    )  # (..., branch, [w x y z]) each times 4 q_k
     quat = quats.gather(-2, branch[..., None].expand(*branch.shape[:-1], 1, 4)).squeeze(-2) / s[..., None]
     quat = quat / quat.norm(dim=-1, keepdim=True)
     quat = torch.where(quat[..., :1] < 0, -quat, quat)
@@ -227,20 +244,26 @@ def matrix_to_rotvec(R: torch.Tensor) -> torch.Tensor:
 def _check_header(path: str, header: list[str], line: int) -> dict[str, int]:
     if any(marker in header for marker in _HANDEYE_MARKERS):
         raise MeasurementFileError(
-            path, "this is a hand-eye calibration file (commanded flange pose and measured T-Mac pose, "
-            "no joint angles); read_ipa reads only the Series_*/measurements_*.csv pose files", line=line,
+            path,
+            "this is a hand-eye calibration file (commanded flange pose and measured T-Mac pose, "
+            "no joint angles); read_ipa reads only the Series_*/measurements_*.csv pose files",
+            line=line,
             hint="use Series_*/measurements_*.csv",
         )
     if len(header) == 1:
         raise MeasurementFileError(
-            path, "the header has a single column; the IPA files are ';'-separated", line=line,
+            path,
+            "the header has a single column; the IPA files are ';'-separated",
+            line=line,
         )
     index: dict[str, int] = {}
     for k, name in enumerate(header):
         if name in index:
             raise MeasurementFileError(
-                path, f"column name '{name}' appears twice (columns {index[name] + 1} and {k + 1})",
-                line=line, column=name,
+                path,
+                f"column name '{name}' appears twice (columns {index[name] + 1} and {k + 1})",
+                line=line,
+                column=name,
             )
         if not name:
             raise MeasurementFileError(path, f"column {k + 1} of the header has no name", line=line)
@@ -248,15 +271,19 @@ def _check_header(path: str, header: list[str], line: int) -> dict[str, int]:
     missing = [c for c in _REQUIRED if c not in index]
     if missing:
         raise MeasurementFileError(
-            path, f"missing column(s) {', '.join(repr(c) for c in missing)} of an IPA measurements file",
-            line=line, column=missing[0],
+            path,
+            f"missing column(s) {', '.join(repr(c) for c in missing)} of an IPA measurements file",
+            line=line,
+            column=missing[0],
         )
     std = [c for c in _STD if c in index]
     if std and len(std) != len(_STD):
         absent = [c for c in _STD if c not in index]
         raise MeasurementFileError(
-            path, f"standard deviations must be given for x, y and z together; missing {', '.join(absent)}",
-            line=line, column=absent[0],
+            path,
+            f"standard deviations must be given for x, y and z together; missing {', '.join(absent)}",
+            line=line,
+            column=absent[0],
         )
     return index
 
@@ -265,11 +292,14 @@ def _wrong_cell_count(path: str, cells: list[str], header: list[str], line: int,
     n, ncol = len(cells), len(header)
     if n < ncol:
         raise MeasurementFileError(
-            path, f"row has {n} values but the header has {ncol} columns; '{header[n]}' and after are missing",
-            line=line, column=header[n],
+            path,
+            f"row has {n} values but the header has {ncol} columns; '{header[n]}' and after are missing",
+            line=line,
+            column=header[n],
         )
     raise MeasurementFileError(
-        path, f"row has {n} values but the header has {ncol} columns (extra values after '{header[-1]}')",
+        path,
+        f"row has {n} values but the header has {ncol} columns (extra values after '{header[-1]}')",
         line=line,
     )
 
@@ -279,7 +309,10 @@ def _number(path: str, cell: str, line: int, column: str) -> float:
         return float(cell.replace(",", "."))
     what = "empty cell; every column needs a value" if not cell else f"{cell!r} is not a number"
     raise MeasurementFileError(
-        path, what, line=line, column=column,
+        path,
+        what,
+        line=line,
+        column=column,
         hint="numbers use ',' or '.' as decimal mark, e.g. '0,365141'; no NaN or inf",
     )
 
@@ -292,8 +325,10 @@ def _positive_sigma(path: str, sigma: torch.Tensor, lines: list[int]) -> tuple[t
         good = sigma[~bad[:, j], j]
         if good.numel() == 0:
             raise MeasurementFileError(
-                path, f"every {_STD[j]} is <= 0; no positive standard deviation to fall back on",
-                line=lines[0], column=_STD[j],
+                path,
+                f"every {_STD[j]} is <= 0; no positive standard deviation to fall back on",
+                line=lines[0],
+                column=_STD[j],
             )
         sigma[bad[:, j], j] = torch.quantile(good, 0.5)  # mean of the middle two for even counts
     return sigma, int(bad.sum())

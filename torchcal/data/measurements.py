@@ -135,9 +135,7 @@ class Measurements:
                     raise ShapeError(f"a bool index must have shape ({self.n},), got {tuple(index.shape)}")
                 index = index.nonzero().squeeze(1)
             elif index.dtype != torch.int64 or index.dim() != 1:
-                raise ShapeError(
-                    f"index must be a 1-D LongTensor, bool mask or slice, got {_describe(index)}"
-                )
+                raise ShapeError(f"index must be a 1-D LongTensor, bool mask or slice, got {_describe(index)}")
             lines = tuple(self.lines[i] for i in index.tolist())
 
         def pick(x: torch.Tensor | None) -> torch.Tensor | None:
@@ -230,9 +228,7 @@ def read_measurements(
         if isinstance(joint_limits, torch.Tensor) and joint_limits.dtype != torch.float64:
             raise ShapeError(f"joint_limits must be float64, got {joint_limits.dtype}")
         joint_limits = torch.as_tensor(joint_limits, dtype=torch.float64)
-        if joint_limits.dim() != 2 or joint_limits.shape[1] != 2 or (
-            dof is not None and joint_limits.shape[0] != dof
-        ):
+        if joint_limits.dim() != 2 or joint_limits.shape[1] != 2 or (dof is not None and joint_limits.shape[0] != dof):
             want = f"({dof}, 2)" if dof is not None else "(dof, 2)"
             raise ShapeError(f"joint_limits must have shape {want}, got {tuple(joint_limits.shape)}")
 
@@ -256,9 +252,7 @@ def read_measurements(
         break
     if header_index is None:
         what = "is empty" if not text.strip() else "has only comments"
-        raise MeasurementFileError(
-            path_str, f"the file {what}; expected a header row such as 'q1,...,q6,x,y,z'"
-        )
+        raise MeasurementFileError(path_str, f"the file {what}; expected a header row such as 'q1,...,q6,x,y,z'")
 
     header_line = header_index + 1
     header = _parse_header(path_str, raw_lines[header_index], header_line)
@@ -289,9 +283,7 @@ def read_measurements(
         _check_positive_sigma(path_str, sigma, lines, layout, length_unit)
     if n < min_poses:
         for_what = f" for {purpose}" if purpose else ""
-        raise MeasurementFileError(
-            path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}"
-        )
+        raise MeasurementFileError(path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}")
 
     # Unit mix-ups first: they explain joint-limit violations and absurd positions better.
     if p is not None and n:
@@ -313,8 +305,15 @@ def read_measurements(
         _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name)
 
     return Measurements(
-        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str,
-        lines=tuple(lines), extra=extra,
+        q=q,
+        p=p,
+        t=t,
+        temperature=temperature,
+        sigma=sigma,
+        meta=meta,
+        source=path_str,
+        lines=tuple(lines),
+        extra=extra,
     )
 
 
@@ -329,8 +328,10 @@ def _read_text(path: str) -> str:
     except UnicodeDecodeError as err:
         line = raw.count(b"\n", 0, err.start) + 1
         raise MeasurementFileError(
-            path, f"the file is not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start})",
-            line=line, hint="save the file as UTF-8",
+            path,
+            f"the file is not UTF-8 text (byte 0x{raw[err.start]:02x} at offset {err.start})",
+            line=line,
+            hint="save the file as UTF-8",
         ) from err
 
 
@@ -342,21 +343,27 @@ def _parse_header(path: str, line: str, line_no: int) -> list[str]:
     header = [c.strip() for c in cells]
     if len(header) == 1 and (";" in line or "\t" in line):
         raise MeasurementFileError(
-            path, "the header has a single column; values must be separated by ','",
-            line=line_no, hint="the file looks ';'- or tab-separated; save it as comma-separated",
+            path,
+            "the header has a single column; values must be separated by ','",
+            line=line_no,
+            hint="the file looks ';'- or tab-separated; save it as comma-separated",
         )
     seen: dict[str, int] = {}
     for k, name in enumerate(header, start=1):
         if not name:
             trailing = k == len(header)
             raise MeasurementFileError(
-                path, f"column {k} of the header has no name", line=line_no,
+                path,
+                f"column {k} of the header has no name",
+                line=line_no,
                 hint="a trailing ',' at the end of the header adds an empty column" if trailing else None,
             )
         if name in seen:
             raise MeasurementFileError(
-                path, f"duplicate column name (columns {seen[name]} and {k} are both '{name}')",
-                line=line_no, column=name,
+                path,
+                f"duplicate column name (columns {seen[name]} and {k} are both '{name}')",
+                line=line_no,
+                column=name,
             )
         seen[name] = k
     return header
@@ -373,8 +380,9 @@ class _Layout:
     extra: list[str]
 
     @classmethod
-    def from_header(cls, path: str, header: list[str], line: int, require_positions: bool,
-                    require_joints: bool = True) -> _Layout:
+    def from_header(
+        cls, path: str, header: list[str], line: int, require_positions: bool, require_joints: bool = True
+    ) -> _Layout:
         index = {name: k for k, name in enumerate(header)}
         numbers = {}
         for name in header:
@@ -384,8 +392,10 @@ class _Layout:
             digits = match.group(1)
             if digits.startswith("0"):
                 raise MeasurementFileError(
-                    path, f"joint columns are named q1, q2, ... without leading zeros, got '{name}'",
-                    line=line, column=name,
+                    path,
+                    f"joint columns are named q1, q2, ... without leading zeros, got '{name}'",
+                    line=line,
+                    column=name,
                 )
             numbers[int(digits)] = name
         if not numbers and not require_joints:  # x, y alone: name the missing z rather than q1
@@ -396,8 +406,7 @@ class _Layout:
         for k in range(1, max(numbers, default=0) + 1):
             if k not in numbers:
                 present = ", ".join(numbers[j] for j in sorted(numbers))
-                _missing(path, header, line, [f"q{k}"],
-                         f"joint columns must run q1..qN without gaps (found {present})")
+                _missing(path, header, line, [f"q{k}"], f"joint columns must run q1..qN without gaps (found {present})")
         joints = [numbers[k] for k in range(1, len(numbers) + 1)]
 
         has_positions = _all_or_none(path, header, line, _POSITION, "probe positions")
@@ -412,8 +421,7 @@ def _all_or_none(path: str, header: list[str], line: int, names: Sequence[str], 
     present = [n for n in names if n in header]
     if present and len(present) != len(names):
         missing = [n for n in names if n not in header]
-        _missing(path, header, line, missing,
-                 f"{what} need all of {', '.join(names)} (found {', '.join(present)})")
+        _missing(path, header, line, missing, f"{what} need all of {', '.join(names)} (found {', '.join(present)})")
     return bool(present)
 
 
@@ -423,8 +431,11 @@ def _missing(path: str, header: list[str], line: int, missing: list[str], why: s
     near = [f"'{lower[m.lower()]}'" for m in missing if m.lower() in lower]
     hint = f"column names are case-sensitive; found {', '.join(near)}" if near else None
     raise MeasurementFileError(
-        path, f"missing column{'s' if len(missing) > 1 else ''} {names}: {why}",
-        line=line, column=missing[0], hint=hint,
+        path,
+        f"missing column{'s' if len(missing) > 1 else ''} {names}: {why}",
+        line=line,
+        column=missing[0],
+        hint=hint,
     )
 
 
@@ -441,8 +452,10 @@ def _check_joint_count(path, layout: _Layout, line: int, dof, joint_limits, robo
     if n != expected:
         columns = "q1" if n == 1 else f"q1..q{n}"
         raise MeasurementFileError(
-            path, f"file has {n} joint column{'s' if n != 1 else ''} ({columns}) but {who}",
-            line=line, column=f"q{min(n, expected) + 1}",
+            path,
+            f"file has {n} joint column{'s' if n != 1 else ''} ({columns}) but {who}",
+            line=line,
+            column=f"q{min(n, expected) + 1}",
         )
 
 
@@ -478,7 +491,9 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
             raise MeasurementFileError(path, "unterminated quote in this row", line=line_no)
         if data_lines[index].lstrip().startswith("#"):
             raise MeasurementFileError(
-                path, "a comment line after the header", line=line_no,
+                path,
+                "a comment line after the header",
+                line=line_no,
                 hint="comment lines are allowed only before the header",
             )
         if len(row) != ncol:
@@ -510,13 +525,9 @@ def _check_cells(path: str, row: list[str], header: list[str], line: int) -> Non
         if value is None or "_" in text:
             raise MeasurementFileError(path, f"'{text}' is not a number", line=line, column=name)
         if math.isnan(value):
-            raise MeasurementFileError(
-                path, f"'{text}' is NaN; values must be finite", line=line, column=name
-            )
+            raise MeasurementFileError(path, f"'{text}' is NaN; values must be finite", line=line, column=name)
         if math.isinf(value):
-            raise MeasurementFileError(
-                path, f"'{text}' is infinite; values must be finite", line=line, column=name
-            )
+            raise MeasurementFileError(path, f"'{text}' is infinite; values must be finite", line=line, column=name)
 
 
 def _wrong_cell_count(path: str, row: list[str], header: list[str], line: int, raw: str) -> None:
@@ -525,14 +536,17 @@ def _wrong_cell_count(path: str, row: list[str], header: list[str], line: int, r
         raise MeasurementFileError(
             path,
             f"row has {n} values but the header has {ncol} columns; '{header[n]}' and after are missing",
-            line=line, column=header[n],
+            line=line,
+            column=header[n],
         )
     hint = None
     if re.search(r"\d,\d", raw):
         hint = "use '.' as the decimal point; ',' only separates values"
     raise MeasurementFileError(
-        path, f"row has {n} values but the header has {ncol} columns (extra values after '{header[-1]}')",
-        line=line, hint=hint,
+        path,
+        f"row has {n} values but the header has {ncol} columns (extra values after '{header[-1]}')",
+        line=line,
+        hint=hint,
     )
 
 
@@ -548,8 +562,11 @@ def _check_monotonic(path: str, t: torch.Tensor, lines: list[int]) -> None:
     if back.numel():
         i = int(back[0, 0]) + 1
         raise MeasurementFileError(
-            path, f"t = {t[i].item()!r} s is earlier than {t[i - 1].item()!r} s on line {lines[i - 1]}; "
-            "t must be non-decreasing within a file", line=lines[i], column="t",
+            path,
+            f"t = {t[i].item()!r} s is earlier than {t[i - 1].item()!r} s on line {lines[i - 1]}; "
+            "t must be non-decreasing within a file",
+            line=lines[i],
+            column="t",
         )
 
 
@@ -558,8 +575,10 @@ def _check_positive_sigma(path, sigma, lines, layout: _Layout, unit: str) -> Non
     if bad.any():
         i, j = _first_bad(bad, [layout.index[c] for c in _SIGMA])
         raise MeasurementFileError(
-            path, f"{_SIGMA[j]} = {sigma[i, j].item()!r} {unit}; a standard deviation must be > 0",
-            line=lines[i], column=_SIGMA[j],
+            path,
+            f"{_SIGMA[j]} = {sigma[i, j].item()!r} {unit}; a standard deviation must be > 0",
+            line=lines[i],
+            column=_SIGMA[j],
         )
 
 
@@ -591,8 +610,11 @@ def _check_sigma_unit(path, sigma, lines, layout: _Layout) -> None:
     if median > _MAX_MEDIAN_SIGMA_M:
         i, j = _first_bad(sigma > _MAX_MEDIAN_SIGMA_M, [layout.index[c] for c in _SIGMA])
         raise MeasurementFileError(
-            path, f"standard deviations look like millimetres: their median is {median:.6g} m, "
-            f"more than {_MAX_MEDIAN_SIGMA_M:g} m (1 cm)", line=lines[i], column=_SIGMA[j],
+            path,
+            f"standard deviations look like millimetres: their median is {median:.6g} m, "
+            f"more than {_MAX_MEDIAN_SIGMA_M:g} m (1 cm)",
+            line=lines[i],
+            column=_SIGMA[j],
             hint="if x, y, z and sx, sy, sz are in millimetres, pass --length-unit mm (length_unit='mm')",
         )
 
@@ -605,8 +627,11 @@ def _check_angle_unit(path, q, lines, layout: _Layout, limits=None) -> None:
     if bad.any():
         i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
         raise MeasurementFileError(
-            path, f"{layout.joints[j]} = {q[i, j].item()!r} rad is more than one turn (2*pi); "
-            "the joint readings look like degrees", line=lines[i], column=layout.joints[j],
+            path,
+            f"{layout.joints[j]} = {q[i, j].item()!r} rad is more than one turn (2*pi); "
+            "the joint readings look like degrees",
+            line=lines[i],
+            column=layout.joints[j],
             hint="if q1..qN are in degrees, pass --angle-unit deg (angle_unit='deg')",
         )
 
@@ -627,7 +652,10 @@ def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, rob
         bounds = f"[{lo:.6g}, {hi:.6g}] rad"
     whose = f"robot '{robot_name}'" if robot_name else "the robot"
     raise MeasurementFileError(
-        path, f"{name} = {shown} is outside the limits of {whose}, {bounds}", line=lines[i], column=name,
+        path,
+        f"{name} = {shown} is outside the limits of {whose}, {bounds}",
+        line=lines[i],
+        column=name,
     )
 
 
@@ -682,9 +710,7 @@ def write_measurements(
         columns = list(columns)
         unknown = [c for c in columns if c not in available]
         if unknown:
-            raise OptionError(
-                f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}"
-            )
+            raise OptionError(f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}")
         if len(set(columns)) != len(columns):
             raise OptionError(f"columns lists a name twice: {columns}")
 
@@ -694,7 +720,8 @@ def write_measurements(
         key, value = str(key), str(value)
         if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.\-]*", key) or "\n" in value or "\r" in value:
             raise MeasurementFileError(
-                path_str, f"meta entry {key!r}: {value!r} cannot be written as a '# key: value' line "
+                path_str,
+                f"meta entry {key!r}: {value!r} cannot be written as a '# key: value' line "
                 "(keys are letters, digits, '_', '.', '-'; values are one line)",
             )
         head.append(f"# {key}: {value}\n")
@@ -705,8 +732,10 @@ def write_measurements(
     if not finite.all():
         i, j = _first_bad(~finite, list(range(len(columns))))
         raise MeasurementFileError(
-            path_str, f"cannot write {table[i, j].item()!r}: values must be finite",
-            line=len(head) + i + 1, column=columns[j],
+            path_str,
+            f"cannot write {table[i, j].item()!r}: values must be finite",
+            line=len(head) + i + 1,
+            column=columns[j],
         )
 
     _atomic_write(path_str, head, table.tolist())

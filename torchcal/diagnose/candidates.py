@@ -115,8 +115,10 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
     for j in range(1, robot.dof + 1):
         if float(levers[j - 1]) < MIN_LEVER:
             for kind in ("compliance", "backlash", "cyclic"):
-                skip(f"{kind}:{j}", f"joint {j} moves the probe by {float(levers[j - 1]) * 1e3:.2g} mm/rad "
-                     f"(< {MIN_LEVER * 1e3:g})")
+                skip(
+                    f"{kind}:{j}",
+                    f"joint {j} moves the probe by {float(levers[j - 1]) * 1e3:.2g} mm/rad (< {MIN_LEVER * 1e3:g})",
+                )
             continue
         if tau is None:
             skip(f"compliance:{j}", "the robot description has no link masses")

@@ -44,9 +44,16 @@ F64 = torch.float64
 MAX_DEGREE = 3
 
 #: (variable basis, form) -> physical kind; forms not listed have no effect class
-PHYSICAL = {("fourier", "fourier"): "cyclic", ("fourier", "polynomial"): "transmission",
-            ("tau", "linear"): "compliance", ("tau", "step"): "backlash", ("flank", "step"): "backlash",
-            ("t", "linear"): "drift", ("t", "exponential"): "drift", ("temperature", "linear"): "drift"}
+PHYSICAL = {
+    ("fourier", "fourier"): "cyclic",
+    ("fourier", "polynomial"): "transmission",
+    ("tau", "linear"): "compliance",
+    ("tau", "step"): "backlash",
+    ("flank", "step"): "backlash",
+    ("t", "linear"): "drift",
+    ("t", "exponential"): "drift",
+    ("temperature", "linear"): "drift",
+}
 
 
 @dataclass
@@ -111,10 +118,18 @@ class FormChoice:
 
     def to_dict(self) -> dict:
         v = self.variable
-        return {"variable": v.name, "joint": v.joint, "kind": self.kind, "form": self.form, "order": self.order,
-                "params": self.params(), "reference": self.reference, "scale": self.scale,
-                "criterion": "BIC = n ln(RSS/n) + k ln n",
-                "bic_table": [f.row() for f in sorted(self.table, key=lambda f: f.bic)]}
+        return {
+            "variable": v.name,
+            "joint": v.joint,
+            "kind": self.kind,
+            "form": self.form,
+            "order": self.order,
+            "params": self.params(),
+            "reference": self.reference,
+            "scale": self.scale,
+            "criterion": "BIC = n ln(RSS/n) + k ln n",
+            "bic_table": [f.row() for f in sorted(self.table, key=lambda f: f.bic)],
+        }
 
     def effect(self, model: MeasurementModel) -> Effect | None:
         """An effect module carrying the chosen form, initialised at the estimate (None: no class fits)."""
@@ -134,10 +149,15 @@ class FormChoice:
             a = R.T @ b[:3]
             if self.form == "exponential":
                 rates = torch.cat([a / self.best.tau, torch.zeros(3, dtype=F64)])
-                return Drift(v.name, "instrument", rates=rates, reference=self.reference, form="exponential",
-                             tau=self.best.tau)
-            return Drift(v.name, "instrument", rates=torch.cat([a / self.scale, torch.zeros(3, dtype=F64)]),
-                         reference=self.reference)
+                return Drift(
+                    v.name, "instrument", rates=rates, reference=self.reference, form="exponential", tau=self.best.tau
+                )
+            return Drift(
+                v.name,
+                "instrument",
+                rates=torch.cat([a / self.scale, torch.zeros(3, dtype=F64)]),
+                reference=self.reference,
+            )
         return None
 
 
@@ -250,8 +270,9 @@ def _exponential(f: _Fitter, t: Tensor, t0: float, n_grid: int = 48) -> FormFit:
     return fit
 
 
-def identify_form(ws: Workspace, var: Variable, *, max_harmonic: int = MAX_HARMONIC,
-                  max_degree: int = MAX_DEGREE) -> FormChoice:
+def identify_form(
+    ws: Workspace, var: Variable, *, max_harmonic: int = MAX_HARMONIC, max_degree: int = MAX_DEGREE
+) -> FormChoice:
     """Fit the forms of ``var``'s family (module docstring) and choose one by BIC.
 
     Args:
@@ -266,8 +287,9 @@ def _identify(ws: Workspace, var: Variable, max_harmonic: int, max_degree: int) 
     f = _Fitter(ws, var)
     x = var.values
     fam = _family(var)
-    table = [FormFit("none", None, 0, ws.rss0, f.bic(ws.rss0, 0), torch.zeros(0, dtype=F64),
-                     torch.zeros(0, 0, dtype=F64))]
+    table = [
+        FormFit("none", None, 0, ws.rss0, f.bic(ws.rss0, 0), torch.zeros(0, dtype=F64), torch.zeros(0, 0, dtype=F64))
+    ]
     reference, scale = 0.0, 1.0
     if fam == "fourier":
         table += _fourier_forms(f, x, max_harmonic)

@@ -105,8 +105,11 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
         if _varies(q):
             out.append(Variable(f"q{j + 1}", f"q{j + 1} [rad]", "joint", "fourier", q, j + 1, G))
         if tau is not None and _varies(tau[:, j]):
-            out.append(Variable(f"tau{j + 1}", f"gravity torque at joint {j + 1} [N m]", "joint", "spline",
-                                tau[:, j], j + 1, G))
+            out.append(
+                Variable(
+                    f"tau{j + 1}", f"gravity torque at joint {j + 1} [N m]", "joint", "spline", tau[:, j], j + 1, G
+                )
+            )
         if ctx.direction is not None:
             s, what = ctx.direction[:, j], "motion direction"
         elif tau is not None:
@@ -116,8 +119,9 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
         if s is not None:
             s = torch.where(s == 0, torch.ones_like(s), s)
             if not bool((s == s[0]).all()):
-                out.append(Variable(f"flank{j + 1}", f"loaded flank of joint {j + 1} ({what})", "joint", "step",
-                                    s, j + 1, G))
+                out.append(
+                    Variable(f"flank{j + 1}", f"loaded flank of joint {j + 1} ({what})", "joint", "step", s, j + 1, G)
+                )
     for name, v, unit in (("t", ctx.t, "s"), ("temperature", ctx.temperature, "degC")):
         if v is not None and _varies(v):
             out.append(Variable(name, f"{name} [{unit}]", "cartesian", "spline", v))
@@ -185,8 +189,14 @@ class Workspace:
         joint_coefs: ``dp/dq`` ``(N, 3, dof)`` for the default projection.
     """
 
-    def __init__(self, residuals: Tensor, W: Tensor | None = None, sigma: Tensor | float | None = None,
-                 jacobian: Tensor | None = None, joint_coefs: Tensor | None = None):
+    def __init__(
+        self,
+        residuals: Tensor,
+        W: Tensor | None = None,
+        sigma: Tensor | float | None = None,
+        jacobian: Tensor | None = None,
+        joint_coefs: Tensor | None = None,
+    ):
         r = residuals.detach().to(F64)
         n = r.shape[0]
         if W is None:
@@ -273,11 +283,24 @@ class Localisation:
 
     def to_dict(self, with_smooth: bool = False) -> dict:
         v = self.variable
-        out = {"variable": v.name, "label": v.label, "kind": v.kind, "joint": v.joint, "basis": v.basis,
-               "test": "penalised smooth (GCV), dSS against a scaled chi-square (Satterthwaite)",
-               "edf": self.edf, "statistic": self.statistic, "ref_scale": self.ref_scale, "ref_dof": self.ref_dof,
-               "p_value": self.p_value, "log10_p": self.log10_p, "p_bonferroni": self.p_bonferroni,
-               "n_variables": self.n_variables, "share": self.share, "lambda": self.lam}
+        out = {
+            "variable": v.name,
+            "label": v.label,
+            "kind": v.kind,
+            "joint": v.joint,
+            "basis": v.basis,
+            "test": "penalised smooth (GCV), dSS against a scaled chi-square (Satterthwaite)",
+            "edf": self.edf,
+            "statistic": self.statistic,
+            "ref_scale": self.ref_scale,
+            "ref_dof": self.ref_dof,
+            "p_value": self.p_value,
+            "log10_p": self.log10_p,
+            "p_bonferroni": self.p_bonferroni,
+            "n_variables": self.n_variables,
+            "share": self.share,
+            "lambda": self.lam,
+        }
         if with_smooth:
             out.update(grid=self.grid.tolist(), smooth=self.smooth.tolist(), smooth_se=self.smooth_se.tolist())
         return out
@@ -322,9 +345,15 @@ def fit_smooth(X: Tensor, r: Tensor, S: Tensor, n_eff: int, n_lambda: int = 41) 
     Linv_A = torch.linalg.solve_triangular(Li, A, upper=False)
     w = torch.linalg.eigvalsh(torch.linalg.solve_triangular(Li, Linv_A.T, upper=False)).clamp(0.0, 1.0)
     Minv = torch.cholesky_inverse(Li)
-    return {"beta": beta[i], "lam": float(lams[i]), "edf": float(edf[i]), "rss": float(rss[i]),
-            "v": 2 * w - w.square(), "cov_unscaled": Minv @ A @ Minv,
-            "s2": float(rss[i]) / max(n_eff - float(edf[i]), 1.0)}
+    return {
+        "beta": beta[i],
+        "lam": float(lams[i]),
+        "edf": float(edf[i]),
+        "rss": float(rss[i]),
+        "v": 2 * w - w.square(),
+        "cov_unscaled": Minv @ A @ Minv,
+        "s2": float(rss[i]) / max(n_eff - float(edf[i]), 1.0),
+    }
 
 
 def satterthwaite_tail(stat: float, v: Tensor) -> tuple[float, float, float, float]:
@@ -356,25 +385,58 @@ def localise_variable(ws: Workspace, var: Variable, n_variables: int = 1) -> Loc
     if var.kind == "cartesian":
         pb = Bg.shape[1]
         f = torch.stack([Bg @ beta[c * pb : (c + 1) * pb] for c in range(3)], dim=1)
-        se = torch.stack([((Bg @ cov[c * pb : (c + 1) * pb, c * pb : (c + 1) * pb]) * Bg).sum(1).clamp(min=0).sqrt()
-                          for c in range(3)], dim=1)
+        se = torch.stack(
+            [
+                ((Bg @ cov[c * pb : (c + 1) * pb, c * pb : (c + 1) * pb]) * Bg).sum(1).clamp(min=0).sqrt()
+                for c in range(3)
+            ],
+            dim=1,
+        )
     else:
         f = Bg @ beta
         se = ((Bg @ cov) * Bg).sum(1).clamp(min=0).sqrt()
-    return Localisation(var, fit["edf"], stat, a, b, p, l10, min(1.0, n_variables * p),
-                        dss / ws.rss0 if ws.rss0 > 0 else 0.0, fit["lam"], n_variables, grid, f, se)
+    return Localisation(
+        var,
+        fit["edf"],
+        stat,
+        a,
+        b,
+        p,
+        l10,
+        min(1.0, n_variables * p),
+        dss / ws.rss0 if ws.rss0 > 0 else 0.0,
+        fit["lam"],
+        n_variables,
+        grid,
+        f,
+        se,
+    )
 
 
-def workspace(model: MeasurementModel, ctx: Context, residuals: Tensor, *, W: Tensor | None = None,
-              sigma: Tensor | float | None = None, jacobian: Tensor | None = None) -> Workspace:
+def workspace(
+    model: MeasurementModel,
+    ctx: Context,
+    residuals: Tensor,
+    *,
+    W: Tensor | None = None,
+    sigma: Tensor | float | None = None,
+    jacobian: Tensor | None = None,
+) -> Workspace:
     """A :class:`Workspace` for ``model``'s residuals at ``ctx`` (default projection: instrument + joint offsets)."""
     coefs = None if jacobian is not None else tracker_joint_jacobian(model, ctx)
     return Workspace(residuals, W=W, sigma=sigma, jacobian=jacobian, joint_coefs=coefs)
 
 
-def localise(model: MeasurementModel, ctx: Context, residuals: Tensor, *, W: Tensor | None = None,
-             sigma: Tensor | float | None = None, jacobian: Tensor | None = None,
-             variables: list[Variable] | None = None) -> list[Localisation]:
+def localise(
+    model: MeasurementModel,
+    ctx: Context,
+    residuals: Tensor,
+    *,
+    W: Tensor | None = None,
+    sigma: Tensor | float | None = None,
+    jacobian: Tensor | None = None,
+    variables: list[Variable] | None = None,
+) -> list[Localisation]:
     """Test the residual of ``model`` against every candidate variable (module docstring); strongest first.
 
     Args:
@@ -405,6 +467,21 @@ def family_wise_p(locs: list[Localisation]) -> float:
     return min((loc.p_bonferroni for loc in locs), default=1.0)
 
 
-__all__ = ["Localisation", "Variable", "Workspace", "bspline_basis", "candidate_variables", "family_wise_p",
-           "fit_smooth", "fourier_basis", "localise", "localise_variable", "satterthwaite_tail",
-           "tracker_joint_jacobian", "unexplained", "workspace", "MAX_HARMONIC", "N_SPLINE"]
+__all__ = [
+    "Localisation",
+    "Variable",
+    "Workspace",
+    "bspline_basis",
+    "candidate_variables",
+    "family_wise_p",
+    "fit_smooth",
+    "fourier_basis",
+    "localise",
+    "localise_variable",
+    "satterthwaite_tail",
+    "tracker_joint_jacobian",
+    "unexplained",
+    "workspace",
+    "MAX_HARMONIC",
+    "N_SPLINE",
+]

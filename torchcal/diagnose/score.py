@@ -56,11 +56,21 @@ class Score:
         return self.identifiable and self.p_bonferroni < alpha
 
     def to_dict(self) -> dict:
-        return {**self.candidate.to_dict(), "test": "score test (chi-square) on the linearised model",
-                "n_params": self.k, "delta_ss": self.delta_ss, "statistic": self.statistic, "dof": self.k,
-                "p_value": self.p_value, "log10_p": self.log10_p, "p_bonferroni": self.p_bonferroni,
-                "n_candidates": self.n_candidates, "bic_change": self.bic_change,
-                "independence": self.independence, "identifiable": self.identifiable}
+        return {
+            **self.candidate.to_dict(),
+            "test": "score test (chi-square) on the linearised model",
+            "n_params": self.k,
+            "delta_ss": self.delta_ss,
+            "statistic": self.statistic,
+            "dof": self.k,
+            "p_value": self.p_value,
+            "log10_p": self.log10_p,
+            "p_bonferroni": self.p_bonferroni,
+            "n_candidates": self.n_candidates,
+            "bic_change": self.bic_change,
+            "independence": self.independence,
+            "identifiable": self.identifiable,
+        }
 
 
 def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor) -> Tensor:
@@ -82,8 +92,15 @@ def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p:
     return torch.func.jacfwd(fun)(theta0).detach()
 
 
-def score_candidates(model: MeasurementModel, result: LMResult, ctx: Context, p: Tensor, W: Tensor,
-                     cands: list[Candidate], tol: float = DEFAULT_TOL) -> list[Score]:
+def score_candidates(
+    model: MeasurementModel,
+    result: LMResult,
+    ctx: Context,
+    p: Tensor,
+    W: Tensor,
+    cands: list[Candidate],
+    tol: float = DEFAULT_TOL,
+) -> list[Score]:
     """Score every candidate at the fit ``result`` of ``model`` to ``p`` (module docstring); best first.
 
     Args:
@@ -108,8 +125,8 @@ def score_candidates(model: MeasurementModel, result: LMResult, ctx: Context, p:
         # (u + k) x (u + k) factor makes the column walk cheap next to the 3N-row matrix
         _, R = torch.linalg.qr(torch.cat([J / scale, C / C.norm(dim=0).clamp(min=1e-300)], dim=1))
         ida = analyse(R, [f"x{i}" for i in range(J.shape[1] + k)], tol=tol)
-        indep = float(ida.independence[J.shape[1]:].min())
-        identifiable = bool(ida.free[J.shape[1]:].all())
+        indep = float(ida.independence[J.shape[1] :].min())
+        identifiable = bool(ida.free[J.shape[1] :].all())
         Cn = C / C.norm(dim=0).clamp(min=1e-300)
         for _ in range(2):
             Cn = Cn - Q @ (Q.T @ Cn)
@@ -121,7 +138,8 @@ def score_candidates(model: MeasurementModel, result: LMResult, ctx: Context, p:
             dss = 0.0
         stat = dss / s0sq if s0sq > 0 else float("inf")
         pv, l10 = chi2_sf_log10(stat, k)
-        out.append(Score(cand, k, dss, stat, pv, l10, min(1.0, K * pv), -stat + k * math.log(n_obs), indep,
-                         identifiable, K))
+        out.append(
+            Score(cand, k, dss, stat, pv, l10, min(1.0, K * pv), -stat + k * math.log(n_obs), indep, identifiable, K)
+        )
     out.sort(key=lambda s: (not s.identifiable, s.log10_p, -s.statistic))
     return out

@@ -90,8 +90,13 @@ class OpenCandidate:
         return out
 
     def to_dict(self) -> dict:
-        out = {"name": self.name, "kind": self.kind, "joint": self.joint, "source": "localisation",
-               **self.form_params()}
+        out = {
+            "name": self.name,
+            "kind": self.kind,
+            "joint": self.joint,
+            "source": "localisation",
+            **self.form_params(),
+        }
         if self.variable is not None:
             out["variable"] = self.variable
         return out
@@ -125,10 +130,15 @@ class LocalisationScore:
 
     def to_dict(self) -> dict:
         loc = self.localisation.to_dict()
-        return {"test": "localisation, then form selection by BIC", "p_bonferroni": loc["p_bonferroni"],
-                "log10_p": loc["log10_p"], "statistic": loc["statistic"], "localisation": loc,
-                "bic_change": self.choice.best.bic - next(f.bic for f in self.choice.table if f.form == "none"),
-                "form": self.choice.to_dict()}
+        return {
+            "test": "localisation, then form selection by BIC",
+            "p_bonferroni": loc["p_bonferroni"],
+            "log10_p": loc["log10_p"],
+            "statistic": loc["statistic"],
+            "localisation": loc,
+            "bic_change": self.choice.best.bic - next(f.bic for f in self.choice.table if f.form == "none"),
+            "form": self.choice.to_dict(),
+        }
 
 
 def residual_workspace(model: MeasurementModel, ctx: Context, p: Tensor, fit) -> tuple[Tensor, Workspace]:
@@ -145,8 +155,14 @@ def localise_fit(model: MeasurementModel, ctx: Context, p: Tensor, fit) -> tuple
     return localise(model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian), ws
 
 
-def open_candidates(model: MeasurementModel, locs: list[Localisation], ws: Workspace, alpha: float,
-                    exclude: set[str], max_variables: int = MAX_VARIABLES) -> tuple[list[OpenCandidate], list[dict]]:
+def open_candidates(
+    model: MeasurementModel,
+    locs: list[Localisation],
+    ws: Workspace,
+    alpha: float,
+    exclude: set[str],
+    max_variables: int = MAX_VARIABLES,
+) -> tuple[list[OpenCandidate], list[dict]]:
     """Open candidates at the significant variables of ``locs`` (at most one per effect name).
 
     Args:
@@ -170,8 +186,9 @@ def open_candidates(model: MeasurementModel, locs: list[Localisation], ws: Works
             notes.append({"variable": loc.name, "form": "none", "reason": "BIC prefers no effect at this variable"})
             continue
         if fc.kind is None:
-            notes.append({"variable": loc.name, "form": fc.form, "reason": f"no effect class for a {fc.form} form "
-                                                                            f"in {loc.name}"})
+            notes.append(
+                {"variable": loc.name, "form": fc.form, "reason": f"no effect class for a {fc.form} form in {loc.name}"}
+            )
             continue
         if fc.kind == "drift" and loc.name == "temperature":
             # the menu's temperature drift is the arm's scale; an instrument translation along temperature would
@@ -184,16 +201,18 @@ def open_candidates(model: MeasurementModel, locs: list[Localisation], ws: Works
             continue
         cand = OpenCandidate(fc, loc, eff)
         if cand.name in names:
-            notes.append({"variable": loc.name, "form": fc.form,
-                          "reason": f"{cand.name} is already in the model or was tried"})
+            notes.append(
+                {"variable": loc.name, "form": fc.form, "reason": f"{cand.name} is already in the model or was tried"}
+            )
             continue
         names.add(cand.name)
         out.append(cand)
     return out, notes
 
 
-def unexplained_entries(model: MeasurementModel, ctx: Context, p: Tensor, fit, alpha: float,
-                        reasons: dict[str, str] | None = None) -> list[dict]:
+def unexplained_entries(
+    model: MeasurementModel, ctx: Context, p: Tensor, fit, alpha: float, reasons: dict[str, str] | None = None
+) -> list[dict]:
     """What the final model leaves in the training residual, strongest first (module docstring).
 
     Args:
@@ -216,16 +235,31 @@ def unexplained_entries(model: MeasurementModel, ctx: Context, p: Tensor, fit, a
         fc = identify_form(ws, loc.variable)
         reason = (reasons or {}).get(loc.name)
         if reason is None:
-            reason = (f"no effect class for a {fc.form} form" if fc.kind is None
-                      else f"the loop did not confirm a {fc.kind} effect here")
+            reason = (
+                f"no effect class for a {fc.form} form"
+                if fc.kind is None
+                else f"the loop did not confirm a {fc.kind} effect here"
+            )
         d = loc.to_dict()
-        out.append({"variable": loc.name, "label": loc.variable.label, "joint": loc.variable.joint,
-                    "share": loc.share, "p_bonferroni": loc.p_bonferroni,
-                    "form": {k: v for k, v in fc.to_dict().items() if k != "bic_table"}
-                    | {"bic_table": fc.to_dict()["bic_table"][:5]},
-                    "reason": reason, "evidence": d,
-                    "smooth": {"grid": loc.grid.tolist(), "value": loc.smooth.tolist(), "se": loc.smooth_se.tolist(),
-                               "unit": "rad" if loc.variable.kind == "joint" else "m"}})
+        out.append(
+            {
+                "variable": loc.name,
+                "label": loc.variable.label,
+                "joint": loc.variable.joint,
+                "share": loc.share,
+                "p_bonferroni": loc.p_bonferroni,
+                "form": {k: v for k, v in fc.to_dict().items() if k != "bic_table"}
+                | {"bic_table": fc.to_dict()["bic_table"][:5]},
+                "reason": reason,
+                "evidence": d,
+                "smooth": {
+                    "grid": loc.grid.tolist(),
+                    "value": loc.smooth.tolist(),
+                    "se": loc.smooth_se.tolist(),
+                    "unit": "rad" if loc.variable.kind == "joint" else "m",
+                },
+            }
+        )
     return out
 
 
@@ -254,5 +288,14 @@ def effect_form_params(model: MeasurementModel, index: int, cand: OpenCandidate,
     return out
 
 
-__all__ = ["LocalisationScore", "OpenCandidate", "effect_form_params", "localise_fit", "open_candidates",
-           "refresh_unexplained", "residual_workspace", "unexplained_entries", "MAX_VARIABLES"]
+__all__ = [
+    "LocalisationScore",
+    "OpenCandidate",
+    "effect_form_params",
+    "localise_fit",
+    "open_candidates",
+    "refresh_unexplained",
+    "residual_workspace",
+    "unexplained_entries",
+    "MAX_VARIABLES",
+]

@@ -36,8 +36,7 @@ def _find(model: MeasurementModel, cand: Candidate) -> int:
     raise ValueError(f"the model has no effect {cand.name}")
 
 
-def residual_view(cand: Candidate, before: MeasurementModel, after: MeasurementModel, ctx: Context,
-                  p: Tensor) -> dict:
+def residual_view(cand: Candidate, before: MeasurementModel, after: MeasurementModel, ctx: Context, p: Tensor) -> dict:
     """Per-pose regressor and residuals projected on the effect's direction (module docstring) [m].
 
     Returns:
@@ -56,5 +55,10 @@ def residual_view(cand: Candidate, before: MeasurementModel, after: MeasurementM
             u = d * torch.sign(dv)[:, None]
         u = u / u.norm(dim=-1, keepdim=True).clamp(min=1e-300)
         x, xlabel = cand.regressor(after.robot, ctx)
-    return {"x": x, "xlabel": xlabel, "before": (e_before * u).sum(-1), "after": (e_after * u).sum(-1),
-            "effect": (d * u).sum(-1)}
+    return {
+        "x": x,
+        "xlabel": xlabel,
+        "before": (e_before * u).sum(-1),
+        "after": (e_after * u).sum(-1),
+        "effect": (d * u).sum(-1),
+    }

@@ -10,8 +10,21 @@ from torchcal.effects.model import MeasurementModel
 from torchcal.effects.registry import KINDS, NAMED_KINDS, effect_from_config
 
 __all__ = [
-    "KINDS", "NAMED_KINDS", "Acts",
-    "Backlash", "Compliance", "Context", "CorrectionNet", "Cyclic", "Drift", "Effect", "KernelCorrection",
-    "LearnedEffect", "MeasurementModel", "effect_from_config", "fit_kernel_correction", "motion_direction",
+    "KINDS",
+    "NAMED_KINDS",
+    "Acts",
+    "Backlash",
+    "Compliance",
+    "Context",
+    "CorrectionNet",
+    "Cyclic",
+    "Drift",
+    "Effect",
+    "KernelCorrection",
+    "LearnedEffect",
+    "MeasurementModel",
+    "effect_from_config",
+    "fit_kernel_correction",
+    "motion_direction",
 ]
 __all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction"]

@@ -44,8 +44,9 @@ class Context:
         def pick(x):
             return None if x is None else x[idx]
 
-        return Context(q=self.q[idx], t=pick(self.t), temperature=pick(self.temperature),
-                       direction=pick(self.direction))
+        return Context(
+            q=self.q[idx], t=pick(self.t), temperature=pick(self.temperature), direction=pick(self.direction)
+        )
 
 
 def motion_direction(q: Tensor, deadband: float = 0.0) -> Tensor:

@@ -51,8 +51,15 @@ class Drift(Effect):
     TARGETS = ("instrument", "scale")
     FORMS = ("linear", "exponential")
 
-    def __init__(self, variable: str = "t", target: str = "instrument", rates=None, reference: float = 0.0,
-                 form: str = "linear", tau: float = 1800.0):
+    def __init__(
+        self,
+        variable: str = "t",
+        target: str = "instrument",
+        rates=None,
+        reference: float = 0.0,
+        form: str = "linear",
+        tau: float = 1800.0,
+    ):
         super().__init__(joint=None)
         if variable not in self.VARIABLES:
             raise OptionError(f"drift variable '{variable}' is not one of {self.VARIABLES}")
@@ -116,8 +123,13 @@ class Drift(Effect):
         return f"drift({self.variable}, {self.target}{form})"
 
     def describe(self) -> dict:
-        out = {"variable": self.variable, "target": self.target, "form": self.form,
-               "rates": self.rates.detach().tolist(), "reference": float(self.reference)}
+        out = {
+            "variable": self.variable,
+            "target": self.target,
+            "form": self.form,
+            "rates": self.rates.detach().tolist(),
+            "reference": float(self.reference),
+        }
         if self.form == "exponential":
             out["tau"] = self.tau
         return out

@@ -85,8 +85,10 @@ class GPSettings:
         if bad:
             raise OptionError(f"extra GP inputs {bad} are not among {', '.join(EXTRA_INPUTS)}")
         if min(self.max_inducing, self.max_fit, self.m_fit, self.iterations) < 1:
-            raise OptionError("max_inducing, max_fit, m_fit and iterations must be >= 1, got "
-                              f"{self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}")
+            raise OptionError(
+                "max_inducing, max_fit, m_fit and iterations must be >= 1, got "
+                f"{self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}"
+            )
 
 
 # ----------------------------------------------------------------------------- kernel
@@ -158,8 +160,16 @@ def _chol(K: Tensor, jitter: Tensor) -> Tensor:
     raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
 
 
-def _bound(x: Tensor, y: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool,
-           exact: bool, dists: tuple[Tensor, Tensor] | None = None) -> Tensor:
+def _bound(
+    x: Tensor,
+    y: Tensor,
+    z: Tensor,
+    h: dict[str, Tensor],
+    periodic: Tensor,
+    ard: bool,
+    exact: bool,
+    dists: tuple[Tensor, Tensor] | None = None,
+) -> Tensor:
     """Titsias's collapsed evidence bound (exact log marginal likelihood when ``exact``), summed over outputs.
 
     ``dists``: the distances ``(_dist(z, z), _dist(z, x))`` when precomputed.
@@ -202,8 +212,14 @@ class GPCorrection(Effect):
     kind = "learned"
     acts_on = "cartesian"
 
-    def __init__(self, dof: int, n_inducing: int = 0, extras: tuple[str, ...] | list[str] = (),
-                 additive: str = "rbf", ard: bool = True):
+    def __init__(
+        self,
+        dof: int,
+        n_inducing: int = 0,
+        extras: tuple[str, ...] | list[str] = (),
+        additive: str = "rbf",
+        ard: bool = True,
+    ):
         super().__init__(joint=None)
         if additive not in ADDITIVE_FORMS:
             raise OptionError(f"additive form '{additive}' is not one of {', '.join(ADDITIVE_FORMS)}")
@@ -228,8 +244,13 @@ class GPCorrection(Effect):
     # -- inputs and hyperparameters
 
     def hyper(self) -> dict[str, Tensor]:
-        return {"add_var": self.add_var, "add_len": self.add_len, "ard_var": self.ard_var,
-                "ard_len": self.ard_len, "noise": self.noise}
+        return {
+            "add_var": self.add_var,
+            "add_len": self.add_len,
+            "ard_var": self.ard_var,
+            "ard_len": self.ard_len,
+            "noise": self.noise,
+        }
 
     def inputs(self, ctx: Context) -> Tensor:
         """The standardised GP inputs ``(N, dof + len(extras))`` of a context."""
@@ -273,10 +294,16 @@ class GPCorrection(Effect):
         # fit evaluates it at the same q dozens of times, so the last plain result is reused
         if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
             return self.predict(ctx, std=False)[0]
-        key = [(t, t._version) for t in (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
-               if t is not None]
-        if self._cache is not None and len(self._cache[0]) == len(key) and all(
-                a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key)):
+        key = [
+            (t, t._version)
+            for t in (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
+            if t is not None
+        ]
+        if (
+            self._cache is not None
+            and len(self._cache[0]) == len(key)
+            and all(a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key))
+        ):
             return self._cache[1]
         out = self.predict(ctx, std=False)[0]
         if not out.requires_grad:
@@ -303,8 +330,15 @@ class GPCorrection(Effect):
             if c == x.shape[1] and not self.ard:
                 out.append(torch.zeros(len(x), 3, dtype=F64))
                 continue
-            out.append(torch.cat([_kernel(x[i : i + _BLOCK], self.inducing, hc, self.periodic, ard) @ self.weights
-                                  for i in range(0, len(x), _BLOCK)]) * self.y_scale)
+            out.append(
+                torch.cat(
+                    [
+                        _kernel(x[i : i + _BLOCK], self.inducing, hc, self.periodic, ard) @ self.weights
+                        for i in range(0, len(x), _BLOCK)
+                    ]
+                )
+                * self.y_scale
+            )
         return torch.stack(out)
 
     def variable_names(self) -> list[str]:
@@ -316,19 +350,28 @@ class GPCorrection(Effect):
             self.y_mean.mul_(factor)
 
     def config(self) -> dict:
-        return {"dof": self.dof, "n_inducing": int(self.inducing.shape[0]), "extras": list(self.extras),
-                "additive": self.additive, "ard": self.ard}
+        return {
+            "dof": self.dof,
+            "n_inducing": int(self.inducing.shape[0]),
+            "extras": list(self.extras),
+            "additive": self.additive,
+            "ard": self.ard,
+        }
 
     def describe(self) -> dict:
         names = self.variable_names()
-        return {"model": "Gaussian process (additive + ARD, sparse)", "additive": self.additive,
-                "n_inducing": int(self.inducing.shape[0]),
-                "additive_std": dict(zip(names, (self.add_var.sqrt() * 1.0).tolist())),
-                "additive_length_scale": dict(zip(names, self.add_len.tolist())),
-                "ard_std": float(self.ard_var.sqrt()) if self.ard else 0.0,
-                "ard_length_scale": dict(zip(names, self.ard_len.tolist())) if self.ard else {},
-                "noise_std": float(self.noise.sqrt()), "output_scale_m": self.y_scale.tolist(),
-                "units": "std relative to each output's RMS; length scales in rad (joints) or standard units"}
+        return {
+            "model": "Gaussian process (additive + ARD, sparse)",
+            "additive": self.additive,
+            "n_inducing": int(self.inducing.shape[0]),
+            "additive_std": dict(zip(names, (self.add_var.sqrt() * 1.0).tolist())),
+            "additive_length_scale": dict(zip(names, self.add_len.tolist())),
+            "ard_std": float(self.ard_var.sqrt()) if self.ard else 0.0,
+            "ard_length_scale": dict(zip(names, self.ard_len.tolist())) if self.ard else {},
+            "noise_std": float(self.noise.sqrt()),
+            "output_scale_m": self.y_scale.tolist(),
+            "units": "std relative to each output's RMS; length scales in rad (joints) or standard units",
+        }
 
 
 # ----------------------------------------------------------------------------- fitting
@@ -352,8 +395,13 @@ def kmeans(x: Tensor, m: int, generator: torch.Generator, iterations: int = 10) 
 
 def _unpack(theta: Tensor, d: int, ard: bool) -> dict[str, Tensor]:
     e = theta.exp()
-    return {"add_var": e[:d], "add_len": e[d : 2 * d], "ard_var": e[2 * d] if ard else e[2 * d] * 0.0,
-            "ard_len": e[2 * d + 1 : 3 * d + 1], "noise": e[3 * d + 1] + 1e-6}
+    return {
+        "add_var": e[:d],
+        "add_len": e[d : 2 * d],
+        "ard_var": e[2 * d] if ard else e[2 * d] * 0.0,
+        "ard_len": e[2 * d + 1 : 3 * d + 1],
+        "noise": e[3 * d + 1] + 1e-6,
+    }
 
 
 def _initial(d: int, n_joints: int, periodic: bool) -> Tensor:
@@ -361,13 +409,29 @@ def _initial(d: int, n_joints: int, periodic: bool) -> Tensor:
     add_var = torch.full((d,), 0.4 / d, dtype=F64)
     add_len = torch.full((d,), 0.5 if periodic else 0.5, dtype=F64)
     add_len[n_joints:] = 1.0
-    theta = torch.cat([add_var.log(), add_len.log(), torch.tensor([math.log(0.5)], dtype=F64),
-                       torch.full((d,), math.log(1.0), dtype=F64), torch.tensor([math.log(0.1)], dtype=F64)])
+    theta = torch.cat(
+        [
+            add_var.log(),
+            add_len.log(),
+            torch.tensor([math.log(0.5)], dtype=F64),
+            torch.full((d,), math.log(1.0), dtype=F64),
+            torch.tensor([math.log(0.1)], dtype=F64),
+        ]
+    )
     return theta
 
 
-def fit_hyperparameters(x: Tensor, y: Tensor, z: Tensor, *, periodic: Tensor, ard: bool, iterations: int,
-                        n_joints: int, start: dict[str, Tensor] | None = None) -> tuple[dict[str, Tensor], dict]:
+def fit_hyperparameters(
+    x: Tensor,
+    y: Tensor,
+    z: Tensor,
+    *,
+    periodic: Tensor,
+    ard: bool,
+    iterations: int,
+    n_joints: int,
+    start: dict[str, Tensor] | None = None,
+) -> tuple[dict[str, Tensor], dict]:
     """Maximise the (collapsed) evidence over the log hyperparameters with L-BFGS.
 
     Args:
@@ -383,12 +447,25 @@ def fit_hyperparameters(x: Tensor, y: Tensor, z: Tensor, *, periodic: Tensor, ar
     theta = _initial(d, n_joints, bool(periodic[:n_joints].any()))
     if start is not None:
         noise = (start["noise"] - 1e-6).clamp_min(1e-6)
-        theta = torch.cat([start["add_var"].clamp_min(1e-12).log(), start["add_len"].log(),
-                           start["ard_var"].clamp_min(1e-12).log().reshape(1), start["ard_len"].log(),
-                           noise.log().reshape(1)]).to(F64)
+        theta = torch.cat(
+            [
+                start["add_var"].clamp_min(1e-12).log(),
+                start["add_len"].log(),
+                start["ard_var"].clamp_min(1e-12).log().reshape(1),
+                start["ard_len"].log(),
+                noise.log().reshape(1),
+            ]
+        ).to(F64)
     theta = theta.detach().clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iterations, history_size=20, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-6, tolerance_change=1e-9)
+    opt = torch.optim.LBFGS(
+        [theta],
+        lr=1.0,
+        max_iter=iterations,
+        history_size=20,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=1e-6,
+        tolerance_change=1e-9,
+    )
     count = [0]
     dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
 
@@ -417,8 +494,7 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     Ay = torch.zeros(m, y.shape[1], dtype=F64)
     s = h["noise"].sqrt()
     for i in range(0, len(x), _BLOCK):
-        A = torch.linalg.solve_triangular(Lu, _kernel(z, x[i : i + _BLOCK], h, eff.periodic, eff.ard),
-                                          upper=False) / s
+        A = torch.linalg.solve_triangular(Lu, _kernel(z, x[i : i + _BLOCK], h, eff.periodic, eff.ard), upper=False) / s
         B += A @ A.T
         Ay += A @ y[i : i + _BLOCK]
     LB = _chol(B, torch.tensor(0.0, dtype=F64))
@@ -429,9 +505,16 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     eff.chol_b.copy_(LB)
 
 
-def fit_gp_correction(ctx: Context, y: Tensor, settings: GPSettings | None = None, *,
-                      ctx_val: Context | None = None, y_val: Tensor | None = None,
-                      warm: GPCorrection | None = None, warm_iterations: int = 10) -> tuple[GPCorrection, dict]:
+def fit_gp_correction(
+    ctx: Context,
+    y: Tensor,
+    settings: GPSettings | None = None,
+    *,
+    ctx_val: Context | None = None,
+    y_val: Tensor | None = None,
+    warm: GPCorrection | None = None,
+    warm_iterations: int = 10,
+) -> tuple[GPCorrection, dict]:
     """Fit a :class:`GPCorrection` to corrections ``y`` at the poses of ``ctx``.
 
     Args:
@@ -478,9 +561,16 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
     zf = xf if len(xf) <= s.m_fit else kmeans(xf, s.m_fit, g, s.kmeans_iterations)
     if warm is not None and warm.config() != eff.config() | {"n_inducing": warm.config()["n_inducing"]}:
         raise OptionError(f"GP warm start: the previous model's structure {warm.config()} differs from {eff.config()}")
-    h, info = fit_hyperparameters(xf, yf, zf, periodic=eff.periodic, ard=s.ard, n_joints=dof,
-                                  iterations=s.iterations if warm is None else warm_iterations,
-                                  start=None if warm is None else warm.hyper())
+    h, info = fit_hyperparameters(
+        xf,
+        yf,
+        zf,
+        periodic=eff.periodic,
+        ard=s.ard,
+        n_joints=dof,
+        iterations=s.iterations if warm is None else warm_iterations,
+        start=None if warm is None else warm.hyper(),
+    )
     with torch.no_grad():
         for k, v in h.items():
             getattr(eff, k).copy_(v)
@@ -497,10 +587,17 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
         var = comp.square().sum(-1).mean(1)
         share = (var / var.sum().clamp_min(1e-30)).tolist()
     names = eff.variable_names() + (["ard"] if s.ard else [])
-    out = {**eff.describe(), "log_evidence_per_row": info["log_evidence_per_row"],
-           "evidence_evaluations": info["evaluations"], "rows": n, "rows_for_hyperparameters": len(xf),
-           "inducing_for_hyperparameters": len(zf), "exact": n <= s.max_inducing,
-           "variable_share": dict(zip(names, share[: len(names)])), "rmse_unit": "m"}
+    out = {
+        **eff.describe(),
+        "log_evidence_per_row": info["log_evidence_per_row"],
+        "evidence_evaluations": info["evaluations"],
+        "rows": n,
+        "rows_for_hyperparameters": len(xf),
+        "inducing_for_hyperparameters": len(zf),
+        "exact": n <= s.max_inducing,
+        "variable_share": dict(zip(names, share[: len(names)])),
+        "rmse_unit": "m",
+    }
     if ctx_val is not None and y_val is not None:
         with torch.no_grad():
             mean, sd = eff.predict(ctx_val, noise=True)

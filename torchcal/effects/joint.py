@@ -126,6 +126,7 @@ class Cyclic(Effect):
         h = torch.tensor(orders, dtype=torch.float64)
         self.register_buffer("harmonics", h)
         n = len(harmonics)
+
         def init(v):
             return torch.zeros(n, dtype=torch.float64) if v is None else torch.as_tensor(v, dtype=torch.float64)
 
@@ -145,8 +146,11 @@ class Cyclic(Effect):
         return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics]}
 
     def describe(self) -> dict:
-        return {"harmonics": [int(k) for k in self.harmonics], "a_rad": self.a.detach().tolist(),
-                "b_rad": self.b.detach().tolist()}
+        return {
+            "harmonics": [int(k) for k in self.harmonics],
+            "a_rad": self.a.detach().tolist(),
+            "b_rad": self.b.detach().tolist(),
+        }
 
 
 class Transmission(Effect):

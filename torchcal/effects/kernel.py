@@ -80,8 +80,12 @@ class KernelCorrection(Effect):
         return {"dof": int(self.support.shape[1]), "n_support": int(self.support.shape[0])}
 
     def describe(self) -> dict:
-        return {"model": "kernel (Gaussian-process mean)", "length_scale_m": float(self.length_scale),
-                "noise_ratio": float(self.noise_ratio), "n_support": int(self.support.shape[0])}
+        return {
+            "model": "kernel (Gaussian-process mean)",
+            "length_scale_m": float(self.length_scale),
+            "noise_ratio": float(self.noise_ratio),
+            "n_support": int(self.support.shape[0]),
+        }
 
 
 def joint_metric(robot, q: Tensor) -> Tensor:
@@ -100,8 +104,17 @@ def _solve(q: Tensor, y: Tensor, metric: Tensor, lam: float) -> Tensor:
     return torch.cholesky_solve(y, L)
 
 
-def fit_kernel_correction(robot, q: Tensor, y: Tensor, *, q_val: Tensor, y_val: Tensor, seed: int = 0,
-                          length_scales=LENGTH_SCALES, noise_ratios=NOISE_RATIOS) -> tuple[KernelCorrection, dict]:
+def fit_kernel_correction(
+    robot,
+    q: Tensor,
+    y: Tensor,
+    *,
+    q_val: Tensor,
+    y_val: Tensor,
+    seed: int = 0,
+    length_scales=LENGTH_SCALES,
+    noise_ratios=NOISE_RATIOS,
+) -> tuple[KernelCorrection, dict]:
     """Choose ``l`` and ``lambda`` on the validation poses, then fit on all of ``q, y`` (+ validation).
 
     Args:
@@ -143,5 +156,12 @@ def fit_kernel_correction(robot, q: Tensor, y: Tensor, *, q_val: Tensor, y_val: 
         eff.alpha.copy_(_solve(qa, ya, metric, best["noise_ratio"]))
         eff.length_scale.fill_(best["length_scale_m"])
         eff.noise_ratio.fill_(best["noise_ratio"])
-    return eff, {"grid": grid, "best": best, "metric_m_per_rad": scale.tolist(), "val_errors": best_errors,
-                 "support": len(qa), "max_support": MAX_SUPPORT, "rmse_unit": "m"}
+    return eff, {
+        "grid": grid,
+        "best": best,
+        "metric_m_per_rad": scale.tolist(),
+        "val_errors": best_errors,
+        "support": len(qa),
+        "max_support": MAX_SUPPORT,
+        "rmse_unit": "m",
+    }

@@ -35,8 +35,16 @@ class CorrectionNet(nn.Module):
         ShapeError: ``dtype`` is not float64; at call time, ``q`` is not float64.
     """
 
-    def __init__(self, dof: int = 6, hidden: int = 29, *, out_scale: float = 1e-3, dtype=torch.float64,
-                 device="cpu", seed: int | None = None):
+    def __init__(
+        self,
+        dof: int = 6,
+        hidden: int = 29,
+        *,
+        out_scale: float = 1e-3,
+        dtype=torch.float64,
+        device="cpu",
+        seed: int | None = None,
+    ):
         if dtype != torch.float64:
             raise ShapeError(f"CorrectionNet computes in float64 (the calibration path), got dtype={dtype}")
         super().__init__()
@@ -114,8 +122,10 @@ class CorrectionNet(nn.Module):
 
     def _check_q(self, q: Tensor) -> None:
         if q.dtype != self.q_scale.dtype:
-            raise ShapeError(f"q has dtype {q.dtype}, but the CorrectionNet is {self.q_scale.dtype}; torchcal "
-                             "computes in float64 and never converts silently")
+            raise ShapeError(
+                f"q has dtype {q.dtype}, but the CorrectionNet is {self.q_scale.dtype}; torchcal "
+                "computes in float64 and never converts silently"
+            )
 
     def forward(self, q: Tensor) -> Tensor:
         self._check_q(q)

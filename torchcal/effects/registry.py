@@ -83,7 +83,11 @@ def effect_from_config(cfg: dict, robot=None) -> Effect:
 
         import torch
 
-        return SupportGate(effect_from_config(cfg["inner"], robot),
-                           torch.zeros(cfg["n_support"], cfg["dof"], dtype=torch.float64), cfg["length"],
-                           max_support=cfg["n_support"], fallback=copy.deepcopy(robot) if cfg.get("fallback") else None)
+        return SupportGate(
+            effect_from_config(cfg["inner"], robot),
+            torch.zeros(cfg["n_support"], cfg["dof"], dtype=torch.float64),
+            cfg["length"],
+            max_support=cfg["n_support"],
+            fallback=copy.deepcopy(robot) if cfg.get("fallback") else None,
+        )
     return CLASSES[name](**cfg)

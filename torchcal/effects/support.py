@@ -50,8 +50,9 @@ class SupportGate(Effect):
     kind = "learned"
     acts_on = "cartesian"
 
-    def __init__(self, inner: Effect, support: Tensor, length: float = math.inf, *, max_support: int = 3000,
-                 fallback=None):
+    def __init__(
+        self, inner: Effect, support: Tensor, length: float = math.inf, *, max_support: int = 3000, fallback=None
+    ):
         super().__init__(joint=None)
         if inner.acts_on != "cartesian":
             raise ValueError(f"SupportGate wraps a position correction; {type(inner).__name__} acts on {inner.acts_on}")
@@ -91,28 +92,40 @@ class SupportGate(Effect):
         if self.fallback is None or math.isinf(self.length):
             return out
         p_own = robot.probe_in_base(ctx.q) if p_base is None else p_base
-        y_fb = self.fallback.T_tracker_base() @ torch.cat([self.fallback.probe_in_base(ctx.q),
-                                                           torch.ones_like(ctx.q[:, :1])], dim=-1).T
+        y_fb = (
+            self.fallback.T_tracker_base()
+            @ torch.cat([self.fallback.probe_in_base(ctx.q), torch.ones_like(ctx.q[:, :1])], dim=-1).T
+        )
         T_inv = torch.linalg.inv(robot.T_tracker_base())
         p_fb = (T_inv @ y_fb).T[:, :3]  # the fallback's probe in this model's base frame
         return out + (1.0 - g) * (p_fb - p_own)
 
     def config(self) -> dict:
-        return {"inner": {"class": type(self.inner).__name__, **self.inner.config()}, "length": self.length,
-                "n_support": int(len(self.support)), "dof": int(self.support.shape[1]),
-                "fallback": self.fallback is not None}
+        return {
+            "inner": {"class": type(self.inner).__name__, **self.inner.config()},
+            "length": self.length,
+            "n_support": int(len(self.support)),
+            "dof": int(self.support.shape[1]),
+            "fallback": self.fallback is not None,
+        }
 
     def describe(self) -> dict:
-        return {"gate_length": self.length, "support_points": int(len(self.support)),
-                "falls_back_to": "the kinematic calibration" if self.fallback is not None else "the model's geometry",
-                "inner": self.inner.describe()}
+        return {
+            "gate_length": self.length,
+            "support_points": int(len(self.support)),
+            "falls_back_to": "the kinematic calibration" if self.fallback is not None else "the model's geometry",
+            "inner": self.inner.describe(),
+        }
 
     def label(self) -> str:
         return self.inner.label()
 
 
-def choose_gate_length(make_gate: Callable[[float], SupportGate], score: Callable[[SupportGate], float],
-                       lengths: Sequence[float] = GATE_LENGTHS) -> tuple[float, list[dict]]:
+def choose_gate_length(
+    make_gate: Callable[[float], SupportGate],
+    score: Callable[[SupportGate], float],
+    lengths: Sequence[float] = GATE_LENGTHS,
+) -> tuple[float, list[dict]]:
     """The gate length with the lowest validation score, and the table of all tried.
 
     Args:

@@ -137,15 +137,19 @@ def effect_parameters(model: MeasurementModel, index: int, fit: Fit) -> dict:
         pname = key.split(".")[-1]
         values = dict(model.named_parameters())[key].detach().flatten().tolist()
         for name, v in zip(names, values):
-            short = pname + name[len(f"{model.effects[index].label()}.{pname}"):]
+            short = pname + name[len(f"{model.effects[index].label()}.{pname}") :]
             i = pos.get(name)
-            out[short] = {"value": v, "std": float(std[i]) if i is not None else None,
-                          **({} if i is not None else {"note": "held fixed: not identifiable"})}
+            out[short] = {
+                "value": v,
+                "std": float(std[i]) if i is not None else None,
+                **({} if i is not None else {"note": "held fixed: not identifiable"}),
+            }
     return out
 
 
-def selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, bool] | None = None,
-              effects: bool = False) -> tuple[dict[str, Tensor], dict[str, list[str]]]:
+def selection(
+    model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, bool] | None = None, effects: bool = False
+) -> tuple[dict[str, Tensor], dict[str, list[str]]]:
     """Masks and element names of the free parameters: the robot's ``groups`` (their free elements, and of those
     only the ones ``keep`` marks True) and with ``effects`` the named effects' parameters (those ``keep`` does
     not mark False)."""
@@ -166,9 +170,17 @@ def selection(model: MeasurementModel, groups: tuple[str, ...], keep: dict[str, 
     return sel, labels
 
 
-def solve(model: MeasurementModel, m: Measurements, groups: tuple[str, ...], opts: FitOptions, stage: str,
-          trajectory: bool, identify: bool = True, effects: bool = False,
-          identifiability: Identifiability | None = None) -> Fit:
+def solve(
+    model: MeasurementModel,
+    m: Measurements,
+    groups: tuple[str, ...],
+    opts: FitOptions,
+    stage: str,
+    trajectory: bool,
+    identify: bool = True,
+    effects: bool = False,
+    identifiability: Identifiability | None = None,
+) -> Fit:
     """Weighted LM over the free elements of ``groups`` (identifiable ones only when ``identify``).
 
     With ``effects`` the parameters of the model's named effects (:data:`NAMED_KINDS`) are estimated

@@ -69,22 +69,32 @@ class Identifiability:
     def to_dict(self) -> dict:
         sv = self.singular_values
         return {
-            "method": "column-normalised Jacobian; greedy independence test in preference order" +
-                      ("; a parameter with a prior is kept only when the data determine it better than the prior"
-                       if self.prior_ratio is not None else ""),
+            "method": "column-normalised Jacobian; greedy independence test in preference order"
+            + (
+                "; a parameter with a prior is kept only when the data determine it better than the prior"
+                if self.prior_ratio is not None
+                else ""
+            ),
             "tol": self.tol,
             "prior_ratio": self.prior_ratio,
             "n_candidates": len(self.names),
             "rank": self.rank,
             "fixed": self.fixed,
             "dependent_groups": self.groups,
-            "condition_number": None if sv is None or float(sv[self.rank - 1]) == 0 else
-            float(sv[0] / sv[self.rank - 1]),
+            "condition_number": None
+            if sv is None or float(sv[self.rank - 1]) == 0
+            else float(sv[0] / sv[self.rank - 1]),
         }
 
 
-def analyse(J: Tensor, names: list[str], order: list[int] | None = None, tol: float = DEFAULT_TOL,
-            prior_sigma: Tensor | None = None, prior_ratio: float = DEFAULT_PRIOR_RATIO) -> Identifiability:
+def analyse(
+    J: Tensor,
+    names: list[str],
+    order: list[int] | None = None,
+    tol: float = DEFAULT_TOL,
+    prior_sigma: Tensor | None = None,
+    prior_ratio: float = DEFAULT_PRIOR_RATIO,
+) -> Identifiability:
     """Decide which columns of ``J (n, P)`` to keep (module docstring).
 
     Args:
@@ -138,25 +148,36 @@ def analyse(J: Tensor, names: list[str], order: list[int] | None = None, tol: fl
         coef = torch.linalg.lstsq(Jn[:, kept], Jn[:, ~free]).solution if int((~free).sum()) else None
     for k, j in enumerate(torch.nonzero(~free).flatten().tolist()):
         if float(norms[j]) <= 1e-14 * scale:
-            fixed.append({"name": names[j], "reason": "no effect on the measured positions at these poses",
-                          "depends_on": [], "independence": 0.0})
+            fixed.append(
+                {
+                    "name": names[j],
+                    "reason": "no effect on the measured positions at these poses",
+                    "depends_on": [],
+                    "independence": 0.0,
+                }
+            )
             continue
         c = coef[:, k]
         big = (c.abs() >= 1e-3 * c.abs().max()).nonzero().flatten()
         deps = [names[int(kept[i])] for i in big]
         if float(indep[j]) > tol:
-            why = (f"nearly dependent on {', '.join(deps)} at these poses (independence {float(indep[j]):.1e}): the "
-                   f"data determine it to {float(sigma_data[j]):.2g}, no better than its prior "
-                   f"{float(ps[j]):.2g}; held at its current value")
+            why = (
+                f"nearly dependent on {', '.join(deps)} at these poses (independence {float(indep[j]):.1e}): the "
+                f"data determine it to {float(sigma_data[j]):.2g}, no better than its prior "
+                f"{float(ps[j]):.2g}; held at its current value"
+            )
         else:
-            why = (f"linearly dependent on {', '.join(deps)} at these poses "
-                   f"(independence {float(indep[j]):.1e} <= tol {tol:.0e}); held at its current value")
+            why = (
+                f"linearly dependent on {', '.join(deps)} at these poses "
+                f"(independence {float(indep[j]):.1e} <= tol {tol:.0e}); held at its current value"
+            )
         fixed.append({"name": names[j], "reason": why, "depends_on": deps, "independence": float(indep[j])})
         links.append([names[j], *deps])
     groups = _merge(links)
     sv = torch.linalg.svdvals(Jn[:, norms > 1e-14 * scale]) if P else None
-    return Identifiability(list(names), free, indep, fixed, groups, sv, tol,
-                           prior_ratio if prior_sigma is not None else None, sigma_data)
+    return Identifiability(
+        list(names), free, indep, fixed, groups, sv, tol, prior_ratio if prior_sigma is not None else None, sigma_data
+    )
 
 
 def _merge(links: list[list[str]]) -> list[list[str]]:
@@ -175,6 +196,7 @@ def _merge(links: list[list[str]]) -> list[list[str]]:
 
 def preference_order(names: list[str]) -> list[int]:
     """Instrument first, then the lever arm, then everything else in the given order."""
+
     def rank(i):
         n = names[i]
         return (0 if n.startswith("instrument.") else 1 if n.startswith("tool.") else 2, i)

@@ -78,8 +78,7 @@ class LMResult:
         iu = torch.triu_indices(len(C), len(C), offset=1)
         vals = C[iu[0], iu[1]]
         order = torch.argsort(vals.abs(), descending=True)[:k]
-        return [{"a": self.names[int(iu[0, i])], "b": self.names[int(iu[1, i])], "rho": float(vals[i])}
-                for i in order]
+        return [{"a": self.names[int(iu[0, i])], "b": self.names[int(iu[1, i])], "rho": float(vals[i])} for i in order]
 
     def standardized_residuals(self) -> Tensor:
         """``w_i = v_i / sqrt(q_vv,ii)`` with ``Q_vv = I - J N^-1 J^T`` for whitened residuals.
@@ -126,10 +125,20 @@ def _attempt(fun, x: Tensor, cost: float, Ns: Tensor, gs: Tensor, s: Tensor, dam
     return (c, damping, dx, r) if math.isfinite(c) and c <= cost else None
 
 
-def levenberg_marquardt(fun: Callable[[Tensor], Tensor], x0: Tensor, *, names: list[str] | None = None,
-                        max_iter: int = 100, xtol: float = 1e-10, ftol: float = 1e-14, lam0: float = 1e-3,
-                        jacobian: Callable[[Tensor], Tensor] | None = None, stat_tol: float = 0.0,
-                        callback=None, threads: int | None = 1) -> LMResult:
+def levenberg_marquardt(
+    fun: Callable[[Tensor], Tensor],
+    x0: Tensor,
+    *,
+    names: list[str] | None = None,
+    max_iter: int = 100,
+    xtol: float = 1e-10,
+    ftol: float = 1e-14,
+    lam0: float = 1e-3,
+    jacobian: Callable[[Tensor], Tensor] | None = None,
+    stat_tol: float = 0.0,
+    callback=None,
+    threads: int | None = 1,
+) -> LMResult:
     """Minimise ``0.5 |fun(x)|^2`` by Levenberg-Marquardt.
 
     The normal equations are Jacobi-scaled to a unit diagonal before the damped Cholesky solve
@@ -208,8 +217,13 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
             callback(it, x, cost)
         if step_small or reduction < ftol or invisible:
             status = "converged"
-            message = ("step below xtol" if step_small else "cost reduction below ftol" if reduction < ftol
-                       else "cost reduction statistically invisible (stat_tol)")
+            message = (
+                "step below xtol"
+                if step_small
+                else "cost reduction below ftol"
+                if reduction < ftol
+                else "cost reduction statistically invisible (stat_tol)"
+            )
             break
     J = jac(x).detach()
     N = J.T @ J

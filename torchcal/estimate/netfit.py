@@ -55,9 +55,19 @@ def _rmse(e: Tensor) -> float:
     return float(e.reshape(-1, 3).norm(dim=-1).square().mean().sqrt())
 
 
-def fit_net(net: CorrectionNet, q: Tensor, target: Tensor, *, val: tuple[Tensor, Tensor] | None = None,
-            method: str = "lm", iterations: int = 100, ridge: float = 1e-6, patience: int = 15,
-            generator: torch.Generator | None = None, ftol: float = 1e-10) -> NetFitResult:
+def fit_net(
+    net: CorrectionNet,
+    q: Tensor,
+    target: Tensor,
+    *,
+    val: tuple[Tensor, Tensor] | None = None,
+    method: str = "lm",
+    iterations: int = 100,
+    ridge: float = 1e-6,
+    patience: int = 15,
+    generator: torch.Generator | None = None,
+    ftol: float = 1e-10,
+) -> NetFitResult:
     """Fit ``net(q) ~ target`` [m] in place; keep the weights of the best validation error.
 
     Args:
@@ -148,8 +158,15 @@ def fit_net(net: CorrectionNet, q: Tensor, target: Tensor, *, val: tuple[Tensor,
 
 def _fit_lbfgs(net, w, residual, val_rmse, iterations, patience, res):
     wv = w.clone().requires_grad_(True)
-    opt = torch.optim.LBFGS([wv], lr=1.0, max_iter=20, history_size=50, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-12, tolerance_change=1e-15)
+    opt = torch.optim.LBFGS(
+        [wv],
+        lr=1.0,
+        max_iter=20,
+        history_size=50,
+        line_search_fn="strong_wolfe",
+        tolerance_grad=1e-12,
+        tolerance_change=1e-15,
+    )
 
     def closure():
         opt.zero_grad()

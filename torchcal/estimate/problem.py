@@ -89,8 +89,9 @@ def probe_joint_jacobian(model: MeasurementModel, ctx: Context) -> Tensor:
         return model.robot.T_tracker_base()[:3, :3] @ J
 
 
-def whitening(model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma_tracker: float,
-              sigma_joint: float) -> Tensor:
+def whitening(
+    model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma_tracker: float, sigma_joint: float
+) -> Tensor:
     """Per-pose whitening matrices ``L_i^-1 (N, 3, 3)`` of the stochastic model (module docstring).
 
     Args:
@@ -115,12 +116,18 @@ def whitening(model: MeasurementModel, ctx: Context, sigma: Tensor | None, sigma
 #: one copy of every intermediate of the forward pass per parameter, so its memory grows with poses x parameters
 JACOBIAN_CHUNK = 1024
 
-_ROBOT_GROUPS = {"robot.geometry.delta": "geometry", "robot.instrument.delta": "instrument",
-                 "robot.tool.delta": "tool"}
+_ROBOT_GROUPS = {"robot.geometry.delta": "geometry", "robot.instrument.delta": "instrument", "robot.tool.delta": "tool"}
 
 
-def residual_function(model: MeasurementModel, free: FreeParameters, ctx: Context, p: Tensor, W: Tensor,
-                      prior_sigma: Tensor | None = None, chunk: int = JACOBIAN_CHUNK):
+def residual_function(
+    model: MeasurementModel,
+    free: FreeParameters,
+    ctx: Context,
+    p: Tensor,
+    W: Tensor,
+    prior_sigma: Tensor | None = None,
+    chunk: int = JACOBIAN_CHUNK,
+):
     """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``.
 
     With ``prior_sigma (u,)`` the a-priori information ``x_j ~ N(0, prior_sigma_j^2)`` is appended as

@@ -42,9 +42,15 @@ def rigid_fit(p_from: Tensor, p_to: Tensor, weights: Tensor | None = None) -> Te
     return tf.homogeneous(R, t)
 
 
-def fit_instrument_and_tool(T_base_flange: Tensor, p_tracker: Tensor, t_flange_probe: Tensor | None = None,
-                            weights: Tensor | None = None, iterations: int = 50, tol: float = 1e-12,
-                            robust: bool = False) -> tuple[Tensor, Tensor, float]:
+def fit_instrument_and_tool(
+    T_base_flange: Tensor,
+    p_tracker: Tensor,
+    t_flange_probe: Tensor | None = None,
+    weights: Tensor | None = None,
+    iterations: int = 50,
+    tol: float = 1e-12,
+    robust: bool = False,
+) -> tuple[Tensor, Tensor, float]:
     """Tracker pose and lever arm for fixed geometry, by alternating closed-form steps.
 
     Model: ``p_tracker = R (R_f t + p_f) + t0`` with ``T_tracker_base = [R | t0]`` and lever arm ``t``.
@@ -98,9 +104,14 @@ _CHI3_MEDIAN = 1.5381722544
 TUKEY_C = 4.7
 
 
-def robust_instrument_and_tool(T_base_flange: Tensor, p_tracker: Tensor, t_flange_probe: Tensor | None = None,
-                               weights: Tensor | None = None, rounds: int = 30, gate: float = 10.0
-                               ) -> tuple[Tensor, Tensor, float, Tensor]:
+def robust_instrument_and_tool(
+    T_base_flange: Tensor,
+    p_tracker: Tensor,
+    t_flange_probe: Tensor | None = None,
+    weights: Tensor | None = None,
+    rounds: int = 30,
+    gate: float = 10.0,
+) -> tuple[Tensor, Tensor, float, Tensor]:
     """Tracker pose and lever arm that gross errors in ``p_tracker`` do not move.
 
     1. Gate: a row farther from the coordinate-wise median of the measured points than ``gate``

@@ -107,8 +107,13 @@ class Rejected:
     hint: str = ""  # a likely cause, e.g. a row in millimetres among rows in metres
 
     def to_dict(self) -> dict:
-        return {"line": self.line, "size_mm": self.size_mm, "statistic": self.statistic, "p_value": self.p_value,
-                **({"hint": self.hint} if self.hint else {})}
+        return {
+            "line": self.line,
+            "size_mm": self.size_mm,
+            "statistic": self.statistic,
+            "p_value": self.p_value,
+            **({"hint": self.hint} if self.hint else {}),
+        }
 
 
 @dataclass
@@ -153,8 +158,13 @@ def _chi2_median(k: int) -> float:
     return chi2_isf(0.5, k)
 
 
-def snooping_statistics(fun: Callable[[Tensor], Tensor], x: Tensor, kept: Tensor, group: int = 3,
-                        jacobian: Callable[[Tensor], Tensor] | None = None) -> tuple[Tensor, float]:
+def snooping_statistics(
+    fun: Callable[[Tensor], Tensor],
+    x: Tensor,
+    kept: Tensor,
+    group: int = 3,
+    jacobian: Callable[[Tensor], Tensor] | None = None,
+) -> tuple[Tensor, float]:
     """Per-group statistics ``T_i = r_i^T Q_vv,i^-1 r_i`` (module docstring) and the robust variance factor.
 
     Args:
@@ -192,13 +202,25 @@ def snooping_statistics(fun: Callable[[Tensor], Tensor], x: Tensor, kept: Tensor
     return T, med
 
 
-def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: int, *, group: int = 3,
-                         names: list[str] | None = None, weights0: Tensor | None = None,
-                         alpha: float = DEFAULT_ALPHA, huber_rounds: int = 2, irls_rounds: int = 8,
-                         max_rounds: int = 30,
-                         max_iter: int = 100, round_iter: int = 10, stat_tol: float = 0.0,
-                         sigma0_floor: float = 1.0, max_reject_fraction: float = 0.5,
-                         gross: float = GROSS_FACTOR) -> RobustResult:
+def robust_least_squares(
+    fun: Callable[[Tensor], Tensor],
+    x0: Tensor,
+    n_groups: int,
+    *,
+    group: int = 3,
+    names: list[str] | None = None,
+    weights0: Tensor | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    huber_rounds: int = 2,
+    irls_rounds: int = 8,
+    max_rounds: int = 30,
+    max_iter: int = 100,
+    round_iter: int = 10,
+    stat_tol: float = 0.0,
+    sigma0_floor: float = 1.0,
+    max_reject_fraction: float = 0.5,
+    gross: float = GROSS_FACTOR,
+) -> RobustResult:
     """Fit ``0.5 |fun(x)|^2`` so that gross errors in groups of residuals do not pull (module docstring).
 
     Args:
@@ -233,11 +255,11 @@ def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: 
     rounds = 0
     for rnd in range(irls_rounds):
         rounds += 1
-        res = levenberg_marquardt(_weighted(fun, w.sqrt(), group), x, names=names, max_iter=round_iter,
-                                  stat_tol=stat_tol)
+        res = levenberg_marquardt(
+            _weighted(fun, w.sqrt(), group), x, names=names, max_iter=round_iter, stat_tol=stat_tol
+        )
         if res.status in ("diverged", "failed_solve"):
-            raise EstimationError(f"robust fit, reweighting round {rnd + 1}: least squares {res.status}: "
-                                  f"{res.message}")
+            raise EstimationError(f"robust fit, reweighting round {rnd + 1}: least squares {res.status}: {res.message}")
         x = res.x
         with torch.no_grad():
             d2 = fun(x)[: n * group].reshape(n, group).square().sum(-1)
@@ -263,8 +285,9 @@ def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: 
         if int((~kept).sum()) > max_reject_fraction * n:
             status = "too_many_rejected"
             break
-        res = levenberg_marquardt(_weighted(fun, kept.to(F64), group), x, names=names, max_iter=max_iter,
-                                  stat_tol=stat_tol)
+        res = levenberg_marquardt(
+            _weighted(fun, kept.to(F64), group), x, names=names, max_iter=max_iter, stat_tol=stat_tol
+        )
         if res.status in ("diverged", "failed_solve"):
             raise EstimationError(f"robust fit, snooping: least squares {res.status}: {res.message}")
         x = res.x
@@ -279,8 +302,17 @@ def robust_least_squares(fun: Callable[[Tensor], Tensor], x0: Tensor, n_groups: 
         kept = kept | back
         if bool(bad.any()):
             kept[int(torch.argmax(torch.where(bad, z, torch.zeros_like(z))))] = False
-    return RobustResult(kept=kept, statistic=T / s0sq, threshold=threshold, alpha=alpha, sigma0_sq=s0sq,
-                        iterations=rounds, status=status, weights=w, result=res)
+    return RobustResult(
+        kept=kept,
+        statistic=T / s0sq,
+        threshold=threshold,
+        alpha=alpha,
+        sigma0_sq=s0sq,
+        iterations=rounds,
+        status=status,
+        weights=w,
+        result=res,
+    )
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -300,27 +332,41 @@ class Screening:
 
     def to_dict(self) -> dict:
         def part(r: RobustResult) -> dict:
-            return {"n": len(r.kept), "n_rejected": r.n_rejected, "threshold": r.threshold,
-                    "sigma0_sq": r.sigma0_sq, "status": r.status, "iterations": r.iterations,
-                    "rows": [x.to_dict() for x in r.rejected]}
+            return {
+                "n": len(r.kept),
+                "n_rejected": r.n_rejected,
+                "threshold": r.threshold,
+                "sigma0_sq": r.sigma0_sq,
+                "status": r.status,
+                "iterations": r.iterations,
+                "rows": [x.to_dict() for x in r.rejected],
+            }
 
-        return {"method": self.method, "alpha": self.training.alpha,
-                "statistic": "T = r' Qvv^-1 r / s0^2 per pose (x, y, z together), chi2 with 3 degrees of freedom "
-                             "for a good pose; rejected when T > max(chi2_3(1 - alpha / n), gross^2)",
-                "gross": self.gross,
-                "training": part(self.training), "holdout": part(self.holdout),
-                "lines": [x.line for x in self.training.rejected + self.holdout.rejected]}
+        return {
+            "method": self.method,
+            "alpha": self.training.alpha,
+            "statistic": "T = r' Qvv^-1 r / s0^2 per pose (x, y, z together), chi2 with 3 degrees of freedom "
+            "for a good pose; rejected when T > max(chi2_3(1 - alpha / n), gross^2)",
+            "gross": self.gross,
+            "training": part(self.training),
+            "holdout": part(self.holdout),
+            "lines": [x.line for x in self.training.rejected + self.holdout.rejected],
+        }
 
 
 def _hint(measured: Tensor, predicted: Tensor) -> str:
     """A likely cause of a gross error from the ratio of the distances from the tracker."""
     ratio = float(measured.norm()) / max(float(predicted.norm()), 1e-12)
     if 300.0 < ratio < 3000.0:
-        return (f"looks like millimetres: the point lies {ratio:.0f} times farther from the tracker than the model "
-                f"predicts; convert the row to the file's unit (metres)")
+        return (
+            f"looks like millimetres: the point lies {ratio:.0f} times farther from the tracker than the model "
+            f"predicts; convert the row to the file's unit (metres)"
+        )
     if 1 / 3000.0 < ratio < 1 / 300.0:
-        return (f"looks like metres: the point lies {1 / ratio:.0f} times closer to the tracker than the model "
-                f"predicts; convert the row to the file's unit (millimetres)")
+        return (
+            f"looks like metres: the point lies {1 / ratio:.0f} times closer to the tracker than the model "
+            f"predicts; convert the row to the file's unit (millimetres)"
+        )
     return ""
 
 
@@ -328,18 +374,35 @@ def _name_rows(res: RobustResult, m, pred: Tensor, file_unit_hint: bool = True) 
     size = (pred - m.p).norm(dim=-1)
     for i in torch.nonzero(~res.kept).flatten().tolist():
         z = float(res.statistic[i])
-        res.rejected.append(Rejected(
-            index=i, line=int(m.lines[i]), statistic=z, p_value=chi2_sf(z, 3), size_mm=float(size[i]) * 1e3,
-            hint=_hint(m.p[i], pred[i]) if file_unit_hint else ""))
+        res.rejected.append(
+            Rejected(
+                index=i,
+                line=int(m.lines[i]),
+                statistic=z,
+                p_value=chi2_sf(z, 3),
+                size_mm=float(size[i]) * 1e3,
+                hint=_hint(m.p[i], pred[i]) if file_unit_hint else "",
+            )
+        )
     res.rejected.sort(key=lambda x: x.line)
 
 
-
-
-def screen_geometric(model: MeasurementModel, train, hold, *, sigma_tracker: float, sigma_joint: float,
-                     trajectory: bool = False, rank_tol: float = DEFAULT_TOL, prior_length: float | None = 1e-3,
-                     prior_angle: float | None = math.radians(0.1), alpha: float = DEFAULT_ALPHA,
-                     max_iter: int = 100, stat_tol: float = 1e-2, gross: float = GROSS_FACTOR) -> Screening:
+def screen_geometric(
+    model: MeasurementModel,
+    train,
+    hold,
+    *,
+    sigma_tracker: float,
+    sigma_joint: float,
+    trajectory: bool = False,
+    rank_tol: float = DEFAULT_TOL,
+    prior_length: float | None = 1e-3,
+    prior_angle: float | None = math.radians(0.1),
+    alpha: float = DEFAULT_ALPHA,
+    max_iter: int = 100,
+    stat_tol: float = 1e-2,
+    gross: float = GROSS_FACTOR,
+) -> Screening:
     """Robust geometric fit on the training poses, then the training and held-out poses tested.
 
     1. Robust start: tracker pose and lever arm with the nominal geometry
@@ -379,8 +442,17 @@ def screen_geometric(model: MeasurementModel, train, hold, *, sigma_tracker: flo
         units = {i.name: i.unit for i in robot.parameter_info() if i.group == "geometry"}
         prior = prior_sigmas(free, units, prior_length, prior_angle)
     fun = residual_function(model, free, ctx, train.p, W, prior)
-    res = robust_least_squares(fun, free.vector(), train.n, names=free.names, weights0=w0, alpha=alpha,
-                               max_iter=max_iter, stat_tol=stat_tol, gross=gross)
+    res = robust_least_squares(
+        fun,
+        free.vector(),
+        train.n,
+        names=free.names,
+        weights0=w0,
+        alpha=alpha,
+        max_iter=max_iter,
+        stat_tol=stat_tol,
+        gross=gross,
+    )
     free.assign(res.result.x)
     with torch.no_grad():
         _name_rows(res, train, model(ctx))
@@ -394,16 +466,26 @@ def screen_geometric(model: MeasurementModel, train, hold, *, sigma_tracker: flo
     Q = res.result.cofactor
     with torch.no_grad():
         pred = model(hctx)
-        e = (Wh @ (pred - hold.p).unsqueeze(-1))
+        e = Wh @ (pred - hold.p).unsqueeze(-1)
     S = torch.eye(3, dtype=F64) + Jh @ Q @ Jh.transpose(1, 2)
     Th = (torch.linalg.solve(S, e) * e).sum((1, 2))
     s0sq = max(float(Th.median()) / _chi2_median(3), 1.0)
     thr = max(chi2_isf(alpha / max(hold.n, 1), 3), gross**2)
     zh = Th / s0sq
-    hres = RobustResult(kept=zh <= thr, statistic=zh, threshold=thr, alpha=alpha, sigma0_sq=s0sq, iterations=0,
-                        status="converged", weights=(zh <= thr).to(F64))
+    hres = RobustResult(
+        kept=zh <= thr,
+        statistic=zh,
+        threshold=thr,
+        alpha=alpha,
+        sigma0_sq=s0sq,
+        iterations=0,
+        status="converged",
+        weights=(zh <= thr).to(F64),
+    )
     _name_rows(hres, hold, pred)
-    method = ("robust start (Tukey-reweighted rigid fit), M-estimation (Huber, then Tukey's biweight, robust scale "
-              "from the median) of the geometric model, then Baarda's data snooping one pose at a time; held-out "
-              "poses tested against the robust geometric model")
+    method = (
+        "robust start (Tukey-reweighted rigid fit), M-estimation (Huber, then Tukey's biweight, robust scale "
+        "from the median) of the geometric model, then Baarda's data snooping one pose at a time; held-out "
+        "poses tested against the robust geometric model"
+    )
     return Screening(training=res, holdout=hres, model=model, method=method, gross=gross, free=free.names)

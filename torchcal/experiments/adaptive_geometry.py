@@ -45,8 +45,11 @@ def run(args) -> dict:
     t_start = time.perf_counter()
     n_train = round(args.samples * 5874 / 7342)
     spec = EffectSpec.parse(f"field={args.field}")
-    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=args.samples, train_samples=n_train,
-                           seed=args.seed, effects=[spec]))
+    c = simulate(
+        SimConfig(
+            robot="ur5", trajectory=True, samples=args.samples, train_samples=n_train, seed=args.seed, effects=[spec]
+        )
+    )
     q = torch.cat([c.train.q, c.test.q])
     y = torch.cat([c.train.p, c.test.p])
     with torch.no_grad():
@@ -68,8 +71,12 @@ def run(args) -> dict:
     alone = AdaptiveEKF(start, None, cfg, params).run(q, y, n_train)
 
     def z(r):
-        return torch.cat([(r.gamma - truth.gamma) / r.gamma_std,
-                          (r.instrument_translation - truth.instrument_translation) / r.instrument_translation_std])
+        return torch.cat(
+            [
+                (r.gamma - truth.gamma) / r.gamma_std,
+                (r.instrument_translation - truth.instrument_translation) / r.instrument_translation_std,
+            ]
+        )
 
     z_joint, z_alone = z(res), z(alone)
     d = res.gamma - truth.gamma
@@ -83,9 +90,18 @@ def run(args) -> dict:
     rows = []
     for j, (name, unit) in enumerate(zip(names, units)):
         scale = 1e3 if unit == "m" else math.degrees(1.0)  # mm and degrees at the I/O edge
-        rows.append({"name": name, "unit": "mm" if unit == "m" else "deg", "bias": raw.get(name, float("nan")) * scale,
-                     "true": float(true[j]) * scale, "estimate": float(est[j]) * scale, "std": float(std[j]) * scale,
-                     "z": float(z_joint[j]), "z_geometry_only": float(z_alone[j])})
+        rows.append(
+            {
+                "name": name,
+                "unit": "mm" if unit == "m" else "deg",
+                "bias": raw.get(name, float("nan")) * scale,
+                "true": float(true[j]) * scale,
+                "estimate": float(est[j]) * scale,
+                "std": float(std[j]) * scale,
+                "z": float(z_joint[j]),
+                "z_geometry_only": float(z_alone[j]),
+            }
+        )
     te = slice(n_train, None)
     return {
         "parameters": len(rows),
@@ -106,7 +122,11 @@ def run(args) -> dict:
         "linearisation_remainder_m": [r["total_remainder_m"] for r in res.relinearisations],
         "field_rms_mm": c.truth["effects"][0]["rms_m"] * 1e3,
         "field_variation_mm": c.truth["effects"][0]["variation_m"] * 1e3,
-        "samples": args.samples, "train": n_train, "seed": args.seed, "hidden": args.hidden, "passes": args.passes,
+        "samples": args.samples,
+        "train": n_train,
+        "seed": args.seed,
+        "hidden": args.hidden,
+        "passes": args.passes,
         "misfit_mm": args.misfit_mm,
         "filter_seconds": t_filter,
         "seconds": time.perf_counter() - t_start,
@@ -115,21 +135,31 @@ def run(args) -> dict:
 
 
 def table(result: dict) -> str:
-    lines = [f"{'parameter':16s} {'unit':>4s} {'sim bias':>10s} {'true':>10s} {'estimate':>10s} {'std':>9s} "
-             f"{'|err|/std':>9s} {'geo-only':>9s}"]
+    lines = [
+        f"{'parameter':16s} {'unit':>4s} {'sim bias':>10s} {'true':>10s} {'estimate':>10s} {'std':>9s} "
+        f"{'|err|/std':>9s} {'geo-only':>9s}"
+    ]
     for r in result["rows"]:
         bias = "" if math.isnan(r["bias"]) else f"{r['bias']:+.5f}"
-        lines.append(f"{r['name']:16s} {r['unit']:>4s} {bias:>10s} {r['true']:+.5f} {r['estimate']:+.5f} "
-                     f"{r['std']:9.5f} {abs(r['z']):9.2f} {abs(r['z_geometry_only']):9.1f}")
-    lines.append(f"within 3 sigma: {result['within_3sigma']} / {result['parameters']} (max |z| "
-                 f"{result['max_abs_z']:.2f}, rms z {result['rms_z']:.2f}; NEES of gamma {result['nees_gamma']:.1f} "
-                 f"for {result['nees_dof']} parameters); geometry alone: {result['geometry_only_within_3sigma']} / "
-                 f"{result['parameters']} (max |z| {result['geometry_only_max_abs_z']:.1f})")
-    lines.append(f"held-out RMSE vs truth: geometry + network {result['rmse_test_mm']:.4f} mm, geometry alone "
-                 f"{result['rmse_geometry_only_test_mm']:.4f} mm (vs measurements {result['rmse_test_meas_mm']:.4f} / "
-                 f"{result['rmse_geometry_only_test_meas_mm']:.4f} mm); field {result['field_rms_mm']:.3f} mm RMS, "
-                 f"{result['field_variation_mm']:.3f} mm variation")
-    lines.append(f"NIS mean {result['nis_mean']:.2f} (3 expected); linearisation remainder per pass "
-                 f"{', '.join(f'{v:.1e}' for v in result['linearisation_remainder_m'])} m; filter "
-                 f"{result['filter_seconds']:.1f} s, all {result['seconds']:.1f} s")
+        lines.append(
+            f"{r['name']:16s} {r['unit']:>4s} {bias:>10s} {r['true']:+.5f} {r['estimate']:+.5f} "
+            f"{r['std']:9.5f} {abs(r['z']):9.2f} {abs(r['z_geometry_only']):9.1f}"
+        )
+    lines.append(
+        f"within 3 sigma: {result['within_3sigma']} / {result['parameters']} (max |z| "
+        f"{result['max_abs_z']:.2f}, rms z {result['rms_z']:.2f}; NEES of gamma {result['nees_gamma']:.1f} "
+        f"for {result['nees_dof']} parameters); geometry alone: {result['geometry_only_within_3sigma']} / "
+        f"{result['parameters']} (max |z| {result['geometry_only_max_abs_z']:.1f})"
+    )
+    lines.append(
+        f"held-out RMSE vs truth: geometry + network {result['rmse_test_mm']:.4f} mm, geometry alone "
+        f"{result['rmse_geometry_only_test_mm']:.4f} mm (vs measurements {result['rmse_test_meas_mm']:.4f} / "
+        f"{result['rmse_geometry_only_test_meas_mm']:.4f} mm); field {result['field_rms_mm']:.3f} mm RMS, "
+        f"{result['field_variation_mm']:.3f} mm variation"
+    )
+    lines.append(
+        f"NIS mean {result['nis_mean']:.2f} (3 expected); linearisation remainder per pass "
+        f"{', '.join(f'{v:.1e}' for v in result['linearisation_remainder_m'])} m; filter "
+        f"{result['filter_seconds']:.1f} s, all {result['seconds']:.1f} s"
+    )
     return "\n".join(lines)

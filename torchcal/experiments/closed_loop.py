@@ -41,6 +41,7 @@ def found_effects(run) -> list[tuple[str, int | None]]:
 
 def truth_names(truth: dict) -> list[str]:
     """Injected effects as ``kind:joint`` / ``drift:variable`` / ``learned`` (a field)."""
+
     def name(e):
         if e["kind"] == "learned":
             return "learned"
@@ -64,17 +65,34 @@ def true_form_candidates(truth: dict, reference: dict) -> list[Candidate] | None
     return out
 
 
-def run_case(robot: str = "ur5", effects: list[str] | tuple[str, ...] = (), *, poses: int = 800, test_poses: int = 200,
-             seed: int = 0, trajectory: bool = False, samples: int = 3000, sigma_tracker: float = 15e-6,
-             options: Options | None = None) -> dict:
+def run_case(
+    robot: str = "ur5",
+    effects: list[str] | tuple[str, ...] = (),
+    *,
+    poses: int = 800,
+    test_poses: int = 200,
+    seed: int = 0,
+    trajectory: bool = False,
+    samples: int = 3000,
+    sigma_tracker: float = 15e-6,
+    options: Options | None = None,
+) -> dict:
     """Simulate, calibrate with ``auto``, and compare (module docstring). Returns plain numbers [mm, s]."""
     specs = [EffectSpec.parse(e) for e in effects]
     if trajectory:
-        cfg = SimConfig(robot=robot, trajectory=True, samples=samples, train_samples=int(round(0.8 * samples)),
-                        seed=seed, effects=specs, sigma_tracker=sigma_tracker)
+        cfg = SimConfig(
+            robot=robot,
+            trajectory=True,
+            samples=samples,
+            train_samples=int(round(0.8 * samples)),
+            seed=seed,
+            effects=specs,
+            sigma_tracker=sigma_tracker,
+        )
     else:
-        cfg = SimConfig(robot=robot, poses=poses, test_poses=test_poses, seed=seed, effects=specs,
-                        sigma_tracker=sigma_tracker)
+        cfg = SimConfig(
+            robot=robot, poses=poses, test_poses=test_poses, seed=seed, effects=specs, sigma_tracker=sigma_tracker
+        )
     c = simulate(cfg)
     opts = options or Options(seed=seed)
     t0 = time.perf_counter()
@@ -89,9 +107,15 @@ def run_case(robot: str = "ur5", effects: list[str] | tuple[str, ...] = (), *, p
         return rmse(errors(model, hold, traj)) * 1e3, rmse(errors(model, c.test, traj)) * 1e3
 
     out = {
-        "robot": robot, "effects": list(effects), "seed": seed, "trajectory": trajectory,
-        "n_train": len(run.train_idx), "n_holdout": len(run.holdout_idx), "seconds": seconds,
-        "truth": [list(t) for t in truth_effects(c.truth)], "found": [list(f) for f in found_effects(run)],
+        "robot": robot,
+        "effects": list(effects),
+        "seed": seed,
+        "trajectory": trajectory,
+        "n_train": len(run.train_idx),
+        "n_holdout": len(run.holdout_idx),
+        "seconds": seconds,
+        "truth": [list(t) for t in truth_effects(c.truth)],
+        "found": [list(f) for f in found_effects(run)],
         "stages": [s.name for s in run.stages],
         "rejected": [r.get("name", r["kind"]) for r in run.rejected],
     }
@@ -100,19 +124,23 @@ def run_case(robot: str = "ur5", effects: list[str] | tuple[str, ...] = (), *, p
     out["loop_mm"], out["test_loop_mm"] = run.stages[-1].rmse * 1e3, rmse(errors(run.model, c.test, traj)) * 1e3
     out["geometric_mm"], out["test_geometric_mm"] = geo.rmse * 1e3, rmse(errors(geo.model, c.test, traj)) * 1e3
     out["oracle_mm"], out["test_oracle_mm"] = both(c.model)
-    ref = {"t": float(train.t[0]) if train.t is not None else 0.0,
-           "temperature": float(train.temperature[0]) if train.temperature is not None else 0.0}
+    ref = {
+        "t": float(train.t[0]) if train.t is not None else 0.0,
+        "temperature": float(train.temperature[0]) if train.temperature is not None else 0.0,
+    }
     cands = true_form_candidates(c.truth, ref)
     if cands is None or not cands:
-        out["true_form_mm"], out["test_true_form_mm"] = (out["geometric_mm"], out["test_geometric_mm"]) if cands == [] \
-            else (None, None)
+        out["true_form_mm"], out["test_true_form_mm"] = (
+            (out["geometric_mm"], out["test_geometric_mm"]) if cands == [] else (None, None)
+        )
     else:
         model = copy.deepcopy(geo.model)
         for cand in cands:
             model.add(cand.make())
         ida = next((f.identifiability for f in run.fits if f.stage == "geometric"), None)
-        solve(model, train, ("geometry", "instrument", "tool"), opts, "true form", traj, effects=True,
-              identifiability=ida)
+        solve(
+            model, train, ("geometry", "instrument", "tool"), opts, "true form", traj, effects=True, identifiability=ida
+        )
         out["true_form_mm"], out["test_true_form_mm"] = both(model)
     return out
 

@@ -8,9 +8,13 @@ import json
 
 def add_common_arguments(ap: argparse.ArgumentParser, *, threads: int = 1) -> None:
     """Add ``--threads`` (torch threads, default ``threads``) and ``--json`` to ``ap``."""
-    ap.add_argument("--threads", type=int, default=threads,
-                    help=f"torch threads (default {threads}: the problems are small, and on a busy machine more "
-                         "threads make them many times slower)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        default=threads,
+        help=f"torch threads (default {threads}: the problems are small, and on a busy machine more "
+        "threads make them many times slower)",
+    )
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object on the last line")
 
 

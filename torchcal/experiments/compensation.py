@@ -63,17 +63,26 @@ def run(cfg: ExperimentConfig) -> dict:
     """Run the experiment (module docstring); returns the table and checks as plain numbers."""
     from torchcal import pipeline as C
 
-    sim = SimConfig(robot=cfg.robot, poses=cfg.poses, test_poses=cfg.test_poses, seed=cfg.seed,
-                    effects=[EffectSpec.parse(e) for e in cfg.effects])
+    sim = SimConfig(
+        robot=cfg.robot,
+        poses=cfg.poses,
+        test_poses=cfg.test_poses,
+        seed=cfg.seed,
+        effects=[EffectSpec.parse(e) for e in cfg.effects],
+    )
     campaign = simulate(sim)
     truth = campaign.model
     t0 = time.perf_counter()
-    calib = C.calibrate(cfg.robot, campaign.train, C.Options(seed=cfg.seed, **({"method": cfg.method}
-                                                                                 if cfg.method else {})))
+    calib = C.calibrate(
+        cfg.robot, campaign.train, C.Options(seed=cfg.seed, **({"method": cfg.method} if cfg.method else {}))
+    )
     t_cal = time.perf_counter() - t0
     stages = {s.name: s.model for s in calib.stages}
-    models = {"nominal commands": None, "geometry-only compensation": stages["geometric"],
-              "full-model compensation": calib.model}
+    models = {
+        "nominal commands": None,
+        "geometry-only compensation": stages["geometric"],
+        "full-model compensation": calib.model,
+    }
     with torch.no_grad():
         pred = calib.model(Context.from_measurements(campaign.test, trajectory=False))
     held_out = (pred - campaign.test.p).norm(dim=-1)
@@ -90,11 +99,19 @@ def run(cfg: ExperimentConfig) -> dict:
         "static": random_poses(nominal, cfg.static_targets, tracker_in_base, lever_nominal, g, sim.sight),
         "path": trajectory(nominal, cfg.path_targets, tracker_in_base, lever_nominal, g, sim.sight),
     }
-    out = {"config": {"robot": cfg.robot, "seed": cfg.seed, "effects": list(cfg.effects),
-                      "calibration_poses": cfg.poses, "method": calib.options.method},
-           "calibration_seconds": t_cal,
-           "effects_found": [{"kind": e["kind"], "joint": e["joint"]} for e in calib.effects_report],
-           "held_out_prediction": _errors_mm(held_out), "targets": {}}
+    out = {
+        "config": {
+            "robot": cfg.robot,
+            "seed": cfg.seed,
+            "effects": list(cfg.effects),
+            "calibration_poses": cfg.poses,
+            "method": calib.options.method,
+        },
+        "calibration_seconds": t_cal,
+        "effects_found": [{"kind": e["kind"], "joint": e["joint"]} for e in calib.effects_report],
+        "held_out_prediction": _errors_mm(held_out),
+        "targets": {},
+    }
     for kind, q_prog in programs.items():
         # the point the program means: the nominal controller's probe position, in the true tracker frame
         with torch.no_grad():
@@ -110,12 +127,19 @@ def run(cfg: ExperimentConfig) -> dict:
                 secs = time.perf_counter() - t1
                 q_cmd, status = res.q, res.counts()
                 s0 = configuration_sign(nominal, q_prog)
-                branch = int(((configuration_sign(nominal, q_cmd) != s0)
-                              & ((q_cmd - q_prog).abs().max(-1).values > 0.05)).sum())
+                branch = int(
+                    ((configuration_sign(nominal, q_cmd) != s0) & ((q_cmd - q_prog).abs().max(-1).values > 0.05)).sum()
+                )
             entry = _errors_mm(true_errors(truth, q_cmd, targets, ctx_kw))
             if status is not None:
-                entry.update({"status": status, "seconds": secs, "wrong_branch": branch,
-                              "model_miss_max_mm": float(res.miss.max()) * 1e3})
+                entry.update(
+                    {
+                        "status": status,
+                        "seconds": secs,
+                        "wrong_branch": branch,
+                        "model_miss_max_mm": float(res.miss.max()) * 1e3,
+                    }
+                )
                 if kind == "path":
                     corr = q_cmd - q_prog
                     entry["largest_correction_rad"] = float(corr.abs().max())
@@ -151,6 +175,11 @@ def branch_check(model: MeasurementModel, campaign, n: int = 1000) -> dict:
         for j in (2, 4):
             s0, s1 = torch.sin(q0[:, j]), torch.sin(res.q[:, j])
             wrong |= (torch.sign(s0) != torch.sign(s1)) & (s0.abs() > 1e-2)
-    return {"n": len(q0), "seconds": secs, "status": res.counts(), "wrong_branch": int(wrong.sum()),
-            "largest_joint_move_rad": float(moved.max()),
-            "converged_fraction": len(res.rows(Status.CONVERGED)) / len(q0)}
+    return {
+        "n": len(q0),
+        "seconds": secs,
+        "status": res.counts(),
+        "wrong_branch": int(wrong.sum()),
+        "largest_joint_move_rad": float(moved.max()),
+        "converged_fraction": len(res.rows(Status.CONVERGED)) / len(q0),
+    }

@@ -23,8 +23,9 @@ F64 = torch.float64
 MODES = ("shift", "mm")
 
 
-def contaminate(m: Measurements, rows: Tensor, mode: str = "shift", size: float = 0.01,
-                generator: torch.Generator | None = None) -> Measurements:
+def contaminate(
+    m: Measurements, rows: Tensor, mode: str = "shift", size: float = 0.01, generator: torch.Generator | None = None
+) -> Measurements:
     """A copy of ``m`` with gross errors in ``rows``.
 
     Args:
@@ -61,10 +62,21 @@ def _rejected(run: CalibrationRun) -> tuple[set[int], set[int]]:
     return ({line_to_row[r.line] for r in sc.training.rejected}, {line_to_row[r.line] for r in sc.holdout.rejected})
 
 
-def gross_error_trial(seed: int = 0, *, mode: str = "shift", fraction: float = 0.05, count: int | None = None,
-                      size: float = 0.01, where: str = "all", method: str = "kinematic", poses: int = 800,
-                      test_poses: int = 200, robot: str = "ur5", clean_run: CalibrationRun | None = None,
-                      campaign=None) -> dict:
+def gross_error_trial(
+    seed: int = 0,
+    *,
+    mode: str = "shift",
+    fraction: float = 0.05,
+    count: int | None = None,
+    size: float = 0.01,
+    where: str = "all",
+    method: str = "kinematic",
+    poses: int = 800,
+    test_poses: int = 200,
+    robot: str = "ur5",
+    clean_run: CalibrationRun | None = None,
+    campaign=None,
+) -> dict:
     """Calibrate a clean and a contaminated copy of a simulated training file; compare on the clean test file.
 
     Args:
@@ -97,17 +109,29 @@ def gross_error_trial(seed: int = 0, *, mode: str = "shift", fraction: float = 0
     e_clean = _rmse(errors(clean.model, c.test, trajectory=False))
     e_dirty = _rmse(errors(run.model, c.test, trajectory=False))
     return {
-        "seed": seed, "mode": mode, "size_mm": size * 1e3 if mode == "shift" else None, "where": where,
-        "method": method, "n_rows": data.n, "n_contaminated": len(badset),
-        "test_rmse_clean_mm": e_clean * 1e3, "test_rmse_contaminated_mm": e_dirty * 1e3,
+        "seed": seed,
+        "mode": mode,
+        "size_mm": size * 1e3 if mode == "shift" else None,
+        "where": where,
+        "method": method,
+        "n_rows": data.n,
+        "n_contaminated": len(badset),
+        "test_rmse_clean_mm": e_clean * 1e3,
+        "test_rmse_contaminated_mm": e_dirty * 1e3,
         "test_ratio": e_dirty / e_clean if e_clean > 0 else math.nan,
-        "holdout_rmse_clean_mm": clean.stages[-1].rmse * 1e3, "holdout_rmse_contaminated_mm": run.stages[-1].rmse * 1e3,
-        "found": len(rejected & badset), "found_rate": len(rejected & badset) / max(len(badset), 1),
-        "false_rejections": len(rejected - badset), "false_rate": len(rejected - badset) / max(n_good, 1),
+        "holdout_rmse_clean_mm": clean.stages[-1].rmse * 1e3,
+        "holdout_rmse_contaminated_mm": run.stages[-1].rmse * 1e3,
+        "found": len(rejected & badset),
+        "found_rate": len(rejected & badset) / max(len(badset), 1),
+        "false_rejections": len(rejected - badset),
+        "false_rate": len(rejected - badset) / max(n_good, 1),
         "clean_rejections": len(set().union(*_rejected(clean))),
         "rejected_training_lines": sorted(int(data.lines[i]) for i in rej_tr),
         "rejected_holdout_lines": sorted(int(data.lines[i]) for i in rej_ho),
         "contaminated_lines": [int(data.lines[i]) for i in bad.tolist()],
-        "hints": sorted({r.hint.split(":")[0] for r in run.screening.training.rejected + run.screening.holdout.rejected
-                         if r.hint}) if run.screening is not None else [],
+        "hints": sorted(
+            {r.hint.split(":")[0] for r in run.screening.training.rejected + run.screening.holdout.rejected if r.hint}
+        )
+        if run.screening is not None
+        else [],
     }

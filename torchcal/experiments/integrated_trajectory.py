@@ -51,11 +51,23 @@ from torchcal.sim import EffectSpec, SimConfig, simulate
 
 def trajectory_data(samples: int, field: str, seed: int):
     """The simulated trajectory as one measurement set (train and test parts of the campaign joined)."""
-    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=samples, train_samples=samples - 1, seed=seed,
-                           effects=[EffectSpec.parse(f"field={field}")]))
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            trajectory=True,
+            samples=samples,
+            train_samples=samples - 1,
+            seed=seed,
+            effects=[EffectSpec.parse(f"field={field}")],
+        )
+    )
     parts = (c.train, c.test)
-    data = Measurements(q=torch.cat([m.q for m in parts]), p=torch.cat([m.p for m in parts]),
-                        t=torch.cat([m.t for m in parts]), sigma=torch.cat([m.sigma for m in parts]))
+    data = Measurements(
+        q=torch.cat([m.q for m in parts]),
+        p=torch.cat([m.p for m in parts]),
+        t=torch.cat([m.t for m in parts]),
+        sigma=torch.cat([m.sigma for m in parts]),
+    )
     return c, data
 
 
@@ -69,8 +81,12 @@ def field_for(samples: int, seed: int, target_mm: float, probe: str = "0.26mm") 
     run = calibrate("ur5", data, Options(method="kinematic", seed=seed))
     hold = data.subset(run.holdout_idx)
     with torch.no_grad():
-        floor = float((c.model(Context.from_measurements(hold, trajectory=True)) - hold.p).norm(dim=-1)
-                      .square().mean().sqrt()) * 1e3
+        floor = (
+            float(
+                (c.model(Context.from_measurements(hold, trajectory=True)) - hold.p).norm(dim=-1).square().mean().sqrt()
+            )
+            * 1e3
+        )
     geo = run.stages[-1].rmse * 1e3
     size = float(probe.removesuffix("mm")) * math.sqrt(max(target_mm**2 - floor**2, 0.0) / (geo**2 - floor**2))
     return f"{size:.4f}mm"
@@ -96,6 +112,7 @@ def one_seed(samples: int, field: str, seed: int, engine: str = "adaptive") -> d
         "field_rms_mm": c.truth["effects"][0]["rms_m"] * 1e3,
         "field_variation_mm": c.truth["effects"][0]["variation_m"] * 1e3,
         "nis_mean": ev["filter"]["nis_mean"],
-        "n_train": int(len(run.train_idx)), "n_holdout": int(len(run.holdout_idx)),
+        "n_train": int(len(run.train_idx)),
+        "n_holdout": int(len(run.holdout_idx)),
         "seconds": time.perf_counter() - t0,
     }

@@ -14,8 +14,9 @@ def series_file(data_dir: Path, name: str) -> Path:
     """The one ``Series_<name>/measurements_*.csv`` under ``data_dir``."""
     files = sorted((Path(data_dir) / f"Series_{name}").glob("measurements_*.csv"))
     if len(files) != 1:
-        raise MeasurementFileError(f"expected one Series_{name}/measurements_*.csv under {data_dir}, "
-                                   f"found {len(files)}")
+        raise MeasurementFileError(
+            f"expected one Series_{name}/measurements_*.csv under {data_dir}, found {len(files)}"
+        )
     return files[0]
 
 

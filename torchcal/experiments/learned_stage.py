@@ -50,8 +50,9 @@ def _rss() -> int:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
 
 
-def grouped_split(q: torch.Tensor, holdout: float, seed: int,
-                  tol: float = 1e-3) -> tuple[torch.Tensor, torch.Tensor, int]:
+def grouped_split(
+    q: torch.Tensor, holdout: float, seed: int, tol: float = 1e-3
+) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Training and held-out indices with rows whose joints agree within ``tol`` (max abs) on one side.
 
     Returns the sorted training and held-out indices and the number of rows merged into a group with another.
@@ -92,6 +93,7 @@ def grouped_split(q: torch.Tensor, holdout: float, seed: int,
 def _kinematic(robot_spec: str, train):
     """The kinematic calibration of ``train`` (the pipeline's ``kinematic`` method; 1 % of it held out there)."""
     from torchcal.pipeline import Options, calibrate
+
     return calibrate(robot_spec, train, Options(method="kinematic", holdout=0.01)).model
 
 
@@ -105,8 +107,17 @@ def _rmse(e: torch.Tensor) -> float:
     return float(e.norm(dim=-1).square().mean().sqrt()) * MM
 
 
-def compare(robot, ctx_tr: Context, y_tr: torch.Tensor, ctx_te: Context, y_te: torch.Tensor, *, seed: int = 0,
-            methods=("geometry", "kernel", "gp"), gp_settings: GPSettings | None = None) -> dict:
+def compare(
+    robot,
+    ctx_tr: Context,
+    y_tr: torch.Tensor,
+    ctx_te: Context,
+    y_te: torch.Tensor,
+    *,
+    seed: int = 0,
+    methods=("geometry", "kernel", "gp"),
+    gp_settings: GPSettings | None = None,
+) -> dict:
     """Held-out RMSE [mm], fit time [s] and peak memory [MB] of each learned model on the same residuals."""
     out = {}
     if "geometry" in methods:
@@ -118,13 +129,19 @@ def compare(robot, ctx_tr: Context, y_tr: torch.Tensor, ctx_te: Context, y_te: t
         fi, va = perm[nv:], perm[:nv]
         t0 = time.perf_counter()
         with PeakRSS() as mem:
-            eff, info = fit_kernel_correction(robot, ctx_tr.q[fi], y_tr[fi], q_val=ctx_tr.q[va], y_val=y_tr[va],
-                                              seed=seed)
+            eff, info = fit_kernel_correction(
+                robot, ctx_tr.q[fi], y_tr[fi], q_val=ctx_tr.q[va], y_val=y_tr[va], seed=seed
+            )
         wall = time.perf_counter() - t0
         with torch.no_grad():
             pred = eff(robot, ctx_te)
-        out["kernel"] = {"heldout_rmse_mm": _rmse(y_te - pred), "fit_s": wall, "peak_mb": mem.mb,
-                         "support": info["support"], "best": info["best"]}
+        out["kernel"] = {
+            "heldout_rmse_mm": _rmse(y_te - pred),
+            "fit_s": wall,
+            "peak_mb": mem.mb,
+            "support": info["support"],
+            "best": info["best"],
+        }
     if "gp" in methods:
         s = gp_settings or GPSettings(seed=seed)
         t0 = time.perf_counter()
@@ -133,12 +150,18 @@ def compare(robot, ctx_tr: Context, y_tr: torch.Tensor, ctx_te: Context, y_te: t
         wall = time.perf_counter() - t0
         with torch.no_grad():
             mean, sd = eff.predict(ctx_te, noise=True)
-        out["gp"] = {"heldout_rmse_mm": _rmse(y_te - mean), "fit_s": wall, "peak_mb": mem.mb,
-                     "coverage_2sigma": float(((y_te - mean).abs() <= 2 * sd).double().mean()),
-                     "variable_share": info["variable_share"], "n_inducing": info["n_inducing"],
-                     "exact": info["exact"], "evidence_evaluations": info["evidence_evaluations"],
-                     "additive_length_scale": info["additive_length_scale"],
-                     "ard_length_scale": info["ard_length_scale"]}
+        out["gp"] = {
+            "heldout_rmse_mm": _rmse(y_te - mean),
+            "fit_s": wall,
+            "peak_mb": mem.mb,
+            "coverage_2sigma": float(((y_te - mean).abs() <= 2 * sd).double().mean()),
+            "variable_share": info["variable_share"],
+            "n_inducing": info["n_inducing"],
+            "exact": info["exact"],
+            "evidence_evaluations": info["evidence_evaluations"],
+            "additive_length_scale": info["additive_length_scale"],
+            "ard_length_scale": info["ard_length_scale"],
+        }
     if "gpytorch" in methods:
         out["gpytorch"] = gpytorch_sgpr(ctx_tr, y_tr, ctx_te, y_te, seed=seed)
     return out
@@ -164,8 +187,15 @@ def simulated_case(case: str, seed: int = 0, poses: int = 800, test_poses: int =
     elif case != "field":
         raise ValueError(f"case '{case}' is not harmonic3 or field")
     model = _kinematic("ur5", train)
-    res = compare(model.robot, Context(q=train.q), residuals(model, train), Context(q=test.q),
-                  residuals(model, test), seed=seed, **kw)
+    res = compare(
+        model.robot,
+        Context(q=train.q),
+        residuals(model, train),
+        Context(q=test.q),
+        residuals(model, test),
+        seed=seed,
+        **kw,
+    )
     return {"case": case, "robot": "ur5", "train": train.n, "test": test.n, "seed": seed, **res}
 
 
@@ -175,8 +205,7 @@ def _with_p(m, p):
     return dataclasses.replace(m, p=p)
 
 
-def real_case(data_dir: str | Path, series: str, seed: int = 0, holdout: float = 0.2, tol: float = 1e-3,
-              **kw) -> dict:
+def real_case(data_dir: str | Path, series: str, seed: int = 0, holdout: float = 0.2, tol: float = 1e-3, **kw) -> dict:
     """A UR10 series on a grouped 80/20 split (:func:`grouped_split`), residuals of the kinematic fit."""
     from torchcal.data import read_ipa
 
@@ -187,16 +216,36 @@ def real_case(data_dir: str | Path, series: str, seed: int = 0, holdout: float =
     t0 = time.perf_counter()
     model = _kinematic("ur10", train)
     kin_s = time.perf_counter() - t0
-    res = compare(model.robot, Context(q=train.q), residuals(model, train), Context(q=test.q),
-                  residuals(model, test), seed=seed, **kw)
-    return {"case": f"ur10-{series}", "train": train.n, "test": test.n, "rows_merged_in_groups": merged,
-            "kinematic_fit_s": kin_s, "seed": seed, **res}
+    res = compare(
+        model.robot,
+        Context(q=train.q),
+        residuals(model, train),
+        Context(q=test.q),
+        residuals(model, test),
+        seed=seed,
+        **kw,
+    )
+    return {
+        "case": f"ur10-{series}",
+        "train": train.n,
+        "test": test.n,
+        "rows_merged_in_groups": merged,
+        "kinematic_fit_s": kin_s,
+        "seed": seed,
+        **res,
+    }
 
 
-
-
-def gpytorch_sgpr(ctx_tr: Context, y_tr: torch.Tensor, ctx_te: Context, y_te: torch.Tensor, *, n_inducing: int = 500,
-                  iterations: int = 100, seed: int = 0) -> dict:
+def gpytorch_sgpr(
+    ctx_tr: Context,
+    y_tr: torch.Tensor,
+    ctx_te: Context,
+    y_te: torch.Tensor,
+    *,
+    n_inducing: int = 500,
+    iterations: int = 100,
+    seed: int = 0,
+) -> dict:
     """The same model in gpytorch (optional; not a dependency): per-joint RBF components plus an ARD RBF, an
     ``InducingPointKernel`` (SGPR, Titsias's bound) with k-means inducing inputs that Adam moves as well, each
     output its own GP on the standardised residuals; the held-out RMSE [mm], fit time [s] and peak memory [MB]."""
@@ -245,8 +294,14 @@ def gpytorch_sgpr(ctx_tr: Context, y_tr: torch.Tensor, ctx_te: Context, y_te: to
             model.eval()
             lik_list[k].eval()
             pred[:, k] = model(xs).mean * sd[k] + mu[k]
-    return {"heldout_rmse_mm": _rmse(y_te - pred), "fit_s": wall, "peak_mb": mem.mb, "n_inducing": len(z0),
-            "iterations": iterations, "version": gpytorch.__version__}
+    return {
+        "heldout_rmse_mm": _rmse(y_te - pred),
+        "fit_s": wall,
+        "peak_mb": mem.mb,
+        "n_inducing": len(z0),
+        "iterations": iterations,
+        "version": gpytorch.__version__,
+    }
 
 
 def scale_case(n: int, seed: int = 0, gp_settings: GPSettings | None = None) -> dict:
@@ -254,8 +309,9 @@ def scale_case(n: int, seed: int = 0, gp_settings: GPSettings | None = None) -> 
     20 um noise), and its RMSE against the noise-free field on 2000 more poses [mm]."""
     g = torch.Generator().manual_seed(seed)
     q = (torch.rand(n + 2000, 6, generator=g, dtype=F64) * 2 - 1) * 3
-    f = 1e-4 * torch.stack([torch.sin(2 * q[:, 1]) * torch.cos(q[:, 2]), torch.cos(2 * q[:, 0]),
-                            torch.sin(3 * q[:, 4])], 1)
+    f = 1e-4 * torch.stack(
+        [torch.sin(2 * q[:, 1]) * torch.cos(q[:, 2]), torch.cos(2 * q[:, 0]), torch.sin(3 * q[:, 4])], 1
+    )
     y = f + 2e-5 * torch.randn(n + 2000, 3, generator=g, dtype=F64)
     t0 = time.perf_counter()
     with PeakRSS() as mem:
@@ -263,5 +319,11 @@ def scale_case(n: int, seed: int = 0, gp_settings: GPSettings | None = None) -> 
     wall = time.perf_counter() - t0
     with torch.no_grad():
         pred = eff(None, Context(q=q[n:]))
-    return {"case": f"synthetic-{n}", "fit_s": wall, "peak_mb": mem.mb, "n_inducing": info["n_inducing"],
-            "field_rmse_mm": _rmse(f[n:]), "error_vs_field_mm": _rmse(pred - f[n:])}
+    return {
+        "case": f"synthetic-{n}",
+        "fit_s": wall,
+        "peak_mb": mem.mb,
+        "n_inducing": info["n_inducing"],
+        "field_rmse_mm": _rmse(f[n:]),
+        "error_vs_field_mm": _rmse(pred - f[n:]),
+    }

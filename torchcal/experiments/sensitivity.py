@@ -85,8 +85,15 @@ PAPER_LARGEST = ("d4", "alpha4", "a1", "a2", "theta5")
 def campaign(samples: int, seed: int):
     """The setting of ``reproduce_table4.py``: the field sized to the paper's 0.6 mm variation."""
     train = round(samples * 5874 / 7342)
-    cfg = dict(robot="ur5", trajectory=True, samples=samples, train_samples=train, seed=seed, sigma_length=0.0,
-               sigma_angle_deg=0.0)
+    cfg = dict(
+        robot="ur5",
+        trajectory=True,
+        samples=samples,
+        train_samples=train,
+        seed=seed,
+        sigma_length=0.0,
+        sigma_angle_deg=0.0,
+    )
     probe = simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=1e-4)]))
     size = 1e-4 * 0.6e-3 / probe.truth["effects"][0]["variation_m"]
     return simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=size)]))
@@ -193,9 +200,12 @@ def run(samples: int, seed: int, draws: int) -> dict:
         params[name] = {
             "group": {"geometry": "dh", "instrument": "instrument", "tool": "lever"}[info.group],
             "bias": "0.01 deg" if info.unit == "rad" else "0.1 mm",
-            "mean_dG_mm": float(a.mean()) * 1e3, "max_dG_mm": float(a.max()) * 1e3,
-            "train_mean_dG_mm": float(a[:, tr].mean()) * 1e3, "train_max_dG_mm": float(a[:, tr].max()) * 1e3,
-            "test_mean_dG_mm": float(a[:, te].mean()) * 1e3, "test_max_dG_mm": float(a[:, te].max()) * 1e3,
+            "mean_dG_mm": float(a.mean()) * 1e3,
+            "max_dG_mm": float(a.max()) * 1e3,
+            "train_mean_dG_mm": float(a[:, tr].mean()) * 1e3,
+            "train_max_dG_mm": float(a[:, tr].max()) * 1e3,
+            "test_mean_dG_mm": float(a[:, te].mean()) * 1e3,
+            "test_max_dG_mm": float(a[:, te].max()) * 1e3,
             "mean_dNG_mm": float(dNG[:, j].mean()) * 1e3,
         }
     dh = sorted((n for n in names if params[n]["group"] == "dh"), key=lambda n: -params[n]["mean_dG_mm"])
@@ -206,20 +216,32 @@ def run(samples: int, seed: int, draws: int) -> dict:
         "paper_largest_dh": list(PAPER_LARGEST),
         "check_max_abs_diff_m": check,
         "filter_status": sorted(set(res.status)),
-        "config": {"samples": samples, "train": n_tr, "test": samples - n_tr, "draws": draws, "seed": seed,
-                   "filter_draws": int(q.shape[0]), "bias_length_m": BIAS_LENGTH, "bias_angle_rad": BIAS_ANGLE,
-                   "field_variation_mm": c.truth["effects"][0]["variation_m"] * 1e3,
-                   "reference": "the unbiased filter on the same noisy data"},
+        "config": {
+            "samples": samples,
+            "train": n_tr,
+            "test": samples - n_tr,
+            "draws": draws,
+            "seed": seed,
+            "filter_draws": int(q.shape[0]),
+            "bias_length_m": BIAS_LENGTH,
+            "bias_angle_rad": BIAS_ANGLE,
+            "field_variation_mm": c.truth["effects"][0]["variation_m"] * 1e3,
+            "reference": "the unbiased filter on the same noisy data",
+        },
         "seconds": time.perf_counter() - t_start,
     }
 
 
 def text_table(result: dict) -> str:
-    lines = [f"{'parameter':16s} {'bias':>8s} {'mean|dG| all':>13s} {'max':>9s} {'train mean':>11s} "
-             f"{'test mean':>10s} {'test max':>9s}   [mm]"]
+    lines = [
+        f"{'parameter':16s} {'bias':>8s} {'mean|dG| all':>13s} {'max':>9s} {'train mean':>11s} "
+        f"{'test mean':>10s} {'test max':>9s}   [mm]"
+    ]
     for name, p in result["parameters"].items():
-        lines.append(f"{name:16s} {p['bias']:>8s} {p['mean_dG_mm']:13.5f} {p['max_dG_mm']:9.5f} "
-                     f"{p['train_mean_dG_mm']:11.5f} {p['test_mean_dG_mm']:10.5f} {p['test_max_dG_mm']:9.5f}")
+        lines.append(
+            f"{name:16s} {p['bias']:>8s} {p['mean_dG_mm']:13.5f} {p['max_dG_mm']:9.5f} "
+            f"{p['train_mean_dG_mm']:11.5f} {p['test_mean_dG_mm']:10.5f} {p['test_max_dG_mm']:9.5f}"
+        )
     return "\n".join(lines)
 
 
@@ -234,17 +256,24 @@ def plot(result: dict, path: Path) -> None:
     colors = {"dh": "tab:blue", "instrument": "tab:orange", "lever": "tab:green"}
     x = list(range(len(names)))
     fig, axes = plt.subplots(2, 1, figsize=(max(8, 0.38 * len(names)), 6), sharex=True)
-    for ax, key, title in ((axes[0], "train", "filtered (training) samples"),
-                           (axes[1], "test", "predicted (test) samples")):
+    for ax, key, title in (
+        (axes[0], "train", "filtered (training) samples"),
+        (axes[1], "test", "predicted (test) samples"),
+    ):
         ax.bar(x, [par[n][f"{key}_mean_dG_mm"] * 1e3 for n in names], color=[colors[par[n]["group"]] for n in names])
         ax.plot(x, [par[n][f"{key}_max_dG_mm"] * 1e3 for n in names], "k_", ms=8, label="max")
         ax.set_ylabel("|delta_G| [um]")
         ax.set_title(f"Mean |delta_G| over the {title} (bars), max (ticks)", fontsize=9)
-    axes[0].legend(handles=[plt.Rectangle((0, 0), 1, 1, color=c) for c in colors.values()] + axes[0].lines,
-                   labels=["DH", "instrument T_tracker_base", "lever arm", "max"], fontsize=7, ncol=4)
+    axes[0].legend(
+        handles=[plt.Rectangle((0, 0), 1, 1, color=c) for c in colors.values()] + axes[0].lines,
+        labels=["DH", "instrument T_tracker_base", "lever arm", "max"],
+        fontsize=7,
+        ncol=4,
+    )
     axes[1].set_xticks(x, names, rotation=70, fontsize=8)
-    fig.suptitle("Sensitivity of the geometric part to a bias of 0.1 mm / 0.01 deg in one parameter (cf. Fig. 13)",
-                 fontsize=10)
+    fig.suptitle(
+        "Sensitivity of the geometric part to a bias of 0.1 mm / 0.01 deg in one parameter (cf. Fig. 13)", fontsize=10
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -154,8 +154,16 @@ def make_setup(poses: int, test_poses: int, seed: int, posture: str = "any") -> 
     if posture not in POSTURES:
         raise ValueError(f"posture must be one of {', '.join(POSTURES)}, got {posture!r}")
     n = poses + test_poses
-    cfg = SimConfig(robot=ROBOT, poses=n if posture == "any" else 4 * n, test_poses=0, seed=seed,
-                    sigma_tracker=0.0, sigma_joint_deg=0.0, sigma_length=0.0, sigma_angle_deg=0.0)
+    cfg = SimConfig(
+        robot=ROBOT,
+        poses=n if posture == "any" else 4 * n,
+        test_poses=0,
+        seed=seed,
+        sigma_tracker=0.0,
+        sigma_joint_deg=0.0,
+        sigma_length=0.0,
+        sigma_angle_deg=0.0,
+    )
     c = simulate(cfg)
     lever = torch.tensor(c.truth["tool"]["t_flange_probe"], dtype=F64)
     q = c.train.q
@@ -166,15 +174,27 @@ def make_setup(poses: int, test_poses: int, seed: int, posture: str = "any") -> 
             raise RuntimeError(f"only {len(q)} of {n} poses have the single posture; lower --poses")
     T = torch.tensor(c.truth["instrument"]["T_tracker_base"], dtype=F64)
     tracker = c.truth["instrument"]["tracker_in_base_m"]
-    return Setup(q=q[:poses], q_test=q[poses:n], T_tracker_base=T, t_flange_probe=lever,
-                 lever_nominal=torch.tensor(cfg.lever_arm, dtype=F64),
-                 config={"robot": ROBOT, "poses": poses, "test_poses": test_poses, "seed": seed, "posture": posture,
-                         "tracker_in_base_m": tracker,
-                         "tracker_horizontal_distance_m": math.hypot(tracker[0], tracker[1]),
-                         "tracker_tilt_deg_sigma": cfg.tracker_tilt_deg,
-                         "t_flange_probe_m": c.truth["tool"]["t_flange_probe"],
-                         "sigma_length_mm": SIGMA_LENGTH * 1e3, "sigma_angle_arcsec": SIGMA_ANGLE / ARCSEC,
-                         "noise": "none (tracker and joints noise-free)"})
+    return Setup(
+        q=q[:poses],
+        q_test=q[poses:n],
+        T_tracker_base=T,
+        t_flange_probe=lever,
+        lever_nominal=torch.tensor(cfg.lever_arm, dtype=F64),
+        config={
+            "robot": ROBOT,
+            "poses": poses,
+            "test_poses": test_poses,
+            "seed": seed,
+            "posture": posture,
+            "tracker_in_base_m": tracker,
+            "tracker_horizontal_distance_m": math.hypot(tracker[0], tracker[1]),
+            "tracker_tilt_deg_sigma": cfg.tracker_tilt_deg,
+            "t_flange_probe_m": c.truth["tool"]["t_flange_probe"],
+            "sigma_length_mm": SIGMA_LENGTH * 1e3,
+            "sigma_angle_arcsec": SIGMA_ANGLE / ARCSEC,
+            "noise": "none (tracker and joints noise-free)",
+        },
+    )
 
 
 def standard_normals(draws: int, seed: int) -> torch.Tensor:
@@ -284,8 +304,9 @@ def text_table(result: dict) -> str:
     lines = [head, units]
     for name, row in result["rows"].items():
         cells = "".join(f"{_fmt(row['mean_abs'][c], u):>9s}" for c, u in zip(COMPONENTS, UNITS))
-        lines.append(f"{name:8s}{cells}{row['nominal_mm']:9.3f}{row['remaining_mm']:9.3f}"
-                     f"{100 * row['absorbed_share']:8.1f}")
+        lines.append(
+            f"{name:8s}{cells}{row['nominal_mm']:9.3f}{row['remaining_mm']:9.3f}{100 * row['absorbed_share']:8.1f}"
+        )
     return "\n".join(lines)
 
 
@@ -300,7 +321,7 @@ def markdown(result: dict) -> str:
         f"{cfg['tracker_horizontal_distance_m']:.2f} m from the base axis; {result['runtime_s']:.0f} s). "
         "See the script's docstring for how the setup differs from the paper's.",
         "",
-        "Mean |deviation| of the fitted transformation (tracker origin in the robot frame [mm], rotation [\"]) "
+        'Mean |deviation| of the fitted transformation (tracker origin in the robot frame [mm], rotation ["]) '
         "and lever arm [mm] from the truth. Each cell: **ours** / paper.",
         "",
         "| par | " + " | ".join(f"{c} [{_unit(u)}]" for c, u in zip(COMPONENTS, UNITS)) + " |",
@@ -323,11 +344,19 @@ def markdown(result: dict) -> str:
     ]
     for name, row in result["rows"].items():
         paper = "" if name == "all" else ("yes" if row["paper_absorbed"] else "no")
-        bias = "" if row["mean_abs_bias"] is None else (
-            f"{row['mean_abs_bias']:.3f} mm" if name[0] in "ad" and not name.startswith("alpha")
-            else f"{row['mean_abs_bias']:.0f}\"")
-        out.append(f"| {name} | {bias} | {row['nominal_mm']:.4f} | {row['remaining_mm']:.4f} | "
-                   f"{100 * row['absorbed_share']:.1f} % | {paper} |")
+        bias = (
+            ""
+            if row["mean_abs_bias"] is None
+            else (
+                f"{row['mean_abs_bias']:.3f} mm"
+                if name[0] in "ad" and not name.startswith("alpha")
+                else f'{row["mean_abs_bias"]:.0f}"'
+            )
+        )
+        out.append(
+            f"| {name} | {bias} | {row['nominal_mm']:.4f} | {row['remaining_mm']:.4f} | "
+            f"{100 * row['absorbed_share']:.1f} % | {paper} |"
+        )
     out += [
         "",
         f"Absorbed here (remaining < 1 % of nominal): {', '.join(s['absorbed_ours'])}; "

@@ -82,8 +82,14 @@ def calibrate_draw(setup, biases: dict[str, float]) -> dict:
         robot.tool.nominal.copy_(t)
     pcm = {"deviation": t1.deviation(T, t, setup), "rmse_mm": _rmse_mm(robot, setup.q_test, p_test)}
     opts = Options(prior_length=None, prior_angle=None, stat_tol=0.0)
-    fit = solve(MeasurementModel(robot), Measurements(q=setup.q, p=p), ("geometry", "instrument", "tool"), opts,
-                "geometric", trajectory=False)
+    fit = solve(
+        MeasurementModel(robot),
+        Measurements(q=setup.q, p=p),
+        ("geometry", "instrument", "tool"),
+        opts,
+        "geometric",
+        trajectory=False,
+    )
     return {
         "deviation": t1.deviation(robot.instrument.matrix(), robot.tool.vector(), setup),
         "rmse_mm": _rmse_mm(robot, setup.q_test, p_test),
@@ -123,8 +129,11 @@ def run(draws: int, poses: int, test_poses: int, seed: int, posture: str = "any"
         }
     return {
         "experiment": "Table 2 of " + t1.PAPER,
-        "config": {**setup.config, "draws": draws,
-                   "calibration": "torchcal.estimate.fit.solve(geometry, instrument, tool), no prior, stat_tol=0"},
+        "config": {
+            **setup.config,
+            "draws": draws,
+            "calibration": "torchcal.estimate.fit.solve(geometry, instrument, tool), no prior, stat_tol=0",
+        },
         "components": dict(zip(COMPONENTS, UNITS)),
         "fixed_parameters": sorted(fixed),
         "fixed_as_in_paper": fixed == set(PAPER_FIXED),
@@ -147,8 +156,10 @@ def _paper(value: float | None) -> str:
 
 
 def text_table(result: dict) -> str:
-    lines = [f"{'variant':10s}" + "".join(f"{c:>9s}" for c in COMPONENTS) + f"{'rmse_mm':>10s}{'pcm_mm':>9s}",
-             f"{'':10s}" + "".join(f"{u:>9s}" for u in UNITS)]
+    lines = [
+        f"{'variant':10s}" + "".join(f"{c:>9s}" for c in COMPONENTS) + f"{'rmse_mm':>10s}{'pcm_mm':>9s}",
+        f"{'':10s}" + "".join(f"{u:>9s}" for u in UNITS),
+    ]
     for name, row in result["rows"].items():
         small = name == "remaining"
         cells = "".join(f"{_fmt(row['mean_abs'][c], u, small):>9s}" for c, u in zip(COMPONENTS, UNITS))
@@ -168,21 +179,25 @@ def markdown(result: dict) -> str:
         "",
         f"Fixed by the identifiability analysis: {', '.join(result['fixed_parameters'])} "
         f"({'as' if result['fixed_as_in_paper'] else 'not as'} in the paper). LM status: "
-        + ", ".join(f"{k} {v}" for k, v in result["lm_status"].items()) + ".",
+        + ", ".join(f"{k} {v}" for k, v in result["lm_status"].items())
+        + ".",
         "",
-        "Mean |deviation| of the estimated transformation (tracker origin in the robot frame [mm], rotation [\"]) "
+        'Mean |deviation| of the estimated transformation (tracker origin in the robot frame [mm], rotation ["]) '
         "and lever arm [mm] from the truth. Each cell: **ours** / paper (n/a: not legible in our copy).",
         "",
-        "| variant | " + " | ".join(f"{c} [{t1._unit(u)}]" for c, u in zip(COMPONENTS, UNITS))
+        "| variant | "
+        + " | ".join(f"{c} [{t1._unit(u)}]" for c, u in zip(COMPONENTS, UNITS))
         + " | held-out RMSE [mm] | PCM held-out RMSE [mm] |",
         "|---" * (len(COMPONENTS) + 3) + "|",
     ]
     for name, row in result["rows"].items():
         small = name == "remaining"
-        cells = [f"**{_fmt(row['mean_abs'][c], u, small)}** / {_paper(row['paper'][c])}"
-                 for c, u in zip(COMPONENTS, UNITS)]
-        out.append(f"| {name} | " + " | ".join(cells)
-                   + f" | {row['heldout_rmse_mm']:.1e} | {row['heldout_rmse_pcm_mm']:.3f} |")
+        cells = [
+            f"**{_fmt(row['mean_abs'][c], u, small)}** / {_paper(row['paper'][c])}" for c, u in zip(COMPONENTS, UNITS)
+        ]
+        out.append(
+            f"| {name} | " + " | ".join(cells) + f" | {row['heldout_rmse_mm']:.1e} | {row['heldout_rmse_pcm_mm']:.3f} |"
+        )
     out += [
         "",
         "For comparison, the PCM (transformation and lever arm fitted with the nominal geometry, as in Table 1) "
@@ -192,8 +207,9 @@ def markdown(result: dict) -> str:
         "|---" * (len(COMPONENTS) + 1) + "|",
     ]
     for name, row in result["rows"].items():
-        out.append(f"| {name} | " + " | ".join(_fmt(row["pcm_mean_abs"][c], u) for c, u in zip(COMPONENTS, UNITS))
-                   + " |")
+        out.append(
+            f"| {name} | " + " | ".join(_fmt(row["pcm_mean_abs"][c], u) for c, u in zip(COMPONENTS, UNITS)) + " |"
+        )
     out.append("")
     return "\n".join(out)
 

@@ -39,8 +39,15 @@ PAPER = {"5": (0.18, 0.34, 0.38), "10": (0.27, 0.51, 0.53), "15": (0.52, 0.69, 0
 
 def campaign(samples: int, seed: int):
     train = round(samples * 5874 / 7342)
-    cfg = dict(robot="ur5", trajectory=True, samples=samples, train_samples=train, seed=seed, sigma_length=0.0,
-               sigma_angle_deg=0.0)
+    cfg = dict(
+        robot="ur5",
+        trajectory=True,
+        samples=samples,
+        train_samples=train,
+        seed=seed,
+        sigma_length=0.0,
+        sigma_angle_deg=0.0,
+    )
     probe = simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=1e-4)]))
     size = 1e-4 * 0.6e-3 / probe.truth["effects"][0]["variation_m"]  # the paper's 0.6 mm variation
     return simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=size)]))
@@ -54,12 +61,15 @@ def metrics(res, G_true, NG_true, n_train):
 
     ng = rmse(res.nongeometric - NG_true)
     var = float(NG_true[te].norm(dim=-1).max() - NG_true[te].norm(dim=-1).min())
-    return {"rmse_ng_test_mm": float(ng.mean()) * 1e3,
-            "rmse_g_test_mm": float(rmse(res.geometric - G_true).mean()) * 1e3,
-            "rmse_all_test_mm": float(rmse(res.prediction - G_true - NG_true).mean()) * 1e3,
-            "learned": 1.0 - float(ng.mean()) / var, "draws": int(ng.numel()),
-            "worst_all_test_mm": float(rmse(res.prediction - G_true - NG_true).max()) * 1e3,
-            "diverged": sum(s != "ok" for s in res.status)}
+    return {
+        "rmse_ng_test_mm": float(ng.mean()) * 1e3,
+        "rmse_g_test_mm": float(rmse(res.geometric - G_true).mean()) * 1e3,
+        "rmse_all_test_mm": float(rmse(res.prediction - G_true - NG_true).mean()) * 1e3,
+        "learned": 1.0 - float(ng.mean()) / var,
+        "draws": int(ng.numel()),
+        "worst_all_test_mm": float(rmse(res.prediction - G_true - NG_true).max()) * 1e3,
+        "diverged": sum(s != "ok" for s in res.status),
+    }
 
 
 def plot(res, G_true, NG_true, n_train, path, title, d=0):
@@ -69,8 +79,13 @@ def plot(res, G_true, NG_true, n_train, path, title, d=0):
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(3, 1, figsize=(9, 6), sharex=True)
-    for k, (name, a) in enumerate([("devG", res.geometric - G_true), ("devNG", res.nongeometric - NG_true),
-                                   ("devAll", res.prediction - G_true - NG_true)]):
+    for k, (name, a) in enumerate(
+        [
+            ("devG", res.geometric - G_true),
+            ("devNG", res.nongeometric - NG_true),
+            ("devAll", res.prediction - G_true - NG_true),
+        ]
+    ):
         for j, c in enumerate("xyz"):
             ax[k].plot((a[d, :, j] * 1e3).tolist(), lw=0.6, label=c)
         ax[k].axvline(n_train, color="k", lw=0.8)

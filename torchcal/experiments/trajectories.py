@@ -28,31 +28,48 @@ def compare(train: Measurements, test: Measurements, robot: str = "ur5", engines
     out = {}
     t0 = time.perf_counter()
     kin = calibrate(robot, train, Options(method="kinematic", seed=seed))
-    out["kinematic"] = {"continuation_rmse_mm": continuation_rmse_mm(kin.model, test),
-                        "seconds": time.perf_counter() - t0}
+    out["kinematic"] = {
+        "continuation_rmse_mm": continuation_rmse_mm(kin.model, test),
+        "seconds": time.perf_counter() - t0,
+    }
     for engine in engines:
         t0 = time.perf_counter()
         run = calibrate(robot, train, Options(method="integrated", engine=engine, seed=seed))
-        sel = next((r.evidence.get("selection") for r in list(run.effects) + list(run.rejections)
-                    if r.name == "integrated"), None)
-        out[f"integrated_{engine}"] = {"continuation_rmse_mm": continuation_rmse_mm(run.model, test),
-                                       "internal_holdout_mm": run.stages[-1].rmse * 1e3,
-                                       "chosen": (sel or {}).get("chosen") if run.effects else "geometry alone",
-                                       "seconds": time.perf_counter() - t0}
+        sel = next(
+            (r.evidence.get("selection") for r in list(run.effects) + list(run.rejections) if r.name == "integrated"),
+            None,
+        )
+        out[f"integrated_{engine}"] = {
+            "continuation_rmse_mm": continuation_rmse_mm(run.model, test),
+            "internal_holdout_mm": run.stages[-1].rmse * 1e3,
+            "chosen": (sel or {}).get("chosen") if run.effects else "geometry alone",
+            "seconds": time.perf_counter() - t0,
+        }
     return out
 
 
-def family_table(paths, seeds, field: str = "0.2mm", samples: int = 7342, train_samples: int = 5874,
-                 engines=("auto",)) -> list[dict]:
+def family_table(
+    paths, seeds, field: str = "0.2mm", samples: int = 7342, train_samples: int = 5874, engines=("auto",)
+) -> list[dict]:
     """:func:`compare` for every family and seed of simulated trajectories (one torch thread)."""
     rows = []
     with torch_threads(1):
         for path in paths:
             for seed in seeds:
-                c = simulate(SimConfig(robot="ur5", trajectory=True, path=path, seed=seed, samples=samples,
-                                       train_samples=train_samples, effects=[EffectSpec.parse(f"field={field}")]))
-                rows.append({"path": path, "seed": seed, "field": field,
-                             **compare(c.train, c.test, engines=engines, seed=0)})
+                c = simulate(
+                    SimConfig(
+                        robot="ur5",
+                        trajectory=True,
+                        path=path,
+                        seed=seed,
+                        samples=samples,
+                        train_samples=train_samples,
+                        effects=[EffectSpec.parse(f"field={field}")],
+                    )
+                )
+                rows.append(
+                    {"path": path, "seed": seed, "field": field, **compare(c.train, c.test, engines=engines, seed=0)}
+                )
     return rows
 
 

@@ -88,8 +88,10 @@ def read_goal_rotation(path: Path, n: int) -> torch.Tensor:
     lines = [ln for ln in lines if ln]
     header = [c.strip(" \t\x00") for c in lines[0].split(";")]
     cols = [header.index(c) for c in GOAL_ROT]
-    rows = [[float(cells[k].strip(" \t\x00").replace(",", ".")) for k in cols]
-            for cells in (ln.split(";") for ln in lines[1:])]
+    rows = [
+        [float(cells[k].strip(" \t\x00").replace(",", ".")) for k in cols]
+        for cells in (ln.split(";") for ln in lines[1:])
+    ]
     if len(rows) != n:
         raise SystemExit(f"{path}: {len(rows)} goal rows but read_ipa gave {n}")
     return tf.rpy_to_matrix(torch.tensor(rows, dtype=torch.float64))
@@ -129,26 +131,45 @@ def regression(x: torch.Tensor, y: torch.Tensor) -> dict:
     xc = x - x.mean()
     sxx = float(xc.square().sum())
     if n < 3 or sxx <= 0:
-        return {"slope": float("nan"), "se": float("nan"), "t": float("nan"), "p": float("nan"),
-                "pearson": float("nan"), "spearman": float("nan"), "n": n}
+        return {
+            "slope": float("nan"),
+            "se": float("nan"),
+            "t": float("nan"),
+            "p": float("nan"),
+            "pearson": float("nan"),
+            "spearman": float("nan"),
+            "n": n,
+        }
     b = float((xc * (y - y.mean())).sum()) / sxx
     resid = y - y.mean() - b * xc
     se = math.sqrt(float(resid.square().sum()) / (n - 2) / sxx)
     t = b / se if se > 0 else float("inf")
-    return {"slope": b, "se": se, "t": t, "p": normal_p(t), "pearson": pearson(x, y),
-            "spearman": pearson(ranks(x), ranks(y)), "n": n}
+    return {
+        "slope": b,
+        "se": se,
+        "t": t,
+        "p": normal_p(t),
+        "pearson": pearson(x, y),
+        "spearman": pearson(ranks(x), ranks(y)),
+        "n": n,
+    }
 
 
-def binned(x: torch.Tensor, r: torch.Tensor, comps: dict[str, torch.Tensor] | None = None,
-           bins: int = N_BINS) -> list[dict]:
+def binned(
+    x: torch.Tensor, r: torch.Tensor, comps: dict[str, torch.Tensor] | None = None, bins: int = N_BINS
+) -> list[dict]:
     """Quantile bins of ``x``: range, count, RMS |r| [mm] (and RMS of each component) per bin."""
     order = torch.argsort(x)
     out = []
     for chunk in torch.tensor_split(order, bins):
         if chunk.numel() == 0:
             continue
-        row = {"lo": float(x[chunk].min()), "hi": float(x[chunk].max()), "n": int(chunk.numel()),
-               "rms_mm": rms(r[chunk]) * MM}
+        row = {
+            "lo": float(x[chunk].min()),
+            "hi": float(x[chunk].max()),
+            "n": int(chunk.numel()),
+            "rms_mm": rms(r[chunk]) * MM,
+        }
         for k, v in (comps or {}).items():
             row[f"{k}_mm"] = rms(v[chunk]) * MM
         out.append(row)
@@ -172,8 +193,12 @@ def multiple_regression(covs: dict[str, torch.Tensor], y: torch.Tensor) -> dict:
     cov = torch.linalg.inv(X.T @ X) * s2
     se = cov.diagonal().sqrt()
     r2 = 1.0 - float(resid.square().sum()) / float((y - y.mean()).square().sum())
-    return {"r2": r2, "coef": {k: {"mm_per_sd": float(sol[i + 1]) * MM, "t": float(sol[i + 1] / se[i + 1])}
-                               for i, k in enumerate(names)}}
+    return {
+        "r2": r2,
+        "coef": {
+            k: {"mm_per_sd": float(sol[i + 1]) * MM, "t": float(sol[i + 1] / se[i + 1])} for i, k in enumerate(names)
+        },
+    }
 
 
 def row_trend_controlled(order: torch.Tensor, controls: torch.Tensor, y: torch.Tensor) -> tuple[float, float]:
@@ -238,8 +263,12 @@ def goal_pairs(goal_p: torch.Tensor, goal_R: torch.Tensor, q: torch.Tensor, tol:
         branch.append(torch.stack([a[br], b[br]], 1))
         near.append(torch.stack([a[nr], b[nr]], 1))
     empty = torch.zeros(0, 2, dtype=torch.long)
-    return (torch.cat(orient) if orient else empty, torch.cat(angles) if angles else torch.zeros(0),
-            torch.cat(branch) if branch else empty, torch.cat(near) if near else empty)
+    return (
+        torch.cat(orient) if orient else empty,
+        torch.cat(angles) if angles else torch.zeros(0),
+        torch.cat(branch) if branch else empty,
+        torch.cat(near) if near else empty,
+    )
 
 
 def so3_angle(R: torch.Tensor) -> torch.Tensor:
@@ -247,8 +276,9 @@ def so3_angle(R: torch.Tensor) -> torch.Tensor:
     return torch.arccos(((tr - 1.0) / 2.0).clamp(-1.0, 1.0))
 
 
-def pair_stats(pairs: torch.Tensor, p: torch.Tensor, r: torch.Tensor, r_nom: torch.Tensor, rms_r: float,
-               robust: bool = False) -> dict:
+def pair_stats(
+    pairs: torch.Tensor, p: torch.Tensor, r: torch.Tensor, r_nom: torch.Tensor, rms_r: float, robust: bool = False
+) -> dict:
     """Measured and residual differences over ``pairs`` [mm]; ``per_pose`` = RMS(dr) / sqrt 2.
 
     With ``robust`` (revisits, where |dr| should be noise): the median |dr|, and the per-pose RMS without the
@@ -263,10 +293,16 @@ def pair_stats(pairs: torch.Tensor, p: torch.Tensor, r: torch.Tensor, r_nom: tor
     extra = {"median_dr_mm": float(drv.median()) * MM}
     if robust:
         extra.update({"n_outliers": int((~ok).sum()), "per_pose_without_outliers_mm": rms(drv[ok]) / math.sqrt(2) * MM})
-    return {"n_pairs": int(len(pairs)), "rms_dp_mm": rms(p[a] - p[b]) * MM, "rms_dr_mm": dr * MM,
-            "per_pose_mm": dr / math.sqrt(2.0) * MM,
-            "per_pose_nominal_mm": rms(r_nom[a] - r_nom[b]) / math.sqrt(2.0) * MM,
-            "per_pose_over_rms": dr / math.sqrt(2.0) / rms_r, "corr": vector_corr(r[a], r[b]), **extra}
+    return {
+        "n_pairs": int(len(pairs)),
+        "rms_dp_mm": rms(p[a] - p[b]) * MM,
+        "rms_dr_mm": dr * MM,
+        "per_pose_mm": dr / math.sqrt(2.0) * MM,
+        "per_pose_nominal_mm": rms(r_nom[a] - r_nom[b]) / math.sqrt(2.0) * MM,
+        "per_pose_over_rms": dr / math.sqrt(2.0) / rms_r,
+        "corr": vector_corr(r[a], r[b]),
+        **extra,
+    }
 
 
 def branch_breakdown(pairs: torch.Tensor, q: torch.Tensor, r: torch.Tensor, r_base: torch.Tensor) -> dict:
@@ -280,8 +316,10 @@ def branch_breakdown(pairs: torch.Tensor, q: torch.Tensor, r: torch.Tensor, r_ba
     for k, row in enumerate(big.tolist()):
         key = ",".join(f"q{j + 1}" for j, v in enumerate(row) if v) or "none"
         patterns.setdefault(key, []).append(k)
-    by_pattern = {key: {"n_pairs": len(ks), "per_pose_mm": rms(r[a[ks]] - r[b[ks]]) / math.sqrt(2) * MM}
-                  for key, ks in sorted(patterns.items(), key=lambda kv: -len(kv[1]))}
+    by_pattern = {
+        key: {"n_pairs": len(ks), "per_pose_mm": rms(r[a[ks]] - r[b[ks]]) / math.sqrt(2) * MM}
+        for key, ks in sorted(patterns.items(), key=lambda kv: -len(kv[1]))
+    }
     # orient every pair: the pose with the larger elbow angle q3 minus the other
     flip = q[a, 2] < q[b, 2]
     hi = torch.where(flip, b, a)
@@ -289,10 +327,12 @@ def branch_breakdown(pairs: torch.Tensor, q: torch.Tensor, r: torch.Tensor, r_ba
     d = r_base[hi] - r_base[lo]
     mean = d.mean(0)
     se = d.std(0) / math.sqrt(len(d))
-    return {"joints_differing": by_pattern,
-            "mean_diff_q3_high_minus_low_base_mm": [float(v) * MM for v in mean],
-            "mean_diff_t": [float(v) for v in mean / se],
-            "rms_diff_about_mean_mm": rms(d - mean) * MM}
+    return {
+        "joints_differing": by_pattern,
+        "mean_diff_q3_high_minus_low_base_mm": [float(v) * MM for v in mean],
+        "mean_diff_t": [float(v) for v in mean / se],
+        "rms_diff_about_mean_mm": rms(d - mean) * MM,
+    }
 
 
 # ----------------------------------------------------------------------------- spatial correlation
@@ -342,8 +382,10 @@ def correlation_curves(q: torch.Tensor, pb: torch.Tensor, r: torch.Tensor, tol: 
         cnt = torch.bincount(b, minlength=len(edges) - 1)
         sg = torch.bincount(b, weights=g[keep], minlength=len(edges) - 1)
         sa = torch.bincount(b, weights=aa[keep], minlength=len(edges) - 1)
-        return [{"lo": lo, "hi": hi, "n_pairs": int(c), "corr": float(x / y) if c else None}
-                for lo, hi, c, x, y in zip(edges[:-1], edges[1:], cnt.tolist(), sg.tolist(), sa.tolist())]
+        return [
+            {"lo": lo, "hi": hi, "n_pairs": int(c), "corr": float(x / y) if c else None}
+            for lo, hi, c, x, y in zip(edges[:-1], edges[1:], cnt.tolist(), sg.tolist(), sa.tolist())
+        ]
 
     joint = curve(dj, JOINT_BINS)
     cart = curve(dc, CART_BINS)
@@ -352,17 +394,30 @@ def correlation_curves(q: torch.Tensor, pb: torch.Tensor, r: torch.Tensor, tol: 
     nn = []
     for lo, hi in zip(NN_BINS[:-1], NN_BINS[1:]):
         idx = ((d1 >= lo) & (d1 < hi)).nonzero().squeeze(1)
-        nn.append({"lo": lo, "hi": hi, "n": int(idx.numel()),
-                   "corr": vector_corr(r[idx], r[j1[idx]]) if idx.numel() else None})
+        nn.append(
+            {
+                "lo": lo,
+                "hi": hi,
+                "n": int(idx.numel()),
+                "corr": vector_corr(r[idx], r[j1[idx]]) if idx.numel() else None,
+            }
+        )
     close_far = valid & (dc < 0.02) & (dj > 0.5)
     cf = int(close_far.sum())
     return {
-        "n_rows": n, "joint": joint, "cartesian": cart, "arm": arm, "wrist_at_same_arm": wrist,
+        "n_rows": n,
+        "joint": joint,
+        "cartesian": cart,
+        "arm": arm,
+        "wrist_at_same_arm": wrist,
         "nearest_neighbour": nn,
         "nn_median_rad": float(d1[torch.isfinite(d1)].median()),
-        "half_corr_rad": half_distance(joint), "half_corr_m": half_distance(cart),
-        "close_in_space_far_in_joints": {"n_pairs": cf, "corr": float(g[close_far].sum() / aa[close_far].sum())
-                                         if cf else None},
+        "half_corr_rad": half_distance(joint),
+        "half_corr_m": half_distance(cart),
+        "close_in_space_far_in_joints": {
+            "n_pairs": cf,
+            "corr": float(g[close_far].sum() / aa[close_far].sum()) if cf else None,
+        },
     }
 
 
@@ -427,24 +482,34 @@ def investigate(name: str, path: Path, a_rows: int, pair_rows: int, tol: float) 
     u_mean = u_mean / u_mean.norm()
     view = torch.arccos((u @ u_mean).clamp(-1, 1))
     tilt = torch.arccos((-T_bf[:, 2, 2]).clamp(-1, 1))  # flange z axis from straight down [rad]
-    covs = {"reach_m": reach, "height_m": pb[:, 2], "tracker_distance_m": dist, "view_angle_rad": view,
-            "tool_tilt_rad": tilt, "temperature_c": m.temperature, "row": m.extra["row"]}
+    covs = {
+        "reach_m": reach,
+        "height_m": pb[:, 2],
+        "tracker_distance_m": dist,
+        "view_angle_rad": view,
+        "tool_tilt_rad": tilt,
+        "temperature_c": m.temperature,
+        "row": m.extra["row"],
+    }
     if "timestamp_s" in m.extra or m.t is not None:
         covs["time_h"] = (m.t if m.t is not None else m.extra["timestamp_s"]) / 3600.0
     cov_out = {}
     for k, x in covs.items():
-        cov_out[k] = {"range": [float(x.min()), float(x.max())], **regression(x, rn * MM),
-                      "bins": binned(x, r, comp_base if k == "reach_m" else None)}
+        cov_out[k] = {
+            "range": [float(x.min()), float(x.max())],
+            **regression(x, rn * MM),
+            "bins": binned(x, r, comp_base if k == "reach_m" else None),
+        }
     cov_out["reach_m"]["components"] = {k: regression(reach, v.abs() * MM) for k, v in comp_base.items()}
-    cov_out["tracker_distance_m"]["components"] = {k: regression(dist, v.abs() * MM)
-                                                   for k, v in comp_tracker.items()}
+    cov_out["tracker_distance_m"]["components"] = {k: regression(dist, v.abs() * MM) for k, v in comp_tracker.items()}
     joint_reg = multiple_regression({k: v for k, v in covs.items() if k != "time_h"}, rn)
 
     # --- drift: per-component trend against row order, block means
     order = m.extra["row"]
-    drift = {k: {"slope_mm_per_1000_rows": regression(order, v * MM)["slope"] * 1000,
-                 "t": regression(order, v * MM)["t"]}
-             for k, v in (("x", r_base[:, 0]), ("y", r_base[:, 1]), ("z", r_base[:, 2]))}
+    drift = {
+        k: {"slope_mm_per_1000_rows": regression(order, v * MM)["slope"] * 1000, "t": regression(order, v * MM)["t"]}
+        for k, v in (("x", r_base[:, 0]), ("y", r_base[:, 1]), ("z", r_base[:, 2]))
+    }
     blocks = torch.stack([r_base[c].mean(0) for c in torch.tensor_split(torch.arange(m.n), N_BLOCKS)])
     drift["block_means_rms_mm"] = rms(blocks) * MM
     # the row trend with a quadratic function of the probe position (base frame) fitted alongside: acquisition
@@ -462,11 +527,13 @@ def investigate(name: str, path: Path, a_rows: int, pair_rows: int, tol: float) 
     orient, orient_ang, branch, near = goal_pairs(goal_p, goal_R, m.q, tol)
     rev_joints = revisit_pairs(m.q, tol)
     rev = torch.cat([rev_joints, near])
-    pairs = {"revisit": pair_stats(rev, m.p, r, r_nom, rms_r, robust=True),
-             "other_orientation": pair_stats(orient, m.p, r, r_nom, rms_r),
-             "other_ik_branch": pair_stats(branch, m.p, r, r_nom, rms_r)}
+    pairs = {
+        "revisit": pair_stats(rev, m.p, r, r_nom, rms_r, robust=True),
+        "other_orientation": pair_stats(orient, m.p, r, r_nom, rms_r),
+        "other_ik_branch": pair_stats(branch, m.p, r, r_nom, rms_r),
+    }
     if len(rev):
-        gap = (order[rev[:, 1]] - order[rev[:, 0]])
+        gap = order[rev[:, 1]] - order[rev[:, 0]]
         drn = (r[rev[:, 0]] - r[rev[:, 1]]).norm(dim=1) * MM
         pairs["revisit"]["gap_rows_median"] = float(gap.median())
         pairs["revisit"]["gap_rows_max"] = float(gap.max())
@@ -480,19 +547,22 @@ def investigate(name: str, path: Path, a_rows: int, pair_rows: int, tol: float) 
             pairs["revisit"]["long_gap"] = pair_stats(rev[long], m.p, r, r_nom, rms_r)
             if "time_h" in covs:
                 pairs["revisit"]["long_gap"]["gap_h_median"] = float(
-                    (covs["time_h"][rev[long, 1]] - covs["time_h"][rev[long, 0]]).abs().median())
+                    (covs["time_h"][rev[long, 1]] - covs["time_h"][rev[long, 0]]).abs().median()
+                )
         pairs["revisit"]["n_joints_within_tol"] = int(len(rev_joints))
         pairs["revisit"]["n_same_goal_within_branch_min"] = int(len(near))
         if "time_h" in covs:
-            pairs["revisit"]["gap_s_median"] = float((covs["time_h"][rev[:, 1]] - covs["time_h"][rev[:, 0]]).abs()
-                                                     .median()) * 3600
+            pairs["revisit"]["gap_s_median"] = (
+                float((covs["time_h"][rev[:, 1]] - covs["time_h"][rev[:, 0]]).abs().median()) * 3600
+            )
     if len(orient):
         pairs["other_orientation"]["by_angle"] = []
         for lo, hi in zip(ROT_BINS[:-1], ROT_BINS[1:]):
             sel = (orient_ang >= lo) & (orient_ang < hi)
             if sel.any():
                 pairs["other_orientation"]["by_angle"].append(
-                    {"lo": lo, "hi": hi, **pair_stats(orient[sel], m.p, r, r_nom, rms_r)})
+                    {"lo": lo, "hi": hi, **pair_stats(orient[sel], m.p, r, r_nom, rms_r)}
+                )
     if len(branch):
         pairs["other_ik_branch"].update(branch_breakdown(branch, m.q, r, r_base))
     branches = {}
@@ -511,20 +581,33 @@ def investigate(name: str, path: Path, a_rows: int, pair_rows: int, tol: float) 
     sigma = None if m.sigma is None else float(m.sigma.norm(dim=1).median()) * MM
     fit = run.fits[-1].global_test
     return {
-        "series": name, "file": path.name, "n": m.n, "n_fit": int(run.train_idx.numel()),
-        "fit": ("kinematic on all rows but one" if name != "A" else
-                f"kinematic on a seeded {m_fit.n}-row subsample (all but one of them); residuals on all {m.n} rows"),
-        "rms_mm": rms_r * MM, "max_mm": float(rn.max()) * MM,
+        "series": name,
+        "file": path.name,
+        "n": m.n,
+        "n_fit": int(run.train_idx.numel()),
+        "fit": (
+            "kinematic on all rows but one"
+            if name != "A"
+            else f"kinematic on a seeded {m_fit.n}-row subsample (all but one of them); residuals on all {m.n} rows"
+        ),
+        "rms_mm": rms_r * MM,
+        "max_mm": float(rn.max()) * MM,
         "large_residual_lines": [m.lines[i] for i in (rn > OUTLIER_RMS * rms_r).nonzero().squeeze(1).tolist()],
         "rms_fit_rows_mm": rms(r[in_fit]) * MM,
         "rms_other_rows_mm": rms(r[~in_fit]) * MM if int((~in_fit).sum()) >= 10 else None,
-        "rms_nominal_mm": rms(r_nom) * MM, "variance_factor": fit["statistic"],
+        "rms_nominal_mm": rms(r_nom) * MM,
+        "variance_factor": fit["statistic"],
         "tracker_sigma_median_mm": sigma,
         "components_rms_mm": {k: rms(v) * MM for k, v in {**comp_base, **comp_tracker}.items()},
         "temperature_spread_c": float(m.temperature.max() - m.temperature.min()),
         "temperature_vs_row_corr": temp_order,
-        "pairs": pairs, "branches": branches, "covariates": cov_out, "joint_regression": joint_reg,
-        "drift": drift, "correlation": corr, "runtime_s": time.perf_counter() - t0,
+        "pairs": pairs,
+        "branches": branches,
+        "covariates": cov_out,
+        "joint_regression": joint_reg,
+        "drift": drift,
+        "correlation": corr,
+        "runtime_s": time.perf_counter() - t0,
     }
 
 
@@ -539,14 +622,21 @@ def summary(res: dict) -> str:
     L = []
     for s in res["series"]:
         L.append(f"=== Series {s['series']} ({s['file']}, {s['n']} rows; {s['fit']}; {_f(s['runtime_s'], 1)} s)")
-        L.append(f"  residual RMS {_f(s['rms_mm'])} mm (max {_f(s['max_mm'])}; nominal {_f(s['rms_nominal_mm'])}); "
-                 f"fit rows {_f(s['rms_fit_rows_mm'])}, other rows {_f(s['rms_other_rows_mm'])}; variance factor "
-                 f"{_f(s['variance_factor'], 0)}; tracker sigma (median |s|) {_f(s['tracker_sigma_median_mm'], 4)} mm")
-        L.append(f"  poses with |r| > {_f(OUTLIER_RMS, 0)} x RMS: {len(s['large_residual_lines'])} (file lines "
-                 f"{s['large_residual_lines'][:12]})")
+        L.append(
+            f"  residual RMS {_f(s['rms_mm'])} mm (max {_f(s['max_mm'])}; nominal {_f(s['rms_nominal_mm'])}); "
+            f"fit rows {_f(s['rms_fit_rows_mm'])}, other rows {_f(s['rms_other_rows_mm'])}; variance factor "
+            f"{_f(s['variance_factor'], 0)}; tracker sigma (median |s|) {_f(s['tracker_sigma_median_mm'], 4)} mm"
+        )
+        L.append(
+            f"  poses with |r| > {_f(OUTLIER_RMS, 0)} x RMS: {len(s['large_residual_lines'])} (file lines "
+            f"{s['large_residual_lines'][:12]})"
+        )
         c = s["components_rms_mm"]
-        L.append("  components RMS [mm]: " + ", ".join(f"{k} {_f(v)}" for k, v in c.items())
-                 + f" (transverse per axis {_f(c['transverse'] / math.sqrt(2))})")
+        L.append(
+            "  components RMS [mm]: "
+            + ", ".join(f"{k} {_f(v)}" for k, v in c.items())
+            + f" (transverse per axis {_f(c['transverse'] / math.sqrt(2))})"
+        )
         L.append("  1. pairs (per pose = RMS(dr)/sqrt2, vs the residual RMS; corr of the two residual vectors):")
         for k, p in s["pairs"].items():
             if not p.get("n_pairs"):
@@ -554,75 +644,115 @@ def summary(res: dict) -> str:
                 continue
             extra = ""
             if k == "revisit":
-                extra = (f"; gap median {_f(p['gap_rows_median'], 0)} rows (max {_f(p['gap_rows_max'], 0)})"
-                         + (f" ({_f(p['gap_s_median'], 0)} s)" if "gap_s_median" in p else "")
-                         + f", |dr| vs gap slope {_f(p['dr_vs_gap']['slope'], 5)} mm/row "
-                         f"(t {_f(p['dr_vs_gap']['t'], 1)})")
-            L.append(f"     {k:18s} {p['n_pairs']:5d} pairs: |dp| {_f(p['rms_dp_mm'])} mm, per pose "
-                     f"{_f(p['per_pose_mm'])} mm = {_f(p['per_pose_over_rms'], 2)} x RMS (nominal geometry "
-                     f"{_f(p['per_pose_nominal_mm'])}), corr {_f(p['corr'], 2)}{extra}")
+                extra = (
+                    f"; gap median {_f(p['gap_rows_median'], 0)} rows (max {_f(p['gap_rows_max'], 0)})"
+                    + (f" ({_f(p['gap_s_median'], 0)} s)" if "gap_s_median" in p else "")
+                    + f", |dr| vs gap slope {_f(p['dr_vs_gap']['slope'], 5)} mm/row "
+                    f"(t {_f(p['dr_vs_gap']['t'], 1)})"
+                )
+            L.append(
+                f"     {k:18s} {p['n_pairs']:5d} pairs: |dp| {_f(p['rms_dp_mm'])} mm, per pose "
+                f"{_f(p['per_pose_mm'])} mm = {_f(p['per_pose_over_rms'], 2)} x RMS (nominal geometry "
+                f"{_f(p['per_pose_nominal_mm'])}), corr {_f(p['corr'], 2)}{extra}"
+            )
             if "long_gap" in p:
                 lg = p["long_gap"]
-                L.append(f"        {lg['n_pairs']} revisit(s) more than {LONG_GAP} rows apart"
-                         + (f" (median {_f(lg['gap_h_median'], 1)} h)" if "gap_h_median" in lg else "")
-                         + f": |dp| {_f(lg['rms_dp_mm'])} mm, per pose {_f(lg['per_pose_mm'])} mm")
+                L.append(
+                    f"        {lg['n_pairs']} revisit(s) more than {LONG_GAP} rows apart"
+                    + (f" (median {_f(lg['gap_h_median'], 1)} h)" if "gap_h_median" in lg else "")
+                    + f": |dp| {_f(lg['rms_dp_mm'])} mm, per pose {_f(lg['per_pose_mm'])} mm"
+                )
             if "n_outliers" in p:
-                L.append(f"        median |dr| {_f(p['median_dr_mm'])} mm; {p['n_outliers']} pair(s) with |dr| > "
-                         f"{_f(OUTLIER_DR * MM, 1)} mm, without them per pose {_f(p['per_pose_without_outliers_mm'])} "
-                         "mm" + (f" (file lines of the worse visit: {p['outlier_lines']})"
-                                 if p["outlier_lines"] else ""))
+                L.append(
+                    f"        median |dr| {_f(p['median_dr_mm'])} mm; {p['n_outliers']} pair(s) with |dr| > "
+                    f"{_f(OUTLIER_DR * MM, 1)} mm, without them per pose {_f(p['per_pose_without_outliers_mm'])} "
+                    "mm" + (f" (file lines of the worse visit: {p['outlier_lines']})" if p["outlier_lines"] else "")
+                )
             else:
                 L.append(f"        median |dr| {_f(p['median_dr_mm'])} mm")
             for b in p.get("by_angle", []):
-                L.append(f"        orientation diff {_f(b['lo'], 3)}-{_f(b['hi'], 2)} rad: {b['n_pairs']} pairs, "
-                         f"per pose {_f(b['per_pose_mm'])} mm, corr {_f(b['corr'], 2)}")
+                L.append(
+                    f"        orientation diff {_f(b['lo'], 3)}-{_f(b['hi'], 2)} rad: {b['n_pairs']} pairs, "
+                    f"per pose {_f(b['per_pose_mm'])} mm, corr {_f(b['corr'], 2)}"
+                )
             if "joints_differing" in p:
-                pats = ", ".join(f"[{kk}] {v['n_pairs']}: {_f(v['per_pose_mm'])} mm" for kk, v in
-                                 p["joints_differing"].items())
+                pats = ", ".join(
+                    f"[{kk}] {v['n_pairs']}: {_f(v['per_pose_mm'])} mm" for kk, v in p["joints_differing"].items()
+                )
                 L.append(f"        joints differing by > 0.5 rad: {pats}")
                 md = p["mean_diff_q3_high_minus_low_base_mm"]
-                L.append(f"        mean r(larger q3) - r(smaller q3), base frame: ({', '.join(_f(v) for v in md)}) mm, "
-                         f"t ({', '.join(_f(v, 1) for v in p['mean_diff_t'])}); RMS about it "
-                         f"{_f(p['rms_diff_about_mean_mm'])} mm")
+                L.append(
+                    f"        mean r(larger q3) - r(smaller q3), base frame: ({', '.join(_f(v) for v in md)}) mm, "
+                    f"t ({', '.join(_f(v, 1) for v in p['mean_diff_t'])}); RMS about it "
+                    f"{_f(p['rms_diff_about_mean_mm'])} mm"
+                )
         if s["branches"]:
-            L.append("     per elbow branch RMS: " + ", ".join(f"{k}: {v['n']} poses {_f(v['rms_mm'])} mm"
-                                                          for k, v in s["branches"].items()))
+            L.append(
+                "     per elbow branch RMS: "
+                + ", ".join(f"{k}: {v['n']} poses {_f(v['rms_mm'])} mm" for k, v in s["branches"].items())
+            )
         L.append("  2./3. |r| against covariates (OLS slope of |r| in mm per unit, t, Spearman; binned RMS [mm]):")
         for k, v in s["covariates"].items():
             bins = " ".join(f"{_f(b['rms_mm'])}" for b in v["bins"])
-            L.append(f"     {k:19s} [{_f(v['range'][0], 2)}, {_f(v['range'][1], 2)}] slope {_f(v['slope'], 4)} "
-                     f"t {_f(v['t'], 1)} rho {_f(v['spearman'], 2)} | bins: {bins}")
+            L.append(
+                f"     {k:19s} [{_f(v['range'][0], 2)}, {_f(v['range'][1], 2)}] slope {_f(v['slope'], 4)} "
+                f"t {_f(v['t'], 1)} rho {_f(v['spearman'], 2)} | bins: {bins}"
+            )
         rb = s["covariates"]["reach_m"]["bins"]
-        L.append("     reach bins radial/tangential/vertical [mm]: " + "; ".join(
-            f"{_f(b['lo'], 2)}-{_f(b['hi'], 2)} m: {_f(b['radial_mm'])}/{_f(b['tangential_mm'])}/{_f(b['vertical_mm'])}"
-            for b in rb))
+        L.append(
+            "     reach bins radial/tangential/vertical [mm]: "
+            + "; ".join(
+                f"{_f(b['lo'], 2)}-{_f(b['hi'], 2)} m: "
+                f"{_f(b['radial_mm'])}/{_f(b['tangential_mm'])}/{_f(b['vertical_mm'])}"
+                for b in rb
+            )
+        )
         jr = s["joint_regression"]
-        L.append(f"     joint regression (R2 {_f(jr['r2'], 3)}), mm per SD (t): " + ", ".join(
-            f"{k} {_f(v['mm_per_sd'], 4)} ({_f(v['t'], 1)})" for k, v in jr["coef"].items()))
+        L.append(
+            f"     joint regression (R2 {_f(jr['r2'], 3)}), mm per SD (t): "
+            + ", ".join(f"{k} {_f(v['mm_per_sd'], 4)} ({_f(v['t'], 1)})" for k, v in jr["coef"].items())
+        )
         d = s["drift"]
-        L.append("     drift vs row [mm/1000 rows (t)]: " + ", ".join(
-            f"{k} {_f(d[k]['slope_mm_per_1000_rows'], 4)} ({_f(d[k]['t'], 1)}); with position "
-            f"{_f(d[k]['position_controlled']['slope_mm_per_1000_rows'], 4)} "
-            f"({_f(d[k]['position_controlled']['t'], 1)})" for k in "xyz")
+        L.append(
+            "     drift vs row [mm/1000 rows (t)]: "
+            + ", ".join(
+                f"{k} {_f(d[k]['slope_mm_per_1000_rows'], 4)} ({_f(d[k]['t'], 1)}); with position "
+                f"{_f(d[k]['position_controlled']['slope_mm_per_1000_rows'], 4)} "
+                f"({_f(d[k]['position_controlled']['t'], 1)})"
+                for k in "xyz"
+            )
             + f"; block means RMS {_f(d['block_means_rms_mm'])} mm vs {_f(d['block_means_if_independent_mm'])} "
             f"if independent; temperature spread {_f(s['temperature_spread_c'], 2)} C, corr(temperature, row) "
-            f"{_f(s['temperature_vs_row_corr'], 2)}")
+            f"{_f(s['temperature_vs_row_corr'], 2)}"
+        )
         c = s["correlation"]
         L.append(f"  4. residual correlation ({c['n_rows']} rows; revisits excluded):")
-        L.append("     joint distance [rad]: " + "  ".join(
-            f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["joint"]))
-        L.append("     Cartesian distance [m]: " + "  ".join(
-            f"<{_f(b['hi'], 3)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["cartesian"]))
-        L.append("     arm joints q1-q3 [rad]: " + "  ".join(
-            f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["arm"]))
-        L.append("     wrist q4-q6 with the arm within 0.05 rad [rad]: " + "  ".join(
-            f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["wrist_at_same_arm"]))
-        L.append("     nearest neighbour [rad]: " + "  ".join(
-            f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n']})" for b in c["nearest_neighbour"])
-            + f"; median NN distance {_f(c['nn_median_rad'], 3)} rad")
+        L.append(
+            "     joint distance [rad]: "
+            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["joint"])
+        )
+        L.append(
+            "     Cartesian distance [m]: "
+            + "  ".join(f"<{_f(b['hi'], 3)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["cartesian"])
+        )
+        L.append(
+            "     arm joints q1-q3 [rad]: "
+            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["arm"])
+        )
+        L.append(
+            "     wrist q4-q6 with the arm within 0.05 rad [rad]: "
+            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["wrist_at_same_arm"])
+        )
+        L.append(
+            "     nearest neighbour [rad]: "
+            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n']})" for b in c["nearest_neighbour"])
+            + f"; median NN distance {_f(c['nn_median_rad'], 3)} rad"
+        )
         cf = c["close_in_space_far_in_joints"]
-        L.append(f"     half-correlation distance: {_f(c['half_corr_rad'], 3)} rad, {_f(c['half_corr_m'], 3)} m; "
-                 f"pairs < 2 cm apart but > 0.5 rad in joints: {cf['n_pairs']} (corr {_f(cf['corr'], 2)})")
+        L.append(
+            f"     half-correlation distance: {_f(c['half_corr_rad'], 3)} rad, {_f(c['half_corr_m'], 3)} m; "
+            f"pairs < 2 cm apart but > 0.5 rad in joints: {cf['n_pairs']} (corr {_f(cf['corr'], 2)})"
+        )
         L.append("")
     L.append(f"Total runtime {_f(res['runtime_s'], 1)} s ({res['threads']} torch thread(s))")
     return "\n".join(L)

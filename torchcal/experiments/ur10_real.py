@@ -79,17 +79,29 @@ def within_series(name: str, m: Measurements, method: str) -> dict:
     st = {s.name: stats(s.holdout_errors) for s in run.stages}
     fit = run.fits[-1]
     return {
-        "series": name, "method": method, "n_train": int(run.train_idx.numel()),
-        "n_holdout": int(run.holdout_idx.numel()), "nominal": st["nominal"],
+        "series": name,
+        "method": method,
+        "n_train": int(run.train_idx.numel()),
+        "n_holdout": int(run.holdout_idx.numel()),
+        "nominal": st["nominal"],
         # pcm fits no geometry: its "geometric" stage is the nominal one, reported as absent
         "geometric": st["geometric"] if method != "pcm" else None,
-        "final": stats(run.stages[-1].holdout_errors), "final_stage": run.stages[-1].name,
-        "global_test": {**fit.global_test, "fit": fit.stage}, "runtime_s": runtime,
+        "final": stats(run.stages[-1].holdout_errors),
+        "final_stage": run.stages[-1].name,
+        "global_test": {**fit.global_test, "fit": fit.stage},
+        "runtime_s": runtime,
         # what the closed loop named, each with the held-out RMSE before and after it, and what it dropped
         "stages": [{"name": s.name, "rmse_mm": stats(s.holdout_errors)["rmse_mm"]} for s in run.stages],
-        "effects": [{"kind": e["kind"], "joint": e["joint"], "label": e.get("label", e["kind"]),
-                     "rmse_before_mm": e.get("rmse_before_mm"), "rmse_after_mm": e.get("rmse_after_mm")}
-                    for e in run.effects_report],
+        "effects": [
+            {
+                "kind": e["kind"],
+                "joint": e["joint"],
+                "label": e.get("label", e["kind"]),
+                "rmse_before_mm": e.get("rmse_before_mm"),
+                "rmse_after_mm": e.get("rmse_after_mm"),
+            }
+            for e in run.effects_report
+        ],
         "rejected": [{"name": r.get("name", r["kind"]), "reason": r.get("reason", "")} for r in run.rejected],
     }
 
@@ -112,16 +124,20 @@ def transfer(src: str, dst: str, source_run, target: Measurements) -> dict:
     fit, ev = target.subset(torch.sort(perm[:k]).values), target.subset(torch.sort(perm[k:]).values)
 
     nominal = MeasurementModel(load_robot(ROBOT))
-    out = {"source": src, "target": dst, "n_source": int(source_run.train_idx.numel()), "n_fit": fit.n,
-           "n_eval": ev.n}
+    out = {"source": src, "target": dst, "n_source": int(source_run.train_idx.numel()), "n_fit": fit.n, "n_eval": ev.n}
     for key, base in (("nominal_refit", nominal), ("transferred_refit", source_run.model)):
         model, lever, rms = refit_tracker(base, fit)
-        out[key] = {**stats(errors(model, ev, trajectory=False)), "lever_mm": [float(v) * MM for v in lever],
-                    "fit_rms_mm": rms * MM}
+        out[key] = {
+            **stats(errors(model, ev, trajectory=False)),
+            "lever_mm": [float(v) * MM for v in lever],
+            "fit_rms_mm": rms * MM,
+        }
     if (src, dst) in SAME_PLACEMENT:
         lever = source_run.model.robot.tool.vector().detach()
-        out["no_refit"] = {**stats(errors(source_run.model, ev, trajectory=False)),
-                           "lever_mm": [float(v) * MM for v in lever]}
+        out["no_refit"] = {
+            **stats(errors(source_run.model, ev, trajectory=False)),
+            "lever_mm": [float(v) * MM for v in lever],
+        }
     else:
         out["no_refit"] = None
     out["runtime_s"] = time.perf_counter() - t0
@@ -150,47 +166,70 @@ def markdown(res: dict) -> str:
     lines = ["# UR10 (ipa-robot-accuracy): real-data calibration", ""]
     for s, note in res["subsampled"].items():
         lines.append(f"Series {s} subsampled: {note['rows']} of {note['of']} rows (seed {note['seed']}).")
-    lines += [f"Split: seeded random {1 - HOLDOUT:.0%}/{HOLDOUT:.0%} (seed {SEED}). Errors are position error "
-              "norms, RMSE / max [mm].", ""]
+    lines += [
+        f"Split: seeded random {1 - HOLDOUT:.0%}/{HOLDOUT:.0%} (seed {SEED}). Errors are position error "
+        "norms, RMSE / max [mm].",
+        "",
+    ]
     if res["within"]:
-        lines += ["## Part 1: per series and method (held-out poses)", "",
-                  "| series | method | train/held-out | nominal | geometric | final | global test s0² (thr, fit) "
-                  "| time [s] |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "## Part 1: per series and method (held-out poses)",
+            "",
+            "| series | method | train/held-out | nominal | geometric | final | global test s0² (thr, fit) "
+            "| time [s] |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in res["within"]:
             g = r["global_test"]
-            lines.append(f"| {r['series']} | {r['method']} | {r['n_train']}/{r['n_holdout']} | {_rm(r['nominal'])} "
-                         f"| {_rm(r['geometric'])} | {_rm(r['final'])} | {_f(g['statistic'], 1)} "
-                         f"({_f(g['threshold'])}, {g['fit']}) | {_f(r['runtime_s'], 1)} |")
+            lines.append(
+                f"| {r['series']} | {r['method']} | {r['n_train']}/{r['n_holdout']} | {_rm(r['nominal'])} "
+                f"| {_rm(r['geometric'])} | {_rm(r['final'])} | {_f(g['statistic'], 1)} "
+                f"({_f(g['threshold'])}, {g['fit']}) | {_f(r['runtime_s'], 1)} |"
+            )
         looped = [r for r in res["within"] if r["method"] == "auto"]
         if looped:
-            lines += ["", "### What the closed loop (`auto`) found", "",
-                      "| series | stages: held-out RMSE [mm] | dropped or rejected |", "|---|---|---|"]
+            lines += [
+                "",
+                "### What the closed loop (`auto`) found",
+                "",
+                "| series | stages: held-out RMSE [mm] | dropped or rejected |",
+                "|---|---|---|",
+            ]
             for r in looped:
                 story = " → ".join(f"{st['name']} {_f(st['rmse_mm'])}" for st in r["stages"])
                 lines.append(f"| {r['series']} | {story} | {', '.join(x['name'] for x in r['rejected']) or '—'} |")
-        lines += ["", "nominal: nominal geometry with the tracker pose and lever arm fitted on the training poses. "
-                  "pcm fits no geometry (geometric: —). The global test is that of the last least-squares fit named "
-                  "(the correction network is not one); s0² is the a-posteriori variance factor, thr its 95 % bound.",
-                  ""]
+        lines += [
+            "",
+            "nominal: nominal geometry with the tracker pose and lever arm fitted on the training poses. "
+            "pcm fits no geometry (geometric: —). The global test is that of the last least-squares fit named "
+            "(the correction network is not one); s0² is the a-posteriori variance factor, thr its 95 % bound.",
+            "",
+        ]
     if res["transfer"]:
-        lines += ["## Part 2: across series (kinematic geometry of the source; tracker pose and lever arm re-fitted "
-                  f"on {HOLDOUT:.0%} of the target, errors on the other {1 - HOLDOUT:.0%})", "",
-                  "| source → target | fit/eval | nominal geometry, re-fit | transferred geometry, re-fit "
-                  "| transferred, no re-fit | target self-cal (part 1) | lever length src / re-fit [mm] | time [s] |",
-                  "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "## Part 2: across series (kinematic geometry of the source; tracker pose and lever arm re-fitted "
+            f"on {HOLDOUT:.0%} of the target, errors on the other {1 - HOLDOUT:.0%})",
+            "",
+            "| source → target | fit/eval | nominal geometry, re-fit | transferred geometry, re-fit "
+            "| transferred, no re-fit | target self-cal (part 1) | lever length src / re-fit [mm] | time [s] |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in res["transfer"]:
             lever_src = math.hypot(*r["source_lever_mm"])
             lever_dst = math.hypot(*r["transferred_refit"]["lever_mm"])
-            lines.append(f"| {r['source']} → {r['target']} | {r['n_fit']}/{r['n_eval']} | {_rm(r['nominal_refit'])} "
-                         f"| {_rm(r['transferred_refit'])} | {_rm(r['no_refit'])} | {_rm(r['target_self'])} "
-                         f"| {_f(lever_src, 1)} / {_f(lever_dst, 1)} | {_f(r['runtime_s'], 1)} |")
+            lines.append(
+                f"| {r['source']} → {r['target']} | {r['n_fit']}/{r['n_eval']} | {_rm(r['nominal_refit'])} "
+                f"| {_rm(r['transferred_refit'])} | {_rm(r['no_refit'])} | {_rm(r['target_self'])} "
+                f"| {_f(lever_src, 1)} / {_f(lever_dst, 1)} | {_f(r['runtime_s'], 1)} |"
+            )
         lines += ["", "Source calibrations (kinematic, all rows but one):"]
         for s, v in res["sources"].items():
             lines.append(f"- {s}: {v['n_train']} poses, {_f(v['runtime_s'], 1)} s")
         lines.append("")
-        lines.append("target self-cal: the target's own kinematic calibration from part 1 (its own 20 % held-out "
-                     "poses, not the same evaluation poses): a reference, not a like-for-like comparison.")
+        lines.append(
+            "target self-cal: the target's own kinematic calibration from part 1 (its own 20 % held-out "
+            "poses, not the same evaluation poses): a reference, not a like-for-like comparison."
+        )
         lines.append("")
     lines.append(f"Total runtime: {_f(res['runtime_s'], 1)} s ({res['threads']} torch thread(s))")
     return "\n".join(lines) + "\n"

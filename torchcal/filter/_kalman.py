@@ -173,8 +173,10 @@ class FlatModule(nn.Module):
         with torch.no_grad():
             out = module(torch.zeros(2, dof, dtype=p0.dtype, device=p0.device))
         if out.shape != (2, 3):
-            raise ShapeError(f"the correction network must map joints (N, {dof}) to corrections (N, 3), it gave "
-                             f"{tuple(out.shape)} for N = 2")
+            raise ShapeError(
+                f"the correction network must map joints (N, {dof}) to corrections (N, 3), it gave "
+                f"{tuple(out.shape)} for N = 2"
+            )
 
     @property
     def n_weights(self) -> int:
@@ -208,6 +210,7 @@ class FlatModule(nn.Module):
 
     def jacobian_flat(self, w: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
         """Output ``(N, 3)`` and its Jacobian ``dg/dw (N, 3, n_weights)`` at ``w (n_weights,)``, ``q (N, dof)``."""
+
         def one(wv, qi):
             out = self._single(wv, qi[None])[0]
             return out, out
@@ -263,8 +266,12 @@ class NetworkJacobian:
     def bind(self, w: Tensor) -> None:
         """Views of the weights ``w (D, n_w)``: valid as long as ``w`` is only updated in place."""
         Hn, Dq, D = self.Hn, self.Dq, w.shape[0]
-        self._views = (w[:, : self.o1].view(D, Hn, Dq), w[:, self.o1 : self.o2].unsqueeze(-1),
-                       w[:, self.o2 : self.o3].view(D, 3, Hn), w[:, self.o3 :].unsqueeze(-1))
+        self._views = (
+            w[:, : self.o1].view(D, Hn, Dq),
+            w[:, self.o1 : self.o2].unsqueeze(-1),
+            w[:, self.o2 : self.o3].view(D, 3, Hn),
+            w[:, self.o3 :].unsqueeze(-1),
+        )
 
     def __call__(self, w: Tensor, i: int) -> tuple[Tensor, Tensor]:
         """``R g (D, 3)`` and ``H (D, 3, n_w + 3)`` (the internal buffer) at sample ``i`` for weights ``w``."""

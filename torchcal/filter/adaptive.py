@@ -140,8 +140,10 @@ class AdaptiveConfig:
         if not self.misfit_samples > 0:
             raise OptionError(f"misfit_samples must be positive, got {self.misfit_samples}")
         if min(self.relinearise_every, self.nis_window, self.passes) < 1:
-            raise OptionError(f"relinearise_every, nis_window and passes must be >= 1, got {self.relinearise_every}, "
-                              f"{self.nis_window} and {self.passes}")
+            raise OptionError(
+                f"relinearise_every, nis_window and passes must be >= 1, got {self.relinearise_every}, "
+                f"{self.nis_window} and {self.passes}"
+            )
 
 
 @dataclass
@@ -261,8 +263,13 @@ class AdaptiveEKF:
             (:meth:`identify`).
     """
 
-    def __init__(self, robot: RobotModel, net: CorrectionNet | None = None, config: AdaptiveConfig | None = None,
-                 parameters: list[ParameterInfo] | None = None):
+    def __init__(
+        self,
+        robot: RobotModel,
+        net: CorrectionNet | None = None,
+        config: AdaptiveConfig | None = None,
+        parameters: list[ParameterInfo] | None = None,
+    ):
         self.robot = robot
         self.net = net
         self.config = config or AdaptiveConfig()
@@ -285,8 +292,7 @@ class AdaptiveEKF:
         """
         robot = self.robot
         q = q[torch.linspace(0, len(q) - 1, min(len(q), max_poses)).round().long()]
-        cands = [i for i in robot.parameter_info()
-                 if i.group != "geometry" or bool(robot.geometry.mask[i.index])]
+        cands = [i for i in robot.parameter_info() if i.group != "geometry" or bool(robot.geometry.mask[i.index])]
         index = _Index(robot, cands)
 
         def fn(x):
@@ -299,8 +305,10 @@ class AdaptiveEKF:
         keep = dict(zip(names, ida.free.tolist()))
         lost = [n for n in ("instrument.tx", "instrument.ty", "instrument.tz") if not keep[n]]
         if lost:
-            raise EstimationError(f"the instrument translation ({', '.join(lost)}) is not identifiable at these "
-                                  "poses; the adaptive filter carries it in t and needs it")
+            raise EstimationError(
+                f"the instrument translation ({', '.join(lost)}) is not identifiable at these "
+                "poses; the adaptive filter carries it in t and needs it"
+            )
         return [i for i in cands if keep[i.name] and i.name not in ("instrument.tx", "instrument.ty", "instrument.tz")]
 
     def initial_weights(self, q: Tensor) -> tuple[Tensor, Tensor]:
@@ -327,8 +335,15 @@ class AdaptiveEKF:
         return w, sig
 
     # -------------------------------------------------------------------------------- the pass
-    def run(self, q: Tensor, y: Tensor, n_train: int, w0: Tensor | None = None, sigma_w0: Tensor | None = None,
-            t0: Tensor | None = None) -> AdaptiveResult:
+    def run(
+        self,
+        q: Tensor,
+        y: Tensor,
+        n_train: int,
+        w0: Tensor | None = None,
+        sigma_w0: Tensor | None = None,
+        t0: Tensor | None = None,
+    ) -> AdaptiveResult:
         """Filter the first ``n_train`` samples, predict the rest with the final state.
 
         With ``config.passes > 1`` the pass is repeated from the same priors, linearised throughout at the previous
@@ -361,8 +376,9 @@ class AdaptiveEKF:
         result.seconds = time.perf_counter() - t_start
         return result
 
-    def _setup(self, q: Tensor, y: Tensor, n_train: int, w0: Tensor | None, sigma_w0: Tensor | None,
-               t0: Tensor | None) -> _Setup:
+    def _setup(
+        self, q: Tensor, y: Tensor, n_train: int, w0: Tensor | None, sigma_w0: Tensor | None, t0: Tensor | None
+    ) -> _Setup:
         """What every pass shares: the checked inputs, the parameters, the priors, the state's layout, the
         observation noise and the network's form."""
         cfg, robot, net = self.config, self.robot, self.net
@@ -374,12 +390,26 @@ class AdaptiveEKF:
             w0 = w_def if w0 is None else w0
             sigma_w0 = s_def if sigma_w0 is None else sigma_w0
         if net is not None and w0.shape != (net.n_weights,) or sigma_w0.shape != w0.shape:
-            raise ShapeError(f"w0 and sigma_w0 must have shape ({len(w0) if net is None else net.n_weights},), got "
-                             f"{tuple(w0.shape)} and {tuple(sigma_w0.shape)}")
+            raise ShapeError(
+                f"w0 and sigma_w0 must have shape ({len(w0) if net is None else net.n_weights},), got "
+                f"{tuple(w0.shape)} and {tuple(sigma_w0.shape)}"
+            )
         active = torch.nonzero(sigma_w0 > 0).flatten()  # weights in the state; the others are held (variance 0)
         nw, nd, k = len(active), 3 if cfg.sigma_misfit > 0 else 0, len(params)
-        s = _Setup(q=q, y=y, n_train=n_train, kw=kw, params=list(params), index=_Index(robot, params), w0=w0,
-                   sigma_w0=sigma_w0, active=active, nw=nw, nd=nd, n=nw + 3 + nd + k)
+        s = _Setup(
+            q=q,
+            y=y,
+            n_train=n_train,
+            kw=kw,
+            params=list(params),
+            index=_Index(robot, params),
+            w0=w0,
+            sigma_w0=sigma_w0,
+            active=active,
+            nw=nw,
+            nd=nd,
+            n=nw + 3 + nd + k,
+        )
         s.unit_sig = torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params], **kw)
         s.gamma0 = s.index.values()
         with torch.no_grad():
@@ -388,16 +418,20 @@ class AdaptiveEKF:
             _, Jq = robot.probe_jacobian(q[:n_train])
         RJ = R0 @ Jq
         s.Ryy_q = cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2)  # joint noise at the probe (N_train, 3, 3)
-        rot = [(nw + 3 + nd + j, _ROTATION.index(p.name[-2:])) for j, p in enumerate(params)
-               if p.group == "instrument" and p.name[-2:] in _ROTATION]
+        rot = [
+            (nw + 3 + nd + j, _ROTATION.index(p.name[-2:]))
+            for j, p in enumerate(params)
+            if p.group == "instrument" and p.name[-2:] in _ROTATION
+        ]
         s.rot_cols, s.rot_axes = [c for c, _ in rot], [a for _, a in rot]
         if net is not None:
             Hn, Dq = net.hidden, net.dof
             s.Hn, s.o2, s.o3 = Hn, Hn * Dq + Hn, Hn * Dq + 4 * Hn
             if nw and int(active.min()) >= s.o2 and int(active.max()) < s.o3:  # fixed hidden layer: linear in W2
                 with torch.no_grad():
-                    s.features = torch.tanh(((q - net.q_offset) / net.q_scale) @ w0[: Hn * Dq].view(Hn, Dq).T
-                                            + w0[Hn * Dq : s.o2])  # (N, H)
+                    s.features = torch.tanh(
+                        ((q - net.q_offset) / net.q_scale) @ w0[: Hn * Dq].view(Hn, Dq).T + w0[Hn * Dq : s.o2]
+                    )  # (N, H)
                 s.w2_cols = active - s.o2
                 s.direct = nw == 3 * Hn  # the whole output layer: its Jacobian block is written in place
         return s
@@ -421,15 +455,37 @@ class AdaptiveEKF:
             p.geo[n_train:] = t + u_end[1:] - u_end[0]
             p.ngo[n_train:] = 0.0 if self.net is None else self.net.forward_flat(p.w_full, q[n_train:]) @ R_end.T
         return AdaptiveResult(
-            names=[i.name for i in s.params], units=[i.unit for i in s.params], gamma0=s.gamma0, gamma=gamma,
-            gamma_std=P.diagonal()[s.ig].clamp(min=0).sqrt(), instrument_translation=trans,
-            instrument_translation_std=trans_std, geometric=p.geo, nongeometric=p.ngo, nis=p.nis, q_yy=p.qyy_h,
-            w=p.w_full, active=s.active, t=t, P=P, n_train=n_train, status=p.status, relinearisations=relin,
-            parameters=list(s.params))
+            names=[i.name for i in s.params],
+            units=[i.unit for i in s.params],
+            gamma0=s.gamma0,
+            gamma=gamma,
+            gamma_std=P.diagonal()[s.ig].clamp(min=0).sqrt(),
+            instrument_translation=trans,
+            instrument_translation_std=trans_std,
+            geometric=p.geo,
+            nongeometric=p.ngo,
+            nis=p.nis,
+            q_yy=p.qyy_h,
+            w=p.w_full,
+            active=s.active,
+            t=t,
+            P=P,
+            n_train=n_train,
+            status=p.status,
+            relinearisations=relin,
+            parameters=list(s.params),
+        )
 
     # ------------------------------------------------------------------- the batch counterpart
-    def batch(self, q: Tensor, y: Tensor, parameters: list[ParameterInfo] | None = None, iterations: int = 10,
-              tol: float = 1e-13, priors: bool = True) -> BatchGeometry:
+    def batch(
+        self,
+        q: Tensor,
+        y: Tensor,
+        parameters: list[ParameterInfo] | None = None,
+        iterations: int = 10,
+        tol: float = 1e-13,
+        priors: bool = True,
+    ) -> BatchGeometry:
         """Batch weighted least squares of the geometry alone with the filter's stochastic model.
 
         Gauss-Newton over ``[instrument translation; gamma]`` with the filter's priors on ``gamma`` and the same
@@ -450,8 +506,14 @@ class AdaptiveEKF:
         index = _Index(robot, trans + list(params))
         z0 = index.values()
         kw = {"dtype": q.dtype, "device": q.device}
-        prior = torch.cat([torch.zeros(3, **kw), torch.tensor(
-            [1.0 / (cfg.sigma_length if p.unit == "m" else cfg.sigma_angle) ** 2 for p in params], **kw)])
+        prior = torch.cat(
+            [
+                torch.zeros(3, **kw),
+                torch.tensor(
+                    [1.0 / (cfg.sigma_length if p.unit == "m" else cfg.sigma_angle) ** 2 for p in params], **kw
+                ),
+            ]
+        )
         prior = prior * float(priors)
         with torch.no_grad():
             RJ = robot.T_tracker_base()[:3, :3] @ robot.probe_jacobian(q)[1]
@@ -476,8 +538,9 @@ class AdaptiveEKF:
             g = A.T @ r - prior * (z - z0)
             Lc, info = torch.linalg.cholesky_ex(Nm)
             if int(info) != 0:
-                raise EstimationError("batch geometry: normal matrix not positive definite (parameters not "
-                                      "identifiable at these poses?)")
+                raise EstimationError(
+                    "batch geometry: normal matrix not positive definite (parameters not identifiable at these poses?)"
+                )
             dz = torch.cholesky_solve(g[:, None], Lc)[:, 0]
             z = z + dz
             if float(dz.abs().max()) < tol:
@@ -488,10 +551,17 @@ class AdaptiveEKF:
         r = (W @ (y - f).unsqueeze(-1)).reshape(-1)
         cov = torch.cholesky_inverse(Lc)
         std = cov.diagonal().sqrt()
-        return BatchGeometry(names=[p.name for p in params], gamma=z[3:], gamma_std=std[3:],
-                             instrument_translation=z[:3], instrument_translation_std=std[:3], covariance=cov,
-                             sigma0_sq=float(r.square().sum()) / max(len(r) - len(z), 1), iterations=n_it,
-                             status=status)
+        return BatchGeometry(
+            names=[p.name for p in params],
+            gamma=z[3:],
+            gamma_std=std[3:],
+            instrument_translation=z[:3],
+            instrument_translation_std=std[:3],
+            covariance=cov,
+            sigma0_sq=float(r.square().sum()) / max(len(r) - len(z), 1),
+            iterations=n_it,
+            status=status,
+        )
 
     # ----------------------------------------------------------------------------- internals
     def _check(self, q: Tensor, y: Tensor, n_train: int) -> None:
@@ -520,11 +590,17 @@ class AdaptiveEKF:
             rem.append(u_exact[2 * j + 1] - u_exact[2 * j] - lin)
             change.append(float(d.abs().max()) if len(d) else 0.0)
         rem = torch.stack(rem)
-        return {"pass": n_pass, "blocks": len(blocks), "max_abs_gamma_change": max(change),
-                "max_block_remainder_m": float(rem.norm(dim=-1).max()), "total_remainder_m": float(rem.sum(0).norm())}
+        return {
+            "pass": n_pass,
+            "blocks": len(blocks),
+            "max_abs_gamma_change": max(change),
+            "max_block_remainder_m": float(rem.norm(dim=-1).max()),
+            "total_remainder_m": float(rem.sum(0).norm()),
+        }
 
     def _linearise(self, index: _Index, gamma: Tensor, q: Tensor) -> tuple[Tensor, Tensor]:
         """``u(theta; gamma) (M, 3)`` and ``U = du/dgamma (M, 3, k)`` at joints ``q (M, dof)``, one batched jacfwd."""
+
         def fn(g):
             out = torch.func.functional_call(self._module, index.params(g, prefix="robot."), (q,))
             return out, out
@@ -635,8 +711,16 @@ class _Pass:
         self.band = nis_band(cfg.nis_window, cfg.nis_alpha)
         self.w_full = s.w0.clone()
         self.x = torch.cat([s.w0[s.active], s.t0, torch.zeros(s.nd, **kw), s.gamma0])
-        self.P = torch.diag(torch.cat([s.sigma_w0[s.active], torch.full((3,), cfg.sigma_t0, **kw),
-                                       torch.full((s.nd,), cfg.sigma_misfit, **kw), s.unit_sig]).square())
+        self.P = torch.diag(
+            torch.cat(
+                [
+                    s.sigma_w0[s.active],
+                    torch.full((3,), cfg.sigma_t0, **kw),
+                    torch.full((s.nd,), cfg.sigma_misfit, **kw),
+                    s.unit_sig,
+                ]
+            ).square()
+        )
         x, P = self.x, self.P
         self.xw, self.xt, self.xd, self.xg = x[s.iw], x[s.it], x[s.id_], x[s.ig]
         self.Pt_rows, self.Pg_rows, self.Pt_cols, self.Pg_cols = P[s.it, :], P[s.ig, :], P[:, s.it], P[:, s.ig]
@@ -755,8 +839,9 @@ class _Pass:
         """End of a NIS window (:func:`~torchcal.filter._kalman.window_health`); False (and ``status``) on
         divergence, else the variance factor adapted."""
         W = self.cfg.nis_window
-        health = window_health(self.P[None], self.nis[None, i + 1 - W : i + 1], torch.tensor([self.qyy]), i,
-                               self.band, self.cfg.adapt_qyy)
+        health = window_health(
+            self.P[None], self.nis[None, i + 1 - W : i + 1], torch.tensor([self.qyy]), i, self.band, self.cfg.adapt_qyy
+        )
         if bool(health.failed[0]):
             self.status = health.reasons[0]
             return False

@@ -174,8 +174,10 @@ class EKFTrainer:
         self.config = config or EKFConfig()
         self._net = as_flat(net, robot.dof)
         if self.config.jacobian == "analytic" and not isinstance(net, CorrectionNet):
-            raise OptionError(f"jacobian 'analytic' is the hand-derived Jacobian of CorrectionNet, the network is "
-                              f"a {type(net).__name__}; use 'auto' or 'module'")
+            raise OptionError(
+                f"jacobian 'analytic' is the hand-derived Jacobian of CorrectionNet, the network is "
+                f"a {type(net).__name__}; use 'auto' or 'module'"
+            )
 
     # ------------------------------------------------------------------ kinematics, batched once
     def kinematics(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -243,12 +245,14 @@ class EKFTrainer:
                 f" training samples the kinematic increments misfit by {misfit * 1e3:.3g} mm RMS (tolerance "
                 f"{cfg.start_tolerance * 1e3:.3g} mm). The tracker pose and the lever arm of the robot must be fitted "
                 "first (torchcal.estimate.fit_instrument_and_tool on the training data, or EKFConfig(start='fit')); "
-                "a network whose start output is not small (sub-millimetre) also shows here")
+                "a network whose start output is not small (sub-millimetre) also shows here"
+            )
         return self.robot, misfit
 
     # ------------------------------------------------------------------------ initial weights
-    def pcm_weights(self, q: Tensor, y: Tensor, w_start: Tensor, iterations: int = 200,
-                    val_fraction: float = 0.2, seed: int = 0) -> Tensor:
+    def pcm_weights(
+        self, q: Tensor, y: Tensor, w_start: Tensor, iterations: int = 200, val_fraction: float = 0.2, seed: int = 0
+    ) -> Tensor:
         """Initial weights from the position correction model: the network fitted by LM to the corrections
         ``R_tb^T (y - T_tracker_base p(theta))`` of the training samples, starting from ``w_start``, early-stopped
         on a seeded validation share. This is the paper's own suggestion (Sec. 4) for the initialisation
@@ -264,13 +268,20 @@ class EKFTrainer:
         n_val = int(val_fraction * len(q))
         net = copy.deepcopy(self._net)
         net.set_flat(w_start)
-        fit_net(net, q[perm[n_val:]], corr[perm[n_val:]], val=(q[perm[:n_val]], corr[perm[:n_val]]),
-                iterations=iterations, ftol=1e-9)
+        fit_net(
+            net,
+            q[perm[n_val:]],
+            corr[perm[n_val:]],
+            val=(q[perm[:n_val]], corr[perm[:n_val]]),
+            iterations=iterations,
+            ftol=1e-9,
+        )
         return net.flat()
 
     # -------------------------------------------------------------------------------- the pass
-    def run(self, q: Tensor, y: Tensor, n_train: int, w0: Tensor, t0: Tensor | None = None,
-            P0: Tensor | None = None) -> EKFResult:
+    def run(
+        self, q: Tensor, y: Tensor, n_train: int, w0: Tensor, t0: Tensor | None = None, P0: Tensor | None = None
+    ) -> EKFResult:
         """Filter the first ``n_train`` samples, predict the rest.
 
         The pass runs with one torch thread (its kernels are small; more threads only wait on each other) and
@@ -320,8 +331,9 @@ class EKFTrainer:
         net = copy.deepcopy(self._net)
         for d in range(w.shape[0]):
             net.set_flat(w[d])
-            res = fit_net(net, q[d], corr[d], method=cfg.reiterate_method, iterations=iterations,
-                          ftol=cfg.reiterate_ftol)
+            res = fit_net(
+                net, q[d], corr[d], method=cfg.reiterate_method, iterations=iterations, ftol=cfg.reiterate_ftol
+            )
             out.append(net.flat())
             rmse.append(res.train_rmse[-1])
             its.append(res.iterations)
@@ -337,8 +349,9 @@ class _Pass:
     :meth:`check_window` / :meth:`reiterate` at the ends of their periods.
     """
 
-    def __init__(self, tr: EKFTrainer, q: Tensor, y: Tensor, n_train: int, w0: Tensor, t0: Tensor | None,
-                 P0: Tensor | None):
+    def __init__(
+        self, tr: EKFTrainer, q: Tensor, y: Tensor, n_train: int, w0: Tensor, t0: Tensor | None, P0: Tensor | None
+    ):
         cfg = tr.config
         self.tr, self.cfg, self.q, self.y, self.n_train = tr, cfg, q, y, n_train
         D, N, nw = q.shape[0], q.shape[1], w0.shape[-1]
@@ -479,10 +492,18 @@ class _Pass:
         self.t = self.geo[-1]
 
     def result(self) -> EKFResult:
-        return EKFResult(geometric=self.geo.transpose(0, 1).contiguous(),
-                         nongeometric=self.ngo.transpose(0, 1).contiguous(), nis=self.nis.T.contiguous(),
-                         q_yy=self.qyy_h.T.contiguous(), w=self.w.clone(), t=self.t.clone(), P=self.P,
-                         n_train=self.n_train, status=self.status, reiterations=self.reiters)
+        return EKFResult(
+            geometric=self.geo.transpose(0, 1).contiguous(),
+            nongeometric=self.ngo.transpose(0, 1).contiguous(),
+            nis=self.nis.T.contiguous(),
+            q_yy=self.qyy_h.T.contiguous(),
+            w=self.w.clone(),
+            t=self.t.clone(),
+            P=self.P,
+            n_train=self.n_train,
+            status=self.status,
+            reiterations=self.reiters,
+        )
 
 
 def _batch(x: Tensor, ndim: int) -> Tensor:

@@ -20,6 +20,16 @@ from torchcal.pipeline.run import (
 )
 
 __all__ = [
-    "DEFAULT_METHOD", "METHODS", "CalibrationRun", "EffectRecord", "Options", "Rejection", "Stage", "StageName",
-    "calibrate", "holdout_split", "is_trajectory", "min_poses",
+    "DEFAULT_METHOD",
+    "METHODS",
+    "CalibrationRun",
+    "EffectRecord",
+    "Options",
+    "Rejection",
+    "Stage",
+    "StageName",
+    "calibrate",
+    "holdout_split",
+    "is_trajectory",
+    "min_poses",
 ]

@@ -133,23 +133,30 @@ def require_trajectory(data: Measurements, trajectory: bool) -> None:
     where = f"{data.source}: " if data.source else ""
     other = "use --method kinematic, kinematic+ann or auto for static poses"
     if data.t is None:
-        raise OptionError(f"{where}method 'integrated' needs a continuous trajectory with a monotonic t column "
-                          f"(acquisition time, s), and the data have no t column; {other}")
+        raise OptionError(
+            f"{where}method 'integrated' needs a continuous trajectory with a monotonic t column "
+            f"(acquisition time, s), and the data have no t column; {other}"
+        )
     steps = torch.diff(data.t)
     if bool((steps < 0).any()):
         k = int(torch.nonzero(steps < 0)[0])
         line = data.lines[k + 1] if data.lines else k + 2
-        raise OptionError(f"{where}method 'integrated' needs a monotonic t column, but t decreases at line {line} "
-                          f"({float(data.t[k]):g} -> {float(data.t[k + 1]):g} s)")
+        raise OptionError(
+            f"{where}method 'integrated' needs a monotonic t column, but t decreases at line {line} "
+            f"({float(data.t[k]):g} -> {float(data.t[k + 1]):g} s)"
+        )
     if not trajectory:
         jump = torch.diff(data.q, dim=0).abs().max(dim=-1).values.median() if data.n > 1 else float("nan")
-        raise OptionError(f"{where}method 'integrated' needs a continuous trajectory, but consecutive samples lie "
-                          f"far apart in joint space (median largest joint step {float(jump):.3g} rad, a trajectory "
-                          f"has < 0.05): these look like static poses; {other}")
+        raise OptionError(
+            f"{where}method 'integrated' needs a continuous trajectory, but consecutive samples lie "
+            f"far apart in joint space (median largest joint step {float(jump):.3g} rad, a trajectory "
+            f"has < 0.05): these look like static poses; {other}"
+        )
 
 
-def filter_config(model: MeasurementModel, data: Measurements, sigma_tracker: float, sigma_joint: float,
-                  reiterate_every: int) -> EKFConfig:
+def filter_config(
+    model: MeasurementModel, data: Measurements, sigma_tracker: float, sigma_joint: float, reiterate_every: int
+) -> EKFConfig:
     """The filter's configuration for an integrated run (module constants and the run's stochastic model).
 
     The observation sigma per axis combines the tracker's (the median per-point ``sx, sy, sz`` when the data
@@ -160,13 +167,26 @@ def filter_config(model: MeasurementModel, data: Measurements, sigma_tracker: fl
     with torch.no_grad():
         _, Jq = model.robot.probe_jacobian(data.q)
     joint_at_probe = sigma_joint * float(Jq.flatten(-2).norm(dim=-1).median()) / math.sqrt(3.0)
-    return EKFConfig(sigma_w0=SIGMA_W0, q_w=Q_W, sigma_t0=SIGMA_T0, q_t=Q_T, sigma_joint=0.0,
-                     sigma_tracker=math.hypot(sigma_tracker, joint_at_probe), reiterate_every=reiterate_every)
+    return EKFConfig(
+        sigma_w0=SIGMA_W0,
+        q_w=Q_W,
+        sigma_t0=SIGMA_T0,
+        q_t=Q_T,
+        sigma_joint=0.0,
+        sigma_tracker=math.hypot(sigma_tracker, joint_at_probe),
+        reiterate_every=reiterate_every,
+    )
 
 
-def integrate(run: CalibrationRun, train: Measurements, hold: Measurements, *,
-              joint_iterations: int = JOINT_ITERATIONS, reiterate_every: int = 0,
-              pcm_iterations: int | None = None) -> IntegratedFilter:
+def integrate(
+    run: CalibrationRun,
+    train: Measurements,
+    hold: Measurements,
+    *,
+    joint_iterations: int = JOINT_ITERATIONS,
+    reiterate_every: int = 0,
+    pcm_iterations: int | None = None,
+) -> IntegratedFilter:
     """Steps 2-5 of the module docstring on a run whose geometric stage is done; adds the ``integrated`` stage.
 
     Args:
@@ -183,26 +203,42 @@ def integrate(run: CalibrationRun, train: Measurements, hold: Measurements, *,
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     trainer = EKFTrainer(robot, net, cfg)
     steps = {}
-    _console.info(f"integrated ANN-EKF: network {robot.dof}-{opts.hidden}-3 initialised by LM on the training "
-                  "corrections")
+    _console.info(
+        f"integrated ANN-EKF: network {robot.dof}-{opts.hidden}-3 initialised by LM on the training corrections"
+    )
     n_fit = train.n - max(1, int(round(FORWARD_FRACTION * train.n)))
     fit, forward = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
-    net.set_flat(trainer.pcm_weights(fit.q, fit.p, net.flat(), iterations=pcm_iterations or opts.net_iterations,
-                                     seed=int(opts.seed)))
+    net.set_flat(
+        trainer.pcm_weights(
+            fit.q, fit.p, net.flat(), iterations=pcm_iterations or opts.net_iterations, seed=int(opts.seed)
+        )
+    )
     model.add(LearnedEffect(net))
     steps["initial_network"] = _rmse(_errors(model, hold))
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
     joint_info = None
     if joint_iterations > 0:
-        _console.info(f"integrated ANN-EKF: geometry, instrument, lever arm and network refined jointly "
-                      f"(up to {joint_iterations} LM iterations, judged on the last {forward.n} training samples)")
-        joint, joint_info = refine_jointly(model, fit.subset(slice(None, None, JOINT_STRIDE)), ida, opts,
-                                           joint_iterations, validation=forward)
+        _console.info(
+            f"integrated ANN-EKF: geometry, instrument, lever arm and network refined jointly "
+            f"(up to {joint_iterations} LM iterations, judged on the last {forward.n} training samples)"
+        )
+        joint, joint_info = refine_jointly(
+            model, fit.subset(slice(None, None, JOINT_STRIDE)), ida, opts, joint_iterations, validation=forward
+        )
         joint_info["status"] = joint.status
         steps["joint_refinement"] = _rmse(_errors(model, hold))
     # the geometry's final least-squares fit with the network in place: its statistics go into the report
-    run.fits.append(solve(model, train, GEOMETRIC_GROUPS, opts, "integrated (geometry with the network in place)",
-                          True, identifiability=ida))
+    run.fits.append(
+        solve(
+            model,
+            train,
+            GEOMETRIC_GROUPS,
+            opts,
+            "integrated (geometry with the network in place)",
+            True,
+            identifiability=ida,
+        )
+    )
     steps["geometry_refit"] = _rmse(_errors(model, hold))
 
     _console.info(f"integrated ANN-EKF: filtering {train.n} samples, then predicting {hold.n} held-out ones")
@@ -221,38 +257,73 @@ def integrate(run: CalibrationRun, train: Measurements, hold: Measurements, *,
     return filt
 
 
-def _record_ekf(run: CalibrationRun, filt: IntegratedFilter, steps: dict, joint_info: dict | None,
-                hold: Measurements, n_weights: int) -> None:
+def _record_ekf(
+    run: CalibrationRun,
+    filt: IntegratedFilter,
+    steps: dict,
+    joint_info: dict | None,
+    hold: Measurements,
+    n_weights: int,
+) -> None:
     """The ``ekf`` engine's effect record and note: held-out RMSE after each step, the filter's statistics."""
     opts, res, cfg, n_train = run.options, filt.result, filt.config, filt.n_train
     after, before = run.stages[-1], run.stage(StageName.GEOMETRIC)
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[0, :n_train]
-    run.effects.append(EffectRecord(
-        "learned", None, name="integrated", label="learned",
-        params={"model": "network", "hidden": opts.hidden, "n_weights": n_weights,
+    run.effects.append(
+        EffectRecord(
+            "learned",
+            None,
+            name="integrated",
+            label="learned",
+            params={
+                "model": "network",
+                "hidden": opts.hidden,
+                "n_weights": n_weights,
                 "fit": "integrated ANN-EKF (Horvath & Neuner 2024, Sec. 2.3) after an LM initialisation and a "
-                       "joint LM refinement with the geometry"},
-        evidence={
-            "holdout_rmse_steps_mm": {k: v * 1e3 for k, v in steps.items()},
-            "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
-            "joint_refinement": joint_info,
-            "filter": {"status": res.status[0], "samples_filtered": n_train, "seconds": res.seconds,
-                       "nis_mean": float(nis.mean()), "nis_expected": 3.0,
-                       "q_yy_final": float(res.q_yy[0, n_train - 1]), "reiterations": len(res.reiterations),
-                       "reiterate_every": cfg.reiterate_every, "sigma_w0": cfg.sigma_w0, "sigma_t0_m": cfg.sigma_t0,
-                       "q_w": cfg.q_w, "q_t_m": cfg.q_t, "sigma_observation_m": cfg.sigma_tracker,
-                       "final_state_offset_from_kinematics_mm": float((res.t[0] - filt.kinematic[-1]).norm()) * 1e3},
-        },
-        rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
+                "joint LM refinement with the geometry",
+            },
+            evidence={
+                "holdout_rmse_steps_mm": {k: v * 1e3 for k, v in steps.items()},
+                "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
+                "joint_refinement": joint_info,
+                "filter": {
+                    "status": res.status[0],
+                    "samples_filtered": n_train,
+                    "seconds": res.seconds,
+                    "nis_mean": float(nis.mean()),
+                    "nis_expected": 3.0,
+                    "q_yy_final": float(res.q_yy[0, n_train - 1]),
+                    "reiterations": len(res.reiterations),
+                    "reiterate_every": cfg.reiterate_every,
+                    "sigma_w0": cfg.sigma_w0,
+                    "sigma_t0_m": cfg.sigma_t0,
+                    "q_w": cfg.q_w,
+                    "q_t_m": cfg.q_t,
+                    "sigma_observation_m": cfg.sigma_tracker,
+                    "final_state_offset_from_kinematics_mm": float((res.t[0] - filt.kinematic[-1]).norm()) * 1e3,
+                },
+            },
+            rmse_before_mm=before.rmse * 1e3,
+            rmse_after_mm=after.rmse * 1e3,
+        )
+    )
     text = ", ".join(f"{k.replace('_', ' ')} {v * 1e3:.4f}" for k, v in steps.items())
-    run.notes.append(f"integrated ANN-EKF: held-out RMSE [mm] after {text}, after the filter {after.rmse * 1e3:.4f} "
-                     f"(final model); the filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f}; mean NIS "
-                     f"{float(nis.mean()):.2f} (3 expected)")
+    run.notes.append(
+        f"integrated ANN-EKF: held-out RMSE [mm] after {text}, after the filter {after.rmse * 1e3:.4f} "
+        f"(final model); the filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f}; mean NIS "
+        f"{float(nis.mean()):.2f} (3 expected)"
+    )
 
 
-def refine_jointly(model: MeasurementModel, m: Measurements, identifiability, opts, iterations: int,
-                   validation: Measurements | None = None) -> tuple[LMResult, dict]:
+def refine_jointly(
+    model: MeasurementModel,
+    m: Measurements,
+    identifiability,
+    opts,
+    iterations: int,
+    validation: Measurements | None = None,
+) -> tuple[LMResult, dict]:
     """Weighted LM over the identifiable geometry, the instrument pose, the lever arm and the network's weights.
 
     With ``validation`` (later samples of the trajectory than ``m``), the parameters after the restart with the
@@ -306,8 +377,9 @@ def refine_jointly(model: MeasurementModel, m: Measurements, identifiability, op
     done, history, trail = 0, [], []
     best = (score(), 0, free.vector())
     while done < iterations:  # restarts: a fresh damping every JOINT_RESTART iterations (module constant)
-        res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=min(JOINT_RESTART, iterations - done),
-                                  jacobian=jacobian)
+        res = levenberg_marquardt(
+            fun, free.vector(), names=free.names, max_iter=min(JOINT_RESTART, iterations - done), jacobian=jacobian
+        )
         if not bool(torch.isfinite(res.x).all()):
             raise EstimationError("integrated ANN-EKF: the joint refinement diverged")
         free.assign(res.x)
@@ -331,8 +403,15 @@ def _errors(model: MeasurementModel, m: Measurements) -> Tensor:
 _rmse = S.rmse
 
 
-def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measurements, *,
-                       hidden: int = 128, gain: float = 5.0, sigma_field: float = 5e-4) -> IntegratedFilter:
+def integrate_adaptive(
+    run: CalibrationRun,
+    train: Measurements,
+    hold: Measurements,
+    *,
+    hidden: int = 128,
+    gain: float = 5.0,
+    sigma_field: float = 5e-4,
+) -> IntegratedFilter:
     """The ``integrated`` method with the adaptive filter: geometry in the state (the paper's future work).
 
     The kinematic calibration of the ``geometric`` stage stays the reference the report compares with; the
@@ -357,12 +436,15 @@ def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measureme
         kinematic = model(Context(q=kin_q))  # the kinematic calibration's prediction: the report's reference G
     start = _nominal_copy(robot)
     place_instrument_and_tool(start, train.q, train.p)
-    cfg = AdaptiveConfig(sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol,
-                         sigma_field=sigma_field)
+    cfg = AdaptiveConfig(
+        sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol, sigma_field=sigma_field
+    )
     net = random_features(dof=robot.dof, hidden=hidden, gain=gain, seed=int(opts.seed) + 1)
     flt = AdaptiveEKF(start, net, cfg)
-    _console.info(f"integrated ANN-EKF (adaptive): geometry and a {robot.dof}-{hidden}-3 random-feature network "
-                  f"estimated together along {train.n} samples, then {hold.n} held-out ones predicted")
+    _console.info(
+        f"integrated ANN-EKF (adaptive): geometry and a {robot.dof}-{hidden}-3 random-feature network "
+        f"estimated together along {train.n} samples, then {hold.n} held-out ones predicted"
+    )
     flt.parameters = flt.identify(train.q)
     y_in = torch.cat([train.p, torch.full_like(hold.p, float("nan"))])  # the held-out positions never reach it
     res = flt.run(kin_q, y_in, train.n)
@@ -375,31 +457,62 @@ def integrate_adaptive(run: CalibrationRun, train: Measurements, hold: Measureme
     model.add(LearnedEffect(net))
     after = run.add_stage(StageName.INTEGRATED)
     # the report's filter plots read an EKFResult with a draw dimension of one
-    as_ekf = EKFResult(geometric=res.geometric[None], nongeometric=res.nongeometric[None], nis=res.nis[None],
-                       q_yy=res.q_yy[None], w=res.w[None], t=res.t[None], P=res.P[None], n_train=res.n_train,
-                       status=[res.status], seconds=res.seconds)
+    as_ekf = EKFResult(
+        geometric=res.geometric[None],
+        nongeometric=res.nongeometric[None],
+        nis=res.nis[None],
+        q_yy=res.q_yy[None],
+        w=res.w[None],
+        t=res.t[None],
+        P=res.P[None],
+        n_train=res.n_train,
+        status=[res.status],
+        seconds=res.seconds,
+    )
     filt = IntegratedFilter(as_ekf, torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w)
     before = run.stage(StageName.GEOMETRIC)
     e_filter = (filt.prediction[train.n :] - hold.p).norm(dim=-1)
     nis = res.nis[: train.n]
-    run.effects.append(EffectRecord(
-        "learned", None, name="integrated", label="learned",
-        params={"model": "network (fixed random tanh features, output layer estimated)", "hidden": hidden,
-                "feature_gain": gain, "sigma_field_m": sigma_field, "n_weights": net.n_weights,
+    run.effects.append(
+        EffectRecord(
+            "learned",
+            None,
+            name="integrated",
+            label="learned",
+            params={
+                "model": "network (fixed random tanh features, output layer estimated)",
+                "hidden": hidden,
+                "feature_gain": gain,
+                "sigma_field_m": sigma_field,
+                "n_weights": net.n_weights,
                 "fit": "adaptive ANN-EKF: identifiable geometry, lever arm, instrument rotation and the network "
-                       "in one filter state (Horvath & Neuner 2024, Sec. 4 future work)"},
-        evidence={
-            "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
-            "geometry": {name: {"value": float(v), "std": float(s)}
-                         for name, v, s in zip(res.names, res.gamma, res.gamma_std)},
-            "filter": {"engine": "adaptive", "status": res.status, "samples_filtered": train.n,
-                       "seconds": res.seconds, "nis_mean": float(nis.nanmean()), "nis_expected": 3.0,
-                       "linearisation_remainder_m": [r.get("total_remainder_m") for r in res.relinearisations]},
-        },
-        rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
-    run.notes.append(f"integrated ANN-EKF (adaptive): held-out RMSE {after.rmse * 1e3:.4f} mm (final model), the "
-                     f"filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f} mm; mean NIS "
-                     f"{float(nis.nanmean()):.2f} (3 expected)")
+                "in one filter state (Horvath & Neuner 2024, Sec. 4 future work)",
+            },
+            evidence={
+                "holdout_rmse_filter_prediction_mm": _rmse(e_filter) * 1e3,
+                "geometry": {
+                    name: {"value": float(v), "std": float(s)}
+                    for name, v, s in zip(res.names, res.gamma, res.gamma_std)
+                },
+                "filter": {
+                    "engine": "adaptive",
+                    "status": res.status,
+                    "samples_filtered": train.n,
+                    "seconds": res.seconds,
+                    "nis_mean": float(nis.nanmean()),
+                    "nis_expected": 3.0,
+                    "linearisation_remainder_m": [r.get("total_remainder_m") for r in res.relinearisations],
+                },
+            },
+            rmse_before_mm=before.rmse * 1e3,
+            rmse_after_mm=after.rmse * 1e3,
+        )
+    )
+    run.notes.append(
+        f"integrated ANN-EKF (adaptive): held-out RMSE {after.rmse * 1e3:.4f} mm (final model), the "
+        f"filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f} mm; mean NIS "
+        f"{float(nis.nanmean()):.2f} (3 expected)"
+    )
     return filt
 
 
@@ -445,12 +558,12 @@ SETTINGS = (
 )
 
 
-def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements,
-                 setting: Setting) -> IntegratedFilter:
+def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements, setting: Setting) -> IntegratedFilter:
     if setting.engine == "ekf":
         return integrate(run, train, hold)
-    return integrate_adaptive(run, train, hold, hidden=setting.hidden, gain=setting.gain,
-                              sigma_field=setting.sigma_field)
+    return integrate_adaptive(
+        run, train, hold, hidden=setting.hidden, gain=setting.gain, sigma_field=setting.sigma_field
+    )
 
 
 def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> CalibrationRun:
@@ -469,12 +582,14 @@ def _gated(model: MeasurementModel, support: Tensor, length: float, fallback) ->
     """``model`` with its last (learned) effect behind a :class:`SupportGate` falling back to ``fallback``."""
     # a new model around the same robot and effects (copy.copy of a Module would share its submodule table, and
     # replacing the effect there would wrap the original model's effect too)
-    return MeasurementModel(model.robot, [*model.effects[:-1], SupportGate(model.effects[-1], support, length,
-                                                                            fallback=fallback)])
+    return MeasurementModel(
+        model.robot, [*model.effects[:-1], SupportGate(model.effects[-1], support, length, fallback=fallback)]
+    )
 
 
-def integrate_selected(run: CalibrationRun, train: Measurements, hold: Measurements, *,
-                       settings: tuple[Setting, ...] = SETTINGS) -> IntegratedFilter | None:
+def integrate_selected(
+    run: CalibrationRun, train: Measurements, hold: Measurements, *, settings: tuple[Setting, ...] = SETTINGS
+) -> IntegratedFilter | None:
     """The ``integrated`` method that keeps only what validation supports: never worse than geometry by design.
 
     The training samples are split in time: the first ``1 - VALIDATION_FRACTION`` fit, the last block validates.
@@ -496,8 +611,7 @@ def integrate_selected(run: CalibrationRun, train: Measurements, hold: Measureme
     fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
     geo = copy.deepcopy(run.model)
-    solve(geo, fit, GEOMETRIC_GROUPS, opts, "integrated: geometry on the fitting samples", True,
-          identifiability=ida)
+    solve(geo, fit, GEOMETRIC_GROUPS, opts, "integrated: geometry on the fitting samples", True, identifiability=ida)
     e_geo = _errors(geo, val)
     table = [{"candidate": "geometry alone", "validation_rmse_mm": _rmse(e_geo) * 1e3}]
     best = None
@@ -509,27 +623,39 @@ def integrate_selected(run: CalibrationRun, train: Measurements, hold: Measureme
         except EstimationError as err:
             table.append({"candidate": setting.name, "failed": str(err)})
             continue
-        length, gates = choose_gate_length(lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot),
-                                           lambda m: _rmse(_errors(m, val)))
+        length, gates = choose_gate_length(
+            lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot), lambda m: _rmse(_errors(m, val))
+        )
         e = _errors(_gated(trial.model, fit.q, length, geo.robot), val)
-        row = {"candidate": setting.name, "validation_rmse_mm": _rmse(e) * 1e3, "gate_length": length,
-               "gates": [{"length": g["length"], "validation_rmse_mm": g["validation_rmse_m"] * 1e3} for g in gates]}
+        row = {
+            "candidate": setting.name,
+            "validation_rmse_mm": _rmse(e) * 1e3,
+            "gate_length": length,
+            "gates": [{"length": g["length"], "validation_rmse_mm": g["validation_rmse_m"] * 1e3} for g in gates],
+        }
         table.append(row)
         if best is None or _rmse(e) < _rmse(best[2]):
             best = (setting, length, e, row)
-    evidence = {"rule": f"lowest validation RMSE, kept when it beats geometry alone by a one-sided paired test "
-                        f"(autocorrelation-corrected) at p < {opts.alpha_validation}",
-                "n_fit": fit.n, "n_validation": val.n, "candidates": table}
+    evidence = {
+        "rule": f"lowest validation RMSE, kept when it beats geometry alone by a one-sided paired test "
+        f"(autocorrelation-corrected) at p < {opts.alpha_validation}",
+        "n_fit": fit.n,
+        "n_validation": val.n,
+        "candidates": table,
+    }
     accepted = False
     if best is not None:
         test = S.paired_test(e_geo, best[2], ordered=True)
         evidence.update(chosen=best[3]["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
         accepted = _rmse(best[2]) < _rmse(e_geo) and test["p_value"] < opts.alpha_validation
     if not accepted:
-        why = ("no candidate ran" if best is None else
-               f"the best candidate, {best[3]['candidate']}, does not beat geometry alone on the validation block "
-               f"({_rmse(e_geo) * 1e3:.4f} -> {best[3]['validation_rmse_mm']:.4f} mm, p = "
-               f"{evidence['test']['p_value']:.2g})")
+        why = (
+            "no candidate ran"
+            if best is None
+            else f"the best candidate, {best[3]['candidate']}, does not beat geometry alone on the validation block "
+            f"({_rmse(e_geo) * 1e3:.4f} -> {best[3]['validation_rmse_mm']:.4f} mm, p = "
+            f"{evidence['test']['p_value']:.2g})"
+        )
         run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
         run.notes.append(f"integrated: geometry alone kept: {why}")
         return None

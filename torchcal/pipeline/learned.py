@@ -54,8 +54,7 @@ def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) ->
         refresh_unexplained(run, train, trajectory, run.options.alpha)
 
 
-def _learned_split(train: Measurements, seed: int, group_tol: float,
-                   trajectory: bool = False) -> tuple[Tensor, Tensor]:
+def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory: bool = False) -> tuple[Tensor, Tensor]:
     """The fitting and validation poses of the learned stage (in random order, as drawn).
 
     On a trajectory the validation poses are the last block of the training samples: neighbouring samples
@@ -66,12 +65,12 @@ def _learned_split(train: Measurements, seed: int, group_tol: float,
     if trajectory:
         idx = torch.arange(train.n)
         return idx[: train.n - n_val], idx[train.n - n_val :]
-    return tuple(S.split(train.n, n_val, seed=seed + S.Stream.VALIDATION, q=train.q, group_tol=group_tol,
-                         sort=False))
+    return tuple(S.split(train.n, n_val, seed=seed + S.Stream.VALIDATION, q=train.q, group_tol=group_tol, sort=False))
 
 
-def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, min_gain: float = 0.05,
-                   alpha: float = 0.01) -> EffectRecord | None:
+def select_learned(
+    run: CalibrationRun, train: Measurements, trajectory: bool, min_gain: float = 0.05, alpha: float = 0.01
+) -> EffectRecord | None:
     """Add the better of a kernel correction and a correction network if it earns its place (module docstring).
 
     Returns the record of the kept model (appended to the run), or None when neither earned its place.
@@ -81,35 +80,66 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
     fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     e0 = corr[va].norm(dim=-1)
 
-    kern, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
-                                       seed=opts.seed)
+    kern, info = fit_kernel_correction(
+        model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
+    )
     net = CorrectionNet(model.robot.dof, opts.hidden)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
-    res = fit_net(net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method,
-                  iterations=opts.net_iterations)
+    res = fit_net(
+        net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method, iterations=opts.net_iterations
+    )
     with torch.no_grad():
         e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
-    gp, gp_info = fit_gp_correction(Context(q=train.q[fi]), corr[fi], GPSettings(seed=int(opts.seed)),
-                                    ctx_val=Context(q=train.q[va]), y_val=corr[va])
+    gp, gp_info = fit_gp_correction(
+        Context(q=train.q[fi]),
+        corr[fi],
+        GPSettings(seed=int(opts.seed)),
+        ctx_val=Context(q=train.q[va]),
+        y_val=corr[va],
+    )
     candidates = {
-        "gp": (gp, gp_info["val_errors"], {**gp.describe(), "model": "sparse additive + ARD Gaussian process",
-                                           "variable_share": gp_info.get("variable_share"),
-                                           "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma")}),
+        "gp": (
+            gp,
+            gp_info["val_errors"],
+            {
+                **gp.describe(),
+                "model": "sparse additive + ARD Gaussian process",
+                "variable_share": gp_info.get("variable_share"),
+                "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma"),
+            },
+        ),
         "kernel": (kern, info["val_errors"], kern.describe()),
-        "network": (LearnedEffect(net), e_net, {"model": "network", "hidden": opts.hidden, "n_weights": net.n_weights,
-                                                "fit": res.method, "best_iteration": res.best_iteration}),
+        "network": (
+            LearnedEffect(net),
+            e_net,
+            {
+                "model": "network",
+                "hidden": opts.hidden,
+                "n_weights": net.n_weights,
+                "fit": res.method,
+                "best_iteration": res.best_iteration,
+            },
+        ),
     }
     name = min(candidates, key=lambda k: S.rmse(candidates[k][1]))
     effect, e1, params = candidates[name]
     rmse0, rmse1 = S.rmse(e0), S.rmse(e1)
     test = S.paired_improvement(e0, e1)
-    evidence = {"candidates_validation_rmse_mm": {k: S.rmse(v[1]) * 1e3 for k, v in candidates.items()},
-                "chosen": name, "validation_rmse_before_mm": rmse0 * 1e3, "validation_rmse_after_mm": rmse1 * 1e3,
-                "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0, **test,
-                "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}", "n_validation": len(va)}
+    evidence = {
+        "candidates_validation_rmse_mm": {k: S.rmse(v[1]) * 1e3 for k, v in candidates.items()},
+        "chosen": name,
+        "validation_rmse_before_mm": rmse0 * 1e3,
+        "validation_rmse_after_mm": rmse1 * 1e3,
+        "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0,
+        **test,
+        "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}",
+        "n_validation": len(va),
+    }
     accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
-    run.notes.append(f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
-                     f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
+    run.notes.append(
+        f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
+        f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})"
+    )
     if not accepted:
         run.rejections.append(Rejection("learned", None, evidence))
         return None
@@ -120,8 +150,9 @@ def select_learned(run: CalibrationRun, train: Measurements, trajectory: bool, m
     return record
 
 
-def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Measurements,
-                        trajectory: bool) -> tuple[Fit, Tensor]:
+def _refit_with_learned(
+    run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool
+) -> tuple[Fit, Tensor]:
     """One alternating round on ``model`` (its last effect is the learned one): the geometry and the named
     effects with the learned correction in place, then the learned model on the new corrections.
 
@@ -136,30 +167,53 @@ def _refit_with_learned(run: CalibrationRun, model: MeasurementModel, train: Mea
     groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
     # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
     # data its valley is flat and an uncapped LM crawls for minutes without changing the comparison
-    fit = solve(model, train, groups, replace(opts, max_iter=min(opts.max_iter, REFIT_MAX_ITER)),
-                "learned (alternating refit)", trajectory, effects=True, identifiability=ida)
+    fit = solve(
+        model,
+        train,
+        groups,
+        replace(opts, max_iter=min(opts.max_iter, REFIT_MAX_ITER)),
+        "learned (alternating refit)",
+        trajectory,
+        effects=True,
+        identifiability=ida,
+    )
     others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
     corr = corrections(others, train, trajectory)
     if isinstance(eff, LearnedEffect):
-        fit_net(eff.net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method,
-                iterations=opts.net_iterations, ftol=1e-6)
+        fit_net(
+            eff.net,
+            train.q[fi],
+            corr[fi],
+            val=(train.q[va], corr[va]),
+            method=opts.net_method,
+            iterations=opts.net_iterations,
+            ftol=1e-6,
+        )
         with torch.no_grad():
             e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
     elif isinstance(eff, GPCorrection):
-        new, info = fit_gp_correction(Context(q=train.q[fi]), corr[fi], GPSettings(seed=int(opts.seed)),
-                                      ctx_val=Context(q=train.q[va]), y_val=corr[va], warm=eff)
+        new, info = fit_gp_correction(
+            Context(q=train.q[fi]),
+            corr[fi],
+            GPSettings(seed=int(opts.seed)),
+            ctx_val=Context(q=train.q[va]),
+            y_val=corr[va],
+            warm=eff,
+        )
         model.effects[index] = new
         e_val = info["val_errors"]
     else:
-        new, info = fit_kernel_correction(model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va],
-                                          seed=opts.seed)
+        new, info = fit_kernel_correction(
+            model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
+        )
         model.effects[index] = new
         e_val = info["val_errors"]
     return fit, e_val
 
 
-def refine_learned(run: CalibrationRun, record: EffectRecord, train: Measurements, trajectory: bool,
-                   rounds: int = 3) -> Tensor:
+def refine_learned(
+    run: CalibrationRun, record: EffectRecord, train: Measurements, trajectory: bool, rounds: int = 3
+) -> Tensor:
     """Refit the geometry (and the named effects) and the learned model in turn, while validation improves.
 
     The geometric fit has already bent the geometry towards the part of the non-geometric field
@@ -186,8 +240,10 @@ def refine_learned(run: CalibrationRun, record: EffectRecord, train: Measurement
     if best_e is None:  # no round helped: the errors of the model as it stands
         best_e = run.learned_validation_errors
     record.evidence["alternating_refit_validation_rmse_mm"] = history
-    run.notes.append(f"learned residual model: {len(history) - 1} alternating refits of geometry and learned model, "
-                     f"validation {history[0]:.4f} -> {history[-1]:.4f} mm")
+    run.notes.append(
+        f"learned residual model: {len(history) - 1} alternating refits of geometry and learned model, "
+        f"validation {history[0]:.4f} -> {history[-1]:.4f} mm"
+    )
     return best_e
 
 
@@ -216,10 +272,14 @@ def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_va
         del trial.effects[k]
         fit, e_without = _refit_with_learned(run, trial, train, trajectory)
         test = S.paired_improvement(e_without, e_val)
-        evidence = {"validation_rmse_with_mm": S.rmse(e_val) * 1e3,
-                    "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
-                    "z": test["z"], "p_value": test["p_value"], "n": test["n"],
-                    "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}"}
+        evidence = {
+            "validation_rmse_with_mm": S.rmse(e_val) * 1e3,
+            "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
+            "z": test["z"],
+            "p_value": test["p_value"],
+            "n": test["n"],
+            "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}",
+        }
         entry = next((r for r in run.effects if r.label == eff.label()), None)
         if entry is not None:
             entry.evidence["with_learned_model"] = evidence
@@ -228,14 +288,22 @@ def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_va
         _adopt(model, trial)
         run.fits.append(fit)
         e_val = e_without
-        reason = (f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
-                  f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})")
+        reason = (
+            f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
+            f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})"
+        )
         run.notes.append(f"diagnosis: {eff.label()} dropped: {reason}")
         if entry is not None:
             run.effects.remove(entry)
-            run.rejections.append(Rejection(entry.kind, entry.joint, entry.evidence, name=entry.name,
-                                            reason=f"accepted in round {entry.evidence.get('round')}, then dropped: "
-                                                   f"{reason}"))
+            run.rejections.append(
+                Rejection(
+                    entry.kind,
+                    entry.joint,
+                    entry.evidence,
+                    name=entry.name,
+                    reason=f"accepted in round {entry.evidence.get('round')}, then dropped: {reason}",
+                )
+            )
         run.stages[:] = [st for st in run.stages if st.name != eff.label()]
         if run.diagnosis is not None:
             run.diagnosis.drop(eff.label(), f"dropped after the learned stage: {reason}")
@@ -247,11 +315,16 @@ def correction_net_stage(run: CalibrationRun, train: Measurements, trajectory: b
     fit_correction_net(run, train, trajectory)
     before = run.stages[-1]
     after = run.add_stage(StageName.LEARNED)
-    run.effects.append(EffectRecord(
-        "learned", None,
-        {"hidden": opts.hidden, "n_weights": model.effects[-1].net.n_weights, "fit": opts.net_method},
-        {"validation": "early stopping on a seeded 20 % of the training poses"},
-        rmse_before_mm=before.rmse * 1e3, rmse_after_mm=after.rmse * 1e3))
+    run.effects.append(
+        EffectRecord(
+            "learned",
+            None,
+            {"hidden": opts.hidden, "n_weights": model.effects[-1].net.n_weights, "fit": opts.net_method},
+            {"validation": "early stopping on a seeded 20 % of the training poses"},
+            rmse_before_mm=before.rmse * 1e3,
+            rmse_after_mm=after.rmse * 1e3,
+        )
+    )
 
 
 def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
@@ -260,12 +333,27 @@ def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: boo
     corr = corrections(model, train, trajectory)  # R^T (y - f): the correction in the base frame
     g = torch.Generator().manual_seed(int(opts.seed) + S.Stream.CORRECTION_NET)
     # the generator goes on to the network's initial weights and to the fit
-    fit_i, val_i = S.split(train.n, S.holdout_count(train.n, VALIDATION_FRACTION, rounding="floor"), generator=g,
-                           q=train.q, group_tol=opts.group_tol, sort=False)
+    fit_i, val_i = S.split(
+        train.n,
+        S.holdout_count(train.n, VALIDATION_FRACTION, rounding="floor"),
+        generator=g,
+        q=train.q,
+        group_tol=opts.group_tol,
+        sort=False,
+    )
     net = CorrectionNet(model.robot.dof, opts.hidden)
     net.reset_parameters(g, gain=0.5)
-    res = fit_net(net, train.q[fit_i], corr[fit_i], val=(train.q[val_i], corr[val_i]), method=opts.net_method,
-                  iterations=opts.net_iterations, generator=g)
-    run.notes.append(f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
-                     f"best validation at {res.best_iteration}")
+    res = fit_net(
+        net,
+        train.q[fit_i],
+        corr[fit_i],
+        val=(train.q[val_i], corr[val_i]),
+        method=opts.net_method,
+        iterations=opts.net_iterations,
+        generator=g,
+    )
+    run.notes.append(
+        f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
+        f"best validation at {res.best_iteration}"
+    )
     model.add(LearnedEffect(net))

@@ -80,8 +80,15 @@ class Decision:
         return self.why if self.dropped is None else f"{self.why}; {self.dropped}"
 
     def to_dict(self) -> dict:
-        return {"round": self.round, **self.candidate.to_dict(), "accepted": self.accepted, "reason": self.reason,
-                "score": self.score.to_dict(), "validation": self.validation, "stage": self.stage}
+        return {
+            "round": self.round,
+            **self.candidate.to_dict(),
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "score": self.score.to_dict(),
+            "validation": self.validation,
+            "stage": self.stage,
+        }
 
 
 @dataclass
@@ -102,14 +109,22 @@ class Diagnosis:
     def to_dict(self) -> dict:
         return {
             "method": "score tests at the current fit (Bonferroni over the candidates), joint refit, "
-                      "confirmation on validation poses (paired one-sided test)",
-            "alpha": self.alpha, "alpha_validation": self.alpha_validation,
-            "n_fit": self.n_fit, "n_validation": self.n_validation,
-            "candidates": [c.name for c in self.candidates], "skipped": self.skipped,
-            "rounds": [{"round": r["round"], "global_test": r["global_test"],
-                        "scores": [s.to_dict() for s in r["scores"]],
-                        **{k: r[k] for k in ("localisation", "open_candidates", "open_notes") if k in r}}
-                       for r in self.rounds],
+            "confirmation on validation poses (paired one-sided test)",
+            "alpha": self.alpha,
+            "alpha_validation": self.alpha_validation,
+            "n_fit": self.n_fit,
+            "n_validation": self.n_validation,
+            "candidates": [c.name for c in self.candidates],
+            "skipped": self.skipped,
+            "rounds": [
+                {
+                    "round": r["round"],
+                    "global_test": r["global_test"],
+                    "scores": [s.to_dict() for s in r["scores"]],
+                    **{k: r[k] for k in ("localisation", "open_candidates", "open_notes") if k in r},
+                }
+                for r in self.rounds
+            ],
             "decisions": [d.to_dict() for d in self.decisions],
             "stop": self.stop,
         }
@@ -121,8 +136,17 @@ class Diagnosis:
                 d.dropped = why
 
 
-def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, alpha: float = 0.01,
-               alpha_val: float = 0.05, max_effects: int = 8, max_tries: int = 3, open_forms: bool = True) -> Diagnosis:
+def close_loop(
+    run: CalibrationRun,
+    train: Measurements,
+    trajectory: bool,
+    *,
+    alpha: float = 0.01,
+    alpha_val: float = 0.05,
+    max_effects: int = 8,
+    max_tries: int = 3,
+    open_forms: bool = True,
+) -> Diagnosis:
     """Add the effects the training data demand to ``run.model`` (module docstring).
 
     Each accepted effect becomes a stage of the run, with its :class:`EffectRecord`; each candidate that
@@ -141,8 +165,14 @@ def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, al
     opts, model = run.options, run.model
     ctx = Context.from_measurements(train, trajectory=trajectory)
     cands, skipped = candidates(model.robot, ctx)
-    fi, va = S.split(train.n, S.holdout_count(train.n, 0.2), seed=opts.seed + S.Stream.VALIDATION, last=trajectory,
-                     q=train.q, group_tol=opts.group_tol)
+    fi, va = S.split(
+        train.n,
+        S.holdout_count(train.n, 0.2),
+        seed=opts.seed + S.Stream.VALIDATION,
+        last=trajectory,
+        q=train.q,
+        group_tol=opts.group_tol,
+    )
     fit_part, val_part = train.subset(fi), train.subset(va)
     diag = Diagnosis(alpha, alpha_val, len(fi), len(va), list(cands), skipped)
     run.diagnosis = diag
@@ -174,21 +204,33 @@ def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, al
     for rnd in range(1, max_effects + 1):
         fit = run.fits[-1]
         remaining = [c for c in cands if c.name not in tried and c.name not in accepted_names]
-        scores = score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining,
-                                  tol=opts.rank_tol) if remaining else []
+        scores = (
+            score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining, tol=opts.rank_tol)
+            if remaining
+            else []
+        )
         locs, ws = localise_fit(model, ctx, train.p, fit)
-        opens, notes = (open_candidates(model, locs, ws, alpha, tried_open | accepted_names)
-                        if open_forms else ([], []))
+        opens, notes = open_candidates(model, locs, ws, alpha, tried_open | accepted_names) if open_forms else ([], [])
         for n in notes:
             open_notes.setdefault(n["variable"], n["reason"])
-        diag.rounds.append({"round": rnd, "scores": scores, "global_test": fit.global_test,
-                            "localisation": [loc.to_dict() for loc in locs[:6]],
-                            "open_candidates": [c.to_dict() for c in opens], "open_notes": notes})
+        diag.rounds.append(
+            {
+                "round": rnd,
+                "scores": scores,
+                "global_test": fit.global_test,
+                "localisation": [loc.to_dict() for loc in locs[:6]],
+                "open_candidates": [c.to_dict() for c in opens],
+                "open_notes": notes,
+            }
+        )
         significant = [s for s in scores if s.significant(alpha)]
         if not significant and not opens:
-            best = (f"best {scores[0].candidate.name}: Bonferroni p = {scores[0].p_bonferroni:.2g}" if scores
-                    else "no menu candidate left")
-            top = (f"; localisation: {locs[0].name}, Bonferroni p = {locs[0].p_bonferroni:.2g}" if locs else "")
+            best = (
+                f"best {scores[0].candidate.name}: Bonferroni p = {scores[0].p_bonferroni:.2g}"
+                if scores
+                else "no menu candidate left"
+            )
+            top = f"; localisation: {locs[0].name}, Bonferroni p = {locs[0].p_bonferroni:.2g}" if locs else ""
             if any(loc.significant(alpha) for loc in locs):
                 top += " (significant, but no form with an effect class that was not tried)"
             diag.stop = f"round {rnd}: no candidate significant ({best} >= {alpha}{top})"
@@ -221,7 +263,7 @@ def close_loop(run: CalibrationRun, train: Measurements, trajectory: bool, *, al
         base, e_base = accepted.trial, accepted.errors
     else:
         diag.stop = f"reached the limit of {max_effects} effects"
-        for loc in (localise_fit(model, ctx, train.p, run.fits[-1])[0] if open_forms else []):
+        for loc in localise_fit(model, ctx, train.p, run.fits[-1])[0] if open_forms else []:
             open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
     final = run.fits[-1]
     if open_forms and not final.global_test.get("passed", True):
@@ -244,26 +286,45 @@ class _Validation:
     reason: str
 
 
-def _validate(s: Score, rnd: int, base: MeasurementModel, e_base: Tensor, fit_on, fit_part: Measurements,
-              val_part: Measurements, trajectory: bool, alpha_val: float, cand=None) -> _Validation:
+def _validate(
+    s: Score,
+    rnd: int,
+    base: MeasurementModel,
+    e_base: Tensor,
+    fit_on,
+    fit_part: Measurements,
+    val_part: Measurements,
+    trajectory: bool,
+    alpha_val: float,
+    cand=None,
+) -> _Validation:
     """Refit ``base`` with ``cand`` (default: the candidate of ``s``) on the fitting poses; compare on the
     validation poses."""
     cand = cand if cand is not None else s.candidate
-    _console.info(f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k:.3g}, "
-                  f"log10 p {s.log10_p:.1f}); validating")
+    _console.info(
+        f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k:.3g}, log10 p {s.log10_p:.1f}); validating"
+    )
     trial = copy.deepcopy(base)
     trial.add(cand.make())
     fit_on(trial, fit_part, f"validation {cand.name}")
     e_trial = errors(trial, val_part, trajectory)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
-    validation = {"rmse_before_mm": r0 * 1e3, "rmse_after_mm": r1 * 1e3,
-                  "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0, "z": test["z"],
-                  "p_value": test["p_value"], "n": test["n"],
-                  "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}"}
+    validation = {
+        "rmse_before_mm": r0 * 1e3,
+        "rmse_after_mm": r1 * 1e3,
+        "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0,
+        "z": test["z"],
+        "p_value": test["p_value"],
+        "n": test["n"],
+        "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
+    }
     passed = r1 < r0 and test["p_value"] < alpha_val
-    reason = "" if passed else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, "
-                                f"p = {test['p_value']:.2g})")
+    reason = (
+        ""
+        if passed
+        else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
+    )
     return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason)
 
 
@@ -271,8 +332,11 @@ def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
     """Record a candidate that validation did not confirm."""
     cand = v.candidate
     diag.decisions.append(Decision(v.round, cand, v.score, False, v.reason, v.validation, None, (v.base, v.trial)))
-    run.rejections.append(Rejection(cand.kind, cand.joint, {**v.score.to_dict(), "validation": v.validation},
-                                    name=cand.name, reason=v.reason))
+    run.rejections.append(
+        Rejection(
+            cand.kind, cand.joint, {**v.score.to_dict(), "validation": v.validation}, name=cand.name, reason=v.reason
+        )
+    )
     run.notes.append(f"diagnosis: {cand.name} rejected, {v.reason}")
 
 
@@ -287,17 +351,39 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     run.fits.append(new_fit)
     st_before = run.stages[-1]
     st_after = run.add_stage(label)
-    diag.decisions.append(Decision(v.round, cand, s, True, "significant and confirmed on validation poses",
-                                   v.validation, label, (before, copy.deepcopy(model))))
+    diag.decisions.append(
+        Decision(
+            v.round,
+            cand,
+            s,
+            True,
+            "significant and confirmed on validation poses",
+            v.validation,
+            label,
+            (before, copy.deepcopy(model)),
+        )
+    )
     index = len(model.effects) - 1
-    params = {**effect_parameters(model, index, new_fit),
-              **{k: val for k, val in eff.describe().items() if k in DESCRIPTORS}}
+    params = {
+        **effect_parameters(model, index, new_fit),
+        **{k: val for k, val in eff.describe().items() if k in DESCRIPTORS},
+    }
     if isinstance(cand, OpenCandidate):
         params = effect_form_params(model, index, cand, params)
-    run.effects.append(EffectRecord(
-        cand.kind, cand.joint, params,
-        {**s.to_dict(), "round": v.round, "validation": v.validation, "global_test_after": new_fit.global_test},
-        name=cand.name, label=label, rmse_before_mm=st_before.rmse * 1e3, rmse_after_mm=st_after.rmse * 1e3))
-    run.notes.append(f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
-                     f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
-                     f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})")
+    run.effects.append(
+        EffectRecord(
+            cand.kind,
+            cand.joint,
+            params,
+            {**s.to_dict(), "round": v.round, "validation": v.validation, "global_test_after": new_fit.global_test},
+            name=cand.name,
+            label=label,
+            rmse_before_mm=st_before.rmse * 1e3,
+            rmse_after_mm=st_after.rmse * 1e3,
+        )
+    )
+    run.notes.append(
+        f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
+        f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
+        f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
+    )

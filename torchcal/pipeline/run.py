@@ -142,8 +142,12 @@ class CalibrationRun:
 
     def add_stage(self, name: str) -> Stage:
         """Append the model as it stands as stage ``name``, with its held-out and training errors."""
-        st = Stage(name, copy.deepcopy(self.model), errors(self.model, self.hold, self.trajectory),
-                   errors(self.model, self.train, self.trajectory))
+        st = Stage(
+            name,
+            copy.deepcopy(self.model),
+            errors(self.model, self.hold, self.trajectory),
+            errors(self.model, self.train, self.trajectory),
+        )
         self.stages.append(st)
         return st
 
@@ -175,8 +179,9 @@ def is_trajectory(m: Measurements, max_step: float = 0.05) -> bool:
     return float(steps.median()) < max_step
 
 
-def holdout_split(m: Measurements, holdout: float, seed: int, trajectory: bool,
-                  group_tol: float = S.GROUP_TOL) -> S.Split:
+def holdout_split(
+    m: Measurements, holdout: float, seed: int, trajectory: bool, group_tol: float = S.GROUP_TOL
+) -> S.Split:
     """Training and held-out indices (module docstring): the run's split, also of its training poses."""
     return S.split(m.n, S.holdout_count(m.n, holdout), seed=seed, last=trajectory, q=m.q, group_tol=group_tol)
 
@@ -195,9 +200,15 @@ def _robot(robot: RobotModel | str | os.PathLike, base_link: str | None, tip_lin
     return load_robot(robot, base_link=base_link, tip_link=tip_link)
 
 
-def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: Options | None = None, *,
-              robot_spec: str | os.PathLike | None = None, base_link: str | None = None,
-              tip_link: str | None = None) -> CalibrationRun:
+def calibrate(
+    robot: RobotModel | str | os.PathLike,
+    data: Measurements,
+    opts: Options | None = None,
+    *,
+    robot_spec: str | os.PathLike | None = None,
+    base_link: str | None = None,
+    tip_link: str | None = None,
+) -> CalibrationRun:
     """Run a calibration (module docstring) and return everything the report needs.
 
     Args:
@@ -225,8 +236,10 @@ def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: O
     run = CalibrationRun(spec, robot, model, opts, data, tr, ho, trajectory, split=split, screening=screening)
     train, hold = run.train, run.hold
     if split.merged_groups:
-        run.notes.append(f"split: {split.merged_groups} revisited joint configurations ({split.merged_rows} poses) "
-                         f"kept wholly on one side")
+        run.notes.append(
+            f"split: {split.merged_groups} revisited joint configurations ({split.merged_rows} poses) "
+            f"kept wholly on one side"
+        )
 
     # 1. the baseline: nominal geometry, tracker pose and lever arm fitted (closed form, then LM)
     _console.info(f"{robot.name}: {train.n} training and {hold.n} held-out poses; fitting tracker pose and lever arm")
@@ -262,8 +275,7 @@ def calibrate(robot: RobotModel | str | os.PathLike, data: Measurements, opts: O
     return run
 
 
-def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: Tensor, opts: Options,
-                        trajectory: bool):
+def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: Tensor, opts: Options, trajectory: bool):
     """The training and held-out rows without their gross errors (:func:`torchcal.estimate.robust.screen_geometric`).
 
     Returns the kept training and held-out indices into ``data`` and the screening (None when
@@ -275,10 +287,20 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
     from torchcal.estimate.robust import screen_geometric
 
     _console.info("screening for gross errors: robust geometric fit, data snooping")
-    sc = screen_geometric(MeasurementModel(robot), data.subset(tr), data.subset(ho), sigma_tracker=opts.sigma_tracker,
-                          sigma_joint=opts.sigma_joint, trajectory=trajectory, rank_tol=opts.rank_tol,
-                          prior_length=opts.prior_length, prior_angle=opts.prior_angle, alpha=opts.outlier_alpha,
-                          max_iter=opts.max_iter, stat_tol=opts.stat_tol)
+    sc = screen_geometric(
+        MeasurementModel(robot),
+        data.subset(tr),
+        data.subset(ho),
+        sigma_tracker=opts.sigma_tracker,
+        sigma_joint=opts.sigma_joint,
+        trajectory=trajectory,
+        rank_tol=opts.rank_tol,
+        prior_length=opts.prior_length,
+        prior_angle=opts.prior_angle,
+        alpha=opts.outlier_alpha,
+        max_iter=opts.max_iter,
+        stat_tol=opts.stat_tol,
+    )
     for name, part in (("training", sc.training), ("held-out", sc.holdout)):
         if part.rejected:
             lines = ", ".join(str(r.line) for r in part.rejected[:10]) + (" ..." if len(part.rejected) > 10 else "")

@@ -38,8 +38,9 @@ def plot_deviations(filt, path: Path) -> None:
             ax.plot((a[:, j] * 1e3).tolist(), lw=0.6, label=c)
         ax.axvline(n, color="k", lw=0.8)
         ax.set_ylabel(f"{name} [mm]")
-        ax.set_title(f"{name}: RMS {_rms(a[:n]) * 1e3:.4f} mm filtered, {_rms(a[n:]) * 1e3:.4f} mm predicted",
-                     fontsize=9)
+        ax.set_title(
+            f"{name}: RMS {_rms(a[:n]) * 1e3:.4f} mm filtered, {_rms(a[n:]) * 1e3:.4f} mm predicted", fontsize=9
+        )
     axes[0].legend(ncol=3, fontsize=7, loc="upper left")
     axes[-1].set_xlabel(f"sample (the first {n} filtered, the held-out ones after the line predicted)")
     fig.tight_layout()
@@ -86,8 +87,11 @@ def ekf_section(run, out: Path) -> list[str]:
     if steps:
         lines += ["| step | held-out RMSE [mm] |", "|---|---:|"]
         lines += [f"| {k.replace('_', ' ')} | {v:.4f} |" for k, v in steps.items()]
-        lines += [f"| after the filter (final model) | {run.stages[-1].rmse * 1e3:.4f} |",
-                  f"| the filter's own test-phase prediction | {ev['holdout_rmse_filter_prediction_mm']:.4f} |", ""]
+        lines += [
+            f"| after the filter (final model) | {run.stages[-1].rmse * 1e3:.4f} |",
+            f"| the filter's own test-phase prediction | {ev['holdout_rmse_filter_prediction_mm']:.4f} |",
+            "",
+        ]
     lines += [
         "Deviations per sample (as the paper's Figs. 9 and 11; without a truth, the measurement is split at the "
         "calibrated kinematic model G: devG = filter state - G, devNG = network - (measured - G), devAll = "

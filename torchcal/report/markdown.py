@@ -117,11 +117,23 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     x = v["x"].tolist()
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for ax, key, title in ((axes[0], "before", "before"), (axes[1], "after", "after")):
-        ax.plot(x, (v[key] * 1e6).tolist(), ".", ms=2.5, color="0.45" if key == "before" else "tab:blue",
-                label="residual along the effect's direction")
+        ax.plot(
+            x,
+            (v[key] * 1e6).tolist(),
+            ".",
+            ms=2.5,
+            color="0.45" if key == "before" else "tab:blue",
+            label="residual along the effect's direction",
+        )
         order = torch.argsort(v["x"])
-        ax.plot([x[i] for i in order.tolist()], (v["effect"][order] * 1e6).tolist(), ".", ms=2, color="tab:red",
-                label="fitted effect")
+        ax.plot(
+            [x[i] for i in order.tolist()],
+            (v["effect"][order] * 1e6).tolist(),
+            ".",
+            ms=2,
+            color="tab:red",
+            label="fitted effect",
+        )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(v["xlabel"])
         ax.set_title(f"{decision.candidate.name} {title}")
@@ -188,28 +200,39 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
         f"Variance factor {gt['statistic']:.3f} against the bound {gt['threshold']:.3f} (chi-square, "
         f"alpha {gt['alpha']}, redundancy {gt['redundancy']}): **{'passed' if gt['passed'] else 'failed'}**. "
-        + ("The functional and stochastic models agree with the data." if gt["passed"] else
-           "The residuals are larger than the stochastic model allows: the model lacks something, or the "
-           "measurement precision is overstated."),
+        + (
+            "The functional and stochastic models agree with the data."
+            if gt["passed"]
+            else "The residuals are larger than the stochastic model allows: the model lacks something, or the "
+            "measurement precision is overstated."
+        ),
         "",
     ]
     for part, what in (("training", "training"), ("holdout", "held-out")):
         rows = (report["outliers"].get(part) or {}).get("rows") or []
         if rows:
-            lines += [f"Gross errors left out of the {what} rows ({len(rows)}; file line: size): "
-                      + ", ".join(f"{r['line']}: {r['size_mm']:.3g} mm" for r in rows[:30])
-                      + (" ..." if len(rows) > 30 else "")
-                      + ("; " + rows[0]["hint"] if rows[0].get("hint") else ""), ""]
+            lines += [
+                f"Gross errors left out of the {what} rows ({len(rows)}; file line: size): "
+                + ", ".join(f"{r['line']}: {r['size_mm']:.3g} mm" for r in rows[:30])
+                + (" ..." if len(rows) > 30 else "")
+                + ("; " + rows[0]["hint"] if rows[0].get("hint") else ""),
+                "",
+            ]
     par = report["parameters"]
     lines += ["## Parameters", "", "| parameter | correction | std |", "|---|---:|---:|"]
     for e in par["estimated"]:
         lines.append(f"| {e['name']} | {_fmt(e['correction'], e['unit'])} | {_fmt(e['std'], e['unit'])} |")
     if par["identifiability"] and par["identifiability"]["fixed"]:
         ida = par["identifiability"]
-        lines += ["", "### Held fixed", "",
-                  f"Identifiability: rank {ida['rank']} of {ida['n_candidates']} candidates (tolerance "
-                  f"{ida['tol']:.0e}); dependent groups: "
-                  + "; ".join("{" + ", ".join(g) + "}" for g in ida["dependent_groups"]), ""]
+        lines += [
+            "",
+            "### Held fixed",
+            "",
+            f"Identifiability: rank {ida['rank']} of {ida['n_candidates']} candidates (tolerance "
+            f"{ida['tol']:.0e}); dependent groups: "
+            + "; ".join("{" + ", ".join(g) + "}" for g in ida["dependent_groups"]),
+            "",
+        ]
         for f in ida["fixed"]:
             lines.append(f"- `{f['name']}`: {f['reason']}")
     if par["largest_correlations"]:
@@ -217,15 +240,34 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         for c in par["largest_correlations"][:5]:
             lines.append(f"- {c['a']} / {c['b']}: {c['rho']:+.3f}")
     if report["effects"]:
-        lines += ["", "## Effects", "", "| kind | joint | parameters (value ± std) | RMSE before [mm] | "
-                  "RMSE after [mm] |", "|---|---|---|---:|---:|"]
+        lines += [
+            "",
+            "## Effects",
+            "",
+            "| kind | joint | parameters (value ± std) | RMSE before [mm] | RMSE after [mm] |",
+            "|---|---|---|---:|---:|",
+        ]
         for e in report["effects"]:
-            params = ", ".join(f"{k} = {v['value']:.3g} ± {_g(v['std'])}" for k, v in e["params"].items()
-                               if isinstance(v, dict) and "value" in v)
-            lines.append(f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
-                         f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |")
-    lines += ["", "## Plots", "", "![errors per pose](errors_per_pose.png)", "", "![histogram](histogram.png)", "",
-              "![error against joints](error_vs_joints.png)", ""]
+            params = ", ".join(
+                f"{k} = {v['value']:.3g} ± {_g(v['std'])}"
+                for k, v in e["params"].items()
+                if isinstance(v, dict) and "value" in v
+            )
+            lines.append(
+                f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
+                f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |"
+            )
+    lines += [
+        "",
+        "## Plots",
+        "",
+        "![errors per pose](errors_per_pose.png)",
+        "",
+        "![histogram](histogram.png)",
+        "",
+        "![error against joints](error_vs_joints.png)",
+        "",
+    ]
     if report["notes"]:
         lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
@@ -249,28 +291,42 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
         lines += ["Left out: " + "; ".join(f"{s['name']} ({s['reason']})" for s in diag.skipped), ""]
     for r in diag.rounds:
         gt = r["global_test"]
-        lines += [f"### Round {r['round']}", "",
-                  f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).", "",
-                  "| candidate | k | chi2 | log10 p | Bonferroni p | BIC change | identifiable |",
-                  "|---|---:|---:|---:|---:|---:|---|"]
+        lines += [
+            f"### Round {r['round']}",
+            "",
+            f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).",
+            "",
+            "| candidate | k | chi2 | log10 p | Bonferroni p | BIC change | identifiable |",
+            "|---|---:|---:|---:|---:|---:|---|",
+        ]
         for s in r["scores"][:6]:
-            lines.append(f"| {s.candidate.name} | {s.k} | {s.statistic:.1f} | {s.log10_p:.1f} | {s.p_bonferroni:.2g} | "
-                         f"{s.bic_change:.1f} | {'yes' if s.identifiable else 'no'} |")
+            lines.append(
+                f"| {s.candidate.name} | {s.k} | {s.statistic:.1f} | {s.log10_p:.1f} | {s.p_bonferroni:.2g} | "
+                f"{s.bic_change:.1f} | {'yes' if s.identifiable else 'no'} |"
+            )
         lines.append("")
         if r.get("localisation"):
-            lines += ["Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
-                      + ", ".join(f"{loc['variable']} (share {loc['share']:.1%}, p = {loc['p_bonferroni']:.2g})"
-                                  for loc in r["localisation"][:3])
-                      + ". Open candidates: "
-                      + (", ".join(f"{c['name']} ({c['form']}, order {c['order']})" for c in r["open_candidates"])
-                         or "none") + ".", ""]
+            lines += [
+                "Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
+                + ", ".join(
+                    f"{loc['variable']} (share {loc['share']:.1%}, p = {loc['p_bonferroni']:.2g})"
+                    for loc in r["localisation"][:3]
+                )
+                + ". Open candidates: "
+                + (", ".join(f"{c['name']} ({c['form']}, order {c['order']})" for c in r["open_candidates"]) or "none")
+                + ".",
+                "",
+            ]
         for k, d in enumerate(diag.decisions):
             if d.round != r["round"]:
                 continue
             v = d.validation
             verdict = "**accepted**" if d.accepted else "**rejected**"
-            lines += [f"{d.candidate.name}: {verdict}: {d.reason}. Validation RMSE {v['rmse_before_mm']:.4f} -> "
-                      f"{v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, p = {v['p_value']:.2g}).", ""]
+            lines += [
+                f"{d.candidate.name}: {verdict}: {d.reason}. Validation RMSE {v['rmse_before_mm']:.4f} -> "
+                f"{v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, p = {v['p_value']:.2g}).",
+                "",
+            ]
             if d.models is not None:
                 name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
                 plot_decision(run, d, out / name)
@@ -280,9 +336,12 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
     rejected = [e for e in report.get("rejected", []) if e["kind"] == "learned"]
     if learned or rejected:
         ev = (learned or rejected)[0]["evidence"]
-        lines += [f"Learned residual model: {ev['chosen']} {'accepted' if learned else 'rejected'} "
-                  f"(validation {ev['validation_rmse_before_mm']:.4f} -> {ev['validation_rmse_after_mm']:.4f} mm, "
-                  f"p = {ev['p_value']:.2g}; rule: {ev['rule']}).", ""]
+        lines += [
+            f"Learned residual model: {ev['chosen']} {'accepted' if learned else 'rejected'} "
+            f"(validation {ev['validation_rmse_before_mm']:.4f} -> {ev['validation_rmse_after_mm']:.4f} mm, "
+            f"p = {ev['p_value']:.2g}; rule: {ev['rule']}).",
+            "",
+        ]
     return lines
 
 
@@ -306,8 +365,11 @@ def plot_unexplained(entry: dict, path: Path) -> None:
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel(entry["label"])
     ax.set_ylabel(f"residual smooth [{unit}]" + (" (tracker frame)" if not joint else ""))
-    ax.set_title(f"unexplained: {entry['variable']} (share {entry['share']:.1%} of the residual, "
-                 f"p = {entry['p_bonferroni']:.2g})", fontsize=10)
+    ax.set_title(
+        f"unexplained: {entry['variable']} (share {entry['share']:.1%} of the residual, "
+        f"p = {entry['p_bonferroni']:.2g})",
+        fontsize=10,
+    )
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
@@ -319,15 +381,21 @@ def _unexplained_section(report: dict, out: Path) -> list[str]:
     entries = report.get("unexplained") or []
     if not entries:
         return []
-    lines = ["## Unexplained structure", "",
-             "The global test fails and the final model's training residual still depends on these variables "
-             "(penalised smooth per variable, Bonferroni over the variables):", "",
-             "| variable | share of the residual | Bonferroni p | form chosen there (BIC) | why it is not an effect |",
-             "|---|---:|---:|---|---|"]
+    lines = [
+        "## Unexplained structure",
+        "",
+        "The global test fails and the final model's training residual still depends on these variables "
+        "(penalised smooth per variable, Bonferroni over the variables):",
+        "",
+        "| variable | share of the residual | Bonferroni p | form chosen there (BIC) | why it is not an effect |",
+        "|---|---:|---:|---|---|",
+    ]
     for e in entries:
         form = e.get("form") or {}
-        lines.append(f"| {e['variable']} | {e['share']:.1%} | {e['p_bonferroni']:.2g} | {form.get('form', '-')} "
-                     f"(order {form.get('order')}) | {e.get('reason', '-')} |")
+        lines.append(
+            f"| {e['variable']} | {e['share']:.1%} | {e['p_bonferroni']:.2g} | {form.get('form', '-')} "
+            f"(order {form.get('order')}) | {e.get('reason', '-')} |"
+        )
     name = f"unexplained_{entries[0]['variable']}.png"
     plot_unexplained(entries[0], out / name)
     lines += ["", f"![unexplained {entries[0]['variable']}]({name})", ""]

@@ -80,8 +80,9 @@ def _param_table(run: CalibrationRun) -> dict:
         "instrument": {"T_tracker_base": robot.T_tracker_base().detach().tolist()},
         "tool": {"t_flange_probe_m": robot.t_flange_probe().detach().tolist()},
         "largest_correlations": last.result.largest_correlations(10),
-        "identifiability": next((f.identifiability.to_dict() for f in reversed(run.fits)
-                                 if f.identifiability is not None), None),
+        "identifiability": next(
+            (f.identifiability.to_dict() for f in reversed(run.fits) if f.identifiability is not None), None
+        ),
         "sigma0_sq": last.result.sigma0_sq,
     }
 
@@ -105,25 +106,30 @@ def build_report(run: CalibrationRun) -> dict:
     last = run.fits[-1]
     # gross errors: the robust screening's rejected rows, training and held-out (torchcal.estimate.robust)
     screening = getattr(run, "screening", None)
-    outliers = (screening.to_dict() if screening is not None else
-                {"method": "none (screening switched off)", "training": None, "holdout": None, "lines": []})
+    outliers = (
+        screening.to_dict()
+        if screening is not None
+        else {"method": "none (screening switched off)", "training": None, "holdout": None, "lines": []}
+    )
     return {
         "robot": run.robot.name,
         "robot_spec": str(run.robot_spec),
         "method": run.options.method,
         "n_train": int(len(run.train_idx)),
         "n_holdout": int(len(run.holdout_idx)),
-        "split": {"kind": "last samples (trajectory)" if run.trajectory else "seeded random",
-                  "holdout_fraction": run.options.holdout, "seed": run.options.seed,
-                  **(run.split.to_dict() if run.split is not None else {})},
+        "split": {
+            "kind": "last samples (trajectory)" if run.trajectory else "seeded random",
+            "holdout_fraction": run.options.holdout,
+            "seed": run.options.seed,
+            **(run.split.to_dict() if run.split is not None else {}),
+        },
         "rmse_before_mm": st["nominal"].rmse * 1e3,
         "rmse_geometric_mm": st["geometric"].rmse * 1e3,
         "rmse_after_mm": final.rmse * 1e3,
         "max_before_mm": float(st["nominal"].holdout_errors.max()) * 1e3,
         "max_after_mm": float(final.holdout_errors.max()) * 1e3,
         "rmse_train_after_mm": rmse(final.train_errors) * 1e3,
-        "global_test": {k: last.global_test[k] for k in ("statistic", "threshold", "passed", "alpha",
-                                                         "redundancy")},
+        "global_test": {k: last.global_test[k] for k in ("statistic", "threshold", "passed", "alpha", "redundancy")},
         "stochastic_model": {
             "tracker_sigma_m": "per point (sx, sy, sz)" if run.data.sigma is not None else run.options.sigma_tracker,
             "joint_sigma_rad": run.options.sigma_joint,
@@ -135,11 +141,21 @@ def build_report(run: CalibrationRun) -> dict:
         # structure the final model leaves (CONTRACT §4; empty when the global test passes or no loop ran)
         "unexplained": _json_safe(getattr(run.diagnosis, "unexplained", None) or []),
         "parameters": _param_table(run),
-        "stages": [{"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_train_mm": rmse(s.train_errors) * 1e3}
-                   for s in run.stages],
-        "fits": [{"stage": f.stage, "status": f.result.status, "iterations": f.result.iterations,
-                  "cost_history": f.result.cost_history, "n_parameters": len(f.result.x),
-                  "global_test": f.global_test} for f in run.fits],
+        "stages": [
+            {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_train_mm": rmse(s.train_errors) * 1e3}
+            for s in run.stages
+        ],
+        "fits": [
+            {
+                "stage": f.stage,
+                "status": f.result.status,
+                "iterations": f.result.iterations,
+                "cost_history": f.result.cost_history,
+                "n_parameters": len(f.result.x),
+                "global_test": f.global_test,
+            }
+            for f in run.fits
+        ],
         "notes": run.notes,
     }
 
@@ -152,19 +168,25 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     tmp = Path(directory)
     state = run.model.state_dict()
     # joint limits may be infinite (continuous joints); every estimated value must be finite
-    bad = [k for k, v in state.items() if v.is_floating_point() and not k.endswith("limits")
-           and not bool(torch.isfinite(v).all())]
+    bad = [
+        k
+        for k, v in state.items()
+        if v.is_floating_point() and not k.endswith("limits") and not bool(torch.isfinite(v).all())
+    ]
     if bad:
-        raise EstimationError(f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit "
-                              "diverged, nothing was written")
+        raise EstimationError(
+            f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit diverged, nothing was written"
+        )
     report = build_report(run)
     # the URDF carries the geometry only: say what it leaves out and what that costs on the training poses
     from torchcal.compensate import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
 
     ctx = Context.from_measurements(run.data.subset(run.train_idx), trajectory=run.trajectory)
     write_urdf(run.robot, tmp / "robot_calibrated.urdf", notes=urdf_notes(urdf_gap(run.model, ctx)))
-    report["urdf"] = {"file": "robot_calibrated.urdf", **urdf_fk_difference(tmp / "robot_calibrated.urdf", run.model,
-                                                                              ctx)}
+    report["urdf"] = {
+        "file": "robot_calibrated.urdf",
+        **urdf_fk_difference(tmp / "robot_calibrated.urdf", run.model, ctx),
+    }
     text = json.dumps(_json_safe(report), indent=1, allow_nan=False)
     (tmp / "report.json").write_text(text + "\n", encoding="utf-8")
     write_markdown(run, report, tmp)

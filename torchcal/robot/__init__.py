@@ -13,7 +13,17 @@ from torchcal.robot.model import (
 )
 
 __all__ = [
-    "DHConvention", "DHGeometry", "Instrument", "ParameterInfo", "RobotModel", "Tool", "URDFGeometry",
-    "builtin_robots", "load_dh_yaml", "load_robot", "load_urdf", "resolve_robot_spec",
+    "DHConvention",
+    "DHGeometry",
+    "Instrument",
+    "ParameterInfo",
+    "RobotModel",
+    "Tool",
+    "URDFGeometry",
+    "builtin_robots",
+    "load_dh_yaml",
+    "load_robot",
+    "load_urdf",
+    "resolve_robot_spec",
     "write_urdf",
 ]

@@ -49,8 +49,12 @@ def resolve_robot_spec(spec: str | os.PathLike) -> Path:
     if path.is_file():
         raise RobotSpecError(f"{path}: unknown robot description type '{path.suffix}', expected .urdf, .yaml or .yml")
     name = str(spec)
-    for candidate in (ROBOTS_DIR / name, ROBOTS_DIR / f"{name}.yaml", ROBOTS_DIR / f"{name}.yml",
-                      ROBOTS_DIR / f"{name}.urdf"):
+    for candidate in (
+        ROBOTS_DIR / name,
+        ROBOTS_DIR / f"{name}.yaml",
+        ROBOTS_DIR / f"{name}.yml",
+        ROBOTS_DIR / f"{name}.urdf",
+    ):
         if candidate.is_file() and candidate.suffix in (".yaml", ".yml", ".urdf"):
             return candidate
     raise RobotSpecError(
@@ -58,8 +62,14 @@ def resolve_robot_spec(spec: str | os.PathLike) -> Path:
     )
 
 
-def load_robot(spec: str | os.PathLike, *, base_link: str | None = None, tip_link: str | None = None,
-               dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> RobotModel:
+def load_robot(
+    spec: str | os.PathLike,
+    *,
+    base_link: str | None = None,
+    tip_link: str | None = None,
+    dtype: torch.dtype = torch.float64,
+    device: str | torch.device = "cpu",
+) -> RobotModel:
     """Load a robot: a built-in name (``ur5``, ``ur10``, ``panda``), a URDF path or a DH YAML path.
 
     Args:
@@ -84,8 +94,10 @@ def _read_description(path: Path) -> bytes:
     try:
         size = path.stat().st_size
         if size > MAX_DESCRIPTION_BYTES:
-            raise RobotSpecError(f"{path}: {size} bytes is larger than a robot description can be "
-                                 f"(at most {MAX_DESCRIPTION_BYTES // (1024 * 1024)} MiB)")
+            raise RobotSpecError(
+                f"{path}: {size} bytes is larger than a robot description can be "
+                f"(at most {MAX_DESCRIPTION_BYTES // (1024 * 1024)} MiB)"
+            )
         with open(path, "rb") as f:
             return f.read(MAX_DESCRIPTION_BYTES + 1)
     except OSError as e:
@@ -97,8 +109,10 @@ def _decode(path: Path, raw: bytes) -> str:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as e:
         line = raw.count(b"\n", 0, e.start) + 1
-        raise RobotSpecError(f"{path}, line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at offset "
-                             f"{e.start}); save the file as UTF-8") from None
+        raise RobotSpecError(
+            f"{path}, line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at offset "
+            f"{e.start}); save the file as UTF-8"
+        ) from None
 
 
 def _number(path, where: str, key: str, value) -> float:
@@ -124,8 +138,10 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
         for event in yaml.parse(text, Loader=yaml.SafeLoader):
             if isinstance(event, yaml.AliasEvent):
                 mark = event.start_mark
-                raise RobotSpecError(f"{path}, line {mark.line + 1}, column {mark.column + 1}: YAML aliases "
-                                     "('*name') are not accepted in a robot description; write the values out")
+                raise RobotSpecError(
+                    f"{path}, line {mark.line + 1}, column {mark.column + 1}: YAML aliases "
+                    "('*name') are not accepted in a robot description; write the values out"
+                )
         doc = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise RobotSpecError(f"{path}: not valid YAML: {e}") from None
@@ -146,8 +162,10 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
             raise RobotSpecError(f"{path}: {where}: expected a mapping like {{a: .., alpha: .., d: .., theta: ..}}")
         unknown = set(j) - {"a", "alpha", "d", "theta", "lower", "upper", "mass", "com", "name"}
         if unknown:
-            raise RobotSpecError(f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, "
-                                 "lower, upper, mass, com, name")
+            raise RobotSpecError(
+                f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, "
+                "lower, upper, mass, com, name"
+            )
         for key in ("a", "alpha", "d", "theta"):
             if key not in j:
                 raise RobotSpecError(f"{path}: {where}: missing '{key}'")
@@ -155,8 +173,9 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
         cols["lower"].append(_number(path, where, "lower", j.get("lower", -2 * math.pi)))
         cols["upper"].append(_number(path, where, "upper", j.get("upper", 2 * math.pi)))
         if cols["lower"][-1] >= cols["upper"][-1]:
-            raise RobotSpecError(f"{path}: {where}: lower limit {cols['lower'][-1]} is not below upper "
-                                 f"{cols['upper'][-1]}")
+            raise RobotSpecError(
+                f"{path}: {where}: lower limit {cols['lower'][-1]} is not below upper {cols['upper'][-1]}"
+            )
         if "mass" in j:
             masses.append(_number(path, where, "mass", j["mass"]))
             com = j.get("com", [0.0, 0.0, 0.0])
@@ -167,8 +186,15 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     if masses and len(masses) != len(joints):
         raise RobotSpecError(f"{path}: 'mass' is given for {len(masses)} of {len(joints)} joints; give all or none")
     convention = DHConvention(conv)
-    geometry = DHGeometry(a=cols["a"], alpha=cols["alpha"], d=cols["d"], theta=cols["theta"],
-                          convention=convention, dtype=dtype, device=device)
+    geometry = DHGeometry(
+        a=cols["a"],
+        alpha=cols["alpha"],
+        d=cols["d"],
+        theta=cols["theta"],
+        convention=convention,
+        dtype=dtype,
+        device=device,
+    )
     limits = torch.tensor(list(zip(cols["lower"], cols["upper"])), dtype=dtype)
     com_t = None
     if masses:
@@ -197,8 +223,14 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
 
 
 # ------------------------------------------------------------------------- URDF
-def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link: str | None = None,
-              dtype=torch.float64, device="cpu") -> RobotModel:
+def load_urdf(
+    path: str | os.PathLike,
+    *,
+    base_link: str | None = None,
+    tip_link: str | None = None,
+    dtype=torch.float64,
+    device="cpu",
+) -> RobotModel:
     """Load a serial chain from a URDF with yourdfpy, in float64, meshes not loaded.
 
     The chain runs from ``base_link`` (default: the root) to ``tip_link`` (default: the leaf
@@ -215,8 +247,7 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
     raw = _read_description(path)
     # Parse strictly first: yourdfpy falls back to a recovering parser that accepts truncated files
     # and trailing junk. No DTD, no entities, no network.
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False,
-                             recover=False)
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, recover=False)
     try:
         tree = etree.fromstring(raw, parser=parser)
     except etree.XMLSyntaxError as e:
@@ -226,17 +257,24 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
     if tree.tag != "robot":
         raise RobotSpecError(f"{path}: the root element is <{tree.tag}>, expected <robot>")
     try:
-        urdf = yourdfpy.URDF.load(io.BytesIO(raw), load_meshes=False, build_scene_graph=False,
-                                  build_collision_scene_graph=False, load_collision_meshes=False,
-                                  mesh_dir=str(path.parent))
+        urdf = yourdfpy.URDF.load(
+            io.BytesIO(raw),
+            load_meshes=False,
+            build_scene_graph=False,
+            build_collision_scene_graph=False,
+            load_collision_meshes=False,
+            mesh_dir=str(path.parent),
+        )
     except Exception as e:  # yourdfpy raises assorted exception types on malformed files
         raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
     joints = urdf.robot.joints
     child_of = {}
     for j in joints:
         if j.child in child_of:
-            raise RobotSpecError(f"{path}: link '{j.child}' is the child of two joints, '{child_of[j.child].name}' "
-                                 f"and '{j.name}'; a URDF is a tree")
+            raise RobotSpecError(
+                f"{path}: link '{j.child}' is the child of two joints, '{child_of[j.child].name}' "
+                f"and '{j.name}'; a URDF is a tree"
+            )
         child_of[j.child] = j
     children: dict[str, list] = {}
     for j in joints:
@@ -248,7 +286,7 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
         trail, link = [], start
         while link in child_of and link not in done:
             if link in trail:
-                cycle = " -> ".join(trail[trail.index(link):] + [link])
+                cycle = " -> ".join(trail[trail.index(link) :] + [link])
                 raise RobotSpecError(f"{path}: the links form a cycle ({cycle}); a URDF must be a tree")
             trail.append(link)
             link = child_of[link].parent
@@ -276,6 +314,7 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
         return out[::-1]
 
     if tip_link is None:
+
         def n_movable(link):
             return sum(j.type in ("revolute", "continuous", "prismatic") for j in path_to(link))
 
@@ -283,8 +322,10 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
         best = max((n_movable(lk) for lk in leaves), default=0)
         cands = [lk for lk in leaves if n_movable(lk) == best]
         if best == 0 or len(cands) != 1:
-            raise RobotSpecError(f"{path}: cannot choose the tip link: leaves {cands} each end a chain of {best} "
-                                 "joints; pick one with --tip-link")
+            raise RobotSpecError(
+                f"{path}: cannot choose the tip link: leaves {cands} each end a chain of {best} "
+                "joints; pick one with --tip-link"
+            )
         tip_link = cands[0]
     elif tip_link not in links:
         raise RobotSpecError(f"{path}: tip link '{tip_link}' not found; links: {', '.join(links)}")
@@ -298,24 +339,29 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
     for j in chain:
         origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
         if not np.isfinite(origin).all():
-            raise RobotSpecError(f"{path}: joint '{j.name}': the origin has non-finite values (xyz/rpy must be "
-                                 "finite numbers)")
+            raise RobotSpecError(
+                f"{path}: joint '{j.name}': the origin has non-finite values (xyz/rpy must be finite numbers)"
+            )
         if j.type == "fixed":
             pending = pending @ origin
             continue
         if j.type not in ("revolute", "continuous"):
             raise RobotSpecError(f"{path}: joint '{j.name}' is {j.type}; torchcal supports revolute chains")
         if getattr(j, "mimic", None) is not None:
-            raise RobotSpecError(f"{path}: joint '{j.name}' mimics joint '{j.mimic.joint}'; torchcal does not "
-                                 "model mimic joints (they are not independent degrees of freedom). End the "
-                                 "chain before it with --tip-link, or make it fixed")
+            raise RobotSpecError(
+                f"{path}: joint '{j.name}' mimics joint '{j.mimic.joint}'; torchcal does not "
+                "model mimic joints (they are not independent degrees of freedom). End the "
+                "chain before it with --tip-link, or make it fixed"
+            )
         origins.append(pending @ origin)
         pending = np.eye(4)
         axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=np.float64)
         norm = float(np.linalg.norm(axis)) if np.isfinite(axis).all() else float("nan")
         if not norm > 1e-12:
-            raise RobotSpecError(f"{path}: joint '{j.name}': axis xyz=\"{' '.join(map(str, axis))}\" is not a "
-                                 "direction; expected a finite non-zero vector such as \"0 0 1\"")
+            raise RobotSpecError(
+                f"{path}: joint '{j.name}': axis xyz=\"{' '.join(map(str, axis))}\" is not a "
+                'direction; expected a finite non-zero vector such as "0 0 1"'
+            )
         axes.append(axis / norm)
         if j.type == "continuous":
             # no limit at all: readings past one turn are fine (and not taken for degrees)
@@ -325,8 +371,9 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
         else:
             lo, hi = float(j.limit.lower), float(j.limit.upper)
             if math.isnan(lo) or math.isnan(hi) or lo > hi:
-                raise RobotSpecError(f"{path}: joint '{j.name}': limit lower={lo} upper={hi}; lower must not be "
-                                     "above upper")
+                raise RobotSpecError(
+                    f"{path}: joint '{j.name}': limit lower={lo} upper={hi}; lower must not be above upper"
+                )
             lims.append((lo, hi))
         jnames.append(j.name)
         lnames.append(j.child)
@@ -364,9 +411,13 @@ def load_urdf(path: str | os.PathLike, *, base_link: str | None = None, tip_link
             body_m[movable_idx] = total
     masses, coms = (body_m, body_c) if have_inertia else (None, None)
 
-    geometry = URDFGeometry(origins=torch.tensor(np.stack(origins), dtype=dtype),
-                            axes=torch.tensor(np.stack(axes), dtype=dtype), joint_names=jnames, dtype=dtype,
-                            device=device)
+    geometry = URDFGeometry(
+        origins=torch.tensor(np.stack(origins), dtype=dtype),
+        axes=torch.tensor(np.stack(axes), dtype=dtype),
+        joint_names=jnames,
+        dtype=dtype,
+        device=device,
+    )
     return RobotModel(
         name=urdf.robot.name or path.stem,
         geometry=geometry,

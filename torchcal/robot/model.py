@@ -155,8 +155,7 @@ class URDFGeometry(_Group):
 
     COLUMNS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
-    def __init__(self, *, origins: Tensor, axes: Tensor, joint_names: Sequence[str], dtype=torch.float64,
-                 device="cpu"):
+    def __init__(self, *, origins: Tensor, axes: Tensor, joint_names: Sequence[str], dtype=torch.float64, device="cpu"):
         super().__init__()
         if dtype != torch.float64:
             raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
@@ -192,8 +191,9 @@ class Instrument(_Group):
         super().__init__()
         T = torch.eye(4, dtype=dtype) if T_nominal is None else torch.as_tensor(T_nominal, dtype=dtype)
         self.register_buffer("nominal", T.to(device).clone())
-        self._init_group((6,), [f"instrument.{c}" for c in self.COLUMNS], torch.ones(6, dtype=torch.bool),
-                         dtype, device)
+        self._init_group(
+            (6,), [f"instrument.{c}" for c in self.COLUMNS], torch.ones(6, dtype=torch.bool), dtype, device
+        )
 
     def matrix(self, delta: Tensor | None = None) -> Tensor:
         """``T_tracker_base (4, 4)``; ``delta (..., 6)`` replaces the module's correction (then ``(..., 4, 4)``)."""
@@ -215,8 +215,7 @@ class Tool(_Group):
         super().__init__()
         t = torch.zeros(3, dtype=dtype) if t_nominal is None else torch.as_tensor(t_nominal, dtype=dtype)
         self.register_buffer("nominal", t.to(device).clone())
-        self._init_group((3,), [f"tool.{c}" for c in self.COLUMNS], torch.ones(3, dtype=torch.bool), dtype,
-                         device)
+        self._init_group((3,), [f"tool.{c}" for c in self.COLUMNS], torch.ones(3, dtype=torch.bool), dtype, device)
 
     def vector(self, delta: Tensor | None = None) -> Tensor:
         """``t_flange_probe (3,)`` [m]; ``delta (..., 3)`` replaces the module's correction (then ``(..., 3)``)."""
@@ -239,10 +238,23 @@ class RobotModel(nn.Module):
     Calling the module gives ``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)``.
     """
 
-    def __init__(self, *, name: str, geometry: DHGeometry | URDFGeometry, limits: Tensor,
-                 joint_names: Sequence[str], link_names: Sequence[str], masses: Tensor | None = None,
-                 coms: Tensor | None = None, source: str | None = None, kind: str = "dh",
-                 base_link: str = "base", tip_link: str = "flange", dtype=torch.float64, device="cpu"):
+    def __init__(
+        self,
+        *,
+        name: str,
+        geometry: DHGeometry | URDFGeometry,
+        limits: Tensor,
+        joint_names: Sequence[str],
+        link_names: Sequence[str],
+        masses: Tensor | None = None,
+        coms: Tensor | None = None,
+        source: str | None = None,
+        kind: str = "dh",
+        base_link: str = "base",
+        tip_link: str = "flange",
+        dtype=torch.float64,
+        device="cpu",
+    ):
         super().__init__()
         if dtype != torch.float64:
             raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
@@ -365,8 +377,9 @@ class RobotModel(nn.Module):
         return tf.transform_points(self.T_tracker_base(), self.probe_in_base(q))
 
     # ------------------------------------------------------ parameter Jacobian
-    def tracker_jacobian(self, q: Tensor, columns: Sequence[tuple[str, int]],
-                         deltas: dict[str, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+    def tracker_jacobian(
+        self, q: Tensor, columns: Sequence[tuple[str, int]], deltas: dict[str, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor]:
         """Probe position in the tracker frame and its exact derivative by calibration parameters.
 
         The chain ``p = T_tb(d_inst) O_0(d_geo) R_0(q_0) O_1 R_1(q_1) ... O_n t(d_tool)`` is linear in each
@@ -530,8 +543,11 @@ def build_pk_chain(robot: RobotModel, origins: Tensor):
     import pytorch_kinematics as pk
 
     dtype, device = origins.dtype, origins.device
-    root = pk.Frame(name=robot.link_names[0], link=pk.Link(name=robot.link_names[0]),
-                    joint=pk.Joint(name="root", dtype=dtype, device=device))
+    root = pk.Frame(
+        name=robot.link_names[0],
+        link=pk.Link(name=robot.link_names[0]),
+        joint=pk.Joint(name="root", dtype=dtype, device=device),
+    )
     parent = root
     for i in range(robot.dof):
         joint = pk.Joint(
@@ -549,9 +565,13 @@ def build_pk_chain(robot: RobotModel, origins: Tensor):
     tip = pk.Frame(
         name=robot.link_names[-1],
         link=pk.Link(name=robot.link_names[-1]),
-        joint=pk.Joint(name=f"{robot.link_names[-1]}_fixed",
-                       offset=pk.Transform3d(matrix=origins[-1].clone(), dtype=dtype, device=device),
-                       joint_type="fixed", dtype=dtype, device=device),
+        joint=pk.Joint(
+            name=f"{robot.link_names[-1]}_fixed",
+            offset=pk.Transform3d(matrix=origins[-1].clone(), dtype=dtype, device=device),
+            joint_type="fixed",
+            dtype=dtype,
+            device=device,
+        ),
     )
     parent.add_child(tip)
     chain = pk.Chain(root, dtype=dtype, device=device)

@@ -12,7 +12,17 @@ from torchcal.sim.campaign import (
 from torchcal.sim.poses import PATHS, SightRule, path, random_poses, trajectory, visible
 
 __all__ = [
-    "DEFAULT_SIZES", "EFFECT_NAMES", "PATHS", "path",
-    "Campaign", "EffectSpec", "SightRule", "SimConfig", "random_poses", "simulate",
-    "trajectory", "visible", "write_campaign",
+    "DEFAULT_SIZES",
+    "EFFECT_NAMES",
+    "PATHS",
+    "path",
+    "Campaign",
+    "EffectSpec",
+    "SightRule",
+    "SimConfig",
+    "random_poses",
+    "simulate",
+    "trajectory",
+    "visible",
+    "write_campaign",
 ]

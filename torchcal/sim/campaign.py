@@ -132,8 +132,9 @@ def _bias_geometry(robot: RobotModel, cfg: SimConfig, g: torch.Generator) -> Non
     geo = robot.geometry
     cols = geo.COLUMNS
     angular = torch.tensor([c in ("alpha", "theta", "beta", "rx", "ry", "rz") for c in cols])
-    sigma = torch.where(angular, torch.tensor(math.radians(cfg.sigma_angle_deg), dtype=F64),
-                        torch.tensor(cfg.sigma_length, dtype=F64))
+    sigma = torch.where(
+        angular, torch.tensor(math.radians(cfg.sigma_angle_deg), dtype=F64), torch.tensor(cfg.sigma_length, dtype=F64)
+    )
     with torch.no_grad():
         geo.delta.copy_(torch.randn(geo.delta.shape, generator=g, dtype=F64) * sigma * geo.mask)
 
@@ -206,10 +207,12 @@ def simulate(cfg: SimConfig) -> Campaign:
         jitter = torch.rand(len(q_true), generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
         t = torch.arange(len(q_true), dtype=F64) * cfg.pose_interval_s + jitter
     duration = float(t[-1]) if len(t) > 1 else 1.0
-    temperature = 20.0 + 1.0 * (1.0 - torch.exp(-t / (0.5 * duration))) + torch.randn(len(t), generator=g,
-                                                                                      dtype=F64) * 0.02
-    ctx = Context(q=q_true, t=t, temperature=temperature,
-                  direction=motion_direction(q_true) if cfg.trajectory else None)
+    temperature = (
+        20.0 + 1.0 * (1.0 - torch.exp(-t / (0.5 * duration))) + torch.randn(len(t), generator=g, dtype=F64) * 0.02
+    )
+    ctx = Context(
+        q=q_true, t=t, temperature=temperature, direction=motion_direction(q_true) if cfg.trajectory else None
+    )
 
     # effects, each scaled to its size (RMS displacement over all poses)
     model = MeasurementModel(truth_robot, [])
@@ -228,17 +231,19 @@ def simulate(cfg: SimConfig) -> Campaign:
         disp = _rms_displacement(model, eff, ctx)
         mag = disp.norm(dim=-1)
         model.add(eff)
-        effect_truth.append({
-            "kind": "learned" if spec.kind == "field" else spec.kind,
-            "spec": spec.kind,
-            "joint": spec.joint,
-            "variable": spec.variable,
-            "size_m": size,
-            "rms_m": float(mag.square().mean().sqrt()),
-            "max_m": float(mag.max()),
-            "variation_m": float(mag.max() - mag.min()),
-            "params": eff.describe(),
-        })
+        effect_truth.append(
+            {
+                "kind": "learned" if spec.kind == "field" else spec.kind,
+                "spec": spec.kind,
+                "joint": spec.joint,
+                "variable": spec.variable,
+                "size_m": size,
+                "rms_m": float(mag.square().mean().sqrt()),
+                "max_m": float(mag.max()),
+                "variation_m": float(mag.max() - mag.min()),
+                "params": eff.describe(),
+            }
+        )
         if isinstance(eff, LearnedEffect):
             effect_truth[-1]["weights"] = {k: v.tolist() for k, v in eff.net.state_dict().items()}
 
@@ -253,11 +258,17 @@ def simulate(cfg: SimConfig) -> Campaign:
 
     def part(idx: slice, name: str) -> Measurements:
         n = len(q_read[idx])
-        return Measurements(q=q_read[idx].clone(), p=p_meas[idx].clone(), t=t[idx].clone(),
-                            temperature=temperature[idx].clone(), sigma=None if sigma is None else sigma[idx].clone(),
-                            meta={"simulated": "torchcal simulate", "robot": str(cfg.robot), "seed": str(cfg.seed),
-                                  "part": name},
-                            source=None, lines=tuple(range(2, n + 2)), extra={})
+        return Measurements(
+            q=q_read[idx].clone(),
+            p=p_meas[idx].clone(),
+            t=t[idx].clone(),
+            temperature=temperature[idx].clone(),
+            sigma=None if sigma is None else sigma[idx].clone(),
+            meta={"simulated": "torchcal simulate", "robot": str(cfg.robot), "seed": str(cfg.seed), "part": name},
+            source=None,
+            lines=tuple(range(2, n + 2)),
+            extra={},
+        )
 
     train, test = part(slice(0, n_train), "train"), part(slice(n_train, None), "test")
 
@@ -265,8 +276,13 @@ def simulate(cfg: SimConfig) -> Campaign:
     truth = {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
-        "robot": {"spec": str(cfg.robot), "name": truth_robot.name, "kind": truth_robot.kind, "dof": truth_robot.dof,
-                  "source": truth_robot.source},
+        "robot": {
+            "spec": str(cfg.robot),
+            "name": truth_robot.name,
+            "kind": truth_robot.kind,
+            "dof": truth_robot.dof,
+            "source": truth_robot.source,
+        },
         "geometry": {
             "parametrisation": type(geo).__name__,
             "columns": list(geo.COLUMNS),
@@ -279,8 +295,13 @@ def simulate(cfg: SimConfig) -> Campaign:
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": sigma_q},
         "effects": effect_truth,
         "line_of_sight": asdict(cfg.sight),
-        "files": {"train": {"n": train.n}, "test": {"n": test.n}, "split": "trajectory: first train_samples train, "
-                  "the rest test" if cfg.trajectory else "poses drawn independently; first `poses` train"},
+        "files": {
+            "train": {"n": train.n},
+            "test": {"n": test.n},
+            "split": "trajectory: first train_samples train, the rest test"
+            if cfg.trajectory
+            else "poses drawn independently; first `poses` train",
+        },
     }
     return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true)
 

@@ -111,8 +111,10 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     else:
         n = cfg.poses + cfg.test_poses
         q = random_poses(nominal, n, tracker_in_base, lever_nominal, g, cfg.sight)
-        t = torch.arange(n, dtype=F64) * cfg.pose_interval_s + torch.rand(n, generator=g, dtype=F64) * 0.5 * \
-            cfg.pose_interval_s
+        t = (
+            torch.arange(n, dtype=F64) * cfg.pose_interval_s
+            + torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
+        )
         perm = torch.randperm(n, generator=g)
         train_idx, test_idx = torch.sort(perm[cfg.test_poses :]).values, torch.sort(perm[: cfg.test_poses]).values
     duration = float(t[-1] - t[0]) if len(t) > 1 else 1.0
@@ -138,8 +140,13 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
             dq[:, e.joint - 1] += term
             rec.update(joint=e.joint, variable=f"q{e.joint}")
             if e.form == "harmonic":
-                rec.update(order=e.order, amplitude_rad=amp, phase=phase,
-                           a_sin=amp * math.cos(phase), b_cos=amp * math.sin(phase))
+                rec.update(
+                    order=e.order,
+                    amplitude_rad=amp,
+                    phase=phase,
+                    a_sin=amp * math.cos(phase),
+                    b_cos=amp * math.sin(phase),
+                )
             else:
                 rec.update(degree=len(coeffs), coeffs=(amp * coeffs).tolist())
         else:
@@ -172,18 +179,26 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma and cfg.sigma_tracker > 0 else None
 
     def part(idx: Tensor, name: str) -> Measurements:
-        return Measurements(q=q_read[idx].clone(), p=p_meas[idx].clone(), t=t[idx].clone(),
-                            temperature=temperature[idx].clone(), sigma=None if sigma is None else sigma[idx].clone(),
-                            meta={"simulated": "torchcal.sim.outside", "robot": str(cfg.robot),
-                                  "seed": str(cfg.seed), "part": name})
+        return Measurements(
+            q=q_read[idx].clone(),
+            p=p_meas[idx].clone(),
+            t=t[idx].clone(),
+            temperature=temperature[idx].clone(),
+            sigma=None if sigma is None else sigma[idx].clone(),
+            meta={"simulated": "torchcal.sim.outside", "robot": str(cfg.robot), "seed": str(cfg.seed), "part": name},
+        )
 
     geo = robot.geometry
     truth = {
         "generator": "torchcal.sim.outside",
         "config": _config_dict(cfg),
         "robot": {"spec": str(cfg.robot), "name": robot.name, "dof": robot.dof},
-        "geometry": {"parametrisation": type(geo).__name__, "columns": list(geo.COLUMNS), "names": list(geo.names),
-                     "delta": geo.delta.detach().flatten().tolist()},
+        "geometry": {
+            "parametrisation": type(geo).__name__,
+            "columns": list(geo.COLUMNS),
+            "names": list(geo.names),
+            "delta": geo.delta.detach().flatten().tolist(),
+        },
         "instrument": {"T_tracker_base": T.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
         "tool": {"t_flange_probe": lever.tolist()},
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": math.radians(cfg.sigma_joint_deg)},

@@ -40,8 +40,9 @@ class SightRule:
     skeleton_step: float = 0.02
 
 
-def visible(robot: RobotModel, q: Tensor, tracker_in_base: Tensor, t_flange_probe: Tensor,
-            rule: SightRule | None = None) -> Tensor:
+def visible(
+    robot: RobotModel, q: Tensor, tracker_in_base: Tensor, t_flange_probe: Tensor, rule: SightRule | None = None
+) -> Tensor:
     """Which poses satisfy the line-of-sight rule (module docstring). ``q (N, dof)`` -> ``(N,)`` bool."""
     rule = rule or SightRule()
     with torch.no_grad():
@@ -81,8 +82,15 @@ def sample_joints(robot: RobotModel, n: int, generator: torch.Generator) -> Tens
     return lo + (hi - lo) * torch.rand(n, robot.dof, generator=generator, dtype=robot.dtype)
 
 
-def random_poses(robot: RobotModel, n: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
-                 generator: torch.Generator, rule: SightRule | None = None, max_tries: int = 200) -> Tensor:
+def random_poses(
+    robot: RobotModel,
+    n: int,
+    tracker_in_base: Tensor,
+    t_flange_probe: Tensor,
+    generator: torch.Generator,
+    rule: SightRule | None = None,
+    max_tries: int = 200,
+) -> Tensor:
     """``n`` random visible poses ``(n, dof)``, by rejection sampling in batches."""
     got: list[Tensor] = []
     count = 0
@@ -96,9 +104,17 @@ def random_poses(robot: RobotModel, n: int, tracker_in_base: Tensor, t_flange_pr
     raise RuntimeError(f"only {count} of {n} poses satisfy the line-of-sight rule; move the tracker or relax the rule")
 
 
-def trajectory(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
-               generator: torch.Generator, rule: SightRule | None = None, step: float = 0.01,
-               max_segment: float = 1.2, stop_after: int | None = None) -> Tensor:
+def trajectory(
+    robot: RobotModel,
+    n_samples: int,
+    tracker_in_base: Tensor,
+    t_flange_probe: Tensor,
+    generator: torch.Generator,
+    rule: SightRule | None = None,
+    step: float = 0.01,
+    max_segment: float = 1.2,
+    stop_after: int | None = None,
+) -> Tensor:
     """A continuous visible trajectory ``(n_samples, dof)`` through random visible waypoints.
 
     Point-to-point motion as a robot program runs it: between consecutive waypoints every
@@ -136,8 +152,9 @@ def trajectory(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_fla
 PATHS = ("p2p", "multisine", "randomwalk", "sweeps")
 
 
-def _visible_runs(robot: RobotModel, q: Tensor, tracker_in_base: Tensor, t_flange_probe: Tensor,
-                  rule: SightRule | None) -> Tensor:
+def _visible_runs(
+    robot: RobotModel, q: Tensor, tracker_in_base: Tensor, t_flange_probe: Tensor, rule: SightRule | None
+) -> Tensor:
     """The samples of a planned path the tracker sees: a laser tracker loses the beam where the line of sight
     breaks and picks it up again after, so the measured trajectory is the path with those samples missing."""
     ok = torch.zeros(len(q), dtype=torch.bool)
@@ -152,9 +169,16 @@ def _joint_box(robot: RobotModel) -> tuple[Tensor, Tensor]:
     return lo, hi
 
 
-def multisine_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
-                   generator: torch.Generator, rule: SightRule | None = None, dt: float = 0.1,
-                   span: float = 0.8) -> Tensor:
+def multisine_path(
+    robot: RobotModel,
+    n_samples: int,
+    tracker_in_base: Tensor,
+    t_flange_probe: Tensor,
+    generator: torch.Generator,
+    rule: SightRule | None = None,
+    dt: float = 0.1,
+    span: float = 0.8,
+) -> Tensor:
     """A smooth multi-sine path through most of the joint range ``(n_samples, dof)``.
 
     Every joint is the sum of three sines of incommensurate periods (60-600 s at the sampling interval ``dt``)
@@ -184,9 +208,16 @@ def multisine_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t
     return torch.cat(got)[:n_samples]
 
 
-def random_walk_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
-                     generator: torch.Generator, rule: SightRule | None = None, speed: float = 0.004,
-                     correlation: float = 0.995) -> Tensor:
+def random_walk_path(
+    robot: RobotModel,
+    n_samples: int,
+    tracker_in_base: Tensor,
+    t_flange_probe: Tensor,
+    generator: torch.Generator,
+    rule: SightRule | None = None,
+    speed: float = 0.004,
+    correlation: float = 0.995,
+) -> Tensor:
     """A slow random walk in joint space ``(n_samples, dof)``: each joint's velocity is a first-order
     autoregressive process (smooth, ``speed`` rad per sample RMS), reflected at the limits; a step that
     would lose the line of sight turns the velocity around instead."""
@@ -226,8 +257,15 @@ def random_walk_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor,
     return out
 
 
-def sweeps_path(robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
-                generator: torch.Generator, rule: SightRule | None = None, waypoints: int = 6) -> Tensor:
+def sweeps_path(
+    robot: RobotModel,
+    n_samples: int,
+    tracker_in_base: Tensor,
+    t_flange_probe: Tensor,
+    generator: torch.Generator,
+    rule: SightRule | None = None,
+    waypoints: int = 6,
+) -> Tensor:
     """Repeated sweeps ``(n_samples, dof)``: one closed point-to-point cycle through ``waypoints`` visible
     poses, run again and again as a production program does; the continuation revisits the same path."""
     cycle = trajectory(robot, 10**9, tracker_in_base, t_flange_probe, generator, rule, stop_after=waypoints)
@@ -244,8 +282,15 @@ def trajectory_between(robot: RobotModel, a: Tensor, b: Tensor, step: float = 0.
     return a + (0.5 - 0.5 * torch.cos(math.pi * s))[:, None] * (b - a)
 
 
-def path(kind: str, robot: RobotModel, n_samples: int, tracker_in_base: Tensor, t_flange_probe: Tensor,
-         generator: torch.Generator, rule: SightRule | None = None) -> Tensor:
+def path(
+    kind: str,
+    robot: RobotModel,
+    n_samples: int,
+    tracker_in_base: Tensor,
+    t_flange_probe: Tensor,
+    generator: torch.Generator,
+    rule: SightRule | None = None,
+) -> Tensor:
     """A trajectory of the family ``kind`` (one of :data:`PATHS`)."""
     makers = {"p2p": trajectory, "multisine": multisine_path, "randomwalk": random_walk_path, "sweeps": sweeps_path}
     if kind not in makers:
