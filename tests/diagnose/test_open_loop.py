@@ -73,3 +73,26 @@ def test_structure_without_a_form_is_reported_unexplained():
     unx = run.diagnosis.unexplained
     assert unx and all(0 < u["share"] < 1 and u["p_bonferroni"] < 0.01 and u["reason"] for u in unx)
     assert {"variable", "share", "evidence", "smooth"} <= set(unx[0])
+
+
+def test_a_candidate_whose_refit_fails_is_rejected_with_the_reason_not_the_run():
+    """Real data (UR10 Series C) made a candidate's validation refit rank deficient; the loop must reject that
+    candidate and say why instead of ending the calibration with an error."""
+    from types import SimpleNamespace
+
+    from torchcal.effects import MeasurementModel
+    from torchcal.errors import EstimationError
+    from torchcal.pipeline.loop import _validate
+    from torchcal.robot import load_robot
+
+    def failing_fit(model, data, stage):
+        raise EstimationError(f"{stage}: least squares failed_solve: singular")
+
+    cand = SimpleNamespace(
+        name="drift:temperature", make=lambda: __import__("torchcal").effects.Drift("temperature", "scale", rates=[0.0])
+    )
+    score = SimpleNamespace(candidate=cand, statistic=12.0, k=1, log10_p=-3.0)
+    e_base = torch.full((5,), 1e-4, dtype=torch.float64)
+    v = _validate(score, 1, MeasurementModel(load_robot("ur5")), e_base, failing_fit, None, None, False, 0.05)
+    assert not v.passed and "refit on the fitting poses failed" in v.reason and "singular" in v.reason
+    assert torch.equal(v.errors, e_base)

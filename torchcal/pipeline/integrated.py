@@ -52,7 +52,7 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
-from torchcal.effects.support import SupportGate, choose_gate_length
+from torchcal.effects.support import GATE_LENGTHS, SupportGate, choose_gate_length
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
@@ -529,6 +529,10 @@ def _nominal_copy(robot):
 #: order, so that the choice is judged on how a model predicts the *continuation* of the path it was fitted on,
 #: which is what the held-out samples (and a user's next program) ask of it
 VALIDATION_FRACTION = 0.2
+#: the validation block is cut into this many consecutive pieces, and a candidate must beat geometry alone in
+#: every one of them: one block of a path is a single draw of how a model extrapolates, and a filter that wins
+#: it on average by one good stretch can lose on the path's continuation
+VALIDATION_PIECES = 4
 
 
 @dataclass(frozen=True)
@@ -539,6 +543,14 @@ class Setting:
     hidden: int = 128
     gain: float = 5.0  # random features' Glorot gain (adaptive)
     sigma_field: float = 5e-4  # prior RMS of the network's correction [m] (adaptive)
+
+    @property
+    def gate_lengths(self) -> tuple[float, ...]:
+        """Support-gate lengths tried on validation. The paper's engine is kept only behind a finite gate: its
+        6-29-3 network, refined jointly with a geometry of its own, can beat geometry alone on every piece of the
+        validation block and still extrapolate worse than geometry on the path's continuation (README,
+        *The integrated method on paths it was not tuned on*); a gate bounds how far that can go."""
+        return GATE_LENGTHS[1:] if self.engine == "ekf" else GATE_LENGTHS
 
     @property
     def name(self) -> str:
@@ -624,21 +636,29 @@ def integrate_selected(
             table.append({"candidate": setting.name, "failed": str(err)})
             continue
         length, gates = choose_gate_length(
-            lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot), lambda m: _rmse(_errors(m, val))
+            lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot),
+            lambda m: _rmse(_errors(m, val)),
+            setting.gate_lengths,
         )
         e = _errors(_gated(trial.model, fit.q, length, geo.robot), val)
+        pieces = [
+            _rmse(a) / _rmse(b)
+            for a, b in zip(e.tensor_split(VALIDATION_PIECES), e_geo.tensor_split(VALIDATION_PIECES))
+        ]
         row = {
             "candidate": setting.name,
             "validation_rmse_mm": _rmse(e) * 1e3,
             "gate_length": length,
+            "piece_ratios_to_geometry": pieces,
             "gates": [{"length": g["length"], "validation_rmse_mm": g["validation_rmse_m"] * 1e3} for g in gates],
         }
         table.append(row)
-        if best is None or _rmse(e) < _rmse(best[2]):
+        if max(pieces) < 1.0 and (best is None or _rmse(e) < _rmse(best[2])):
             best = (setting, length, e, row)
     evidence = {
-        "rule": f"lowest validation RMSE, kept when it beats geometry alone by a one-sided paired test "
-        f"(autocorrelation-corrected) at p < {opts.alpha_validation}",
+        "rule": f"lowest validation RMSE among the candidates better than geometry alone in each of the "
+        f"{VALIDATION_PIECES} consecutive pieces of the validation block, kept when it beats geometry alone by a "
+        f"one-sided paired test (autocorrelation-corrected) at p < {opts.alpha_validation}",
         "n_fit": fit.n,
         "n_validation": val.n,
         "candidates": table,
@@ -650,7 +670,7 @@ def integrate_selected(
         accepted = _rmse(best[2]) < _rmse(e_geo) and test["p_value"] < opts.alpha_validation
     if not accepted:
         why = (
-            "no candidate ran"
+            "no candidate beats geometry alone in every piece of the validation block"
             if best is None
             else f"the best candidate, {best[3]['candidate']}, does not beat geometry alone on the validation block "
             f"({_rmse(e_geo) * 1e3:.4f} -> {best[3]['validation_rmse_mm']:.4f} mm, p = "

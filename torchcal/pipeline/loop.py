@@ -49,6 +49,7 @@ from torchcal.diagnose.tracing import (
     unexplained_entries,
 )
 from torchcal.effects import Context, MeasurementModel
+from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.records import EffectRecord, Rejection
 
@@ -306,7 +307,11 @@ def _validate(
     )
     trial = copy.deepcopy(base)
     trial.add(cand.make())
-    fit_on(trial, fit_part, f"validation {cand.name}")
+    try:
+        fit_on(trial, fit_part, f"validation {cand.name}")
+    except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
+        reason = f"its joint refit on the fitting poses failed ({err})"
+        return _Validation(s, rnd, cand, base, trial, e_base, {"refit": str(err)}, False, reason)
     e_trial = errors(trial, val_part, trajectory)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
