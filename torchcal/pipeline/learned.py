@@ -24,6 +24,7 @@ from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementM
 from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
 from torchcal.effects.kernel import fit_kernel_correction
 from torchcal.effects.registry import NAMED_KINDS
+from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, corrections, solve
 from torchcal.estimate.netfit import fit_net
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
@@ -90,15 +91,16 @@ def select_learned(
     )
     with torch.no_grad():
         e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
-    gp, gp_info = fit_gp_correction(
-        Context(q=train.q[fi]),
-        corr[fi],
-        GPSettings(seed=int(opts.seed)),
-        ctx_val=Context(q=train.q[va]),
-        y_val=corr[va],
-    )
-    candidates = {
-        "gp": (
+    candidates = {}
+    try:
+        gp, gp_info = fit_gp_correction(
+            Context(q=train.q[fi]),
+            corr[fi],
+            GPSettings(seed=int(opts.seed)),
+            ctx_val=Context(q=train.q[va]),
+            y_val=corr[va],
+        )
+        candidates["gp"] = (
             gp,
             gp_info["val_errors"],
             {
@@ -107,7 +109,10 @@ def select_learned(
                 "variable_share": gp_info.get("variable_share"),
                 "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma"),
             },
-        ),
+        )
+    except EstimationError as err:  # its evidence fit diverged: the other candidates compete without it
+        run.notes.append(f"learned residual model: the Gaussian process was left out ({err})")
+    candidates |= {
         "kernel": (kern, info["val_errors"], kern.describe()),
         "network": (
             LearnedEffect(net),
@@ -229,7 +234,11 @@ def refine_learned(
     history = [best * 1e3]
     for _ in range(rounds):
         trial = copy.deepcopy(model)
-        fit, e_val = _refit_with_learned(run, trial, train, trajectory)
+        try:
+            fit, e_val = _refit_with_learned(run, trial, train, trajectory)
+        except EstimationError as err:  # a rank-deficient refit: the model stays as it is, and the run says so
+            run.notes.append(f"learned residual model: an alternating refit failed and was not kept ({err})")
+            break
         v = S.rmse(e_val)
         if not v < best * (1.0 - 1e-3):
             break
@@ -270,7 +279,11 @@ def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_va
         eff = model.effects[k]
         trial = copy.deepcopy(model)
         del trial.effects[k]
-        fit, e_without = _refit_with_learned(run, trial, train, trajectory)
+        try:
+            fit, e_without = _refit_with_learned(run, trial, train, trajectory)
+        except EstimationError as err:  # cannot judge it without the effect: the effect stays
+            run.notes.append(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
+            continue
         test = S.paired_improvement(e_without, e_val)
         evidence = {
             "validation_rmse_with_mm": S.rmse(e_val) * 1e3,

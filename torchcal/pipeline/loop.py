@@ -311,7 +311,17 @@ def _validate(
         fit_on(trial, fit_part, f"validation {cand.name}")
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
         reason = f"its joint refit on the fitting poses failed ({err})"
-        return _Validation(s, rnd, cand, base, trial, e_base, {"refit": str(err)}, False, reason)
+        r0 = S.rmse(e_base) * 1e3
+        validation = {
+            "rmse_before_mm": r0,
+            "rmse_after_mm": float("nan"),
+            "relative_gain": float("nan"),
+            "z": float("nan"),
+            "p_value": float("nan"),
+            "n": len(e_base),
+            "refit_failed": str(err),
+        }
+        return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason)
     e_trial = errors(trial, val_part, trajectory)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
