@@ -1,89 +1,16 @@
 #!/usr/bin/env python3
-"""Forward-kinematics agreement: torchcal against an independent numpy standard DH and against pytorch-kinematics.
-
-For each built-in robot, ``--poses`` seeded random joint vectors within the joint limits (clamped to +-pi);
-the largest absolute difference of any element of ``T_base_flange`` (metres for the translation). The pk
-comparison also runs with non-zero geometric corrections (sigma 1 mm / 1 mrad), since the pk chain is rebuilt
-from the calibrated geometry. Prints one JSON object as the last line.
+"""Forward-kinematics agreement of every built-in robot: torchcal against an independent numpy standard DH and
+against pytorch-kinematics (torchcal.experiments.fk_agreement); prints JSON.
 
     python scripts/fk_agreement.py [--poses 1000]
 """
 
-from __future__ import annotations
+from torchcal.experiments import common
+from torchcal.experiments.fk_agreement import agreement
 
-import argparse
-import json
-import math
-
-import numpy as np
-import torch
-
-import torchcal
-
-F64 = torch.float64
-#: UR's published nominal DH tables (a, alpha, d), typed in here independently of robots/*.yaml
-UR_DH = {
-    "ur5": [
-        (0, math.pi / 2, 0.089159),
-        (-0.425, 0, 0),
-        (-0.39225, 0, 0),
-        (0, math.pi / 2, 0.10915),
-        (0, -math.pi / 2, 0.09465),
-        (0, 0, 0.0823),
-    ],
-    "ur10": [
-        (0, math.pi / 2, 0.1273),
-        (-0.612, 0, 0),
-        (-0.5723, 0, 0),
-        (0, math.pi / 2, 0.163941),
-        (0, -math.pi / 2, 0.1157),
-        (0, 0, 0.0922),
-    ],
-}
-
-
-def numpy_standard_dh(table, q: np.ndarray) -> np.ndarray:
-    out = []
-    for qq in q:
-        T = np.eye(4)
-        for (a, al, d), th in zip(table, qq):
-            ct, st, ca, sa = np.cos(th), np.sin(th), np.cos(al), np.sin(al)
-            T = T @ np.array(
-                [[ct, -st * ca, st * sa, a * ct], [st, ct * ca, -ct * sa, a * st], [0, sa, ca, d], [0, 0, 0, 1]]
-            )
-        out.append(T)
-    return np.stack(out)
-
-
-def random_q(robot, n: int, seed: int) -> torch.Tensor:
-    g = torch.Generator().manual_seed(seed)
-    lo, hi = robot.limits[:, 0].clamp(min=-math.pi), robot.limits[:, 1].clamp(max=math.pi)
-    return lo + (hi - lo) * torch.rand(n, robot.dof, generator=g, dtype=F64)
-
-
-def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--poses", type=int, default=1000)
-    args = ap.parse_args(argv)
-    out = {"poses": args.poses, "vs_numpy_dh": {}, "vs_pytorch_kinematics": {}, "vs_pk_calibrated": {}}
-    for name, table in UR_DH.items():
-        robot = torchcal.load_robot(name)
-        q = random_q(robot, args.poses, 0)
-        with torch.no_grad():
-            out["vs_numpy_dh"][name] = float(np.abs(robot(q).numpy() - numpy_standard_dh(table, q.numpy())).max())
-    for spec in ("ur5", "ur10", "ur5.urdf", "ur10.urdf", "panda"):
-        robot = torchcal.load_robot(spec)
-        q = random_q(robot, args.poses, 1)
-        for key in ("vs_pytorch_kinematics", "vs_pk_calibrated"):
-            if key == "vs_pk_calibrated":
-                with torch.no_grad():
-                    robot.geometry.delta.normal_(0.0, 1e-3, generator=torch.Generator().manual_seed(2))
-            with torch.no_grad():
-                T = robot(q)
-            out[key][spec] = float((robot.chain.forward_kinematics(q).get_matrix() - T).abs().max())
-    print(json.dumps(out))
-    return out
-
+ap = common.parser(__doc__)
+ap.add_argument("--poses", type=int, default=1000)
 
 if __name__ == "__main__":
-    main()
+    args, result = common.run(ap, lambda a: agreement(a.poses))
+    common.emit(result, args, plain=result)

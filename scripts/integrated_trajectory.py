@@ -1,64 +1,46 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.integrated_trajectory`: ``calibrate --method integrated`` on
-simulated continuous trajectories in the paper's setting; prints JSON.
+"""``calibrate --method integrated`` on simulated continuous trajectories in the paper's setting
+(torchcal.experiments.integrated_trajectory); prints JSON (``--json``: one line)."""
 
-The experiment and its outputs are described there; this script parses the arguments, runs it and prints.
-"""
-
-from __future__ import annotations
-
-import argparse
-import json
 import sys
 
-import torch
-
-from torchcal.experiments import integrated_trajectory
+from torchcal.experiments import common
 from torchcal.experiments.integrated_trajectory import one_seed
 
+ap = common.parser(__doc__)
+ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+ap.add_argument(
+    "--field",
+    default="auto",
+    help="RMS of the non-geometric field at the probe with a unit (in mm), "
+    "or auto[:MM]: sized per seed so that the kinematic calibration leaves MM (default 0.19) held out",
+)
+ap.add_argument("--samples", type=int, default=7342)
+ap.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive", help="integrated engine")
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=integrated_trajectory.__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument(
-        "--field",
-        default="auto",
-        help="RMS of the non-geometric field at the probe with a unit (in mm), "
-        "or auto[:MM]: sized per seed so that the kinematic calibration leaves MM (default 0.19) held out",
-    )
-    ap.add_argument("--samples", type=int, default=7342)
-    ap.add_argument("--engine", choices=("adaptive", "ekf"), default="adaptive", help="integrated engine")
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    args = ap.parse_args(argv)
-    before = torch.get_num_threads()
-    torch.set_num_threads(max(1, args.threads))
-    try:
-        seeds = {}
-        for seed in args.seeds:
-            r = seeds[str(seed)] = one_seed(args.samples, args.field, seed, args.engine)
-            h = r["holdout_rmse_mm"]
-            print(
-                f"seed {seed}: held-out RMSE nominal {h['nominal']:.4f}, geometric {h['geometric']:.4f}, "
-                f"integrated {h['integrated']:.4f} mm (oracle {r['oracle_mm']:.4f}); steps "
-                + ", ".join(f"{k} {v:.4f}" for k, v in r["steps_mm"].items())
-                + f"; {r['seconds']:.0f} s",
-                file=sys.stderr,
-                flush=True,
-            )
-    finally:
-        torch.set_num_threads(before)
+
+def experiment(args) -> dict:
+    seeds = {}
+    for seed in args.seeds:
+        r = seeds[str(seed)] = one_seed(args.samples, args.field, seed, args.engine)
+        h = r["holdout_rmse_mm"]
+        print(
+            f"seed {seed}: held-out RMSE nominal {h['nominal']:.4f}, geometric {h['geometric']:.4f}, "
+            f"integrated {h['integrated']:.4f} mm (oracle {r['oracle_mm']:.4f}); steps "
+            + ", ".join(f"{k} {v:.4f}" for k, v in r["steps_mm"].items())
+            + f"; {r['seconds']:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
     mean = {
         k: sum(s["holdout_rmse_mm"][k] for s in seeds.values()) / len(seeds)
         for k in ("nominal", "geometric", "integrated")
     }
-    out = {
+    met = {k: s["holdout_rmse_mm"]["integrated"] <= 0.10 for k, s in seeds.items()}
+    return {
         "seeds": seeds,
         "mean": mean,
-        "target": {
-            "integrated_mm_at_most": 0.10,
-            "geometric_mm_about": 0.19,
-            "met_per_seed": {k: s["holdout_rmse_mm"]["integrated"] <= 0.10 for k, s in seeds.items()},
-        },
+        "target": {"integrated_mm_at_most": 0.10, "geometric_mm_about": 0.19, "met_per_seed": met},
         "config": {
             "robot": "ur5",
             "samples": args.samples,
@@ -67,9 +49,8 @@ def main(argv=None) -> int:
             "threads": args.threads,
         },
     }
-    print(json.dumps(out))
-    return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    args, result = common.run(ap, experiment)
+    common.emit(result, args, plain=result)

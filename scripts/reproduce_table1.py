@@ -1,64 +1,37 @@
 #!/usr/bin/env python3
-"""Reproduce Table 1 of Horvath & Neuner (2024): the command line of :mod:`torchcal.experiments.table1`.
+"""Reproduce Table 1 and Fig. 5 of Horvath & Neuner (2024): which DH biases the tracker pose and lever arm absorb.
 
-The experiment, its set-up and its outputs are described there; this script parses the arguments, runs it and
-prints the table (``--json``: and the result as one JSON object on the last line).
+The experiment is torchcal.experiments.table1; this prints the table (``--json``: and the result as one JSON
+object on the last line) and writes table1.json, table1.md and fig5.png into ``--out``.
 """
 
-from __future__ import annotations
-
-import argparse
 import sys
 from pathlib import Path
 
-from torchcal._threads import torch_threads
-from torchcal.experiments import table1
-from torchcal.experiments.common import add_common_arguments, emit_json
-from torchcal.experiments.table1 import *  # noqa: F403 (the experiment's names, for the tests and for users)
-from torchcal.experiments.table1 import (
-    POSTURES,
-    _single_posture,  # noqa: F401 (the tests reach it through the script)
-    run,
-    text_table,
-    write_outputs,
-)
+from torchcal.experiments import common
+from torchcal.experiments.table1 import POSTURES, run, text_table, write_outputs
+
+ap = common.parser(__doc__)
+ap.add_argument("--draws", type=int, default=None, help="Monte Carlo draws per parameter (default 20, quick 5)")
+ap.add_argument("--poses", type=int, default=None, help="random visible poses (default 300, quick 150)")
+ap.add_argument("--seed", type=int, default=0, help="seed of the poses, tracker, lever arm and biases")
+ap.add_argument("--posture", choices=POSTURES, default="any", help="single: one shoulder configuration only")
+ap.add_argument("--quick", action="store_true", help="5 draws, 150 poses")
+ap.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
 
 
-def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(
-        description=table1.__doc__.split("\n\n")[0], formatter_class=argparse.RawTextHelpFormatter
-    )
-    ap.add_argument("--draws", type=int, default=None, help="Monte Carlo draws per parameter (default 20, quick 5)")
-    ap.add_argument("--poses", type=int, default=None, help="random visible poses (default 300, quick 150)")
-    ap.add_argument("--seed", type=int, default=0, help="seed of the poses, tracker, lever arm and biases")
-    ap.add_argument(
-        "--posture",
-        choices=POSTURES,
-        default="any",
-        help="any: every visible pose (default); single: one shoulder configuration only",
-    )
-    ap.add_argument("--quick", action="store_true", help="5 draws, 150 poses")
-    add_common_arguments(ap)
-    ap.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
-    args = ap.parse_args(argv)
-    args.draws = args.draws or (5 if args.quick else 20)
-    args.poses = args.poses or (150 if args.quick else 300)
-    if args.draws < 1 or args.poses < 10:
-        ap.error(f"need --draws >= 1 and --poses >= 10, got {args.draws} and {args.poses}")
-    return args
+def experiment(a) -> dict:
+    a.draws, a.poses = a.draws or (5 if a.quick else 20), a.poses or (150 if a.quick else 300)
+    if a.draws < 1 or a.poses < 10:
+        ap.error(f"need --draws >= 1 and --poses >= 10, got {a.draws} and {a.poses}")
+    return run(a.draws, a.poses, a.seed, a.posture)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    with torch_threads(args.threads):
-        result = run(args.draws, args.poses, args.seed, args.posture)
-    write_outputs(result, args.out)
-    print(text_table(result))
-    print(
-        f"absorbed (remaining < 1 %): {', '.join(result['summary']['absorbed_ours'])}; "
-        f"{result['runtime_s']:.1f} s; written to {args.out}"
-    )
-    emit_json(result, args)
+    args, result = common.run(ap, experiment, argv)
+    summary = write_outputs(result, args.out)
+    print(text_table(result), summary, sep="\n")
+    common.emit(result, args)
     return 0
 
 

@@ -4,20 +4,24 @@ python scripts/trajectory_families.py --paths p2p multisine randomwalk sweeps --
 python scripts/trajectory_families.py --outside ../shared/data/outside/trajectory-ann-s31
 """
 
-import argparse
-import json
-
+from torchcal.experiments import common
 from torchcal.experiments.trajectories import family_table, outside_campaign
 from torchcal.sim import PATHS
 
-p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-p.add_argument("--paths", nargs="+", default=list(PATHS), choices=PATHS)
-p.add_argument("--seeds", nargs="+", type=int, default=[0])
-p.add_argument("--field", default="0.2mm", help="RMS of the simulated field, with a unit")
-p.add_argument("--engines", nargs="+", default=["auto"], choices=("auto", "adaptive", "ekf"))
-p.add_argument("--outside", nargs="*", default=[], help="outside trajectory campaign folders (train.csv, test.csv)")
-a = p.parse_args()
-if a.outside:
-    print(json.dumps([outside_campaign(f, a.engines) for f in a.outside], indent=1))
-else:
-    print(json.dumps(family_table(a.paths, a.seeds, a.field, engines=a.engines), indent=1))
+ap = common.parser(__doc__)
+ap.add_argument("--paths", nargs="+", default=list(PATHS), choices=PATHS)
+ap.add_argument("--seeds", nargs="+", type=int, default=[0])
+ap.add_argument("--field", default="0.2mm", help="RMS of the simulated field, with a unit")
+ap.add_argument("--engines", nargs="+", default=["auto"], choices=("auto", "adaptive", "ekf"))
+ap.add_argument("--outside", nargs="*", default=[], help="outside trajectory campaign folders (train.csv, test.csv)")
+
+
+def experiment(a):
+    if a.outside:
+        return [outside_campaign(f, a.engines) for f in a.outside]
+    return family_table(a.paths, a.seeds, a.field, engines=a.engines)
+
+
+if __name__ == "__main__":
+    args, result = common.run(ap, experiment)
+    common.emit(result, args, plain=result)

@@ -1,8 +1,6 @@
 """Robot model: known answers, independent DH, pytorch-kinematics, gradients, gravity torques."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,22 +8,12 @@ import torch
 
 import torchcal
 from torchcal.errors import RobotSpecError, ShapeError
+
+# the independent numpy standard DH and UR's tables (one copy, also behind scripts/fk_agreement.py)
+from torchcal.experiments.fk_agreement import UR_DH, numpy_standard_dh
 from torchcal.robot import transforms as tf
 
 F64 = torch.float64
-
-
-def _load_reference():
-    """The independent numpy standard DH and UR's tables live in scripts/fk_agreement.py (one copy)."""
-    path = Path(__file__).resolve().parents[2] / "scripts" / "fk_agreement.py"
-    spec = importlib.util.spec_from_file_location("fk_agreement", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-_REF = _load_reference()
-UR_DH, numpy_standard_dh = _REF.UR_DH, _REF.numpy_standard_dh
 
 
 def numpy_modified_dh(table, q):

@@ -12,6 +12,8 @@ import pytest
 import torch
 
 import torchcal
+from torchcal.experiments import table1 as t1
+from torchcal.experiments import table2 as t2
 
 SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
 
@@ -54,7 +56,7 @@ def test_table1_json_line_and_files(table1):
     result, out, stdout = table1
     assert result == json.loads((out / "table1.json").read_text())
     assert result["config"]["draws"] == 5 and result["config"]["poses"] == 150
-    assert list(result["rows"]) == [*load_script("reproduce_table1").PARAMETERS, "all"]
+    assert list(result["rows"]) == [*t1.PARAMETERS, "all"]
     assert stdout.splitlines()[0].split()[:4] == ["par", "tx", "ty", "tz"]  # the printed table comes first
     md = (out / "table1.md").read_text()
     assert "| theta1 |" in md and "/ 36 |" in md  # the paper's theta1 -> rz next to ours
@@ -63,7 +65,6 @@ def test_table1_json_line_and_files(table1):
 
 def test_table1_absorbed_parameters_leave_nothing_the_others_a_lot(table1):
     rows = table1[0]["rows"]
-    t1 = load_script("reproduce_table1")
     for name in t1.ABSORBED:
         # the bias does move the probe (theta6 least: it only turns the lever arm about the flange axis)
         assert rows[name]["nominal_mm"] > 1e-4, name
@@ -94,7 +95,6 @@ def test_table2_json_line_and_files(table2):
 
 def test_table2_remaining_biases_are_recovered_absorbed_ones_are_not(table2):
     result = table2[0]
-    t2 = load_script("reproduce_table2")
     assert set(result["fixed_parameters"]) == set(t2.PAPER_FIXED)
     assert set(result["lm_status"]) == {"converged"}
     rows = result["rows"]
@@ -116,7 +116,6 @@ def test_table2_remaining_biases_are_recovered_absorbed_ones_are_not(table2):
 
 
 def test_single_posture_keeps_the_tracker_and_one_shoulder_configuration():
-    t1 = load_script("reproduce_table1")
     any_, single = t1.make_setup(60, 10, 3, "any"), t1.make_setup(60, 10, 3, "single")
     assert torch.equal(any_.T_tracker_base, single.T_tracker_base)
     assert torch.equal(any_.t_flange_probe, single.t_flange_probe)

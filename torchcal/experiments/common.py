@@ -1,9 +1,28 @@
-"""What every experiment script shares: ``--threads`` and ``--json``, and printing the result."""
+"""What every experiment script shares: ``--threads`` and ``--json``, running under that many torch threads, and
+printing the result.
+
+A script builds its parser with :func:`parser`, adds its own arguments, and ends with :func:`run` and
+:func:`emit`::
+
+    ap = common.parser(__doc__)
+    ap.add_argument("--seed", type=int, default=0)
+
+    def main(argv=None) -> int:
+        args, result = common.run(ap, lambda a: experiment.run(a.seed), argv)
+        common.emit(result, args, plain=result)
+        return 0
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from torchcal._threads import torch_threads
+
+T = TypeVar("T")
 
 
 def add_common_arguments(ap: argparse.ArgumentParser, *, threads: int = 1) -> None:
@@ -18,7 +37,35 @@ def add_common_arguments(ap: argparse.ArgumentParser, *, threads: int = 1) -> No
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object on the last line")
 
 
-def emit_json(result: dict, args: argparse.Namespace) -> None:
+def parser(doc: str, *, threads: int = 1) -> argparse.ArgumentParser:
+    """An argument parser described by ``doc`` (a script's docstring, shown as written) with the common arguments."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_common_arguments(ap, threads=threads)
+    return ap
+
+
+def run(
+    ap: argparse.ArgumentParser, experiment: Callable[[argparse.Namespace], T], argv: list[str] | None = None
+) -> tuple[argparse.Namespace, T]:
+    """Parse ``argv`` with ``ap`` and run ``experiment(args)`` under ``--threads`` torch threads (restored after).
+
+    Returns:
+        The parsed arguments and the experiment's result.
+    """
+    args = ap.parse_args(argv)
+    with torch_threads(args.threads):
+        return args, experiment(args)
+
+
+def emit_json(result: Any, args: argparse.Namespace) -> None:
     """Print ``result`` as one JSON object on one line when ``--json`` was given."""
     if getattr(args, "json", False):
         print(json.dumps(result))
+
+
+def emit(result: Any, args: argparse.Namespace, *, plain: Any = None) -> None:
+    """Print ``result`` as one JSON line with ``--json``; without it, ``plain`` as indented JSON (if not None)."""
+    if getattr(args, "json", False):
+        print(json.dumps(result))
+    elif plain is not None:
+        print(json.dumps(plain, indent=1))

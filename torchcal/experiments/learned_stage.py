@@ -327,3 +327,17 @@ def scale_case(n: int, seed: int = 0, gp_settings: GPSettings | None = None) -> 
         "field_rmse_mm": _rmse(f[n:]),
         "error_vs_field_mm": _rmse(pred - f[n:]),
     }
+
+
+def run_cases(cases, data_dir: str | Path, seed: int, methods: tuple[str, ...], gp_settings: GPSettings) -> dict:
+    """Each case of ``cases`` in turn: ``synthetic-N`` (:func:`scale_case`), ``harmonic3`` or ``field``
+    (:func:`simulated_case`), or a UR10 series name (:func:`real_case` on ``data_dir``)."""
+    out = []
+    for case in cases:
+        if case.startswith("synthetic-"):
+            out.append(scale_case(int(case.split("-", 1)[1]), seed, gp_settings))
+        elif case in ("harmonic3", "field"):
+            out.append(simulated_case(case, seed, methods=methods, gp_settings=gp_settings))
+        else:
+            out.append(real_case(data_dir, case, seed, methods=methods, gp_settings=gp_settings))
+    return {"torch_threads": torch.get_num_threads(), "results": out}

@@ -62,6 +62,7 @@ Reference: S. Horvath and H. Neuner, J. Intell. Robot. Syst. (2024), Sec. 3.3 an
 from __future__ import annotations
 
 import copy
+import json
 import math
 import time
 from pathlib import Path
@@ -277,3 +278,14 @@ def plot(result: dict, path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def write_outputs(result: dict, out: Path) -> str:
+    """Write ``sensitivity.json`` and ``fig13_sensitivity.png`` into ``out``; return a one-line summary."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "sensitivity.json").write_text(json.dumps(result, indent=1) + "\n")
+    plot(result, out / "fig13_sensitivity.png")
+    return (
+        f"largest DH influences here: {', '.join(result['ranking_dh'][:5])}; paper: {', '.join(PAPER_LARGEST)}; "
+        f"exactness check {result['check_max_abs_diff_m']:.1e} m; {result['seconds']:.1f} s"
+    )

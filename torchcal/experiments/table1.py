@@ -396,8 +396,11 @@ def plot_fig5(result: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def write_outputs(result: dict, out: Path) -> None:
+def write_outputs(result: dict, out: Path) -> str:
+    """Write ``table1.json``, ``table1.md`` and ``fig5.png`` into ``out``; return a one-line summary."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "table1.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
     (out / "table1.md").write_text(markdown(result), encoding="utf-8")
     plot_fig5(result, out / "fig5.png")
+    absorbed = ", ".join(result["summary"]["absorbed_ours"])
+    return f"absorbed (remaining < 1 %): {absorbed}; {result['runtime_s']:.1f} s; written to {out}"

@@ -214,7 +214,9 @@ def markdown(result: dict) -> str:
     return "\n".join(out)
 
 
-def write_outputs(result: dict, out: Path) -> None:
+def write_outputs(result: dict, out: Path) -> str:
+    """Write ``table2.json`` and ``table2.md`` into ``out``; return a one-line summary."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "table2.json").write_text(json.dumps(result, indent=1) + "\n", encoding="utf-8")
     (out / "table2.md").write_text(markdown(result), encoding="utf-8")
+    return f"fixed: {', '.join(result['fixed_parameters'])}; {result['runtime_s']:.1f} s; written to {out}"
