@@ -10,7 +10,6 @@ identifiability analysis (:func:`solve`), the names of the named effects' parame
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from enum import Enum
 from typing import Protocol
 
 import torch
@@ -20,7 +19,7 @@ from torchcal.effects import Context, MeasurementModel
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
 from torchcal.estimate.identifiability import Identifiability, analyse, preference_order
-from torchcal.estimate.lm import LMResult, global_test, levenberg_marquardt
+from torchcal.estimate.lm import FitStatus, LMResult, global_test, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.robot.model import RobotModel
@@ -28,21 +27,6 @@ from torchcal.robot.model import RobotModel
 Tensor = torch.Tensor
 #: the groups a kinematic calibration fits
 GEOMETRIC_GROUPS = ("geometry", "instrument", "tool")
-
-
-class FitStatus(str, Enum):
-    """How a least-squares or network fit ended (str-valued: ``report.json`` writes the plain name).
-
-    The solvers (:mod:`~torchcal.estimate.lm`, :mod:`~torchcal.estimate.netfit`) return these names.
-    """
-
-    CONVERGED = "converged"
-    MAX_ITERATIONS = "max_iterations"
-    DIVERGED = "diverged"
-    FAILED_SOLVE = "failed_solve"
-
-    def __str__(self) -> str:
-        return self.value
 
 
 #: the endings after which the fitted values are unusable

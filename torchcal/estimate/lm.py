@@ -11,6 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import Enum
 
 import torch
 
@@ -19,14 +20,30 @@ from torchcal.errors import EstimationError
 
 Tensor = torch.Tensor
 
-STATUSES = ("converged", "max_iterations", "diverged", "failed_solve")
+
+class FitStatus(str, Enum):
+    """How a least-squares or network fit ended (str-valued: ``report.json`` writes the plain name).
+
+    The solvers (:func:`levenberg_marquardt`, :mod:`~torchcal.estimate.netfit`) return these.
+    """
+
+    CONVERGED = "converged"
+    MAX_ITERATIONS = "max_iterations"
+    DIVERGED = "diverged"
+    FAILED_SOLVE = "failed_solve"
+
+    def __str__(self) -> str:
+        return self.value
+
+
+STATUSES = tuple(s.value for s in FitStatus)
 
 
 @dataclass
 class LMResult:
-    """What a least-squares solve returns; ``status`` is one of :data:`STATUSES`."""
+    """What a least-squares solve returns; ``status`` says how it ended."""
 
-    status: str
+    status: FitStatus
     iterations: int
     x: Tensor
     cost_history: list[float]
@@ -178,9 +195,9 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
     history = [cost]
     names = list(names or [f"x{i}" for i in range(len(x))])
     if not math.isfinite(cost):
-        return LMResult("diverged", 0, x, history, names, len(r), "non-finite residuals at the start")
+        return LMResult(FitStatus.DIVERGED, 0, x, history, names, len(r), "non-finite residuals at the start")
     lam = lam0
-    status, message = "max_iterations", f"stopped after {max_iter} iterations"
+    status, message = FitStatus.MAX_ITERATIONS, f"stopped after {max_iter} iterations"
     it = 0
     eye = torch.eye(len(x), dtype=x.dtype, device=x.device)
     for it in range(1, max_iter + 1):
@@ -204,9 +221,9 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
             lam = max(lam, 1e-15)
         if not accepted:
             if int(torch.linalg.cholesky_ex(Ns + 1e-12 * eye)[1]) != 0 and cost > 0:
-                status, message = "failed_solve", "the damped normal equations could not be solved"
+                status, message = FitStatus.FAILED_SOLVE, "the damped normal equations could not be solved"
             else:
-                status, message = "converged", "no step lowers the cost any more"
+                status, message = FitStatus.CONVERGED, "no step lowers the cost any more"
             break
         reduction = (cost - cost_new) / max(cost, 1e-300)
         step_small = bool((dx.abs() <= xtol * (x.abs() + s)).all())
@@ -216,7 +233,7 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
         if callback is not None:
             callback(it, x, cost)
         if step_small or reduction < ftol or invisible:
-            status = "converged"
+            status = FitStatus.CONVERGED
             message = (
                 "step below xtol"
                 if step_small
@@ -228,6 +245,6 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
     J = jac(x).detach()
     N = J.T @ J
     s = _jacobi(N)
-    if status != "failed_solve" and int(torch.linalg.cholesky_ex(N * s[:, None] * s[None, :])[1]) != 0:
-        status, message = "failed_solve", "the normal matrix at the solution is singular (rank deficient)"
+    if status != FitStatus.FAILED_SOLVE and int(torch.linalg.cholesky_ex(N * s[:, None] * s[None, :])[1]) != 0:
+        status, message = FitStatus.FAILED_SOLVE, "the normal matrix at the solution is singular (rank deficient)"
     return LMResult(status, it, x, history, names, len(r), message, N, r, J)

@@ -15,13 +15,14 @@ from dataclasses import dataclass, field
 import torch
 
 from torchcal.effects.learned import CorrectionNet
+from torchcal.estimate.lm import FitStatus
 
 Tensor = torch.Tensor
 
 
 @dataclass
 class NetFitResult:
-    status: str  # "converged" | "max_iterations" | "failed_solve" | "diverged"
+    status: FitStatus
     iterations: int
     train_rmse: list[float] = field(default_factory=list)  # m, per iteration
     val_rmse: list[float] = field(default_factory=list)  # m, per iteration (empty without validation)
@@ -95,7 +96,7 @@ def fit_net(
         with torch.no_grad():
             return _rmse(net_forward(net, wv, val[0]) - val[1]) if val is not None else float("nan")
 
-    res = NetFitResult("max_iterations", 0, method=method)
+    res = NetFitResult(FitStatus.MAX_ITERATIONS, 0, method=method)
     best_w, best_val = w.clone(), val_rmse(w)
     res.val_rmse.append(best_val)
     with torch.no_grad():
@@ -131,7 +132,7 @@ def fit_net(
                 lam *= 10
             res.iterations = it
             if not accepted:
-                res.status = "converged"
+                res.status = FitStatus.CONVERGED
                 break
             rel = (cost - c_new) / max(cost, 1e-300)
             w, r, cost = w_new, r_new, c_new
@@ -145,10 +146,10 @@ def fit_net(
             else:
                 since_best += 1
             if rel < ftol:
-                res.status = "converged"
+                res.status = FitStatus.CONVERGED
                 break
             if val is not None and since_best >= patience:
-                res.status = "converged"
+                res.status = FitStatus.CONVERGED
                 break
         if val is None:
             best_w = w
@@ -185,7 +186,7 @@ def _fit_lbfgs(net, w, residual, val_rmse, iterations, patience, res):
         else:
             since += 1
             if since >= patience:
-                res.status = "converged"
+                res.status = FitStatus.CONVERGED
                 break
     if math.isnan(res.val_rmse[0]):
         best_w = wv.detach().clone()

@@ -57,7 +57,7 @@ import torch
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
-from torchcal.estimate.fit import selection
+from torchcal.estimate.fit import FAILED, selection
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
@@ -258,7 +258,7 @@ def robust_least_squares(
         res = levenberg_marquardt(
             _weighted(fun, w.sqrt(), group), x, names=names, max_iter=round_iter, stat_tol=stat_tol
         )
-        if res.status in ("diverged", "failed_solve"):
+        if res.status in FAILED:
             raise EstimationError(f"robust fit, reweighting round {rnd + 1}: least squares {res.status}: {res.message}")
         x = res.x
         with torch.no_grad():
@@ -288,7 +288,7 @@ def robust_least_squares(
         res = levenberg_marquardt(
             _weighted(fun, kept.to(F64), group), x, names=names, max_iter=max_iter, stat_tol=stat_tol
         )
-        if res.status in ("diverged", "failed_solve"):
+        if res.status in FAILED:
             raise EstimationError(f"robust fit, snooping: least squares {res.status}: {res.message}")
         x = res.x
         T, s0sq = snooping_statistics(fun, x, kept, group)

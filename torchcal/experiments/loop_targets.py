@@ -16,8 +16,8 @@ from __future__ import annotations
 import sys
 import time
 
-import torchcal
 from torchcal import _console
+from torchcal._version import __version__
 from torchcal.experiments.closed_loop import run_cases
 
 SINGLE = [
@@ -105,7 +105,7 @@ def run(seeds: int, poses: int, first_seed: int, workers: int = 1) -> dict:
             f"{s['geometric_mm_mean']:.4f} mm, loop / true form max {s['ratio_to_true_form_max']}"
         )
     out = {
-        "torchcal": torchcal.__version__,
+        "torchcal": __version__,
         "poses": poses,
         "seeds": seeds,
         "summary": summary,

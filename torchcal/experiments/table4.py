@@ -41,6 +41,7 @@ import torch
 from torchcal import _console
 from torchcal.effects import CorrectionNet
 from torchcal.filter import EKFConfig, EKFTrainer
+from torchcal.filter.ekf import FilterStatus
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 PAPER = {"5": (0.18, 0.34, 0.38), "10": (0.27, 0.51, 0.53), "15": (0.52, 0.69, 0.86)}  # NG, G, All [mm]
@@ -78,7 +79,7 @@ def metrics(res, G_true, NG_true, n_train):
         "learned": 1.0 - float(ng.mean()) / var,
         "draws": int(ng.numel()),
         "worst_all_test_mm": float(rmse(res.prediction - G_true - NG_true).max()) * 1e3,
-        "diverged": sum(s != "ok" for s in res.status),
+        "diverged": sum(s != FilterStatus.OK for s in res.status),
     }
 
 

@@ -99,7 +99,9 @@ from torchcal._threads import torch_threads
 from torchcal.effects.learned import CorrectionNet
 from torchcal.errors import EstimationError, OptionError, ShapeError
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse, preference_order
+from torchcal.estimate.lm import FitStatus
 from torchcal.filter._kalman import NetworkJacobian, joseph_update_, nis_band, window_health
+from torchcal.filter.ekf import FilterStatus
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import ParameterInfo, RobotModel
 
@@ -170,7 +172,7 @@ class AdaptiveResult:
     t: Tensor  # (3,) probe position after the last update
     P: Tensor  # (n, n) final covariance, state order [w[active]; t; d (if sigma_misfit > 0); gamma]
     n_train: int
-    status: str = "ok"  # "ok" or "diverged at sample i: why"
+    status: FilterStatus | str = FilterStatus.OK  # OK, or "diverged at sample i: why"
     relinearisations: list[dict] = field(default_factory=list)  # per pass: the linearisation's remainder
     seconds: float = 0.0
     parameters: list[ParameterInfo] = field(default_factory=list)
@@ -181,7 +183,7 @@ class AdaptiveResult:
 
     @property
     def diverged(self) -> bool:
-        return self.status != "ok"
+        return self.status != FilterStatus.OK
 
     @property
     def gamma_covariance(self) -> Tensor:
@@ -369,7 +371,7 @@ class AdaptiveEKF:
                 p = _Pass(self, setup, lin_point)
                 status = p.filter()
                 relin.append(self._remainders(setup.index, p.blocks, p.xg, q, k + 1))
-                if status != "ok":
+                if status != FilterStatus.OK:
                     break
                 lin_point = p.xg.clone()
             result = self._finish(setup, p, relin)
@@ -451,7 +453,7 @@ class AdaptiveEKF:
         C = G @ P[tg][:, tg] @ G.T
         trans = T_nom[:3, :3].T @ (t - u_end[0] - T_nom[:3, 3])
         trans_std = (T_nom[:3, :3].T @ C @ T_nom[:3, :3]).diagonal().clamp(min=0).sqrt()
-        if p.status == "ok":  # test phase: the relative kinematics at the final gamma, no updates
+        if p.status == FilterStatus.OK:  # test phase: the relative kinematics at the final gamma, no updates
             p.geo[n_train:] = t + u_end[1:] - u_end[0]
             p.ngo[n_train:] = 0.0 if self.net is None else self.net.forward_flat(p.w_full, q[n_train:]) @ R_end.T
         return AdaptiveResult(
@@ -526,7 +528,7 @@ class AdaptiveEKF:
             return out, out
 
         z = z0.clone()
-        status = "max_iterations"
+        status = FitStatus.MAX_ITERATIONS
         n_it = 0
         for it in range(1, iterations + 1):
             n_it = it
@@ -544,7 +546,7 @@ class AdaptiveEKF:
             dz = torch.cholesky_solve(g[:, None], Lc)[:, 0]
             z = z + dz
             if float(dz.abs().max()) < tol:
-                status = "converged"
+                status = FitStatus.CONVERGED
                 break
         with torch.no_grad():
             f = torch.func.functional_call(self._module, index.params(z, prefix="robot."), (q, True))
@@ -731,7 +733,7 @@ class _Pass:
         self.W2 = self.xw.view(3, s.Hn) if s.direct else None
         self.Hw = self.H[:, s.iw].view(3, 3, s.Hn) if s.direct else None
         self.qyy = 1.0
-        self.status = "ok"
+        self.status: FilterStatus | str = FilterStatus.OK
         N = len(s.q)
         self.geo = torch.full((N, 3), float("nan"), **kw)
         self.ngo = torch.full((N, 3), float("nan"), **kw)
@@ -740,8 +742,8 @@ class _Pass:
         self.blocks = []  # (first row's sample, gamma_lin, u, U) of each linearisation block
         self.last = 0  # the last sample filtered
 
-    def filter(self) -> str:
-        """Run the pass; returns its status ("ok" or why it stopped)."""
+    def filter(self) -> FilterStatus | str:
+        """Run the pass; returns its status (OK, or why it stopped)."""
         s, cfg = self.s, self.cfg
         for i in range(s.n_train):
             self.last = i

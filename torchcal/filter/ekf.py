@@ -45,6 +45,7 @@ import copy
 import math
 import time
 from dataclasses import dataclass, field
+from enum import Enum
 
 import torch
 from torch import nn
@@ -98,6 +99,20 @@ class EKFConfig:
             raise OptionError(f"nis_window must be >= 1, got {self.nis_window}")
 
 
+class FilterStatus(str, Enum):
+    """How a filter pass ended for one draw (str-valued: ``report.json`` writes the plain text).
+
+    A draw that ran through is :attr:`OK`; one that stopped carries the reason instead, a text that starts with
+    ``"diverged"`` (:attr:`DIVERGED`) and says at which sample and why.
+    """
+
+    OK = "ok"
+    DIVERGED = "diverged"
+
+    def __str__(self) -> str:
+        return self.value
+
+
 @dataclass
 class EKFResult:
     """Per-sample outputs ``(D, N, ...)`` of a filter pass, and its health."""
@@ -110,7 +125,7 @@ class EKFResult:
     t: Tensor  # (D, 3) final probe position (after the last update, or the last prediction)
     P: Tensor  # (D, n, n) final covariance
     n_train: int
-    status: list[str] = field(default_factory=list)  # per draw: "ok" or "diverged at sample i: why"
+    status: list[FilterStatus | str] = field(default_factory=list)  # per draw: OK, or "diverged at sample i: why"
     reiterations: list[dict] = field(default_factory=list)
     seconds: float = 0.0
     robot: RobotModel | None = None  # the kinematic model of the pass (a fitted copy with start="fit")
@@ -122,7 +137,7 @@ class EKFResult:
 
     @property
     def diverged(self) -> bool:
-        return any(s != "ok" for s in self.status)
+        return any(s != FilterStatus.OK for s in self.status)
 
 
 class EKFTrainer:
@@ -161,8 +176,8 @@ class EKFTrainer:
             ...
         torchcal.errors.EstimationError: ...
         >>> res = EKFTrainer(robot, net, EKFConfig(start="fit", reiterate_every=0)).run(q, y, 500, w0)
-        >>> res.status, res.start_misfit < 1e-3  # the fitted start predicts the first increments within 1 mm
-        (['ok'], True)
+        >>> res.status == ["ok"], res.start_misfit < 1e-3  # the fitted start predicts the first increments in 1 mm
+        (True, True)
         >>> e = (res.prediction[0, :500] - y[:500]).norm(dim=-1)  # the filtered samples
         >>> float(e.square().mean().sqrt()) < 1e-4
         True
@@ -378,7 +393,7 @@ class _Pass:
         self.nis, self.qyy_h = torch.full((N, D), float("nan"), **kw), torch.full((N, D), float("nan"), **kw)
         self.qyy = torch.ones(D, **kw)
         self.qR = self.qyy[:, None, None] * self.Ryy
-        self.status = ["ok"] * D
+        self.status: list[FilterStatus | str] = [FilterStatus.OK] * D
         self.alive = torch.ones(D, dtype=torch.bool, device=q.device)
         self.all_alive = True
         self.band = nis_band(cfg.nis_window, cfg.nis_alpha)
