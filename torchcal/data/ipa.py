@@ -23,21 +23,15 @@ from pathlib import Path
 
 import torch
 
-from torchcal.data.measurements import Measurements, _read_text, write_measurements
+from torchcal.data.measurements import Measurements, _read_text, _wrong_cell_count, write_measurements
 from torchcal.errors import MeasurementFileError
 from torchcal.robot import transforms as tf
+from torchcal.robot.ur_urdf import JOINT_NAMES
 
 __all__ = ["IPA_JOINTS", "convert_ipa", "read_ipa"]
 
 #: Joint columns of the IPA files, base to tip (UR controller names).
-IPA_JOINTS = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
+IPA_JOINTS = JOINT_NAMES
 _GOAL = ("Goal x", "Goal y", "Goal z", "Goal roll", "Goal pitch", "Goal yaw")
 _POSITION = ("measurement_x", "measurement_y", "measurement_z")
 _EULER = ("measurement_rx", "measurement_ry", "measurement_rz")
@@ -115,7 +109,7 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
             continue
         cells = [c.strip(_STRIP) for c in line.split(";")]
         if len(cells) != ncol:
-            _wrong_cell_count(path_str, cells, header, i + 1, line)
+            _wrong_cell_count(path_str, cells, header, i + 1, line, decimal_point_hint=False)
         rows.append(cells)
         lines.append(i + 1)
     if not rows:
@@ -180,15 +174,7 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
         meta["time"] = "no Timestamp column; t left out"
 
     return Measurements(
-        q=q,
-        p=p,
-        t=t,
-        temperature=temperature,
-        sigma=sigma,
-        meta=meta,
-        source=path_str,
-        lines=tuple(lines),
-        extra=extra,
+        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str, lines=tuple(lines), extra=extra
     )
 
 
@@ -286,22 +272,6 @@ def _check_header(path: str, header: list[str], line: int) -> dict[str, int]:
             column=absent[0],
         )
     return index
-
-
-def _wrong_cell_count(path: str, cells: list[str], header: list[str], line: int, raw: str) -> None:
-    n, ncol = len(cells), len(header)
-    if n < ncol:
-        raise MeasurementFileError(
-            path,
-            f"row has {n} values but the header has {ncol} columns; '{header[n]}' and after are missing",
-            line=line,
-            column=header[n],
-        )
-    raise MeasurementFileError(
-        path,
-        f"row has {n} values but the header has {ncol} columns (extra values after '{header[-1]}')",
-        line=line,
-    )
 
 
 def _number(path: str, cell: str, line: int, column: str) -> float:

@@ -530,7 +530,11 @@ def _check_cells(path: str, row: list[str], header: list[str], line: int) -> Non
             raise MeasurementFileError(path, f"'{text}' is infinite; values must be finite", line=line, column=name)
 
 
-def _wrong_cell_count(path: str, row: list[str], header: list[str], line: int, raw: str) -> None:
+def _wrong_cell_count(
+    path: str, row: list[str], header: list[str], line: int, raw: str, *, decimal_point_hint: bool = True
+) -> None:
+    """Raise the error for a row of ``line`` whose cell count is not the header's; ``decimal_point_hint``: suggest
+    '.' as the decimal point when the raw row has digit,digit (off for formats whose decimal mark is ',')."""
     n, ncol = len(row), len(header)
     if n < ncol:
         raise MeasurementFileError(
@@ -540,7 +544,7 @@ def _wrong_cell_count(path: str, row: list[str], header: list[str], line: int, r
             column=header[n],
         )
     hint = None
-    if re.search(r"\d,\d", raw):
+    if decimal_point_hint and re.search(r"\d,\d", raw):
         hint = "use '.' as the decimal point; ',' only separates values"
     raise MeasurementFileError(
         path,

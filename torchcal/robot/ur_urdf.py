@@ -42,6 +42,7 @@ MODELS = ("ur5", "ur10")
 PI = math.pi
 HALF_PI = math.pi / 2
 
+#: UR's joint names, base to tip (the URDF's and the controller's)
 JOINT_NAMES = (
     "shoulder_pan_joint",
     "shoulder_lift_joint",

@@ -179,22 +179,36 @@ def _rms_displacement(model: MeasurementModel, effect: Effect, ctx: Context) -> 
         return alone(ctx) - MeasurementModel(model.robot, [])(ctx)
 
 
-def simulate(cfg: SimConfig) -> Campaign:
-    """Simulate a campaign; see the module docstring for what is modelled."""
-    g = torch.Generator().manual_seed(int(cfg.seed))
+def _true_robot(
+    cfg: SimConfig, g: torch.Generator, effects: list[tuple[str, int | None]]
+) -> tuple[RobotModel, RobotModel, Tensor, Tensor, Tensor]:
+    """The nominal robot and the true one (biased geometry, a placed tracker, a drawn lever arm), from ``g``.
+
+    ``effects`` are (name, joint or None) of the effects to simulate; a joint outside the robot is an error.
+
+    Returns:
+        nominal, truth, ``T_tracker_base`` (4, 4), the tracker's position in the base frame (3,) [m] and the
+        nominal lever arm (3,) [m].
+    """
     nominal = load_robot(cfg.robot, base_link=cfg.base_link, tip_link=cfg.tip_link)
-    truth_robot = load_robot(cfg.robot, base_link=cfg.base_link, tip_link=cfg.tip_link)
-    for spec in cfg.effects:
-        if spec.joint is not None and not 1 <= spec.joint <= nominal.dof:
-            raise OptionError(f"effect {spec.kind}: joint {spec.joint} is outside 1..{nominal.dof} of '{nominal.name}'")
-    _bias_geometry(truth_robot, cfg, g)
+    truth = load_robot(cfg.robot, base_link=cfg.base_link, tip_link=cfg.tip_link)
+    for name, joint in effects:
+        if joint is not None and not 1 <= joint <= nominal.dof:
+            raise OptionError(f"effect {name}: joint {joint} is outside 1..{nominal.dof} of '{nominal.name}'")
+    _bias_geometry(truth, cfg, g)
     T_tracker_base = _place_tracker(cfg, g)
     lever = torch.tensor(cfg.lever_arm, dtype=F64) + torch.randn(3, generator=g, dtype=F64) * cfg.lever_arm_sigma
     with torch.no_grad():
-        truth_robot.instrument.set_matrix(T_tracker_base)
-        truth_robot.tool.nominal.copy_(lever)
-    tracker_in_base = tf.invert(T_tracker_base)[:3, 3]
-    lever_nominal = torch.tensor(cfg.lever_arm, dtype=F64)
+        truth.instrument.set_matrix(T_tracker_base)
+        truth.tool.nominal.copy_(lever)
+    return nominal, truth, T_tracker_base, tf.invert(T_tracker_base)[:3, 3], torch.tensor(cfg.lever_arm, dtype=F64)
+
+
+def simulate(cfg: SimConfig) -> Campaign:
+    """Simulate a campaign; see the module docstring for what is modelled."""
+    g = torch.Generator().manual_seed(int(cfg.seed))
+    joints = [(spec.kind, spec.joint) for spec in cfg.effects]
+    nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
 
     # poses, planned with the nominal model as a robot program would be
     if cfg.trajectory:
@@ -291,7 +305,7 @@ def simulate(cfg: SimConfig) -> Campaign:
             "values": (geo.values if hasattr(geo, "values") else geo.origins()).detach().tolist(),
         },
         "instrument": {"T_tracker_base": T_tracker_base.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
-        "tool": {"t_flange_probe": lever.tolist(), "nominal_lever_arm": list(cfg.lever_arm)},
+        "tool": {"t_flange_probe": truth_robot.tool.nominal.tolist(), "nominal_lever_arm": list(cfg.lever_arm)},
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": sigma_q},
         "effects": effect_truth,
         "line_of_sight": asdict(cfg.sight),

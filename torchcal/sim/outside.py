@@ -28,9 +28,8 @@ import torch
 from torchcal.data import Measurements
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
-from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
-from torchcal.sim.campaign import Campaign, SimConfig, _bias_geometry, _config_dict, _place_tracker
+from torchcal.sim.campaign import Campaign, SimConfig, _config_dict, _true_robot
 from torchcal.sim.poses import random_poses, trajectory
 
 Tensor = torch.Tensor
@@ -91,19 +90,7 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     """
     cfg = replace(cfg or SimConfig(), effects=[])
     g = torch.Generator().manual_seed(int(cfg.seed))
-    nominal = load_robot(cfg.robot, base_link=cfg.base_link, tip_link=cfg.tip_link)
-    robot = load_robot(cfg.robot, base_link=cfg.base_link, tip_link=cfg.tip_link)
-    for e in effects:
-        if e.joint is not None and not 1 <= e.joint <= nominal.dof:
-            raise OptionError(f"effect {e.form}: joint {e.joint} is outside 1..{nominal.dof} of '{nominal.name}'")
-    _bias_geometry(robot, cfg, g)
-    T = _place_tracker(cfg, g)
-    lever = torch.tensor(cfg.lever_arm, dtype=F64) + torch.randn(3, generator=g, dtype=F64) * cfg.lever_arm_sigma
-    with torch.no_grad():
-        robot.instrument.set_matrix(T)
-        robot.tool.nominal.copy_(lever)
-    tracker_in_base = tf.invert(T)[:3, 3]
-    lever_nominal = torch.tensor(cfg.lever_arm, dtype=F64)
+    nominal, robot, T, tracker_in_base, lever_nominal = _true_robot(cfg, g, [(e.form, e.joint) for e in effects])
     if cfg.trajectory:
         q = trajectory(nominal, cfg.samples, tracker_in_base, lever_nominal, g, cfg.sight)
         t = torch.arange(len(q), dtype=F64) * cfg.sample_interval_s
@@ -200,7 +187,7 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
             "delta": geo.delta.detach().flatten().tolist(),
         },
         "instrument": {"T_tracker_base": T.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
-        "tool": {"t_flange_probe": lever.tolist()},
+        "tool": {"t_flange_probe": robot.tool.nominal.tolist()},
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": math.radians(cfg.sigma_joint_deg)},
         "effects": truth_effects,
         "effects_total_rms_m": float(total.square().mean().sqrt()),
