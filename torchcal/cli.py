@@ -292,6 +292,18 @@ def check_header_robot(data, spec: str, robot, described: str) -> None:
         )
 
 
+def _reading(args, robot) -> dict:
+    """The keywords of :func:`~torchcal.data.read_measurements` for a file of ``robot``'s joints in the units of
+    ``--length-unit`` / ``--angle-unit``."""
+    return dict(
+        dof=robot.dof,
+        joint_limits=robot.limits,
+        length_unit=args.length_unit,
+        angle_unit=args.angle_unit,
+        robot_name=robot.name,
+    )
+
+
 def cmd_calibrate(args) -> int:
     C = calibration_module()
     from torchcal.data import read_measurements
@@ -313,14 +325,10 @@ def cmd_calibrate(args) -> int:
         opts.rank_tol = args.rank_tol
     data = read_measurements(
         args.data,
-        dof=robot.dof,
-        joint_limits=robot.limits,
-        length_unit=args.length_unit,
-        angle_unit=args.angle_unit,
         require_positions=True,
         min_poses=C.min_poses(robot, opts.holdout),
-        robot_name=robot.name,
         purpose=f"a {opts.method} calibration of '{robot.name}'",
+        **_reading(args, robot),
     )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
     run = C.calibrate(robot, data, opts, robot_spec=args.robot)
@@ -374,14 +382,7 @@ def cmd_compensate(args) -> int:
     check_out_file(args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []))
     model, meta = load_model(args.run)
     robot = model.robot
-    kw = dict(
-        dof=robot.dof,
-        joint_limits=robot.limits,
-        length_unit=args.length_unit,
-        angle_unit=args.angle_unit,
-        require_positions=False,
-        robot_name=robot.name,
-    )
+    kw = dict(require_positions=False, **_reading(args, robot))
     data = read_measurements(args.targets, require_joints=False, **kw)
     has_q = data.dof > 0
     q_start = data.q if has_q else None
@@ -454,15 +455,9 @@ def cmd_simulate(args) -> int:
         raise OptionError(
             f"--train-samples {args.train_samples} must be below --samples {args.samples} (the rest is the test phase)"
         )
+    same = ("robot", "poses", "test_poses", "trajectory", "path", "samples", "train_samples", "seed")
     cfg = SimConfig(
-        robot=args.robot,
-        poses=args.poses,
-        test_poses=args.test_poses,
-        trajectory=args.trajectory,
-        path=args.path,
-        samples=args.samples,
-        train_samples=args.train_samples,
-        seed=args.seed,
+        **{name: getattr(args, name) for name in same},
         sigma_tracker=args.tracker_noise * 1e-6,
         sigma_joint_deg=args.joint_noise,
         sigma_length=args.length_bias * 1e-3,

@@ -16,25 +16,15 @@ import torch
 from torchcal.robot import load_robot
 
 F64 = torch.float64
-#: UR's published nominal DH tables (a, alpha, d), typed in here independently of robots/*.yaml
-UR_DH = {
-    "ur5": [
-        (0, math.pi / 2, 0.089159),
-        (-0.425, 0, 0),
-        (-0.39225, 0, 0),
-        (0, math.pi / 2, 0.10915),
-        (0, -math.pi / 2, 0.09465),
-        (0, 0, 0.0823),
-    ],
-    "ur10": [
-        (0, math.pi / 2, 0.1273),
-        (-0.612, 0, 0),
-        (-0.5723, 0, 0),
-        (0, math.pi / 2, 0.163941),
-        (0, -math.pi / 2, 0.1157),
-        (0, 0, 0.0922),
-    ],
+#: UR's published nominal DH tables, typed in here independently of robots/*.yaml: every UR shares the twists
+#: alpha; a and d per robot [m]
+_UR_ALPHA = (math.pi / 2, 0, 0, math.pi / 2, -math.pi / 2, 0)
+_UR_A_D = {
+    "ur5": ((0, -0.425, -0.39225, 0, 0, 0), (0.089159, 0, 0, 0.10915, 0.09465, 0.0823)),
+    "ur10": ((0, -0.612, -0.5723, 0, 0, 0), (0.1273, 0, 0, 0.163941, 0.1157, 0.0922)),
 }
+#: rows (a, alpha, d) per joint
+UR_DH = {name: list(zip(a, _UR_ALPHA, d)) for name, (a, d) in _UR_A_D.items()}
 
 
 def numpy_standard_dh(table, q: np.ndarray) -> np.ndarray:

@@ -103,6 +103,17 @@ def residuals(model, m) -> torch.Tensor:
         return (m.p - model(Context.from_measurements(m, trajectory=False))) @ model.robot.T_tracker_base()[:3, :3]
 
 
+def _compare_on(model, train, test, seed: int, **kw) -> dict:
+    """:func:`compare` on what ``model`` misses on ``train`` and on ``test``."""
+    ctx_tr, ctx_te = Context(q=train.q), Context(q=test.q)
+    return compare(model.robot, ctx_tr, residuals(model, train), ctx_te, residuals(model, test), seed=seed, **kw)
+
+
+def _compare_after_kinematic(robot_spec: str, train, test, seed: int, **kw) -> dict:
+    """:func:`compare` on the residuals of the kinematic calibration of ``train``."""
+    return _compare_on(_kinematic(robot_spec, train), train, test, seed, **kw)
+
+
 def _rmse(e: torch.Tensor) -> float:
     return float(e.norm(dim=-1).square().mean().sqrt()) * MM
 
@@ -186,16 +197,7 @@ def simulated_case(case: str, seed: int = 0, poses: int = 800, test_poses: int =
         test = _with_p(test, test.p + extra[n:])
     elif case != "field":
         raise ValueError(f"case '{case}' is not harmonic3 or field")
-    model = _kinematic("ur5", train)
-    res = compare(
-        model.robot,
-        Context(q=train.q),
-        residuals(model, train),
-        Context(q=test.q),
-        residuals(model, test),
-        seed=seed,
-        **kw,
-    )
+    res = _compare_after_kinematic("ur5", train, test, seed, **kw)
     return {"case": case, "robot": "ur5", "train": train.n, "test": test.n, "seed": seed, **res}
 
 
@@ -216,15 +218,7 @@ def real_case(data_dir: str | Path, series: str, seed: int = 0, holdout: float =
     t0 = time.perf_counter()
     model = _kinematic("ur10", train)
     kin_s = time.perf_counter() - t0
-    res = compare(
-        model.robot,
-        Context(q=train.q),
-        residuals(model, train),
-        Context(q=test.q),
-        residuals(model, test),
-        seed=seed,
-        **kw,
-    )
+    res = _compare_on(model, train, test, seed, **kw)
     return {
         "case": f"ur10-{series}",
         "train": train.n,

@@ -72,32 +72,15 @@ import torch
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.problem import FreeParameters, residual_function, whitening
+from torchcal.experiments.table4 import campaign
 from torchcal.filter import EKFConfig, EKFTrainer
 from torchcal.robot.model import RobotModel
-from torchcal.sim import EffectSpec, SimConfig, simulate
 
 Tensor = torch.Tensor
 BIAS_LENGTH = 1e-4  # m (0.1 mm)
 BIAS_ANGLE = math.radians(0.01)  # rad (0.01 deg)
 #: the paper's largest influences (Sec. 3.3), in torchcal's names
 PAPER_LARGEST = ("d4", "alpha4", "a1", "a2", "theta5")
-
-
-def campaign(samples: int, seed: int):
-    """The setting of ``reproduce_table4.py``: the field sized to the paper's 0.6 mm variation."""
-    train = round(samples * 5874 / 7342)
-    cfg = dict(
-        robot="ur5",
-        trajectory=True,
-        samples=samples,
-        train_samples=train,
-        seed=seed,
-        sigma_length=0.0,
-        sigma_angle_deg=0.0,
-    )
-    probe = simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=1e-4)]))
-    size = 1e-4 * 0.6e-3 / probe.truth["effects"][0]["variation_m"]
-    return simulate(SimConfig(**cfg, effects=[EffectSpec("field", size=size)]))
 
 
 def identifiable_term(robot: RobotModel, q: Tensor, sigma_tracker: float, sigma_joint: float) -> list[str]:

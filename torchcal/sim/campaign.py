@@ -18,6 +18,7 @@ import math
 import os
 import re
 import tempfile
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -204,6 +205,29 @@ def _true_robot(
     return nominal, truth, T_tracker_base, tf.invert(T_tracker_base)[:3, 3], torch.tensor(cfg.lever_arm, dtype=F64)
 
 
+def _measured(
+    cfg: SimConfig, g: torch.Generator, q_true: Tensor, p_true: Tensor, t: Tensor, temperature: Tensor, generator: str
+) -> Callable[[Tensor | slice, str], Measurements]:
+    """Tracker noise on ``p_true`` (N, 3) [m], then joint noise on ``q_true`` (N, dof) [rad], drawn from ``g`` in
+    this order; returns ``part(rows, name)``, the measurements of those rows (``meta`` names ``generator``)."""
+    noise_p = torch.randn(p_true.shape, generator=g, dtype=F64) * cfg.sigma_tracker
+    q_read = q_true + torch.randn(q_true.shape, generator=g, dtype=F64) * math.radians(cfg.sigma_joint_deg)
+    p_meas = p_true + noise_p
+    sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma and cfg.sigma_tracker > 0 else None
+
+    def part(rows: Tensor | slice, name: str) -> Measurements:
+        return Measurements(
+            q=q_read[rows].clone(),
+            p=p_meas[rows].clone(),
+            t=t[rows].clone(),
+            temperature=temperature[rows].clone(),
+            sigma=None if sigma is None else sigma[rows].clone(),
+            meta={"simulated": generator, "robot": str(cfg.robot), "seed": str(cfg.seed), "part": name},
+        )
+
+    return part
+
+
 def simulate(cfg: SimConfig) -> Campaign:
     """Simulate a campaign; see the module docstring for what is modelled."""
     g = torch.Generator().manual_seed(int(cfg.seed))
@@ -263,27 +287,8 @@ def simulate(cfg: SimConfig) -> Campaign:
 
     with torch.no_grad():
         p_true = model(ctx)
-    noise_p = torch.randn(p_true.shape, generator=g, dtype=F64) * cfg.sigma_tracker
     sigma_q = math.radians(cfg.sigma_joint_deg)
-    noise_q = torch.randn(q_true.shape, generator=g, dtype=F64) * sigma_q
-    q_read = q_true + noise_q
-    p_meas = p_true + noise_p
-    sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma and cfg.sigma_tracker > 0 else None
-
-    def part(idx: slice, name: str) -> Measurements:
-        n = len(q_read[idx])
-        return Measurements(
-            q=q_read[idx].clone(),
-            p=p_meas[idx].clone(),
-            t=t[idx].clone(),
-            temperature=temperature[idx].clone(),
-            sigma=None if sigma is None else sigma[idx].clone(),
-            meta={"simulated": "torchcal simulate", "robot": str(cfg.robot), "seed": str(cfg.seed), "part": name},
-            source=None,
-            lines=tuple(range(2, n + 2)),
-            extra={},
-        )
-
+    part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
     train, test = part(slice(0, n_train), "train"), part(slice(n_train, None), "test")
 
     geo = truth_robot.geometry

@@ -25,11 +25,10 @@ from dataclasses import asdict, dataclass, replace
 
 import torch
 
-from torchcal.data import Measurements
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.robot import transforms as tf
-from torchcal.sim.campaign import Campaign, SimConfig, _config_dict, _true_robot
+from torchcal.sim.campaign import Campaign, SimConfig, _config_dict, _measured, _true_robot
 from torchcal.sim.poses import random_poses, trajectory
 
 Tensor = torch.Tensor
@@ -160,20 +159,7 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     for rec, e in zip(truth_effects, effects):
         rec["rms_m"] = e.size  # by construction (joint effects: to first order in the amplitude)
     total = (p_true - p0).norm(dim=-1)
-    noise_p = torch.randn(p_true.shape, generator=g, dtype=F64) * cfg.sigma_tracker
-    q_read = q + torch.randn(q.shape, generator=g, dtype=F64) * math.radians(cfg.sigma_joint_deg)
-    p_meas = p_true + noise_p
-    sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma and cfg.sigma_tracker > 0 else None
-
-    def part(idx: Tensor, name: str) -> Measurements:
-        return Measurements(
-            q=q_read[idx].clone(),
-            p=p_meas[idx].clone(),
-            t=t[idx].clone(),
-            temperature=temperature[idx].clone(),
-            sigma=None if sigma is None else sigma[idx].clone(),
-            meta={"simulated": "torchcal.sim.outside", "robot": str(cfg.robot), "seed": str(cfg.seed), "part": name},
-        )
+    part = _measured(cfg, g, q, p_true, t, temperature, "torchcal.sim.outside")
 
     geo = robot.geometry
     truth = {
