@@ -29,12 +29,7 @@ from torchcal.sim import EffectSpec, SimConfig, simulate
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def calibrated_model(seed=0, effects=True):

@@ -40,12 +40,7 @@ OUTSIDE = Path(os.environ.get("TORCHCAL_OUTSIDE_DATA", REPO.parent / "shared" / 
 ALPHA = 0.01
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 # --------------------------------------------------------------------------- the one place that fits geometry

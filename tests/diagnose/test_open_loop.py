@@ -17,13 +17,7 @@ from torchcal.sim.campaign import SimConfig
 from torchcal.sim.outside import OutsideEffect, simulate_outside
 from torchcal.stats import rmse
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def _loop(train):
