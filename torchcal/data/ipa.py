@@ -90,31 +90,7 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
             column, a malformed cell (names file, line and column).
     """
     path_str = str(path)
-    text = _read_text(path_str)
-    raw_lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
-
-    header_index = next((i for i, line in enumerate(raw_lines) if line.strip(_STRIP)), None)
-    if header_index is None:
-        raise MeasurementFileError(path_str, "the file is empty; expected the header row of an IPA measurements file")
-    header_line = header_index + 1
-    header = [c.strip(_STRIP) for c in raw_lines[header_index].rstrip(_STRIP).split(";")]
-    index = _check_header(path_str, header, header_line)
-
-    rows: list[list[str]] = []
-    lines: list[int] = []
-    ncol = len(header)
-    for i in range(header_index + 1, len(raw_lines)):
-        line = raw_lines[i].strip(_STRIP)
-        if not line:
-            continue
-        cells = [c.strip(_STRIP) for c in line.split(";")]
-        if len(cells) != ncol:
-            _wrong_cell_count(path_str, cells, header, i + 1, line, decimal_point_hint=False)
-        rows.append(cells)
-        lines.append(i + 1)
-    if not rows:
-        raise MeasurementFileError(path_str, "the file has a header but no data rows", line=header_line)
-
+    header, index, rows, lines = _cells(path_str, _read_text(path_str))
     numeric = [c for c in header if c != _TIMESTAMP]
     table = torch.tensor(
         [[_number(path_str, row[index[c]], line, c) for c in numeric] for row, line in zip(rows, lines)],
@@ -126,18 +102,7 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
         return table[:, [col[c] for c in names]].clone()
 
     q = columns(IPA_JOINTS)
-    p_mm = columns(_POSITION)
-    median_mm = p_mm.norm(dim=1).median().item()
-    if median_mm < _MIN_MEDIAN_DISTANCE_MM:
-        i = int((p_mm.norm(dim=1) < _MIN_MEDIAN_DISTANCE_MM).nonzero()[0, 0])
-        raise MeasurementFileError(
-            path_str,
-            f"measured positions look like metres: median distance from the tracker {median_mm:.6g} mm",
-            line=lines[i],
-            column=_POSITION[int(p_mm[i].abs().argmax())],
-            hint="the IPA files give measurement_x/_y/_z in millimetres",
-        )
-    p = p_mm / 1000.0
+    p = _positions_m(path_str, columns(_POSITION), lines)
     temperature = table[:, col[_TEMPERATURE]].clone()
 
     meta = dict(META)
@@ -154,14 +119,7 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
                 f"{replaced} non-positive measurement_std_x/_y/_z value(s) replaced by their column's median"
             )
 
-    extra: dict[str, torch.Tensor] = {"row": torch.arange(len(rows), dtype=torch.float64)}
-    extra["goal_id"] = _goal_ids(columns(_GOAL))
-    euler = columns(_EULER) * tf.DEG
-    R = tf.rot_x(euler[:, 0]) @ tf.rot_y(euler[:, 1]) @ tf.rot_z(euler[:, 2])
-    rotvec = matrix_to_rotvec(R)
-    extra.update({f"tmac_r{a}": rotvec[:, k].clone() for k, a in enumerate("xyz")})
-    goal = columns(_GOAL[:3])
-    extra.update({f"goal_{a}": goal[:, k].clone() for k, a in enumerate("xyz")})
+    extra = _extra(columns(_GOAL), columns(_EULER))
 
     t = None
     if _TIMESTAMP in index:
@@ -176,6 +134,59 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
     return Measurements(
         q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str, lines=tuple(lines), extra=extra
     )
+
+
+def _cells(path: str, text: str) -> tuple[list[str], dict[str, int], list[list[str]], list[int]]:
+    """The header, its column index, the data rows as cells and their 1-based file lines of an IPA file's text."""
+    raw_lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    header_index = next((i for i, line in enumerate(raw_lines) if line.strip(_STRIP)), None)
+    if header_index is None:
+        raise MeasurementFileError(path, "the file is empty; expected the header row of an IPA measurements file")
+    header_line = header_index + 1
+    header = [c.strip(_STRIP) for c in raw_lines[header_index].rstrip(_STRIP).split(";")]
+    index = _check_header(path, header, header_line)
+    rows: list[list[str]] = []
+    lines: list[int] = []
+    for i in range(header_index + 1, len(raw_lines)):
+        line = raw_lines[i].strip(_STRIP)
+        if not line:
+            continue
+        cells = [c.strip(_STRIP) for c in line.split(";")]
+        if len(cells) != len(header):
+            _wrong_cell_count(path, cells, header, i + 1, line, decimal_point_hint=False)
+        rows.append(cells)
+        lines.append(i + 1)
+    if not rows:
+        raise MeasurementFileError(path, "the file has a header but no data rows", line=header_line)
+    return header, index, rows, lines
+
+
+def _positions_m(path: str, p_mm: torch.Tensor, lines: list[int]) -> torch.Tensor:
+    """The T-Mac positions (N, 3) in metres from the file's millimetres; refuses a file that looks like metres."""
+    median_mm = p_mm.norm(dim=1).median().item()
+    if median_mm < _MIN_MEDIAN_DISTANCE_MM:
+        i = int((p_mm.norm(dim=1) < _MIN_MEDIAN_DISTANCE_MM).nonzero()[0, 0])
+        raise MeasurementFileError(
+            path,
+            f"measured positions look like metres: median distance from the tracker {median_mm:.6g} mm",
+            line=lines[i],
+            column=_POSITION[int(p_mm[i].abs().argmax())],
+            hint="the IPA files give measurement_x/_y/_z in millimetres",
+        )
+    return p_mm / 1000.0
+
+
+def _extra(goal: torch.Tensor, euler_deg: torch.Tensor) -> dict[str, torch.Tensor]:
+    """``row``, ``goal_id``, ``tmac_rx/ry/rz`` and ``goal_x/y/z`` of :func:`read_ipa` from the commanded goals
+    (N, 6) [m, deg] and the measured T-Mac Euler angles (N, 3) [deg]."""
+    extra: dict[str, torch.Tensor] = {"row": torch.arange(len(goal), dtype=torch.float64)}
+    extra["goal_id"] = _goal_ids(goal)
+    euler = euler_deg * tf.DEG
+    R = tf.rot_x(euler[:, 0]) @ tf.rot_y(euler[:, 1]) @ tf.rot_z(euler[:, 2])
+    rotvec = matrix_to_rotvec(R)
+    extra.update({f"tmac_r{a}": rotvec[:, k].clone() for k, a in enumerate("xyz")})
+    extra.update({f"goal_{a}": goal[:, k].clone() for k, a in enumerate("xyz")})
+    return extra
 
 
 def convert_ipa(src: str | os.PathLike, out: str | os.PathLike) -> Measurements:

@@ -220,39 +220,12 @@ def read_measurements(
         OptionError: an unknown unit.
         ShapeError: ``joint_limits`` of the wrong shape or dtype.
     """
-    _check_option("length_unit", length_unit, LENGTH_UNITS)
-    _check_option("angle_unit", angle_unit, ANGLE_UNITS)
-    if dof is not None and (not isinstance(dof, int) or dof < 1):
-        raise OptionError(f"dof must be a positive int, got {dof!r}")
-    if joint_limits is not None:
-        if isinstance(joint_limits, torch.Tensor) and joint_limits.dtype != torch.float64:
-            raise ShapeError(f"joint_limits must be float64, got {joint_limits.dtype}")
-        joint_limits = torch.as_tensor(joint_limits, dtype=torch.float64)
-        if joint_limits.dim() != 2 or joint_limits.shape[1] != 2 or (dof is not None and joint_limits.shape[0] != dof):
-            want = f"({dof}, 2)" if dof is not None else "(dof, 2)"
-            raise ShapeError(f"joint_limits must have shape {want}, got {tuple(joint_limits.shape)}")
-
+    joint_limits = _check_arguments(length_unit, angle_unit, dof, joint_limits)
     path_str = str(path)
     text = _read_text(path_str)
     # Editors count '\n', '\r\n' and a lone '\r' as one line break each.
     raw_lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
-
-    meta: dict[str, str] = {}
-    header_index = None
-    for i, line in enumerate(raw_lines):
-        stripped = line.strip()
-        if not stripped:
-            continue
-        if stripped.startswith("#"):
-            match = _META_RE.fullmatch(stripped)
-            if match:
-                meta[match.group(1)] = match.group(2)
-            continue
-        header_index = i
-        break
-    if header_index is None:
-        what = "is empty" if not text.strip() else "has only comments"
-        raise MeasurementFileError(path_str, f"the file {what}; expected a header row such as 'q1,...,q6,x,y,z'")
+    meta, header_index = _comments_and_header(path_str, text, raw_lines)
 
     header_line = header_index + 1
     header = _parse_header(path_str, raw_lines[header_index], header_line)
@@ -284,14 +257,7 @@ def read_measurements(
     if n < min_poses:
         for_what = f" for {purpose}" if purpose else ""
         raise MeasurementFileError(path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}")
-
-    # Unit mix-ups first: they explain joint-limit violations and absurd positions better.
-    if p is not None and n:
-        _check_length_unit(path_str, p, lines, layout, length_unit)
-    if sigma is not None and n and length_unit == "m":
-        _check_sigma_unit(path_str, sigma, lines, layout)
-    if angle_unit == "rad" and n and q.shape[1]:
-        _check_angle_unit(path_str, q, lines, layout, joint_limits)
+    _check_units(path_str, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits)
 
     divisor = LENGTH_UNITS[length_unit]
     if divisor != 1.0:
@@ -315,6 +281,55 @@ def read_measurements(
         lines=tuple(lines),
         extra=extra,
     )
+
+
+def _check_arguments(length_unit: str, angle_unit: str, dof: int | None, joint_limits) -> torch.Tensor | None:
+    """Check :func:`read_measurements`' options; return ``joint_limits`` as a (dof, 2) float64 tensor (or None)."""
+    _check_option("length_unit", length_unit, LENGTH_UNITS)
+    _check_option("angle_unit", angle_unit, ANGLE_UNITS)
+    if dof is not None and (not isinstance(dof, int) or dof < 1):
+        raise OptionError(f"dof must be a positive int, got {dof!r}")
+    if joint_limits is None:
+        return None
+    if isinstance(joint_limits, torch.Tensor) and joint_limits.dtype != torch.float64:
+        raise ShapeError(f"joint_limits must be float64, got {joint_limits.dtype}")
+    joint_limits = torch.as_tensor(joint_limits, dtype=torch.float64)
+    if joint_limits.dim() != 2 or joint_limits.shape[1] != 2 or (dof is not None and joint_limits.shape[0] != dof):
+        want = f"({dof}, 2)" if dof is not None else "(dof, 2)"
+        raise ShapeError(f"joint_limits must have shape {want}, got {tuple(joint_limits.shape)}")
+    return joint_limits
+
+
+def _comments_and_header(path: str, text: str, raw_lines: list[str]) -> tuple[dict[str, str], int]:
+    """The ``# key: value`` metadata above the header and the header's 0-based index in ``raw_lines``."""
+    meta: dict[str, str] = {}
+    for i, line in enumerate(raw_lines):
+        stripped = line.strip()
+        if not stripped:
+            continue
+        if stripped.startswith("#"):
+            match = _META_RE.fullmatch(stripped)
+            if match:
+                meta[match.group(1)] = match.group(2)
+            continue
+        return meta, i
+    what = "is empty" if not text.strip() else "has only comments"
+    raise MeasurementFileError(path, f"the file {what}; expected a header row such as 'q1,...,q6,x,y,z'")
+
+
+def _check_units(path, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits) -> None:
+    """Refuse values that look like another unit than the one declared (in the file's units, before conversion).
+
+    Unit mix-ups are checked before the joint limits: they explain limit violations and absurd positions better.
+    """
+    if not lines:
+        return
+    if p is not None:
+        _check_length_unit(path, p, lines, layout, length_unit)
+    if sigma is not None and length_unit == "m":
+        _check_sigma_unit(path, sigma, lines, layout)
+    if angle_unit == "rad" and q.shape[1]:
+        _check_angle_unit(path, q, lines, layout, joint_limits)
 
 
 def _read_text(path: str) -> str:
