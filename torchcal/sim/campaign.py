@@ -228,13 +228,13 @@ def _measured(
     return part
 
 
-def simulate(cfg: SimConfig) -> Campaign:
-    """Simulate a campaign; see the module docstring for what is modelled."""
-    g = torch.Generator().manual_seed(int(cfg.seed))
-    joints = [(spec.kind, spec.joint) for spec in cfg.effects]
-    nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
+def _poses_and_times(
+    cfg: SimConfig, nominal: RobotModel, tracker_in_base: Tensor, lever_nominal: Tensor, g: torch.Generator
+) -> tuple[Context, int]:
+    """The true joints, times [s] and temperatures [degC] of every pose (training first), and the training count.
 
-    # poses, planned with the nominal model as a robot program would be
+    The poses are planned with the nominal model, as a robot program would be.
+    """
     if cfg.trajectory:
         q_true = path(cfg.path, nominal, cfg.samples, tracker_in_base, lever_nominal, g, cfg.sight)
         n_train = cfg.train_samples
@@ -248,11 +248,16 @@ def simulate(cfg: SimConfig) -> Campaign:
     temperature = (
         20.0 + 1.0 * (1.0 - torch.exp(-t / (0.5 * duration))) + torch.randn(len(t), generator=g, dtype=F64) * 0.02
     )
-    ctx = Context(
-        q=q_true, t=t, temperature=temperature, direction=motion_direction(q_true) if cfg.trajectory else None
-    )
+    direction = motion_direction(q_true) if cfg.trajectory else None
+    return Context(q=q_true, t=t, temperature=temperature, direction=direction), n_train
 
-    # effects, each scaled to its size (RMS displacement over all poses)
+
+def _effects(
+    cfg: SimConfig, truth_robot: RobotModel, ctx: Context, g: torch.Generator
+) -> tuple[MeasurementModel, list[dict]]:
+    """The true measurement model with ``cfg.effects``, each scaled to its size (RMS displacement over all poses),
+    and what truth.json says of each."""
+    t, temperature = ctx.t, ctx.temperature
     model = MeasurementModel(truth_robot, [])
     effect_truth = []
     for spec in cfg.effects:
@@ -284,6 +289,19 @@ def simulate(cfg: SimConfig) -> Campaign:
         )
         if isinstance(eff, LearnedEffect):
             effect_truth[-1]["weights"] = {k: v.tolist() for k, v in eff.net.state_dict().items()}
+
+    return model, effect_truth
+
+
+def simulate(cfg: SimConfig) -> Campaign:
+    """Simulate a campaign; see the module docstring for what is modelled."""
+    g = torch.Generator().manual_seed(int(cfg.seed))
+    joints = [(spec.kind, spec.joint) for spec in cfg.effects]
+    nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
+
+    ctx, n_train = _poses_and_times(cfg, nominal, tracker_in_base, lever_nominal, g)
+    q_true, t, temperature = ctx.q, ctx.t, ctx.temperature
+    model, effect_truth = _effects(cfg, truth_robot, ctx, g)
 
     with torch.no_grad():
         p_true = model(ctx)
