@@ -41,7 +41,43 @@ def rmse_mm(e: torch.Tensor) -> float:
     return float(e.norm(dim=-1).square().mean().sqrt()) * 1e3
 
 
+def _z(r, truth) -> torch.Tensor:
+    """(estimate - true) / std of the geometric corrections and the instrument translation of the result ``r``."""
+    return torch.cat(
+        [
+            (r.gamma - truth.gamma) / r.gamma_std,
+            (r.instrument_translation - truth.instrument_translation) / r.instrument_translation_std,
+        ]
+    )
+
+
+def _rows(res, truth, raw: dict, z_joint: torch.Tensor, z_alone: torch.Tensor) -> list[dict]:
+    """One row per estimated parameter (mm and degrees): simulated bias, true value, estimate, std, z scores."""
+    names = res.names + ["instrument.tx", "instrument.ty", "instrument.tz"]
+    units = res.units + ["m"] * 3
+    true = torch.cat([truth.gamma, truth.instrument_translation])
+    est = torch.cat([res.gamma, res.instrument_translation])
+    std = torch.cat([res.gamma_std, res.instrument_translation_std])
+    rows = []
+    for j, (name, unit) in enumerate(zip(names, units)):
+        scale = 1e3 if unit == "m" else math.degrees(1.0)  # mm and degrees at the I/O edge
+        rows.append(
+            {
+                "name": name,
+                "unit": "mm" if unit == "m" else "deg",
+                "bias": raw.get(name, float("nan")) * scale,
+                "true": float(true[j]) * scale,
+                "estimate": float(est[j]) * scale,
+                "std": float(std[j]) * scale,
+                "z": float(z_joint[j]),
+                "z_geometry_only": float(z_alone[j]),
+            }
+        )
+    return rows
+
+
 def run(args) -> dict:
+    """The experiment (module docstring) with ``args``' samples, field, seed, hidden, passes and misfit_mm."""
     t_start = time.perf_counter()
     n_train = round(args.samples * 5874 / 7342)
     spec = EffectSpec.parse(f"field={args.field}")
@@ -70,38 +106,11 @@ def run(args) -> dict:
     t_filter = time.perf_counter() - t_filter
     alone = AdaptiveEKF(start, None, cfg, params).run(q, y, n_train)
 
-    def z(r):
-        return torch.cat(
-            [
-                (r.gamma - truth.gamma) / r.gamma_std,
-                (r.instrument_translation - truth.instrument_translation) / r.instrument_translation_std,
-            ]
-        )
-
-    z_joint, z_alone = z(res), z(alone)
+    z_joint, z_alone = _z(res, truth), _z(alone, truth)
     d = res.gamma - truth.gamma
     nees = float(d @ torch.linalg.solve(res.gamma_covariance, d))
     raw = dict(zip(c.truth["geometry"]["names"], c.truth["geometry"]["delta"]))
-    names = res.names + ["instrument.tx", "instrument.ty", "instrument.tz"]
-    units = res.units + ["m"] * 3
-    true = torch.cat([truth.gamma, truth.instrument_translation])
-    est = torch.cat([res.gamma, res.instrument_translation])
-    std = torch.cat([res.gamma_std, res.instrument_translation_std])
-    rows = []
-    for j, (name, unit) in enumerate(zip(names, units)):
-        scale = 1e3 if unit == "m" else math.degrees(1.0)  # mm and degrees at the I/O edge
-        rows.append(
-            {
-                "name": name,
-                "unit": "mm" if unit == "m" else "deg",
-                "bias": raw.get(name, float("nan")) * scale,
-                "true": float(true[j]) * scale,
-                "estimate": float(est[j]) * scale,
-                "std": float(std[j]) * scale,
-                "z": float(z_joint[j]),
-                "z_geometry_only": float(z_alone[j]),
-            }
-        )
+    rows = _rows(res, truth, raw, z_joint, z_alone)
     te = slice(n_train, None)
     return {
         "parameters": len(rows),

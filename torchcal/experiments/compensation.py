@@ -59,6 +59,45 @@ def true_errors(truth: MeasurementModel, q: torch.Tensor, targets: torch.Tensor,
         return (truth(Context(q=q, **ctx_kw)) - targets).norm(dim=-1)
 
 
+def _row(
+    truth: MeasurementModel,
+    nominal,
+    model: MeasurementModel | None,
+    targets: torch.Tensor,
+    q_prog: torch.Tensor,
+    path: bool,
+) -> dict:
+    """Where the true robot puts the probe for the commands of ``model``'s compensation of ``targets`` (None: the
+    program's own joints ``q_prog``); with the compensation's status, time and branch, and on a path its smoothness.
+    """
+    ctx_kw = {"direction": motion_direction(q_prog)} if path else {}
+    if model is None:
+        return _errors_mm(true_errors(truth, q_prog, targets, ctx_kw))
+    t1 = time.perf_counter()
+    res = compensate(model, targets, q_prog, context={"trajectory": path})
+    secs = time.perf_counter() - t1
+    q_cmd = res.q
+    s0 = configuration_sign(nominal, q_prog)
+    branch = int(((configuration_sign(nominal, q_cmd) != s0) & ((q_cmd - q_prog).abs().max(-1).values > 0.05)).sum())
+    entry = _errors_mm(true_errors(truth, q_cmd, targets, ctx_kw))
+    entry.update(
+        {
+            "status": res.counts(),
+            "seconds": secs,
+            "wrong_branch": branch,
+            "model_miss_max_mm": float(res.miss.max()) * 1e3,
+        }
+    )
+    if path:
+        corr = q_cmd - q_prog
+        entry["largest_correction_rad"] = float(corr.abs().max())
+        entry["largest_correction_jump_rad"] = float(torch.diff(corr, dim=0).abs().max())
+        entry["smooth"] = entry["largest_correction_jump_rad"] <= entry["largest_correction_rad"]
+        entry["largest_joint_step_rad"] = float(torch.diff(q_cmd, dim=0).abs().max())
+        entry["program_largest_joint_step_rad"] = float(torch.diff(q_prog, dim=0).abs().max())
+    return entry
+
+
 def run(cfg: ExperimentConfig) -> dict:
     """Run the experiment (module docstring); returns the table and checks as plain numbers."""
     from torchcal import pipeline as C
@@ -116,38 +155,7 @@ def run(cfg: ExperimentConfig) -> dict:
         # the point the program means: the nominal controller's probe position, in the true tracker frame
         with torch.no_grad():
             targets = tf.transform_points(T_true, tf.transform_points(nominal.forward(q_prog), lever_true))
-        ctx_kw = {"direction": motion_direction(q_prog)} if kind == "path" else {}
-        rows = {}
-        for name, model in models.items():
-            if model is None:
-                q_cmd, status, secs, branch = q_prog, None, 0.0, None
-            else:
-                t1 = time.perf_counter()
-                res = compensate(model, targets, q_prog, context={"trajectory": kind == "path"})
-                secs = time.perf_counter() - t1
-                q_cmd, status = res.q, res.counts()
-                s0 = configuration_sign(nominal, q_prog)
-                branch = int(
-                    ((configuration_sign(nominal, q_cmd) != s0) & ((q_cmd - q_prog).abs().max(-1).values > 0.05)).sum()
-                )
-            entry = _errors_mm(true_errors(truth, q_cmd, targets, ctx_kw))
-            if status is not None:
-                entry.update(
-                    {
-                        "status": status,
-                        "seconds": secs,
-                        "wrong_branch": branch,
-                        "model_miss_max_mm": float(res.miss.max()) * 1e3,
-                    }
-                )
-                if kind == "path":
-                    corr = q_cmd - q_prog
-                    entry["largest_correction_rad"] = float(corr.abs().max())
-                    entry["largest_correction_jump_rad"] = float(torch.diff(corr, dim=0).abs().max())
-                    entry["smooth"] = entry["largest_correction_jump_rad"] <= entry["largest_correction_rad"]
-                    entry["largest_joint_step_rad"] = float(torch.diff(q_cmd, dim=0).abs().max())
-                    entry["program_largest_joint_step_rad"] = float(torch.diff(q_prog, dim=0).abs().max())
-            rows[name] = entry
+        rows = {name: _row(truth, nominal, model, targets, q_prog, kind == "path") for name, model in models.items()}
         out["targets"][kind] = {"n": len(q_prog), "rows": rows}
     full = [out["targets"][k]["rows"]["full-model compensation"]["rmse_mm"] for k in programs]
     out["ratio_to_held_out"] = {k: v / out["held_out_prediction"]["rmse_mm"] for k, v in zip(programs, full)}
