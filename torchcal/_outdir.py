@@ -155,14 +155,18 @@ def check_out_dir(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike]
                 "marker); torchcal replaces only its own run directories. Name a new directory "
                 + ("or remove this empty one (rmdir)" if empty else "or remove this one yourself")
             )
-    # the nearest existing ancestor must be a directory we may create entries in
+    _check_creatable(absolute, where)
+    return out
+
+
+def _check_creatable(absolute: Path, where: str) -> None:
+    """Refuse ``absolute`` unless its nearest existing ancestor is a directory we may create entries in."""
     parent = absolute.parent
     while not parent.exists() and not parent.is_symlink():
         parent = parent.parent
     if not parent.is_dir():
         raise OptionError(f"{where}: {parent} is not a directory, so nothing can be created below it")
     _probe_writable(parent, where)
-    return out
 
 
 def check_out_file(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike] = (), option: str = "--out") -> Path:
@@ -185,12 +189,7 @@ def check_out_file(out: str | os.PathLike, *, inputs: Sequence[str | os.PathLike
             raise OptionError(f"{where}: is a file of the input directory {f}; name a file outside it")
     if out.exists() and not out.is_file():
         raise OptionError(f"{where}: exists and is not a regular file")
-    parent = Path(os.path.abspath(out)).parent
-    while not parent.exists() and not parent.is_symlink():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise OptionError(f"{where}: {parent} is not a directory, so nothing can be created below it")
-    _probe_writable(parent, where)
+    _check_creatable(Path(os.path.abspath(out)), where)
     return out
 
 

@@ -271,15 +271,7 @@ def read_measurements(
         _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name)
 
     return Measurements(
-        q=q,
-        p=p,
-        t=t,
-        temperature=temperature,
-        sigma=sigma,
-        meta=meta,
-        source=path_str,
-        lines=tuple(lines),
-        extra=extra,
+        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str, lines=tuple(lines), extra=extra
     )
 
 
