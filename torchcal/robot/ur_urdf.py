@@ -407,4 +407,4 @@ def check_numerics(model: dict, text: str, path: Path, n: int = 20, seed: int = 
         order = [JOINT_NAMES.index(nm) for nm in chain.get_joint_parameter_names()]
         T = chain.forward_kinematics(torch.tensor(qs[:, order], dtype=torch.float64)).get_matrix().numpy()
         worst["pytorch_kinematics"] = float(np.abs(T - refs).max())
-    return worst
+    return {k: float(v) for k, v in worst.items()}
