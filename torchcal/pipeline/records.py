@@ -23,6 +23,11 @@ class StageName(str, Enum):
         return self.value
 
 
+def _given(**fields) -> dict:
+    """The fields that are not None, in the order given (report.json leaves the others out)."""
+    return {k: v for k, v in fields.items() if v is not None}
+
+
 @dataclass
 class EffectRecord:
     """An effect the run kept, with its parameters and the evidence for it.
@@ -47,17 +52,14 @@ class EffectRecord:
     rmse_after_mm: float | None = None
 
     def to_dict(self) -> dict:
-        out = {"kind": self.kind, "joint": self.joint}
-        if self.name is not None:
-            out["name"] = self.name
-        if self.label is not None:
-            out["label"] = self.label
-        out.update(params=self.params, evidence=self.evidence)
-        if self.rmse_before_mm is not None:
-            out["rmse_before_mm"] = self.rmse_before_mm
-        if self.rmse_after_mm is not None:
-            out["rmse_after_mm"] = self.rmse_after_mm
-        return out
+        return {
+            "kind": self.kind,
+            "joint": self.joint,
+            **_given(name=self.name, label=self.label),
+            "params": self.params,
+            "evidence": self.evidence,
+            **_given(rmse_before_mm=self.rmse_before_mm, rmse_after_mm=self.rmse_after_mm),
+        }
 
 
 @dataclass
@@ -71,10 +73,9 @@ class Rejection:
     reason: str | None = None
 
     def to_dict(self) -> dict:
-        out = {"kind": self.kind, "joint": self.joint}
-        if self.name is not None:
-            out["name"] = self.name
-        if self.reason is not None:
-            out["reason"] = self.reason
-        out["evidence"] = self.evidence
-        return out
+        return {
+            "kind": self.kind,
+            "joint": self.joint,
+            **_given(name=self.name, reason=self.reason),
+            "evidence": self.evidence,
+        }
