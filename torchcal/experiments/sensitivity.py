@@ -144,7 +144,37 @@ def rotate_output(net, w: Tensor, dR: Tensor) -> Tensor:
     return out
 
 
+def _noise_draws(c, draws: int, seed: int, sigma_tracker: float, sigma_joint: float) -> tuple[list, list]:
+    """Joints and positions of ``draws`` noise draws: the campaign's own, then fresh ones on its true trajectory."""
+    with torch.no_grad():
+        p_true = c.model(Context(q=c.q_true))
+    q_list, y_list = [torch.cat([c.train.q, c.test.q])], [torch.cat([c.train.p, c.test.p])]
+    g = torch.Generator().manual_seed(seed + 7)
+    for _ in range(draws - 1):
+        q_list.append(c.q_true + torch.randn(c.q_true.shape, generator=g, dtype=c.q_true.dtype) * sigma_joint)
+        y_list.append(p_true + torch.randn(p_true.shape, generator=g, dtype=p_true.dtype) * sigma_tracker)
+    return q_list, y_list
+
+
+def _influence(info, dG: Tensor, dNG: Tensor, n_train: int) -> dict:
+    """How far a bias in the parameter ``info`` moved the geometric part, |dG| (draws, N) [m], over all samples,
+    the filtered and the predicted ones [mm], and the non-geometric part on average."""
+    tr, te = slice(0, n_train), slice(n_train, None)
+    return {
+        "group": {"geometry": "dh", "instrument": "instrument", "tool": "lever"}[info.group],
+        "bias": "0.01 deg" if info.unit == "rad" else "0.1 mm",
+        "mean_dG_mm": float(dG.mean()) * 1e3,
+        "max_dG_mm": float(dG.max()) * 1e3,
+        "train_mean_dG_mm": float(dG[:, tr].mean()) * 1e3,
+        "train_max_dG_mm": float(dG[:, tr].max()) * 1e3,
+        "test_mean_dG_mm": float(dG[:, te].mean()) * 1e3,
+        "test_max_dG_mm": float(dG[:, te].max()) * 1e3,
+        "mean_dNG_mm": float(dNG.mean()) * 1e3,
+    }
+
+
 def run(samples: int, seed: int, draws: int) -> dict:
+    """The sensitivity analysis (module docstring) on a ``samples``-sample trajectory with ``draws`` noise draws."""
     t_start = time.perf_counter()
     c = campaign(samples, seed)
     truth, net = c.model.robot, c.model.effects[0].net
@@ -155,14 +185,7 @@ def run(samples: int, seed: int, draws: int) -> dict:
     R = truth.T_tracker_base()[:3, :3].detach()
     w_nom = net.flat()
     w0 = torch.stack([rotate_output(net, w_nom, R.T @ r.T_tracker_base()[:3, :3].detach()) for r in robots])
-    # noise draws: the campaign's own, then fresh ones on the same true trajectory
-    with torch.no_grad():
-        p_true = c.model(Context(q=c.q_true))
-    q_list, y_list = [torch.cat([c.train.q, c.test.q])], [torch.cat([c.train.p, c.test.p])]
-    g = torch.Generator().manual_seed(seed + 7)
-    for _ in range(draws - 1):
-        q_list.append(c.q_true + torch.randn(c.q_true.shape, generator=g, dtype=c.q_true.dtype) * sig_q)
-        y_list.append(p_true + torch.randn(p_true.shape, generator=g, dtype=p_true.dtype) * sig_tr)
+    q_list, y_list = _noise_draws(c, draws, seed, sig_tr, sig_q)
     k = len(robots)
     q = torch.stack([q_list[d // k] for d in range(draws * k)])
     y = torch.stack([y_list[d // k] for d in range(draws * k)])
@@ -176,22 +199,8 @@ def run(samples: int, seed: int, draws: int) -> dict:
     i_rz = names.index("instrument.rz")
     direct = EKFTrainer(robots[1 + i_rz], net, cfg).run(q[0], y[0], n_tr, w_nom, t0=y[0, 0])
     check = float((direct.geometric[0] - G[0, 1 + i_rz]).abs().max())
-    tr, te = slice(0, n_tr), slice(n_tr, None)
-    params = {}
-    for j, name in enumerate(names):
-        info = next(i for i in truth.parameter_info() if i.name == name)
-        a = dG[:, j]
-        params[name] = {
-            "group": {"geometry": "dh", "instrument": "instrument", "tool": "lever"}[info.group],
-            "bias": "0.01 deg" if info.unit == "rad" else "0.1 mm",
-            "mean_dG_mm": float(a.mean()) * 1e3,
-            "max_dG_mm": float(a.max()) * 1e3,
-            "train_mean_dG_mm": float(a[:, tr].mean()) * 1e3,
-            "train_max_dG_mm": float(a[:, tr].max()) * 1e3,
-            "test_mean_dG_mm": float(a[:, te].mean()) * 1e3,
-            "test_max_dG_mm": float(a[:, te].max()) * 1e3,
-            "mean_dNG_mm": float(dNG[:, j].mean()) * 1e3,
-        }
+    info = {i.name: i for i in truth.parameter_info()}
+    params = {name: _influence(info[name], dG[:, j], dNG[:, j], n_tr) for j, name in enumerate(names)}
     dh = sorted((n for n in names if params[n]["group"] == "dh"), key=lambda n: -params[n]["mean_dG_mm"])
     return {
         "experiment": "Sensitivity analysis (Sec. 3.3, Fig. 13) of Horvath & Neuner (2024)",
