@@ -1,0 +1,72 @@
+"""torchcal.experiments.common (every script's --threads / --json) and the closed loop's target bookkeeping
+(torchcal.experiments.loop_targets), without running a calibration."""
+
+import json
+
+import pytest
+import torch
+
+from torchcal._threads import torch_threads
+from torchcal.experiments import common, loop_targets
+
+
+def test_run_pins_the_threads_and_restores_the_callers():
+    ap = common.parser("A test script.\n\nMore text.")
+    ap.add_argument("--seed", type=int, default=0)
+    seen = []
+    with torch_threads(2):  # the caller's count, restored after the run
+        args, result = common.run(ap, lambda a: seen.append(torch.get_num_threads()) or a.seed * 2, ["--seed", "3"])
+        assert torch.get_num_threads() == 2
+    assert (result, seen, args.threads, args.json) == (6, [1], 1, False)
+
+
+@pytest.mark.parametrize(
+    "argv, plain, lines",
+    [(["--json"], {"x": 1}, ['{"a": [1, 2]}']), ([], {"x": 1}, ["{", ' "x": 1', "}"]), ([], None, [])],
+)
+def test_emit_prints_one_line_with_json_the_plain_view_without(capsys, argv, plain, lines):
+    args = common.parser("doc").parse_args(argv)
+    common.emit({"a": [1, 2]}, args, plain=plain)
+    assert capsys.readouterr().out.splitlines() == lines
+
+
+def _row(group, loop, true_form=None, geometric=0.05, correct=True, found=("x",)):
+    return {
+        "group": group,
+        "loop_mm": loop,
+        "true_form_mm": true_form,
+        "geometric_mm": geometric,
+        "oracle_mm": 0.01,
+        "correct": correct,
+        "found": list(found),
+        "meets_target": False,
+    }
+
+
+def test_verdicts_follow_the_issues_targets():
+    assert loop_targets.verdict("single", _row("single", 0.0119, true_form=0.01))
+    assert not loop_targets.verdict("single", _row("single", 0.0121, true_form=0.01))
+    assert not loop_targets.verdict("single", _row("single", 0.01, true_form=0.01, correct=False))
+    assert loop_targets.verdict("three", _row("three", 0.040)) and not loop_targets.verdict(
+        "three", _row("three", 0.041)
+    )
+    assert loop_targets.verdict("field", _row("field", 0.05)) and not loop_targets.verdict(
+        "field", _row("field", 0.051)
+    )
+    assert loop_targets.verdict("clean", _row("clean", 0.05, found=()))
+    assert not loop_targets.verdict("clean", _row("clean", 0.05, found=("cyclic",)))
+    assert not loop_targets.verdict("clean", _row("clean", 0.0501, found=()))
+
+
+def test_cases_cover_every_group_and_seed_and_summaries_count_them():
+    cases, tags = loop_targets.cases(2, 300, 10)
+    assert len(cases) == 2 * sum(len(v) for v in loop_targets.GROUPS.values()) == len(tags)
+    assert {c["seed"] for c in cases} == {10, 11} and all(c["poses"] == 300 for c in cases)
+    assert cases[tags.index("clean")]["effects"] == []
+    rows = [_row("single", 0.02, true_form=0.01), _row("single", 0.03, true_form=0.02, correct=False)]
+    rows[0]["meets_target"] = True
+    s = loop_targets.summarise("single", rows)
+    assert (s["runs"], s["meets_target"], s["named_right"]) == (2, 1, 1)
+    assert s["loop_mm_mean"] == pytest.approx(0.025) and s["loop_mm_max"] == 0.03
+    assert s["ratio_to_true_form_max"] == pytest.approx(2.0)
+    assert json.loads(json.dumps(s)) == s
