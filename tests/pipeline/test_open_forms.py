@@ -130,7 +130,7 @@ def test_a_joint_error_that_drifts_in_time_is_reported_with_both_variables():
     c, run = _calibrate([OutsideEffect("joint_time", joint=3, order=0, size=3e-5)], seed=21)
     assert not run.fits[-1].global_test["passed"]
     unx = run.diagnosis.unexplained
-    assert unx and unx[0]["variable"] == "q3*t" and unx[0]["variables"] == ["q3", "t"]
+    assert unx and unx[0]["variable"] == "q3_t" and unx[0]["variables"] == ["q3", "t"]
     assert unx[0]["significant"] and unx[0]["p_bonferroni"] < 0.01 and 0.05 < unx[0]["share"] < 1
     assert unx[0]["form"]["form"] == "offset_drift" and unx[0]["reason"]
-    assert "q3*t" in run.diagnosis.stop
+    assert "q3_t" in run.diagnosis.stop

@@ -17,7 +17,7 @@ the form with the smallest BIC wins, ``none`` (no effect, ``k = 0``) included. T
   its standard deviation from the curvature of the profile ``chi^2(tau) = RSS(tau) / s^2``,
   ``sigma_tau = sqrt(2 / chi^2''(tau))``.
 * ``temperature`` and the probe position: polynomials.
-* a joint angle times time (``q<j>*t``, the joint error changes over the campaign): the joint offset
+* a joint angle times time (``q<j>_t``, the joint error changes over the campaign): the joint offset
   drifting linearly (``offset_drift``), harmonics of ``q_j`` whose size changes linearly in time (Fourier,
   forward selection) and polynomials of ``q_j`` times time. No effect class carries these yet: the loop
   reports them in ``unexplained`` with both variables.

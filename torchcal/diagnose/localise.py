@@ -13,7 +13,7 @@ carry an effect:
   its gravity torque for static poses), same varying coefficient, one step column.
 * ``t``, ``temperature``, ``x``, ``y``, ``z`` (probe position in the base frame): an additive Cartesian
   smooth ``r_i ~ g(v_i) in R^3``, cubic B-splines per coordinate.
-* ``q<j>*t``: joint j's angle and time together, an error of the joint that changes over the campaign,
+* ``q<j>_t``: joint j's angle and time together, an error of the joint that changes over the campaign,
   ``dq_j = u(t) h(q_j)`` with ``u`` the time centred and scaled to ``[-1, 1]`` and ``h`` the constant (a
   joint offset drifting with time) plus the Fourier/polynomial terms of ``q<j>`` (a cyclic or scale error
   whose size changes); the plotted smooth is ``h``, the change of the joint error from the middle of the
@@ -128,7 +128,7 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
             if u_t is not None:
                 products.append(
                     Variable(
-                        f"q{j + 1}*t",
+                        f"q{j + 1}_t",
                         f"q{j + 1} [rad] (joint error change from mid-campaign to its end)",
                         "joint",
                         "fourier_const",

@@ -222,7 +222,7 @@ def unexplained_entries(
         reasons: per variable name, why the loop did not turn it into an effect (optional).
 
     Returns:
-        Per significant variable: ``variable``, ``variables`` (the parts of a product such as ``q3*t``:
+        Per significant variable: ``variable``, ``variables`` (the parts of a product such as ``q3_t``:
         ``["q3", "t"]``), ``label``, ``joint``, ``share`` (of the residual's weighted sum of squares),
         ``p_bonferroni``, ``significant``, ``form`` (the BIC choice at it, with its table), ``reason``,
         ``evidence`` (the localisation) and ``smooth`` (``grid``, ``value``, ``se``: the fitted function,

@@ -13,9 +13,10 @@ After the geometric fit, repeat:
    menu candidates in order of evidence (smallest p first) until one of them passes; a candidate passes
    when the other 20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a
    one-sided paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``;
-3. of those that passed, the one with the lowest validation RMSE is refitted jointly on all training
-   poses and becomes a stage of the story (the other stays untried); a rejected one is recorded with its
-   evidence and not tried again;
+3. of those that passed, the one with the lowest validation RMSE (among those the paired test cannot tell
+   apart on the validation poses, the lowest BIC of the fit on the fitting poses: the fewer-parameter form
+   when two explain the same structure) is refitted jointly on all training poses and becomes a stage of
+   the story (the other stays untried); a rejected one is recorded with its evidence and not tried again;
 
 until neither the score tests nor the localisation propose a candidate, or none passes validation. The
 global test is reported after every step but does not stop the search: for an alternative with one to

@@ -145,7 +145,7 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
             amp = e.size / float(disp.norm(dim=-1).square().mean().sqrt())
             term = amp * shape
             dq[:, e.joint - 1] += term
-            rec.update(joint=e.joint, variable=f"q{e.joint}" if e.form != "joint_time" else f"q{e.joint}*t")
+            rec.update(joint=e.joint, variable=f"q{e.joint}" if e.form != "joint_time" else f"q{e.joint}_t")
             if e.form == "joint_time":
                 rec.update(order=e.order or 0, amplitude_rad_at_end=amp, phase=phase, variables=[f"q{e.joint}", "t"])
             elif e.form == "harmonic":
