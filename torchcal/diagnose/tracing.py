@@ -245,11 +245,12 @@ def unexplained_entries(
                 "localised in any one variable tested"
             )
         elif reason is None:
-            reason = (
-                f"no effect class for a {fc.form} form"
-                if fc.kind is None
-                else f"the loop did not confirm a {fc.kind} effect here"
-            )
+            if fc.form == "none":
+                reason = "significant as a smooth, but no parametric form of its family beats no effect by BIC"
+            elif fc.kind is None:
+                reason = f"no effect class for a {fc.form} form"
+            else:
+                reason = f"the loop did not confirm a {fc.kind} effect here"
         d = loc.to_dict()
         out.append(
             {
