@@ -90,3 +90,14 @@ def test_a_candidate_whose_refit_fails_is_rejected_with_the_reason_not_the_run()
     v = _validate(score, 1, MeasurementModel(load_robot("ur5")), e_base, failing_fit, None, None, False, 0.05)
     assert not v.passed and "refit on the fitting poses failed" in v.reason and "singular" in v.reason
     assert torch.equal(v.errors, e_base)
+
+
+def test_a_failing_global_test_without_a_localised_variable_is_not_silent():
+    """Noise twice the stated tracker sigma: the global test fails, yet no variable carries structure. The report
+    still says so: the strongest variable, marked not significant, with a reason."""
+    c = simulate_outside([], SimConfig(poses=400, test_poses=20, seed=9, sigma_tracker=30e-6, write_sigma=False))
+    run = calibrate("ur5", c.train, Options(seed=1, learned=False, holdout=0.01, sigma_tracker=15e-6))
+    assert not run.fits[-1].global_test["passed"] and run.effects_report == []
+    unx = run.diagnosis.unexplained
+    assert len(unx) == 1 and unx[0]["significant"] is False and unx[0]["p_bonferroni"] >= 0.01
+    assert "no variable is significant" in unx[0]["reason"] and 0 <= unx[0]["share"] < 1

@@ -17,6 +17,10 @@ the form with the smallest BIC wins, ``none`` (no effect, ``k = 0``) included. T
   its standard deviation from the curvature of the profile ``chi^2(tau) = RSS(tau) / s^2``,
   ``sigma_tau = sqrt(2 / chi^2''(tau))``.
 * ``temperature`` and the probe position: polynomials.
+* a joint angle times time (``q<j>_t``, the joint error changes over the campaign): the joint offset
+  drifting linearly (``offset_drift``), harmonics of ``q_j`` whose size changes linearly in time (Fourier,
+  forward selection) and polynomials of ``q_j`` times time. No effect class carries these yet: the loop
+  reports them in ``unexplained`` with both variables.
 
 Physical names (:data:`PHYSICAL`): Fourier in ``q_j`` -> ``cyclic`` (``params`` carry the harmonic
 orders), polynomial in ``q_j`` -> ``transmission`` (:class:`~torchcal.effects.Transmission`), linear
@@ -162,6 +166,8 @@ class FormChoice:
 
 
 def _family(var: Variable) -> str:
+    if var.weight is not None:
+        return "product"
     if var.basis == "fourier":
         return "fourier"
     if var.name.startswith("tau"):
@@ -304,6 +310,11 @@ def _identify(ws: Workspace, var: Variable, max_harmonic: int, max_degree: int) 
         table.append(f.fit("step", None, f.cols(s[:, None]), ["half_width"]))
     elif fam == "flank":
         table.append(f.fit("step", None, f.cols(x[:, None]), ["half_width"]))
+    elif fam == "product":
+        table.append(f.fit("offset_drift", None, f.cols(torch.ones_like(x)[:, None]), ["rate"]))
+        table += _fourier_forms(f, x, max_harmonic)
+        for d in range(1, max_degree + 1):
+            table.append(f.fit("polynomial", d, f.cols(_poly_basis(x, d)), [f"c{i}" for i in range(1, d + 1)]))
     else:
         reference = float(x[0]) if fam in ("t", "temperature") else 0.0
         u = x - reference

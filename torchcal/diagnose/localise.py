@@ -13,6 +13,11 @@ carry an effect:
   its gravity torque for static poses), same varying coefficient, one step column.
 * ``t``, ``temperature``, ``x``, ``y``, ``z`` (probe position in the base frame): an additive Cartesian
   smooth ``r_i ~ g(v_i) in R^3``, cubic B-splines per coordinate.
+* ``q<j>_t``: joint j's angle and time together, an error of the joint that changes over the campaign,
+  ``dq_j = u(t) h(q_j)`` with ``u`` the time centred and scaled to ``[-1, 1]`` and ``h`` the constant (a
+  joint offset drifting with time) plus the Fourier/polynomial terms of ``q<j>`` (a cyclic or scale error
+  whose size changes); the plotted smooth is ``h``, the change of the joint error from the middle of the
+  campaign to its end. Without it a product of a joint angle and time shows in neither one alone.
 
 Each smooth is a ridge regression of the whitened residual on the whitened columns, with penalty
 ``lambda S`` (``S`` the identity for the Fourier/polynomial basis, second differences of the B-spline
@@ -64,6 +69,9 @@ class Variable:
         values: the variable at each pose ``(N,)``.
         joint: 1-based joint, or None for Cartesian variables.
         coef: joint variables: ``dp/dq_j`` in the tracker frame ``(N, 3)`` [m/rad]; else None.
+        weight: product variables: the second factor at each pose ``(N,)`` (scaled time), multiplying
+            every column; else None.
+        parts: the variables a product is made of (``("q3", "t")``); empty for single variables.
     """
 
     name: str
@@ -73,6 +81,13 @@ class Variable:
     values: Tensor
     joint: int | None = None
     coef: Tensor | None = None
+    weight: Tensor | None = None
+    parts: tuple[str, ...] = ()
+
+    @property
+    def variables(self) -> list[str]:
+        """The variables the structure lives in: the parts of a product, else the name."""
+        return list(self.parts) if self.parts else [self.name]
 
 
 def _varies(x: Tensor, rel: float = 1e-9) -> bool:
@@ -97,6 +112,12 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
         tau = robot.gravity_torques(ctx.q).detach() if robot.has_masses else None
         p_base = model.probe_in_base(ctx)
     out: list[Variable] = []
+    u_t = None
+    if ctx.t is not None and _varies(ctx.t):
+        mid, half = 0.5 * float(ctx.t.max() + ctx.t.min()), 0.5 * float(ctx.t.max() - ctx.t.min())
+        u_t = (ctx.t - mid) / half
+        u_t = u_t - u_t.mean()  # centred: the product column is then (nearly) orthogonal to the joint's own
+    products: list[Variable] = []
     for j in range(robot.dof):
         if float(lever[j]) < MIN_LEVER:
             continue
@@ -104,6 +125,20 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
         q = ctx.q[:, j]
         if _varies(q):
             out.append(Variable(f"q{j + 1}", f"q{j + 1} [rad]", "joint", "fourier", q, j + 1, G))
+            if u_t is not None:
+                products.append(
+                    Variable(
+                        f"q{j + 1}_t",
+                        f"q{j + 1} [rad] (joint error change from mid-campaign to its end)",
+                        "joint",
+                        "fourier_const",
+                        q,
+                        j + 1,
+                        G,
+                        weight=u_t,
+                        parts=(f"q{j + 1}", "t"),
+                    )
+                )
         if tau is not None and _varies(tau[:, j]):
             out.append(
                 Variable(
@@ -128,7 +163,7 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
     for c, name in enumerate("xyz"):
         if _varies(p_base[:, c]):
             out.append(Variable(name, f"probe {name} in the base frame [m]", "cartesian", "spline", p_base[:, c]))
-    return out
+    return out + products
 
 
 # ------------------------------------------------------------------------------------------------ bases
@@ -163,8 +198,10 @@ def fourier_basis(q: Tensor, lo: float, hi: float, K: int = MAX_HARMONIC) -> Ten
 def basis(var: Variable, x: Tensor) -> tuple[Tensor, Tensor]:
     """The variable's basis at ``x (M,)`` ``(M, p)`` and its penalty matrix ``(p, p)``."""
     lo, hi = float(var.values.min()), float(var.values.max())
-    if var.basis == "fourier":
+    if var.basis in ("fourier", "fourier_const"):
         B = fourier_basis(x, lo, hi)
+        if var.basis == "fourier_const":
+            B = torch.cat([torch.ones_like(x)[:, None], B], dim=1)
         return B, torch.eye(B.shape[1], dtype=F64)
     if var.basis == "spline":
         B = bspline_basis(x, lo, hi)
@@ -231,6 +268,8 @@ class Workspace:
         """Whitened, projected design ``(3N, p)`` (joint) or ``(3N, 3p)`` (Cartesian) of basis ``B (N, p)``."""
         if var.kind == "joint":
             X = var.coef[:, :, None] * B[:, None, :]  # (N, 3, p)
+            if var.weight is not None:
+                X = X * var.weight[:, None, None]
         else:
             p = B.shape[1]
             X = torch.zeros(self.N, 3, 3 * p, dtype=F64)
@@ -285,6 +324,7 @@ class Localisation:
         v = self.variable
         out = {
             "variable": v.name,
+            "variables": v.variables,
             "label": v.label,
             "kind": v.kind,
             "joint": v.joint,

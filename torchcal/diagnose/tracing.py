@@ -222,32 +222,45 @@ def unexplained_entries(
         reasons: per variable name, why the loop did not turn it into an effect (optional).
 
     Returns:
-        Per significant variable: ``variable``, ``label``, ``joint``, ``share`` (of the residual's weighted
-        sum of squares), ``p_bonferroni``, ``form`` (the BIC choice at it, with its table), ``reason``,
+        Per significant variable: ``variable``, ``variables`` (the parts of a product such as ``q3_t``:
+        ``["q3", "t"]``), ``label``, ``joint``, ``share`` (of the residual's weighted sum of squares),
+        ``p_bonferroni``, ``significant``, ``form`` (the BIC choice at it, with its table), ``reason``,
         ``evidence`` (the localisation) and ``smooth`` (``grid``, ``value``, ``se``: the fitted function,
-        [rad] for joint variables, [m] per tracker axis for the others).
+        [rad] for joint variables, [m] per tracker axis for the others). When no variable is significant
+        (the global test fails but the structure is spread thinly or lives where no smooth looks), the
+        strongest variable is still returned, with ``significant`` false and a reason that says so: the
+        report never ends a failing global test in silence.
     """
     locs, ws = localise_fit(model, ctx, p, fit)
     out = []
-    for loc in locs:
-        if not loc.significant(alpha):
-            continue
+    chosen = [loc for loc in locs if loc.significant(alpha)]
+    weak = not chosen and bool(locs)
+    for loc in chosen or locs[:1]:
         fc = identify_form(ws, loc.variable)
         reason = (reasons or {}).get(loc.name)
-        if reason is None:
+        if weak:
             reason = (
-                f"no effect class for a {fc.form} form"
-                if fc.kind is None
-                else f"the loop did not confirm a {fc.kind} effect here"
+                f"the global test fails, but no variable is significant at the family-wise level {alpha} "
+                f"(strongest: {loc.name}, Bonferroni p = {loc.p_bonferroni:.2g}): the structure left is not "
+                "localised in any one variable tested"
             )
+        elif reason is None:
+            if fc.form == "none":
+                reason = "significant as a smooth, but no parametric form of its family beats no effect by BIC"
+            elif fc.kind is None:
+                reason = f"no effect class for a {fc.form} form"
+            else:
+                reason = f"the loop did not confirm a {fc.kind} effect here"
         d = loc.to_dict()
         out.append(
             {
                 "variable": loc.name,
+                "variables": loc.variable.variables,
                 "label": loc.variable.label,
                 "joint": loc.variable.joint,
                 "share": loc.share,
                 "p_bonferroni": loc.p_bonferroni,
+                "significant": not weak,
                 "form": {k: v for k, v in fc.to_dict().items() if k != "bic_table"}
                 | {"bic_table": fc.to_dict()["bic_table"][:5]},
                 "reason": reason,

@@ -13,9 +13,10 @@ After the geometric fit, repeat:
    menu candidates in order of evidence (smallest p first) until one of them passes; a candidate passes
    when the other 20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a
    one-sided paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``;
-3. of those that passed, the one with the lowest validation RMSE is refitted jointly on all training
-   poses and becomes a stage of the story (the other stays untried); a rejected one is recorded with its
-   evidence and not tried again;
+3. of those that passed, the one with the lowest validation RMSE (among those the paired test cannot tell
+   apart on the validation poses, the lowest BIC of the fit on the fitting poses: the fewer-parameter form
+   when two explain the same structure) is refitted jointly on all training poses and becomes a stage of
+   the story (the other stays untried); a rejected one is recorded with its evidence and not tried again;
 
 until neither the score tests nor the localisation propose a candidate, or none passes validation. The
 global test is reported after every step but does not stop the search: for an alternative with one to
@@ -30,6 +31,7 @@ poses (a seeded random 20 %, or the last 20 % of a trajectory).
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -255,7 +257,7 @@ def close_loop(
             diag.stop = f"round {rnd}: no significant candidate passed validation"
             break
         # the candidate that validates best; the others stay untried for the next round
-        accepted = min(passed, key=lambda v: v.validation["rmse_after_mm"])
+        accepted = _choose(passed, trajectory, alpha_val, run)
         for v in passed:
             if v is not accepted:
                 (tried_open if isinstance(v.candidate, OpenCandidate) else tried).discard(v.candidate.name)
@@ -285,6 +287,7 @@ class _Validation:
     validation: dict  # the numbers of the test, for the report
     passed: bool
     reason: str
+    bic: float = float("nan")  # BIC of the trial's fit on the fitting poses (n ln(RSS / n) + k ln n, whitened)
 
 
 def _validate(
@@ -308,7 +311,7 @@ def _validate(
     trial = copy.deepcopy(base)
     trial.add(cand.make())
     try:
-        fit_on(trial, fit_part, f"validation {cand.name}")
+        res = fit_on(trial, fit_part, f"validation {cand.name}").result
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
         reason = f"its joint refit on the fitting poses failed ({err})"
         r0 = S.rmse(e_base) * 1e3
@@ -340,7 +343,36 @@ def _validate(
         if passed
         else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
     )
-    return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason)
+    # the variance is estimated (n ln(RSS / n)), not taken as the tracker's: while structure is left, the
+    # whitened SS is inflated by s0^2 and a known-variance BIC would let any extra parameter buy it down
+    n_obs = max(res.n_obs, 1)
+    bic = n_obs * math.log(max(float(res.residuals[:n_obs].square().sum()), 1e-300) / n_obs) + len(res.x) * math.log(
+        n_obs
+    )
+    validation["bic_fit"] = bic
+    return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason, bic)
+
+
+def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, run: CalibrationRun) -> _Validation:
+    """The candidate to accept among those that passed validation: the lowest validation RMSE, unless another
+    is not significantly worse on the validation poses (paired one-sided test, ``alpha_val``); among such ties
+    the lowest BIC of the fit on the fitting poses wins. Two forms that explain the same structure equally well
+    (a compliance and a two-harmonic cyclic error of the same joint) are then told apart by their evidence
+    per parameter, so the fewer-parameter physical form is not lost to a more flexible one by validation noise."""
+    best = min(passed, key=lambda v: v.validation["rmse_after_mm"])
+    tied = [best] + [
+        v
+        for v in passed
+        if v is not best and S.paired_test(v.errors, best.errors, ordered=trajectory)["p_value"] >= alpha_val
+    ]
+    chosen = min(tied, key=lambda v: v.bic)
+    if chosen is not best:
+        run.notes.append(
+            f"diagnosis: {chosen.candidate.name} preferred to {best.candidate.name} (validation RMSE "
+            f"{chosen.validation['rmse_after_mm']:.4f} vs {best.validation['rmse_after_mm']:.4f} mm, not significantly "
+            f"different; BIC {chosen.bic:.1f} vs {best.bic:.1f})"
+        )
+    return chosen
 
 
 def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:

@@ -6,6 +6,9 @@ tensors, not as :mod:`torchcal.effects` modules, in forms the library need not h
 
 * ``harmonic``: ``dq_j = A sin(k q_j + phi)`` of any order ``k`` (3 to 8 and beyond) on any joint;
 * ``polynomial``: ``dq_j = sum_d c_d q_j^d`` (degree 1: a transmission-ratio error);
+* ``joint_time``: a joint error that changes over the campaign, ``dq_j = A s(t) sin(k q_j + phi)`` with
+  ``s = (t - t_0) / duration`` growing from 0 to 1 (order ``k = 0``: ``sin`` replaced by 1, a joint offset
+  that drifts linearly); a product of a joint angle and time that neither shows alone;
 * ``warmup``: the tracker-frame position moves by ``A u (1 - exp(-(t - t_0) / tau))`` along a unit
   vector ``u`` (an axis index, ``"horizontal"`` for a random horizontal direction, or a vector), with
   the time constant ``tau`` [s];
@@ -34,7 +37,7 @@ from torchcal.sim.poses import random_poses, trajectory
 Tensor = torch.Tensor
 F64 = torch.float64
 
-FORMS = ("harmonic", "polynomial", "warmup")
+FORMS = ("harmonic", "polynomial", "warmup", "joint_time")
 
 
 @dataclass
@@ -42,9 +45,9 @@ class OutsideEffect:
     """One effect as a formula (module docstring).
 
     Attributes:
-        form: ``harmonic``, ``polynomial`` or ``warmup``.
-        joint: 1-based joint (harmonic, polynomial).
-        order: harmonic order k.
+        form: ``harmonic``, ``polynomial``, ``warmup`` or ``joint_time``.
+        joint: 1-based joint (harmonic, polynomial, joint_time).
+        order: harmonic order k (joint_time: 0 for an offset drifting in time; default 0).
         coeffs: polynomial shape ``c_1..c_D`` (rescaled to ``size``); default ``(1.0,)``.
         axis: warmup direction: 0, 1, 2 (tracker x, y, z), ``"horizontal"`` or a 3-vector.
         tau: warmup time constant [s]; None draws one uniformly in 5-60 min.
@@ -64,20 +67,24 @@ class OutsideEffect:
     def __post_init__(self):
         if self.form not in FORMS:
             raise OptionError(f"outside effect form '{self.form}' is not one of {FORMS}")
-        if self.form in ("harmonic", "polynomial") and self.joint is None:
+        if self.form in ("harmonic", "polynomial", "joint_time") and self.joint is None:
             raise OptionError(f"a {self.form} effect needs a joint")
         if self.form == "harmonic" and not (self.order and self.order >= 1):
             raise OptionError(f"a harmonic effect needs an order >= 1, got {self.order}")
+        if self.form == "joint_time" and not (self.order or 0) >= 0:
+            raise OptionError(f"a joint_time effect needs an order >= 0, got {self.order}")
         if self.form == "warmup" and self.axis is None:
             raise OptionError("a warmup effect needs an axis (0, 1, 2, 'horizontal' or a vector)")
         if not self.size > 0:
             raise OptionError(f"effect size must be positive, got {self.size}")
 
 
-def _joint_term(e: OutsideEffect, q: Tensor, amp: float, phase: float, coeffs: Tensor) -> Tensor:
+def _joint_term(e: OutsideEffect, q: Tensor, amp: float, phase: float, coeffs: Tensor, s: Tensor) -> Tensor:
     qj = q[:, e.joint - 1]
     if e.form == "harmonic":
         return amp * torch.sin(e.order * qj + phase)
+    if e.form == "joint_time":
+        return amp * s * (torch.sin(e.order * qj + phase) if e.order else torch.ones_like(qj))
     return amp * (qj[:, None] ** torch.arange(1, len(coeffs) + 1, dtype=F64) @ coeffs)
 
 
@@ -113,10 +120,10 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     truth_effects = []
     for e in effects:
         rec = {"form": e.form, "size_m": e.size}
-        if e.form in ("harmonic", "polynomial"):
+        if e.form in ("harmonic", "polynomial", "joint_time"):
             phase = float(torch.rand(1, generator=g, dtype=F64)) * 2 * math.pi if e.phase is None else float(e.phase)
             coeffs = torch.as_tensor(e.coeffs if e.coeffs is not None else (1.0,), dtype=F64)
-            shape = _joint_term(e, q, 1.0, phase, coeffs)
+            shape = _joint_term(e, q, 1.0, phase, coeffs, (t - t[0]) / duration)
             with torch.no_grad():
                 dq1 = torch.zeros_like(q)
                 dq1[:, e.joint - 1] = shape
@@ -124,8 +131,10 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
             amp = e.size / float(disp.norm(dim=-1).square().mean().sqrt())
             term = amp * shape
             dq[:, e.joint - 1] += term
-            rec.update(joint=e.joint, variable=f"q{e.joint}")
-            if e.form == "harmonic":
+            rec.update(joint=e.joint, variable=f"q{e.joint}" if e.form != "joint_time" else f"q{e.joint}_t")
+            if e.form == "joint_time":
+                rec.update(order=e.order or 0, amplitude_rad_at_end=amp, phase=phase, variables=[f"q{e.joint}", "t"])
+            elif e.form == "harmonic":
                 rec.update(
                     order=e.order,
                     amplitude_rad=amp,
