@@ -340,7 +340,22 @@ def refine_jointly(
     (rotated into the tracker frame and whitened), which keeps an iteration cheap with ~300 weights. The
     geometry keeps the run's a-priori sigmas; the weights have none. The normal matrix is singular (a tanh
     network has symmetric weight sets), which LM's damping handles; the result's statistics are not used.
+    Steps: :func:`_joint_parameters` (what is free), :func:`_joint_problem` (residuals and Jacobian),
+    :func:`_joint_restarts` (LM with restarts, judged on ``validation``).
     """
+    free, n_geo = _joint_parameters(model, identifiability)
+    fun, jacobian = _joint_problem(model, free, n_geo, m, opts)
+
+    def score(history: list) -> float:
+        return _rmse(_errors(model, validation)) if validation is not None else -float(len(history))
+
+    return _joint_restarts(fun, jacobian, free, iterations, score, validation is not None)
+
+
+def _joint_parameters(model: MeasurementModel, identifiability) -> tuple[FreeParameters, int]:
+    """The free parameters of the joint refinement: the identifiable elements of the geometry, instrument and
+    tool groups (all of them without an identifiability analysis), then every weight of the model's last effect's
+    network; and how many of them are geometric."""
     robot = model.robot
     keep = {} if identifiability is None else dict(zip(identifiability.names, identifiability.free.tolist()))
     sel, labels = {}, {}
@@ -352,10 +367,15 @@ def refine_jointly(
         sel[f"robot.{g}.delta"], labels[f"robot.{g}.delta"] = mask, grp.names
     n_geo = sum(int(mk.sum()) for mk in sel.values())
     k = len(model.effects) - 1
-    net = model.effects[k].net
-    for name, p in net.named_parameters():
+    for name, p in model.effects[k].net.named_parameters():
         sel[f"effects.{k}.net.{name}"] = torch.ones(p.shape, dtype=torch.bool)
-    free = FreeParameters(model, sel, labels)
+    return FreeParameters(model, sel, labels), n_geo
+
+
+def _joint_problem(model: MeasurementModel, free: FreeParameters, n_geo: int, m: Measurements, opts):
+    """The whitened residual function of the joint refinement (observations, then the geometry's prior rows) and
+    its Jacobian: ``jacfwd`` over the geometric columns, the network's analytic Jacobian for the weights."""
+    robot, net = model.robot, model.effects[-1].net
     ctx = Context.from_measurements(m, trajectory=True)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
     prior = None
@@ -376,12 +396,15 @@ def refine_jointly(
         J[:n_obs, n_geo:] = Jn  # the prior rows concern the geometry only
         return J
 
-    def score() -> float:
-        return _rmse(_errors(model, validation)) if validation is not None else -float(len(history))
+    return fun, jacobian
 
+
+def _joint_restarts(fun, jacobian, free: FreeParameters, iterations: int, score, judged: bool) -> tuple[LMResult, dict]:
+    """LM restarted with a fresh damping every JOINT_RESTART iterations (module constant); after each restart
+    ``score(history)`` judges the state (lower is better), and the best one (the start included) is kept."""
     done, history, trail = 0, [], []
-    best = (score(), 0, free.vector())
-    while done < iterations:  # restarts: a fresh damping every JOINT_RESTART iterations (module constant)
+    best = (score(history), 0, free.vector())
+    while done < iterations:
         res = levenberg_marquardt(
             fun, free.vector(), names=free.names, max_iter=min(JOINT_RESTART, iterations - done), jacobian=jacobian
         )
@@ -390,8 +413,8 @@ def refine_jointly(
         free.assign(res.x)
         done += max(res.iterations, 1)
         history += res.cost_history if not history else res.cost_history[1:]
-        v = score()
-        trail.append({"iterations": done, "validation_rmse_mm": v * 1e3 if validation is not None else None})
+        v = score(history)
+        trail.append({"iterations": done, "validation_rmse_mm": v * 1e3 if judged else None})
         if v < best[0]:
             best = (v, done, free.vector())
         if res.iterations == 0 or len(res.cost_history) < 2:
@@ -431,14 +454,32 @@ def integrate_adaptive(
     extrapolate more gently), ``sigma_field`` the prior of the output layer (the field's expected RMS): the
     regularisation settings :func:`integrate_selected` chooses among on validation samples.
     ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (README, "integrated").
+    Steps: :func:`_adaptive_pass` (the filter), :func:`_install_adaptive` (the final model),
+    :func:`_record_adaptive` (the report's record).
     """
+    with torch.no_grad():  # the kinematic calibration's prediction: the report's reference G
+        kinematic = run.model(Context(q=torch.cat([train.q, hold.q])))
+    start, net, res, cfg = _adaptive_pass(run, train, hold, hidden, gain, sigma_field)
+    _install_adaptive(run, start, net, res)
+    after = run.add_stage(StageName.INTEGRATED)
+    nw = len(res.active)  # the state is [w[active]; t; (d); gamma]
+    filt = IntegratedFilter(
+        _as_ekf_result(res), torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
+    )
+    _record_adaptive(
+        run, filt, res, net, hold, after, {"hidden": hidden, "feature_gain": gain, "sigma_field_m": sigma_field}
+    )
+    return filt
+
+
+def _adaptive_pass(
+    run: CalibrationRun, train: Measurements, hold: Measurements, hidden: int, gain: float, sigma_field: float
+):
+    """The adaptive filter over the training samples from the nominal geometry with a rigid fit's tracker pose and
+    lever arm, then its test phase on ``hold``; returns the start robot, the network, the result, the config."""
     from torchcal.filter.adaptive import AdaptiveConfig, AdaptiveEKF, random_features
 
-    model, opts = run.model, run.options
-    robot = model.robot
-    with torch.no_grad():
-        kin_q = torch.cat([train.q, hold.q])
-        kinematic = model(Context(q=kin_q))  # the kinematic calibration's prediction: the report's reference G
+    opts, robot = run.options, run.model.robot
     start = _nominal_copy(robot)
     place_instrument_and_tool(start, train.q, train.p)
     cfg = AdaptiveConfig(
@@ -452,17 +493,23 @@ def integrate_adaptive(
     )
     flt.parameters = flt.identify(train.q)
     y_in = torch.cat([train.p, torch.full_like(hold.p, float("nan"))])  # the held-out positions never reach it
-    res = flt.run(kin_q, y_in, train.n)
+    res = flt.run(torch.cat([train.q, hold.q]), y_in, train.n)
     if res.diverged:
         raise EstimationError(f"integrated ANN-EKF (adaptive): the filter {res.status}")
-    calibrated = res.apply(start)
+    return start, net, res, cfg
+
+
+def _install_adaptive(run: CalibrationRun, start, net: CorrectionNet, res) -> None:
+    """The final model: the filter's geometry (instrument translation back-substituted) and its network."""
     with torch.no_grad():
-        robot.load_state_dict(calibrated.state_dict())
+        run.model.robot.load_state_dict(res.apply(start).state_dict())
         net.set_flat(res.w)
-    model.add(LearnedEffect(net))
-    after = run.add_stage(StageName.INTEGRATED)
-    # the report's filter plots read an EKFResult with a draw dimension of one
-    as_ekf = EKFResult(
+    run.model.add(LearnedEffect(net))
+
+
+def _as_ekf_result(res) -> EKFResult:
+    """The adaptive result as an :class:`EKFResult` with a draw dimension of one (what the report's plots read)."""
+    return EKFResult(
         geometric=res.geometric[None],
         nongeometric=res.nongeometric[None],
         nis=res.nis[None],
@@ -474,13 +521,15 @@ def integrate_adaptive(
         status=[res.status],
         seconds=res.seconds,
     )
-    nw = len(res.active)  # the state is [w[active]; t; (d); gamma]
-    filt = IntegratedFilter(
-        as_ekf, torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
-    )
-    before = run.stage(StageName.GEOMETRIC)
-    e_filter = (filt.prediction[train.n :] - hold.p).norm(dim=-1)
-    nis = res.nis[: train.n]
+
+
+def _record_adaptive(
+    run: CalibrationRun, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
+) -> None:
+    """The adaptive engine's effect record (settings, the geometry with its sigmas, the filter's health) and note."""
+    n_train, before = filt.n_train, run.stage(StageName.GEOMETRIC)
+    e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
+    nis = res.nis[:n_train]
     run.effects.append(
         EffectRecord(
             "learned",
@@ -489,9 +538,7 @@ def integrate_adaptive(
             label="learned",
             params={
                 "model": "network (fixed random tanh features, output layer estimated)",
-                "hidden": hidden,
-                "feature_gain": gain,
-                "sigma_field_m": sigma_field,
+                **settings,
                 "n_weights": net.n_weights,
                 "fit": "adaptive ANN-EKF: identifiable geometry, lever arm, instrument rotation and the network "
                 "in one filter state (Horvath & Neuner 2024, Sec. 4 future work)",
@@ -505,7 +552,7 @@ def integrate_adaptive(
                 "filter": {
                     "engine": "adaptive",
                     "status": res.status,
-                    "samples_filtered": train.n,
+                    "samples_filtered": n_train,
                     "seconds": res.seconds,
                     "nis_mean": float(nis.nanmean()),
                     "nis_expected": 3.0,
@@ -521,7 +568,6 @@ def integrate_adaptive(
         f"filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f} mm; mean NIS "
         f"{float(nis.nanmean()):.2f} (3 expected)"
     )
-    return filt
 
 
 def _nominal_copy(robot):
