@@ -689,8 +689,11 @@ def integrate_selected(
     at ``run.options.alpha_validation``, with the standard error inflated for the autocorrelation of
     neighbouring samples (:func:`torchcal.stats.paired_test`); it is then fitted again on all training samples
     (the held-out samples its test phase) with the gate length chosen. Otherwise the run ends with the geometric
-    model and says why. The table of candidates goes into the report (the effect's or the rejection's
-    ``evidence["selection"]``).
+    model and says why. A candidate must also beat geometry alone on the validation block with any one of its
+    :data:`VALIDATION_PIECES` pieces left out (:func:`leave_one_piece_out`). The table of candidates goes into the
+    report (the effect's or the rejection's ``evidence["selection"]``). The kept model predicts a standard
+    deviation per sample, calibrated on the validation block (:func:`_attach_predictive_sigma`,
+    ``evidence["predictive_sigma"]``; ``predict`` writes it as ``sx, sy, sz``).
     """
     opts = run.options
     n_val = max(1, int(round(VALIDATION_FRACTION * train.n)))
@@ -753,34 +756,58 @@ def integrate_selected(
         run.notes.append(f"integrated: geometry alone kept: {why}")
         return None
     setting, length = best[0], best[1]
-    noise = _observation_sigma(run.model, train, opts)
-    far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
-    sigma_length = length if math.isfinite(length) else max(g for g in GATE_LENGTHS if math.isfinite(g))
-    val_gate = _predictive_gate(best[4], best[5], fit.q, length, geo.robot, noise, far, sigma_length)
-    scale = calibrate_scale(_residuals(best[4], val, val_gate), val_gate.predictive_std(best[4].robot, val.q))
-    val_gate.sigma_scale = scale
     _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
     kinematic = copy.deepcopy(run.model.robot)  # the kinematic calibration on all training samples
     filt = _run_setting(run, train, hold, setting)
     record = run.effects[-1]
-    # always behind a gate (an infinite one changes no prediction): it carries the predictive standard deviation
+    sigma = _attach_predictive_sigma(run, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
+    record.params["support_gate_length"] = length
+    record.evidence["selection"] = evidence
+    record.evidence["predictive_sigma"] = sigma
+    return filt
+
+
+def _attach_predictive_sigma(
+    run: CalibrationRun,
+    filt: IntegratedFilter,
+    kinematic,
+    geo: MeasurementModel,
+    val_model: MeasurementModel,
+    val_filter: IntegratedFilter,
+    fit: Measurements,
+    val: Measurements,
+    train: Measurements,
+    hold: Measurements,
+    length: float,
+) -> dict:
+    """Put the final model's learned effect behind its support gate with a predictive standard deviation.
+
+    The scale factor is calibrated on the validation block with the candidate fitted on the fitting samples
+    (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
+    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). Always a gate,
+    an infinite one included (it changes no prediction): it carries the standard deviation. Returns the report's
+    evidence (scale, coverage of 2 sigma on validation and on the held-out samples, the variance's parts).
+    """
+    noise = _observation_sigma(run.model, train, run.options)
+    far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
+    sigma_length = length if math.isfinite(length) else max(g for g in GATE_LENGTHS if math.isfinite(g))
+    val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
+    e_val, s_val = _residuals(val_model, val, val_gate), val_gate.predictive_std(val_model.robot, val.q)
+    scale = calibrate_scale(e_val, s_val, COVERAGE_TARGET)
+    val_gate.sigma_scale = scale
     gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale)
     run.model.effects[-1] = gate
     run.stages.pop()
-    after = run.add_stage(StageName.INTEGRATED)
-    record.rmse_after_mm = after.rmse * 1e3
-    record.params["support_gate_length"] = length
-    record.evidence["selection"] = evidence
-    record.evidence["predictive_sigma"] = {
+    run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
+    return {
         "scale": scale,
         "target_coverage_2sigma": COVERAGE_TARGET,
-        "coverage_2sigma_validation": _coverage(best[4], val, val_gate),
+        "coverage_2sigma_validation": _coverage(val_model, val, val_gate),
         "coverage_2sigma_holdout": _coverage(run.model, hold, gate) if hold.n else None,
         "sigma_noise_mm": (noise * 1e3).tolist(),
         "sigma_far_mm": (far * 1e3).tolist(),
         "sigma_length": sigma_length,
     }
-    return filt
 
 
 #: the share of residual components within two predicted standard deviations the scale factor is calibrated to
