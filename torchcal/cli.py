@@ -346,6 +346,7 @@ def cmd_predict(args) -> int:
     from dataclasses import replace
 
     from torchcal.data import read_measurements, write_measurements
+    from torchcal.effects.support import predictive_sigma
     from torchcal.report import load_model, predict
 
     check_out_file(args.out, inputs=[args.data, args.run])
@@ -367,7 +368,12 @@ def cmd_predict(args) -> int:
             f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
             "the run directory is damaged or the fit diverged"
         )
-    out = replace(data, p=p, sigma=None, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
+    # the predicted standard deviation, where the model has one (the integrated method's filters): sx, sy, sz
+    # columns after the others; none for other models
+    sigma = predictive_sigma(model, data.q)
+    if sigma is None:
+        _console.info(f"{args.run}: the model has no predictive standard deviation; no sx, sy, sz columns")
+    out = replace(data, p=p, sigma=sigma, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_measurements(args.out, out)
     _console.info(f"wrote {len(p)} predictions to {args.out}")

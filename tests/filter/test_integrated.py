@@ -74,7 +74,7 @@ def run_dir(trajectory, tmp_path_factory):
     return out
 
 
-def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(trajectory):
+def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(trajectory, tmp_path):
     """``engine="auto"``: every engine setting and geometry alone judged on the last block of the training
     samples; the report carries the table, and what is kept is not worse than geometry on the held-out samples
     (by design on validation; checked here on the held-out continuation)."""
@@ -90,6 +90,13 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
     if run.effects:  # a filter won validation: it must have beaten geometry there, by the paired test
         assert sel["test"]["p_value"] < run.options.alpha_validation
         assert st["integrated"] <= st["geometric"]
+        # the predictive sigma: calibrated on the validation block, its coverage there near the target
+        ps = records[0].evidence["predictive_sigma"]
+        assert ps["scale"] > 0 and abs(ps["coverage_2sigma_validation"] - 0.95) < 0.01
+        assert 0.0 < ps["coverage_2sigma_holdout"] <= 1.0
+        from torchcal.report.ekf_plots import ekf_section
+
+        assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))
     else:
         assert list(st) == ["nominal", "geometric"] and "geometry alone kept" in " ".join(run.notes)
 

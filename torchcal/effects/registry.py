@@ -89,5 +89,6 @@ def effect_from_config(cfg: dict, robot=None) -> Effect:
             cfg["length"],
             max_support=cfg["n_support"],
             fallback=copy.deepcopy(robot) if cfg.get("fallback") else None,
+            predictive=cfg.get("predictive"),
         )
     return CLASSES[name](**cfg)

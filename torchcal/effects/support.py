@@ -20,6 +20,19 @@ engine) has a geometry that is only right together with its network, so away fro
 
 (tracker frame), which the gate writes as a position correction in the model's base frame. The model must then have
 no other effects (the integrated method's models have none).
+
+*Predictive standard deviation* (:meth:`SupportGate.set_predictive`, :func:`predictive_sigma`). Where the inner
+effect is a network whose weights a filter estimated (covariance ``P_w`` of the weights in its state), the
+gate predicts a standard deviation per sample and tracker axis ``a``:
+
+    ``var_a(q) = k^2 [g^2 (J_a(q) P_w J_a(q)^T + s_noise_a^2) + (1 - g^2) s_far_a^2]``
+
+with ``J = R dg/dw`` the network's output Jacobian rotated into the tracker frame, ``s_noise`` the measurement
+noise (tracker and joint noise at the probe), ``s_far`` the residual scale of the geometric model (estimated on
+validation samples: what is left where the prediction has faded to the fallback), ``g`` the gate (of length
+``sigma_length``, the gate's own when it is finite) and ``k`` one scale factor calibrated on validation samples
+(:func:`calibrate_scale`): the filter treats the network's misfit as white noise, so ``P_w`` alone is optimistic
+along a trajectory, and the geometric residual scale of the validation block is a guess for the continuation.
 """
 
 from __future__ import annotations
@@ -33,8 +46,10 @@ from torchcal.effects.base import Context, Effect
 
 Tensor = torch.Tensor
 
-#: lengths tried by :func:`choose_gate_length`, in units of the joints' training spread (inf: no gate)
-GATE_LENGTHS = (math.inf, 0.5, 0.25, 0.12, 0.06)
+#: lengths tried by :func:`choose_gate_length`, in units of the joints' training spread (inf: no gate): a factor 2
+#: apart from lengths where the gate barely acts (a path's continuation a few spreads away) down to one that keeps
+#: the correction only on the training tube itself
+GATE_LENGTHS = (math.inf, 8.0, 4.0, 2.0, 1.0, 0.5, 0.25, 0.12, 0.06)
 
 
 class SupportGate(Effect):
@@ -43,15 +58,25 @@ class SupportGate(Effect):
     Args:
         inner: the fitted effect (``acts_on`` must be ``"cartesian"``: a position correction).
         support: training joints ``(M, dof)`` [rad]; thinned to ``max_support`` evenly spaced rows.
-        length: gate length in units of the joints' spread (``inf``: no gate).
+        length: gate length in units of the joints' spread (``inf`` or None: no gate).
         max_support: most support points kept (the distance costs ``N * M * dof``).
+        fallback: the robot the prediction fades to (module docstring), or None (the correction fades to zero).
+        predictive: ``config()["predictive"]`` of a saved gate with a predictive standard deviation: sizes its
+            buffers for ``load_state_dict`` (:meth:`set_predictive` sets them on a new gate).
     """
 
     kind = "learned"
     acts_on = "cartesian"
 
     def __init__(
-        self, inner: Effect, support: Tensor, length: float = math.inf, *, max_support: int = 3000, fallback=None
+        self,
+        inner: Effect,
+        support: Tensor,
+        length: float | None = math.inf,
+        *,
+        max_support: int = 3000,
+        fallback=None,
+        predictive: dict | None = None,
     ):
         super().__init__(joint=None)
         if inner.acts_on != "cartesian":
@@ -64,11 +89,88 @@ class SupportGate(Effect):
         self.register_buffer("support", kept)
         spread = kept.std(dim=0) if len(kept) > 1 else torch.ones(kept.shape[1], dtype=kept.dtype)
         self.register_buffer("spread", spread.clamp(min=1e-3))
-        self.length = float(length)
+        self.length = math.inf if length is None else float(length)  # None: no gate (how config() writes inf)
         self.fallback = fallback
         if fallback is not None:
             for p in fallback.parameters():
                 p.requires_grad_(False)
+        # the predictive standard deviation (module docstring): its buffers exist only once set_predictive ran, or
+        # sized from ``predictive`` (the config's entry) when a saved gate is rebuilt, so that load_state_dict fills
+        # them; a gate without one keeps the state dict of earlier runs
+        self.sigma_scale, self.sigma_length = 1.0, math.inf
+        if predictive is not None:
+            n_w, z = int(predictive["n_weights"]), torch.zeros(3, dtype=kept.dtype, device=kept.device)
+            self.set_predictive(
+                torch.zeros(n_w, n_w, dtype=kept.dtype, device=kept.device),
+                torch.zeros(n_w, dtype=torch.long, device=kept.device),
+                z,
+                z,
+                float(predictive["sigma_length"]),
+                float(predictive["scale"]),
+            )
+
+    @property
+    def has_predictive(self) -> bool:
+        """Whether the gate has a predictive standard deviation (:meth:`set_predictive`)."""
+        return "sigma_noise" in self._buffers
+
+    def set_predictive(
+        self,
+        weight_cov: Tensor,
+        weight_index: Tensor,
+        sigma_noise: Tensor,
+        sigma_far: Tensor,
+        sigma_length: float,
+        scale: float = 1.0,
+    ) -> None:
+        """Give the gate a predictive standard deviation (module docstring).
+
+        Args:
+            weight_cov: covariance of the network's weights in the filter's state ``(k, k)`` [the net's units].
+            weight_index: their indices in the network's flat weights ``(k,)``.
+            sigma_noise: measurement noise per tracker axis ``(3,)`` [m].
+            sigma_far: residual scale of the fallback (geometric) model per tracker axis ``(3,)`` [m].
+            sigma_length: the gate length the standard deviation fades with (finite).
+            scale: the calibration factor ``k``.
+        """
+        if not hasattr(self.inner, "net"):
+            raise ValueError(f"a predictive standard deviation needs a network inside; got {type(self.inner).__name__}")
+        k = len(weight_index)
+        if weight_cov.shape != (k, k) or sigma_noise.shape != (3,) or sigma_far.shape != (3,):
+            raise ValueError(
+                f"weight_cov must be ({k}, {k}) and sigma_noise, sigma_far (3,); got {tuple(weight_cov.shape)}, "
+                f"{tuple(sigma_noise.shape)}, {tuple(sigma_far.shape)}"
+            )
+        if not math.isfinite(sigma_length) or sigma_length <= 0:
+            raise ValueError(f"sigma_length must be finite and positive, got {sigma_length}")
+        self.register_buffer("weight_cov", weight_cov.detach().clone().to(self.support))
+        self.register_buffer("weight_index", weight_index.detach().clone().long().to(self.support.device))
+        self.register_buffer("sigma_noise", sigma_noise.detach().clone().to(self.support))
+        self.register_buffer("sigma_far", sigma_far.detach().clone().to(self.support))
+        self.sigma_length = float(sigma_length)
+        self.sigma_scale = float(scale)
+
+    def variance_parts(self, robot, q: Tensor) -> tuple[Tensor, Tensor]:
+        """The two parts of the predictive variance, ``a = g^2 (J P_w J^T + s_noise^2)`` and
+        ``b = (1 - g^2) s_far^2``, each ``(N, 3)`` [m^2] (tracker axes); ``var = k^2 (a + b)``."""
+        if not self.has_predictive:
+            raise ValueError("this gate has no predictive standard deviation (set_predictive was not called)")
+        net = self.inner.net
+        R = robot.T_tracker_base()[:3, :3].detach()
+        w = net.flat().detach()
+        var_net = torch.empty(len(q), 3, dtype=q.dtype, device=q.device)
+        for i in range(0, len(q), 1024):  # bounded memory: (1024, 3, n_weights) Jacobian rows at a time
+            J = net.jacobian_flat(w, q[i : i + 1024].detach())[1][..., self.weight_index]
+            J = R @ J  # (n, 3, k) in the tracker frame
+            var_net[i : i + 1024] = torch.einsum("nak,kl,nal->na", J, self.weight_cov, J)
+        d = self.distance(q.detach())
+        g2 = torch.exp(-((d / self.sigma_length) ** 2))[:, None]  # the gate squared
+        return g2 * (var_net + self.sigma_noise**2), (1.0 - g2) * self.sigma_far**2
+
+    def predictive_std(self, robot, q: Tensor) -> Tensor:
+        """Predicted standard deviation per sample and tracker axis ``(N, 3)`` [m]."""
+        a, b = self.variance_parts(robot, q)
+        return self.sigma_scale * (a + b).sqrt()
 
     def distance(self, q: Tensor) -> Tensor:
         """``d(q)``: distance to the nearest support point in units of the spread ``(N,)``."""
@@ -103,10 +205,17 @@ class SupportGate(Effect):
     def config(self) -> dict:
         return {
             "inner": {"class": type(self.inner).__name__, **self.inner.config()},
-            "length": self.length,
+            "length": self.length if math.isfinite(self.length) else None,  # JSON has no inf
             "n_support": int(len(self.support)),
             "dof": int(self.support.shape[1]),
             "fallback": self.fallback is not None,
+            "predictive": {
+                "n_weights": int(len(self.weight_index)),
+                "scale": self.sigma_scale,
+                "sigma_length": self.sigma_length,
+            }
+            if self.has_predictive
+            else None,
         }
 
     def describe(self) -> dict:
@@ -143,3 +252,42 @@ def choose_gate_length(
         if s < best[0] * (1.0 - 1e-9):
             best = (s, length)
     return best[1], table
+
+
+def predictive_sigma(model, q: Tensor) -> Tensor | None:
+    """Predicted standard deviation ``(N, 3)`` [m] of ``model``'s positions at joints ``q``, or None.
+
+    Defined where the model's learned correction is a :class:`SupportGate` with a predictive standard deviation
+    (the integrated method's filters); None for any other model (geometry alone, kernels, the closed loop's
+    effects), which has no per-sample standard deviation.
+    """
+    gates = [e for e in model.effects if isinstance(e, SupportGate) and e.has_predictive]
+    if not gates:
+        return None
+    with torch.no_grad():
+        return gates[-1].predictive_std(model.robot, q)
+
+
+def coverage(e: Tensor, sigma: Tensor, k: float = 2.0) -> float:
+    """Share of the residual components within ``k`` predicted standard deviations, ``mean(|e| <= k sigma)``.
+
+    Args:
+        e: residuals ``(N, 3)`` [m] (prediction minus measurement, per tracker axis).
+        sigma: predicted standard deviations ``(N, 3)`` [m].
+    """
+    if e.shape != sigma.shape or e.numel() == 0:
+        raise ValueError(f"e and sigma must have the same non-empty shape, got {tuple(e.shape)}, {tuple(sigma.shape)}")
+    return float((e.abs() <= k * sigma).to(e.dtype).mean())
+
+
+def calibrate_scale(e: Tensor, sigma: Tensor, target: float = 0.95, k: float = 2.0) -> float:
+    """The smallest factor ``s`` with ``coverage(e, s * sigma, k) >= target``: a quantile of ``|e| / sigma``.
+
+    Args:
+        e: validation residuals ``(N, 3)`` [m]; sigma: the uncalibrated standard deviations there ``(N, 3)`` [m].
+        target: the share of components within ``k`` standard deviations aimed at.
+    """
+    if e.shape != sigma.shape or e.numel() == 0:
+        raise ValueError(f"e and sigma must have the same non-empty shape, got {tuple(e.shape)}, {tuple(sigma.shape)}")
+    z = (e.abs() / sigma).flatten()
+    return float(torch.quantile(z, target, interpolation="higher")) / k

@@ -10,12 +10,22 @@ from __future__ import annotations
 
 import time
 
+import torch
+
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements, read_measurements
+from torchcal.effects import Context
+from torchcal.effects.support import coverage, predictive_sigma
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse
+
+
+def _residuals(model, test: Measurements):
+    """Prediction minus measurement per tracker axis ``(N, 3)`` [m]."""
+    with torch.no_grad():
+        return model(Context.from_measurements(test, trajectory=True)) - test.p
 
 
 def continuation_rmse_mm(model, test: Measurements) -> float:
@@ -39,11 +49,19 @@ def compare(train: Measurements, test: Measurements, robot: str = "ur5", engines
             (r.evidence.get("selection") for r in list(run.effects) + list(run.rejections) if r.name == "integrated"),
             None,
         )
+        seconds = time.perf_counter() - t0
+        sigma = predictive_sigma(run.model, test.q)
+        ev = run.effects[-1].evidence.get("predictive_sigma", {}) if run.effects else {}
         out[f"integrated_{engine}"] = {
             "continuation_rmse_mm": continuation_rmse_mm(run.model, test),
             "internal_holdout_mm": run.stages[-1].rmse * 1e3,
             "chosen": (sel or {}).get("chosen") if run.effects else "geometry alone",
-            "seconds": time.perf_counter() - t0,
+            "gate_length": run.effects[-1].params.get("support_gate_length") if run.effects else None,
+            # the predicted 2-sigma coverage on the continuation (None where the model has no sigma)
+            "coverage_2sigma_continuation": None if sigma is None else coverage(_residuals(run.model, test), sigma),
+            "coverage_2sigma_validation": ev.get("coverage_2sigma_validation"),
+            "coverage_2sigma_holdout": ev.get("coverage_2sigma_holdout"),
+            "seconds": seconds,
         }
     return out
 

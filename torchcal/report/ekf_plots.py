@@ -83,6 +83,25 @@ def ekf_section(run, out: Path) -> list[str]:
         f"{len(filt.y) - n} held-out samples without updates.",
         "",
     ]
+    sel, ps = ev.get("selection"), ev.get("predictive_sigma")
+    if sel and sel.get("chosen"):
+        gate = next(
+            (e["params"].get("support_gate_length") for e in run.effects_report if e.get("name") == "integrated"), None
+        )
+        lines += [
+            f"Chosen on the last {sel['n_validation']} training samples: {sel['chosen']}, support gate length "
+            f"{'none' if gate is None or gate == float('inf') else gate} (report.json: the candidates).",
+            "",
+        ]
+    if ps:
+        hold = ps["coverage_2sigma_holdout"]
+        lines += [
+            f"Predicted standard deviation per sample (predict's sx, sy, sz): one scale factor "
+            f"({ps['scale']:.3g}) calibrated on the validation block to {ps['target_coverage_2sigma'] * 100:.0f} % "
+            f"within 2 sigma; within 2 sigma: validation {ps['coverage_2sigma_validation'] * 100:.1f} %, "
+            f"held-out {'-' if hold is None else f'{hold * 100:.1f}'} %.",
+            "",
+        ]
     steps = ev.get("holdout_rmse_steps_mm", {})
     if steps:
         lines += ["| step | held-out RMSE [mm] |", "|---|---:|"]

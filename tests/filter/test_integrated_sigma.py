@@ -1,0 +1,173 @@
+"""The integrated method's predictive standard deviation (issue 12): the gate's variance, its coverage and scale
+calibration, a saved gate rebuilt with it, predict's sx, sy, sz columns; and the rule that keeps geometry alone
+unless a candidate beats it on the validation block with any one piece left out. All on small hand-built models
+(seconds)."""
+
+import json
+import math
+
+import pytest
+import torch
+
+from torchcal.cli import main
+from torchcal.data import Measurements, read_measurements, write_measurements
+from torchcal.effects import Context, LearnedEffect, MeasurementModel
+from torchcal.effects.base import Effect
+from torchcal.effects.registry import effect_from_config
+from torchcal.effects.support import SupportGate, calibrate_scale, coverage, predictive_sigma
+from torchcal.filter.adaptive import random_features
+from torchcal.pipeline import Options, calibrate
+from torchcal.pipeline import integrated as I
+from torchcal.robot import load_robot
+from torchcal.sim import SimConfig, simulate
+
+NOISE, FAR = 2e-5, 3e-4  # [m]
+
+
+def _gate(length=1.0, scale=1.0, n=300, seed=0):
+    """A UR5 with a random-feature correction behind a gate with a predictive standard deviation, and its support."""
+    g = torch.Generator().manual_seed(seed)
+    robot = load_robot("ur5")
+    net = random_features(hidden=16, seed=seed)
+    with torch.no_grad():
+        net.fc2.weight.normal_(0.0, 0.1, generator=g)
+    support = 0.3 * torch.randn(n, 6, generator=g, dtype=torch.float64)
+    idx = torch.arange(net.hidden * 7, net.hidden * 7 + 3 * net.hidden)  # the output weights
+    A = torch.randn(len(idx), len(idx), generator=g, dtype=torch.float64)
+    gate = SupportGate(LearnedEffect(net), support, length)
+    gate.set_predictive(
+        1e-4 * A @ A.T / len(idx), idx, torch.full((3,), NOISE, dtype=torch.float64), torch.full((3,), FAR).double(),
+        length if math.isfinite(length) else 8.0, scale,
+    )  # fmt: skip
+    return robot, gate, support
+
+
+def test_coverage_and_the_calibrated_scale_recover_a_known_sigma():
+    g = torch.Generator().manual_seed(1)
+    sigma = torch.rand(4000, 3, generator=g, dtype=torch.float64) + 0.5
+    e = sigma * torch.randn(4000, 3, generator=g, dtype=torch.float64)
+    assert coverage(e, sigma) == pytest.approx(0.9545, abs=0.01)
+    assert coverage(e, 0.5 * sigma) == pytest.approx(0.683, abs=0.015)
+    # the model's sigma is half the truth: 95 % lie within 1.96 true sigmas, 3.92 of the model's, so s = 1.96
+    s = calibrate_scale(e, 0.5 * sigma)
+    assert s == pytest.approx(1.96, rel=0.05)
+    assert coverage(e, s * 0.5 * sigma) >= 0.95
+    with pytest.raises(ValueError, match="same non-empty shape"):
+        coverage(e, sigma[:10])
+
+
+def test_sigma_is_the_filters_at_the_support_and_the_geometrys_far_from_it():
+    robot, gate, support = _gate(scale=3.0)
+    near = gate.predictive_std(robot, support[:50])
+    assert near.shape == (50, 3) and bool((near > 3.0 * NOISE * 0.999).all())
+    a, b = gate.variance_parts(robot, support[:50])
+    assert float(b.abs().max()) < 1e-10 * FAR**2  # on the support the gate is 1 (to round-off): no fallback part
+    torch.testing.assert_close(near, 3.0 * (a + b).sqrt())
+    # the output-weight Jacobian rotated into the tracker frame, through P: by hand for one sample
+    net, q = gate.inner.net, support[:1]
+    J = robot.T_tracker_base()[:3, :3] @ net.jacobian_flat(net.flat(), q)[1][0][:, gate.weight_index]
+    var = (J @ gate.weight_cov @ J.T).diagonal() + NOISE**2
+    torch.testing.assert_close(a[0], var)
+    far = gate.predictive_std(robot, support[:5] + 20.0)  # many spreads away: the geometry's residual scale
+    torch.testing.assert_close(far, torch.full_like(far, 3.0 * FAR), rtol=1e-6, atol=0.0)
+
+
+def test_a_saved_gate_is_rebuilt_with_its_sigma_and_an_old_one_without(tmp_path):
+    robot, gate, support = _gate(length=math.inf, scale=2.5)  # an infinite gate: config writes None (JSON)
+    cfg = json.loads(json.dumps({"class": "SupportGate", **gate.config()}, allow_nan=False))
+    assert cfg["length"] is None and cfg["predictive"]["scale"] == 2.5
+    again = effect_from_config(cfg, robot)
+    again.load_state_dict(gate.state_dict())
+    assert again.length == math.inf and again.has_predictive
+    torch.testing.assert_close(again.predictive_std(robot, support[:20]), gate.predictive_std(robot, support[:20]))
+    plain = SupportGate(LearnedEffect(random_features(hidden=16)), support, 0.5)
+    cfg = {"class": "SupportGate", **plain.config()}
+    assert cfg["predictive"] is None and not any("sigma" in k for k in plain.state_dict())
+    assert not effect_from_config(cfg, robot).has_predictive
+    assert predictive_sigma(MeasurementModel(robot, [plain]), support) is None
+    assert predictive_sigma(MeasurementModel(robot), support) is None
+
+
+def _run_dir(path, model):
+    """A run directory for ``model`` as write_run_files writes one (model.json, model.pt, the robot)."""
+    import shutil
+
+    from torchcal.robot import resolve_robot_spec
+
+    src = resolve_robot_spec("ur5")
+    (path / "robot").mkdir(parents=True)
+    shutil.copy2(src, path / "robot" / src.name)
+    torch.save(model.state_dict(), path / "model.pt")
+    meta = {
+        "format": "torchcal-run-1",
+        "robot_file": f"robot/{src.name}",
+        "trajectory": True,
+        "effects": [{"class": type(e).__name__, **e.config()} for e in model.effects],
+        "method": "integrated",
+    }
+    (path / "model.json").write_text(json.dumps(meta, allow_nan=False))
+    return path
+
+
+@pytest.mark.parametrize("with_sigma", [True, False])
+def test_predict_writes_sx_sy_sz_after_the_other_columns_only_where_sigma_is_defined(tmp_path, with_sigma):
+    robot, gate, support = _gate(length=0.5, scale=2.0)
+    model = MeasurementModel(robot, [gate] if with_sigma else [])
+    run = _run_dir(tmp_path / "run", model)
+    q = support[:30]
+    write_measurements(tmp_path / "q.csv", Measurements(q=q, t=torch.arange(30.0, dtype=torch.float64)))
+    assert main(["predict", str(run), str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv"), "--quiet"]) == 0
+    header = next(ln for ln in (tmp_path / "p.csv").read_text().splitlines() if not ln.startswith("#"))
+    base = "q1,q2,q3,q4,q5,q6,x,y,z,t"
+    assert header == (base + ",sx,sy,sz" if with_sigma else base)
+    pred = read_measurements(tmp_path / "p.csv", require_positions=True)
+    if with_sigma:
+        torch.testing.assert_close(pred.sigma, gate.predictive_std(model.robot, q))
+    else:
+        assert pred.sigma is None
+
+
+def test_geometry_alone_is_kept_when_no_candidate_beats_it_in_every_piece(monkeypatch):
+    """The selection rule on a stub candidate: better than geometry on average over the validation block, but only
+    by its last piece (a little worse in the others) is not kept, and the run says why."""
+    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=400, train_samples=399, seed=2))
+    run = calibrate("ur5", c.train, Options(method="kinematic", seed=0))
+
+    def stub(trial, fit, val, setting):
+        # the candidate's error: a tenth of geometry's in the last quarter of the validation block, 1.05 x before
+        e = (trial.model(Context.from_measurements(val, trajectory=True)) - val.p).detach()
+        w = torch.full((val.n, 1), 1.05, dtype=e.dtype)
+        w[-(val.n // 4) :] = 0.1
+        trial.model.add(_Offset(val.q, (w - 1.0) * e))
+
+    monkeypatch.setattr(I, "_run_setting", stub)
+    assert I.integrate_selected(run, run.train, run.hold, settings=(I.Setting("adaptive"),)) is None
+    assert not run.effects
+    (rej,) = run.rejections
+    assert "any one of its pieces left out" in rej.reason and "geometry alone kept" in run.notes[-1]
+    row = rej.evidence["selection"]["candidates"][1]
+    assert row["validation_rmse_mm"] < rej.evidence["selection"]["candidates"][0]["validation_rmse_mm"]
+    assert max(row["leave_one_piece_out_ratios"]) >= 1.0
+
+
+def test_leave_one_piece_out_ratios():
+    ref = torch.ones(8, dtype=torch.float64)
+    per_piece, left_out = I.leave_one_piece_out(torch.tensor([1.0, 1, 2, 2, 1, 1, 0, 0]).double(), ref, 4)
+    assert per_piece == pytest.approx([1.0, 2.0, 1.0, 0.0])
+    assert left_out == pytest.approx([math.sqrt(5 / 3), math.sqrt(2 / 3), math.sqrt(5 / 3), math.sqrt(2.0)])
+
+
+class _Offset(Effect):
+    """A position correction given at fixed joints (the stub candidate's), zero elsewhere."""
+
+    kind = "learned"
+    acts_on = "cartesian"
+
+    def __init__(self, q, dp):
+        super().__init__(joint=None)
+        self.q, self.dp = q, dp
+
+    def forward(self, robot, ctx, p_base=None):
+        if len(ctx.q) != len(self.q) or not bool((ctx.q == self.q).all()):
+            return torch.zeros(len(ctx.q), 3, dtype=ctx.q.dtype)
+        return self.dp @ robot.T_tracker_base()[:3, :3].detach()  # the tracker-frame offset in the base frame
