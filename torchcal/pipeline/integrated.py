@@ -199,7 +199,7 @@ def integrate(
     """
     model, robot, opts = run.model, run.model.robot, run.options
     cfg = filter_config(model, train, opts.sigma_tracker, opts.sigma_joint, reiterate_every)
-    net = CorrectionNet(robot.dof, opts.hidden)
+    net = CorrectionNet(robot.dof, opts.hidden, device=robot.device)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     trainer = EKFTrainer(robot, net, cfg)
     steps = {}
