@@ -501,7 +501,7 @@ def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
     from torchcal.robot import load_robot
 
     model = _as_model(model)
-    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe")
+    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe").to(model.robot.device)
     with torch.no_grad():
         p_base = urdf(ctx.q)[..., :3, 3]
         p = tf.transform_points(model.robot.T_tracker_base(), p_base)
