@@ -343,13 +343,13 @@ def refine_jointly(
         grp = robot.groups()[g]
         mask = grp.mask.clone()
         if identifiability is not None:
-            mask &= torch.tensor([keep.get(n, False) for n in grp.names]).reshape(mask.shape)
+            mask &= torch.tensor([keep.get(n, False) for n in grp.names], device=mask.device).reshape(mask.shape)
         sel[f"robot.{g}.delta"], labels[f"robot.{g}.delta"] = mask, grp.names
     n_geo = sum(int(mk.sum()) for mk in sel.values())
     k = len(model.effects) - 1
     net = model.effects[k].net
     for name, p in net.named_parameters():
-        sel[f"effects.{k}.net.{name}"] = torch.ones(p.shape, dtype=torch.bool)
+        sel[f"effects.{k}.net.{name}"] = torch.ones(p.shape, dtype=torch.bool, device=p.device)
     free = FreeParameters(model, sel, labels)
     ctx = Context.from_measurements(m, trajectory=True)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
