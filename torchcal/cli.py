@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from torchcal import _console
+from torchcal._device import resolve_device
 from torchcal._outdir import check_out_dir, check_out_file
 from torchcal.errors import OptionError, TorchcalError
 
@@ -85,6 +86,15 @@ def _add_robot(p: argparse.ArgumentParser, required: bool = True) -> None:
     )
     p.add_argument("--base-link", default=None, help="URDF: first link of the chain (default: the root)")
     p.add_argument("--tip-link", default=None, help="URDF: last link of the chain (default: the only deepest leaf)")
+
+
+def _add_device(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--device",
+        default="cpu",
+        help="where to compute: cpu (default), cuda or cuda:N (float64 throughout; results are written from CPU "
+        "copies)",
+    )
 
 
 def _add_units(p: argparse.ArgumentParser) -> None:
@@ -179,6 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
     c.add_argument("--rank-tol", type=POSITIVE, default=None, help="identifiability tolerance, > 0 (default 1e-6)")
+    _add_device(c)
     _add_units(c)
     _add_common(c)
 
@@ -193,6 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument(
         "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
     )
+    _add_device(pr)
     _add_units(pr)
     _add_common(pr)
 
@@ -320,6 +332,7 @@ def cmd_calibrate(args) -> int:
         sigma_tracker=args.tracker_noise * 1e-6,
         sigma_joint=math.radians(args.joint_noise),
         engine=args.engine,
+        device=args.device,
     )
     if args.rank_tol is not None:
         opts.rank_tol = args.rank_tol
@@ -350,6 +363,7 @@ def cmd_predict(args) -> int:
     from torchcal.report import load_model, predict
 
     check_out_file(args.out, inputs=[args.data, args.run])
+    device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
     model, meta = load_model(args.run)
     robot = model.robot
     data = read_measurements(
@@ -362,7 +376,7 @@ def cmd_predict(args) -> int:
         robot_name=robot.name,
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
-    p = predict(args.run, data)
+    p = predict(args.run, data, device=device)
     if not bool(torch.isfinite(p).all()):
         raise OptionError(
             f"{args.run}: the run's model predicts non-finite positions for {args.data}; "

@@ -158,7 +158,7 @@ def configuration_sign(robot: RobotModel, q: Tensor) -> Tensor:
     singular configurations, where this determinant changes sign.
     """
     if robot.dof != 6:
-        return torch.zeros(q.shape[0], dtype=q.dtype)
+        return torch.zeros(q.shape[0], dtype=q.dtype, device=q.device)
     with torch.no_grad():
         return torch.sign(torch.linalg.det(full_jacobian(robot, q)))
 
@@ -184,8 +184,8 @@ def _solve(
     p, J = _value_and_jacobian(model, ctx_of(q))
     r = target - p
     err = r.norm(dim=-1)
-    lam = torch.full((q.shape[0],), lam0, dtype=F64)
-    eye = torch.eye(3, dtype=F64)
+    lam = torch.full((q.shape[0],), lam0, dtype=F64, device=q.device)
+    eye = torch.eye(3, dtype=F64, device=q.device)
     it = 0
     for it in range(1, max_iter + 1):
         active = err > tol
@@ -258,11 +258,11 @@ def nominal_ik(
         ``(N, dof)`` joints [rad]; rows with no converged start keep the best one.
     """
     lo, hi = robot.limits[:, 0], robot.limits[:, 1]
-    ref = (0.5 * (lo + hi)) if reference is None else torch.as_tensor(reference, dtype=F64)
+    ref = (0.5 * (lo + hi)) if reference is None else torch.as_tensor(reference, dtype=F64, device=lo.device)
     g = torch.Generator().manual_seed(seed)
     # draws from the middle half of each range: ranges of +-2 pi would otherwise start on wrapped twins
     starts = [ref] + [
-        ref + (torch.rand(robot.dof, generator=g, dtype=F64) - 0.5) * (hi - lo).clamp(max=2 * math.pi)
+        ref + (torch.rand(robot.dof, generator=g, dtype=F64).to(lo.device) - 0.5) * (hi - lo).clamp(max=2 * math.pi)
         for _ in range(seeds - 1)
     ]
     n = targets_base.shape[0]
@@ -501,7 +501,7 @@ def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
     from torchcal.robot import load_robot
 
     model = _as_model(model)
-    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe")
+    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe").to(model.robot.device)
     with torch.no_grad():
         p_base = urdf(ctx.q)[..., :3, 3]
         p = tf.transform_points(model.robot.T_tracker_base(), p_base)

@@ -153,6 +153,23 @@ class Measurements:
             extra={k: v[index] for k, v in self.extra.items()},
         )
 
+    def to(self, device: torch.device | str) -> Measurements:
+        """The same rows with every tensor on ``device`` (float64 kept; tensors already there are not copied)."""
+
+        def move(x: torch.Tensor | None) -> torch.Tensor | None:
+            return None if x is None else x.to(device)
+
+        return dataclasses.replace(
+            self,
+            q=self.q.to(device),
+            p=move(self.p),
+            t=move(self.t),
+            temperature=move(self.temperature),
+            sigma=move(self.sigma),
+            meta=dict(self.meta),
+            extra={k: v.to(device) for k, v in self.extra.items()},
+        )
+
     def with_positions(self, p: torch.Tensor | None) -> Measurements:
         """The same rows with positions ``p`` ((N, 3) float64 [m], or None to drop them)."""
         return dataclasses.replace(self, p=p, meta=dict(self.meta), extra=dict(self.extra))

@@ -152,14 +152,14 @@ class FormChoice:
             R = model.robot.T_tracker_base().detach()[:3, :3]
             a = R.T @ b[:3]
             if self.form == "exponential":
-                rates = torch.cat([a / self.best.tau, torch.zeros(3, dtype=F64)])
+                rates = torch.cat([a / self.best.tau, torch.zeros(3, dtype=F64, device=a.device)])
                 return Drift(
                     v.name, "instrument", rates=rates, reference=self.reference, form="exponential", tau=self.best.tau
                 )
             return Drift(
                 v.name,
                 "instrument",
-                rates=torch.cat([a / self.scale, torch.zeros(3, dtype=F64)]),
+                rates=torch.cat([a / self.scale, torch.zeros(3, dtype=F64, device=a.device)]),
                 reference=self.reference,
             )
         return None
@@ -190,9 +190,9 @@ class _Fitter:
     def lsq(self, X: Tensor) -> tuple[Tensor, Tensor, float]:
         """Coefficients, unscaled covariance ``(X^T X)^-1`` and RSS of ``r ~ X``."""
         if X.shape[1] == 0:
-            return torch.zeros(0, dtype=F64), torch.zeros(0, 0, dtype=F64), self.ws.rss0
+            return X.new_zeros(0), X.new_zeros(0, 0), self.ws.rss0
         A = X.T @ X
-        A = A + 1e-12 * A.diagonal().mean() * torch.eye(A.shape[0], dtype=F64)
+        A = A + 1e-12 * A.diagonal().mean() * torch.eye(A.shape[0], dtype=F64, device=A.device)
         L = torch.linalg.cholesky(A)
         beta = torch.cholesky_solve((X.T @ self.ws.r)[:, None], L)[:, 0]
         rss = float((self.ws.r - X @ beta).square().sum())
@@ -209,7 +209,7 @@ class _Fitter:
 
 
 def _poly_basis(x: Tensor, degree: int) -> Tensor:
-    return x[:, None] ** torch.arange(1, degree + 1, dtype=F64)
+    return x[:, None] ** torch.arange(1, degree + 1, dtype=F64, device=x.device)
 
 
 def _axes_names(prefix: str, orders) -> list[str]:

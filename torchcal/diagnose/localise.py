@@ -172,7 +172,7 @@ def bspline_basis(x: Tensor, lo: float, hi: float, n: int = N_SPLINE) -> Tensor:
     deg = 3
     inner = n - deg
     h = (hi - lo) / inner if hi > lo else 1.0
-    knots = lo + h * torch.arange(-deg, inner + deg + 1, dtype=F64)
+    knots = lo + h * torch.arange(-deg, inner + deg + 1, dtype=F64, device=x.device)
     xc = x.clamp(lo, hi)
     # Cox-de Boor on the full knot vector; the last interval is closed so x = hi gets its basis
     B = ((xc[:, None] >= knots[None, :-1]) & (xc[:, None] < knots[None, 1:])).to(F64)
@@ -190,7 +190,7 @@ def fourier_basis(q: Tensor, lo: float, hi: float, K: int = MAX_HARMONIC) -> Ten
     """``[u, u^2, sin(k q), cos(k q) for k = 1..K]`` with ``u`` the angle scaled to ``[-1, 1]``: ``(M, 2 + 2K)``."""
     mid, half = 0.5 * (lo + hi), max(0.5 * (hi - lo), 1e-12)
     u = (q - mid) / half
-    k = torch.arange(1, K + 1, dtype=F64)
+    k = torch.arange(1, K + 1, dtype=F64, device=q.device)
     arg = q[:, None] * k
     return torch.cat([u[:, None], u[:, None].square(), torch.sin(arg), torch.cos(arg)], dim=1)
 
@@ -202,13 +202,13 @@ def basis(var: Variable, x: Tensor) -> tuple[Tensor, Tensor]:
         B = fourier_basis(x, lo, hi)
         if var.basis == "fourier_const":
             B = torch.cat([torch.ones_like(x)[:, None], B], dim=1)
-        return B, torch.eye(B.shape[1], dtype=F64)
+        return B, torch.eye(B.shape[1], dtype=F64, device=B.device)
     if var.basis == "spline":
         B = bspline_basis(x, lo, hi)
-        D = torch.diff(torch.eye(B.shape[1], dtype=F64), n=2, dim=0)
+        D = torch.diff(torch.eye(B.shape[1], dtype=F64, device=B.device), n=2, dim=0)
         return B, D.T @ D
     if var.basis == "step":
-        return x[:, None].to(F64), torch.zeros(1, 1, dtype=F64)
+        return x[:, None].to(F64), torch.zeros(1, 1, dtype=F64, device=x.device)
     raise ValueError(f"unknown basis {var.basis!r}")
 
 
@@ -237,7 +237,7 @@ class Workspace:
         r = residuals.detach().to(F64)
         n = r.shape[0]
         if W is None:
-            s = torch.as_tensor(1.0 if sigma is None else sigma, dtype=F64)
+            s = torch.as_tensor(1.0 if sigma is None else sigma, dtype=F64, device=r.device)
             s = s.expand(n, 3) if s.dim() < 2 else s
             W = torch.diag_embed(1.0 / s)
         self.W = W.detach().to(F64)
@@ -247,7 +247,7 @@ class Workspace:
         if jacobian is not None:
             A = jacobian.detach()[: self.n]
         else:
-            cols = [torch.eye(3, dtype=F64).expand(n, 3, 3)]
+            cols = [torch.eye(3, dtype=F64, device=self.W.device).expand(n, 3, 3)]
             if joint_coefs is not None:
                 cols.append(joint_coefs.detach())
             A = (self.W @ torch.cat(cols, dim=2)).reshape(self.n, -1)
@@ -272,7 +272,7 @@ class Workspace:
                 X = X * var.weight[:, None, None]
         else:
             p = B.shape[1]
-            X = torch.zeros(self.N, 3, 3 * p, dtype=F64)
+            X = torch.zeros(self.N, 3, 3 * p, dtype=F64, device=B.device)
             for c in range(3):
                 X[:, c, c * p : (c + 1) * p] = B
         X = (self.W @ X).reshape(self.n, -1)
@@ -361,14 +361,14 @@ def fit_smooth(X: Tensor, r: Tensor, S: Tensor, n_eff: int, n_lambda: int = 41) 
     b = X.T @ r
     rr = float(r @ r)
     p = A.shape[0]
-    eye = torch.eye(p, dtype=F64)
+    eye = torch.eye(p, dtype=F64, device=A.device)
     trA = float(torch.trace(A))
     jitter = 1e-10 * (trA / p if trA > 0 else 1.0)
     if float(S.abs().max()) == 0.0:
-        lams = torch.zeros(1, dtype=F64)
+        lams = torch.zeros(1, dtype=F64, device=A.device)
     else:
         scale = trA / max(float(torch.trace(S)), 1e-300)
-        lams = scale * torch.logspace(-7, 3, n_lambda, dtype=F64)
+        lams = scale * torch.logspace(-7, 3, n_lambda, dtype=F64, device=A.device)
     M = A[None] + lams[:, None, None] * S[None] + jitter * eye[None]
     L, info = torch.linalg.cholesky_ex(M)
     ok = info == 0
@@ -419,6 +419,7 @@ def localise_variable(ws: Workspace, var: Variable, n_variables: int = 1) -> Loc
     p, l10, a, b = satterthwaite_tail(stat, fit["v"])
     lo, hi = float(var.values.min()), float(var.values.max())
     grid = torch.linspace(lo, hi, N_GRID, dtype=F64) if var.basis != "step" else torch.tensor([-1.0, 1.0], dtype=F64)
+    grid = grid.to(var.values.device)
     Bg, _ = basis(var, grid)
     cov = fit["s2"] * fit["cov_unscaled"]
     beta = fit["beta"]

@@ -88,7 +88,7 @@ def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p:
         pred = torch.func.functional_call(trial, params, (ctx,))
         return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
 
-    theta0 = torch.zeros(sum(sizes), dtype=torch.float64)
+    theta0 = torch.zeros(sum(sizes), dtype=torch.float64, device=p.device)
     return torch.func.jacfwd(fun)(theta0).detach()
 
 
@@ -119,7 +119,7 @@ def score_candidates(
     for cand in cands:
         C = candidate_columns(model, cand, ctx, p, W)
         if extra:
-            C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype)])
+            C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype, device=C.device)])
         k = C.shape[1]
         # analyse() on the triangular factor of [J, C]: orthogonal Q keeps every norm and angle, and the
         # (u + k) x (u + k) factor makes the column walk cheap next to the 3N-row matrix

@@ -123,7 +123,7 @@ def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: b
         return _kern(_dist(x, z, periodic), h, ard)
     # no gradient (posterior, prediction): one variable at a time and in place, three (n, m) temporaries
     # instead of (n, m, d) ones, so that streaming many blocks does not fragment the heap
-    K = torch.zeros(len(x), len(z), dtype=x.dtype)
+    K = torch.zeros(len(x), len(z), dtype=x.dtype, device=x.device)
     S = torch.zeros_like(K) if ard else None
     for j in range(x.shape[1]):
         d = x[:, j : j + 1] - z[:, j].unsqueeze(0)
@@ -146,7 +146,7 @@ def _prior_var(h: dict[str, Tensor], ard: bool) -> Tensor:
 def _chol(K: Tensor, jitter: Tensor) -> Tensor:
     """Cholesky factor of ``K + jitter I``; where that fails (near-duplicate inducing inputs, or length scales so
     long that ``K`` is numerically singular) the jitter grows tenfold, up to 1e-4 of the prior variance."""
-    eye = torch.eye(len(K), dtype=K.dtype)
+    eye = torch.eye(len(K), dtype=K.dtype, device=K.device)
     jitter = jitter.detach()  # a numerical guard, not a hyperparameter
     scale = float(jitter) if float(jitter) > 0 else 0.0
     for _ in range(5):
@@ -154,7 +154,7 @@ def _chol(K: Tensor, jitter: Tensor) -> Tensor:
         if int(info) == 0:
             return L
         scale = max(scale * 10.0, 1e-10 * float(K.diagonal().mean()))
-        jitter = torch.tensor(scale, dtype=K.dtype)
+        jitter = torch.tensor(scale, dtype=K.dtype, device=K.device)
     from torchcal.errors import EstimationError
 
     raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
@@ -184,7 +184,7 @@ def _bound(
     A = torch.linalg.solve_triangular(Lu, Kuf, upper=False) / s2.sqrt()  # (m, n)
     B = A @ A.T
     B.diagonal().add_(1.0)
-    LB = _chol(B, torch.tensor(0.0, dtype=F64))
+    LB = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
     c = torch.linalg.solve_triangular(LB, A @ y, upper=False) / s2.sqrt()  # (m, p)
     logdet = 2.0 * torch.log(LB.diagonal()).sum() + n * torch.log(s2)
     quad = y.square().sum() / s2 - c.square().sum()
@@ -283,13 +283,13 @@ class GPCorrection(Effect):
                 if noise:
                     var = var + self.noise
                 stds.append(var.sqrt().unsqueeze(1) * self.y_scale)
-        mean = torch.cat(means) if means else torch.zeros(0, 3, dtype=F64)
-        return mean, (torch.cat(stds) if std and stds else (torch.zeros(0, 3, dtype=F64) if std else None))
+        mean = torch.cat(means) if means else torch.zeros(0, 3, dtype=F64, device=x.device)
+        return mean, (torch.cat(stds) if std and stds else (torch.zeros_like(mean) if std else None))
 
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         q = ctx.q
         if len(self.inducing) == 0:
-            return torch.zeros(q.shape[0], 3, dtype=q.dtype)
+            return torch.zeros(q.shape[0], 3, dtype=q.dtype, device=q.device)
         # as KernelCorrection: the output depends on the context and the buffers only, and a least-squares
         # fit evaluates it at the same q dozens of times, so the last plain result is reused
         if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
@@ -328,7 +328,7 @@ class GPCorrection(Effect):
                 hc["add_var"] = torch.zeros_like(h["add_var"])
                 ard = self.ard
             if c == x.shape[1] and not self.ard:
-                out.append(torch.zeros(len(x), 3, dtype=F64))
+                out.append(torch.zeros(len(x), 3, dtype=F64, device=x.device))
                 continue
             out.append(
                 torch.cat(
@@ -456,7 +456,7 @@ def fit_hyperparameters(
                 noise.log().reshape(1),
             ]
         ).to(F64)
-    theta = theta.detach().clone().requires_grad_(True)
+    theta = theta.detach().to(x.device).clone().requires_grad_(True)
     opt = torch.optim.LBFGS(
         [theta],
         lr=1.0,
@@ -472,7 +472,7 @@ def fit_hyperparameters(
     def closure():
         opt.zero_grad()
         # a weak log-normal prior keeps the length scales and variances off 0 and infinity where the data say little
-        prior = 0.5 * ((theta[:-1] - _initial(d, n_joints, False)[:-1]) / 3.0).square().sum()
+        prior = 0.5 * ((theta[:-1] - _initial(d, n_joints, False)[:-1].to(theta.device)) / 3.0).square().sum()
         loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact, dists) / len(x) + prior / len(x)
         loss.backward()
         count[0] += 1
@@ -490,14 +490,14 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     m = len(z)
     Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
     Lu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
-    B = torch.eye(m, dtype=F64)
-    Ay = torch.zeros(m, y.shape[1], dtype=F64)
+    B = torch.eye(m, dtype=F64, device=z.device)
+    Ay = torch.zeros(m, y.shape[1], dtype=F64, device=z.device)
     s = h["noise"].sqrt()
     for i in range(0, len(x), _BLOCK):
         A = torch.linalg.solve_triangular(Lu, _kernel(z, x[i : i + _BLOCK], h, eff.periodic, eff.ard), upper=False) / s
         B += A @ A.T
         Ay += A @ y[i : i + _BLOCK]
-    LB = _chol(B, torch.tensor(0.0, dtype=F64))
+    LB = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
     c = torch.cholesky_solve(Ay, LB) / s  # B^-1 A y / s
     w = torch.linalg.solve_triangular(Lu.T, c, upper=True)  # K_uu^-T/2 B^-1 A y / s
     eff.weights.copy_(w)
@@ -542,7 +542,7 @@ def fit_gp_correction(
 def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iterations) -> tuple[GPCorrection, dict]:
     g = torch.Generator().manual_seed(int(s.seed))
     n, dof = ctx.q.shape
-    eff = GPCorrection(dof, min(n, s.max_inducing), s.extras, s.additive, s.ard)
+    eff = GPCorrection(dof, min(n, s.max_inducing), s.extras, s.additive, s.ard).to(ctx.q.device)
     with torch.no_grad():
         for k, name in enumerate(s.extras):
             v = getattr(ctx, name)

@@ -57,7 +57,7 @@ class KernelCorrection(Effect):
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         q = ctx.q
         if len(self.support) == 0:
-            return torch.zeros(q.shape[0], 3, dtype=q.dtype)
+            return torch.zeros(q.shape[0], 3, dtype=q.dtype, device=q.device)
         # The output depends on q and the buffers only, never on a calibration parameter, and a
         # least-squares fit with the kernel in place evaluates it at the same q dozens of times:
         # the last result is reused while q and the buffers are the same tensor objects, unmodified
@@ -148,7 +148,7 @@ def fit_kernel_correction(
                 best_errors = e
     best = min(grid, key=lambda r: r["val_rmse_m"])
     qa, ya = subset(torch.cat([q, q_val]), torch.cat([y, y_val]))
-    eff = KernelCorrection(q.shape[1], len(qa))
+    eff = KernelCorrection(q.shape[1], len(qa)).to(q.device)
     metric = scale / best["length_scale_m"]
     with torch.no_grad():
         eff.support.copy_(qa)

@@ -29,10 +29,10 @@ class MeasurementModel(nn.Module):
     def __init__(self, robot: RobotModel, effects: Iterable[Effect] = ()):
         super().__init__()
         self.robot = robot
-        self.effects = nn.ModuleList(list(effects))
+        self.effects = nn.ModuleList([e.to(robot.device) for e in effects])  # effects are built on CPU
 
     def add(self, effect: Effect) -> None:
-        self.effects.append(effect)
+        self.effects.append(effect.to(self.robot.device))
 
     def joint_offsets(self, ctx: Context) -> Tensor:
         dq = torch.zeros_like(ctx.q)

@@ -87,7 +87,7 @@ class SupportGate(Effect):
         stride = max(1, math.ceil(len(support) / max_support))
         kept = support[::stride].detach().clone()
         self.register_buffer("support", kept)
-        spread = kept.std(dim=0) if len(kept) > 1 else torch.ones(kept.shape[1], dtype=kept.dtype)
+        spread = kept.std(dim=0) if len(kept) > 1 else torch.ones(kept.shape[1], dtype=kept.dtype, device=kept.device)
         self.register_buffer("spread", spread.clamp(min=1e-3))
         self.length = math.inf if length is None else float(length)  # None: no gate (how config() writes inf)
         self.fallback = fallback

@@ -102,7 +102,7 @@ def effect_parameter_labels(model: MeasurementModel) -> tuple[dict[str, Tensor],
             continue
         for pname, p in e.named_parameters(recurse=False):
             key = f"effects.{i}.{pname}"
-            sel[key] = torch.ones(p.shape, dtype=torch.bool)
+            sel[key] = torch.ones(p.shape, dtype=torch.bool, device=p.device)
             n = p.numel()
             labels[key] = [f"{e.label()}.{pname}" + (f"[{k}]" if n > 1 else "") for k in range(n)]
     return sel, labels
@@ -142,14 +142,14 @@ def selection(
         grp = model.robot.groups()[g]
         mask = grp.mask.clone()
         if keep is not None:
-            mask &= torch.tensor([keep.get(n, False) for n in grp.names]).reshape(mask.shape)
+            mask &= torch.tensor([keep.get(n, False) for n in grp.names], device=mask.device).reshape(mask.shape)
         sel[f"robot.{g}.delta"] = mask
         labels[f"robot.{g}.delta"] = grp.names
     if effects:
         esel, elab = effect_parameter_labels(model)
         for key, mask in esel.items():
             if keep is not None:
-                mask = torch.tensor([keep.get(n, True) for n in elab[key]]).reshape(mask.shape)
+                mask = torch.tensor([keep.get(n, True) for n in elab[key]], device=mask.device).reshape(mask.shape)
             sel[key], labels[key] = mask, elab[key]
     return sel, labels
 

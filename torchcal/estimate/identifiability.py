@@ -117,18 +117,18 @@ def analyse(
     scale = float(norms.max()) if P else 1.0
     Jn = J / norms.clamp(min=1e-300)
     # the sine each column needs: the structural tolerance, and where there is a prior, the one from noise and prior
-    need = torch.full((P,), float(tol), dtype=J.dtype)
+    need = torch.full((P,), float(tol), dtype=J.dtype, device=J.device)
     if prior_sigma is not None:
         if not 0.0 < prior_ratio < 1.0:
             raise ValueError(f"prior_ratio must lie in (0, 1), got {prior_ratio}")
-        ps = torch.as_tensor(prior_sigma, dtype=J.dtype).reshape(P)
+        ps = torch.as_tensor(prior_sigma, dtype=J.dtype, device=J.device).reshape(P)
         has = torch.isfinite(ps) & (ps > 0)
         gain = math.sqrt(1.0 / prior_ratio**2 - 1.0)
         from_prior = gain / (norms * ps).clamp(min=1e-300)
         need = torch.where(has, torch.maximum(need, from_prior), need)
-    free = torch.zeros(P, dtype=torch.bool)
-    indep = torch.zeros(P, dtype=J.dtype)
-    basis = torch.zeros(n, 0, dtype=J.dtype)
+    free = torch.zeros(P, dtype=torch.bool, device=J.device)
+    indep = torch.zeros(P, dtype=J.dtype, device=J.device)
+    basis = torch.zeros(n, 0, dtype=J.dtype, device=J.device)
     for j in order:
         if float(norms[j]) <= 1e-14 * scale:
             continue  # no effect on the probe at all

@@ -47,7 +47,7 @@ class FreeParameters:
             if name not in params:
                 raise KeyError(f"no parameter '{name}'; parameters: {', '.join(params)}")
             p = params[name]
-            mask = torch.as_tensor(mask, dtype=torch.bool).reshape(p.shape)
+            mask = torch.as_tensor(mask, dtype=torch.bool, device=p.device).reshape(p.shape)
             idx = torch.nonzero(mask.flatten()).flatten()
             if len(idx) == 0:
                 continue
@@ -61,7 +61,7 @@ class FreeParameters:
     def vector(self) -> Tensor:
         params = dict(self.module.named_parameters())
         parts = [params[e.name].detach().flatten()[e.index] for e in self.entries]
-        return torch.cat(parts) if parts else torch.zeros(0, dtype=torch.float64)
+        return torch.cat(parts) if parts else next(iter(params.values())).new_zeros(0)
 
     def params(self, x: Tensor) -> dict[str, Tensor]:
         """Full parameter tensors with ``x`` put into the free places (differentiable in ``x``)."""
@@ -99,7 +99,7 @@ def whitening(
         sigma_joint: joint reading noise [rad].
     """
     n = ctx.q.shape[0]
-    s = torch.full((n, 3), float(sigma_tracker), dtype=ctx.q.dtype) if sigma is None else sigma
+    s = torch.full((n, 3), float(sigma_tracker), dtype=ctx.q.dtype, device=ctx.q.device) if sigma is None else sigma
     C = torch.diag_embed(s.square())
     if sigma_joint > 0:
         Jq = probe_joint_jacobian(model, ctx)
@@ -108,7 +108,7 @@ def whitening(
     if bool((info != 0).any()):
         bad = int(torch.nonzero(info).flatten()[0])
         raise EstimationError(f"observation covariance of pose {bad} is not positive definite")
-    eye = torch.eye(3, dtype=C.dtype).expand_as(C)
+    eye = torch.eye(3, dtype=C.dtype, device=C.device).expand_as(C)
     return torch.linalg.solve_triangular(L, eye, upper=False)
 
 
@@ -187,7 +187,7 @@ def jacobian_of(fun):
 
 def prior_sigmas(free: FreeParameters, units: dict[str, str], sigma_length: float, sigma_angle: float) -> Tensor:
     """Prior standard deviations per free element: geometry by unit, inf (no prior) elsewhere."""
-    out = torch.full((len(free),), float("inf"), dtype=torch.float64)
+    out = torch.full((len(free),), float("inf"), dtype=torch.float64, device=free.vector().device)
     for i, name in enumerate(free.names):
         unit = units.get(name)
         if unit == "m":

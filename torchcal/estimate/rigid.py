@@ -73,9 +73,9 @@ def fit_instrument_and_tool(
         T, t, rms, _ = robust_instrument_and_tool(T_base_flange, p_tracker, t_flange_probe, weights=weights)
         return T, t, rms
     Rf, pf = T_base_flange[:, :3, :3], T_base_flange[:, :3, 3]
-    t = torch.zeros(3, dtype=pf.dtype) if t_flange_probe is None else t_flange_probe.clone()
-    w = torch.ones(len(pf), dtype=pf.dtype) if weights is None else weights
-    eye = torch.eye(3, dtype=pf.dtype)
+    t = torch.zeros(3, dtype=pf.dtype, device=pf.device) if t_flange_probe is None else t_flange_probe.clone()
+    w = torch.ones(len(pf), dtype=pf.dtype, device=pf.device) if weights is None else weights
+    eye = torch.eye(3, dtype=pf.dtype, device=pf.device)
     prev = None
     for _ in range(iterations):
         T = rigid_fit((Rf @ t) + pf, p_tracker, w)
@@ -144,7 +144,7 @@ def robust_instrument_and_tool(
     """
     T_base_flange, p_tracker = T_base_flange.detach(), p_tracker.detach()
     n = len(p_tracker)
-    w0 = torch.ones(n, dtype=p_tracker.dtype) if weights is None else weights.to(p_tracker.dtype)
+    w0 = torch.ones(n, dtype=p_tracker.dtype, device=p_tracker.device) if weights is None else weights.to(p_tracker)
     centre = p_tracker.median(dim=0).values
     d = (p_tracker - centre).norm(dim=-1)
     scale_d = float(d[w0 > 0].median()) if bool((w0 > 0).any()) else 0.0

@@ -139,7 +139,7 @@ class RobustResult:
 def _expand(w: Tensor, group: int, m_total: int) -> Tensor:
     """Per-residual factors: ``w`` repeated over each group's coordinates, 1 on the trailing (prior) rows."""
     wr = w.repeat_interleave(group)
-    return torch.cat([wr, torch.ones(m_total - len(wr), dtype=w.dtype)])
+    return torch.cat([wr, torch.ones(m_total - len(wr), dtype=w.dtype, device=w.device)])
 
 
 def _weighted(fun: Callable[[Tensor], Tensor], sqrt_w: Tensor, group: int) -> Callable[[Tensor], Tensor]:
@@ -192,12 +192,12 @@ def snooping_statistics(
     Jp = J[:m].reshape(n, group, -1)
     H = Jp @ Q @ Jp.transpose(1, 2)
     sign = torch.where(kept, -1.0, 1.0).to(F64)[:, None, None]
-    Qvv = torch.eye(group, dtype=F64) + sign * H
+    Qvv = torch.eye(group, dtype=F64, device=H.device) + sign * H
     rp = r[:m].reshape(n, group, 1)
     Lq, info = torch.linalg.cholesky_ex(Qvv)
     # a kept row of leverage ~1 (Q_vv ~ 0) has no redundancy and cannot be tested: statistic 0
     z = torch.linalg.solve_triangular(Lq, rp, upper=False)
-    T = torch.where(info == 0, z.square().sum((1, 2)), torch.zeros(n, dtype=F64))
+    T = torch.where(info == 0, z.square().sum((1, 2)), torch.zeros(n, dtype=F64, device=z.device))
     med = float(T[kept].median()) / _chi2_median(group) if bool(kept.any()) else float("nan")
     return T, med
 
@@ -249,7 +249,7 @@ def robust_least_squares(
     c_tukey = math.sqrt(chi2_isf(1e-4, group))  # Tukey: zero weight past the 0.9999 quantile
     med = _chi2_median(group)
     x = x0.detach().clone()
-    w = torch.ones(n, dtype=F64) if weights0 is None else weights0.detach().to(F64).clone()
+    w = torch.ones(n, dtype=F64, device=x0.device) if weights0 is None else weights0.detach().to(x0).clone()
     # a robust start's weights already exclude the gross errors: Huber's convex phase is for a plain start
     huber_rounds = huber_rounds if weights0 is None else 0
     rounds = 0
@@ -279,7 +279,7 @@ def robust_least_squares(
     # data snooping from the rows the M-estimator kept
     threshold = max(chi2_isf(alpha / max(n, 1), group), gross**2)
     kept = w > 0
-    status, res, T, s0sq = "max_iterations", None, torch.zeros(n, dtype=F64), float("nan")
+    status, res, T, s0sq = "max_iterations", None, torch.zeros(n, dtype=F64, device=x.device), float("nan")
     for _ in range(max_rounds):
         rounds += 1
         if int((~kept).sum()) > max_reject_fraction * n:
@@ -467,7 +467,7 @@ def screen_geometric(
     with torch.no_grad():
         pred = model(hctx)
         e = Wh @ (pred - hold.p).unsqueeze(-1)
-    S = torch.eye(3, dtype=F64) + Jh @ Q @ Jh.transpose(1, 2)
+    S = torch.eye(3, dtype=F64, device=Jh.device) + Jh @ Q @ Jh.transpose(1, 2)
     Th = (torch.linalg.solve(S, e) * e).sum((1, 2))
     s0sq = max(float(Th.median()) / _chi2_median(3), 1.0)
     thr = max(chi2_isf(alpha / max(hold.n, 1), 3), gross**2)

@@ -842,7 +842,12 @@ class _Pass:
         divergence, else the variance factor adapted."""
         W = self.cfg.nis_window
         health = window_health(
-            self.P[None], self.nis[None, i + 1 - W : i + 1], torch.tensor([self.qyy]), i, self.band, self.cfg.adapt_qyy
+            self.P[None],
+            self.nis[None, i + 1 - W : i + 1],
+            torch.tensor([self.qyy], dtype=self.P.dtype, device=self.P.device),
+            i,
+            self.band,
+            self.cfg.adapt_qyy,
         )
         if bool(health.failed[0]):
             self.status = health.reasons[0]

@@ -201,7 +201,7 @@ def integrate(
     """
     model, robot, opts = run.model, run.model.robot, run.options
     cfg = filter_config(model, train, opts.sigma_tracker, opts.sigma_joint, reiterate_every)
-    net = CorrectionNet(robot.dof, opts.hidden)
+    net = CorrectionNet(robot.dof, opts.hidden, device=robot.device)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     trainer = EKFTrainer(robot, net, cfg)
     steps = {}
@@ -363,12 +363,12 @@ def _joint_parameters(model: MeasurementModel, identifiability) -> tuple[FreePar
         grp = robot.groups()[g]
         mask = grp.mask.clone()
         if identifiability is not None:
-            mask &= torch.tensor([keep.get(n, False) for n in grp.names]).reshape(mask.shape)
+            mask &= torch.tensor([keep.get(n, False) for n in grp.names], device=mask.device).reshape(mask.shape)
         sel[f"robot.{g}.delta"], labels[f"robot.{g}.delta"] = mask, grp.names
     n_geo = sum(int(mk.sum()) for mk in sel.values())
     k = len(model.effects) - 1
     for name, p in model.effects[k].net.named_parameters():
-        sel[f"effects.{k}.net.{name}"] = torch.ones(p.shape, dtype=torch.bool)
+        sel[f"effects.{k}.net.{name}"] = torch.ones(p.shape, dtype=torch.bool, device=p.device)
     return FreeParameters(model, sel, labels), n_geo
 
 

@@ -84,7 +84,7 @@ def select_learned(
     kern, info = fit_kernel_correction(
         model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
     )
-    net = CorrectionNet(model.robot.dof, opts.hidden)
+    net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     res = fit_net(
         net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method, iterations=opts.net_iterations
@@ -354,7 +354,7 @@ def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: boo
         group_tol=opts.group_tol,
         sort=False,
     )
-    net = CorrectionNet(model.robot.dof, opts.hidden)
+    net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
     net.reset_parameters(g, gain=0.5)
     res = fit_net(
         net,

@@ -41,6 +41,7 @@ import torch
 
 from torchcal import _console
 from torchcal import stats as S
+from torchcal._device import resolve_device
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
@@ -85,6 +86,7 @@ class Options:
     # "adaptive" (geometry in the filter state) or "ekf" (the paper's filter)
     outlier_alpha: float | None = 1e-3  # gross-error screening's family-wise level (None: no screening)
     group_tol: float = S.GROUP_TOL  # rad: rows whose joints all agree within it stay on one side of every split
+    device: str = "cpu"  # where the run computes: cpu, cuda, cuda:N (torchcal._device.resolve_device)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -93,6 +95,7 @@ class Options:
             raise OptionError(f"engine '{self.engine}' is not one of {', '.join(ENGINES)}")
         if not 0.0 < self.holdout < 0.9:
             raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
+        self.device = str(resolve_device(self.device))  # an unknown or absent device raises here, before any work
 
 
 @dataclass
@@ -223,7 +226,8 @@ def calibrate(
     if data.p is None:
         raise OptionError("calibration needs measured positions (x, y, z columns)")
     spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
-    robot = _robot(robot, base_link, tip_link)
+    robot = _robot(robot, base_link, tip_link).to(opts.device)  # the run computes on opts.device
+    data = data.to(opts.device)
     if data.dof != robot.dof:
         raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
     trajectory = is_trajectory(data) if opts.trajectory is None else bool(opts.trajectory)
@@ -305,4 +309,4 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
         if part.rejected:
             lines = ", ".join(str(r.line) for r in part.rejected[:10]) + (" ..." if len(part.rejected) > 10 else "")
             _console.info(f"{len(part.rejected)} {name} rows rejected as gross errors (file lines {lines})")
-    return tr[sc.training.kept], ho[sc.holdout.kept], sc
+    return tr[sc.training.kept.cpu()], ho[sc.holdout.kept.cpu()], sc

@@ -27,7 +27,9 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
     for k, s in enumerate(run.stages):
         color = "tab:blue" if k == len(run.stages) - 1 and k > 1 else colors[k % len(colors)]
-        ax.plot(x, s.holdout_errors * 1e3, ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)")
+        ax.plot(
+            x, (s.holdout_errors * 1e3).cpu(), ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)"
+        )
     ax.set_xlabel("held-out pose")
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)

@@ -115,6 +115,7 @@ def build_report(run: CalibrationRun) -> dict:
         "robot": run.robot.name,
         "robot_spec": str(run.robot_spec),
         "method": run.options.method,
+        "device": run.options.device,
         "n_train": int(len(run.train_idx)),
         "n_holdout": int(len(run.holdout_idx)),
         "split": {
@@ -166,7 +167,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     from torchcal.robot.export import write_urdf
 
     tmp = Path(directory)
-    state = run.model.state_dict()
+    state = {k: v.cpu() for k, v in run.model.state_dict().items()}  # written from CPU copies, loads anywhere
     # joint limits may be infinite (continuous joints); every estimated value must be finite
     bad = [
         k
@@ -284,10 +285,14 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     return model, meta
 
 
-def predict(run_dir: str | os.PathLike, data: Measurements) -> torch.Tensor:
-    """Predicted probe positions in the tracker frame ``(N, 3)`` [m] with everything the run learned."""
+def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Predicted probe positions in the tracker frame ``(N, 3)`` [m] with everything the run learned, computed
+    on ``device`` and returned on the CPU."""
     model, meta = load_model(run_dir)
+    model, data = model.to(device), data.to(device)
     if data.dof != model.robot.dof:
         raise OptionError(f"data have {data.dof} joints but the run's robot '{model.robot.name}' has {model.robot.dof}")
     with torch.no_grad():
-        return model(Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None))
+        return model(
+            Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None)
+        ).cpu()
