@@ -408,6 +408,9 @@ CPU_BY_DESIGN = (
 
 #: Constructors without ``device=`` that are right where they are: (file, the call's source) -> why.
 ALLOWED = {
+    ("torchcal/robot/ur_urdf.py", "torch.tensor(qs[:, order], dtype=torch.float64)"): (
+        "the generator's self-check against pytorch-kinematics, numpy in and out"
+    ),
     ("torchcal/estimate/lm.py", "torch.tensor(p, dtype=torch.float64)"): "a Python number in, a float out",
     ("torchcal/estimate/robust.py", "torch.tensor(k / 2.0, dtype=F64)"): "a Python number in, a float out",
     ("torchcal/estimate/robust.py", "torch.tensor(max(x, 0.0) / 2.0, dtype=F64)"): "a Python number in, a float out",

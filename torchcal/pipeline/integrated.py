@@ -821,7 +821,7 @@ def _observation_sigma(model: MeasurementModel, m: Measurements, opts) -> Tensor
     with torch.no_grad():
         _, Jq = model.robot.probe_jacobian(m.q)
     joint = opts.sigma_joint * float(Jq.flatten(-2).norm(dim=-1).median()) / math.sqrt(3.0)
-    return torch.full((3,), math.hypot(tracker, joint), dtype=m.q.dtype)
+    return torch.full((3,), math.hypot(tracker, joint), dtype=m.q.dtype, device=m.q.device)
 
 
 def _residuals(model: MeasurementModel, m: Measurements, gate: SupportGate | None = None) -> Tensor:
