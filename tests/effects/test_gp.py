@@ -187,3 +187,23 @@ def replace_settings(s, **kw):
     import dataclasses
 
     return dataclasses.replace(s, **kw)
+
+
+def test_conditioning_on_more_poses_keeps_the_hyperparameters_and_lowers_the_error():
+    q, g = _joints(700, 11)
+    f = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
+    y = f + 1e-5 * torch.randn(700, 3, generator=g, dtype=F64)
+    s = GPSettings()
+    eff, _ = fit_gp_correction(Context(q=q[:200]), y[:200], s)
+    same = gp.condition_gp(eff, Context(q=q[:200]), y[:200], s)
+    more = gp.condition_gp(eff, Context(q=q[:500]), y[:500], s)
+    sparse = gp.condition_gp(eff, Context(q=q[:500]), y[:500], GPSettings(max_inducing=250))
+    for k, v in eff.hyper().items():
+        assert torch.equal(getattr(more, k), v)
+    ctx = Context(q=q[500:])
+    with torch.no_grad():
+        assert torch.allclose(same(None, ctx), eff(None, ctx), rtol=1e-9, atol=1e-15)
+        assert _rms(more(None, ctx) - f[500:]) < 0.8 * _rms(eff(None, ctx) - f[500:])
+    assert len(more.inducing) == 500 and len(sparse.inducing) == 250  # k-means beyond max_inducing
+    with pytest.raises(Exception, match="expected y of shape"):
+        gp.condition_gp(eff, Context(q=q[:10]), y[:9])

@@ -782,3 +782,38 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
             out["val_rmse_m"] = float(e.square().mean().sqrt())
             out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
     return eff, out
+
+
+def condition_gp(eff: GPCorrection, ctx: Context, y: Tensor, settings: GPSettings | None = None) -> GPCorrection:
+    """A copy of ``eff`` with its hyperparameters and standardisation, conditioned on the poses ``ctx, y``.
+
+    The learned stage judges a GP fitted on part of the training poses; the model it keeps should use all of
+    them (a short-range correction gains most from more neighbours), and its hyperparameters need no refit.
+
+    Args:
+        eff: a fitted :class:`GPCorrection`.
+        ctx: context of the poses (joints ``q (N, dof)`` [rad], and the extras ``eff`` reads).
+        y: corrections ``(N, 3)`` [m, robot base frame].
+        settings: inducing inputs (``max_inducing``), k-means iterations and seed; default :class:`GPSettings`.
+
+    Returns:
+        The conditioned effect (``eff`` is left unchanged).
+    """
+    s = settings or GPSettings()
+    if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
+        raise ShapeError(f"GP conditioning: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
+    n = len(y)
+    new = GPCorrection(eff.dof, min(n, s.max_inducing), eff.extras, eff.additive, eff.ard)
+    with torch_threads(s.threads), torch.no_grad():
+        for name in ("y_mean", "y_scale", "x_offset", "x_scale", *eff.hyper()):
+            getattr(new, name).copy_(getattr(eff, name))
+        x = new.inputs(ctx)
+        if n <= s.max_inducing:
+            new.inducing.copy_(x)
+        else:
+            g = torch.Generator().manual_seed(int(s.seed))
+            metric = 1.0 / new.ard_len if new.ard else 1.0 / new.add_len
+            new.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
+        _posterior(new, x, (y.to(F64) - new.y_mean) / new.y_scale)
+    new.train(eff.training)
+    return new
