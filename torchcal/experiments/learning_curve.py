@@ -188,6 +188,11 @@ def plot(results: list[dict], path: Path) -> None:
             )
     ax.set_xscale("log")
     ax.set_yscale("log")
+    from matplotlib.ticker import FormatStrFormatter, ScalarFormatter
+
+    ax.xaxis.set_major_formatter(ScalarFormatter())
+    ax.yaxis.set_major_formatter(FormatStrFormatter("%.3g"))
+    ax.yaxis.set_minor_formatter(FormatStrFormatter("%.3g"))
     ax.set_xlabel("training poses")
     ax.set_ylabel("held-out RMSE [mm]")
     ax.grid(True, which="both", alpha=0.3)
