@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     ap.add_argument("--series", default=",".join(SERIES), help="series for part 1, comma separated (default A,B,C,D)")
     ap.add_argument("--methods", default=",".join(METHODS), help="methods for part 1 (default all)")
     ap.add_argument("--no-transfer", action="store_true", help="skip part 2 (across series)")
-    ap.add_argument("--a-rows", type=int, default=3000, help="subsample Series A to this many rows (0: all)")
+    ap.add_argument("--a-rows", type=int, default=0, help="subsample Series A to this many rows (default 0: all)")
     ap.add_argument(
         "--threads",
         type=int,

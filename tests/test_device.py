@@ -426,6 +426,10 @@ ALLOWED = {
     ("torchcal/effects/gp.py", "torch.tensor([math.log(0.5)], dtype=F64)"): "_initial, as above",
     ("torchcal/effects/gp.py", "torch.full((d,), math.log(1.0), dtype=F64)"): "_initial, as above",
     ("torchcal/effects/gp.py", "torch.tensor([math.log(0.1)], dtype=F64)"): "_initial, as above",
+    ("torchcal/effects/gp.py", "torch.rand(k, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
+    ("torchcal/effects/gp.py", "torch.rand(1, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
+    ("torchcal/effects/gp.py", "torch.rand(d + 1, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
+    ("torchcal/effects/gp.py", "torch.tensor([math.log(1.0 - signal)], dtype=F64)"): "_random_initial, as above",
     ("torchcal/effects/registry.py", "torch.zeros(cfg['n_support'], cfg['dof'], dtype=torch.float64)"): (
         "a model rebuilt from model.json on the CPU, then loaded and moved"
     ),

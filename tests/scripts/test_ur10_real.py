@@ -36,12 +36,16 @@ def test_quick_writes_both_files_and_the_json_line(quick):
     assert json.loads((out / "ur10_real.json").read_text())["within"] == res["within"]
     md = (out / "ur10_real.md").read_text()
     assert "## Part 1" in md and "## Part 2" in md and "C → B" in md
+    assert "kept on one side (grouped)" in md
 
 
 def test_series_c_kinematic_calibration_beats_nominal(quick):
     res, _ = quick
     (row,) = [r for r in res["within"] if r["series"] == "C" and r["method"] == "kinematic"]
     assert row["n_holdout"] == round(0.2 * (row["n_train"] + row["n_holdout"]))
+    # calibrate's grouped split; Series C measures no configuration twice, so no group was merged
+    assert row["split"]["grouped"] and row["split"]["merged_groups"] == 0
+    assert row["cpu_s"] > 0
     # measured 0.494 mm after vs 1.035 mm nominal (tracker pose and lever arm fitted in both)
     assert row["final"]["rmse_mm"] < 0.55
     assert row["final"]["rmse_mm"] < 0.6 * row["nominal"]["rmse_mm"]

@@ -24,8 +24,13 @@ Scale: the sparse variational bound of Titsias (2009) with ``m`` inducing inputs
 
 costs ``O(n m^2)`` time and ``O(m^2 + m b)`` memory when the ``n`` training rows are streamed in
 blocks of ``b``. The hyperparameters are fitted on a seeded subset (at most ``max_fit`` rows with
-``m_fit`` inducing inputs); the posterior then uses every training row with ``max_inducing``
-inducing inputs placed by k-means in the metric of the fitted ARD length scales. With at least as
+``m_fit`` inducing inputs; by default the subset's exact marginal likelihood, with its gradient in
+closed form): the evidence of real residuals has several local maxima, so a few seeded starting points
+run a few iterations each on the subset's first ``coarse_rows`` rows, the best goes on, and a last
+few iterations use the whole subset. A sparse bound with few inducing inputs would bias the fit
+towards long length scales where the structure is short-range (as on the UR10), hence the exact
+evidence on fewer rows. The posterior then uses every training row with ``max_inducing`` inducing
+inputs placed by k-means in the metric of the fitted ARD length scales. With at least as
 many inducing inputs as training rows the inducing inputs are the rows themselves and the bound
 and the posterior are those of the exact (dense) Gaussian process.
 """
@@ -39,7 +44,7 @@ import torch
 
 from torchcal._threads import torch_threads
 from torchcal.effects.base import Context, Effect
-from torchcal.errors import OptionError, ShapeError
+from torchcal.errors import EstimationError, OptionError, ShapeError
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -62,6 +67,13 @@ class GPSettings:
         max_fit: training rows used to fit the hyperparameters (a seeded subset beyond that).
         m_fit: inducing inputs while fitting the hyperparameters (exact when ``max_fit <= m_fit``).
         iterations: L-BFGS iterations on the evidence.
+        restarts: starting points of the evidence fit: the default one and ``restarts - 1`` seeded random ones;
+            each runs ``restart_iterations`` L-BFGS iterations, and the best bound goes on for ``iterations``
+            (the evidence has several local maxima on real residuals; one start lands in any of them).
+        restart_iterations: L-BFGS iterations of each start before the best is chosen.
+        coarse_rows: with more fitting rows than this, the restarts and ``iterations`` run on this many of them
+            first, and ``refine_iterations`` on all of them follow.
+        refine_iterations: L-BFGS iterations on all fitting rows after the coarse stage.
         kmeans_iterations: Lloyd iterations placing the inducing inputs.
         threads: torch threads while fitting (restored afterwards).
         seed: seeds the subsets and the k-means initialisation.
@@ -71,9 +83,13 @@ class GPSettings:
     extras: tuple[str, ...] = ()
     ard: bool = True
     max_inducing: int = 1500
-    max_fit: int = 1000
-    m_fit: int = 300
-    iterations: int = 40
+    max_fit: int = 800
+    m_fit: int = 800
+    iterations: int = 30
+    restarts: int = 4
+    restart_iterations: int = 15
+    coarse_rows: int = 500
+    refine_iterations: int = 15
     kmeans_iterations: int = 10
     threads: int = 1
     seed: int = 0
@@ -84,10 +100,12 @@ class GPSettings:
         bad = [e for e in self.extras if e not in EXTRA_INPUTS]
         if bad:
             raise OptionError(f"extra GP inputs {bad} are not among {', '.join(EXTRA_INPUTS)}")
-        if min(self.max_inducing, self.max_fit, self.m_fit, self.iterations) < 1:
+        counts = (self.max_inducing, self.max_fit, self.m_fit, self.iterations, self.restarts, self.restart_iterations)
+        if min(counts) < 1:
             raise OptionError(
-                "max_inducing, max_fit, m_fit and iterations must be >= 1, got "
-                f"{self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}"
+                "max_inducing, max_fit, m_fit, iterations, restarts and restart_iterations must be >= 1, got "
+                f"{self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}, {self.restarts}, "
+                f"{self.restart_iterations}"
             )
 
 
@@ -153,10 +171,8 @@ def _chol(K: Tensor, jitter: Tensor) -> Tensor:
         L, info = torch.linalg.cholesky_ex(K + jitter * eye)
         if int(info) == 0:
             return L
-        scale = max(scale * 10.0, 1e-10 * float(K.diagonal().mean()))
+        scale = max(scale * 10.0, 1e-10 * float(K.detach().diagonal().mean()))
         jitter = torch.tensor(scale, dtype=K.dtype, device=K.device)
-    from torchcal.errors import EstimationError
-
     raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
 
 
@@ -177,6 +193,14 @@ def _bound(
     n, p = y.shape
     s2 = h["noise"]
     kxx = _prior_var(h, ard)
+    if exact:
+        # the marginal likelihood itself from one Cholesky of K + s2 I: a quarter of the collapsed bound's work
+        # with inducing inputs = rows, and the same value
+        K = _kern(dists[0] if dists is not None else _dist(x, x, periodic), h, ard)
+        L = _chol(K + s2 * torch.eye(n, dtype=K.dtype, device=K.device), _JITTER * kxx)
+        a = torch.linalg.solve_triangular(L, y, upper=False)
+        logdet = 2.0 * torch.log(L.diagonal()).sum()
+        return -0.5 * (p * (logdet + n * math.log(2 * math.pi)) + a.square().sum())
     Duu, Duf = dists if dists is not None else (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
     Kuu = _kern(Duu, h, ard)
     Lu = _chol(Kuu, _JITTER * kxx)
@@ -393,8 +417,17 @@ def kmeans(x: Tensor, m: int, generator: torch.Generator, iterations: int = 10) 
     return c
 
 
+def _bounds(d: int, device: torch.device | None = None) -> tuple[Tensor, Tensor]:
+    """Box of the log hyperparameters (variances relative to the standardised outputs, length scales in rad or
+    standard units): a line search that overshoots evaluates a finite kernel instead of exp(300)."""
+    lo = [-14.0] * d + [-7.0] * d + [-14.0] + [-7.0] * d + [-14.0]
+    hi = [5.0] * d + [7.0] * d + [5.0] + [7.0] * d + [3.0]
+    return torch.tensor(lo, dtype=F64, device=device), torch.tensor(hi, dtype=F64, device=device)
+
+
 def _unpack(theta: Tensor, d: int, ard: bool) -> dict[str, Tensor]:
-    e = theta.exp()
+    lo, hi = _bounds(d, theta.device)
+    e = torch.maximum(torch.minimum(theta, hi), lo).exp()
     return {
         "add_var": e[:d],
         "add_len": e[d : 2 * d],
@@ -421,6 +454,73 @@ def _initial(d: int, n_joints: int, periodic: bool) -> Tensor:
     return theta
 
 
+def _random_initial(d: int, n_joints: int, generator: torch.Generator) -> Tensor:
+    """A seeded random start: length scales log-uniform (joints 0.05-2 rad, the others 0.3-3 standard units;
+    ARD 0.1-3), 50-95 % of the variance as signal split at random between the components, the rest noise."""
+
+    def logu(k, a, b):
+        return math.log(a) + (math.log(b) - math.log(a)) * torch.rand(k, generator=generator, dtype=F64)
+
+    add_len = logu(d, 0.3, 3.0)
+    add_len[:n_joints] = logu(n_joints, 0.05, 2.0)
+    signal = 0.5 + 0.45 * float(torch.rand(1, generator=generator, dtype=F64))
+    w = -torch.log(torch.rand(d + 1, generator=generator, dtype=F64).clamp_min(1e-12))  # a flat Dirichlet
+    w = signal * w / w.sum()
+    return torch.cat(
+        [
+            w[:d].clamp_min(1e-6).log(),
+            add_len,
+            w[d:].clamp_min(1e-6).log(),
+            logu(d, 0.1, 3.0),
+            torch.tensor([math.log(1.0 - signal)], dtype=F64),
+        ]
+    )
+
+
+def _exact_loss_and_grad(theta: Tensor, D: Tensor, y: Tensor, ard: bool, centre: Tensor) -> tuple[Tensor, Tensor]:
+    """The exact evidence fit's loss (minus the log marginal likelihood per row, plus the weak prior of
+    :func:`fit_hyperparameters`) and its gradient in ``theta``, in closed form.
+
+    ``d log p / d theta = 1/2 tr((a a^T - p C^-1) dC/d theta)`` with ``a = C^-1 y``: one Cholesky, one inverse and
+    a few weighted sums over the ``(n, n, d)`` distances, less than half of what reverse-mode autograd through the
+    Cholesky and the kernel's temporaries costs (this is the inner loop of every evidence fit).
+
+    Args:
+        theta: log hyperparameters ``(3 d + 2,)`` (:func:`_unpack`); D: distances ``(n, n, d)`` (:func:`_dist`);
+            y: standardised outputs ``(n, p)``; centre: the prior's centre (:func:`_initial`).
+    """
+    n, p = y.shape
+    d = D.shape[-1]
+    lo, hi = _bounds(d, theta.device)
+    inside = ((theta >= lo) & (theta <= hi)).to(theta.dtype)
+    th = theta.detach()
+    h = _unpack(th, d, ard)
+    E = torch.mul(D, -0.5 / h["add_len"].square()).exp_()  # (n, n, d); in place: these passes are the cost
+    K = E @ h["add_var"]
+    if ard:
+        G = torch.exp(-0.5 * (D @ (1.0 / h["ard_len"].square())))
+        K = K + h["ard_var"] * G
+    K.diagonal().add_(h["noise"])
+    L = _chol(K, _JITTER * _prior_var(h, ard))
+    a = torch.cholesky_solve(y, L)
+    ll = -0.5 * (p * (2.0 * torch.log(L.diagonal()).sum() + n * math.log(2 * math.pi)) + (y * a).sum())
+    W = a @ a.T - p * torch.cholesky_inverse(L)  # (n, n): d ll / d C = W / 2
+    g = torch.zeros_like(th)
+    g[:d] = h["add_var"] * torch.einsum("ab,abj->j", W, E)
+    g[d : 2 * d] = h["add_var"] * torch.einsum("ab,abj->j", W, E.mul_(D)) / h["add_len"].square()
+    del E
+    if ard:
+        WG = W * G
+        g[2 * d] = h["ard_var"] * WG.sum()
+        g[2 * d + 1 : 3 * d + 1] = h["ard_var"] * torch.einsum("ab,abj->j", WG, D) / h["ard_len"].square()
+    g[3 * d + 1] = (h["noise"] - 1e-6) * W.diagonal().sum()
+    g = 0.5 * g * inside
+    prior = 0.5 * ((th[:-1] - centre[:-1]) / 3.0).square().sum()
+    grad = -g / n
+    grad[:-1] += (th[:-1] - centre[:-1]) / 9.0 / n
+    return (-ll + prior) / n, grad
+
+
 def fit_hyperparameters(
     x: Tensor,
     y: Tensor,
@@ -431,23 +531,84 @@ def fit_hyperparameters(
     iterations: int,
     n_joints: int,
     start: dict[str, Tensor] | None = None,
+    restarts: int = 1,
+    restart_iterations: int = 6,
+    generator: torch.Generator | None = None,
 ) -> tuple[dict[str, Tensor], dict]:
-    """Maximise the (collapsed) evidence over the log hyperparameters with L-BFGS.
+    """Maximise the (collapsed) evidence over the log hyperparameters with L-BFGS, from several starts.
+
+    Without ``start``, ``restarts`` starting points (the default :func:`_initial` and seeded random ones,
+    :func:`_random_initial`) each run ``restart_iterations`` iterations; the one with the best bound goes on for
+    ``iterations`` more. The best point any evaluation saw is returned (L-BFGS's line search may end elsewhere).
 
     Args:
         x: inputs ``(n, d)``, standardised; y: outputs ``(n, p)``, standardised; z: inducing inputs ``(m, d)``
             (``z is x`` gives the exact marginal likelihood).
-        start: hyperparameters to start from (a previous fit's :meth:`GPCorrection.hyper`), else a default.
+        start: hyperparameters to start from (a previous fit's :meth:`GPCorrection.hyper`), else a default;
+            with a start there are no restarts.
+        generator: draws the random starts (a fixed seed when None).
 
     Returns:
-        The hyperparameters and ``{"log_evidence_per_row", "evaluations"}``.
+        The hyperparameters and ``{"log_evidence_per_row", "evaluations", "restart_log_evidence_per_row"}``
+        (the last: the bound per row that each start reached, the chosen one the best).
     """
     d = x.shape[1]
     exact = z is x
-    theta = _initial(d, n_joints, bool(periodic[:n_joints].any()))
+    centre = _initial(d, n_joints, False).to(x.device)
+    dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
+    count = [0]
+
+    def run(theta0: Tensor, max_iter: int) -> tuple[float, Tensor]:
+        theta = theta0.detach().to(x.device).clone().requires_grad_(True)
+        opt = torch.optim.LBFGS(
+            [theta],
+            lr=1.0,
+            max_iter=max_iter,
+            history_size=20,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-6,
+            tolerance_change=1e-9,
+        )
+        best = [math.inf, theta0.detach().clone()]
+
+        def closure():
+            opt.zero_grad()
+            if exact:
+                try:
+                    loss, grad = _exact_loss_and_grad(theta, dists[0], y, ard, centre)
+                except EstimationError:  # not positive definite at this trial point: send the line search back
+                    loss, grad = torch.tensor(1e10, dtype=F64, device=theta.device), torch.zeros_like(theta)
+                if not bool(torch.isfinite(loss)) or not bool(torch.isfinite(grad).all()):
+                    loss, grad = torch.tensor(1e10, dtype=F64, device=theta.device), torch.zeros_like(theta)
+                theta.grad = grad
+                count[0] += 1
+                value = float(loss)
+                if value < best[0]:
+                    best[0], best[1] = value, theta.detach().clone()
+                return loss
+            # a weak log-normal prior keeps the length scales and variances off 0 and infinity where the data
+            # say little
+            prior = 0.5 * ((theta[:-1] - centre[:-1]) / 3.0).square().sum()
+            try:
+                loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact, dists) / len(x) + prior / len(x)
+            except EstimationError:
+                # not positive definite at this trial point: a large loss that sends the line search back
+                loss = (theta * 0.0).sum() + 1e10
+            if not torch.isfinite(loss):
+                loss = (theta * 0.0).sum() + 1e10
+            loss.backward()
+            count[0] += 1
+            value = float(loss.detach())
+            if value < best[0]:
+                best[0], best[1] = value, theta.detach().clone()
+            return loss
+
+        opt.step(closure)
+        return best[0], best[1]
+
     if start is not None:
         noise = (start["noise"] - 1e-6).clamp_min(1e-6)
-        theta = torch.cat(
+        theta0 = torch.cat(
             [
                 start["add_var"].clamp_min(1e-12).log(),
                 start["add_len"].log(),
@@ -456,32 +617,25 @@ def fit_hyperparameters(
                 noise.log().reshape(1),
             ]
         ).to(F64)
-    theta = theta.detach().to(x.device).clone().requires_grad_(True)
-    opt = torch.optim.LBFGS(
-        [theta],
-        lr=1.0,
-        max_iter=iterations,
-        history_size=20,
-        line_search_fn="strong_wolfe",
-        tolerance_grad=1e-6,
-        tolerance_change=1e-9,
-    )
-    count = [0]
-    dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
-
-    def closure():
-        opt.zero_grad()
-        # a weak log-normal prior keeps the length scales and variances off 0 and infinity where the data say little
-        prior = 0.5 * ((theta[:-1] - _initial(d, n_joints, False)[:-1].to(theta.device)) / 3.0).square().sum()
-        loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact, dists) / len(x) + prior / len(x)
-        loss.backward()
-        count[0] += 1
-        return loss
-
-    final = opt.step(closure)
+        tried = []
+    else:
+        g = generator if generator is not None else torch.Generator().manual_seed(0)
+        starts = [_initial(d, n_joints, bool(periodic[:n_joints].any()))]
+        starts += [_random_initial(d, n_joints, g) for _ in range(restarts - 1)]
+        tried = [run(t0, restart_iterations) for t0 in starts] if len(starts) > 1 else []
+        theta0 = min(tried, key=lambda r: r[0])[1] if tried else starts[0]
+    loss, theta = run(theta0, iterations)
+    if tried:
+        loss, theta = min([(loss, theta)] + tried, key=lambda r: r[0])
+    if not math.isfinite(loss) or loss >= 1e10:
+        raise EstimationError("GP: no evidence evaluation succeeded (the covariance was never positive definite)")
     with torch.no_grad():
-        h = {k: v.detach().clone() for k, v in _unpack(theta.detach(), d, ard).items()}
-    return h, {"log_evidence_per_row": -float(final.detach()), "evaluations": count[0]}
+        h = {k: v.detach().clone() for k, v in _unpack(theta, d, ard).items()}
+    return h, {
+        "log_evidence_per_row": -loss,
+        "evaluations": count[0],
+        "restart_log_evidence_per_row": [-r[0] for r in tried],
+    }
 
 
 def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
@@ -561,16 +715,37 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
     zf = xf if len(xf) <= s.m_fit else kmeans(xf, s.m_fit, g, s.kmeans_iterations)
     if warm is not None and warm.config() != eff.config() | {"n_inducing": warm.config()["n_inducing"]}:
         raise OptionError(f"GP warm start: the previous model's structure {warm.config()} differs from {eff.config()}")
+    common = {"periodic": eff.periodic, "ard": s.ard, "n_joints": dof}
+    start, coarse = None if warm is None else warm.hyper(), None
+    if warm is None and s.coarse_rows < len(xf):
+        # the restarts and most iterations on the first rows of the subset (cheap: the exact evidence costs
+        # O(n^3)), then a few iterations on all of it from the best point found there
+        xc, yc = xf[: s.coarse_rows], yf[: s.coarse_rows]
+        zc = xc if len(xc) <= s.m_fit else kmeans(xc, s.m_fit, g, s.kmeans_iterations)
+        start, coarse = fit_hyperparameters(
+            xc,
+            yc,
+            zc,
+            **common,
+            iterations=s.iterations,
+            restarts=s.restarts,
+            restart_iterations=s.restart_iterations,
+            generator=g,
+        )
     h, info = fit_hyperparameters(
         xf,
         yf,
         zf,
-        periodic=eff.periodic,
-        ard=s.ard,
-        n_joints=dof,
-        iterations=s.iterations if warm is None else warm_iterations,
-        start=None if warm is None else warm.hyper(),
+        **common,
+        iterations=(s.refine_iterations if coarse is not None else s.iterations) if warm is None else warm_iterations,
+        start=start,
+        restarts=s.restarts,
+        restart_iterations=s.restart_iterations,
+        generator=g,
     )
+    if coarse is not None:
+        info["evaluations"] += coarse["evaluations"]
+        info["restart_log_evidence_per_row"] = coarse["restart_log_evidence_per_row"]
     with torch.no_grad():
         for k, v in h.items():
             getattr(eff, k).copy_(v)
@@ -591,6 +766,7 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
         **eff.describe(),
         "log_evidence_per_row": info["log_evidence_per_row"],
         "evidence_evaluations": info["evaluations"],
+        "restart_log_evidence_per_row": info["restart_log_evidence_per_row"],
         "rows": n,
         "rows_for_hyperparameters": len(xf),
         "inducing_for_hyperparameters": len(zf),
@@ -606,3 +782,38 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
             out["val_rmse_m"] = float(e.square().mean().sqrt())
             out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
     return eff, out
+
+
+def condition_gp(eff: GPCorrection, ctx: Context, y: Tensor, settings: GPSettings | None = None) -> GPCorrection:
+    """A copy of ``eff`` with its hyperparameters and standardisation, conditioned on the poses ``ctx, y``.
+
+    The learned stage judges a GP fitted on part of the training poses; the model it keeps should use all of
+    them (a short-range correction gains most from more neighbours), and its hyperparameters need no refit.
+
+    Args:
+        eff: a fitted :class:`GPCorrection`.
+        ctx: context of the poses (joints ``q (N, dof)`` [rad], and the extras ``eff`` reads).
+        y: corrections ``(N, 3)`` [m, robot base frame].
+        settings: inducing inputs (``max_inducing``), k-means iterations and seed; default :class:`GPSettings`.
+
+    Returns:
+        The conditioned effect (``eff`` is left unchanged).
+    """
+    s = settings or GPSettings()
+    if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
+        raise ShapeError(f"GP conditioning: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
+    n = len(y)
+    new = GPCorrection(eff.dof, min(n, s.max_inducing), eff.extras, eff.additive, eff.ard)
+    with torch_threads(s.threads), torch.no_grad():
+        for name in ("y_mean", "y_scale", "x_offset", "x_scale", *eff.hyper()):
+            getattr(new, name).copy_(getattr(eff, name))
+        x = new.inputs(ctx)
+        if n <= s.max_inducing:
+            new.inducing.copy_(x)
+        else:
+            g = torch.Generator().manual_seed(int(s.seed))
+            metric = 1.0 / new.ard_len if new.ard else 1.0 / new.add_len
+            new.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
+        _posterior(new, x, (y.to(F64) - new.y_mean) / new.y_scale)
+    new.train(eff.training)
+    return new

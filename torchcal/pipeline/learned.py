@@ -1,10 +1,12 @@
 """The learned stage of a run: a residual model where the data demand it, and the correction network.
 
-* ``auto``: :func:`learned_stage`: a kernel regression (:mod:`torchcal.effects.kernel`) and the correction
-  network are fitted on 80 % of the training poses and judged on the other 20 %; the better one is kept when
-  it lowers the validation RMSE by at least 5 % and a one-sided paired test gives p < 0.01; then geometry and
-  learned model are refitted in turn (:func:`refine_learned`) and each named effect the learned model explains
-  as well is dropped (:func:`prune_named`).
+* ``auto``: :func:`learned_stage`: a sparse additive + ARD Gaussian process (:mod:`torchcal.effects.gp`), a
+  kernel regression (:mod:`torchcal.effects.kernel`; only up to its support size, beyond which it would drop
+  poses) and the correction network are fitted on 80 % of the training poses and judged on the other 20 %; the
+  best is kept when it lowers the validation RMSE by at least 5 % and a one-sided paired test gives p < 0.01;
+  then geometry and learned model are refitted in turn (:func:`refine_learned`), each named effect the learned
+  model explains as well is dropped (:func:`prune_named`), and a kept GP is conditioned on all training poses
+  (:func:`condition_on_all`).
 * ``pcm``, ``kinematic+ann``: :func:`correction_net_stage`: the paper's correction network on what remains,
   early-stopped on a seeded 20 % of the training poses.
 """
@@ -21,7 +23,8 @@ from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.diagnose.tracing import refresh_unexplained
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
-from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
+from torchcal.effects.gp import GPCorrection, GPSettings, condition_gp, fit_gp_correction
+from torchcal.effects.kernel import MAX_SUPPORT as KERNEL_MAX_SUPPORT
 from torchcal.effects.kernel import fit_kernel_correction
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
@@ -48,11 +51,34 @@ def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) ->
     e_val = refine_learned(run, record, train, trajectory)
     if any(e.kind in NAMED_KINDS for e in run.model.effects):
         prune_named(run, train, trajectory, e_val)
+    condition_on_all(run, train, trajectory)
     before = run.stages[-1]
     after = run.add_stage(StageName.LEARNED)
     record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
     if run.diagnosis is not None and run.diagnosis.unexplained:
         refresh_unexplained(run, train, trajectory, run.options.alpha)
+
+
+def condition_on_all(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
+    """A kept Gaussian process conditioned on every training pose, its hyperparameters as fitted.
+
+    It was fitted and judged on the learned stage's fitting poses alone; the validation poses, a fifth of the
+    training poses, would otherwise never inform the final model (the kernel regression already refits on all).
+    """
+    model = run.model
+    index = len(model.effects) - 1
+    eff = model.effects[index]
+    if not isinstance(eff, GPCorrection):
+        return
+    others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
+    corr = corrections(others, train, trajectory)
+    ctx = Context.from_measurements(train, trajectory=trajectory)
+    model.effects[index] = condition_gp(eff, ctx, corr, _gp_settings(run))
+    run.notes.append(f"learned residual model: the Gaussian process conditioned on all {train.n} training poses")
+
+
+def _gp_settings(run: CalibrationRun) -> GPSettings:
+    return GPSettings(seed=int(run.options.seed))
 
 
 def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory: bool = False) -> tuple[Tensor, Tensor]:
@@ -81,9 +107,6 @@ def select_learned(
     fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     e0 = corr[va].norm(dim=-1)
 
-    kern, info = fit_kernel_correction(
-        model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
-    )
     net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     res = fit_net(
@@ -96,7 +119,7 @@ def select_learned(
         gp, gp_info = fit_gp_correction(
             Context(q=train.q[fi]),
             corr[fi],
-            GPSettings(seed=int(opts.seed)),
+            _gp_settings(run),
             ctx_val=Context(q=train.q[va]),
             y_val=corr[va],
         )
@@ -112,8 +135,17 @@ def select_learned(
         )
     except EstimationError as err:  # its evidence fit diverged: the other candidates compete without it
         run.notes.append(f"learned residual model: the Gaussian process was left out ({err})")
+    if len(fi) <= KERNEL_MAX_SUPPORT:
+        kern, info = fit_kernel_correction(
+            model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
+        )
+        candidates["kernel"] = (kern, info["val_errors"], kern.describe())
+    else:  # it would keep a random subset of the poses and cost dense solves; the sparse GP uses them all
+        run.notes.append(
+            f"learned residual model: the dense kernel regression is left out ({len(fi)} fitting poses, "
+            f"more than its {KERNEL_MAX_SUPPORT} support poses)"
+        )
     candidates |= {
-        "kernel": (kern, info["val_errors"], kern.describe()),
         "network": (
             LearnedEffect(net),
             e_net,
@@ -200,7 +232,7 @@ def _refit_with_learned(
         new, info = fit_gp_correction(
             Context(q=train.q[fi]),
             corr[fi],
-            GPSettings(seed=int(opts.seed)),
+            _gp_settings(run),
             ctx_val=Context(q=train.q[va]),
             y_val=corr[va],
             warm=eff,
