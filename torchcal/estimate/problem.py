@@ -127,6 +127,7 @@ def residual_function(
     W: Tensor,
     prior_sigma: Tensor | None = None,
     chunk: int = JACOBIAN_CHUNK,
+    linear: bool = True,
 ):
     """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``.
 
@@ -136,7 +137,10 @@ def residual_function(
     The returned function carries its Jacobian ``fun.jacobian: x -> J (3N [+ priors], u)`` (used by
     :func:`~torchcal.estimate.lm.levenberg_marquardt` and :func:`jacobian_of`): analytic
     (:meth:`~torchcal.robot.model.RobotModel.tracker_jacobian`) when the model has no effects and only
-    the robot's groups are free, else ``torch.func.jacfwd`` over ``chunk`` poses at a time.
+    the robot's groups are free; with effects, ``torch.func.jacfwd`` of the model with its kinematics replaced by
+    their tangent at ``x`` (:func:`linear_kinematics`: the same derivatives, without pushing every parameter's
+    tangent through the chain of every pose); with ``linear=False`` ``jacfwd`` of the whole model over ``chunk``
+    poses at a time (the reference the tests compare with).
     """
     has_prior = prior_sigma is not None and bool(torch.isfinite(prior_sigma).any())
     if has_prior:
@@ -159,6 +163,13 @@ def residual_function(
     analytic = len(model.effects) == 0 and all(e.name in _ROBOT_GROUPS for e in free.entries)
     columns = [(_ROBOT_GROUPS[e.name], int(i)) for e in free.entries for i in e.index] if analytic else []
 
+    def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
+        # exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the
+        # whitening (constant) applied to the (N, 3, u) prediction Jacobian after it
+        fk = linear_kinematics(model, c, free.params(x))
+        Jp = torch.func.jacfwd(lambda y: torch.func.functional_call(model, free.params(y), (c,), {"fk": fk}))(x)
+        return (WW @ Jp.detach()).reshape(-1, len(x))
+
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
         n = ctx.q.shape[0]
@@ -166,6 +177,8 @@ def residual_function(
             values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items()}
             _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values)
             J = (W @ Jp).reshape(3 * n, len(x))
+        elif linear:
+            J = linearised(x, ctx, W)
         else:
             parts = []
             for lo in range(0, n, max(1, int(chunk))):
@@ -177,6 +190,52 @@ def residual_function(
 
     fun.jacobian = jacobian
     return fun
+
+
+def linear_kinematics(model: MeasurementModel, ctx: Context, params: dict[str, Tensor] | None = None):
+    """The robot's kinematics linearised at the model's current joint angles: ``fk(robot, q) -> (N, 3)`` for
+    :meth:`MeasurementModel.forward <torchcal.effects.model.MeasurementModel.forward>`.
+
+    ``fk(robot, q) = p0 + J_q (q - q0) + J_d (d - d0)``: ``q0 (N, dof)`` the joint angles with the joint effects
+    applied, ``p0 (N, 3)`` the probe in the base frame there, ``J_q (N, 3, dof)`` the joint Jacobian, ``d`` the
+    geometry and lever-arm corrections (read from ``robot`` when ``fk`` is called, so that ``torch.func``
+    transforms of a ``functional_call`` see them) and ``J_d (N, 3, k)`` their base-frame Jacobian
+    (:meth:`~torchcal.robot.model.RobotModel.tracker_jacobian`). Its value and first derivatives at the
+    current point equal the kinematics', so ``jacfwd`` of a model with ``fk`` in place gives the exact Jacobian;
+    the chain of rotations, the costly part, is evaluated twice instead of once per parameter.
+
+    Args:
+        model: the measurement model.
+        ctx: the samples.
+        params: parameter values to linearise at (qualified name -> tensor, as for ``functional_call``);
+            default the model's own.
+    """
+    out: dict[str, Tensor] = {}
+
+    def record(rb, q: Tensor) -> Tensor:
+        q = q.detach()
+        cols = [(g, i) for g in ("geometry", "tool") for i in range(rb.groups()[g].delta.numel())]
+        p_tr, J = rb.tracker_jacobian(q, cols)
+        R = rb.T_tracker_base()[:3, :3]
+        pb, Jq = rb.probe_jacobian(q)
+        out.update(q=q, p=pb, Jq=Jq, Jd=R.T @ J, d=_corrections(rb))
+        return pb
+
+    with torch.no_grad():
+        torch.func.functional_call(model, params or {}, (ctx,), {"fk": record})
+    q0, p0, Jq, Jd, d0 = out["q"], out["p"], out["Jq"], out["Jd"], out["d"]
+
+    def fk(rb, q: Tensor) -> Tensor:
+        # the joint term elementwise (under torch.func a batched matrix-vector product is N x u tiny products); the
+        # corrections' term is one matrix product
+        return p0 + (Jq * (q - q0).unsqueeze(-2)).sum(-1) + Jd @ (_corrections(rb) - d0)
+
+    return fk
+
+
+def _corrections(robot) -> Tensor:
+    """The geometry and lever-arm corrections of ``robot`` as one flat vector."""
+    return torch.cat([robot.geometry.delta.reshape(-1), robot.tool.delta.reshape(-1)])
 
 
 def jacobian_of(fun):
