@@ -254,12 +254,20 @@ def close_loop(
         if not passed:
             diag.stop = f"round {rnd}: no significant candidate passed validation"
             break
-        # the candidate that validates best; the others stay untried for the next round
-        accepted = min(passed, key=lambda v: v.validation["rmse_after_mm"])
+        # the candidate that validates best; the others stay untried for the next round. One whose refit on all the
+        # training poses fails (rank deficient there, at the edge of what the fitting poses allowed) is rejected and
+        # the next best takes its place
+        accepted = None
+        for v in sorted(passed, key=lambda v: v.validation["rmse_after_mm"]):
+            if _accept(run, diag, v, fit_on, train):
+                accepted = v
+                break
+        if accepted is None:
+            diag.stop = f"round {rnd}: no confirmed candidate could be refitted on all training poses"
+            break
         for v in passed:
-            if v is not accepted:
+            if v is not accepted and not v.rejected:
                 (tried_open if isinstance(v.candidate, OpenCandidate) else tried).discard(v.candidate.name)
-        _accept(run, diag, accepted, fit_on, train)
         accepted_names.add(accepted.candidate.name)
         base, e_base = accepted.trial, accepted.errors
     else:
@@ -285,6 +293,7 @@ class _Validation:
     validation: dict  # the numbers of the test, for the report
     passed: bool
     reason: str
+    rejected: bool = False  # confirmed on validation, but its refit on all training poses failed
 
 
 def _validate(
@@ -355,14 +364,25 @@ def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
     run.notes.append(f"diagnosis: {cand.name} rejected, {v.reason}")
 
 
-def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> None:
-    """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it."""
+def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> bool:
+    """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it.
+
+    Returns False, with the candidate rejected and the model as it was, when the refit fails (the solver writes
+    no parameter then).
+    """
     model, s, cand = run.model, v.score, v.candidate
     before = copy.deepcopy(model)
     eff = cand.make()
     model.add(eff)
     label = eff.label()
-    new_fit = fit_on(model, train, label)
+    try:
+        new_fit = fit_on(model, train, label)
+    except EstimationError as err:
+        del model.effects[len(model.effects) - 1]
+        v.passed, v.rejected = False, True
+        v.reason = f"confirmed on validation, but its joint refit on all training poses failed ({err})"
+        _reject(run, diag, v)
+        return False
     run.fits.append(new_fit)
     st_before = run.stages[-1]
     st_after = run.add_stage(label)
@@ -402,3 +422,4 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
         f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
+    return True
