@@ -98,8 +98,9 @@ def test_chunked_jacfwd_equals_the_whole_jacfwd_with_effects():
 
 @pytest.mark.parametrize("spec", ["ur10", str(URDFS / "panda.urdf")])
 def test_linearised_kinematics_jacobian_equals_jacfwd_with_every_kind_of_effect(spec):
-    """Joint effects (their regressors depend on the geometry too), a Cartesian scale drift and an instrument drift:
-    the kinematics replaced by its tangent gives jacfwd's Jacobian of the whole model."""
+    """Joint effects, a Cartesian scale drift and an instrument drift: the kinematics replaced by its tangent gives
+    reverse-mode autograd's Jacobian of the whole model (the regressors, computed under no_grad, are constants), and
+    jacfwd's wherever no regressor depends on the geometry (jacfwd ignores no_grad)."""
     robot = _perturbed(spec)
     g = torch.Generator().manual_seed(6)
     effects = [
@@ -125,11 +126,16 @@ def test_linearised_kinematics_jacobian_equals_jacfwd_with_every_kind_of_effect(
     fun = residual_function(model, free, ctx, p, W)
     x = free.vector() + 1e-5 * torch.randn(len(free), generator=g, dtype=F64)
     J = fun.jacobian(x)
-    J_ref = torch.func.jacfwd(fun)(x)
+    J_ref = torch.autograd.functional.jacobian(fun, x)
     assert J.shape == J_ref.shape == (3 * n, len(free))
     assert float((J - J_ref).abs().max()) <= 1e-12 * float(J_ref.abs().max())
     # every column carries information (the test would pass trivially on zero columns)
     assert bool((J_ref.norm(dim=0) > 0).all())
+    # jacfwd differs only by the compliance's torque derivative (k dtau/dd) in the geometry and lever-arm columns
+    J_fwd = torch.func.jacfwd(fun)(x)
+    geo = torch.tensor([e.name in ("robot.geometry.delta", "robot.tool.delta") for e in free.entries for _ in e.index])
+    assert float((J - J_fwd)[:, ~geo].abs().max()) <= 1e-12 * float(J_ref.abs().max())
+    assert 0 < float((J - J_fwd)[:, geo].abs().max()) < 1e-4 * float(J_ref.abs().max())
 
 
 def test_lm_result_is_the_same_with_the_analytic_jacobian():
