@@ -375,10 +375,16 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     eff = cand.make()
     model.add(eff)
     label = eff.label()
+    # warm start: the validation refit has fitted the same model on 80 % of these poses; from there the refit on all
+    # of them takes a few iterations instead of repeating the crawl along the flat valleys of real data
+    warm = v.trial.state_dict()
+    if set(warm) == set(model.state_dict()):
+        model.load_state_dict(warm)
     try:
         new_fit = fit_on(model, train, label)
     except EstimationError as err:
         del model.effects[len(model.effects) - 1]
+        model.load_state_dict(before.state_dict())
         v.passed, v.rejected = False, True
         v.reason = f"confirmed on validation, but its joint refit on all training poses failed ({err})"
         _reject(run, diag, v)
