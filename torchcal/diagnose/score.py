@@ -31,6 +31,7 @@ from torchcal.diagnose.candidates import Candidate
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse
 from torchcal.estimate.lm import LMResult
+from torchcal.estimate.problem import linear_kinematics
 from torchcal.stats import chi2_sf_log10
 
 Tensor = torch.Tensor
@@ -73,8 +74,12 @@ class Score:
         }
 
 
-def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor) -> Tensor:
-    """Whitened Jacobian ``C (3N, k)`` of the predictions w.r.t. the candidate's parameters at zero."""
+def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor, fk=None) -> Tensor:
+    """Whitened Jacobian ``C (3N, k)`` of the predictions w.r.t. the candidate's parameters at zero.
+
+    ``fk``: the model's kinematics linearised at the current fit (:func:`~torchcal.estimate.problem.linear_kinematics`),
+    shared by all candidates: the same columns without differentiating the chain of every pose per candidate.
+    """
     eff = cand.make()
     trial = MeasurementModel(model.robot, [*model.effects, eff])
     i = len(model.effects)
@@ -85,7 +90,7 @@ def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p:
     def fun(theta: Tensor) -> Tensor:
         parts = torch.split(theta, sizes)
         params = {f"effects.{i}.{n}": v.reshape(s) for n, v, s in zip(names, parts, shapes)}
-        pred = torch.func.functional_call(trial, params, (ctx,))
+        pred = torch.func.functional_call(trial, params, (ctx,), {"fk": fk} if fk is not None else None)
         return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
 
     theta0 = torch.zeros(sum(sizes), dtype=torch.float64)
@@ -116,8 +121,9 @@ def score_candidates(
     Q, _ = torch.linalg.qr(J / scale)
     K = len(cands)
     out = []
+    fk = linear_kinematics(model, ctx) if cands else None
     for cand in cands:
-        C = candidate_columns(model, cand, ctx, p, W)
+        C = candidate_columns(model, cand, ctx, p, W, fk)
         if extra:
             C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype)])
         k = C.shape[1]
