@@ -118,7 +118,8 @@ def score_candidates(
     extra = len(r) - n_obs
     s0sq = result.sigma0_sq
     scale = J.norm(dim=0).clamp(min=1e-300)
-    Q, _ = torch.linalg.qr(J / scale)
+    Q, R1 = torch.linalg.qr(J / scale)
+    u = J.shape[1]
     K = len(cands)
     out = []
     fk = linear_kinematics(model, ctx) if cands else None
@@ -127,17 +128,21 @@ def score_candidates(
         if extra:
             C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype)])
         k = C.shape[1]
-        # analyse() on the triangular factor of [J, C]: orthogonal Q keeps every norm and angle, and the
-        # (u + k) x (u + k) factor makes the column walk cheap next to the 3N-row matrix
-        _, R = torch.linalg.qr(torch.cat([J / scale, C / C.norm(dim=0).clamp(min=1e-300)], dim=1))
-        ida = analyse(R, [f"x{i}" for i in range(J.shape[1] + k)], tol=tol)
-        indep = float(ida.independence[J.shape[1] :].min())
-        identifiable = bool(ida.free[J.shape[1] :].all())
+        # the part of the candidate's columns orthogonal to the current span (projected twice for round-off), and
+        # with it the triangular factor of [J, C] by blocks, [[R1, Q^T C], [0, R_c]]: analyse() on it sees every norm
+        # and angle of the 3N-row matrix (orthogonal factors keep them) without factorising [J, C] per candidate
         Cn = C / C.norm(dim=0).clamp(min=1e-300)
+        B = torch.zeros(u, k, dtype=C.dtype)
         for _ in range(2):
-            Cn = Cn - Q @ (Q.T @ Cn)
+            b = Q.T @ Cn
+            Cn = Cn - Q @ b
+            B = B + b
+        Qc, Rc = torch.linalg.qr(Cn)
+        R = torch.cat([torch.cat([R1, B], dim=1), torch.cat([torch.zeros(k, u, dtype=C.dtype), Rc], dim=1)])
+        ida = analyse(R, [f"x{i}" for i in range(u + k)], tol=tol)
+        indep = float(ida.independence[u:].min())
+        identifiable = bool(ida.free[u:].all())
         if identifiable:
-            Qc, Rc = torch.linalg.qr(Cn)
             keep = Rc.diagonal().abs() > tol
             dss = float((Qc[:, keep].T @ r).square().sum())
         else:
