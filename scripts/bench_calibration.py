@@ -8,9 +8,12 @@ noise; the ratio ``rmse_after / floor`` is the figure of merit (1.0 = as good as
 
     python scripts/bench_calibration.py [--seeds 5] [--json]
 
-With ``--stages DATA --robot R [--method kinematic] [--load]`` it instead times one calibration of DATA in a fresh
-process, stage by stage (import, robot, read, fit, report: wall and CPU seconds, peak resident memory after each),
-and with ``--load`` the same run again while a busy Python process holds one core; prints JSON.
+With ``--stages DATA --robot R [--method M ...] [--load]`` it instead times one calibration of DATA per method
+(default: ``auto``, then ``kinematic``) in a fresh process with one torch thread, stage by stage (import, robot, read,
+fit, report: wall and CPU seconds, peak resident memory after each; ``parts``: the nested stages of the default
+method -- screening, closed loop with its score tests, localisation and refits, learned stage with its kernel, GP and
+network fits, all least-squares fits), and with ``--load`` every run again while a busy Python process holds one core;
+``summary`` gives each method's wall time, its ratio to the last method's and the loaded/quiet ratio; prints JSON.
 """
 
 from __future__ import annotations
@@ -96,22 +99,61 @@ def one(seed: int, work: Path) -> dict:
 
 
 _STAGES = r"""
-import json, resource, sys, time
+import functools, json, resource, sys, time
 def now():
     r = resource.getrusage(resource.RUSAGE_SELF)
     return time.perf_counter(), r.ru_utime + r.ru_stime, r.ru_maxrss / 1024
-out, last = [], now()
+out, last, parts = [], now(), {}
 def mark(name):
     global last
     t = now()
     out.append({"stage": name, "wall_s": t[0] - last[0], "cpu_s": t[1] - last[1], "peak_mb": t[2]})
     last = t
+def timed(module, attr, name):
+    # wrap module.attr so that its calls add up under parts[name] (wall, CPU, calls, peak memory after them)
+    fn = getattr(module, attr)
+    @functools.wraps(fn)
+    def wrapper(*a, **k):
+        t0 = now()
+        try:
+            return fn(*a, **k)
+        finally:
+            t1 = now()
+            e = parts.setdefault(name, {"calls": 0, "wall_s": 0.0, "cpu_s": 0.0, "peak_mb": 0.0})
+            e["calls"] += 1
+            e["wall_s"] += t1[0] - t0[0]
+            e["cpu_s"] += t1[1] - t0[1]
+            e["peak_mb"] = t1[2]
+    setattr(module, attr, wrapper)
 import torch
 from torchcal import pipeline as C
 from torchcal.data import read_measurements
 from torchcal.report import write_run
 from torchcal.robot import load_robot
+from torchcal.pipeline import loop as L, learned as LS, run as R
+from torchcal.estimate import fit as EF
 mark("import")
+# the default method's stages (nested: the loop's refits are inside "closed loop", the learned stage's inside it)
+for mod, attr, name in [
+    (R, "screen_gross_errors", "screening"),
+    (R, "close_loop", "closed loop"),
+    (L, "score_candidates", "closed loop: score tests"),
+    (L, "localise_fit", "closed loop: localisation"),
+    (L, "open_candidates", "closed loop: open forms"),
+    (L, "_validate", "closed loop: validation refits"),
+    (L, "_accept", "closed loop: accepted refits"),
+    (L, "unexplained_entries", "closed loop: unexplained"),
+    (R, "learned_stage", "learned stage"),
+    (LS, "select_learned", "learned: selection"),
+    (LS, "refine_learned", "learned: alternating refits"),
+    (LS, "prune_named", "learned: pruning named effects"),
+    (LS, "fit_kernel_correction", "learned: kernel fits"),
+    (LS, "fit_gp_correction", "learned: GP fits"),
+    (LS, "fit_net", "learned: network fits"),
+    (EF, "levenberg_marquardt", "least squares of estimate.fit.solve"),
+]:
+    if hasattr(mod, attr):
+        timed(mod, attr, name)
 data_path, spec, method, out_dir = sys.argv[1:5]
 robot = load_robot(spec)
 mark("robot")
@@ -121,12 +163,19 @@ run = C.calibrate(robot, data, C.Options(method=method), robot_spec=spec)
 mark("fit")
 write_run(run, out_dir)
 mark("report")
-print(json.dumps({"stages": out, "rmse_holdout_mm": run.stages[-1].rmse * 1e3}))
+print(json.dumps({
+    "stages": out,
+    "parts": parts,
+    "rmse_holdout_mm": run.stages[-1].rmse * 1e3,
+    "rmse_geometric_mm": next(s.rmse for s in run.stages if s.name == "geometric") * 1e3,
+    "effects": [e.name for e in run.effects],
+}))
 """
 
 
 def stages(data: str, robot: str, method: str, work: Path) -> dict:
-    """One calibration in a fresh process (one torch thread), timed stage by stage."""
+    """One calibration in a fresh process (one torch thread), timed stage by stage; ``parts`` times the default
+    method's nested stages (closed loop, its score tests and refits, the learned stage, every least-squares fit)."""
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     t0 = time.perf_counter()
     proc = subprocess.run(
@@ -142,30 +191,62 @@ def stages(data: str, robot: str, method: str, work: Path) -> dict:
     return out
 
 
+def busy_process() -> subprocess.Popen:
+    """A competing process: one core's worth of a pure-Python busy loop."""
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def compare(data: str, robot: str, methods: list[str], load: bool, work: Path) -> dict:
+    """Each method quiet, then (with ``load``) each again beside a busy process; ratios to the first method."""
+    res: dict = {"data": data, "robot": robot, "methods": methods, "quiet": {}, "loaded": {}}
+    for m in methods:
+        res["quiet"][m] = stages(data, robot, m, work / f"q-{m.replace('+', '_')}")
+    if load:
+        busy = busy_process()
+        try:
+            for m in methods:
+                res["loaded"][m] = stages(data, robot, m, work / f"l-{m.replace('+', '_')}")
+        finally:
+            busy.kill()
+            busy.wait()
+    ref = methods[-1]
+    res["summary"] = {
+        m: {
+            "quiet_wall_s": res["quiet"][m]["total_wall_s"],
+            "quiet_peak_mb": res["quiet"][m]["peak_mb"],
+            "quiet_ratio_to_" + ref: res["quiet"][m]["total_wall_s"] / res["quiet"][ref]["total_wall_s"],
+            **(
+                {
+                    "loaded_wall_s": res["loaded"][m]["total_wall_s"],
+                    "loaded_over_quiet": res["loaded"][m]["total_wall_s"] / res["quiet"][m]["total_wall_s"],
+                }
+                if load
+                else {}
+            ),
+            "rmse_holdout_mm": res["quiet"][m]["rmse_holdout_mm"],
+            "effects": res["quiet"][m]["effects"],
+        }
+        for m in methods
+    }
+    return res
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
     ap.add_argument("--stages", metavar="DATA", help="time one calibration of DATA stage by stage instead")
     ap.add_argument("--robot", default="ur10")
-    ap.add_argument("--method", default="kinematic")
+    ap.add_argument(
+        "--method",
+        action="append",
+        help="with --stages: the method(s) to time, repeatable (default: auto and kinematic; ratios are to the last)",
+    )
     ap.add_argument("--load", action="store_true", help="with --stages: run again beside a busy process")
     args = ap.parse_args(argv)
     if args.stages:
         with tempfile.TemporaryDirectory() as tmp:
-            res = {
-                "data": args.stages,
-                "robot": args.robot,
-                "method": args.method,
-                "quiet": stages(args.stages, args.robot, args.method, Path(tmp)),
-            }
-            if args.load:
-                busy = subprocess.Popen([sys.executable, "-c", "while True: pass"])
-                try:
-                    res["loaded"] = stages(args.stages, args.robot, args.method, Path(tmp))
-                finally:
-                    busy.kill()
-                    busy.wait()
+            res = compare(args.stages, args.robot, args.method or ["auto", "kinematic"], args.load, Path(tmp))
         print(json.dumps(res))
         return res
     torch.set_num_threads(2)

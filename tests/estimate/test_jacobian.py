@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.effects import Compliance, Context, MeasurementModel
+from torchcal.effects import Backlash, Compliance, Context, Cyclic, Drift, MeasurementModel
 from torchcal.estimate.lm import levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.robot import transforms as tf
@@ -86,7 +86,7 @@ def test_chunked_jacfwd_equals_the_whole_jacfwd_with_effects():
         for par in eff.parameters():
             par.fill_(2e-6)
     model, free, ctx, p, W = _problem(robot, n=37, effects=[eff])
-    fun = residual_function(model, free, ctx, p, W, chunk=8)  # 37 poses: 4 full chunks and a short one
+    fun = residual_function(model, free, ctx, p, W, chunk=8, linear=False)  # 37 poses: 4 full chunks and a short one
     assert any(name.startswith("effects.") for name in (e.name for e in free.entries))
     x = free.vector()
     J = fun.jacobian(x)
@@ -94,6 +94,48 @@ def test_chunked_jacfwd_equals_the_whole_jacfwd_with_effects():
     assert float((J - J_ref).abs().max()) <= 1e-12 * float(J_ref.abs().max())
     assert jacobian_of(fun) is fun.jacobian
     assert jacobian_of(lambda v: v) is not None  # a plain function falls back to jacfwd
+
+
+@pytest.mark.parametrize("spec", ["ur10", str(URDFS / "panda.urdf")])
+def test_linearised_kinematics_jacobian_equals_jacfwd_with_every_kind_of_effect(spec):
+    """Joint effects, a Cartesian scale drift and an instrument drift: the kinematics replaced by its tangent gives
+    reverse-mode autograd's Jacobian of the whole model (the regressors, computed under no_grad, are constants), and
+    jacfwd's wherever no regressor depends on the geometry (jacfwd ignores no_grad)."""
+    robot = _perturbed(spec)
+    g = torch.Generator().manual_seed(6)
+    effects = [
+        Compliance(joint=2, k=2e-6),
+        Backlash(joint=3, b=1e-4),
+        Cyclic(2, harmonics=(1, 2), a=1e-4 * torch.randn(2, generator=g, dtype=F64), b=torch.zeros(2, dtype=F64)),
+        Drift("temperature", "scale", rates=torch.tensor([3e-5], dtype=F64), reference=20.0),
+        Drift("t", "instrument", rates=1e-6 * torch.randn(6, generator=g, dtype=F64)),
+    ]
+    n = 33
+    lo, hi = robot.limits[:, 0].clamp(min=-3.0), robot.limits[:, 1].clamp(max=3.0)
+    q = lo + (hi - lo) * torch.rand(n, robot.dof, generator=g, dtype=F64)
+    ctx = Context(q=q, t=torch.linspace(0, 3600, n, dtype=F64), temperature=20 + torch.rand(n, generator=g, dtype=F64))
+    model = MeasurementModel(robot, effects)
+    with torch.no_grad():
+        p = model(ctx) + 2e-5 * torch.randn(n, 3, generator=g, dtype=F64)
+    W = whitening(model, ctx, None, 15e-6, 8.7e-6)
+    sel = {f"robot.{k}.delta": grp.mask for k, grp in robot.groups().items()}
+    for i, e in enumerate(model.effects):
+        for name, par in e.named_parameters(recurse=False):
+            sel[f"effects.{i}.{name}"] = torch.ones(par.shape, dtype=torch.bool)
+    free = FreeParameters(model, sel)
+    fun = residual_function(model, free, ctx, p, W)
+    x = free.vector() + 1e-5 * torch.randn(len(free), generator=g, dtype=F64)
+    J = fun.jacobian(x)
+    J_ref = torch.autograd.functional.jacobian(fun, x)
+    assert J.shape == J_ref.shape == (3 * n, len(free))
+    assert float((J - J_ref).abs().max()) <= 1e-12 * float(J_ref.abs().max())
+    # every column carries information (the test would pass trivially on zero columns)
+    assert bool((J_ref.norm(dim=0) > 0).all())
+    # jacfwd differs only by the compliance's torque derivative (k dtau/dd) in the geometry and lever-arm columns
+    J_fwd = torch.func.jacfwd(fun)(x)
+    geo = torch.tensor([e.name in ("robot.geometry.delta", "robot.tool.delta") for e in free.entries for _ in e.index])
+    assert float((J - J_fwd)[:, ~geo].abs().max()) <= 1e-12 * float(J_ref.abs().max())
+    assert 0 < float((J - J_fwd)[:, geo].abs().max()) < 1e-4 * float(J_ref.abs().max())
 
 
 def test_lm_result_is_the_same_with_the_analytic_jacobian():

@@ -10,7 +10,7 @@ acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
 A candidate is left out, with the reason recorded, where it cannot matter: a joint whose
 motion does not move the probe (less than 0.1 mm per radian), a regressor that is constant
 over the data (then the effect is a joint offset or an instrument pose the geometry already
-has), a variable the file does not have.
+has; a gravity torque of round-off size has no loaded flank either), a variable the file does not have.
 """
 
 from __future__ import annotations
@@ -128,6 +128,10 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
             out.append(Candidate("compliance", j))
         if ctx.direction is None and tau is None:
             skip(f"backlash:{j}", "static poses and no link masses: the loaded flank is unknown")
+        elif ctx.direction is None and not _varies(tau[:, j - 1]):
+            # a wrist joint whose link masses sit on its axis has a torque of round-off size: its sign (the flank) is
+            # noise, and a 'backlash' fitted to it is an artefact of the arithmetic
+            skip(f"backlash:{j}", f"the gravity torque at joint {j} is zero up to round-off: no loaded flank")
         else:
             flank = Backlash(j, source="auto").regressor(robot, ctx)
             if bool((flank == flank[0]).all()):

@@ -31,6 +31,7 @@ from torchcal.diagnose.candidates import Candidate
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse
 from torchcal.estimate.lm import LMResult
+from torchcal.estimate.problem import linear_kinematics
 from torchcal.stats import chi2_sf_log10
 
 Tensor = torch.Tensor
@@ -73,8 +74,12 @@ class Score:
         }
 
 
-def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor) -> Tensor:
-    """Whitened Jacobian ``C (3N, k)`` of the predictions w.r.t. the candidate's parameters at zero."""
+def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p: Tensor, W: Tensor, fk=None) -> Tensor:
+    """Whitened Jacobian ``C (3N, k)`` of the predictions w.r.t. the candidate's parameters at zero.
+
+    ``fk``: the model's kinematics linearised at the current fit (:func:`~torchcal.estimate.problem.linear_kinematics`),
+    shared by all candidates: the same columns without differentiating the chain of every pose per candidate.
+    """
     eff = cand.make()
     trial = MeasurementModel(model.robot, [*model.effects, eff])
     i = len(model.effects)
@@ -85,7 +90,7 @@ def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p:
     def fun(theta: Tensor) -> Tensor:
         parts = torch.split(theta, sizes)
         params = {f"effects.{i}.{n}": v.reshape(s) for n, v, s in zip(names, parts, shapes)}
-        pred = torch.func.functional_call(trial, params, (ctx,))
+        pred = torch.func.functional_call(trial, params, (ctx,), {"fk": fk} if fk is not None else None)
         return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
 
     theta0 = torch.zeros(sum(sizes), dtype=torch.float64, device=p.device)
@@ -113,25 +118,31 @@ def score_candidates(
     extra = len(r) - n_obs
     s0sq = result.sigma0_sq
     scale = J.norm(dim=0).clamp(min=1e-300)
-    Q, _ = torch.linalg.qr(J / scale)
+    Q, R1 = torch.linalg.qr(J / scale)
+    u = J.shape[1]
     K = len(cands)
     out = []
+    fk = linear_kinematics(model, ctx) if cands else None
     for cand in cands:
-        C = candidate_columns(model, cand, ctx, p, W)
+        C = candidate_columns(model, cand, ctx, p, W, fk)
         if extra:
             C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype, device=C.device)])
         k = C.shape[1]
-        # analyse() on the triangular factor of [J, C]: orthogonal Q keeps every norm and angle, and the
-        # (u + k) x (u + k) factor makes the column walk cheap next to the 3N-row matrix
-        _, R = torch.linalg.qr(torch.cat([J / scale, C / C.norm(dim=0).clamp(min=1e-300)], dim=1))
-        ida = analyse(R, [f"x{i}" for i in range(J.shape[1] + k)], tol=tol)
-        indep = float(ida.independence[J.shape[1] :].min())
-        identifiable = bool(ida.free[J.shape[1] :].all())
+        # the part of the candidate's columns orthogonal to the current span (projected twice for round-off), and
+        # with it the triangular factor of [J, C] by blocks, [[R1, Q^T C], [0, R_c]]: analyse() on it sees every norm
+        # and angle of the 3N-row matrix (orthogonal factors keep them) without factorising [J, C] per candidate
         Cn = C / C.norm(dim=0).clamp(min=1e-300)
+        B = torch.zeros(u, k, dtype=C.dtype)
         for _ in range(2):
-            Cn = Cn - Q @ (Q.T @ Cn)
+            b = Q.T @ Cn
+            Cn = Cn - Q @ b
+            B = B + b
+        Qc, Rc = torch.linalg.qr(Cn)
+        R = torch.cat([torch.cat([R1, B], dim=1), torch.cat([torch.zeros(k, u, dtype=C.dtype), Rc], dim=1)])
+        ida = analyse(R, [f"x{i}" for i in range(u + k)], tol=tol)
+        indep = float(ida.independence[u:].min())
+        identifiable = bool(ida.free[u:].all())
         if identifiable:
-            Qc, Rc = torch.linalg.qr(Cn)
             keep = Rc.diagonal().abs() > tol
             dss = float((Qc[:, keep].T @ r).square().sum())
         else:

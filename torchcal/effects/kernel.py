@@ -18,6 +18,8 @@ validation data (:func:`fit_kernel_correction`).
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from torchcal.effects.base import Context, Effect
@@ -95,8 +97,13 @@ def joint_metric(robot, q: Tensor) -> Tensor:
         return J.norm(dim=1).square().mean(0).sqrt()
 
 
-def _solve(q: Tensor, y: Tensor, metric: Tensor, lam: float) -> Tensor:
-    K = torch.exp(-0.5 * torch.cdist(q * metric, q * metric).square())
+def _gram(q: Tensor, metric: Tensor) -> Tensor:
+    return torch.exp(-0.5 * torch.cdist(q * metric, q * metric).square())
+
+
+def _solve(q: Tensor, y: Tensor, metric: Tensor, lam: float, gram: Tensor | None = None) -> Tensor:
+    """``(K + lam I)^-1 y``; ``gram``: ``K`` of ``q`` under ``metric`` when already computed (not modified)."""
+    K = _gram(q, metric) if gram is None else gram.clone()
     K.diagonal().add_(lam)
     L, info = torch.linalg.cholesky_ex(K)
     if int(info) != 0:
@@ -114,12 +121,17 @@ def fit_kernel_correction(
     seed: int = 0,
     length_scales=LENGTH_SCALES,
     noise_ratios=NOISE_RATIOS,
+    start: tuple[float, float] | None = None,
 ) -> tuple[KernelCorrection, dict]:
     """Choose ``l`` and ``lambda`` on the validation poses, then fit on all of ``q, y`` (+ validation).
 
     Args:
         q, y: training joints ``(N, dof)`` and corrections ``(N, 3)`` [m, base frame].
         q_val, y_val: validation poses.
+        start: ``(l, lambda)`` of an earlier fit to the same kind of data (a refit after the geometry moved a
+            little): the grid is then searched locally from the nearest setting, moving to the best of the four
+            neighbours until none is better, instead of tried in full (each setting is an ``N x N`` Cholesky
+            factorisation; ``grid`` lists the settings tried).
 
     Returns:
         The fitted effect (support = training + validation poses, at most :data:`MAX_SUPPORT`) and a
@@ -136,17 +148,43 @@ def fit_kernel_correction(
         return qq[idx], yy[idx]
 
     qs, ys = subset(q, y)
-    grid, best_errors = [], None
-    for ell in length_scales:
-        metric = scale / ell
-        Kv = torch.exp(-0.5 * torch.cdist(q_val * metric, qs * metric).square())
-        for lam in noise_ratios:
-            e = (y_val - Kv @ _solve(qs, ys, metric, lam)).norm(dim=-1)
-            rmse = float(e.square().mean().sqrt())
-            grid.append({"length_scale_m": ell, "noise_ratio": lam, "val_rmse_m": rmse})
-            if best_errors is None or rmse < float(best_errors.square().mean().sqrt()):
-                best_errors = e
-    best = min(grid, key=lambda r: r["val_rmse_m"])
+    grams: dict[int, tuple[Tensor, Tensor]] = {}  # per length scale: K of the support, K(validation, support)
+    tried: dict[tuple[int, int], tuple[dict, Tensor]] = {}
+
+    def evaluate(i: int, j: int) -> float:
+        if (i, j) not in tried:
+            metric = scale / length_scales[i]
+            if i not in grams:
+                while len(grams) >= 2:  # each is N x N: keep the current length scale's and one more
+                    grams.pop(next(iter(grams)))
+                grams[i] = (_gram(qs, metric), torch.exp(-0.5 * torch.cdist(q_val * metric, qs * metric).square()))
+            K, Kv = grams[i]
+            e = (y_val - Kv @ _solve(qs, ys, metric, noise_ratios[j], gram=K)).norm(dim=-1)
+            row = {"length_scale_m": length_scales[i], "noise_ratio": noise_ratios[j]}
+            tried[(i, j)] = ({**row, "val_rmse_m": float(e.square().mean().sqrt())}, e)
+        return tried[(i, j)][0]["val_rmse_m"]
+
+    if start is None:
+        for i in range(len(length_scales)):
+            for j in range(len(noise_ratios)):
+                evaluate(i, j)
+    else:
+
+        def nearest(values, v):
+            return min(range(len(values)), key=lambda k: abs(math.log(values[k] / v)))
+
+        at = (nearest(length_scales, start[0]), nearest(noise_ratios, start[1]))
+        while True:
+            around = [(at[0] + di, at[1] + dj) for di, dj in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))]
+            around = [(i, j) for i, j in around if 0 <= i < len(length_scales) and 0 <= j < len(noise_ratios)]
+            step = min(around, key=lambda ij: evaluate(*ij))
+            if step == at:
+                break
+            at = step
+    # in the order of the full grid, so that ties go the same way as in a full search
+    grid = [tried[k][0] for k in sorted(tried)]
+    best_key = min(sorted(tried), key=lambda k: tried[k][0]["val_rmse_m"])
+    best, best_errors = tried[best_key]
     qa, ya = subset(torch.cat([q, q_val]), torch.cat([y, y_val]))
     eff = KernelCorrection(q.shape[1], len(qa)).to(q.device)
     metric = scale / best["length_scale_m"]

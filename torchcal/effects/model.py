@@ -41,19 +41,23 @@ class MeasurementModel(nn.Module):
                 dq = dq + e(self.robot, ctx)
         return dq
 
-    def probe_in_base(self, ctx: Context, *, with_cartesian: bool = True) -> Tensor:
-        """Probe position in the base frame ``(N, 3)`` with joint and Cartesian effects applied."""
+    def probe_in_base(self, ctx: Context, *, with_cartesian: bool = True, fk=None) -> Tensor:
+        """Probe position in the base frame ``(N, 3)`` with joint and Cartesian effects applied.
+
+        ``fk(robot, q) -> (N, 3)`` replaces the robot's own kinematics (the estimators pass a linearisation of it
+        to differentiate everything else cheaply, :func:`torchcal.estimate.problem.residual_function`).
+        """
         q = ctx.q + self.joint_offsets(ctx)
-        p = self.robot.probe_in_base(q)
+        p = self.robot.probe_in_base(q) if fk is None else fk(self.robot, q)
         if with_cartesian:
             for e in self.effects:
                 if e.acts_on == Acts.CARTESIAN:
                     p = p + e(self.robot, ctx, p_base=p)
         return p
 
-    def forward(self, ctx: Context) -> Tensor:
-        """Probe position in the tracker frame ``(N, 3)`` [m]."""
-        p = self.probe_in_base(ctx)
+    def forward(self, ctx: Context, fk=None) -> Tensor:
+        """Probe position in the tracker frame ``(N, 3)`` [m] (``fk``: see :meth:`probe_in_base`)."""
+        p = self.probe_in_base(ctx, fk=fk)
         T = self.robot.T_tracker_base()
         inst = [e for e in self.effects if e.acts_on == Acts.INSTRUMENT]
         if not inst:

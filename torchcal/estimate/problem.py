@@ -127,6 +127,7 @@ def residual_function(
     W: Tensor,
     prior_sigma: Tensor | None = None,
     chunk: int = JACOBIAN_CHUNK,
+    linear: bool = True,
 ):
     """``x -> r(x)``: whitened residuals ``W_i (f_i(x) - p_i)`` flattened to ``(3N,)``.
 
@@ -136,7 +137,11 @@ def residual_function(
     The returned function carries its Jacobian ``fun.jacobian: x -> J (3N [+ priors], u)`` (used by
     :func:`~torchcal.estimate.lm.levenberg_marquardt` and :func:`jacobian_of`): analytic
     (:meth:`~torchcal.robot.model.RobotModel.tracker_jacobian`) when the model has no effects and only
-    the robot's groups are free, else ``torch.func.jacfwd`` over ``chunk`` poses at a time.
+    the robot's groups are free; with effects, ``torch.func.jacfwd`` of the model with its kinematics replaced by
+    their tangent at ``x`` (:func:`linear_kinematics`: the same derivatives, without pushing every parameter's
+    tangent through the chain of every pose; what effects compute from the robot under ``no_grad`` stays constant,
+    as in reverse-mode autograd); with ``linear=False`` ``jacfwd`` of the whole model over ``chunk`` poses at a time
+    (which also differentiates through ``no_grad``).
     """
     has_prior = prior_sigma is not None and bool(torch.isfinite(prior_sigma).any())
     if has_prior:
@@ -159,6 +164,24 @@ def residual_function(
     analytic = len(model.effects) == 0 and all(e.name in _ROBOT_GROUPS for e in free.entries)
     columns = [(_ROBOT_GROUPS[e.name], int(i)) for e in free.entries for i in e.index] if analytic else []
 
+    def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
+        # exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the
+        # whitening (constant) applied to the (N, 3, u) prediction Jacobian after it. The geometry and the lever arm
+        # reach the prediction through fk only: the module sees their plain values, so what an effect computes from
+        # the robot under no_grad (a compliance's gravity torque) stays a constant, as reverse-mode autograd has it
+        # (forward-mode transforms ignore no_grad and would push every tangent through the torque's chain too)
+        at = free.params(x)
+        fk = linear_kinematics(model, c, at)
+
+        def pred(y: Tensor) -> Tensor:
+            params = free.params(y)
+            d = _corrections(model.robot, params)
+            plain = {k: at[k] if k in _KINEMATIC else v for k, v in params.items()}
+            return torch.func.functional_call(model, plain, (c,), {"fk": lambda rb, q: fk(rb, q, d)})
+
+        Jp = torch.func.jacfwd(pred)(x)
+        return (WW @ Jp.detach()).reshape(-1, len(x))
+
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
         n = ctx.q.shape[0]
@@ -166,6 +189,8 @@ def residual_function(
             values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items()}
             _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values)
             J = (W @ Jp).reshape(3 * n, len(x))
+        elif linear:
+            J = linearised(x, ctx, W)
         else:
             parts = []
             for lo in range(0, n, max(1, int(chunk))):
@@ -177,6 +202,60 @@ def residual_function(
 
     fun.jacobian = jacobian
     return fun
+
+
+def linear_kinematics(model: MeasurementModel, ctx: Context, params: dict[str, Tensor] | None = None):
+    """The robot's kinematics linearised at the model's current joint angles: ``fk(robot, q) -> (N, 3)`` for
+    :meth:`MeasurementModel.forward <torchcal.effects.model.MeasurementModel.forward>`.
+
+    ``fk(robot, q[, d]) = p0 + J_q (q - q0) + J_d (d - d0)``: ``q0 (N, dof)`` the joint angles with the joint
+    effects applied, ``p0 (N, 3)`` the probe in the base frame there, ``J_q (N, 3, dof)`` the joint Jacobian, ``d``
+    the geometry and lever-arm corrections (flat; read from ``robot`` when not given) and ``J_d (N, 3, k)`` their
+    base-frame Jacobian
+    (:meth:`~torchcal.robot.model.RobotModel.tracker_jacobian`). Its value and first derivatives at the
+    current point equal the kinematics', so ``jacfwd`` of a model with ``fk`` in place gives the exact Jacobian;
+    the chain of rotations, the costly part, is evaluated twice instead of once per parameter.
+
+    Args:
+        model: the measurement model.
+        ctx: the samples.
+        params: parameter values to linearise at (qualified name -> tensor, as for ``functional_call``);
+            default the model's own.
+    """
+    out: dict[str, Tensor] = {}
+
+    def record(rb, q: Tensor) -> Tensor:
+        q = q.detach()
+        cols = [(g, i) for g in ("geometry", "tool") for i in range(rb.groups()[g].delta.numel())]
+        p_tr, J = rb.tracker_jacobian(q, cols)
+        R = rb.T_tracker_base()[:3, :3]
+        pb, Jq = rb.probe_jacobian(q)
+        out.update(q=q, p=pb, Jq=Jq, Jd=R.T @ J, d=_corrections(rb))
+        return pb
+
+    with torch.no_grad():
+        torch.func.functional_call(model, params or {}, (ctx,), {"fk": record})
+    q0, p0, Jq, Jd, d0 = out["q"], out["p"], out["Jq"], out["Jd"], out["d"]
+
+    def fk(rb, q: Tensor, d: Tensor | None = None) -> Tensor:
+        # under torch.func these become one batched product over the poses and one plain matrix product (measured
+        # faster than elementwise products and sums, or einsum)
+        dq = (Jq @ (q - q0).unsqueeze(-1)).squeeze(-1)
+        d = _corrections(rb) if d is None else d
+        return p0 + dq + (Jd.reshape(-1, Jd.shape[-1]) @ (d - d0)).reshape(p0.shape)
+
+    return fk
+
+
+#: the parameters :func:`linear_kinematics` carries: geometry and lever-arm corrections
+_KINEMATIC = ("robot.geometry.delta", "robot.tool.delta")
+
+
+def _corrections(robot, params: dict[str, Tensor] | None = None) -> Tensor:
+    """The geometry and lever-arm corrections of ``robot`` as one flat vector (``params``' values where given)."""
+    params = params or {}
+    parts = [params.get(k, getattr(robot, k.split(".")[1]).delta) for k in _KINEMATIC]
+    return torch.cat([v.reshape(-1) for v in parts])
 
 
 def jacobian_of(fun):

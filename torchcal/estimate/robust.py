@@ -60,7 +60,7 @@ from torchcal.errors import EstimationError
 from torchcal.estimate.fit import FAILED, selection
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
-from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
+from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import robust_instrument_and_tool
 
 Tensor = torch.Tensor
@@ -143,14 +143,24 @@ def _expand(w: Tensor, group: int, m_total: int) -> Tensor:
 
 
 def _weighted(fun: Callable[[Tensor], Tensor], sqrt_w: Tensor, group: int) -> Callable[[Tensor], Tensor]:
+    """``fun``'s residuals times the groups' ``sqrt_w``; its Jacobian is ``fun``'s (analytic where it has one) with
+    the same row factors."""
     cache = {}
+
+    def factors(m: int) -> Tensor:
+        if "s" not in cache:
+            cache["s"] = _expand(sqrt_w, group, m)
+        return cache["s"]
 
     def f(x: Tensor) -> Tensor:
         r = fun(x)
-        if "s" not in cache:
-            cache["s"] = _expand(sqrt_w, group, r.shape[-1])
-        return r * cache["s"]
+        return r * factors(r.shape[-1])
 
+    def jacobian(x: Tensor) -> Tensor:
+        J = jacobian_of(fun)(x)
+        return J * factors(J.shape[0])[:, None]
+
+    f.jacobian = jacobian
     return f
 
 
@@ -178,7 +188,7 @@ def snooping_statistics(
     """
     n = len(kept)
     m = n * group
-    J = (jacobian or torch.func.jacfwd(fun))(x).detach()
+    J = (jacobian or jacobian_of(fun))(x).detach()
     r = fun(x).detach()
     rows = _expand(kept.to(F64), group, len(r)) > 0
     Jk = J[rows]
@@ -433,7 +443,7 @@ def screen_geometric(
     sel, labels = selection(model, groups)
     free = FreeParameters(model, sel, labels)
     fun = residual_function(model, free, ctx, train.p, W)
-    J = torch.func.jacfwd(fun)(free.vector())  # the Jacobian does not depend on the measured points
+    J = jacobian_of(fun)(free.vector())  # the Jacobian does not depend on the measured points
     ida = analyse(J, free.names, preference_order(free.names), tol=rank_tol)
     sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())))
     free = FreeParameters(model, sel, labels)
@@ -462,7 +472,7 @@ def screen_geometric(
     Wh = whitening(model, hctx, hold.sigma, sigma_tracker, sigma_joint)
     hfun = residual_function(model, free, hctx, hold.p, Wh)
     x = free.vector()
-    Jh = torch.func.jacfwd(hfun)(x).reshape(hold.n, 3, -1)
+    Jh = jacobian_of(hfun)(x).reshape(hold.n, 3, -1)
     Q = res.result.cofactor
     with torch.no_grad():
         pred = model(hctx)

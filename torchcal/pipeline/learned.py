@@ -241,7 +241,13 @@ def _refit_with_learned(
         e_val = info["val_errors"]
     else:
         new, info = fit_kernel_correction(
-            model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
+            model.robot,
+            train.q[fi],
+            corr[fi],
+            q_val=train.q[va],
+            y_val=corr[va],
+            seed=opts.seed,
+            start=(float(eff.length_scale), float(eff.noise_ratio)),  # speed (issue 14.3): a local search from there
         )
         model.effects[index] = new
         e_val = info["val_errors"]

@@ -256,12 +256,23 @@ def close_loop(
         if not passed:
             diag.stop = f"round {rnd}: no significant candidate passed validation"
             break
-        # the candidate that validates best; the others stay untried for the next round
-        accepted = _choose(passed, trajectory, alpha_val, run)
+        # the candidate chosen on validation (ties by BIC); the others stay untried for the next round. One whose
+        # refit on all the training poses fails (rank deficient there, at the edge of what the fitting poses allowed)
+        # is rejected and the next choice among the rest takes its place
+        accepted = None
+        remaining = list(passed)
+        while remaining:
+            v = _choose(remaining, trajectory, alpha_val, run)
+            if _accept(run, diag, v, fit_on, train):
+                accepted = v
+                break
+            remaining.remove(v)
+        if accepted is None:
+            diag.stop = f"round {rnd}: no confirmed candidate could be refitted on all training poses"
+            break
         for v in passed:
-            if v is not accepted:
+            if v is not accepted and not v.rejected:
                 (tried_open if isinstance(v.candidate, OpenCandidate) else tried).discard(v.candidate.name)
-        _accept(run, diag, accepted, fit_on, train)
         accepted_names.add(accepted.candidate.name)
         base, e_base = accepted.trial, accepted.errors
     else:
@@ -288,6 +299,7 @@ class _Validation:
     passed: bool
     reason: str
     bic: float = float("nan")  # BIC of the trial's fit on the fitting poses (n ln(RSS / n) + k ln n, whitened)
+    rejected: bool = False  # confirmed on validation, but its refit on all training poses failed
 
 
 def _validate(
@@ -387,14 +399,31 @@ def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
     run.notes.append(f"diagnosis: {cand.name} rejected, {v.reason}")
 
 
-def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> None:
-    """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it."""
+def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> bool:
+    """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it.
+
+    Returns False, with the candidate rejected and the model as it was, when the refit fails (the solver writes
+    no parameter then).
+    """
     model, s, cand = run.model, v.score, v.candidate
     before = copy.deepcopy(model)
     eff = cand.make()
     model.add(eff)
     label = eff.label()
-    new_fit = fit_on(model, train, label)
+    # warm start: the validation refit has fitted the same model on 80 % of these poses; from there the refit on all
+    # of them takes a few iterations instead of repeating the crawl along the flat valleys of real data
+    warm = v.trial.state_dict()
+    if set(warm) == set(model.state_dict()):
+        model.load_state_dict(warm)
+    try:
+        new_fit = fit_on(model, train, label)
+    except EstimationError as err:
+        del model.effects[len(model.effects) - 1]
+        model.load_state_dict(before.state_dict())
+        v.passed, v.rejected = False, True
+        v.reason = f"confirmed on validation, but its joint refit on all training poses failed ({err})"
+        _reject(run, diag, v)
+        return False
     run.fits.append(new_fit)
     st_before = run.stages[-1]
     st_after = run.add_stage(label)
@@ -434,3 +463,4 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
         f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
+    return True

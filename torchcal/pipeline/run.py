@@ -42,6 +42,7 @@ import torch
 from torchcal import _console
 from torchcal import stats as S
 from torchcal._device import resolve_device
+from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
@@ -265,7 +266,10 @@ def calibrate(
     # 3. the closed loop: named effects the residuals demand, each refitted jointly and confirmed on validation
     if opts.method == "auto" and opts.diagnose:
         _console.info("diagnosis: score tests of the candidate effects, joint refits, validation")
-        close_loop(run, train, trajectory, alpha=opts.alpha, alpha_val=opts.alpha_validation)
+        # small kernels throughout (u x u solves, one pass over the poses, score tests, smooths): one thread, so that
+        # another process on the machine does not multiply the time (torch's threads spin while one waits for a core)
+        with torch_threads(1):
+            close_loop(run, train, trajectory, alpha=opts.alpha, alpha_val=opts.alpha_validation)
 
     # 4. a learned residual model where the data demand it
     if opts.method == "auto" and opts.learned:
@@ -291,20 +295,21 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
     from torchcal.estimate.robust import screen_geometric
 
     _console.info("screening for gross errors: robust geometric fit, data snooping")
-    sc = screen_geometric(
-        MeasurementModel(robot),
-        data.subset(tr),
-        data.subset(ho),
-        sigma_tracker=opts.sigma_tracker,
-        sigma_joint=opts.sigma_joint,
-        trajectory=trajectory,
-        rank_tol=opts.rank_tol,
-        prior_length=opts.prior_length,
-        prior_angle=opts.prior_angle,
-        alpha=opts.outlier_alpha,
-        max_iter=opts.max_iter,
-        stat_tol=opts.stat_tol,
-    )
+    with torch_threads(1):  # small kernels (robust reweighting, u x u solves): one thread, as in close_loop
+        sc = screen_geometric(
+            MeasurementModel(robot),
+            data.subset(tr),
+            data.subset(ho),
+            sigma_tracker=opts.sigma_tracker,
+            sigma_joint=opts.sigma_joint,
+            trajectory=trajectory,
+            rank_tol=opts.rank_tol,
+            prior_length=opts.prior_length,
+            prior_angle=opts.prior_angle,
+            alpha=opts.outlier_alpha,
+            max_iter=opts.max_iter,
+            stat_tol=opts.stat_tol,
+        )
     for name, part in (("training", sc.training), ("held-out", sc.holdout)):
         if part.rejected:
             lines = ", ".join(str(r.line) for r in part.rejected[:10]) + (" ..." if len(part.rejected) > 10 else "")

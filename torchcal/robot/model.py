@@ -454,23 +454,25 @@ class RobotModel(nn.Module):
         ``tau_j = z_j . sum_{k >= j} (c_k - o_j) x (m_k g)`` with ``z_j, o_j`` the axis and a point
         of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe.
         """
-        F, T_flange = self.joint_frames(q)
-        com = tf.transform_points(F, self.coms)  # (..., dof, 3)
-        mg = torch.zeros(3, dtype=q.dtype, device=q.device)
-        mg[2] = -GRAVITY
-        force = self.masses[:, None] * mg  # (dof, 3)
-        axes_w = (F[..., :3, :3] @ self.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (..., dof, 3)
-        origins_w = F[..., :3, 3]
-        # moment of link k about joint j, summed over k >= j (suffix sums)
-        rel = com.unsqueeze(-3) - origins_w.unsqueeze(-2)  # (..., j, k, 3)
-        moments = torch.linalg.cross(rel, force.expand_as(rel))
-        upper = torch.triu(torch.ones(self.dof, self.dof, dtype=torch.bool, device=q.device))
-        total = (moments * upper[..., None]).sum(-2)  # (..., j, 3)
+        q = self._check_q(q)
+        Rs, ts, R_flange, t_flange = self._chain(q, self.geometry.origins(), frames=True)
+        R = torch.stack(Rs, dim=-3)  # (..., dof, 3, 3)
+        origins_w = torch.stack(ts, dim=-2)  # (..., dof, 3)
+        com = (R @ self.coms.unsqueeze(-1)).squeeze(-1) + origins_w  # (..., dof, 3)
+        axes_w = (R @ self.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (..., dof, 3)
+        # sum_{k >= j} (c_k - o_j) x f_k = sum_{k >= j} c_k x f_k - o_j x sum_{k >= j} f_k with f_k = m_k g:
+        # suffix sums over the links, linear in the joints instead of a (dof x dof) table per pose
+        w = -GRAVITY * self.masses  # (dof,) z-components of the link weights
         if payload:
-            p = tf.transform_points(T_flange, self.t_flange_probe())
-            arm = p.unsqueeze(-2) - origins_w
-            total = total + torch.linalg.cross(arm, (payload * mg).expand_as(arm))
-        return (total * axes_w).sum(-1)
+            p = (R_flange @ self.t_flange_probe().unsqueeze(-1)).squeeze(-1) + t_flange
+            com = torch.cat([com, p.unsqueeze(-2)], dim=-2)
+            w = torch.cat([w, w.new_tensor([-GRAVITY * payload])])
+        # c x (0, 0, w) = w (c_y, -c_x, 0)
+        m_xy = torch.stack([com[..., 1], -com[..., 0]], dim=-1) * w.unsqueeze(-1)  # (..., links, 2)
+        suffix = m_xy.flip(-2).cumsum(-2).flip(-2)[..., : self.dof, :]  # (..., dof, 2)
+        W = w.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof,)
+        total_xy = suffix - torch.stack([origins_w[..., 1], -origins_w[..., 0]], dim=-1) * W.unsqueeze(-1)
+        return (total_xy * axes_w[..., :2]).sum(-1)
 
     # ------------------------------------------------------------- parameters
     def groups(self) -> dict[str, _Group]:
