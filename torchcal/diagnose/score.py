@@ -132,13 +132,15 @@ def score_candidates(
         # with it the triangular factor of [J, C] by blocks, [[R1, Q^T C], [0, R_c]]: analyse() on it sees every norm
         # and angle of the 3N-row matrix (orthogonal factors keep them) without factorising [J, C] per candidate
         Cn = C / C.norm(dim=0).clamp(min=1e-300)
-        B = torch.zeros(u, k, dtype=C.dtype)
+        B = torch.zeros(u, k, dtype=C.dtype, device=C.device)
         for _ in range(2):
             b = Q.T @ Cn
             Cn = Cn - Q @ b
             B = B + b
         Qc, Rc = torch.linalg.qr(Cn)
-        R = torch.cat([torch.cat([R1, B], dim=1), torch.cat([torch.zeros(k, u, dtype=C.dtype), Rc], dim=1)])
+        R = torch.cat(
+            [torch.cat([R1, B], dim=1), torch.cat([torch.zeros(k, u, dtype=C.dtype, device=C.device), Rc], dim=1)]
+        )
         ida = analyse(R, [f"x{i}" for i in range(u + k)], tol=tol)
         indep = float(ida.independence[u:].min())
         identifiable = bool(ida.free[u:].all())
