@@ -803,7 +803,7 @@ def condition_gp(eff: GPCorrection, ctx: Context, y: Tensor, settings: GPSetting
     if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
         raise ShapeError(f"GP conditioning: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
     n = len(y)
-    new = GPCorrection(eff.dof, min(n, s.max_inducing), eff.extras, eff.additive, eff.ard)
+    new = GPCorrection(eff.dof, min(n, s.max_inducing), eff.extras, eff.additive, eff.ard).to(ctx.q.device)
     with torch_threads(s.threads), torch.no_grad():
         for name in ("y_mean", "y_scale", "x_offset", "x_scale", *eff.hyper()):
             getattr(new, name).copy_(getattr(eff, name))
