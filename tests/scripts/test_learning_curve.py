@@ -45,7 +45,9 @@ def test_script_writes_table_plot_and_json(tmp_path, capsys):
     spec = importlib.util.spec_from_file_location("learning_curve_script", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    rc = mod.main(["--simulated", "80", "--sizes", "40,all", "--methods", "kinematic", "--out", str(tmp_path)])
+    rc = mod.main(
+        ["--json", "--simulated", "80", "--sizes", "40,all", "--methods", "kinematic", "--out", str(tmp_path)]
+    )
     assert rc == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert [p["n_train"] for p in out["results"][0]["points"]] == [40, 64]

@@ -14,6 +14,7 @@ and ``learning_curve.png`` (the curves) into its ``--out`` folder.
 
 from __future__ import annotations
 
+import json
 import time
 from pathlib import Path
 
@@ -200,6 +201,35 @@ def plot(results: list[dict], path: Path) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
+
+
+def run(
+    data_dir: Path | None, series: list[str], simulated: int, sizes, methods, seed: int, out: Path
+) -> tuple[dict, str]:
+    """The curves of the UR10 ``series`` read from ``data_dir`` (or of a simulated UR5 campaign of ``simulated``
+    poses), written to ``out`` as learning_curve.json, learning_curve.md and learning_curve.png.
+
+    Returns:
+        ``{"results": [...]}`` (:func:`learning_curve` per data set) and the markdown tables.
+    """
+    from torchcal.data import read_ipa
+    from torchcal.experiments.ipa_series import series_file
+
+    results = []
+    if simulated:
+        data = simulated_data(simulated, seed)
+        results.append(learning_curve("ur5", data, sizes=sizes, methods=methods, seed=seed, name="sim"))
+    else:
+        for s in series:
+            m = read_ipa(series_file(data_dir, s))
+            results.append(learning_curve("ur10", m, sizes=sizes, methods=methods, seed=seed, name=f"UR10 {s}"))
+    out.mkdir(parents=True, exist_ok=True)
+    result = {"results": results}
+    md = markdown(results)
+    (out / "learning_curve.json").write_text(json.dumps(result, indent=1) + "\n")
+    (out / "learning_curve.md").write_text(md)
+    plot(results, out / "learning_curve.png")
+    return result, md
 
 
 def simulated_data(poses: int = 300, seed: int = 0) -> Measurements:
