@@ -21,9 +21,10 @@ from pathlib import Path
 import torch
 
 from torchcal import stats as S
-from torchcal.data import Measurements
+from torchcal.data import Measurements, read_ipa
 from torchcal.errors import TorchcalError
 from torchcal.estimate.fit import errors
+from torchcal.experiments.ipa_series import series_file
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.run import holdout_split
 
@@ -212,9 +213,6 @@ def run(
     Returns:
         ``{"results": [...]}`` (:func:`learning_curve` per data set) and the markdown tables.
     """
-    from torchcal.data import read_ipa
-    from torchcal.experiments.ipa_series import series_file
-
     results = []
     if simulated:
         data = simulated_data(simulated, seed)
