@@ -3,7 +3,7 @@
 from torchcal.effects.base import Acts, Context, Effect, motion_direction
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
-from torchcal.effects.joint import Backlash, Compliance, Cyclic, Transmission
+from torchcal.effects.joint import Backlash, Compliance, Cyclic, Transmission, joint_function_check
 from torchcal.effects.kernel import KernelCorrection, fit_kernel_correction
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.model import MeasurementModel
@@ -27,4 +27,4 @@ __all__ = [
     "fit_kernel_correction",
     "motion_direction",
 ]
-__all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction"]
+__all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction", "joint_function_check"]

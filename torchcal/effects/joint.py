@@ -192,3 +192,41 @@ class Transmission(Effect):
 
     def describe(self) -> dict:
         return {"degree": self.degree, "c": self.c.detach().tolist()}
+
+
+# A joint-angle function fitted on poses whose joint covers a narrow range can be a sum of large terms that cancel
+# there (harmonics of 10-250 rad summing to 1e-4 rad): it fits the poses and explodes just beyond them. The bound is
+# loose for a well-determined function: its terms add up (ratio near 1; a few where two harmonics partly cancel).
+# A smooth function that is small on the poses and large just beyond them has such cancelling terms, so the ratio
+# is the test (a search over random cubics and harmonic pairs found none that grew threefold within a tenth of the
+# range beyond the poses without a ratio above this bound).
+CANCELLATION_RATIO = 20.0  # largest allowed sum of |term| over |sum of terms|, both at their peak on the poses
+
+
+def joint_function_check(effect: Effect, q: Tensor) -> str | None:
+    """Whether a fitted joint-angle function (:class:`Cyclic`, :class:`Transmission`) is determined by the poses.
+
+    Args:
+        effect: the fitted effect; other kinds pass (``None``).
+        q: the joints of the poses it was fitted on ``(N, dof)`` [rad].
+
+    Returns:
+        ``None`` when the function is well determined, else the reason: its terms cancel on the poses (the sum
+        of the terms' peaks exceeds ``CANCELLATION_RATIO`` times the function's peak), so that the poses do not
+        determine them and the function explodes beyond them.
+    """
+    if not isinstance(effect, (Cyclic, Transmission)):
+        return None
+    with torch.no_grad():
+        coef = torch.cat([effect.a, effect.b]) if isinstance(effect, Cyclic) else effect.c
+        terms = effect.regressor(None, Context(q=q)) * coef
+        peak = float(terms.sum(-1).abs().max())
+        peak_terms = float(terms.abs().max(0).values.sum())
+    if peak_terms <= CANCELLATION_RATIO * max(peak, 1e-15):
+        return None
+    qj = q[:, effect.j]
+    return (
+        f"its terms cancel on the fitting poses (sum of |terms| {peak_terms:.3g} rad against a function of "
+        f"{peak:.3g} rad): the range of joint {effect.joint} seen ({float(qj.min()):.3f} to {float(qj.max()):.3f} "
+        "rad) does not determine them, and beyond it the function would explode"
+    )

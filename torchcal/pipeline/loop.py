@@ -50,7 +50,7 @@ from torchcal.diagnose.tracing import (
     open_candidates,
     unexplained_entries,
 )
-from torchcal.effects import Context, MeasurementModel
+from torchcal.effects import Context, MeasurementModel, joint_function_check
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.records import EffectRecord, Rejection
@@ -338,6 +338,18 @@ def _validate(
         }
         return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason)
     e_trial = errors(trial, val_part, trajectory)
+    unsure = joint_function_check(trial.effects[-1], fit_part.q)
+    if unsure is not None:  # fits the poses, but explodes just beyond them: never better than without it
+        validation = {
+            "rmse_before_mm": S.rmse(e_base) * 1e3,
+            "rmse_after_mm": S.rmse(e_trial) * 1e3,
+            "relative_gain": float("nan"),
+            "z": float("nan"),
+            "p_value": float("nan"),
+            "n": len(e_base),
+            "ill_determined": unsure,
+        }
+        return _Validation(s, rnd, cand, base, trial, e_trial, validation, False, unsure)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
     validation = {
