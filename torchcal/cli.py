@@ -97,6 +97,13 @@ def _add_device(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _add_computing(p: argparse.ArgumentParser) -> None:
+    """``--device``, the unit options and the common ones: what every command that computes with a model takes."""
+    _add_device(p)
+    _add_units(p)
+    _add_common(p)
+
+
 def _add_units(p: argparse.ArgumentParser) -> None:
     p.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the file")
     p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the joint columns")
@@ -189,9 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
     c.add_argument("--rank-tol", type=POSITIVE, default=None, help="identifiability tolerance, > 0 (default 1e-6)")
-    _add_device(c)
-    _add_units(c)
-    _add_common(c)
+    _add_computing(c)
 
     pr = sub.add_parser(
         "predict",
@@ -204,9 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument(
         "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
     )
-    _add_device(pr)
-    _add_units(pr)
-    _add_common(pr)
+    _add_computing(pr)
 
     cp = sub.add_parser(
         "compensate",

@@ -81,6 +81,19 @@ def _gp_settings(run: CalibrationRun) -> GPSettings:
     return GPSettings(seed=int(run.options.seed))
 
 
+def _fit_gp(run: CalibrationRun, train: Measurements, corr: Tensor, fi: Tensor, va: Tensor, warm=None):
+    """A GP fitted to the corrections of the fitting poses ``fi`` and judged on the validation poses ``va``
+    (:func:`~torchcal.effects.gp.fit_gp_correction`; ``warm``: a previous fit to start from)."""
+    return fit_gp_correction(
+        Context(q=train.q[fi]),
+        corr[fi],
+        _gp_settings(run),
+        ctx_val=Context(q=train.q[va]),
+        y_val=corr[va],
+        warm=warm,
+    )
+
+
 def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory: bool = False) -> tuple[Tensor, Tensor]:
     """The fitting and validation poses of the learned stage (in random order, as drawn).
 
@@ -116,13 +129,7 @@ def select_learned(
         e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
     candidates = {}
     try:
-        gp, gp_info = fit_gp_correction(
-            Context(q=train.q[fi]),
-            corr[fi],
-            _gp_settings(run),
-            ctx_val=Context(q=train.q[va]),
-            y_val=corr[va],
-        )
+        gp, gp_info = _fit_gp(run, train, corr, fi, va)
         candidates["gp"] = (
             gp,
             gp_info["val_errors"],
@@ -229,14 +236,7 @@ def _refit_with_learned(
         with torch.no_grad():
             e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
     elif isinstance(eff, GPCorrection):
-        new, info = fit_gp_correction(
-            Context(q=train.q[fi]),
-            corr[fi],
-            _gp_settings(run),
-            ctx_val=Context(q=train.q[va]),
-            y_val=corr[va],
-            warm=eff,
-        )
+        new, info = _fit_gp(run, train, corr, fi, va, warm=eff)
         model.effects[index] = new
         e_val = info["val_errors"]
     else:
