@@ -14,7 +14,7 @@ from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context, LearnedEffect, MeasurementModel
 from torchcal.effects.base import Effect
 from torchcal.effects.registry import effect_from_config
-from torchcal.effects.support import SupportGate, calibrate_scale, coverage, predictive_sigma
+from torchcal.effects.support import SupportGate, calibrate_scale, coverage, fit_predictive_scale, predictive_sigma
 from torchcal.filter.adaptive import random_features
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline import integrated as I
@@ -56,26 +56,48 @@ def test_coverage_and_the_calibrated_scale_recover_a_known_sigma():
         coverage(e, sigma[:10])
 
 
+def test_the_scale_and_floor_by_likelihood_hold_coverage_where_the_network_term_says_little():
+    g = torch.Generator().manual_seed(2)
+    n = 3000
+    a = torch.full((n, 3), 1e-8, dtype=torch.float64)  # the filter's term: large and flat (mostly its prior)
+    g2 = torch.rand(n, 1, generator=g, dtype=torch.float64).expand(n, 3).clone()  # some samples off the support
+    b = (1.0 - g2) * (5e-5) ** 2  # the geometry's residual scale there
+    truth = torch.tensor([2e-5, 3e-5, 1e-5], dtype=torch.float64)
+    e = (g2 * truth**2 + b).sqrt() * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    scale, floor = fit_predictive_scale(e, a, b, g2)
+    assert scale < 0.05  # the flat network term is not what explains the residuals
+    torch.testing.assert_close(torch.tensor(floor, dtype=torch.float64), truth, rtol=0.15, atol=0.0)
+    sigma = (scale**2 * a + g2 * torch.tensor(floor, dtype=torch.float64) ** 2 + b).sqrt()
+    assert 0.945 <= coverage(e, sigma) <= 0.97
+    with pytest.raises(ValueError, match="same non-empty shape"):
+        fit_predictive_scale(e, a[:10], b, g2)
+
+
 def test_sigma_is_the_filters_at_the_support_and_the_geometrys_far_from_it():
     robot, gate, support = _gate(scale=3.0)
     near = gate.predictive_std(robot, support[:50])
     assert near.shape == (50, 3) and bool((near > 3.0 * NOISE * 0.999).all())
-    a, b = gate.variance_parts(robot, support[:50])
+    a, b, g2 = gate.variance_parts(robot, support[:50])
     assert float(b.abs().max()) < 1e-10 * FAR**2  # on the support the gate is 1 (to round-off): no fallback part
-    torch.testing.assert_close(near, 3.0 * (a + b).sqrt())
+    torch.testing.assert_close(near, (9.0 * a + b).sqrt())  # the scale acts on the network's and noise's part
+    gate.sigma_floor = [1e-5, 2e-5, 3e-5]
+    floor = torch.tensor(gate.sigma_floor, dtype=torch.float64)
+    torch.testing.assert_close(gate.predictive_std(robot, support[:50]), (9.0 * a + g2 * floor**2 + b).sqrt())
     # the output-weight Jacobian rotated into the tracker frame, through P: by hand for one sample
     net, q = gate.inner.net, support[:1]
     J = robot.T_tracker_base()[:3, :3] @ net.jacobian_flat(net.flat(), q)[1][0][:, gate.weight_index]
     var = (J @ gate.weight_cov @ J.T).diagonal() + NOISE**2
     torch.testing.assert_close(a[0], var)
-    far = gate.predictive_std(robot, support[:5] + 20.0)  # many spreads away: the geometry's residual scale
-    torch.testing.assert_close(far, torch.full_like(far, 3.0 * FAR), rtol=1e-6, atol=0.0)
+    far = gate.predictive_std(robot, support[:5] + 20.0)  # many spreads away: the geometry's residual scale, unscaled
+    torch.testing.assert_close(far, torch.full_like(far, FAR), rtol=1e-6, atol=0.0)
 
 
 def test_a_saved_gate_is_rebuilt_with_its_sigma_and_an_old_one_without(tmp_path):
     robot, gate, support = _gate(length=math.inf, scale=2.5)  # an infinite gate: config writes None (JSON)
+    gate.sigma_floor = [1e-5, 2e-5, 3e-5]
     cfg = json.loads(json.dumps({"class": "SupportGate", **gate.config()}, allow_nan=False))
     assert cfg["length"] is None and cfg["predictive"]["scale"] == 2.5
+    assert cfg["predictive"]["floor"] == [1e-5, 2e-5, 3e-5]
     again = effect_from_config(cfg, robot)
     again.load_state_dict(gate.state_dict())
     assert again.length == math.inf and again.has_predictive

@@ -25,14 +25,17 @@ no other effects (the integrated method's models have none).
 effect is a network whose weights a filter estimated (covariance ``P_w`` of the weights in its state), the
 gate predicts a standard deviation per sample and tracker axis ``a``:
 
-    ``var_a(q) = k^2 [g^2 (J_a(q) P_w J_a(q)^T + s_noise_a^2) + (1 - g^2) s_far_a^2]``
+    ``var_a(q) = g^2 [k^2 (J_a(q) P_w J_a(q)^T + s_noise_a^2) + f_a^2] + (1 - g^2) s_far_a^2``
 
 with ``J = R dg/dw`` the network's output Jacobian rotated into the tracker frame, ``s_noise`` the measurement
 noise (tracker and joint noise at the probe), ``s_far`` the residual scale of the geometric model (estimated on
 validation samples: what is left where the prediction has faded to the fallback), ``g`` the gate (of length
-``sigma_length``, the gate's own when it is finite) and ``k`` one scale factor calibrated on validation samples
-(:func:`calibrate_scale`): the filter treats the network's misfit as white noise, so ``P_w`` alone is optimistic
-along a trajectory, and the geometric residual scale of the validation block is a guess for the continuation.
+``sigma_length``, the gate's own when it is finite), and ``k`` and the floor ``f`` (per axis) fitted on validation
+samples by maximum likelihood (:func:`fit_predictive_scale`): the filter treats the network's misfit as white noise,
+so ``P_w`` alone says little about the error along a new stretch of path (its shape is mostly the prior's), and a
+model refitted on more samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the
+validation block showed. Far from the support the variance is the geometric model's own residual scale on
+validation, unscaled: there the prediction is the fallback's.
 """
 
 from __future__ import annotations
@@ -97,7 +100,7 @@ class SupportGate(Effect):
         # the predictive standard deviation (module docstring): its buffers exist only once set_predictive ran, or
         # sized from ``predictive`` (the config's entry) when a saved gate is rebuilt, so that load_state_dict fills
         # them; a gate without one keeps the state dict of earlier runs
-        self.sigma_scale, self.sigma_length = 1.0, math.inf
+        self.sigma_scale, self.sigma_length, self.sigma_floor = 1.0, math.inf, [0.0, 0.0, 0.0]
         if predictive is not None:
             n_w, z = int(predictive["n_weights"]), torch.zeros(3, dtype=kept.dtype, device=kept.device)
             self.set_predictive(
@@ -107,6 +110,7 @@ class SupportGate(Effect):
                 z,
                 float(predictive["sigma_length"]),
                 float(predictive["scale"]),
+                predictive.get("floor"),
             )
 
     @property
@@ -122,6 +126,7 @@ class SupportGate(Effect):
         sigma_far: Tensor,
         sigma_length: float,
         scale: float = 1.0,
+        floor: Sequence[float] | None = None,
     ) -> None:
         """Give the gate a predictive standard deviation (module docstring).
 
@@ -131,7 +136,8 @@ class SupportGate(Effect):
             sigma_noise: measurement noise per tracker axis ``(3,)`` [m].
             sigma_far: residual scale of the fallback (geometric) model per tracker axis ``(3,)`` [m].
             sigma_length: the gate length the standard deviation fades with (finite).
-            scale: the calibration factor ``k``.
+            scale: the calibration factor ``k`` of the network's and the noise's variance.
+            floor: the misfit floor ``f`` per tracker axis ``(3,)`` [m] (default 0).
         """
         if not hasattr(self.inner, "net"):
             raise ValueError(f"a predictive standard deviation needs a network inside; got {type(self.inner).__name__}")
@@ -149,10 +155,12 @@ class SupportGate(Effect):
         self.register_buffer("sigma_far", sigma_far.detach().clone().to(self.support))
         self.sigma_length = float(sigma_length)
         self.sigma_scale = float(scale)
+        self.sigma_floor = [0.0, 0.0, 0.0] if floor is None else [float(f) for f in floor]
 
-    def variance_parts(self, robot, q: Tensor) -> tuple[Tensor, Tensor]:
-        """The two parts of the predictive variance, ``a = g^2 (J P_w J^T + s_noise^2)`` and
-        ``b = (1 - g^2) s_far^2``, each ``(N, 3)`` [m^2] (tracker axes); ``var = k^2 (a + b)``."""
+    def variance_parts(self, robot, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The parts of the predictive variance, each ``(N, 3)`` [m^2] (tracker axes): ``a = g^2 (J P_w J^T +
+        s_noise^2)``, ``b = (1 - g^2) s_far^2`` and the gate squared ``g^2`` (broadcast to the axes);
+        ``var = k^2 a + g^2 f^2 + b``."""
         if not self.has_predictive:
             raise ValueError("this gate has no predictive standard deviation (set_predictive was not called)")
         net = self.inner.net
@@ -165,12 +173,13 @@ class SupportGate(Effect):
             var_net[i : i + 1024] = torch.einsum("nak,kl,nal->na", J, self.weight_cov, J)
         d = self.distance(q.detach())
         g2 = torch.exp(-((d / self.sigma_length) ** 2))[:, None]  # the gate squared
-        return g2 * (var_net + self.sigma_noise**2), (1.0 - g2) * self.sigma_far**2
+        return g2 * (var_net + self.sigma_noise**2), (1.0 - g2) * self.sigma_far**2, g2.expand(-1, 3)
 
     def predictive_std(self, robot, q: Tensor) -> Tensor:
         """Predicted standard deviation per sample and tracker axis ``(N, 3)`` [m]."""
-        a, b = self.variance_parts(robot, q)
-        return self.sigma_scale * (a + b).sqrt()
+        a, b, g2 = self.variance_parts(robot, q)
+        floor = torch.tensor(self.sigma_floor, dtype=a.dtype, device=a.device)
+        return (self.sigma_scale**2 * a + g2 * floor**2 + b).sqrt()
 
     def distance(self, q: Tensor) -> Tensor:
         """``d(q)``: distance to the nearest support point in units of the spread ``(N,)``."""
@@ -212,6 +221,7 @@ class SupportGate(Effect):
             "predictive": {
                 "n_weights": int(len(self.weight_index)),
                 "scale": self.sigma_scale,
+                "floor": self.sigma_floor,
                 "sigma_length": self.sigma_length,
             }
             if self.has_predictive
@@ -278,6 +288,49 @@ def coverage(e: Tensor, sigma: Tensor, k: float = 2.0) -> float:
     if e.shape != sigma.shape or e.numel() == 0:
         raise ValueError(f"e and sigma must have the same non-empty shape, got {tuple(e.shape)}, {tuple(sigma.shape)}")
     return float((e.abs() <= k * sigma).to(e.dtype).mean())
+
+
+def fit_predictive_scale(
+    e: Tensor, a: Tensor, b: Tensor, g2: Tensor, target: float = 0.95, k: float = 2.0
+) -> tuple[float, list[float]]:
+    """The scale ``k`` and the floor ``f`` (per axis) of ``var = k^2 a + g^2 f^2 + b`` by maximum likelihood of the
+    validation residuals ``e`` (Gaussian, independent components), then widened (``k`` and ``f`` together, never
+    narrowed) until ``target`` of the components lie within ``k`` standard deviations.
+
+    Args:
+        e: validation residuals ``(N, 3)`` [m]; a, b, g2: the parts of :meth:`SupportGate.variance_parts` there.
+
+    Returns:
+        ``(scale, floor)``: the factor and the floor per axis [m].
+    """
+    if not (e.shape == a.shape == b.shape == g2.shape) or e.numel() == 0:
+        raise ValueError(f"e, a, b, g2 must have the same non-empty shape, got {tuple(e.shape)}, {tuple(a.shape)}")
+    e, a, b, g2 = (x.detach() for x in (e, a, b, g2))
+    e2 = e.square()
+    rms = float(e2.mean().sqrt().clamp_min(1e-12))
+    # log parameters, started where the floor alone explains the residuals and the network's term is small
+    theta = torch.tensor([math.log(1e-2)] + [math.log(rms)] * 3, dtype=e.dtype, device=e.device, requires_grad=True)
+    tiny = (1e-9 * rms) ** 2
+
+    def nll():
+        var = theta[0].exp() ** 2 * a + g2 * theta[1:].exp() ** 2 + b + tiny
+        return 0.5 * (var.log() + e2 / var).mean()
+
+    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-10)
+
+    def closure():
+        opt.zero_grad()
+        loss = nll()
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        opt.step(closure)
+    scale, floor = float(theta[0].detach().exp()), theta[1:].detach().exp()
+    sigma = (scale**2 * a + g2 * floor**2 + b).sqrt()
+    z = (e.abs() / sigma.clamp_min(1e-300)).flatten()
+    widen = max(1.0, float(torch.quantile(z, target, interpolation="higher")) / k)
+    return scale * widen, (floor * widen).tolist()
 
 
 def calibrate_scale(e: Tensor, sigma: Tensor, target: float = 0.95, k: float = 2.0) -> float:

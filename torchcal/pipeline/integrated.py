@@ -52,7 +52,13 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
-from torchcal.effects.support import GATE_LENGTHS, SupportGate, calibrate_scale, choose_gate_length, coverage
+from torchcal.effects.support import (
+    GATE_LENGTHS,
+    SupportGate,
+    choose_gate_length,
+    coverage,
+    fit_predictive_scale,
+)
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
@@ -792,15 +798,16 @@ def _attach_predictive_sigma(
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
     sigma_length = length if math.isfinite(length) else max(g for g in GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
-    e_val, s_val = _residuals(val_model, val, val_gate), val_gate.predictive_std(val_model.robot, val.q)
-    scale = calibrate_scale(e_val, s_val, COVERAGE_TARGET)
-    val_gate.sigma_scale = scale
-    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale)
+    e_val = _residuals(val_model, val, val_gate)
+    scale, floor = fit_predictive_scale(e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET)
+    val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
+    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale, floor)
     run.model.effects[-1] = gate
     run.stages.pop()
     run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
     return {
         "scale": scale,
+        "floor_mm": [f * 1e3 for f in floor],
         "target_coverage_2sigma": COVERAGE_TARGET,
         "coverage_2sigma_validation": _coverage(val_model, val, val_gate),
         "coverage_2sigma_holdout": _coverage(run.model, hold, gate) if hold.n else None,
@@ -842,12 +849,13 @@ def _predictive_gate(
     far: Tensor,
     sigma_length: float,
     scale: float = 1.0,
+    floor=None,
 ) -> SupportGate:
     """``model``'s last (learned) effect behind a support gate that also predicts its standard deviation."""
     inner = model.effects[-1]
     inner = inner.inner if isinstance(inner, SupportGate) else inner
     gate = SupportGate(inner, support, length, fallback=fallback)
-    gate.set_predictive(filt.weight_cov, filt.weight_index, noise, far, sigma_length, scale)
+    gate.set_predictive(filt.weight_cov, filt.weight_index, noise, far, sigma_length, scale, floor)
     return gate
 
 

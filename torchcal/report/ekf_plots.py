@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 
-def _plt():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -23,13 +23,21 @@ def _plt():
     return plt
 
 
+def save_figure(fig, path: Path, dpi: int = 110, tight: bool = True) -> None:
+    """Lay out ``fig`` (unless its layout engine already does), write it to ``path`` and free it."""
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    pyplot().close(fig)
+
+
 def _rms(a: torch.Tensor) -> float:
     return float(a.norm(dim=-1).square().mean().sqrt()) if len(a) else float("nan")
 
 
 def plot_deviations(filt, path: Path) -> None:
     """devG, devNG, devAll per sample and axis [mm] (the paper's Figs. 9 and 11)."""
-    plt = _plt()
+    plt = pyplot()
     dev = filt.deviations()
     n = filt.n_train
     fig, axes = plt.subplots(3, 1, figsize=(9, 6.5), sharex=True)
@@ -43,14 +51,12 @@ def plot_deviations(filt, path: Path) -> None:
         )
     axes[0].legend(ncol=3, fontsize=7, loc="upper left")
     axes[-1].set_xlabel(f"sample (the first {n} filtered, the held-out ones after the line predicted)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def plot_correction(filt, path: Path) -> None:
     """The observed non-geometric part ``y - G`` against the filter's network output, per axis [mm] (Fig. 12)."""
-    plt = _plt()
+    plt = pyplot()
     observed = filt.y - filt.kinematic
     fig, axes = plt.subplots(3, 1, figsize=(9, 5.5), sharex=True)
     for j, (ax, c) in enumerate(zip(axes, "xyz")):
@@ -60,9 +66,7 @@ def plot_correction(filt, path: Path) -> None:
         ax.set_ylabel(f"{c} [mm]")
     axes[0].legend(fontsize=7, loc="upper left")
     axes[-1].set_xlabel("sample")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def ekf_section(run, out: Path) -> list[str]:
