@@ -50,7 +50,7 @@ import torch
 
 from torchcal.data import read_ipa
 from torchcal.effects import Context
-from torchcal.experiments.ipa_series import subsample_idx
+from torchcal.experiments.ipa_series import series_file, subsample_idx
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import transforms as tf
 
@@ -766,3 +766,31 @@ def _clean(x):
     if isinstance(x, list | tuple):
         return [_clean(v) for v in x]
     return x
+
+
+def run(data_dir: Path, names: tuple[str, ...], a_rows: int, pair_rows: int, tol: float) -> dict:
+    """Investigate the series ``names`` of the ur10-ipa folder ``data_dir``.
+
+    Args:
+        data_dir: the ur10-ipa folder (holds Series_A ... Series_D).
+        names: series letters, a subset of :data:`SERIES`.
+        a_rows: Series A is fitted on this many seeded rows (0: all).
+        pair_rows: rows for the correlation curves (seeded subsample).
+        tol: a revisit has every joint within this [rad].
+
+    Returns:
+        The result as JSON-ready data (non-finite floats as None), with the runtime [s].
+    """
+    t0 = time.perf_counter()
+    out = [investigate(s, series_file(data_dir, s), a_rows, pair_rows, tol) for s in names]
+    return _clean(
+        {
+            "robot": ROBOT,
+            "data_dir": str(data_dir),
+            "seed": SEED,
+            "tol_rad": tol,
+            "threads": torch.get_num_threads(),
+            "series": out,
+            "runtime_s": time.perf_counter() - t0,
+        }
+    )
