@@ -618,6 +618,11 @@ def _f(x, nd=3) -> str:
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
 
 
+def _bins(bins: list[dict], nd: int, count: str = "n_pairs") -> str:
+    """Correlation bins as ``<upper: corr (count)`` with the upper edge to ``nd`` decimals."""
+    return "  ".join(f"<{_f(b['hi'], nd)}: {_f(b['corr'], 2)} ({b[count]})" for b in bins)
+
+
 def summary(res: dict) -> str:
     L = []
     for s in res["series"]:
@@ -727,25 +732,13 @@ def summary(res: dict) -> str:
         )
         c = s["correlation"]
         L.append(f"  4. residual correlation ({c['n_rows']} rows; revisits excluded):")
-        L.append(
-            "     joint distance [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["joint"])
-        )
-        L.append(
-            "     Cartesian distance [m]: "
-            + "  ".join(f"<{_f(b['hi'], 3)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["cartesian"])
-        )
-        L.append(
-            "     arm joints q1-q3 [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["arm"])
-        )
-        L.append(
-            "     wrist q4-q6 with the arm within 0.05 rad [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["wrist_at_same_arm"])
-        )
+        L.append("     joint distance [rad]: " + _bins(c["joint"], 2))
+        L.append("     Cartesian distance [m]: " + _bins(c["cartesian"], 3))
+        L.append("     arm joints q1-q3 [rad]: " + _bins(c["arm"], 2))
+        L.append("     wrist q4-q6 with the arm within 0.05 rad [rad]: " + _bins(c["wrist_at_same_arm"], 2))
         L.append(
             "     nearest neighbour [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n']})" for b in c["nearest_neighbour"])
+            + _bins(c["nearest_neighbour"], 2, "n")
             + f"; median NN distance {_f(c['nn_median_rad'], 3)} rad"
         )
         cf = c["close_in_space_far_in_joints"]

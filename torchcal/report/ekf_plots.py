@@ -13,14 +13,7 @@ from pathlib import Path
 
 import torch
 
-
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+from torchcal.report._figures import pyplot, save
 
 
 def _rms(a: torch.Tensor) -> float:
@@ -29,7 +22,7 @@ def _rms(a: torch.Tensor) -> float:
 
 def plot_deviations(filt, path: Path) -> None:
     """devG, devNG, devAll per sample and axis [mm] (the paper's Figs. 9 and 11)."""
-    plt = _plt()
+    plt = pyplot()
     dev = filt.deviations()
     n = filt.n_train
     fig, axes = plt.subplots(3, 1, figsize=(9, 6.5), sharex=True)
@@ -43,14 +36,12 @@ def plot_deviations(filt, path: Path) -> None:
         )
     axes[0].legend(ncol=3, fontsize=7, loc="upper left")
     axes[-1].set_xlabel(f"sample (the first {n} filtered, the held-out ones after the line predicted)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def plot_correction(filt, path: Path) -> None:
     """The observed non-geometric part ``y - G`` against the filter's network output, per axis [mm] (Fig. 12)."""
-    plt = _plt()
+    plt = pyplot()
     observed = filt.y - filt.kinematic
     fig, axes = plt.subplots(3, 1, figsize=(9, 5.5), sharex=True)
     for j, (ax, c) in enumerate(zip(axes, "xyz")):
@@ -60,9 +51,7 @@ def plot_correction(filt, path: Path) -> None:
         ax.set_ylabel(f"{c} [mm]")
     axes[0].legend(fontsize=7, loc="upper left")
     axes[-1].set_xlabel("sample")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def ekf_section(run, out: Path) -> list[str]:

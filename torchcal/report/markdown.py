@@ -8,20 +8,12 @@ from pathlib import Path
 import torch
 
 from torchcal.pipeline import CalibrationRun
+from torchcal.report._figures import pyplot, save
 from torchcal.report.ekf_plots import ekf_section
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
 def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(9, 3.2))
     x = torch.arange(len(run.holdout_idx))
     colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
@@ -34,13 +26,11 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)
     ax.set_title("Held-out position error per pose")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def plot_histograms(run: CalibrationRun, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.2))
     first, last = run.stages[0], run.stages[-1]
     hi = float(max(first.holdout_errors.max(), last.holdout_errors.max())) * 1e3
@@ -50,13 +40,11 @@ def plot_histograms(run: CalibrationRun, path: Path) -> None:
     ax.set_xlabel("|position error| [mm], held-out poses")
     ax.set_ylabel("poses")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
-    plt = _plt()
+    plt = pyplot()
     dof = run.robot.dof
     cols = 3
     rows = math.ceil(dof / cols)
@@ -75,14 +63,12 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
             ax.set_ylabel("|error| [mm]")
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Held-out error against each joint")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save(fig, path)
 
 
 def plot_error_map(run: CalibrationRun, path: Path) -> None:
     """Held-out probe positions seen from above and from the side, coloured by the error before and after."""
-    plt = _plt()
+    plt = pyplot()
     hold = run.data.subset(run.holdout_idx)
     with torch.no_grad():
         p = run.model.robot.probe_in_base(hold.q)
@@ -102,8 +88,7 @@ def plot_error_map(run: CalibrationRun, path: Path) -> None:
         axes[1][k].set_xlabel("distance from the base axis [m]")
         axes[1][k].set_ylabel("z [m]")
     fig.colorbar(sc, ax=axes, label="|position error| [mm], held-out poses", shrink=0.6)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save(fig, path, 100, tight=False)
 
 
 def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
@@ -111,7 +96,7 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     from torchcal.diagnose.views import residual_view
     from torchcal.effects import Context
 
-    plt = _plt()
+    plt = pyplot()
     train = run.data.subset(run.train_idx)
     ctx = Context.from_measurements(train, trajectory=run.trajectory)
     before, after = decision.models
@@ -143,9 +128,7 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     axes[0].legend(fontsize=7)
     verdict = "accepted" if decision.accepted else "rejected"
     fig.suptitle(f"{decision.candidate.name}: {verdict} (training poses)", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save(fig, path, 100)
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -349,7 +332,7 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
 
 def plot_unexplained(entry: dict, path: Path) -> None:
     """The smooth of the residual in one unexplained variable, with a 2-sigma band (``report.json`` entry)."""
-    plt = _plt()
+    plt = pyplot()
     sm = entry["smooth"]
     x = torch.tensor(sm["grid"], dtype=torch.float64)
     f = torch.tensor(sm["value"], dtype=torch.float64)
@@ -373,9 +356,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
         fontsize=10,
     )
     ax.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    save(fig, path, 100)
 
 
 def _unexplained_section(report: dict, out: Path) -> list[str]:
