@@ -35,6 +35,14 @@ def spec(family: str, joint: int | None, size_um: float) -> str:
     return f"{family}{'' if joint is None else f':{joint}'}={size_um:g}um"
 
 
+def _progress_line(r: dict) -> str:
+    """The line shown on stderr when the run ``r`` ends."""
+    return (
+        f"{r['effects'][0]:28s} seed {r['seed']}: found {r['found'] or 'nothing'} "
+        f"({'ok' if r['correct'] else 'MISS'}), {r['seconds']:.1f} s"
+    )
+
+
 def run(
     robot: str,
     families: list[str],
@@ -68,14 +76,7 @@ def run(
                 keys.append((fam, size))
     t0 = time.perf_counter()
 
-    def show(r):
-        print(
-            f"{r['effects'][0]:28s} seed {r['seed']}: found {r['found'] or 'nothing'} "
-            f"({'ok' if r['correct'] else 'MISS'}), {r['seconds']:.1f} s",
-            file=sys.stderr,
-        )
-
-    rows = run_cases(cases, workers, show)
+    rows = run_cases(cases, workers, lambda r: print(_progress_line(r), file=sys.stderr))
     table = {}
     for (fam, size), r in zip(keys, rows):
         t = table.setdefault(fam, {}).setdefault(size, {"runs": 0, "detected": 0, "wrong": [], "ratio_true_form": []})

@@ -58,6 +58,14 @@ def summarise(rows: list[dict]) -> dict:
     }
 
 
+def _progress_line(r: dict) -> str:
+    """The line shown on stderr when the run ``r`` ends."""
+    return (
+        f"seed {r['seed']}{' (trajectory)' if r['trajectory'] else ''}: found {r['found'] or 'nothing'}, "
+        f"geometric {r['geometric_mm']:.4f} mm, final {r['loop_mm']:.4f} mm, {r['seconds']:.1f} s"
+    )
+
+
 def run(robot: str, seeds: int, poses: int, trajectories: int, samples: int, first_seed: int, workers: int) -> dict:
     """Calibrate ``seeds`` static campaigns of ``poses`` poses and ``trajectories`` trajectory campaigns of
     ``samples`` samples, all clean, in ``workers`` processes; each run is shown on stderr as it ends.
@@ -72,14 +80,7 @@ def run(robot: str, seeds: int, poses: int, trajectories: int, samples: int, fir
     ]
     t0 = time.perf_counter()
 
-    def show(r):
-        print(
-            f"seed {r['seed']}{' (trajectory)' if r['trajectory'] else ''}: found {r['found'] or 'nothing'}, "
-            f"geometric {r['geometric_mm']:.4f} mm, final {r['loop_mm']:.4f} mm, {r['seconds']:.1f} s",
-            file=sys.stderr,
-        )
-
-    rows = run_cases(cases, workers, show)
+    rows = run_cases(cases, workers, lambda r: print(_progress_line(r), file=sys.stderr))
     static = [r for r in rows if not r["trajectory"]]
     traj = [r for r in rows if r["trajectory"]]
     out = {
