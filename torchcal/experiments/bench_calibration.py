@@ -25,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import torchcal
+from torchcal._version import __version__
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import SimConfig, simulate, write_campaign
@@ -236,7 +236,7 @@ def accuracy(seeds: int) -> dict:
         rows = [one(s, Path(tmp)) for s in range(100, 100 + seeds)]
     ratios = [r["ratio_to_floor"] for r in rows]
     out = {
-        "torchcal": torchcal.__version__,
+        "torchcal": __version__,
         "runs": rows,
         "ratio_to_floor_mean": statistics.mean(ratios),
         "ratio_to_floor_max": max(ratios),

@@ -16,7 +16,7 @@ import random
 import sys
 import time
 
-import torchcal
+from torchcal._version import __version__
 from torchcal.experiments.closed_loop import run_cases
 
 #: joints per family on a UR arm where the effect moves the probe in a way geometry cannot absorb
@@ -106,7 +106,7 @@ def run(
             )
         print(f"{fam:18s} detection limit: {limit} um", file=sys.stderr)
     out = {
-        "torchcal": torchcal.__version__,
+        "torchcal": __version__,
         "robot": robot,
         "poses": poses,
         "seeds": seeds,

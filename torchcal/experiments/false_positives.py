@@ -15,7 +15,7 @@ import statistics
 import sys
 import time
 
-import torchcal
+from torchcal._version import __version__
 from torchcal.experiments.closed_loop import run_cases
 
 
@@ -84,7 +84,7 @@ def run(robot: str, seeds: int, poses: int, trajectories: int, samples: int, fir
     static = [r for r in rows if not r["trajectory"]]
     traj = [r for r in rows if r["trajectory"]]
     out = {
-        "torchcal": torchcal.__version__,
+        "torchcal": __version__,
         "robot": robot,
         "poses": poses,
         "samples": samples,
