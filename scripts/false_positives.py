@@ -1,120 +1,30 @@
 #!/usr/bin/env python3
-"""False-positive rate of the closed loop: clean simulated campaigns (geometry only) over many seeds.
-
-Each campaign is calibrated with the default ``auto`` method (geometric fit, the closed loop, then
-the learned stage). A false positive is a run that names any effect (a named effect or the
-learned residual model) although the simulation injected none. Reported: the rate with its exact
-(Clopper-Pearson) 95 % upper bound, how often a named effect reached the validation stage, and the
-held-out error of the final model against the geometric fit (clean data: no worse).
+"""False-positive rate of the closed loop: clean simulated campaigns (geometry only) over many seeds
+(torchcal.experiments.false_positives).
 
     python scripts/false_positives.py [--seeds 100] [--poses 800] [--trajectories 10] [--workers 4] [--json]
 """
 
-from __future__ import annotations
-
-import argparse
-import json
-import math
-import statistics
-import sys
-import time
-
-import torch
-
-import torchcal
 from torchcal import _console
-from torchcal.experiments.closed_loop import run_cases
+from torchcal.experiments import common
+from torchcal.experiments.false_positives import run
 
-
-def binom_cdf(k: int, n: int, p: float) -> float:
-    return sum(math.comb(n, i) * p**i * (1 - p) ** (n - i) for i in range(k + 1))
-
-
-def clopper_pearson_upper(k: int, n: int, level: float = 0.95) -> float:
-    """Exact one-sided upper confidence bound of a binomial rate with ``k`` events in ``n`` trials."""
-    if k >= n:
-        return 1.0
-    lo, hi = k / n, 1.0
-    for _ in range(100):
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if binom_cdf(k, n, mid) > 1 - level else (lo, mid)
-    return hi
-
-
-def summarise(rows: list[dict]) -> dict:
-    n = len(rows)
-    named = [r for r in rows if any(f[0] != "learned" for f in r["found"])]
-    any_effect = [r for r in rows if r["found"]]
-    worse = [r for r in rows if r["loop_mm"] > r["geometric_mm"] * (1 + 1e-9)]
-    return {
-        "runs": n,
-        "false_positive_runs": len(any_effect),
-        "false_positive_rate": len(any_effect) / n if n else float("nan"),
-        "false_positive_rate_upper95": clopper_pearson_upper(len(any_effect), n) if n else float("nan"),
-        "named_effect_runs": len(named),
-        "named_effect_rate": len(named) / n if n else float("nan"),
-        "named_effect_rate_upper95": clopper_pearson_upper(len(named), n) if n else float("nan"),
-        "runs_where_a_candidate_reached_validation": sum(1 for r in rows if any(x != "learned" for x in r["rejected"])),
-        "runs_worse_than_geometric": len(worse),
-        "max_ratio_to_geometric": max(r["loop_mm"] / r["geometric_mm"] for r in rows) if rows else float("nan"),
-        "seconds_median": statistics.median(r["seconds"] for r in rows) if rows else float("nan"),
-        "seconds_max": max(r["seconds"] for r in rows) if rows else float("nan"),
-        "false_positives": [
-            {"seed": r["seed"], "trajectory": r["trajectory"], "found": r["found"]} for r in any_effect
-        ],
-    }
+ap = common.parser(__doc__)
+ap.add_argument("--robot", default="ur5")
+ap.add_argument("--seeds", type=int, default=100, help="static campaigns (default 100)")
+ap.add_argument("--poses", type=int, default=800, help="poses per static campaign (default 800)")
+ap.add_argument("--trajectories", type=int, default=10, help="trajectory campaigns (default 10)")
+ap.add_argument("--samples", type=int, default=3000, help="samples per trajectory (default 3000)")
+ap.add_argument("--first-seed", type=int, default=1000)
+ap.add_argument("--workers", type=int, default=1, help="processes (one thread each)")
 
 
 def main(argv=None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--robot", default="ur5")
-    ap.add_argument("--seeds", type=int, default=100, help="static campaigns (default 100)")
-    ap.add_argument("--poses", type=int, default=800, help="poses per static campaign (default 800)")
-    ap.add_argument("--trajectories", type=int, default=10, help="trajectory campaigns (default 10)")
-    ap.add_argument("--samples", type=int, default=3000, help="samples per trajectory (default 3000)")
-    ap.add_argument("--first-seed", type=int, default=1000)
-    ap.add_argument("--workers", type=int, default=1, help="processes (one thread each)")
-    ap.add_argument("--json", action="store_true", help="print one JSON object as the last line")
-    args = ap.parse_args(argv)
     _console.set_quiet(True)
-    if args.workers <= 1:
-        torch.set_num_threads(1)
-    cases = [{"robot": args.robot, "poses": args.poses, "seed": args.first_seed + i} for i in range(args.seeds)]
-    cases += [
-        {"robot": args.robot, "trajectory": True, "samples": args.samples, "seed": args.first_seed + 5000 + i}
-        for i in range(args.trajectories)
-    ]
-    t0 = time.perf_counter()
-
-    def show(r):
-        print(
-            f"seed {r['seed']}{' (trajectory)' if r['trajectory'] else ''}: found {r['found'] or 'nothing'}, "
-            f"geometric {r['geometric_mm']:.4f} mm, final {r['loop_mm']:.4f} mm, {r['seconds']:.1f} s",
-            file=sys.stderr,
-        )
-
-    rows = run_cases(cases, args.workers, show)
-    static = [r for r in rows if not r["trajectory"]]
-    traj = [r for r in rows if r["trajectory"]]
-    out = {
-        "torchcal": torchcal.__version__,
-        "robot": args.robot,
-        "poses": args.poses,
-        "samples": args.samples,
-        "all": summarise(rows),
-        "static": summarise(static),
-        "trajectory": summarise(traj),
-        "wall_seconds": time.perf_counter() - t0,
-        "rows": rows,
-    }
-    a = out["all"]
-    print(
-        f"{a['runs']} clean campaigns: {a['false_positive_runs']} named something "
-        f"(rate {a['false_positive_rate']:.3f}, 95 % upper bound {a['false_positive_rate_upper95']:.3f}); "
-        f"named effects {a['named_effect_runs']}; worse than geometric {a['runs_worse_than_geometric']}",
-        file=sys.stderr,
+    args, out = common.run(
+        ap, lambda a: run(a.robot, a.seeds, a.poses, a.trajectories, a.samples, a.first_seed, a.workers), argv
     )
-    print(json.dumps(out) if args.json else json.dumps({k: v for k, v in out.items() if k != "rows"}, indent=1))
+    common.emit(out, args, plain={k: v for k, v in out.items() if k != "rows"})
     return out
 
 

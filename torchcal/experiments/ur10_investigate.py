@@ -50,7 +50,7 @@ import torch
 
 from torchcal.data import read_ipa
 from torchcal.effects import Context
-from torchcal.experiments.ipa_series import subsample_idx
+from torchcal.experiments.ipa_series import series_file, subsample_idx
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import transforms as tf
 
@@ -618,6 +618,11 @@ def _f(x, nd=3) -> str:
     return "—" if x is None or (isinstance(x, float) and not math.isfinite(x)) else f"{x:.{nd}f}"
 
 
+def _bins(bins: list[dict], nd: int, count: str = "n_pairs") -> str:
+    """Correlation bins as ``<upper: corr (count)`` with the upper edge to ``nd`` decimals."""
+    return "  ".join(f"<{_f(b['hi'], nd)}: {_f(b['corr'], 2)} ({b[count]})" for b in bins)
+
+
 def summary(res: dict) -> str:
     L = []
     for s in res["series"]:
@@ -727,25 +732,13 @@ def summary(res: dict) -> str:
         )
         c = s["correlation"]
         L.append(f"  4. residual correlation ({c['n_rows']} rows; revisits excluded):")
-        L.append(
-            "     joint distance [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["joint"])
-        )
-        L.append(
-            "     Cartesian distance [m]: "
-            + "  ".join(f"<{_f(b['hi'], 3)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["cartesian"])
-        )
-        L.append(
-            "     arm joints q1-q3 [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["arm"])
-        )
-        L.append(
-            "     wrist q4-q6 with the arm within 0.05 rad [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n_pairs']})" for b in c["wrist_at_same_arm"])
-        )
+        L.append("     joint distance [rad]: " + _bins(c["joint"], 2))
+        L.append("     Cartesian distance [m]: " + _bins(c["cartesian"], 3))
+        L.append("     arm joints q1-q3 [rad]: " + _bins(c["arm"], 2))
+        L.append("     wrist q4-q6 with the arm within 0.05 rad [rad]: " + _bins(c["wrist_at_same_arm"], 2))
         L.append(
             "     nearest neighbour [rad]: "
-            + "  ".join(f"<{_f(b['hi'], 2)}: {_f(b['corr'], 2)} ({b['n']})" for b in c["nearest_neighbour"])
+            + _bins(c["nearest_neighbour"], 2, "n")
             + f"; median NN distance {_f(c['nn_median_rad'], 3)} rad"
         )
         cf = c["close_in_space_far_in_joints"]
@@ -766,3 +759,31 @@ def _clean(x):
     if isinstance(x, list | tuple):
         return [_clean(v) for v in x]
     return x
+
+
+def run(data_dir: Path, names: tuple[str, ...], a_rows: int, pair_rows: int, tol: float) -> dict:
+    """Investigate the series ``names`` of the ur10-ipa folder ``data_dir``.
+
+    Args:
+        data_dir: the ur10-ipa folder (holds Series_A ... Series_D).
+        names: series letters, a subset of :data:`SERIES`.
+        a_rows: Series A is fitted on this many seeded rows (0: all).
+        pair_rows: rows for the correlation curves (seeded subsample).
+        tol: a revisit has every joint within this [rad].
+
+    Returns:
+        The result as JSON-ready data (non-finite floats as None), with the runtime [s].
+    """
+    t0 = time.perf_counter()
+    out = [investigate(s, series_file(data_dir, s), a_rows, pair_rows, tol) for s in names]
+    return _clean(
+        {
+            "robot": ROBOT,
+            "data_dir": str(data_dir),
+            "seed": SEED,
+            "tol_rad": tol,
+            "threads": torch.get_num_threads(),
+            "series": out,
+            "runtime_s": time.perf_counter() - t0,
+        }
+    )

@@ -28,6 +28,7 @@ Writes ``ur10_real.json`` and ``ur10_real.md`` into ``--out``, prints the tables
 from __future__ import annotations
 
 import copy
+import json
 import math
 import time
 from pathlib import Path
@@ -246,3 +247,62 @@ def markdown(res: dict) -> str:
 
 
 # ----------------------------------------------------------------------------- main
+
+
+def run(
+    data_dir: Path,
+    names: tuple[str, ...],
+    methods: tuple[str, ...],
+    pairs: tuple[tuple[str, str], ...],
+    a_rows: int,
+    quick: bool,
+    out: Path,
+) -> tuple[dict, str]:
+    """Part 1 (each series calibrated on itself with each method) and part 2 (the pairs: calibrate on the first
+    series, test on the second); writes ``ur10_real.json`` and ``ur10_real.md`` into ``out``.
+
+    Args:
+        data_dir: the ur10-ipa folder (holds Series_A ... Series_D).
+        names: series for part 1; methods: the calibrate methods for part 1; pairs: (source, target) series.
+        a_rows: subsample Series A to this many rows (0: all).
+        quick: recorded in the result (the caller chose the short set).
+        out: the output folder (created).
+
+    Returns:
+        The result (JSON-ready) and its Markdown tables.
+    """
+    t_start = time.perf_counter()
+    needed = sorted(set(names) | {s for p in pairs for s in p})
+    data, subsampled = load_series(data_dir, needed, a_rows)
+
+    within = [within_series(s, data[s], meth) for s in names for meth in methods]
+    self_cal = {r["series"]: r["final"] for r in within if r["method"] == "kinematic"}
+
+    sources, runs, transfers = {}, {}, []
+    for src, dst in pairs:
+        if src not in runs:
+            runs[src], dt = source_calibration(data[src])
+            sources[src] = {"n_train": int(runs[src].train_idx.numel()), "runtime_s": dt}
+        r = transfer(src, dst, runs[src], data[dst])
+        r["source_lever_mm"] = [float(v) * MM for v in runs[src].model.robot.tool.vector().detach()]
+        r["target_self"] = self_cal.get(dst)
+        transfers.append(r)
+
+    res = {
+        "robot": ROBOT,
+        "data_dir": str(data_dir),
+        "seed": SEED,
+        "holdout": HOLDOUT,
+        "quick": quick,
+        "threads": torch.get_num_threads(),
+        "subsampled": subsampled,
+        "within": within,
+        "sources": sources,
+        "transfer": transfers,
+        "runtime_s": time.perf_counter() - t_start,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ur10_real.json").write_text(json.dumps(res, indent=2) + "\n")
+    md = markdown(res)
+    (out / "ur10_real.md").write_text(md)
+    return res, md

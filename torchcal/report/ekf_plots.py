@@ -13,22 +13,7 @@ from pathlib import Path
 
 import torch
 
-
-def pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
-
-
-def save_figure(fig, path: Path, dpi: int = 110, tight: bool = True) -> None:
-    """Lay out ``fig`` (unless its layout engine already does), write it to ``path`` and free it."""
-    if tight:
-        fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    pyplot().close(fig)
+from torchcal.report._figures import pyplot, save
 
 
 def _rms(a: torch.Tensor) -> float:
@@ -51,7 +36,7 @@ def plot_deviations(filt, path: Path) -> None:
         )
     axes[0].legend(ncol=3, fontsize=7, loc="upper left")
     axes[-1].set_xlabel(f"sample (the first {n} filtered, the held-out ones after the line predicted)")
-    save_figure(fig, path)
+    save(fig, path)
 
 
 def plot_correction(filt, path: Path) -> None:
@@ -66,7 +51,7 @@ def plot_correction(filt, path: Path) -> None:
         ax.set_ylabel(f"{c} [mm]")
     axes[0].legend(fontsize=7, loc="upper left")
     axes[-1].set_xlabel("sample")
-    save_figure(fig, path)
+    save(fig, path)
 
 
 def ekf_section(run, out: Path) -> list[str]:

@@ -8,7 +8,8 @@ from pathlib import Path
 import torch
 
 from torchcal.pipeline import CalibrationRun
-from torchcal.report.ekf_plots import ekf_section, pyplot, save_figure
+from torchcal.report._figures import pyplot, save
+from torchcal.report.ekf_plots import ekf_section
 
 
 def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
@@ -25,7 +26,7 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)
     ax.set_title("Held-out position error per pose")
-    save_figure(fig, path)
+    save(fig, path)
 
 
 def plot_histograms(run: CalibrationRun, path: Path) -> None:
@@ -39,7 +40,7 @@ def plot_histograms(run: CalibrationRun, path: Path) -> None:
     ax.set_xlabel("|position error| [mm], held-out poses")
     ax.set_ylabel("poses")
     ax.legend(fontsize=8)
-    save_figure(fig, path)
+    save(fig, path)
 
 
 def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
@@ -62,7 +63,7 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
             ax.set_ylabel("|error| [mm]")
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Held-out error against each joint")
-    save_figure(fig, path)
+    save(fig, path)
 
 
 def plot_error_map(run: CalibrationRun, path: Path) -> None:
@@ -87,7 +88,7 @@ def plot_error_map(run: CalibrationRun, path: Path) -> None:
         axes[1][k].set_xlabel("distance from the base axis [m]")
         axes[1][k].set_ylabel("z [m]")
     fig.colorbar(sc, ax=axes, label="|position error| [mm], held-out poses", shrink=0.6)
-    save_figure(fig, path, 100, tight=False)  # constrained layout
+    save(fig, path, 100, tight=False)
 
 
 def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
@@ -127,7 +128,7 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     axes[0].legend(fontsize=7)
     verdict = "accepted" if decision.accepted else "rejected"
     fig.suptitle(f"{decision.candidate.name}: {verdict} (training poses)", fontsize=10)
-    save_figure(fig, path, 100)
+    save(fig, path, 100)
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -355,7 +356,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
         fontsize=10,
     )
     ax.legend(fontsize=7)
-    save_figure(fig, path, 100)
+    save(fig, path, 100)
 
 
 def _unexplained_section(report: dict, out: Path) -> list[str]:

@@ -136,9 +136,7 @@ def trajectory(
             near = torch.argsort(moves)[:4]
         for idx in near[torch.randperm(len(near), generator=generator)][:16]:
             target = pool[idx]
-            m = max(20, int(math.ceil(float(moves[idx]) / step)))
-            s = torch.linspace(0.0, 1.0, m + 1, dtype=current.dtype)[1:]
-            seg = current + (0.5 - 0.5 * torch.cos(math.pi * s))[:, None] * (target - current)
+            seg = trajectory_between(robot, current, target, step)
             if bool(visible(robot, seg, tracker_in_base, t_flange_probe, rule).all()):
                 samples.append(seg)
                 total += len(seg)
