@@ -90,9 +90,10 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
     if run.effects:  # a filter won validation: it must have beaten geometry there, by the paired test
         assert sel["test"]["p_value"] < run.options.alpha_validation
         assert st["integrated"] <= st["geometric"]
-        # the predictive sigma: calibrated on the validation block, its coverage there near the target
+        # the predictive sigma: fitted on the validation block by likelihood and widened (never narrowed) to the
+        # target there, so its coverage on validation is at least the target and not far above it
         ps = records[0].evidence["predictive_sigma"]
-        assert ps["scale"] > 0 and abs(ps["coverage_2sigma_validation"] - 0.95) < 0.01
+        assert ps["scale"] > 0 and 0.945 <= ps["coverage_2sigma_validation"] <= 0.99
         assert 0.0 < ps["coverage_2sigma_holdout"] <= 1.0
         from torchcal.report.ekf_plots import ekf_section
 
