@@ -291,11 +291,13 @@ def coverage(e: Tensor, sigma: Tensor, k: float = 2.0) -> float:
 
 
 def fit_predictive_scale(
-    e: Tensor, a: Tensor, b: Tensor, g2: Tensor, target: float = 0.95, k: float = 2.0
+    e: Tensor, a: Tensor, b: Tensor, g2: Tensor, target: float = 0.95, n_sigma: float = 2.0
 ) -> tuple[float, list[float]]:
     """The scale ``k`` and the floor ``f`` (per axis) of ``var = k^2 a + g^2 f^2 + b`` by maximum likelihood of the
-    validation residuals ``e`` (Gaussian, independent components), then widened (``k`` and ``f`` together, never
-    narrowed) until ``target`` of the components lie within ``k`` standard deviations.
+    validation residuals ``e`` (Gaussian, independent components), then ``k`` and ``f`` widened together (never
+    narrowed) by the factor :func:`calibrate_scale` gives for ``target`` within ``n_sigma`` standard deviations.
+    The factor is that of the whole standard deviation; where the unscaled far part ``b`` is large, the widened
+    near part alone falls a little short of it.
 
     Args:
         e: validation residuals ``(N, 3)`` [m]; a, b, g2: the parts of :meth:`SupportGate.variance_parts` there.
@@ -328,8 +330,7 @@ def fit_predictive_scale(
         opt.step(closure)
     scale, floor = float(theta[0].detach().exp()), theta[1:].detach().exp()
     sigma = (scale**2 * a + g2 * floor**2 + b).sqrt()
-    z = (e.abs() / sigma.clamp_min(1e-300)).flatten()
-    widen = max(1.0, float(torch.quantile(z, target, interpolation="higher")) / k)
+    widen = max(1.0, calibrate_scale(e, sigma.clamp_min(1e-300), target, n_sigma))
     return scale * widen, (floor * widen).tolist()
 
 

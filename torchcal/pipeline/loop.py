@@ -326,29 +326,12 @@ def _validate(
         res = fit_on(trial, fit_part, f"validation {cand.name}").result
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
         reason = f"its joint refit on the fitting poses failed ({err})"
-        r0 = S.rmse(e_base) * 1e3
-        validation = {
-            "rmse_before_mm": r0,
-            "rmse_after_mm": float("nan"),
-            "relative_gain": float("nan"),
-            "z": float("nan"),
-            "p_value": float("nan"),
-            "n": len(e_base),
-            "refit_failed": str(err),
-        }
+        validation = _untested(e_base, None, refit_failed=str(err))
         return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason)
     e_trial = errors(trial, val_part, trajectory)
     unsure = joint_function_check(trial.effects[-1], fit_part.q)
     if unsure is not None:  # fits the poses, but explodes just beyond them: never better than without it
-        validation = {
-            "rmse_before_mm": S.rmse(e_base) * 1e3,
-            "rmse_after_mm": S.rmse(e_trial) * 1e3,
-            "relative_gain": float("nan"),
-            "z": float("nan"),
-            "p_value": float("nan"),
-            "n": len(e_base),
-            "ill_determined": unsure,
-        }
+        validation = _untested(e_base, e_trial, ill_determined=unsure)
         return _Validation(s, rnd, cand, base, trial, e_trial, validation, False, unsure)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
@@ -375,6 +358,21 @@ def _validate(
     )
     validation["bic_fit"] = bic
     return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason, bic)
+
+
+def _untested(e_base: Tensor, e_trial: Tensor | None, **why: str) -> dict:
+    """The report's validation numbers of a candidate that was not put to the paired test, with ``why``."""
+    nan = float("nan")
+    after = nan if e_trial is None else S.rmse(e_trial) * 1e3
+    return {
+        "rmse_before_mm": S.rmse(e_base) * 1e3,
+        "rmse_after_mm": after,
+        "relative_gain": nan,
+        "z": nan,
+        "p_value": nan,
+        "n": len(e_base),
+        **why,
+    }
 
 
 def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, run: CalibrationRun) -> _Validation:
