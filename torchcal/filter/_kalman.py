@@ -106,10 +106,11 @@ def joseph_update_(P: Tensor, Ut: Tensor, Kt: Tensor, S: Tensor) -> Tensor:
 class Gain:
     """Gain, innovation statistics and the Joseph update of one step, in preallocated buffers ``(D, ...)``.
 
-    ``U^T = H P`` and ``K^T`` are written into the two halves of one ``(D, 6, n)`` buffer ``[U^T; K^T]``, the
-    other factor ``[-K^T; S K^T - U^T]`` of :func:`joseph_update_` into a second one, so a step allocates
-    nothing of size ``n``. The 3x3 ``S`` is factored by Cholesky, ``S = L L^T``; its triangular inverse
-    ``L^-1`` whitens: ``K^T = L^-T (L^-1 U^T)``, ``NIS = |L^-1 e|^2``.
+    One ``(D, 9, n)`` buffer holds ``[U^T; K^T; U^T - S K^T]``. The Joseph form of :func:`joseph_update_`,
+    ``P + [-K, K S - U] [U, K]^T``, is then ``P - A^T B`` with ``A`` its last six rows and ``B`` its first six:
+    two views of the same buffer, so a step allocates nothing of size ``n`` and negates nothing. The 3x3 ``S``
+    is factored by Cholesky (``info`` says where it is not positive definite) and inverted from the factor:
+    ``K^T = S^-1 U^T``; the state update ``K e = U (S^-1 e)`` and ``NIS = e^T (S^-1 e)`` need only ``S^-1 e``.
 
     Args:
         D: draws; n: state dimension; like: a tensor of the dtype and device to use.
@@ -117,11 +118,9 @@ class Gain:
 
     def __init__(self, D: int, n: int, like: Tensor):
         kw = {"dtype": like.dtype, "device": like.device}
-        self.B = torch.empty(D, 6, n, **kw)
-        self.A = torch.empty(D, 6, n, **kw)
-        self.Ut, self.Kt = self.B[:, :3], self.B[:, 3:]
-        self.AT = self.A.mT
-        self.eye3 = torch.eye(3, **kw).expand(D, 3, 3)
+        self.C = torch.empty(D, 9, n, **kw)
+        self.Ut, self.Kt, self.Mt = self.C[:, :3], self.C[:, 3:6], self.C[:, 6:]
+        self.AT, self.B = self.C[:, 3:].mT, self.C[:, :6]
 
     def gain(self, H: Tensor, HT: Tensor, P: Tensor, R: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """``U^T = H P``, ``S = H P H^T + R`` and its Cholesky factor; ``info`` nonzero where ``S`` is not PD.
@@ -134,17 +133,16 @@ class Gain:
         L, info = torch.linalg.cholesky_ex(S)
         return S, L, info
 
-    def solve(self, L: Tensor, e: Tensor) -> tuple[Tensor, Tensor]:
-        """``K^T (D, 3, n)`` (in the buffer) and the whitened innovation ``L^-1 e (D, 3, 1)`` for ``e (D, 3)``."""
-        Li = torch.linalg.solve_triangular(L, self.eye3, upper=False)
-        torch.bmm(Li.mT, torch.bmm(Li, self.Ut), out=self.Kt)
-        return self.Kt, torch.bmm(Li, e.unsqueeze(-1))
+    def solve(self, L: Tensor, e: Tensor, se: Tensor) -> Tensor:
+        """``K^T (D, 3, n)`` (in the buffer), and ``S^-1 e`` written into ``se (D, 3, 1)`` for ``e (D, 3, 1)``."""
+        Si = torch.cholesky_inverse(L)
+        torch.bmm(Si, e, out=se)
+        return torch.bmm(Si, self.Ut, out=self.Kt)
 
     def joseph_(self, P: Tensor, S: Tensor) -> Tensor:
-        """:func:`joseph_update_` with the buffered ``U^T`` and ``K^T``."""
-        torch.neg(self.Kt, out=self.A[:, :3])
-        torch.baddbmm(self.Ut, S, self.Kt, beta=-1.0, out=self.A[:, 3:])
-        return P.baddbmm_(self.AT, self.B)
+        """:func:`joseph_update_` with the buffered ``U^T`` and ``K^T``: ``P - [K, U - K S] [U, K]^T``."""
+        torch.baddbmm(self.Ut, S, self.Kt, alpha=-1.0, out=self.Mt)
+        return P.baddbmm_(self.AT, self.B, alpha=-1.0)
 
 
 # ----------------------------------------------------------------------------------- networks
@@ -261,6 +259,9 @@ class NetworkJacobian:
         self.ng = torch.empty(D, 3, 1, **kw)
         self.ones = torch.ones(D, Hn, 1, **kw)
         self.HT = self.H.mT
+        # views made once (a step's every op counts): the inputs as rows, the hidden-bias block with an axis
+        self.xT = self.x.view(*self.x.shape[:2], 1, 1, Dq)
+        self.H_b1_4 = self.H_b1.unsqueeze(-1)
         self._views: tuple | None = None
 
     def bind(self, w: Tensor) -> None:
@@ -278,14 +279,12 @@ class NetworkJacobian:
         if self._views is None or self._views[0].data_ptr() != w.data_ptr():
             self.bind(w)
         W1, b1, W2, b2 = self._views
-        x = self.x[:, i]  # (D, dof, 1)
-        a = torch.tanh(torch.baddbmm(b1, W1, x))  # (D, H, 1)
+        a = torch.tanh(torch.baddbmm(b1, W1, self.x[:, i]))  # (D, H, 1)
         ng = torch.bmm(self.RosD, torch.baddbmm(b2, W2, a), out=self.ng)[..., 0]
         torch.bmm(self.RosD, W2, out=self.RW2)
-        aT = a.mT  # (D, 1, H)
-        Rds = torch.mul(self.RW2, torch.addcmul(self.ones, a, a, value=-1.0).mT, out=self.H_b1)  # d(R g)/dz
-        torch.mul(Rds.unsqueeze(-1), x.mT.unsqueeze(-2), out=self.H_W1)
-        torch.mul(self.Ros4, aT.unsqueeze(-2), out=self.H_W2)
+        torch.mul(self.RW2, torch.addcmul(self.ones, a, a, value=-1.0).mT, out=self.H_b1)  # d(R g)/dz
+        torch.mul(self.H_b1_4, self.xT[:, i], out=self.H_W1)
+        torch.mul(self.Ros4, a.view(a.shape[0], 1, 1, self.Hn), out=self.H_W2)
         return ng, self.H
 
 
@@ -293,13 +292,15 @@ class ModuleJacobian:
     """The same as :class:`NetworkJacobian` for any network, by reverse-mode autodiff.
 
     Exact, like the hand-derived one. Per step: one forward of the module per draw, then three backward passes
-    through the same graph whose cotangents are the rows of ``R``, so they give the rows of ``R dg/dw`` directly,
-    written into ``H``. The module runs as a private copy whose parameters are leaves sharing storage with the
-    filter's weights, so a step copies no weights. ``torch.func`` (``vmap(jacrev)`` of ``functional_call``, as
+    through the same graph whose cotangents are the rows of ``R``, so they give the rows of ``R dg/dw``
+    directly. The module runs as a private copy whose parameters are leaves sharing storage with the filter's
+    weights (a step copies no weights), and whose gradient buffers are views of ``H``: before backward pass
+    ``k`` they are pointed at row ``k``, so the backward accumulates into ``H`` and nothing is copied out of
+    gradients. The engine is called directly where torch exposes it (the public wrapper's argument handling
+    costs as much as a small backward). ``torch.func`` (``vmap(jacrev)`` of ``functional_call``, as
     :meth:`FlatModule.jacobian_flat` and the baseline use) gives the same numbers, but its per-call parameter
-    swapping and transforms cost several Kalman steps, and a ``vmap``-batched backward
-    (``is_grads_batched``) no less than three plain ones; ``scripts/bench_ekf.py`` measures this path against
-    the hand-derived one.
+    swapping and transforms cost several Kalman steps, and a ``vmap``-batched backward (``is_grads_batched``)
+    no less than three plain ones; ``scripts/bench_ekf.py`` measures this path against the hand-derived one.
 
     Args:
         net: a :class:`FlatModule` (or a :class:`CorrectionNet`, to compare with the hand-derived Jacobian).
@@ -314,42 +315,61 @@ class ModuleJacobian:
         kw = {"dtype": q.dtype, "device": q.device}
         self.H = torch.zeros(D, 3, nw + 3, **kw)
         self.H[:, :, nw:] = torch.eye(3, **kw)
-        self.HT = self.H.mT
-        self.cot = R[:, None, :].expand(3, D, 3)  # rows of R, for every draw at once
+        self.HT, self.Hw = self.H.mT, self.H[:, :, :nw]
+        self.cot = [R[k].expand(D, 3).contiguous() for k in range(3)]  # row k of R, for every draw
         self.ptr = -1
         self.leaves: list[Tensor] = []
-        self._bound: dict[int, dict[str, Tensor]] = {}
+        self.rows: list[list[Tensor]] = [[], [], []]
 
     def bind(self, w: Tensor) -> None:
-        """Make the module copies' parameters leaves that alias ``w (D, n_w)`` (updated in place by the filter).
+        """Make the copies' parameters leaves that alias ``w (D, n_w)`` (updated in place by the filter), and
+        the views of ``H``'s three rows that serve as their gradients.
 
         One leaf per parameter (not views of one flat leaf): the backward then has no slicing nodes that would
         each allocate a gradient of the whole weight vector.
         """
-        self.leaves, self.blocks, self.ptr = [], [], w.data_ptr()
+        self.ptr, self.leaves, self.rows = w.data_ptr(), [], [[], [], []]
         for d, c in enumerate(self.copies):
             off = 0
-            for mod in c.modules():
-                for name, p in list(mod._parameters.items()) + list(self._bound.get(id(mod), {}).items()):
-                    if p is None:
-                        continue
-                    k = p.numel()
-                    leaf = w[d, off : off + k].view(p.shape).detach().requires_grad_(True)  # shares w's storage
-                    off += k
-                    mod._parameters.pop(name, None)
-                    self._bound.setdefault(id(mod), {})[name] = leaf
-                    setattr(mod, name, leaf)
-                    self.leaves.append(leaf)
-                    self.blocks.append(self.H[d, :, off - k : off])
+            for name, mod, p in _parameters(c):
+                n = p.numel()
+                leaf = w[d, off : off + n].view(p.shape).detach().requires_grad_(True)  # shares w's storage
+                for k in range(3):
+                    self.rows[k].append(self.H[d, k, off : off + n].view(p.shape))
+                off += n
+                mod._parameters.pop(name, None)
+                setattr(mod, name, leaf)
+                self.leaves.append(leaf)
 
     def __call__(self, w: Tensor, i: int) -> tuple[Tensor, Tensor]:
         if self.ptr != w.data_ptr():
             self.bind(w)
+        self.Hw.zero_()
         with torch.enable_grad():
             g = torch.cat([c(self.q[d, i : i + 1]) for d, c in enumerate(self.copies)])  # (D, 3)
-            # cotangent k is row k of R: the backward gives the rows of R dg/dw directly
-            for k in range(3):
-                grads = torch.autograd.grad(g, self.leaves, self.cot[k], retain_graph=k < 2)
-                for block, gr in zip(self.blocks, grads):
-                    block[k].copy_(gr.view(-1))
+            for k in range(3):  # cotangent k is row k of R: the backward accumulates row k of R dg/dw into H
+                for leaf, row in zip(self.leaves, self.rows[k]):
+                    leaf.grad = row
+                _backward(g, self.cot[k], k < 2)
         return g.detach() @ self.R.T, self.H
+
+
+_ENGINE = getattr(torch.autograd.Variable, "_execution_engine", None)
+
+
+def _backward(out: Tensor, cotangent: Tensor, retain: bool) -> None:
+    """``out.backward(cotangent, retain_graph=retain)``, straight into the engine where torch exposes it."""
+    if _ENGINE is None:
+        torch.autograd.backward(out, cotangent, retain_graph=retain)
+    else:
+        _ENGINE.run_backward((out,), (cotangent,), retain, False, (), True, True)
+
+
+def _parameters(module: nn.Module) -> list[tuple[str, nn.Module, Tensor]]:
+    """``(name, owner, tensor)`` of every parameter of ``module`` in ``parameters()`` order, including those
+    already replaced by plain leaf tensors by :meth:`ModuleJacobian.bind` (recorded on the owner)."""
+    out = []
+    for mod in module.modules():
+        names = mod.__dict__.setdefault("_torchcal_leaves", [n for n, p in mod._parameters.items() if p is not None])
+        out.extend((n, mod, getattr(mod, n)) for n in names)
+    return out

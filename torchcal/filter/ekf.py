@@ -391,6 +391,9 @@ class _Pass:
         self.yT = y.transpose(0, 1).contiguous()
         self.geo, self.ngo = torch.full((N, D, 3), float("nan"), **kw), torch.full((N, D, 3), float("nan"), **kw)
         self.nis, self.qyy_h = torch.full((N, D), float("nan"), **kw), torch.full((N, D), float("nan"), **kw)
+        # the innovations and S^-1 e per step; the NIS e^T S^-1 e is formed per window (:meth:`_nis_upto`)
+        self.E, self.SE = torch.zeros(N, D, 3, **kw), torch.zeros(N, D, 3, 1, **kw)
+        self.nis_done = 0
         self.qyy = torch.ones(D, **kw)
         self.qR = self.qyy[:, None, None] * self.Ryy
         self.status: list[FilterStatus | str] = [FilterStatus.OK] * D
@@ -420,6 +423,12 @@ class _Pass:
             if cfg.reiterate_every and (i + 1) % cfg.reiterate_every == 0 and i + 1 < self.n_train:
                 self.reiterate(i)
         self.qyy_h[self.win : self.last + 1] = self.qyy
+        self._nis_upto(self.last + 1)
+
+    def _nis_upto(self, b: int) -> None:
+        """The NIS ``e^T S^-1 e`` of the samples filtered since the last call, up to ``b`` (exclusive)."""
+        a, self.nis_done = self.nis_done, b
+        self.nis[a:b] = (self.E[a:b] * self.SE[a:b, ..., 0]).sum(dim=-1)
 
     def predict(self, i: int) -> None:
         """Prediction (Eqs. 15-19): the kinematic increment, its process noise; the weights are static."""
@@ -436,10 +445,13 @@ class _Pass:
             g, Jg = _autograd_jacobian(self.tr._net, self.w, self.q[:, i])
             ng, H = g @ self.R.T, torch.cat([self.R @ Jg, self.eye3], dim=-1)
         self.ngo[i] = ng
-        return H, (self.yT[i] - self.t).sub_(ng)
+        return H, torch.sub(self.yT[i], self.t, out=self.E[i]).sub_(ng)
 
     def update(self, i: int, H: Tensor, e: Tensor) -> bool:
-        """Gain and update (Eqs. 7-9), Joseph form; False once no draw is left (``status`` says why)."""
+        """Gain and update (Eqs. 7-9), Joseph form; False once no draw is left (``status`` says why).
+
+        ``e (D, 3)`` is the innovation, a row of ``E``; ``S^-1 e`` goes into the row ``i`` of ``SE``.
+        """
         P, qR, alive = self.P, self.qR, self.alive
         if self.fast:  # U^T = H P (P symmetric), S = H P H^T + q_yy R
             S, L, info = self.kal.gain(H, self.jac.HT, P, qR)
@@ -447,29 +459,35 @@ class _Pass:
             Ut = H @ P
             S = H @ Ut.mT + qR
             L, info = torch.linalg.cholesky_ex(S)
-        if info.any().item():
+        if info.item() if self.D == 1 else info.any().item():
             for d in torch.nonzero((info != 0) & alive).flatten().tolist():
                 self.status[d] = f"diverged at sample {i}: innovation covariance not positive definite"
             alive &= info == 0
             self.all_alive = False
             if not bool(alive.any()):
+                self.E[i] = float("nan")  # no NIS at the sample where the last draw failed
                 return False
         if not self.all_alive:  # frozen draws keep their state
             L = torch.where(alive[:, None, None], L, self.eye3)
+        se = self.SE[i]
         if self.fast:
-            Kt, v = self.kal.solve(L, e)
+            Kt = self.kal.solve(L, e.unsqueeze(-1), se)
         else:
-            Kt, v = torch.cholesky_solve(Ut, L), torch.linalg.solve_triangular(L, e.unsqueeze(-1), upper=False)
+            Kt = torch.cholesky_solve(Ut, L)
+            torch.cholesky_solve(e.unsqueeze(-1), L, out=se)
         if not self.all_alive:
             Kt.mul_(alive[:, None, None])
-        self.nis[i] = v.square().sum(dim=(-2, -1))
-        self.x1.baddbmm_(e.unsqueeze(1), Kt)  # x += K e (Eq. 9), in place
-        if self.fast:
+            se.mul_(alive[:, None, None])
+        if self.fast:  # x += K e = U (S^-1 e) (Eq. 9), in place
+            self.x1.baddbmm_(se.mT, self.kal.Ut)
             self.kal.joseph_(P, S)
-        else:  # the baseline: (I - K H) P (I - K H)^T + K (q_yy R) K^T, dense, symmetrised every step
+        else:  # the baseline: x += K e; (I - K H) P (I - K H)^T + K (q_yy R) K^T, dense, symmetrised every step
+            self.x1.baddbmm_(e.unsqueeze(1), Kt)
             IKH = torch.eye(self.n, **self.kw) - Kt.mT @ H
             P.copy_(IKH @ P @ IKH.mT + Kt.mT @ qR @ Kt)
             P.copy_(0.5 * (P + P.mT))
+        if not self.all_alive:  # a frozen draw has no NIS
+            self.E[i][~alive] = float("nan")
         return True
 
     def check_window(self, i: int) -> None:
@@ -477,6 +495,7 @@ class _Pass:
         W = self.cfg.nis_window
         self.qyy_h[self.win : i + 1] = self.qyy
         self.win = i + 1
+        self._nis_upto(i + 1)
         health = window_health(self.P, self.nis[i + 1 - W : i + 1].T, self.qyy, i, self.band, self.cfg.adapt_qyy)
         for d, why in enumerate(health.reasons):
             if why is not None and bool(self.alive[d]):
