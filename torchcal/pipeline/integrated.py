@@ -97,6 +97,11 @@ JOINT_STRIDE = 3
 FORWARD_FRACTION = 0.1
 
 
+def _first_draw(name: str) -> property:
+    """The filter result's ``name`` ``(N, 3)`` [m] of its only draw: an integrated run makes one pass."""
+    return property(lambda self: getattr(self.result, name)[0], doc=f"The filter's {name} per sample (N, 3) [m].")
+
+
 @dataclass
 class IntegratedFilter:
     """The filter pass of an ``integrated`` run, with the references the report compares it with.
@@ -113,17 +118,9 @@ class IntegratedFilter:
     weight_cov: Tensor | None = None  # final covariance of the weights in the filter's state (k, k)
     weight_index: Tensor | None = None  # their indices in the network's flat weights (k,)
 
-    @property
-    def geometric(self) -> Tensor:
-        return self.result.geometric[0]
-
-    @property
-    def nongeometric(self) -> Tensor:
-        return self.result.nongeometric[0]
-
-    @property
-    def prediction(self) -> Tensor:
-        return self.result.prediction[0]
+    geometric = _first_draw("geometric")
+    nongeometric = _first_draw("nongeometric")
+    prediction = _first_draw("prediction")
 
     def deviations(self) -> dict[str, Tensor]:
         """``devG``, ``devNG``, ``devAll`` per sample ``(N, 3)`` [m] (the paper's Figs. 9 and 11 on measured data).
@@ -268,6 +265,22 @@ def integrate(
     return filt
 
 
+def _integrated_record(run: CalibrationRun, after, *, params: dict, evidence: dict) -> EffectRecord:
+    """The integrated run's effect record (the learned correction, stage ``learned``), with the held-out RMSE of
+    the geometric stage before it and of the stage ``after`` it."""
+    before = run.stage(StageName.GEOMETRIC)
+    return EffectRecord(
+        "learned",
+        None,
+        params,
+        evidence,
+        name="integrated",
+        label="learned",
+        rmse_before_mm=before.rmse * 1e3,
+        rmse_after_mm=after.rmse * 1e3,
+    )
+
+
 def _record_ekf(
     run: CalibrationRun,
     filt: IntegratedFilter,
@@ -278,15 +291,13 @@ def _record_ekf(
 ) -> None:
     """The ``ekf`` engine's effect record and note: held-out RMSE after each step, the filter's statistics."""
     opts, res, cfg, n_train = run.options, filt.result, filt.config, filt.n_train
-    after, before = run.stages[-1], run.stage(StageName.GEOMETRIC)
+    after = run.stages[-1]
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[0, :n_train]
     run.effects.append(
-        EffectRecord(
-            "learned",
-            None,
-            name="integrated",
-            label="learned",
+        _integrated_record(
+            run,
+            after,
             params={
                 "model": "network",
                 "hidden": opts.hidden,
@@ -315,8 +326,6 @@ def _record_ekf(
                     "final_state_offset_from_kinematics_mm": float((res.t[0] - filt.kinematic[-1]).norm()) * 1e3,
                 },
             },
-            rmse_before_mm=before.rmse * 1e3,
-            rmse_after_mm=after.rmse * 1e3,
         )
     )
     text = ", ".join(f"{k.replace('_', ' ')} {v * 1e3:.4f}" for k, v in steps.items())
@@ -533,15 +542,13 @@ def _record_adaptive(
     run: CalibrationRun, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
 ) -> None:
     """The adaptive engine's effect record (settings, the geometry with its sigmas, the filter's health) and note."""
-    n_train, before = filt.n_train, run.stage(StageName.GEOMETRIC)
+    n_train = filt.n_train
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[:n_train]
     run.effects.append(
-        EffectRecord(
-            "learned",
-            None,
-            name="integrated",
-            label="learned",
+        _integrated_record(
+            run,
+            after,
             params={
                 "model": "network (fixed random tanh features, output layer estimated)",
                 **settings,
@@ -565,8 +572,6 @@ def _record_adaptive(
                     "linearisation_remainder_m": [r.get("total_remainder_m") for r in res.relinearisations],
                 },
             },
-            rmse_before_mm=before.rmse * 1e3,
-            rmse_after_mm=after.rmse * 1e3,
         )
     )
     run.notes.append(
