@@ -300,15 +300,9 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
             MeasurementModel(robot),
             data.subset(tr),
             data.subset(ho),
-            sigma_tracker=opts.sigma_tracker,
-            sigma_joint=opts.sigma_joint,
+            opts,
             trajectory=trajectory,
-            rank_tol=opts.rank_tol,
-            prior_length=opts.prior_length,
-            prior_angle=opts.prior_angle,
             alpha=opts.outlier_alpha,
-            max_iter=opts.max_iter,
-            stat_tol=opts.stat_tol,
         )
     for name, part in (("training", sc.training), ("held-out", sc.holdout)):
         if part.rejected:
