@@ -450,10 +450,7 @@ def integrate_adaptive(
     run: CalibrationRun,
     train: Measurements,
     hold: Measurements,
-    *,
-    hidden: int = 128,
-    gain: float = 5.0,
-    sigma_field: float = 5e-4,
+    setting: Setting | None = None,
 ) -> IntegratedFilter:
     """The ``integrated`` method with the adaptive filter: geometry in the state (the paper's future work).
 
@@ -465,16 +462,18 @@ def integrate_adaptive(
     geometry (instrument translation back-substituted) plus a :class:`LearnedEffect` with its network, so
     ``predict`` reloads it like any run.
 
-    ``hidden`` and ``gain`` set the random features (more and sharper features fit more, fewer and smoother ones
-    extrapolate more gently), ``sigma_field`` the prior of the output layer (the field's expected RMS): the
-    regularisation settings :func:`integrate_selected` chooses among on validation samples.
+    ``setting`` (default ``Setting("adaptive")``): its ``hidden`` and ``gain`` set the random features (more and
+    sharper features fit more, fewer and smoother ones extrapolate more gently), ``sigma_field`` the prior of the
+    output layer (the field's expected RMS): the regularisation settings :func:`integrate_selected` chooses among
+    on validation samples.
     ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (README, "integrated").
     Steps: :func:`_adaptive_pass` (the filter), :func:`_install_adaptive` (the final model),
     :func:`_record_adaptive` (the report's record).
     """
     with torch.no_grad():  # the kinematic calibration's prediction: the report's reference G
         kinematic = run.model(Context(q=torch.cat([train.q, hold.q])))
-    start, net, res, cfg = _adaptive_pass(run, train, hold, hidden, gain, sigma_field)
+    s = setting or Setting("adaptive")
+    start, net, res, cfg = _adaptive_pass(run, train, hold, s.hidden, s.gain, s.sigma_field)
     _install_adaptive(run, start, net, res)
     after = run.add_stage(StageName.INTEGRATED)
     nw = len(res.active)  # the state is [w[active]; t; (d); gamma]
@@ -482,7 +481,7 @@ def integrate_adaptive(
         _as_ekf_result(res), torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
     )
     _record_adaptive(
-        run, filt, res, net, hold, after, {"hidden": hidden, "feature_gain": gain, "sigma_field_m": sigma_field}
+        run, filt, res, net, hold, after, {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
     )
     return filt
 
@@ -659,9 +658,7 @@ SETTINGS = (
 def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements, setting: Setting) -> IntegratedFilter:
     if setting.engine == "ekf":
         return integrate(run, train, hold)
-    return integrate_adaptive(
-        run, train, hold, hidden=setting.hidden, gain=setting.gain, sigma_field=setting.sigma_field
-    )
+    return integrate_adaptive(run, train, hold, setting)
 
 
 def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> CalibrationRun:

@@ -269,7 +269,7 @@ def calibrate(
         # small kernels throughout (u x u solves, one pass over the poses, score tests, smooths): one thread, so that
         # another process on the machine does not multiply the time (torch's threads spin while one waits for a core)
         with torch_threads(1):
-            close_loop(run, train, trajectory, alpha=opts.alpha, alpha_val=opts.alpha_validation)
+            close_loop(run, train, trajectory)
 
     # 4. a learned residual model where the data demand it
     if opts.method == "auto" and opts.learned:
