@@ -30,16 +30,12 @@ def experiment(a):
         sizes = parse_sizes(a.sizes)
     except ValueError as err:
         ap.error(str(err))
-    series = [t.strip().upper() for t in a.series.split(",") if t.strip()]
-    methods = tuple(m.strip() for m in a.methods.split(",") if m.strip())
-    return run(a.data, series, a.simulated, sizes, methods, a.seed, a.out)
+    series = list(common.comma_list(ap, a.series, upper=True))
+    return run(a.data, series, a.simulated, sizes, common.comma_list(ap, a.methods), a.seed, a.out)
 
 
 def main(argv=None) -> int:
-    args, (result, md) = common.run(ap, experiment, argv)
-    print(md)
-    common.emit(result, args)
-    return 0
+    return common.run_markdown(ap, experiment, argv)
 
 
 if __name__ == "__main__":

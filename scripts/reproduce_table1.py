@@ -6,33 +6,24 @@ object on the last line) and writes table1.json, table1.md and fig5.png into ``-
 """
 
 import sys
-from pathlib import Path
 
 from torchcal.experiments import common
-from torchcal.experiments.table1 import POSTURES, run, text_table, write_outputs
+from torchcal.experiments.table1 import add_arguments, fill_sizes, run, script_main, text_table, write_outputs
 
+SIZES = {"draws": (20, 5, "Monte Carlo draws per parameter"), "poses": (300, 150, "random visible poses")}
 ap = common.parser(__doc__)
-ap.add_argument("--draws", type=int, default=None, help="Monte Carlo draws per parameter (default 20, quick 5)")
-ap.add_argument("--poses", type=int, default=None, help="random visible poses (default 300, quick 150)")
-ap.add_argument("--seed", type=int, default=0, help="seed of the poses, tracker, lever arm and biases")
-ap.add_argument("--posture", choices=POSTURES, default="any", help="single: one shoulder configuration only")
-ap.add_argument("--quick", action="store_true", help="5 draws, 150 poses")
-ap.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
+add_arguments(ap, SIZES)
 
 
 def experiment(a) -> dict:
-    a.draws, a.poses = a.draws or (5 if a.quick else 20), a.poses or (150 if a.quick else 300)
+    fill_sizes(a, SIZES)
     if a.draws < 1 or a.poses < 10:
         ap.error(f"need --draws >= 1 and --poses >= 10, got {a.draws} and {a.poses}")
     return run(a.draws, a.poses, a.seed, a.posture)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args, result = common.run(ap, experiment, argv)
-    summary = write_outputs(result, args.out)
-    print(text_table(result), summary, sep="\n")
-    common.emit(result, args)
-    return 0
+    return script_main(ap, experiment, write_outputs, text_table, argv)
 
 
 if __name__ == "__main__":

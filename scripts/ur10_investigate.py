@@ -22,10 +22,7 @@ ap.add_argument("--tol", type=float, default=1e-3, help="revisit: every joint wi
 def experiment(a):
     if not a.data_dir.is_dir():
         ap.error(f"data folder not found: {a.data_dir}")
-    names = tuple(s.strip().upper() for s in a.series.split(",") if s.strip())
-    bad = [s for s in names if s not in SERIES]
-    if bad:
-        ap.error(f"unknown series {', '.join(bad)}; valid: {', '.join(SERIES)}")
+    names = common.comma_list(ap, a.series, SERIES, what="series", upper=True)
     return run(a.data_dir, names, a.a_rows, a.pair_rows, a.tol)
 
 

@@ -30,22 +30,14 @@ def experiment(a):
     if a.quick:
         names, methods, pairs = ("C",), ("kinematic",), (("C", "B"),)
     else:
-        names = tuple(s.strip().upper() for s in a.series.split(",") if s.strip())
-        bad = [s for s in names if s not in SERIES]
-        if bad:
-            ap.error(f"unknown series {', '.join(bad)}; valid: {', '.join(SERIES)}")
-        methods = tuple(m.strip() for m in a.methods.split(",") if m.strip())
-        if any(m not in METHODS for m in methods):
-            ap.error(f"unknown method in {a.methods!r}; valid: {', '.join(METHODS)}")
+        names = common.comma_list(ap, a.series, SERIES, what="series", upper=True)
+        methods = common.comma_list(ap, a.methods, METHODS, what="method")
         pairs = () if a.no_transfer else PAIRS
     return run(a.data_dir, names, methods, pairs, a.a_rows, a.quick, a.out)
 
 
 def main(argv=None) -> int:
-    args, (res, md) = common.run(ap, experiment, argv)
-    print(md)
-    common.emit(res, args)
-    return 0
+    return common.run_markdown(ap, experiment, argv)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ import json
 
 import pytest
 import torch
+from _cli import REPORT_FIELDS, cli_simulate
 
 import torchcal
 from torchcal.cli import main
@@ -53,19 +54,7 @@ def test_kinematic_calibration_reaches_the_noise_floor(ur5_campaign, ur5_run):
 
 def test_report_has_the_contract_fields(ur5_run):
     report = json.loads((ur5_run / "report.json").read_text())
-    for key in (
-        "robot",
-        "method",
-        "n_train",
-        "n_holdout",
-        "rmse_before_mm",
-        "rmse_geometric_mm",
-        "rmse_after_mm",
-        "max_after_mm",
-        "global_test",
-        "effects",
-        "parameters",
-    ):
+    for key in REPORT_FIELDS:
         assert key in report, key
     assert report["n_train"] == 640 and report["n_holdout"] == 160
     assert set(report["global_test"]) >= {"statistic", "threshold", "passed"}
@@ -86,25 +75,7 @@ def test_calibrated_urdf_reproduces_the_calibrated_geometry(ur5_run):
 
 def test_millimetre_files_give_the_same_calibration(tmp_path):
     for unit in ("m", "mm"):
-        assert (
-            main(
-                [
-                    "simulate",
-                    "--robot",
-                    "ur5",
-                    "--out",
-                    str(tmp_path / unit),
-                    "--seed",
-                    "5",
-                    "--poses",
-                    "300",
-                    "--length-unit",
-                    unit,
-                    "--quiet",
-                ]
-            )
-            == 0
-        )
+        assert cli_simulate(tmp_path / unit, "--seed", "5", "--poses", "300", "--length-unit", unit) == 0
         assert (
             main(
                 [

@@ -5,6 +5,7 @@ import time
 
 import pytest
 import torch
+from _cli import cli_simulate
 
 import torchcal
 from torchcal.cli import main
@@ -250,25 +251,7 @@ def run_dir(tmp_path_factory):
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        assert (
-            main(
-                [
-                    "simulate",
-                    "--robot",
-                    "ur5",
-                    "--out",
-                    str(d / "data"),
-                    "--poses",
-                    "120",
-                    "--test-poses",
-                    "20",
-                    "--seed",
-                    "2",
-                    "--quiet",
-                ]
-            )
-            == 0
-        )
+        assert cli_simulate(d / "data", "--poses", "120", "--test-poses", "20", "--seed", "2") == 0
         assert (
             main(
                 [

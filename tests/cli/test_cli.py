@@ -6,6 +6,7 @@ import sys
 
 import pytest
 import torch
+from _cli import cli_simulate
 
 import torchcal
 from torchcal.cli import main
@@ -14,25 +15,7 @@ from torchcal.errors import MeasurementFileError
 
 def test_simulate_writes_the_contract_files(tmp_path, capsys):
     out = tmp_path / "sim"
-    assert (
-        main(
-            [
-                "simulate",
-                "--robot",
-                "ur5",
-                "--out",
-                str(out),
-                "--seed",
-                "1",
-                "--poses",
-                "120",
-                "--effect",
-                "compliance:2=50um",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert cli_simulate(out, "--seed", "1", "--poses", "120", "--effect", "compliance:2=50um") == 0
     assert sorted(p.name for p in out.iterdir()) == [".torchcal-run", "test.csv", "train.csv", "truth.json"]
     truth = json.loads((out / "truth.json").read_text())
     assert truth["effects"][0]["kind"] == "compliance" and truth["effects"][0]["joint"] == 2
@@ -40,23 +23,8 @@ def test_simulate_writes_the_contract_files(tmp_path, capsys):
 
 
 def test_simulate_in_millimetres_reads_back_with_the_unit_option(tmp_path):
-    main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "m"), "--seed", "2", "--poses", "50", "--quiet"])
-    main(
-        [
-            "simulate",
-            "--robot",
-            "ur5",
-            "--out",
-            str(tmp_path / "mm"),
-            "--seed",
-            "2",
-            "--poses",
-            "50",
-            "--length-unit",
-            "mm",
-            "--quiet",
-        ]
-    )
+    cli_simulate(tmp_path / "m", "--seed", "2", "--poses", "50")
+    cli_simulate(tmp_path / "mm", "--seed", "2", "--poses", "50", "--length-unit", "mm")
     a = torchcal.read_measurements(tmp_path / "m" / "train.csv")
     b = torchcal.read_measurements(tmp_path / "mm" / "train.csv", length_unit="mm")
     assert torch.allclose(a.p, b.p, rtol=1e-15, atol=0)
@@ -67,22 +35,8 @@ def test_simulate_in_millimetres_reads_back_with_the_unit_option(tmp_path):
 def test_simulate_trajectory_and_urdf_robot(tmp_path):
     out = tmp_path / "traj"
     assert (
-        main(
-            [
-                "simulate",
-                "--robot",
-                "panda.urdf",
-                "--out",
-                str(out),
-                "--trajectory",
-                "--samples",
-                "400",
-                "--train-samples",
-                "300",
-                "--seed",
-                "3",
-                "--quiet",
-            ]
+        cli_simulate(
+            out, "--trajectory", "--samples", "400", "--train-samples", "300", "--seed", "3", robot="panda.urdf"
         )
         == 0
     )

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from _cli import cli_simulate
 
 import torchcal
 from torchcal import _outdir
@@ -50,47 +51,14 @@ def snapshot(root: Path) -> dict:
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     root = tmp_path_factory.mktemp("campaign")
-    assert (
-        main(
-            [
-                "simulate",
-                "--robot",
-                "ur5",
-                "--out",
-                str(root / "sim"),
-                "--poses",
-                "100",
-                "--test-poses",
-                "20",
-                "--seed",
-                "4",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert cli_simulate(root / "sim", "--poses", "100", "--test-poses", "20", "--seed", "4") == 0
     return root / "sim"
 
 
 @pytest.fixture(scope="module")
 def run_dir(campaign, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "cal"
-    assert (
-        main(
-            [
-                "calibrate",
-                str(campaign / "train.csv"),
-                "--robot",
-                "ur5",
-                "--method",
-                "kinematic",
-                "--out",
-                str(out),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert calibrate(campaign / "train.csv", out) == 0
     return out
 
 
@@ -122,7 +90,7 @@ def test_unmarked_directory_is_refused_and_untouched(campaign, tmp_path, capsys,
 
 def test_out_holding_the_input_is_refused(tmp_path, capsys):
     camp = tmp_path / "campaign"
-    assert main(["simulate", "--robot", "ur5", "--out", str(camp), "--poses", "60", "--quiet"]) == 0
+    assert cli_simulate(camp, "--poses", "60") == 0
     assert (camp / _outdir.MARKER).is_file()  # simulate's directory is marked, and still not replaced:
     before = snapshot(tmp_path)
     assert calibrate(camp / "train.csv", camp) == 2
@@ -320,7 +288,7 @@ def test_simulate_and_demo_output_follow_the_same_rule(tmp_path, capsys):
     out = tmp_path / "notes"
     out.mkdir()
     (out / "a.txt").write_text("mine")
-    assert main(["simulate", "--robot", "ur5", "--out", str(out), "--poses", "40", "--quiet"]) == 2
+    assert cli_simulate(out, "--poses", "40") == 2
     assert main(["demo", "--out", str(out), "--quiet"]) == 2
     assert (out / "a.txt").read_text() == "mine" and sorted(p.name for p in out.iterdir()) == ["a.txt"]
 
@@ -547,24 +515,7 @@ def test_simulate_options_are_validated(tmp_path):
     for opt in (["--poses", "0"], ["--joint-noise", "nan"], ["--tracker-noise", "-1"]):
         with pytest.raises(SystemExit):
             main(["simulate", "--robot", "ur5", "--out", str(tmp_path / "s"), *opt])
-    assert (
-        main(
-            [
-                "simulate",
-                "--robot",
-                "ur5",
-                "--out",
-                str(tmp_path / "s"),
-                "--trajectory",
-                "--samples",
-                "50",
-                "--train-samples",
-                "60",
-                "--quiet",
-            ]
-        )
-        == 2
-    )
+    assert cli_simulate(tmp_path / "s", "--trajectory", "--samples", "50", "--train-samples", "60") == 2
 
 
 def test_report_json_is_strict_json(run_dir):

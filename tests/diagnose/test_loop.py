@@ -10,6 +10,7 @@ import json
 
 import pytest
 import torch
+from _cli import cli_simulate
 
 import torchcal
 from torchcal.cli import main
@@ -81,25 +82,18 @@ def test_trajectories(robot, effects, seed):
 def test_millimetre_files_through_the_command_line(tmp_path):
     sim, run_dir = tmp_path / "sim", tmp_path / "run"
     assert (
-        main(
-            [
-                "simulate",
-                "--robot",
-                "ur5",
-                "--out",
-                str(sim),
-                "--seed",
-                "24",
-                "--poses",
-                "400",
-                "--test-poses",
-                "100",
-                "--effect",
-                "backlash:4=30um",
-                "--length-unit",
-                "mm",
-                "--quiet",
-            ]
+        cli_simulate(
+            sim,
+            "--seed",
+            "24",
+            "--poses",
+            "400",
+            "--test-poses",
+            "100",
+            "--effect",
+            "backlash:4=30um",
+            "--length-unit",
+            "mm",
         )
         == 0
     )

@@ -13,7 +13,7 @@ from torchcal.diagnose.localise import candidate_variables, workspace
 from torchcal.effects import Context, Cyclic, Drift, MeasurementModel, Transmission, effect_from_config
 from torchcal.errors import OptionError
 from torchcal.robot import load_robot
-from torchcal.sim.poses import random_poses
+from torchcal.sim.poses import Scene, random_poses
 
 F64 = torch.float64
 
@@ -96,7 +96,8 @@ def scene():
     with torch.no_grad():
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(torch.tensor([0.03, -0.02, 0.1], dtype=F64))  # off-axis: joint 6 moves the probe
-    q = random_poses(robot, 800, torch.tensor([2.5, -0.3, -0.2], dtype=F64), robot.t_flange_probe().detach(), g)
+    tracker_in_base = torch.tensor([2.5, -0.3, -0.2], dtype=F64)
+    q = random_poses(Scene(robot, tracker_in_base, robot.t_flange_probe().detach()), 800, g)
     t = torch.arange(800, dtype=F64) * 6.0
     model = MeasurementModel(robot)
     ctx = Context(q=q, t=t)

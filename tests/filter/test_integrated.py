@@ -14,6 +14,7 @@ import math
 
 import pytest
 import torch
+from _cli import REPORT_FIELDS
 
 from torchcal.cli import main
 from torchcal.data import Measurements, read_measurements, write_measurements
@@ -104,19 +105,7 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
 
 def test_report_has_the_contract_fields_and_the_three_stages(run_dir):
     report = json.loads((run_dir / "report.json").read_text())
-    for key in (
-        "robot",
-        "method",
-        "n_train",
-        "n_holdout",
-        "rmse_before_mm",
-        "rmse_geometric_mm",
-        "rmse_after_mm",
-        "max_after_mm",
-        "global_test",
-        "effects",
-        "parameters",
-    ):
+    for key in REPORT_FIELDS:
         assert key in report, key
     assert report["method"] == "integrated"
     assert (report["n_train"], report["n_holdout"]) == (SAMPLES - SAMPLES // 5, SAMPLES // 5)

@@ -463,35 +463,34 @@ def workspace(
     sigma: Tensor | float | None = None,
     jacobian: Tensor | None = None,
 ) -> Workspace:
-    """A :class:`Workspace` for ``model``'s residuals at ``ctx`` (default projection: instrument + joint offsets)."""
-    coefs = None if jacobian is not None else tracker_joint_jacobian(model, ctx)
-    return Workspace(residuals, W=W, sigma=sigma, jacobian=jacobian, joint_coefs=coefs)
-
-
-def localise(
-    model: MeasurementModel,
-    ctx: Context,
-    residuals: Tensor,
-    *,
-    W: Tensor | None = None,
-    sigma: Tensor | float | None = None,
-    jacobian: Tensor | None = None,
-    variables: list[Variable] | None = None,
-) -> list[Localisation]:
-    """Test the residual of ``model`` against every candidate variable (module docstring); strongest first.
+    """A :class:`Workspace` for ``model``'s residuals at ``ctx``: what :func:`localise` and the form selection test.
 
     Args:
-        model: the fitted measurement model (its Jacobians and gravity torques define the variables).
+        model: the fitted measurement model.
         ctx: the fitted samples.
         residuals: ``p_measured - p_predicted`` ``(N, 3)`` [m], tracker frame.
         W: whitening ``(N, 3, 3)`` of the fit (e.g. :attr:`Fit.whitening`), or ``sigma`` ``(N, 3)``/scalar [m].
         jacobian: the fit's whitened Jacobian ``(>= 3N, u)`` (:attr:`LMResult.jacobian`); recommended, since
             without it only the instrument translation and the joint offsets are projected off.
+    """
+    with torch_threads(1):  # small kernels (a 3N x u SVD): one thread, as the localisation after it
+        coefs = None if jacobian is not None else tracker_joint_jacobian(model, ctx)
+        return Workspace(residuals, W=W, sigma=sigma, jacobian=jacobian, joint_coefs=coefs)
+
+
+def localise(
+    model: MeasurementModel, ctx: Context, ws: Workspace, variables: list[Variable] | None = None
+) -> list[Localisation]:
+    """Test the residual in ``ws`` against every candidate variable (module docstring); strongest first.
+
+    Args:
+        model: the fitted measurement model (its Jacobians and gravity torques define the variables).
+        ctx: the fitted samples.
+        ws: the fit's :func:`workspace` (the form selection at the strongest variable reuses it).
         variables: defaults to :func:`candidate_variables`.
     """
     with torch_threads(1):
         variables = candidate_variables(model, ctx) if variables is None else variables
-        ws = workspace(model, ctx, residuals, W=W, sigma=sigma, jacobian=jacobian)
         out = [localise_variable(ws, v, len(variables)) for v in variables]
     out.sort(key=lambda loc: (loc.log10_p, -loc.share))
     return out

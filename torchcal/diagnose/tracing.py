@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import math
+import operator
 from dataclasses import dataclass
 
 import torch
@@ -31,6 +32,11 @@ Tensor = torch.Tensor
 
 #: significant variables examined for an open candidate per round (strongest first)
 MAX_VARIABLES = 3
+
+
+def _forwarded(path: str, doc: str) -> property:
+    """A read-only property with the value at the dotted ``path`` from the instance (``"choice.kind"``)."""
+    return property(operator.attrgetter(path), doc=doc)
 
 
 @dataclass(frozen=True, eq=False)
@@ -47,13 +53,8 @@ class OpenCandidate:
     localisation: Localisation
     effect: Effect
 
-    @property
-    def kind(self) -> str:
-        return self.choice.kind
-
-    @property
-    def joint(self) -> int | None:
-        return self.choice.variable.joint
+    kind = _forwarded("choice.kind", "The effect kind the form maps to (``cyclic``, ``drift``, ...).")
+    joint = _forwarded("choice.variable.joint", "1-based joint of the localised variable, None for Cartesian ones.")
 
     @property
     def variable(self) -> str | None:
@@ -109,21 +110,10 @@ class LocalisationScore:
     localisation: Localisation
     choice: FormChoice
 
-    @property
-    def statistic(self) -> float:
-        return self.localisation.statistic
-
-    @property
-    def k(self) -> float:
-        return self.localisation.edf
-
-    @property
-    def log10_p(self) -> float:
-        return self.localisation.log10_p
-
-    @property
-    def p_bonferroni(self) -> float:
-        return self.localisation.p_bonferroni
+    statistic = _forwarded("localisation.statistic", "The localisation's test statistic (scaled chi-square).")
+    k = _forwarded("localisation.edf", "Its degrees of freedom: the smooth's effective degrees of freedom.")
+    log10_p = _forwarded("localisation.log10_p", "log10 of its p-value, for ranking where p underflows.")
+    p_bonferroni = _forwarded("localisation.p_bonferroni", "Its p-value, Bonferroni over the variables.")
 
     def significant(self, alpha: float) -> bool:
         return self.localisation.significant(alpha)
@@ -152,7 +142,7 @@ def residual_workspace(model: MeasurementModel, ctx: Context, p: Tensor, fit) ->
 def localise_fit(model: MeasurementModel, ctx: Context, p: Tensor, fit) -> tuple[list[Localisation], Workspace]:
     """:func:`~torchcal.diagnose.localise.localise` of the training residual of ``fit``, strongest first."""
     r, ws = residual_workspace(model, ctx, p, fit)
-    return localise(model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian), ws
+    return localise(model, ctx, ws), ws
 
 
 def open_candidates(

@@ -102,6 +102,11 @@ _CHI3_MEDIAN = 1.5381722544
 #: Tukey's cut-off on ``|r_i| / s``: the 0.9999 quantile of chi(3), so a row of a correct model is cut
 #: with probability 1e-4, and every row past about 3 times the median residual gets weight zero
 TUKEY_C = 4.7
+#: the start's distance gate (step 1 of :func:`robust_instrument_and_tool`), in multiples of the median distance
+#: of the measured points from their median point
+GATE = 10.0
+#: reweighting rounds at most (the weights settle in a few; rows come back when they fit again)
+ROUNDS = 30
 
 
 def robust_instrument_and_tool(
@@ -109,12 +114,10 @@ def robust_instrument_and_tool(
     p_tracker: Tensor,
     t_flange_probe: Tensor | None = None,
     weights: Tensor | None = None,
-    rounds: int = 30,
-    gate: float = 10.0,
 ) -> tuple[Tensor, Tensor, float, Tensor]:
     """Tracker pose and lever arm that gross errors in ``p_tracker`` do not move.
 
-    1. Gate: a row farther from the coordinate-wise median of the measured points than ``gate``
+    1. Gate: a row farther from the coordinate-wise median of the measured points than :data:`GATE`
        times the median such distance (a row in millimetres among rows in metres lies 1000 times
        too far) takes no part in the start; a robot's workspace is not that lopsided.
     2. Start: the least-squares fit (:func:`fit_instrument_and_tool`) on the gated rows.
@@ -132,8 +135,6 @@ def robust_instrument_and_tool(
         p_tracker: ``(N, 3)`` measured probe positions [m].
         t_flange_probe: initial lever arm ``(3,)`` [m] (default zero).
         weights: ``(N,)`` prior non-negative row weights (0 excludes a row), default equal.
-        rounds: reweighting rounds at most.
-        gate: the start's distance gate (step 1), in multiples of the median distance.
 
     Returns:
         ``T_tracker_base (4, 4)``, ``t_flange_probe (3,)``, the RMS residual of the rows with positive
@@ -148,12 +149,12 @@ def robust_instrument_and_tool(
     centre = p_tracker.median(dim=0).values
     d = (p_tracker - centre).norm(dim=-1)
     scale_d = float(d[w0 > 0].median()) if bool((w0 > 0).any()) else 0.0
-    w = w0 * (d <= gate * max(scale_d, 1e-9)).to(w0.dtype)
+    w = w0 * (d <= GATE * max(scale_d, 1e-9)).to(w0.dtype)
     if int((w > 0).sum()) < 3:
         raise EstimationError(f"robust rigid fit: only {int((w > 0).sum())} of {n} rows are usable (3 needed)")
     T, t, _ = fit_instrument_and_tool(T_base_flange, p_tracker, t_flange_probe, weights=w)
     pf = T_base_flange[:, :3, 3] + T_base_flange[:, :3, :3] @ t
-    for _ in range(rounds):
+    for _ in range(ROUNDS):
         r = (tf.transform_points(T, pf) - p_tracker).norm(dim=-1)
         s = float(r[w0 > 0].median()) / _CHI3_MEDIAN
         u = r / max(s, 1e-15)

@@ -57,8 +57,8 @@ import torch
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
-from torchcal.estimate.fit import FAILED, selection
-from torchcal.estimate.identifiability import DEFAULT_TOL, analyse, preference_order
+from torchcal.estimate.fit import FAILED, FitOptions, selection
+from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import robust_instrument_and_tool
@@ -401,16 +401,10 @@ def screen_geometric(
     model: MeasurementModel,
     train,
     hold,
+    opts: FitOptions,
     *,
-    sigma_tracker: float,
-    sigma_joint: float,
     trajectory: bool = False,
-    rank_tol: float = DEFAULT_TOL,
-    prior_length: float | None = 1e-3,
-    prior_angle: float | None = math.radians(0.1),
     alpha: float = DEFAULT_ALPHA,
-    max_iter: int = 100,
-    stat_tol: float = 1e-2,
     gross: float = GROSS_FACTOR,
 ) -> Screening:
     """Robust geometric fit on the training poses, then the training and held-out poses tested.
@@ -426,7 +420,8 @@ def screen_geometric(
     Args:
         model: the calibration's measurement model before any fit (it is copied, not changed).
         train, hold: :class:`~torchcal.data.Measurements` of the training and held-out poses.
-        sigma_tracker, sigma_joint: the stochastic model (:func:`~torchcal.estimate.problem.whitening`).
+        opts: the settings the calibration's fits read (:class:`~torchcal.estimate.fit.FitOptions`): the
+            stochastic model, the identifiability tolerance, the geometric prior and the LM's limits.
 
     Returns:
         :class:`Screening`; its ``training.kept`` and ``holdout.kept`` select the rows to use.
@@ -439,18 +434,18 @@ def screen_geometric(
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(lever)
     ctx = Context.from_measurements(train, trajectory=trajectory)
-    W = whitening(model, ctx, train.sigma, sigma_tracker, sigma_joint)
+    W = whitening(model, ctx, train.sigma, opts.sigma_tracker, opts.sigma_joint)
     sel, labels = selection(model, groups)
     free = FreeParameters(model, sel, labels)
     fun = residual_function(model, free, ctx, train.p, W)
     J = jacobian_of(fun)(free.vector())  # the Jacobian does not depend on the measured points
-    ida = analyse(J, free.names, preference_order(free.names), tol=rank_tol)
+    ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
     sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())))
     free = FreeParameters(model, sel, labels)
     prior = None
-    if prior_length is not None and prior_angle is not None:
+    if opts.prior_length is not None and opts.prior_angle is not None:
         units = {i.name: i.unit for i in robot.parameter_info() if i.group == "geometry"}
-        prior = prior_sigmas(free, units, prior_length, prior_angle)
+        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
     fun = residual_function(model, free, ctx, train.p, W, prior)
     res = robust_least_squares(
         fun,
@@ -459,8 +454,8 @@ def screen_geometric(
         names=free.names,
         weights0=w0,
         alpha=alpha,
-        max_iter=max_iter,
-        stat_tol=stat_tol,
+        max_iter=opts.max_iter,
+        stat_tol=opts.stat_tol,
         gross=gross,
     )
     free.assign(res.result.x)
@@ -469,7 +464,7 @@ def screen_geometric(
 
     # held-out poses against the robust model, parameter uncertainty included
     hctx = Context.from_measurements(hold, trajectory=trajectory)
-    Wh = whitening(model, hctx, hold.sigma, sigma_tracker, sigma_joint)
+    Wh = whitening(model, hctx, hold.sigma, opts.sigma_tracker, opts.sigma_joint)
     hfun = residual_function(model, free, hctx, hold.p, Wh)
     x = free.vector()
     Jh = jacobian_of(hfun)(x).reshape(hold.n, 3, -1)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
 from torchcal._threads import torch_threads
@@ -69,3 +69,36 @@ def emit(result: Any, args: argparse.Namespace, *, plain: Any = None) -> None:
         print(json.dumps(result))
     elif plain is not None:
         print(json.dumps(plain, indent=1))
+
+
+def comma_list(
+    ap: argparse.ArgumentParser,
+    text: str,
+    valid: Sequence[str] | None = None,
+    *,
+    what: str = "name",
+    upper: bool = False,
+) -> tuple[str, ...]:
+    """The comma-separated names of an argument, blanks dropped (``"c, a"`` -> ``("C", "A")`` with ``upper``).
+
+    Raises:
+        SystemExit: a usage error of ``ap`` naming the names outside ``valid`` (when given) and the valid ones.
+    """
+    names = tuple(s.strip().upper() if upper else s.strip() for s in text.split(",") if s.strip())
+    bad = [s for s in names if valid is not None and s not in valid]
+    if bad:
+        ap.error(f"unknown {what} {', '.join(bad)}; valid: {', '.join(valid)}")
+    return names
+
+
+def run_markdown(
+    ap: argparse.ArgumentParser,
+    experiment: Callable[[argparse.Namespace], tuple[Any, str]],
+    argv: list[str] | None = None,
+) -> int:
+    """For an experiment that returns ``(result, markdown)``: :func:`run` it, print the markdown, then
+    :func:`emit` the result; returns the exit status 0."""
+    args, (result, md) = run(ap, experiment, argv)
+    print(md)
+    emit(result, args)
+    return 0

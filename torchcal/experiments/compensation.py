@@ -30,7 +30,7 @@ from torchcal.effects.model import MeasurementModel
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.sim import EffectSpec, SimConfig, simulate
-from torchcal.sim.poses import random_poses, trajectory
+from torchcal.sim.poses import Scene, random_poses, trajectory
 
 F64 = torch.float64
 DEFAULT_EFFECTS = ("compliance:2=60um", "field=0.05mm")
@@ -134,9 +134,10 @@ def run(cfg: ExperimentConfig) -> dict:
     # the effects only, not by a mis-measured tool
     lever_true = truth.robot.t_flange_probe().detach()
     g = torch.Generator().manual_seed(cfg.seed + 7919)  # fresh poses, independent of the campaign's
+    scene = Scene(nominal, tracker_in_base, lever_nominal, sim.sight)
     programs = {
-        "static": random_poses(nominal, cfg.static_targets, tracker_in_base, lever_nominal, g, sim.sight),
-        "path": trajectory(nominal, cfg.path_targets, tracker_in_base, lever_nominal, g, sim.sight),
+        "static": random_poses(scene, cfg.static_targets, g),
+        "path": trajectory(scene, cfg.path_targets, g),
     }
     out = {
         "config": {

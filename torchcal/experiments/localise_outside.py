@@ -64,8 +64,9 @@ def one(train, test, oracle_mm=None, true_effect=None) -> dict:
     with torch.no_grad():
         r = tr.p - run.model(ctx)
     t1 = time.perf_counter()
-    locs = localise(run.model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian)
-    fc = identify_form(workspace(run.model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian), locs[0].variable)
+    ws = workspace(run.model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian)
+    locs = localise(run.model, ctx, ws)
+    fc = identify_form(ws, locs[0].variable)
     t2 = time.perf_counter()
     eff = fc.effect(run.model)
     out = {
@@ -96,7 +97,7 @@ def clean(n: int, seed: int, alpha: float = 0.01) -> dict:
         fit = run.fits[-1]
         with torch.no_grad():
             r = tr.p - run.model(ctx)
-        locs = localise(run.model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian)
+        locs = localise(run.model, ctx, workspace(run.model, ctx, r, W=fit.whitening, jacobian=fit.result.jacobian))
         ps.append({"seed": seed + 1000 + i, "top": locs[0].name, "p_bonferroni": locs[0].p_bonferroni})
     return {"runs": ps, "alpha": alpha, "false_positives": sum(p["p_bonferroni"] < alpha for p in ps), "n": n}
 

@@ -53,9 +53,11 @@ Sec. 2.2.2, Table 1 and Fig. 5.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +65,7 @@ import numpy as np
 import torch
 
 from torchcal.estimate.rigid import fit_instrument_and_tool
+from torchcal.experiments import common
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
@@ -136,6 +139,46 @@ class Setup:
 
 
 POSTURES = ("any", "single")
+
+
+#: a table script's sizes: argument name -> (default, default with ``--quick``, what it counts)
+Sizes = dict[str, tuple[int, int, str]]
+
+
+def add_arguments(ap: argparse.ArgumentParser, sizes: Sizes) -> None:
+    """The arguments of a table script: one ``--<size>`` per entry of ``sizes`` (default None: see
+    :func:`fill_sizes`), ``--seed``, ``--posture``, ``--quick`` and ``--out``."""
+    for name, (full, quick, what) in sizes.items():
+        ap.add_argument(f"--{name.replace('_', '-')}", type=int, help=f"{what} (default {full}, quick {quick})")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the poses, tracker, lever arm and biases")
+    ap.add_argument("--posture", choices=POSTURES, default="any", help="single: one shoulder configuration only")
+    quick_help = ", ".join(f"{quick} {name.replace('_', ' ')}" for name, (_, quick, _) in sizes.items())
+    ap.add_argument("--quick", action="store_true", help=quick_help)
+    ap.add_argument("--out", type=Path, default=Path("runs/paper"), help="output folder (default runs/paper)")
+
+
+def fill_sizes(args: argparse.Namespace, sizes: Sizes) -> None:
+    """Set each size not given on the command line to its default, or with ``--quick`` to its quick value."""
+    for name, (full, quick, _) in sizes.items():
+        if getattr(args, name) is None:
+            setattr(args, name, quick if args.quick else full)
+
+
+def script_main(
+    ap: argparse.ArgumentParser,
+    experiment: Callable[[argparse.Namespace], dict],
+    write: Callable[[dict, Path], str],
+    table: Callable[[dict], str],
+    argv: list[str] | None = None,
+) -> int:
+    """A table script's run: ``experiment`` (:func:`~torchcal.experiments.common.run`), its files written into
+    ``--out`` by ``write``, the ``table`` of the result and the files' summary printed, the result as JSON with
+    ``--json``; returns the exit status 0."""
+    args, result = common.run(ap, experiment, argv)
+    summary = write(result, args.out)
+    print(table(result), summary, sep="\n")
+    common.emit(result, args)
+    return 0
 
 
 def _single_posture(T_base_flange: torch.Tensor, q: torch.Tensor, lever: torch.Tensor) -> torch.Tensor:

@@ -397,35 +397,38 @@ class AdaptiveEKF:
                 f"{tuple(w0.shape)} and {tuple(sigma_w0.shape)}"
             )
         active = torch.nonzero(sigma_w0 > 0).flatten()  # weights in the state; the others are held (variance 0)
-        nw, nd, k = len(active), 3 if cfg.sigma_misfit > 0 else 0, len(params)
+        nd = 3 if cfg.sigma_misfit > 0 else 0
+        index = _Index(robot, params)
+        with torch.no_grad():
+            R0 = robot.T_tracker_base()[:3, :3]
+            t_first = (robot.probe_position(q[0]) if t0 is None else t0).clone()
+            _, Jq = robot.probe_jacobian(q[:n_train])
+        RJ = R0 @ Jq
+        first_gamma = len(active) + 3 + nd  # the state column of the first geometric parameter
+        rot = [
+            (first_gamma + j, _ROTATION.index(p.name[-2:]))
+            for j, p in enumerate(params)
+            if p.group == "instrument" and p.name[-2:] in _ROTATION
+        ]
         s = _Setup(
             q=q,
             y=y,
             n_train=n_train,
             kw=kw,
             params=list(params),
-            index=_Index(robot, params),
+            index=index,
             w0=w0,
             sigma_w0=sigma_w0,
             active=active,
-            nw=nw,
             nd=nd,
-            n=nw + 3 + nd + k,
+            unit_sig=torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params], **kw),
+            gamma0=index.values(),
+            t0=t_first,
+            Ryy_q=cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2),
+            rot_cols=[c for c, _ in rot],
+            rot_axes=[a for _, a in rot],
         )
-        s.unit_sig = torch.tensor([cfg.sigma_length if p.unit == "m" else cfg.sigma_angle for p in params], **kw)
-        s.gamma0 = s.index.values()
-        with torch.no_grad():
-            R0 = robot.T_tracker_base()[:3, :3]
-            s.t0 = (robot.probe_position(q[0]) if t0 is None else t0).clone()
-            _, Jq = robot.probe_jacobian(q[:n_train])
-        RJ = R0 @ Jq
-        s.Ryy_q = cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2)  # joint noise at the probe (N_train, 3, 3)
-        rot = [
-            (nw + 3 + nd + j, _ROTATION.index(p.name[-2:]))
-            for j, p in enumerate(params)
-            if p.group == "instrument" and p.name[-2:] in _ROTATION
-        ]
-        s.rot_cols, s.rot_axes = [c for c, _ in rot], [a for _, a in rot]
+        nw = s.nw
         if net is not None:
             Hn, Dq = net.hidden, net.dof
             s.Hn, s.o2, s.o3 = Hn, Hn * Dq + Hn, Hn * Dq + 4 * Hn
@@ -663,22 +666,30 @@ class _Setup:
     index: _Index
     w0: Tensor
     sigma_w0: Tensor
-    active: Tensor
-    nw: int
-    nd: int
-    n: int
-    unit_sig: Tensor | None = None
-    gamma0: Tensor | None = None
-    t0: Tensor | None = None
-    Ryy_q: Tensor | None = None  # joint noise at the probe per training sample (N_train, 3, 3)
-    rot_cols: list[int] = field(default_factory=list)  # state columns of the instrument rotation
-    rot_axes: list[int] = field(default_factory=list)  # and their axes
+    active: Tensor  # the weights in the state (nw,)
+    nd: int  # misfit states: 3, or 0 without them
+    unit_sig: Tensor  # a-priori sigma of each geometric parameter, by its unit [m or rad] (k,)
+    gamma0: Tensor  # the geometric parameters at the start (k,)
+    t0: Tensor  # the probe position at the first sample (3,)
+    Ryy_q: Tensor  # joint noise at the probe per training sample (N_train, 3, 3)
+    rot_cols: list[int]  # state columns of the instrument rotation
+    rot_axes: list[int]  # and their axes
     features: Tensor | None = None
     w2_cols: Tensor | None = None
     direct: bool = False
     Hn: int = 0
     o2: int = 0  # end of the hidden layer in the flat weights
     o3: int = 0  # end of the output weights
+
+    @property
+    def nw(self) -> int:
+        """Weights in the state."""
+        return len(self.active)
+
+    @property
+    def n(self) -> int:
+        """The state's size: weights, probe position, misfit, geometric parameters."""
+        return self.nw + 3 + self.nd + len(self.params)
 
     @property
     def iw(self) -> slice:

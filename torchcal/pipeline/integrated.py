@@ -97,6 +97,11 @@ JOINT_STRIDE = 3
 FORWARD_FRACTION = 0.1
 
 
+def _first_draw(name: str) -> property:
+    """The filter result's ``name`` ``(N, 3)`` [m] of its only draw: an integrated run makes one pass."""
+    return property(lambda self: getattr(self.result, name)[0], doc=f"The filter's {name} per sample (N, 3) [m].")
+
+
 @dataclass
 class IntegratedFilter:
     """The filter pass of an ``integrated`` run, with the references the report compares it with.
@@ -113,17 +118,9 @@ class IntegratedFilter:
     weight_cov: Tensor | None = None  # final covariance of the weights in the filter's state (k, k)
     weight_index: Tensor | None = None  # their indices in the network's flat weights (k,)
 
-    @property
-    def geometric(self) -> Tensor:
-        return self.result.geometric[0]
-
-    @property
-    def nongeometric(self) -> Tensor:
-        return self.result.nongeometric[0]
-
-    @property
-    def prediction(self) -> Tensor:
-        return self.result.prediction[0]
+    geometric = _first_draw("geometric")
+    nongeometric = _first_draw("nongeometric")
+    prediction = _first_draw("prediction")
 
     def deviations(self) -> dict[str, Tensor]:
         """``devG``, ``devNG``, ``devAll`` per sample ``(N, 3)`` [m] (the paper's Figs. 9 and 11 on measured data).
@@ -268,6 +265,22 @@ def integrate(
     return filt
 
 
+def _integrated_record(run: CalibrationRun, after, *, params: dict, evidence: dict) -> EffectRecord:
+    """The integrated run's effect record (the learned correction, stage ``learned``), with the held-out RMSE of
+    the geometric stage before it and of the stage ``after`` it."""
+    before = run.stage(StageName.GEOMETRIC)
+    return EffectRecord(
+        "learned",
+        None,
+        params,
+        evidence,
+        name="integrated",
+        label="learned",
+        rmse_before_mm=before.rmse * 1e3,
+        rmse_after_mm=after.rmse * 1e3,
+    )
+
+
 def _record_ekf(
     run: CalibrationRun,
     filt: IntegratedFilter,
@@ -278,15 +291,13 @@ def _record_ekf(
 ) -> None:
     """The ``ekf`` engine's effect record and note: held-out RMSE after each step, the filter's statistics."""
     opts, res, cfg, n_train = run.options, filt.result, filt.config, filt.n_train
-    after, before = run.stages[-1], run.stage(StageName.GEOMETRIC)
+    after = run.stages[-1]
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[0, :n_train]
     run.effects.append(
-        EffectRecord(
-            "learned",
-            None,
-            name="integrated",
-            label="learned",
+        _integrated_record(
+            run,
+            after,
             params={
                 "model": "network",
                 "hidden": opts.hidden,
@@ -315,8 +326,6 @@ def _record_ekf(
                     "final_state_offset_from_kinematics_mm": float((res.t[0] - filt.kinematic[-1]).norm()) * 1e3,
                 },
             },
-            rmse_before_mm=before.rmse * 1e3,
-            rmse_after_mm=after.rmse * 1e3,
         )
     )
     text = ", ".join(f"{k.replace('_', ' ')} {v * 1e3:.4f}" for k, v in steps.items())
@@ -441,10 +450,7 @@ def integrate_adaptive(
     run: CalibrationRun,
     train: Measurements,
     hold: Measurements,
-    *,
-    hidden: int = 128,
-    gain: float = 5.0,
-    sigma_field: float = 5e-4,
+    setting: Setting | None = None,
 ) -> IntegratedFilter:
     """The ``integrated`` method with the adaptive filter: geometry in the state (the paper's future work).
 
@@ -456,16 +462,18 @@ def integrate_adaptive(
     geometry (instrument translation back-substituted) plus a :class:`LearnedEffect` with its network, so
     ``predict`` reloads it like any run.
 
-    ``hidden`` and ``gain`` set the random features (more and sharper features fit more, fewer and smoother ones
-    extrapolate more gently), ``sigma_field`` the prior of the output layer (the field's expected RMS): the
-    regularisation settings :func:`integrate_selected` chooses among on validation samples.
+    ``setting`` (default ``Setting("adaptive")``): its ``hidden`` and ``gain`` set the random features (more and
+    sharper features fit more, fewer and smoother ones extrapolate more gently), ``sigma_field`` the prior of the
+    output layer (the field's expected RMS): the regularisation settings :func:`integrate_selected` chooses among
+    on validation samples.
     ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (README, "integrated").
     Steps: :func:`_adaptive_pass` (the filter), :func:`_install_adaptive` (the final model),
     :func:`_record_adaptive` (the report's record).
     """
     with torch.no_grad():  # the kinematic calibration's prediction: the report's reference G
         kinematic = run.model(Context(q=torch.cat([train.q, hold.q])))
-    start, net, res, cfg = _adaptive_pass(run, train, hold, hidden, gain, sigma_field)
+    s = setting or Setting("adaptive")
+    start, net, res, cfg = _adaptive_pass(run, train, hold, s.hidden, s.gain, s.sigma_field)
     _install_adaptive(run, start, net, res)
     after = run.add_stage(StageName.INTEGRATED)
     nw = len(res.active)  # the state is [w[active]; t; (d); gamma]
@@ -473,7 +481,7 @@ def integrate_adaptive(
         _as_ekf_result(res), torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
     )
     _record_adaptive(
-        run, filt, res, net, hold, after, {"hidden": hidden, "feature_gain": gain, "sigma_field_m": sigma_field}
+        run, filt, res, net, hold, after, {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
     )
     return filt
 
@@ -533,15 +541,13 @@ def _record_adaptive(
     run: CalibrationRun, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
 ) -> None:
     """The adaptive engine's effect record (settings, the geometry with its sigmas, the filter's health) and note."""
-    n_train, before = filt.n_train, run.stage(StageName.GEOMETRIC)
+    n_train = filt.n_train
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[:n_train]
     run.effects.append(
-        EffectRecord(
-            "learned",
-            None,
-            name="integrated",
-            label="learned",
+        _integrated_record(
+            run,
+            after,
             params={
                 "model": "network (fixed random tanh features, output layer estimated)",
                 **settings,
@@ -565,8 +571,6 @@ def _record_adaptive(
                     "linearisation_remainder_m": [r.get("total_remainder_m") for r in res.relinearisations],
                 },
             },
-            rmse_before_mm=before.rmse * 1e3,
-            rmse_after_mm=after.rmse * 1e3,
         )
     )
     run.notes.append(
@@ -654,9 +658,7 @@ SETTINGS = (
 def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements, setting: Setting) -> IntegratedFilter:
     if setting.engine == "ekf":
         return integrate(run, train, hold)
-    return integrate_adaptive(
-        run, train, hold, hidden=setting.hidden, gain=setting.gain, sigma_field=setting.sigma_field
-    )
+    return integrate_adaptive(run, train, hold, setting)
 
 
 def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> CalibrationRun:

@@ -102,8 +102,8 @@ class Diagnosis:
     alpha_validation: float
     n_fit: int
     n_validation: int
-    candidates: list[Candidate] = field(default_factory=list)
-    skipped: list[dict] = field(default_factory=list)
+    candidates: list[Candidate]
+    skipped: list[dict]
     rounds: list[dict] = field(default_factory=list)  # per round: scores and the global test before it
     decisions: list[Decision] = field(default_factory=list)
     stop: str = ""
@@ -144,8 +144,6 @@ def close_loop(
     train: Measurements,
     trajectory: bool,
     *,
-    alpha: float = 0.01,
-    alpha_val: float = 0.05,
     max_effects: int = 8,
     max_tries: int = 3,
     open_forms: bool = True,
@@ -158,14 +156,14 @@ def close_loop(
     Args:
         run: a :class:`~torchcal.pipeline.run.CalibrationRun` whose last fit is the geometric one.
         train: the training measurements (the held-out poses are never seen here).
-        alpha: family-wise level of the score tests (Bonferroni over the candidates).
-        alpha_val: level of the paired validation test.
         max_effects: at most this many effects are added.
         max_tries: significant candidates validated per round before the loop gives up.
         open_forms: also localise the residual each round and propose the form chosen there
             (:mod:`torchcal.diagnose.tracing`); at the end, report what is left (``Diagnosis.unexplained``).
     """
     opts, model = run.options, run.model
+    # the levels: of the score tests (family-wise, Bonferroni over the candidates) and of the paired validation test
+    alpha, alpha_val = opts.alpha, opts.alpha_validation
     ctx = Context.from_measurements(train, trajectory=trajectory)
     cands, skipped = candidates(model.robot, ctx)
     fi, va = S.split(

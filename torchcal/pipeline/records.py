@@ -29,7 +29,19 @@ def _given(**fields) -> dict:
 
 
 @dataclass
-class EffectRecord:
+class _Entry:
+    """What an effect record and a rejection share: the effect kind and its joint, written first."""
+
+    kind: str  # the effect kind (:data:`torchcal.effects.KINDS`)
+    joint: int | None  # 1-based joint, or None
+
+    def _head(self, **optional) -> dict:
+        """``kind`` and ``joint``, then the ``optional`` fields that are not None."""
+        return {"kind": self.kind, "joint": self.joint, **_given(**optional)}
+
+
+@dataclass
+class EffectRecord(_Entry):
     """An effect the run kept, with its parameters and the evidence for it.
 
     Attributes:
@@ -42,8 +54,6 @@ class EffectRecord:
         rmse_before_mm, rmse_after_mm: held-out RMSE of the stages before and after it [mm].
     """
 
-    kind: str
-    joint: int | None
     params: dict
     evidence: dict
     name: str | None = None
@@ -53,9 +63,7 @@ class EffectRecord:
 
     def to_dict(self) -> dict:
         return {
-            "kind": self.kind,
-            "joint": self.joint,
-            **_given(name=self.name, label=self.label),
+            **self._head(name=self.name, label=self.label),
             "params": self.params,
             "evidence": self.evidence,
             **_given(rmse_before_mm=self.rmse_before_mm, rmse_after_mm=self.rmse_after_mm),
@@ -63,19 +71,12 @@ class EffectRecord:
 
 
 @dataclass
-class Rejection:
+class Rejection(_Entry):
     """A candidate that did not earn its place, with the reason and the evidence."""
 
-    kind: str
-    joint: int | None
     evidence: dict = field(default_factory=dict)
     name: str | None = None
     reason: str | None = None
 
     def to_dict(self) -> dict:
-        return {
-            "kind": self.kind,
-            "joint": self.joint,
-            **_given(name=self.name, reason=self.reason),
-            "evidence": self.evidence,
-        }
+        return {**self._head(name=self.name, reason=self.reason), "evidence": self.evidence}

@@ -269,7 +269,7 @@ def calibrate(
         # small kernels throughout (u x u solves, one pass over the poses, score tests, smooths): one thread, so that
         # another process on the machine does not multiply the time (torch's threads spin while one waits for a core)
         with torch_threads(1):
-            close_loop(run, train, trajectory, alpha=opts.alpha, alpha_val=opts.alpha_validation)
+            close_loop(run, train, trajectory)
 
     # 4. a learned residual model where the data demand it
     if opts.method == "auto" and opts.learned:
@@ -300,15 +300,9 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
             MeasurementModel(robot),
             data.subset(tr),
             data.subset(ho),
-            sigma_tracker=opts.sigma_tracker,
-            sigma_joint=opts.sigma_joint,
+            opts,
             trajectory=trajectory,
-            rank_tol=opts.rank_tol,
-            prior_length=opts.prior_length,
-            prior_angle=opts.prior_angle,
             alpha=opts.outlier_alpha,
-            max_iter=opts.max_iter,
-            stat_tol=opts.stat_tol,
         )
     for name, part in (("training", sc.training), ("held-out", sc.holdout)):
         if part.rejected:

@@ -9,7 +9,7 @@ from torchcal.sim.campaign import (
     simulate,
     write_campaign,
 )
-from torchcal.sim.poses import PATHS, SightRule, path, random_poses, trajectory, visible
+from torchcal.sim.poses import PATHS, Scene, SightRule, path, random_poses, trajectory, visible
 
 __all__ = [
     "DEFAULT_SIZES",
@@ -18,6 +18,7 @@ __all__ = [
     "path",
     "Campaign",
     "EffectSpec",
+    "Scene",
     "SightRule",
     "SimConfig",
     "random_poses",

@@ -32,7 +32,7 @@ from torchcal.errors import OptionError
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
-from torchcal.sim.poses import PATHS, SightRule, path, random_poses
+from torchcal.sim.poses import PATHS, Scene, SightRule, path, random_poses
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -235,12 +235,13 @@ def _poses_and_times(
 
     The poses are planned with the nominal model, as a robot program would be.
     """
+    scene = Scene(nominal, tracker_in_base, lever_nominal, cfg.sight)
     if cfg.trajectory:
-        q_true = path(cfg.path, nominal, cfg.samples, tracker_in_base, lever_nominal, g, cfg.sight)
+        q_true = path(cfg.path, scene, cfg.samples, g)
         n_train = cfg.train_samples
         t = torch.arange(len(q_true), dtype=F64) * cfg.sample_interval_s
     else:
-        q_true = random_poses(nominal, cfg.poses + cfg.test_poses, tracker_in_base, lever_nominal, g, cfg.sight)
+        q_true = random_poses(scene, cfg.poses + cfg.test_poses, g)
         n_train = cfg.poses
         jitter = torch.rand(len(q_true), generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
         t = torch.arange(len(q_true), dtype=F64) * cfg.pose_interval_s + jitter

@@ -32,7 +32,7 @@ from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.robot import transforms as tf
 from torchcal.sim.campaign import Campaign, SimConfig, _config_dict, _measured, _true_robot
-from torchcal.sim.poses import random_poses, trajectory
+from torchcal.sim.poses import Scene, random_poses, trajectory
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -97,13 +97,14 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     cfg = replace(cfg or SimConfig(), effects=[])
     g = torch.Generator().manual_seed(int(cfg.seed))
     nominal, robot, T, tracker_in_base, lever_nominal = _true_robot(cfg, g, [(e.form, e.joint) for e in effects])
+    scene = Scene(nominal, tracker_in_base, lever_nominal, cfg.sight)
     if cfg.trajectory:
-        q = trajectory(nominal, cfg.samples, tracker_in_base, lever_nominal, g, cfg.sight)
+        q = trajectory(scene, cfg.samples, g)
         t = torch.arange(len(q), dtype=F64) * cfg.sample_interval_s
         train_idx, test_idx = torch.arange(cfg.train_samples), torch.arange(cfg.train_samples, len(q))
     else:
         n = cfg.poses + cfg.test_poses
-        q = random_poses(nominal, n, tracker_in_base, lever_nominal, g, cfg.sight)
+        q = random_poses(scene, n, g)
         t = (
             torch.arange(n, dtype=F64) * cfg.pose_interval_s
             + torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s

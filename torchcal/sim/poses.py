@@ -75,28 +75,57 @@ def visible(
     return ok
 
 
-def sample_joints(robot: RobotModel, n: int, generator: torch.Generator) -> Tensor:
-    """Uniform joints within the limits, clipped to [-pi, pi] (a turn covers every posture)."""
+@dataclass(eq=False)
+class Scene:
+    """What decides whether the tracker sees a pose: the robot, where the tracker stands, the probe's lever arm
+    and the line-of-sight rule. The poses and paths below are planned in a scene.
+
+    Attributes:
+        robot: the robot the poses are planned with (its nominal geometry, as a robot program would be).
+        tracker_in_base: the tracker's position ``(3,)`` [m] in the robot's base frame.
+        t_flange_probe: the probe's lever arm ``(3,)`` [m] in the flange frame.
+        rule: the line-of-sight rule (``None``: the default :class:`SightRule`).
+    """
+
+    robot: RobotModel
+    tracker_in_base: Tensor
+    t_flange_probe: Tensor
+    rule: SightRule | None = None
+
+    def visible(self, q: Tensor) -> Tensor:
+        """Which poses ``q (N, dof)`` the tracker sees ``(N,)`` bool (:func:`visible`)."""
+        return visible(self.robot, q, self.tracker_in_base, self.t_flange_probe, self.rule)
+
+    def visible_runs(self, q: Tensor) -> Tensor:
+        """The samples of a planned path ``q (N, dof)`` the tracker sees: a laser tracker loses the beam where the
+        line of sight breaks and picks it up again after, so the measured trajectory is the path with those
+        samples missing."""
+        ok = torch.zeros(len(q), dtype=torch.bool)
+        for i in range(0, len(q), 4096):  # in blocks: the skeleton points of a long path fill memory at once
+            ok[i : i + 4096] = self.visible(q[i : i + 4096])
+        return q[ok]
+
+
+def _joint_box(robot: RobotModel) -> tuple[Tensor, Tensor]:
+    """The joint limits clipped to [-pi, pi] ``(dof,)`` each [rad]: a turn covers every posture."""
     lo = robot.limits[:, 0].clamp(min=-math.pi)
     hi = robot.limits[:, 1].clamp(max=math.pi)
+    return lo, hi
+
+
+def sample_joints(robot: RobotModel, n: int, generator: torch.Generator) -> Tensor:
+    """Uniform joints ``(n, dof)`` within the limits, clipped to [-pi, pi] (a turn covers every posture)."""
+    lo, hi = _joint_box(robot)
     return lo + (hi - lo) * torch.rand(n, robot.dof, generator=generator, dtype=robot.dtype)
 
 
-def random_poses(
-    robot: RobotModel,
-    n: int,
-    tracker_in_base: Tensor,
-    t_flange_probe: Tensor,
-    generator: torch.Generator,
-    rule: SightRule | None = None,
-    max_tries: int = 200,
-) -> Tensor:
-    """``n`` random visible poses ``(n, dof)``, by rejection sampling in batches."""
+def random_poses(scene: Scene, n: int, generator: torch.Generator, max_tries: int = 200) -> Tensor:
+    """``n`` random poses ``(n, dof)`` the tracker sees in ``scene``, by rejection sampling in batches."""
     got: list[Tensor] = []
     count = 0
     for _ in range(max_tries):
-        cand = sample_joints(robot, max(4 * n, 256), generator)
-        keep = cand[visible(robot, cand, tracker_in_base, t_flange_probe, rule)]
+        cand = sample_joints(scene.robot, max(4 * n, 256), generator)
+        keep = cand[scene.visible(cand)]
         got.append(keep)
         count += len(keep)
         if count >= n:
@@ -105,12 +134,9 @@ def random_poses(
 
 
 def trajectory(
-    robot: RobotModel,
+    scene: Scene,
     n_samples: int,
-    tracker_in_base: Tensor,
-    t_flange_probe: Tensor,
     generator: torch.Generator,
-    rule: SightRule | None = None,
     step: float = 0.01,
     max_segment: float = 1.2,
     stop_after: int | None = None,
@@ -124,20 +150,20 @@ def trajectory(
     visible poses within ``max_segment`` rad (largest joint move) of the current one. ``stop_after``: end
     at that many waypoints instead (the path then has as many samples as the moves take).
     """
-    current = random_poses(robot, 1, tracker_in_base, t_flange_probe, generator, rule)[0]
+    current = random_poses(scene, 1, generator)[0]
     samples = [current[None]]
     total = 1
     reached = 0
     while total < n_samples and (stop_after is None or reached < stop_after):
-        pool = random_poses(robot, 64, tracker_in_base, t_flange_probe, generator, rule)
+        pool = random_poses(scene, 64, generator)
         moves = (pool - current).abs().max(dim=-1).values
         near = torch.nonzero(moves <= max_segment).flatten()
         if len(near) == 0:
             near = torch.argsort(moves)[:4]
         for idx in near[torch.randperm(len(near), generator=generator)][:16]:
             target = pool[idx]
-            seg = trajectory_between(robot, current, target, step)
-            if bool(visible(robot, seg, tracker_in_base, t_flange_probe, rule).all()):
+            seg = trajectory_between(current, target, step)
+            if bool(scene.visible(seg).all()):
                 samples.append(seg)
                 total += len(seg)
                 current = target
@@ -150,32 +176,8 @@ def trajectory(
 PATHS = ("p2p", "multisine", "randomwalk", "sweeps")
 
 
-def _visible_runs(
-    robot: RobotModel, q: Tensor, tracker_in_base: Tensor, t_flange_probe: Tensor, rule: SightRule | None
-) -> Tensor:
-    """The samples of a planned path the tracker sees: a laser tracker loses the beam where the line of sight
-    breaks and picks it up again after, so the measured trajectory is the path with those samples missing."""
-    ok = torch.zeros(len(q), dtype=torch.bool)
-    for i in range(0, len(q), 4096):
-        ok[i : i + 4096] = visible(robot, q[i : i + 4096], tracker_in_base, t_flange_probe, rule)
-    return q[ok]
-
-
-def _joint_box(robot: RobotModel) -> tuple[Tensor, Tensor]:
-    lo = robot.limits[:, 0].clamp(min=-math.pi)
-    hi = robot.limits[:, 1].clamp(max=math.pi)
-    return lo, hi
-
-
 def multisine_path(
-    robot: RobotModel,
-    n_samples: int,
-    tracker_in_base: Tensor,
-    t_flange_probe: Tensor,
-    generator: torch.Generator,
-    rule: SightRule | None = None,
-    dt: float = 0.1,
-    span: float = 0.8,
+    scene: Scene, n_samples: int, generator: torch.Generator, dt: float = 0.1, span: float = 0.8
 ) -> Tensor:
     """A smooth multi-sine path through most of the joint range ``(n_samples, dof)``.
 
@@ -184,8 +186,9 @@ def multisine_path(
     (limits clipped to one turn). Unlike the point-to-point programs, the path never stops at waypoints and
     never repeats; samples without line of sight are left out, as the tracker would.
     """
+    robot = scene.robot
     lo, hi = _joint_box(robot)
-    centre = random_poses(robot, 1, tracker_in_base, t_flange_probe, generator, rule)[0]
+    centre = random_poses(scene, 1, generator)[0]
     half = 0.5 * (hi - lo)
     mid = 0.5 * (hi + lo)
     centre = mid + 0.5 * (centre - mid)  # halfway to the middle: room for the swing on both sides
@@ -199,7 +202,7 @@ def multisine_path(
     while sum(len(g) for g in got) < n_samples:
         t = start + torch.arange(8192, dtype=robot.dtype) * dt
         q = centre + (amp[None] * torch.sin(2 * math.pi * t[:, None, None] / periods[None] + phases[None])).sum(-1)
-        got.append(_visible_runs(robot, q, tracker_in_base, t_flange_probe, rule))
+        got.append(scene.visible_runs(q))
         start = float(t[-1]) + dt
         if start > 1e3 * n_samples * dt:
             raise RuntimeError("the multi-sine path is almost never visible; move the tracker or relax the rule")
@@ -207,20 +210,14 @@ def multisine_path(
 
 
 def random_walk_path(
-    robot: RobotModel,
-    n_samples: int,
-    tracker_in_base: Tensor,
-    t_flange_probe: Tensor,
-    generator: torch.Generator,
-    rule: SightRule | None = None,
-    speed: float = 0.004,
-    correlation: float = 0.995,
+    scene: Scene, n_samples: int, generator: torch.Generator, speed: float = 0.004, correlation: float = 0.995
 ) -> Tensor:
     """A slow random walk in joint space ``(n_samples, dof)``: each joint's velocity is a first-order
     autoregressive process (smooth, ``speed`` rad per sample RMS), reflected at the limits; a step that
     would lose the line of sight turns the velocity around instead."""
+    robot = scene.robot
     lo, hi = _joint_box(robot)
-    q = random_poses(robot, 1, tracker_in_base, t_flange_probe, generator, rule)[0]
+    q = random_poses(scene, 1, generator)[0]
     v = torch.zeros_like(q)
     innov = speed * math.sqrt(1.0 - correlation**2)
     out = torch.empty(n_samples, robot.dof, dtype=robot.dtype)
@@ -238,7 +235,7 @@ def random_walk_path(
             qq = torch.where(over, 2 * hi - qq, torch.where(under, 2 * lo - qq, qq))
             vv = torch.where(over | under, -vv, vv)
             seg[k] = qq
-        ok = visible(robot, seg, tracker_in_base, t_flange_probe, rule)
+        ok = scene.visible(seg)
         n_ok = int(ok.long().cumprod(0).sum())  # the visible run from the start of the block
         if n_ok == 0:
             v = -v
@@ -255,42 +252,27 @@ def random_walk_path(
     return out
 
 
-def sweeps_path(
-    robot: RobotModel,
-    n_samples: int,
-    tracker_in_base: Tensor,
-    t_flange_probe: Tensor,
-    generator: torch.Generator,
-    rule: SightRule | None = None,
-    waypoints: int = 6,
-) -> Tensor:
+def sweeps_path(scene: Scene, n_samples: int, generator: torch.Generator, waypoints: int = 6) -> Tensor:
     """Repeated sweeps ``(n_samples, dof)``: one closed point-to-point cycle through ``waypoints`` visible
     poses, run again and again as a production program does; the continuation revisits the same path."""
-    cycle = trajectory(robot, 10**9, tracker_in_base, t_flange_probe, generator, rule, stop_after=waypoints)
-    back = _visible_runs(robot, trajectory_between(robot, cycle[-1], cycle[0]), tracker_in_base, t_flange_probe, rule)
+    cycle = trajectory(scene, 10**9, generator, stop_after=waypoints)
+    back = scene.visible_runs(trajectory_between(cycle[-1], cycle[0]))
     loop = torch.cat([cycle, back])
     reps = -(-n_samples // len(loop))
     return loop.repeat(reps, 1)[:n_samples]
 
 
-def trajectory_between(robot: RobotModel, a: Tensor, b: Tensor, step: float = 0.01) -> Tensor:
-    """The point-to-point move from ``a`` to ``b`` (cosine profile, as :func:`trajectory`), ``b`` included."""
+def trajectory_between(a: Tensor, b: Tensor, step: float = 0.01) -> Tensor:
+    """The point-to-point move ``(m, dof)`` from ``a`` to ``b`` ``(dof,)`` [rad] (cosine profile, as
+    :func:`trajectory`), ``b`` included."""
     m = max(20, int(math.ceil(float((b - a).abs().max()) / step)))
     s = torch.linspace(0.0, 1.0, m + 1, dtype=a.dtype)[1:]
     return a + (0.5 - 0.5 * torch.cos(math.pi * s))[:, None] * (b - a)
 
 
-def path(
-    kind: str,
-    robot: RobotModel,
-    n_samples: int,
-    tracker_in_base: Tensor,
-    t_flange_probe: Tensor,
-    generator: torch.Generator,
-    rule: SightRule | None = None,
-) -> Tensor:
-    """A trajectory of the family ``kind`` (one of :data:`PATHS`)."""
+def path(kind: str, scene: Scene, n_samples: int, generator: torch.Generator) -> Tensor:
+    """A trajectory ``(n_samples, dof)`` of the family ``kind`` (one of :data:`PATHS`) in ``scene``."""
     makers = {"p2p": trajectory, "multisine": multisine_path, "randomwalk": random_walk_path, "sweeps": sweeps_path}
     if kind not in makers:
         raise OptionError(f"trajectory path '{kind}' is not one of {', '.join(PATHS)}")
-    return makers[kind](robot, n_samples, tracker_in_base, t_flange_probe, generator, rule)
+    return makers[kind](scene, n_samples, generator)
