@@ -70,7 +70,21 @@ def test_elements_reader_does_not_import_yourdfpy():
     code = (
         "import sys; from torchcal.robot import load_robot; "
         f"r = load_robot({str(URDFS[0])!r}, reader='elements'); "
-        "print(sorted(m for m in ('yourdfpy', 'trimesh', 'scipy', 'networkx') if m in sys.modules))"
+        "print(sorted(m for m in ('yourdfpy', 'trimesh', 'scipy', 'networkx', 'lxml') if m in sys.modules))"
     )
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert out.strip() == "[]"
+
+
+def test_elements_reader_refuses_what_the_strict_parser_refuses(tmp_path):
+    doctype = tmp_path / "doctype.urdf"
+    doctype.write_text(
+        '<?xml version="1.0"?>\n<!DOCTYPE robot [<!ENTITY x "1">]>\n<robot name="r"><link name="a"/></robot>'
+    )
+    truncated = tmp_path / "truncated.urdf"
+    truncated.write_text('<robot name="r"><link name="a"/><joint name="j" type="fixed">')
+    for reader in ("yourdfpy", "elements"):
+        with pytest.raises(RobotSpecError, match="DOCTYPE/entity declaration is not accepted"):
+            load_urdf(doctype, reader=reader)
+        with pytest.raises(RobotSpecError, match="truncated.urdf: not well-formed XML"):
+            load_urdf(truncated, reader=reader)

@@ -246,24 +246,15 @@ def load_urdf(
             links and inertials read from the XML elements as yourdfpy reads them (:func:`_urdf_elements`, the
             same numbers to the bit) without importing yourdfpy and its mesh library (trimesh, scipy, networkx:
             about a second and tens of MB). For files torchcal wrote itself, such as the round-trip check of a
-            calibrated URDF (:func:`torchcal.compensate.urdf_fk_difference`).
+            calibrated URDF (:func:`torchcal.compensate.urdf_fk_difference`); it parses with the standard library's
+            ``xml.etree`` (already loaded) instead of lxml.
     """
-    from lxml import etree
-
     if reader not in ("yourdfpy", "elements"):
         raise OptionError(f"reader must be 'yourdfpy' or 'elements', got {reader!r}")
 
     path = Path(path)
     raw = _read_description(path)
-    # Parse strictly first: yourdfpy falls back to a recovering parser that accepts truncated files
-    # and trailing junk. No DTD, no entities, no network.
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, recover=False)
-    try:
-        tree = etree.fromstring(raw, parser=parser)
-    except etree.XMLSyntaxError as e:
-        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
-    if tree.getroottree().docinfo.internalDTD is not None or tree.getroottree().docinfo.doctype:
-        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    tree = _parse_stdlib(path, raw) if reader == "elements" else _parse_lxml(path, raw)
     if tree.tag != "robot":
         raise RobotSpecError(f"{path}: the root element is <{tree.tag}>, expected <robot>")
     if reader == "elements":
@@ -452,6 +443,35 @@ def load_urdf(
     ).to(device)
 
 
+def _parse_lxml(path: Path, raw: bytes):
+    """The root element, parsed strictly: yourdfpy falls back to a recovering parser that accepts truncated files
+    and trailing junk. No DTD, no entities, no network."""
+    from lxml import etree
+
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, recover=False)
+    try:
+        tree = etree.fromstring(raw, parser=parser)
+    except etree.XMLSyntaxError as e:
+        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
+    if tree.getroottree().docinfo.internalDTD is not None or tree.getroottree().docinfo.doctype:
+        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    return tree
+
+
+def _parse_stdlib(path: Path, raw: bytes):
+    """The root element by ``xml.etree`` (strict as well); a DOCTYPE or entity declaration is refused before
+    parsing, as :func:`_parse_lxml` refuses it."""
+    import re
+    import xml.etree.ElementTree as ET
+
+    if re.search(rb"<!\s*(DOCTYPE|ENTITY)", raw, flags=re.IGNORECASE):
+        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    try:
+        return ET.fromstring(raw)
+    except ET.ParseError as e:
+        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
+
+
 def _origin_matrix(el) -> np.ndarray | None:
     """``<origin xyz rpy>`` as a 4x4 matrix, computed as yourdfpy does (``trimesh.transformations.compose_matrix``
     with static ``xyz`` Euler angles: ``T(xyz) @ Rz(y) Ry(p) Rx(r)``, the same operations in the same order)."""
@@ -474,7 +494,7 @@ def _origin_matrix(el) -> np.ndarray | None:
 
 
 def _urdf_elements(path: Path, tree):
-    """The parts of a parsed URDF (``lxml`` root) that :func:`load_urdf` reads, with yourdfpy's attribute names
+    """The parts of a parsed URDF (root element) that :func:`load_urdf` reads, with yourdfpy's attribute names
     and defaults: ``.robot.name``, ``.robot.joints`` (name, type, parent, child, origin, axis, limit, mimic) and
     ``.robot.links`` (name, inertial with mass and origin)."""
     from types import SimpleNamespace as NS
