@@ -68,3 +68,10 @@ def test_a_kinematic_calibration_imports_matplotlib_only_for_the_figures(campaig
     assert [st for st, mods in imported.items() if "matplotlib" in mods] == ["command/report/report.md and figures"]
     stages = [s["stage"] for s in res["stages"]]
     assert "command/fit/least squares/selection" in stages and "command/report/URDF reload check" in stages
+
+
+def test_a_failing_command_raises_with_its_message(tmp_path):
+    from torchcal.errors import TorchcalError
+
+    with pytest.raises(TorchcalError, match=r"exit 2\).*no-such.csv"):
+        measure(["calibrate", str(tmp_path / "no-such.csv"), "--robot", "ur5", "--out", str(tmp_path / "run")])

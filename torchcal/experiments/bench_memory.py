@@ -20,7 +20,7 @@ import sys
 import time
 from pathlib import Path
 
-from torchcal.errors import EstimationError
+from torchcal.errors import TorchcalError
 
 PROBE = Path(__file__).resolve().with_name("_memprobe.py")
 
@@ -50,7 +50,7 @@ def measure(argv: list[str], *, targets: list[str] = (), reset: bool = True) -> 
     wall = time.perf_counter() - t0
     lines = proc.stdout.strip().splitlines()
     if proc.returncode != 0 or not lines:
-        raise EstimationError(
+        raise TorchcalError(
             f"torchcal {' '.join(argv)} failed (exit {proc.returncode}) under the memory probe: "
             f"{proc.stderr.strip()[-2000:]}"
         )
