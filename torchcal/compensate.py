@@ -495,13 +495,14 @@ def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
     """RMS and max difference between FK of a written URDF (base link to its ``probe`` frame, placed in the
     tracker frame with the model's ``T_tracker_base``) and the full model's prediction ``(N, 3)`` on ``ctx``.
 
-    The URDF is read back with :func:`torchcal.robot.load_robot` (yourdfpy, float64), so this measures the
-    file itself, not the model it was written from.
+    The URDF is read back with :func:`torchcal.robot.load_robot` (float64), so this measures the file itself, not
+    the model it was written from; from its XML elements (``reader="elements"``, the numbers yourdfpy reads, without
+    importing yourdfpy's mesh library: this check runs after every calibration).
     """
     from torchcal.robot import load_robot
 
     model = _as_model(model)
-    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe").to(model.robot.device)
+    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe", reader="elements").to(model.robot.device)
     with torch.no_grad():
         p_base = urdf(ctx.q)[..., :3, 3]
         p = tf.transform_points(model.robot.T_tracker_base(), p_base)

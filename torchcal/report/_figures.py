@@ -1,7 +1,8 @@
-"""Matplotlib for the report's figures: the headless backend, imported only when a figure is drawn, and saving."""
+"""Matplotlib for the report's figures: imported only when a figure is drawn, drawn on the Agg canvas, and saving."""
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 
@@ -15,9 +16,22 @@ def pyplot():
     return plt
 
 
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize=None, layout=None, **kw):
+    """A figure and its axes, as ``pyplot.subplots`` returns them, without pyplot.
+
+    The figure belongs to no figure manager (nothing to close, no global state) and is saved through the
+    Agg canvas, whatever backend pyplot would pick; pyplot's own import is not paid.
+    """
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(nrows, ncols, **kw)
+
+
 def save(fig, path: Path, dpi: int = 110, *, tight: bool = True) -> None:
-    """Write ``fig`` to ``path`` at ``dpi`` (after a tight layout unless ``tight`` is False) and close it."""
+    """Write ``fig`` to ``path`` at ``dpi`` (after a tight layout unless ``tight`` is False) and release it."""
     if tight:
         fig.tight_layout()
     fig.savefig(path, dpi=dpi)
-    pyplot().close(fig)
+    if "matplotlib.pyplot" in sys.modules:  # a figure of pyplot's (ours are not, then this does nothing)
+        sys.modules["matplotlib.pyplot"].close(fig)

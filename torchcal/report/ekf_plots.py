@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.report._figures import pyplot, save
+from torchcal.report._figures import save, subplots
 
 
 def _rms(a: torch.Tensor) -> float:
@@ -22,10 +22,9 @@ def _rms(a: torch.Tensor) -> float:
 
 def plot_deviations(filt, path: Path) -> None:
     """devG, devNG, devAll per sample and axis [mm] (the paper's Figs. 9 and 11)."""
-    plt = pyplot()
     dev = filt.deviations()
     n = filt.n_train
-    fig, axes = plt.subplots(3, 1, figsize=(9, 6.5), sharex=True)
+    fig, axes = subplots(3, 1, figsize=(9, 6.5), sharex=True)
     for ax, (name, a) in zip(axes, dev.items()):
         for j, c in enumerate("xyz"):
             ax.plot((a[:, j] * 1e3).tolist(), lw=0.6, label=c)
@@ -41,9 +40,8 @@ def plot_deviations(filt, path: Path) -> None:
 
 def plot_correction(filt, path: Path) -> None:
     """The observed non-geometric part ``y - G`` against the filter's network output, per axis [mm] (Fig. 12)."""
-    plt = pyplot()
     observed = filt.y - filt.kinematic
-    fig, axes = plt.subplots(3, 1, figsize=(9, 5.5), sharex=True)
+    fig, axes = subplots(3, 1, figsize=(9, 5.5), sharex=True)
     for j, (ax, c) in enumerate(zip(axes, "xyz")):
         ax.plot((observed[:, j] * 1e3).tolist(), lw=0.5, color="0.6", label="measured - kinematic model")
         ax.plot((filt.nongeometric[:, j] * 1e3).tolist(), lw=0.8, color="tab:blue", label="network (filter)")

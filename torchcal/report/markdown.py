@@ -8,13 +8,12 @@ from pathlib import Path
 import torch
 
 from torchcal.pipeline import CalibrationRun
-from torchcal.report._figures import pyplot, save
+from torchcal.report._figures import save, subplots
 from torchcal.report.ekf_plots import ekf_section
 
 
 def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(9, 3.2))
+    fig, ax = subplots(figsize=(9, 3.2))
     x = torch.arange(len(run.holdout_idx))
     colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
     for k, s in enumerate(run.stages):
@@ -30,8 +29,7 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
 
 
 def plot_histograms(run: CalibrationRun, path: Path) -> None:
-    plt = pyplot()
-    fig, ax = plt.subplots(figsize=(6, 3.2))
+    fig, ax = subplots(figsize=(6, 3.2))
     first, last = run.stages[0], run.stages[-1]
     hi = float(max(first.holdout_errors.max(), last.holdout_errors.max())) * 1e3
     bins = torch.linspace(0, hi, 40).tolist()
@@ -44,11 +42,10 @@ def plot_histograms(run: CalibrationRun, path: Path) -> None:
 
 
 def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
-    plt = pyplot()
     dof = run.robot.dof
     cols = 3
     rows = math.ceil(dof / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(10, 2.6 * rows), squeeze=False)
+    fig, axes = subplots(rows, cols, figsize=(10, 2.6 * rows), squeeze=False)
     q = run.data.q[run.holdout_idx]
     first, last = run.stages[0], run.stages[-1]
     for j in range(rows * cols):
@@ -68,14 +65,13 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
 
 def plot_error_map(run: CalibrationRun, path: Path) -> None:
     """Held-out probe positions seen from above and from the side, coloured by the error before and after."""
-    plt = pyplot()
     hold = run.data.subset(run.holdout_idx)
     with torch.no_grad():
         p = run.model.robot.probe_in_base(hold.q)
     geo = next(s for s in run.stages if s.name == "geometric")
     shown = [geo, run.stages[-1]] if run.stages[-1] is not geo else [geo]
     vmax = float(max(s.holdout_errors.max() for s in shown)) * 1e3
-    fig, axes = plt.subplots(2, len(shown), figsize=(5.6 * len(shown), 8), squeeze=False, layout="constrained")
+    fig, axes = subplots(2, len(shown), figsize=(5.6 * len(shown), 8), squeeze=False, layout="constrained")
     radius = p[:, :2].norm(dim=-1)
     for k, s in enumerate(shown):
         e = (s.holdout_errors * 1e3).tolist()
@@ -96,13 +92,12 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     from torchcal.diagnose.views import residual_view
     from torchcal.effects import Context
 
-    plt = pyplot()
     train = run.data.subset(run.train_idx)
     ctx = Context.from_measurements(train, trajectory=run.trajectory)
     before, after = decision.models
     v = residual_view(decision.candidate, before, after, ctx, train.p)
     x = v["x"].tolist()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6), sharey=True)
+    fig, axes = subplots(1, 2, figsize=(10, 3.6), sharey=True)
     for ax, key, title in ((axes[0], "before", "before"), (axes[1], "after", "after")):
         ax.plot(
             x,
@@ -332,14 +327,13 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
 
 def plot_unexplained(entry: dict, path: Path) -> None:
     """The smooth of the residual in one unexplained variable, with a 2-sigma band (``report.json`` entry)."""
-    plt = pyplot()
     sm = entry["smooth"]
     x = torch.tensor(sm["grid"], dtype=torch.float64)
     f = torch.tensor(sm["value"], dtype=torch.float64)
     se = torch.tensor(sm["se"], dtype=torch.float64)
     joint = sm["unit"] == "rad"
     scale, unit = (1e6, "urad") if joint else (1e6, "um")
-    fig, ax = plt.subplots(figsize=(7, 3.6))
+    fig, ax = subplots(figsize=(7, 3.6))
     cols = [f[:, None], se[:, None]] if f.dim() == 1 else [f, se]
     names = ["joint error"] if joint else ["x", "y", "z"]
     for c, name in enumerate(names):

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchcal.errors import RobotSpecError
+from torchcal.errors import OptionError, RobotSpecError
 from torchcal.robot.model import DHConvention, DHGeometry, RobotModel, URDFGeometry
 
 #: Largest robot description file accepted [bytes]: real URDFs and DH tables are kilobytes.
@@ -69,6 +69,7 @@ def load_robot(
     tip_link: str | None = None,
     dtype: torch.dtype = torch.float64,
     device: str | torch.device = "cpu",
+    reader: str = "yourdfpy",
 ) -> RobotModel:
     """Load a robot: a built-in name (``ur5``, ``ur10``, ``panda``), a URDF path or a DH YAML path.
 
@@ -76,13 +77,14 @@ def load_robot(
         spec: built-in name or path.
         base_link, tip_link: URDF only, pick the chain when the tree has several.
         dtype: must be float64 (the calibration path is float64).
+        reader: how a URDF is read (:func:`load_urdf`).
 
     Returns:
         A :class:`RobotModel` with nominal geometry and zero corrections.
     """
     path = resolve_robot_spec(spec)
     if path.suffix == ".urdf":
-        return load_urdf(path, base_link=base_link, tip_link=tip_link, dtype=dtype, device=device)
+        return load_urdf(path, base_link=base_link, tip_link=tip_link, dtype=dtype, device=device, reader=reader)
     if base_link or tip_link:
         raise RobotSpecError(f"{path}: --base-link/--tip-link apply to URDF robots only, this is a DH table")
     return load_dh_yaml(path, dtype=dtype, device=device)
@@ -230,6 +232,7 @@ def load_urdf(
     tip_link: str | None = None,
     dtype=torch.float64,
     device="cpu",
+    reader: str = "yourdfpy",
 ) -> RobotModel:
     """Load a serial chain from a URDF with yourdfpy, in float64, meshes not loaded.
 
@@ -237,36 +240,41 @@ def load_urdf(
     reached through the most movable joints; ambiguous trees must name it). Fixed joints
     are folded into the neighbouring origins; revolute and continuous joints are the
     robot's joints (prismatic joints are not supported yet and raise).
-    """
-    import io
 
-    import yourdfpy
-    from lxml import etree
+    Args:
+        reader: ``"yourdfpy"`` (default: the maintained parser and its checks) or ``"elements"``: the joints,
+            links and inertials read from the XML elements as yourdfpy reads them (:func:`_urdf_elements`, the
+            same numbers to the bit) without importing yourdfpy and its mesh library (trimesh, scipy, networkx:
+            about a second and tens of MB). For files torchcal wrote itself, such as the round-trip check of a
+            calibrated URDF (:func:`torchcal.compensate.urdf_fk_difference`); it parses with the standard library's
+            ``xml.etree`` (already loaded) instead of lxml.
+    """
+    if reader not in ("yourdfpy", "elements"):
+        raise OptionError(f"reader must be 'yourdfpy' or 'elements', got {reader!r}")
 
     path = Path(path)
     raw = _read_description(path)
-    # Parse strictly first: yourdfpy falls back to a recovering parser that accepts truncated files
-    # and trailing junk. No DTD, no entities, no network.
-    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, recover=False)
-    try:
-        tree = etree.fromstring(raw, parser=parser)
-    except etree.XMLSyntaxError as e:
-        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
-    if tree.getroottree().docinfo.internalDTD is not None or tree.getroottree().docinfo.doctype:
-        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    tree = _parse_stdlib(path, raw) if reader == "elements" else _parse_lxml(path, raw)
     if tree.tag != "robot":
         raise RobotSpecError(f"{path}: the root element is <{tree.tag}>, expected <robot>")
-    try:
-        urdf = yourdfpy.URDF.load(
-            io.BytesIO(raw),
-            load_meshes=False,
-            build_scene_graph=False,
-            build_collision_scene_graph=False,
-            load_collision_meshes=False,
-            mesh_dir=str(path.parent),
-        )
-    except Exception as e:  # yourdfpy raises assorted exception types on malformed files
-        raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
+    if reader == "elements":
+        urdf = _urdf_elements(path, tree)
+    else:
+        import io
+
+        import yourdfpy
+
+        try:
+            urdf = yourdfpy.URDF.load(
+                io.BytesIO(raw),
+                load_meshes=False,
+                build_scene_graph=False,
+                build_collision_scene_graph=False,
+                load_collision_meshes=False,
+                mesh_dir=str(path.parent),
+            )
+        except Exception as e:  # yourdfpy raises assorted exception types on malformed files
+            raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
     joints = urdf.robot.joints
     child_of = {}
     for j in joints:
@@ -433,3 +441,99 @@ def load_urdf(
         dtype=dtype,
         device=device,
     ).to(device)
+
+
+def _parse_lxml(path: Path, raw: bytes):
+    """The root element, parsed strictly: yourdfpy falls back to a recovering parser that accepts truncated files
+    and trailing junk. No DTD, no entities, no network."""
+    from lxml import etree
+
+    parser = etree.XMLParser(resolve_entities=False, no_network=True, load_dtd=False, huge_tree=False, recover=False)
+    try:
+        tree = etree.fromstring(raw, parser=parser)
+    except etree.XMLSyntaxError as e:
+        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
+    if tree.getroottree().docinfo.internalDTD is not None or tree.getroottree().docinfo.doctype:
+        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    return tree
+
+
+def _parse_stdlib(path: Path, raw: bytes):
+    """The root element by ``xml.etree`` (strict as well); a DOCTYPE or entity declaration is refused before
+    parsing, as :func:`_parse_lxml` refuses it."""
+    import re
+    import xml.etree.ElementTree as ET
+
+    if re.search(rb"<!\s*(DOCTYPE|ENTITY)", raw, flags=re.IGNORECASE):
+        raise RobotSpecError(f"{path}: a DOCTYPE/entity declaration is not accepted in a robot description")
+    try:
+        return ET.fromstring(raw)
+    except ET.ParseError as e:
+        raise RobotSpecError(f"{path}: not well-formed XML: {e}") from None
+
+
+def _origin_matrix(el) -> np.ndarray | None:
+    """``<origin xyz rpy>`` as a 4x4 matrix, computed as yourdfpy does (``trimesh.transformations.compose_matrix``
+    with static ``xyz`` Euler angles: ``T(xyz) @ Rz(y) Ry(p) Rx(r)``, the same operations in the same order)."""
+    if el is None:
+        return None
+    x = np.array([float(v) for v in el.get("xyz", "0 0 0").split()])
+    ai, aj, ak = (float(v) for v in el.get("rpy", "0 0 0").split())
+    si, sj, sk = np.sin(ai), np.sin(aj), np.sin(ak)
+    ci, cj, ck = np.cos(ai), np.cos(aj), np.cos(ak)
+    cc, cs, sc, ss = ci * ck, ci * sk, si * ck, si * sk
+    R = np.eye(4)
+    R[0, 0], R[0, 1], R[0, 2] = cj * ck, sj * sc - cs, sj * cc + ss
+    R[1, 0], R[1, 1], R[1, 2] = cj * sk, sj * ss + cc, sj * cs - sc
+    R[2, 0], R[2, 1], R[2, 2] = -sj, cj * si, cj * ci
+    T = np.identity(4)
+    T[:3, 3] = x[:3]
+    M = np.dot(np.dot(np.identity(4), T), R)
+    M /= M[3, 3]
+    return M
+
+
+def _urdf_elements(path: Path, tree):
+    """The parts of a parsed URDF (root element) that :func:`load_urdf` reads, with yourdfpy's attribute names
+    and defaults: ``.robot.name``, ``.robot.joints`` (name, type, parent, child, origin, axis, limit, mimic) and
+    ``.robot.links`` (name, inertial with mass and origin)."""
+    from types import SimpleNamespace as NS
+
+    def num(el, key):
+        v = None if el is None else el.get(key)
+        return None if v is None else float(v)
+
+    try:
+        joints = []
+        for j in tree.findall("joint"):
+            axis = j.find("axis")
+            lim = j.find("limit")
+            mimic = j.find("mimic")
+            joints.append(
+                NS(
+                    name=j.attrib["name"],
+                    type=j.get("type"),
+                    parent=j.find("parent").get("link"),
+                    child=j.find("child").get("link"),
+                    origin=_origin_matrix(j.find("origin")),
+                    axis=np.array([1.0, 0, 0])
+                    if axis is None
+                    else np.array([float(v) for v in axis.get("xyz", "1 0 0").split()]),
+                    limit=None if lim is None else NS(lower=num(lim, "lower"), upper=num(lim, "upper")),
+                    mimic=None if mimic is None else NS(joint=mimic.get("joint")),
+                )
+            )
+        links = []
+        for lk in tree.findall("link"):
+            ine = lk.find("inertial")
+            inertial = None
+            if ine is not None:
+                mass = ine.find("mass")
+                inertial = NS(
+                    origin=_origin_matrix(ine.find("origin")),
+                    mass=None if mass is None else float(mass.get("value", 0.0)),
+                )
+            links.append(NS(name=lk.attrib["name"], inertial=inertial))
+    except (KeyError, AttributeError, ValueError, IndexError) as e:
+        raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
+    return NS(robot=NS(name=tree.get("name"), joints=joints, links=links))
