@@ -57,6 +57,7 @@ from torchcal.effects.support import (
     SupportGate,
     choose_gate_length,
     coverage,
+    fit_fallback_growth,
     fit_predictive_scale,
 )
 from torchcal.errors import EstimationError, OptionError
@@ -798,10 +799,13 @@ def _attach_predictive_sigma(
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
     sigma_length = length if math.isfinite(length) else max(g for g in GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
+    fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, val_gate)
+    val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
     scale, floor = fit_predictive_scale(e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET)
     val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
     gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale, floor)
+    gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
     run.model.effects[-1] = gate
     run.stages.pop()
     run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
@@ -814,7 +818,36 @@ def _attach_predictive_sigma(
         "sigma_noise_mm": (noise * 1e3).tolist(),
         "sigma_far_mm": (far * 1e3).tolist(),
         "sigma_length": sigma_length,
+        "fallback_sigma_mm": [x * 1e3 for x in fb_sigma],
+        "fallback_growth": fb_growth,
     }
+
+
+def _fallback_growth(
+    run: CalibrationRun,
+    kinematic,
+    geo: MeasurementModel,
+    fit: Measurements,
+    val: Measurements,
+    train: Measurements,
+    val_gate: SupportGate,
+) -> tuple[list[float], float]:
+    """How the geometric model's error grows with the distance from the samples it was fitted on
+    (:func:`~torchcal.effects.support.fit_fallback_growth`): its residuals on the validation block (geometry on the
+    fitting samples, ``geo``) and on the second half of the training samples (geometry refitted on the first half,
+    from the kinematic calibration), each at its distance from the samples fitted. The validation block alone
+    reaches only a short way from the support; a path's continuation can leave it much further (a random walk),
+    and the second half of the training samples shows how far geometry's residual grows over a longer stretch."""
+    half = train.n // 2
+    first, second = train.subset(slice(0, half)), train.subset(slice(half, None))
+    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
+    stage = "integrated: geometry on the first half (sigma)"
+    solve(geo_half, first, GEOMETRIC_GROUPS, run.options, stage, True, identifiability=ida)
+    half_gate = SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
+    e = torch.cat([_residuals(geo, val), _residuals(geo_half, second)])
+    d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
+    return fit_fallback_growth(e, d)
 
 
 #: the share of residual components within two predicted standard deviations the scale factor is calibrated to
