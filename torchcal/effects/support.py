@@ -29,7 +29,7 @@ gate predicts a standard deviation per sample and tracker axis ``a``. The gated 
     ``var_a(q) = g^2 [k^2 (J_a(q) P_w J_a(q)^T + s_noise_a^2) + f_a^2 + (1 - h^2) s_far_a^2]
     + (1 - g)^2 s_fb_a^2 (1 + c d^2)``
 
-with ``g`` the gate of the prediction (1 everywhere for an infinite gate), ``J = R dg/dw`` the network's output
+with ``g`` the gate of the prediction (1 everywhere for an infinite gate), ``J = R dnet/dw`` the network's output
 Jacobian rotated into the tracker frame, ``s_noise`` the measurement noise (tracker and joint noise at the probe)
 and ``k`` and the floor ``f`` (per axis) fitted on validation samples by maximum likelihood
 (:func:`fit_predictive_scale`): the filter treats the network's misfit as white noise, so ``P_w`` alone says
@@ -40,8 +40,8 @@ The model's own error grows away from its support towards the geometric model's 
 network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
 distance too: fitted on the geometric model's residuals on samples after the ones it was fitted on, at their
 distance from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of
-the field there than further away. Without a fallback fit (``c = 0``, ``s_fb = s_far``) far from the support the
-variance is the geometric model's residual scale on validation.
+the field there than further away. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's
+support the variance is the geometric model's residual scale on validation.
 """
 
 from __future__ import annotations

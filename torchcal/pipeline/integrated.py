@@ -791,9 +791,11 @@ def _attach_predictive_sigma(
 
     The scale factor is calibrated on the validation block with the candidate fitted on the fitting samples
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
-    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). Always a gate,
-    an infinite one included (it changes no prediction): it carries the standard deviation. Returns the report's
-    evidence (scale, coverage of 2 sigma on validation and on the held-out samples, the variance's parts).
+    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
+    error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
+    scale is fitted. Always a gate, an infinite one included (it changes no prediction): it carries the standard
+    deviation. Returns the report's evidence (scale, coverage of 2 sigma on validation and on the held-out
+    samples, the variance's parts).
     """
     noise = _observation_sigma(run.model, train, run.options)
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
