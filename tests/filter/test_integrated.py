@@ -96,6 +96,8 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         ps = records[0].evidence["predictive_sigma"]
         assert ps["scale"] > 0 and 0.945 <= ps["coverage_2sigma_validation"] <= 0.99
         assert 0.0 < ps["coverage_2sigma_holdout"] <= 1.0
+        # the fallback's error and its growth with distance, from geometry's residuals on later training samples
+        assert len(ps["fallback_sigma_mm"]) == 3 and min(ps["fallback_sigma_mm"]) > 0 and ps["fallback_growth"] >= 0
         from torchcal.report.ekf_plots import ekf_section
 
         assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))

@@ -14,7 +14,14 @@ from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context, LearnedEffect, MeasurementModel
 from torchcal.effects.base import Effect
 from torchcal.effects.registry import effect_from_config
-from torchcal.effects.support import SupportGate, calibrate_scale, coverage, fit_predictive_scale, predictive_sigma
+from torchcal.effects.support import (
+    SupportGate,
+    calibrate_scale,
+    coverage,
+    fit_fallback_growth,
+    fit_predictive_scale,
+    predictive_sigma,
+)
 from torchcal.filter.adaptive import random_features
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline import integrated as I
@@ -92,15 +99,63 @@ def test_sigma_is_the_filters_at_the_support_and_the_geometrys_far_from_it():
     torch.testing.assert_close(far, torch.full_like(far, FAR), rtol=1e-6, atol=0.0)
 
 
+def test_the_fallbacks_growth_with_distance_is_recovered_and_zero_where_there_is_none():
+    g = torch.Generator().manual_seed(3)
+    n = 6000
+    d = 4.0 * torch.rand(n, generator=g, dtype=torch.float64)  # distances to the fitted samples [spreads]
+    s_fb = torch.tensor([3e-5, 5e-5, 2e-5], dtype=torch.float64)
+    z = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    sigma, c = fit_fallback_growth(s_fb * (1.0 + 0.5 * d[:, None] ** 2).sqrt() * z, d)
+    torch.testing.assert_close(torch.tensor(sigma, dtype=torch.float64), s_fb, rtol=0.1, atol=0.0)
+    assert c == pytest.approx(0.5, rel=0.2)
+    sigma, c = fit_fallback_growth(s_fb * z, d)  # residuals that do not grow: (almost) no growth
+    torch.testing.assert_close(torch.tensor(sigma, dtype=torch.float64), s_fb, rtol=0.1, atol=0.0)
+    assert c < 0.01
+    with pytest.raises(ValueError, match="e must be"):
+        fit_fallback_growth(z, d[:10])
+
+
+def test_the_fallbacks_part_fades_in_with_the_predictions_gate_and_grows_with_distance():
+    robot, gate, support = _gate(length=1.0)
+    fb = [1e-4, 2e-4, 3e-4]
+    gate.sigma_fallback, gate.fallback_growth = fb, 0.25
+    q = support[:5] + 20.0  # many spreads away: the gate is 0, the prediction is the fallback's
+    d = gate.distance(q)[:, None]
+    expected = torch.tensor(fb, dtype=torch.float64) * (1.0 + 0.25 * d**2).sqrt()
+    torch.testing.assert_close(gate.predictive_std(robot, q), expected, rtol=1e-6, atol=0.0)
+    # part way out the fallback's part is weighted by (1 - g)^2 (the prediction mixes the two linearly)
+    q = support[:50] + 0.5
+    a, b, g2 = gate.variance_parts(robot, q)
+    dd = gate.distance(q)[:, None]
+    g = torch.exp(-0.5 * dd**2)
+    h2 = torch.exp(-(dd**2))
+    fb_t = torch.tensor(fb, dtype=torch.float64)
+    torch.testing.assert_close(b, g**2 * (1 - h2) * FAR**2 + (1 - g) ** 2 * fb_t**2 * (1 + 0.25 * dd**2))
+    torch.testing.assert_close(g2, (g**2).expand(-1, 3))
+    # an infinite gate never fades the prediction: no fallback part, the model's error grows towards s_far
+    robot, gate, support = _gate(length=math.inf)
+    gate.sigma_fallback, gate.fallback_growth = fb, 0.25
+    far = gate.predictive_std(robot, support[:5] + 20.0)
+    a, _, _ = gate.variance_parts(robot, support[:5] + 20.0)
+    torch.testing.assert_close(far, (a + FAR**2).sqrt())
+    with pytest.raises(ValueError, match="fallback_growth"):
+        gate.set_predictive(
+            gate.weight_cov, gate.weight_index, gate.sigma_noise, gate.sigma_far, 8.0, 1.0, None, fb, -1
+        )
+
+
 def test_a_saved_gate_is_rebuilt_with_its_sigma_and_an_old_one_without(tmp_path):
     robot, gate, support = _gate(length=math.inf, scale=2.5)  # an infinite gate: config writes None (JSON)
     gate.sigma_floor = [1e-5, 2e-5, 3e-5]
+    gate.sigma_fallback, gate.fallback_growth = [1e-4, 2e-4, 3e-4], 0.25
     cfg = json.loads(json.dumps({"class": "SupportGate", **gate.config()}, allow_nan=False))
     assert cfg["length"] is None and cfg["predictive"]["scale"] == 2.5
     assert cfg["predictive"]["floor"] == [1e-5, 2e-5, 3e-5]
+    assert cfg["predictive"]["fallback_sigma"] == [1e-4, 2e-4, 3e-4] and cfg["predictive"]["fallback_growth"] == 0.25
     again = effect_from_config(cfg, robot)
     again.load_state_dict(gate.state_dict())
     assert again.length == math.inf and again.has_predictive
+    assert (again.sigma_fallback, again.fallback_growth) == (gate.sigma_fallback, gate.fallback_growth)
     torch.testing.assert_close(again.predictive_std(robot, support[:20]), gate.predictive_std(robot, support[:20]))
     plain = SupportGate(LearnedEffect(random_features(hidden=16)), support, 0.5)
     cfg = {"class": "SupportGate", **plain.config()}

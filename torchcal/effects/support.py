@@ -23,19 +23,25 @@ no other effects (the integrated method's models have none).
 
 *Predictive standard deviation* (:meth:`SupportGate.set_predictive`, :func:`predictive_sigma`). Where the inner
 effect is a network whose weights a filter estimated (covariance ``P_w`` of the weights in its state), the
-gate predicts a standard deviation per sample and tracker axis ``a``:
+gate predicts a standard deviation per sample and tracker axis ``a``. The gated prediction is ``g y_model +
+(1 - g) y_fallback``, so its error is ``g e_model + (1 - g) e_fallback`` exactly; with the two errors independent
 
-    ``var_a(q) = g^2 [k^2 (J_a(q) P_w J_a(q)^T + s_noise_a^2) + f_a^2] + (1 - g^2) s_far_a^2``
+    ``var_a(q) = g^2 [k^2 (J_a(q) P_w J_a(q)^T + s_noise_a^2) + f_a^2 + (1 - h^2) s_far_a^2]
+    + (1 - g)^2 s_fb_a^2 (1 + c d^2)``
 
-with ``J = R dg/dw`` the network's output Jacobian rotated into the tracker frame, ``s_noise`` the measurement
-noise (tracker and joint noise at the probe), ``s_far`` the residual scale of the geometric model (estimated on
-validation samples: what is left where the prediction has faded to the fallback), ``g`` the gate (of length
-``sigma_length``, the gate's own when it is finite), and ``k`` and the floor ``f`` (per axis) fitted on validation
-samples by maximum likelihood (:func:`fit_predictive_scale`): the filter treats the network's misfit as white noise,
-so ``P_w`` alone says little about the error along a new stretch of path (its shape is mostly the prior's), and a
-model refitted on more samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the
-validation block showed. Far from the support the variance is the geometric model's own residual scale on
-validation, unscaled: there the prediction is the fallback's.
+with ``g`` the gate of the prediction (1 everywhere for an infinite gate), ``J = R dnet/dw`` the network's output
+Jacobian rotated into the tracker frame, ``s_noise`` the measurement noise (tracker and joint noise at the probe)
+and ``k`` and the floor ``f`` (per axis) fitted on validation samples by maximum likelihood
+(:func:`fit_predictive_scale`): the filter treats the network's misfit as white noise, so ``P_w`` alone says
+little about the error along a new stretch of path (its shape is mostly the prior's), and a model refitted on more
+samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the validation block showed.
+The model's own error grows away from its support towards the geometric model's residual scale on validation
+``s_far``, with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite): a
+network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
+distance too: fitted on the geometric model's residuals on samples after the ones it was fitted on, at their
+distance from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of
+the field there than further away. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's
+support the variance is the geometric model's residual scale on validation.
 """
 
 from __future__ import annotations
@@ -101,6 +107,7 @@ class SupportGate(Effect):
         # sized from ``predictive`` (the config's entry) when a saved gate is rebuilt, so that load_state_dict fills
         # them; a gate without one keeps the state dict of earlier runs
         self.sigma_scale, self.sigma_length, self.sigma_floor = 1.0, math.inf, [0.0, 0.0, 0.0]
+        self.sigma_fallback, self.fallback_growth = None, 0.0
         if predictive is not None:
             n_w, z = int(predictive["n_weights"]), torch.zeros(3, dtype=kept.dtype, device=kept.device)
             self.set_predictive(
@@ -111,6 +118,8 @@ class SupportGate(Effect):
                 float(predictive["sigma_length"]),
                 float(predictive["scale"]),
                 predictive.get("floor"),
+                predictive.get("fallback_sigma"),
+                float(predictive.get("fallback_growth", 0.0)),
             )
 
     @property
@@ -127,6 +136,8 @@ class SupportGate(Effect):
         sigma_length: float,
         scale: float = 1.0,
         floor: Sequence[float] | None = None,
+        fallback_sigma: Sequence[float] | None = None,
+        fallback_growth: float = 0.0,
     ) -> None:
         """Give the gate a predictive standard deviation (module docstring).
 
@@ -138,6 +149,9 @@ class SupportGate(Effect):
             sigma_length: the gate length the standard deviation fades with (finite).
             scale: the calibration factor ``k`` of the network's and the noise's variance.
             floor: the misfit floor ``f`` per tracker axis ``(3,)`` [m] (default 0).
+            fallback_sigma: the fallback's residual scale at the support ``s_fb`` per tracker axis ``(3,)`` [m]
+                (default ``sigma_far``).
+            fallback_growth: its growth ``c`` with the squared distance [1 / spread^2] (default 0: constant).
         """
         if not hasattr(self.inner, "net"):
             raise ValueError(f"a predictive standard deviation needs a network inside; got {type(self.inner).__name__}")
@@ -156,11 +170,15 @@ class SupportGate(Effect):
         self.sigma_length = float(sigma_length)
         self.sigma_scale = float(scale)
         self.sigma_floor = [0.0, 0.0, 0.0] if floor is None else [float(f) for f in floor]
+        self.sigma_fallback = None if fallback_sigma is None else [float(x) for x in fallback_sigma]
+        if fallback_growth < 0 or not math.isfinite(fallback_growth):
+            raise ValueError(f"fallback_growth must be finite and non-negative, got {fallback_growth}")
+        self.fallback_growth = float(fallback_growth)
 
     def variance_parts(self, robot, q: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """The parts of the predictive variance, each ``(N, 3)`` [m^2] (tracker axes): ``a = g^2 (J P_w J^T +
-        s_noise^2)``, ``b = (1 - g^2) s_far^2`` and the gate squared ``g^2`` (broadcast to the axes);
-        ``var = k^2 a + g^2 f^2 + b``."""
+        """The parts of the predictive variance (module docstring), each ``(N, 3)`` [m^2] (tracker axes):
+        ``a = g^2 (J P_w J^T + s_noise^2)``, ``b = g^2 (1 - h^2) s_far^2 + (1 - g)^2 s_fb^2 (1 + c d^2)`` and the
+        prediction's gate squared ``g^2`` (broadcast to the axes); ``var = k^2 a + g^2 f^2 + b``."""
         if not self.has_predictive:
             raise ValueError("this gate has no predictive standard deviation (set_predictive was not called)")
         net = self.inner.net
@@ -171,9 +189,17 @@ class SupportGate(Effect):
             J = net.jacobian_flat(w, q[i : i + 1024].detach())[1][..., self.weight_index]
             J = R @ J  # (n, 3, k) in the tracker frame
             var_net[i : i + 1024] = torch.einsum("nak,kl,nal->na", J, self.weight_cov, J)
-        d = self.distance(q.detach())
-        g2 = torch.exp(-((d / self.sigma_length) ** 2))[:, None]  # the gate squared
-        return g2 * (var_net + self.sigma_noise**2), (1.0 - g2) * self.sigma_far**2, g2.expand(-1, 3)
+        d = self.distance(q.detach())[:, None]
+        h2 = torch.exp(-((d / self.sigma_length) ** 2))  # the model's error: from its floor towards s_far
+        g = torch.ones_like(d) if math.isinf(self.length) else torch.exp(-0.5 * (d / self.length) ** 2)
+        s_fb = (
+            self.sigma_far
+            if self.sigma_fallback is None
+            else torch.tensor(self.sigma_fallback, dtype=d.dtype, device=d.device)
+        )
+        var_fb = s_fb**2 * (1.0 + self.fallback_growth * d**2)
+        b = g**2 * (1.0 - h2) * self.sigma_far**2 + (1.0 - g) ** 2 * var_fb
+        return g**2 * (var_net + self.sigma_noise**2), b, (g**2).expand(-1, 3)
 
     def predictive_std(self, robot, q: Tensor) -> Tensor:
         """Predicted standard deviation per sample and tracker axis ``(N, 3)`` [m]."""
@@ -223,6 +249,8 @@ class SupportGate(Effect):
                 "scale": self.sigma_scale,
                 "floor": self.sigma_floor,
                 "sigma_length": self.sigma_length,
+                "fallback_sigma": self.sigma_fallback,
+                "fallback_growth": self.fallback_growth,
             }
             if self.has_predictive
             else None,
@@ -332,6 +360,47 @@ def fit_predictive_scale(
     sigma = (scale**2 * a + g2 * floor**2 + b).sqrt()
     widen = max(1.0, calibrate_scale(e, sigma.clamp_min(1e-300), target, n_sigma))
     return scale * widen, (floor * widen).tolist()
+
+
+def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:
+    """The fallback's residual scale ``s_fb`` (per axis) and its growth ``c`` with the distance, ``var_a(d) =
+    s_fb_a^2 (1 + c d^2)``, by maximum likelihood of the geometric model's residuals ``e`` on samples after those
+    it was fitted on, at their distances ``d`` from those (Gaussian, independent components).
+
+    Args:
+        e: residuals ``(N, 3)`` [m].
+        d: distances ``(N,)`` to the fitting samples [spreads] (:meth:`SupportGate.distance`).
+
+    Returns:
+        ``(s_fb, c)``: the scale per axis [m] and the growth [1 / spread^2] (0 where the residuals do not grow).
+    """
+    if e.ndim != 2 or e.shape[1] != 3 or d.shape != (len(e),) or len(e) == 0:
+        raise ValueError(f"e must be (N, 3) and d (N,) with N > 0, got {tuple(e.shape)}, {tuple(d.shape)}")
+    e2, d2 = e.detach().square(), d.detach()[:, None].square()
+    rms = float(e2.mean().sqrt().clamp_min(1e-12))
+    theta = torch.tensor([math.log(rms)] * 3 + [math.log(1e-3)], dtype=e.dtype, device=e.device, requires_grad=True)
+    tiny = (1e-9 * rms) ** 2
+
+    def nll():
+        # log parameters clamped: a growth the residuals do not support runs towards zero, not to -inf (and NaN)
+        s2 = theta[:3].clamp(math.log(rms) - 30.0, math.log(rms) + 10.0).exp() ** 2
+        var = s2 * (1.0 + theta[3].clamp(-40.0, 10.0).exp() * d2) + tiny
+        return 0.5 * (var.log() + e2 / var).mean()
+
+    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=300, line_search_fn="strong_wolfe", tolerance_grad=1e-12)
+
+    def closure():
+        opt.zero_grad()
+        loss = nll()
+        loss.backward()
+        return loss
+
+    with torch.enable_grad():
+        opt.step(closure)
+    th = theta.detach()
+    s_fb = th[:3].clamp(math.log(rms) - 30.0, math.log(rms) + 10.0).exp()
+    c = float(th[3].clamp(-40.0, 10.0).exp())
+    return s_fb.tolist(), c if c > 1e-12 else 0.0
 
 
 def calibrate_scale(e: Tensor, sigma: Tensor, target: float = 0.95, k: float = 2.0) -> float:

@@ -57,6 +57,7 @@ from torchcal.effects.support import (
     SupportGate,
     choose_gate_length,
     coverage,
+    fit_fallback_growth,
     fit_predictive_scale,
 )
 from torchcal.errors import EstimationError, OptionError
@@ -792,18 +793,23 @@ def _attach_predictive_sigma(
 
     The scale factor is calibrated on the validation block with the candidate fitted on the fitting samples
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
-    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). Always a gate,
-    an infinite one included (it changes no prediction): it carries the standard deviation. Returns the report's
-    evidence (scale, coverage of 2 sigma on validation and on the held-out samples, the variance's parts).
+    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
+    error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
+    scale is fitted. Always a gate, an infinite one included (it changes no prediction): it carries the standard
+    deviation. Returns the report's evidence (scale, coverage of 2 sigma on validation and on the held-out
+    samples, the variance's parts).
     """
     noise = _observation_sigma(run.model, train, run.options)
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
     sigma_length = length if math.isfinite(length) else max(g for g in GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
+    fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, val_gate)
+    val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
     scale, floor = fit_predictive_scale(e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET)
     val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
     gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale, floor)
+    gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
     run.model.effects[-1] = gate
     run.stages.pop()
     run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
@@ -816,7 +822,36 @@ def _attach_predictive_sigma(
         "sigma_noise_mm": (noise * 1e3).tolist(),
         "sigma_far_mm": (far * 1e3).tolist(),
         "sigma_length": sigma_length,
+        "fallback_sigma_mm": [x * 1e3 for x in fb_sigma],
+        "fallback_growth": fb_growth,
     }
+
+
+def _fallback_growth(
+    run: CalibrationRun,
+    kinematic,
+    geo: MeasurementModel,
+    fit: Measurements,
+    val: Measurements,
+    train: Measurements,
+    val_gate: SupportGate,
+) -> tuple[list[float], float]:
+    """How the geometric model's error grows with the distance from the samples it was fitted on
+    (:func:`~torchcal.effects.support.fit_fallback_growth`): its residuals on the validation block (geometry on the
+    fitting samples, ``geo``) and on the second half of the training samples (geometry refitted on the first half,
+    from the kinematic calibration), each at its distance from the samples fitted. The validation block alone
+    reaches only a short way from the support; a path's continuation can leave it much further (a random walk),
+    and the second half of the training samples shows how far geometry's residual grows over a longer stretch."""
+    half = train.n // 2
+    first, second = train.subset(slice(0, half)), train.subset(slice(half, None))
+    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
+    stage = "integrated: geometry on the first half (sigma)"
+    solve(geo_half, first, GEOMETRIC_GROUPS, run.options, stage, True, identifiability=ida)
+    half_gate = SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
+    e = torch.cat([_residuals(geo, val), _residuals(geo_half, second)])
+    d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
+    return fit_fallback_growth(e, d)
 
 
 #: the share of residual components within two predicted standard deviations the scale factor is calibrated to
