@@ -253,3 +253,16 @@ def test_conditioner_without_the_kept_factor_agrees(monkeypatch):
     with torch.no_grad():
         a, b = streamed(None, Context(q=q)), kept(None, Context(q=q))
     assert _rms(a - b) < 1e-7 * _rms(b)
+
+
+def test_posterior_blocks_in_threads_give_the_same_bits(monkeypatch):
+    q, g = _joints(900, 14)
+    y = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
+    y = y + 1e-5 * torch.randn(900, 3, generator=g, dtype=F64)
+    s = GPSettings(max_inducing=300, max_fit=200, m_fit=200)  # 900 rows: four blocks
+    monkeypatch.setattr(gp, "BLOCK_WORKERS", 1)
+    one, _ = fit_gp_correction(Context(q=q), y, s)
+    monkeypatch.setattr(gp, "BLOCK_WORKERS", 3)
+    three, _ = fit_gp_correction(Context(q=q), y, s)
+    for name in ("weights", "chol_uu", "chol_b", "inducing"):
+        assert torch.equal(getattr(one, name), getattr(three, name)), name

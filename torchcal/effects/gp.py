@@ -38,6 +38,9 @@ and the posterior are those of the exact (dense) Gaussian process.
 from __future__ import annotations
 
 import math
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -53,6 +56,10 @@ ADDITIVE_FORMS = ("rbf", "periodic")
 EXTRA_INPUTS = ("t", "temperature")
 _JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite in float64
 _BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variables))
+#: Python threads that compute the posterior's row blocks side by side (kernel, triangular solve and products: large
+#: torch ops on one torch thread each, which release the GIL); the blocks are summed in order, so the posterior is
+#: the same for any number of them
+BLOCK_WORKERS = 2
 
 
 @dataclass
@@ -638,6 +645,22 @@ def fit_hyperparameters(
     }
 
 
+def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
+    """``fn(i)`` for each block start, in order, computed by :data:`BLOCK_WORKERS` threads with at most one block
+    waiting per thread (memory stays ``O(workers)`` blocks)."""
+    if BLOCK_WORKERS <= 1:
+        yield from map(fn, starts)
+        return
+    with ThreadPoolExecutor(BLOCK_WORKERS) as pool:
+        pending: deque = deque()
+        for i in starts:
+            pending.append(pool.submit(fn, i))
+            if len(pending) > BLOCK_WORKERS:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     """Weights and Cholesky factors of the posterior given all rows ``x, y`` (standardised), streamed in blocks."""
     h, z = eff.hyper(), eff.inducing
@@ -647,10 +670,14 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     B = torch.eye(m, dtype=F64, device=z.device)
     Ay = torch.zeros(m, y.shape[1], dtype=F64, device=z.device)
     s = h["noise"].sqrt()
-    for i in range(0, len(x), _BLOCK):
+
+    def block(i: int) -> tuple[Tensor, Tensor]:
         A = torch.linalg.solve_triangular(Lu, _kernel(z, x[i : i + _BLOCK], h, eff.periodic, eff.ard), upper=False) / s
-        B += A @ A.T
-        Ay += A @ y[i : i + _BLOCK]
+        return A @ A.T, A @ y[i : i + _BLOCK]
+
+    for AA, Ay_i in _in_order(block, range(0, len(x), _BLOCK)):
+        B += AA
+        Ay += Ay_i
     LB = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
     c = torch.cholesky_solve(Ay, LB) / s  # B^-1 A y / s
     w = torch.linalg.solve_triangular(Lu.T, c, upper=True)  # K_uu^-T/2 B^-1 A y / s
@@ -864,11 +891,10 @@ class GPConditioner:
             B = torch.eye(m, dtype=F64, device=z.device)
             keep = m * n <= _KEEP_FACTOR
             blocks = []
-            for i in range(0, n, _BLOCK):
-                A = self._block(i)
-                B += A @ A.T
+            for A_i, AA in _in_order(self._block_and_square, range(0, n, _BLOCK)):
+                B += AA
                 if keep:
-                    blocks.append(A)
+                    blocks.append(A_i)
             self.A = torch.cat(blocks, 1) if keep and blocks else None
             self.chol_b = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
             self.Kvu = self.sd_val = None
@@ -886,6 +912,10 @@ class GPConditioner:
         eff = self.eff
         Kuf = _kernel(eff.inducing, self.x[i : i + _BLOCK], eff.hyper(), eff.periodic, eff.ard)
         return torch.linalg.solve_triangular(self.chol_uu, Kuf, upper=False) / self.s
+
+    def _block_and_square(self, i: int) -> tuple[Tensor, Tensor]:
+        A = self._block(i)
+        return A, A @ A.T
 
     def condition(self, y: Tensor, y_val: Tensor | None = None) -> tuple[GPCorrection, dict]:
         """The GP conditioned on corrections ``y (n, 3)`` [m, robot base frame] at the poses of ``ctx``.
