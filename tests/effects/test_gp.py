@@ -207,3 +207,62 @@ def test_conditioning_on_more_poses_keeps_the_hyperparameters_and_lowers_the_err
     assert len(more.inducing) == 500 and len(sparse.inducing) == 250  # k-means beyond max_inducing
     with pytest.raises(Exception, match="expected y of shape"):
         gp.condition_gp(eff, Context(q=q[:10]), y[:9])
+
+
+def test_conditioner_reproduces_the_fit_and_follows_new_outputs():
+    q, g = _joints(400, 12)
+    f = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
+    y = f + 1e-5 * torch.randn(400, 3, generator=g, dtype=F64)
+    # sparse (fewer inducing inputs than rows) and exact
+    for s in (GPSettings(max_inducing=150, max_fit=150, m_fit=150), GPSettings()):
+        eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], s, ctx_val=Context(q=q[300:]), y_val=y[300:])
+        cond = gp.GPConditioner(eff, Context(q=q[:300]), Context(q=q[300:]))
+        same, out = cond.condition(y[:300], y[300:])
+        assert torch.allclose(same.weights, eff.weights, rtol=1e-9, atol=1e-12 * float(eff.weights.abs().max()))
+        assert torch.allclose(out["val_errors"], info["val_errors"], rtol=1e-9, atol=1e-15)
+        assert out["val_coverage_2sigma"] == pytest.approx(info["val_coverage_2sigma"])
+        # new outputs at the same poses: the posterior of the held hyperparameters, as condition_gp gives it
+        y2 = 2.0 * y[:300] + 1e-5
+        moved, _ = cond.condition(y2)
+        ref = gp.condition_gp(eff, Context(q=q[:300]), y2, s)
+        with torch.no_grad():
+            ctx = Context(q=q[300:])
+            pm, pr = moved(None, ctx), ref(None, ctx)
+        # condition_gp keeps the old standardisation, the conditioner the new outputs' own; the noise is relative
+        # to that scale, so the two agree to the change of the noise-to-signal ratio, not to rounding
+        assert _rms(pm - pr) < 0.1 * _rms(pr)
+        for k, v in eff.hyper().items():
+            assert torch.equal(getattr(moved, k), v)
+        assert torch.equal(moved.inducing, eff.inducing)
+    with pytest.raises(Exception, match="expected y of shape"):
+        cond.condition(y[:10])
+
+
+def test_conditioner_without_the_kept_factor_agrees(monkeypatch):
+    q, g = _joints(300, 13)
+    y = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
+    s = GPSettings(max_inducing=100, max_fit=100, m_fit=100)
+    eff, _ = fit_gp_correction(Context(q=q), y, s)
+    kept = gp.GPConditioner(eff, Context(q=q)).condition(y * 1.5)[0]
+    monkeypatch.setattr(gp, "_KEEP_FACTOR", 0)  # beyond the memory cap: the factor is recomputed per block
+    cond = gp.GPConditioner(eff, Context(q=q))
+    assert cond.A is None
+    streamed = cond.condition(y * 1.5)[0]
+    # the same sums in another order: the weights of an ill-conditioned K_uu differ in their last digits, the
+    # predictions agree
+    with torch.no_grad():
+        a, b = streamed(None, Context(q=q)), kept(None, Context(q=q))
+    assert _rms(a - b) < 1e-7 * _rms(b)
+
+
+def test_posterior_blocks_in_threads_give_the_same_bits(monkeypatch):
+    q, g = _joints(900, 14)
+    y = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
+    y = y + 1e-5 * torch.randn(900, 3, generator=g, dtype=F64)
+    s = GPSettings(max_inducing=300, max_fit=200, m_fit=200)  # 900 rows: four blocks
+    monkeypatch.setattr(gp, "BLOCK_WORKERS", 1)
+    one, _ = fit_gp_correction(Context(q=q), y, s)
+    monkeypatch.setattr(gp, "BLOCK_WORKERS", 3)
+    three, _ = fit_gp_correction(Context(q=q), y, s)
+    for name in ("weights", "chol_uu", "chol_b", "inducing"):
+        assert torch.equal(getattr(one, name), getattr(three, name)), name

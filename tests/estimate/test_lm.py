@@ -60,6 +60,27 @@ def test_rank_deficiency_is_reported_not_hidden():
         _ = res.std
 
 
+def test_a_fit_singular_from_the_start_stops_early_and_one_singular_only_at_its_start_goes_on():
+    from torchcal.estimate.lm import SINGULAR_WINDOW
+
+    # a slowly converging fit (Rosenbrock) with a third parameter that nothing depends on: singular throughout
+    def idle(x):
+        return torch.stack([10 * (x[1] - x[0] ** 2), 1 - x[0], 0.0 * x[2]])
+
+    x0 = torch.tensor([-1.2, 1.0, 0.0], dtype=F64)
+    rosenbrock = levenberg_marquardt(lambda x: idle(torch.cat([x, x[:1]]))[:2], x0[:2])
+    assert rosenbrock.iterations > SINGULAR_WINDOW  # without the idle parameter: more iterations than that
+    res = levenberg_marquardt(idle, x0, max_iter=100)
+    assert res.status == "failed_solve" and f"singular (rank deficient) in {SINGULAR_WINDOW} of" in res.message
+    assert res.iterations == SINGULAR_WINDOW - 1
+    # amplitude and phase: the phase's derivative vanishes at zero amplitude (singular at the start only)
+    t = torch.linspace(0.0, 3.0, 40, dtype=F64)
+    y2 = 0.5 * torch.sin(2.0 * t + 0.3)
+    res = levenberg_marquardt(lambda x: x[0] * torch.sin(2.0 * t + x[1]) - y2, torch.zeros(2, dtype=F64))
+    assert res.status == "converged"
+    assert torch.allclose(res.x, torch.tensor([0.5, 0.3], dtype=F64), atol=1e-6)
+
+
 def test_non_finite_start_is_divergence():
     res = levenberg_marquardt(lambda x: x / 0.0 * 0.0, torch.zeros(2, dtype=F64))
     assert res.status == "diverged"

@@ -38,6 +38,9 @@ and the posterior are those of the exact (dense) Gaussian process.
 from __future__ import annotations
 
 import math
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import torch
@@ -53,6 +56,10 @@ ADDITIVE_FORMS = ("rbf", "periodic")
 EXTRA_INPUTS = ("t", "temperature")
 _JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite in float64
 _BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variables))
+#: Python threads that compute the posterior's row blocks side by side (kernel, triangular solve and products: large
+#: torch ops on one torch thread each, which release the GIL); the blocks are summed in order, so the posterior is
+#: the same for any number of them
+BLOCK_WORKERS = 2
 
 
 @dataclass
@@ -638,6 +645,22 @@ def fit_hyperparameters(
     }
 
 
+def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
+    """``fn(i)`` for each block start, in order, computed by :data:`BLOCK_WORKERS` threads with at most one block
+    waiting per thread (memory stays ``O(workers)`` blocks)."""
+    if BLOCK_WORKERS <= 1:
+        yield from map(fn, starts)
+        return
+    with ThreadPoolExecutor(BLOCK_WORKERS) as pool:
+        pending: deque = deque()
+        for i in starts:
+            pending.append(pool.submit(fn, i))
+            if len(pending) > BLOCK_WORKERS:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+
+
 def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     """Weights and Cholesky factors of the posterior given all rows ``x, y`` (standardised), streamed in blocks."""
     h, z = eff.hyper(), eff.inducing
@@ -647,10 +670,14 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
     B = torch.eye(m, dtype=F64, device=z.device)
     Ay = torch.zeros(m, y.shape[1], dtype=F64, device=z.device)
     s = h["noise"].sqrt()
-    for i in range(0, len(x), _BLOCK):
+
+    def block(i: int) -> tuple[Tensor, Tensor]:
         A = torch.linalg.solve_triangular(Lu, _kernel(z, x[i : i + _BLOCK], h, eff.periodic, eff.ard), upper=False) / s
-        B += A @ A.T
-        Ay += A @ y[i : i + _BLOCK]
+        return A @ A.T, A @ y[i : i + _BLOCK]
+
+    for AA, Ay_i in _in_order(block, range(0, len(x), _BLOCK)):
+        B += AA
+        Ay += Ay_i
     LB = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
     c = torch.cholesky_solve(Ay, LB) / s  # B^-1 A y / s
     w = torch.linalg.solve_triangular(Lu.T, c, upper=True)  # K_uu^-T/2 B^-1 A y / s
@@ -668,6 +695,7 @@ def fit_gp_correction(
     y_val: Tensor | None = None,
     warm: GPCorrection | None = None,
     warm_iterations: int = 10,
+    summary: bool = True,
 ) -> tuple[GPCorrection, dict]:
     """Fit a :class:`GPCorrection` to corrections ``y`` at the poses of ``ctx``.
 
@@ -679,21 +707,26 @@ def fit_gp_correction(
             so that the caller can judge the model on poses it has not seen.
         warm: a previous fit of the same structure (an alternating refit): its hyperparameters are the start,
             and ``warm_iterations`` L-BFGS iterations replace ``settings.iterations``.
+        summary: also each variable's share and the validation coverage (a kernel evaluation per component and
+            the predictive variances: a sixth of a refit's time, and an alternating refit reads neither).
 
     Returns:
         The fitted effect and a dict: the hyperparameters (``describe()``), the evidence, the rows and inducing
         inputs used, each variable's share of the fitted correction's variance (``variable_share``), and with
         validation data the validation errors per pose ``val_errors (n_val,)`` [m], ``val_rmse_m`` and the
-        fraction of validation coordinates within two predictive standard deviations ``val_coverage_2sigma``.
+        fraction of validation coordinates within two predictive standard deviations ``val_coverage_2sigma``
+        (without ``summary`` neither the shares nor the coverage).
     """
     s = settings or GPSettings()
     if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
         raise ShapeError(f"GP correction: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
     with torch_threads(s.threads):
-        return _fit(ctx, y.to(F64), s, ctx_val, y_val, warm, warm_iterations)
+        return _fit(ctx, y.to(F64), s, ctx_val, y_val, warm, warm_iterations, summary)
 
 
-def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iterations) -> tuple[GPCorrection, dict]:
+def _fit(
+    ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iterations, summary: bool = True
+) -> tuple[GPCorrection, dict]:
     g = torch.Generator().manual_seed(int(s.seed))
     n, dof = ctx.q.shape
     eff = GPCorrection(dof, min(n, s.max_inducing), s.extras, s.additive, s.ard).to(ctx.q.device)
@@ -757,10 +790,11 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
             eff.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
         # 3. posterior over all rows
         _posterior(eff, x, ys)
-        # each variable's share, a summary, from the rows of the evidence fit (memory and time stay bounded)
-        comp = eff.component_means(ctx.subset(sub))
-        var = comp.square().sum(-1).mean(1)
-        share = (var / var.sum().clamp_min(1e-30)).tolist()
+        if summary:
+            # each variable's share, a summary, from the rows of the evidence fit (memory and time stay bounded)
+            comp = eff.component_means(ctx.subset(sub))
+            var = comp.square().sum(-1).mean(1)
+            share = (var / var.sum().clamp_min(1e-30)).tolist()
     names = eff.variable_names() + (["ard"] if s.ard else [])
     out = {
         **eff.describe(),
@@ -771,16 +805,17 @@ def _fit(ctx: Context, y: Tensor, s: GPSettings, ctx_val, y_val, warm, warm_iter
         "rows_for_hyperparameters": len(xf),
         "inducing_for_hyperparameters": len(zf),
         "exact": n <= s.max_inducing,
-        "variable_share": dict(zip(names, share[: len(names)])),
+        **({"variable_share": dict(zip(names, share[: len(names)]))} if summary else {}),
         "rmse_unit": "m",
     }
     if ctx_val is not None and y_val is not None:
         with torch.no_grad():
-            mean, sd = eff.predict(ctx_val, noise=True)
+            mean, sd = eff.predict(ctx_val, std=summary, noise=True)
             e = (y_val - mean).norm(dim=-1)
             out["val_errors"] = e
             out["val_rmse_m"] = float(e.square().mean().sqrt())
-            out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
+            if summary:
+                out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
     return eff, out
 
 
@@ -817,3 +852,108 @@ def condition_gp(eff: GPCorrection, ctx: Context, y: Tensor, settings: GPSetting
         _posterior(new, x, (y.to(F64) - new.y_mean) / new.y_scale)
     new.train(eff.training)
     return new
+
+
+#: largest ``m x n`` factor ``K_uu^-1/2 K_uf`` a :class:`GPConditioner` keeps in memory (elements, 8 bytes each);
+#: beyond it the factor is recomputed in row blocks at each conditioning (no Cholesky, half the posterior's work)
+_KEEP_FACTOR = 25_000_000
+
+
+class GPConditioner:
+    """A fitted GP re-conditioned on new outputs at the same inputs, its hyperparameters and inducing inputs held.
+
+    An alternating refit of the learned stage moves the geometry a little, so the corrections change while the
+    poses do not. With the hyperparameters held, everything of the posterior but the weights depends on the
+    inputs alone: ``A = L_uu^-1 K_uf / sigma``, the Cholesky factor of ``B = I + A A^T`` and the kernel between the
+    validation poses and the inducing inputs are computed once here, and each :meth:`condition` costs two
+    triangular solves with three right-hand sides and a product with ``A`` instead of an evidence fit, a k-means
+    and an ``O(n m^2)`` posterior. The new outputs are standardised by their own mean and RMS, as
+    :func:`fit_gp_correction` does, so the hyperparameters (relative to the outputs' scale) keep their meaning.
+
+    Args:
+        eff: a fitted :class:`GPCorrection` (its inputs' standardisation, hyperparameters and inducing inputs
+            are kept).
+        ctx: the poses to condition on (joints ``q (n, dof)`` [rad], and the extras ``eff`` reads).
+        ctx_val: optional validation poses, whose predictions :meth:`condition` judges.
+        threads: torch threads while computing (restored afterwards).
+    """
+
+    def __init__(self, eff: GPCorrection, ctx: Context, ctx_val: Context | None = None, threads: int = 1):
+        self.eff, self.threads = eff, int(threads)
+        with torch_threads(self.threads), torch.no_grad():
+            h, z = eff.hyper(), eff.inducing
+            self.x = eff.inputs(ctx)
+            m, n = len(z), len(self.x)
+            self.s = h["noise"].sqrt()
+            # as _posterior, so that conditioning on the outputs the GP was fitted to gives its own weights
+            Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
+            self.chol_uu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
+            B = torch.eye(m, dtype=F64, device=z.device)
+            keep = m * n <= _KEEP_FACTOR
+            blocks = []
+            for A_i, AA in _in_order(self._block_and_square, range(0, n, _BLOCK)):
+                B += AA
+                if keep:
+                    blocks.append(A_i)
+            self.A = torch.cat(blocks, 1) if keep and blocks else None
+            self.chol_b = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
+            self.Kvu = self.sd_val = None
+            if ctx_val is not None:
+                xv = eff.inputs(ctx_val)
+                self.Kvu = torch.cat([eff._kxu(xv[i : i + _BLOCK]) for i in range(0, len(xv), _BLOCK)])
+                # the predictive standard deviation of a new observation (standardised): it depends on the inputs only
+                a = torch.linalg.solve_triangular(self.chol_uu, self.Kvu.T, upper=False)
+                b = torch.linalg.solve_triangular(self.chol_b, a, upper=False)
+                var = (_prior_var(h, eff.ard) - a.square().sum(0) + b.square().sum(0)).clamp_min(0.0) + h["noise"]
+                self.sd_val = var.sqrt().unsqueeze(1)
+
+    def _block(self, i: int) -> Tensor:
+        """Rows ``i .. i + block`` of ``A = L_uu^-1 K_uf / sigma`` as an ``(m, block)`` matrix."""
+        eff = self.eff
+        Kuf = _kernel(eff.inducing, self.x[i : i + _BLOCK], eff.hyper(), eff.periodic, eff.ard)
+        return torch.linalg.solve_triangular(self.chol_uu, Kuf, upper=False) / self.s
+
+    def _block_and_square(self, i: int) -> tuple[Tensor, Tensor]:
+        A = self._block(i)
+        return A, A @ A.T
+
+    def condition(self, y: Tensor, y_val: Tensor | None = None) -> tuple[GPCorrection, dict]:
+        """The GP conditioned on corrections ``y (n, 3)`` [m, robot base frame] at the poses of ``ctx``.
+
+        Returns:
+            A new :class:`GPCorrection` (``eff`` is left unchanged) and, with ``y_val`` at the validation poses,
+            ``{"val_errors" (n_val,) [m], "val_rmse_m", "val_coverage_2sigma"}`` as :func:`fit_gp_correction`.
+        """
+        if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(self.x):
+            raise ShapeError(f"GP conditioning: expected y of shape ({len(self.x)}, 3), got {tuple(y.shape)}")
+        eff = self.eff
+        new = GPCorrection(eff.dof, len(eff.inducing), eff.extras, eff.additive, eff.ard).to(eff.inducing.device)
+        out: dict = {}
+        with torch_threads(self.threads), torch.no_grad():
+            y = y.to(F64)
+            for name in ("x_offset", "x_scale", "inducing", *eff.hyper()):
+                getattr(new, name).copy_(getattr(eff, name))
+            new.y_mean.copy_(y.mean(0))
+            new.y_scale.copy_((y - new.y_mean).square().mean(0).sqrt().clamp_min(1e-12))
+            ys = (y - new.y_mean) / new.y_scale
+            if self.A is not None:
+                Ay = self.A @ ys
+            else:
+                Ay = torch.zeros(len(eff.inducing), 3, dtype=F64, device=ys.device)
+                for i in range(0, len(ys), _BLOCK):
+                    Ay += self._block(i) @ ys[i : i + _BLOCK]
+            c = torch.cholesky_solve(Ay, self.chol_b) / self.s
+            new.weights.copy_(torch.linalg.solve_triangular(self.chol_uu.T, c, upper=True))
+            new.chol_uu.copy_(self.chol_uu)
+            new.chol_b.copy_(self.chol_b)
+            if y_val is not None and self.Kvu is not None:
+                mean = self.Kvu @ new.weights * new.y_scale + new.y_mean
+                d = y_val.to(F64) - mean
+                e = d.norm(dim=-1)
+                out = {
+                    "val_errors": e,
+                    "val_rmse_m": float(e.square().mean().sqrt()),
+                    "val_coverage_2sigma": float((d.abs() <= 2 * self.sd_val * new.y_scale).double().mean()),
+                }
+        new.train(eff.training)
+        return new, out

@@ -38,6 +38,11 @@ class FitStatus(str, Enum):
 
 STATUSES = tuple(s.value for s in FitStatus)
 
+#: a fit whose normal matrix is singular in at least :data:`SINGULAR_MIN` of its first :data:`SINGULAR_WINDOW`
+#: iterations ends as ``failed_solve`` there (:func:`levenberg_marquardt`)
+SINGULAR_WINDOW = 6
+SINGULAR_MIN = 4
+
 
 @dataclass
 class LMResult:
@@ -200,12 +205,23 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
     status, message = FitStatus.MAX_ITERATIONS, f"stopped after {max_iter} iterations"
     it = 0
     eye = torch.eye(len(x), dtype=x.dtype, device=x.device)
+    singular, early = 0, False  # iterations among the first SINGULAR_WINDOW with a singular normal matrix
     for it in range(1, max_iter + 1):
         J = jac(x).detach()
         N = J.T @ J
         s = _jacobi(N)  # Jacobi scaling: solve in y = x / s, where N has a unit diagonal
         Ns = N * s[:, None] * s[None, :]
         gs = (J.T @ r) * s
+        if it <= SINGULAR_WINDOW:
+            singular += int(torch.linalg.cholesky_ex(Ns)[1]) != 0
+            if it == SINGULAR_WINDOW and singular >= SINGULAR_MIN:
+                status, message = (
+                    FitStatus.FAILED_SOLVE,
+                    f"the normal matrix was singular (rank deficient) in {singular} of the first {SINGULAR_WINDOW} "
+                    "iterations",
+                )
+                it, early = it - 1, True  # no step taken in this one; J is the Jacobian at x
+                break
         # probe a ladder of dampings around the current one (residual evaluations are cheap next to a
         # Jacobian) and keep the lowest cost: in curved valleys of weakly determined parameters a
         # single trial per iteration makes the damping oscillate and the fit creep
@@ -242,9 +258,10 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
                 else "cost reduction statistically invisible (stat_tol)"
             )
             break
-    J = jac(x).detach()
-    N = J.T @ J
-    s = _jacobi(N)
+    if not early:
+        J = jac(x).detach()
+        N = J.T @ J
+        s = _jacobi(N)
     if status != FitStatus.FAILED_SOLVE and int(torch.linalg.cholesky_ex(N * s[:, None] * s[None, :])[1]) != 0:
         status, message = FitStatus.FAILED_SOLVE, "the normal matrix at the solution is singular (rank deficient)"
     return LMResult(status, it, x, history, names, len(r), message, N, r, J)

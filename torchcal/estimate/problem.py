@@ -164,23 +164,42 @@ def residual_function(
     analytic = len(model.effects) == 0 and all(e.name in _ROBOT_GROUPS for e in free.entries)
     columns = [(_ROBOT_GROUPS[e.name], int(i)) for e in free.entries for i in e.index] if analytic else []
 
+    # the free columns of the geometry and the lever arm, and where each sits in the flat corrections of
+    # _corrections: they reach the prediction through the kinematics' tangent alone (linearised below)
+    offsets, k = {}, 0
+    for name in _KINEMATIC:
+        offsets[name] = k
+        k += dict(model.named_parameters())[name].numel()
+    kin = [(j, offsets[e.name] + int(i)) for j, e, i in _columns(free) if e.name in offsets]
+    kin_cols = torch.tensor([j for j, _ in kin], dtype=torch.long)
+    kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)
+    rest = torch.tensor([j for j in range(len(free)) if j not in set(kin_cols.tolist())], dtype=torch.long)
+
     def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
         # exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the
         # whitening (constant) applied to the (N, 3, u) prediction Jacobian after it. The geometry and the lever arm
         # reach the prediction through fk only: the module sees their plain values, so what an effect computes from
         # the robot under no_grad (a compliance's gravity torque) stays a constant, as reverse-mode autograd has it
-        # (forward-mode transforms ignore no_grad and would push every tangent through the torque's chain too)
+        # (forward-mode transforms ignore no_grad and would push every tangent through the torque's chain too).
+        # Their columns are then the chain rule G_i J_d,i with G_i = d prediction_i / d p_base,i (3 x 3 per pose:
+        # Cartesian effects and the tracker act pose by pose): jacfwd pushes 3 tangents for G instead of one per
+        # geometric parameter, and the model's other parameters as before
         at = free.params(x)
-        fk = linear_kinematics(model, c, at)
+        fk = linear_kinematics(model, c, at, columns=kin_d)
+        x_rest = x[rest.to(x.device)]
 
-        def pred(y: Tensor) -> Tensor:
+        def pred(z: Tensor) -> Tensor:
+            y = x.index_put((rest.to(x.device),), z[3:])
             params = free.params(y)
-            d = _corrections(model.robot, params)
             plain = {k: at[k] if k in _KINEMATIC else v for k, v in params.items()}
-            return torch.func.functional_call(model, plain, (c,), {"fk": lambda rb, q: fk(rb, q, d)})
+            return torch.func.functional_call(model, plain, (c,), {"fk": lambda rb, q: fk(rb, q) + z[:3]})
 
-        Jp = torch.func.jacfwd(pred)(x)
-        return (WW @ Jp.detach()).reshape(-1, len(x))
+        Jz = torch.func.jacfwd(pred)(torch.cat([x.new_zeros(3), x_rest])).detach()  # (N, 3, 3 + len(rest))
+        Jp = x.new_zeros(Jz.shape[0], 3, len(x))
+        Jp[..., rest.to(x.device)] = Jz[..., 3:]
+        if len(kin_cols):
+            Jp[..., kin_cols.to(x.device)] = Jz[..., :3] @ fk.jd
+        return (WW @ Jp).reshape(-1, len(x))
 
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
@@ -204,7 +223,9 @@ def residual_function(
     return fun
 
 
-def linear_kinematics(model: MeasurementModel, ctx: Context, params: dict[str, Tensor] | None = None):
+def linear_kinematics(
+    model: MeasurementModel, ctx: Context, params: dict[str, Tensor] | None = None, columns: Tensor | None = None
+):
     """The robot's kinematics linearised at the model's current joint angles: ``fk(robot, q) -> (N, 3)`` for
     :meth:`MeasurementModel.forward <torchcal.effects.model.MeasurementModel.forward>`.
 
@@ -221,12 +242,16 @@ def linear_kinematics(model: MeasurementModel, ctx: Context, params: dict[str, T
         ctx: the samples.
         params: parameter values to linearise at (qualified name -> tensor, as for ``functional_call``);
             default the model's own.
+        columns: flat indices into ``d`` of the corrections that may move; the others are held at ``d0`` and
+            their Jacobian is not computed. ``fk.jd`` is ``J_d``'s columns ``(N, 3, len(columns))``.
     """
     out: dict[str, Tensor] = {}
 
     def record(rb, q: Tensor) -> Tensor:
         q = q.detach()
         cols = [(g, i) for g in ("geometry", "tool") for i in range(rb.groups()[g].delta.numel())]
+        if columns is not None:
+            cols = [cols[int(i)] for i in columns]
         p_tr, J = rb.tracker_jacobian(q, cols)
         R = rb.T_tracker_base()[:3, :3]
         pb, Jq = rb.probe_jacobian(q)
@@ -236,14 +261,19 @@ def linear_kinematics(model: MeasurementModel, ctx: Context, params: dict[str, T
     with torch.no_grad():
         torch.func.functional_call(model, params or {}, (ctx,), {"fk": record})
     q0, p0, Jq, Jd, d0 = out["q"], out["p"], out["Jq"], out["Jd"], out["d"]
+    if columns is not None:
+        d0 = d0[columns.to(d0.device)]
 
     def fk(rb, q: Tensor, d: Tensor | None = None) -> Tensor:
         # under torch.func these become one batched product over the poses and one plain matrix product (measured
         # faster than elementwise products and sums, or einsum)
         dq = (Jq @ (q - q0).unsqueeze(-1)).squeeze(-1)
         d = _corrections(rb) if d is None else d
+        if columns is not None and len(d) != len(d0):
+            d = d[columns.to(d.device)]
         return p0 + dq + (Jd.reshape(-1, Jd.shape[-1]) @ (d - d0)).reshape(p0.shape)
 
+    fk.jd = Jd
     return fk
 
 
@@ -256,6 +286,15 @@ def _corrections(robot, params: dict[str, Tensor] | None = None) -> Tensor:
     params = params or {}
     parts = [params.get(k, getattr(robot, k.split(".")[1]).delta) for k in _KINEMATIC]
     return torch.cat([v.reshape(-1) for v in parts])
+
+
+def _columns(free: FreeParameters):
+    """``(column of x, entry, flat index in the entry's parameter)`` for every free element, in ``x``'s order."""
+    j = 0
+    for e in free.entries:
+        for i in e.index.tolist():
+            yield j, e, i
+            j += 1
 
 
 def jacobian_of(fun):

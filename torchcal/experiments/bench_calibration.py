@@ -11,7 +11,9 @@ noise; the ratio ``rmse_after / floor`` is the figure of merit (1.0 = as good as
 fit, report: wall and CPU seconds, peak resident memory after each; ``parts``: the nested stages of the default
 method -- screening, closed loop with its score tests, localisation and refits, learned stage with its kernel, GP and
 network fits, all least-squares fits), and with ``--load`` every run again while a busy Python process holds one core;
-``summary`` gives each method's wall time, its ratio to the last method's and the loaded/quiet ratio.
+``summary`` gives each method's wall time, its ratio to the last method's and the loaded/quiet ratio. A part's CPU time
+is the whole process's while it ran: the learned stage fits its GP in a second thread beside the network and the kernel
+regression, so those parts also count the GP's CPU time, and the GP posterior's row blocks run on two threads.
 """
 
 from __future__ import annotations

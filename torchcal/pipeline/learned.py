@@ -14,16 +14,18 @@
 from __future__ import annotations
 
 import copy
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import torch
 
 from torchcal import stats as S
+from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.diagnose.tracing import refresh_unexplained
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
-from torchcal.effects.gp import GPCorrection, GPSettings, condition_gp, fit_gp_correction
+from torchcal.effects.gp import GPConditioner, GPCorrection, GPSettings, condition_gp, fit_gp_correction
 from torchcal.effects.kernel import MAX_SUPPORT as KERNEL_MAX_SUPPORT
 from torchcal.effects.kernel import fit_kernel_correction
 from torchcal.effects.registry import NAMED_KINDS
@@ -48,9 +50,10 @@ def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) ->
     record = select_learned(run, train, trajectory)
     if record is None:
         return
-    e_val = refine_learned(run, record, train, trajectory)
+    gp = None if run.options.learned_hyper else _conditioner(run, train, trajectory)
+    e_val = refine_learned(run, record, train, trajectory, gp=gp)
     if any(e.kind in NAMED_KINDS for e in run.model.effects):
-        prune_named(run, train, trajectory, e_val)
+        prune_named(run, train, trajectory, e_val, gp=gp)
     condition_on_all(run, train, trajectory)
     before = run.stages[-1]
     after = run.add_stage(StageName.LEARNED)
@@ -77,6 +80,23 @@ def condition_on_all(run: CalibrationRun, train: Measurements, trajectory: bool)
     run.notes.append(f"learned residual model: the Gaussian process conditioned on all {train.n} training poses")
 
 
+def _conditioner(run: CalibrationRun, train: Measurements, trajectory: bool) -> GPConditioner | None:
+    """When the kept model is a GP: its posterior's input-only factors on the learned stage's fitting poses, so that
+    the alternating refits and the pruning of named effects re-condition it on new corrections with its
+    hyperparameters held (:class:`~torchcal.effects.gp.GPConditioner`) instead of refitting them
+    (``Options.learned_hyper`` False).
+
+    An evidence fit and an ``O(n m^2)`` posterior per refit cost most of the learned stage's time; held, they cost
+    nothing after the first. The hyperparameters then do not follow the residual field a dropped effect leaves,
+    so the pruning's paired tests see slightly different validation errors (a borderline decision can change).
+    """
+    eff = run.model.effects[len(run.model.effects) - 1]
+    if not isinstance(eff, GPCorrection):
+        return None
+    fi, va = _learned_split(train, run.options.seed, run.options.group_tol, trajectory)
+    return GPConditioner(eff, Context(q=train.q[fi]), Context(q=train.q[va]), threads=_gp_settings(run).threads)
+
+
 def _gp_settings(run: CalibrationRun) -> GPSettings:
     return GPSettings(seed=int(run.options.seed))
 
@@ -91,6 +111,7 @@ def _fit_gp(run: CalibrationRun, train: Measurements, corr: Tensor, fi: Tensor, 
         ctx_val=Context(q=train.q[va]),
         y_val=corr[va],
         warm=warm,
+        summary=warm is None,  # a refit's variable shares and coverage are never read
     )
 
 
@@ -120,32 +141,46 @@ def select_learned(
     fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     e0 = corr[va].norm(dim=-1)
 
-    net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
-    net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
-    res = fit_net(
-        net, train.q[fi], corr[fi], val=(train.q[va], corr[va]), method=opts.net_method, iterations=opts.net_iterations
-    )
-    with torch.no_grad():
-        e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
-    candidates = {}
-    try:
-        gp, gp_info = _fit_gp(run, train, corr, fi, va)
-        candidates["gp"] = (
-            gp,
-            gp_info["val_errors"],
-            {
-                **gp.describe(),
-                "model": "sparse additive + ARD Gaussian process",
-                "variable_share": gp_info.get("variable_share"),
-                "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma"),
-            },
+    # the three candidates are independent: the GP's evidence fit (large kernels, which release the GIL) runs in a
+    # second thread beside the network's and the kernel regression's, so that a second core takes half of this
+    # step's time; every fit on one torch thread (as the GP's always was), so that the results do not depend on
+    # the interleaving
+    with torch_threads(1), ThreadPoolExecutor(max_workers=1) as pool:
+        gp_job = pool.submit(_fit_gp, run, train, corr, fi, va)
+        net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
+        net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
+        res = fit_net(
+            net,
+            train.q[fi],
+            corr[fi],
+            val=(train.q[va], corr[va]),
+            method=opts.net_method,
+            iterations=opts.net_iterations,
         )
-    except EstimationError as err:  # its evidence fit diverged: the other candidates compete without it
-        run.notes.append(f"learned residual model: the Gaussian process was left out ({err})")
-    if len(fi) <= KERNEL_MAX_SUPPORT:
-        kern, info = fit_kernel_correction(
-            model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
-        )
+        with torch.no_grad():
+            e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
+        kernel = None
+        if len(fi) <= KERNEL_MAX_SUPPORT:
+            kernel = fit_kernel_correction(
+                model.robot, train.q[fi], corr[fi], q_val=train.q[va], y_val=corr[va], seed=opts.seed
+            )
+        candidates = {}
+        try:
+            gp, gp_info = gp_job.result()
+            candidates["gp"] = (
+                gp,
+                gp_info["val_errors"],
+                {
+                    **gp.describe(),
+                    "model": "sparse additive + ARD Gaussian process",
+                    "variable_share": gp_info.get("variable_share"),
+                    "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma"),
+                },
+            )
+        except EstimationError as err:  # its evidence fit diverged: the other candidates compete without it
+            run.notes.append(f"learned residual model: the Gaussian process was left out ({err})")
+    if kernel is not None:
+        kern, info = kernel
         candidates["kernel"] = (kern, info["val_errors"], kern.describe())
     else:  # it would keep a random subset of the poses and cost dense solves; the sparse GP uses them all
         run.notes.append(
@@ -195,13 +230,14 @@ def select_learned(
 
 
 def _refit_with_learned(
-    run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool
+    run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool, gp: GPConditioner | None = None
 ) -> tuple[Fit, Tensor]:
     """One alternating round on ``model`` (its last effect is the learned one): the geometry and the named
     effects with the learned correction in place, then the learned model on the new corrections.
 
     Returns the least-squares fit and the learned model's validation errors per pose ``(n_val,)`` [m];
-    a refitted kernel replaces the old one in ``model``.
+    a refitted kernel or GP replaces the old one in ``model``. ``gp``: a GP is re-conditioned through it, its
+    hyperparameters held (:func:`_conditioner`), instead of refitted.
     """
     opts = run.options
     index = len(model.effects) - 1
@@ -235,6 +271,10 @@ def _refit_with_learned(
         )
         with torch.no_grad():
             e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
+    elif isinstance(eff, GPCorrection) and gp is not None:
+        new, info = gp.condition(corr[fi], corr[va])
+        model.effects[index] = new
+        e_val = info["val_errors"]
     elif isinstance(eff, GPCorrection):
         new, info = _fit_gp(run, train, corr, fi, va, warm=eff)
         model.effects[index] = new
@@ -255,7 +295,12 @@ def _refit_with_learned(
 
 
 def refine_learned(
-    run: CalibrationRun, record: EffectRecord, train: Measurements, trajectory: bool, rounds: int = 3
+    run: CalibrationRun,
+    record: EffectRecord,
+    train: Measurements,
+    trajectory: bool,
+    rounds: int = 3,
+    gp: GPConditioner | None = None,
 ) -> Tensor:
     """Refit the geometry (and the named effects) and the learned model in turn, while validation improves.
 
@@ -265,6 +310,7 @@ def refine_learned(
     corrections, on the same fitting and validation poses as :func:`select_learned`) moves the
     pair towards their joint least-squares solution; a round is kept only when the validation
     RMSE of the learned model falls. Returns the learned model's validation errors per pose.
+    ``gp``: re-conditions a GP with its hyperparameters held (:func:`_conditioner`).
     """
     model = run.model
     best = record.evidence["validation_rmse_after_mm"] * 1e-3
@@ -273,7 +319,7 @@ def refine_learned(
     for _ in range(rounds):
         trial = copy.deepcopy(model)
         try:
-            fit, e_val = _refit_with_learned(run, trial, train, trajectory)
+            fit, e_val = _refit_with_learned(run, trial, train, trajectory, gp)
         except EstimationError as err:  # a rank-deficient refit: the model stays as it is, and the run says so
             run.notes.append(f"learned residual model: an alternating refit failed and was not kept ({err})")
             break
@@ -302,7 +348,9 @@ def _adopt(model: MeasurementModel, other: MeasurementModel) -> None:
         e.train(False)
 
 
-def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_val: Tensor) -> None:
+def prune_named(
+    run: CalibrationRun, train: Measurements, trajectory: bool, e_val: Tensor, gp: GPConditioner | None = None
+) -> None:
     """With a learned model in place, drop each named effect the learned model explains as well.
 
     A smooth field that no named effect describes still projects onto some of their regressors,
@@ -318,7 +366,7 @@ def prune_named(run: CalibrationRun, train: Measurements, trajectory: bool, e_va
         trial = copy.deepcopy(model)
         del trial.effects[k]
         try:
-            fit, e_without = _refit_with_learned(run, trial, train, trajectory)
+            fit, e_without = _refit_with_learned(run, trial, train, trajectory, gp)
         except EstimationError as err:  # cannot judge it without the effect: the effect stays
             run.notes.append(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
             continue

@@ -81,6 +81,8 @@ class Options:
     trajectory: bool | None = None  # None: decide from a monotonic t column
     diagnose: bool = True  # auto: search the named effects (the closed loop) before the learned stage
     learned: bool = True  # auto: the learned residual model after the closed loop (False: the loop alone)
+    learned_hyper: bool = True  # auto: refit a kept GP's hyperparameters in every alternating and pruning refit
+    # (False: hold them and only re-condition the GP, pipeline.learned._conditioner: faster, decisions may differ)
     alpha: float = 0.01  # closed loop: family-wise level of the score tests (Bonferroni)
     alpha_validation: float = 0.05  # closed loop: level of the paired validation test
     engine: str = "auto"  # integrated: "auto" (chosen on validation, geometry alone among the candidates),
