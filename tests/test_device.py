@@ -408,6 +408,9 @@ CPU_BY_DESIGN = (
 
 #: Constructors without ``device=`` that are right where they are: (file, the call's source) -> why.
 ALLOWED = {
+    ("torchcal/estimate/problem.py", "torch.tensor([i for _, i in kin], dtype=torch.long)"): (
+        "host-side indices: linear_kinematics reads them with int() and moves them (.to) where it indexes"
+    ),
     ("torchcal/robot/ur_urdf.py", "torch.tensor(qs[:, order], dtype=torch.float64)"): (
         "the generator's self-check against pytorch-kinematics, numpy in and out"
     ),

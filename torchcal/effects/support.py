@@ -346,16 +346,7 @@ def fit_predictive_scale(
         var = theta[0].exp() ** 2 * a + g2 * theta[1:].exp() ** 2 + b + tiny
         return 0.5 * (var.log() + e2 / var).mean()
 
-    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=200, line_search_fn="strong_wolfe", tolerance_grad=1e-10)
-
-    def closure():
-        opt.zero_grad()
-        loss = nll()
-        loss.backward()
-        return loss
-
-    with torch.enable_grad():
-        opt.step(closure)
+    _minimise(theta, nll, max_iter=200, tolerance_grad=1e-10)
     scale, floor = float(theta[0].detach().exp()), theta[1:].detach().exp()
     sigma = (scale**2 * a + g2 * floor**2 + b).sqrt()
     widen = max(1.0, calibrate_scale(e, sigma.clamp_min(1e-300), target, n_sigma))
@@ -387,7 +378,19 @@ def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:
         var = s2 * (1.0 + theta[3].clamp(-40.0, 10.0).exp() * d2) + tiny
         return 0.5 * (var.log() + e2 / var).mean()
 
-    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=300, line_search_fn="strong_wolfe", tolerance_grad=1e-12)
+    _minimise(theta, nll, max_iter=300, tolerance_grad=1e-12)
+    th = theta.detach()
+    s_fb = th[:3].clamp(math.log(rms) - 30.0, math.log(rms) + 10.0).exp()
+    c = float(th[3].clamp(-40.0, 10.0).exp())
+    return s_fb.tolist(), c if c > 1e-12 else 0.0
+
+
+def _minimise(theta: Tensor, nll, max_iter: int, tolerance_grad: float) -> None:
+    """Minimise ``nll()`` over the leaf ``theta`` in place by L-BFGS with a strong-Wolfe line search (a negative
+    log-likelihood of a few parameters)."""
+    opt = torch.optim.LBFGS(
+        [theta], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=tolerance_grad
+    )
 
     def closure():
         opt.zero_grad()
@@ -397,10 +400,6 @@ def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:
 
     with torch.enable_grad():
         opt.step(closure)
-    th = theta.detach()
-    s_fb = th[:3].clamp(math.log(rms) - 30.0, math.log(rms) + 10.0).exp()
-    c = float(th[3].clamp(-40.0, 10.0).exp())
-    return s_fb.tolist(), c if c > 1e-12 else 0.0
 
 
 def calibrate_scale(e: Tensor, sigma: Tensor, target: float = 0.95, k: float = 2.0) -> float:

@@ -171,9 +171,10 @@ def residual_function(
         offsets[name] = k
         k += dict(model.named_parameters())[name].numel()
     kin = [(j, offsets[e.name] + int(i)) for j, e, i in _columns(free) if e.name in offsets]
-    kin_cols = torch.tensor([j for j, _ in kin], dtype=torch.long)
-    kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)
-    rest = torch.tensor([j for j in range(len(free)) if j not in set(kin_cols.tolist())], dtype=torch.long)
+    dev = ctx.q.device
+    kin_cols = torch.tensor([j for j, _ in kin], dtype=torch.long, device=dev)
+    kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)  # host indices: linear_kinematics reads them
+    rest = torch.tensor([j for j in range(len(free)) if j not in {j for j, _ in kin}], dtype=torch.long, device=dev)
 
     def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
         # exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the

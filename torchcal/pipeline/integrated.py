@@ -52,14 +52,7 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
-from torchcal.effects.support import (
-    GATE_LENGTHS,
-    SupportGate,
-    choose_gate_length,
-    coverage,
-    fit_fallback_growth,
-    fit_predictive_scale,
-)
+from torchcal.effects import support as sup
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
@@ -636,7 +629,7 @@ class Setting:
         6-29-3 network, refined jointly with a geometry of its own, can beat geometry alone on every piece of the
         validation block and still extrapolate worse than geometry on the path's continuation (README,
         *The integrated method on paths it was not tuned on*); a gate bounds how far that can go."""
-        return tuple(g for g in GATE_LENGTHS if g <= EKF_LONGEST_GATE) if self.engine == "ekf" else GATE_LENGTHS
+        return tuple(g for g in sup.GATE_LENGTHS if g <= EKF_LONGEST_GATE) if self.engine == "ekf" else sup.GATE_LENGTHS
 
     @property
     def name(self) -> str:
@@ -675,11 +668,11 @@ def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> Calibr
 
 
 def _gated(model: MeasurementModel, support: Tensor, length: float, fallback) -> MeasurementModel:
-    """``model`` with its last (learned) effect behind a :class:`SupportGate` falling back to ``fallback``."""
+    """``model`` with its last (learned) effect behind a support gate falling back to ``fallback``."""
     # a new model around the same robot and effects (copy.copy of a Module would share its submodule table, and
     # replacing the effect there would wrap the original model's effect too)
     return MeasurementModel(
-        model.robot, [*model.effects[:-1], SupportGate(model.effects[-1], support, length, fallback=fallback)]
+        model.robot, [*model.effects[:-1], sup.SupportGate(model.effects[-1], support, length, fallback=fallback)]
     )
 
 
@@ -722,7 +715,7 @@ def integrate_selected(
         except EstimationError as err:
             table.append({"candidate": setting.name, "failed": str(err)})
             continue
-        length, gates = choose_gate_length(
+        length, gates = sup.choose_gate_length(
             lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot),
             lambda m: _rmse(_errors(m, val)),
             setting.gate_lengths,
@@ -801,12 +794,12 @@ def _attach_predictive_sigma(
     """
     noise = _observation_sigma(run.model, train, run.options)
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
-    sigma_length = length if math.isfinite(length) else max(g for g in GATE_LENGTHS if math.isfinite(g))
+    sigma_length = length if math.isfinite(length) else max(g for g in sup.GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
     fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, val_gate)
     val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
-    scale, floor = fit_predictive_scale(e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET)
+    scale, floor = sup.fit_predictive_scale(e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET)
     val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
     gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale, floor)
     gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
@@ -834,7 +827,7 @@ def _fallback_growth(
     fit: Measurements,
     val: Measurements,
     train: Measurements,
-    val_gate: SupportGate,
+    val_gate: sup.SupportGate,
 ) -> tuple[list[float], float]:
     """How the geometric model's error grows with the distance from the samples it was fitted on
     (:func:`~torchcal.effects.support.fit_fallback_growth`): its residuals on the validation block (geometry on the
@@ -848,10 +841,10 @@ def _fallback_growth(
     geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
     stage = "integrated: geometry on the first half (sigma)"
     solve(geo_half, first, GEOMETRIC_GROUPS, run.options, stage, True, identifiability=ida)
-    half_gate = SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
+    half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
     e = torch.cat([_residuals(geo, val), _residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
-    return fit_fallback_growth(e, d)
+    return sup.fit_fallback_growth(e, d)
 
 
 #: the share of residual components within two predicted standard deviations the scale factor is calibrated to
@@ -868,7 +861,7 @@ def _observation_sigma(model: MeasurementModel, m: Measurements, opts) -> Tensor
     return torch.full((3,), math.hypot(tracker, joint), dtype=m.q.dtype, device=m.q.device)
 
 
-def _residuals(model: MeasurementModel, m: Measurements, gate: SupportGate | None = None) -> Tensor:
+def _residuals(model: MeasurementModel, m: Measurements, gate: sup.SupportGate | None = None) -> Tensor:
     """Prediction minus measurement per tracker axis ``(N, 3)`` [m]; with ``gate`` replacing the last effect."""
     if gate is not None:
         model = MeasurementModel(model.robot, [*model.effects[:-1], gate])
@@ -887,16 +880,16 @@ def _predictive_gate(
     sigma_length: float,
     scale: float = 1.0,
     floor=None,
-) -> SupportGate:
+) -> sup.SupportGate:
     """``model``'s last (learned) effect behind a support gate that also predicts its standard deviation."""
     inner = model.effects[-1]
-    inner = inner.inner if isinstance(inner, SupportGate) else inner
-    gate = SupportGate(inner, support, length, fallback=fallback)
+    inner = inner.inner if isinstance(inner, sup.SupportGate) else inner
+    gate = sup.SupportGate(inner, support, length, fallback=fallback)
     gate.set_predictive(filt.weight_cov, filt.weight_index, noise, far, sigma_length, scale, floor)
     return gate
 
 
-def _coverage(model: MeasurementModel, m: Measurements, gate: SupportGate) -> float:
+def _coverage(model: MeasurementModel, m: Measurements, gate: sup.SupportGate) -> float:
     """Share of ``m``'s residual components within two predicted standard deviations of ``model`` behind ``gate``."""
     with torch.no_grad():
-        return coverage(_residuals(model, m, gate), gate.predictive_std(model.robot, m.q))
+        return sup.coverage(_residuals(model, m, gate), gate.predictive_std(model.robot, m.q))
