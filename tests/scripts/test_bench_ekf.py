@@ -28,6 +28,9 @@ def test_json_keys_and_the_passes_agree():
         "module_pass_s",
         "module_ratio",
         "module_max_abs_diff_m",
+        "pass_cpu_s",
+        "module_pass_cpu_s",
+        "repeat",
         "baseline_pass_s",
         "speedup",
         "max_abs_diff_m",
@@ -38,5 +41,6 @@ def test_json_keys_and_the_passes_agree():
         "status",
     ]
     assert result["samples"] == 120 and result["state_dim"] == 296 and result["threads"] == 1
+    assert result["repeat"] == 3 and result["pass_cpu_s"] > 0 and result["module_pass_cpu_s"] > 0
     assert result["status"] == "ok"
     assert result["module_max_abs_diff_m"] < 1e-12 and result["max_abs_diff_m"] < 1e-12
