@@ -223,6 +223,7 @@ class OutsideTrajectory:
         length_scale: joint-space length scale of the ``fourier`` features [rad].
         sines: least and most sines per joint.
         span: share of the room around the centre (to the nearer limit) the amplitudes of a joint sum to.
+        periods: shortest and longest period [samples] of the sines; None: ``samples / 8`` to ``1.5 samples``.
         dt: sampling interval [s].
         sigma_tracker: tracker noise per axis [m].
         sigma_joint: joint reading noise [rad].
@@ -238,6 +239,7 @@ class OutsideTrajectory:
     length_scale: float = 1.5
     sines: tuple[int, int] = (3, 5)
     span: float = 0.85
+    periods: tuple[float, float] | None = None
     dt: float = 4.0
     sigma_tracker: float = 15e-6
     sigma_joint: float = 9e-6
@@ -251,6 +253,8 @@ class OutsideTrajectory:
             )
         if not (1 <= self.sines[0] <= self.sines[1]):
             raise OptionError(f"sines must be (least, most) with 1 <= least <= most, got {self.sines}")
+        if self.periods is not None and not 0 < self.periods[0] <= self.periods[1]:
+            raise OptionError(f"periods must be (shortest, longest) with 0 < shortest <= longest, got {self.periods}")
         if not 0.0 < self.span <= 1.0 or self.width < 1 or not self.size > 0 or not self.dt > 0:
             raise OptionError(
                 f"need span in (0, 1], width >= 1, size > 0 and dt > 0, got {self.span}, {self.width}, "
@@ -263,11 +267,20 @@ class OutsideTrajectory:
         return min(max(1, round(self.train_fraction * self.samples)), self.samples - 1)
 
 
-def multisine_joints(lo: Tensor, hi: Tensor, n: int, sines: tuple[int, int], span: float, g: torch.Generator):
+def multisine_joints(
+    lo: Tensor,
+    hi: Tensor,
+    n: int,
+    sines: tuple[int, int],
+    span: float,
+    g: torch.Generator,
+    periods: tuple[float, float] | None = None,
+):
     """A multi-sine path ``(n, dof)`` [rad] inside the box ``lo, hi`` ``(dof,)`` [rad], and what defines it.
 
     Each joint: a centre drawn in the middle half of its box, plus 3-5 (``sines``) sines with periods drawn
-    log-uniformly from ``n / 8`` to ``1.5 n`` samples (incommensurate almost surely), random phases and Dirichlet
+    log-uniformly in ``periods`` [samples] (default ``n / 8`` to ``1.5 n``; incommensurate almost surely), random
+    phases and Dirichlet
     amplitude shares that sum to ``span`` of the room from the centre to the nearer limit, so the path stays inside
     the box and reaches most of it.
 
@@ -278,17 +291,18 @@ def multisine_joints(lo: Tensor, hi: Tensor, n: int, sines: tuple[int, int], spa
     mid, half = 0.5 * (hi + lo), 0.5 * (hi - lo)
     centre = mid + half * 0.5 * (2 * torch.rand(dof, generator=g, dtype=F64) - 1)
     room = torch.minimum(hi - centre, centre - lo)
+    p_lo, p_hi = periods if periods is not None else (n / 8, 1.5 * n)
     k = torch.arange(n, dtype=F64)
     q = centre.expand(n, dof).clone()
     record = {"centre": centre.tolist(), "periods_samples": [], "phases": [], "amplitudes_rad": []}
     for j in range(dof):
         m = int(torch.randint(sines[0], sines[1] + 1, (1,), generator=g))
-        periods = torch.exp(math.log(n / 8) + math.log(12.0) * torch.rand(m, generator=g, dtype=F64))
+        per = torch.exp(math.log(p_lo) + math.log(p_hi / p_lo) * torch.rand(m, generator=g, dtype=F64))
         phases = 2 * math.pi * torch.rand(m, generator=g, dtype=F64)
         share = -torch.log(torch.rand(m, generator=g, dtype=F64))  # Dirichlet(1, ..., 1) after normalising
         amps = span * room[j] * share / share.sum()
-        q[:, j] += (amps * torch.sin(2 * math.pi * k[:, None] / periods + phases)).sum(-1)
-        for key, v in zip(("periods_samples", "phases", "amplitudes_rad"), (periods, phases, amps)):
+        q[:, j] += (amps * torch.sin(2 * math.pi * k[:, None] / per + phases)).sum(-1)
+        for key, v in zip(("periods_samples", "phases", "amplitudes_rad"), (per, phases, amps)):
             record[key].append(v.tolist())
     return q, record
 
@@ -353,7 +367,7 @@ def simulate_outside_trajectory(spec: OutsideTrajectory | None = None) -> Campai
     _, robot, T, tracker_in_base, _ = _true_robot(cfg, g, [])
     lo = robot.limits[:, 0].clamp(min=-math.pi)
     hi = robot.limits[:, 1].clamp(max=math.pi)
-    q, path_record = multisine_joints(lo, hi, spec.samples, spec.sines, spec.span, g)
+    q, path_record = multisine_joints(lo, hi, spec.samples, spec.sines, spec.span, g, spec.periods)
     t = torch.arange(spec.samples, dtype=F64) * spec.dt
     with torch.no_grad():
         p_base = robot.probe_in_base(q)
