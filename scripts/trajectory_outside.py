@@ -7,7 +7,7 @@ python scripts/trajectory_outside.py --seeds 3 --fields product --size 0.15mm --
 
 from torchcal.errors import OptionError
 from torchcal.experiments import common
-from torchcal.experiments.trajectory_outside import summary, table
+from torchcal.experiments.trajectory_outside import markdown, summary, table
 from torchcal.sim import EffectSpec
 from torchcal.sim.outside import FIELD_KINDS
 
@@ -36,9 +36,8 @@ def _size(text: str) -> float:
 
 def experiment(a):
     rows = table(a.seeds, a.fields, size=_size(a.size), width=a.width, samples=a.samples, periods=a.periods, out=a.out)
-    return {"rows": rows, "summary": summary(rows)}
+    return {"rows": rows, "summary": summary(rows)}, markdown(rows)
 
 
 if __name__ == "__main__":
-    args, result = common.run(ap, experiment)
-    common.emit(result, args, plain=result)
+    common.run_markdown(ap, experiment)

@@ -36,3 +36,20 @@ def test_bad_size_is_a_usage_error():
         [sys.executable, str(SCRIPT), "--size", "0.1", "--json"], capture_output=True, text=True, cwd=ROOT, timeout=60
     )
     assert proc.returncode == 2 and "--size" in proc.stderr
+
+
+def test_summary_flags_worse_and_miscovered_campaigns():
+    from torchcal.experiments.trajectory_outside import markdown, summary
+
+    base = {"width": 29, "size_mm": 0.1, "geometry_mm": 0.1, "chosen": "x"}
+    rows = [
+        {**base, "seed": 0, "field": "tanh", "integrated_mm": 0.05, "ratio": 0.5, "coverage_2sigma": 0.95},
+        {**base, "seed": 1, "field": "fourier", "integrated_mm": 0.15, "ratio": 1.5, "coverage_2sigma": 0.4},
+        {**base, "seed": 2, "field": "product", "integrated_mm": 0.1, "ratio": 1.0 + 1e-12, "coverage_2sigma": None},
+    ]
+    s = summary(rows)
+    assert s["worse_than_geometry"] == ["fourier-s1"]  # a gate faded to geometry: equal up to rounding, not worse
+    assert s["coverage_outside_90_98"] == ["fourier-s1"] and s["worst_ratio"] == 1.5 and s["median_ratio"] > 1.0
+    md = markdown(rows)
+    assert "| fourier-s1 | 29 Fourier features, 0.1 mm | 0.1000 | 0.1500 | 1.500 | 40.0 % | x |" in md
+    assert md.count("\n") == len(rows) + 1
