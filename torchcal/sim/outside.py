@@ -275,14 +275,13 @@ def multisine_joints(
     span: float,
     g: torch.Generator,
     periods: tuple[float, float] | None = None,
-):
+) -> tuple[Tensor, dict]:
     """A multi-sine path ``(n, dof)`` [rad] inside the box ``lo, hi`` ``(dof,)`` [rad], and what defines it.
 
     Each joint: a centre drawn in the middle half of its box, plus 3-5 (``sines``) sines with periods drawn
     log-uniformly in ``periods`` [samples] (default ``n / 8`` to ``1.5 n``; incommensurate almost surely), random
-    phases and Dirichlet
-    amplitude shares that sum to ``span`` of the room from the centre to the nearer limit, so the path stays inside
-    the box and reaches most of it.
+    phases and Dirichlet amplitude shares that sum to ``span`` of the room from the centre to the nearer limit, so
+    the path stays inside the box and reaches most of it.
 
     Returns:
         ``q (n, dof)`` and a dict of the centres, periods [samples], phases and amplitudes [rad] (lists).
