@@ -11,6 +11,7 @@ evidence to tell why a candidate that won validation fails on the continuation).
 
 from __future__ import annotations
 
+import statistics
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -146,7 +147,7 @@ def summary(rows: list[dict]) -> dict:
     return {
         "campaigns": len(rows),
         "worst_ratio": ratios[-1] if ratios else None,
-        "median_ratio": ratios[len(ratios) // 2] if ratios else None,
+        "median_ratio": statistics.median(ratios) if ratios else None,
         # a relative 1e-6 above 1: a gate faded to geometry alone leaves rounding differences only
         "worse_than_geometry": [f"{r['field']}-s{r['seed']}" for r in rows if r["ratio"] > 1.0 + 1e-6],
         "coverage_outside_90_98": [
