@@ -91,6 +91,8 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
     if run.effects:  # a filter won validation: it must have beaten geometry there, by the paired test
         assert sel["test"]["p_value"] < run.options.alpha_validation
         assert st["integrated"] <= st["geometric"]
+        guard = sel["holdout_guard"]  # the refit on all training samples confirmed against geometry where unfitted
+        assert guard["passed"] and guard["rmse_mm"] < guard["geometry_rmse_mm"]
         # the predictive sigma: fitted on the validation block by likelihood and widened (never narrowed) to the
         # target there, so its coverage on validation is at least the target and not far above it
         ps = records[0].evidence["predictive_sigma"]
@@ -103,6 +105,33 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))
     else:
         assert list(st) == ["nominal", "geometric"] and "geometry alone kept" in " ".join(run.notes)
+
+
+def test_a_refit_worse_than_geometry_on_the_held_out_samples_is_undone(trajectory, monkeypatch):
+    """The candidate chosen on validation is fitted again on all training samples; where that final model is
+    worse than geometry alone on the held-out samples (here forced), the run ends with the geometric model, no
+    integrated effect or stage, and a rejection that says why with both errors."""
+    import torchcal.pipeline.integrated as integrated
+
+    data, _ = trajectory
+    guarded, real_guard = {}, integrated._holdout_guard
+
+    def failing_guard(model, geometric, hold):
+        guarded.update(real_guard(model, geometric, hold), passed=False)
+        return dict(guarded)
+
+    monkeypatch.setattr(integrated, "_holdout_guard", failing_guard)
+    monkeypatch.setitem(integrated.integrate_selected.__kwdefaults__, "settings", integrated.SETTINGS[:1])
+    run = calibrate("ur5", data, Options(method="integrated", seed=0))
+    st = {s.name: s.rmse for s in run.stages}
+    if not guarded:  # nothing won validation: the guard was never asked
+        assert list(st) == ["nominal", "geometric"]
+        return
+    assert not [e for e in run.effects if e.name == "integrated"] and list(st) == ["nominal", "geometric"]
+    (rej,) = [r for r in run.rejections if r.name == "integrated"]
+    assert "worse than geometry alone on the held-out samples" in rej.reason
+    assert rej.evidence["selection"]["holdout_guard"]["geometry_rmse_mm"] == guarded["geometry_rmse_mm"]
+    assert len(run.model.effects) == 0 and "geometry alone kept" in " ".join(run.notes)
 
 
 def test_report_has_the_contract_fields_and_the_three_stages(run_dir):

@@ -760,13 +760,46 @@ def integrate_selected(
     setting, length = best[0], best[1]
     _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
     kinematic = copy.deepcopy(run.model.robot)  # the kinematic calibration on all training samples
+    before = (copy.deepcopy(run.model), run.robot, len(run.effects), len(run.stages))
     filt = _run_setting(run, train, hold, setting)
     record = run.effects[-1]
     sigma = _attach_predictive_sigma(run, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
     record.evidence["predictive_sigma"] = sigma
-    return filt
+    guard = _holdout_guard(run.model, before[0], hold)
+    evidence["holdout_guard"] = guard
+    if guard["passed"]:
+        return filt
+    # the refit on all training samples is worse than geometry alone where neither was fitted: geometry it is
+    run.model, run.robot = before[0], before[1]
+    del run.effects[before[2] :], run.stages[before[3] :]
+    why = (
+        f"{setting.name}, chosen on validation, is worse than geometry alone on the held-out samples once fitted "
+        f"again on all training samples ({guard['geometry_rmse_mm']:.4f} -> {guard['rmse_mm']:.4f} mm)"
+    )
+    run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
+    run.notes.append(f"integrated: geometry alone kept: {why}")
+    return None
+
+
+def _holdout_guard(model: MeasurementModel, geometric: MeasurementModel, hold: Measurements) -> dict:
+    """Whether the final ``model`` is better than the kinematic calibration ``geometric`` on the held-out samples
+    (the continuation of the path, fitted by neither): a lower RMSE there with any one of its
+    :data:`VALIDATION_PIECES` pieces left out, as on validation (no significance asked: validation chose, this only
+    refuses a refit that made things worse). Passed when there are no held-out samples to judge on."""
+    if hold.n < VALIDATION_PIECES:
+        return {"passed": True, "n": hold.n, "rule": "too few held-out samples to judge"}
+    e, e_geo = _errors(model, hold), _errors(geometric, hold)
+    _, left_out = leave_one_piece_out(e, e_geo)
+    return {
+        "passed": bool(_rmse(e) < _rmse(e_geo) and max(left_out) < 1.0),
+        "n": hold.n,
+        "rmse_mm": _rmse(e) * 1e3,
+        "geometry_rmse_mm": _rmse(e_geo) * 1e3,
+        "leave_one_piece_out_ratios": left_out,
+        "rule": "lower held-out RMSE than geometry alone with any one of the pieces left out",
+    }
 
 
 def _attach_predictive_sigma(
