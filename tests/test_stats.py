@@ -116,3 +116,13 @@ def test_a_calibration_keeps_revisited_configurations_on_one_side():
     assert not set(labels[run.train_idx].tolist()) & set(labels[run.holdout_idx].tolist())
     assert build_report(run)["split"]["merged_groups"] == len(again)
     assert any("revisited joint configurations" in n for n in run.notes)
+
+
+def test_chi2_tail_agrees_with_scipy_for_integer_and_fractional_dof():
+    """The tail is computed in torch (no scipy import on the score tests' path) and agrees with scipy's."""
+    from scipy.stats import chi2
+
+    for k in (1, 2, 4, 1.43, 2.29, 7.5, 30):
+        for x in (0.0, 0.3, 1.0, 3.8, 12.0, 60.0, 400.0):
+            p, _ = S.chi2_sf_log10(x, k)
+            assert p == pytest.approx(float(chi2.sf(x, k)), rel=1e-11, abs=1e-300)

@@ -1,6 +1,6 @@
 """Statistics shared by every layer: RMSE, the paired tests, chi-square helpers and the one seeded split.
 
-A leaf module: it imports torch (scipy.stats when a chi-square helper is called) and nothing of torchcal,
+A leaf module: it imports torch (scipy.stats when a chi-square quantile is asked for) and nothing of torchcal,
 so any layer may use it.
 
 The split (:func:`split`) is the only place where the package divides rows into two sets: the held-out
@@ -77,13 +77,18 @@ def chi2_quantile(p: float, dof: int) -> float:
 
 
 def chi2_sf_log10(x: float, k: int) -> tuple[float, float]:
-    """Upper tail ``P(chi2_k > x)`` and its log10, the latter valid far into the tail where the former underflows."""
-    from scipy.stats import chi2
+    """Upper tail ``P(chi2_k > x)`` and its log10, the latter valid far into the tail where the former underflows.
 
-    p = float(chi2.sf(x, k))
+    ``k`` may be fractional (a scaled chi-square's dof). The tail is the regularised upper incomplete gamma
+    function ``Q(k/2, x/2)`` in torch (Cephes' algorithm, as scipy's ``chi2.sf``; they agree to about 1e-13
+    relative): the score tests call this in every round, and scipy.stats costs half a second to import.
+    """
+    p = float(
+        torch.special.gammaincc(torch.tensor(0.5 * k, dtype=torch.float64), torch.tensor(0.5 * x, dtype=torch.float64))
+    )
     if p > 1e-280:
         return p, math.log10(p)
-    # scipy's logsf underflows with the tail: the leading terms of the asymptotic series of the upper incomplete
+    # the tail underflows with the tail: the leading terms of the asymptotic series of the upper incomplete
     # gamma function, ln Gamma(a, y) ~ (a - 1) ln y - y + ln(1 + (a - 1) / y), over Gamma(a)
     a, y = 0.5 * k, 0.5 * x
     ln = (a - 1) * math.log(y) - y - math.lgamma(a) + math.log1p((a - 1) / y)

@@ -5,6 +5,7 @@ import dataclasses
 import math
 
 import pytest
+import torch
 
 from torchcal.diagnose import Candidate, candidates, score_candidates
 from torchcal.effects import Context
@@ -96,3 +97,30 @@ def test_a_candidate_the_geometry_already_has_is_not_identifiable():
     assert not s.identifiable and s.independence < 1e-6 and not s.significant(0.01)
     # and the candidate list leaves it out in the first place
     assert "cyclic:6" not in {x.name for x in candidates(run.model.robot, ctx)[0]}
+
+
+def test_all_candidates_columns_in_one_pass_equal_each_candidate_s_own(monkeypatch):
+    """The columns of every candidate from one forward-mode pass with all of them added (each at zero) are those
+    of the model with that candidate alone, to the bit, also when the pass is split into batches; the model
+    carries a named effect of its own (a compliance), as in the closed loop's later rounds."""
+    from torchcal.diagnose import score as S
+    from torchcal.estimate.problem import linear_kinematics
+
+    c = simulate(
+        SimConfig(robot="ur5", poses=150, test_poses=0, seed=4, effects=[EffectSpec.parse("compliance:2=30um")])
+    )
+    run = calibrate("ur5", c.train, Options(method="kinematic"))
+    train = c.train.subset(run.train_idx)
+    geo = run.fits[-1]
+    ctx = Context.from_measurements(train, trajectory=False)
+    run.model.add(Candidate("compliance", 2).make())
+    cands, _ = candidates(run.model.robot, ctx)
+    cands = [x for x in cands if x.name != "compliance:2"]
+    assert len({x.kind for x in cands}) >= 3 and sum(x.n_params for x in cands) > 10
+    fk = linear_kinematics(run.model, ctx)
+    alone = [S.candidate_columns(run.model, x, ctx, train.p, geo.whitening, fk) for x in cands]
+    together = S.all_candidate_columns(run.model, cands, ctx, train.p, geo.whitening, fk)
+    assert len(together) == len(cands) and all(torch.equal(a, b) for a, b in zip(alone, together))
+    monkeypatch.setattr(S, "COLUMN_BUDGET", 5 * len(train.q))  # batches of at most 5 parameters
+    batched = S.all_candidate_columns(run.model, cands, ctx, train.p, geo.whitening, fk)
+    assert all(torch.equal(a, b) for a, b in zip(alone, batched))

@@ -42,15 +42,17 @@ def test_kernel_learns_a_local_field_and_ignores_noise():
         assert float(eff0(robot, Context(q=q[750:])).norm(dim=-1).max()) < 2e-5
 
 
-def test_a_local_search_from_a_start_finds_the_full_grid_s_choice_with_fewer_factorisations():
+def test_a_local_search_finds_the_full_grid_s_choice_with_fewer_factorisations():
+    """From an earlier fit's setting, from a far one, and (no start, the default) from the best length scale at
+    the middle noise ratio."""
     robot = torchcal.load_robot("ur5")
     g = torch.Generator().manual_seed(3)
     q = (torch.rand(500, 6, generator=g, dtype=F64) * 2 - 1) * 1.5
     y = 2e-4 * torch.stack([torch.sin(2 * q[:, 1]), torch.cos(2 * q[:, 0]), torch.sin(q[:, 3])], -1)
     y = y + 2e-5 * torch.randn(500, 3, generator=g, dtype=F64)
-    full, info = fit_kernel_correction(robot, q[:350], y[:350], q_val=q[350:], y_val=y[350:])
+    full, info = fit_kernel_correction(robot, q[:350], y[:350], q_val=q[350:], y_val=y[350:], exhaustive=True)
     assert len(info["grid"]) == 30
-    for start in ((info["best"]["length_scale_m"], info["best"]["noise_ratio"]), (0.5, 3.0), (0.011, 0.03)):
+    for start in ((info["best"]["length_scale_m"], info["best"]["noise_ratio"]), (0.5, 3.0), (0.011, 0.03), None):
         local, linfo = fit_kernel_correction(robot, q[:350], y[:350], q_val=q[350:], y_val=y[350:], start=start)
         assert linfo["best"] == info["best"]
         assert len(linfo["grid"]) < len(info["grid"])

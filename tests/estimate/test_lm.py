@@ -107,3 +107,28 @@ def test_standardized_residuals_flag_an_outlier():
     w = res.standardized_residuals()
     assert int(w.abs().argmax()) == 17 and float(w.abs().max()) > 3.29
     assert not math.isnan(res.sigma0_sq)
+
+
+def test_a_fit_that_ends_where_no_step_helps_reuses_its_last_jacobian():
+    """When the last iteration takes no step, the solution's Jacobian is the one evaluated at its start: one
+    Jacobian per iteration, none more; a fit that ends on a step evaluates one more at the new point."""
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(40, 3, generator=g, dtype=F64)
+    b = torch.randn(40, generator=g, dtype=F64)
+    calls = []
+
+    def jac(x):
+        calls.append(x.clone())
+        return torch.cos(A @ x)[:, None] * A
+
+    def fun(x):
+        return torch.sin(A @ x) - 0.1 * b
+
+    x0 = torch.zeros(3, dtype=F64)
+    res = levenberg_marquardt(fun, x0, jacobian=jac, max_iter=3)
+    assert res.iterations == 3 and len(calls) == 4 and torch.equal(calls[-1], res.x)
+    # x0 is a strict minimum of this one (every step raises the cost), its Jacobian a stand-in that points away
+    calls.clear()
+    res = levenberg_marquardt(lambda x: (1.0 + 1e20 * x.abs().sum()) * b, x0, jacobian=jac)
+    assert res.message == "no step lowers the cost any more" and res.iterations == 1
+    assert len(calls) == 1 and torch.equal(res.x, x0) and torch.equal(res.jacobian, jac(x0))

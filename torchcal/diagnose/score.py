@@ -97,6 +97,57 @@ def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p:
     return torch.func.jacfwd(fun)(theta0).detach()
 
 
+#: the most poses x candidate parameters that :func:`all_candidate_columns` differentiates in one pass
+COLUMN_BUDGET = 4_000_000
+
+
+def all_candidate_columns(
+    model: MeasurementModel, cands: list[Candidate], ctx: Context, p: Tensor, W: Tensor, fk=None
+) -> list[Tensor]:
+    """:func:`candidate_columns` of every candidate from one ``jacfwd`` of the model with all of them added.
+
+    Each candidate's parameters are zero, so every added effect contributes exact zeros to the prediction and to
+    the other candidates' tangents: each candidate's columns are those of the model with it alone, and the model's
+    forward pass runs once instead of once per candidate. Where a column is not finite (an effect whose zero
+    contribution carries a NaN into the other candidates' tangents) the candidates are differentiated one by one.
+    """
+    n_rows = p.shape[0]
+    batches, batch, width = [], [], 0
+    for c in cands:  # batches of at most COLUMN_BUDGET rows x tangents (jacfwd's memory grows with both)
+        k = c.n_params
+        if batch and (width + k) * n_rows > COLUMN_BUDGET:
+            batches.append(batch)
+            batch, width = [], 0
+        batch.append(c)
+        width += k
+    if batch:
+        batches.append(batch)
+    return [C for b in batches for C in _columns_together(model, b, ctx, p, W, fk)]
+
+
+def _columns_together(model: MeasurementModel, cands: list[Candidate], ctx: Context, p: Tensor, W: Tensor, fk):
+    effs = [c.make() for c in cands]
+    trial = MeasurementModel(model.robot, [*model.effects, *effs])
+    first = len(model.effects)
+    keys, shapes, sizes, per = [], [], [], []
+    for i, eff in enumerate(effs):
+        named = list(eff.named_parameters())
+        keys += [f"effects.{first + i}.{n}" for n, _ in named]
+        shapes += [v.shape for _, v in named]
+        sizes += [v.numel() for _, v in named]
+        per.append(sum(v.numel() for _, v in named))
+
+    def fun(theta: Tensor) -> Tensor:
+        params = {k: v.reshape(sh) for k, v, sh in zip(keys, torch.split(theta, sizes), shapes)}
+        pred = torch.func.functional_call(trial, params, (ctx,), {"fk": fk} if fk is not None else None)
+        return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+
+    C = torch.func.jacfwd(fun)(torch.zeros(sum(sizes), dtype=torch.float64, device=p.device)).detach()
+    if not bool(torch.isfinite(C).all()):
+        return [candidate_columns(model, c, ctx, p, W, fk) for c in cands]
+    return list(torch.split(C, per, dim=1))
+
+
 def score_candidates(
     model: MeasurementModel,
     result: LMResult,
@@ -123,8 +174,7 @@ def score_candidates(
     K = len(cands)
     out = []
     fk = linear_kinematics(model, ctx) if cands else None
-    for cand in cands:
-        C = candidate_columns(model, cand, ctx, p, W, fk)
+    for cand, C in zip(cands, all_candidate_columns(model, cands, ctx, p, W, fk)):
         if extra:
             C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype, device=C.device)])
         k = C.shape[1]

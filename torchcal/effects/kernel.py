@@ -122,6 +122,7 @@ def fit_kernel_correction(
     length_scales=LENGTH_SCALES,
     noise_ratios=NOISE_RATIOS,
     start: tuple[float, float] | None = None,
+    exhaustive: bool = False,
 ) -> tuple[KernelCorrection, dict]:
     """Choose ``l`` and ``lambda`` on the validation poses, then fit on all of ``q, y`` (+ validation).
 
@@ -129,9 +130,12 @@ def fit_kernel_correction(
         q, y: training joints ``(N, dof)`` and corrections ``(N, 3)`` [m, base frame].
         q_val, y_val: validation poses.
         start: ``(l, lambda)`` of an earlier fit to the same kind of data (a refit after the geometry moved a
-            little): the grid is then searched locally from the nearest setting, moving to the best of the four
-            neighbours until none is better, instead of tried in full (each setting is an ``N x N`` Cholesky
-            factorisation; ``grid`` lists the settings tried).
+            little): the grid is searched locally from the nearest setting, moving to the best of the four
+            neighbours until none is better (each setting is an ``N x N`` Cholesky factorisation; ``grid`` lists
+            the settings tried). Without it the search starts from the best length scale at the middle noise
+            ratio (every length scale tried there): the validation error is unimodal enough along the length
+            scale, and the noise ratio moves it little, so a third of the grid finds the full grid's choice.
+        exhaustive: try every setting of the grid instead (``start`` is then ignored).
 
     Returns:
         The fitted effect (support = training + validation poses, at most :data:`MAX_SUPPORT`) and a
@@ -164,23 +168,28 @@ def fit_kernel_correction(
             tried[(i, j)] = ({**row, "val_rmse_m": float(e.square().mean().sqrt())}, e)
         return tried[(i, j)][0]["val_rmse_m"]
 
-    if start is None:
+    def nearest(values, v):
+        return min(range(len(values)), key=lambda k: abs(math.log(values[k] / v)))
+
+    if exhaustive:
         for i in range(len(length_scales)):
             for j in range(len(noise_ratios)):
                 evaluate(i, j)
+        at = min(sorted(tried), key=lambda k: tried[k][0]["val_rmse_m"])
+    elif start is None:
+        # the length scale matters most (the validation error falls and rises again along it; the noise ratio moves
+        # it little): every length scale at the middle noise ratio, then the local search from the best of them
+        j0 = len(noise_ratios) // 2
+        at = (min(range(len(length_scales)), key=lambda i: evaluate(i, j0)), j0)
     else:
-
-        def nearest(values, v):
-            return min(range(len(values)), key=lambda k: abs(math.log(values[k] / v)))
-
         at = (nearest(length_scales, start[0]), nearest(noise_ratios, start[1]))
-        while True:
-            around = [(at[0] + di, at[1] + dj) for di, dj in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))]
-            around = [(i, j) for i, j in around if 0 <= i < len(length_scales) and 0 <= j < len(noise_ratios)]
-            step = min(around, key=lambda ij: evaluate(*ij))
-            if step == at:
-                break
-            at = step
+    while True:
+        around = [(at[0] + di, at[1] + dj) for di, dj in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))]
+        around = [(i, j) for i, j in around if 0 <= i < len(length_scales) and 0 <= j < len(noise_ratios)]
+        step = min(around, key=lambda ij: evaluate(*ij))
+        if step == at:
+            break
+        at = step
     # in the order of the full grid, so that ties go the same way as in a full search
     grid = [tried[k][0] for k in sorted(tried)]
     best_key = min(sorted(tried), key=lambda k: tried[k][0]["val_rmse_m"])

@@ -205,9 +205,11 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
     status, message = FitStatus.MAX_ITERATIONS, f"stopped after {max_iter} iterations"
     it = 0
     eye = torch.eye(len(x), dtype=x.dtype, device=x.device)
-    singular, early = 0, False  # iterations among the first SINGULAR_WINDOW with a singular normal matrix
+    singular = 0  # iterations among the first SINGULAR_WINDOW with a singular normal matrix
+    J_at_x = False  # whether J is the Jacobian at the current x (then the solution's needs no new evaluation)
     for it in range(1, max_iter + 1):
         J = jac(x).detach()
+        J_at_x = True
         N = J.T @ J
         s = _jacobi(N)  # Jacobi scaling: solve in y = x / s, where N has a unit diagonal
         Ns = N * s[:, None] * s[None, :]
@@ -220,7 +222,7 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
                     f"the normal matrix was singular (rank deficient) in {singular} of the first {SINGULAR_WINDOW} "
                     "iterations",
                 )
-                it, early = it - 1, True  # no step taken in this one; J is the Jacobian at x
+                it -= 1  # no step taken in this one; J is the Jacobian at x
                 break
         # probe a ladder of dampings around the current one (residual evaluations are cheap next to a
         # Jacobian) and keep the lowest cost: in curved valleys of weakly determined parameters a
@@ -244,7 +246,7 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
         reduction = (cost - cost_new) / max(cost, 1e-300)
         step_small = bool((dx.abs() <= xtol * (x.abs() + s)).all())
         invisible = (cost - cost_new) < stat_tol * max(1.0, 2.0 * cost / max(len(r) - len(x), 1))
-        x, r, cost = x + dx, r_new, cost_new
+        x, r, cost, J_at_x = x + dx, r_new, cost_new, False
         history.append(cost)
         if callback is not None:
             callback(it, x, cost)
@@ -258,7 +260,7 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
                 else "cost reduction statistically invisible (stat_tol)"
             )
             break
-    if not early:
+    if not J_at_x:  # a step was taken after the last Jacobian (or none was evaluated)
         J = jac(x).detach()
         N = J.T @ J
         s = _jacobi(N)

@@ -24,7 +24,7 @@ from torchcal import stats as S
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.diagnose.tracing import refresh_unexplained
-from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects import Context, CorrectionNet, Effect, LearnedEffect, MeasurementModel
 from torchcal.effects.gp import GPConditioner, GPCorrection, GPSettings, condition_gp, fit_gp_correction
 from torchcal.effects.kernel import MAX_SUPPORT as KERNEL_MAX_SUPPORT
 from torchcal.effects.kernel import fit_kernel_correction
@@ -239,10 +239,17 @@ def _refit_with_learned(
     a refitted kernel or GP replaces the old one in ``model``. ``gp``: a GP is re-conditioned through it, its
     hyperparameters held (:func:`_conditioner`), instead of refitted.
     """
+    fit, corr = _refit_geometry(run, model, train, trajectory)
+    return fit, _refit_learned_model(run, model, train, trajectory, corr, gp)
+
+
+def _refit_geometry(
+    run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool
+) -> tuple[Fit, Tensor]:
+    """The first half of :func:`_refit_with_learned`: the least-squares refit with the learned correction in place;
+    returns it and the corrections ``(N, 3)`` [m] that the learned model is then refitted to."""
     opts = run.options
     index = len(model.effects) - 1
-    eff = model.effects[index]
-    fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
     groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
     # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
@@ -258,7 +265,23 @@ def _refit_with_learned(
         identifiability=ida,
     )
     others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
-    corr = corrections(others, train, trajectory)
+    return fit, corrections(others, train, trajectory)
+
+
+def _refit_learned_model(
+    run: CalibrationRun,
+    model: MeasurementModel,
+    train: Measurements,
+    trajectory: bool,
+    corr: Tensor,
+    gp: GPConditioner | None = None,
+) -> Tensor:
+    """The second half of :func:`_refit_with_learned`: the learned model (``model``'s last effect) refitted to the
+    corrections ``corr``; returns its validation errors ``(n_val,)`` [m]."""
+    opts = run.options
+    index = len(model.effects) - 1
+    eff = model.effects[index]
+    fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     if isinstance(eff, LearnedEffect):
         fit_net(
             eff.net,
@@ -291,7 +314,7 @@ def _refit_with_learned(
         )
         model.effects[index] = new
         e_val = info["val_errors"]
-    return fit, e_val
+    return e_val
 
 
 def refine_learned(
@@ -358,54 +381,119 @@ def prune_named(
     it (geometry and learned model refitted as in :func:`refine_learned`) is compared with the
     model with it on the learned stage's validation poses: the effect stays only when the model
     with it is better by a one-sided paired test at ``alpha_validation``.
+
+    A refitted GP's evidence fit (large kernels, which release the GIL) runs in a second thread while the main
+    thread refits the geometry without the next effect, on the model as it stands (:class:`_Without`); when the
+    effect before is dropped, that refit is discarded and done again on the new model, so the decisions and
+    numbers are those of one effect after the other. Every fit on one torch thread, as in :func:`select_learned`.
     """
-    model, opts = run.model, run.options
-    for label in [e.label() for e in model.effects if e.kind in NAMED_KINDS]:
-        k = next(i for i, e in enumerate(model.effects) if e.label() == label)
-        eff = model.effects[k]
-        trial = copy.deepcopy(model)
-        del trial.effects[k]
+    model = run.model
+    labels = [e.label() for e in model.effects if e.kind in NAMED_KINDS]
+    # the learned model is the last effect; only a GP refitted by its evidence runs beside the next geometry refit
+    ahead_of_time = isinstance(model.effects[len(model.effects) - 1], GPCorrection) and gp is None
+    with torch_threads(1), ThreadPoolExecutor(max_workers=1) as pool:
+        ahead: _Without | None = None
+        for pos, label in enumerate(labels):
+            k = next(i for i, e in enumerate(model.effects) if e.label() == label)
+            eff = model.effects[k]
+            job = ahead if ahead is not None else _Without(run, model, label, train, trajectory)
+            job.start(gp, pool)
+            ahead = None
+            if ahead_of_time and pos + 1 < len(labels):  # the next one's geometry refit while this one's GP refits
+                ahead = _Without(run, model, labels[pos + 1], train, trajectory)
+            try:
+                trial, fit, e_without = job.result()
+            except EstimationError as err:  # cannot judge it without the effect: the effect stays
+                run.notes.append(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
+                continue
+            if _prune_one(run, model, eff, trial, fit, e_without, e_val):
+                e_val = e_without
+                ahead = None  # refitted on the model with this effect: again on the model without it
+
+
+class _Without:
+    """The model without one named effect, refitted for :func:`prune_named` as :func:`_refit_with_learned` does:
+    the geometry when made (in this thread: forward-mode derivatives are not thread-safe), the learned model from
+    :meth:`start` (a GP refitted by its evidence in ``pool``, any other at once). :meth:`result` gives
+    ``(trial, fit, validation errors)`` or raises the refit's EstimationError."""
+
+    def __init__(self, run: CalibrationRun, model: MeasurementModel, label: str, train: Measurements, trajectory: bool):
+        self.run, self.train, self.trajectory = run, train, trajectory
+        self.trial = copy.deepcopy(model)
+        del self.trial.effects[next(i for i, e in enumerate(model.effects) if e.label() == label)]
+        self.error, self.job, self.e_val = None, None, None
         try:
-            fit, e_without = _refit_with_learned(run, trial, train, trajectory, gp)
-        except EstimationError as err:  # cannot judge it without the effect: the effect stays
-            run.notes.append(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
-            continue
-        test = S.paired_improvement(e_without, e_val)
-        evidence = {
-            "validation_rmse_with_mm": S.rmse(e_val) * 1e3,
-            "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
-            "z": test["z"],
-            "p_value": test["p_value"],
-            "n": test["n"],
-            "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}",
-        }
-        entry = next((r for r in run.effects if r.label == eff.label()), None)
-        if entry is not None:
-            entry.evidence["with_learned_model"] = evidence
-        if test["p_value"] < opts.alpha_validation:
-            continue
-        _adopt(model, trial)
-        run.fits.append(fit)
-        e_val = e_without
-        reason = (
-            f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
-            f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})"
-        )
-        run.notes.append(f"diagnosis: {eff.label()} dropped: {reason}")
-        if entry is not None:
-            run.effects.remove(entry)
-            run.rejections.append(
-                Rejection(
-                    entry.kind,
-                    entry.joint,
-                    entry.evidence,
-                    name=entry.name,
-                    reason=f"accepted in round {entry.evidence.get('round')}, then dropped: {reason}",
-                )
+            self.fit, self.corr = _refit_geometry(run, self.trial, train, trajectory)
+        except EstimationError as err:
+            self.error = err
+
+    def start(self, gp: GPConditioner | None, pool: ThreadPoolExecutor) -> None:
+        if self.error is not None:
+            return
+        args = (self.run, self.trial, self.train, self.trajectory, self.corr)
+        if isinstance(self.trial.effects[len(self.trial.effects) - 1], GPCorrection) and gp is None:
+            self.job = pool.submit(_refit_learned_model, *args)
+            return
+        try:
+            self.e_val = _refit_learned_model(*args, gp)
+        except EstimationError as err:
+            self.error = err
+
+    def result(self) -> tuple[MeasurementModel, Fit, Tensor]:
+        if self.error is not None:
+            raise self.error
+        e_val = self.job.result() if self.job is not None else self.e_val
+        return self.trial, self.fit, e_val
+
+
+def _prune_one(
+    run: CalibrationRun,
+    model: MeasurementModel,
+    eff: Effect,
+    trial: MeasurementModel,
+    fit: Fit,
+    e_without: Tensor,
+    e_val: Tensor,
+) -> bool:
+    """:func:`prune_named`'s decision on ``eff`` from the refit without it; drops it (``model`` takes ``trial``'s
+    effects and values, the run's records say why) and returns True, or records why it stays and returns False."""
+    opts = run.options
+    test = S.paired_improvement(e_without, e_val)
+    evidence = {
+        "validation_rmse_with_mm": S.rmse(e_val) * 1e3,
+        "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
+        "z": test["z"],
+        "p_value": test["p_value"],
+        "n": test["n"],
+        "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}",
+    }
+    entry = next((r for r in run.effects if r.label == eff.label()), None)
+    if entry is not None:
+        entry.evidence["with_learned_model"] = evidence
+    if test["p_value"] < opts.alpha_validation:
+        return False
+    _adopt(model, trial)
+    run.fits.append(fit)
+    reason = (
+        f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
+        f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})"
+    )
+    run.notes.append(f"diagnosis: {eff.label()} dropped: {reason}")
+    if entry is not None:
+        run.effects.remove(entry)
+        run.rejections.append(
+            Rejection(
+                entry.kind,
+                entry.joint,
+                entry.evidence,
+                name=entry.name,
+                reason=f"accepted in round {entry.evidence.get('round')}, then dropped: {reason}",
             )
-        run.stages[:] = [st for st in run.stages if st.name != eff.label()]
-        if run.diagnosis is not None:
-            run.diagnosis.drop(eff.label(), f"dropped after the learned stage: {reason}")
+        )
+    run.stages[:] = [st for st in run.stages if st.name != eff.label()]
+    if run.diagnosis is not None:
+        run.diagnosis.drop(eff.label(), f"dropped after the learned stage: {reason}")
+    return True
 
 
 def correction_net_stage(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
