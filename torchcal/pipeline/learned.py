@@ -31,11 +31,11 @@ from torchcal.effects.kernel import fit_kernel_correction
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, corrections, solve
-from torchcal.estimate.netfit import fit_net
+from torchcal.estimate.netfit import NetFitResult, fit_net
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
 
 if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
-    from torchcal.pipeline.run import CalibrationRun
+    from torchcal.pipeline.run import CalibrationRun, Options
 
 Tensor = torch.Tensor
 
@@ -147,16 +147,8 @@ def select_learned(
     # the interleaving
     with torch_threads(1), ThreadPoolExecutor(max_workers=1) as pool:
         gp_job = pool.submit(_fit_gp, run, train, corr, fi, va)
-        net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
-        net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
-        res = fit_net(
-            net,
-            train.q[fi],
-            corr[fi],
-            val=(train.q[va], corr[va]),
-            method=opts.net_method,
-            iterations=opts.net_iterations,
-        )
+        init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
+        net, res = _fitted_network(model, opts, init, train.q, corr, fi, va)
         with torch.no_grad():
             e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
         kernel = None
@@ -528,19 +520,35 @@ def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: boo
         group_tol=opts.group_tol,
         sort=False,
     )
-    net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
-    net.reset_parameters(g, gain=0.5)
-    res = fit_net(
-        net,
-        train.q[fit_i],
-        corr[fit_i],
-        val=(train.q[val_i], corr[val_i]),
-        method=opts.net_method,
-        iterations=opts.net_iterations,
-        generator=g,
-    )
+    net, res = _fitted_network(model, opts, g, train.q, corr, fit_i, val_i, fit_generator=g)
     run.notes.append(
         f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
         f"best validation at {res.best_iteration}"
     )
     model.add(LearnedEffect(net))
+
+
+def _fitted_network(
+    model: MeasurementModel,
+    opts: Options,
+    init: torch.Generator,
+    q: Tensor,
+    corr: Tensor,
+    fit_i: Tensor,
+    val_i: Tensor,
+    fit_generator: torch.Generator | None = None,
+) -> tuple[CorrectionNet, NetFitResult]:
+    """A :class:`CorrectionNet` of ``opts.hidden`` units, initialised from ``init`` and fitted to the corrections
+    ``corr`` at the poses ``fit_i`` with early stopping on ``val_i``; the network and the fit's result."""
+    net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
+    net.reset_parameters(init, gain=0.5)
+    res = fit_net(
+        net,
+        q[fit_i],
+        corr[fit_i],
+        val=(q[val_i], corr[val_i]),
+        method=opts.net_method,
+        iterations=opts.net_iterations,
+        generator=fit_generator,
+    )
+    return net, res

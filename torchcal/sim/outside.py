@@ -184,19 +184,10 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     total = (p_true - p0).norm(dim=-1)
     part = _measured(cfg, g, q, p_true, t, temperature, "torchcal.sim.outside")
 
-    geo = robot.geometry
     truth = {
         "generator": "torchcal.sim.outside",
         "config": _config_dict(cfg),
-        "robot": {"spec": str(cfg.robot), "name": robot.name, "dof": robot.dof},
-        "geometry": {
-            "parametrisation": type(geo).__name__,
-            "columns": list(geo.COLUMNS),
-            "names": list(geo.names),
-            "delta": geo.delta.detach().flatten().tolist(),
-        },
-        "instrument": {"T_tracker_base": T.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
-        "tool": {"t_flange_probe": robot.tool.nominal.tolist()},
+        **_set_up_truth(robot, cfg.robot, T, tracker_in_base),
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": math.radians(cfg.sigma_joint_deg)},
         "effects": truth_effects,
         "effects_total_rms_m": float(total.square().mean().sqrt()),
@@ -386,19 +377,10 @@ def simulate_outside_trajectory(spec: OutsideTrajectory | None = None) -> Campai
             q=q_read[rows].clone(), p=p_meas[rows].clone(), t=t[rows].clone(), meta={**meta, "part": name}
         )
 
-    geo = robot.geometry
     truth = {
         "generator": "torchcal.sim.outside trajectory",
         "spec": asdict(spec),
-        "robot": {"spec": str(spec.robot), "name": robot.name, "dof": robot.dof},
-        "geometry": {
-            "parametrisation": type(geo).__name__,
-            "columns": list(geo.COLUMNS),
-            "names": list(geo.names),
-            "delta": geo.delta.detach().flatten().tolist(),
-        },
-        "instrument": {"T_tracker_base": T.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
-        "tool": {"t_flange_probe": robot.tool.nominal.tolist()},
+        **_set_up_truth(robot, spec.robot, T, tracker_in_base),
         "noise": {"tracker_sigma_m": spec.sigma_tracker, "joint_sigma_rad": spec.sigma_joint},
         "path": path_record,
         "field": field_record,
@@ -427,3 +409,20 @@ __all__ = [
     "simulate_outside",
     "simulate_outside_trajectory",
 ]
+
+
+def _set_up_truth(robot, spec, T: Tensor, tracker_in_base: Tensor) -> dict:
+    """The parts of ``truth.json`` that describe the set-up: the robot, its true geometry, the tracker's pose and
+    the lever arm."""
+    geo = robot.geometry
+    return {
+        "robot": {"spec": str(spec), "name": robot.name, "dof": robot.dof},
+        "geometry": {
+            "parametrisation": type(geo).__name__,
+            "columns": list(geo.COLUMNS),
+            "names": list(geo.names),
+            "delta": geo.delta.detach().flatten().tolist(),
+        },
+        "instrument": {"T_tracker_base": T.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
+        "tool": {"t_flange_probe": robot.tool.nominal.tolist()},
+    }
