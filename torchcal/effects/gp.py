@@ -651,7 +651,9 @@ def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
     if BLOCK_WORKERS <= 1:
         yield from map(fn, starts)
         return
-    with ThreadPoolExecutor(BLOCK_WORKERS) as pool:
+    # each worker on one torch thread of its own: a new thread starts with the process's default (OpenMP's
+    # per-thread setting), and blocks computed with a varying team gave results that differed in the last bits
+    with ThreadPoolExecutor(BLOCK_WORKERS, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         pending: deque = deque()
         for i in starts:
             pending.append(pool.submit(fn, i))

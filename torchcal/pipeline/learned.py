@@ -145,7 +145,7 @@ def select_learned(
     # second thread beside the network's and the kernel regression's, so that a second core takes half of this
     # step's time; every fit on one torch thread (as the GP's always was), so that the results do not depend on
     # the interleaving
-    with torch_threads(1), ThreadPoolExecutor(max_workers=1) as pool:
+    with torch_threads(1), ThreadPoolExecutor(max_workers=1, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         gp_job = pool.submit(_fit_gp, run, train, corr, fi, va)
         init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
         net, res = _fitted_network(model, opts, init, train.q, corr, fi, va)
@@ -383,7 +383,7 @@ def prune_named(
     labels = [e.label() for e in model.effects if e.kind in NAMED_KINDS]
     # the learned model is the last effect; only a GP refitted by its evidence runs beside the next geometry refit
     ahead_of_time = isinstance(model.effects[len(model.effects) - 1], GPCorrection) and gp is None
-    with torch_threads(1), ThreadPoolExecutor(max_workers=1) as pool:
+    with torch_threads(1), ThreadPoolExecutor(max_workers=1, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         ahead: _Without | None = None
         for pos, label in enumerate(labels):
             k = next(i for i, e in enumerate(model.effects) if e.label() == label)
