@@ -1,6 +1,9 @@
-"""What several test files share about the command line: ``simulate`` into a folder, and the fields CONTRACT §4
-requires of the ``report.json`` that ``calibrate`` writes."""
+"""What several test files share about the command line: ``simulate`` into a folder, the fields CONTRACT §4
+requires of the ``report.json`` that ``calibrate`` writes, and a script of ``scripts/`` run for its JSON line."""
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 from torchcal.cli import main
@@ -28,3 +31,23 @@ def cli_simulate(out: Path | str, *options: str, robot: str = "ur5") -> int:
         The command's exit status.
     """
     return main(["simulate", "--robot", robot, "--out", str(out), *options, "--quiet"])
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_script(name: str, *args: str, timeout: float = 300) -> tuple[dict, str]:
+    """``python scripts/NAME ARGS...`` from the repository root in a fresh process; it must exit 0.
+
+    Returns:
+        The JSON object of its last stdout line, and its stderr.
+    """
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / name), *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        cwd=ROOT,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr

@@ -1,26 +1,20 @@
 """scripts/trajectory_outside.py on a tiny outside-style campaign: one JSON line with both methods on the
 continuation, never worse than geometry alone, and the evidence of the choice."""
 
-import json
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+from _cli import ROOT, run_script
+
 SCRIPT = ROOT / "scripts" / "trajectory_outside.py"
 
 
 def test_tiny_campaign(tmp_path):
-    proc = subprocess.run(
-        [sys.executable, str(SCRIPT), "--seeds", "0", "--fields", "tanh", "--samples", "800"]
-        + ["--periods", "2000", "9000", "--json", "--out", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
+    res, _ = run_script(
+        "trajectory_outside.py",
+        *["--seeds", "0", "--fields", "tanh", "--samples", "800", "--periods", "2000", "9000"],
+        *["--json", "--out", str(tmp_path)],
     )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
     (row,) = res["rows"]
     assert (row["train"], row["test"], row["field"]) == (640, 160, "tanh")
     assert 0.0 < row["geometry_mm"] < 0.5 and row["ratio"] == row["integrated_mm"] / row["geometry_mm"]

@@ -3,18 +3,15 @@ on synthetic data, and a run on the real
 UR10 Series D (ISO cubes, 632 poses) when the ur10-ipa data are present."""
 
 import importlib
-import json
 import math
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 import torch
+from _cli import run_script
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "scripts" / "ur10_investigate.py"
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "real" / "ur10-ipa"
 
 
@@ -79,16 +76,8 @@ def series_d():
     data = Path(os.environ.get("TORCHCAL_IPA_DATA", DEFAULT_DATA))
     if not (data / "Series_D").is_dir():
         pytest.skip(f"ur10-ipa data (Series_D) not found at {data}; set TORCHCAL_IPA_DATA")
-    proc = subprocess.run(
-        [sys.executable, str(SCRIPT), str(data), "--series", "D", "--json", "--threads", "1"],
-        capture_output=True,
-        text=True,
-        timeout=240,
-        cwd=ROOT,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert "=== Series D" in proc.stderr
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    res, stderr = run_script("ur10_investigate.py", str(data), "--series", "D", "--json", "--threads", "1", timeout=240)
+    assert "=== Series D" in stderr
     (s,) = res["series"]
     return s
 

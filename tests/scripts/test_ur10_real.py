@@ -2,14 +2,12 @@
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _cli import run_script
 
 ROOT = Path(__file__).resolve().parents[2]
-SCRIPT = ROOT / "scripts" / "ur10_real.py"
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "real" / "ur10-ipa"
 
 
@@ -19,15 +17,7 @@ def quick(tmp_path_factory):
     if not (data / "Series_B").is_dir() or not (data / "Series_C").is_dir():
         pytest.skip(f"ur10-ipa data (Series_B and Series_C) not found at {data}; set TORCHCAL_IPA_DATA")
     out = tmp_path_factory.mktemp("ur10")
-    proc = subprocess.run(
-        [sys.executable, str(SCRIPT), str(data), "--quick", "--json", "--threads", "1", "--out", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        cwd=ROOT,
-    )
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
+    res, _ = run_script("ur10_real.py", str(data), "--quick", "--json", "--threads", "1", "--out", str(out))
     return res, out
 
 
