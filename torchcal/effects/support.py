@@ -329,15 +329,15 @@ def fit_predictive_scale(
     holdout: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[float, list[float]]:
     """The scale ``k`` and the floor ``f`` (per axis) of ``var = k^2 a + g^2 f^2 + b`` by maximum likelihood of the
-    validation residuals ``e`` (Gaussian, independent components), then ``k`` and ``f`` multiplied together by the
-    factor :func:`calibrate_factor` gives for ``target`` within ``n_sigma`` standard deviations.
-
-    Without ``holdout`` the factor is that of the validation residuals, never below 1 (widened, never narrowed).
-    With ``holdout`` (the residuals and variance parts of another model, e.g. the model refitted on all training
-    samples, on samples neither model was fitted on) it is that of the validation and held-out residuals pooled,
-    each with its own parts, and it may narrow as well as widen: a model that fits the validation block closely
-    can still miss a longer continuation, and a validation block that is easy to predict says nothing about
-    samples further along the path. The held-out coverage is then calibrated, no longer an independent check.
+    validation residuals ``e`` (Gaussian, independent components), then ``k`` and ``f`` widened together (never
+    narrowed) by the factor :func:`calibrate_factor` gives for ``target`` within ``n_sigma`` standard deviations:
+    of the validation residuals alone, or with ``holdout`` (the residuals and variance parts of another model, e.g.
+    the model refitted on all training samples, on samples neither model was fitted on) of the validation and
+    held-out residuals pooled, each with its own parts. A model that fits the validation block closely can still
+    miss a longer stretch of the path; the held-out coverage is then calibrated, no longer an independent check.
+    Never narrowed below the likelihood fit: where most residuals lie within the unscaled far part ``b`` alone,
+    the pooled factor would drop the near part towards zero, and the near part is what covers a continuation
+    that stays close to the training joints.
 
     Args:
         e: validation residuals ``(N, 3)`` [m]; a, b, g2: the parts of :meth:`SupportGate.variance_parts` there.
@@ -376,9 +376,7 @@ def fit_predictive_scale(
         target,
         n_sigma,
     )
-    if holdout is None:
-        factor = max(1.0, factor)
-    return scale * factor, (floor * factor).tolist()
+    return scale * max(1.0, factor), (floor * max(1.0, factor)).tolist()
 
 
 def calibrate_factor(e: Tensor, near: Tensor, far: Tensor, target: float = 0.95, k: float = 2.0) -> float:

@@ -821,11 +821,11 @@ def _attach_predictive_sigma(
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
     the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
     error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
-    scale is fitted. The scale and floor are fitted by likelihood on the validation block, then multiplied by the
-    factor that puts :data:`COVERAGE_TARGET` of the validation and held-out residuals together within 2 sigma
-    (widened or narrowed), each block with its own model: the candidate on validation, the final model on the
-    held-out samples (:func:`~torchcal.effects.support.fit_predictive_scale`); without held-out samples, widened
-    to the target on validation only. The held-out coverage is then part of the calibration, not an independent
+    scale is fitted. The scale and floor are fitted by likelihood on the validation block, then widened (never
+    narrowed) by the factor that puts :data:`COVERAGE_TARGET` of the validation and held-out residuals together
+    within 2 sigma, each block with its own model: the candidate on validation, the final model on the held-out
+    samples (:func:`~torchcal.effects.support.fit_predictive_scale`); without held-out samples, to the target on
+    validation only. The held-out coverage is then part of the calibration, not an independent
     check: the test file (the path's continuation) is. Always a gate, an infinite one included (it changes no
     prediction): it carries the standard deviation. Returns the report's evidence (scale, coverage of 2 sigma on
     validation and on the held-out samples, the rule, the variance's parts).
@@ -857,8 +857,8 @@ def _attach_predictive_sigma(
         "scale": scale,
         "floor_mm": [f * 1e3 for f in floor],
         "target_coverage_2sigma": COVERAGE_TARGET,
-        "calibration": "likelihood on validation, then scaled to the target over validation and held-out residuals "
-        "together (held-out coverage calibrated, not independent)"
+        "calibration": "likelihood on validation, then widened (never narrowed) to the target over validation and "
+        "held-out residuals together (held-out coverage calibrated, not independent)"
         if hold.n
         else "likelihood on validation, then widened (never narrowed) to the target on validation",
         "coverage_2sigma_validation": cov_val,
