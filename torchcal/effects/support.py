@@ -35,6 +35,8 @@ and ``k`` and the floor ``f`` (per axis) fitted on validation samples by maximum
 (:func:`fit_predictive_scale`): the filter treats the network's misfit as white noise, so ``P_w`` alone says
 little about the error along a new stretch of path (its shape is mostly the prior's), and a model refitted on more
 samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the validation block showed.
+Both are then widened (never narrowed) to a target coverage, over the validation residuals and, where given, the
+refitted model's residuals on held-out samples (:func:`calibrate_factor`).
 The model's own error grows away from its support towards the geometric model's residual scale on validation
 ``s_far``, with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite): a
 network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
