@@ -93,11 +93,16 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         assert st["integrated"] <= st["geometric"]
         guard = sel["holdout_guard"]  # the refit on all training samples confirmed against geometry where unfitted
         assert guard["passed"] and guard["rmse_mm"] < guard["geometry_rmse_mm"]
-        # the predictive sigma: fitted on the validation block by likelihood and widened (never narrowed) to the
-        # target there, so its coverage on validation is at least the target and not far above it
+        # the predictive sigma: fitted on the validation block by likelihood, then widened (never narrowed) to the
+        # target over the validation and held-out residuals together (each with its own model), so the pooled
+        # coverage is at least the target (to a component or two: the quantile convention and rounding) and not
+        # far above it
         ps = records[0].evidence["predictive_sigma"]
-        assert ps["scale"] > 0 and 0.945 <= ps["coverage_2sigma_validation"] <= 0.99
-        assert 0.0 < ps["coverage_2sigma_holdout"] <= 1.0
+        n_val, n_hold = ps["n_validation"], ps["n_holdout"]
+        assert n_val == sel["n_validation"] and n_hold > 0
+        pooled = (n_val * ps["coverage_2sigma_validation"] + n_hold * ps["coverage_2sigma_holdout"]) / (n_val + n_hold)
+        assert ps["scale"] > 0 and 0.95 - 2.0 / (3 * (n_val + n_hold)) <= pooled <= 0.99
+        assert 0.0 < ps["coverage_2sigma_validation"] <= 1.0 and 0.0 < ps["coverage_2sigma_holdout"] <= 1.0
         # the fallback's error and its growth with distance, from geometry's residuals on later training samples
         assert len(ps["fallback_sigma_mm"]) == 3 and min(ps["fallback_sigma_mm"]) > 0 and ps["fallback_growth"] >= 0
         from torchcal.report.ekf_plots import ekf_section

@@ -16,6 +16,7 @@ from torchcal.effects.base import Effect
 from torchcal.effects.registry import effect_from_config
 from torchcal.effects.support import (
     SupportGate,
+    calibrate_factor,
     calibrate_scale,
     coverage,
     fit_fallback_growth,
@@ -78,6 +79,51 @@ def test_the_scale_and_floor_by_likelihood_hold_coverage_where_the_network_term_
     assert 0.945 <= coverage(e, sigma) <= 0.97
     with pytest.raises(ValueError, match="same non-empty shape"):
         fit_predictive_scale(e, a[:10], b, g2)
+
+
+def test_the_calibrated_factor_is_exact_with_an_unscaled_far_part():
+    g = torch.Generator().manual_seed(3)
+    n = 5000
+    near = (torch.rand(n, 3, generator=g, dtype=torch.float64) + 0.5) ** 2
+    far = torch.rand(n, 3, generator=g, dtype=torch.float64) ** 2
+    e = (4.0 * near + far).sqrt() * torch.randn(n, 3, generator=g, dtype=torch.float64)  # the truth: factor 2
+    s = calibrate_factor(e, near, far)
+    assert s == pytest.approx(2.0, rel=0.05)
+    assert coverage(e, (s**2 * near + far).sqrt()) >= 0.95
+    assert coverage(e, ((0.999 * s) ** 2 * near + far).sqrt()) < 0.95  # the smallest such factor
+    # components no factor can cover (no near part, outside 2 sqrt(far)): the largest factor that covers the rest
+    near[:400] = 0.0
+    e[:400] = 10.0
+    s = calibrate_factor(e, near, far)
+    assert math.isfinite(s) and coverage(e[400:], (s**2 * near[400:] + far[400:]).sqrt()) == 1.0
+    with pytest.raises(ValueError, match="same non-empty shape"):
+        calibrate_factor(e, near[:10], far)
+
+
+def test_the_scale_with_held_out_residuals_is_widened_to_the_target_over_both_never_narrowed():
+    g = torch.Generator().manual_seed(4)
+    n = 3000
+    a = torch.full((n, 3), 1e-10, dtype=torch.float64)
+    g2 = torch.ones(n, 3, dtype=torch.float64)
+    b = torch.zeros(n, 3, dtype=torch.float64)
+
+    def draw(s):
+        return s * torch.randn(n, 3, generator=g, dtype=torch.float64)
+
+    e_val = draw(2e-5)
+    scale0, floor0 = fit_predictive_scale(e_val, a, b, g2)
+    # a held-out stretch easier than validation: the likelihood fit is kept, not narrowed
+    assert fit_predictive_scale(e_val, a, b, g2, holdout=(draw(1e-5), a, b, g2)) == (scale0, floor0)
+    # a harder one: widened until 95 % of both together lie within 2 sigma (to a component or two)
+    e_hold = draw(6e-5)
+    scale, floor = fit_predictive_scale(e_val, a, b, g2, holdout=(e_hold, a, b, g2))
+    sigma = (scale**2 * a + g2 * torch.tensor(floor, dtype=torch.float64) ** 2 + b).sqrt()
+    assert abs(coverage(torch.cat([e_val, e_hold]), torch.cat([sigma, sigma])) - 0.95) <= 2.0 / (6 * n)
+    assert coverage(e_val, sigma) > 0.99 and coverage(e_hold, sigma) < 0.95  # each block alone: off the target
+    # the factor acts on scale and floor together, from the same likelihood fit on validation
+    assert floor[0] > floor0[0] and scale / scale0 == pytest.approx(floor[0] / floor0[0], rel=1e-9)
+    with pytest.raises(ValueError, match="same non-empty"):
+        fit_predictive_scale(e_val, a, b, g2, holdout=(e_val[:10], a, b, g2))
 
 
 def test_sigma_is_the_filters_at_the_support_and_the_geometrys_far_from_it():

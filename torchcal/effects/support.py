@@ -35,6 +35,8 @@ and ``k`` and the floor ``f`` (per axis) fitted on validation samples by maximum
 (:func:`fit_predictive_scale`): the filter treats the network's misfit as white noise, so ``P_w`` alone says
 little about the error along a new stretch of path (its shape is mostly the prior's), and a model refitted on more
 samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the validation block showed.
+Both are then widened (never narrowed) to a target coverage, over the validation residuals and, where given, the
+refitted model's residuals on held-out samples (:func:`calibrate_factor`).
 The model's own error grows away from its support towards the geometric model's residual scale on validation
 ``s_far``, with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite): a
 network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
@@ -319,22 +321,39 @@ def coverage(e: Tensor, sigma: Tensor, k: float = 2.0) -> float:
 
 
 def fit_predictive_scale(
-    e: Tensor, a: Tensor, b: Tensor, g2: Tensor, target: float = 0.95, n_sigma: float = 2.0
+    e: Tensor,
+    a: Tensor,
+    b: Tensor,
+    g2: Tensor,
+    target: float = 0.95,
+    n_sigma: float = 2.0,
+    *,
+    holdout: tuple[Tensor, Tensor, Tensor, Tensor] | None = None,
 ) -> tuple[float, list[float]]:
     """The scale ``k`` and the floor ``f`` (per axis) of ``var = k^2 a + g^2 f^2 + b`` by maximum likelihood of the
     validation residuals ``e`` (Gaussian, independent components), then ``k`` and ``f`` widened together (never
-    narrowed) by the factor :func:`calibrate_scale` gives for ``target`` within ``n_sigma`` standard deviations.
-    The factor is that of the whole standard deviation; where the unscaled far part ``b`` is large, the widened
-    near part alone falls a little short of it.
+    narrowed) by the factor :func:`calibrate_factor` gives for ``target`` within ``n_sigma`` standard deviations:
+    of the validation residuals alone, or with ``holdout`` (the residuals and variance parts of another model, e.g.
+    the model refitted on all training samples, on samples neither model was fitted on) of the validation and
+    held-out residuals pooled, each with its own parts. A model that fits the validation block closely can still
+    miss a longer stretch of the path; the held-out coverage is then calibrated, no longer an independent check.
+    Never narrowed below the likelihood fit: where most residuals lie within the unscaled far part ``b`` alone,
+    the pooled factor would drop the near part towards zero, and the near part is what covers a continuation
+    that stays close to the training joints.
 
     Args:
         e: validation residuals ``(N, 3)`` [m]; a, b, g2: the parts of :meth:`SupportGate.variance_parts` there.
+        holdout: ``(e, a, b, g2)`` of the held-out samples ``(M, 3)`` each, or None.
 
     Returns:
-        ``(scale, floor)``: the factor and the floor per axis [m].
+        ``(scale, floor)``: the scale and the floor per axis [m].
     """
-    if not (e.shape == a.shape == b.shape == g2.shape) or e.numel() == 0:
-        raise ValueError(f"e, a, b, g2 must have the same non-empty shape, got {tuple(e.shape)}, {tuple(a.shape)}")
+    blocks = [(e, a, b, g2)] if holdout is None else [(e, a, b, g2), holdout]
+    for x in blocks:
+        if not (x[0].shape == x[1].shape == x[2].shape == x[3].shape) or x[0].numel() == 0 or x[0].shape[-1] != 3:
+            raise ValueError(
+                f"e, a, b, g2 must have the same non-empty shape (N, 3), got {tuple(x[0].shape)}, {tuple(x[1].shape)}"
+            )
     e, a, b, g2 = (x.detach() for x in (e, a, b, g2))
     e2 = e.square()
     rms = float(e2.mean().sqrt().clamp_min(1e-12))
@@ -348,9 +367,41 @@ def fit_predictive_scale(
 
     _minimise(theta, nll, max_iter=200, tolerance_grad=1e-10)
     scale, floor = float(theta[0].detach().exp()), theta[1:].detach().exp()
-    sigma = (scale**2 * a + g2 * floor**2 + b).sqrt()
-    widen = max(1.0, calibrate_scale(e, sigma.clamp_min(1e-300), target, n_sigma))
-    return scale * widen, (floor * widen).tolist()
+
+    def near(x):  # the part of the variance the factor multiplies (squared), on a block's own parts
+        return scale**2 * x[1].detach() + x[3].detach() * floor**2
+
+    factor = calibrate_factor(
+        torch.cat([x[0].detach().flatten() for x in blocks]),
+        torch.cat([near(x).flatten() for x in blocks]),
+        torch.cat([x[2].detach().flatten() for x in blocks]),
+        target,
+        n_sigma,
+    )
+    return scale * max(1.0, factor), (floor * max(1.0, factor)).tolist()
+
+
+def calibrate_factor(e: Tensor, near: Tensor, far: Tensor, target: float = 0.95, k: float = 2.0) -> float:
+    """The smallest factor ``s`` with ``coverage(e, sqrt(s^2 near + far), k) >= target``, ``far`` left unscaled.
+
+    Component ``i`` is covered for ``s >= s_i = sqrt(max(0, e_i^2 / k^2 - far_i) / near_i)``, so ``s`` is the
+    ``target`` quantile of ``s_i``. A component outside ``k`` sqrt(far) with no near part cannot be covered by any
+    factor; where such components keep the target out of reach, the factor is the largest finite ``s_i``.
+
+    Args:
+        e: residuals (any shape) [m]; near, far: the scaled and the unscaled variance, same shape [m^2].
+        target: the share of components within ``k`` standard deviations aimed at.
+    """
+    if not (e.shape == near.shape == far.shape) or e.numel() == 0:
+        raise ValueError(f"e, near, far must have the same non-empty shape, got {tuple(e.shape)}, {tuple(near.shape)}")
+    excess = (e.square() / k**2 - far).clamp_min(0.0).flatten()
+    near = near.flatten()
+    need = torch.where(excess > 0, excess / near.clamp_min(0.0), torch.zeros_like(excess)).sqrt()
+    s = float(torch.quantile(need, target, interpolation="higher"))
+    if math.isinf(s) or math.isnan(s):
+        finite = need[torch.isfinite(need)]
+        s = float(finite.max()) if finite.numel() else 1.0
+    return s
 
 
 def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:

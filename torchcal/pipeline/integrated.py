@@ -821,9 +821,14 @@ def _attach_predictive_sigma(
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
     the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
     error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
-    scale is fitted. Always a gate, an infinite one included (it changes no prediction): it carries the standard
-    deviation. Returns the report's evidence (scale, coverage of 2 sigma on validation and on the held-out
-    samples, the variance's parts).
+    scale is fitted. The scale and floor are fitted by likelihood on the validation block, then widened (never
+    narrowed) by the factor that puts :data:`COVERAGE_TARGET` of the validation and held-out residuals together
+    within 2 sigma, each block with its own model: the candidate on validation, the final model on the held-out
+    samples (:func:`~torchcal.effects.support.fit_predictive_scale`); without held-out samples, to the target on
+    validation only. The held-out coverage is then part of the calibration, not an independent
+    check: the test file (the path's continuation) is. Always a gate, an infinite one included (it changes no
+    prediction): it carries the standard deviation. Returns the report's evidence (scale, coverage of 2 sigma on
+    validation and on the held-out samples, the rule, the variance's parts).
     """
     noise = _observation_sigma(run.model, train, run.options)
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
@@ -832,19 +837,34 @@ def _attach_predictive_sigma(
     fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, val_gate)
     val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
-    scale, floor = sup.fit_predictive_scale(e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET)
-    val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
-    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length, scale, floor)
+    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length)
     gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
+    holdout = None
+    if hold.n:  # the final model's residuals and variance parts where it was not fitted (its own P_w, its gate)
+        with torch.no_grad():
+            holdout = (_residuals(run.model, hold, gate), *gate.variance_parts(run.model.robot, hold.q))
+    scale, floor = sup.fit_predictive_scale(
+        e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET, holdout=holdout
+    )
+    val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
+    gate.sigma_scale, gate.sigma_floor = scale, floor
     run.model.effects[-1] = gate
     run.stages.pop()
     run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
+    cov_val = _coverage(val_model, val, val_gate)
+    cov_hold = _coverage(run.model, hold, gate) if hold.n else None
     return {
         "scale": scale,
         "floor_mm": [f * 1e3 for f in floor],
         "target_coverage_2sigma": COVERAGE_TARGET,
-        "coverage_2sigma_validation": _coverage(val_model, val, val_gate),
-        "coverage_2sigma_holdout": _coverage(run.model, hold, gate) if hold.n else None,
+        "calibration": "likelihood on validation, then widened (never narrowed) to the target over validation and "
+        "held-out residuals together (held-out coverage calibrated, not independent)"
+        if hold.n
+        else "likelihood on validation, then widened (never narrowed) to the target on validation",
+        "coverage_2sigma_validation": cov_val,
+        "coverage_2sigma_holdout": cov_hold,
+        "n_validation": val.n,
+        "n_holdout": hold.n,
         "sigma_noise_mm": (noise * 1e3).tolist(),
         "sigma_far_mm": (far * 1e3).tolist(),
         "sigma_length": sigma_length,
