@@ -137,6 +137,8 @@ def test_a_refit_worse_than_geometry_on_the_held_out_samples_is_undone(trajector
     assert "worse than geometry alone on the held-out samples" in rej.reason
     assert rej.evidence["selection"]["holdout_guard"]["geometry_rmse_mm"] == guarded["geometry_rmse_mm"]
     assert len(run.model.effects) == 0 and "geometry alone kept" in " ".join(run.notes)
+    # the robot the report exports is the kept model's (the adaptive engine had changed the run's robot in place)
+    assert run.robot is run.model.robot
 
 
 def test_report_has_the_contract_fields_and_the_three_stages(run_dir):

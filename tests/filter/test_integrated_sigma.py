@@ -17,7 +17,6 @@ from torchcal.effects.registry import effect_from_config
 from torchcal.effects.support import (
     SupportGate,
     calibrate_factor,
-    calibrate_scale,
     coverage,
     fit_fallback_growth,
     fit_predictive_scale,
@@ -50,14 +49,14 @@ def _gate(length=1.0, scale=1.0, n=300, seed=0):
     return robot, gate, support
 
 
-def test_coverage_and_the_calibrated_scale_recover_a_known_sigma():
+def test_coverage_and_the_calibrated_factor_recover_a_known_sigma():
     g = torch.Generator().manual_seed(1)
     sigma = torch.rand(4000, 3, generator=g, dtype=torch.float64) + 0.5
     e = sigma * torch.randn(4000, 3, generator=g, dtype=torch.float64)
     assert coverage(e, sigma) == pytest.approx(0.9545, abs=0.01)
     assert coverage(e, 0.5 * sigma) == pytest.approx(0.683, abs=0.015)
     # the model's sigma is half the truth: 95 % lie within 1.96 true sigmas, 3.92 of the model's, so s = 1.96
-    s = calibrate_scale(e, 0.5 * sigma)
+    s = calibrate_factor(e, (0.5 * sigma).square(), torch.zeros_like(e))  # no unscaled part
     assert s == pytest.approx(1.96, rel=0.05)
     assert coverage(e, s * 0.5 * sigma) >= 0.95
     with pytest.raises(ValueError, match="same non-empty shape"):

@@ -451,16 +451,3 @@ def _minimise(theta: Tensor, nll, max_iter: int, tolerance_grad: float) -> None:
 
     with torch.enable_grad():
         opt.step(closure)
-
-
-def calibrate_scale(e: Tensor, sigma: Tensor, target: float = 0.95, k: float = 2.0) -> float:
-    """The smallest factor ``s`` with ``coverage(e, s * sigma, k) >= target``: a quantile of ``|e| / sigma``.
-
-    Args:
-        e: validation residuals ``(N, 3)`` [m]; sigma: the uncalibrated standard deviations there ``(N, 3)`` [m].
-        target: the share of components within ``k`` standard deviations aimed at.
-    """
-    if e.shape != sigma.shape or e.numel() == 0:
-        raise ValueError(f"e and sigma must have the same non-empty shape, got {tuple(e.shape)}, {tuple(sigma.shape)}")
-    z = (e.abs() / sigma).flatten()
-    return float(torch.quantile(z, target, interpolation="higher")) / k

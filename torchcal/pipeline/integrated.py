@@ -759,21 +759,24 @@ def integrate_selected(
         return None
     setting, length = best[0], best[1]
     _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
-    kinematic = copy.deepcopy(run.model.robot)  # the kinematic calibration on all training samples
-    before = (copy.deepcopy(run.model), run.robot, len(run.effects), len(run.stages))
+    # the kinematic calibration on all training samples, kept apart: the engines edit run.model's robot in place
+    geometric = copy.deepcopy(run.model)
+    kinematic = geometric.robot
+    n_effects, n_stages = len(run.effects), len(run.stages)
     filt = _run_setting(run, train, hold, setting)
     record = run.effects[-1]
     sigma = _attach_predictive_sigma(run, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
     record.evidence["predictive_sigma"] = sigma
-    guard = _holdout_guard(run.model, before[0], hold)
+    guard = _holdout_guard(run.model, geometric, hold)
     evidence["holdout_guard"] = guard
     if guard["passed"]:
         return filt
-    # the refit on all training samples is worse than geometry alone where neither was fitted: geometry it is
-    run.model, run.robot = before[0], before[1]
-    del run.effects[before[2] :], run.stages[before[3] :]
+    # the refit on all training samples is worse than geometry alone where neither was fitted: geometry it is (the
+    # run's robot too, which the adaptive engine changed in place and the report exports)
+    run.model, run.robot = geometric, geometric.robot
+    del run.effects[n_effects:], run.stages[n_stages:]
     why = (
         f"{setting.name}, chosen on validation, is worse than geometry alone on the held-out samples once fitted "
         f"again on all training samples ({guard['geometry_rmse_mm']:.4f} -> {guard['rmse_mm']:.4f} mm)"
