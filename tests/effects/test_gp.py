@@ -94,16 +94,27 @@ def test_fitted_exact_and_sparse_models_agree_when_inducing_is_everything():
     q, g = _joints(150, 4)
     y = 1e-4 * torch.stack([torch.sin(q[:, 1]), torch.cos(2 * q[:, 3]), q[:, 0] * 0.1], 1)
     y = y + 1e-5 * torch.randn(150, 3, generator=g, dtype=F64)
-    a, ia = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=150, max_fit=150, m_fit=150))
-    assert ia["exact"]
-    b, ib = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=149, max_fit=150, m_fit=150))
+    a, ia = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=150, max_fit=150, m_fit=150, max_exact=0))
+    assert ia["exact"] and not a.exact  # the sparse posterior with the rows as inducing inputs
+    b, ib = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=149, max_fit=150, m_fit=150, max_exact=0))
     assert not ib["exact"]
+    c, ic = fit_gp_correction(Context(q=q), y, GPSettings(max_inducing=10, max_fit=150, m_fit=150))
+    assert ic["exact"] and c.exact and len(c.chol_b) == 0  # the dense factor of K + sigma^2 I: no inducing inputs
     qs, _ = _joints(40, 5)
     with torch.no_grad():
         pa, pb = a(None, Context(q=qs)), b(None, Context(q=qs))
+        (ma, sa), (mc, sc) = a.predict(Context(q=qs)), c.predict(Context(q=qs))
     # the same hyperparameters (fitted on the same rows) and 149 of 150 rows as inducing inputs
     assert torch.allclose(a.ard_len, b.ard_len)
     assert _rms(pa - pb) < 0.05 * _rms(pa)
+    # the two exact posteriors, one through the inducing-input formulas, one through the dense factor
+    assert torch.equal(a.ard_len, c.ard_len)
+    assert torch.allclose(mc, ma, rtol=1e-6, atol=1e-6 * float(ma.abs().max()))
+    assert torch.allclose(sc, sa, rtol=1e-4, atol=1e-4 * float(sa.max()))
+    twin = effect_from_config({"class": "GPCorrection", **c.config()})
+    twin.load_state_dict(c.state_dict())
+    with torch.no_grad():
+        assert torch.equal(twin.predict(Context(q=qs))[1], sc)
 
 
 def test_predictive_std_covers_held_out_data():
@@ -197,7 +208,7 @@ def test_conditioning_on_more_poses_keeps_the_hyperparameters_and_lowers_the_err
     eff, _ = fit_gp_correction(Context(q=q[:200]), y[:200], s)
     same = gp.condition_gp(eff, Context(q=q[:200]), y[:200], s)
     more = gp.condition_gp(eff, Context(q=q[:500]), y[:500], s)
-    sparse = gp.condition_gp(eff, Context(q=q[:500]), y[:500], GPSettings(max_inducing=250))
+    sparse = gp.condition_gp(eff, Context(q=q[:500]), y[:500], GPSettings(max_inducing=250, max_exact=0))
     for k, v in eff.hyper().items():
         assert torch.equal(getattr(more, k), v)
     ctx = Context(q=q[500:])
@@ -214,7 +225,7 @@ def test_conditioner_reproduces_the_fit_and_follows_new_outputs():
     f = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
     y = f + 1e-5 * torch.randn(400, 3, generator=g, dtype=F64)
     # sparse (fewer inducing inputs than rows) and exact
-    for s in (GPSettings(max_inducing=150, max_fit=150, m_fit=150), GPSettings()):
+    for s in (GPSettings(max_inducing=150, max_fit=150, m_fit=150, max_exact=0), GPSettings()):
         eff, info = fit_gp_correction(Context(q=q[:300]), y[:300], s, ctx_val=Context(q=q[300:]), y_val=y[300:])
         cond = gp.GPConditioner(eff, Context(q=q[:300]), Context(q=q[300:]))
         same, out = cond.condition(y[:300], y[300:])
@@ -241,7 +252,7 @@ def test_conditioner_reproduces_the_fit_and_follows_new_outputs():
 def test_conditioner_without_the_kept_factor_agrees(monkeypatch):
     q, g = _joints(300, 13)
     y = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
-    s = GPSettings(max_inducing=100, max_fit=100, m_fit=100)
+    s = GPSettings(max_inducing=100, max_fit=100, m_fit=100, max_exact=0)
     eff, _ = fit_gp_correction(Context(q=q), y, s)
     kept = gp.GPConditioner(eff, Context(q=q)).condition(y * 1.5)[0]
     monkeypatch.setattr(gp, "_KEEP_FACTOR", 0)  # beyond the memory cap: the factor is recomputed per block
@@ -259,7 +270,7 @@ def test_posterior_blocks_in_threads_give_the_same_bits(monkeypatch):
     q, g = _joints(900, 14)
     y = 1e-4 * torch.stack([torch.sin(3 * q[:, 1]), torch.cos(3 * q[:, 0]), torch.sin(3 * q[:, 2])], 1)
     y = y + 1e-5 * torch.randn(900, 3, generator=g, dtype=F64)
-    s = GPSettings(max_inducing=300, max_fit=200, m_fit=200)  # 900 rows: four blocks
+    s = GPSettings(max_inducing=300, max_fit=200, m_fit=200, max_exact=0)  # 900 rows: four blocks
     monkeypatch.setattr(gp, "BLOCK_WORKERS", 1)
     one, _ = fit_gp_correction(Context(q=q), y, s)
     monkeypatch.setattr(gp, "BLOCK_WORKERS", 3)

@@ -71,6 +71,9 @@ class GPSettings:
         extras: extra inputs read from the context, a subset of ``("t", "temperature")``.
         ard: include the full-joint ARD component.
         max_inducing: inducing inputs of the posterior; with ``n <= max_inducing`` the GP is exact.
+        max_exact: with at most this many training rows the posterior is the exact GP from one dense Cholesky
+            factor of ``K + sigma^2 I`` (``n^3 / 3`` operations against the sparse posterior's ``2 n m^2``: cheaper
+            up to about ``2.4 m`` rows); 0: always the sparse posterior beyond ``max_inducing``.
         max_fit: training rows used to fit the hyperparameters (a seeded subset beyond that).
         m_fit: inducing inputs while fitting the hyperparameters (exact when ``max_fit <= m_fit``).
         iterations: L-BFGS iterations on the evidence.
@@ -90,6 +93,7 @@ class GPSettings:
     extras: tuple[str, ...] = ()
     ard: bool = True
     max_inducing: int = 1500
+    max_exact: int = 3000
     max_fit: int = 800
     m_fit: int = 800
     iterations: int = 30
@@ -108,11 +112,11 @@ class GPSettings:
         if bad:
             raise OptionError(f"extra GP inputs {bad} are not among {', '.join(EXTRA_INPUTS)}")
         counts = (self.max_inducing, self.max_fit, self.m_fit, self.iterations, self.restarts, self.restart_iterations)
-        if min(counts) < 1:
+        if min(counts) < 1 or self.max_exact < 0:
             raise OptionError(
-                "max_inducing, max_fit, m_fit, iterations, restarts and restart_iterations must be >= 1, got "
-                f"{self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}, {self.restarts}, "
-                f"{self.restart_iterations}"
+                "max_inducing, max_fit, m_fit, iterations, restarts and restart_iterations must be >= 1 and "
+                f"max_exact >= 0, got {self.max_inducing}, {self.max_fit}, {self.m_fit}, {self.iterations}, "
+                f"{self.restarts}, {self.restart_iterations}, {self.max_exact}"
             )
 
 
@@ -183,6 +187,17 @@ def _chol(K: Tensor, jitter: Tensor) -> Tensor:
     raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
 
 
+def _latent_var(kxx: Tensor, Kxu: Tensor, chol_uu: Tensor, chol_b: Tensor | None) -> Tensor:
+    """Posterior variance of the latent function ``(b,)`` (standardised) at rows whose kernel against the inducing
+    inputs is ``Kxu (b, m)``: ``k(x, x) - |L_uu^-1 k|^2 + |L_B^-1 L_uu^-1 k|^2`` (sparse), or with ``chol_b`` None
+    ``k(x, x) - |L^-1 k|^2``, ``L`` the factor of ``K + sigma^2 I`` (exact)."""
+    a = torch.linalg.solve_triangular(chol_uu, Kxu.T, upper=False)
+    var = kxx - a.square().sum(0)
+    if chol_b is not None:
+        var = var + torch.linalg.solve_triangular(chol_b, a, upper=False).square().sum(0)
+    return var.clamp_min(0.0)
+
+
 def _bound(
     x: Tensor,
     y: Tensor,
@@ -238,6 +253,8 @@ class GPCorrection(Effect):
         extras: extra inputs after the joints, a subset of ``("t", "temperature")``.
         additive: form of the joints' 1-D components, ``"rbf"`` or ``"periodic"``.
         ard: whether the full-joint ARD component is present.
+        exact: the exact GP: the inducing inputs are the training rows and ``chol_uu`` is the Cholesky factor of
+            ``K + sigma^2 I`` (no ``chol_b``), else the sparse posterior's two factors.
     """
 
     kind = "learned"
@@ -250,16 +267,19 @@ class GPCorrection(Effect):
         extras: tuple[str, ...] | list[str] = (),
         additive: str = "rbf",
         ard: bool = True,
+        exact: bool = False,
     ):
         super().__init__(joint=None)
         if additive not in ADDITIVE_FORMS:
             raise OptionError(f"additive form '{additive}' is not one of {', '.join(ADDITIVE_FORMS)}")
         self.dof, self.extras, self.additive, self.ard = int(dof), tuple(extras), additive, bool(ard)
+        self.exact = bool(exact)
         d, m = self.dof + len(self.extras), int(n_inducing)
         self.register_buffer("inducing", torch.zeros(m, d, dtype=F64))
         self.register_buffer("weights", torch.zeros(m, 3, dtype=F64))  # posterior mean = k(x, Z) @ weights [m]
-        self.register_buffer("chol_uu", torch.eye(m, dtype=F64))  # chol(K_uu)
-        self.register_buffer("chol_b", torch.eye(m, dtype=F64))  # chol(I + K_uu^-1/2 K_uf K_fu K_uu^-T/2 / s2)
+        self.register_buffer("chol_uu", torch.eye(m, dtype=F64))  # chol(K_uu); exact: chol(K + s2 I)
+        mb = 0 if self.exact else m  # chol(I + K_uu^-1/2 K_uf K_fu K_uu^-T/2 / s2); exact: none
+        self.register_buffer("chol_b", torch.eye(mb, dtype=F64))
         self.register_buffer("y_mean", torch.zeros(3, dtype=F64))  # [m]
         self.register_buffer("y_scale", torch.ones(3, dtype=F64))  # [m] per output
         self.register_buffer("x_offset", torch.zeros(d, dtype=F64))  # joints: 0; extras: their mean
@@ -308,9 +328,7 @@ class GPCorrection(Effect):
             Kxu = self._kxu(x[i : i + _BLOCK])
             means.append(Kxu @ self.weights * self.y_scale + self.y_mean)
             if std:
-                a = torch.linalg.solve_triangular(self.chol_uu, Kxu.T, upper=False)
-                b = torch.linalg.solve_triangular(self.chol_b, a, upper=False)
-                var = (kxx - a.square().sum(0) + b.square().sum(0)).clamp_min(0.0)
+                var = _latent_var(kxx, Kxu, self.chol_uu, None if self.exact else self.chol_b)
                 if noise:
                     var = var + self.noise
                 stds.append(var.sqrt().unsqueeze(1) * self.y_scale)
@@ -387,12 +405,13 @@ class GPCorrection(Effect):
             "extras": list(self.extras),
             "additive": self.additive,
             "ard": self.ard,
+            "exact": self.exact,
         }
 
     def describe(self) -> dict:
         names = self.variable_names()
         return {
-            "model": "Gaussian process (additive + ARD, sparse)",
+            "model": f"Gaussian process (additive + ARD, {'exact' if self.exact else 'sparse'})",
             "additive": self.additive,
             "n_inducing": int(self.inducing.shape[0]),
             "additive_std": dict(zip(names, (self.add_var.sqrt() * 1.0).tolist())),
@@ -663,8 +682,23 @@ def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
             yield pending.popleft().result()
 
 
+def _exact_factor(eff: GPCorrection, x: Tensor) -> Tensor:
+    """Cholesky factor of ``K(x, x) + sigma^2 I`` ``(n, n)`` (the kernel in row blocks: three block-sized
+    temporaries instead of three ``(n, n)`` ones)."""
+    h = eff.hyper()
+    C = torch.cat([_kernel(x[i : i + _BLOCK], x, h, eff.periodic, eff.ard) for i in range(0, len(x), _BLOCK)])
+    C.diagonal().add_(h["noise"])
+    return _chol(C, _JITTER * _prior_var(h, eff.ard))
+
+
 def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
-    """Weights and Cholesky factors of the posterior given all rows ``x, y`` (standardised), streamed in blocks."""
+    """Weights and Cholesky factors of the posterior given all rows ``x, y`` (standardised), streamed in blocks
+    (exact: the weights ``(K + sigma^2 I)^-1 y`` from one dense factor, the inducing inputs being ``x``)."""
+    if eff.exact:
+        L = _exact_factor(eff, x)
+        eff.weights.copy_(torch.cholesky_solve(y, L))
+        eff.chol_uu.copy_(L)
+        return
     h, z = eff.hyper(), eff.inducing
     m = len(z)
     Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
@@ -731,7 +765,8 @@ def _fit(
 ) -> tuple[GPCorrection, dict]:
     g = torch.Generator().manual_seed(int(s.seed))
     n, dof = ctx.q.shape
-    eff = GPCorrection(dof, min(n, s.max_inducing), s.extras, s.additive, s.ard).to(ctx.q.device)
+    exact = n <= s.max_exact
+    eff = GPCorrection(dof, n if exact else min(n, s.max_inducing), s.extras, s.additive, s.ard, exact).to(ctx.q.device)
     with torch.no_grad():
         for k, name in enumerate(s.extras):
             v = getattr(ctx, name)
@@ -785,7 +820,7 @@ def _fit(
         for k, v in h.items():
             getattr(eff, k).copy_(v)
         # 2. inducing inputs for the posterior: every row when they fit, else k-means in the ARD metric
-        if n <= s.max_inducing:
+        if exact or n <= s.max_inducing:
             eff.inducing.copy_(x)
         else:
             metric = 1.0 / eff.ard_len if s.ard else 1.0 / eff.add_len
@@ -806,7 +841,7 @@ def _fit(
         "rows": n,
         "rows_for_hyperparameters": len(xf),
         "inducing_for_hyperparameters": len(zf),
-        "exact": n <= s.max_inducing,
+        "exact": exact or n <= s.max_inducing,
         **({"variable_share": dict(zip(names, share[: len(names)]))} if summary else {}),
         "rmse_unit": "m",
     }
@@ -840,12 +875,14 @@ def condition_gp(eff: GPCorrection, ctx: Context, y: Tensor, settings: GPSetting
     if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(ctx.q):
         raise ShapeError(f"GP conditioning: expected y of shape ({len(ctx.q)}, 3), got {tuple(y.shape)}")
     n = len(y)
-    new = GPCorrection(eff.dof, min(n, s.max_inducing), eff.extras, eff.additive, eff.ard).to(ctx.q.device)
+    exact = n <= s.max_exact
+    new = GPCorrection(eff.dof, n if exact else min(n, s.max_inducing), eff.extras, eff.additive, eff.ard, exact)
+    new = new.to(ctx.q.device)
     with torch_threads(s.threads), torch.no_grad():
         for name in ("y_mean", "y_scale", "x_offset", "x_scale", *eff.hyper()):
             getattr(new, name).copy_(getattr(eff, name))
         x = new.inputs(ctx)
-        if n <= s.max_inducing:
+        if exact or n <= s.max_inducing:
             new.inducing.copy_(x)
         else:
             g = torch.Generator().manual_seed(int(s.seed))
@@ -887,26 +924,27 @@ class GPConditioner:
             self.x = eff.inputs(ctx)
             m, n = len(z), len(self.x)
             self.s = h["noise"].sqrt()
-            # as _posterior, so that conditioning on the outputs the GP was fitted to gives its own weights
-            Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
-            self.chol_uu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
-            B = torch.eye(m, dtype=F64, device=z.device)
-            keep = m * n <= _KEEP_FACTOR
-            blocks = []
-            for A_i, AA in _in_order(self._block_and_square, range(0, n, _BLOCK)):
-                B += AA
-                if keep:
-                    blocks.append(A_i)
-            self.A = torch.cat(blocks, 1) if keep and blocks else None
-            self.chol_b = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
+            self.A = self.chol_b = None
+            if eff.exact:  # the inducing inputs are the rows: one factor of K + sigma^2 I, as _posterior has it
+                self.chol_uu = _exact_factor(eff, self.x)
+            else:  # as _posterior, so that conditioning on the outputs the GP was fitted to gives its own weights
+                Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
+                self.chol_uu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
+                B = torch.eye(m, dtype=F64, device=z.device)
+                keep = m * n <= _KEEP_FACTOR
+                blocks = []
+                for A_i, AA in _in_order(self._block_and_square, range(0, n, _BLOCK)):
+                    B += AA
+                    if keep:
+                        blocks.append(A_i)
+                self.A = torch.cat(blocks, 1) if keep and blocks else None
+                self.chol_b = _chol(B, torch.tensor(0.0, dtype=F64, device=B.device))
             self.Kvu = self.sd_val = None
             if ctx_val is not None:
                 xv = eff.inputs(ctx_val)
                 self.Kvu = torch.cat([eff._kxu(xv[i : i + _BLOCK]) for i in range(0, len(xv), _BLOCK)])
                 # the predictive standard deviation of a new observation (standardised): it depends on the inputs only
-                a = torch.linalg.solve_triangular(self.chol_uu, self.Kvu.T, upper=False)
-                b = torch.linalg.solve_triangular(self.chol_b, a, upper=False)
-                var = (_prior_var(h, eff.ard) - a.square().sum(0) + b.square().sum(0)).clamp_min(0.0) + h["noise"]
+                var = _latent_var(_prior_var(h, eff.ard), self.Kvu, self.chol_uu, self.chol_b) + h["noise"]
                 self.sd_val = var.sqrt().unsqueeze(1)
 
     def _block(self, i: int) -> Tensor:
@@ -929,7 +967,8 @@ class GPConditioner:
         if y.ndim != 2 or y.shape[1] != 3 or len(y) != len(self.x):
             raise ShapeError(f"GP conditioning: expected y of shape ({len(self.x)}, 3), got {tuple(y.shape)}")
         eff = self.eff
-        new = GPCorrection(eff.dof, len(eff.inducing), eff.extras, eff.additive, eff.ard).to(eff.inducing.device)
+        new = GPCorrection(eff.dof, len(eff.inducing), eff.extras, eff.additive, eff.ard, eff.exact)
+        new = new.to(eff.inducing.device)
         out: dict = {}
         with torch_threads(self.threads), torch.no_grad():
             y = y.to(F64)
@@ -938,16 +977,19 @@ class GPConditioner:
             new.y_mean.copy_(y.mean(0))
             new.y_scale.copy_((y - new.y_mean).square().mean(0).sqrt().clamp_min(1e-12))
             ys = (y - new.y_mean) / new.y_scale
-            if self.A is not None:
-                Ay = self.A @ ys
+            if eff.exact:
+                new.weights.copy_(torch.cholesky_solve(ys, self.chol_uu))
             else:
-                Ay = torch.zeros(len(eff.inducing), 3, dtype=F64, device=ys.device)
-                for i in range(0, len(ys), _BLOCK):
-                    Ay += self._block(i) @ ys[i : i + _BLOCK]
-            c = torch.cholesky_solve(Ay, self.chol_b) / self.s
-            new.weights.copy_(torch.linalg.solve_triangular(self.chol_uu.T, c, upper=True))
+                if self.A is not None:
+                    Ay = self.A @ ys
+                else:
+                    Ay = torch.zeros(len(eff.inducing), 3, dtype=F64, device=ys.device)
+                    for i in range(0, len(ys), _BLOCK):
+                        Ay += self._block(i) @ ys[i : i + _BLOCK]
+                c = torch.cholesky_solve(Ay, self.chol_b) / self.s
+                new.weights.copy_(torch.linalg.solve_triangular(self.chol_uu.T, c, upper=True))
+                new.chol_b.copy_(self.chol_b)
             new.chol_uu.copy_(self.chol_uu)
-            new.chol_b.copy_(self.chol_b)
             if y_val is not None and self.Kvu is not None:
                 mean = self.Kvu @ new.weights * new.y_scale + new.y_mean
                 d = y_val.to(F64) - mean
