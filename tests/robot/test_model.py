@@ -195,6 +195,33 @@ def test_gravity_torque_is_minus_gradient_of_potential():
     assert torch.allclose(robot.gravity_torques(q2.detach(), payload=2.0), -dV, atol=1e-10, rtol=0)
 
 
+def test_static_torques_are_reused_for_the_same_joint_tensor_and_geometry():
+    robot = torchcal.load_robot("ur10")
+    q = random_q(robot, 20, seed=9)
+    tau = robot.static_torques(q)
+    assert torch.equal(tau, robot.gravity_torques(q)) and not tau.requires_grad
+    assert robot.static_torques(q) is tau  # the same tensor and geometry again: the result is reused
+    assert robot.static_torques(q.clone()) is not tau
+    with torch.no_grad():  # another geometry (by value): computed again, as gravity_torques gives it
+        robot.geometry.delta.add_(1e-3 * torch.randn(robot.geometry.delta.shape, dtype=F64))
+    moved = robot.static_torques(q)
+    assert moved is not tau and torch.equal(moved, robot.gravity_torques(q).detach())
+    assert not torch.equal(moved, tau)
+    q.add_(0.1)  # changed in place: computed again
+    again = robot.static_torques(q)
+    assert again is not moved and torch.equal(again, robot.gravity_torques(q).detach())
+    # with a payload the lever arm enters, and a moved lever arm is seen
+    with_payload = robot.static_torques(q, payload=2.0)
+    with torch.no_grad():
+        robot.tool.delta.add_(torch.tensor([0.0, 0.0, 0.05], dtype=F64))
+    shifted = robot.static_torques(q, payload=2.0)
+    assert shifted is not with_payload and torch.equal(shifted, robot.gravity_torques(q, payload=2.0).detach())
+    # under a transform the torque is computed and not cached
+    count = len(robot._torque_cache)
+    value = torch.func.jvp(lambda x: robot.static_torques(x), (q,), (torch.ones_like(q),))[0]
+    assert torch.equal(value, again) and len(robot._torque_cache) == count
+
+
 def test_urdf_masses_match_dh_masses():
     dh, urdf = torchcal.load_robot("ur10"), torchcal.load_robot("ur10.urdf")
     assert torch.allclose(dh.masses, urdf.masses)

@@ -35,9 +35,9 @@ class Compliance(Effect):
         self.payload = float(payload)
 
     def regressor(self, robot, ctx: Context) -> Tensor:
-        """The gravity torque at this joint ``(N,)`` [N m]: the term multiplied by ``k``."""
-        with torch.no_grad():
-            return robot.gravity_torques(ctx.q, payload=self.payload)[:, self.j]
+        """The gravity torque at this joint ``(N,)`` [N m]: the term multiplied by ``k`` (held constant in
+        derivatives: :meth:`~torchcal.robot.model.RobotModel.static_torques`)."""
+        return robot.static_torques(ctx.q, payload=self.payload)[:, self.j]
 
     def forward(self, robot, ctx: Context) -> Tensor:
         return self._joint_delta(ctx, self.k * self.regressor(robot, ctx))
@@ -84,8 +84,7 @@ class Backlash(Effect):
 
             raise EstimationError("backlash with source='motion' needs a trajectory (a 't' column)")
         else:
-            with torch.no_grad():
-                s = torch.sign(robot.gravity_torques(ctx.q)[:, self.j])
+            s = torch.sign(robot.static_torques(ctx.q)[:, self.j])
         return torch.where(s == 0, torch.ones_like(s), s)
 
     def forward(self, robot, ctx: Context) -> Tensor:

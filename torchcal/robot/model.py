@@ -34,6 +34,7 @@ from torchcal.robot import transforms as tf
 
 Tensor = torch.Tensor
 GRAVITY = 9.80665  # m/s^2, standard gravity, along -z of the robot base frame
+_TORQUE_CACHE = 8  # static torques a robot keeps: a fit's damping ladder tries five geometries before its next Jacobian
 
 
 class DHConvention(enum.Enum):
@@ -473,6 +474,40 @@ class RobotModel(nn.Module):
         W = w.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof,)
         total_xy = suffix - torch.stack([origins_w[..., 1], -origins_w[..., 0]], dim=-1) * W.unsqueeze(-1)
         return (total_xy * axes_w[..., :2]).sum(-1)
+
+    def static_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
+        """:meth:`gravity_torques` without gradient, as the joint effects take them for their regressor, the last
+        results reused ``(..., dof)`` [N m].
+
+        A least-squares fit evaluates its effects at the same joint angles dozens of times, and its Jacobian twice
+        at the same parameter values; the torque (a pass over the chain of every pose) is then computed once for
+        each joint-angle tensor (the same object, unchanged in place) and each geometry (and lever arm, with a
+        payload) by value, so the results are those of computing it every time.
+        """
+        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
+        geo = self.geometry.delta
+        if q.requires_grad or wrapped(q) or wrapped(geo) or (payload and wrapped(self.tool.delta)):
+            with torch.no_grad():
+                return self.gravity_torques(q, payload)
+        tool = self.tool.delta if payload else None
+        cache = self.__dict__.setdefault("_torque_cache", [])
+        for (kq, kv, kp, kg, kt), tau in cache:
+            if (
+                kq is q
+                and kv == q._version
+                and kp == payload
+                and torch.equal(kg, geo)
+                and (kt is None or torch.equal(kt, tool))
+            ):
+                return tau
+        with torch.no_grad():
+            tau = self.gravity_torques(q, payload)
+        if wrapped(tau):  # a transform's tensor reached it through the robot's other values: not a plain result
+            return tau
+        key = (q, q._version, float(payload), geo.detach().clone(), None if tool is None else tool.detach().clone())
+        cache.insert(0, (key, tau))
+        del cache[_TORQUE_CACHE:]
+        return tau
 
     # ------------------------------------------------------------- parameters
     def groups(self) -> dict[str, _Group]:
