@@ -35,7 +35,7 @@ def plot_deviations(filt, path: Path) -> None:
         )
     axes[0].legend(ncol=3, fontsize=7, loc="upper left")
     axes[-1].set_xlabel(f"sample (the first {n} filtered, the held-out ones after the line predicted)")
-    save(fig, path)
+    save(fig, path, margins={"left": 0.09, "right": 0.985, "bottom": 0.08, "top": 0.96, "hspace": 0.3})
 
 
 def plot_correction(filt, path: Path) -> None:
@@ -49,7 +49,7 @@ def plot_correction(filt, path: Path) -> None:
         ax.set_ylabel(f"{c} [mm]")
     axes[0].legend(fontsize=7, loc="upper left")
     axes[-1].set_xlabel("sample")
-    save(fig, path)
+    save(fig, path, margins={"left": 0.09, "right": 0.985, "bottom": 0.09, "top": 0.98, "hspace": 0.12})
 
 
 def ekf_section(run, out: Path) -> list[str]:

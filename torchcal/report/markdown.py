@@ -25,7 +25,7 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)
     ax.set_title("Held-out position error per pose")
-    save(fig, path)
+    save(fig, path, margins={"left": 0.08, "right": 0.985, "bottom": 0.15, "top": 0.9})
 
 
 def plot_histograms(run: CalibrationRun, path: Path) -> None:
@@ -38,7 +38,7 @@ def plot_histograms(run: CalibrationRun, path: Path) -> None:
     ax.set_xlabel("|position error| [mm], held-out poses")
     ax.set_ylabel("poses")
     ax.legend(fontsize=8)
-    save(fig, path)
+    save(fig, path, margins={"left": 0.11, "right": 0.98, "bottom": 0.16, "top": 0.96})
 
 
 def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
@@ -60,7 +60,7 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
             ax.set_ylabel("|error| [mm]")
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Held-out error against each joint")
-    save(fig, path)
+    save(fig, path, margins={"left": 0.07, "right": 0.985, "bottom": 0.2 / rows, "top": 1 - 0.2 / rows, "hspace": 0.45})
 
 
 def plot_error_map(run: CalibrationRun, path: Path) -> None:
@@ -123,7 +123,7 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     axes[0].legend(fontsize=7)
     verdict = "accepted" if decision.accepted else "rejected"
     fig.suptitle(f"{decision.candidate.name}: {verdict} (training poses)", fontsize=10)
-    save(fig, path, 100)
+    save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.14, "top": 0.83, "wspace": 0.05})
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -350,7 +350,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
         fontsize=10,
     )
     ax.legend(fontsize=7)
-    save(fig, path, 100)
+    save(fig, path, 100, margins={"left": 0.135, "right": 0.98, "bottom": 0.14, "top": 0.9})
 
 
 def _unexplained_section(report: dict, out: Path) -> list[str]:
