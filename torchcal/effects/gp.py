@@ -60,6 +60,8 @@ _BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variabl
 #: torch ops on one torch thread each, which release the GIL); the blocks are summed in order, so the posterior is
 #: the same for any number of them
 BLOCK_WORKERS = 2
+#: Python threads that run the evidence fit's random starts side by side (each one torch thread)
+RESTART_WORKERS = 2
 
 
 @dataclass
@@ -582,9 +584,9 @@ def fit_hyperparameters(
     exact = z is x
     centre = _initial(d, n_joints, False).to(x.device)
     dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
-    count = [0]
 
-    def run(theta0: Tensor, max_iter: int) -> tuple[float, Tensor]:
+    def run(theta0: Tensor, max_iter: int) -> tuple[float, Tensor, int]:
+        """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations."""
         theta = theta0.detach().to(x.device).clone().requires_grad_(True)
         opt = torch.optim.LBFGS(
             [theta],
@@ -596,6 +598,7 @@ def fit_hyperparameters(
             tolerance_change=1e-9,
         )
         best = [math.inf, theta0.detach().clone()]
+        count = [0]  # per start: the starts run in threads
 
         def closure():
             opt.zero_grad()
@@ -630,7 +633,7 @@ def fit_hyperparameters(
             return loss
 
         opt.step(closure)
-        return best[0], best[1]
+        return best[0], best[1], count[0]
 
     if start is not None:
         noise = (start["noise"] - 1e-6).clamp_min(1e-6)
@@ -648,18 +651,24 @@ def fit_hyperparameters(
         g = generator if generator is not None else torch.Generator().manual_seed(0)
         starts = [_initial(d, n_joints, bool(periodic[:n_joints].any()))]
         starts += [_random_initial(d, n_joints, g) for _ in range(restarts - 1)]
-        tried = [run(t0, restart_iterations) for t0 in starts] if len(starts) > 1 else []
+        tried = []
+        if len(starts) > 1:
+            # the starts are independent (their points drawn above): side by side in threads of one torch thread each
+            # (an evaluation's Cholesky and products release the GIL), in order, so the choice is the same
+            with ThreadPoolExecutor(RESTART_WORKERS, initializer=torch.set_num_threads, initargs=(1,)) as pool:
+                tried = list(pool.map(lambda t0: run(t0, restart_iterations), starts))
         theta0 = min(tried, key=lambda r: r[0])[1] if tried else starts[0]
-    loss, theta = run(theta0, iterations)
+    loss, theta, evaluations = run(theta0, iterations)
+    evaluations += sum(r[2] for r in tried)
     if tried:
-        loss, theta = min([(loss, theta)] + tried, key=lambda r: r[0])
+        loss, theta = min([(loss, theta)] + [r[:2] for r in tried], key=lambda r: r[0])
     if not math.isfinite(loss) or loss >= 1e10:
         raise EstimationError("GP: no evidence evaluation succeeded (the covariance was never positive definite)")
     with torch.no_grad():
         h = {k: v.detach().clone() for k, v in _unpack(theta, d, ard).items()}
     return h, {
         "log_evidence_per_row": -loss,
-        "evaluations": count[0],
+        "evaluations": evaluations,
         "restart_log_evidence_per_row": [-r[0] for r in tried],
     }
 
