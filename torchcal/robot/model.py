@@ -486,7 +486,7 @@ class RobotModel(nn.Module):
         """
         wrapped = torch._C._functorch.is_functorch_wrapped_tensor
         geo = self.geometry.delta
-        if q.requires_grad or wrapped(q) or wrapped(geo) or (payload and wrapped(self.tool.delta)):
+        if q.is_meta or q.requires_grad or wrapped(q) or wrapped(geo) or (payload and wrapped(self.tool.delta)):
             with torch.no_grad():
                 return self.gravity_torques(q, payload)
         tool = self.tool.delta if payload else None
