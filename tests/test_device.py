@@ -267,6 +267,32 @@ def test_calibrate_and_predict_on_another_device(campaign, monkeypatch, tmp_path
     torch.testing.assert_close(p, predict(out, campaign.test), rtol=1e-9, atol=1e-12)
 
 
+class _InlineExecutor:
+    """A ``ThreadPoolExecutor`` that runs each job at once in the calling thread."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, fn, *args, **kwargs):
+        from concurrent.futures import Future
+
+        f = Future()
+        try:
+            f.set_result(fn(*args, **kwargs))
+        except BaseException as e:  # handed to result(), as a pool does
+            f.set_exception(e)
+        return f
+
+    def map(self, fn, *iterables):
+        return [fn(*a) for a in zip(*iterables)]
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(
     os.environ.get("TORCHCAL_DEVICE_AUTO") != "1",
@@ -276,9 +302,16 @@ def test_default_method_on_another_device(monkeypatch):
     """The default method end to end (screening, kinematic, the closed loop's score tests and joint refits, the
     Gaussian process, kernel and network of the learned stage) on the virtual device, against the CPU."""
     import torchcal.pipeline.run as pipeline_run
+    from torchcal.effects import gp
     from torchcal.estimate import robust
+    from torchcal.pipeline import learned
 
     weighted, resolve = robust._weighted, pipeline_run.resolve_device
+    # the virtual device is a dispatch mode, and modes are per thread: the learned stage's worker threads (the GP
+    # beside the network, the evidence fit's starts, the posterior's blocks) run inline here
+    monkeypatch.setattr(learned, "ThreadPoolExecutor", _InlineExecutor)
+    monkeypatch.setattr(gp, "ThreadPoolExecutor", _InlineExecutor)
+    monkeypatch.setattr(gp, "BLOCK_WORKERS", 1)
 
     def with_jacobian(fun, sqrt_w, group):  # as in test_calibrate_and_predict_on_another_device
         f = weighted(fun, sqrt_w, group)
