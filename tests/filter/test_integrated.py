@@ -115,6 +115,9 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
             e_fb = MeasurementModel(gate.fallback, [])(Context.from_measurements(hold, trajectory=True)) - hold.p
         expected = fit_fallback_scale(e_fb, gate.distance(hold.q), ps["fallback_growth"])
         assert ps["fallback_sigma_mm"] == pytest.approx([x * 1e3 for x in expected], rel=1e-9)
+        # the network's error far from the support tends to the same fallback's residual scale on those samples
+        torch.testing.assert_close(gate.sigma_far, e_fb.square().mean(dim=0).sqrt())
+        assert ps["sigma_far_final_mm"] == pytest.approx((gate.sigma_far * 1e3).tolist(), rel=1e-12)
         from torchcal.report.ekf_plots import ekf_section
 
         assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))

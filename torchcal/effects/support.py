@@ -37,15 +37,16 @@ little about the error along a new stretch of path (its shape is mostly the prio
 samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the validation block showed.
 Both are then widened (never narrowed) to a target coverage, over the validation residuals and, where given, the
 refitted model's residuals on held-out samples (:func:`calibrate_factor`).
-The model's own error grows away from its support towards the geometric model's residual scale on validation
-``s_far``, with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite): a
-network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
-distance too: fitted on the geometric model's residuals on samples after the ones it was fitted on, at their
-distance from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of
-the field there than further away; where the fallback itself (geometry on all training samples) has residuals on
-samples it was not fitted on, those size ``s_fb`` with the growth's shape kept (:func:`fit_fallback_scale`): it is
-better determined than the refits the growth comes from. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far
-from a finite gate's support the variance is the geometric model's residual scale on validation.
+The model's own error grows away from its support towards its fallback's residual scale on samples after that fallback's
+fitting samples ``s_far`` (the integrated method: geometry's on its validation block, or the kinematic calibration's on
+the held-out samples), with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite):
+a network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
+distance too: fitted on the geometric model's residuals on samples after the ones it was fitted on, at their distance
+from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of the field there
+than further away; where the fallback itself (geometry on all training samples) has residuals on samples it was not
+fitted on, those size ``s_fb`` with the growth's shape kept (:func:`fit_fallback_scale`): it is better determined than
+the refits the growth comes from. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's support
+the variance is ``s_far^2``.
 """
 
 from __future__ import annotations

@@ -824,7 +824,10 @@ def _attach_predictive_sigma(
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
     the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
     error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
-    scale is fitted. The scale and floor are fitted by likelihood on the validation block, then widened (never
+    scale is fitted. The network's error far from the support tends to its gate's fallback's residual scale
+    ``s_far``: geometry on the fitting samples on the validation block for the candidate's gate, the kinematic
+    calibration on the held-out samples for the final gate (without held-out samples, the former for both). The
+    scale and floor are fitted by likelihood on the validation block, then widened (never
     narrowed) by the factor that puts :data:`COVERAGE_TARGET` of the validation and held-out residuals together
     within 2 sigma, each block with its own model: the candidate on validation, the final model on the held-out
     samples (:func:`~torchcal.effects.support.fit_predictive_scale`); without held-out samples, to the target on
@@ -840,7 +843,13 @@ def _attach_predictive_sigma(
     fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, hold, val_gate)
     val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
-    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length)
+    # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry on the
+    # fitting samples on the validation block for the candidate; the kinematic calibration on the held-out samples
+    # for the final model (a geometry on all training samples, better determined than the one on fewer)
+    far_final = far
+    if hold.n:
+        far_final = _residuals(MeasurementModel(kinematic, []), hold).square().mean(dim=0).sqrt()
+    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far_final, sigma_length)
     gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
     holdout = None
     if hold.n:  # the final model's residuals and variance parts where it was not fitted (its own P_w, its gate)
@@ -870,6 +879,7 @@ def _attach_predictive_sigma(
         "n_holdout": hold.n,
         "sigma_noise_mm": (noise * 1e3).tolist(),
         "sigma_far_mm": (far * 1e3).tolist(),
+        "sigma_far_final_mm": (far_final * 1e3).tolist(),
         "sigma_length": sigma_length,
         "fallback_sigma_mm": [x * 1e3 for x in fb_sigma],
         "fallback_growth": fb_growth,
