@@ -105,6 +105,19 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         assert 0.0 < ps["coverage_2sigma_validation"] <= 1.0 and 0.0 < ps["coverage_2sigma_holdout"] <= 1.0
         # the fallback's error and its growth with distance, from geometry's residuals on later training samples
         assert len(ps["fallback_sigma_mm"]) == 3 and min(ps["fallback_sigma_mm"]) > 0 and ps["fallback_growth"] >= 0
+        # ... its scale from the fallback itself (the kinematic calibration) on the held-out samples, at their
+        # distance from all training samples, the growth's shape kept
+        from torchcal.effects import Context, MeasurementModel
+        from torchcal.effects.support import fit_fallback_scale
+
+        gate, hold = run.model.effects[-1], data.subset(run.holdout_idx)
+        with torch.no_grad():
+            e_fb = MeasurementModel(gate.fallback, [])(Context.from_measurements(hold, trajectory=True)) - hold.p
+        expected = fit_fallback_scale(e_fb, gate.distance(hold.q), ps["fallback_growth"])
+        assert ps["fallback_sigma_mm"] == pytest.approx([x * 1e3 for x in expected], rel=1e-9)
+        # the network's error far from the support tends to the same fallback's residual scale on those samples
+        torch.testing.assert_close(gate.sigma_far, e_fb.square().mean(dim=0).sqrt())
+        assert ps["sigma_far_final_mm"] == pytest.approx((gate.sigma_far * 1e3).tolist(), rel=1e-12)
         from torchcal.report.ekf_plots import ekf_section
 
         assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))

@@ -19,6 +19,7 @@ from torchcal.effects.support import (
     calibrate_factor,
     coverage,
     fit_fallback_growth,
+    fit_fallback_scale,
     fit_predictive_scale,
     predictive_sigma,
 )
@@ -158,6 +159,24 @@ def test_the_fallbacks_growth_with_distance_is_recovered_and_zero_where_there_is
     assert c < 0.01
     with pytest.raises(ValueError, match="e must be"):
         fit_fallback_growth(z, d[:10])
+
+
+def test_the_fallbacks_scale_with_a_given_growth_is_recovered_from_its_own_residuals():
+    g = torch.Generator().manual_seed(4)
+    n = 6000
+    d = 3.0 * torch.rand(n, generator=g, dtype=torch.float64)
+    s_fb = torch.tensor([3e-5, 5e-5, 2e-5], dtype=torch.float64)
+    z = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    e = s_fb * (1.0 + 0.5 * d[:, None] ** 2).sqrt() * z
+    torch.testing.assert_close(
+        torch.tensor(fit_fallback_scale(e, d, 0.5), dtype=torch.float64), s_fb, rtol=0.05, atol=0
+    )
+    # a growth that is too steep for these residuals gives a smaller scale (the shape is taken as given)
+    assert all(a < 0.8 * b for a, b in zip(fit_fallback_scale(e, d, 4.0), s_fb.tolist()))
+    with pytest.raises(ValueError, match="growth"):
+        fit_fallback_scale(e, d, -1.0)
+    with pytest.raises(ValueError, match="e must be"):
+        fit_fallback_scale(e, d[:10], 0.5)
 
 
 def test_the_fallbacks_part_fades_in_with_the_predictions_gate_and_grows_with_distance():

@@ -37,13 +37,16 @@ little about the error along a new stretch of path (its shape is mostly the prio
 samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the validation block showed.
 Both are then widened (never narrowed) to a target coverage, over the validation residuals and, where given, the
 refitted model's residuals on held-out samples (:func:`calibrate_factor`).
-The model's own error grows away from its support towards the geometric model's residual scale on validation
-``s_far``, with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite): a
-network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
-distance too: fitted on the geometric model's residuals on samples after the ones it was fitted on, at their
-distance from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of
-the field there than further away. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's
-support the variance is the geometric model's residual scale on validation.
+The model's own error grows away from its support towards its fallback's residual scale on samples after that fallback's
+fitting samples ``s_far`` (the integrated method: geometry's on its validation block, or the kinematic calibration's on
+the held-out samples), with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite):
+a network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
+distance too: fitted on the geometric model's residuals on samples after the ones it was fitted on, at their distance
+from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of the field there
+than further away; where the fallback itself (geometry on all training samples) has residuals on samples it was not
+fitted on, those size ``s_fb`` with the growth's shape kept (:func:`fit_fallback_scale`): it is better determined than
+the refits the growth comes from. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's support
+the variance is ``s_far^2``.
 """
 
 from __future__ import annotations
@@ -434,6 +437,33 @@ def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:
     s_fb = th[:3].clamp(math.log(rms) - 30.0, math.log(rms) + 10.0).exp()
     c = float(th[3].clamp(-40.0, 10.0).exp())
     return s_fb.tolist(), c if c > 1e-12 else 0.0
+
+
+def fit_fallback_scale(e: Tensor, d: Tensor, growth: float) -> list[float]:
+    """The fallback's residual scale ``s_fb`` (per axis) of ``var_a(d) = s_fb_a^2 (1 + c d^2)`` with the growth ``c``
+    given, by maximum likelihood of residuals ``e`` of the fallback itself at their distances ``d`` from its support:
+    ``s_fb_a^2 = mean_i e_ia^2 / (1 + c d_i^2)`` (Gaussian, independent components).
+
+    :func:`fit_fallback_growth` learns the growth from geometric models refitted on parts of the training samples,
+    which reach further from their support than held-out samples do; but a geometry fitted on all training samples
+    (the fallback a prediction uses) is better determined than one fitted on half of them, and its error at the
+    same distance is smaller. Its own residuals on samples it was not fitted on size the scale; the refits only the
+    shape.
+
+    Args:
+        e: residuals of the fallback ``(N, 3)`` [m] on samples it was not fitted on.
+        d: their distances ``(N,)`` to its fitting samples [spreads] (:meth:`SupportGate.distance`).
+        growth: ``c`` [1 / spread^2], e.g. from :func:`fit_fallback_growth`.
+
+    Returns:
+        ``s_fb`` per axis [m].
+    """
+    if e.ndim != 2 or e.shape[1] != 3 or d.shape != (len(e),) or len(e) == 0:
+        raise ValueError(f"e must be (N, 3) and d (N,) with N > 0, got {tuple(e.shape)}, {tuple(d.shape)}")
+    if growth < 0 or not math.isfinite(growth):
+        raise ValueError(f"growth must be finite and non-negative, got {growth}")
+    e2 = e.detach().square()
+    return (e2 / (1.0 + growth * d.detach()[:, None].square())).mean(dim=0).sqrt().tolist()
 
 
 def _minimise(theta: Tensor, nll, max_iter: int, tolerance_grad: float) -> None:

@@ -824,7 +824,10 @@ def _attach_predictive_sigma(
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
     the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
     error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
-    scale is fitted. The scale and floor are fitted by likelihood on the validation block, then widened (never
+    scale is fitted. The network's error far from the support tends to its gate's fallback's residual scale
+    ``s_far``: geometry on the fitting samples on the validation block for the candidate's gate, the kinematic
+    calibration on the held-out samples for the final gate (without held-out samples, the former for both). The
+    scale and floor are fitted by likelihood on the validation block, then widened (never
     narrowed) by the factor that puts :data:`COVERAGE_TARGET` of the validation and held-out residuals together
     within 2 sigma, each block with its own model: the candidate on validation, the final model on the held-out
     samples (:func:`~torchcal.effects.support.fit_predictive_scale`); without held-out samples, to the target on
@@ -837,10 +840,16 @@ def _attach_predictive_sigma(
     far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
     sigma_length = length if math.isfinite(length) else max(g for g in sup.GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
-    fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, val_gate)
+    fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, hold, val_gate)
     val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
-    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far, sigma_length)
+    # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry on the
+    # fitting samples on the validation block for the candidate; the kinematic calibration on the held-out samples
+    # for the final model (a geometry on all training samples, better determined than the one on fewer)
+    far_final = far
+    if hold.n:
+        far_final = _residuals(MeasurementModel(kinematic, []), hold).square().mean(dim=0).sqrt()
+    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far_final, sigma_length)
     gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
     holdout = None
     if hold.n:  # the final model's residuals and variance parts where it was not fitted (its own P_w, its gate)
@@ -870,6 +879,7 @@ def _attach_predictive_sigma(
         "n_holdout": hold.n,
         "sigma_noise_mm": (noise * 1e3).tolist(),
         "sigma_far_mm": (far * 1e3).tolist(),
+        "sigma_far_final_mm": (far_final * 1e3).tolist(),
         "sigma_length": sigma_length,
         "fallback_sigma_mm": [x * 1e3 for x in fb_sigma],
         "fallback_growth": fb_growth,
@@ -883,6 +893,7 @@ def _fallback_growth(
     fit: Measurements,
     val: Measurements,
     train: Measurements,
+    hold: Measurements,
     val_gate: sup.SupportGate,
 ) -> tuple[list[float], float]:
     """How the geometric model's error grows with the distance from the samples it was fitted on
@@ -890,7 +901,13 @@ def _fallback_growth(
     fitting samples, ``geo``) and on the second half of the training samples (geometry refitted on the first half,
     from the kinematic calibration), each at its distance from the samples fitted. The validation block alone
     reaches only a short way from the support; a path's continuation can leave it much further (a random walk),
-    and the second half of the training samples shows how far geometry's residual grows over a longer stretch."""
+    and the second half of the training samples shows how far geometry's residual grows over a longer stretch.
+    Those refits only give the growth's shape where there are held-out samples: the scale then comes from the
+    kinematic calibration itself, the fallback the prediction uses, on the held-out samples at their distance from
+    all training samples (:func:`~torchcal.effects.support.fit_fallback_scale`). Geometry fitted on all training
+    samples is better determined than one fitted on half of them: scaled by the refits, the fallback part overstated
+    its error on the continuation where the path leaves the training joints (README, *Predictive standard
+    deviation*)."""
     half = train.n // 2
     first, second = train.subset(slice(0, half)), train.subset(slice(half, None))
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
@@ -900,7 +917,12 @@ def _fallback_growth(
     half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
     e = torch.cat([_residuals(geo, val), _residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
-    return sup.fit_fallback_growth(e, d)
+    s_fb, growth = sup.fit_fallback_growth(e, d)
+    if hold.n == 0:
+        return s_fb, growth
+    all_gate = sup.SupportGate(val_gate.inner, train.q, math.inf)  # the final gate's support: all training samples
+    e_hold = _residuals(MeasurementModel(kinematic, []), hold)
+    return sup.fit_fallback_scale(e_hold, all_gate.distance(hold.q), growth), growth
 
 
 #: the share of residual components within two predicted standard deviations the scale factor is calibrated to
