@@ -276,7 +276,10 @@ def calibrate(
     # 4. a learned residual model where the data demand it
     if opts.method == "auto" and opts.learned:
         _console.info("residual model: kernel regression and correction network judged on validation poses")
-        learned_stage(run, train, trajectory)
+        # its fits pin their own threads (the GP's evidence and posterior, the LM refits); the model evaluations between
+        # them are small kernels too, so the whole stage runs on one, as the closed loop does
+        with torch_threads(1):
+            learned_stage(run, train, trajectory)
 
     # 3'. the correction network on what remains (paper Eq. 22: corrections in the base frame)
     if opts.method in ("pcm", "kinematic+ann"):
