@@ -244,7 +244,7 @@ def _bound(
 
 
 class GPCorrection(Effect):
-    """The ``learned`` effect as a sparse additive + ARD Gaussian process (module docstring); base frame.
+    """The ``learned`` effect as an additive + ARD Gaussian process, exact or sparse (module docstring); base frame.
 
     Everything the prediction needs is a buffer, so ``state_dict`` and :meth:`config` rebuild it
     exactly (:func:`~torchcal.effects.effect_from_config`).

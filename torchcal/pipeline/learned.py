@@ -167,7 +167,7 @@ def select_learned(
                 gp_info["val_errors"],
                 {
                     **gp.describe(),
-                    "model": "sparse additive + ARD Gaussian process",
+                    "model": f"{'exact' if gp.exact else 'sparse'} additive + ARD Gaussian process",
                     "variable_share": gp_info.get("variable_share"),
                     "validation_coverage_2sigma": gp_info.get("val_coverage_2sigma"),
                 },
