@@ -1,5 +1,6 @@
 """Robot model: known answers, independent DH, pytorch-kinematics, gradients, gravity torques."""
 
+import copy
 import math
 
 import numpy as np
@@ -220,6 +221,9 @@ def test_static_torques_are_reused_for_the_same_joint_tensor_and_geometry():
     count = len(robot._torque_cache)
     value = torch.func.jvp(lambda x: robot.static_torques(x), (q,), (torch.ones_like(q),))[0]
     assert torch.equal(value, again) and len(robot._torque_cache) == count
+    copied = copy.deepcopy(robot)  # a copy starts without the cache and fills its own
+    assert "_torque_cache" not in copied.__dict__
+    assert torch.equal(copied.static_torques(q), again) and len(robot._torque_cache) == count
 
 
 def test_urdf_masses_match_dh_masses():

@@ -509,6 +509,13 @@ class RobotModel(nn.Module):
         del cache[_TORQUE_CACHE:]
         return tau
 
+    def __getstate__(self):
+        # a copy (deepcopy, pickle) leaves the torque cache behind: its keys are the original's joint tensors, which
+        # the copy never sees again, and it holds a few tensors of the size of the data
+        state = super().__getstate__()
+        state.pop("_torque_cache", None)
+        return state
+
     # ------------------------------------------------------------- parameters
     def groups(self) -> dict[str, _Group]:
         return {"geometry": self.geometry, "instrument": self.instrument, "tool": self.tool}
