@@ -32,7 +32,9 @@ towards long length scales where the structure is short-range (as on the UR10), 
 evidence on fewer rows. The posterior then uses every training row with ``max_inducing`` inducing
 inputs placed by k-means in the metric of the fitted ARD length scales. With at least as
 many inducing inputs as training rows the inducing inputs are the rows themselves and the bound
-and the posterior are those of the exact (dense) Gaussian process.
+and the posterior are those of the exact (dense) Gaussian process. Up to ``max_exact`` rows the
+posterior is the exact one, from a single Cholesky factor of ``K + sigma^2 I`` (``n^3 / 3``
+operations, cheaper than the sparse posterior's ``2 n m^2`` up to about ``2.4 m`` rows).
 """
 
 from __future__ import annotations
