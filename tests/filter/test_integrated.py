@@ -118,6 +118,9 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         # the network's error far from the support tends to the same fallback's residual scale on those samples
         torch.testing.assert_close(gate.sigma_far, e_fb.square().mean(dim=0).sqrt())
         assert ps["sigma_far_final_mm"] == pytest.approx((gate.sigma_far * 1e3).tolist(), rel=1e-12)
+        # and the largest predicted sigma there is of the size of the residuals, not numerical trouble
+        chk = ps["sigma_check"]
+        assert not chk["suspect"] and 0.1 < chk["ratio"] < 10 and "predictive sigma reaches" not in " ".join(run.notes)
         from torchcal.report.ekf_plots import ekf_section
 
         assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))

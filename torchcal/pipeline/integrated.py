@@ -865,6 +865,13 @@ def _attach_predictive_sigma(
     run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
     cov_val = _coverage(val_model, val, val_gate)
     cov_hold = _coverage(run.model, hold, gate) if hold.n else None
+    check = _sigma_check([(val_model, val, val_gate)] + ([(run.model, hold, gate)] if hold.n else []))
+    if check["suspect"]:
+        run.notes.append(
+            f"integrated: the predictive sigma reaches {check['max_sigma_mm']} mm, {check['ratio']} times the "
+            "largest validation or held-out residual: the widening factor was set by samples where the network's "
+            "part of the variance is nearly zero; treat the sx, sy, sz columns of predict as unreliable"
+        )
     return {
         "scale": scale,
         "floor_mm": [f * 1e3 for f in floor],
@@ -883,6 +890,7 @@ def _attach_predictive_sigma(
         "sigma_length": sigma_length,
         "fallback_sigma_mm": [x * 1e3 for x in fb_sigma],
         "fallback_growth": fb_growth,
+        "sigma_check": check,
     }
 
 
@@ -965,6 +973,29 @@ def _predictive_gate(
     gate = sup.SupportGate(inner, support, length, fallback=fallback)
     gate.set_predictive(filt.weight_cov, filt.weight_index, noise, far, sigma_length, scale, floor)
     return gate
+
+
+#: a predictive sigma this many times the largest residual of the blocks it was calibrated on is numerical trouble
+SIGMA_CHECK_RATIO = 100.0
+
+
+def _sigma_check(blocks: list[tuple[MeasurementModel, Measurements, sup.SupportGate]]) -> dict:
+    """The largest predicted standard deviation on the validation and held-out blocks against their largest residual:
+    ``suspect`` when it is not finite or more than :data:`SIGMA_CHECK_RATIO` times that residual. The widening factor
+    (:func:`~torchcal.effects.support.calibrate_factor`) is a quantile of what each residual component needs from the
+    near part of the variance; where that part is nearly zero (a gate almost closed) the need, and with it every
+    other sample's sigma, can grow without bound. Reported, not hidden."""
+    with torch.no_grad():
+        sd = torch.cat([gate.predictive_std(model.robot, m.q).flatten() for model, m, gate in blocks])
+        e = torch.cat([_residuals(model, m, gate).abs().flatten() for model, m, gate in blocks])
+    top, worst = float(sd.max()), float(e.max().clamp_min(1e-12))
+    ratio = top / worst
+    return {
+        "max_sigma_mm": top * 1e3 if math.isfinite(top) else None,
+        "max_residual_mm": worst * 1e3,
+        "ratio": ratio if math.isfinite(ratio) else None,
+        "suspect": not math.isfinite(ratio) or ratio > SIGMA_CHECK_RATIO,
+    }
 
 
 def _coverage(model: MeasurementModel, m: Measurements, gate: sup.SupportGate) -> float:
