@@ -837,18 +837,20 @@ def _attach_predictive_sigma(
     validation and on the held-out samples, the rule, the variance's parts).
     """
     noise = _observation_sigma(run.model, train, run.options)
-    far = _residuals(geo, val).square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
+    # each fallback's residuals beyond its own support: geometry on the fitting samples on the validation block,
+    # the kinematic calibration (geometry on all training samples) on the held-out samples
+    e_geo = _residuals(geo, val)
+    e_kin = _residuals(MeasurementModel(kinematic, []), hold) if hold.n else None
+    far = e_geo.square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
     sigma_length = length if math.isfinite(length) else max(g for g in sup.GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
-    fb_sigma, fb_growth = _fallback_growth(run, kinematic, geo, fit, val, train, hold, val_gate)
+    fb_sigma, fb_growth = _fallback_growth(run, kinematic, e_geo, e_kin, val, train, hold, val_gate)
     val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
-    # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry on the
-    # fitting samples on the validation block for the candidate; the kinematic calibration on the held-out samples
-    # for the final model (a geometry on all training samples, better determined than the one on fewer)
-    far_final = far
-    if hold.n:
-        far_final = _residuals(MeasurementModel(kinematic, []), hold).square().mean(dim=0).sqrt()
+    # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry's on the
+    # validation block for the candidate; the kinematic calibration's on the held-out samples for the final model
+    # (a geometry on all training samples, better determined than the one on fewer)
+    far_final = far if e_kin is None else e_kin.square().mean(dim=0).sqrt()
     gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far_final, sigma_length)
     gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
     holdout = None
@@ -863,9 +865,14 @@ def _attach_predictive_sigma(
     run.model.effects[-1] = gate
     run.stages.pop()
     run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
-    cov_val = _coverage(val_model, val, val_gate)
-    cov_hold = _coverage(run.model, hold, gate) if hold.n else None
-    check = _sigma_check([(val_model, val, val_gate)] + ([(run.model, hold, gate)] if hold.n else []))
+    # each block's residuals (computed above; the scale changes no prediction) against its predicted sigma
+    with torch.no_grad():
+        blocks = [(e_val, val_gate.predictive_std(val_model.robot, val.q))]
+        if hold.n:
+            blocks.append((holdout[0], gate.predictive_std(run.model.robot, hold.q)))
+    cov_val = sup.coverage(*blocks[0])
+    cov_hold = sup.coverage(*blocks[1]) if hold.n else None
+    check = _sigma_check(blocks)
     if check["suspect"]:
         run.notes.append(
             f"integrated: the predictive sigma reaches {check['max_sigma_mm']} mm, {check['ratio']} times the "
@@ -897,8 +904,8 @@ def _attach_predictive_sigma(
 def _fallback_growth(
     run: CalibrationRun,
     kinematic,
-    geo: MeasurementModel,
-    fit: Measurements,
+    e_geo: Tensor,
+    e_kin: Tensor | None,
     val: Measurements,
     train: Measurements,
     hold: Measurements,
@@ -906,16 +913,16 @@ def _fallback_growth(
 ) -> tuple[list[float], float]:
     """How the geometric model's error grows with the distance from the samples it was fitted on
     (:func:`~torchcal.effects.support.fit_fallback_growth`): its residuals on the validation block (geometry on the
-    fitting samples, ``geo``) and on the second half of the training samples (geometry refitted on the first half,
+    fitting samples, ``e_geo``) and on the second half of the training samples (geometry refitted on the first half,
     from the kinematic calibration), each at its distance from the samples fitted. The validation block alone
     reaches only a short way from the support; a path's continuation can leave it much further (a random walk),
     and the second half of the training samples shows how far geometry's residual grows over a longer stretch.
     Those refits only give the growth's shape where there are held-out samples: the scale then comes from the
     kinematic calibration itself, the fallback the prediction uses, on the held-out samples at their distance from
-    all training samples (:func:`~torchcal.effects.support.fit_fallback_scale`). Geometry fitted on all training
-    samples is better determined than one fitted on half of them: scaled by the refits, the fallback part overstated
-    its error on the continuation where the path leaves the training joints (README, *Predictive standard
-    deviation*)."""
+    all training samples, ``e_kin`` (:func:`~torchcal.effects.support.fit_fallback_scale`; None without them).
+    Geometry fitted on all training samples is better determined than one fitted on half of them: scaled by the
+    refits, the fallback part overstated its error on the continuation where the path leaves the training joints
+    (README, *Predictive standard deviation*)."""
     half = train.n // 2
     first, second = train.subset(slice(0, half)), train.subset(slice(half, None))
     ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
@@ -923,14 +930,13 @@ def _fallback_growth(
     stage = "integrated: geometry on the first half (sigma)"
     solve(geo_half, first, GEOMETRIC_GROUPS, run.options, stage, True, identifiability=ida)
     half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
-    e = torch.cat([_residuals(geo, val), _residuals(geo_half, second)])
+    e = torch.cat([e_geo, _residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
     s_fb, growth = sup.fit_fallback_growth(e, d)
-    if hold.n == 0:
+    if e_kin is None:
         return s_fb, growth
     all_gate = sup.SupportGate(val_gate.inner, train.q, math.inf)  # the final gate's support: all training samples
-    e_hold = _residuals(MeasurementModel(kinematic, []), hold)
-    return sup.fit_fallback_scale(e_hold, all_gate.distance(hold.q), growth), growth
+    return sup.fit_fallback_scale(e_kin, all_gate.distance(hold.q), growth), growth
 
 
 #: the share of residual components within two predicted standard deviations the scale factor is calibrated to
@@ -979,15 +985,15 @@ def _predictive_gate(
 SIGMA_CHECK_RATIO = 100.0
 
 
-def _sigma_check(blocks: list[tuple[MeasurementModel, Measurements, sup.SupportGate]]) -> dict:
-    """The largest predicted standard deviation on the validation and held-out blocks against their largest residual:
-    ``suspect`` when it is not finite or more than :data:`SIGMA_CHECK_RATIO` times that residual. The widening factor
+def _sigma_check(blocks: list[tuple[Tensor, Tensor]]) -> dict:
+    """The largest predicted standard deviation of ``(residuals, sigma)`` blocks (the validation and held-out ones,
+    ``(N, 3)`` [m] each) against their largest residual: ``suspect`` when it is not finite or more than
+    :data:`SIGMA_CHECK_RATIO` times that residual. The widening factor
     (:func:`~torchcal.effects.support.calibrate_factor`) is a quantile of what each residual component needs from the
     near part of the variance; where that part is nearly zero (a gate almost closed) the need, and with it every
     other sample's sigma, can grow without bound. Reported, not hidden."""
-    with torch.no_grad():
-        sd = torch.cat([gate.predictive_std(model.robot, m.q).flatten() for model, m, gate in blocks])
-        e = torch.cat([_residuals(model, m, gate).abs().flatten() for model, m, gate in blocks])
+    sd = torch.cat([b[1].flatten() for b in blocks])
+    e = torch.cat([b[0].abs().flatten() for b in blocks])
     top, worst = float(sd.max()), float(e.max().clamp_min(1e-12))
     ratio = top / worst
     return {
@@ -996,9 +1002,3 @@ def _sigma_check(blocks: list[tuple[MeasurementModel, Measurements, sup.SupportG
         "ratio": ratio if math.isfinite(ratio) else None,
         "suspect": not math.isfinite(ratio) or ratio > SIGMA_CHECK_RATIO,
     }
-
-
-def _coverage(model: MeasurementModel, m: Measurements, gate: sup.SupportGate) -> float:
-    """Share of ``m``'s residual components within two predicted standard deviations of ``model`` behind ``gate``."""
-    with torch.no_grad():
-        return sup.coverage(_residuals(model, m, gate), gate.predictive_std(model.robot, m.q))
