@@ -693,11 +693,17 @@ def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
             yield pending.popleft().result()
 
 
-def _exact_factor(eff: GPCorrection, x: Tensor) -> Tensor:
-    """Cholesky factor of ``K(x, x) + sigma^2 I`` ``(n, n)`` (the kernel in row blocks: three block-sized
-    temporaries instead of three ``(n, n)`` ones)."""
+def _square_kernel(eff: GPCorrection, x: Tensor) -> Tensor:
+    """``k(x, x)`` ``(n, n)`` of ``eff``'s hyperparameters, in row blocks (three block-sized temporaries instead of
+    three ``(n, n)`` ones)."""
     h = eff.hyper()
-    C = torch.cat([_kernel(x[i : i + _BLOCK], x, h, eff.periodic, eff.ard) for i in range(0, len(x), _BLOCK)])
+    return torch.cat([_kernel(x[i : i + _BLOCK], x, h, eff.periodic, eff.ard) for i in range(0, len(x), _BLOCK)])
+
+
+def _exact_factor(eff: GPCorrection, x: Tensor) -> Tensor:
+    """Cholesky factor of ``K(x, x) + sigma^2 I`` ``(n, n)``."""
+    h = eff.hyper()
+    C = _square_kernel(eff, x)
     C.diagonal().add_(h["noise"])
     return _chol(C, _JITTER * _prior_var(h, eff.ard))
 
@@ -712,8 +718,7 @@ def _posterior(eff: GPCorrection, x: Tensor, y: Tensor) -> None:
         return
     h, z = eff.hyper(), eff.inducing
     m = len(z)
-    Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
-    Lu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
+    Lu = _chol(_square_kernel(eff, z), _JITTER * _prior_var(h, eff.ard))
     B = torch.eye(m, dtype=F64, device=z.device)
     Ay = torch.zeros(m, y.shape[1], dtype=F64, device=z.device)
     s = h["noise"].sqrt()
@@ -939,8 +944,7 @@ class GPConditioner:
             if eff.exact:  # the inducing inputs are the rows: one factor of K + sigma^2 I, as _posterior has it
                 self.chol_uu = _exact_factor(eff, self.x)
             else:  # as _posterior, so that conditioning on the outputs the GP was fitted to gives its own weights
-                Kuu = torch.cat([_kernel(z[i : i + _BLOCK], z, h, eff.periodic, eff.ard) for i in range(0, m, _BLOCK)])
-                self.chol_uu = _chol(Kuu, _JITTER * _prior_var(h, eff.ard))
+                self.chol_uu = _chol(_square_kernel(eff, z), _JITTER * _prior_var(h, eff.ard))
                 B = torch.eye(m, dtype=F64, device=z.device)
                 keep = m * n <= _KEEP_FACTOR
                 blocks = []
