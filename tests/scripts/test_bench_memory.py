@@ -75,3 +75,21 @@ def test_a_failing_command_raises_with_its_message(tmp_path):
 
     with pytest.raises(TorchcalError, match=r"exit 2\).*no-such.csv"):
         measure(["calibrate", str(tmp_path / "no-such.csv"), "--robot", "ur5", "--out", str(tmp_path / "run")])
+
+
+def test_the_calibration_bench_times_each_stage_through_the_probe(campaign_dir, tmp_path):
+    from torchcal.experiments.bench_calibration import compare
+
+    sim, _ = campaign_dir
+    res = compare(str(sim / "train.csv"), "ur5", ["kinematic"], False, tmp_path)
+    run = res["quiet"]["kinematic"]
+    assert [s["stage"] for s in run["stages"]] == ["import", "robot", "read", "fit", "report"]
+    assert all(s["calls"] >= 1 and s["wall_s"] > 0 for s in run["stages"])
+    # the fit's nested stages by name, the screening's and the kinematic fit's LM solves summed under one
+    assert run["parts"]["screening"]["calls"] == 1 and run["parts"]["LM"]["calls"] >= 2
+    assert run["parts"]["LM"]["wall_s"] <= next(s["wall_s"] for s in run["stages"] if s["stage"] == "fit")
+    report = json.loads((tmp_path / "q-kinematic" / "run" / "report.json").read_text())
+    assert run["rmse_holdout_mm"] == report["rmse_after_mm"] and run["effects"] == []
+    summary = res["summary"]["kinematic"]
+    assert summary["quiet_wall_s"] == run["total_wall_s"] > sum(s["wall_s"] for s in run["stages"])
+    assert summary["quiet_peak_mb"] == run["peak_mb"] >= max(s["peak_mb"] for s in run["stages"])

@@ -6,20 +6,19 @@ unknown tracker pose and lever arm, 15 um tracker and 0.0005 deg joint noise), c
 reference is the error of the *true* model at the same held-out poses, i.e. the floor set by the
 noise; the ratio ``rmse_after / floor`` is the figure of merit (1.0 = as good as knowing the truth).
 
-:func:`compare` instead times one calibration of DATA per method
-(default: ``auto``, then ``kinematic``) in a fresh process with one torch thread, stage by stage (import, robot, read,
-fit, report: wall and CPU seconds, peak resident memory after each; ``parts``: the nested stages of the default
-method -- screening, closed loop with its score tests, localisation and refits, learned stage with its kernel, GP and
-network fits, all least-squares fits), and with ``--load`` every run again while a busy Python process holds one core;
-``summary`` gives each method's wall time, its ratio to the last method's and the loaded/quiet ratio. A part's CPU time
-is the whole process's while it ran: the learned stage fits its GP in a second thread beside the network and the kernel
-regression, so those parts also count the GP's CPU time, and the GP posterior's row blocks run on two threads.
+:func:`compare` instead times one calibration of DATA per method (default: ``auto``, then ``kinematic``) in a fresh
+process with one torch thread, through the memory probe of :mod:`~torchcal.experiments.bench_memory`, stage by stage
+(import, robot, read, fit, report: wall and CPU seconds, each stage's own peak resident memory; ``parts``: the nested
+stages of the fit -- screening, closed loop with its score tests, localisation and refits, learned stage with its
+kernel, GP and network fits, every LM fit), and with ``--load`` every run again while a busy Python process holds one
+core; ``summary`` gives each method's wall time, its ratio to the last method's and the loaded/quiet ratio. A part's
+CPU time is the whole process's while it ran: the learned stage fits its GP in a second thread beside the network and
+the kernel regression, so those parts also count the GP's CPU time.
 """
 
 from __future__ import annotations
 
 import json
-import os
 import statistics
 import subprocess
 import sys
@@ -29,6 +28,7 @@ from pathlib import Path
 
 from torchcal._version import __version__
 from torchcal.estimate.fit import errors
+from torchcal.experiments import bench_memory
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import SimConfig, simulate, write_campaign
 
@@ -95,97 +95,59 @@ def one(seed: int, work: Path) -> dict:
     }
 
 
-_STAGES = r"""
-import functools, json, resource, sys, time
-def now():
-    r = resource.getrusage(resource.RUSAGE_SELF)
-    return time.perf_counter(), r.ru_utime + r.ru_stime, r.ru_maxrss / 1024
-out, last, parts = [], now(), {}
-def mark(name):
-    global last
-    t = now()
-    out.append({"stage": name, "wall_s": t[0] - last[0], "cpu_s": t[1] - last[1], "peak_mb": t[2]})
-    last = t
-def timed(module, attr, name):
-    # wrap module.attr so that its calls add up under parts[name] (wall, CPU, calls, peak memory after them)
-    fn = getattr(module, attr)
-    @functools.wraps(fn)
-    def wrapper(*a, **k):
-        t0 = now()
-        try:
-            return fn(*a, **k)
-        finally:
-            t1 = now()
-            e = parts.setdefault(name, {"calls": 0, "wall_s": 0.0, "cpu_s": 0.0, "peak_mb": 0.0})
-            e["calls"] += 1
-            e["wall_s"] += t1[0] - t0[0]
-            e["cpu_s"] += t1[1] - t0[1]
-            e["peak_mb"] = t1[2]
-    setattr(module, attr, wrapper)
-import torch
-from torchcal import pipeline as C
-from torchcal.data import read_measurements
-from torchcal.report import write_run
-from torchcal.robot import load_robot
-from torchcal.pipeline import loop as L, learned as LS, run as R
-from torchcal.estimate import fit as EF
-mark("import")
-# the default method's stages (nested: the loop's refits are inside "closed loop", the learned stage's inside it)
-for mod, attr, name in [
-    (R, "screen_gross_errors", "screening"),
-    (R, "close_loop", "closed loop"),
-    (L, "score_candidates", "closed loop: score tests"),
-    (L, "localise_fit", "closed loop: localisation"),
-    (L, "open_candidates", "closed loop: open forms"),
-    (L, "_validate", "closed loop: validation refits"),
-    (L, "_accept", "closed loop: accepted refits"),
-    (L, "unexplained_entries", "closed loop: unexplained"),
-    (R, "learned_stage", "learned stage"),
-    (LS, "select_learned", "learned: selection"),
-    (LS, "refine_learned", "learned: alternating refits"),
-    (LS, "prune_named", "learned: pruning named effects"),
-    (LS, "fit_kernel_correction", "learned: kernel fits"),
-    (LS, "fit_gp_correction", "learned: GP fits"),
-    (LS, "fit_net", "learned: network fits"),
-    (EF, "levenberg_marquardt", "least squares of estimate.fit.solve"),
-]:
-    if hasattr(mod, attr):
-        timed(mod, attr, name)
-data_path, spec, method, out_dir = sys.argv[1:5]
-robot = load_robot(spec)
-mark("robot")
-data = read_measurements(data_path, dof=robot.dof, require_positions=True)
-mark("read")
-run = C.calibrate(robot, data, C.Options(method=method), robot_spec=spec)
-mark("fit")
-write_run(run, out_dir)
-mark("report")
-print(json.dumps({
-    "stages": out,
-    "parts": parts,
-    "rmse_holdout_mm": run.stages[-1].rmse * 1e3,
-    "rmse_geometric_mm": next(s.rmse for s in run.stages if s.name == "geometric") * 1e3,
-    "effects": [e.name for e in run.effects],
-}))
-"""
+#: the default method's nested stages the probe times besides its own (:data:`~torchcal.experiments._memprobe.TARGETS`:
+#: screening, closed loop, learned stage, every LM fit as ``LM``), as ``MODULE:ATTR=NAME``
+PARTS = [
+    "torchcal.pipeline.loop:score_candidates=closed loop: score tests",
+    "torchcal.pipeline.loop:localise_fit=closed loop: localisation",
+    "torchcal.pipeline.loop:open_candidates=closed loop: open forms",
+    "torchcal.pipeline.loop:_validate=closed loop: validation refits",
+    "torchcal.pipeline.loop:_accept=closed loop: accepted refits",
+    "torchcal.pipeline.loop:unexplained_entries=closed loop: unexplained",
+    "torchcal.pipeline.learned:select_learned=learned: selection",
+    "torchcal.pipeline.learned:refine_learned=learned: alternating refits",
+    "torchcal.pipeline.learned:prune_named=learned: pruning named effects",
+    "torchcal.pipeline.learned:fit_kernel_correction=learned: kernel fits",
+    "torchcal.pipeline.learned:fit_gp_correction=learned: GP fits",
+    "torchcal.pipeline.learned:fit_net=learned: network fits",
+]
+#: the top-level stages of one run and the probe's stages each sums
+_TOP = {"robot": "command/robot", "read": "command/read", "fit": "command/fit", "report": "command/report"}
 
 
 def stages(data: str, robot: str, method: str, work: Path) -> dict:
-    """One calibration in a fresh process (one torch thread), timed stage by stage; ``parts`` times the default
-    method's nested stages (closed loop, its score tests and refits, the learned stage, every least-squares fit)."""
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    t0 = time.perf_counter()
-    proc = subprocess.run(
-        [sys.executable, "-c", _STAGES, data, robot, method, str(work / "run")],
-        check=True,
-        capture_output=True,
-        text=True,
-        env=env,
-    )
-    out = json.loads(proc.stdout.strip().splitlines()[-1])
-    out["total_wall_s"] = time.perf_counter() - t0
-    out["peak_mb"] = max(s["peak_mb"] for s in out["stages"])
-    return out
+    """One ``torchcal calibrate`` in a fresh process (one torch thread) through the memory probe
+    (:func:`~torchcal.experiments.bench_memory.calibration`), stage by stage: ``stages`` import, robot, read, fit and
+    report (wall and CPU seconds, each one's own peak resident memory), ``parts`` every stage inside the fit by name
+    (the closed loop, its score tests and refits, the learned stage and its fits, every LM fit; summed where a name
+    comes at several depths), and the run's held-out errors and effects from its report.json."""
+    out_dir = work / "run"
+    res = bench_memory.calibration(data, robot, method, out_dir, targets=PARTS)
+    recs = res["stages"]
+
+    def total(rows: list[dict]) -> dict:
+        return {
+            "calls": sum(r["calls"] for r in rows),
+            "wall_s": sum(r["wall_s"] for r in rows),
+            "cpu_s": sum(r["cpu_s"] for r in rows),
+            "peak_mb": max((r["peak_mb"] for r in rows), default=0.0),
+        }
+
+    top = [{"stage": "import", **total([r for r in recs if r["stage"].startswith("command/import ")])}]
+    top += [{"stage": name, **total([r for r in recs if r["stage"] == path])} for name, path in _TOP.items()]
+    inner = [r for r in recs if r["stage"].startswith("command/fit/")]
+    leaf = {r["stage"]: r["stage"].rsplit("/", 1)[1] for r in inner}
+    parts = {name: total([r for r in inner if leaf[r["stage"]] == name]) for name in dict.fromkeys(leaf.values())}
+    report = json.loads((out_dir / "report.json").read_text())
+    return {
+        "stages": top,
+        "parts": parts,
+        "rmse_holdout_mm": report["rmse_after_mm"],
+        "rmse_geometric_mm": report["rmse_geometric_mm"],
+        "effects": [e["name"] for e in report["effects"]],
+        "total_wall_s": res["wall_s"],
+        "peak_mb": res["peak_mb"],
+    }
 
 
 def busy_process() -> subprocess.Popen:
