@@ -93,3 +93,24 @@ def test_the_calibration_bench_times_each_stage_through_the_probe(campaign_dir, 
     summary = res["summary"]["kinematic"]
     assert summary["quiet_wall_s"] == run["total_wall_s"] > sum(s["wall_s"] for s in run["stages"])
     assert summary["quiet_peak_mb"] == run["peak_mb"] >= max(s["peak_mb"] for s in run["stages"])
+
+
+def test_a_stage_in_a_worker_thread_nests_on_its_own_stack():
+    import threading
+    import time
+
+    from torchcal.experiments._memprobe import Meter
+
+    meter = Meter(reset=False)
+    meter.enter("fit")
+    meter.enter("network")
+    worker = threading.Thread(target=meter.wrap(lambda: time.sleep(0.05), "gp"))
+    worker.start()  # the GP beside the network: its own stack, named under where the main thread is
+    time.sleep(0.01)
+    meter.exit()  # the network ends first; the GP's stage does not end it
+    worker.join()
+    meter.exit()
+    rec = meter.records
+    assert set(rec) == {"fit", "fit/network", "fit/network/gp"}
+    assert rec["fit/network/gp"]["wall_s"] >= 0.05 > rec["fit/network"]["wall_s"]
+    assert rec["fit"]["wall_s"] >= rec["fit/network/gp"]["wall_s"] and all(r["calls"] == 1 for r in rec.values())

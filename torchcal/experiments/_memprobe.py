@@ -7,7 +7,8 @@ every import the command makes (``import torchcal``: torch; ``import torchcal.cl
 
 How: the functions of :data:`TARGETS` are wrapped as their modules are imported, and the imports of
 :data:`IMPORTS` are stages themselves (a ``sys.meta_path`` hook, so that a stage's own imports stay in that
-stage); the stages nest under ``command``. The peak resident memory of a stage is the
+stage); the stages nest under ``command``, each thread's on a stack of its own (a stage that starts in a worker
+thread is named under the stage the main thread is in at that moment). The peak resident memory of a stage is the
 kernel's high-water mark (``VmHWM`` of ``/proc/self/status``) between its entry and exit; the mark is reset
 (``/proc/self/clear_refs``, Linux) at every entry and exit, so each stage reports its own peak and the enclosing
 stage takes the maximum of its children's. torch's allocator is outside ``tracemalloc``; the resident set is what
@@ -24,6 +25,7 @@ import json
 import resource
 import runpy
 import sys
+import threading
 import time
 
 #: (module, attribute, stage) wrapped when the module is imported; the attribute is looked up where it is called
@@ -78,8 +80,14 @@ class Meter:
 
     def __init__(self, reset: bool):
         self.reset_ok = reset and self._reset()
-        self.stack: list[dict] = []
+        self.stacks: dict[int, list[dict]] = {}  # per thread: a stage run in a worker thread nests on its own stack
+        self.main = threading.get_ident()
+        self.lock = threading.Lock()
         self.records: dict[str, dict] = {}  # by path "fit/screening", in order of first entry
+
+    @property
+    def stack(self) -> list[dict]:
+        return self.stacks.setdefault(threading.get_ident(), [])
 
     def _reset(self) -> bool:
         try:
@@ -99,9 +107,13 @@ class Meter:
         if self.reset_ok:
             self._reset()
         r = resource.getrusage(resource.RUSAGE_SELF)
+        # a worker thread's outermost stage is named under the stage the main thread is in when it starts (the
+        # learned stage's GP fit beside the network's: the path is approximate, the stage's own numbers are not)
+        main = self.stacks.get(self.main, []) if not self.stack and threading.get_ident() != self.main else []
         self.stack.append(
             {
                 "name": name,
+                "prefix": [f["name"] for f in main],
                 "t0": time.perf_counter(),
                 "cpu0": r.ru_utime + r.ru_stime,
                 "rss0": _status()["VmRSS"],
@@ -117,7 +129,17 @@ class Meter:
         r = resource.getrusage(resource.RUSAGE_SELF)
         peak = max(st["VmHWM"], fr["child_peak"])
         new = {m.split(".")[0] for m in set(sys.modules) - fr["mods0"]}
-        path = "/".join([f["name"] for f in self.stack] + [fr["name"]])
+        root = self.stack[0] if self.stack else fr  # the thread's outermost stage carries its prefix
+        path = "/".join(root["prefix"] + [f["name"] for f in self.stack] + [fr["name"]])
+        with self.lock:
+            self._record(path, fr, st, r, peak, new)
+        if self.stack:
+            self.stack[-1]["child_peak"] = max(self.stack[-1]["child_peak"], peak)
+            self.stack[-1]["child_mods"] |= new
+        if self.reset_ok:
+            self._reset()
+
+    def _record(self, path: str, fr: dict, st: dict, r, peak: float, new: set) -> None:
         rec = self.records.setdefault(
             path, {"stage": path, "calls": 0, "wall_s": 0.0, "cpu_s": 0.0, "peak_mb": 0.0, "imports": []}
         )
@@ -129,11 +151,6 @@ class Meter:
         rec["rss_after_mb"] = st["VmRSS"]
         # the top-level packages this stage imported itself (not those of its children), the large ones named
         rec["imports"] = sorted(set(rec["imports"]) | (new - fr["child_mods"]))
-        if self.stack:
-            self.stack[-1]["child_peak"] = max(self.stack[-1]["child_peak"], peak)
-            self.stack[-1]["child_mods"] |= new
-        if self.reset_ok:
-            self._reset()
 
     def wrap(self, fn, name: str):
         @functools.wraps(fn)
