@@ -158,7 +158,7 @@ def test_closed_form_evidence_gradient_equals_autograd(ard):
         D = gp._dist(q, q, per)
         centre = gp._initial(6, 6, False)
         theta = gp._random_initial(6, 6, g).requires_grad_(True)
-        loss, grad = gp._exact_loss_and_grad(theta, D, y, ard, centre)
+        loss, grad = gp._exact_loss_and_grad(theta, gp.pair_distances(q, per), y, ard, centre)
         ref = -gp._bound(q, y, q, gp._unpack(theta, 6, ard), per, ard, True, (D, None)) / 40
         ref = ref + 0.5 * ((theta[:-1] - centre[:-1]) / 3.0).square().sum() / 40
         ref.backward()
@@ -188,9 +188,9 @@ def test_an_overshooting_line_search_stays_finite():
     # hyperparameters far outside the box are clamped: the evidence and its gradient stay finite
     q, g = _joints(30, 10)
     y = torch.randn(30, 3, generator=g, dtype=F64)
-    D = gp._dist(q, q, torch.zeros(6, dtype=torch.bool))
+    pairs = gp.pair_distances(q, torch.zeros(6, dtype=torch.bool))
     theta = torch.full((3 * 6 + 2,), 300.0, dtype=F64)
-    loss, grad = gp._exact_loss_and_grad(theta, D, y, True, gp._initial(6, 6, False))
+    loss, grad = gp._exact_loss_and_grad(theta, pairs, y, True, gp._initial(6, 6, False))
     assert math.isfinite(float(loss)) and bool(torch.isfinite(grad).all())
 
 

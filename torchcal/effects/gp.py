@@ -44,6 +44,7 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -58,6 +59,8 @@ ADDITIVE_FORMS = ("rbf", "periodic")
 EXTRA_INPUTS = ("t", "temperature")
 _JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite in float64
 _BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variables))
+#: elements of the kernel's per-variable temporaries (:func:`_kernel` without gradient): 1 MB, cache-sized
+_KERNEL_CHUNK = 131_072
 #: Python threads that compute the posterior's row blocks side by side (kernel, triangular solve and products: large
 #: torch ops on one torch thread each, which release the GIL); the blocks are summed in order, so the posterior is
 #: the same for any number of them
@@ -154,20 +157,33 @@ def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: b
     """
     if torch.is_grad_enabled() and any(t.requires_grad for t in (x, z, *h.values())):
         return _kern(_dist(x, z, periodic), h, ard)
-    # no gradient (posterior, prediction): one variable at a time and in place, three (n, m) temporaries
-    # instead of (n, m, d) ones, so that streaming many blocks does not fragment the heap
-    K = torch.zeros(len(x), len(z), dtype=x.dtype, device=x.device)
-    S = torch.zeros_like(K) if ard else None
-    for j in range(x.shape[1]):
-        d = x[:, j : j + 1] - z[:, j].unsqueeze(0)
-        if bool(periodic[j]):
-            d = torch.sin(d.mul_(0.5)).mul_(2.0)
-        d.square_()
+    # no gradient (posterior, prediction): one variable at a time and in place, on chunks of rows whose
+    # temporaries stay in the processor's cache (every variable makes five passes over them: with (256 x 1774)
+    # chunks, out of cache, the kernel took twice as long), so that streaming many blocks does not fragment the heap
+    n, m = len(x), len(z)
+    K = torch.zeros(n, m, dtype=x.dtype, device=x.device)
+    add_c = [float(-0.5 / v.square()) for v in h["add_len"]]
+    add_v = [float(v) for v in h["add_var"]]
+    ard_c = [float(1.0 / v.square()) for v in h["ard_len"]] if ard else []
+    per = [bool(v) for v in periodic]
+    rows = max(1, _KERNEL_CHUNK // max(m, 1))
+    d = torch.empty(min(rows, n), m, dtype=x.dtype, device=x.device)
+    S = torch.empty_like(d) if ard else None
+    for r in range(0, n, rows):
+        Kr = K[r : r + rows]
+        dr = d[: len(Kr)]
         if ard:
-            S.add_(d, alpha=float(1.0 / h["ard_len"][j].square()))
-        K.add_(d.mul_(float(-0.5 / h["add_len"][j].square())).exp_(), alpha=float(h["add_var"][j]))
-    if ard:
-        K.add_(S.mul_(-0.5).exp_(), alpha=float(h["ard_var"]))
+            Sr = S[: len(Kr)].zero_()
+        for j in range(x.shape[1]):
+            torch.sub(x[r : r + rows, j : j + 1], z[:, j].unsqueeze(0), out=dr)
+            if per[j]:
+                torch.sin(dr.mul_(0.5), out=dr).mul_(2.0)
+            dr.square_()
+            if ard:
+                Sr.add_(dr, alpha=ard_c[j])
+            Kr.add_(dr.mul_(add_c[j]).exp_(), alpha=add_v[j])
+        if ard:
+            Kr.add_(Sr.mul_(-0.5).exp_(), alpha=float(h["ard_var"]))
     return K
 
 
@@ -507,42 +523,77 @@ def _random_initial(d: int, n_joints: int, generator: torch.Generator) -> Tensor
     )
 
 
-def _exact_loss_and_grad(theta: Tensor, D: Tensor, y: Tensor, ard: bool, centre: Tensor) -> tuple[Tensor, Tensor]:
+class _Pairs(NamedTuple):
+    """The pairs ``a <= b`` of a set of inputs for the exact evidence (:func:`pair_distances`): the kernel matrix is
+    symmetric, so each evaluation's passes over the ``(n, n, d)`` distances run over half of them."""
+
+    D: Tensor  # (P, d) per-variable squared distances of the pairs, P = n (n + 1) / 2
+    rows: Tensor  # (P,) a
+    cols: Tensor  # (P,) b
+    weight: Tensor  # (P,) 1 on the diagonal, 2 off it: a pair's share of a sum over all (a, b)
+    n: int
+
+
+def pair_distances(x: Tensor, periodic: Tensor) -> _Pairs:
+    """:func:`_dist` of ``x (n, d)`` against itself on the pairs ``a <= b`` alone (the upper triangle)."""
+    n = len(x)
+    rows, cols = torch.triu_indices(n, n, device=x.device)
+    diff = x[rows] - x[cols]
+    if bool(periodic.any()):  # as in _dist
+        diff = torch.where(periodic, 2.0 * torch.sin(0.5 * diff), diff)
+    D = diff.square()
+    weight = torch.where(rows == cols, 1.0, 2.0).to(x.dtype)
+    return _Pairs(D, rows, cols, weight, n)
+
+
+def _exact_loss_and_grad(
+    theta: Tensor, pairs: _Pairs, y: Tensor, ard: bool, centre: Tensor, work: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """The exact evidence fit's loss (minus the log marginal likelihood per row, plus the weak prior of
     :func:`fit_hyperparameters`) and its gradient in ``theta``, in closed form.
 
     ``d log p / d theta = 1/2 tr((a a^T - p C^-1) dC/d theta)`` with ``a = C^-1 y``: one Cholesky, one inverse and
-    a few weighted sums over the ``(n, n, d)`` distances, less than half of what reverse-mode autograd through the
-    Cholesky and the kernel's temporaries costs (this is the inner loop of every evidence fit).
+    a few weighted sums over the pairs' distances, less than half of what reverse-mode autograd through the
+    Cholesky and the kernel's temporaries costs (this is the inner loop of every evidence fit). ``C`` and ``W =
+    a a^T - p C^-1`` are symmetric, so the sums run over the pairs ``a <= b`` (off-diagonal ones twice).
 
     Args:
-        theta: log hyperparameters ``(3 d + 2,)`` (:func:`_unpack`); D: distances ``(n, n, d)`` (:func:`_dist`);
+        theta: log hyperparameters ``(3 d + 2,)`` (:func:`_unpack`); pairs: :func:`pair_distances` of the inputs;
             y: standardised outputs ``(n, p)``; centre: the prior's centre (:func:`_initial`).
+        work: a buffer shaped as ``pairs.D`` that the ``(P, d)`` temporary is written into (its content is then
+            garbage). An evidence fit passes one for all its evaluations: a fresh temporary of this size is above
+            the C allocator's mapping threshold, so each evaluation would map it anew and page-fault through it,
+            which cost more than the exponential computed in it.
     """
     n, p = y.shape
+    D, rows, cols = pairs.D, pairs.rows, pairs.cols
     d = D.shape[-1]
     lo, hi = _bounds(d, theta.device)
     inside = ((theta >= lo) & (theta <= hi)).to(theta.dtype)
     th = theta.detach()
     h = _unpack(th, d, ard)
-    E = torch.mul(D, -0.5 / h["add_len"].square()).exp_()  # (n, n, d); in place: these passes are the cost
-    K = E @ h["add_var"]
+    E = torch.mul(D, -0.5 / h["add_len"].square(), out=work).exp_()  # (P, d); in place: these passes are the cost
+    k = E @ h["add_var"]
     if ard:
         G = torch.exp(-0.5 * (D @ (1.0 / h["ard_len"].square())))
-        K = K + h["ard_var"] * G
+        k = k + h["ard_var"] * G
+    K = torch.empty(n, n, dtype=k.dtype, device=k.device)
+    K[rows, cols] = k
+    K[cols, rows] = k
     K.diagonal().add_(h["noise"])
     L = _chol(K, _JITTER * _prior_var(h, ard))
     a = torch.cholesky_solve(y, L)
     ll = -0.5 * (p * (2.0 * torch.log(L.diagonal()).sum() + n * math.log(2 * math.pi)) + (y * a).sum())
     W = a @ a.T - p * torch.cholesky_inverse(L)  # (n, n): d ll / d C = W / 2
+    w = W[rows, cols].mul_(pairs.weight)  # (P,): each pair's weight in the sums over all (a, b)
     g = torch.zeros_like(th)
-    g[:d] = h["add_var"] * torch.einsum("ab,abj->j", W, E)
-    g[d : 2 * d] = h["add_var"] * torch.einsum("ab,abj->j", W, E.mul_(D)) / h["add_len"].square()
+    g[:d] = h["add_var"] * (w @ E)
+    g[d : 2 * d] = h["add_var"] * (w @ E.mul_(D)) / h["add_len"].square()
     del E
     if ard:
-        WG = W * G
-        g[2 * d] = h["ard_var"] * WG.sum()
-        g[2 * d + 1 : 3 * d + 1] = h["ard_var"] * torch.einsum("ab,abj->j", WG, D) / h["ard_len"].square()
+        wG = w * G
+        g[2 * d] = h["ard_var"] * wG.sum()
+        g[2 * d + 1 : 3 * d + 1] = h["ard_var"] * (wG @ D) / h["ard_len"].square()
     g[3 * d + 1] = (h["noise"] - 1e-6) * W.diagonal().sum()
     g = 0.5 * g * inside
     prior = 0.5 * ((th[:-1] - centre[:-1]) / 3.0).square().sum()
@@ -585,7 +636,9 @@ def fit_hyperparameters(
     d = x.shape[1]
     exact = z is x
     centre = _initial(d, n_joints, False).to(x.device)
-    dists = (_dist(z, z, periodic), None if exact else _dist(z, x, periodic))
+    # exact: the pairs' distances alone (the closed-form evidence); sparse: both blocks (autograd through the bound)
+    pairs = pair_distances(x, periodic) if exact else None
+    dists = None if exact else (_dist(z, z, periodic), _dist(z, x, periodic))
 
     def run(theta0: Tensor, max_iter: int) -> tuple[float, Tensor, int]:
         """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations."""
@@ -601,12 +654,13 @@ def fit_hyperparameters(
         )
         best = [math.inf, theta0.detach().clone()]
         count = [0]  # per start: the starts run in threads
+        work = torch.empty_like(pairs.D) if exact else None  # per start, as the starts run side by side
 
         def closure():
             opt.zero_grad()
             if exact:
                 try:
-                    loss, grad = _exact_loss_and_grad(theta, dists[0], y, ard, centre)
+                    loss, grad = _exact_loss_and_grad(theta, pairs, y, ard, centre, work)
                 except EstimationError:  # not positive definite at this trial point: send the line search back
                     loss, grad = torch.tensor(1e10, dtype=F64, device=theta.device), torch.zeros_like(theta)
                 if not bool(torch.isfinite(loss)) or not bool(torch.isfinite(grad).all()):
@@ -695,9 +749,17 @@ def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
 
 def _square_kernel(eff: GPCorrection, x: Tensor) -> Tensor:
     """``k(x, x)`` ``(n, n)`` of ``eff``'s hyperparameters, in row blocks (three block-sized temporaries instead of
-    three ``(n, n)`` ones)."""
+    three ``(n, n)`` ones). The matrix is symmetric: each block of rows is computed up to its last column of the
+    diagonal and mirrored (the same values: ``x_a - x_b`` is exactly ``-(x_b - x_a)``), half of the work."""
     h = eff.hyper()
-    return torch.cat([_kernel(x[i : i + _BLOCK], x, h, eff.periodic, eff.ard) for i in range(0, len(x), _BLOCK)])
+    n = len(x)
+    K = torch.empty(n, n, dtype=x.dtype, device=x.device)
+    for i in range(0, n, _BLOCK):
+        j = min(n, i + _BLOCK)
+        block = _kernel(x[i:j], x[:j], h, eff.periodic, eff.ard)
+        K[i:j, :j] = block
+        K[:i, i:j] = block[:, :i].T
+    return K
 
 
 def _exact_factor(eff: GPCorrection, x: Tensor) -> Tensor:
