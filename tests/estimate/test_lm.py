@@ -81,6 +81,22 @@ def test_a_fit_singular_from_the_start_stops_early_and_one_singular_only_at_its_
     assert torch.allclose(res.x, torch.tensor([0.5, 0.3], dtype=F64), atol=1e-6)
 
 
+def test_a_null_space_counts_as_singular_where_the_factorisation_succeeds_by_rounding():
+    from torchcal.estimate.lm import _jacobi, _singular
+
+    # two columns that are combinations of others: an exact null space of dimension 2, whose eigenvalues come out
+    # as +-1e-16; with this draw the plain Cholesky factorisation of the scaled normal matrix succeeds
+    g = torch.Generator().manual_seed(0)
+    A = torch.randn(50, 4, generator=g, dtype=F64)
+    A = torch.cat([A, (0.3 * A[:, 0] + 0.7 * A[:, 1]).unsqueeze(1), (A[:, 2] - 0.9 * A[:, 3]).unsqueeze(1)], 1)
+    N = A.T @ A
+    s = _jacobi(N)
+    Ns = N * s[:, None] * s[None, :]
+    assert int(torch.linalg.cholesky_ex(Ns)[1]) == 0
+    assert _singular(Ns)
+    assert not _singular(Ns[:4, :4])  # the independent columns alone
+
+
 def test_non_finite_start_is_divergence():
     res = levenberg_marquardt(lambda x: x / 0.0 * 0.0, torch.zeros(2, dtype=F64))
     assert res.status == "diverged"

@@ -42,6 +42,12 @@ STATUSES = tuple(s.value for s in FitStatus)
 #: iterations ends as ``failed_solve`` there (:func:`levenberg_marquardt`)
 SINGULAR_WINDOW = 6
 SINGULAR_MIN = 4
+#: the Jacobi-scaled normal matrix (unit diagonal) counts as singular there when its smallest eigenvalue is below
+#: this (its Cholesky factorisation fails once this is subtracted from the diagonal): an exact null space leaves
+#: eigenvalues of a few 1e-15 of either sign, and whether the factorisation of the matrix itself then fails or ends
+#: with small pivots is a matter of rounding (a change in the last bits of the kinematics turned one rank-deficient
+#: fit of the Series C default run from 5 iterations into 100)
+SINGULAR_EIGENVALUE = 1e-13
 
 
 @dataclass
@@ -116,6 +122,13 @@ def _jacobi(N: Tensor) -> Tensor:
     """Scale factors ``1 / sqrt(diag N)`` (1 where a column is zero)."""
     d = N.diagonal()
     return torch.where(d > 0, d.clamp(min=1e-300).rsqrt(), torch.ones_like(d))
+
+
+def _singular(Ns: Tensor) -> bool:
+    """Whether the Jacobi-scaled normal matrix ``Ns`` (unit diagonal) has an eigenvalue below
+    :data:`SINGULAR_EIGENVALUE` (its Cholesky factorisation fails once that is taken off the diagonal)."""
+    eye = torch.eye(len(Ns), dtype=Ns.dtype, device=Ns.device)
+    return int(torch.linalg.cholesky_ex(Ns - SINGULAR_EIGENVALUE * eye)[1]) != 0
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -215,7 +228,7 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
         Ns = N * s[:, None] * s[None, :]
         gs = (J.T @ r) * s
         if it <= SINGULAR_WINDOW:
-            singular += int(torch.linalg.cholesky_ex(Ns)[1]) != 0
+            singular += _singular(Ns)
             if it == SINGULAR_WINDOW and singular >= SINGULAR_MIN:
                 status, message = (
                     FitStatus.FAILED_SOLVE,
