@@ -171,10 +171,17 @@ def residual_function(
         offsets[name] = k
         k += dict(model.named_parameters())[name].numel()
     kin = [(j, offsets[e.name] + int(i)) for j, e, i in _columns(free) if e.name in offsets]
+    # the instrument pose's columns: the prediction is T(d) q' with q' the base-frame point it transforms, so
+    # they are dT/dd q' (Instrument.point_jacobian) from the plain prediction; pushed through jacfwd they were a
+    # quarter of every Jacobian's time (six more tangents through the transform's exponential map)
+    inst = [(j, int(i)) for j, e, i in _columns(free) if e.name == _INSTRUMENT]
     dev = ctx.q.device
     kin_cols = torch.tensor([j for j, _ in kin], dtype=torch.long, device=dev)
     kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)  # host indices: linear_kinematics reads them
-    rest = torch.tensor([j for j in range(len(free)) if j not in {j for j, _ in kin}], dtype=torch.long, device=dev)
+    inst_cols = torch.tensor([j for j, _ in inst], dtype=torch.long, device=dev)
+    inst_d = [i for _, i in inst]
+    fixed = {j for j, _ in kin} | {j for j, _ in inst}
+    rest = torch.tensor([j for j in range(len(free)) if j not in fixed], dtype=torch.long, device=dev)
 
     def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
         # exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the
@@ -192,7 +199,7 @@ def residual_function(
         def pred(z: Tensor) -> Tensor:
             y = x.index_put((rest.to(x.device),), z[3:])
             params = free.params(y)
-            plain = {k: at[k] if k in _KINEMATIC else v for k, v in params.items()}
+            plain = {k: at[k] if k in _KINEMATIC or k == _INSTRUMENT else v for k, v in params.items()}
             return torch.func.functional_call(model, plain, (c,), {"fk": lambda rb, q: fk(rb, q) + z[:3]})
 
         Jz = torch.func.jacfwd(pred)(torch.cat([x.new_zeros(3), x_rest])).detach()  # (N, 3, 3 + len(rest))
@@ -200,6 +207,11 @@ def residual_function(
         Jp[..., rest.to(x.device)] = Jz[..., 3:]
         if len(kin_cols):
             Jp[..., kin_cols.to(x.device)] = Jz[..., :3] @ fk.jd
+        if inst:
+            instrument = model.robot.instrument
+            T = instrument.matrix(at.get(_INSTRUMENT)).detach()
+            base = (fk.prediction - T[:3, 3]) @ T[:3, :3]  # q' = T^-1 p
+            Jp[..., inst_cols.to(x.device)] = instrument.point_jacobian(base, inst_d, at.get(_INSTRUMENT))
         return (WW @ Jp).reshape(-1, len(x))
 
     def jacobian(x: Tensor) -> Tensor:
@@ -244,7 +256,8 @@ def linear_kinematics(
         params: parameter values to linearise at (qualified name -> tensor, as for ``functional_call``);
             default the model's own.
         columns: flat indices into ``d`` of the corrections that may move; the others are held at ``d0`` and
-            their Jacobian is not computed. ``fk.jd`` is ``J_d``'s columns ``(N, 3, len(columns))``.
+            their Jacobian is not computed. ``fk.jd`` is ``J_d``'s columns ``(N, 3, len(columns))``, and
+            ``fk.prediction`` the model's prediction ``(N, 3)`` [m] at ``params``.
     """
     out: dict[str, Tensor] = {}
 
@@ -260,7 +273,7 @@ def linear_kinematics(
         return pb
 
     with torch.no_grad():
-        torch.func.functional_call(model, params or {}, (ctx,), {"fk": record})
+        prediction = torch.func.functional_call(model, params or {}, (ctx,), {"fk": record})
     q0, p0, Jq, Jd, d0 = out["q"], out["p"], out["Jq"], out["Jd"], out["d"]
     if columns is not None:
         d0 = d0[columns.to(d0.device)]
@@ -275,11 +288,14 @@ def linear_kinematics(
         return p0 + dq + (Jd.reshape(-1, Jd.shape[-1]) @ (d - d0)).reshape(p0.shape)
 
     fk.jd = Jd
+    fk.prediction = prediction
     return fk
 
 
 #: the parameters :func:`linear_kinematics` carries: geometry and lever-arm corrections
 _KINEMATIC = ("robot.geometry.delta", "robot.tool.delta")
+#: the instrument pose's correction, whose Jacobian columns :func:`residual_function` computes in closed form
+_INSTRUMENT = "robot.instrument.delta"
 
 
 def _corrections(robot, params: dict[str, Tensor] | None = None) -> Tensor:

@@ -200,6 +200,17 @@ class Instrument(_Group):
         """``T_tracker_base (4, 4)``; ``delta (..., 6)`` replaces the module's correction (then ``(..., 4, 4)``)."""
         return self.nominal @ tf.se3_from_vector(self.delta if delta is None else delta)
 
+    def point_jacobian(self, points: Tensor, columns: Sequence[int], delta: Tensor | None = None) -> Tensor:
+        """``d (T p) / d delta`` of base-frame points ``p (N, 3)`` [m] for the flat ``columns`` of the correction:
+        ``(N, 3, len(columns))`` [m per m or rad], at ``delta`` (default the module's own).
+
+        ``T p`` is linear in ``T``, so this is ``dT/d delta`` (a ``3 x 4`` per column, no pose in it) applied to
+        each point: a product per pose instead of the transform differentiated pose by pose.
+        """
+        d = (self.delta if delta is None else delta).detach()
+        B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :], d, columns).reshape(3, 4, -1)
+        return torch.einsum("abk,nb->nak", B[:, :3], points) + B[:, 3]
+
     def set_matrix(self, T: Tensor) -> None:
         """Make ``T`` the new nominal and zero the correction (used after a closed-form initial fit)."""
         with torch.no_grad():
@@ -321,29 +332,45 @@ class RobotModel(nn.Module):
         """The product of the chain as rotations and translations: the joint frames' ``R (..., 3, 3)`` and
         ``t (..., 3)`` (when ``frames``) and the flange's.
 
-        With a constant matrix on the right, ``(..., 3, 3) @ (3, 3)`` is one matrix product of all poses
-        stacked, and the joint rotation ``R @ (I + sin(q) K + (1 - cos(q)) K^2)`` (Rodrigues, ``K`` the axis'
-        cross-product matrix) is two of them and elementwise terms: several times faster than batched
-        ``4 x 4`` products, which torch runs pose by pose.
+        Joint i turns the frame in front of it by ``O_i (I + sin(q_i) K + (1 - cos(q_i)) K^2)`` (Rodrigues, ``K`` the
+        axis' cross-product matrix) and moves it by ``O_i``'s translation ``o_i``. With ``C_i = [O_i, O_i K,
+        O_i K^2, o_i]`` (``3 x 10``, no pose in it) each joint is one product ``R C_i`` and elementwise terms
+        (``R O_i + s R O_i K + (1 - c) R O_i K^2`` and ``t + R o_i``). The poses sit in the last dimension and each
+        ``R`` is held transposed, ``Rt[k, a, pose] = R[a, k]``: then ``C_i^T Rt`` is one plain matrix product
+        ``(10, 3) x (3, 3 poses)`` (the same computation with and without autograd) whose blocks are the next
+        ``Rt``'s terms, and every elementwise term runs along contiguous poses. The residuals of every
+        least-squares iteration pass through here; at a few thousand poses the cost is the number of torch
+        operations and how well each vectorises, half of that of a product per factor with the poses first.
         """
-        axes = self.geometry.axes
+        dof = self.dof
         batch = q.shape[:-1]
-        R = O[0, :3, :3].expand(*batch, 3, 3)
-        t = O[0, :3, 3].expand(*batch, 3)
+        qt = q.reshape(-1, dof).T  # (dof, M)
+        m = qt.shape[1]
+        rot, off = O[:, :3, :3], O[:, :3, 3]
+        K = tf.skew(self.geometry.axes)  # (dof, 3, 3)
+        OK = rot[:dof] @ K
+        Ct = torch.cat([rot[:dof], OK, OK @ K, off[:dof].unsqueeze(-1)], dim=-1).transpose(-1, -2)  # (dof, 10, 3)
+        s, c = torch.sin(qt), 1.0 - torch.cos(qt)  # (dof, M)
+        Rt, t = None, off[0].unsqueeze(-1).expand(3, m)  # Rt[k, a, pose] = R[a, k]; t[a, pose]
         Rs, ts = [], []
-        for i in range(self.dof):
-            if i > 0:
-                t = t + R @ O[i, :3, 3]
-                R = R @ O[i, :3, :3]
-            K = tf.skew(axes[i])
-            RK = R @ K
-            s = torch.sin(q[..., i])[..., None, None]
-            c = torch.cos(q[..., i])[..., None, None]
-            R = R + s * RK + (1.0 - c) * (RK @ K)
+
+        def poses_first(Rt: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
+            return Rt.permute(2, 1, 0).reshape(*batch, 3, 3), t.T.reshape(*batch, 3)
+
+        for i in range(dof):
+            if Rt is None:  # joint 0: the base's origin, the same for every pose
+                X = Ct[i].unsqueeze(-1)  # (10, 3, 1)
+            else:
+                X = (Ct[i] @ Rt.reshape(3, 3 * m)).reshape(10, 3, m)
+                t = t + X[9]
+            Rt = X[0:3] + s[i] * X[3:6] + c[i] * X[6:9]
             if frames:
-                Rs.append(R)
-                ts.append(t)
-        return Rs, ts, R @ O[-1, :3, :3], t + R @ O[-1, :3, 3]
+                Rs_i, ts_i = poses_first(Rt, t)
+                Rs.append(Rs_i)
+                ts.append(ts_i)
+        end = (O[-1, :3, :].T @ Rt.reshape(3, 3 * m)).reshape(4, 3, m)
+        R_end, t_end = poses_first(end[0:3], t + end[3])
+        return Rs, ts, R_end, t_end
 
     def forward(self, q: Tensor) -> Tensor:
         """``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)`` [rad], current geometry."""
@@ -440,8 +467,7 @@ class RobotModel(nn.Module):
             J[..., [k for k, _ in cols["geometry"]]] = T[:3, :3] @ Jb
         if cols["instrument"]:
             idx = [i for _, i in cols["instrument"]]
-            B = _small_jacobian(lambda x: self.instrument.matrix(x)[..., :3, :], d["instrument"], idx).reshape(3, 4, -1)
-            J[..., [k for k, _ in cols["instrument"]]] = torch.einsum("abk,nb->nak", B[:, :3], p_base) + B[:, 3]
+            J[..., [k for k, _ in cols["instrument"]]] = self.instrument.point_jacobian(p_base, idx, d["instrument"])
         if cols["tool"]:
             idx = [i for _, i in cols["tool"]]
             C = _small_jacobian(self.tool.vector, d["tool"], idx)  # (3, k)
