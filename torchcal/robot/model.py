@@ -342,8 +342,15 @@ class RobotModel(nn.Module):
         least-squares iteration pass through here; at a few thousand poses the cost is the number of torch
         operations and how well each vectorises, half of that of a product per factor with the poses first.
         """
-        dof = self.dof
+        Rts, ts, Rt_end, t_end = self._chain_t(q, O, frames)
         batch = q.shape[:-1]
+        Rs = [_poses_first(R, batch) for R in Rts]
+        return Rs, [_poses_first(t, batch) for t in ts], _poses_first(Rt_end, batch), _poses_first(t_end, batch)
+
+    def _chain_t(self, q: Tensor, O: Tensor, frames: bool) -> tuple[list[Tensor], list[Tensor], Tensor, Tensor]:
+        """:meth:`_chain` with the poses in the last dimension: ``Rt (3, 3, M)`` with ``Rt[k, a, pose] = R[a, k]``
+        and ``t (3, M)``, the ``M`` poses of ``q`` flattened (:func:`_rotate` applies such an ``R`` to a vector)."""
+        dof = self.dof
         qt = q.reshape(-1, dof).T  # (dof, M)
         m = qt.shape[1]
         rot, off = O[:, :3, :3], O[:, :3, 3]
@@ -352,11 +359,7 @@ class RobotModel(nn.Module):
         Ct = torch.cat([rot[:dof], OK, OK @ K, off[:dof].unsqueeze(-1)], dim=-1).transpose(-1, -2)  # (dof, 10, 3)
         s, c = torch.sin(qt), 1.0 - torch.cos(qt)  # (dof, M)
         Rt, t = None, off[0].unsqueeze(-1).expand(3, m)  # Rt[k, a, pose] = R[a, k]; t[a, pose]
-        Rs, ts = [], []
-
-        def poses_first(Rt: Tensor, t: Tensor) -> tuple[Tensor, Tensor]:
-            return Rt.permute(2, 1, 0).reshape(*batch, 3, 3), t.T.reshape(*batch, 3)
-
+        Rts, ts = [], []
         for i in range(dof):
             if Rt is None:  # joint 0: the base's origin, the same for every pose
                 X = Ct[i].unsqueeze(-1)  # (10, 3, 1)
@@ -365,12 +368,10 @@ class RobotModel(nn.Module):
                 t = t + X[9]
             Rt = X[0:3] + s[i] * X[3:6] + c[i] * X[6:9]
             if frames:
-                Rs_i, ts_i = poses_first(Rt, t)
-                Rs.append(Rs_i)
-                ts.append(ts_i)
+                Rts.append(Rt)
+                ts.append(t)
         end = (O[-1, :3, :].T @ Rt.reshape(3, 3 * m)).reshape(4, 3, m)
-        R_end, t_end = poses_first(end[0:3], t + end[3])
-        return Rs, ts, R_end, t_end
+        return Rts, ts, end[0:3], t + end[3]
 
     def forward(self, q: Tensor) -> Tensor:
         """``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)`` [rad], current geometry."""
@@ -385,8 +386,9 @@ class RobotModel(nn.Module):
 
     def probe_in_base(self, q: Tensor) -> Tensor:
         """Probe position in the robot base frame ``(..., 3)`` [m]."""
-        _, _, R, t = self._chain(self._check_q(q), self.geometry.origins(), frames=False)
-        return R @ self.t_flange_probe() + t
+        q = self._check_q(q)
+        _, _, Rt, t = self._chain_t(q, self.geometry.origins(), frames=False)
+        return _poses_first(_rotate(Rt, self.t_flange_probe()) + t, q.shape[:-1])
 
     def probe_jacobian(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Probe position in the base frame ``(..., 3)`` and its joint Jacobian ``(..., 3, dof)``.
@@ -394,11 +396,13 @@ class RobotModel(nn.Module):
         The geometric Jacobian of revolute joints, ``dp/dq_j = z_j x (p - o_j)`` with ``z_j`` the axis and
         ``o_j`` a point of joint j: exact, and far cheaper than differentiating the FK per pose.
         """
-        F, T = self.joint_frames(q)
-        p = tf.transform_points(T, self.t_flange_probe())
-        z = (F[..., :3, :3] @ self.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (..., dof, 3)
-        J = torch.linalg.cross(z, p.unsqueeze(-2) - F[..., :3, 3])
-        return p, J.transpose(-1, -2)
+        q = self._check_q(q)
+        Rts, ts, Rt, t = self._chain_t(q, self.geometry.origins(), frames=True)
+        p = _rotate(Rt, self.t_flange_probe()) + t  # (3, M)
+        z = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])  # (dof, 3, M)
+        J = torch.linalg.cross(z, p - torch.stack(ts), dim=1)  # (dof, 3, M)
+        batch = q.shape[:-1]
+        return _poses_first(p, batch), J.permute(2, 1, 0).reshape(*batch, 3, self.dof)
 
     def probe_position(self, q: Tensor) -> Tensor:
         """Probe position in the tracker frame ``(..., 3)`` [m]: what a laser tracker measures."""
@@ -437,42 +441,53 @@ class RobotModel(nn.Module):
             O = self.geometry.origins(d["geometry"])
             T = self.instrument.matrix(d["instrument"])
             t = self.tool.vector(d["tool"])
-            Rs, _, R_flange, t_flange = self._chain(q, O, frames=True)
-            p_base = R_flange @ t + t_flange
-            p = p_base @ T[:3, :3].T + T[:3, 3]
+            # the poses in the last dimension, as the chain computes them (every product below runs along them)
+            Rts, _, Rt_flange, t_flange = self._chain_t(q, O, frames=True)
+            p_base = _rotate(Rt_flange, t) + t_flange  # (3, N)
+            p = (T[:3, :3] @ p_base + T[:3, 3:]).T
         n, dof = q.shape[0], self.dof
-        J = torch.zeros(n, 3, len(columns), dtype=q.dtype, device=q.device)
+        Jt = torch.zeros(3, len(columns), n, dtype=q.dtype, device=q.device)  # J[pose, a, k] = Jt[a, k, pose]
         if cols["geometry"]:
             idx = [i for _, i in cols["geometry"]]
             A = _small_jacobian(lambda x: self.geometry.origins(x)[..., :3, :], d["geometry"], idx)
             A = A.reshape(dof + 1, 3, 4, len(idx))
             # the probe right behind each origin: s_n = t, s_i = R_i(q_i) O_{i+1} s_{i+1}
-            s = t.expand(n, 3)
+            s = t.unsqueeze(-1).expand(3, n)
             behind = [s]
+            sin, one_cos = torch.sin(q.T), 1.0 - torch.cos(q.T)  # (dof, N)
             for i in range(dof - 1, -1, -1):
-                s = s @ O[i + 1, :3, :3].T + O[i + 1, :3, 3]
+                s = O[i + 1, :3, :3] @ s + O[i + 1, :3, 3:]
                 K = tf.skew(self.geometry.axes[i])
-                Ks = s @ K.T
-                s = s + torch.sin(q[:, i, None]) * Ks + (1.0 - torch.cos(q[:, i, None])) * (Ks @ K.T)
+                Ks = K @ s
+                s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
                 behind.append(s)
             behind.reverse()
-            Jb = torch.zeros(n, 3, len(idx), dtype=q.dtype, device=q.device)
+            Jb = torch.zeros(3, len(idx), n, dtype=q.dtype, device=q.device)
             for i in range(dof + 1):
                 nz = torch.nonzero(A[i].reshape(12, -1).abs().amax(0)).flatten()
                 if len(nz) == 0:
                     continue
-                Ai = A[i][..., nz]
-                V = torch.einsum("adk,nd->nak", Ai[:, :3], behind[i]) + Ai[:, 3]  # (N, 3, k), frame in front of O_i
-                Jb[..., nz] += V if i == 0 else Rs[i - 1] @ V
-            J[..., [k for k, _ in cols["geometry"]]] = T[:3, :3] @ Jb
+                Ai = A[i][..., nz]  # (3, 4, k)
+                k = len(nz)
+                # V[a, k, pose] = sum_d Ai[a, d, k] s_i[d] + Ai[a, 3, k]: the derivative in the frame in front of O_i
+                V = Ai[:, :3].transpose(1, 2).reshape(3 * k, 3) @ behind[i] + Ai[:, 3].reshape(3 * k, 1)
+                V = V.reshape(3, k, n)
+                if i > 0:  # rotated by the frame in front: sum_b R[a, b] V[b] with R[a, b] = Rt[b, a]
+                    V = (Rts[i - 1].unsqueeze(2) * V.unsqueeze(1)).sum(0)
+                Jb[:, nz] += V
+            Jt[:, [k for k, _ in cols["geometry"]]] = (T[:3, :3] @ Jb.reshape(3, -1)).reshape(3, len(idx), n)
+        J = Jt.permute(2, 0, 1)
         if cols["instrument"]:
             idx = [i for _, i in cols["instrument"]]
-            J[..., [k for k, _ in cols["instrument"]]] = self.instrument.point_jacobian(p_base, idx, d["instrument"])
+            J[..., [k for k, _ in cols["instrument"]]] = self.instrument.point_jacobian(p_base.T, idx, d["instrument"])
         if cols["tool"]:
             idx = [i for _, i in cols["tool"]]
             C = _small_jacobian(self.tool.vector, d["tool"], idx)  # (3, k)
-            J[..., [k for k, _ in cols["tool"]]] = (T[:3, :3] @ R_flange) @ C
-        return p, J
+            k = len(idx)
+            RC = (C.T @ Rt_flange.reshape(3, -1)).reshape(k, 3, n)  # RC[k, c, pose] = (R_flange C)[c, k]
+            TRC = (T[:3, :3] @ RC.transpose(0, 1).reshape(3, -1)).reshape(3, k, n)
+            J[..., [kk for kk, _ in cols["tool"]]] = TRC.permute(2, 0, 1)
+        return p, J.contiguous()
 
     # ---------------------------------------------------------------- gravity
     def gravity_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
@@ -482,24 +497,25 @@ class RobotModel(nn.Module):
         of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe.
         """
         q = self._check_q(q)
-        Rs, ts, R_flange, t_flange = self._chain(q, self.geometry.origins(), frames=True)
-        R = torch.stack(Rs, dim=-3)  # (..., dof, 3, 3)
-        origins_w = torch.stack(ts, dim=-2)  # (..., dof, 3)
-        com = (R @ self.coms.unsqueeze(-1)).squeeze(-1) + origins_w  # (..., dof, 3)
-        axes_w = (R @ self.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (..., dof, 3)
+        Rts, ts, Rt_flange, t_flange = self._chain_t(q, self.geometry.origins(), frames=True)
+        # the poses in the last dimension (as the chain computes them): every product below runs along them
+        origins_w = torch.stack(ts)  # (dof, 3, M)
+        com = torch.stack([_rotate(R, c) for R, c in zip(Rts, self.coms)]) + origins_w  # (dof, 3, M)
+        axes_w = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])  # (dof, 3, M)
         # sum_{k >= j} (c_k - o_j) x f_k = sum_{k >= j} c_k x f_k - o_j x sum_{k >= j} f_k with f_k = m_k g:
         # suffix sums over the links, linear in the joints instead of a (dof x dof) table per pose
         w = -GRAVITY * self.masses  # (dof,) z-components of the link weights
         if payload:
-            p = (R_flange @ self.t_flange_probe().unsqueeze(-1)).squeeze(-1) + t_flange
-            com = torch.cat([com, p.unsqueeze(-2)], dim=-2)
+            p = _rotate(Rt_flange, self.t_flange_probe()) + t_flange
+            com = torch.cat([com, p.unsqueeze(0)])
             w = torch.cat([w, w.new_tensor([-GRAVITY * payload])])
         # c x (0, 0, w) = w (c_y, -c_x, 0)
-        m_xy = torch.stack([com[..., 1], -com[..., 0]], dim=-1) * w.unsqueeze(-1)  # (..., links, 2)
-        suffix = m_xy.flip(-2).cumsum(-2).flip(-2)[..., : self.dof, :]  # (..., dof, 2)
+        m_xy = torch.stack([com[:, 1], -com[:, 0]], dim=1) * w[:, None, None]  # (links, 2, M)
+        suffix = m_xy.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof, 2, M)
         W = w.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof,)
-        total_xy = suffix - torch.stack([origins_w[..., 1], -origins_w[..., 0]], dim=-1) * W.unsqueeze(-1)
-        return (total_xy * axes_w[..., :2]).sum(-1)
+        total_xy = suffix - torch.stack([origins_w[:, 1], -origins_w[:, 0]], dim=1) * W[:, None, None]
+        tau = (total_xy * axes_w[:, :2]).sum(1)  # (dof, M)
+        return tau.T.reshape(*q.shape[:-1], self.dof)
 
     def static_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
         """:meth:`gravity_torques` without gradient, as the joint effects take them for their regressor, the last
@@ -585,6 +601,20 @@ def _unravel(flat: int, shape: tuple[int, ...]) -> tuple[int, ...]:
         flat, r = divmod(flat, n)
         out.append(r)
     return tuple(reversed(out))
+
+
+def _poses_first(x: Tensor, batch: tuple[int, ...]) -> Tensor:
+    """A pose-last rotation ``Rt (3, 3, M)`` (held transposed) or vector ``(3, M)`` of :meth:`RobotModel._chain_t`
+    as ``(*batch, 3, 3)`` or ``(*batch, 3)``."""
+    if x.ndim == 3:
+        return x.permute(2, 1, 0).reshape(*batch, 3, 3)
+    return x.T.reshape(*batch, 3)
+
+
+def _rotate(Rt: Tensor, v: Tensor) -> Tensor:
+    """``R v`` per pose ``(3, M)`` for a pose-last rotation ``Rt (3, 3, M)`` (``Rt[k, a] = R[a, k]``) and ``v (3,)``:
+    one product ``v^T (3, 3 M)``."""
+    return (v @ Rt.reshape(3, -1)).reshape(3, -1)
 
 
 def _small_jacobian(f, d0: Tensor, columns: Sequence[int]) -> Tensor:
