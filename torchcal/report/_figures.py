@@ -5,6 +5,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+#: the axes titles' height (axes fraction), given so that matplotlib does not place them itself: the automatic
+#: placement measures the extent of every tick label above the axes at each draw, a sixth of a report's time, for
+#: axes that have none there (where this puts the title anyway)
+TITLE_Y = 1.0
+
 
 def pyplot():
     """``matplotlib.pyplot`` on the Agg backend (no display needed; imported late: matplotlib is slow to load)."""

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from torchcal.report._figures import save, subplots
+from torchcal.report._figures import TITLE_Y, save, subplots
 
 
 def _rms(a: torch.Tensor) -> float:
@@ -31,7 +31,9 @@ def plot_deviations(filt, path: Path) -> None:
         ax.axvline(n, color="k", lw=0.8)
         ax.set_ylabel(f"{name} [mm]")
         ax.set_title(
-            f"{name}: RMS {_rms(a[:n]) * 1e3:.4f} mm filtered, {_rms(a[n:]) * 1e3:.4f} mm predicted", fontsize=9
+            f"{name}: RMS {_rms(a[:n]) * 1e3:.4f} mm filtered, {_rms(a[n:]) * 1e3:.4f} mm predicted",
+            fontsize=9,
+            y=TITLE_Y,
         )
     axes[0].legend(ncol=3, fontsize=7, loc="upper left")
     axes[-1].set_xlabel(f"sample (the first {n} filtered, the held-out ones after the line predicted)")

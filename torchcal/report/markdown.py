@@ -8,7 +8,7 @@ from pathlib import Path
 import torch
 
 from torchcal.pipeline import CalibrationRun
-from torchcal.report._figures import save, subplots
+from torchcal.report._figures import TITLE_Y, save, subplots
 from torchcal.report.ekf_plots import ekf_section
 
 
@@ -24,7 +24,7 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     ax.set_xlabel("held-out pose")
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)
-    ax.set_title("Held-out position error per pose")
+    ax.set_title("Held-out position error per pose", y=TITLE_Y)
     save(fig, path, margins={"left": 0.08, "right": 0.985, "bottom": 0.15, "top": 0.9})
 
 
@@ -79,7 +79,7 @@ def plot_error_map(run: CalibrationRun, path: Path) -> None:
         axes[0][k].set_xlabel("x [m] (robot base)")
         axes[0][k].set_ylabel("y [m]")
         name = s.name if k == 0 or s.name == "geometric" else f"final ({s.name})"
-        axes[0][k].set_title(f"{name}: RMSE {s.rmse * 1e3:.4f} mm", fontsize=10)
+        axes[0][k].set_title(f"{name}: RMSE {s.rmse * 1e3:.4f} mm", fontsize=10, y=TITLE_Y)
         axes[1][k].scatter(radius.tolist(), p[:, 2].tolist(), c=e, s=9, cmap="viridis", vmin=0, vmax=vmax)
         axes[1][k].set_xlabel("distance from the base axis [m]")
         axes[1][k].set_ylabel("z [m]")
@@ -118,7 +118,7 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
         )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(v["xlabel"])
-        ax.set_title(f"{decision.candidate.name} {title}")
+        ax.set_title(f"{decision.candidate.name} {title}", y=TITLE_Y)
     axes[0].set_ylabel("[um]")
     axes[0].legend(fontsize=7)
     verdict = "accepted" if decision.accepted else "rejected"
@@ -348,6 +348,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
         f"unexplained: {entry['variable']} (share {entry['share']:.1%} of the residual, "
         f"p = {entry['p_bonferroni']:.2g})",
         fontsize=10,
+        y=TITLE_Y,
     )
     ax.legend(fontsize=7)
     save(fig, path, 100, margins={"left": 0.135, "right": 0.98, "bottom": 0.14, "top": 0.9})
