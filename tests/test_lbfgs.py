@@ -17,33 +17,35 @@ def _bits(t: torch.Tensor) -> torch.Tensor:
     return t.contiguous().view(torch.int64)
 
 
-def _both(loss_and_grad, theta0: torch.Tensor, **kw):
-    """``[(points, losses, final theta)]`` of torch.optim.LBFGS, then of torchcal._lbfgs.minimize, from ``theta0``.
+def _one(loss_and_grad, theta0: torch.Tensor, use_torch: bool, **kw):
+    """``(points, losses, final theta)`` of torch.optim.LBFGS (``use_torch``) or torchcal._lbfgs.minimize.
 
     ``loss_and_grad(theta) -> (loss, grad)``; with ``grad`` None the closure calls ``loss.backward()`` (as the GP's
     sparse fit does), else it sets ``theta.grad`` itself (as its exact fit does)."""
-    out = []
-    for use_torch in (True, False):
-        theta = theta0.clone().requires_grad_(True)
-        points, losses = [], []
+    theta = theta0.clone().requires_grad_(True)
+    points, losses = [], []
 
-        def closure():
-            theta.grad = None
-            points.append(theta.detach().clone())
-            loss, grad = loss_and_grad(theta)
-            if grad is None:
-                loss.backward()
-            else:
-                theta.grad = grad
-            losses.append(float(loss.detach()))
-            return loss
-
-        if use_torch:
-            torch.optim.LBFGS([theta], lr=1.0, line_search_fn="strong_wolfe", **kw).step(closure)
+    def closure():
+        theta.grad = None
+        points.append(theta.detach().clone())
+        loss, grad = loss_and_grad(theta)
+        if grad is None:
+            loss.backward()
         else:
-            _lbfgs.minimize(closure, theta, lr=1.0, **kw)
-        out.append((torch.stack(points), losses, theta.detach().clone()))
-    return out
+            theta.grad = grad
+        losses.append(float(loss.detach()))
+        return loss
+
+    if use_torch:
+        torch.optim.LBFGS([theta], lr=1.0, line_search_fn="strong_wolfe", **kw).step(closure)
+    else:
+        _lbfgs.minimize(closure, theta, lr=1.0, **kw)
+    return torch.stack(points), losses, theta.detach().clone()
+
+
+def _both(loss_and_grad, theta0: torch.Tensor, **kw):
+    """:func:`_one` by torch, then by torchcal._lbfgs."""
+    return [_one(loss_and_grad, theta0, use_torch, **kw) for use_torch in (True, False)]
 
 
 def _assert_same(runs):
