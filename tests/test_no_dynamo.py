@@ -29,8 +29,9 @@ print(json.dumps({"before": before, "after": "torch._dynamo" in sys.modules,
 
 
 def test_default_calibration_does_not_import_dynamo():
-    out = subprocess.run([sys.executable, "-c", CODE], check=True, capture_output=True, text=True).stdout
-    result = json.loads(out.strip().splitlines()[-1])
+    proc = subprocess.run([sys.executable, "-c", CODE], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
     # the run went through the paths that imported it: a named joint effect (its Jacobians in forward mode, the
     # diagnosis's score tests) and the learned stage (its hyperparameters by L-BFGS)
     assert "compliance" in result["effects"] and "learned" in result["effects"], result

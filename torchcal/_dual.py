@@ -14,13 +14,15 @@ The helpers compute the same values without that path:
   the operator's overload for a number (``torch.ops.aten.mul.Scalar``), whose tangent rule takes the number as a
   constant. ``x * c`` with a Python number runs that overload's kernel too (the number wrapped as a tensor), so the
   values and the tangents are the same bits;
-* :func:`lift` and :func:`lift_pair` give a plain tensor that meets a differentiated one an explicit zero tangent
-  (a select, ``torch.where``, which forward mode differentiates in C++), so that the operation between them sees
-  two tangents. The values are the same bits; a tangent gains ``+ 0`` (or ``0 *`` a value) where it had a copy,
-  which changes nothing but, at most, the sign of a tangent that is exactly zero.
+* :func:`add`, :func:`sub`, :func:`mul` and :func:`div` of two tensors give the operand without a tangent, when the
+  other has one, a zero tangent of its own (``forward_ad.make_dual``; for a sum, a broadcast zero that takes no
+  memory), so that the operation meets two tangents in C++. The values are the same bits, and so are the tangents:
+  each zero is signed so that the term it makes in the tangent rule is ``-0.0`` where it is added and ``+0.0``
+  where it is subtracted (``t + -0.0`` is ``t`` for every ``t``, ``-0.0`` included), which leaves torch's tangent
+  as it is (but where a value is infinite or not a number, or a divisor zero).
 
-Outside forward mode :func:`lift` returns its argument unchanged (one look-up of the tensor's tangent), so
-plain evaluations, the residuals of every least-squares iteration, cost what they did.
+Outside forward mode they are the plain operations after one look-up of each operand's tangent, so plain
+evaluations, the residuals of every least-squares iteration, cost what they did.
 """
 
 from __future__ import annotations
@@ -57,27 +59,58 @@ def has_tangent(x: Tensor) -> bool:
     return forward_ad.unpack_dual(x).tangent is not None
 
 
-def lift(c: Tensor, like: Tensor) -> Tensor:
-    """``c`` with a zero tangent where ``like`` carries a forward-mode tangent and ``c`` does not.
-
-    Args:
-        c: the constant, any shape broadcastable with ``like``.
-        like: the tensor ``c`` is about to meet in an elementwise operation.
-
-    Returns:
-        ``c`` itself outside forward mode (or when ``c`` has a tangent, or ``like`` none); else the same values
-        broadcast to the shape of ``c`` and ``like`` together, with a zero tangent.
-    """
-    if not has_tangent(like) or has_tangent(c):
-        return c
-    return torch.where(torch.ones((), dtype=torch.bool, device=c.device), c, like)
+def _lift(c: Tensor, zero: float | Tensor) -> Tensor:
+    """``c`` with the tangent ``zero``: ``0.0`` or ``-0.0`` everywhere (broadcast from one element), or a tensor of
+    signed zeros of ``c``'s shape."""
+    if not isinstance(zero, Tensor):
+        zero = torch.full((), zero, dtype=c.dtype, device=c.device).expand(c.shape)
+    return forward_ad.make_dual(c, zero)
 
 
-def lift_pair(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    """``a, b`` for an elementwise operation between them: the one without a forward-mode tangent :func:`lift`-ed
-    when the other has one; both unchanged otherwise."""
+def _pair(a: Tensor, b: Tensor, zero_a: float, zero_b: float) -> tuple[Tensor, Tensor]:
     ta, tb = has_tangent(a), has_tangent(b)
     if ta == tb:
         return a, b
-    true = torch.ones((), dtype=torch.bool, device=a.device)
-    return (a, torch.where(true, b, a)) if ta else (torch.where(true, a, b), b)
+    return (a, _lift(b, zero_b)) if ta else (_lift(a, zero_a), b)
+
+
+def add(a: Tensor, b: Tensor) -> Tensor:
+    """``a + b`` (broadcast), either one a constant of forward mode (module docstring)."""
+    # the tangent t + (-0.0) is t for every t
+    return torch.add(*_pair(a, b, -0.0, -0.0))
+
+
+def sub(a: Tensor, b: Tensor) -> Tensor:
+    """``a - b`` (broadcast), either one a constant of forward mode (module docstring)."""
+    # t - (+0.0) is t and (-0.0) - t is -t for every t
+    return torch.sub(*_pair(a, b, -0.0, 0.0))
+
+
+def mul(a: Tensor, b: Tensor) -> Tensor:
+    """``a * b`` (broadcast), either one a constant of forward mode (module docstring)."""
+    ta, tb = has_tangent(a), has_tangent(b)
+    if ta == tb:
+        return torch.mul(a, b)
+    # the tangent is z * x + x_t * c (x the differentiated factor's value, c the constant): with z = -0.0 * x, the
+    # product z * x is -0.0 whatever the sign of x, and x_t * c + (-0.0) is x_t * c, torch's tangent to the bit
+    x, c = _broadcast(forward_ad.unpack_dual(a if ta else b).primal, b if ta else a)
+    c = _lift(c, x * -0.0)
+    return torch.mul(a, c) if ta else torch.mul(c, b)
+
+
+def div(a: Tensor, b: Tensor) -> Tensor:
+    """``a / b`` (broadcast), either one a constant of forward mode (module docstring)."""
+    ta, tb = has_tangent(a), has_tangent(b)
+    if ta == tb:
+        return torch.div(a, b)
+    if tb:  # constant / x: the tangent (z - x_t * r) / x with z = -0.0 is -(x_t * r) / x, torch's to the bit
+        return torch.div(_lift(a, -0.0), b)
+    # x / constant: the tangent (x_t - z * r) / c with r = x / c; z = 0.0 * r makes z * r +0.0, and x_t - (+0.0) is x_t
+    x, c = _broadcast(forward_ad.unpack_dual(a).primal, b)
+    return torch.div(a, _lift(c, torch.div(x, c) * 0.0))
+
+
+def _broadcast(x: Tensor, c: Tensor) -> tuple[Tensor, Tensor]:
+    """``x`` and ``c`` broadcast together, ``c`` copied where it grew (a dual's value cannot be a broadcast view)."""
+    x, cb = torch.broadcast_tensors(x, c)
+    return x, (c if cb.shape == c.shape else cb.contiguous())

@@ -126,8 +126,6 @@ class Effect(nn.Module):
         return self.kind if self.joint is None else f"{self.kind}(joint {self.joint})"
 
     def _joint_delta(self, ctx: Context, value: Tensor) -> Tensor:
-        """``value (N,)`` in this joint's column of ``(N, dof)`` zeros."""
-        # a select, not a write into zeros: in the estimators' forward-mode Jacobians a differentiated value written
-        # into a plain tensor leaves its tangent on a tensor that looks plain, and torchcal._dual would not see it
-        column = torch.arange(ctx.q.shape[1], device=ctx.q.device) == self.j
-        return torch.where(column, value[:, None], torch.zeros((), dtype=ctx.q.dtype, device=ctx.q.device))
+        dq = torch.zeros_like(ctx.q)
+        dq[:, self.j] = value
+        return dq

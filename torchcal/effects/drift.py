@@ -93,7 +93,7 @@ class Drift(Effect):
         if self.form == "linear":
             return dv
         tau = torch.exp(self.log_tau)
-        return -tau * torch.expm1(torch.div(*_dual.lift_pair(-dv, tau)))
+        return -tau * torch.expm1(_dual.div(-dv, tau))
 
     @property
     def tau(self) -> float | None:
@@ -110,10 +110,10 @@ class Drift(Effect):
         # torchcal._dual (same values; torch's Python path otherwise)
         dv = self.time_course(self.regressor(robot, ctx))
         if self.target == "instrument":
-            return torch.mul(*_dual.lift_pair(dv[:, None], self.rates))
+            return _dual.mul(dv[:, None], self.rates)
         if p_base is None:
             raise ValueError("scale drift needs the probe position in the base frame")
-        return torch.mul(*_dual.lift_pair(p_base, torch.mul(*_dual.lift_pair(self.rates, dv))[:, None]))
+        return _dual.mul(p_base, _dual.mul(self.rates, dv)[:, None])
 
     def config(self) -> dict:
         cfg = {"variable": self.variable, "target": self.target}

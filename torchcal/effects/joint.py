@@ -42,7 +42,7 @@ class Compliance(Effect):
 
     def forward(self, robot, ctx: Context) -> Tensor:
         # the torque is a constant of the estimators' forward-mode Jacobians: torchcal._dual keeps the product in C++
-        return self._joint_delta(ctx, torch.mul(*_dual.lift_pair(self.k, self.regressor(robot, ctx))))
+        return self._joint_delta(ctx, _dual.mul(self.k, self.regressor(robot, ctx)))
 
     def config(self) -> dict:
         return {"joint": self.joint, "payload": self.payload}
@@ -92,7 +92,7 @@ class Backlash(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         # constants of the estimators' forward-mode Jacobians meet b through torchcal._dual (same values)
         half_b = _dual.mul_scalar(self.b, 0.5)
-        return self._joint_delta(ctx, torch.mul(*_dual.lift_pair(half_b, self.regressor(robot, ctx))))
+        return self._joint_delta(ctx, _dual.mul(half_b, self.regressor(robot, ctx)))
 
     def config(self) -> dict:
         return {"joint": self.joint, "source": self.source}

@@ -41,7 +41,7 @@ class MeasurementModel(nn.Module):
         dq = torch.zeros_like(ctx.q)
         for e in self.effects:
             if e.acts_on == Acts.JOINT:
-                dq = torch.add(*_dual.lift_pair(dq, e(self.robot, ctx)))
+                dq = _dual.add(dq, e(self.robot, ctx))
         return dq
 
     def probe_in_base(self, ctx: Context, *, with_cartesian: bool = True, fk=None) -> Tensor:
@@ -50,12 +50,12 @@ class MeasurementModel(nn.Module):
         ``fk(robot, q) -> (N, 3)`` replaces the robot's own kinematics (the estimators pass a linearisation of it
         to differentiate everything else cheaply, :func:`torchcal.estimate.problem.residual_function`).
         """
-        q = torch.add(*_dual.lift_pair(ctx.q, self.joint_offsets(ctx)))
+        q = _dual.add(ctx.q, self.joint_offsets(ctx))
         p = self.robot.probe_in_base(q) if fk is None else fk(self.robot, q)
         if with_cartesian:
             for e in self.effects:
                 if e.acts_on == Acts.CARTESIAN:
-                    p = torch.add(*_dual.lift_pair(p, e(self.robot, ctx, p_base=p)))
+                    p = _dual.add(p, e(self.robot, ctx, p_base=p))
         return p
 
     def forward(self, ctx: Context, fk=None) -> Tensor:
@@ -67,7 +67,7 @@ class MeasurementModel(nn.Module):
             return tf.transform_points(T, p)
         xi = _dual.add_scalar(inst[0](self.robot, ctx), 0)  # = sum(...), which starts from 0
         for e in inst[1:]:
-            xi = torch.add(*_dual.lift_pair(xi, e(self.robot, ctx)))
+            xi = _dual.add(xi, e(self.robot, ctx))
         return tf.transform_points(T @ tf.se3_from_vector(xi), p)
 
     def predict(self, q: Tensor, **kw) -> Tensor:

@@ -151,7 +151,7 @@ def residual_function(
 
     def residuals(x: Tensor, c: Context, pp: Tensor, WW: Tensor) -> Tensor:
         pred = torch.func.functional_call(model, free.params(x), (c,))
-        return (WW @ torch.sub(*_dual.lift_pair(pred, pp)).unsqueeze(-1)).reshape(-1)
+        return (WW @ _dual.sub(pred, pp).unsqueeze(-1)).reshape(-1)
 
     def fun(x: Tensor) -> Tensor:
         r = residuals(x, ctx, p, W)
@@ -194,7 +194,7 @@ def residual_function(
             y = x.index_put((rest.to(x.device),), z[3:])
             params = free.params(y)
             plain = {k: at[k] if k in _KINEMATIC else v for k, v in params.items()}
-            shifted = lambda rb, q: torch.add(*_dual.lift_pair(fk(rb, q), z[:3]))  # noqa: E731 (fk's may be constant)
+            shifted = lambda rb, q: _dual.add(fk(rb, q), z[:3])  # noqa: E731 (fk's may be constant)
             return torch.func.functional_call(model, plain, (c,), {"fk": shifted})
 
         Jz = torch.func.jacfwd(pred)(torch.cat([x.new_zeros(3), x_rest])).detach()  # (N, 3, 3 + len(rest))
@@ -272,12 +272,12 @@ def linear_kinematics(
         # faster than elementwise products and sums, or einsum). The constants of the linearisation meet the
         # differentiated q and d through torchcal._dual: torch's Python path (and an import of torch._dynamo)
         # otherwise, in every Jacobian
-        dq = (Jq @ torch.sub(*_dual.lift_pair(q, q0)).unsqueeze(-1)).squeeze(-1)
+        dq = (Jq @ _dual.sub(q, q0).unsqueeze(-1)).squeeze(-1)
         d = _corrections(rb) if d is None else d
         if columns is not None and len(d) != len(d0):
             d = d[columns.to(d.device)]
-        shift = (Jd.reshape(-1, Jd.shape[-1]) @ torch.sub(*_dual.lift_pair(d, d0))).reshape(p0.shape)
-        return torch.add(*_dual.lift_pair(torch.add(*_dual.lift_pair(p0, dq)), shift))
+        shift = (Jd.reshape(-1, Jd.shape[-1]) @ _dual.sub(d, d0)).reshape(p0.shape)
+        return _dual.add(_dual.add(p0, dq), shift)
 
     fk.jd = Jd
     return fk

@@ -108,7 +108,7 @@ def so3_exp(rotvec: Tensor) -> Tensor:
     K = skew(rotvec)
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
     aK = a[..., None, None] * K
-    return _dual.lift(eye, aK) + aK + b[..., None, None] * (K @ K)
+    return _dual.add(eye, aK) + b[..., None, None] * (K @ K)
 
 
 def so3_log(R: Tensor) -> Tensor:
@@ -160,7 +160,7 @@ def matrix_to_rpy(R: Tensor) -> Tensor:
 def transform_points(T: Tensor, p: Tensor) -> Tensor:
     """Apply ``T (..., 4, 4)`` to points ``p (..., 3)``."""
     # a constant transform of differentiated points (or the reverse) meets them through torchcal._dual
-    return torch.add(*_dual.lift_pair((T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1), T[..., :3, 3]))
+    return _dual.add((T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1), T[..., :3, 3])
 
 
 DEG = math.pi / 180.0
