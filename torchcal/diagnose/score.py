@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal import _dual
 from torchcal.diagnose.candidates import Candidate
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse
@@ -91,7 +92,7 @@ def candidate_columns(model: MeasurementModel, cand: Candidate, ctx: Context, p:
         parts = torch.split(theta, sizes)
         params = {f"effects.{i}.{n}": v.reshape(s) for n, v, s in zip(names, parts, shapes)}
         pred = torch.func.functional_call(trial, params, (ctx,), {"fk": fk} if fk is not None else None)
-        return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+        return (W @ _dual.sub(pred, p).unsqueeze(-1)).reshape(-1)  # torchcal._dual: p is constant
 
     theta0 = torch.zeros(sum(sizes), dtype=torch.float64, device=p.device)
     return torch.func.jacfwd(fun)(theta0).detach()
@@ -140,7 +141,7 @@ def _columns_together(model: MeasurementModel, cands: list[Candidate], ctx: Cont
     def fun(theta: Tensor) -> Tensor:
         params = {k: v.reshape(sh) for k, v, sh in zip(keys, torch.split(theta, sizes), shapes)}
         pred = torch.func.functional_call(trial, params, (ctx,), {"fk": fk} if fk is not None else None)
-        return (W @ (pred - p).unsqueeze(-1)).reshape(-1)
+        return (W @ _dual.sub(pred, p).unsqueeze(-1)).reshape(-1)  # torchcal._dual: p is constant
 
     C = torch.func.jacfwd(fun)(torch.zeros(sum(sizes), dtype=torch.float64, device=p.device)).detach()
     if not bool(torch.isfinite(C).all()):

@@ -7,6 +7,7 @@ import math
 import torch
 from torch import nn
 
+from torchcal import _dual
 from torchcal.effects.base import Context, Effect
 from torchcal.errors import EstimationError, OptionError
 
@@ -92,7 +93,7 @@ class Drift(Effect):
         if self.form == "linear":
             return dv
         tau = torch.exp(self.log_tau)
-        return -tau * torch.expm1(-dv / tau)
+        return -tau * torch.expm1(_dual.div(-dv, tau))
 
     @property
     def tau(self) -> float | None:
@@ -105,12 +106,14 @@ class Drift(Effect):
             self.rates.mul_(factor)
 
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
+        # the drift variable is a constant of the estimators' forward-mode Jacobians: it meets the rates through
+        # torchcal._dual (same values; torch's Python path otherwise)
         dv = self.time_course(self.regressor(robot, ctx))
         if self.target == "instrument":
-            return dv[:, None] * self.rates
+            return _dual.mul(dv[:, None], self.rates)
         if p_base is None:
             raise ValueError("scale drift needs the probe position in the base frame")
-        return p_base * (self.rates * dv)[:, None]
+        return _dual.mul(p_base, _dual.mul(self.rates, dv)[:, None])
 
     def config(self) -> dict:
         cfg = {"variable": self.variable, "target": self.target}

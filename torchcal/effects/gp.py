@@ -48,6 +48,7 @@ from typing import NamedTuple
 
 import torch
 
+from torchcal import _lbfgs
 from torchcal._threads import torch_threads
 from torchcal.effects.base import Context, Effect
 from torchcal.errors import EstimationError, OptionError, ShapeError
@@ -643,21 +644,12 @@ def fit_hyperparameters(
     def run(theta0: Tensor, max_iter: int) -> tuple[float, Tensor, int]:
         """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations."""
         theta = theta0.detach().to(x.device).clone().requires_grad_(True)
-        opt = torch.optim.LBFGS(
-            [theta],
-            lr=1.0,
-            max_iter=max_iter,
-            history_size=20,
-            line_search_fn="strong_wolfe",
-            tolerance_grad=1e-6,
-            tolerance_change=1e-9,
-        )
         best = [math.inf, theta0.detach().clone()]
         count = [0]  # per start: the starts run in threads
         work = torch.empty_like(pairs.D) if exact else None  # per start, as the starts run side by side
 
         def closure():
-            opt.zero_grad()
+            theta.grad = None
             if exact:
                 try:
                     loss, grad = _exact_loss_and_grad(theta, pairs, y, ard, centre, work)
@@ -688,7 +680,8 @@ def fit_hyperparameters(
                 best[0], best[1] = value, theta.detach().clone()
             return loss
 
-        opt.step(closure)
+        # torch.optim.LBFGS's method to the bit, without torch.optim (which imports torch._dynamo): torchcal._lbfgs
+        _lbfgs.minimize(closure, theta, max_iter=max_iter, history_size=20, tolerance_grad=1e-6, tolerance_change=1e-9)
         return best[0], best[1], count[0]
 
     if start is not None:

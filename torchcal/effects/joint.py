@@ -7,6 +7,7 @@ from collections.abc import Sequence
 import torch
 from torch import nn
 
+from torchcal import _dual
 from torchcal.effects.base import Context, Effect
 
 Tensor = torch.Tensor
@@ -40,7 +41,8 @@ class Compliance(Effect):
         return robot.static_torques(ctx.q, payload=self.payload)[:, self.j]
 
     def forward(self, robot, ctx: Context) -> Tensor:
-        return self._joint_delta(ctx, self.k * self.regressor(robot, ctx))
+        # the torque is a constant of the estimators' forward-mode Jacobians: torchcal._dual keeps the product in C++
+        return self._joint_delta(ctx, _dual.mul(self.k, self.regressor(robot, ctx)))
 
     def config(self) -> dict:
         return {"joint": self.joint, "payload": self.payload}
@@ -88,7 +90,9 @@ class Backlash(Effect):
         return torch.where(s == 0, torch.ones_like(s), s)
 
     def forward(self, robot, ctx: Context) -> Tensor:
-        return self._joint_delta(ctx, 0.5 * self.b * self.regressor(robot, ctx))
+        # constants of the estimators' forward-mode Jacobians meet b through torchcal._dual (same values)
+        half_b = _dual.mul_scalar(self.b, 0.5)
+        return self._joint_delta(ctx, _dual.mul(half_b, self.regressor(robot, ctx)))
 
     def config(self) -> dict:
         return {"joint": self.joint, "source": self.source}

@@ -7,6 +7,7 @@ from collections.abc import Iterable
 import torch
 from torch import nn
 
+from torchcal import _dual
 from torchcal.effects.base import Acts, Context, Effect
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
@@ -35,10 +36,12 @@ class MeasurementModel(nn.Module):
         self.effects.append(effect.to(self.robot.device))
 
     def joint_offsets(self, ctx: Context) -> Tensor:
+        # sums of constants (the readings, a fixed effect) and differentiated terms meet through torchcal._dual: the
+        # estimators' Jacobians are forward-mode passes over this model (there, torch's Python path otherwise)
         dq = torch.zeros_like(ctx.q)
         for e in self.effects:
             if e.acts_on == Acts.JOINT:
-                dq = dq + e(self.robot, ctx)
+                dq = _dual.add(dq, e(self.robot, ctx))
         return dq
 
     def probe_in_base(self, ctx: Context, *, with_cartesian: bool = True, fk=None) -> Tensor:
@@ -47,12 +50,12 @@ class MeasurementModel(nn.Module):
         ``fk(robot, q) -> (N, 3)`` replaces the robot's own kinematics (the estimators pass a linearisation of it
         to differentiate everything else cheaply, :func:`torchcal.estimate.problem.residual_function`).
         """
-        q = ctx.q + self.joint_offsets(ctx)
+        q = _dual.add(ctx.q, self.joint_offsets(ctx))
         p = self.robot.probe_in_base(q) if fk is None else fk(self.robot, q)
         if with_cartesian:
             for e in self.effects:
                 if e.acts_on == Acts.CARTESIAN:
-                    p = p + e(self.robot, ctx, p_base=p)
+                    p = _dual.add(p, e(self.robot, ctx, p_base=p))
         return p
 
     def forward(self, ctx: Context, fk=None) -> Tensor:
@@ -62,7 +65,9 @@ class MeasurementModel(nn.Module):
         inst = [e for e in self.effects if e.acts_on == Acts.INSTRUMENT]
         if not inst:
             return tf.transform_points(T, p)
-        xi = sum(e(self.robot, ctx) for e in inst)
+        xi = _dual.add_scalar(inst[0](self.robot, ctx), 0)  # = sum(...), which starts from 0
+        for e in inst[1:]:
+            xi = _dual.add(xi, e(self.robot, ctx))
         return tf.transform_points(T @ tf.se3_from_vector(xi), p)
 
     def predict(self, q: Tensor, **kw) -> Tensor:

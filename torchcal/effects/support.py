@@ -56,6 +56,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
+from torchcal import _lbfgs
 from torchcal.effects.base import Context, Effect
 
 Tensor = torch.Tensor
@@ -468,16 +469,13 @@ def fit_fallback_scale(e: Tensor, d: Tensor, growth: float) -> list[float]:
 
 def _minimise(theta: Tensor, nll, max_iter: int, tolerance_grad: float) -> None:
     """Minimise ``nll()`` over the leaf ``theta`` in place by L-BFGS with a strong-Wolfe line search (a negative
-    log-likelihood of a few parameters)."""
-    opt = torch.optim.LBFGS(
-        [theta], lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe", tolerance_grad=tolerance_grad
-    )
+    log-likelihood of a few parameters): ``torch.optim.LBFGS``'s method without ``torch.optim`` (which imports
+    ``torch._dynamo``), :mod:`torchcal._lbfgs`."""
 
     def closure():
-        opt.zero_grad()
+        theta.grad = None
         loss = nll()
         loss.backward()
         return loss
 
-    with torch.enable_grad():
-        opt.step(closure)
+    _lbfgs.minimize(closure, theta, max_iter=max_iter, tolerance_grad=tolerance_grad)

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchcal import _dual
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
@@ -150,7 +151,7 @@ def residual_function(
 
     def residuals(x: Tensor, c: Context, pp: Tensor, WW: Tensor) -> Tensor:
         pred = torch.func.functional_call(model, free.params(x), (c,))
-        return (WW @ (pred - pp).unsqueeze(-1)).reshape(-1)
+        return (WW @ _dual.sub(pred, pp).unsqueeze(-1)).reshape(-1)
 
     def fun(x: Tensor) -> Tensor:
         r = residuals(x, ctx, p, W)
@@ -200,7 +201,8 @@ def residual_function(
             y = x.index_put((rest.to(x.device),), z[3:])
             params = free.params(y)
             plain = {k: at[k] if k in _KINEMATIC or k == _INSTRUMENT else v for k, v in params.items()}
-            return torch.func.functional_call(model, plain, (c,), {"fk": lambda rb, q: fk(rb, q) + z[:3]})
+            shifted = lambda rb, q: _dual.add(fk(rb, q), z[:3])  # noqa: E731 (fk's may be constant)
+            return torch.func.functional_call(model, plain, (c,), {"fk": shifted})
 
         Jz = torch.func.jacfwd(pred)(torch.cat([x.new_zeros(3), x_rest])).detach()  # (N, 3, 3 + len(rest))
         Jp = x.new_zeros(Jz.shape[0], 3, len(x))
@@ -280,12 +282,15 @@ def linear_kinematics(
 
     def fk(rb, q: Tensor, d: Tensor | None = None) -> Tensor:
         # under torch.func these become one batched product over the poses and one plain matrix product (measured
-        # faster than elementwise products and sums, or einsum)
-        dq = (Jq @ (q - q0).unsqueeze(-1)).squeeze(-1)
+        # faster than elementwise products and sums, or einsum). The constants of the linearisation meet the
+        # differentiated q and d through torchcal._dual: torch's Python path (and an import of torch._dynamo)
+        # otherwise, in every Jacobian
+        dq = (Jq @ _dual.sub(q, q0).unsqueeze(-1)).squeeze(-1)
         d = _corrections(rb) if d is None else d
         if columns is not None and len(d) != len(d0):
             d = d[columns.to(d.device)]
-        return p0 + dq + (Jd.reshape(-1, Jd.shape[-1]) @ (d - d0)).reshape(p0.shape)
+        shift = (Jd.reshape(-1, Jd.shape[-1]) @ _dual.sub(d, d0)).reshape(p0.shape)
+        return _dual.add(_dual.add(p0, dq), shift)
 
     fk.jd = Jd
     fk.prediction = prediction

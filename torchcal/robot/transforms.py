@@ -11,6 +11,8 @@ import math
 
 import torch
 
+from torchcal import _dual
+
 Tensor = torch.Tensor
 
 
@@ -91,15 +93,22 @@ def so3_exp(rotvec: Tensor) -> Tensor:
     their Taylor series, so the derivative at a zero correction is the exact
     generator (the calibration parameters start at zero).
     """
+    # the constants meet the rotation vector through torchcal._dual: every Jacobian of a calibration with an
+    # instrument differentiates this in forward mode, where ``theta2 / 6.0`` or ``eye + ...`` would take torch's
+    # Python path (and import torch._dynamo); the values are those of the plain expressions
     theta2 = (rotvec * rotvec).sum(-1)
     small = theta2 < 1e-8
     safe2 = torch.where(small, torch.ones_like(theta2), theta2)
     theta = torch.sqrt(safe2)
-    a = torch.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, torch.sin(theta) / theta)
-    b = torch.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, (1.0 - torch.cos(theta)) / safe2)
+    t4 = theta2 * theta2
+    a_small = 1.0 - _dual.div_scalar(theta2, 6.0) + _dual.div_scalar(t4, 120.0)
+    b_small = 0.5 - _dual.div_scalar(theta2, 24.0) + _dual.div_scalar(t4, 720.0)
+    a = torch.where(small, a_small, torch.sin(theta) / theta)
+    b = torch.where(small, b_small, (1.0 - torch.cos(theta)) / safe2)
     K = skew(rotvec)
     eye = torch.eye(3, dtype=rotvec.dtype, device=rotvec.device)
-    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    aK = a[..., None, None] * K
+    return _dual.add(eye, aK) + b[..., None, None] * (K @ K)
 
 
 def so3_log(R: Tensor) -> Tensor:
@@ -150,7 +159,8 @@ def matrix_to_rpy(R: Tensor) -> Tensor:
 
 def transform_points(T: Tensor, p: Tensor) -> Tensor:
     """Apply ``T (..., 4, 4)`` to points ``p (..., 3)``."""
-    return (T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
+    # a constant transform of differentiated points (or the reverse) meets them through torchcal._dual
+    return _dual.add((T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1), T[..., :3, 3])
 
 
 DEG = math.pi / 180.0
