@@ -100,6 +100,30 @@ def test_the_calibrated_factor_is_exact_with_an_unscaled_far_part():
         calibrate_factor(e, near[:10], far)
 
 
+def test_a_factor_that_would_run_away_on_an_almost_closed_gate_is_capped():
+    from torchcal.effects.support import FACTOR_SIGMA_RATIO
+
+    g = torch.Generator().manual_seed(5)
+    n = 2000
+    near = (torch.rand(n, 3, generator=g, dtype=torch.float64) + 0.5) ** 2
+    far = 0.01 * torch.ones(n, 3, dtype=torch.float64)
+    e = near.sqrt() * torch.randn(n, 3, generator=g, dtype=torch.float64)
+    # a tenth of the components where the gate is almost closed: a near part of 1e-40 and residuals beyond
+    # 2 sqrt(far); covering them needs a factor of about 1e20, which would make every other sigma absurd
+    near[:200] = 1e-40
+    e[:200] = 1.0
+    free = calibrate_factor(e, near, far, max_ratio=math.inf)
+    assert free > 1e15
+    s = calibrate_factor(e, near, far)
+    sigma = (s**2 * near + far).sqrt()
+    # the scaled near part's largest standard deviation is the cap times the largest residual (far is unscaled)
+    assert s < free and float((s**2 * near).sqrt().max()) == pytest.approx(FACTOR_SIGMA_RATIO * float(e.abs().max()))
+    assert coverage(e, sigma) < 0.95  # the target is then not reached, and the run's sigma check says so
+    # a factor below the cap is unchanged by it
+    ok = calibrate_factor(e[200:], near[200:], far[200:])
+    assert ok == calibrate_factor(e[200:], near[200:], far[200:], max_ratio=math.inf)
+
+
 def test_the_scale_with_held_out_residuals_is_widened_to_the_target_over_both_never_narrowed():
     g = torch.Generator().manual_seed(4)
     n = 3000

@@ -385,16 +385,29 @@ def fit_predictive_scale(
     return scale * max(1.0, factor), (floor * max(1.0, factor)).tolist()
 
 
-def calibrate_factor(e: Tensor, near: Tensor, far: Tensor, target: float = 0.95, k: float = 2.0) -> float:
-    """The smallest factor ``s`` with ``coverage(e, sqrt(s^2 near + far), k) >= target``, ``far`` left unscaled.
+#: the most a widening factor (:func:`calibrate_factor`) may make the largest predicted standard deviation, in units
+#: of the largest residual it is calibrated on: where the near part is almost nothing (a gate almost closed) the
+#: factor that covers such residuals runs away (1.6e44 on one outside-style run), and every other sample's sigma
+#: with it; capped here, the target coverage is then not reached on those residuals
+FACTOR_SIGMA_RATIO = 100.0
+
+
+def calibrate_factor(
+    e: Tensor, near: Tensor, far: Tensor, target: float = 0.95, k: float = 2.0, max_ratio: float = FACTOR_SIGMA_RATIO
+) -> float:
+    """The smallest factor ``s`` with ``coverage(e, sqrt(s^2 near + far), k) >= target``, ``far`` left unscaled, at most
+    the factor at which the largest scaled near part's standard deviation is ``max_ratio`` times the largest ``|e|``.
 
     Component ``i`` is covered for ``s >= s_i = sqrt(max(0, e_i^2 / k^2 - far_i) / near_i)``, so ``s`` is the
     ``target`` quantile of ``s_i``. A component outside ``k`` sqrt(far) with no near part cannot be covered by any
-    factor; where such components keep the target out of reach, the factor is the largest finite ``s_i``.
+    factor; where such components keep the target out of reach, the factor is the largest finite ``s_i``. Either way
+    it is then capped (:data:`FACTOR_SIGMA_RATIO`), and the coverage falls short of the target instead of every
+    standard deviation growing without bound.
 
     Args:
         e: residuals (any shape) [m]; near, far: the scaled and the unscaled variance, same shape [m^2].
         target: the share of components within ``k`` standard deviations aimed at.
+        max_ratio: the cap (inf: none).
     """
     if not (e.shape == near.shape == far.shape) or e.numel() == 0:
         raise ValueError(f"e, near, far must have the same non-empty shape, got {tuple(e.shape)}, {tuple(near.shape)}")
@@ -405,6 +418,9 @@ def calibrate_factor(e: Tensor, near: Tensor, far: Tensor, target: float = 0.95,
     if math.isinf(s) or math.isnan(s):
         finite = need[torch.isfinite(need)]
         s = float(finite.max()) if finite.numel() else 1.0
+    largest = float(near.max())
+    if largest > 0 and math.isfinite(max_ratio):
+        s = min(s, max_ratio * float(e.abs().max()) / math.sqrt(largest))
     return s
 
 
