@@ -320,3 +320,14 @@ def test_geometric_probe_jacobian_equals_autograd(spec):
     ref = torch.func.vmap(torch.func.jacfwd(lambda qi: robot.probe_in_base(qi[None])[0]))(q)
     assert torch.allclose(p, robot.probe_in_base(q).detach(), atol=1e-15)
     assert (J - ref).abs().max() < 1e-13
+
+
+def test_no_poses_give_empty_results_of_the_right_shapes():
+    # the chain holds the poses in the last dimension and reshapes by their count: none must work too
+    robot = torchcal.load_robot("ur10")
+    q = torch.zeros(0, robot.dof, dtype=F64)
+    assert robot.probe_in_base(q).shape == (0, 3)
+    assert robot.probe_jacobian(q)[1].shape == (0, 3, robot.dof)
+    assert robot.gravity_torques(q, payload=1.0).shape == (0, robot.dof)
+    assert robot.tracker_jacobian(q, [("geometry", 0), ("instrument", 2), ("tool", 1)])[1].shape == (0, 3, 3)
+    assert robot.joint_frames(q)[0].shape == (0, robot.dof, 4, 4)

@@ -614,7 +614,8 @@ def _poses_first(x: Tensor, batch: tuple[int, ...]) -> Tensor:
 def _rotate(Rt: Tensor, v: Tensor) -> Tensor:
     """``R v`` per pose ``(3, M)`` for a pose-last rotation ``Rt (3, 3, M)`` (``Rt[k, a] = R[a, k]``) and ``v (3,)``:
     one product ``v^T (3, 3 M)``."""
-    return (v @ Rt.reshape(3, -1)).reshape(3, -1)
+    m = Rt.shape[-1]
+    return (v @ Rt.reshape(3, 3 * m)).reshape(3, m)
 
 
 def _small_jacobian(f, d0: Tensor, columns: Sequence[int]) -> Tensor:
