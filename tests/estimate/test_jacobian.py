@@ -138,6 +138,41 @@ def test_linearised_kinematics_jacobian_equals_jacfwd_with_every_kind_of_effect(
     assert 0 < float((J - J_fwd)[:, geo].abs().max()) < 1e-4 * float(J_ref.abs().max())
 
 
+def test_instrument_columns_with_an_effect_that_reads_the_instrument_pose():
+    """The instrument pose's columns are computed in closed form (dT/dd applied to the point it transforms) unless an
+    effect reads the pose itself: a finite support gate maps its fallback's tracker-frame prediction into the base
+    frame through it. Both ways the Jacobian equals reverse-mode autograd's of the whole model."""
+    import copy
+
+    from torchcal.effects import CorrectionNet, LearnedEffect
+    from torchcal.effects.support import SupportGate
+
+    robot = _perturbed("ur5")
+    g = torch.Generator().manual_seed(8)
+    n = 30
+    lo, hi = robot.limits[:, 0].clamp(min=-3.0), robot.limits[:, 1].clamp(max=3.0)
+    q = lo + (hi - lo) * torch.rand(n, robot.dof, generator=g, dtype=F64)
+    torch.manual_seed(3)
+    fallback = _perturbed("ur5", seed=5)
+    for length, fb in ((1.0, fallback), (math.inf, None), (1.0, None)):
+        net = LearnedEffect(CorrectionNet(robot.dof, hidden=5))
+        gate = SupportGate(net, q[:20], length, fallback=copy.deepcopy(fb))
+        assert gate.reads_instrument == (fb is not None)
+        model = MeasurementModel(robot, [gate])
+        ctx = Context(q=q)
+        with torch.no_grad():
+            p = model(ctx) + 2e-5 * torch.randn(n, 3, generator=g, dtype=F64)
+        W = whitening(model, ctx, None, 15e-6, 0.0)
+        sel = {f"robot.{k}.delta": grp.mask for k, grp in robot.groups().items()}
+        free = FreeParameters(model, sel)
+        fun = residual_function(model, free, ctx, p, W)
+        x = free.vector() + 1e-5 * torch.randn(len(free), generator=g, dtype=F64)
+        J, J_ref = fun.jacobian(x), torch.autograd.functional.jacobian(fun, x)
+        inst = torch.tensor([e.name == "robot.instrument.delta" for e in free.entries for _ in e.index])
+        assert bool(inst.any()) and float((J_ref[:, inst]).abs().max()) > 0
+        assert float((J - J_ref).abs().max()) <= 1e-10 * float(J_ref.abs().max())
+
+
 def test_lm_result_is_the_same_with_the_analytic_jacobian():
     robot = _perturbed("ur10", seed=3)
     model, free, ctx, p, W = _problem(robot, n=60)

@@ -94,6 +94,9 @@ class Effect(nn.Module):
 
     kind: str = "effect"
     acts_on: Acts = Acts.JOINT  # a plain string compares equal to its Acts member
+    #: whether the output reads the robot's instrument pose (``T_tracker_base``): the estimators then differentiate
+    #: the pose through the whole model instead of in closed form (:func:`torchcal.estimate.problem.residual_function`)
+    reads_instrument: bool = False
 
     def __init__(self, joint: int | None = None):
         super().__init__()

@@ -213,6 +213,12 @@ class SupportGate(Effect):
         floor = torch.tensor(self.sigma_floor, dtype=a.dtype, device=a.device)
         return (self.sigma_scale**2 * a + g2 * floor**2 + b).sqrt()
 
+    @property
+    def reads_instrument(self) -> bool:
+        """A finite gate with a fallback maps the fallback's tracker-frame prediction into this robot's base frame
+        (:meth:`forward`), through this robot's instrument pose."""
+        return self.fallback is not None and not math.isinf(self.length)
+
     def distance(self, q: Tensor) -> Tensor:
         """``d(q)``: distance to the nearest support point in units of the spread ``(N,)``."""
         s = self.support / self.spread

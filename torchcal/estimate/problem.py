@@ -174,8 +174,10 @@ def residual_function(
     kin = [(j, offsets[e.name] + int(i)) for j, e, i in _columns(free) if e.name in offsets]
     # the instrument pose's columns: the prediction is T(d) q' with q' the base-frame point it transforms, so
     # they are dT/dd q' (Instrument.point_jacobian) from the plain prediction; pushed through jacfwd they were a
-    # quarter of every Jacobian's time (six more tangents through the transform's exponential map)
-    inst = [(j, int(i)) for j, e, i in _columns(free) if e.name == _INSTRUMENT]
+    # quarter of every Jacobian's time (six more tangents through the transform's exponential map). Not where an
+    # effect reads the pose itself (Effect.reads_instrument): then q' depends on it too, and jacfwd takes them
+    closed = not any(e.reads_instrument for e in model.effects)
+    inst = [(j, int(i)) for j, e, i in _columns(free) if e.name == _INSTRUMENT] if closed else []
     dev = ctx.q.device
     kin_cols = torch.tensor([j for j, _ in kin], dtype=torch.long, device=dev)
     kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)  # host indices: linear_kinematics reads them
@@ -200,7 +202,7 @@ def residual_function(
         def pred(z: Tensor) -> Tensor:
             y = x.index_put((rest.to(x.device),), z[3:])
             params = free.params(y)
-            plain = {k: at[k] if k in _KINEMATIC or k == _INSTRUMENT else v for k, v in params.items()}
+            plain = {k: at[k] if k in _KINEMATIC or (k == _INSTRUMENT and inst) else v for k, v in params.items()}
             shifted = lambda rb, q: _dual.add(fk(rb, q), z[:3])  # noqa: E731 (fk's may be constant)
             return torch.func.functional_call(model, plain, (c,), {"fk": shifted})
 
