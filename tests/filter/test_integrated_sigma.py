@@ -347,6 +347,11 @@ def test_a_predictive_sigma_far_beyond_the_residuals_is_reported():
     wide[2, 1] = 7e7  # a widening factor set by a sample whose near part was nearly zero
     check = I._sigma_check([(e, torch.full((4, 3), 5e-5, dtype=torch.float64)), (e, wide)])
     assert check["suspect"] and check["ratio"] == pytest.approx(7e11)
+    # a widening factor at its cap (support.FACTOR_SIGMA_RATIO times the largest residual) is always reported
+    from torchcal.effects.support import FACTOR_SIGMA_RATIO
+
+    capped = I._sigma_check([(e, torch.full((4, 3), FACTOR_SIGMA_RATIO * 1e-4, dtype=torch.float64))])
+    assert capped["suspect"] and capped["ratio"] == pytest.approx(FACTOR_SIGMA_RATIO)
     inf = I._sigma_check([(e, torch.full((4, 3), math.inf, dtype=torch.float64))])
     assert inf["suspect"] and inf["ratio"] is None and inf["max_sigma_mm"] is None
     json.dumps(inf)  # report.json takes it as it is

@@ -136,10 +136,14 @@ def _dist(x: Tensor, z: Tensor, periodic: Tensor) -> Tensor:
 
     They do not depend on the hyperparameters, so the evidence fit computes them once.
     """
-    d = x.unsqueeze(1) - z.unsqueeze(0)
+    return _squared(x.unsqueeze(1) - z.unsqueeze(0), periodic)
+
+
+def _squared(diff: Tensor, periodic: Tensor) -> Tensor:
+    """``diff^2``, or ``4 sin^2(diff / 2)`` in the periodic variables (the last dimension)."""
     if bool(periodic.any()):
-        d = torch.where(periodic, 2.0 * torch.sin(0.5 * d), d)
-    return d.square()
+        diff = torch.where(periodic, 2.0 * torch.sin(0.5 * diff), diff)
+    return diff.square()
 
 
 def _kern(D: Tensor, h: dict[str, Tensor], ard: bool) -> Tensor:
@@ -532,19 +536,14 @@ class _Pairs(NamedTuple):
     rows: Tensor  # (P,) a
     cols: Tensor  # (P,) b
     weight: Tensor  # (P,) 1 on the diagonal, 2 off it: a pair's share of a sum over all (a, b)
-    n: int
 
 
 def pair_distances(x: Tensor, periodic: Tensor) -> _Pairs:
     """:func:`_dist` of ``x (n, d)`` against itself on the pairs ``a <= b`` alone (the upper triangle)."""
     n = len(x)
     rows, cols = torch.triu_indices(n, n, device=x.device)
-    diff = x[rows] - x[cols]
-    if bool(periodic.any()):  # as in _dist
-        diff = torch.where(periodic, 2.0 * torch.sin(0.5 * diff), diff)
-    D = diff.square()
     weight = torch.where(rows == cols, 1.0, 2.0).to(x.dtype)
-    return _Pairs(D, rows, cols, weight, n)
+    return _Pairs(_squared(x[rows] - x[cols], periodic), rows, cols, weight)
 
 
 def _exact_loss_and_grad(

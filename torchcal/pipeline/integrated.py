@@ -981,8 +981,9 @@ def _predictive_gate(
     return gate
 
 
-#: a predictive sigma this many times the largest residual of the blocks it was calibrated on is numerical trouble
-SIGMA_CHECK_RATIO = 100.0
+#: a predictive sigma this many times the largest residual of the blocks it was calibrated on is numerical trouble:
+#: half the cap of the widening factor (support.FACTOR_SIGMA_RATIO), so that a capped factor is always reported
+SIGMA_CHECK_RATIO = 0.5 * sup.FACTOR_SIGMA_RATIO
 
 
 def _sigma_check(blocks: list[tuple[Tensor, Tensor]]) -> dict:
@@ -991,7 +992,7 @@ def _sigma_check(blocks: list[tuple[Tensor, Tensor]]) -> dict:
     :data:`SIGMA_CHECK_RATIO` times that residual. The widening factor
     (:func:`~torchcal.effects.support.calibrate_factor`) is a quantile of what each residual component needs from the
     near part of the variance; where that part is nearly zero (a gate almost closed) the need, and with it every
-    other sample's sigma, can grow without bound. Reported, not hidden."""
+    other sample's sigma, grows until the factor's cap. Reported, not hidden."""
     sd = torch.cat([b[1].flatten() for b in blocks])
     e = torch.cat([b[0].abs().flatten() for b in blocks])
     top, worst = float(sd.max()), float(e.max().clamp_min(1e-12))
