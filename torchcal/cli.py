@@ -189,6 +189,15 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
     c.add_argument("--holdout", type=FRACTION, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument(
+        "--refit",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="write the model fitted again on all samples, training and held-out, once chosen (the held-out errors "
+        "reported stay those of the fit on the training samples; on a trajectory the held-out last samples are the "
+        "nearest to its continuation). Default: on for --method integrated with --engine auto, off otherwise; "
+        "--refit is allowed for kinematic too",
+    )
+    c.add_argument(
         "--tracker-noise",
         type=POSITIVE,
         default=15.0,
@@ -336,6 +345,7 @@ def cmd_calibrate(args) -> int:
         sigma_joint=math.radians(args.joint_noise),
         engine=args.engine,
         device=args.device,
+        refit=args.refit,
     )
     if args.rank_tol is not None:
         opts.rank_tol = args.rank_tol

@@ -103,6 +103,11 @@ def test_motion_direction_holds_sign_at_rest():
     assert motion_direction(q)[:, 0].tolist() == [1.0, 1.0, 1.0, 1.0, -1.0, -1.0, 1.0]
 
 
+def test_motion_direction_of_no_samples_is_empty():
+    """An empty trajectory (a refit's empty held-out part) has an empty direction, not a reduction error."""
+    assert motion_direction(torch.zeros(0, 6, dtype=torch.float64)).shape == (0, 6)
+
+
 def test_effect_gradients_reach_their_parameters():
     robot = torchcal.load_robot("ur10")
     effects = [

@@ -19,6 +19,7 @@ from _cli import REPORT_FIELDS
 from torchcal.cli import main
 from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.errors import OptionError
+from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
@@ -110,7 +111,8 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         from torchcal.effects import Context, MeasurementModel
         from torchcal.effects.support import fit_fallback_scale
 
-        gate, hold = run.model.effects[-1], data.subset(run.holdout_idx)
+        # (the gate of the fit on the training samples, the run's integrated stage: the model written is refitted)
+        gate, hold = run.stage("integrated").model.effects[-1], data.subset(run.holdout_idx)
         with torch.no_grad():
             e_fb = MeasurementModel(gate.fallback, [])(Context.from_measurements(hold, trajectory=True)) - hold.p
         expected = fit_fallback_scale(e_fb, gate.distance(hold.q), ps["fallback_growth"])
@@ -124,8 +126,25 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         from torchcal.report.ekf_plots import ekf_section
 
         assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))
+        # the model written: the same choice fitted again on all samples, behind the same gate around all of them,
+        # falling back to geometry fitted again on all of them, with the training fit's sigma calibration
+        refit, final = records[0].evidence["refit"], run.model.effects[-1]
+        both = data.subset(torch.cat([run.train_idx, run.holdout_idx]))
+        assert refit["n_samples"] == both.n and refit["model"] == sel["chosen"] and refit["filter_status"] == "ok"
+        assert final is not gate and final.length == gate.length == refit["gate_length"]
+        stride = -(-both.n // 3000)
+        torch.testing.assert_close(final.support, both.q[::stride])
+        assert (final.sigma_scale, final.sigma_floor, final.fallback_growth) == (
+            gate.sigma_scale,
+            gate.sigma_floor,
+            gate.fallback_growth,
+        )
+        assert run.robot is run.model.robot and "refit: the model written is" in " ".join(run.notes)
+        # it has seen the held-out samples: its error there is below the training fit's (reported) one
+        assert float(errors(run.model, hold, True).square().mean().sqrt()) < st["integrated"]
     else:
         assert list(st) == ["nominal", "geometric"] and "geometry alone kept" in " ".join(run.notes)
+        assert run.fits[-1].stage == "refit: geometry on all samples"
 
 
 def test_a_refit_worse_than_geometry_on_the_held_out_samples_is_undone(trajectory, monkeypatch):
@@ -153,8 +172,10 @@ def test_a_refit_worse_than_geometry_on_the_held_out_samples_is_undone(trajector
     assert "worse than geometry alone on the held-out samples" in rej.reason
     assert rej.evidence["selection"]["holdout_guard"]["geometry_rmse_mm"] == guarded["geometry_rmse_mm"]
     assert len(run.model.effects) == 0 and "geometry alone kept" in " ".join(run.notes)
-    # the robot the report exports is the kept model's (the adaptive engine had changed the run's robot in place)
-    assert run.robot is run.model.robot
+    # the robot the report exports is the kept model's (the adaptive engine had changed the run's robot in place),
+    # fitted again on all samples
+    assert run.robot is run.model.robot and run.fits[-1].stage == "refit: geometry on all samples"
+    assert rej.evidence["selection"]["refit"]["n_samples"] == len(run.train_idx) + len(run.holdout_idx)
 
 
 def test_report_has_the_contract_fields_and_the_three_stages(run_dir):

@@ -55,6 +55,8 @@ def motion_direction(q: Tensor, deadband: float = 0.0) -> Tensor:
     Where a joint stands still (|dq| <= deadband) the previous sign is held, because a
     gear stays on the flank it last loaded; the first sample takes the first motion's sign.
     """
+    if len(q) == 0:  # no samples, no motion (the reductions below need one)
+        return torch.zeros_like(q)
     dq = torch.diff(q, dim=0, prepend=q[:1])
     s = torch.where(dq.abs() > deadband, torch.sign(dq), torch.zeros_like(dq))
     out = s.clone()

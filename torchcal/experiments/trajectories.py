@@ -37,7 +37,7 @@ def compare(train: Measurements, test: Measurements, robot: str = "ur5", engines
     """Geometry alone and the integrated method (each engine) on one campaign, on its continuation."""
     out = {}
     t0 = time.perf_counter()
-    kin = calibrate(robot, train, Options(method="kinematic", seed=seed))
+    kin = calibrate(robot, train, Options(method="kinematic", seed=seed, refit=True))
     out["kinematic"] = {
         "continuation_rmse_mm": continuation_rmse_mm(kin.model, test),
         "seconds": time.perf_counter() - t0,

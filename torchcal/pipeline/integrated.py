@@ -655,13 +655,13 @@ def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements, s
     return integrate_adaptive(run, train, hold, setting)
 
 
-def _scratch(run: CalibrationRun, model: MeasurementModel, n_fit: int) -> CalibrationRun:
-    """A throw-away copy of ``run`` for one candidate: its own model, the first ``n_fit`` training samples its
-    training set and the rest of them its held-out set, its own records."""
+def _scratch(run: CalibrationRun, model: MeasurementModel, train_idx: Tensor, holdout_idx: Tensor) -> CalibrationRun:
+    """A throw-away copy of ``run`` for one candidate: its own model, ``train_idx`` its training set and
+    ``holdout_idx`` its held-out set (rows of ``run.data``), its own records."""
     trial = copy.copy(run)
     trial.model = copy.deepcopy(model)
     trial.robot = trial.model.robot
-    trial.train_idx, trial.holdout_idx = run.train_idx[:n_fit], run.train_idx[n_fit:]
+    trial.train_idx, trial.holdout_idx = train_idx, holdout_idx
     trial.fits, trial.effects, trial.rejections, trial.notes, trial.stages = list(run.fits), [], [], [], []
     trial.add_stage(StageName.GEOMETRIC)
     return trial
@@ -709,7 +709,7 @@ def integrate_selected(
     best = None
     for setting in settings:
         _console.info(f"integrated: validating {setting.name} on the last {val.n} training samples")
-        trial = _scratch(run, geo, n_fit)
+        trial = _scratch(run, geo, run.train_idx[:n_fit], run.train_idx[n_fit:])
         try:
             trial_filter = _run_setting(trial, fit, val, setting)
         except EstimationError as err:
@@ -756,6 +756,8 @@ def integrate_selected(
         )
         run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
         run.notes.append(f"integrated: geometry alone kept: {why}")
+        if opts.refits:
+            evidence["refit"] = refit_geometry(run, ida)
         return None
     setting, length = best[0], best[1]
     _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
@@ -772,6 +774,8 @@ def integrate_selected(
     guard = _holdout_guard(run.model, geometric, hold)
     evidence["holdout_guard"] = guard
     if guard["passed"]:
+        if opts.refits:
+            record.evidence["refit"] = _refit_filter(run, setting, length, geometric, ida)
         return filt
     # the refit on all training samples is worse than geometry alone where neither was fitted: geometry it is (the
     # run's robot too, which the adaptive engine changed in place and the report exports)
@@ -783,7 +787,90 @@ def integrate_selected(
     )
     run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
     run.notes.append(f"integrated: geometry alone kept: {why}")
+    if opts.refits:
+        evidence["refit"] = refit_geometry(run, ida)
     return None
+
+
+def refit_geometry(run: CalibrationRun, identifiability) -> dict:
+    """Fit the run's geometry (``run.model``, the kinematic calibration) again on all samples, training and
+    held-out (``Options.refit``), from its fit on the training samples. The fit joins ``run.fits`` (the report's
+    parameters and global test are then the refit's); the stages keep the held-out errors of the fit that did not
+    see them. Returns the report's evidence."""
+    both = run.fitted_and_held_out
+    _console.info(f"geometry fitted again on all {both.n} samples (the held-out errors stay the training fit's)")
+    fit = solve(
+        run.model,
+        both,
+        GEOMETRIC_GROUPS,
+        run.options,
+        "refit: geometry on all samples",
+        run.trajectory,
+        identifiability=identifiability,
+    )
+    run.fits.append(fit)
+    run.notes.append(
+        f"refit: the model written was fitted again on all {both.n} samples (training and held-out); the held-out "
+        f"errors reported are those of the same fit on the {len(run.train_idx)} training samples only"
+    )
+    return {"n_samples": both.n, "model": "geometry", "status": fit.result.status}
+
+
+def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometric: MeasurementModel, ida) -> dict:
+    """The chosen filter fitted again on all samples, training and held-out (``Options.refit``), as the model
+    ``run.model`` writes: the engine of ``setting`` on all of them (the paper's engine judges its joint refinement
+    on its own last samples, as on the training samples), behind a gate of the chosen ``length`` around all of
+    them that falls back to the geometry fitted again on all of them, with the predictive sigma's calibration of
+    the fit on the training samples (scale, floor, fallback scale and growth) and the refit's own weight
+    covariance. On a trajectory the held-out last samples are the nearest to the path's continuation; selection,
+    held-out guard and the reported held-out errors are those of the fit on the training samples. A refit that
+    fails (a diverging pass) keeps the training fit, and the note says so. Returns the report's evidence."""
+    both = run.fitted_and_held_out
+    _console.info(f"integrated: {setting.name} fitted again on all {both.n} samples, training and held-out")
+    geo_all = copy.deepcopy(geometric)
+    fit = solve(
+        geo_all,
+        both,
+        GEOMETRIC_GROUPS,
+        run.options,
+        "integrated: geometry on all samples (refit)",
+        True,
+        identifiability=ida,
+    )
+    trial = _scratch(run, geometric, torch.cat([run.train_idx, run.holdout_idx]), run.holdout_idx[:0])
+    try:
+        filt = _run_setting(trial, both, both.subset(slice(both.n, None)), setting)
+    except EstimationError as err:
+        why = f"the refit on all {both.n} samples failed ({err}); the model written is the training fit"
+        run.notes.append(f"refit: {why}")
+        return {"n_samples": both.n, "skipped": why}
+    old = run.model.effects[-1]  # the training fit's gate, with the predictive sigma's calibration
+    gate = sup.SupportGate(trial.model.effects[-1], both.q, length, fallback=geo_all.robot)
+    gate.set_predictive(
+        filt.weight_cov,
+        filt.weight_index,
+        old.sigma_noise,
+        old.sigma_far,
+        old.sigma_length,
+        old.sigma_scale,
+        old.sigma_floor,
+        old.sigma_fallback,
+        old.fallback_growth,
+    )
+    trial.model.effects[-1] = gate
+    run.model, run.robot = trial.model, trial.model.robot
+    run.notes.append(
+        f"refit: the model written is {setting.name} fitted again on all {both.n} samples (training and held-out), "
+        f"behind the same gate around all of them; the held-out errors reported are those of the same choice "
+        f"fitted on the {len(run.train_idx)} training samples only"
+    )
+    return {
+        "n_samples": both.n,
+        "model": setting.name,
+        "gate_length": length,
+        "filter_status": trial.effects[-1].evidence["filter"]["status"],
+        "geometry_fallback_status": fit.result.status,
+    }
 
 
 def _holdout_guard(model: MeasurementModel, geometric: MeasurementModel, hold: Measurements) -> dict:

@@ -48,7 +48,13 @@ from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, place_instrument_and_tool, solve
 from torchcal.estimate.identifiability import DEFAULT_TOL
-from torchcal.pipeline.integrated import integrate, integrate_adaptive, integrate_selected, require_trajectory
+from torchcal.pipeline.integrated import (
+    integrate,
+    integrate_adaptive,
+    integrate_selected,
+    refit_geometry,
+    require_trajectory,
+)
 from torchcal.pipeline.learned import correction_net_stage, learned_stage
 from torchcal.pipeline.loop import close_loop
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
@@ -90,6 +96,9 @@ class Options:
     outlier_alpha: float | None = 1e-3  # gross-error screening's family-wise level (None: no screening)
     group_tol: float = S.GROUP_TOL  # rad: rows whose joints all agree within it stay on one side of every split
     device: str = "cpu"  # where the run computes: cpu, cuda, cuda:N (torchcal._device.resolve_device)
+    refit: bool | None = None  # the model written fitted again on all samples, training and held-out, once chosen
+    # (the held-out errors reported stay those of the fit on the training samples): None means on for the
+    # integrated method's auto engine and off otherwise; True is allowed for kinematic too (see ``refits``)
 
     def __post_init__(self):
         if self.method not in METHODS:
@@ -98,7 +107,19 @@ class Options:
             raise OptionError(f"engine '{self.engine}' is not one of {', '.join(ENGINES)}")
         if not 0.0 < self.holdout < 0.9:
             raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
+        if self.refit and not (self.method == "kinematic" or (self.method == "integrated" and self.engine == "auto")):
+            raise OptionError(
+                f"refit applies to the kinematic method and the integrated method's auto engine, not to method "
+                f"'{self.method}'" + (f" with engine '{self.engine}'" if self.method == "integrated" else "")
+            )
         self.device = str(resolve_device(self.device))  # an unknown or absent device raises here, before any work
+
+    @property
+    def refits(self) -> bool:
+        """Whether the model written is fitted again on all samples once chosen (``refit``; None: the integrated
+        method's auto engine does, the rest do not). On a trajectory the held-out last samples are the ones
+        nearest the path's continuation, and the model a user predicts that continuation with should have them."""
+        return self.method == "integrated" and self.engine == "auto" if self.refit is None else bool(self.refit)
 
 
 @dataclass
@@ -145,6 +166,11 @@ class CalibrationRun:
     @property
     def hold(self) -> Measurements:
         return self.data.subset(self.holdout_idx)
+
+    @property
+    def fitted_and_held_out(self) -> Measurements:
+        """The training samples, then the held-out ones (time order on a trajectory): what a refit uses."""
+        return self.data.subset(torch.cat([self.train_idx, self.holdout_idx]))
 
     def add_stage(self, name: str) -> Stage:
         """Append the model as it stands as stage ``name``, with its held-out and training errors."""
@@ -259,6 +285,8 @@ def calibrate(
         _console.info("kinematic calibration: identifiability analysis and weighted LM")
         run.fits.append(solve(model, train, GEOMETRIC_GROUPS, opts, StageName.GEOMETRIC, trajectory))
     run.add_stage(StageName.GEOMETRIC)
+    if opts.method == "kinematic" and opts.refits:
+        refit_geometry(run, run.fits[-1].identifiability)
 
     # 2'. the integrated ANN-EKF on the trajectory (network from the training corrections, then the filter)
     if opts.method == "integrated":
