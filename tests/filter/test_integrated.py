@@ -92,6 +92,14 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
     if run.effects:  # a filter won validation: it must have beaten geometry there, by the paired test
         assert sel["test"]["p_value"] < run.options.alpha_validation
         assert st["integrated"] <= st["geometric"]
+        # the gate: the shorter of validation's choice and the held-out samples' choice for the final model
+        gh = sel["gate_on_holdout"]
+        assert (
+            gh["validation_gate_length"]
+            == next(c for c in sel["candidates"] if c["candidate"] == sel["chosen"])["gate_length"]
+        )
+        assert gh["kept"] == min(gh["validation_gate_length"], gh["holdout_gate_length"])
+        assert records[0].params["support_gate_length"] == gh["kept"]
         guard = sel["holdout_guard"]  # the refit on all training samples confirmed against geometry where unfitted
         assert guard["passed"] and guard["rmse_mm"] < guard["geometry_rmse_mm"]
         # the predictive sigma: fitted on the validation block by likelihood, then widened (never narrowed) to the

@@ -3,6 +3,7 @@ calibration, a saved gate rebuilt with it, predict's sx, sy, sz columns; and the
 unless a candidate beats it on the validation block with any one piece left out. All on small hand-built models
 (seconds)."""
 
+import copy
 import json
 import math
 
@@ -355,3 +356,38 @@ def test_a_predictive_sigma_far_beyond_the_residuals_is_reported():
     inf = I._sigma_check([(e, torch.full((4, 3), math.inf, dtype=torch.float64))])
     assert inf["suspect"] and inf["ratio"] is None and inf["max_sigma_mm"] is None
     json.dumps(inf)  # report.json takes it as it is
+
+
+class _Shift(Effect):
+    """A constant position correction (the base frame) wherever it is asked: wrong on every sample."""
+
+    kind = "learned"
+    acts_on = "cartesian"
+
+    def __init__(self, dp):
+        super().__init__(joint=None)
+        self.dp = dp
+
+    def forward(self, robot, ctx, p_base=None):
+        return self.dp.expand(len(ctx.q), 3)
+
+
+def test_the_held_out_samples_only_ever_shorten_the_gate():
+    """The final model's gate is the shorter of validation's choice and the held-out samples' choice: a correction
+    that is wrong on the held-out samples shortens a long gate to the shortest tried; one that is right there (zero
+    error ungated) keeps validation's length, never a longer one; too few held-out samples keep it too."""
+    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=400, train_samples=399, seed=2))
+    run = calibrate("ur5", c.train, Options(method="kinematic", seed=0))
+    kinematic, setting = copy.deepcopy(run.model.robot), I.Setting("adaptive")
+    wrong = MeasurementModel(run.model.robot, [_Shift(torch.tensor([[2e-4, 0.0, 0.0]], dtype=torch.float64))])
+    ev = {}
+    assert I._gate_on_holdout(wrong, run.train, run.hold, kinematic, setting, 4.0, ev) == min(setting.gate_lengths)
+    assert ev["gate_on_holdout"]["validation_gate_length"] == 4.0 and len(ev["gate_on_holdout"]["gates"]) == 9
+    e = (run.model(Context.from_measurements(run.hold, trajectory=True)) - run.hold.p).detach()
+    right = MeasurementModel(run.model.robot, [_Offset(run.hold.q, -e)])
+    ev = {}
+    assert I._gate_on_holdout(right, run.train, run.hold, kinematic, setting, 4.0, ev) == 4.0
+    assert math.isinf(ev["gate_on_holdout"]["holdout_gate_length"])
+    ev = {}
+    few = run.hold.subset(slice(0, I.VALIDATION_PIECES - 1))
+    assert I._gate_on_holdout(wrong, run.train, few, kinematic, setting, 4.0, ev) == 4.0 and not ev

@@ -767,6 +767,7 @@ def integrate_selected(
     n_effects, n_stages = len(run.effects), len(run.stages)
     filt = _run_setting(run, train, hold, setting)
     record = run.effects[-1]
+    length = _gate_on_holdout(run.model, train, hold, kinematic, setting, length, evidence)
     sigma = _attach_predictive_sigma(run, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
@@ -871,6 +872,43 @@ def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometri
         "filter_status": trial.effects[-1].evidence["filter"]["status"],
         "geometry_fallback_status": fit.result.status,
     }
+
+
+def _gate_on_holdout(
+    model: MeasurementModel,
+    train: Measurements,
+    hold: Measurements,
+    kinematic,
+    setting: Setting,
+    length: float,
+    evidence: dict,
+) -> float:
+    """The gate length the final model keeps: the shorter of the one chosen on the validation block (``length``,
+    the candidate fitted on the fitting samples) and the one the held-out samples choose for the final model fitted
+    on all training samples (``model``, its learned effect not yet gated; the gate around the training samples,
+    falling back to the kinematic calibration). Each block is one stretch of the path leaving the samples fitted,
+    and a gate is kept only as long as both support: where the validation block favoured a long gate and the
+    held-out samples a shorter one, the longer one extrapolated worse on the continuation (README, *The integrated
+    method on paths it was not tuned on*). Only shortens: the held-out samples never lengthen the gate, so the held-out
+    guard that follows judges a model at most as far from geometry as validation chose. The table goes into
+    ``evidence["gate_on_holdout"]``; with fewer held-out samples than validation pieces, ``length`` is kept."""
+    if hold.n < VALIDATION_PIECES:
+        return length
+    chosen, gates = sup.choose_gate_length(
+        lambda ell: _gated(model, train.q, ell, kinematic),
+        lambda m: _rmse(_errors(m, hold)),
+        setting.gate_lengths,
+    )
+    kept = min(length, chosen)
+    evidence["gate_on_holdout"] = {
+        "rule": "the shorter of the gate chosen on the validation block and the one the held-out samples choose "
+        "for the final model",
+        "validation_gate_length": length,
+        "holdout_gate_length": chosen,
+        "kept": kept,
+        "gates": [{"length": g["length"], "holdout_rmse_mm": g["validation_rmse_m"] * 1e3} for g in gates],
+    }
+    return kept
 
 
 def _holdout_guard(model: MeasurementModel, geometric: MeasurementModel, hold: Measurements) -> dict:
