@@ -133,7 +133,8 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         assert not chk["suspect"] and 0.1 < chk["ratio"] < 10 and "predictive sigma reaches" not in " ".join(run.notes)
         from torchcal.report.ekf_plots import ekf_section
 
-        assert "within 2 sigma" in "\n".join(ekf_section(run, tmp_path))
+        md = "\n".join(ekf_section(run, tmp_path))
+        assert "within 2 sigma" in md and "the shorter is kept" in md and "fitted again on all" in md
         # the model written: the same choice fitted again on all samples, behind the same gate around all of them,
         # falling back to geometry fitted again on all of them, with the training fit's sigma calibration
         refit, final = records[0].evidence["refit"], run.model.effects[-1]

@@ -54,6 +54,11 @@ def plot_correction(filt, path: Path) -> None:
     save(fig, path, margins={"left": 0.09, "right": 0.985, "bottom": 0.09, "top": 0.98, "hspace": 0.12})
 
 
+def _length(gate) -> str:
+    """A gate length as the report writes it (an infinite or absent gate: none)."""
+    return "none" if gate is None or gate == float("inf") else f"{gate:g}"
+
+
 def ekf_section(run, out: Path) -> list[str]:
     """report.md lines about the filter pass, with its plots written into ``out``; none for other methods."""
     filt = getattr(run, "filter", None)
@@ -77,9 +82,24 @@ def ekf_section(run, out: Path) -> list[str]:
         gate = next(
             (e["params"].get("support_gate_length") for e in run.effects_report if e.get("name") == "integrated"), None
         )
+        gh = sel.get("gate_on_holdout")
+        origin = (
+            f" (validation chose {_length(gh['validation_gate_length'])}, the held-out samples "
+            f"{_length(gh['holdout_gate_length'])}; the shorter is kept)"
+            if gh
+            else ""
+        )
         lines += [
             f"Chosen on the last {sel['n_validation']} training samples: {sel['chosen']}, support gate length "
-            f"{'none' if gate is None or gate == float('inf') else gate} (report.json: the candidates).",
+            f"{_length(gate)}{origin} (report.json: the candidates).",
+            "",
+        ]
+    refit = ev.get("refit")
+    if refit and refit.get("n_samples") and not refit.get("skipped"):
+        lines += [
+            f"The model written (model.pt, what predict uses) is this choice fitted again on all {refit['n_samples']} "
+            "samples, training and held-out; the held-out errors of this report are those of the fit on the "
+            "training samples, the only ones that did not see them.",
             "",
         ]
     if ps:
