@@ -24,6 +24,7 @@ ap.add_argument(
     default=None,
     help="shortest and longest sine period [samples] (default n/8, 1.5 n)",
 )
+ap.add_argument("--auto", action="store_true", help="also the default method (auto) on each continuation")
 ap.add_argument("--out", default=None, help="write each campaign's train.csv, test.csv, truth.json under this folder")
 
 
@@ -35,7 +36,16 @@ def _size(text: str) -> float:
 
 
 def experiment(a):
-    rows = table(a.seeds, a.fields, size=_size(a.size), width=a.width, samples=a.samples, periods=a.periods, out=a.out)
+    rows = table(
+        a.seeds,
+        a.fields,
+        size=_size(a.size),
+        width=a.width,
+        samples=a.samples,
+        periods=a.periods,
+        out=a.out,
+        default_method=a.auto,
+    )
     return {"rows": rows, "summary": summary(rows)}, markdown(rows)
 
 

@@ -47,3 +47,37 @@ def test_summary_flags_worse_and_miscovered_campaigns():
     md = markdown(rows)
     assert "| fourier-s1 | 29 Fourier features, 0.1 mm | 0.1000 | 0.1500 | 1.500 | 40.0 % | x |" in md
     assert md.count("\n") == len(rows) + 1
+
+
+def test_the_default_methods_table_when_asked():
+    from torchcal.experiments.trajectory_outside import markdown
+
+    base = {"width": 29, "size_mm": 0.1, "geometry_mm": 0.1, "chosen": "x", "integrated_mm": 0.05, "ratio": 0.5}
+    rows = [
+        {
+            **base,
+            "seed": 0,
+            "field": "tanh",
+            "coverage_2sigma": 0.95,
+            "geometry_training_part_mm": 0.1,
+            "auto_mm": 0.1,
+            "auto_ratio": 1.0,
+        },
+        {
+            **base,
+            "seed": 1,
+            "field": "tanh",
+            "coverage_2sigma": 0.95,
+            "geometry_training_part_mm": 0.1,
+            "auto_mm": 0.2,
+            "auto_ratio": 2.0,
+        },
+    ]
+    rows[0] |= {"auto_effects": [], "auto_holdout_guard": {"passed": False, "kept_stage": "geometric"}}
+    rows[1] |= {"auto_effects": ["cyclic:5"], "auto_holdout_guard": {"passed": True}}
+    md = markdown(rows)
+    assert "| tanh-s0 | 0.1000 | 0.1000 | 1.000 | none | stepped back to geometric |" in md
+    assert "| tanh-s1 | 0.1000 | 0.2000 | 2.000 | cyclic:5 | passed |" in md
+    assert "default (auto)" in md and "default (auto)" not in markdown(
+        [{k: v for k, v in r.items() if not k.startswith(("auto", "geometry_training"))} for r in rows]
+    )

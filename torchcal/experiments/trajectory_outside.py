@@ -58,12 +58,15 @@ def _selection(run) -> dict:
     return {}
 
 
-def evaluate(spec: OutsideTrajectory, out: str | Path | None = None) -> dict:
+def evaluate(spec: OutsideTrajectory, out: str | Path | None = None, default_method: bool = False) -> dict:
     """Simulate one campaign of ``spec`` and compare geometry alone and ``integrated`` on its continuation.
 
     Args:
         spec: the campaign.
         out: where to write the campaign's ``train.csv``, ``test.csv``, ``truth.json`` (None: nowhere).
+        default_method: also the default method (``auto``, what a user who names no method gets) on the same
+            continuation: ``auto_mm``, ``auto_ratio`` (over the kinematic calibration on the training part,
+            ``geometry_training_part_mm``: auto writes no refit), ``auto_effects`` and its held-out guard.
 
     Returns:
         A JSON-ready row: the campaign, the continuation RMSE [mm] of both, ``ratio`` (integrated over geometry),
@@ -112,6 +115,17 @@ def evaluate(spec: OutsideTrajectory, out: str | Path | None = None) -> dict:
         ev = run.effects[-1].evidence.get("predictive_sigma", {})
         row["coverage_2sigma_validation"] = ev.get("coverage_2sigma_validation")
         row["coverage_2sigma_holdout"] = ev.get("coverage_2sigma_holdout")
+    if default_method:
+        t0 = time.perf_counter()
+        auto = calibrate(spec.robot, c.train, Options(seed=0))
+        row["auto_s"] = time.perf_counter() - t0
+        row["auto_mm"] = _rmse_mm(auto.model, c.test)
+        # against the simpler method it replaces as a user runs it: the kinematic calibration on the training part
+        # (the geometric stage of the refitted one above), as auto writes no refit
+        row["geometry_training_part_mm"] = _rmse_mm(kin.stage("geometric").model, c.test)
+        row["auto_ratio"] = row["auto_mm"] / row["geometry_training_part_mm"]
+        row["auto_effects"] = [r.name for r in auto.effects]
+        row["auto_holdout_guard"] = auto.holdout_guard
     return row
 
 
@@ -124,11 +138,13 @@ def table(
     samples: int = 7342,
     periods: tuple[float, float] | None = None,
     out: str | Path | None = None,
+    default_method: bool = False,
 ) -> list[dict]:
     """:func:`evaluate` for every seed and field kind (one torch thread), one campaign at a time.
 
     ``size`` [m], ``width``, ``samples`` and ``periods`` [samples] as in :class:`OutsideTrajectory`; ``out``: a
-    folder that gets one sub-folder ``<field>-s<seed>`` per campaign (None: nothing written).
+    folder that gets one sub-folder ``<field>-s<seed>`` per campaign (None: nothing written); ``default_method``:
+    the default method too (:func:`evaluate`).
     """
     rows = []
     base = OutsideTrajectory(size=size, width=width, samples=samples, periods=periods)
@@ -136,7 +152,7 @@ def table(
         for seed in seeds:
             for field in fields:
                 spec = replace(base, seed=seed, field=field)
-                rows.append(evaluate(spec, None if out is None else Path(out) / f"{field}-s{seed}"))
+                rows.append(evaluate(spec, None if out is None else Path(out) / f"{field}-s{seed}", default_method))
     return rows
 
 
@@ -172,4 +188,19 @@ def markdown(rows: list[dict]) -> str:
             f"| {r['field']}-s{r['seed']} | {kind}, {r['size_mm']:g} mm | {r['geometry_mm']:.4f} | "
             f"{r['integrated_mm']:.4f} | {r['ratio']:.3f} | {cov} | {r['chosen']} |"
         )
+    if any("auto_mm" in r for r in rows):
+        lines += [
+            "",
+            "| campaign | kinematic, no refit [mm] | default (auto) [mm] | ratio | effects kept | held-out guard |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in rows:
+            if "auto_mm" in r:
+                g = r["auto_holdout_guard"]
+                guard = "-" if g is None else ("passed" if g["passed"] else f"stepped back to {g['kept_stage']}")
+                lines.append(
+                    f"| {r['field']}-s{r['seed']} | {r['geometry_training_part_mm']:.4f} | {r['auto_mm']:.4f} | "
+                    f"{r['auto_ratio']:.3f} | "
+                    f"{', '.join(r['auto_effects']) or 'none'} | {guard} |"
+                )
     return "\n".join(lines)

@@ -56,7 +56,7 @@ from torchcal.pipeline.integrated import (
     require_trajectory,
 )
 from torchcal.pipeline.learned import correction_net_stage, learned_stage
-from torchcal.pipeline.loop import close_loop
+from torchcal.pipeline.loop import close_loop, guard_holdout
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
 from torchcal.robot.model import RobotModel
 
@@ -158,6 +158,7 @@ class CalibrationRun:
     filter: object | None = None  # torchcal.pipeline.integrated.IntegratedFilter of the integrated method
     split: S.Split | None = None  # the held-out split, with its revisit groups
     screening: object | None = None  # torchcal.estimate.robust.Screening: the gross errors left out
+    holdout_guard: dict | None = None  # the auto method's held-out guard (torchcal.pipeline.loop.guard_holdout)
 
     @property
     def train(self) -> Measurements:
@@ -308,6 +309,11 @@ def calibrate(
         # them are small kernels too, so the whole stage runs on one, as the closed loop does
         with torch_threads(1):
             learned_stage(run, train, trajectory)
+
+    # 4'. never worse than the kinematic calibration on the held-out poses (steps back where it would be)
+    if opts.method == "auto":
+        with torch_threads(1):
+            guard_holdout(run, train, trajectory)
 
     # 3'. the correction network on what remains (paper Eq. 22: corrections in the base frame)
     if opts.method in ("pcm", "kinematic+ann"):

@@ -141,6 +141,8 @@ def build_report(run: CalibrationRun) -> dict:
         "diagnosis": _json_safe(run.diagnosis.to_dict()) if run.diagnosis is not None else None,
         # structure the final model leaves (CONTRACT §4; empty when the global test passes or no loop ran)
         "unexplained": _json_safe(getattr(run.diagnosis, "unexplained", None) or []),
+        # the auto method: the final model against the kinematic calibration on the held-out poses (None otherwise)
+        "holdout_guard": _json_safe(getattr(run, "holdout_guard", None)),
         "parameters": _param_table(run),
         "stages": [
             {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_train_mm": rmse(s.train_errors) * 1e3}

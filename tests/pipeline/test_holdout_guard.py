@@ -1,0 +1,78 @@
+"""The ``auto`` method's held-out guard (:func:`torchcal.pipeline.loop.guard_holdout`): never worse than the
+kinematic calibration on the held-out poses; it steps back to the last stage below it, or to the geometry."""
+
+import copy
+
+import pytest
+import torch
+
+from torchcal._threads import torch_threads
+from torchcal.pipeline import Options, calibrate
+from torchcal.pipeline.loop import guard_holdout
+from torchcal.report import build_report
+from torchcal.sim import EffectSpec, SimConfig, simulate
+
+
+@pytest.fixture(scope="module")
+def auto_run():
+    """The golden campaign's auto run: geometric, compliance(joint 2), learned."""
+    cfg = SimConfig(
+        robot="ur5",
+        poses=200,
+        test_poses=20,
+        seed=7,
+        effects=[EffectSpec.parse("compliance:2=60um"), EffectSpec.parse("field=0.05mm")],
+    )
+    with torch_threads(1):
+        return calibrate("ur5", simulate(cfg).train, Options(seed=7))
+
+
+def _forced(run, worse: list[str]):
+    """A copy of ``run`` whose stages named in ``worse`` err 1.5 times the geometric stage on the held-out poses."""
+    out = copy.deepcopy(run)
+    geo = out.stage("geometric")
+    for s in out.stages:
+        if s.name in worse:
+            s.holdout_errors = geo.holdout_errors * 1.5
+    out.holdout_guard = None
+    return out
+
+
+def test_a_run_below_geometry_passes_and_says_so(auto_run):
+    names = [s.name for s in auto_run.stages]
+    assert names == ["nominal", "geometric", "compliance(joint 2)", "learned"]
+    g = auto_run.holdout_guard
+    assert g["passed"] and [s["name"] for s in g["stages"]] == names[1:]
+    assert g["geometric_rmse_mm"] == pytest.approx(auto_run.stage("geometric").rmse * 1e3)
+    assert build_report(auto_run)["holdout_guard"] == g
+
+
+def test_a_final_model_worse_than_geometry_steps_back_to_the_last_stage_below_it(auto_run):
+    run = _forced(auto_run, ["learned"])
+    ev = guard_holdout(run, run.train, run.trajectory)
+    assert not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)"
+    assert [s.name for s in run.stages] == ["nominal", "geometric", "compliance(joint 2)"]
+    assert [r.label for r in run.effects] == ["compliance(joint 2)"]
+    (rej,) = [r for r in run.rejections if r.name == "learned"]
+    assert "held-out guard" in rej.reason and rej.evidence["holdout_guard"] is ev
+    # the model written is the stage's, as it stood (the learned effect gone), and the robot the report exports
+    assert [type(e).__name__ for e in run.model.effects] == [
+        type(e).__name__ for e in run.stage("compliance(joint 2)").model.effects
+    ]
+    assert run.robot is run.model.robot
+    for a, b in zip(run.model.parameters(), run.stage("compliance(joint 2)").model.parameters()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert any(n.startswith("held-out guard:") for n in run.notes)
+
+
+def test_with_no_stage_below_geometry_the_run_keeps_the_kinematic_calibration(auto_run):
+    run = _forced(auto_run, ["learned", "compliance(joint 2)"])
+    ev = guard_holdout(run, run.train, run.trajectory)
+    assert ev["kept_stage"] == "geometric" and not run.effects
+    assert [s.name for s in run.stages] == ["nominal", "geometric"] and not run.model.effects
+    assert run.fits[-1].stage == "geometric"  # the report's global test and parameters: the geometric fit's
+    assert {r.name for r in run.rejections} >= {"learned", "compliance:2"}
+    report = build_report(run)
+    assert report["rmse_after_mm"] == pytest.approx(report["rmse_geometric_mm"]) and report["effects"] == []
+    if not report["global_test"]["passed"]:  # what geometry leaves, not what the dropped effects left
+        assert report["unexplained"]
