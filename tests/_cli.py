@@ -51,3 +51,12 @@ def run_script(name: str, *args: str, timeout: float = 300) -> tuple[dict, str]:
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
+
+
+def golden_campaign():
+    """The golden reports' simulated campaign (``tests/golden/golden.py``: 200 UR5 poses, a joint-2 compliance the
+    loop names and a smooth field the learned stage takes), simulated afresh."""
+    sys.path.insert(0, str(ROOT / "tests" / "golden"))
+    import golden
+
+    return golden.campaign()

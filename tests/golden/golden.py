@@ -23,11 +23,8 @@ CASES = {
 SIM = {"robot": "ur5", "poses": 200, "test_poses": 20, "seed": 7, "effects": ("compliance:2=60um", "field=0.05mm")}
 
 
-def golden_report(method: str) -> dict:
-    """The report of the golden run of ``method`` (one torch thread: reductions in a fixed order)."""
-    from torchcal._threads import torch_threads
-    from torchcal.pipeline import Options, calibrate
-    from torchcal.report import build_report
+def campaign():
+    """The golden runs' simulated campaign (:data:`SIM`); other tests reuse it (``tests/_cli.golden_campaign``)."""
     from torchcal.sim import EffectSpec, SimConfig, simulate
 
     cfg = SimConfig(
@@ -37,9 +34,17 @@ def golden_report(method: str) -> dict:
         seed=SIM["seed"],
         effects=[EffectSpec.parse(e) for e in SIM["effects"]],
     )
+    return simulate(cfg)
+
+
+def golden_report(method: str) -> dict:
+    """The report of the golden run of ``method`` (one torch thread: reductions in a fixed order)."""
+    from torchcal._threads import torch_threads
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.report import build_report
+
     with torch_threads(1):
-        campaign = simulate(cfg)
-        run = calibrate(SIM["robot"], campaign.train, Options(method=method, seed=SIM["seed"], **CASES[method]))
+        run = calibrate(SIM["robot"], campaign().train, Options(method=method, seed=SIM["seed"], **CASES[method]))
         return json.loads(json.dumps(build_report(run)))
 
 

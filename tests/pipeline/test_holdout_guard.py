@@ -5,26 +5,19 @@ import copy
 
 import pytest
 import torch
+from _cli import golden_campaign
 
 from torchcal._threads import torch_threads
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.loop import guard_holdout
 from torchcal.report import build_report
-from torchcal.sim import EffectSpec, SimConfig, simulate
 
 
 @pytest.fixture(scope="module")
 def auto_run():
     """The golden campaign's auto run: geometric, compliance(joint 2), learned."""
-    cfg = SimConfig(
-        robot="ur5",
-        poses=200,
-        test_poses=20,
-        seed=7,
-        effects=[EffectSpec.parse("compliance:2=60um"), EffectSpec.parse("field=0.05mm")],
-    )
     with torch_threads(1):
-        return calibrate("ur5", simulate(cfg).train, Options(seed=7))
+        return calibrate("ur5", golden_campaign().train, Options(seed=7))
 
 
 def _forced(run, worse: list[str]):

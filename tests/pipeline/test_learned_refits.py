@@ -2,6 +2,7 @@
 
 import pytest
 import torch
+from _cli import golden_campaign
 
 from torchcal._threads import torch_threads
 from torchcal.effects.gp import GPCorrection
@@ -9,20 +10,8 @@ from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 
-def _campaign():
-    # the golden run's campaign: a compliance the loop names and a smooth field the GP takes
-    cfg = SimConfig(
-        robot="ur5",
-        poses=200,
-        test_poses=20,
-        seed=7,
-        effects=[EffectSpec.parse("compliance:2=60um"), EffectSpec.parse("field=0.05mm")],
-    )
-    return simulate(cfg)
-
-
 def test_held_hyperparameters_are_the_selected_ones_and_refitted_ones_move():
-    c = _campaign()
+    c = golden_campaign()
     with torch_threads(1):
         held = calibrate("ur5", c.train, Options(seed=7, learned_hyper=False))
         refit = calibrate("ur5", c.train, Options(seed=7))
