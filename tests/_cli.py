@@ -56,7 +56,9 @@ def run_script(name: str, *args: str, timeout: float = 300) -> tuple[dict, str]:
 def golden_campaign():
     """The golden reports' simulated campaign (``tests/golden/golden.py``: 200 UR5 poses, a joint-2 compliance the
     loop names and a smooth field the learned stage takes), simulated afresh."""
-    sys.path.insert(0, str(ROOT / "tests" / "golden"))
+    here = str(ROOT / "tests" / "golden")
+    if here not in sys.path:
+        sys.path.insert(0, here)
     import golden
 
     return golden.campaign()

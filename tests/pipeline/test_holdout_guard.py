@@ -46,6 +46,8 @@ def test_a_final_model_worse_than_geometry_steps_back_to_the_last_stage_below_it
     assert not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)"
     assert [s.name for s in run.stages] == ["nominal", "geometric", "compliance(joint 2)"]
     assert [r.label for r in run.effects] == ["compliance(joint 2)"]
+    # the report's global test and parameters: the fit that admitted the kept effect, not the dropped GP's refits
+    assert run.fits[-1].stage == "compliance(joint 2)" and len(run.fits) < len(auto_run.fits)
     (rej,) = [r for r in run.rejections if r.name == "learned"]
     assert "held-out guard" in rej.reason and rej.evidence["holdout_guard"] is ev
     # the model written is the stage's, as it stood (the learned effect gone), and the robot the report exports

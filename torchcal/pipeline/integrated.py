@@ -800,21 +800,26 @@ def refit_geometry(run: CalibrationRun, identifiability) -> dict:
     see them. Returns the report's evidence."""
     both = run.fitted_and_held_out
     _console.info(f"geometry fitted again on all {both.n} samples (the held-out errors stay the training fit's)")
-    fit = solve(
-        run.model,
-        both,
-        GEOMETRIC_GROUPS,
-        run.options,
-        "refit: geometry on all samples",
-        run.trajectory,
-        identifiability=identifiability,
-    )
+    fit = _geometry_on_all(run, run.model, identifiability, "refit: geometry on all samples")
     run.fits.append(fit)
     run.notes.append(
         f"refit: the model written was fitted again on all {both.n} samples (training and held-out); the held-out "
         f"errors reported are those of the same fit on the {len(run.train_idx)} training samples only"
     )
     return {"n_samples": both.n, "model": "geometry", "status": fit.result.status}
+
+
+def _geometry_on_all(run: CalibrationRun, model: MeasurementModel, identifiability, stage: str):
+    """``model``'s geometry fitted (in place) on all of ``run``'s samples, training and held-out; returns the fit."""
+    return solve(
+        model,
+        run.fitted_and_held_out,
+        GEOMETRIC_GROUPS,
+        run.options,
+        stage,
+        run.trajectory,
+        identifiability=identifiability,
+    )
 
 
 def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometric: MeasurementModel, ida) -> dict:
@@ -829,15 +834,7 @@ def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometri
     both = run.fitted_and_held_out
     _console.info(f"integrated: {setting.name} fitted again on all {both.n} samples, training and held-out")
     geo_all = copy.deepcopy(geometric)
-    fit = solve(
-        geo_all,
-        both,
-        GEOMETRIC_GROUPS,
-        run.options,
-        "integrated: geometry on all samples (refit)",
-        True,
-        identifiability=ida,
-    )
+    fit = _geometry_on_all(run, geo_all, ida, "integrated: geometry on all samples (refit)")
     trial = _scratch(run, geometric, torch.cat([run.train_idx, run.holdout_idx]), run.holdout_idx[:0])
     try:
         filt = _run_setting(trial, both, both.subset(slice(both.n, None)), setting)
@@ -846,18 +843,19 @@ def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometri
         run.notes.append(f"refit: {why}")
         return {"n_samples": both.n, "skipped": why}
     old = run.model.effects[-1]  # the training fit's gate, with the predictive sigma's calibration
-    gate = sup.SupportGate(trial.model.effects[-1], both.q, length, fallback=geo_all.robot)
-    gate.set_predictive(
-        filt.weight_cov,
-        filt.weight_index,
+    gate = _predictive_gate(
+        trial.model,
+        filt,
+        both.q,
+        length,
+        geo_all.robot,
         old.sigma_noise,
         old.sigma_far,
         old.sigma_length,
         old.sigma_scale,
         old.sigma_floor,
-        old.sigma_fallback,
-        old.fallback_growth,
     )
+    gate.sigma_fallback, gate.fallback_growth = old.sigma_fallback, old.fallback_growth
     trial.model.effects[-1] = gate
     run.model, run.robot = trial.model, trial.model.robot
     run.notes.append(

@@ -532,8 +532,10 @@ def guard_holdout(run: CalibrationRun, train: Measurements, trajectory: bool) ->
     del run.stages[k + 1 :]
     run.model = copy.deepcopy(kept.model)
     run.robot = run.model.robot
-    if k == i_geo:  # the report's global test and parameters: the geometric fit's
-        n = max(j for j, f in enumerate(run.fits) if f.stage == StageName.GEOMETRIC)
+    # the report's global test, parameters and unexplained structure: those of the kept stage's own fit (the
+    # geometric one, or the joint refit that admitted the kept effect), not of a fit the dropped stages added
+    n = max((j for j, f in enumerate(run.fits) if f.stage == kept.name), default=None)
+    if n is not None:
         del run.fits[n + 1 :]
         diag = run.diagnosis
         if diag is not None and not run.fits[-1].global_test.get("passed", True):
