@@ -71,3 +71,17 @@ def test_with_no_stage_below_geometry_the_run_keeps_the_kinematic_calibration(au
     assert report["rmse_after_mm"] == pytest.approx(report["rmse_geometric_mm"]) and report["effects"] == []
     if not report["global_test"]["passed"]:  # what geometry leaves, not what the dropped effects left
         assert report["unexplained"]
+
+
+@pytest.mark.parametrize("worse", [["learned"], ["learned", "compliance(joint 2)"]])
+def test_a_step_back_writes_its_run_directory(auto_run, worse, tmp_path):
+    """A run the guard stepped back writes report.json and report.md (a learned rejection whose evidence is the
+    guard's once crashed report.md with ``KeyError: 'chosen'``)."""
+    from torchcal.report import write_run_files
+
+    run = _forced(auto_run, worse)
+    guard_holdout(run, run.train, run.trajectory)
+    out = write_run_files(run, tmp_path)
+    md = (out / "report.md").read_text()
+    assert "Learned residual model: " in md and "held-out guard" in md
+    assert (out / "report.json").is_file() and (out / "model.pt").is_file()

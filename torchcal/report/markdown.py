@@ -315,13 +315,22 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
     learned = [e for e in report["effects"] if e["kind"] == "learned"]
     rejected = [e for e in report.get("rejected", []) if e["kind"] == "learned"]
     if learned or rejected:
-        ev = (learned or rejected)[0]["evidence"]
-        lines += [
-            f"Learned residual model: {ev['chosen']} {'accepted' if learned else 'rejected'} "
-            f"(validation {ev['validation_rmse_before_mm']:.4f} -> {ev['validation_rmse_after_mm']:.4f} mm, "
-            f"p = {ev['p_value']:.2g}; rule: {ev['rule']}).",
-            "",
-        ]
+        entry = (learned or rejected)[0]
+        # a learned model the held-out guard dropped carries the stage's evidence under ``admitted_by``
+        ev = entry["evidence"].get("admitted_by", entry["evidence"])
+        verdict = "accepted" if learned else "rejected"
+        if "chosen" in ev:
+            lines.append(
+                f"Learned residual model: {ev['chosen']} {verdict} "
+                f"(validation {ev['validation_rmse_before_mm']:.4f} -> {ev['validation_rmse_after_mm']:.4f} mm, "
+                f"p = {ev['p_value']:.2g}; rule: {ev['rule']})"
+                + (f"; then dropped: {entry['reason']}." if not learned and entry.get("reason") else ".")
+            )
+        else:
+            lines.append(
+                f"Learned residual model {verdict}" + (f": {entry['reason']}." if entry.get("reason") else ".")
+            )
+        lines.append("")
     return lines
 
 
