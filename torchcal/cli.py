@@ -205,6 +205,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
     c.add_argument("--rank-tol", type=POSITIVE, default=None, help="identifiability tolerance, > 0 (default 1e-6)")
+    c.add_argument(
+        "--max-joint-error",
+        type=POSITIVE,
+        default=5.0,
+        help="the largest size [mrad] a named joint-angle effect (cyclic, transmission, compliance, backlash) may "
+        "have anywhere on its joint's range; larger ones are rejected (default 5)",
+    )
     _add_computing(c)
 
     pr = sub.add_parser(
@@ -346,6 +353,7 @@ def cmd_calibrate(args) -> int:
         engine=args.engine,
         device=args.device,
         refit=args.refit,
+        max_joint_error=args.max_joint_error * 1e-3,
     )
     if args.rank_tol is not None:
         opts.rank_tol = args.rank_tol

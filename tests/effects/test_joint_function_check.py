@@ -57,3 +57,82 @@ def test_other_kinds_and_polynomials():
     # a quadratic and a linear term that cancel over a narrow range far from zero
     q = _poses(1.0, 1.05)
     assert "cancel" in joint_function_check(Transmission(2, degree=2, c=[-1.025e-2, 1e-2]), q)
+
+
+# ------------------------------------------------------------------ a physical bound on the whole joint range
+
+
+def _robot():
+    import torchcal
+
+    return torchcal.load_robot("ur10")
+
+
+def test_a_first_harmonic_of_45_mrad_is_refused_over_the_joint_range():
+    # a real Series C fit of cyclic(joint 2) (harmonics 1, 2; a first harmonic of 45 mrad that the joint offset
+    # cancels over the 1.1 rad of q2 seen): it put the home pose 6 mm off, 0.6 rad beyond the fitted range
+    q = _poses(-3.25, -2.13)
+    eff = Cyclic(2, harmonics=(1, 2), a=[-0.021, -0.0102], b=[-0.0404, -0.0074])
+    assert joint_function_check(eff, q) is None  # terms do not cancel: only the bound finds it
+    why = joint_function_check(eff, q, _robot())
+    assert why is not None and "exceeds the physical bound of 5 mrad" in why and "-6.283 to 6.283" in why
+    assert joint_function_check(eff, q, _robot(), max_size=0.05) is None  # settable
+
+
+def test_a_small_harmonic_and_a_ratio_error_pass_the_bound():
+    q = _poses(-1.0, 1.0)
+    robot = _robot()
+    assert joint_function_check(Cyclic(4, harmonics=(2,), a=[2.2e-4], b=[1e-4]), q, robot) is None
+    assert joint_function_check(Transmission(3, degree=1, c=[1.9e-4]), q, robot) is None  # 1.2 mrad over +-2 pi
+    # a ratio error of 1e-3: 6.3 mrad at a full turn, beyond the bound however small it is on the poses
+    assert "exceeds" in joint_function_check(Transmission(3, degree=1, c=[1e-3]), q, robot)
+
+
+def test_physical_forms_are_judged_on_the_poses():
+    q = _poses(-1.0, 1.0)
+    robot = _robot()
+    assert joint_function_check(Compliance(2, k=1e-6), q, robot) is None
+    assert "on the fitting poses" in joint_function_check(Compliance(2, k=1e-3), q, robot)  # 1e-3 rad/Nm: absurd
+
+
+# --------------------------------------------------------------------- open forms fade beyond their support
+
+
+def test_an_open_form_is_unchanged_on_its_support_and_fades_beyond_it():
+    from torchcal.effects import Context
+    from torchcal.effects.joint import FADE_LENGTH
+
+    q = _poses(0.4, 0.9)
+    eff = Cyclic(2, harmonics=(1, 2), a=[3e-4, 1e-4], b=[2e-4, 5e-5])
+    free = eff(None, Context(q=q))[:, 1]
+    eff.set_support(q)
+    torch.testing.assert_close(eff(None, Context(q=q))[:, 1], free, rtol=0, atol=0)
+    hi = float(eff.support[1])
+    out = q[:3].clone()
+    out[:, 1] = torch.tensor([hi + 0.05, hi + FADE_LENGTH, hi + 0.6], dtype=F64)
+    edge = eff.function(torch.tensor([hi], dtype=F64))
+    got = eff(None, Context(q=out))[:, 1].detach()
+    w = torch.exp(-0.5 * ((out[:, 1] - hi) / FADE_LENGTH) ** 2)
+    torch.testing.assert_close(got, edge * w)
+    assert abs(float(got[2])) < 1e-7 * abs(float(edge))
+
+
+def test_a_harmonic_sum_seen_over_a_whole_period_does_not_fade():
+    from torchcal.effects import Context
+
+    q = _poses(-3.2, 3.2)
+    eff = Cyclic(2, harmonics=(2, 4), a=[3e-4, 1e-4], b=[2e-4, 5e-5], support=(-1.6, 1.6))  # period pi
+    far = q[:2].clone()
+    far[:, 1] = torch.tensor([3.0, -3.0], dtype=F64)
+    torch.testing.assert_close(eff(None, Context(q=far))[:, 1], eff.function(far[:, 1]))
+
+
+def test_the_support_survives_config_and_state_dict():
+    from torchcal.effects import effect_from_config
+
+    eff = Transmission(3, degree=2, c=[1e-4, 2e-5], support=(-0.5, 1.25))
+    twin = effect_from_config({"class": "Transmission", **eff.config()})
+    twin.load_state_dict(eff.state_dict())
+    assert twin.support.tolist() == [-0.5, 1.25] and twin.c.tolist() == eff.c.tolist()
+    old = Transmission(3, degree=2)  # a run written before the fade: no support in its config or state dict
+    assert "support" not in old.config() and "support" not in old.state_dict()

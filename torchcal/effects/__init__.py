@@ -3,7 +3,14 @@
 from torchcal.effects.base import Acts, Context, Effect, motion_direction
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
-from torchcal.effects.joint import Backlash, Compliance, Cyclic, Transmission, joint_function_check
+from torchcal.effects.joint import (
+    MAX_JOINT_ERROR,
+    Backlash,
+    Compliance,
+    Cyclic,
+    Transmission,
+    joint_function_check,
+)
 from torchcal.effects.kernel import KernelCorrection, fit_kernel_correction
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.model import MeasurementModel
@@ -28,3 +35,4 @@ __all__ = [
     "motion_direction",
 ]
 __all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction", "joint_function_check"]
+__all__ += ["MAX_JOINT_ERROR"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -11,6 +12,93 @@ from torchcal import _dual
 from torchcal.effects.base import Context, Effect
 
 Tensor = torch.Tensor
+
+#: the largest size [rad] a fitted joint-angle error function may reach anywhere on its joint's range (half its
+#: peak-to-peak there: a constant part is the joint's offset, which the geometry carries). Harmonic drives and
+#: gearboxes of industrial arms have transmission errors of a few arcminutes at most (1 arcmin = 0.29 mrad); 5 mrad
+#: (17 arcmin, 5 mm at a 1 m lever) is loose for a real one and rules out what only cancelling terms can make.
+#: Settable per run (``Options.max_joint_error``, ``--max-joint-error``).
+MAX_JOINT_ERROR = 5e-3
+
+#: the fade length [rad or m] of an open joint-angle form beyond the range its joint covered in the fit: the
+#: function is held at its value at the edge and multiplied by ``exp(-d^2 / (2 FADE_LENGTH^2))``, ``d`` the
+#: distance beyond the edge, so 0.1 rad out 61 % of it is left, 0.3 rad out 1 %.
+FADE_LENGTH = 0.1
+
+
+class _SupportedForm(Effect):
+    """An open joint-angle form (a harmonic sum, a polynomial): a shape fitted to the range its joint covered,
+    with no law that says how it continues. Beyond that range it fades to zero, i.e. to the geometry
+    (:data:`FADE_LENGTH`), so that terms which the range did not determine cannot add up outside it.
+
+    ``support``: ``(lo, hi)`` of the joint's fitted range [rad]; None (the default, and runs written before the
+    fade existed): the form is applied as it is everywhere.
+    """
+
+    def _init_support(self, support) -> None:
+        if support is not None:
+            lo, hi = (float(v) for v in support)
+            if not lo <= hi:
+                from torchcal.errors import OptionError
+
+                raise OptionError(f"{self.kind} support must be (lo, hi) with lo <= hi, got {list(support)}")
+            self.register_buffer("support", torch.tensor([lo, hi], dtype=torch.float64))
+        else:  # a None buffer is not in the state dict: runs written before the fade existed load as they were
+            self.register_buffer("support", None)
+
+    def set_support(self, q: Tensor) -> None:
+        """Record the range of this effect's joint in ``q`` ``(N, dof)`` as the fitted range."""
+        qj = q[:, self.j].detach()
+        self.support = torch.stack([qj.min(), qj.max()]).to(torch.float64)
+
+    def _unbounded(self) -> bool:
+        """Whether the fitted range makes the form determined everywhere (a full period of a harmonic sum)."""
+        return False
+
+    def _faded(self, ctx: Context) -> tuple[Tensor, Tensor | None]:
+        """The joint's reading clamped to the fitted range ``(N, 1)``, and the fade weight ``(N, 1)`` (None: 1)."""
+        qj = ctx.q[:, self.j : self.j + 1]
+        if self.support is None or self._unbounded():
+            return qj, None
+        lo, hi = self.support[0], self.support[1]
+        c = torch.minimum(torch.maximum(qj, lo), hi)
+        d = (qj - c).abs()
+        return c, torch.exp(-0.5 * (d / FADE_LENGTH) ** 2)
+
+    def function(self, qj: Tensor) -> Tensor:
+        """The form's value ``(M,)`` [rad] at the joint readings ``qj`` ``(M,)`` as fitted, without the fade."""
+        dof = self.j + 1
+        q = torch.zeros(len(qj), dof, dtype=qj.dtype, device=qj.device)
+        q[:, self.j] = qj
+        return self._terms(q, fade=False).sum(-1)
+
+    def _coef(self) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _basis(self, qj: Tensor) -> Tensor:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _terms(self, q: Tensor, fade: bool = True) -> Tensor:
+        """Each term's value ``(N, k)`` [rad]."""
+        with torch.no_grad():
+            return self._regressor(Context(q=q), fade) * self._coef()
+
+    def _regressor(self, ctx: Context, fade: bool = True) -> Tensor:
+        if not fade:
+            return self._basis(ctx.q[:, self.j : self.j + 1])
+        c, w = self._faded(ctx)
+        X = self._basis(c)
+        return X if w is None else X * w
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """The form's basis at the (clamped) readings times the fade ``(N, k)``: the term the coefficients multiply."""
+        return self._regressor(ctx)
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        return self._joint_delta(ctx, self.regressor(robot, ctx) @ self._coef())
+
+    def _support_config(self) -> dict:
+        return {} if self.support is None else {"support": [float(v) for v in self.support]}
 
 
 class Compliance(Effect):
@@ -101,7 +189,7 @@ class Backlash(Effect):
         return {"b_rad": float(self.b.detach()), "source": self.source}
 
 
-class Cyclic(Effect):
+class Cyclic(_SupportedForm):
     """Cyclic transmission errors: ``dq_j = sum_k a_k sin(k q_j) + b_k cos(k q_j)``.
 
     Eccentric gears, encoders mounted off-centre and the flexspline's two-lobe wave
@@ -115,11 +203,13 @@ class Cyclic(Effect):
         joint: 1-based joint.
         harmonics: the orders k, distinct positive integers (default 1 and 2).
         a, b: sine and cosine amplitudes [rad], one per harmonic.
+        support: the joint's fitted range ``(lo, hi)`` [rad]: beyond it the sum fades to zero, unless the range
+            covers a whole period of the sum (``2 pi / gcd(orders)``), which determines it everywhere.
     """
 
     kind = "cyclic"
 
-    def __init__(self, joint: int, harmonics: Sequence[int] = (1, 2), a=None, b=None):
+    def __init__(self, joint: int, harmonics: Sequence[int] = (1, 2), a=None, b=None, support=None):
         super().__init__(joint)
         orders = [int(k) for k in harmonics]
         if not orders or min(orders) < 1 or len(set(orders)) != len(orders):
@@ -135,18 +225,21 @@ class Cyclic(Effect):
 
         self.a = nn.Parameter(init(a).clone())
         self.b = nn.Parameter(init(b).clone())
+        self.period = 2 * math.pi / math.gcd(*orders)
+        self._init_support(support)
 
-    def regressor(self, robot, ctx: Context) -> Tensor:
-        """``[sin(k q_j), cos(k q_j)]`` per harmonic ``(N, 2 * n_harmonics)``."""
-        arg = ctx.q[:, self.j : self.j + 1] * self.harmonics
+    def _unbounded(self) -> bool:
+        return float(self.support[1] - self.support[0]) >= self.period
+
+    def _basis(self, qj: Tensor) -> Tensor:
+        arg = qj * self.harmonics
         return torch.cat([torch.sin(arg), torch.cos(arg)], dim=-1)
 
-    def forward(self, robot, ctx: Context) -> Tensor:
-        coef = torch.cat([self.a, self.b])
-        return self._joint_delta(ctx, self.regressor(robot, ctx) @ coef)
+    def _coef(self) -> Tensor:
+        return torch.cat([self.a, self.b])
 
     def config(self) -> dict:
-        return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics]}
+        return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics], **self._support_config()}
 
     def describe(self) -> dict:
         return {
@@ -156,7 +249,7 @@ class Cyclic(Effect):
         }
 
 
-class Transmission(Effect):
+class Transmission(_SupportedForm):
     """A joint-angle error polynomial in the joint's reading: ``dq_j = sum_{d=1..D} c_d q_j^d``.
 
     A transmission ratio that differs from the controller's value scales the angle
@@ -168,11 +261,12 @@ class Transmission(Effect):
         joint: 1-based joint.
         degree: highest degree D (>= 1).
         c: coefficients ``(D,)`` [rad / rad^d].
+        support: the joint's fitted range ``(lo, hi)`` [rad]: beyond it the polynomial fades to zero.
     """
 
     kind = "transmission"
 
-    def __init__(self, joint: int, degree: int = 1, c=None):
+    def __init__(self, joint: int, degree: int = 1, c=None, support=None):
         super().__init__(joint)
         if int(degree) < 1:
             from torchcal.errors import OptionError
@@ -181,17 +275,16 @@ class Transmission(Effect):
         self.degree = int(degree)
         c0 = torch.zeros(self.degree, dtype=torch.float64) if c is None else torch.as_tensor(c, dtype=torch.float64)
         self.c = nn.Parameter(c0.reshape(self.degree).clone())
+        self._init_support(support)
 
-    def regressor(self, robot, ctx: Context) -> Tensor:
-        """``[q_j, q_j^2, ..., q_j^D]`` ``(N, D)``."""
-        qj = ctx.q[:, self.j : self.j + 1]
+    def _basis(self, qj: Tensor) -> Tensor:
         return qj ** torch.arange(1, self.degree + 1, dtype=qj.dtype, device=qj.device)
 
-    def forward(self, robot, ctx: Context) -> Tensor:
-        return self._joint_delta(ctx, self.regressor(robot, ctx) @ self.c)
+    def _coef(self) -> Tensor:
+        return self.c
 
     def config(self) -> dict:
-        return {"joint": self.joint, "degree": self.degree}
+        return {"joint": self.joint, "degree": self.degree, **self._support_config()}
 
     def describe(self) -> dict:
         return {"degree": self.degree, "c": self.c.detach().tolist()}
@@ -206,30 +299,74 @@ class Transmission(Effect):
 CANCELLATION_RATIO = 20.0  # largest allowed sum of |term| over |sum of terms|, both at their peak on the poses
 
 
-def joint_function_check(effect: Effect, q: Tensor) -> str | None:
-    """Whether a fitted joint-angle function (:class:`Cyclic`, :class:`Transmission`) is determined by the poses.
+def joint_range(robot, joint: int) -> tuple[float, float]:
+    """The range a joint can reach [rad or m]: its limits, where finite, else one turn either side of zero."""
+    lo, hi = (float(v) for v in robot.limits[joint - 1]) if robot is not None else (-math.inf, math.inf)
+    turn = 2 * math.pi
+    return (lo if math.isfinite(lo) else -turn), (hi if math.isfinite(hi) else turn)
+
+
+def joint_function_size(effect: Effect, robot, q: Tensor, reach: tuple[float, float]) -> float:
+    """The size [rad] of a joint-angle effect: half the peak-to-peak of its function over the joint's whole range
+    ``reach`` for an open form (:class:`Cyclic`, :class:`Transmission`: the constant part is the joint offset the
+    geometry carries), the largest ``|dq|`` on the poses ``q`` for a physical one (compliance, backlash), whose law
+    says how it continues."""
+    with torch.no_grad():
+        if isinstance(effect, _SupportedForm):
+            lo, hi = reach
+            grid = torch.linspace(lo, hi, 4001, dtype=torch.float64, device=q.device)
+            f = effect.function(grid)
+            return float(f.max() - f.min()) / 2
+        if isinstance(effect, Backlash):
+            return abs(float(effect.b)) / 2
+        if isinstance(effect, Compliance):
+            return abs(float(effect.k)) * float(effect.regressor(robot, Context(q=q)).abs().max())
+    return 0.0
+
+
+def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float | None = MAX_JOINT_ERROR) -> str | None:
+    """Whether a fitted joint-angle function is determined by the poses and of a physical size.
 
     Args:
-        effect: the fitted effect; other kinds pass (``None``).
+        effect: the fitted effect; kinds that do not act on one joint's angle pass (``None``).
         q: the joints of the poses it was fitted on ``(N, dof)`` [rad].
+        robot: the robot (its joint limits are the range an open form is judged on; a compliance's torques); None:
+            the size is not checked.
+        max_size: the largest size allowed (:func:`joint_function_size`) [rad]; None: no bound.
 
     Returns:
-        ``None`` when the function is well determined, else the reason: its terms cancel on the poses (the sum
-        of the terms' peaks exceeds ``CANCELLATION_RATIO`` times the function's peak), so that the poses do not
-        determine them and the function explodes beyond them.
+        ``None`` when the function is well determined and not larger than ``max_size``, else the reason: its terms
+        cancel on the poses (the sum of the terms' peaks exceeds ``CANCELLATION_RATIO`` times the function's peak),
+        so that the poses do not determine them and the function explodes beyond them; or it exceeds the bound
+        somewhere on its joint's range.
     """
-    if not isinstance(effect, (Cyclic, Transmission)):
-        return None
-    with torch.no_grad():
-        coef = torch.cat([effect.a, effect.b]) if isinstance(effect, Cyclic) else effect.c
-        terms = effect.regressor(None, Context(q=q)) * coef
-        peak = float(terms.sum(-1).abs().max())
-        peak_terms = float(terms.abs().max(0).values.sum())
-    if peak_terms <= CANCELLATION_RATIO * max(peak, 1e-15):
+    if not isinstance(effect, (Cyclic, Transmission, Compliance, Backlash)):
         return None
     qj = q[:, effect.j]
+    seen = f"{float(qj.min()):.3f} to {float(qj.max()):.3f}"
+    if isinstance(effect, _SupportedForm):
+        terms = effect._terms(q, fade=False)
+        peak = float(terms.sum(-1).abs().max())
+        peak_terms = float(terms.abs().max(0).values.sum())
+        if peak_terms > CANCELLATION_RATIO * max(peak, 1e-15):
+            return (
+                f"its terms cancel on the fitting poses (sum of |terms| {peak_terms:.3g} rad against a function of "
+                f"{peak:.3g} rad): the range of joint {effect.joint} seen ({seen} rad) does not determine them, "
+                "and beyond it the function would explode"
+            )
+    if robot is None or max_size is None:
+        return None
+    reach = joint_range(robot, effect.joint)
+    size = joint_function_size(effect, robot, q, reach)
+    if size <= max_size:
+        return None
+    where = (
+        f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} rad (fitted on {seen})"
+        if isinstance(effect, _SupportedForm)
+        else "on the fitting poses"
+    )
     return (
-        f"its terms cancel on the fitting poses (sum of |terms| {peak_terms:.3g} rad against a function of "
-        f"{peak:.3g} rad): the range of joint {effect.joint} seen ({float(qj.min()):.3f} to {float(qj.max()):.3f} "
-        "rad) does not determine them, and beyond it the function would explode"
+        f"its size {size * 1e3:.3g} mrad {where} exceeds the physical bound of {max_size * 1e3:.3g} mrad "
+        "(max_joint_error): a joint error that large is not a transmission error, and it is only the sum of "
+        "terms the joint range does not determine"
     )

@@ -195,7 +195,9 @@ def close_loop(
     open_notes: dict[str, str] = {}  # variable -> why no open effect came from it (for ``unexplained``)
 
     def validate(rnd: int, cand, s) -> _Validation:
-        v = _validate(s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand)
+        v = _validate(
+            s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand, opts.max_joint_error
+        )
         if not v.passed:
             _reject(run, diag, v)
             if isinstance(cand, OpenCandidate):
@@ -311,6 +313,7 @@ def _validate(
     trajectory: bool,
     alpha_val: float,
     cand=None,
+    max_size: float | None = None,
 ) -> _Validation:
     """Refit ``base`` with ``cand`` (default: the candidate of ``s``) on the fitting poses; compare on the
     validation poses."""
@@ -319,7 +322,7 @@ def _validate(
         f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k:.3g}, log10 p {s.log10_p:.1f}); validating"
     )
     trial = copy.deepcopy(base)
-    trial.add(cand.make())
+    trial.add(_made(cand, fit_part.q))
     try:
         res = fit_on(trial, fit_part, f"validation {cand.name}").result
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
@@ -327,7 +330,7 @@ def _validate(
         validation = _untested(e_base, None, refit_failed=str(err))
         return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason)
     e_trial = errors(trial, val_part, trajectory)
-    unsure = joint_function_check(trial.effects[-1], fit_part.q)
+    unsure = joint_function_check(trial.effects[-1], fit_part.q, trial.robot, max_size)
     if unsure is not None:  # fits the poses, but explodes just beyond them: never better than without it
         validation = _untested(e_base, e_trial, ill_determined=unsure)
         return _Validation(s, rnd, cand, base, trial, e_trial, validation, False, unsure)
@@ -356,6 +359,14 @@ def _validate(
     )
     validation["bic_fit"] = bic
     return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason, bic)
+
+
+def _made(cand, q: Tensor):
+    """The candidate's effect, an open form knowing the range its joint covers in ``q`` (beyond it, it fades)."""
+    eff = cand.make()
+    if hasattr(eff, "set_support"):
+        eff.set_support(q)
+    return eff
 
 
 def _untested(e_base: Tensor, e_trial: Tensor | None, **why: str) -> dict:
@@ -415,7 +426,7 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     """
     model, s, cand = run.model, v.score, v.candidate
     before = copy.deepcopy(model)
-    eff = cand.make()
+    eff = _made(cand, train.q)
     model.add(eff)
     label = eff.label()
     # warm start: the validation refit has fitted the same model on 80 % of these poses; from there the refit on all
@@ -425,6 +436,10 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
         model.load_state_dict(warm)
     try:
         new_fit = fit_on(model, train, label)
+        # the refit on all training poses is judged like the validation refit: determined and of a physical size
+        unsure = joint_function_check(eff, train.q, model.robot, run.options.max_joint_error)
+        if unsure is not None:
+            raise EstimationError(unsure)
     except EstimationError as err:
         del model.effects[len(model.effects) - 1]
         model.load_state_dict(before.state_dict())

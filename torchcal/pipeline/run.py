@@ -44,7 +44,7 @@ from torchcal import stats as S
 from torchcal._device import resolve_device
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
-from torchcal.effects import MeasurementModel
+from torchcal.effects import MAX_JOINT_ERROR, MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, place_instrument_and_tool, solve
 from torchcal.estimate.identifiability import DEFAULT_TOL
@@ -96,6 +96,8 @@ class Options:
     outlier_alpha: float | None = 1e-3  # gross-error screening's family-wise level (None: no screening)
     group_tol: float = S.GROUP_TOL  # rad: rows whose joints all agree within it stay on one side of every split
     device: str = "cpu"  # where the run computes: cpu, cuda, cuda:N (torchcal._device.resolve_device)
+    max_joint_error: float | None = MAX_JOINT_ERROR  # rad: the largest size a named joint-angle effect may have
+    # anywhere on its joint's range (torchcal.effects.joint.MAX_JOINT_ERROR; None: no bound)
     refit: bool | None = None  # the model written fitted again on all samples, training and held-out, once chosen
     # (the held-out errors reported stay those of the fit on the training samples): None means on for the
     # integrated method's auto engine and off otherwise; True is allowed for kinematic too (see ``refits``)
@@ -105,6 +107,8 @@ class Options:
             raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
         if self.engine not in ENGINES:
             raise OptionError(f"engine '{self.engine}' is not one of {', '.join(ENGINES)}")
+        if self.max_joint_error is not None and not 0.0 < self.max_joint_error <= 0.5:
+            raise OptionError(f"max_joint_error must lie in (0, 0.5] rad, got {self.max_joint_error}")
         if not 0.0 < self.holdout < 0.9:
             raise OptionError(f"holdout must lie in (0, 0.9), got {self.holdout}")
         if self.refit and not (self.method == "kinematic" or (self.method == "integrated" and self.engine == "auto")):
