@@ -99,6 +99,9 @@ class Effect(nn.Module):
     #: whether the output reads the robot's instrument pose (``T_tracker_base``): the estimators then differentiate
     #: the pose through the whole model instead of in closed form (:func:`torchcal.estimate.problem.residual_function`)
     reads_instrument: bool = False
+    #: whether a :class:`~torchcal.effects.model.MeasurementModel` whose region fades fades this effect beyond its
+    #: calibrated region (a learned correction with no law of its own beyond the data)
+    fades_beyond_region: bool = False
 
     def __init__(self, joint: int | None = None):
         super().__init__()

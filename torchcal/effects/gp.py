@@ -284,6 +284,7 @@ class GPCorrection(Effect):
 
     kind = "learned"
     acts_on = "cartesian"
+    fades_beyond_region = True
 
     def __init__(
         self,

@@ -22,8 +22,10 @@ MAX_JOINT_ERROR = 5e-3
 
 #: the fade length [rad or m] of an open joint-angle form beyond the range its joint covered in the fit: the
 #: function is held at its value at the edge and multiplied by ``exp(-d^2 / (2 FADE_LENGTH^2))``, ``d`` the
-#: distance beyond the edge, so 0.1 rad out 61 % of it is left, 0.3 rad out 1 %.
-FADE_LENGTH = 0.1
+#: distance beyond the edge: 0.05 rad out 97 % of it is left (a pose just beyond the fitted ones, where a real
+#: effect still holds), 0.3 rad out 32 %, 0.6 rad out 1 %. The learned corrections fade the same way beyond the
+#: calibrated region (:meth:`torchcal.effects.MeasurementModel.set_region`).
+FADE_LENGTH = 0.2
 
 
 class _SupportedForm(Effect):
@@ -358,15 +360,41 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return None
     reach = joint_range(robot, effect.joint)
     size = joint_function_size(effect, robot, q, reach)
-    if size <= max_size:
+    bound = max_size * joint_bound_scale(robot, q, effect.joint)
+    if size <= bound:
         return None
     where = (
         f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} rad (fitted on {seen})"
         if isinstance(effect, _SupportedForm)
         else "on the fitting poses"
     )
+    scaled = "" if bound == max_size else f" ({max_size * 1e3:.3g} mrad at a 1 m lever arm, scaled to this joint's)"
     return (
-        f"its size {size * 1e3:.3g} mrad {where} exceeds the physical bound of {max_size * 1e3:.3g} mrad "
-        "(max_joint_error): a joint error that large is not a transmission error, and it is only the sum of "
-        "terms the joint range does not determine"
+        f"its size {size * 1e3:.3g} mrad {where} exceeds the physical bound of {bound * 1e3:.3g} mrad"
+        f"{scaled} (max_joint_error): a joint error that large is not a transmission error, and it is only the sum "
+        "of terms the joint range does not determine"
     )
+
+
+#: the lever arm [m] at which a joint-angle error is held to ``max_joint_error`` itself, and the most the bound is
+#: widened for a joint with a shorter lever (:func:`joint_bound_scale`)
+BOUND_LEVER = 1.0
+MAX_BOUND_SCALE = 10.0
+
+
+def joint_bound_scale(robot, q: Tensor, joint: int) -> float:
+    """How much wider than ``max_joint_error`` a joint's error may be: ``BOUND_LEVER / L`` with ``L`` the joint's
+    largest lever arm to the probe on the poses ``q`` (``|dp/dq_j|``), between 1 and ``MAX_BOUND_SCALE``.
+
+    A wrist joint close to the probe moves it by millimetres per radian: the error that shows there as a few tens
+    of micrometres is several mrad of angle, and only the lever makes it so. The bound is then the same
+    displacement at the probe as ``max_joint_error`` at a 1 m lever, up to ten times the angle. A prismatic joint's
+    lever is 1 (m per m): its bound is ``max_joint_error`` [m] itself.
+    """
+    j = joint - 1
+    with torch.no_grad():
+        h = 1e-6
+        dq = torch.zeros_like(q)
+        dq[:, j] = h
+        lever = float(((robot.probe_in_base(q + dq) - robot.probe_in_base(q - dq)).norm(dim=-1) / (2 * h)).max())
+    return min(max(BOUND_LEVER / max(lever, 1e-12), 1.0), MAX_BOUND_SCALE)

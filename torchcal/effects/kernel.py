@@ -43,6 +43,7 @@ class KernelCorrection(Effect):
 
     kind = "learned"
     acts_on = "cartesian"
+    fades_beyond_region = True
 
     def __init__(self, dof: int, n_support: int = 0):
         super().__init__(joint=None)

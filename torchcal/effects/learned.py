@@ -138,6 +138,7 @@ class LearnedEffect(Effect):
 
     kind = "learned"
     acts_on = "cartesian"
+    fades_beyond_region = True
 
     def __init__(self, net: CorrectionNet):
         super().__init__(joint=None)

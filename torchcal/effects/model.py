@@ -31,6 +31,42 @@ class MeasurementModel(nn.Module):
         super().__init__()
         self.robot = robot
         self.effects = nn.ModuleList([e.to(robot.device) for e in effects])  # effects are built on CPU
+        # the calibrated region (set_region): not in the state dict, a run directory's model.json carries it
+        self.register_buffer("region", None, persistent=False)
+        self.region_fade = False
+
+    def set_region(self, q: Tensor | None, *, fade: bool = False) -> None:
+        """Record the calibrated region: the range of every joint in ``q`` ``(N, dof)`` (None: no region).
+
+        With ``fade``, the learned Cartesian corrections (the effects whose ``fades_beyond_region`` is set: a
+        network, a kernel regression, a Gaussian process; not a :class:`~torchcal.effects.support.SupportGate`,
+        which has its own support) fade to zero beyond the region, by ``exp(-d^2 / (2 FADE_LENGTH^2))`` with ``d``
+        the :meth:`extrapolation`: nothing in their fit says how they continue there.
+        """
+        if q is None:
+            self.region, self.region_fade = None, False
+            return
+        self.region = torch.stack([q.min(0).values, q.max(0).values]).detach().to(self.robot.dtype)
+        self.region_fade = bool(fade)
+
+    def extrapolation(self, q: Tensor) -> Tensor:
+        """How far each pose lies outside the calibrated region ``(N,)``: the largest distance of a joint beyond the
+        range it covered in the calibration, in the joint's unit (rad for a revolute joint, m for a prismatic one); 0
+        inside the region, and everywhere when no region is recorded."""
+        if self.region is None:
+            return torch.zeros(len(q), dtype=q.dtype, device=q.device)
+        lo, hi = self.region[0], self.region[1]
+        return torch.maximum(lo - q, q - hi).clamp(min=0).amax(dim=1) if q.shape[1] else q.new_zeros(len(q))
+
+    def region_weight(self, q: Tensor) -> Tensor | None:
+        """The fade of the learned corrections at ``q`` ``(N, 1)``, or None where they do not fade (see
+        :meth:`set_region`)."""
+        if not self.region_fade or self.region is None:
+            return None
+        from torchcal.effects.joint import FADE_LENGTH
+
+        d = self.extrapolation(q.detach())
+        return torch.exp(-0.5 * (d / FADE_LENGTH) ** 2)[:, None]
 
     def add(self, effect: Effect) -> None:
         self.effects.append(effect.to(self.robot.device))
@@ -53,9 +89,13 @@ class MeasurementModel(nn.Module):
         q = _dual.add(ctx.q, self.joint_offsets(ctx))
         p = self.robot.probe_in_base(q) if fk is None else fk(self.robot, q)
         if with_cartesian:
+            w = self.region_weight(ctx.q)
             for e in self.effects:
                 if e.acts_on == Acts.CARTESIAN:
-                    p = _dual.add(p, e(self.robot, ctx, p_base=p))
+                    dp = e(self.robot, ctx, p_base=p)
+                    if w is not None and e.fades_beyond_region:
+                        dp = _dual.mul(dp, w)
+                    p = _dual.add(p, dp)
         return p
 
     def forward(self, ctx: Context, fk=None) -> Tensor:

@@ -273,6 +273,11 @@ def calibrate(
     model = MeasurementModel(robot)
     run = CalibrationRun(spec, robot, model, opts, data, tr, ho, trajectory, split=split, screening=screening)
     train, hold = run.train, run.hold
+    # the calibrated region: what predict and compensate measure extrapolation from; the learned corrections of the
+    # methods that add them to a geometry fitted alone fade beyond it (the integrated method's own gates fade its
+    # filters, whose geometry may only be right together with their network)
+    fade = opts.method in ("auto", "pcm", "kinematic+ann")
+    model.set_region(train.q, fade=fade)
     if split.merged_groups:
         run.notes.append(
             f"split: {split.merged_groups} revisited joint configurations ({split.merged_rows} poses) "
@@ -323,6 +328,9 @@ def calibrate(
     if opts.method in ("pcm", "kinematic+ann"):
         _console.info(f"correction network 6-{opts.hidden}-3 on the remaining position corrections")
         correction_net_stage(run, train, trajectory)
+    # the model written was fitted again on all rows where the run refits; its region is theirs then
+    rows = torch.cat([train.q, hold.q]) if opts.refits else train.q
+    run.model.set_region(rows, fade=fade)
     return run
 
 

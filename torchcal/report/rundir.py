@@ -207,9 +207,38 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "trajectory": run.trajectory,
         "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
         "method": run.options.method,
+        "region": _region_config(run.model),
     }
     (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return tmp
+
+
+def _region_config(model: MeasurementModel) -> dict | None:
+    """model.json's ``region``: the calibrated range of every joint and whether the learned corrections fade beyond
+    it (:meth:`~torchcal.effects.MeasurementModel.set_region`)."""
+    if model.region is None:
+        return None
+    r = model.region.cpu()
+    return {"joint_min": r[0].tolist(), "joint_max": r[1].tolist(), "fade": bool(model.region_fade)}
+
+
+def _set_region(model: MeasurementModel, cfg, run_dir: Path) -> None:
+    """Set a loaded model's region from model.json's ``region`` (absent in runs written before it: no region)."""
+    if cfg is None:
+        return
+    dof = model.robot.dof
+    try:
+        lo = [float(v) for v in cfg["joint_min"]]
+        hi = [float(v) for v in cfg["joint_max"]]
+        fade = cfg.get("fade", False)
+    except (KeyError, TypeError, ValueError, AttributeError):
+        raise _run_error(run_dir, "model.json: region must hold joint_min and joint_max lists of numbers") from None
+    ok = len(lo) == len(hi) == dof and all(math.isfinite(a) and math.isfinite(b) and a <= b for a, b in zip(lo, hi))
+    if not ok or not isinstance(fade, bool):
+        raise _run_error(
+            run_dir, f"model.json: region must give {dof} finite joint ranges (joint_min <= joint_max) and a fade flag"
+        )
+    model.set_region(torch.tensor([lo, hi], dtype=torch.float64, device=model.robot.device), fade=fade)
 
 
 def write_run(run: CalibrationRun, out: str | os.PathLike, *, inputs=()) -> Path:
@@ -284,6 +313,7 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     except (RuntimeError, TypeError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise _run_error(run_dir, f"model.pt does not match model.json ({first})") from None
+    _set_region(model, meta.get("region"), run_dir)
     return model, meta
 
 
