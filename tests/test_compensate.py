@@ -297,7 +297,24 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "line 5: unreachable" in err  # the 4th data row, on file line 5, is named
     header, rows = _read(out)
-    assert header == ["q1", "q2", "q3", "q4", "q5", "q6", "x", "y", "z", "label", "miss", "status"]
+    assert header == [
+        "q1",
+        "q2",
+        "q3",
+        "q4",
+        "q5",
+        "q6",
+        "x",
+        "y",
+        "z",
+        "label",
+        "sx",
+        "sy",
+        "sz",
+        "extrapolation",
+        "miss",
+        "status",
+    ]
     assert [r[-1] for r in rows] == ["converged"] * 3 + ["unreachable"] + ["converged"] * 2
     assert [float(r[9]) for r in rows] == [10.0, 11.0, 12.0, 13.0, 14.0, 15.0]
     model, _ = load_model(run_dir / "run")
@@ -305,7 +322,7 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
     with torch.no_grad():
         miss = (model(Context(q=qc)) - p).norm(dim=-1)
     assert float(miss[[0, 1, 2, 4, 5]].max()) <= 1e-9
-    assert float(rows[3][10]) > 3.0
+    assert float(rows[3][header.index("miss")]) > 3.0
 
     # a program: q only means the nominal model's point; x,y,z only starts from the nominal IK
     (tmp_path / "prog.csv").write_text(

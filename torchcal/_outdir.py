@@ -40,7 +40,15 @@ def _marker_text(kind: str) -> str:
 
 
 #: What a calibration run directory held before the marker existed (torchcal 0.1 before this module).
-_LEGACY_RUN_FILES = {"report.json", "report.md", "robot_calibrated.urdf", "model.pt", "model.json", "robot"}
+_LEGACY_RUN_FILES = {
+    "report.json",
+    "report.md",
+    "robot_calibrated.urdf",
+    "model.pt",
+    "model.json",
+    "robot",
+    "covariance.pt",
+}
 
 
 def _is_legacy_run(path: Path) -> bool:

@@ -376,12 +376,36 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+#: how many rows outside the calibrated region predict and compensate name on stderr before counting the rest
+MAX_OUTSIDE_LINES = 20
+
+
+def warn_outside(path, lines, ext, what: str) -> None:
+    """Warn on stderr, one line per row (the first ``MAX_OUTSIDE_LINES``, then a count), for the rows whose pose
+    lies outside the calibrated region (``ext > 0``)."""
+    rows = [i for i in range(len(ext)) if float(ext[i]) > 0]
+    for i in rows[:MAX_OUTSIDE_LINES]:
+        line = lines[i] if lines is not None and i < len(lines) else i + 1
+        print(
+            f"torchcal: warning: {path}: line {line}: the pose lies {float(ext[i]):.3g} beyond the calibrated "
+            f"region (extrapolation, rad or m)" + (f"; {what}" if what else ""),
+            file=sys.stderr,
+        )
+    if len(rows) > MAX_OUTSIDE_LINES:
+        print(
+            f"torchcal: warning: {path}: {len(rows) - MAX_OUTSIDE_LINES} more rows outside the calibrated region "
+            "(the extrapolation column names them)",
+            file=sys.stderr,
+        )
+
+
 def cmd_predict(args) -> int:
     from dataclasses import replace
 
     from torchcal.data import read_measurements, write_measurements
-    from torchcal.effects.support import predictive_sigma
+    from torchcal.effects import Context
     from torchcal.report import load_model, predict
+    from torchcal.report.rundir import trust
 
     check_out_file(args.out, inputs=[args.data, args.run])
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -403,12 +427,17 @@ def cmd_predict(args) -> int:
             f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
             "the run directory is damaged or the fit diverged"
         )
-    # the predicted standard deviation, where the model has one (the integrated method's filters): sx, sy, sz
-    # columns after the others; none for other models
-    sigma = predictive_sigma(model, data.q)
+    # how far to trust each row: the predicted standard deviation (the parameters' covariance and the learned
+    # model's posterior) and how far the pose lies outside the calibrated region
+    trajectory = bool(meta.get("trajectory")) and data.t is not None
+    sigma, ext = trust(args.run, model, meta, data.q, Context.from_measurements(data, trajectory=trajectory))
     if sigma is None:
-        _console.info(f"{args.run}: the model has no predictive standard deviation; no sx, sy, sz columns")
-    out = replace(data, p=p, sigma=sigma, temperature=None, extra={}, meta={"predicted_by": str(args.run)})
+        _console.info(f"{args.run}: the run has no parameter covariance or predictive model; no sx, sy, sz columns")
+    out = replace(
+        data, p=p, sigma=sigma, temperature=None, extra={"extrapolation": ext}, meta={"predicted_by": str(args.run)}
+    )
+    learned = any(e.kind == "learned" for e in model.effects)
+    warn_outside(args.data, data.lines, ext, "the learned corrections fade to the geometry there" if learned else "")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     write_measurements(args.out, out)
     _console.info(f"wrote {len(p)} predictions to {args.out}")
@@ -416,9 +445,11 @@ def cmd_predict(args) -> int:
 
 
 def cmd_compensate(args) -> int:
-    from torchcal.compensate import Status, compensate, program_targets, write_joints
+    from torchcal.compensate import Status, compensate_in_region, program_targets, write_joints
     from torchcal.data import read_measurements
+    from torchcal.effects import Context
     from torchcal.report import load_model
+    from torchcal.report.rundir import trust
 
     check_out_file(args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []))
     model, meta = load_model(args.run)
@@ -438,15 +469,29 @@ def cmd_compensate(args) -> int:
     targets = data.p if data.p is not None else program_targets(model, data.q)
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
-    res = compensate(model, targets, q_start, context=context)
+    res, ext, plain = compensate_in_region(model, targets, q_start, context=context)
+    # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
+    ctx = Context(q=res.q, t=data.t, temperature=data.temperature)
+    sigma, _ = trust(args.run, model, meta, res.q, ctx)
+    extra = dict(data.extra)
+    if sigma is not None:
+        extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
+    extra["extrapolation"] = ext
     write_joints(
         args.out,
         res,
         targets=data.p,
         t=data.t,
         temperature=data.temperature,
-        extra=data.extra,
+        extra=extra,
         meta={"compensated_by": str(args.run)},
+    )
+    learned = any(e.kind == "learned" for e in model.effects)
+    warn_outside(
+        args.targets,
+        data.lines,
+        ext,
+        "commanded by the geometry and physical effects alone" if learned else "",
     )
     bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
     for i in bad:

@@ -366,6 +366,49 @@ def compensate(
     )
 
 
+def geometry_and_physics(model: MeasurementModel) -> MeasurementModel:
+    """A copy of ``model`` without its learned corrections (kind ``learned``): the geometry and the named effects,
+    whose laws (or fades, for the open forms) say how they continue beyond the calibrated region."""
+    import copy
+
+    plain = copy.deepcopy(model)
+    plain.effects = torch.nn.ModuleList([e for e in plain.effects if e.kind != "learned"])
+    plain.set_region(None)
+    return plain
+
+
+def compensate_in_region(
+    model: MeasurementModel, targets: Tensor, q_seed: Tensor | None = None, *, context: dict | None = None, **kw
+) -> tuple[CompensationResult, Tensor, Tensor]:
+    """:func:`compensate` that trusts the learned corrections only inside the calibrated region.
+
+    Rows whose command from the full model lies outside the region (:meth:`MeasurementModel.extrapolation` > 0)
+    are solved again, from the same start, with the geometry and physical effects alone
+    (:func:`geometry_and_physics`): a learned correction says nothing there, and a robot must not be driven by it.
+
+    Returns:
+        The result (those rows replaced), the extrapolation of every row's command ``(N,)`` [rad or m], and a
+        boolean mask ``(N,)`` of the rows solved without the learned corrections.
+    """
+    model = _as_model(model)
+    res = compensate(model, targets, q_seed, context=context, **kw)
+    ext = model.extrapolation(res.q)
+    plain_rows = torch.zeros(len(ext), dtype=torch.bool, device=ext.device)
+    if not bool((ext > 0).any()) or not any(e.kind == "learned" for e in model.effects):
+        return res, ext, plain_rows
+    rows = torch.nonzero(ext > 0)[:, 0]
+    n = len(ext)
+    sub_ctx = {
+        k: (v[rows] if isinstance(v, Tensor) and v.ndim >= 1 and len(v) == n else v) for k, v in (context or {}).items()
+    }
+    sub = compensate(geometry_and_physics(model), targets[rows], res.q_start[rows], context=sub_ctx, **kw)
+    res.q[rows], res.miss[rows], res.branch_kept[rows] = sub.q, sub.miss, sub.branch_kept
+    for k, i in enumerate(rows.tolist()):
+        res.status[i] = sub.status[k]
+    plain_rows[rows] = True
+    return res, model.extrapolation(res.q), plain_rows
+
+
 def program_targets(
     model: MeasurementModel, q_program: Tensor, *, nominal: RobotModel | None = None, frame: str = "instrument"
 ) -> Tensor:
@@ -407,6 +450,8 @@ __all__: Sequence[str] = (
     "Status",
     "CompensationResult",
     "compensate",
+    "compensate_in_region",
+    "geometry_and_physics",
     "nominal_ik",
     "program_targets",
     "model_miss",

@@ -46,6 +46,7 @@ from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import MAX_JOINT_ERROR, MeasurementModel
 from torchcal.errors import OptionError
+from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, place_instrument_and_tool, solve
 from torchcal.estimate.identifiability import DEFAULT_TOL
 from torchcal.pipeline.integrated import (
@@ -154,6 +155,7 @@ class CalibrationRun:
     trajectory: bool
     stages: list[Stage] = field(default_factory=list)
     fits: list[Fit] = field(default_factory=list)
+    covariance: ParameterCovariance | None = None  # of the last fit's free parameters (predict's sx, sy, sz)
     effects: list[EffectRecord] = field(default_factory=list)
     rejections: list[Rejection] = field(default_factory=list)  # candidates that did not earn their place
     notes: list[str] = field(default_factory=list)
@@ -331,7 +333,21 @@ def calibrate(
     # the model written was fitted again on all rows where the run refits; its region is theirs then
     rows = torch.cat([train.q, hold.q]) if opts.refits else train.q
     run.model.set_region(rows, fade=fade)
+    run.covariance = _covariance(run)
     return run
+
+
+def _covariance(run: CalibrationRun) -> ParameterCovariance | None:
+    """The parameter covariance of the run's last least-squares fit, for the parameters the final model has (a
+    later stage works on a copy of the model: the names are the same)."""
+    if not run.fits:
+        return None
+    last = run.fits[-1]
+    cov = ParameterCovariance.from_fit(last.free, last.result)
+    params = dict(run.model.named_parameters())
+    if cov is None or any(n not in params for n in cov.names):
+        return None
+    return cov
 
 
 def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: Tensor, opts: Options, trajectory: bool):

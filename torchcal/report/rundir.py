@@ -8,7 +8,8 @@ Layout::
     *.png                  residual plots
     robot_calibrated.urdf  the calibrated geometry (+ probe and tracker frames)
     model.pt               state_dict of the measurement model (geometry, instrument, lever arm, effects)
-    model.json             how to rebuild it: robot description file, effects, options
+    model.json             how to rebuild it: robot description file, effects, options, calibrated region
+    covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
@@ -32,6 +33,7 @@ from torchcal._outdir import replace_dir
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import EstimationError, OptionError, TorchcalError
+from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.pipeline import CalibrationRun
 from torchcal.robot import load_robot, resolve_robot_spec
 from torchcal.stats import rmse
@@ -199,6 +201,8 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     (tmp / "robot").mkdir()
     shutil.copy2(src, tmp / "robot" / src.name)
     torch.save(state, tmp / "model.pt")
+    if run.covariance is not None:  # predict's sx, sy, sz (absent: a fit without one; predict says so)
+        torch.save(run.covariance.state(), tmp / "covariance.pt")
     meta = {
         "format": "torchcal-run-1",
         "robot_file": f"robot/{src.name}",
@@ -315,6 +319,45 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
         raise _run_error(run_dir, f"model.pt does not match model.json ({first})") from None
     _set_region(model, meta.get("region"), run_dir)
     return model, meta
+
+
+def load_covariance(run_dir: str | os.PathLike, model: MeasurementModel) -> ParameterCovariance | None:
+    """The run's parameter covariance (``covariance.pt``) checked against its loaded ``model``; None when the run has
+    none (a fit whose normal matrix was singular, or a run written before it was kept)."""
+    run_dir = Path(run_dir)
+    path = run_dir / "covariance.pt"
+    if not path.exists():
+        return None
+    if not path.is_file():
+        raise _run_error(run_dir, "covariance.pt is not a regular file")
+    try:
+        state = torch.load(path, weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError:
+        raise _run_error(run_dir, "covariance.pt holds more than tensors (a pickled object); refused") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        raise _run_error(run_dir, f"covariance.pt cannot be read (truncated or not a torch file: {e})") from None
+    try:
+        return ParameterCovariance.from_state(state, model)
+    except ValueError as e:
+        raise _run_error(run_dir, f"covariance.pt does not fit model.pt: it {e}") from None
+
+
+def trust(
+    run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, q: torch.Tensor, context: Context | None = None
+):
+    """How far to trust the run's predictions at the joints ``q`` ``(N, dof)``: the predicted standard deviation
+    ``(N, 3)`` [m] (the parameter covariance of the run's last fit carried to each pose, and the learned model's
+    posterior where it has one; None when the run has neither) and the extrapolation ``(N,)`` (how far each pose
+    lies outside the calibrated region, in the joints' units: :meth:`~torchcal.effects.MeasurementModel.extrapolation`).
+    ``context``: the rows' time and temperature (default: none)."""
+    from dataclasses import replace
+
+    from torchcal.estimate.covariance import combined_std
+
+    cov = load_covariance(run_dir, model)
+    ctx = Context(q=q) if context is None else replace(context, q=q)
+    sigma = combined_std(model, ctx, cov)
+    return (None if sigma is None else sigma.cpu()), model.extrapolation(q).cpu()
 
 
 def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device | str = "cpu") -> torch.Tensor:

@@ -1,0 +1,167 @@
+"""The parameter covariance of a calibration and the standard deviation it gives each prediction.
+
+A fit leaves the covariance ``C = s0^2 N^-1`` of its free parameters (:class:`~torchcal.estimate.lm.LMResult`).
+Carried to a prediction ``f(q)`` by its Jacobian ``J = df/dx``, it is ``J C J^T``: how far the positions the model
+predicts at ``q`` may be off through the parameters alone, small where the poses determine the geometry and larger
+where they leave it weak (far from the poses, along a weak direction). :class:`ParameterCovariance` keeps it by the
+parameters' qualified names, so that a run directory stores it beside ``model.pt`` and a reloaded model uses it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchcal.effects import Context, MeasurementModel
+from torchcal.errors import EstimationError
+from torchcal.estimate.problem import FreeParameters
+
+Tensor = torch.Tensor
+
+#: the largest number of free parameters a stored covariance may hold (a crafted file is refused before use)
+MAX_PARAMETERS = 4096
+
+
+@dataclass
+class ParameterCovariance:
+    """The covariance ``(u, u)`` of ``u`` free parameter elements, by qualified parameter name and flat index."""
+
+    names: list[str]  # qualified parameter names in the model, one per block
+    index: list[list[int]]  # the flat indices of each block's free elements
+    labels: list[str]  # one per element, for reports
+    matrix: Tensor  # (u, u) [SI units of the parameters]
+
+    @classmethod
+    def from_fit(cls, free: FreeParameters, result) -> ParameterCovariance | None:
+        """The covariance of a fit's free parameters, or None where its normal matrix is singular."""
+        if result.normal is None or result.residuals is None:
+            return None
+        try:
+            C = result.covariance
+        except EstimationError:
+            return None
+        if C.numel() == 0 or not bool(torch.isfinite(C).all()):
+            return None
+        names = [e.name for e in free.entries]
+        index = [[int(i) for i in e.index] for e in free.entries]
+        return cls(names, index, list(free.names), C.detach().cpu())
+
+    def state(self) -> dict:
+        """A dict of plain lists and one tensor (what ``torch.save`` writes and ``weights_only`` loads)."""
+        return {"names": self.names, "index": self.index, "labels": self.labels, "covariance": self.matrix.cpu()}
+
+    @classmethod
+    def from_state(cls, state, model: MeasurementModel) -> ParameterCovariance:
+        """Rebuild from :meth:`state`, checked against ``model``.
+
+        Raises:
+            ValueError: the state is malformed, names a parameter the model lacks or an index beyond it, or holds a
+                matrix that is not a finite, symmetric ``(u, u)`` with a non-negative diagonal.
+        """
+        if not isinstance(state, dict) or set(state) != {"names", "index", "labels", "covariance"}:
+            raise ValueError("must hold names, index, labels and covariance")
+        names, index, labels, C = state["names"], state["index"], state["labels"], state["covariance"]
+        if not (isinstance(names, list) and isinstance(index, list) and len(names) == len(index)):
+            raise ValueError("names and index must be lists of the same length")
+        params = dict(model.named_parameters())
+        u = 0
+        for name, idx in zip(names, index):
+            if not isinstance(name, str) or name not in params:
+                raise ValueError(f"names a parameter the model does not have: {name!r}")
+            n = params[name].numel()
+            if not isinstance(idx, list) or not idx or not all(isinstance(i, int) and 0 <= i < n for i in idx):
+                raise ValueError(f"the indices of {name} must be a non-empty list of integers below {n}")
+            u += len(idx)
+        if u > MAX_PARAMETERS:
+            raise ValueError(f"holds {u} parameters, more than {MAX_PARAMETERS}")
+        if not isinstance(labels, list) or len(labels) != u or not all(isinstance(s, str) for s in labels):
+            raise ValueError(f"labels must be {u} strings")
+        if not isinstance(C, Tensor) or C.shape != (u, u) or C.dtype != torch.float64:
+            raise ValueError(f"covariance must be a float64 tensor of shape ({u}, {u})")
+        if not bool(torch.isfinite(C).all()) or bool((C.diagonal() < 0).any()):
+            raise ValueError("covariance must be finite with a non-negative diagonal")
+        if not torch.allclose(C, C.T, rtol=1e-8, atol=1e-300):
+            raise ValueError("covariance must be symmetric")
+        return cls(list(names), [list(i) for i in index], list(labels), C)
+
+    def free(self, model: MeasurementModel) -> FreeParameters:
+        """The model's free parameters this covariance is about, in its order."""
+        params = dict(model.named_parameters())
+        sel = {}
+        for name, idx in zip(self.names, self.index):
+            mask = torch.zeros(params[name].numel(), dtype=torch.bool, device=params[name].device)
+            mask[idx] = True
+            sel[name] = mask.reshape(params[name].shape)
+        free = FreeParameters(model, sel)
+        # FreeParameters orders a parameter's elements by index: keep the stored order only when it is the same
+        if [int(i) for e in free.entries for i in e.index] != [i for idx in self.index for i in sorted(idx)]:
+            raise ValueError("the stored indices are not in the model's order")
+        return free
+
+
+def prediction_std(model: MeasurementModel, ctx: Context, cov: ParameterCovariance) -> Tensor:
+    """The standard deviation ``(N, 3)`` [m] of the model's predicted positions at ``ctx`` through its parameters.
+
+    The Jacobian by central differences, one step of each parameter's own standard deviation (the model is linear in
+    its parameters over that step to far better than the result needs; no derivative of the effects is required),
+    then ``sqrt(diag(J C J^T))`` per axis. The model's parameters are restored afterwards.
+    """
+    free = cov.free(model)
+    x0 = free.vector()
+    C = cov.matrix.to(x0)
+    sd = C.diagonal().sqrt()
+    u = len(x0)
+    n = len(ctx.q)
+    if u == 0 or n == 0:
+        return torch.zeros(n, 3, dtype=x0.dtype, device=x0.device)
+    J = torch.empty(n, 3, u, dtype=x0.dtype, device=x0.device)
+    try:
+        with torch.no_grad():
+            for k in range(u):
+                h = float(sd[k]) if float(sd[k]) > 0 else 1e-12
+                step = torch.zeros_like(x0)
+                step[k] = h
+                free.assign(x0 + step)
+                up = model(ctx)
+                free.assign(x0 - step)
+                down = model(ctx)
+                J[:, :, k] = (up - down) / (2 * h)
+    finally:
+        free.assign(x0)
+    var = torch.einsum("nau,uv,nav->na", J, C, J)
+    return var.clamp(min=0).sqrt()
+
+
+def learned_std(model: MeasurementModel, ctx: Context) -> Tensor | None:
+    """The posterior standard deviation ``(N, 3)`` [m, tracker frame] of the model's learned corrections where they
+    have one (a Gaussian process, the integrated method's gates), faded as the corrections are beyond the calibrated
+    region; None where none has."""
+    from torchcal.effects.gp import GPCorrection
+    from torchcal.effects.support import predictive_sigma
+
+    parts = []
+    w = model.region_weight(ctx.q)
+    R = model.robot.T_tracker_base()[:3, :3]
+    with torch.no_grad():
+        for e in model.effects:
+            if isinstance(e, GPCorrection) and len(e.inducing):
+                s = e.predict(ctx, std=True)[1]  # robot base frame
+                s = ((R * R) @ s.square().T).T.sqrt()  # per tracker axis, components taken as independent
+                parts.append(s if w is None or not e.fades_beyond_region else s * w)
+        gate = predictive_sigma(model, ctx.q)
+        if gate is not None:
+            parts.append(gate)
+    if not parts:
+        return None
+    return torch.stack([p.square() for p in parts]).sum(0).sqrt()
+
+
+def combined_std(model: MeasurementModel, ctx: Context, cov: ParameterCovariance | None) -> Tensor | None:
+    """The predicted standard deviation ``(N, 3)`` [m]: the parameters' (:func:`prediction_std`) and the learned
+    corrections' (:func:`learned_std`) added in quadrature; None where the model has neither."""
+    a = prediction_std(model, ctx, cov) if cov is not None else None
+    b = learned_std(model, ctx)
+    if a is None:
+        return b
+    return a if b is None else (a.square() + b.square()).sqrt()
