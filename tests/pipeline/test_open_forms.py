@@ -84,6 +84,28 @@ def test_fourth_harmonic_on_a_joint_is_cyclic_of_order_four():
     assert _ratio_to_true_form(c, run) <= RATIO
 
 
+def test_the_report_shows_where_an_open_form_was_fitted(tmp_path):
+    """report.md plots each accepted joint function over its joint's whole range with the fitted range marked, and
+    report.json gives the calibrated region and each open form's fitted range."""
+    import json
+
+    from torchcal.report import write_run_files
+
+    _, run = _calibrate([OutsideEffect("harmonic", joint=3, order=4, size=3e-5)], seed=11)
+    write_run_files(run, tmp_path)
+    report = json.loads((tmp_path / "report.json").read_text(encoding="utf-8"))
+    reg = report["region"]
+    q3 = run.data.q[run.train_idx, 2]
+    assert (
+        len(reg["joint_min"]) == 6 and reg["joint_min"][2] <= float(q3.min()) and reg["joint_max"][2] >= float(q3.max())
+    )
+    lo, hi = reg["open_forms"]["cyclic:3"]
+    assert lo <= hi and reg["learned_fade"] is True
+    md = (tmp_path / "report.md").read_text(encoding="utf-8")
+    pngs = sorted(p.name for p in tmp_path.glob("joint_function_*_cyclic_3.png"))
+    assert "## Where the model holds" in md and len(pngs) == 1 and f"]({pngs[0]})" in md
+
+
 def test_exponential_warm_up_along_z_with_its_time_constant():
     c, run = _calibrate([OutsideEffect("warmup", axis=2, tau=1800.0, size=4e-5)], seed=12)
     named = _named(run)

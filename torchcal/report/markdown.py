@@ -173,6 +173,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
     ]
     lines += _diagnosis_section(run, report, out)
+    lines += _region_section(run, report, out)
     lines += _unexplained_section(report, out)
     lines += ekf_section(run, out)
     lines += [
@@ -251,6 +252,69 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     if report["notes"]:
         lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+
+
+def plot_joint_function(run: CalibrationRun, effect, path: Path) -> None:
+    """An open joint-angle form over its joint's whole range: the function as fitted (dashed), as applied (faded
+    beyond the fitted range, solid), the fitted range shaded and the physical bound marked."""
+    from torchcal.effects.joint import joint_range
+
+    lo, hi = joint_range(run.robot, effect.joint)
+    dev = run.robot.device
+    grid = torch.linspace(lo, hi, 801, dtype=torch.float64, device=dev)
+    dof = run.robot.dof
+    q = torch.zeros(len(grid), dof, dtype=torch.float64, device=dev)
+    q[:, effect.j] = grid
+    with torch.no_grad():
+        raw = (effect.function(grid) * 1e3).cpu()
+        applied = (effect._terms(q, fade=True).sum(-1) * 1e3).cpu()
+    grid = grid.cpu()
+    fig, ax = subplots(figsize=(7, 3))
+    if effect.support is not None:
+        a, b = (float(v) for v in effect.support)
+        ax.axvspan(a, b, color="tab:green", alpha=0.12, label="fitted range")
+    ax.plot(grid.tolist(), raw.tolist(), "--", color="0.5", lw=1, label="as fitted, continued")
+    ax.plot(grid.tolist(), applied.tolist(), color="tab:blue", lw=1.5, label="as applied (fades beyond)")
+    bound = run.options.max_joint_error
+    if bound is not None:
+        for y in (bound * 1e3, -bound * 1e3):
+            ax.axhline(y, color="tab:red", lw=0.8, ls=":")
+    span = float(applied.abs().max())
+    ax.set_ylim(-3 * max(span, 1e-6), 3 * max(span, 1e-6))
+    ax.set_xlabel(f"q{effect.joint} [rad]")
+    ax.set_ylabel("joint error [mrad]")
+    ax.legend(fontsize=7, loc="upper right")
+    fig.suptitle(f"{effect.kind}:{effect.joint} over the joint's range", y=TITLE_Y)
+    save(fig, path)
+
+
+def _region_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
+    """Where the model holds: the calibrated region, what fades beyond it, each open form over its joint's range."""
+    from torchcal.effects.joint import FADE_LENGTH, _SupportedForm
+
+    reg = report.get("region")
+    if not reg:
+        return []
+    lines = [
+        "## Where the model holds",
+        "",
+        "The calibrated region: the range each joint covered in the poses fitted. Beyond it the open joint forms "
+        + ("and the learned corrections " if reg["learned_fade"] else "")
+        + f"fade to the geometry (Gaussian, length {FADE_LENGTH} rad); `predict` and `compensate` give every row's "
+        "distance beyond it (`extrapolation`).",
+        "",
+        "| joint | from | to |",
+        "|---|---:|---:|",
+    ]
+    for j, (a, b) in enumerate(zip(reg["joint_min"], reg["joint_max"]), start=1):
+        lines.append(f"| q{j} | {a:.4g} | {b:.4g} |")
+    lines.append("")
+    for k, e in enumerate(run.model.effects):
+        if isinstance(e, _SupportedForm):
+            name = f"joint_function_{k}_{e.kind}_{e.joint}.png"
+            plot_joint_function(run, e, out / name)
+            lines += [f"![{e.kind}:{e.joint} over its joint's range]({name})", ""]
+    return lines
 
 
 def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:

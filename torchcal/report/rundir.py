@@ -162,6 +162,7 @@ def build_report(run: CalibrationRun) -> dict:
             for f in run.fits
         ],
         "notes": run.notes,
+        "region": _region_report(run.model),
     }
 
 
@@ -215,6 +216,28 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     }
     (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return tmp
+
+
+def _region_report(model: MeasurementModel) -> dict | None:
+    """report.json's ``region``: the calibrated range of each joint, whether the learned corrections fade beyond it,
+    and the fitted range of each open joint form (by the effect's index in the model)."""
+    from torchcal.effects.joint import FADE_LENGTH
+
+    if model.region is None:
+        return None
+    r = model.region.cpu()
+    supports = {
+        f"{e.kind}:{e.joint}": [float(v) for v in e.support]
+        for e in model.effects
+        if getattr(e, "support", None) is not None
+    }
+    return {
+        "joint_min": r[0].tolist(),
+        "joint_max": r[1].tolist(),
+        "learned_fade": bool(model.region_fade),
+        "fade_length": FADE_LENGTH,
+        "open_forms": supports,
+    }
 
 
 def _region_config(model: MeasurementModel) -> dict | None:
