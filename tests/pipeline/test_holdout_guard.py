@@ -85,3 +85,21 @@ def test_a_step_back_writes_its_run_directory(auto_run, worse, tmp_path):
     md = (out / "report.md").read_text()
     assert "Learned residual model: " in md and "held-out guard" in md
     assert (out / "report.json").is_file() and (out / "model.pt").is_file()
+
+
+def test_a_final_model_that_wins_in_the_middle_and_loses_at_the_edges_steps_back(auto_run):
+    from torchcal.pipeline.loop import _holdout_edge
+
+    run = copy.deepcopy(auto_run)
+    edge = _holdout_edge(run.train.q, run.data.q[run.holdout_idx])
+    assert int(edge.sum()) >= 10  # held-out poses at the edges of the training poses' joint ranges
+    geo = run.stage("geometric")
+    learned = run.stage("learned")
+    # better than the geometry overall, worse at the edges
+    learned.holdout_errors = torch.where(edge, geo.holdout_errors * 1.4, geo.holdout_errors * 0.3)
+    assert learned.rmse < geo.rmse
+    run.holdout_guard = None
+    ev = guard_holdout(run, run.train, run.trajectory)
+    assert not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)" and ev["n_edge"] == int(edge.sum())
+    (rej,) = [r for r in run.rejections if r.name == "learned"]
+    assert "at the edges of the joint ranges" in rej.reason and "better in the middle" in rej.reason

@@ -12,7 +12,9 @@ After the geometric fit, repeat:
    candidate, jointly) on 80 % of the training poses with the open candidate and with the significant
    menu candidates in order of evidence (smallest p first) until one of them passes; a candidate passes
    when the other 20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a
-   one-sided paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``;
+   one-sided paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``; an open joint form must
+   besides hold at the edges of its joint's range: refitted without the outer 10 % of the fitting poses on each
+   side, it must not predict them significantly worse than the model without it (:func:`_validate_edge`);
 3. of those that passed, the one with the lowest validation RMSE (among those the paired test cannot tell
    apart on the validation poses, the lowest BIC of the fit on the fitting poses: the fewer-parameter form
    when two explain the same structure) is refitted jointly on all training poses and becomes a stage of
@@ -51,6 +53,7 @@ from torchcal.diagnose.tracing import (
     unexplained_entries,
 )
 from torchcal.effects import Context, MeasurementModel, joint_function_check
+from torchcal.effects.joint import _SupportedForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
@@ -194,10 +197,14 @@ def close_loop(
     accepted_names: set[str] = set()
     open_notes: dict[str, str] = {}  # variable -> why no open effect came from it (for ``unexplained``)
 
+    edge_bases: dict[tuple[int, int], tuple[MeasurementModel, Tensor] | None] = {}  # (id(base), joint) -> refit
+
     def validate(rnd: int, cand, s) -> _Validation:
         v = _validate(
             s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand, opts.max_joint_error
         )
+        if v.passed and isinstance(v.trial.effects[-1], _SupportedForm):
+            _validate_edge(v, base, fit_on, fit_part, trajectory, alpha_val, edge_bases)
         if not v.passed:
             _reject(run, diag, v)
             if isinstance(cand, OpenCandidate):
@@ -361,6 +368,74 @@ def _validate(
     return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason, bic)
 
 
+#: the share of a joint's fitting poses on each side of its range that the edge validation holds out
+EDGE_SHARE = 0.1
+
+
+def _edge_split(q: Tensor, joint: int, share: float = EDGE_SHARE) -> tuple[Tensor, Tensor]:
+    """The fitting poses' indices in the middle of joint ``joint``'s (1-based) range and at its two edges (the
+    outer ``share`` of the poses on each side)."""
+    qj = q[:, joint - 1]
+    lo, hi = torch.quantile(qj, share), torch.quantile(qj, 1.0 - share)
+    edge = (qj < lo) | (qj > hi)
+    return torch.nonzero(~edge)[:, 0], torch.nonzero(edge)[:, 0]
+
+
+def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, trajectory: bool, alpha_val: float, cache):
+    """An open joint form that passed validation on random poses is judged at the edges of its joint's range too:
+    refitted without the outer :data:`EDGE_SHARE` of the fitting poses on each side of the range, its continuation
+    must not predict them significantly worse than the model without it (one-sided paired test at ``alpha_val``).
+    A form that wins in the middle and loses at the edge is rejected with that reason (``v`` updated in place); the
+    numbers go to ``v.validation["edge"]``."""
+    eff = v.trial.effects[-1]
+    mid, edge = _edge_split(fit_part.q, eff.joint)
+    if len(edge) < 10 or len(mid) < 10:
+        v.validation["edge"] = {"skipped": f"too few poses at the edges of joint {eff.joint} ({len(edge)})"}
+        return
+    middle, outer = fit_part.subset(mid), fit_part.subset(edge)
+    key = (id(base), eff.joint)
+    if key not in cache:
+        ref = copy.deepcopy(base)
+        try:
+            fit_on(ref, middle, "edge validation baseline")
+            cache[key] = (ref, errors(ref, outer, trajectory))
+        except EstimationError:
+            cache[key] = None
+    if cache[key] is None:
+        v.validation["edge"] = {"skipped": "the baseline's refit without the edge poses failed"}
+        return
+    e_ref = cache[key][1]
+    trial = copy.deepcopy(base)
+    # the form as it continues (its support the whole range of the fitting poses, no fade at the edge poses): the
+    # question is whether its shape holds there, and a form faded beyond the middle would lose to geometry that
+    # absorbed part of it in any case
+    trial.add(_made(v.candidate, fit_part.q))
+    try:
+        fit_on(trial, middle, f"edge validation {v.candidate.name}")
+    except EstimationError as err:
+        v.validation["edge"] = {"skipped": f"its refit without the edge poses failed ({err})"}
+        return
+    e_edge = errors(trial, outer, trajectory)
+    worse = S.paired_test(e_edge, e_ref, ordered=trajectory)  # small p: the model without it is better there
+    r0, r1 = S.rmse(e_ref), S.rmse(e_edge)
+    v.validation["edge"] = {
+        "n": len(edge),
+        "share_per_side": EDGE_SHARE,
+        "rmse_without_mm": r0 * 1e3,
+        "rmse_with_mm": r1 * 1e3,
+        "p_worse": worse["p_value"],
+        "rule": f"fitted on the middle of joint {eff.joint}'s range, not worse at its edges (one-sided paired p "
+        f">= {alpha_val})",
+    }
+    if r1 > r0 and worse["p_value"] < alpha_val:
+        v.passed = False
+        v.reason = (
+            f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
+            f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
+            f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse['p_value']:.2g})"
+        )
+
+
 def _made(cand, q: Tensor):
     """The candidate's effect, an open form knowing the range its joint covers in ``q`` (beyond it, it fades)."""
     eff = cand.make()
@@ -489,6 +564,20 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     return True
 
 
+#: the guard's edge: a held-out pose with a joint beyond this quantile of the training poses' (either side)
+HOLDOUT_EDGE = 0.025
+
+
+def _holdout_edge(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
+    """Which held-out poses ``(M,)`` lie at the edges of the training poses' joint ranges: some joint below its
+    ``share`` quantile or above its ``1 - share`` quantile in the training poses (or beyond their range)."""
+    if len(q_hold) == 0 or len(q_train) == 0:
+        return torch.zeros(len(q_hold), dtype=torch.bool, device=q_hold.device)
+    lo = torch.quantile(q_train, share, dim=0)
+    hi = torch.quantile(q_train, 1.0 - share, dim=0)
+    return ((q_hold < lo) | (q_hold > hi)).any(dim=1)
+
+
 def guard_holdout(run: CalibrationRun, train: Measurements, trajectory: bool) -> dict | None:
     """The ``auto`` method never ends worse than the kinematic calibration on the held-out poses.
 
@@ -509,22 +598,50 @@ def guard_holdout(run: CalibrationRun, train: Measurements, trajectory: bool) ->
     if final is geo or len(run.holdout_idx) == 0:
         return None
     i_geo = run.stages.index(geo)
+    # the held-out poses at the edges of the training poses' joint ranges: a stage must not lose there either
+    edge = _holdout_edge(train.q, run.data.q[run.holdout_idx])
+    alpha_val = run.options.alpha_validation
+
+    def edge_worse(st) -> bool:
+        if int(edge.sum()) < 10:
+            return False
+        e1, e0 = st.holdout_errors[edge], geo.holdout_errors[edge]
+        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=trajectory)["p_value"] < alpha_val
+
+    def edge_rmse(st) -> float | None:
+        return S.rmse(st.holdout_errors[edge]) * 1e3 if bool(edge.any()) else None
+
     evidence = {
-        "rule": "the final model's held-out RMSE must be below the kinematic calibration's; otherwise the run keeps "
-        "the last stage whose held-out RMSE is, or the kinematic calibration",
+        "rule": "the final model's held-out RMSE must be below the kinematic calibration's, and on the held-out poses "
+        f"at the edges of the joint ranges (a joint beyond the {HOLDOUT_EDGE:.1%} / {1 - HOLDOUT_EDGE:.1%} quantiles "
+        "of the training poses) not significantly above it; otherwise the run keeps the last stage that is, or the "
+        "kinematic calibration",
         "geometric_rmse_mm": geo.rmse * 1e3,
-        "stages": [{"name": s.name, "rmse_holdout_mm": s.rmse * 1e3} for s in run.stages[i_geo:]],
-        "passed": bool(final.rmse < geo.rmse),
+        "n_edge": int(edge.sum()),
+        "stages": [
+            {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_edge_mm": edge_rmse(s)} for s in run.stages[i_geo:]
+        ],
+        "passed": bool(final.rmse < geo.rmse) and not edge_worse(final),
     }
     run.holdout_guard = evidence
     if evidence["passed"]:
         return evidence
-    k = next(j for j in range(len(run.stages) - 1, i_geo - 1, -1) if j == i_geo or run.stages[j].rmse < geo.rmse)
+    k = next(
+        j
+        for j in range(len(run.stages) - 1, i_geo - 1, -1)
+        if j == i_geo or (run.stages[j].rmse < geo.rmse and not edge_worse(run.stages[j]))
+    )
     kept = run.stages[k]
     evidence["kept_stage"] = kept.name
+    lost = (
+        f"({geo.rmse * 1e3:.4f} -> {final.rmse * 1e3:.4f} mm)"
+        if final.rmse >= geo.rmse
+        else f"at the edges of the joint ranges ({evidence['n_edge']} poses: {edge_rmse(geo):.4f} -> "
+        f"{edge_rmse(final):.4f} mm), though better in the middle"
+    )
     reason = (
         f"held-out guard: the final model is worse than the kinematic calibration on the held-out poses "
-        f"({geo.rmse * 1e3:.4f} -> {final.rmse * 1e3:.4f} mm); the run keeps "
+        f"{lost}; the run keeps "
         + (
             "the kinematic calibration"
             if k == i_geo
