@@ -72,12 +72,17 @@ def golden_campaign():
 # ------------------------------------------------------------------ hostile inputs (tests/cli/test_hostile*.py)
 
 
+class DeadlineExceeded(BaseException):
+    """Raised by :func:`deadline`. Not a ``TimeoutError``: that is an ``OSError``, which the code under test may
+    catch (reading a FIFO that blocks, then 'cannot read' the file), and the hang would pass as a refusal."""
+
+
 @contextmanager
 def deadline(seconds: int):
     """Fail instead of hanging (a cycle that loops forever would otherwise stall the suite)."""
 
     def boom(*_):
-        raise TimeoutError(f"took more than {seconds} s")
+        raise DeadlineExceeded(f"took more than {seconds} s")
 
     old = signal.signal(signal.SIGALRM, boom)
     signal.alarm(seconds)

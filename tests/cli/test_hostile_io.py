@@ -452,7 +452,8 @@ def test_the_lazy_package_keeps_its_public_names():
 
 def test_own_a_fifo_named_model_json_in_an_unmarked_out_does_not_hang(campaign, tmp_path, capsys):
     """bug before: an unmarked --out is checked for an earlier torchcal's run by reading its model.json, which
-    blocked forever on a FIFO."""
+    blocked on a FIFO (on the old code the test's own deadline, a TimeoutError, is an OSError the check caught:
+    the hang passed as a refusal until tests/_cli.deadline raised something else)."""
     out = tmp_path / "out"
     out.mkdir()
     fifo(out / "model.json")
@@ -462,7 +463,7 @@ def test_own_a_fifo_named_model_json_in_an_unmarked_out_does_not_hang(campaign, 
 
 
 def test_own_a_fifo_as_the_ipa_source_is_refused(tmp_path, capsys):
-    """bug before: convert blocked forever reading a FIFO source."""
+    """bug before: convert blocked reading a FIFO source (past the 30 s deadline)."""
     pipe = fifo(tmp_path / "measurements_x.csv")
     with deadline(30):
         assert main(["convert", str(pipe), "--from", "ipa-robot-accuracy", "--out", str(tmp_path / "c.csv")]) == 2
@@ -470,7 +471,7 @@ def test_own_a_fifo_as_the_ipa_source_is_refused(tmp_path, capsys):
 
 
 def test_own_a_symlink_to_dev_zero_as_data_is_refused(tmp_path, capsys):
-    """bug before: the link was followed into an endless read."""
+    """bug before: the link was followed into an endless read (16 GB in under a minute before it was stopped)."""
     link = tmp_path / "data.csv"
     link.symlink_to("/dev/zero")
     with deadline(30):
@@ -488,7 +489,8 @@ def test_own_a_dangling_symlink_as_predict_out_is_not_replaced(run_dir, campaign
 
 
 def test_own_a_symlink_to_a_users_file_as_compensate_out_is_refused(run_dir, campaign, tmp_path, capsys):
-    """bug before: the link was silently replaced by the output (exit 0)."""
+    """bug before: the link was silently replaced by the output (exit 0; --force is new, the old code needed
+    none)."""
     mine = tmp_path / "mine.csv"
     mine.write_text("# written_by: torchcal compensate\nq1\n")  # even a torchcal file, reached through a link
     link = tmp_path / "joints.csv"
@@ -509,7 +511,7 @@ def test_own_a_fifo_as_predict_out_is_refused(run_dir, campaign, tmp_path, capsy
 
 
 def test_own_a_listed_file_turned_into_a_folder_is_refused(run_dir, campaign, tmp_path, capsys):
-    """bug before (same rule as item 3): report.md replaced by the user's folder of the same name was deleted."""
+    """bug before: report.md replaced by the user's folder of the same name was deleted with the run (exit 0)."""
     run = copy_run(run_dir, tmp_path / "run")
     (run / "report.md").unlink()
     (run / "report.md").mkdir()
@@ -520,7 +522,7 @@ def test_own_a_listed_file_turned_into_a_folder_is_refused(run_dir, campaign, tm
 
 
 def test_own_a_users_file_in_a_simulated_campaign_is_refused(campaign, tmp_path, capsys):
-    """bug before: re-simulating into a campaign deleted 'train.csv.bak' the user had saved beside it."""
+    """bug before: re-simulating into a campaign deleted 'train.csv.bak' the user had saved beside it (exit 0)."""
     sim = tmp_path / "sim"
     shutil.copytree(campaign, sim)
     (sim / "train.csv.bak").write_text("my edited copy")
@@ -530,8 +532,9 @@ def test_own_a_users_file_in_a_simulated_campaign_is_refused(campaign, tmp_path,
 
 
 def test_own_a_users_file_in_the_demos_nested_run_is_refused(tmp_path, capsys):
-    """bug before: a demo output's run/ folder lost the user's files when the demo (or a calibration into
-    run/) wrote again. Built by hand: the demo itself takes minutes."""
+    """bug before (by the code: a marked directory was replaced whatever it held): a demo output's run/ folder
+    lost the user's files when the demo (or a calibration into run/) wrote again. Built by hand: the demo itself
+    takes minutes."""
     demo = tmp_path / "demo"
     with _outdir.replace_dir(demo, kind="demo") as tmp:
         (tmp / "summary.json").write_text("{}")
@@ -547,7 +550,7 @@ def test_own_a_users_file_in_the_demos_nested_run_is_refused(tmp_path, capsys):
 
 
 def test_own_a_huge_marker_is_not_read_whole(tmp_path):
-    """held (bounded now): a marker is read at most 1 MiB; a larger one does not mark the directory."""
+    """held in outcome, but the old code read the marker whole (1 GiB here); now at most 1 MiB is read."""
     d = tmp_path / "d"
     d.mkdir()
     sparse(d / _outdir.MARKER, 2**30)
@@ -573,7 +576,8 @@ def test_own_model_json_with_duplicate_keys_is_refused(run_dir, campaign, tmp_pa
 
 
 def test_own_model_json_with_thousands_of_effects_is_refused(run_dir, campaign, tmp_path, capsys):
-    """bug before: 100,000 effects were all built (minutes, memory) before model.pt disagreed."""
+    """held in outcome (exit 2), but only after all 100,000 effects were built and model.pt disagreed; now refused
+    before anything is built."""
     run = copy_run(run_dir, tmp_path / "run")
     meta = json.loads((run / "model.json").read_text())
     meta["effects"] = [{"class": "Compliance", "joint": 2}] * 100_000
@@ -616,7 +620,7 @@ def test_own_a_robot_description_of_9_mib_is_refused_unread(campaign, tmp_path, 
 
 
 def test_own_block_yaml_nested_65_levels_is_refused(tmp_path):
-    """held before in effect (a shape error later); now refused by depth, naming the line."""
+    """held: the old code refused it with another message; now refused by depth, naming the line."""
     lines = ["name: r", "joints:"] + [" " * (2 * k + 2) + "-" for k in range(66)]
     f = tmp_path / "deep.yaml"
     f.write_text("\n".join(lines) + "\n")
@@ -632,7 +636,8 @@ def test_own_a_predict_out_of_a_torchcal_file_inside_the_run_is_still_refused(ru
 
 
 def test_own_sizes_and_seeds_written_as_floats_are_taken_when_whole(tmp_path):
-    """held (a usability case): '--poses 3e1 --seed 1e3' is the campaign of '--poses 30 --seed 1000'."""
+    """changed: the old code refused '3e1' ('expected a whole number'); a whole number written as a float is now
+    taken, so that '--poses 1e12' is told it is too large rather than not a number."""
     assert cli_simulate(tmp_path / "a", "--poses", "3e1", "--test-poses", "5", "--seed", "1e3") == 0
     assert cli_simulate(tmp_path / "b", "--poses", "30", "--test-poses", "5", "--seed", "1000") == 0
     assert (tmp_path / "a" / "train.csv").read_bytes() == (tmp_path / "b" / "train.csv").read_bytes()
@@ -654,7 +659,8 @@ def test_own_predict_out_dotdot_is_a_directory(run_dir, campaign, tmp_path, caps
 
 
 def test_own_a_start_file_that_is_dev_zero(run_dir, tmp_path, capsys):
-    """bug before: compensate --start /dev/zero read until memory ran out."""
+    """bug before (by the code, not run on it: it would exhaust the machine's memory): compensate --start
+    /dev/zero went through the same unbounded reader as the data file."""
     targets = tmp_path / "t.csv"
     targets.write_text("x,y,z\n0.3,0.1,0.4\n")
     with deadline(30):
@@ -670,3 +676,23 @@ def test_own_model_pt_of_non_tensors_is_refused(run_dir, campaign, tmp_path, cap
     torch.save({"x": 1}, run / "model.pt")
     assert predict(run, campaign / "test.csv", tmp_path / "p.csv") == 2
     refused(capsys, "model.pt", "state dict of tensors")
+
+
+def test_own_a_listed_file_replaced_by_a_symlink_is_refused(run_dir, campaign, tmp_path, capsys):
+    """bug before: a plot the user replaced by a link to their own picture lost the link with the run (exit 0)."""
+    run = copy_run(run_dir, tmp_path / "run")
+    png = sorted(run.glob("*.png"))[0]
+    mine = tmp_path / "mine.png"
+    mine.write_bytes(b"\x89PNG mine")
+    png.unlink()
+    png.symlink_to(mine)
+    assert calibrate(campaign / "train.csv", run) == 2
+    refused(capsys, f"{png.name} (a symbolic link)")
+    assert png.is_symlink() and mine.read_bytes() == b"\x89PNG mine"
+
+
+def test_own_a_directory_as_the_data_file_is_refused(run_dir, tmp_path, capsys):
+    """held: the old code said 'cannot read the file: Is a directory'; now 'is a directory, not a regular file'."""
+    (tmp_path / "data.csv").mkdir()
+    assert predict(run_dir, tmp_path / "data.csv", tmp_path / "p.csv") == 2
+    refused(capsys, "data.csv", "is a directory")
