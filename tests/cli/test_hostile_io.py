@@ -696,3 +696,18 @@ def test_own_a_directory_as_the_data_file_is_refused(run_dir, tmp_path, capsys):
     (tmp_path / "data.csv").mkdir()
     assert predict(run_dir, tmp_path / "data.csv", tmp_path / "p.csv") == 2
     refused(capsys, "data.csv", "is a directory")
+
+
+def test_own_a_urdf_replaced_by_a_fifo_during_the_fit_does_not_hang_the_export(tmp_path):
+    """held: the URDF export reads the robot's own file again after the fit, but only a regular file (else it
+    writes the URDF from the model); that read is now bounded too."""
+    from torchcal.robot.export import write_urdf
+
+    src = tmp_path / "arm.urdf"
+    shutil.copy(ROOT / "robots" / "ur5.urdf", src)
+    robot = torchcal.load_robot(src)
+    src.unlink()
+    fifo(src)
+    with deadline(30):
+        write_urdf(robot, tmp_path / "out.urdf")
+    assert torchcal.load_robot(tmp_path / "out.urdf").dof == 6

@@ -36,6 +36,7 @@ from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import EstimationError, OptionError, TorchcalError
 from torchcal.pipeline import CalibrationRun
 from torchcal.robot import load_robot, resolve_robot_spec
+from torchcal.robot.load import MAX_DESCRIPTION_BYTES
 from torchcal.stats import rmse
 
 F64 = torch.float64
@@ -199,7 +200,12 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         f.write(urdf_markdown(report["urdf"]))
     src = resolve_robot_spec(run.robot_spec)
     (tmp / "robot").mkdir()
-    shutil.copy2(src, tmp / "robot" / src.name)
+    # read again after the fit, bounded: the file may have been replaced by a FIFO or a huge file meanwhile
+    robot_copy = tmp / "robot" / src.name
+    robot_copy.write_bytes(
+        read_bounded(src, "robot description", lambda m: TorchcalError(f"{src}: {m}"), limit=MAX_DESCRIPTION_BYTES)
+    )
+    shutil.copystat(src, robot_copy)
     torch.save(state, tmp / "model.pt")
     meta = {
         "format": "torchcal-run-1",
