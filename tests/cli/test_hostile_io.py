@@ -79,13 +79,13 @@ def test_out_through_a_symlinked_parent_and_dotdot_acts_on_the_real_run(run_dir,
     assert sorted(p.name for p in real.parent.iterdir()) == ["RUN"]
 
 
-@pytest.mark.parametrize("kind", ["link-to-run", "dangling"])
+@pytest.mark.parametrize("kind", ["link-to-run", "link-dot", "dangling"])
 def test_a_symlink_as_out_is_refused_and_left_alone(kind, run_dir, campaign, tmp_path, capsys):
-    target = copy_run(run_dir, tmp_path / "RUN") if kind == "link-to-run" else tmp_path / "nowhere"
+    target = copy_run(run_dir, tmp_path / "RUN") if kind != "dangling" else tmp_path / "nowhere"
     link = tmp_path / "out"
     link.symlink_to(target)
     before = snapshot(tmp_path)
-    assert calibrate(campaign / "train.csv", link) == 2
+    assert calibrate(campaign / "train.csv", f"{link}/." if kind == "link-dot" else link) == 2
     refused(capsys, "symbolic link")
     assert link.is_symlink() and os.readlink(link) == str(target) and snapshot(tmp_path) == before
 
