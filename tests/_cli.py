@@ -1,10 +1,15 @@
 """What several test files share about the command line: ``simulate`` into a folder, the fields CONTRACT §4
-requires of the ``report.json`` that ``calibrate`` writes, and a script of ``scripts/`` run for its JSON line."""
+requires of the ``report.json`` that ``calibrate`` writes, a script of ``scripts/`` run for its JSON line, and the
+hostile-input tests' helpers and fixtures (a small campaign, a kinematic run of it, a deadline, a snapshot)."""
 
 import json
+import signal
 import subprocess
 import sys
+from contextlib import contextmanager
 from pathlib import Path
+
+import pytest
 
 from torchcal.cli import main
 
@@ -62,3 +67,52 @@ def golden_campaign():
     import golden
 
     return golden.campaign()
+
+
+# ------------------------------------------------------------------ hostile inputs (tests/cli/test_hostile*.py)
+
+
+class DeadlineExceeded(BaseException):
+    """Raised by :func:`deadline`. Not a ``TimeoutError``: that is an ``OSError``, which the code under test may
+    catch (reading a FIFO that blocks, then 'cannot read' the file), and the hang would pass as a refusal."""
+
+
+@contextmanager
+def deadline(seconds: int):
+    """Fail instead of hanging (a cycle that loops forever would otherwise stall the suite)."""
+
+    def boom(*_):
+        raise DeadlineExceeded(f"took more than {seconds} s")
+
+    old = signal.signal(signal.SIGALRM, boom)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def snapshot(root: Path) -> dict:
+    """Every path under ``root`` with its bytes (files) or None (directories)."""
+    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    root = tmp_path_factory.mktemp("campaign")
+    assert cli_simulate(root / "sim", "--poses", "100", "--test-poses", "20", "--seed", "4") == 0
+    return root / "sim"
+
+
+@pytest.fixture(scope="module")
+def run_dir(campaign, tmp_path_factory):
+    out = tmp_path_factory.mktemp("run") / "cal"
+    assert calibrate(campaign / "train.csv", out) == 0
+    return out
+
+
+def calibrate(data, out, *extra):
+    return main(
+        ["calibrate", str(data), "--robot", "ur5", "--method", "kinematic", "--out", str(out), "--quiet", *extra]
+    )

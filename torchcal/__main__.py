@@ -2,6 +2,6 @@
 
 import sys
 
-from torchcal.cli import main
+from torchcal._entry import main
 
 sys.exit(main())

@@ -49,17 +49,47 @@ def _number(kind: str):
     return parse
 
 
-def _count(text: str) -> int:
+#: Most poses or trajectory samples ``simulate`` makes: a campaign of that size takes minutes; a larger one
+#: would run for hours or exhaust memory before it could be written.
+MAX_SAMPLES = 100_000
+#: Seeds are in 0..2**63 - 1: each use adds a small stream number (:class:`torchcal.stats.Stream`) and a torch
+#: generator takes at most 2**64 - 1.
+MAX_SEED = 2**63 - 1
+
+
+def _whole(text: str) -> int:
+    """``text`` as a whole number; ``1e6`` is accepted when it is one (so ``1e12`` is told it is too large)."""
     try:
-        v = int(text)
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        v = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if not math.isfinite(v) or v != int(v):
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}")
+    return int(v)
+
+
+def _count(text: str) -> int:
+    v = _whole(text)
     if v < 1:
         raise argparse.ArgumentTypeError(f"must be >= 1, got {text}")
+    if v > MAX_SAMPLES:
+        raise argparse.ArgumentTypeError(f"must be at most {MAX_SAMPLES:,}, got {text}")
+    return v
+
+
+def _seed(text: str) -> int:
+    v = _whole(text)
+    if not 0 <= v <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be a whole number from 0 to 2**63 - 1 ({MAX_SEED}), got {text}")
     return v
 
 
 _count.__name__ = "count"
+_seed.__name__ = "seed"
 POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _number("fraction")
 OUT_HELP = (
     "output directory; an existing one is replaced only when it is an earlier torchcal output "
@@ -86,6 +116,15 @@ def _add_robot(p: argparse.ArgumentParser, required: bool = True) -> None:
     )
     p.add_argument("--base-link", default=None, help="URDF: first link of the chain (default: the root)")
     p.add_argument("--tip-link", default=None, help="URDF: last link of the chain (default: the only deepest leaf)")
+
+
+def _add_force(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace an existing --out file that torchcal did not write (files torchcal wrote start with "
+        "'# written_by: torchcal'; they are replaced without it)",
+    )
 
 
 def _add_device(p: argparse.ArgumentParser) -> None:
@@ -138,7 +177,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--samples", type=_count, default=7342, help="trajectory samples (default 7342, as the paper)")
     s.add_argument("--train-samples", type=_count, default=5874, help="trajectory samples for training (default 5874)")
-    s.add_argument("--seed", type=int, default=0, help="random seed; the campaign is reproducible from it")
+    s.add_argument(
+        "--seed", type=_seed, default=0, help="random seed, 0 to 2**63 - 1; the campaign is reproducible from it"
+    )
     s.add_argument(
         "--effect",
         action="append",
@@ -186,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
         "adaptive (geometry and network in one filter state) or ekf (the paper's filter on the kinematic "
         "calibration's geometry)",
     )
-    c.add_argument("--seed", type=int, default=0, help="seed of the held-out split and the network")
+    c.add_argument("--seed", type=_seed, default=0, help="seed of the held-out split and the network (0 to 2**63 - 1)")
     c.add_argument("--holdout", type=FRACTION, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument(
         "--refit",
@@ -225,6 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument(
         "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
     )
+    _add_force(pr)
     _add_computing(pr)
 
     cp = sub.add_parser(
@@ -245,6 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
+    _add_force(cp)
     _add_units(cp)
     _add_common(cp)
 
@@ -263,6 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(Landgraf et al., IEEE CASE 2021, MIT licence)",
     )
     cv.add_argument("--out", required=True, help="measurement file to write")
+    _add_force(cv)
     _add_common(cv)
 
     d = sub.add_parser(
@@ -272,7 +316,7 @@ def build_parser() -> argparse.ArgumentParser:
         "and a smooth field), close the loop and print the error before and after every step.",
     )
     d.add_argument("--out", default="runs/demo", help="output directory (default runs/demo); " + OUT_HELP)
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=_seed, default=0, help="random seed, 0 to 2**63 - 1 (default 0)")
     _add_common(d)
     return parser
 
@@ -342,7 +386,7 @@ def cmd_calibrate(args) -> int:
     from torchcal.robot import load_robot
 
     inputs = [args.data, *_robot_input(args.robot)]
-    check_out_dir(args.out, inputs=inputs)  # before any fitting: refuse, touching nothing
+    out = check_out_dir(args.out, inputs=inputs)  # before any fitting: refuse, touching nothing; resolved once
     robot = load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link)
     opts = C.Options(
         method=args.method or C.DEFAULT_METHOD,
@@ -366,7 +410,7 @@ def cmd_calibrate(args) -> int:
     )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
     run = C.calibrate(robot, data, opts, robot_spec=args.robot)
-    out = write_run(run, args.out, inputs=inputs)
+    out = write_run(run, out, inputs=inputs)
     st = {s.name: s for s in run.stages}
     _console.info(
         f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
@@ -407,7 +451,7 @@ def cmd_predict(args) -> int:
     from torchcal.report import load_model, predict
     from torchcal.report.rundir import trust
 
-    check_out_file(args.out, inputs=[args.data, args.run])
+    out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
     model, meta = load_model(args.run)
     robot = model.robot
@@ -438,8 +482,8 @@ def cmd_predict(args) -> int:
     )
     learned = any(e.kind == "learned" for e in model.effects)
     warn_outside(args.data, data.lines, ext, "the learned corrections fade to the geometry there" if learned else "")
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    write_measurements(args.out, out)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    write_measurements(out_file, out, written_by="torchcal predict")
     _console.info(f"wrote {len(p)} predictions to {args.out}")
     return 0
 
@@ -451,7 +495,9 @@ def cmd_compensate(args) -> int:
     from torchcal.report import load_model
     from torchcal.report.rundir import trust
 
-    check_out_file(args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []))
+    out_file = check_out_file(
+        args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
+    )
     model, meta = load_model(args.run)
     robot = model.robot
     kw = dict(require_positions=False, **_reading(args, robot))
@@ -478,13 +524,14 @@ def cmd_compensate(args) -> int:
         extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
     extra["extrapolation"] = ext
     write_joints(
-        args.out,
+        out_file,
         res,
         targets=data.p,
         t=data.t,
         temperature=data.temperature,
         extra=extra,
         meta={"compensated_by": str(args.run)},
+        written_by="torchcal compensate",
     )
     learned = any(e.kind == "learned" for e in model.effects)
     warn_outside(
@@ -509,8 +556,8 @@ def cmd_compensate(args) -> int:
 def cmd_convert(args) -> int:
     from torchcal.data import convert_ipa
 
-    check_out_file(args.out, inputs=[args.source])
-    m = convert_ipa(args.source, args.out)
+    out_file = check_out_file(args.out, inputs=[args.source], force=args.force)
+    m = convert_ipa(args.source, out_file, written_by="torchcal convert")
     _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")
     return 0
 
@@ -536,7 +583,7 @@ def cmd_simulate(args) -> int:
     from torchcal.sim import EffectSpec, SimConfig, write_campaign
 
     inputs = _robot_input(args.robot)
-    check_out_dir(args.out, inputs=inputs)
+    out = check_out_dir(args.out, inputs=inputs)
     if args.trajectory and args.train_samples >= args.samples:
         raise OptionError(
             f"--train-samples {args.train_samples} must be below --samples {args.samples} (the rest is the test phase)"
@@ -558,7 +605,7 @@ def cmd_simulate(args) -> int:
     campaign = _simulate(cfg)
     if args.length_unit == "mm":
         campaign = _to_mm(campaign)
-    with replace_dir(args.out, kind="simulate", inputs=inputs) as tmp:
+    with replace_dir(out, kind="simulate", inputs=inputs) as tmp:
         names = {k: p.name for k, p in write_campaign(campaign, tmp).items()}
     for name in names.values():
         _console.info(f"wrote {Path(args.out) / name}")
@@ -587,8 +634,7 @@ def cmd_demo(args) -> int:
     from torchcal.report import predict, write_run_files
     from torchcal.sim import EffectSpec, SimConfig, write_campaign
 
-    out = Path(args.out)
-    check_out_dir(out)
+    out = check_out_dir(args.out)
     cfg = SimConfig(
         robot="ur5", poses=800, test_poses=200, seed=args.seed, effects=[EffectSpec.parse(e) for e in DEMO_EFFECTS]
     )

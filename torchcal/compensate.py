@@ -469,11 +469,13 @@ def write_joints(
     temperature: Tensor | None = None,
     extra: dict[str, Tensor] | None = None,
     meta: dict[str, str] | None = None,
+    written_by: str | None = None,
 ) -> None:
     """Write the compensated joints as CSV, atomically: ``q1..qN[,x,y,z][,t][,temperature][,extra...],miss,status``.
 
     Joints in rad, positions and ``miss`` in m, every number with ``repr`` (reads back bit-identical);
     ``status`` is ``converged``, ``limit`` or ``unreachable``. Every input row gets one output row, in order.
+    ``written_by``: the command, written first as ``# written_by: ...`` (how ``--out`` knows torchcal's files).
     """
     import os
     import tempfile
@@ -489,7 +491,8 @@ def write_joints(
         cols.append(("temperature", temperature))
     cols += [(k, v) for k, v in (extra or {}).items() if k not in ("miss", "status")]
     cols.append(("miss", result.miss))
-    lines = [f"# {k}: {v}\n" for k, v in (meta or {}).items()]
+    lines = [f"# written_by: {written_by}\n"] if written_by is not None else []  # first: the --out mark
+    lines += [f"# {k}: {v}\n" for k, v in (meta or {}).items() if k != "written_by"]
     lines.append(",".join([c for c, _ in cols] + ["status"]) + "\n")
     table = torch.stack([v.detach().to(F64) for _, v in cols], dim=1).tolist()
     for row, st in zip(table, result.status, strict=True):

@@ -12,12 +12,11 @@ import subprocess
 import sys
 import threading
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 import torch
-from _cli import cli_simulate
+from _cli import calibrate, cli_simulate, deadline, snapshot
 
 import torchcal
 from torchcal import _outdir
@@ -25,47 +24,6 @@ from torchcal.cli import calibration_module, main
 from torchcal.errors import MeasurementFileError, OptionError, RobotSpecError, ShapeError
 
 ROBOTS = Path(__file__).resolve().parents[2] / "robots"
-
-
-@contextmanager
-def deadline(seconds: int):
-    """Fail instead of hanging (a cycle that loops forever would otherwise stall the suite)."""
-
-    def boom(*_):
-        raise TimeoutError(f"took more than {seconds} s")
-
-    old = signal.signal(signal.SIGALRM, boom)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
-
-
-def snapshot(root: Path) -> dict:
-    """Every path under ``root`` with its bytes (files) or None (directories)."""
-    return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
-
-
-@pytest.fixture(scope="module")
-def campaign(tmp_path_factory):
-    root = tmp_path_factory.mktemp("campaign")
-    assert cli_simulate(root / "sim", "--poses", "100", "--test-poses", "20", "--seed", "4") == 0
-    return root / "sim"
-
-
-@pytest.fixture(scope="module")
-def run_dir(campaign, tmp_path_factory):
-    out = tmp_path_factory.mktemp("run") / "cal"
-    assert calibrate(campaign / "train.csv", out) == 0
-    return out
-
-
-def calibrate(data, out, *extra):
-    return main(
-        ["calibrate", str(data), "--robot", "ur5", "--method", "kinematic", "--out", str(out), "--quiet", *extra]
-    )
 
 
 def no_temporaries(parent: Path):
@@ -144,9 +102,8 @@ def test_empty_directory_is_refused_and_marked_run_is_replaced(campaign, tmp_pat
     out.rmdir()
     assert calibrate(campaign / "train.csv", out) == 0
     assert (out / "report.json").is_file() and _outdir.is_marked(out)
-    (out / "stale-note.txt").write_text("from an earlier run")  # a marked run is torchcal's to replace
-    assert calibrate(campaign / "train.csv", out) == 0
-    assert not (out / "stale-note.txt").exists() and (out / "report.json").is_file()
+    assert calibrate(campaign / "train.csv", out) == 0  # a marked run holding only its own files is replaced
+    assert (out / "report.json").is_file() and _outdir.is_marked(out)
     no_temporaries(tmp_path)
 
 

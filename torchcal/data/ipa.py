@@ -189,14 +189,15 @@ def _extra(goal: torch.Tensor, euler_deg: torch.Tensor) -> dict[str, torch.Tenso
     return extra
 
 
-def convert_ipa(src: str | os.PathLike, out: str | os.PathLike) -> Measurements:
+def convert_ipa(src: str | os.PathLike, out: str | os.PathLike, *, written_by: str | None = None) -> Measurements:
     """Read an IPA measurements file and write it at ``out`` in the contract format (SI units).
 
     The output is written atomically by :func:`~torchcal.data.write_measurements`; nothing is
-    written when reading fails. Returns the measurements read.
+    written when reading fails. ``written_by``: the first line's ``# written_by:`` value (the command).
+    Returns the measurements read.
     """
     m = read_ipa(src)
-    write_measurements(out, m)
+    write_measurements(out, m, written_by=written_by)
     return m
 
 

@@ -342,11 +342,9 @@ def _check_units(path, q, p, sigma, lines, layout, length_unit, angle_unit, join
 
 
 def _read_text(path: str) -> str:
-    try:
-        with open(path, "rb") as f:
-            raw = f.read()
-    except OSError as err:
-        raise MeasurementFileError(path, f"cannot read the file: {err.strerror or err}") from err
+    from torchcal._inputs import read_bounded
+
+    raw = read_bounded(path, "measurement file", lambda message: MeasurementFileError(path, message))
     try:
         return raw.decode("utf-8-sig")
     except UnicodeDecodeError as err:
@@ -701,6 +699,7 @@ def write_measurements(
     *,
     meta: Mapping[str, str] | None = None,
     columns: Sequence[str] | None = None,
+    written_by: str | None = None,
 ) -> None:
     """Write ``m`` in the contract format, SI units, atomically.
 
@@ -714,6 +713,8 @@ def write_measurements(
         m: the measurements.
         meta: ``# key: value`` lines; merged over ``m.meta`` (its keys win).
         columns: the columns to write and their order (default: all, in the order above).
+        written_by: the command writing the file (``torchcal predict``): written as the first line,
+            ``# written_by: ...``, the mark by which ``--out`` knows a file torchcal may replace.
 
     Raises:
         OptionError: a name in ``columns`` that ``m`` does not have.
@@ -743,6 +744,8 @@ def write_measurements(
             raise OptionError(f"columns lists a name twice: {columns}")
 
     merged = {**m.meta, **(meta or {})}
+    if written_by is not None:  # first, whatever the metadata read from an earlier file held
+        merged = {"written_by": written_by, **{k: v for k, v in merged.items() if k != "written_by"}}
     head = []
     for key, value in merged.items():
         key, value = str(key), str(value)

@@ -20,7 +20,7 @@ from torchcal.estimate.problem import FreeParameters
 Tensor = torch.Tensor
 
 #: the largest number of free parameters a stored covariance may hold (a crafted file is refused before use)
-MAX_PARAMETERS = 4096
+MAX_PARAMETERS = 2048
 
 
 @dataclass

@@ -20,6 +20,7 @@ or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
@@ -29,6 +30,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal._inputs import load_json, read_bounded
 from torchcal._outdir import replace_dir
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
@@ -36,6 +38,7 @@ from torchcal.errors import EstimationError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.pipeline import CalibrationRun
 from torchcal.robot import load_robot, resolve_robot_spec
+from torchcal.robot.load import MAX_DESCRIPTION_BYTES
 from torchcal.stats import rmse
 
 F64 = torch.float64
@@ -200,7 +203,12 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         f.write(urdf_markdown(report["urdf"]))
     src = resolve_robot_spec(run.robot_spec)
     (tmp / "robot").mkdir()
-    shutil.copy2(src, tmp / "robot" / src.name)
+    # read again after the fit, bounded: the file may have been replaced by a FIFO or a huge file meanwhile
+    robot_copy = tmp / "robot" / src.name
+    robot_copy.write_bytes(
+        read_bounded(src, "robot description", lambda m: TorchcalError(f"{src}: {m}"), limit=MAX_DESCRIPTION_BYTES)
+    )
+    shutil.copystat(src, robot_copy)
     torch.save(state, tmp / "model.pt")
     if run.covariance is not None:  # predict's sx, sy, sz (absent: a fit without one; predict says so)
         torch.save(run.covariance.state(), tmp / "covariance.pt")
@@ -283,6 +291,65 @@ def _run_error(run_dir: Path, what: str) -> OptionError:
     return OptionError(f"{run_dir}: {what}; expected a run directory written by 'torchcal calibrate'")
 
 
+#: Integer sizes an effect's config in model.json may carry, and the largest accepted: each becomes the size of
+#: tensors allocated when the effect is rebuilt, before model.pt is loaded into them. Any other integer in a
+#: config is bounded by :data:`MAX_CONFIG_INT`; ``joint`` must name a joint of the run's robot (1-based).
+SIZE_LIMITS = {"hidden": 100_000, "n_support": 200_000, "n_inducing": 100_000, "n_weights": 10_000_000, "dof": 256}
+MAX_CONFIG_INT = 100_000
+#: Most effects (and effects nested in one another) a run may hold.
+MAX_EFFECTS = 1000
+
+
+def check_effect_configs(configs: list, robot, n_stored: int, run_dir: Path) -> None:
+    """Refuse effect configs (``model.json``) whose numbers cannot come from a run before anything is built.
+
+    Every number must be finite; every integer (not a bool) at least 0 (``hidden`` at least 1) and at most its
+    :data:`SIZE_LIMITS` entry (other keys: :data:`MAX_CONFIG_INT`); and no size may exceed ``n_stored``, the number of
+    values model.pt holds: each size counts values stored there (a network of ``hidden`` units stores at least
+    ``hidden`` weights), so a larger one cannot agree with the state (which ``load_state_dict`` checks exactly).
+    A ``joint`` must be a joint of ``robot``: 1..dof.
+    """
+    count = 0
+
+    def bad(where: str, what: str) -> OptionError:
+        return _run_error(run_dir, f"model.json: {where}: {what}")
+
+    def walk(value, where: str, key: str | None) -> None:
+        nonlocal count
+        if isinstance(value, dict):
+            if "class" in value:
+                count += 1
+                if count > MAX_EFFECTS:
+                    raise bad(where, f"more than {MAX_EFFECTS} effects")
+            for k, v in value.items():
+                walk(v, f"{where}.{k}", str(k))
+        elif isinstance(value, list):
+            for i, v in enumerate(value):
+                walk(v, f"{where}[{i}]", key)
+        elif isinstance(value, bool) or value is None or isinstance(value, str):
+            return
+        elif isinstance(value, float):
+            if not math.isfinite(value):
+                raise bad(where, f"{value} is not a finite number")
+            if key in SIZE_LIMITS or key == "joint":
+                raise bad(where, f"must be a whole number, got {value!r}")
+        elif isinstance(value, int):
+            if key == "joint":
+                if not 1 <= value <= robot.dof:
+                    raise bad(where, f"joint {value} is not a joint of robot '{robot.name}' (1..{robot.dof})")
+                return
+            cap, low = SIZE_LIMITS.get(key, MAX_CONFIG_INT), 1 if key == "hidden" else 0
+            if not low <= value <= cap:
+                raise bad(where, f"{value} is outside {low}..{cap}")
+            if key in SIZE_LIMITS and value > max(n_stored, 1):
+                raise bad(where, f"{value} is larger than the {n_stored} values model.pt holds; they cannot agree")
+        else:
+            raise bad(where, f"unexpected value {value!r}")
+
+    for i, c in enumerate(configs):
+        walk(c, f"effects[{i}]", None)
+
+
 def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     """Rebuild the calibrated measurement model of a run directory.
 
@@ -294,12 +361,9 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     meta_path = run_dir / "model.json"
     if not run_dir.is_dir():
         raise _run_error(run_dir, "not a directory")
-    if not meta_path.is_file():
+    if not meta_path.exists():
         raise _run_error(run_dir, "not a torchcal run directory (no model.json)")
-    try:
-        meta = json.loads(meta_path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError) as e:
-        raise _run_error(run_dir, f"model.json cannot be read: {e}") from None
+    meta = load_json(meta_path, "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
     if not isinstance(meta, dict):
         raise _run_error(run_dir, "model.json is not a JSON object")
     missing = [k for k in ("robot_file", "effects") if k not in meta]
@@ -317,6 +381,21 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     if not isinstance(meta["effects"], list) or not all(isinstance(c, dict) for c in meta["effects"]):
         raise _run_error(run_dir, "model.json: effects must be a list of objects")
     robot = load_robot(robot_path, base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
+    pt = run_dir / "model.pt"
+    if not pt.exists():
+        raise _run_error(run_dir, "model.pt is missing")
+    raw = read_bounded(pt, "model.pt", lambda m: _run_error(run_dir, f"model.pt {m}"))
+    try:
+        state = torch.load(io.BytesIO(raw), weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError:
+        raise _run_error(run_dir, "model.pt holds more than tensors (a pickled object); refused to load it") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        raise _run_error(run_dir, f"model.pt cannot be read (truncated or not a torch file: {e})") from None
+    del raw
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise _run_error(run_dir, "model.pt does not hold a state dict of tensors")
+    # every size in model.json is rebuilt as tensors before the state is loaded into them: bound them first
+    check_effect_configs(meta["effects"], robot, sum(v.numel() for v in state.values()), run_dir)
     try:
         effects = [effect_from_config(c, robot) for c in meta["effects"]]
     except TorchcalError:
@@ -324,17 +403,6 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     except (KeyError, TypeError, ValueError) as e:
         raise _run_error(run_dir, f"model.json: an effect cannot be rebuilt ({type(e).__name__}: {e})") from None
     model = MeasurementModel(robot, effects)
-    pt = run_dir / "model.pt"
-    if not pt.is_file():
-        raise _run_error(run_dir, "model.pt is missing")
-    try:
-        state = torch.load(pt, weights_only=True, map_location="cpu")
-    except pickle.UnpicklingError:
-        raise _run_error(run_dir, "model.pt holds more than tensors (a pickled object); refused to load it") from None
-    except (RuntimeError, EOFError, OSError, ValueError) as e:
-        raise _run_error(run_dir, f"model.pt cannot be read (truncated or not a torch file: {e})") from None
-    if not isinstance(state, dict):
-        raise _run_error(run_dir, "model.pt does not hold a state dict")
     try:
         model.load_state_dict(state)
     except (RuntimeError, TypeError) as e:
@@ -351,10 +419,9 @@ def load_covariance(run_dir: str | os.PathLike, model: MeasurementModel) -> Para
     path = run_dir / "covariance.pt"
     if not path.exists():
         return None
-    if not path.is_file():
-        raise _run_error(run_dir, "covariance.pt is not a regular file")
+    raw = read_bounded(path, "covariance.pt", lambda m: _run_error(run_dir, f"covariance.pt {m}"))
     try:
-        state = torch.load(path, weights_only=True, map_location="cpu")
+        state = torch.load(io.BytesIO(raw), weights_only=True, map_location="cpu")
     except pickle.UnpicklingError:
         raise _run_error(run_dir, "covariance.pt holds more than tensors (a pickled object); refused") from None
     except (RuntimeError, EOFError, OSError, ValueError) as e:

@@ -28,6 +28,7 @@ robot's own when it has them.
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import tempfile
@@ -383,8 +384,16 @@ def user_urdf_string(robot: RobotModel, options: ExportOptions | None = None) ->
     opts = options or ExportOptions()
     probe, tracker = opts.probe, opts.tracker
     src = Path(robot.source)
-    raw = src.read_text(encoding="utf-8")
-    for _, (prefix, uri) in ET.iterparse(src, events=("start-ns",)):
+    # read again after the fit: the file may have been replaced meanwhile (by a FIFO, a huge file): bounded
+    from torchcal._inputs import read_bounded
+    from torchcal.robot.load import MAX_DESCRIPTION_BYTES
+
+    data = read_bounded(src, "robot description", lambda m: RobotSpecError(f"{src}: {m}"), limit=MAX_DESCRIPTION_BYTES)
+    try:
+        raw = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise RobotSpecError(f"{src}: is no longer UTF-8 text (byte offset {e.start})") from None
+    for _, (prefix, uri) in ET.iterparse(io.BytesIO(data), events=("start-ns",)):
         ET.register_namespace(prefix, uri)
     root = ET.fromstring(raw, parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
     joints = {j.get("name"): j for j in root.findall("joint")}

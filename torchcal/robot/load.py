@@ -46,6 +46,12 @@ def resolve_robot_spec(spec: str | os.PathLike) -> Path:
     path = Path(spec)
     if path.suffix in (".yaml", ".yml", ".urdf") and path.is_file():
         return path
+    if path.exists() and not path.is_file() and not path.is_dir():  # a FIFO or a device: never opened
+        from torchcal._inputs import kind_of
+
+        raise RobotSpecError(
+            f"{path}: is {kind_of(path.stat().st_mode)}, not a regular file; give a robot description file"
+        )
     if path.is_file():
         raise RobotSpecError(f"{path}: unknown robot description type '{path.suffix}', expected .urdf, .yaml or .yml")
     name = str(spec)
@@ -92,18 +98,13 @@ def load_robot(
 
 # --------------------------------------------------------------------------- DH
 def _read_description(path: Path) -> bytes:
-    """The file's bytes, refusing what cannot be read and files beyond :data:`MAX_DESCRIPTION_BYTES`."""
-    try:
-        size = path.stat().st_size
-        if size > MAX_DESCRIPTION_BYTES:
-            raise RobotSpecError(
-                f"{path}: {size} bytes is larger than a robot description can be "
-                f"(at most {MAX_DESCRIPTION_BYTES // (1024 * 1024)} MiB)"
-            )
-        with open(path, "rb") as f:
-            return f.read(MAX_DESCRIPTION_BYTES + 1)
-    except OSError as e:
-        raise RobotSpecError(f"{path}: cannot read: {e.strerror or e}") from None
+    """The file's bytes, refusing what is not a regular file (a FIFO, /dev/zero) and files beyond
+    :data:`MAX_DESCRIPTION_BYTES`, before reading."""
+    from torchcal._inputs import read_bounded
+
+    return read_bounded(
+        path, "robot description", lambda message: RobotSpecError(f"{path}: {message}"), limit=MAX_DESCRIPTION_BYTES
+    )
 
 
 def _decode(path: Path, raw: bytes) -> str:
@@ -133,12 +134,27 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     """
     import yaml
 
+    from torchcal._inputs import MAX_DEPTH
+
     path = Path(path)
     text = _decode(path, _read_description(path))
     try:
-        # Aliases ('*name') can expand a kilobyte into gigabytes; a DH table never needs them.
+        # Aliases ('*name') can expand a kilobyte into gigabytes; a DH table never needs them. The composer
+        # recurses per level (20,000 nested '[' cost a minute, then a RecursionError); the event stream does
+        # not, so the depth is bounded here first.
+        depth = 0
         for event in yaml.parse(text, Loader=yaml.SafeLoader):
-            if isinstance(event, yaml.AliasEvent):
+            if isinstance(event, (yaml.SequenceStartEvent, yaml.MappingStartEvent)):
+                depth += 1
+                if depth > MAX_DEPTH:
+                    mark = event.start_mark
+                    raise RobotSpecError(
+                        f"{path}, line {mark.line + 1}, column {mark.column + 1}: nested more than {MAX_DEPTH} "
+                        "levels deep; a DH table nests three"
+                    )
+            elif isinstance(event, (yaml.SequenceEndEvent, yaml.MappingEndEvent)):
+                depth -= 1
+            elif isinstance(event, yaml.AliasEvent):
                 mark = event.start_mark
                 raise RobotSpecError(
                     f"{path}, line {mark.line + 1}, column {mark.column + 1}: YAML aliases "
