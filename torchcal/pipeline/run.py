@@ -342,7 +342,7 @@ def calibrate(
 #: fewest held-out poses a run reports an error on
 MIN_HOLDOUT = 3
 #: the largest geometric correction, in prior standard deviations, a calibration accepts: lengths and angles
-#: (docs/hostile_values.md: on legitimate data the largest seen is a few; a wrong robot or unit gives hundreds)
+#: (docs/prior_ratios.md: measured on legitimate data, simulated and real, and on data of another robot)
 MAX_PRIOR_RATIO = {"m": 50.0, "rad": 300.0}
 
 
