@@ -21,7 +21,19 @@ LAYERS: list[set[str]] = [
     {"cli", "_entry", "__main__"},
 ]
 #: leaf utilities: importable from anywhere, importing no other torchcal module but each other
-LEAVES = {"errors", "_console", "_threads", "_version", "_outdir", "_inputs", "_device", "stats", "_dual", "_lbfgs"}
+LEAVES = {
+    "errors",
+    "_console",
+    "_threads",
+    "_version",
+    "_outdir",
+    "_inputs",
+    "_device",
+    "stats",
+    "_dual",
+    "_lbfgs",
+    "_bounds",
+}
 #: the package's __init__ re-exports from the layers (and reaches the pipeline lazily); nothing imports it
 TOP = "__init__"
 

@@ -14,9 +14,15 @@ def set_quiet(quiet: bool) -> None:
     _quiet = bool(quiet)
 
 
+def one_line(text: str) -> str:
+    """``text`` as one line of printable characters: control characters (line breaks, NUL, terminal escapes) are
+    written as Python escapes, so a name read from a file cannot forge lines or codes on the terminal."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in str(text))
+
+
 def info(msg: str) -> None:
     if not _quiet:
-        print(msg, file=sys.stderr, flush=True)
+        print(one_line(msg), file=sys.stderr, flush=True)
 
 
 def progress(iterable=None, *, total=None, desc: str | None = None):

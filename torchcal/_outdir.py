@@ -145,11 +145,11 @@ def is_marked(path: Path) -> bool:
 #: earlier torchcal): patterns of relative paths, folders ending in '/'.
 _LEGACY_ENTRIES = {
     "calibrate": ("report.json", "report.md", "*.png", "robot_calibrated.urdf", "model.pt", "model.json", "robot/")
-    + ("robot/*",),
+    + ("robot/*", "covariance.pt"),
     "simulate": ("train.csv", "test.csv", "truth.json"),
     "demo": ("summary.json", "data/", "data/train.csv", "data/test.csv", "data/truth.json", "run/", f"run/{MARKER}")
     + ("run/report.json", "run/report.md", "run/*.png", "run/robot_calibrated.urdf", "run/model.pt")
-    + ("run/model.json", "run/robot/", "run/robot/*"),
+    + ("run/model.json", "run/robot/", "run/robot/*", "run/covariance.pt"),
 }
 
 

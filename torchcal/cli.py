@@ -12,11 +12,13 @@ import json
 import math
 import sys
 import traceback
+import warnings
 from pathlib import Path
 
 import torch
 
 from torchcal import _console
+from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER
 from torchcal._device import resolve_device
 from torchcal._outdir import check_out_dir, check_out_file
 from torchcal.errors import OptionError, TorchcalError
@@ -27,8 +29,9 @@ F64 = torch.float64
 REPORT_TO = "the torchcal issue tracker (see README.md, 'Reporting problems')"
 
 
-def _number(kind: str):
-    """An argparse type: a finite float that is positive (``kind='positive'``), >= 0 or in (0, 1)."""
+def _number(kind: str, high: float | None = None):
+    """An argparse type: a finite float that is positive (``kind='positive'``), >= 0 or in (0, 1), and at most
+    ``high`` where given."""
 
     def parse(text: str) -> float:
         try:
@@ -43,6 +46,8 @@ def _number(kind: str):
             raise argparse.ArgumentTypeError(f"must be >= 0, got {text}")
         if kind == "fraction" and not 0 < v < 1:
             raise argparse.ArgumentTypeError(f"must be between 0 and 1 (exclusive), got {text}")
+        if high is not None and v > high:
+            raise argparse.ArgumentTypeError(f"must be <= {high:g}, got {text}")
         return v
 
     parse.__name__ = f"{kind} number"
@@ -91,6 +96,13 @@ def _seed(text: str) -> int:
 _count.__name__ = "count"
 _seed.__name__ = "seed"
 POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _number("fraction")
+# the library's bounds (torchcal._bounds) in the command's units: um, deg, mm
+TRACKER_UM = _number("positive", MAX_SIGMA_TRACKER * 1e6)
+TRACKER_UM_SIM = _number("nonnegative", MAX_SIGMA_TRACKER * 1e6)
+JOINT_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_JOINT))
+RANK_TOL = _number("positive", MAX_RANK_TOL)
+LENGTH_BIAS_MM = _number("nonnegative", MAX_SIGMA_LENGTH * 1e3)
+ANGLE_BIAS_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_ANGLE))
 OUT_HELP = (
     "output directory; an existing one is replaced only when it is an earlier torchcal output "
     "(marked by .torchcal-run), anything else is refused"
@@ -189,10 +201,14 @@ def build_parser() -> argparse.ArgumentParser:
         "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
         "displacement with a unit, e.g. compliance:2=50um, field=0.6mm",
     )
-    s.add_argument("--tracker-noise", type=NONNEG, default=15.0, help="tracker noise per axis [um] (default 15)")
-    s.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
-    s.add_argument("--length-bias", type=NONNEG, default=0.1, help="sigma of the geometric length biases [mm]")
-    s.add_argument("--angle-bias", type=NONNEG, default=0.01, help="sigma of the geometric angle biases [deg]")
+    s.add_argument(
+        "--tracker-noise", type=TRACKER_UM_SIM, default=15.0, help="tracker noise per axis [um], <= 10000 (default 15)"
+    )
+    s.add_argument(
+        "--joint-noise", type=JOINT_DEG, default=0.0005, help="joint reading noise [deg], <= 1 (default 0.0005)"
+    )
+    s.add_argument("--length-bias", type=LENGTH_BIAS_MM, default=0.1, help="sigma of the geometric length biases [mm]")
+    s.add_argument("--angle-bias", type=ANGLE_BIAS_DEG, default=0.01, help="sigma of the geometric angle biases [deg]")
     s.add_argument("--no-sigma", action="store_true", help="leave out the sx,sy,sz columns")
     s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
     _add_common(s)
@@ -240,12 +256,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument(
         "--tracker-noise",
-        type=POSITIVE,
+        type=TRACKER_UM,
         default=15.0,
-        help="tracker noise per axis [um] when the file has no sx,sy,sz (default 15)",
+        help="tracker noise per axis [um] when the file has no sx,sy,sz, <= 10000 (default 15)",
     )
-    c.add_argument("--joint-noise", type=NONNEG, default=0.0005, help="joint reading noise [deg] (default 0.0005)")
-    c.add_argument("--rank-tol", type=POSITIVE, default=None, help="identifiability tolerance, > 0 (default 1e-6)")
+    c.add_argument(
+        "--joint-noise", type=JOINT_DEG, default=0.0005, help="joint reading noise [deg], <= 1 (default 0.0005)"
+    )
+    c.add_argument(
+        "--rank-tol", type=RANK_TOL, default=None, help="identifiability tolerance, in (0, 0.01] (default 1e-6)"
+    )
     c.add_argument(
         "--max-joint-error",
         type=POSITIVE,
@@ -384,10 +404,13 @@ def cmd_calibrate(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.report import write_run
     from torchcal.robot import load_robot
+    from torchcal.robot.load import calibrated_flange
 
     inputs = [args.data, *_robot_input(args.robot)]
     out = check_out_dir(args.out, inputs=inputs)  # before any fitting: refuse, touching nothing; resolved once
-    robot = load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link)
+    # a run's robot_calibrated.urdf: the chain to calibrate ends at the flange, not at the earlier run's probe
+    tip_link = args.tip_link or calibrated_flange(args.robot)
+    robot = load_robot(args.robot, base_link=args.base_link, tip_link=tip_link)
     opts = C.Options(
         method=args.method or C.DEFAULT_METHOD,
         seed=args.seed,
@@ -398,9 +421,8 @@ def cmd_calibrate(args) -> int:
         device=args.device,
         refit=args.refit,
         max_joint_error=args.max_joint_error * 1e-3,
+        **({} if args.rank_tol is None else {"rank_tol": args.rank_tol}),
     )
-    if args.rank_tol is not None:
-        opts.rank_tol = args.rank_tol
     data = read_measurements(
         args.data,
         require_positions=True,
@@ -409,6 +431,7 @@ def cmd_calibrate(args) -> int:
         **_reading(args, robot),
     )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
+    C.check_holdout(data.n, opts.holdout)
     run = C.calibrate(robot, data, opts, robot_spec=args.robot)
     out = write_run(run, out, inputs=inputs)
     st = {s.name: s for s in run.stages}
@@ -431,14 +454,18 @@ def warn_outside(path, lines, ext, what: str) -> None:
     for i in rows[:MAX_OUTSIDE_LINES]:
         line = lines[i] if lines is not None and i < len(lines) else i + 1
         print(
-            f"torchcal: warning: {path}: line {line}: the pose lies {float(ext[i]):.3g} beyond the calibrated "
-            f"region (extrapolation, rad or m)" + (f"; {what}" if what else ""),
+            _console.one_line(
+                f"torchcal: warning: {path}: line {line}: the pose lies {float(ext[i]):.3g} beyond the calibrated "
+                f"region (extrapolation, rad or m)" + (f"; {what}" if what else "")
+            ),
             file=sys.stderr,
         )
     if len(rows) > MAX_OUTSIDE_LINES:
         print(
-            f"torchcal: warning: {path}: {len(rows) - MAX_OUTSIDE_LINES} more rows outside the calibrated region "
-            "(the extrapolation column names them)",
+            _console.one_line(
+                f"torchcal: warning: {path}: {len(rows) - MAX_OUTSIDE_LINES} more rows outside the calibrated region "
+                "(the extrapolation column names them)"
+            ),
             file=sys.stderr,
         )
 
@@ -693,6 +720,16 @@ COMMANDS = {
 }
 
 
+def _warning_printer(command: str):
+    """``warnings.showwarning`` for the command: one line naming the command, not the library's source file and
+    line (a user cannot act on torch's internals; ``--debug`` tracebacks still show where)."""
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        _console.info(f"torchcal {command}: warning: {category.__name__}: {message}")
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the command line; return the exit code (module docstring) instead of raising."""
     parser = build_parser()
@@ -700,11 +737,13 @@ def main(argv: list[str] | None = None) -> int:
     _console.set_quiet(getattr(args, "quiet", False))
     debug = bool(getattr(args, "debug", False))
     try:
-        return COMMANDS[args.command](args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_printer(args.command)
+            return COMMANDS[args.command](args)
     except TorchcalError as e:
         if debug:
             traceback.print_exc()
-        print(f"torchcal {args.command}: error: {e}", file=sys.stderr)
+        print(f"torchcal {args.command}: error: {_console.one_line(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"torchcal {args.command}: interrupted; the output was left as it was", file=sys.stderr)
@@ -712,7 +751,7 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as e:  # the last line of defence: a summary, never a bare traceback
         if debug:
             traceback.print_exc()
-        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        first = _console.one_line(str(e).strip().splitlines()[0]) if str(e).strip() else ""
         print(f"torchcal {args.command}: internal error: {type(e).__name__}: {first[:300]}", file=sys.stderr)
         print(
             f"torchcal {args.command}: this is a bug; please report it at {REPORT_TO} with the command line"

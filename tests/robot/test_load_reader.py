@@ -60,7 +60,7 @@ def test_elements_reader_errors(tmp_path):
         '<robot name="r"><link name="a"/><link name="b"/>'
         '<joint name="j" type="revolute"><parent link="a"/></joint></robot>'
     )
-    with pytest.raises(RobotSpecError, match="bad.urdf: cannot parse URDF"):
+    with pytest.raises(RobotSpecError, match="bad.urdf: joint 'j' has no <child link"):
         load_urdf(bad, reader="elements")
     with pytest.raises(OptionError, match="reader must be"):
         load_urdf(URDFS[0], reader="lxml")

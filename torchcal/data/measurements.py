@@ -46,6 +46,11 @@ _MIN_MEDIAN_DISTANCE_MM = 20.0  # ... nor from 2 cm
 _MAX_MEDIAN_SIGMA_M = 0.01  # a 1 cm standard deviation is not a tracker measurement
 _MAX_ABS_ANGLE_RAD = 2.0 * math.pi + 1e-9
 _JOINT_LIMIT_TOL = 1e-12
+#: Largest position or standard deviation a file may hold [m]: no tracker measures 1000 km
+MAX_POSITION_M = 1e6
+#: Temperatures a file may hold [degC]: beyond them a robot is not calibrated (or the unit is Kelvin/Fahrenheit)
+TEMPERATURE_RANGE_C = (-100.0, 200.0)
+_MIN_DEGREES_MOVED = 1.0  # deg: below it a degree file near zero (a home pose) could be either unit
 
 
 def _check_option(name: str, value: str, valid: Mapping[str, float]) -> None:
@@ -284,6 +289,7 @@ def read_measurements(
     if angle_unit != "rad":
         q = q * ANGLE_UNITS[angle_unit]
 
+    _check_ranges(path_str, p, sigma, temperature, lines, layout, length_unit)
     if joint_limits is not None and n and layout.joints:
         _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name)
 
@@ -339,6 +345,8 @@ def _check_units(path, q, p, sigma, lines, layout, length_unit, angle_unit, join
         _check_sigma_unit(path, sigma, lines, layout)
     if angle_unit == "rad" and q.shape[1]:
         _check_angle_unit(path, q, lines, layout, joint_limits)
+    if angle_unit == "deg" and q.shape[1]:
+        _check_degrees_are_not_radians(path, q, lines, layout, joint_limits)
 
 
 def _read_text(path: str) -> str:
@@ -525,13 +533,19 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
         except ValueError:
             vals = None
         # sum() is nan/inf when a value is; a rare overflow only costs the slow path.
-        if vals is None or "_" in data_lines[index] or not math.isfinite(sum(vals)):
+        line_text = data_lines[index]
+        if vals is None or "_" in line_text or not line_text.isascii() or not math.isfinite(sum(vals)):
             _check_cells(path, row, header, line_no)
             if vals is None:  # pragma: no cover - float() and _check_cells agree on what parses
                 raise MeasurementFileError(path, "unreadable row", line=line_no)
         values.extend(vals)
         rows.append(line_no)
     return values, rows
+
+
+def _escape(text: str) -> str:
+    """``text`` for a message: control characters (NUL, line breaks, escapes) written as Python escapes."""
+    return "".join(c if c.isprintable() or c == " " else repr(c)[1:-1] for c in text)
 
 
 def _check_cells(path: str, row: list[str], header: list[str], line: int) -> None:
@@ -545,11 +559,22 @@ def _check_cells(path: str, row: list[str], header: list[str], line: int) -> Non
         except ValueError:
             value = None
         if value is None or "_" in text:
-            raise MeasurementFileError(path, f"'{text}' is not a number", line=line, column=name)
+            raise MeasurementFileError(path, f"'{_escape(text)}' is not a number", line=line, column=name)
+        if not text.isascii():
+            # float() reads Arabic-Indic, Devanagari, full-width ... digits; a measurement file is ASCII numbers
+            raise MeasurementFileError(
+                path,
+                f"'{_escape(text)}' is not a number: only the ASCII digits 0-9, '.', '-', '+' and 'e' make numbers "
+                "in a measurement file",
+                line=line,
+                column=name,
+            )
         if math.isnan(value):
-            raise MeasurementFileError(path, f"'{text}' is NaN; values must be finite", line=line, column=name)
+            raise MeasurementFileError(path, f"'{_escape(text)}' is NaN; values must be finite", line=line, column=name)
         if math.isinf(value):
-            raise MeasurementFileError(path, f"'{text}' is infinite; values must be finite", line=line, column=name)
+            raise MeasurementFileError(
+                path, f"'{_escape(text)}' is infinite; values must be finite", line=line, column=name
+            )
 
 
 def _wrong_cell_count(
@@ -660,6 +685,68 @@ def _check_angle_unit(path, q, lines, layout: _Layout, limits=None) -> None:
             column=layout.joints[j],
             hint="if q1..qN are in degrees, pass --angle-unit deg (angle_unit='deg')",
         )
+
+
+def _check_ranges(path, p, sigma, temperature, lines, layout: _Layout, unit: str) -> None:
+    """Refuse values no measurement has (in SI units, after conversion): a position or standard deviation beyond
+    :data:`MAX_POSITION_M` (1000 km), a temperature outside :data:`TEMPERATURE_RANGE_C` (-100 .. 200 degC).
+
+    Such a value is a typo or a broken export; fitted, it would swamp every other row (or overflow the squares).
+    """
+    shown = LENGTH_UNITS[unit]
+    for names, values, what in ((_POSITION, p, "a position"), (_SIGMA, sigma, "a standard deviation")):
+        if values is None:
+            continue
+        bad = values.abs() > MAX_POSITION_M
+        if bad.any():
+            i, j = _first_bad(bad, [layout.index[c] for c in names])
+            raise MeasurementFileError(
+                path,
+                f"{names[j]} = {values[i, j].item() * shown!r} {unit} is beyond {MAX_POSITION_M * shown:g} {unit} "
+                f"(1000 km), not {what} a laser tracker measures",
+                line=lines[i],
+                column=names[j],
+            )
+    if temperature is not None:
+        lo, hi = TEMPERATURE_RANGE_C
+        bad = (temperature < lo) | (temperature > hi)
+        if bad.any():
+            i = int(bad.nonzero()[0, 0])
+            raise MeasurementFileError(
+                path,
+                f"temperature = {temperature[i].item()!r} degC is outside {lo:g} .. {hi:g} degC",
+                line=lines[i],
+                column="temperature",
+                hint="the temperature column is in degrees Celsius",
+            )
+
+
+def _check_degrees_are_not_radians(path, q, lines, layout: _Layout, limits=None) -> None:
+    """Refuse radians declared as degrees: every reading within one turn *as a number of degrees* (|q| <= 2 pi)
+    while the readings do move (the largest is beyond :data:`_MIN_DEGREES_MOVED`) and the robot's limits span
+    more than a few degrees.
+
+    Read as degrees such a file keeps every joint within +-6.3 deg of zero, which no calibration campaign or robot
+    program does; read as radians it is an ordinary campaign. A file of (near) zeros, such as the home pose alone,
+    says nothing either way and passes.
+    """
+    largest = float(q.abs().max())
+    if not _MIN_DEGREES_MOVED < largest <= _MAX_ABS_ANGLE_RAD:
+        return
+    if limits is not None:
+        span = (limits[:, 1] - limits[:, 0]).clamp(max=4 * math.pi)
+        if not bool((span > 2 * math.radians(_MAX_ABS_ANGLE_RAD)).any()):
+            return  # a robot whose joints only move a few degrees: small degree values are all it has
+    i, j = _first_bad(q.abs() == largest, [layout.index[c] for c in layout.joints])
+    raise MeasurementFileError(
+        path,
+        f"the joint readings look like radians although degrees were declared: every |q| is at most 2*pi "
+        f"(the largest, {layout.joints[j]} = {q[i, j].item()!r}), so as degrees the robot would never move more "
+        f"than {_MAX_ABS_ANGLE_RAD:.3g} deg from zero on any joint",
+        line=lines[i],
+        column=layout.joints[j],
+        hint="if q1..qN are in radians, leave out --angle-unit deg (angle_unit='rad' is the default)",
+    )
 
 
 def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, robot_name) -> None:

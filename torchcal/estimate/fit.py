@@ -207,3 +207,21 @@ def solve(
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
     free.assign(res.x)
     return Fit(stage, res, free, ida, global_test(res), W)
+
+
+def prior_ratios(fit: Fit, model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
+    """How many prior standard deviations each fitted geometric correction of ``fit`` is: ``|delta_j| / sigma_j``.
+
+    ``sigma_j`` is ``opts.prior_length`` [m] for a length and ``opts.prior_angle`` [rad] for an angle (the priors
+    the fit was weighted with); parameters without a prior (instrument, tool, effects) are left out, and the result
+    is empty when the options carry no priors.
+
+    Returns:
+        Element name (e.g. ``a2``, ``elbow_joint.tx``) -> ratio, for the free geometric elements of ``fit``.
+    """
+    if opts.prior_length is None or opts.prior_angle is None:
+        return {}
+    units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+    sigma = prior_sigmas(fit.free, units, opts.prior_length, opts.prior_angle)
+    x = fit.result.x.to(sigma.device)
+    return {n: float(x[i].abs() / sigma[i]) for i, n in enumerate(fit.free.names) if torch.isfinite(sigma[i])}

@@ -408,6 +408,7 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     except (RuntimeError, TypeError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise _run_error(run_dir, f"model.pt does not match model.json ({first})") from None
+    _check_state(run_dir, model)
     _set_region(model, meta.get("region"), run_dir)
     return model, meta
 
@@ -448,6 +449,33 @@ def trust(
     ctx = Context(q=q) if context is None else replace(context, q=q)
     sigma = combined_std(model, ctx, cov)
     return (None if sigma is None else sigma.cpu()), model.extrapolation(q).cpu()
+
+
+def _check_state(run_dir: Path, model: MeasurementModel) -> None:
+    """Refuse a loaded model that cannot predict: a NaN anywhere, an infinite fitted value or nominal geometry
+    (joint limits alone may be infinite: a continuous joint), or joint limits whose lower is above the upper.
+    Blamed on ``model.pt``, before any data file is read against the limits."""
+    params = {name for name, _ in model.named_parameters()}
+    for name, value in model.state_dict().items():
+        if not value.is_floating_point():
+            continue
+        if bool(torch.isnan(value).any()) or (
+            not name.endswith("limits")
+            and (name in params or name.endswith("nominal"))
+            and not bool(torch.isfinite(value).all())
+        ):
+            raise _run_error(
+                run_dir, f"model.pt: {name} holds non-finite values; the run directory is damaged or the fit diverged"
+            )
+    limits = model.robot.limits
+    inverted = (limits[:, 0] > limits[:, 1]).nonzero().flatten().tolist()
+    if inverted:
+        k = inverted[0]
+        raise _run_error(
+            run_dir,
+            f"model.pt: the limits of joint {k + 1} ({model.robot.joint_names[k]}) are inverted, lower "
+            f"{float(limits[k, 0])!r} > upper {float(limits[k, 1])!r}; the run directory is damaged",
+        )
 
 
 def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device | str = "cpu") -> torch.Tensor:

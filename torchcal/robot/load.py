@@ -126,6 +126,66 @@ def _number(path, where: str, key: str, value) -> float:
     return float(value)
 
 
+#: YAML 1.2 floats: YAML 1.1 (PyYAML) reads ``1e300`` and ``1.0e300`` without a sign in the exponent as text
+_YAML12_FLOAT = r"^(?:[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+|[-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?)$"
+
+
+def _yaml_loader():
+    """PyYAML's safe loader that refuses a key given twice in one mapping (YAML forbids it; PyYAML silently keeps
+    the last) and reads YAML 1.2 floats (``1e300``, ``1.0e300``) as numbers."""
+    import re
+
+    import yaml
+
+    class Loader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):
+            if isinstance(node, yaml.MappingNode):
+                seen = {}
+                for key_node, _ in node.value:
+                    key = self.construct_object(key_node, deep=deep)
+                    try:
+                        first = seen.get(key)
+                    except TypeError:  # an unhashable key: the base class says so
+                        break
+                    if first is not None:
+                        raise yaml.constructor.ConstructorError(
+                            None,
+                            None,
+                            f"key {key!r} is given twice in one mapping (first on line {first.line + 1}); "
+                            "give each key once",
+                            key_node.start_mark,
+                        )
+                    seen[key] = key_node.start_mark
+            return super().construct_mapping(node, deep=deep)
+
+    Loader.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(_YAML12_FLOAT), list("-+0123456789."))
+    return Loader
+
+
+def _yaml_error(path: Path, e) -> str:
+    """A YAML error as one line: file, line and column of the problem, then what the parser says."""
+    mark = getattr(e, "problem_mark", None)
+    where = f"{path}" if mark is None else f"{path}, line {mark.line + 1}, column {mark.column + 1}"
+    problem = getattr(e, "problem", None) or str(e)
+    context = getattr(e, "context", None)
+    text = f"{context}: {problem}" if context else problem
+    return f"{where}: not valid YAML: {' '.join(str(text).split())}"
+
+
+#: Largest length [m] and angle [rad] a robot description may hold: a robot is not a kilometre long, and an angle
+#: beyond a few turns is a typo (its sine and cosine would be noise)
+MAX_DESCRIPTION_LENGTH = 1000.0
+MAX_DESCRIPTION_ANGLE = 100.0
+
+
+def _safe_name(path, what: str, name) -> str:
+    """``name`` as text, refused when it holds control characters (a line break would forge lines in messages)."""
+    text = str(name)
+    if any(ord(c) < 32 or ord(c) == 127 for c in text):
+        raise RobotSpecError(f"{path}: {what} {text!r} holds control characters (line breaks, NUL, ...); rename it")
+    return text
+
+
 def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") -> RobotModel:
     """Load a DH table: ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
 
@@ -160,9 +220,9 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
                     f"{path}, line {mark.line + 1}, column {mark.column + 1}: YAML aliases "
                     "('*name') are not accepted in a robot description; write the values out"
                 )
-        doc = yaml.safe_load(text)
+        doc = yaml.load(text, Loader=_yaml_loader())
     except yaml.YAMLError as e:
-        raise RobotSpecError(f"{path}: not valid YAML: {e}") from None
+        raise RobotSpecError(_yaml_error(path, e)) from None
     if not isinstance(doc, dict) or "joints" not in doc:
         raise RobotSpecError(f"{path}: expected a mapping with 'name', 'convention' and 'joints'")
     conv = str(doc.get("convention", "standard")).lower()
@@ -188,6 +248,13 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
             if key not in j:
                 raise RobotSpecError(f"{path}: {where}: missing '{key}'")
             cols[key].append(_number(path, where, key, j[key]))
+            bound = MAX_DESCRIPTION_LENGTH if key in ("a", "d") else MAX_DESCRIPTION_ANGLE
+            if abs(cols[key][-1]) > bound:
+                unit = "m" if key in ("a", "d") else "rad"
+                raise RobotSpecError(
+                    f"{path}: {where}: '{key}' = {j[key]!r} {unit} is beyond {bound:g} {unit}; lengths are metres and "
+                    "angles radians"
+                )
         cols["lower"].append(_number(path, where, "lower", j.get("lower", -2 * math.pi)))
         cols["upper"].append(_number(path, where, "upper", j.get("upper", 2 * math.pi)))
         if cols["lower"][-1] >= cols["upper"][-1]:
@@ -200,7 +267,13 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
             if not isinstance(com, list) or len(com) != 3:
                 raise RobotSpecError(f"{path}: {where}: 'com' must be a list of 3 numbers [m]")
             coms.append([_number(path, where, "com", c) for c in com])
-        names.append(str(j.get("name", f"joint{i + 1}")))
+        name = _safe_name(path, f"{where}: name", j.get("name", f"joint{i + 1}"))
+        if name in names:
+            raise RobotSpecError(
+                f"{path}: {where}: name {name!r} is also the name of joint {names.index(name) + 1}; "
+                "joint names must be unique"
+            )
+        names.append(name)
     if masses and len(masses) != len(joints):
         raise RobotSpecError(f"{path}: 'mass' is given for {len(masses)} of {len(joints)} joints; give all or none")
     convention = DHConvention(conv)
@@ -224,7 +297,7 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
             com_t = (M[:, :3, :3] @ com_t.unsqueeze(-1)).squeeze(-1) + M[:, :3, 3]
     dof = len(joints)
     return RobotModel(
-        name=str(doc.get("name", path.stem)),
+        name=_safe_name(path, "robot name", doc.get("name", path.stem)),
         geometry=geometry,
         limits=limits,
         joint_names=names,
@@ -273,6 +346,7 @@ def load_urdf(
     tree = _parse_stdlib(path, raw) if reader == "elements" else _parse_lxml(path, raw)
     if tree.tag != "robot":
         raise RobotSpecError(f"{path}: the root element is <{tree.tag}>, expected <robot>")
+    _check_urdf_elements(path, tree)
     if reader == "elements":
         urdf = _urdf_elements(path, tree)
     else:
@@ -457,6 +531,97 @@ def load_urdf(
         dtype=dtype,
         device=device,
     ).to(device)
+
+
+def calibrated_flange(spec: str | os.PathLike) -> str | None:
+    """The link a URDF that torchcal wrote (a run's ``robot_calibrated.urdf``) fixed its ``probe`` frame to, or
+    None for any other description.
+
+    Loaded with the default tip, such a file's chain ends at that run's lever arm (``probe``, its deepest leaf);
+    calibrating it again fits the lever arm afresh and writes the ``probe`` frame anew, so the robot to calibrate
+    ends at this link (the flange).
+    """
+    path = resolve_robot_spec(spec)
+    if path.suffix != ".urdf":
+        return None
+    raw = _read_description(path)
+    if not _written_by_torchcal(raw):
+        return None
+    import re
+
+    m = re.search(
+        rb'<joint name="probe_joint" type="fixed">\s*<parent link="([^"<>&]+)"/>\s*<child link="probe"/>', raw
+    )
+    return m.group(1).decode("utf-8") if m else None
+
+
+def _written_by_torchcal(raw: bytes) -> bool:
+    """Whether a URDF is one torchcal wrote (the header comment of :mod:`torchcal.robot.export`: a DH robot's
+    generated file or a URDF robot's own file with calibrated origins)."""
+    import re
+
+    return re.search(rb"<!--\s*(Generated|Written) by torchcal ", raw[:1000]) is not None
+
+
+def _urdf_numbers(path: Path, where: str, el, key: str, default: str, bound: float, unit: str) -> None:
+    """Refuse ``el``'s attribute ``key`` unless it is three finite numbers within ``bound`` (``el`` None: absent)."""
+    if el is None:
+        return
+    text = el.get(key, default)
+    try:
+        values = [float(v) for v in text.split()]
+    except ValueError:
+        values = None
+    shown = " ".join(text.split())[:80]
+    if values is None or len(values) != 3:
+        raise RobotSpecError(
+            f'{path}: {where}: <{el.tag} {key}="{shown}"> must be three numbers separated by spaces, e.g. "0 0 1"'
+        )
+    if not all(math.isfinite(v) for v in values):
+        raise RobotSpecError(f'{path}: {where}: <{el.tag} {key}="{shown}"> has non-finite values')
+    if max(abs(v) for v in values) > bound:
+        raise RobotSpecError(
+            f'{path}: {where}: <{el.tag} {key}="{shown}"> is beyond {bound:g} {unit}; URDF lengths are metres and '
+            "angles radians"
+        )
+
+
+def _check_urdf_elements(path: Path, tree) -> None:
+    """What the URDF readers take for granted, checked on the XML with the file and joint named: every joint has a
+    unique name, a ``<parent link>`` and a ``<child link>`` that are links of the file, a three-component axis and
+    an origin of finite numbers within a kilometre; names hold no control characters."""
+    _safe_name(path, "robot name", tree.get("name", ""))
+    links: set[str] = set()
+    for lk in tree.findall("link"):
+        name = lk.get("name")
+        if not name:
+            raise RobotSpecError(f"{path}: a <link> has no name")
+        _safe_name(path, "link name", name)
+        if name in links:
+            raise RobotSpecError(f"{path}: link name {name!r} occurs twice; link names must be unique")
+        links.add(name)
+    joints: set[str] = set()
+    for j in tree.findall("joint"):
+        name = j.get("name")
+        if not name:
+            raise RobotSpecError(f"{path}: a <joint> has no name")
+        _safe_name(path, "joint name", name)
+        where = f"joint {name!r}"
+        if name in joints:
+            raise RobotSpecError(f"{path}: joint name {name!r} occurs twice; joint names must be unique")
+        joints.add(name)
+        for tag in ("parent", "child"):
+            el = j.find(tag)
+            if el is None or not el.get("link"):
+                raise RobotSpecError(
+                    f'{path}: {where} has no <{tag} link="..."/>; every joint needs a parent and a child'
+                )
+            if el.get("link") not in links:
+                raise RobotSpecError(f"{path}: {where}: its {tag} link {el.get('link')!r} is not a <link> of the file")
+        _urdf_numbers(path, where, j.find("axis"), "xyz", "1 0 0", math.inf, "")
+        origin = j.find("origin")
+        _urdf_numbers(path, where, origin, "xyz", "0 0 0", MAX_DESCRIPTION_LENGTH, "m")
+        _urdf_numbers(path, where, origin, "rpy", "0 0 0", MAX_DESCRIPTION_ANGLE, "rad")
 
 
 def _parse_lxml(path: Path, raw: bytes):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal._bounds import MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER, check_range
 from torchcal.data import Measurements, write_measurements
 from torchcal.effects import Backlash, Compliance, Context, CorrectionNet, Cyclic, Drift, LearnedEffect
 from torchcal.effects.base import Effect, motion_direction
@@ -118,6 +119,10 @@ class SimConfig:
             raise OptionError(f"trajectory path '{self.path}' is not one of {', '.join(PATHS)}")
         if self.trajectory and not 0 < self.train_samples < self.samples:
             raise OptionError(f"train_samples must lie in (0, samples={self.samples}), got {self.train_samples}")
+        check_range("sigma_tracker", self.sigma_tracker, 0.0, MAX_SIGMA_TRACKER, scale=1e6, unit="um")
+        check_range("sigma_joint_deg", self.sigma_joint_deg, 0.0, math.degrees(MAX_SIGMA_JOINT), unit="deg")
+        check_range("sigma_length", self.sigma_length, 0.0, MAX_SIGMA_LENGTH, scale=1e3, unit="mm")
+        check_range("sigma_angle_deg", self.sigma_angle_deg, 0.0, math.degrees(MAX_SIGMA_ANGLE), unit="deg")
 
 
 @dataclass
