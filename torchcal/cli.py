@@ -154,6 +154,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--angle-bias", type=NONNEG, default=0.01, help="sigma of the geometric angle biases [deg]")
     s.add_argument("--no-sigma", action="store_true", help="leave out the sx,sy,sz columns")
     s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
+    s.add_argument(
+        "--fixed-tool-axis",
+        type=POSITIVE,
+        default=None,
+        metavar="DEG",
+        help="static poses whose tool axis turns by at most DEG degrees (e.g. 0.03: a lifting-column robot "
+        "measured by a total station), plus turned.csv: poses with the tool turned at least 30 deg away",
+    )
     _add_common(s)
 
     c = sub.add_parser(
@@ -507,6 +515,7 @@ def cmd_simulate(args) -> int:
         write_sigma=not args.no_sigma,
         base_link=args.base_link,
         tip_link=args.tip_link,
+        tool_axis_deg=args.fixed_tool_axis,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")
@@ -529,6 +538,8 @@ def _to_mm(campaign):
         )
 
     campaign.train, campaign.test = mm(campaign.train), mm(campaign.test)
+    if campaign.turned is not None:
+        campaign.turned = mm(campaign.turned)
     campaign.truth["files"]["length_unit"] = "mm"
     return campaign
 
