@@ -49,6 +49,18 @@ def _number(kind: str):
     return parse
 
 
+def _tool(text: str) -> tuple[float, float, float]:
+    """``X,Y,Z`` in mm -> metres."""
+    parts = text.split(",")
+    try:
+        xyz = tuple(float(v) * 1e-3 for v in parts)
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm (three numbers), got '{text}'")
+    return xyz
+
+
 def _count(text: str) -> int:
     try:
         v = int(text)
@@ -220,6 +232,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="the largest size [mrad] a named joint-angle effect (cyclic, transmission, compliance, backlash) may "
         "have anywhere on its joint's range; larger ones are rejected (default 5)",
     )
+    c.add_argument(
+        "--tool",
+        type=_tool,
+        default=None,
+        metavar="X,Y,Z",
+        help="the known lever arm [mm] (probe in the flange frame): the prior's centre; an element the data do "
+        "not determine better than --tool-sigma is held at it (default: unknown, 500 mm prior about the flange)",
+    )
+    c.add_argument("--tool-sigma", type=POSITIVE, default=1.0, help="sigma of --tool [mm] (default 1)")
     _add_computing(c)
 
     pr = sub.add_parser(
@@ -362,6 +383,8 @@ def cmd_calibrate(args) -> int:
         device=args.device,
         refit=args.refit,
         max_joint_error=args.max_joint_error * 1e-3,
+        tool=args.tool,
+        tool_sigma=args.tool_sigma * 1e-3,
     )
     if args.rank_tol is not None:
         opts.rank_tol = args.rank_tol
