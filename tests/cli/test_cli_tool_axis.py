@@ -5,7 +5,6 @@ as it predicts held-out poses."""
 import json
 
 import pytest
-
 from _cli import cli_simulate
 
 import torchcal

@@ -224,7 +224,8 @@ def weak_after_fit(
         Q: ``(P, P)`` the fit's cofactor matrix (normal matrix inverse, priors included, variance factor 1).
         prior_sigma: ``(P,)`` a-priori standard deviations (inf: none).
         candidate: ``(P,)`` bool: the parameters this check may hold (those whose group's prior asks for it); a
-            pair with a candidate may also give up a non-candidate with a prior that comes later in the preference order.
+            pair with a candidate may also give up a non-candidate with a prior that comes later in the
+            preference order.
         units: parameter name -> "m" or "rad", for the reasons' numbers.
         x: ``(P,)`` the fitted values as departures from the priors' centres: with them a correlated parameter is
             held only where its prior value is compatible with the fit, ``x_j^2 / (s0^2 Q_jj) <= compatible``

@@ -36,8 +36,14 @@ def _options(case: str, truth_tool: list[float]) -> Options:
     return Options(method="kinematic")
 
 
-def run(robot: str = "ur5", poses: int = 200, test_poses: int = 60, spread_deg: float = 0.03, seed: int = 1,
-        cases: tuple[str, ...] = CASES) -> dict:
+def run(
+    robot: str = "ur5",
+    poses: int = 200,
+    test_poses: int = 60,
+    spread_deg: float = 0.03,
+    seed: int = 1,
+    cases: tuple[str, ...] = CASES,
+) -> dict:
     """Simulate the campaign and calibrate it per case (module docstring); a JSON-ready dict."""
     t0 = time.perf_counter()
     c = simulate(SimConfig(robot=robot, poses=poses, test_poses=test_poses, seed=seed, tool_axis_deg=spread_deg))

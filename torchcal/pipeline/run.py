@@ -122,7 +122,9 @@ class Options:
                 f"'{self.method}'" + (f" with engine '{self.engine}'" if self.method == "integrated" else "")
             )
         if self.tool is not None and (len(self.tool) != 3 or not self.tool_sigma > 0):
-            raise OptionError(f"tool must be 3 numbers [m] with a positive tool_sigma, got {self.tool}, {self.tool_sigma}")
+            raise OptionError(
+                f"tool must be 3 numbers [m] with a positive tool_sigma, got {self.tool}, {self.tool_sigma}"
+            )
         self.device = str(resolve_device(self.device))  # an unknown or absent device raises here, before any work
 
     @property
