@@ -201,6 +201,8 @@ def test_weak_after_fit_gives_up_the_later_of_a_correlated_pair_unless_the_data_
     assert [(h["name"], h["depends_on"]) for h in held] == [("tool.z", ["instrument.ty"])]
     assert "correlated -0.9999" in held[0]["reason"]
     # fitted 95 mm from its prior's centre with a 4 mm sigma: the data determine it despite the correlation
-    assert weak_after_fit(names, Q, ps, cand, x=torch.tensor([0.0, 0.0, 0.095], dtype=F64)) == []
+    kept = weak_after_fit(names, Q, ps, cand, x=torch.tensor([0.0, 0.0, 0.095], dtype=F64))
+    assert [(k["name"], k["held"]) for k in kept] == [("tool.z", False)]  # a warning for the report, not a hold
+    assert "23.8 sigma" in kept[0]["reason"]
     rho[1, 2] = rho[2, 1] = -0.99  # below 0.999: nothing to hold
     assert weak_after_fit(names, rho * sd[:, None] * sd[None, :], ps, cand) == []

@@ -265,11 +265,12 @@ def solve(
             except EstimationError:
                 break  # a singular normal matrix: the structural analysis already had its say
             cand = torch.tensor([n in scaled for n in free.names])
-            held = weak_after_fit(free.names, Q, ps, cand, units, x=res.x, sigma0_sq=res.sigma0_sq)
+            found = weak_after_fit(free.names, Q, ps, cand, units, x=res.x, sigma0_sq=res.sigma0_sq)
+            ida.hold(found)
+            held = [h["name"] for h in found if h.get("held") is not False]
             if not held:
                 break
-            _hold(model, [h["name"] for h in held])
-            ida.hold(held)
+            _hold(model, held)
             sel, labels = selection(model, groups, dict(zip(ida.names, ida.free.tolist())), effects=effects)
             free = FreeParameters(model, sel, labels)
             res = _lm(model, free, ctx, m, W, opts, groups, stage)

@@ -79,13 +79,18 @@ class Identifiability:
     tol: float = DEFAULT_TOL
     prior_ratio: float | None = None  # None: no priors given, the structural tolerance alone
     sigma_data: Tensor | None = None  # (P,) 1/|v_j|: the data's standard deviation of each direction [m or rad]
+    weak: list[dict] = field(default_factory=list)  # kept after the fit though correlated beyond MAX_CORRELATION
 
     @property
     def rank(self) -> int:
         return int(self.free.sum())
 
     def hold(self, entries: list[dict]) -> None:
-        """Mark the parameters of ``fixed`` entries (:func:`weak_after_fit`) as held, with their reasons."""
+        """Mark the parameters of ``fixed`` entries (:func:`weak_after_fit`) as held, with their reasons; entries
+        with ``held: False`` are kept in :attr:`weak` instead (one per parameter, the latest)."""
+        for e in [e for e in entries if e.get("held") is False]:
+            self.weak = [w for w in self.weak if w["name"] != e["name"]] + [e]
+        entries = [e for e in entries if e.get("held") is not False]
         for e in entries:
             self.free[self.names.index(e["name"])] = False
             self.fixed.append(e)
@@ -105,6 +110,7 @@ class Identifiability:
             "n_candidates": len(self.names),
             "rank": self.rank,
             "fixed": self.fixed,
+            "weak": self.weak,
             "dependent_groups": self.groups,
             "condition_number": None
             if sv is None or float(sv[self.rank - 1]) == 0
@@ -237,7 +243,9 @@ def weak_after_fit(
         ``fixed`` entries as :class:`Identifiability` writes them (``name``, ``reason``, ``depends_on``,
         ``independence`` = 0): every candidate whose posterior deviation exceeds ``prior_ratio`` of its prior,
         and of the pairs correlated beyond ``max_correlation`` only the most correlated one's later member (holding
-        one member decorrelates the others it was tied to; the caller refits and asks again).
+        one member decorrelates the others it was tied to; the caller refits and asks again). A correlated
+        parameter kept because the fit rejects its prior value comes as an entry with ``held: False`` (a warning
+        for the report, :attr:`Identifiability.weak`).
     """
     units = units or {}
     P = len(names)
@@ -282,9 +290,23 @@ def weak_after_fit(
         if x is not None:
             s0 = sigma0_sq if math.isfinite(sigma0_sq) and sigma0_sq > 1.0 else 1.0
             z2 = float(x[j]) ** 2 / (s0 * float(Q[j, j]))
-            if z2 > compatible:
-                continue  # the data reject its prior value: determined after all, despite the correlation
-        return [
+            if z2 > compatible:  # the data reject its prior value: determined after all, despite the correlation
+                sd_j = fmt(j, math.sqrt(s0 * float(Q[j, j])))
+                if not any(e["name"] == names[j] for e in out):
+                    out.append(
+                        {
+                            "name": names[j],
+                            "held": False,
+                            "reason": f"correlated {float(rho[i, j]):+.4f} with {names[i]} after the fit (beyond "
+                            f"{max_correlation}), but fitted {math.sqrt(z2):.1f} sigma ({sd_j}) "
+                            "from its prior value, which the data reject: kept; its value rests on that weak "
+                            "direction alone (a known value, e.g. --tool for the lever arm, removes the doubt)",
+                            "depends_on": [names[i]],
+                            "independence": 0.0,
+                        }
+                    )
+                continue
+        return out + [
             {
                 "name": names[j],
                 "reason": f"correlated {float(rho[i, j]):+.4f} with {names[i]} after the fit (beyond "

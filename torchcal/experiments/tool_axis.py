@@ -9,7 +9,8 @@ degrees away (``turned``). Each case is a kinematic calibration of the training 
 * ``unknown_tool``: the default priors (lever arm 500 mm about the flange centre, instrument 0.5 m / 0.1 rad),
 * ``given_tool``: the lever arm given (the true one, rounded to 1 um, as ``--tool``) with its 1 mm sigma.
 
-Per case: the parameters held at their prior value (with the reasons), the lever arm fitted against the true one,
+Per case: the parameters held at their prior value (with the reasons), those kept though correlated beyond 0.999
+(``weak``: the fit rejects their prior value), the lever arm fitted against the true one,
 the geometric fit's held-out RMSE (its own split of the training file), the RMSE on the campaign's test poses
 (same tool axis) and on the turned poses, and their ratio to the held-out RMSE. Run by ``scripts/tool_axis.py``.
 """
@@ -67,6 +68,7 @@ def run(
         fitted = r.robot.t_flange_probe().detach()
         out["cases"][case] = {
             "held": [{"name": f["name"], "reason": f["reason"]} for f in held],
+            "weak": [{"name": w["name"], "reason": w["reason"]} for w in (ida.weak if ida is not None else [])],
             "tool_fitted_mm": (fitted * 1e3).tolist(),
             "tool_error_mm": ((fitted - torch.tensor(true_tool, dtype=fitted.dtype)) * 1e3).tolist(),
             "holdout_geometric_mm": geo.rmse * 1e3,
