@@ -36,6 +36,14 @@ def test_lever_arm_along_a_still_tool_axis_is_held_and_turned_poses_stay_accurat
     turned = float((p - m).norm(dim=-1).square().mean().sqrt()) * 1e3
     assert turned <= 2.0 * report["rmse_geometric_mm"], (turned, report["rmse_geometric_mm"])
 
+    # without --tool the lever arm along the axis is fitted 20 sigma from the flange centre (the prior's): kept,
+    # and named as weakly determined, with the remedy
+    assert main([*args[:-1], str(tmp_path / "unknown"), "--quiet"]) == 0
+    ida = json.loads((tmp_path / "unknown" / "report.json").read_text())["parameters"]["identifiability"]
+    weak = {w["name"]: w["reason"] for w in ida["weak"]}
+    assert "tool.z" in weak and "--tool" in weak["tool.z"], ida
+    assert "### Weakly determined" in (tmp_path / "unknown" / "report.md").read_text()
+
 
 def test_a_malformed_tool_is_a_usage_error(tmp_path, capsys):
     out = tmp_path / "never"
