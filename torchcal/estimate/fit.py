@@ -264,7 +264,7 @@ def solve(
                 Q = res.cofactor
             except EstimationError:
                 break  # a singular normal matrix: the structural analysis already had its say
-            cand = torch.tensor([n in scaled for n in free.names])
+            cand = torch.tensor([n in scaled for n in free.names], device=ps.device)
             found = weak_after_fit(free.names, Q, ps, cand, units, x=res.x, sigma0_sq=res.sigma0_sq)
             ida.hold(found)
             held = [h["name"] for h in found if h.get("held") is not False]
