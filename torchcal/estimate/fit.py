@@ -227,6 +227,13 @@ def solve(
     parameters instead of analysing again: after a fit the nominally parallel axes of a UR arm are no
     longer exactly parallel, and a new analysis would free parameters that are only determined to
     1e-5 (``d3``, ``d4``), which turns the refit into a crawl along a flat valley.
+
+    Priors: the geometry's (``opts.prior_length``, ``prior_angle``) when it is fitted, the instrument pose's and the
+    lever arm's (:func:`prior_scales`) always, as pseudo-observations (MAP). With a fresh analysis, an instrument or
+    lever-arm element the analysis holds goes back to its prior value, and after the fit
+    :func:`~torchcal.estimate.identifiability.weak_after_fit` may hold more (posterior sigma above 0.71 of the
+    prior's, or correlated beyond 0.999), each added to the analysis' ``fixed`` with its reason, and the fit is
+    repeated (at most :data:`HOLD_ROUNDS` times); later solves that reuse the analysis keep them held.
     """
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
