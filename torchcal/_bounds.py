@@ -18,6 +18,8 @@ MAX_SIGMA_TRACKER = 1e-2
 MAX_SIGMA_JOINT = math.radians(1.0)
 #: identifiability tolerance (relative singular value): beyond 1 % the analysis fixes parameters the data determine
 MAX_RANK_TOL = 1e-2
+#: a known lever arm's elements and sigma [m]: probes sit within a metre or two of the flange; 5 m is mm given as m
+MAX_TOOL = 5.0
 #: simulated geometric biases: lengths [m] and angles [rad]
 MAX_SIGMA_LENGTH = 0.01
 MAX_SIGMA_ANGLE = math.radians(1.0)

@@ -54,6 +54,18 @@ def _number(kind: str, high: float | None = None):
     return parse
 
 
+def _tool(text: str) -> tuple[float, float, float]:
+    """``X,Y,Z`` in mm -> metres."""
+    parts = text.split(",")
+    try:
+        xyz = tuple(float(v) * 1e-3 for v in parts)
+    except ValueError:
+        xyz = ()
+    if len(xyz) != 3 or not all(math.isfinite(v) for v in xyz):
+        raise argparse.ArgumentTypeError(f"expected X,Y,Z in mm (three numbers), got '{text}'")
+    return xyz
+
+
 #: Most poses or trajectory samples ``simulate`` makes: a campaign of that size takes minutes; a larger one
 #: would run for hours or exhaust memory before it could be written.
 MAX_SAMPLES = 100_000
@@ -211,6 +223,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--angle-bias", type=ANGLE_BIAS_DEG, default=0.01, help="sigma of the geometric angle biases [deg]")
     s.add_argument("--no-sigma", action="store_true", help="leave out the sx,sy,sz columns")
     s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
+    s.add_argument(
+        "--fixed-tool-axis",
+        type=POSITIVE,
+        default=None,
+        metavar="DEG",
+        help="static poses whose tool axis turns by at most DEG degrees (e.g. 0.03: a lifting-column robot "
+        "measured by a total station), plus turned.csv: poses with the tool turned at least 30 deg away",
+    )
     _add_common(s)
 
     c = sub.add_parser(
@@ -273,6 +293,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="the largest size [mrad] a named joint-angle effect (cyclic, transmission, compliance, backlash) may "
         "have anywhere on its joint's range; larger ones are rejected (default 5)",
     )
+    c.add_argument(
+        "--tool",
+        type=_tool,
+        default=None,
+        metavar="X,Y,Z",
+        help="the known lever arm [mm] (probe in the flange frame): the prior's centre; an element the data do "
+        "not determine better than --tool-sigma is held at it (default: unknown, 500 mm prior about the flange)",
+    )
+    c.add_argument("--tool-sigma", type=POSITIVE, default=1.0, help="sigma of --tool [mm] (default 1)")
     _add_computing(c)
 
     pr = sub.add_parser(
@@ -422,6 +451,8 @@ def cmd_calibrate(args) -> int:
         refit=args.refit,
         max_joint_error=args.max_joint_error * 1e-3,
         **({} if args.rank_tol is None else {"rank_tol": args.rank_tol}),
+        tool=args.tool,
+        tool_sigma=args.tool_sigma * 1e-3,
     )
     data = read_measurements(
         args.data,
@@ -626,6 +657,7 @@ def cmd_simulate(args) -> int:
         write_sigma=not args.no_sigma,
         base_link=args.base_link,
         tip_link=args.tip_link,
+        tool_axis_deg=args.fixed_tool_axis,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")
@@ -648,6 +680,8 @@ def _to_mm(campaign):
         )
 
     campaign.train, campaign.test = mm(campaign.train), mm(campaign.test)
+    if campaign.turned is not None:
+        campaign.turned = mm(campaign.turned)
     campaign.truth["files"]["length_unit"] = "mm"
     return campaign
 

@@ -527,3 +527,15 @@ def test_internal_errors_are_one_escaped_line(campaign, tmp_path, capsys, monkey
     assert calibrate(campaign / "train.csv", tmp_path / "o") == 1
     err = capsys.readouterr().err
     assert "\x1b" not in err and "\x00" not in err and "bad\\x1b[31m value\\x00" in err
+
+
+@pytest.mark.parametrize("tool", ["0,0,1e6", "0,0,nan", "1,2", "0,0,inf"])
+def test_a_lever_arm_beyond_metres_or_not_three_numbers_is_refused_before_fitting(campaign, tmp_path, capsys, tool):
+    out = tmp_path / "run"
+    try:  # a usage error (not three finite numbers) exits through argparse; a value too large returns 2
+        code = main(["calibrate", str(campaign / "train.csv"), "--robot", "ur5", "--method", "kinematic",
+                     "--tool", tool, "--out", str(out), "--quiet"])  # fmt: skip
+    except SystemExit as e:
+        code = e.code
+    assert code == 2 and not out.exists()
+    assert "tool" in capsys.readouterr().err

@@ -172,3 +172,37 @@ def test_prior_tolerance_keeps_the_clean_ur_sets():
             ["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6", "a6"]
         )
         assert ida.prior_ratio == DEFAULT_PRIOR_RATIO == ida.to_dict()["prior_ratio"]
+
+
+def test_weak_after_fit_holds_a_parameter_its_prior_dominates():
+    from torchcal.estimate.identifiability import weak_after_fit
+
+    names = ["d2", "instrument.ty", "tool.z"]
+    ps = torch.tensor([1e-3, 0.5, 0.5], dtype=F64)
+    # tool.z: posterior 0.4 m against a 0.5 m prior (0.8 > 0.71): held; d2 is not a candidate
+    Q = torch.diag(torch.tensor([1e-6, 1e-8, 0.16], dtype=F64))
+    held = weak_after_fit(names, Q, ps, torch.tensor([False, True, True]), {n: "m" for n in names})
+    assert [h["name"] for h in held] == ["tool.z"]
+    assert "400 mm, 0.80 of its prior 500 mm" in held[0]["reason"]
+    assert weak_after_fit(names, Q * 0.25, ps, torch.tensor([False, True, True])) == []  # 0.40: kept
+
+
+def test_weak_after_fit_gives_up_the_later_of_a_correlated_pair_unless_the_data_reject_its_prior():
+    from torchcal.estimate.identifiability import weak_after_fit
+
+    names = ["instrument.tx", "instrument.ty", "tool.z"]  # tool.z comes after the instrument in preference
+    ps = torch.full((3,), 0.5, dtype=F64)
+    sd = torch.tensor([1e-5, 4e-3, 4e-3], dtype=F64)
+    rho = torch.eye(3, dtype=F64)
+    rho[1, 2] = rho[2, 1] = -0.9999
+    Q = rho * sd[:, None] * sd[None, :]
+    cand = torch.ones(3, dtype=torch.bool)
+    held = weak_after_fit(names, Q, ps, cand, x=torch.tensor([0.0, 1e-3, 2e-3], dtype=F64))
+    assert [(h["name"], h["depends_on"]) for h in held] == [("tool.z", ["instrument.ty"])]
+    assert "correlated -0.9999" in held[0]["reason"]
+    # fitted 95 mm from its prior's centre with a 4 mm sigma: the data determine it despite the correlation
+    kept = weak_after_fit(names, Q, ps, cand, x=torch.tensor([0.0, 0.0, 0.095], dtype=F64))
+    assert [(k["name"], k["held"]) for k in kept] == [("tool.z", False)]  # a warning for the report, not a hold
+    assert "23.8 sigma" in kept[0]["reason"]
+    rho[1, 2] = rho[2, 1] = -0.99  # below 0.999: nothing to hold
+    assert weak_after_fit(names, rho * sd[:, None] * sd[None, :], ps, cand) == []

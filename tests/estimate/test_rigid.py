@@ -46,3 +46,19 @@ def test_instrument_and_lever_arm_recovered_without_noise():
     assert (T - torch.tensor(truth["instrument"]["T_tracker_base"], dtype=F64)).abs().max() < 1e-9
     assert (lever - torch.tensor(truth["tool"]["t_flange_probe"], dtype=F64)).abs().max() < 1e-9
     assert rms < 1e-9
+
+
+def test_lever_arm_prior_fixes_what_a_still_flange_leaves_open():
+    # every pose has the same flange orientation: the lever arm and the tracker's position cannot be told apart,
+    # the least-squares step is singular; the prior's ridge puts the lever arm at its centre, and the fit is exact
+    g = torch.Generator().manual_seed(3)
+    n = 40
+    T_bf = torch.eye(4, dtype=torch.float64).repeat(n, 1, 1)
+    T_bf[:, :3, 3] = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    t_true = torch.tensor([0.01, -0.02, 0.1], dtype=torch.float64)
+    p = T_bf[:, :3, 3] + t_true + torch.tensor([2.0, 0.5, -0.3], dtype=torch.float64)
+    centre = torch.tensor([0.0, 0.0, 0.05], dtype=torch.float64)
+    T, t, rms = fit_instrument_and_tool(T_bf, p, centre, lever_prior=(centre, 1e-6))
+    assert torch.allclose(t, centre, atol=1e-7, rtol=0)  # the ridge is 1e-6 of a 40-row normal matrix
+    assert rms < 1e-9
+    assert torch.allclose(T[:3, 3], torch.tensor([2.0, 0.5, -0.3], dtype=torch.float64) + t_true - centre, atol=1e-7)

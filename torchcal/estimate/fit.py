@@ -18,7 +18,7 @@ from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
-from torchcal.estimate.identifiability import Identifiability, analyse, preference_order
+from torchcal.estimate.identifiability import Identifiability, analyse, preference_order, weak_after_fit
 from torchcal.estimate.lm import FitStatus, LMResult, global_test, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool
@@ -43,6 +43,9 @@ class FitOptions(Protocol):
     prior_length: float | None  # m
     prior_angle: float | None  # rad
     stat_tol: float
+    # optional (read with getattr; absent means no prior): the lever arm's prior sigma [m] (prior_lever) and the
+    # instrument pose's (prior_instrument: position [m], rotation [rad]), centred on the start
+    # (place_instrument_and_tool); with them a fit holds what the data cannot determine (weak_after_fit)
 
 
 @dataclass
@@ -57,7 +60,13 @@ class Fit:
     whitening: Tensor | None = None  # (N, 3, 3) the L_i^-1 the residuals were whitened with
 
 
-def place_instrument_and_tool(robot: RobotModel, q: Tensor, p: Tensor, lever: Tensor | None = None) -> float:
+def place_instrument_and_tool(
+    robot: RobotModel,
+    q: Tensor,
+    p: Tensor,
+    lever: Tensor | None = None,
+    lever_prior: tuple[Tensor, float] | None = None,
+) -> float:
     """Fit the tracker pose and the lever arm for the robot's current geometry and write them into ``robot``.
 
     Closed form (:func:`~torchcal.estimate.rigid.fit_instrument_and_tool`): the start of every calibration.
@@ -68,16 +77,59 @@ def place_instrument_and_tool(robot: RobotModel, q: Tensor, p: Tensor, lever: Te
         q: ``(N, dof)`` joint positions [rad].
         p: ``(N, 3)`` measured probe positions in the tracker frame [m].
         lever: initial lever arm ``(3,)`` [m] (default zero).
+        lever_prior: ``(centre (3,) [m], sigma_noise^2 / sigma_prior^2)``: a MAP start whose lever arm keeps near
+            ``centre`` where the poses do not fix it; the lever arm's nominal is then ``centre`` and its correction
+            the fitted lever arm minus it, so that a prior on the correction (zero mean) is centred on ``centre``.
 
     Returns:
         The RMS residual of the fit [m].
     """
     with torch.no_grad():
-        T, t, rms = fit_instrument_and_tool(robot(q), p, lever)
+        T, t, rms = fit_instrument_and_tool(robot(q), p, lever, lever_prior=lever_prior)
         robot.instrument.set_matrix(T)
-        robot.tool.nominal.copy_(t)
-        robot.tool.delta.zero_()
+        if lever_prior is None:
+            robot.tool.nominal.copy_(t)
+            robot.tool.delta.zero_()
+        else:
+            robot.tool.nominal.copy_(lever_prior[0])
+            robot.tool.delta.copy_(t - lever_prior[0])
     return rms
+
+
+def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
+    """A-priori standard deviations of the instrument pose's and the lever arm's corrections by parameter name
+    (``opts.prior_instrument``, ``opts.prior_lever``; none where the options do not set them)."""
+    out: dict[str, float] = {}
+    inst, lever = getattr(opts, "prior_instrument", None), getattr(opts, "prior_lever", None)
+    for info in model.robot.parameter_info():
+        if info.group == "instrument" and inst is not None:
+            out[info.name] = float(inst[0] if info.unit == "m" else inst[1])
+        elif info.group == "tool" and lever is not None:
+            out[info.name] = float(lever)
+    return out
+
+
+def _priors(model: MeasurementModel, free: FreeParameters, opts: FitOptions, groups: tuple[str, ...]) -> Tensor | None:
+    """The prior standard deviations of ``free`` (geometry's when the geometry is fitted, the instrument pose's and
+    the lever arm's), or None when there are none."""
+    units = {}
+    if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
+        units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+    ps = prior_sigmas(free, units, opts.prior_length, opts.prior_angle, prior_scales(model, opts))
+    return ps if bool(torch.isfinite(ps).any()) else None
+
+
+def _hold(model: MeasurementModel, names: list[str]) -> None:
+    """Put the named robot parameters back at their prior value (a zero correction)."""
+    where = {i.name: i for i in model.robot.parameter_info()}
+    with torch.no_grad():
+        for n in names:
+            if n in where:
+                model.robot.groups()[where[n].group].delta[where[n].index] = 0.0
+
+
+#: rounds of :func:`weak_after_fit` and refit at most (each holds one correlated parameter, or the weak ones)
+HOLD_ROUNDS = 6
 
 
 def errors(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
@@ -175,6 +227,13 @@ def solve(
     parameters instead of analysing again: after a fit the nominally parallel axes of a UR arm are no
     longer exactly parallel, and a new analysis would free parameters that are only determined to
     1e-5 (``d3``, ``d4``), which turns the refit into a crawl along a flat valley.
+
+    Priors: the geometry's (``opts.prior_length``, ``prior_angle``) when it is fitted, the instrument pose's and the
+    lever arm's (:func:`prior_scales`) always, as pseudo-observations (MAP). With a fresh analysis, an instrument or
+    lever-arm element the analysis holds goes back to its prior value, and after the fit
+    :func:`~torchcal.estimate.identifiability.weak_after_fit` may hold more (posterior sigma above 0.71 of the
+    prior's, or correlated beyond 0.999), each added to the analysis' ``fixed`` with its reason, and the fit is
+    repeated (at most :data:`HOLD_ROUNDS` times); later solves that reuse the analysis keep them held.
     """
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
@@ -190,23 +249,49 @@ def solve(
     elif identify:
         fun = residual_function(model, free, ctx, m.p, W)
         J = jacobian_of(fun)(free.vector())
-        ps = None  # the identifiability tolerance from the noise and the priors (estimate.identifiability)
-        if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
-            units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
-            ps = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+        ps = _priors(model, free, opts, groups)  # the identifiability tolerance from the noise and the priors
         ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
+        # an instrument or lever-arm element the data cannot fix goes back to its prior's value (the start's)
+        scaled = prior_scales(model, opts)
+        back = [f for f in ida.fixed if f["name"] in scaled]
+        _hold(model, [f["name"] for f in back])
+        for f in back:
+            f["reason"] = f["reason"].replace("held at its current value", "held at its prior value")
         sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
-    prior = None
-    if opts.prior_length is not None and opts.prior_angle is not None and "geometry" in groups:
-        units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
-        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
-    fun = residual_function(model, free, ctx, m.p, W, prior)
+    res = _lm(model, free, ctx, m, W, opts, groups, stage)
+    if identifiability is None and ida is not None:
+        scaled = prior_scales(model, opts)
+        units = {i.name: i.unit for i in model.robot.parameter_info()}
+        for _ in range(HOLD_ROUNDS):
+            ps = _priors(model, free, opts, groups)
+            if ps is None or not any(n in scaled for n in free.names):
+                break
+            try:
+                Q = res.cofactor
+            except EstimationError:
+                break  # a singular normal matrix: the structural analysis already had its say
+            cand = torch.tensor([n in scaled for n in free.names], device=ps.device)
+            found = weak_after_fit(free.names, Q, ps, cand, units, x=res.x, sigma0_sq=res.sigma0_sq)
+            ida.hold(found)
+            held = [h["name"] for h in found if h.get("held") is not False]
+            if not held:
+                break
+            _hold(model, held)
+            sel, labels = selection(model, groups, dict(zip(ida.names, ida.free.tolist())), effects=effects)
+            free = FreeParameters(model, sel, labels)
+            res = _lm(model, free, ctx, m, W, opts, groups, stage)
+    return Fit(stage, res, free, ida, global_test(res), W)
+
+
+def _lm(model, free: FreeParameters, ctx: Context, m: Measurements, W: Tensor, opts: FitOptions, groups, stage: str):
+    """The weighted LM of :func:`solve` over ``free`` with its priors; the result is written into the model."""
+    fun = residual_function(model, free, ctx, m.p, W, _priors(model, free, opts, groups))
     res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
     if res.status in FAILED:
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
     free.assign(res.x)
-    return Fit(stage, res, free, ida, global_test(res), W)
+    return res
 
 
 def prior_ratios(fit: Fit, model: MeasurementModel, opts: FitOptions) -> dict[str, float]:

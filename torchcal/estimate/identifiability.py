@@ -31,6 +31,17 @@ later, nearly collinear parameter can still raise an earlier one's marginal devi
 Parameters that are independent and determined better than their prior are kept and show
 their precision through standard deviations and correlations in the report.
 
+After the fit (:func:`weak_after_fit`). The test above is greedy and conditional, and the parameters that come
+first in the preference order (instrument pose, lever arm) are kept unless structurally dependent. A weak
+direction that only the whole fit reveals (a tool axis that hardly turns across the poses: the lever arm along
+it and the instrument's position along it differ only by the tool's tiny turns, and the geometry's freedom
+blurs them further) shows in the fit's posterior instead: a parameter with a prior whose posterior standard
+deviation is not clearly below the prior's (above ``prior_ratio`` of it, the same ``1/sqrt(2)``), or that is
+correlated above :data:`MAX_CORRELATION` with another parameter, is held at its prior value and the fit is
+repeated; a pair gives up the member later in the preference order (the lever arm before the instrument pose),
+unless the fit puts that member significantly away from its prior value (the data then determine it, correlated or
+not: holding it would bias everything else).
+
 For ``n`` rows much more than ``P`` columns the analysis runs on the triangular factor ``R`` of
 ``J = QR`` (``P x P``): an orthogonal ``Q`` keeps every norm and angle.
 """
@@ -48,6 +59,13 @@ DEFAULT_TOL = 1e-6
 #: keep a parameter with a prior when data and prior together give it a standard deviation below this fraction of
 #: the prior's (module docstring)
 DEFAULT_PRIOR_RATIO = 1.0 / math.sqrt(2.0)
+#: after the fit, a parameter with a prior correlated beyond this with another is held (:func:`weak_after_fit`):
+#: a 0.999 correlation leaves the pair's difference direction with 1/sqrt(1 - 0.999^2) ~ 22 times the sigma either
+#: would have alone
+MAX_CORRELATION = 0.999
+#: the 0.999 quantile of chi-square with one degree of freedom: a held value farther than this (squared, in posterior
+#: sigmas) from the fit is one the data reject (:func:`weak_after_fit`)
+CHI2_1_999 = 10.828
 
 
 @dataclass
@@ -61,10 +79,22 @@ class Identifiability:
     tol: float = DEFAULT_TOL
     prior_ratio: float | None = None  # None: no priors given, the structural tolerance alone
     sigma_data: Tensor | None = None  # (P,) 1/|v_j|: the data's standard deviation of each direction [m or rad]
+    weak: list[dict] = field(default_factory=list)  # kept after the fit though correlated beyond MAX_CORRELATION
 
     @property
     def rank(self) -> int:
         return int(self.free.sum())
+
+    def hold(self, entries: list[dict]) -> None:
+        """Mark the parameters of ``fixed`` entries (:func:`weak_after_fit`) as held, with their reasons; entries
+        with ``held: False`` are kept in :attr:`weak` instead (one per parameter, the latest)."""
+        for e in [e for e in entries if e.get("held") is False]:
+            self.weak = [w for w in self.weak if w["name"] != e["name"]] + [e]
+        entries = [e for e in entries if e.get("held") is not False]
+        for e in entries:
+            self.free[self.names.index(e["name"])] = False
+            self.fixed.append(e)
+        self.groups = _merge(self.groups + [[e["name"], *e["depends_on"]] for e in entries if e["depends_on"]])
 
     def to_dict(self) -> dict:
         sv = self.singular_values
@@ -80,6 +110,7 @@ class Identifiability:
             "n_candidates": len(self.names),
             "rank": self.rank,
             "fixed": self.fixed,
+            "weak": self.weak,
             "dependent_groups": self.groups,
             "condition_number": None
             if sv is None or float(sv[self.rank - 1]) == 0
@@ -178,6 +209,113 @@ def analyse(
     return Identifiability(
         list(names), free, indep, fixed, groups, sv, tol, prior_ratio if prior_sigma is not None else None, sigma_data
     )
+
+
+def weak_after_fit(
+    names: list[str],
+    Q: Tensor,
+    prior_sigma: Tensor,
+    candidate: Tensor,
+    units: dict[str, str] | None = None,
+    prior_ratio: float = DEFAULT_PRIOR_RATIO,
+    max_correlation: float = MAX_CORRELATION,
+    x: Tensor | None = None,
+    sigma0_sq: float = 1.0,
+    compatible: float = CHI2_1_999,
+) -> list[dict]:
+    """Which parameters to hold at their prior value after a fit (module docstring, "After the fit").
+
+    Args:
+        names: the fitted parameters' names (a pair gives up the later one in :func:`preference_order`).
+        Q: ``(P, P)`` the fit's cofactor matrix (normal matrix inverse, priors included, variance factor 1).
+        prior_sigma: ``(P,)`` a-priori standard deviations (inf: none).
+        candidate: ``(P,)`` bool: the parameters this check may hold (those whose group's prior asks for it); a
+            pair with a candidate may also give up a non-candidate with a prior that comes later in the
+            preference order.
+        units: parameter name -> "m" or "rad", for the reasons' numbers.
+        x: ``(P,)`` the fitted values as departures from the priors' centres: with them a correlated parameter is
+            held only where its prior value is compatible with the fit, ``x_j^2 / (s0^2 Q_jj) <= compatible``
+            (``s0^2``: ``sigma0_sq``, at least 1); a parameter the data pin far from its prior's centre (a lever arm
+            fitted to 95 +- 4 mm along a tool axis that turned by 0.03 deg, correlated 0.9999999 with the
+            instrument's position) is determined despite the correlation, and holding it would bias the fit.
+
+    Returns:
+        ``fixed`` entries as :class:`Identifiability` writes them (``name``, ``reason``, ``depends_on``,
+        ``independence`` = 0): every candidate whose posterior deviation exceeds ``prior_ratio`` of its prior,
+        and of the pairs correlated beyond ``max_correlation`` only the most correlated one's later member (holding
+        one member decorrelates the others it was tied to; the caller refits and asks again). A correlated
+        parameter kept because the fit rejects its prior value comes as an entry with ``held: False`` (a warning
+        for the report, :attr:`Identifiability.weak`).
+    """
+    units = units or {}
+    P = len(names)
+    ps = torch.as_tensor(prior_sigma, dtype=Q.dtype, device=Q.device).reshape(P)
+    has = torch.isfinite(ps) & (ps > 0)
+    cand = torch.as_tensor(candidate, dtype=torch.bool, device=Q.device).reshape(P) & has
+    sd = Q.diagonal().clamp(min=0).sqrt()
+
+    def fmt(j: int, v: float) -> str:
+        return f"{v * 1e3:.3g} mm" if units.get(names[j]) == "m" else f"{v:.3g} rad"
+
+    out = []
+    for j in torch.nonzero(cand).flatten().tolist():
+        r = float(sd[j] / ps[j])
+        if r > prior_ratio:
+            out.append(
+                {
+                    "name": names[j],
+                    "reason": f"the fit determines it to {fmt(j, float(sd[j]))}, {r:.2f} of its prior "
+                    f"{fmt(j, float(ps[j]))} (above {prior_ratio:.2f}): the data hardly add to the prior; "
+                    "held at its prior value",
+                    "depends_on": [],
+                    "independence": 0.0,
+                }
+            )
+    if out:
+        return out
+    rho = Q / sd.clamp(min=1e-300)[:, None] / sd.clamp(min=1e-300)[None, :]
+    pair = (cand[:, None] | cand[None, :]) & has[:, None] & has[None, :]
+    pair &= torch.triu(torch.ones(P, P, dtype=torch.bool, device=Q.device), diagonal=1)
+    a = rho.abs().where(pair, torch.zeros_like(rho))
+    if P < 2 or float(a.max()) <= max_correlation:
+        return out
+    rank = {k: n for n, k in enumerate(preference_order(names))}
+    order = torch.argsort(a.flatten(), descending=True)
+    for flat in order.tolist():
+        i, j = divmod(flat, P)
+        if float(a[i, j]) <= max_correlation:
+            break
+        if rank[i] > rank[j]:  # the member later in the preference order is held
+            i, j = j, i
+        if x is not None:
+            s0 = sigma0_sq if math.isfinite(sigma0_sq) and sigma0_sq > 1.0 else 1.0
+            z2 = float(x[j]) ** 2 / (s0 * float(Q[j, j]))
+            if z2 > compatible:  # the data reject its prior value: determined after all, despite the correlation
+                sd_j = fmt(j, math.sqrt(s0 * float(Q[j, j])))
+                if not any(e["name"] == names[j] for e in out):
+                    out.append(
+                        {
+                            "name": names[j],
+                            "held": False,
+                            "reason": f"correlated {float(rho[i, j]):+.4f} with {names[i]} after the fit (beyond "
+                            f"{max_correlation}), but fitted {math.sqrt(z2):.1f} sigma ({sd_j}) "
+                            "from its prior value, which the data reject: kept; its value rests on that weak "
+                            "direction alone (a known value, e.g. --tool for the lever arm, removes the doubt)",
+                            "depends_on": [names[i]],
+                            "independence": 0.0,
+                        }
+                    )
+                continue
+        return out + [
+            {
+                "name": names[j],
+                "reason": f"correlated {float(rho[i, j]):+.4f} with {names[i]} after the fit (beyond "
+                f"{max_correlation}): the data do not tell them apart; held at its prior value",
+                "depends_on": [names[i]],
+                "independence": 0.0,
+            }
+        ]
+    return out
 
 
 def _merge(links: list[list[str]]) -> list[list[str]]:

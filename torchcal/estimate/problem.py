@@ -327,13 +327,23 @@ def jacobian_of(fun):
     return getattr(fun, "jacobian", None) or torch.func.jacfwd(fun)
 
 
-def prior_sigmas(free: FreeParameters, units: dict[str, str], sigma_length: float, sigma_angle: float) -> Tensor:
-    """Prior standard deviations per free element: geometry by unit, inf (no prior) elsewhere."""
+def prior_sigmas(
+    free: FreeParameters,
+    units: dict[str, str],
+    sigma_length: float | None,
+    sigma_angle: float | None,
+    by_name: dict[str, float] | None = None,
+) -> Tensor:
+    """Prior standard deviations per free element: ``by_name``'s where it names one (the instrument pose and
+    the lever arm), else by unit (``units``: geometry), inf (no prior) elsewhere."""
     out = torch.full((len(free),), float("inf"), dtype=torch.float64, device=free.vector().device)
+    by_name = by_name or {}
     for i, name in enumerate(free.names):
         unit = units.get(name)
-        if unit == "m":
+        if name in by_name:
+            out[i] = by_name[name]
+        elif unit == "m" and sigma_length is not None:
             out[i] = sigma_length
-        elif unit == "rad":
+        elif unit == "rad" and sigma_angle is not None:
             out[i] = sigma_angle
     return out

@@ -50,6 +50,7 @@ def fit_instrument_and_tool(
     iterations: int = 50,
     tol: float = 1e-12,
     robust: bool = False,
+    lever_prior: tuple[Tensor, float] | None = None,
 ) -> tuple[Tensor, Tensor, float]:
     """Tracker pose and lever arm for fixed geometry, by alternating closed-form steps.
 
@@ -65,6 +66,10 @@ def fit_instrument_and_tool(
         weights: ``(N,)`` non-negative row weights (default equal).
         robust: down-weight gross errors (:func:`robust_instrument_and_tool`); the RMS residual
             is then that of the rows kept with positive weight.
+        lever_prior: ``(centre (3,) [m], ratio)``: the lever arm's prior, ``t ~ N(centre, sigma_prior^2)`` with
+            ``ratio = sigma_noise^2 / sigma_prior^2`` (a unit row weight per ``sigma_noise``): the lever-arm step
+            becomes a MAP (ridge) step, so a lever arm the poses do not fix (a tool axis that hardly turns) stays
+            near its centre instead of wherever the round-off sends it. Not with ``robust``.
 
     Returns:
         ``T_tracker_base (4, 4)``, ``t_flange_probe (3,)`` and the final RMS residual [m].
@@ -85,6 +90,10 @@ def fit_instrument_and_tool(
         b = p_tracker - pf @ R.T
         AtA = (w[:, None, None] * A.transpose(1, 2) @ A).sum(0)
         Atb = (w[:, None, None] * A.transpose(1, 2) @ b.unsqueeze(-1)).sum(0)
+        if lever_prior is not None:
+            centre, ratio = lever_prior
+            AtA[3:, 3:] += float(ratio) * eye
+            Atb[3:, 0] += float(ratio) * centre.to(Atb)
         x = torch.linalg.solve(AtA, Atb).squeeze(-1)
         t = x[3:]
         r = (Rf @ t + pf) @ R.T + x[:3] - p_tracker

@@ -41,7 +41,7 @@ import torch
 
 from torchcal import _console
 from torchcal import stats as S
-from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_JOINT, MAX_SIGMA_TRACKER, check_range
+from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_JOINT, MAX_SIGMA_TRACKER, MAX_TOOL, check_range
 from torchcal._device import resolve_device
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
@@ -90,6 +90,11 @@ class Options:
     hidden: int = 29
     prior_length: float | None = 1e-3  # m: a-priori sigma of the geometric length corrections (None: no prior)
     prior_angle: float | None = math.radians(0.1)  # rad: likewise for angles
+    # the lever arm and the instrument pose (README, "Priors"): MAP where the data are weak, held where they add little
+    prior_tool: float | None = 0.5  # m: a-priori sigma of the lever arm about the flange centre (None: no prior)
+    prior_instrument: tuple[float, float] | None = (0.5, 0.1)  # m, rad: of the instrument pose about the start
+    tool: tuple[float, float, float] | None = None  # m: a known lever arm (flange frame), the prior's centre
+    tool_sigma: float = 1e-3  # m: the known lever arm's a-priori sigma
     stat_tol: float = 1e-2  # stop LM when a step gains less than 1 % of the variance factor
     net_method: str = "lm"
     net_iterations: int = 100
@@ -128,7 +133,28 @@ class Options:
                 f"refit applies to the kinematic method and the integrated method's auto engine, not to method "
                 f"'{self.method}'" + (f" with engine '{self.engine}'" if self.method == "integrated" else "")
             )
+        if self.tool is not None and (len(self.tool) != 3 or not self.tool_sigma > 0):
+            raise OptionError(
+                f"tool must be 3 numbers [m] with a positive tool_sigma, got {self.tool}, {self.tool_sigma}"
+            )
+        if self.tool is not None:  # a lever arm of metres is a unit mix-up (mm given as m), not a probe
+            for k, v in zip("xyz", self.tool):
+                check_range(f"tool {k}", v, -MAX_TOOL, MAX_TOOL, scale=1e3, unit="mm")
+            check_range("tool_sigma", self.tool_sigma, 0.0, MAX_TOOL, low_open=True, scale=1e3, unit="mm")
         self.device = str(resolve_device(self.device))  # an unknown or absent device raises here, before any work
+
+    @property
+    def prior_lever(self) -> float | None:
+        """The lever arm's a-priori sigma [m]: ``tool_sigma`` about a known ``tool``, else ``prior_tool``."""
+        return self.tool_sigma if self.tool is not None else self.prior_tool
+
+    def lever_prior(self, sigma_noise: float) -> tuple[Tensor, float] | None:
+        """The start's lever-arm prior (:func:`~torchcal.estimate.fit.place_instrument_and_tool`): centre ``tool``
+        (default the flange centre) [m] and ``sigma_noise^2 / sigma^2`` for a measurement noise ``sigma_noise`` [m]."""
+        if self.prior_lever is None:
+            return None
+        centre = torch.tensor(self.tool if self.tool is not None else (0.0, 0.0, 0.0), dtype=F64, device=self.device)
+        return centre, (sigma_noise / self.prior_lever) ** 2
 
     @property
     def refits(self) -> bool:
@@ -300,7 +326,8 @@ def calibrate(
 
     # 1. the baseline: nominal geometry, tracker pose and lever arm fitted (closed form, then LM)
     _console.info(f"{robot.name}: {train.n} training and {hold.n} held-out poses; fitting tracker pose and lever arm")
-    place_instrument_and_tool(robot, train.q, train.p)
+    noise = float(train.sigma.median()) if train.sigma is not None else opts.sigma_tracker
+    place_instrument_and_tool(robot, train.q, train.p, lever_prior=opts.lever_prior(noise))
     run.fits.append(solve(model, train, ("instrument", "tool"), opts, StageName.NOMINAL, trajectory, identify=False))
     run.add_stage(StageName.NOMINAL)
 

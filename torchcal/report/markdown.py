@@ -216,6 +216,9 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         ]
         for f in ida["fixed"]:
             lines.append(f"- `{f['name']}`: {f['reason']}")
+    if par["identifiability"] and par["identifiability"].get("weak"):
+        lines += ["", "### Weakly determined", ""]
+        lines += [f"- `{w['name']}`: {w['reason']}" for w in par["identifiability"]["weak"]]
     if par["largest_correlations"]:
         lines += ["", "### Largest correlations", ""]
         for c in par["largest_correlations"][:5]:

@@ -65,7 +65,7 @@ def _param_table(run: CalibrationRun) -> dict:
         if info.group == "geometry" and hasattr(grp, "values"):
             entry["value"] = float(grp.values.detach()[info.index])
             entry["nominal"] = float(grp.nominal[info.index])
-        if info.name in fit_by_name:
+        if info.name in fit_by_name and info.name not in ident_fixed:  # held after an earlier fit estimated it
             stage, s = fit_by_name[info.name]
             entry["std"] = s
             entry["stage"] = stage

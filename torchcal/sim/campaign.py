@@ -33,7 +33,7 @@ from torchcal.errors import OptionError
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
-from torchcal.sim.poses import PATHS, Scene, SightRule, path, random_poses
+from torchcal.sim.poses import PATHS, Scene, SightRule, fixed_axis_poses, path, random_poses
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -111,6 +111,8 @@ class SimConfig:
     sight: SightRule = field(default_factory=SightRule)
     base_link: str | None = None
     tip_link: str | None = None
+    tool_axis_deg: float | None = None  # static poses whose tool axis turns by at most this [deg] (None: free)
+    turned_min_deg: float = 30.0  # with tool_axis_deg: the turned poses' tool axis is at least this far off [deg]
 
     def __post_init__(self):
         if self.poses < 1 or self.test_poses < 0:
@@ -123,6 +125,8 @@ class SimConfig:
         check_range("sigma_joint_deg", self.sigma_joint_deg, 0.0, math.degrees(MAX_SIGMA_JOINT), unit="deg")
         check_range("sigma_length", self.sigma_length, 0.0, MAX_SIGMA_LENGTH, scale=1e3, unit="mm")
         check_range("sigma_angle_deg", self.sigma_angle_deg, 0.0, math.degrees(MAX_SIGMA_ANGLE), unit="deg")
+        if self.tool_axis_deg is not None and (self.trajectory or not self.tool_axis_deg > 0):
+            raise OptionError(f"tool_axis_deg needs static poses and a positive angle, got {self.tool_axis_deg}")
 
 
 @dataclass
@@ -131,7 +135,8 @@ class Campaign:
     test: Measurements
     truth: dict
     model: MeasurementModel  # the true measurement model (true geometry, instrument, lever arm, effects)
-    q_true: Tensor  # (N, dof) true joint angles of train + test
+    q_true: Tensor  # (N, dof) true joint angles of train + test (+ turned)
+    turned: Measurements | None = None  # with SimConfig.tool_axis_deg: poses with the tool turned away from its axis
 
 
 def _bias_geometry(robot: RobotModel, cfg: SimConfig, g: torch.Generator) -> None:
@@ -234,11 +239,17 @@ def _measured(
 
 
 def _poses_and_times(
-    cfg: SimConfig, nominal: RobotModel, tracker_in_base: Tensor, lever_nominal: Tensor, g: torch.Generator
+    cfg: SimConfig,
+    nominal: RobotModel,
+    tracker_in_base: Tensor,
+    lever_nominal: Tensor,
+    g: torch.Generator,
+    truth: RobotModel | None = None,
 ) -> tuple[Context, int]:
     """The true joints, times [s] and temperatures [degC] of every pose (training first), and the training count.
 
-    The poses are planned with the nominal model, as a robot program would be.
+    The poses are planned with the nominal model, as a robot program would be; a fixed tool axis
+    (``cfg.tool_axis_deg``) is that of the true robot ``truth``.
     """
     scene = Scene(nominal, tracker_in_base, lever_nominal, cfg.sight)
     if cfg.trajectory:
@@ -246,7 +257,14 @@ def _poses_and_times(
         n_train = cfg.train_samples
         t = torch.arange(len(q_true), dtype=F64) * cfg.sample_interval_s
     else:
-        q_true = random_poses(scene, cfg.poses + cfg.test_poses, g)
+        if cfg.tool_axis_deg is not None:
+            axis = tool_axis(tracker_in_base)
+            # the axis is the true robot's: a lifting column or a levelled tool mount holds it, not the program
+            true_scene = Scene(truth, tracker_in_base, lever_nominal, cfg.sight)
+            fixed = fixed_axis_poses(true_scene, cfg.poses + cfg.test_poses, g, axis, cfg.tool_axis_deg)
+            q_true = torch.cat([fixed, turned_poses(scene, cfg, tracker_in_base, g)])
+        else:
+            q_true = random_poses(scene, cfg.poses + cfg.test_poses, g)
         n_train = cfg.poses
         jitter = torch.rand(len(q_true), generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
         t = torch.arange(len(q_true), dtype=F64) * cfg.pose_interval_s + jitter
@@ -256,6 +274,31 @@ def _poses_and_times(
     )
     direction = motion_direction(q_true) if cfg.trajectory else None
     return Context(q=q_true, t=t, temperature=temperature, direction=direction), n_train
+
+
+def tool_axis(tracker_in_base: Tensor) -> Tensor:
+    """The tool axis of a fixed-axis campaign ``(3,)``: horizontal, from the robot's base towards the tracker (the
+    probe faces the instrument, as a prism on a lifting-column robot faces its total station)."""
+    a = tracker_in_base.clone()
+    a[2] = 0.0
+    return a / a.norm()
+
+
+def turned_poses(scene: Scene, cfg: SimConfig, tracker_in_base: Tensor, g: torch.Generator) -> Tensor:
+    """``cfg.test_poses`` random poses the tracker sees whose tool axis is at least ``cfg.turned_min_deg`` away from
+    the fixed-axis campaign's (:func:`tool_axis`): where a lever arm along the tool axis shows."""
+    a = tool_axis(tracker_in_base)
+    got, count = [], 0
+    for _ in range(200):
+        q = random_poses(scene, max(cfg.test_poses, 64), g)
+        with torch.no_grad():
+            cos = scene.robot(q)[:, :3, 2] @ a
+        keep = q[cos <= math.cos(math.radians(cfg.turned_min_deg))]
+        got.append(keep)
+        count += len(keep)
+        if count >= cfg.test_poses:
+            return torch.cat(got)[: cfg.test_poses]
+    raise RuntimeError(f"only {count} of {cfg.test_poses} turned poses satisfy the line-of-sight rule")
 
 
 def _effects(
@@ -305,7 +348,7 @@ def simulate(cfg: SimConfig) -> Campaign:
     joints = [(spec.kind, spec.joint) for spec in cfg.effects]
     nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
 
-    ctx, n_train = _poses_and_times(cfg, nominal, tracker_in_base, lever_nominal, g)
+    ctx, n_train = _poses_and_times(cfg, nominal, tracker_in_base, lever_nominal, g, truth_robot)
     q_true, t, temperature = ctx.q, ctx.t, ctx.temperature
     model, effect_truth = _effects(cfg, truth_robot, ctx, g)
 
@@ -313,7 +356,9 @@ def simulate(cfg: SimConfig) -> Campaign:
         p_true = model(ctx)
     sigma_q = math.radians(cfg.sigma_joint_deg)
     part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
-    train, test = part(slice(0, n_train), "train"), part(slice(n_train, None), "test")
+    n_test = n_train + cfg.test_poses if cfg.tool_axis_deg is not None else None
+    train, test = part(slice(0, n_train), "train"), part(slice(n_train, n_test), "test")
+    turned = part(slice(n_test, None), "turned") if n_test is not None else None
 
     geo = truth_robot.geometry
     truth = {
@@ -346,7 +391,24 @@ def simulate(cfg: SimConfig) -> Campaign:
             else "poses drawn independently; first `poses` train",
         },
     }
-    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true)
+    if turned is not None:
+        truth["files"]["turned"] = {"n": turned.n}
+        truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)
+    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _axis_spread(robot: RobotModel, q: Tensor, n_train: int, n_test: int, tracker_in_base: Tensor) -> dict:
+    """How far the true tool axis turns from the campaign's axis [deg]: in the training and test poses, and in the
+    turned poses."""
+    with torch.no_grad():
+        cos = (robot(q)[:, :3, 2] @ tool_axis(tracker_in_base)).clamp(-1.0, 1.0)
+    deg = torch.rad2deg(torch.acos(cos))
+    return {
+        "axis_in_base": tool_axis(tracker_in_base).tolist(),
+        "max_deg_train_test": float(deg[:n_test].max()),
+        "min_deg_turned": float(deg[n_test:].min()),
+        "median_deg_turned": float(deg[n_test:].median()),
+    }
 
 
 def _config_dict(cfg: SimConfig) -> dict:
@@ -356,12 +418,16 @@ def _config_dict(cfg: SimConfig) -> dict:
 
 
 def write_campaign(c: Campaign, out: str | os.PathLike) -> dict[str, Path]:
-    """Write ``train.csv``, ``test.csv`` and ``truth.json`` into ``out`` (created), all or nothing."""
+    """Write ``train.csv``, ``test.csv`` (and ``turned.csv`` of a fixed-axis campaign) and ``truth.json`` into
+    ``out`` (created), all or nothing."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = {"train": out / "train.csv", "test": out / "test.csv", "truth": out / "truth.json"}
     write_measurements(paths["train"], c.train)
     write_measurements(paths["test"], c.test)
+    if c.turned is not None:
+        paths["turned"] = out / "turned.csv"
+        write_measurements(paths["turned"], c.turned)
     fd, tmp = tempfile.mkstemp(dir=out, prefix=".truth.", suffix=".tmp")
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         json.dump(c.truth, f, indent=1)

@@ -294,3 +294,61 @@ def path(kind: str, scene: Scene, n_samples: int, generator: torch.Generator) ->
     if kind not in makers:
         raise OptionError(f"trajectory path '{kind}' is not one of {', '.join(PATHS)}")
     return makers[kind](scene, n_samples, generator)
+
+
+def fixed_axis_poses(
+    scene: Scene, n: int, generator: torch.Generator, axis: Tensor, spread_deg: float, max_tries: int = 50
+) -> Tensor:
+    """``n`` poses ``(n, dof)`` the tracker sees whose flange z axis (the tool axis) points along ``axis`` within
+    ``spread_deg``: a campaign whose tool hardly turns (a robot on a lifting column measured by a total station).
+
+    Each pose starts from uniform random joints and is pulled onto its target axis (``axis`` tilted by a uniform
+    angle in ``[0, spread_deg]`` about a random perpendicular direction) by Gauss-Newton steps on the joints
+    (minimum-norm steps: the other joints move as little as possible); poses that miss their target by more than
+    1e-9 rad or that the tracker does not see are drawn again.
+
+    Args:
+        axis: ``(3,)`` direction in the base frame (normalised here).
+        spread_deg: the largest angle between a pose's tool axis and ``axis`` [deg].
+    """
+    robot = scene.robot
+    a = torch.as_tensor(axis, dtype=robot.dtype)
+    a = a / a.norm()
+
+    eye = torch.eye(robot.dof, dtype=robot.dtype) * 1e-6
+
+    def jac(q: Tensor) -> Tensor:  # d z / d q (m, 3, dof) by central differences (no autograd through the chain)
+        zp = robot((q[:, None, :] + eye).reshape(-1, robot.dof))[:, :3, 2].reshape(len(q), robot.dof, 3)
+        zm = robot((q[:, None, :] - eye).reshape(-1, robot.dof))[:, :3, 2].reshape(len(q), robot.dof, 3)
+        return ((zp - zm) / 2e-6).transpose(1, 2)
+
+    got: list[Tensor] = []
+    count = 0
+    for _ in range(max_tries):
+        m = max(2 * n, 64)
+        q = sample_joints(robot, m, generator)
+        # targets: the axis tilted by at most spread_deg about a random direction perpendicular to it
+        u = torch.linalg.cross(a.expand(m, 3), torch.randn(m, 3, generator=generator, dtype=a.dtype))
+        u = u / u.norm(dim=-1, keepdim=True)
+        angle = torch.rand(m, generator=generator, dtype=a.dtype) * math.radians(spread_deg)
+        target = a * torch.cos(angle)[:, None] + torch.linalg.cross(u, a.expand(m, 3)) * torch.sin(angle)[:, None]
+        with torch.no_grad():
+            for _ in range(20):
+                r = robot(q)[:, :3, 2] - target
+                J = jac(q)  # (m, 3, dof)
+                # rank 2 (a unit vector turns in its tangent plane): the third singular value is difference noise, cut
+                dq = torch.linalg.lstsq(J, -r.unsqueeze(-1), rcond=1e-6, driver="gelsd").solution.squeeze(-1)
+                q = q + dq.clamp(-0.5, 0.5)
+            miss = (robot(q)[:, :3, 2] - target).norm(dim=-1)
+        lo, hi = robot.limits[:, 0], robot.limits[:, 1]
+        ok = (miss < 1e-9) & ((q >= lo) & (q <= hi)).all(dim=-1)
+        q = q[ok]
+        keep = q[scene.visible(q)]
+        got.append(keep)
+        count += len(keep)
+        if count >= n:
+            return torch.cat(got)[:n]
+    raise RuntimeError(
+        f"only {count} of {n} poses with a fixed tool axis satisfy the line-of-sight rule; move the tracker or "
+        "relax the rule"
+    )
