@@ -58,15 +58,25 @@ def run_script(name: str, *args: str, timeout: float = 300) -> tuple[dict, str]:
     return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
 
 
-def golden_campaign():
-    """The golden reports' simulated campaign (``tests/golden/golden.py``: 200 UR5 poses, a joint-2 compliance the
-    loop names and a smooth field the learned stage takes), simulated afresh."""
+def _golden():
     here = str(ROOT / "tests" / "golden")
     if here not in sys.path:
         sys.path.insert(0, here)
     import golden
 
-    return golden.campaign()
+    return golden
+
+
+def golden_campaign():
+    """The golden reports' simulated campaign (``tests/golden/golden.py``: 200 UR5 poses, a joint-2 compliance the
+    loop names and a smooth field the learned stage takes), simulated afresh."""
+    return _golden().campaign()
+
+
+def golden_auto_run():
+    """The golden report's ``auto`` run (seed 7) of :func:`golden_campaign`, fitted once per test process and
+    shared: do not change it (``copy.deepcopy`` first)."""
+    return _golden().golden_run("auto")
 
 
 # ------------------------------------------------------------------ hostile inputs (tests/cli/test_hostile*.py)

@@ -196,6 +196,9 @@ def test_candidate_variables_cover_joints_time_and_position():
     g = geometric_fit(c.train)
     names = {v.name for v in candidate_variables(g["run"].model, g["ctx"])}
     assert {"q1", "q6", "tau2", "flank3", "t", "temperature", "x", "y", "z"} <= names
+    # the UR5's joints 1 and 6 carry gravity torques of round-off size: the sign of such a torque is arithmetic
+    # noise (it changed with the BLAS kernels), so neither a torque nor a flank variable is offered for them
+    assert not {"tau1", "tau6", "flank1", "flank6"} & names
 
 
 # -------------------------------------------------------------------------------- the outside campaigns

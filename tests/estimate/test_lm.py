@@ -81,20 +81,40 @@ def test_a_fit_singular_from_the_start_stops_early_and_one_singular_only_at_its_
     assert torch.allclose(res.x, torch.tensor([0.5, 0.3], dtype=F64), atol=1e-6)
 
 
-def test_a_null_space_counts_as_singular_where_the_factorisation_succeeds_by_rounding():
-    from torchcal.estimate.lm import _jacobi, _singular
+def _unit_diagonal_with_eigenvalues(lam: list[float]) -> torch.Tensor:
+    """``Q diag(lam) Q^T`` for ``Q = H / sqrt(8)``, ``H`` the 8 x 8 Sylvester-Hadamard matrix: every entry is
+    ``sum_k +-lam_k / 8``, exact in float64 for dyadic ``lam`` (no rounding, so no dependence on the BLAS kernels),
+    and the diagonal is ``mean(lam)`` (1 here: a Jacobi-scaled normal matrix)."""
+    from fractions import Fraction
 
-    # two columns that are combinations of others: an exact null space of dimension 2, whose eigenvalues come out
-    # as +-1e-16; with this draw the plain Cholesky factorisation of the scaled normal matrix succeeds
-    g = torch.Generator().manual_seed(0)
-    A = torch.randn(50, 4, generator=g, dtype=F64)
-    A = torch.cat([A, (0.3 * A[:, 0] + 0.7 * A[:, 1]).unsqueeze(1), (A[:, 2] - 0.9 * A[:, 3]).unsqueeze(1)], 1)
-    N = A.T @ A
-    s = _jacobi(N)
-    Ns = N * s[:, None] * s[None, :]
-    assert int(torch.linalg.cholesky_ex(Ns)[1]) == 0
-    assert _singular(Ns)
-    assert not _singular(Ns[:4, :4])  # the independent columns alone
+    H = [[(-1) ** bin(i & j).count("1") for j in range(8)] for i in range(8)]
+    exact = [
+        [sum(Fraction(H[i][k] * H[j][k]) * Fraction(lam[k]) for k in range(8)) / 8 for j in range(8)] for i in range(8)
+    ]
+    Hs = torch.tensor(H, dtype=F64)
+    Ns = Hs @ torch.diag(torch.tensor(lam, dtype=F64)) @ Hs.T / 8
+    assert all(Fraction(float(Ns[i, j])) == exact[i][j] for i in range(8) for j in range(8))  # exact, not rounded
+    assert torch.equal(Ns.diagonal(), torch.ones(8, dtype=F64))
+    return Ns
+
+
+def test_a_null_space_counts_as_singular_where_the_factorisation_succeeds():
+    """:func:`_singular` judges the smallest eigenvalue against SINGULAR_EIGENVALUE = 1e-13, not by whether the plain
+    Cholesky factorisation happens to fail. Exact matrices with chosen eigenvalues keep every outcome clear of
+    rounding (the factorisation's rounding is about 1e-15 here): a fitted normal matrix with an exact null space has
+    rounding-size eigenvalues of either sign, and whether its factorisation failed changed with the BLAS kernels."""
+    from torchcal.estimate.lm import SINGULAR_EIGENVALUE, _singular
+
+    tiny = 2.0**-45  # 2.8e-14: positive, so the factorisation succeeds, yet below 1e-13
+    rest = [0.5, 1.5, 1.0, 1.0, 1.0, 2.0]
+    assert 10 * 1e-15 < tiny < SINGULAR_EIGENVALUE / 3
+    near = _unit_diagonal_with_eigenvalues([tiny, 1.0 - tiny] + rest)
+    assert int(torch.linalg.cholesky_ex(near)[1]) == 0
+    assert _singular(near)
+    # an exact null space of dimension 2 (the plain factorisation may fail or not: rounding decides), and a well
+    # conditioned matrix
+    assert _singular(_unit_diagonal_with_eigenvalues([0.0, 0.0, 1.0, 1.0, 1.0, 1.0, 2.0, 2.0]))
+    assert not _singular(_unit_diagonal_with_eigenvalues([2.0**-30, 1.0 - 2.0**-30] + rest))  # 9.3e-10: regular
 
 
 def test_non_finite_start_is_divergence():

@@ -9,6 +9,7 @@ results is intended, and say why in the commit.
 
 from __future__ import annotations
 
+import functools
 import json
 import sys
 from pathlib import Path
@@ -37,15 +38,24 @@ def campaign():
     return simulate(cfg)
 
 
-def golden_report(method: str) -> dict:
-    """The report of the golden run of ``method`` (one torch thread: reductions in a fixed order)."""
+@functools.cache
+def golden_run(method: str):
+    """The golden run of ``method`` (one torch thread: reductions in a fixed order), computed once per process:
+    the golden test and the pipeline tests of the auto run share it, so callers must not change it (copy first)."""
     from torchcal._threads import torch_threads
     from torchcal.pipeline import Options, calibrate
+
+    with torch_threads(1):
+        return calibrate(SIM["robot"], campaign().train, Options(method=method, seed=SIM["seed"], **CASES[method]))
+
+
+def golden_report(method: str) -> dict:
+    """The report of the golden run of ``method``."""
+    from torchcal._threads import torch_threads
     from torchcal.report import build_report
 
     with torch_threads(1):
-        run = calibrate(SIM["robot"], campaign().train, Options(method=method, seed=SIM["seed"], **CASES[method]))
-        return json.loads(json.dumps(build_report(run)))
+        return json.loads(json.dumps(build_report(golden_run(method))))
 
 
 def path(method: str) -> Path:

@@ -5,19 +5,16 @@ import copy
 
 import pytest
 import torch
-from _cli import golden_campaign
+from _cli import golden_auto_run
 
-from torchcal._threads import torch_threads
-from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.loop import guard_holdout
 from torchcal.report import build_report
 
 
 @pytest.fixture(scope="module")
 def auto_run():
-    """The golden campaign's auto run: geometric, compliance(joint 2), learned."""
-    with torch_threads(1):
-        return calibrate("ur5", golden_campaign().train, Options(seed=7))
+    """The golden campaign's auto run: geometric, compliance(joint 2), learned (shared with tests/test_golden.py)."""
+    return golden_auto_run()
 
 
 def _forced(run, worse: list[str]):

@@ -10,7 +10,8 @@ carry an effect:
   polynomial terms ``q, q^2`` (scale errors).
 * ``tau<j>``: joint j's gravity torque [N m], same varying coefficient, cubic B-spline basis.
 * ``flank<j>``: the gear flank joint j rests on (direction of motion along a trajectory, the sign of
-  its gravity torque for static poses), same varying coefficient, one step column.
+  its gravity torque for static poses; none where that torque is of round-off size), same varying
+  coefficient, one step column.
 * ``t``, ``temperature``, ``x``, ``y``, ``z`` (probe position in the base frame): an additive Cartesian
   smooth ``r_i ~ g(v_i) in R^3``, cubic B-splines per coordinate.
 * ``q<j>_t``: joint j's angle and time together, an error of the joint that changes over the campaign,
@@ -147,7 +148,10 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
             )
         if ctx.direction is not None:
             s, what = ctx.direction[:, j], "motion direction"
-        elif tau is not None:
+        elif tau is not None and _varies(tau[:, j]):
+            # a torque of round-off size (a wrist whose link masses sit on its axis) has a sign that is noise of
+            # the arithmetic, and which poses it splits changed with the BLAS kernels; the candidates skip its
+            # backlash for the same reason (:func:`torchcal.diagnose.candidates.candidates`)
             s, what = torch.sign(tau[:, j]), "sign of the gravity torque"
         else:
             s = None
