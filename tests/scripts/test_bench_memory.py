@@ -43,9 +43,10 @@ def test_stages_nest_and_carry_their_own_peak(campaign_dir):
         "command/simulate",
         "command/write campaign",
     } <= set(by)
-    # torch alone is ~200 MB: the import stage's peak is far above the interpreter's start
-    assert by["command/import torchcal"]["peak_mb"] > res["start_rss_mb"] + 50
-    assert "torch" in by["command/import torchcal"]["imports"]
+    # 'import torchcal' is light (its public names load torch on first use: a Ctrl-C at start-up is caught before);
+    # torch alone is ~200 MB, so the command's peak, where it is loaded, is far above the interpreter's start
+    assert by["command/import torchcal"]["peak_mb"] < res["start_rss_mb"] + 50
+    assert by["command"]["peak_mb"] > res["start_rss_mb"] + 50
     # an enclosing stage's peak is at least each child's, and the run's peak the largest of all
     assert by["command"]["peak_mb"] >= max(by["command/simulate"]["peak_mb"], by["command/write campaign"]["peak_mb"])
     assert res["peak_mb"] == max(s["peak_mb"] for s in res["stages"])
