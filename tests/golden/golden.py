@@ -2,8 +2,9 @@
 
 A small, fast, seeded run per method on a simulated UR5 campaign (200 poses, joint-2 compliance and a
 smooth field the nominal model lacks), reduced to the run's ``report.json`` (:func:`build_report`).
-``tests/test_golden.py`` compares a fresh run against the stored report key by key, so a refactoring
-that changes a number, a stage, an effect or a note shows up. Regenerate only when a change of the
+``tests/test_golden.py`` compares a fresh run against the stored report key by key (discrete results exactly,
+numbers to the tolerances its docstring justifies, which the BLAS kernels of another CPU stay well inside), so a
+refactoring that changes a number, a stage, an effect or a note shows up. Regenerate only when a change of the
 results is intended, and say why in the commit.
 """
 
