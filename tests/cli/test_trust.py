@@ -108,6 +108,13 @@ def test_a_damaged_covariance_is_refused_naming_the_file(kinematic_run, tmp_path
     torch.save(state, run / "covariance.pt")
     assert main(["predict", str(run), str(kinematic_run / "sim" / "test.csv"), "--out", str(tmp_path / "p.csv")]) == 2
     assert not (tmp_path / "p.csv").exists()
+    torch.save(_Payload(), run / "covariance.pt")  # a pickled object: never unpickled
+    with pytest.raises(Exception, match="covariance.pt holds more than tensors"):
+        load_covariance(run, model)
+
+
+class _Payload:
+    pass
 
 
 def test_parameter_covariance_state_round_trip():

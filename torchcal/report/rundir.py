@@ -352,6 +352,18 @@ def check_effect_configs(configs: list, robot, n_stored: int, run_dir: Path) -> 
         walk(c, f"effects[{i}]", None)
 
 
+def _load_torch_file(run_dir: Path, name: str):
+    """A run directory's tensor file ``name`` (read bounded, ``weights_only``: no pickled object runs), or the run
+    error that names it."""
+    raw = read_bounded(run_dir / name, name, lambda m: _run_error(run_dir, f"{name} {m}"))
+    try:
+        return torch.load(io.BytesIO(raw), weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError:
+        raise _run_error(run_dir, f"{name} holds more than tensors (a pickled object); refused to load it") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        raise _run_error(run_dir, f"{name} cannot be read (truncated or not a torch file: {e})") from None
+
+
 def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     """Rebuild the calibrated measurement model of a run directory.
 
@@ -386,14 +398,7 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     pt = run_dir / "model.pt"
     if not pt.exists():
         raise _run_error(run_dir, "model.pt is missing")
-    raw = read_bounded(pt, "model.pt", lambda m: _run_error(run_dir, f"model.pt {m}"))
-    try:
-        state = torch.load(io.BytesIO(raw), weights_only=True, map_location="cpu")
-    except pickle.UnpicklingError:
-        raise _run_error(run_dir, "model.pt holds more than tensors (a pickled object); refused to load it") from None
-    except (RuntimeError, EOFError, OSError, ValueError) as e:
-        raise _run_error(run_dir, f"model.pt cannot be read (truncated or not a torch file: {e})") from None
-    del raw
+    state = _load_torch_file(run_dir, "model.pt")
     if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
         raise _run_error(run_dir, "model.pt does not hold a state dict of tensors")
     # every size in model.json is rebuilt as tensors before the state is loaded into them: bound them first
@@ -422,13 +427,7 @@ def load_covariance(run_dir: str | os.PathLike, model: MeasurementModel) -> Para
     path = run_dir / "covariance.pt"
     if not path.exists():
         return None
-    raw = read_bounded(path, "covariance.pt", lambda m: _run_error(run_dir, f"covariance.pt {m}"))
-    try:
-        state = torch.load(io.BytesIO(raw), weights_only=True, map_location="cpu")
-    except pickle.UnpicklingError:
-        raise _run_error(run_dir, "covariance.pt holds more than tensors (a pickled object); refused") from None
-    except (RuntimeError, EOFError, OSError, ValueError) as e:
-        raise _run_error(run_dir, f"covariance.pt cannot be read (truncated or not a torch file: {e})") from None
+    state = _load_torch_file(run_dir, "covariance.pt")
     try:
         return ParameterCovariance.from_state(state, model)
     except ValueError as e:
