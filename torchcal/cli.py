@@ -740,7 +740,8 @@ def cmd_demo(args) -> int:
     print(f"{'final model on the separate test file':47s} {test_rmse * 1e3:12.4f}")
     named = [f"{e['kind']}" + (f" (joint {e['joint']})" if e["joint"] is not None else "") for e in run.effects_report]
     print(f"effects found: {', '.join(named) if named else 'none'}")
-    print(f"report: {run_dir / 'report.md'}")
+    # the path as the user gave --out (the run is written where it resolves to)
+    print(f"report: {Path(args.out) / 'run' / 'report.md'}")
     return 0
 
 
