@@ -28,7 +28,7 @@ MAX_JOINT_ERROR = 5e-3
 FADE_LENGTH = 0.2
 
 
-class _SupportedForm(Effect):
+class SupportedForm(Effect):
     """An open joint-angle form (a harmonic sum, a polynomial): a shape fitted to the range its joint covered,
     with no law that says how it continues. Beyond that range it fades to zero, i.e. to the geometry
     (:data:`FADE_LENGTH`), so that terms which the range did not determine cannot add up outside it.
@@ -191,7 +191,7 @@ class Backlash(Effect):
         return {"b_rad": float(self.b.detach()), "source": self.source}
 
 
-class Cyclic(_SupportedForm):
+class Cyclic(SupportedForm):
     """Cyclic transmission errors: ``dq_j = sum_k a_k sin(k q_j) + b_k cos(k q_j)``.
 
     Eccentric gears, encoders mounted off-centre and the flexspline's two-lobe wave
@@ -251,7 +251,7 @@ class Cyclic(_SupportedForm):
         }
 
 
-class Transmission(_SupportedForm):
+class Transmission(SupportedForm):
     """A joint-angle error polynomial in the joint's reading: ``dq_j = sum_{d=1..D} c_d q_j^d``.
 
     A transmission ratio that differs from the controller's value scales the angle
@@ -314,7 +314,7 @@ def joint_function_size(effect: Effect, robot, q: Tensor, reach: tuple[float, fl
     geometry carries), the largest ``|dq|`` on the poses ``q`` for a physical one (compliance, backlash), whose law
     says how it continues."""
     with torch.no_grad():
-        if isinstance(effect, _SupportedForm):
+        if isinstance(effect, SupportedForm):
             lo, hi = reach
             grid = torch.linspace(lo, hi, 4001, dtype=torch.float64, device=q.device)
             f = effect.function(grid)
@@ -346,7 +346,7 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return None
     qj = q[:, effect.j]
     seen = f"{float(qj.min()):.3f} to {float(qj.max()):.3f}"
-    if isinstance(effect, _SupportedForm):
+    if isinstance(effect, SupportedForm):
         terms = effect._terms(q, fade=False)
         peak = float(terms.sum(-1).abs().max())
         peak_terms = float(terms.abs().max(0).values.sum())
@@ -365,7 +365,7 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return None
     where = (
         f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} rad (fitted on {seen})"
-        if isinstance(effect, _SupportedForm)
+        if isinstance(effect, SupportedForm)
         else "on the fitting poses"
     )
     scaled = "" if bound == max_size else f" ({max_size * 1e3:.3g} mrad at a 1 m lever arm, scaled to this joint's)"

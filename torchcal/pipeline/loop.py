@@ -53,7 +53,7 @@ from torchcal.diagnose.tracing import (
     unexplained_entries,
 )
 from torchcal.effects import Context, MeasurementModel, joint_function_check
-from torchcal.effects.joint import _SupportedForm
+from torchcal.effects.joint import SupportedForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.records import EffectRecord, Rejection, StageName
@@ -203,7 +203,7 @@ def close_loop(
         v = _validate(
             s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand, opts.max_joint_error
         )
-        if v.passed and isinstance(v.trial.effects[-1], _SupportedForm):
+        if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
             _validate_edge(v, base, fit_on, fit_part, trajectory, alpha_val, edge_bases)
         if not v.passed:
             _reject(run, diag, v)

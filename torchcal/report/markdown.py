@@ -293,7 +293,7 @@ def plot_joint_function(run: CalibrationRun, effect, path: Path) -> None:
 
 def _region_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
     """Where the model holds: the calibrated region, what fades beyond it, each open form over its joint's range."""
-    from torchcal.effects.joint import FADE_LENGTH, _SupportedForm
+    from torchcal.effects.joint import FADE_LENGTH, SupportedForm
 
     reg = report.get("region")
     if not reg:
@@ -313,7 +313,7 @@ def _region_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
         lines.append(f"| q{j} | {a:.4g} | {b:.4g} |")
     lines.append("")
     for k, e in enumerate(run.model.effects):
-        if isinstance(e, _SupportedForm):
+        if isinstance(e, SupportedForm):
             name = f"joint_function_{k}_{e.kind}_{e.joint}.png"
             plot_joint_function(run, e, out / name)
             lines += [f"![{e.kind}:{e.joint} over its joint's range]({name})", ""]

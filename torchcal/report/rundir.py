@@ -234,12 +234,12 @@ def _region_report(model: MeasurementModel) -> dict | None:
     if model.region is None:
         return None
     r = model.region.cpu()
-    from torchcal.effects.joint import _SupportedForm
+    from torchcal.effects.joint import SupportedForm
 
     supports = {
         f"{e.kind}:{e.joint}": [float(v) for v in e.support]
         for e in model.effects
-        if isinstance(e, _SupportedForm) and e.support is not None
+        if isinstance(e, SupportedForm) and e.support is not None
     }
     return {
         "joint_min": r[0].tolist(),
