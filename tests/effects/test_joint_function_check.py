@@ -153,3 +153,25 @@ def test_the_support_survives_config_and_state_dict():
     assert twin.support.tolist() == [-0.5, 1.25] and twin.c.tolist() == eff.c.tolist()
     old = Transmission(3, degree=2)  # a run written before the fade: no support in its config or state dict
     assert "support" not in old.config() and "support" not in old.state_dict()
+
+
+# ------------------------------------------------------------------------------- a drift in time holds beyond its span
+
+
+def test_a_drift_in_time_holds_its_value_beyond_the_span_it_was_fitted_on():
+    from torchcal.effects import Context, Drift, effect_from_config
+
+    eff = Drift("t", "instrument", rates=[1e-7, 0, 0, 0, 0, 2e-9])
+    t = torch.linspace(0.0, 100.0, 11, dtype=F64)
+    q = torch.zeros(11, 6, dtype=F64)
+    free = eff(None, Context(q=q, t=t)).detach()
+    eff.set_span(t)
+    torch.testing.assert_close(eff(None, Context(q=q, t=t)), free, rtol=0, atol=0)  # unchanged on its span
+    later = eff(None, Context(q=q[:2], t=torch.tensor([150.0, 1e6], dtype=F64))).detach()
+    torch.testing.assert_close(later, free[-1:].expand(2, 6))  # held at its end value, however far on
+    twin = effect_from_config({"class": "Drift", **eff.config()})
+    twin.load_state_dict(eff.state_dict())
+    assert twin.span.tolist() == [0.0, 100.0]
+    warm = Drift("temperature", "scale", rates=[1e-5])
+    warm.set_span(t)  # thermal expansion has a law: no span
+    assert warm.span is None and "span" not in warm.config()

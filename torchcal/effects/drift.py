@@ -45,6 +45,8 @@ class Drift(Effect):
         reference: value of the variable where the drift is zero.
         form: "linear" or "exponential".
         tau: initial time constant of the exponential form (unit of the variable, > 0).
+        span: ``(lo, hi)`` of the time the drift was fitted on [s] (a drift in ``t`` only): beyond it the drift holds
+            its value at the nearer end. None: it continues as fitted.
     """
 
     kind = "drift"
@@ -60,6 +62,7 @@ class Drift(Effect):
         reference: float = 0.0,
         form: str = "linear",
         tau: float = 1800.0,
+        span=None,
     ):
         super().__init__(joint=None)
         if variable not in self.VARIABLES:
@@ -80,12 +83,29 @@ class Drift(Effect):
         r = torch.zeros(n, dtype=torch.float64) if rates is None else torch.as_tensor(rates, dtype=torch.float64)
         self.rates = nn.Parameter(r.reshape(n).clone())
         self.register_buffer("reference", torch.tensor(float(reference), dtype=torch.float64))
+        if span is not None:
+            lo, hi = (float(v) for v in span)
+            if not lo <= hi:
+                raise OptionError(f"drift span must be (lo, hi) with lo <= hi, got {list(span)}")
+            self.register_buffer("span", torch.tensor([lo, hi], dtype=torch.float64))
+        else:  # a None buffer is not in the state dict: runs written before the span existed load as they were
+            self.register_buffer("span", None)
+
+    def set_span(self, t: Tensor) -> None:
+        """Record the time span ``t`` ``(N,)`` the drift is fitted on (a drift in temperature keeps its law)."""
+        if self.variable == "t":
+            self.span = torch.stack([t.detach().min(), t.detach().max()]).to(torch.float64)
 
     def regressor(self, robot, ctx: Context) -> Tensor:
-        """``dv (N,)``: the drift variable relative to its reference."""
+        """``dv (N,)``: the drift variable relative to its reference; a drift in time held at its value at the ends of
+        the span it was fitted on (``span``): a linear drift is the first term of a set-up that settles, and
+        continued beyond the campaign it grows without a law (on an outside-style trajectory a drift kept on the
+        held-out samples doubled the continuation's error). Thermal expansion in temperature extends."""
         v = ctx.t if self.variable == "t" else ctx.temperature
         if v is None:
             raise EstimationError(f"drift with '{self.variable}' needs a '{self.variable}' column in the data")
+        if self.span is not None:
+            v = torch.minimum(torch.maximum(v, self.span[0]), self.span[1])
         return v - self.reference
 
     def time_course(self, dv: Tensor) -> Tensor:
@@ -119,6 +139,8 @@ class Drift(Effect):
         cfg = {"variable": self.variable, "target": self.target}
         if self.form != "linear":  # the linear default keeps the older config unchanged
             cfg["form"] = self.form
+        if self.span is not None:
+            cfg["span"] = [float(v) for v in self.span]
         return cfg
 
     def label(self) -> str:

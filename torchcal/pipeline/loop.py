@@ -53,6 +53,7 @@ from torchcal.diagnose.tracing import (
     unexplained_entries,
 )
 from torchcal.effects import Context, MeasurementModel, joint_function_check
+from torchcal.effects.drift import Drift
 from torchcal.effects.joint import SupportedForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
@@ -329,7 +330,7 @@ def _validate(
         f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k:.3g}, log10 p {s.log10_p:.1f}); validating"
     )
     trial = copy.deepcopy(base)
-    trial.add(_made(cand, fit_part.q))
+    trial.add(_made(cand, fit_part))
     try:
         res = fit_on(trial, fit_part, f"validation {cand.name}").result
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
@@ -409,7 +410,7 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
     # the form as it continues (its support the whole range of the fitting poses, no fade at the edge poses): the
     # question is whether its shape holds there, and a form faded beyond the middle would lose to geometry that
     # absorbed part of it in any case
-    trial.add(_made(v.candidate, fit_part.q))
+    trial.add(_made(v.candidate, fit_part))
     try:
         fit_on(trial, middle, f"edge validation {v.candidate.name}")
     except EstimationError as err:
@@ -436,11 +437,14 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         )
 
 
-def _made(cand, q: Tensor):
-    """The candidate's effect, an open form knowing the range its joint covers in ``q`` (beyond it, it fades)."""
+def _made(cand, data: Measurements):
+    """The candidate's effect, knowing where ``data`` put it: an open form the range its joint covers (beyond it, it
+    fades), a drift in time the span of the samples (beyond it, it holds)."""
     eff = cand.make()
-    if hasattr(eff, "set_support"):
-        eff.set_support(q)
+    if isinstance(eff, SupportedForm):
+        eff.set_support(data.q)
+    if isinstance(eff, Drift) and getattr(data, "t", None) is not None:
+        eff.set_span(data.t)
     return eff
 
 
@@ -501,7 +505,7 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     """
     model, s, cand = run.model, v.score, v.candidate
     before = copy.deepcopy(model)
-    eff = _made(cand, train.q)
+    eff = _made(cand, train)
     model.add(eff)
     label = eff.label()
     # warm start: the validation refit has fitted the same model on 80 % of these poses; from there the refit on all
