@@ -241,12 +241,15 @@ def _region_report(model: MeasurementModel) -> dict | None:
         for e in model.effects
         if isinstance(e, SupportedForm) and e.support is not None
     }
+    spans = [[float(v) for v in e.span] for e in model.effects if e.kind == "drift" and e.span is not None]
     return {
         "joint_min": r[0].tolist(),
         "joint_max": r[1].tolist(),
         "learned_fade": bool(model.region_fade),
         "fade_length": FADE_LENGTH,
         "open_forms": supports,
+        # a drift in time holds its value beyond the span it was fitted on [s]
+        "drift_time_span": spans[0] if spans else None,
     }
 
 
