@@ -46,10 +46,16 @@ def _true_form(truth: dict, t0: float) -> list:
     return out
 
 
+_RUNS: dict = {}
+
+
 def _calibrate(effects: list[OutsideEffect], seed: int, poses: int = 800):
-    c = simulate_outside(effects, SimConfig(poses=poses, test_poses=200, seed=seed))
-    run = calibrate("ur5", c.train, Options(seed=1))
-    return c, run
+    """Simulate and calibrate, once per process for the same campaign (the tests only read the run)."""
+    key = (repr(effects), seed, poses)
+    if key not in _RUNS:
+        c = simulate_outside(effects, SimConfig(poses=poses, test_poses=200, seed=seed))
+        _RUNS[key] = (c, calibrate("ur5", c.train, Options(seed=1)))
+    return _RUNS[key]
 
 
 def _ratio_to_true_form(c, run) -> float:
