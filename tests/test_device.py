@@ -458,7 +458,7 @@ ALLOWED = {
         "CPU generator (the same weights on every device), copied into the layer"
     ),
     ("torchcal/effects/gp.py", "torch.full((d,), 0.4 / d, dtype=F64)"): "_initial: numbers only, moved by the caller",
-    ("torchcal/effects/joint.py", "torch.tensor([lo, hi], dtype=torch.float64)"): (
+    ("torchcal/effects/base.py", "torch.tensor([lo, hi], dtype=torch.float64)"): (
         "a constructor's numbers: effects are built on CPU and moved with the model (MeasurementModel.add)"
     ),
     ("torchcal/effects/gp.py", "torch.full((d,), 0.5 if periodic else 0.5, dtype=F64)"): "_initial, as above",

@@ -8,7 +8,7 @@ import torch
 from torch import nn
 
 from torchcal import _dual
-from torchcal.effects.base import Context, Effect
+from torchcal.effects.base import Context, Effect, register_range
 from torchcal.errors import EstimationError, OptionError
 
 Tensor = torch.Tensor
@@ -83,13 +83,7 @@ class Drift(Effect):
         r = torch.zeros(n, dtype=torch.float64) if rates is None else torch.as_tensor(rates, dtype=torch.float64)
         self.rates = nn.Parameter(r.reshape(n).clone())
         self.register_buffer("reference", torch.tensor(float(reference), dtype=torch.float64))
-        if span is not None:
-            lo, hi = (float(v) for v in span)
-            if not lo <= hi:
-                raise OptionError(f"drift span must be (lo, hi) with lo <= hi, got {list(span)}")
-            self.register_buffer("span", torch.tensor([lo, hi], dtype=torch.float64))
-        else:  # a None buffer is not in the state dict: runs written before the span existed load as they were
-            self.register_buffer("span", None)
+        register_range(self, "span", span, "drift span")
 
     def set_span(self, t: Tensor) -> None:
         """Record the time span ``t`` ``(N,)`` the drift is fitted on (a drift in temperature keeps its law)."""

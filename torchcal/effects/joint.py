@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from torchcal import _dual
-from torchcal.effects.base import Context, Effect
+from torchcal.effects.base import Context, Effect, register_range
 
 Tensor = torch.Tensor
 
@@ -38,15 +38,7 @@ class SupportedForm(Effect):
     """
 
     def _init_support(self, support) -> None:
-        if support is not None:
-            lo, hi = (float(v) for v in support)
-            if not lo <= hi:
-                from torchcal.errors import OptionError
-
-                raise OptionError(f"{self.kind} support must be (lo, hi) with lo <= hi, got {list(support)}")
-            self.register_buffer("support", torch.tensor([lo, hi], dtype=torch.float64))
-        else:  # a None buffer is not in the state dict: runs written before the fade existed load as they were
-            self.register_buffer("support", None)
+        register_range(self, "support", support, f"{self.kind} support")
 
     def set_support(self, q: Tensor) -> None:
         """Record the range of this effect's joint in ``q`` ``(N, dof)`` as the fitted range."""
