@@ -25,8 +25,10 @@ lint: $(STAMP)
 	$(BIN)/ruff check torchcal tests scripts setup.py
 	$(BIN)/ruff format --check torchcal tests scripts setup.py
 
+# two workers: the suite is hundreds of small single-threaded fits, and a second process uses the second core
+# (about 240 s instead of 330-360 s on a 2-core 2.6 GHz Xeon); every test is independent of the others' process
 test: $(STAMP) lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2
 
 clean:
 	rm -rf runs build *.egg-info .pytest_cache
