@@ -506,8 +506,8 @@ def cmd_predict(args) -> int:
 
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
-    from torchcal.report import load_model, predict
-    from torchcal.report.rundir import trust
+    from torchcal.report import load_model
+    from torchcal.report.rundir import predict_with, trust
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -523,23 +523,24 @@ def cmd_predict(args) -> int:
         robot_name=robot.name,
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
-    p = predict(args.run, data, device=device)
+    # how far to trust each row (on the CPU, before the model moves to --device): the predicted standard deviation
+    # (the parameters' covariance and the learned model's posterior) and how far the pose lies outside the
+    # calibrated region
+    trajectory = bool(meta.get("trajectory")) and data.t is not None
+    sigma, ext = trust(args.run, model, Context.from_measurements(data, trajectory=trajectory))
+    p = predict_with(model, meta, data, device=device)
     if not bool(torch.isfinite(p).all()):
         raise OptionError(
             f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
             "the run directory is damaged or the fit diverged"
         )
-    # how far to trust each row: the predicted standard deviation (the parameters' covariance and the learned
-    # model's posterior) and how far the pose lies outside the calibrated region
-    trajectory = bool(meta.get("trajectory")) and data.t is not None
-    sigma, ext = trust(args.run, model, meta, data.q, Context.from_measurements(data, trajectory=trajectory))
     if sigma is None:
         _console.info(f"{args.run}: the run has no parameter covariance or predictive model; no sx, sy, sz columns")
     out = replace(
         data, p=p, sigma=sigma, temperature=None, extra={"extrapolation": ext}, meta={"predicted_by": str(args.run)}
     )
-    learned = any(e.kind == "learned" for e in model.effects)
-    warn_outside(args.data, data.lines, ext, "the learned corrections fade to the geometry there" if learned else "")
+    fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
+    warn_outside(args.data, data.lines, ext, fade)
     out_file.parent.mkdir(parents=True, exist_ok=True)
     write_measurements(out_file, out, written_by="torchcal predict")
     _console.info(f"wrote {len(p)} predictions to {args.out}")
@@ -573,10 +574,10 @@ def cmd_compensate(args) -> int:
     targets = data.p if data.p is not None else program_targets(model, data.q)
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
-    res, ext, plain = compensate_in_region(model, targets, q_start, context=context)
+    res, ext, _ = compensate_in_region(model, targets, q_start, context=context)
     # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
     ctx = Context(q=res.q, t=data.t, temperature=data.temperature)
-    sigma, _ = trust(args.run, model, meta, res.q, ctx)
+    sigma, _ = trust(args.run, model, ctx)
     extra = dict(data.extra)
     if sigma is not None:
         extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
@@ -591,13 +592,8 @@ def cmd_compensate(args) -> int:
         meta={"compensated_by": str(args.run)},
         written_by="torchcal compensate",
     )
-    learned = any(e.kind == "learned" for e in model.effects)
-    warn_outside(
-        args.targets,
-        data.lines,
-        ext,
-        "commanded by the geometry and physical effects alone" if learned else "",
-    )
+    alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
+    warn_outside(args.targets, data.lines, ext, alone)
     bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
     for i in bad:
         print(

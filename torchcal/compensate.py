@@ -394,7 +394,7 @@ def compensate_in_region(
     res = compensate(model, targets, q_seed, context=context, **kw)
     ext = model.extrapolation(res.q)
     plain_rows = torch.zeros(len(ext), dtype=torch.bool, device=ext.device)
-    if not bool((ext > 0).any()) or not any(e.kind == "learned" for e in model.effects):
+    if not bool((ext > 0).any()) or not model.has_learned:
         return res, ext, plain_rows
     rows = torch.nonzero(ext > 0)[:, 0]
     n = len(ext)

@@ -85,10 +85,10 @@ def test_a_step_back_writes_its_run_directory(auto_run, worse, tmp_path):
 
 
 def test_a_final_model_that_wins_in_the_middle_and_loses_at_the_edges_steps_back(auto_run):
-    from torchcal.pipeline.loop import _holdout_edge
+    from torchcal.pipeline.loop import _at_edges
 
     run = copy.deepcopy(auto_run)
-    edge = _holdout_edge(run.train.q, run.data.q[run.holdout_idx])
+    edge = _at_edges(run.train.q, run.data.q[run.holdout_idx])
     assert int(edge.sum()) >= 10  # held-out poses at the edges of the training poses' joint ranges
     geo = run.stage("geometric")
     learned = run.stage("learned")

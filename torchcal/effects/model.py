@@ -58,6 +58,11 @@ class MeasurementModel(nn.Module):
         lo, hi = self.region[0], self.region[1]
         return torch.maximum(lo - q, q - hi).clamp(min=0).amax(dim=1) if q.shape[1] else q.new_zeros(len(q))
 
+    @property
+    def has_learned(self) -> bool:
+        """Whether the model holds a learned correction (an effect of kind ``learned``)."""
+        return any(e.kind == "learned" for e in self.effects)
+
     def region_weight(self, q: Tensor) -> Tensor | None:
         """The fade of the learned corrections at ``q`` ``(N, 1)``, or None where they do not fade (see
         :meth:`set_region`)."""

@@ -198,7 +198,9 @@ def close_loop(
     accepted_names: set[str] = set()
     open_notes: dict[str, str] = {}  # variable -> why no open effect came from it (for ``unexplained``)
 
-    edge_bases: dict[tuple[int, int], tuple[MeasurementModel, Tensor] | None] = {}  # (id(base), joint) -> refit
+    # joint -> the current base refitted without that joint's edge poses: its errors there (None: the refit failed);
+    # emptied when a new effect makes a new base
+    edge_bases: dict[int, Tensor | None] = {}
 
     def validate(rnd: int, cand, s) -> _Validation:
         v = _validate(
@@ -283,6 +285,7 @@ def close_loop(
                 (tried_open if isinstance(v.candidate, OpenCandidate) else tried).discard(v.candidate.name)
         accepted_names.add(accepted.candidate.name)
         base, e_base = accepted.trial, accepted.errors
+        edge_bases.clear()
     else:
         diag.stop = f"reached the limit of {max_effects} effects"
         for loc in localise_fit(model, ctx, train.p, run.fits[-1])[0] if open_forms else []:
@@ -376,9 +379,8 @@ EDGE_SHARE = 0.1
 def _edge_split(q: Tensor, joint: int, share: float = EDGE_SHARE) -> tuple[Tensor, Tensor]:
     """The fitting poses' indices in the middle of joint ``joint``'s (1-based) range and at its two edges (the
     outer ``share`` of the poses on each side)."""
-    qj = q[:, joint - 1]
-    lo, hi = torch.quantile(qj, share), torch.quantile(qj, 1.0 - share)
-    edge = (qj < lo) | (qj > hi)
+    qj = q[:, joint - 1 : joint]
+    edge = _at_edges(qj, qj, share)
     return torch.nonzero(~edge)[:, 0], torch.nonzero(edge)[:, 0]
 
 
@@ -394,18 +396,18 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         v.validation["edge"] = {"skipped": f"too few poses at the edges of joint {eff.joint} ({len(edge)})"}
         return
     middle, outer = fit_part.subset(mid), fit_part.subset(edge)
-    key = (id(base), eff.joint)
+    key = eff.joint
     if key not in cache:
         ref = copy.deepcopy(base)
         try:
             fit_on(ref, middle, "edge validation baseline")
-            cache[key] = (ref, errors(ref, outer, trajectory))
+            cache[key] = errors(ref, outer, trajectory)
         except EstimationError:
             cache[key] = None
-    if cache[key] is None:
+    e_ref = cache[key]
+    if e_ref is None:
         v.validation["edge"] = {"skipped": "the baseline's refit without the edge poses failed"}
         return
-    e_ref = cache[key][1]
     trial = copy.deepcopy(base)
     # the form as it continues (its support the whole range of the fitting poses, no fade at the edge poses): the
     # question is whether its shape holds there, and a form faded beyond the middle would lose to geometry that
@@ -572,9 +574,9 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
 HOLDOUT_EDGE = 0.025
 
 
-def _holdout_edge(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
-    """Which held-out poses ``(M,)`` lie at the edges of the training poses' joint ranges: some joint below its
-    ``share`` quantile or above its ``1 - share`` quantile in the training poses (or beyond their range)."""
+def _at_edges(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
+    """Which poses ``q_hold`` ``(M,)`` lie at the edges of the poses ``q_train``'s joint ranges: some joint below its
+    ``share`` quantile or above its ``1 - share`` quantile in ``q_train`` (or beyond their range)."""
     if len(q_hold) == 0 or len(q_train) == 0:
         return torch.zeros(len(q_hold), dtype=torch.bool, device=q_hold.device)
     lo = torch.quantile(q_train, share, dim=0)
@@ -603,7 +605,7 @@ def guard_holdout(run: CalibrationRun, train: Measurements, trajectory: bool) ->
         return None
     i_geo = run.stages.index(geo)
     # the held-out poses at the edges of the training poses' joint ranges: a stage must not lose there either
-    edge = _holdout_edge(train.q, run.data.q[run.holdout_idx])
+    edge = _at_edges(train.q, run.data.q[run.holdout_idx])
     alpha_val = run.options.alpha_validation
 
     def edge_worse(st) -> bool:

@@ -42,6 +42,7 @@ from torchcal.robot.load import MAX_DESCRIPTION_BYTES
 from torchcal.stats import rmse
 
 F64 = torch.float64
+Tensor = torch.Tensor
 
 
 def _param_table(run: CalibrationRun) -> dict:
@@ -227,15 +228,13 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
 
 
 def _region_report(model: MeasurementModel) -> dict | None:
-    """report.json's ``region``: the calibrated range of each joint, whether the learned corrections fade beyond it,
-    and the fitted range of each open joint form (by the effect's index in the model)."""
-    from torchcal.effects.joint import FADE_LENGTH
+    """report.json's ``region``: model.json's (:func:`_region_config`), the fade length, the fitted range of each
+    open joint form (by ``kind:joint``) and the time span a drift in time holds beyond."""
+    from torchcal.effects.joint import FADE_LENGTH, SupportedForm
 
-    if model.region is None:
+    cfg = _region_config(model)
+    if cfg is None:
         return None
-    r = model.region.cpu()
-    from torchcal.effects.joint import SupportedForm
-
     supports = {
         f"{e.kind}:{e.joint}": [float(v) for v in e.support]
         for e in model.effects
@@ -243,12 +242,12 @@ def _region_report(model: MeasurementModel) -> dict | None:
     }
     spans = [[float(v) for v in e.span] for e in model.effects if e.kind == "drift" and e.span is not None]
     return {
-        "joint_min": r[0].tolist(),
-        "joint_max": r[1].tolist(),
-        "learned_fade": bool(model.region_fade),
+        "joint_min": cfg["joint_min"],
+        "joint_max": cfg["joint_max"],
+        "learned_fade": cfg["fade"],
         "fade_length": FADE_LENGTH,
         "open_forms": supports,
-        # a drift in time holds its value beyond the span it was fitted on [s]
+        # a drift in time holds its value beyond the span it was fitted on [s] (every drift in t is fitted on one)
         "drift_time_span": spans[0] if spans else None,
     }
 
@@ -437,22 +436,16 @@ def load_covariance(run_dir: str | os.PathLike, model: MeasurementModel) -> Para
         raise _run_error(run_dir, f"covariance.pt does not fit model.pt: it {e}") from None
 
 
-def trust(
-    run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, q: torch.Tensor, context: Context | None = None
-):
-    """How far to trust the run's predictions at the joints ``q`` ``(N, dof)``: the predicted standard deviation
-    ``(N, 3)`` [m] (the parameter covariance of the run's last fit carried to each pose, and the learned model's
-    posterior where it has one; None when the run has neither) and the extrapolation ``(N,)`` (how far each pose
-    lies outside the calibrated region, in the joints' units: :meth:`~torchcal.effects.MeasurementModel.extrapolation`).
-    ``context``: the rows' time and temperature (default: none)."""
-    from dataclasses import replace
-
+def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:
+    """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx``: the predicted standard
+    deviation ``(N, 3)`` [m] (the parameter covariance of the run's last fit carried to each pose, and the learned
+    model's posterior where it has one; None when the run has neither) and the extrapolation ``(N,)`` (how far each
+    pose lies outside the calibrated region, in the joints' units:
+    :meth:`~torchcal.effects.MeasurementModel.extrapolation`)."""
     from torchcal.estimate.covariance import combined_std
 
-    cov = load_covariance(run_dir, model)
-    ctx = Context(q=q) if context is None else replace(context, q=q)
-    sigma = combined_std(model, ctx, cov)
-    return (None if sigma is None else sigma.cpu()), model.extrapolation(q).cpu()
+    sigma = combined_std(model, ctx, load_covariance(run_dir, model))
+    return (None if sigma is None else sigma.cpu()), model.extrapolation(ctx.q).cpu()
 
 
 def _check_state(run_dir: Path, model: MeasurementModel) -> None:
@@ -486,6 +479,13 @@ def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device
     """Predicted probe positions in the tracker frame ``(N, 3)`` [m] with everything the run learned, computed
     on ``device`` and returned on the CPU."""
     model, meta = load_model(run_dir)
+    return predict_with(model, meta, data, device)
+
+
+def predict_with(
+    model: MeasurementModel, meta: dict, data: Measurements, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """:func:`predict` with a model already loaded (:func:`load_model`); the model is moved to ``device``."""
     model, data = model.to(device), data.to(device)
     if data.dof != model.robot.dof:
         raise OptionError(f"data have {data.dof} joints but the run's robot '{model.robot.name}' has {model.robot.dof}")
