@@ -163,13 +163,13 @@ def test_a_refit_worse_than_geometry_on_the_held_out_samples_is_undone(trajector
     import torchcal.pipeline.integrated as integrated
 
     data, _ = trajectory
-    guarded, real_guard = {}, integrated._holdout_guard
+    guarded, real_guard = {}, integrated.guard_against_geometry
 
     def failing_guard(model, geometric, hold):
         guarded.update(real_guard(model, geometric, hold), passed=False)
         return dict(guarded)
 
-    monkeypatch.setattr(integrated, "_holdout_guard", failing_guard)
+    monkeypatch.setattr(integrated, "guard_against_geometry", failing_guard)
     monkeypatch.setitem(integrated.integrate_selected.__kwdefaults__, "settings", integrated.SETTINGS[:1])
     run = calibrate("ur5", data, Options(method="integrated", seed=0))
     st = {s.name: s.rmse for s in run.stages}

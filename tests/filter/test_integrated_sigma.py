@@ -27,6 +27,7 @@ from torchcal.effects.support import (
 from torchcal.filter.adaptive import random_features
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline import integrated as I
+from torchcal.pipeline.state import StageWork
 from torchcal.robot import load_robot
 from torchcal.sim import SimConfig, simulate
 
@@ -308,10 +309,11 @@ def test_geometry_alone_is_kept_when_no_candidate_beats_it_in_every_piece(monkey
         trial.model.add(_Offset(val.q, (w - 1.0) * e))
 
     monkeypatch.setattr(I, "_run_setting", stub)
-    assert I.integrate_selected(run, run.train, run.hold, settings=(I.Setting("adaptive"),)) is None
-    assert not run.effects
-    (rej,) = run.rejections
-    assert "any one of its pieces left out" in rej.reason and "geometry alone kept" in run.notes[-1]
+    work = StageWork(run, "integrated")
+    assert I.integrate_selected(work, run.train, run.hold, settings=(I.Setting("adaptive"),)) is None
+    assert not work.effects
+    (rej,) = work.rejections
+    assert "any one of its pieces left out" in rej.reason and "geometry alone kept" in work.notes[-1]
     row = rej.evidence["selection"]["candidates"][1]
     assert row["validation_rmse_mm"] < rej.evidence["selection"]["candidates"][0]["validation_rmse_mm"]
     assert max(row["leave_one_piece_out_ratios"]) >= 1.0

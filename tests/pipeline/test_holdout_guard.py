@@ -1,13 +1,13 @@
-"""The ``auto`` method's held-out guard (:func:`torchcal.pipeline.loop.guard_holdout`): never worse than the
+"""The ``auto`` method's held-out guard (:func:`torchcal.pipeline.holdout.guard_stages`): never worse than the
 kinematic calibration on the held-out poses; it steps back to the last stage below it, or to the geometry."""
 
-import copy
+import dataclasses
 
 import pytest
 import torch
 from _cli import golden_auto_run
 
-from torchcal.pipeline.loop import guard_holdout
+from torchcal.pipeline.holdout import at_edges, guard_stages
 from torchcal.report import build_report
 
 
@@ -18,14 +18,24 @@ def auto_run():
 
 
 def _forced(run, worse: list[str]):
-    """A copy of ``run`` whose stages named in ``worse`` err 1.5 times the geometric stage on the held-out poses."""
-    out = copy.deepcopy(run)
-    geo = out.stage("geometric")
-    for s in out.stages:
-        if s.name in worse:
-            s.holdout_errors = geo.holdout_errors * 1.5
-    out.holdout_guard = None
-    return out
+    """``run`` with its stages named in ``worse`` erring 1.5 times the geometric stage on the held-out poses."""
+    geo = run.stage("geometric")
+    return _with_errors(run, {name: geo.holdout_errors * 1.5 for name in worse})
+
+
+def _with_errors(run, held_out: dict):
+    """``run`` with the held-out errors of the stages named in ``held_out`` replaced, and no guard's evidence."""
+    stages = tuple(
+        dataclasses.replace(s, holdout_errors=held_out[s.name]) if s.name in held_out else s for s in run.stages
+    )
+    return dataclasses.replace(run, stages=stages, holdout_guard=None)
+
+
+def guard_holdout(run):
+    """The run after the guard, and the guard's evidence."""
+    result = guard_stages(run)
+    assert result.stage == "held-out guard"
+    return run.apply(result), result.holdout_guard
 
 
 def test_a_run_below_geometry_passes_and_says_so(auto_run):
@@ -38,8 +48,9 @@ def test_a_run_below_geometry_passes_and_says_so(auto_run):
 
 
 def test_a_final_model_worse_than_geometry_steps_back_to_the_last_stage_below_it(auto_run):
-    run = _forced(auto_run, ["learned"])
-    ev = guard_holdout(run, run.train, run.trajectory)
+    before = _forced(auto_run, ["learned"])
+    run, ev = guard_holdout(before)
+    assert before.model is auto_run.model and len(before.effects) == 2  # the stage did not edit the run it read
     assert not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)"
     assert [s.name for s in run.stages] == ["nominal", "geometric", "compliance(joint 2)"]
     assert [r.label for r in run.effects] == ["compliance(joint 2)"]
@@ -58,8 +69,7 @@ def test_a_final_model_worse_than_geometry_steps_back_to_the_last_stage_below_it
 
 
 def test_with_no_stage_below_geometry_the_run_keeps_the_kinematic_calibration(auto_run):
-    run = _forced(auto_run, ["learned", "compliance(joint 2)"])
-    ev = guard_holdout(run, run.train, run.trajectory)
+    run, ev = guard_holdout(_forced(auto_run, ["learned", "compliance(joint 2)"]))
     assert ev["kept_stage"] == "geometric" and not run.effects
     assert [s.name for s in run.stages] == ["nominal", "geometric"] and not run.model.effects
     assert run.fits[-1].stage == "geometric"  # the report's global test and parameters: the geometric fit's
@@ -76,8 +86,7 @@ def test_a_step_back_writes_its_run_directory(auto_run, worse, tmp_path):
     guard's once crashed report.md with ``KeyError: 'chosen'``)."""
     from torchcal.report import write_run_files
 
-    run = _forced(auto_run, worse)
-    guard_holdout(run, run.train, run.trajectory)
+    run, _ = guard_holdout(_forced(auto_run, worse))
     out = write_run_files(run, tmp_path)
     md = (out / "report.md").read_text()
     assert "Learned residual model: " in md and "held-out guard" in md
@@ -85,18 +94,13 @@ def test_a_step_back_writes_its_run_directory(auto_run, worse, tmp_path):
 
 
 def test_a_final_model_that_wins_in_the_middle_and_loses_at_the_edges_steps_back(auto_run):
-    from torchcal.pipeline.loop import _at_edges
-
-    run = copy.deepcopy(auto_run)
-    edge = _at_edges(run.train.q, run.data.q[run.holdout_idx])
+    edge = at_edges(auto_run.train.q, auto_run.data.q[auto_run.holdout_idx])
     assert int(edge.sum()) >= 10  # held-out poses at the edges of the training poses' joint ranges
-    geo = run.stage("geometric")
-    learned = run.stage("learned")
+    geo = auto_run.stage("geometric")
     # better than the geometry overall, worse at the edges
-    learned.holdout_errors = torch.where(edge, geo.holdout_errors * 1.4, geo.holdout_errors * 0.3)
-    assert learned.rmse < geo.rmse
-    run.holdout_guard = None
-    ev = guard_holdout(run, run.train, run.trajectory)
+    run = _with_errors(auto_run, {"learned": torch.where(edge, geo.holdout_errors * 1.4, geo.holdout_errors * 0.3)})
+    assert run.stage("learned").rmse < geo.rmse
+    run, ev = guard_holdout(run)
     assert not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)" and ev["n_edge"] == int(edge.sum())
     (rej,) = [r for r in run.rejections if r.name == "learned"]
     assert "at the edges of the joint ranges" in rej.reason and "better in the middle" in rej.reason

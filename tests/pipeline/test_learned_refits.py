@@ -60,11 +60,11 @@ def test_pruning_with_the_next_refit_ahead_decides_as_one_effect_after_the_other
     before = {}
     original = L.prune_named
 
-    def recording(run, train, trajectory, e_val, gp=None):
+    def recording(work, train, trajectory, e_val, gp=None):
         if drop_all:
-            run.options = replace(run.options, alpha_validation=0.0)
-        before["run"], before["args"] = copy.deepcopy(run), (train, trajectory, e_val.clone())
-        return original(run, train, trajectory, e_val, gp=gp)
+            work.run = replace(work.run, options=replace(work.options, alpha_validation=0.0))
+        before["run"], before["args"] = copy.deepcopy(work), (train, trajectory, e_val.clone())
+        return original(work, train, trajectory, e_val, gp=gp)
 
     monkeypatch.setattr(L, "prune_named", recording)
     with torch_threads(1):
@@ -80,12 +80,12 @@ def test_pruning_with_the_next_refit_ahead_decides_as_one_effect_after_the_other
         try:
             fit, e_without = L._refit_with_learned(ref, trial, train, trajectory)
         except EstimationError as err:
-            ref.notes.append(f"diagnosis: {label} kept: the refit without it failed ({err})")
+            ref.note(f"diagnosis: {label} kept: the refit without it failed ({err})")
             continue
         if L._prune_one(ref, ref.model, ref.model.effects[k], trial, fit, e_without, e_val):
             e_val = e_without
-    n = len(ref.notes)
-    assert run.notes[:n] == ref.notes
+    n = len(ref.notes)  # the learned stage's notes (a stage's work holds its own)
+    assert [t for t in run.notes if t.stage == "learned"][:n] == ref.notes
     assert [e.label() for e in run.model.effects[: len(ref.model.effects)]] == [e.label() for e in ref.model.effects]
     got, want = run.model.state_dict(), ref.model.state_dict()
     assert all(torch.equal(got[k], want[k]) for k in want if k.startswith("robot.") or "effects" not in k)

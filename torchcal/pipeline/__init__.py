@@ -1,34 +1,30 @@
 """The calibration pipeline: the top of the library, the only layer that imports the closed loop and the filters.
 
-:func:`calibrate` runs a method end to end (:mod:`torchcal.pipeline.run`); its steps are the closed loop
-(:mod:`~torchcal.pipeline.loop`), the learned stage (:mod:`~torchcal.pipeline.learned`) and the integrated
-ANN-EKF (:mod:`~torchcal.pipeline.integrated`); each appends typed records (:mod:`~torchcal.pipeline.records`)
-to the :class:`CalibrationRun`.
+:func:`calibrate` (:mod:`torchcal.pipeline.run`) runs a method, a declared sequence of stages
+(:mod:`torchcal.pipeline.methods`), over a typed, frozen run state (:mod:`torchcal.pipeline.state`): each stage
+reads the run and returns a :class:`StageResult` with its typed records (:mod:`torchcal.pipeline.records`), and
+only :func:`calibrate` applies it. The stages: the closed loop (:mod:`~torchcal.pipeline.loop`), the learned stage
+(:mod:`~torchcal.pipeline.learned`), the integrated ANN-EKF (:mod:`~torchcal.pipeline.integrated`) and the held-out
+guards and refit (:mod:`~torchcal.pipeline.holdout`).
 """
 
-from torchcal.pipeline.records import EffectRecord, Rejection, StageName
-from torchcal.pipeline.run import (
-    DEFAULT_METHOD,
-    METHODS,
-    CalibrationRun,
-    Options,
-    Stage,
-    calibrate,
-    check_holdout,
-    holdout_split,
-    is_trajectory,
-    min_poses,
-)
+from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
+from torchcal.pipeline.records import Cause, EffectRecord, Note, Rejection, StageName
+from torchcal.pipeline.run import calibrate, check_holdout, holdout_split, is_trajectory, min_poses
+from torchcal.pipeline.state import CalibrationRun, Stage, StageResult
 
 __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
     "CalibrationRun",
+    "Cause",
     "EffectRecord",
+    "Note",
     "Options",
     "Rejection",
     "Stage",
     "StageName",
+    "StageResult",
     "calibrate",
     "check_holdout",
     "holdout_split",

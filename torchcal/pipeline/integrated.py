@@ -44,7 +44,6 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -55,13 +54,17 @@ from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementM
 from torchcal.effects import support as sup
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
-from torchcal.estimate.lm import LMResult, levenberg_marquardt
-from torchcal.estimate.problem import FreeParameters, prior_sigmas, residual_function, whitening
+from torchcal.estimate.joint_refinement import refine_jointly
 from torchcal.filter.ekf import EKFConfig, EKFResult, EKFTrainer
-from torchcal.pipeline.records import EffectRecord, Rejection, StageName
-
-if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
-    from torchcal.pipeline.run import CalibrationRun
+from torchcal.pipeline.holdout import (
+    VALIDATION_PIECES,
+    geometry_on_all,
+    guard_against_geometry,
+    leave_one_piece_out,
+    refit_geometry,
+)
+from torchcal.pipeline.records import Cause, EffectRecord, IntegratedFilter, Rejection, StageName
+from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
 
 Tensor = torch.Tensor
 
@@ -76,11 +79,9 @@ SIGMA_W0 = 0.05
 Q_W = 1e-3
 SIGMA_T0 = 2e-5
 Q_T = 1e-9
-#: LM iterations of the joint refinement of geometry and network (step 3), restarted with a fresh damping every
-#: JOINT_RESTART iterations: the fit crawls along the valley where geometry and network trade places, and a
-#: damping that grew in its curved stretches otherwise keeps the later steps short
+#: LM iterations of the joint refinement of geometry and network (step 3;
+#: :func:`torchcal.estimate.joint_refinement.refine_jointly`)
 JOINT_ITERATIONS = 150
-JOINT_RESTART = 10
 #: the joint refinement uses every JOINT_STRIDE-th training sample: neighbouring samples of a trajectory carry
 #: nearly the same information, and the thinned set keeps an iteration cheap
 JOINT_STRIDE = 3
@@ -89,42 +90,6 @@ JOINT_STRIDE = 3
 #: the filter do): the held-out samples continue the trajectory, so the state that predicts the *next* stretch
 #: best is kept, not the one that interpolates a random share best
 FORWARD_FRACTION = 0.1
-
-
-def _first_draw(name: str) -> property:
-    """The filter result's ``name`` ``(N, 3)`` [m] of its only draw: an integrated run makes one pass."""
-    return property(lambda self: getattr(self.result, name)[0], doc=f"The filter's {name} per sample (N, 3) [m].")
-
-
-@dataclass
-class IntegratedFilter:
-    """The filter pass of an ``integrated`` run, with the references the report compares it with.
-
-    All per-sample tensors cover the training samples, then the held-out ones ``(N, 3)`` [m], tracker frame.
-    """
-
-    result: EKFResult  # the pass (draw dimension 1)
-    y: Tensor  # measured positions
-    kinematic: Tensor  # prediction of the calibrated kinematic model alone
-    n_train: int
-    config: EKFConfig
-    w_start: Tensor  # the weights the filter started from (after steps 2-3)
-    weight_cov: Tensor | None = None  # final covariance of the weights in the filter's state (k, k)
-    weight_index: Tensor | None = None  # their indices in the network's flat weights (k,)
-
-    geometric = _first_draw("geometric")
-    nongeometric = _first_draw("nongeometric")
-    prediction = _first_draw("prediction")
-
-    def deviations(self) -> dict[str, Tensor]:
-        """``devG``, ``devNG``, ``devAll`` per sample ``(N, 3)`` [m] (the paper's Figs. 9 and 11 on measured data).
-
-        Without a truth, the measurement is split at the calibrated kinematic model: geometric reference
-        ``G = T p(theta)``, non-geometric reference ``NG = y - G``. Then ``devG = G_filter - G``,
-        ``devNG = NG_filter - NG`` and ``devAll = devG + devNG = prediction - y`` (tracker noise included).
-        """
-        G, NG = self.kinematic, self.y - self.kinematic
-        return {"devG": self.geometric - G, "devNG": self.nongeometric - NG, "devAll": self.prediction - self.y}
 
 
 def require_trajectory(data: Measurements, trajectory: bool) -> None:
@@ -156,7 +121,7 @@ def require_trajectory(data: Measurements, trajectory: bool) -> None:
 def filter_config(
     model: MeasurementModel, data: Measurements, sigma_tracker: float, sigma_joint: float, reiterate_every: int
 ) -> EKFConfig:
-    """The filter's configuration for an integrated run (module constants and the run's stochastic model).
+    """The filter's configuration for an integrated work (module constants and the work's stochastic model).
 
     The observation sigma per axis combines the tracker's (the median per-point ``sx, sy, sz`` when the data
     have them) with the joint noise at the probe, ``sigma_joint * |J_q|_F / sqrt(3)`` (median over the samples).
@@ -178,7 +143,7 @@ def filter_config(
 
 
 def integrate(
-    run: CalibrationRun,
+    work: StageWork,
     train: Measurements,
     hold: Measurements,
     *,
@@ -186,17 +151,17 @@ def integrate(
     reiterate_every: int = 0,
     pcm_iterations: int | None = None,
 ) -> IntegratedFilter:
-    """Steps 2-5 of the module docstring on a run whose geometric stage is done; adds the ``integrated`` stage.
+    """Steps 2-5 of the module docstring on a work whose geometric stage is done; adds the ``integrated`` stage.
 
     Args:
-        run: the :class:`~torchcal.pipeline.run.CalibrationRun` (its model holds the calibrated geometry and no
+        work: the :class:`~torchcal.pipeline.state.StageWork` (its model holds the calibrated geometry and no
             effects yet).
         train, hold: the training samples and the held-out last samples of the trajectory, in time order.
         joint_iterations: LM iterations of the joint refinement (0: none).
         reiterate_every: the paper's ANN re-iteration period in samples (0, the default: none; module docstring).
-        pcm_iterations: LM iterations of the network's initial fit (default ``run.options.net_iterations``).
+        pcm_iterations: LM iterations of the network's initial fit (default ``work.options.net_iterations``).
     """
-    model, robot, opts = run.model, run.model.robot, run.options
+    model, robot, opts = work.model, work.model.robot, work.options
     cfg = filter_config(model, train, opts.sigma_tracker, opts.sigma_joint, reiterate_every)
     net = CorrectionNet(robot.dof, opts.hidden, device=robot.device)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
@@ -214,7 +179,7 @@ def integrate(
     )
     model.add(LearnedEffect(net))
     steps["initial_network"] = _rmse(_errors(model, hold))
-    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    ida = work.identifiability
     joint_info = None
     if joint_iterations > 0:
         _console.info(
@@ -227,7 +192,7 @@ def integrate(
         joint_info["status"] = joint.status
         steps["joint_refinement"] = _rmse(_errors(model, hold))
     # the geometry's final least-squares fit with the network in place: its statistics go into the report
-    run.fits.append(
+    work.fits.append(
         solve(
             model,
             train,
@@ -254,15 +219,15 @@ def integrate(
         res, torch.cat([train.p, hold.p]), kin, train.n, cfg, net.flat(), res.P[0, :nw, :nw], torch.arange(nw)
     )
     net.set_flat(res.w[0])  # the final model: calibrated geometry + the filter's last weights
-    run.add_stage(StageName.INTEGRATED)
-    _record_ekf(run, filt, steps, joint_info, hold, net.n_weights)
+    work.add_stage(StageName.INTEGRATED)
+    _record_ekf(work, filt, steps, joint_info, hold, net.n_weights)
     return filt
 
 
-def _integrated_record(run: CalibrationRun, after, *, params: dict, evidence: dict) -> EffectRecord:
-    """The integrated run's effect record (the learned correction, stage ``learned``), with the held-out RMSE of
+def _integrated_record(work: StageWork, after, *, params: dict, evidence: dict) -> EffectRecord:
+    """The integrated work's effect record (the learned correction, stage ``learned``), with the held-out RMSE of
     the geometric stage before it and of the stage ``after`` it."""
-    before = run.stage(StageName.GEOMETRIC)
+    before = work.stage(StageName.GEOMETRIC)
     return EffectRecord(
         "learned",
         None,
@@ -276,7 +241,7 @@ def _integrated_record(run: CalibrationRun, after, *, params: dict, evidence: di
 
 
 def _record_ekf(
-    run: CalibrationRun,
+    work: StageWork,
     filt: IntegratedFilter,
     steps: dict,
     joint_info: dict | None,
@@ -284,13 +249,13 @@ def _record_ekf(
     n_weights: int,
 ) -> None:
     """The ``ekf`` engine's effect record and note: held-out RMSE after each step, the filter's statistics."""
-    opts, res, cfg, n_train = run.options, filt.result, filt.config, filt.n_train
-    after = run.stages[-1]
+    opts, res, cfg, n_train = work.options, filt.result, filt.config, filt.n_train
+    after = work.stages[-1]
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[0, :n_train]
-    run.effects.append(
+    work.effects.append(
         _integrated_record(
-            run,
+            work,
             after,
             params={
                 "model": "network",
@@ -323,114 +288,11 @@ def _record_ekf(
         )
     )
     text = ", ".join(f"{k.replace('_', ' ')} {v * 1e3:.4f}" for k, v in steps.items())
-    run.notes.append(
+    work.note(
         f"integrated ANN-EKF: held-out RMSE [mm] after {text}, after the filter {after.rmse * 1e3:.4f} "
         f"(final model); the filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f}; mean NIS "
         f"{float(nis.mean()):.2f} (3 expected)"
     )
-
-
-def refine_jointly(
-    model: MeasurementModel,
-    m: Measurements,
-    identifiability,
-    opts,
-    iterations: int,
-    validation: Measurements | None = None,
-) -> tuple[LMResult, dict]:
-    """Weighted LM over the identifiable geometry, the instrument pose, the lever arm and the network's weights.
-
-    With ``validation`` (later samples of the trajectory than ``m``), the parameters after the restart with the
-    lowest validation RMSE are kept (none at all included: then the starting values stay); returns the LM
-    result and that history.
-
-    The model's last effect must be the :class:`LearnedEffect`. The geometric columns of the Jacobian come
-    from ``torch.func.jacfwd`` over the few geometric parameters, the network's from its analytic Jacobian
-    (rotated into the tracker frame and whitened), which keeps an iteration cheap with ~300 weights. The
-    geometry keeps the run's a-priori sigmas; the weights have none. The normal matrix is singular (a tanh
-    network has symmetric weight sets), which LM's damping handles; the result's statistics are not used.
-    Steps: :func:`_joint_parameters` (what is free), :func:`_joint_problem` (residuals and Jacobian),
-    :func:`_joint_restarts` (LM with restarts, judged on ``validation``).
-    """
-    free, n_geo = _joint_parameters(model, identifiability)
-    fun, jacobian = _joint_problem(model, free, n_geo, m, opts)
-
-    def score(history: list) -> float:
-        return _rmse(_errors(model, validation)) if validation is not None else -float(len(history))
-
-    return _joint_restarts(fun, jacobian, free, iterations, score, validation is not None)
-
-
-def _joint_parameters(model: MeasurementModel, identifiability) -> tuple[FreeParameters, int]:
-    """The free parameters of the joint refinement: the identifiable elements of the geometry, instrument and
-    tool groups (all of them without an identifiability analysis), then every weight of the model's last effect's
-    network; and how many of them are geometric."""
-    robot = model.robot
-    keep = {} if identifiability is None else dict(zip(identifiability.names, identifiability.free.tolist()))
-    sel, labels = {}, {}
-    for g in ("geometry", "instrument", "tool"):
-        grp = robot.groups()[g]
-        mask = grp.mask.clone()
-        if identifiability is not None:
-            mask &= torch.tensor([keep.get(n, False) for n in grp.names], device=mask.device).reshape(mask.shape)
-        sel[f"robot.{g}.delta"], labels[f"robot.{g}.delta"] = mask, grp.names
-    n_geo = sum(int(mk.sum()) for mk in sel.values())
-    k = len(model.effects) - 1
-    for name, p in model.effects[k].net.named_parameters():
-        sel[f"effects.{k}.net.{name}"] = torch.ones(p.shape, dtype=torch.bool, device=p.device)
-    return FreeParameters(model, sel, labels), n_geo
-
-
-def _joint_problem(model: MeasurementModel, free: FreeParameters, n_geo: int, m: Measurements, opts):
-    """The whitened residual function of the joint refinement (observations, then the geometry's prior rows) and
-    its Jacobian: ``jacfwd`` over the geometric columns, the network's analytic Jacobian for the weights."""
-    robot, net = model.robot, model.effects[-1].net
-    ctx = Context.from_measurements(m, trajectory=True)
-    W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
-    prior = None
-    if opts.prior_length is not None and opts.prior_angle is not None:
-        units = {i.name: i.unit for i in robot.parameter_info() if i.group == "geometry"}
-        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
-    fun = residual_function(model, free, ctx, m.p, W, prior)
-    n_obs = 3 * m.n
-
-    def jacobian(x: Tensor) -> Tensor:
-        xg, xn = x[:n_geo], x[n_geo:]
-        Jg = torch.func.jacfwd(lambda a: fun(torch.cat([a, xn])))(xg)  # observations and the geometry's prior
-        with torch.no_grad():
-            R = robot.T_tracker_base()[:3, :3]
-            Jn = (W @ R @ net.jacobian_flat(xn, m.q)[1]).reshape(n_obs, -1)
-        J = torch.zeros(len(Jg), len(x), dtype=x.dtype, device=x.device)
-        J[:, :n_geo] = Jg
-        J[:n_obs, n_geo:] = Jn  # the prior rows concern the geometry only
-        return J
-
-    return fun, jacobian
-
-
-def _joint_restarts(fun, jacobian, free: FreeParameters, iterations: int, score, judged: bool) -> tuple[LMResult, dict]:
-    """LM restarted with a fresh damping every JOINT_RESTART iterations (module constant); after each restart
-    ``score(history)`` judges the state (lower is better), and the best one (the start included) is kept."""
-    done, history, trail = 0, [], []
-    best = (score(history), 0, free.vector())
-    while done < iterations:
-        res = levenberg_marquardt(
-            fun, free.vector(), names=free.names, max_iter=min(JOINT_RESTART, iterations - done), jacobian=jacobian
-        )
-        if not bool(torch.isfinite(res.x).all()):
-            raise EstimationError("integrated ANN-EKF: the joint refinement diverged")
-        free.assign(res.x)
-        done += max(res.iterations, 1)
-        history += res.cost_history if not history else res.cost_history[1:]
-        v = score(history)
-        trail.append({"iterations": done, "validation_rmse_mm": v * 1e3 if judged else None})
-        if v < best[0]:
-            best = (v, done, free.vector())
-        if res.iterations == 0 or len(res.cost_history) < 2:
-            break
-    free.assign(best[2])
-    res.iterations, res.cost_history = done, history
-    return res, {"iterations_run": done, "kept_after_iterations": best[1], "trail": trail}
 
 
 def _errors(model: MeasurementModel, m: Measurements) -> Tensor:
@@ -441,7 +303,7 @@ _rmse = S.rmse
 
 
 def integrate_adaptive(
-    run: CalibrationRun,
+    work: StageWork,
     train: Measurements,
     hold: Measurements,
     setting: Setting | None = None,
@@ -454,7 +316,7 @@ def integrate_adaptive(
     geometric corrections and the output layer of a fixed random-feature network (``hidden`` tanh units) together
     along the training samples; the held-out last samples are its test phase. The final model is the filter's
     geometry (instrument translation back-substituted) plus a :class:`LearnedEffect` with its network, so
-    ``predict`` reloads it like any run.
+    ``predict`` reloads it like any work.
 
     ``setting`` (default ``Setting("adaptive")``): its ``hidden`` and ``gain`` set the random features (more and
     sharper features fit more, fewer and smoother ones extrapolate more gently), ``sigma_field`` the prior of the
@@ -465,29 +327,29 @@ def integrate_adaptive(
     :func:`_record_adaptive` (the report's record).
     """
     with torch.no_grad():  # the kinematic calibration's prediction: the report's reference G
-        kinematic = run.model(Context(q=torch.cat([train.q, hold.q])))
+        kinematic = work.model(Context(q=torch.cat([train.q, hold.q])))
     s = setting or Setting("adaptive")
-    start, net, res, cfg = _adaptive_pass(run, train, hold, s.hidden, s.gain, s.sigma_field)
-    _install_adaptive(run, start, net, res)
-    after = run.add_stage(StageName.INTEGRATED)
+    start, net, res, cfg = _adaptive_pass(work, train, hold, s.hidden, s.gain, s.sigma_field)
+    _install_adaptive(work, start, net, res)
+    after = work.add_stage(StageName.INTEGRATED)
     nw = len(res.active)  # the state is [w[active]; t; (d); gamma]
     filt = IntegratedFilter(
         _as_ekf_result(res), torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
     )
     _record_adaptive(
-        run, filt, res, net, hold, after, {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
+        work, filt, res, net, hold, after, {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
     )
     return filt
 
 
 def _adaptive_pass(
-    run: CalibrationRun, train: Measurements, hold: Measurements, hidden: int, gain: float, sigma_field: float
+    work: StageWork, train: Measurements, hold: Measurements, hidden: int, gain: float, sigma_field: float
 ):
     """The adaptive filter over the training samples from the nominal geometry with a rigid fit's tracker pose and
     lever arm, then its test phase on ``hold``; returns the start robot, the network, the result, the config."""
     from torchcal.filter.adaptive import AdaptiveConfig, AdaptiveEKF, random_features
 
-    opts, robot = run.options, run.model.robot
+    opts, robot = work.options, work.model.robot
     start = _nominal_copy(robot)
     place_instrument_and_tool(start, train.q, train.p)
     cfg = AdaptiveConfig(
@@ -507,12 +369,12 @@ def _adaptive_pass(
     return start, net, res, cfg
 
 
-def _install_adaptive(run: CalibrationRun, start, net: CorrectionNet, res) -> None:
+def _install_adaptive(work: StageWork, start, net: CorrectionNet, res) -> None:
     """The final model: the filter's geometry (instrument translation back-substituted) and its network."""
     with torch.no_grad():
-        run.model.robot.load_state_dict(res.apply(start).state_dict())
+        work.model.robot.load_state_dict(res.apply(start).state_dict())
         net.set_flat(res.w)
-    run.model.add(LearnedEffect(net))
+    work.model.add(LearnedEffect(net))
 
 
 def _as_ekf_result(res) -> EKFResult:
@@ -532,15 +394,15 @@ def _as_ekf_result(res) -> EKFResult:
 
 
 def _record_adaptive(
-    run: CalibrationRun, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
+    work: StageWork, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
 ) -> None:
     """The adaptive engine's effect record (settings, the geometry with its sigmas, the filter's health) and note."""
     n_train = filt.n_train
     e_filter = (filt.prediction[n_train:] - hold.p).norm(dim=-1)
     nis = res.nis[:n_train]
-    run.effects.append(
+    work.effects.append(
         _integrated_record(
-            run,
+            work,
             after,
             params={
                 "model": "network (fixed random tanh features, output layer estimated)",
@@ -567,7 +429,7 @@ def _record_adaptive(
             },
         )
     )
-    run.notes.append(
+    work.note(
         f"integrated ANN-EKF (adaptive): held-out RMSE {after.rmse * 1e3:.4f} mm (final model), the "
         f"filter's own test-phase prediction {_rmse(e_filter) * 1e3:.4f} mm; mean NIS "
         f"{float(nis.nanmean()):.2f} (3 expected)"
@@ -587,29 +449,6 @@ def _nominal_copy(robot):
 #: order, so that the choice is judged on how a model predicts the *continuation* of the path it was fitted on,
 #: which is what the held-out samples (and a user's next program) ask of it
 VALIDATION_FRACTION = 0.2
-#: the validation block is cut into this many consecutive pieces, and a candidate must beat geometry alone on the
-#: block with any one piece left out: one block of a path is a single draw of how a model extrapolates, and a
-#: filter that wins it on average by one good stretch can lose on the path's continuation. (Winning *every* piece,
-#: the rule before, also rejected filters that lose one stretch narrowly and win the rest clearly -- on the outside
-#: trajectory the one that halves geometry's error on the continuation.)
-VALIDATION_PIECES = 4
-
-
-def leave_one_piece_out(e: Tensor, e_ref: Tensor, pieces: int = VALIDATION_PIECES) -> tuple[list, list]:
-    """RMSE ratios of ``e`` to ``e_ref`` per consecutive piece, and over the block with each piece left out.
-
-    Args:
-        e, e_ref: per-sample errors ``(N,)`` [m] of a candidate and of the reference on the same samples.
-
-    Returns:
-        ``(per_piece, left_out)``, ``pieces`` ratios each; a candidate is kept only if every ``left_out`` is < 1.
-    """
-    a, b = e.tensor_split(pieces), e_ref.tensor_split(pieces)
-    per_piece = [_rmse(x) / _rmse(y) for x, y in zip(a, b)]
-    left_out = [_rmse(torch.cat(a[:j] + a[j + 1 :])) / _rmse(torch.cat(b[:j] + b[j + 1 :])) for j in range(pieces)]
-    return per_piece, left_out
-
-
 #: the longest support gate the paper's engine is tried behind (in units of the joints' training spread)
 EKF_LONGEST_GATE = 0.5
 
@@ -649,20 +488,17 @@ SETTINGS = (
 )
 
 
-def _run_setting(run: CalibrationRun, train: Measurements, hold: Measurements, setting: Setting) -> IntegratedFilter:
+def _run_setting(work: StageWork, train: Measurements, hold: Measurements, setting: Setting) -> IntegratedFilter:
     if setting.engine == "ekf":
-        return integrate(run, train, hold)
-    return integrate_adaptive(run, train, hold, setting)
+        return integrate(work, train, hold)
+    return integrate_adaptive(work, train, hold, setting)
 
 
-def _scratch(run: CalibrationRun, model: MeasurementModel, train_idx: Tensor, holdout_idx: Tensor) -> CalibrationRun:
-    """A throw-away copy of ``run`` for one candidate: its own model, ``train_idx`` its training set and
-    ``holdout_idx`` its held-out set (rows of ``run.data``), its own records."""
-    trial = copy.copy(run)
-    trial.model = copy.deepcopy(model)
-    trial.robot = trial.model.robot
-    trial.train_idx, trial.holdout_idx = train_idx, holdout_idx
-    trial.fits, trial.effects, trial.rejections, trial.notes, trial.stages = list(run.fits), [], [], [], []
+def _scratch(work: StageWork, model: MeasurementModel, train_idx: Tensor, holdout_idx: Tensor) -> StageWork:
+    """A throw-away work for one candidate: its own copy of ``model``, ``train_idx`` its training set and
+    ``holdout_idx`` its held-out set (rows of the run's data), its own records."""
+    trial = StageWork(work.run.with_split(train_idx, holdout_idx), work.name, model=copy.deepcopy(model))
+    trial.fits = list(work.fits)
     trial.add_stage(StageName.GEOMETRIC)
     return trial
 
@@ -676,8 +512,12 @@ def _gated(model: MeasurementModel, support: Tensor, length: float, fallback) ->
     )
 
 
+def _not_selected(evidence: dict, why: str) -> Rejection:
+    return Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
+
+
 def integrate_selected(
-    run: CalibrationRun, train: Measurements, hold: Measurements, *, settings: tuple[Setting, ...] = SETTINGS
+    work: StageWork, train: Measurements, hold: Measurements, *, settings: tuple[Setting, ...] = SETTINGS
 ) -> IntegratedFilter | None:
     """The ``integrated`` method that keeps only what validation supports: never worse than geometry by design.
 
@@ -688,28 +528,28 @@ def integrate_selected(
     the lengths in :data:`~torchcal.effects.support.GATE_LENGTHS` (no gate among them), which fades the
     prediction back to the kinematic calibration where the path leaves the joints the filter was trained on. The
     candidate with the lowest validation RMSE is kept only if it beats geometry alone by a one-sided paired test
-    at ``run.options.alpha_validation``, with the standard error inflated for the autocorrelation of
+    at ``work.options.alpha_validation``, with the standard error inflated for the autocorrelation of
     neighbouring samples (:func:`torchcal.stats.paired_test`); it is then fitted again on all training samples
-    (the held-out samples its test phase) with the gate length chosen. Otherwise the run ends with the geometric
+    (the held-out samples its test phase) with the gate length chosen. Otherwise the work ends with the geometric
     model and says why. A candidate must also beat geometry alone on the validation block with any one of its
     :data:`VALIDATION_PIECES` pieces left out (:func:`leave_one_piece_out`). The table of candidates goes into the
     report (the effect's or the rejection's ``evidence["selection"]``). The kept model predicts a standard
     deviation per sample, calibrated on the validation block (:func:`_attach_predictive_sigma`,
     ``evidence["predictive_sigma"]``; ``predict`` writes it as ``sx, sy, sz``).
     """
-    opts = run.options
+    opts = work.options
     n_val = max(1, int(round(VALIDATION_FRACTION * train.n)))
     n_fit = train.n - n_val
     fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
-    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
-    geo = copy.deepcopy(run.model)
+    ida = work.identifiability
+    geo = copy.deepcopy(work.model)
     solve(geo, fit, GEOMETRIC_GROUPS, opts, "integrated: geometry on the fitting samples", True, identifiability=ida)
     e_geo = _errors(geo, val)
     table = [{"candidate": "geometry alone", "validation_rmse_mm": _rmse(e_geo) * 1e3}]
     best = None
     for setting in settings:
         _console.info(f"integrated: validating {setting.name} on the last {val.n} training samples")
-        trial = _scratch(run, geo, run.train_idx[:n_fit], run.train_idx[n_fit:])
+        trial = _scratch(work, geo, work.train_idx[:n_fit], work.train_idx[n_fit:])
         try:
             trial_filter = _run_setting(trial, fit, val, setting)
         except EstimationError as err:
@@ -754,95 +594,70 @@ def integrate_selected(
             f"({_rmse(e_geo) * 1e3:.4f} -> {best[3]['validation_rmse_mm']:.4f} mm, p = "
             f"{evidence['test']['p_value']:.2g})"
         )
-        run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
-        run.notes.append(f"integrated: geometry alone kept: {why}")
+        work.rejections.append(
+            Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
+        )
+        work.note(f"integrated: geometry alone kept: {why}")
         if opts.refits:
-            evidence["refit"] = refit_geometry(run, ida)
+            evidence["refit"] = refit_geometry(work, ida)
         return None
     setting, length = best[0], best[1]
     _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
-    # the kinematic calibration on all training samples, kept apart: the engines edit run.model's robot in place
-    geometric = copy.deepcopy(run.model)
+    # the kinematic calibration on all training samples, kept apart: the engines edit work.model's robot in place
+    geometric = copy.deepcopy(work.model)
     kinematic = geometric.robot
-    n_effects, n_stages = len(run.effects), len(run.stages)
-    filt = _run_setting(run, train, hold, setting)
-    record = run.effects[-1]
-    length = _gate_on_holdout(run.model, train, hold, kinematic, setting, length, evidence)
-    sigma = _attach_predictive_sigma(run, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
+    n_effects, n_stages = len(work.effects), len(work.stages)
+    filt = _run_setting(work, train, hold, setting)
+    record = work.effects[-1]
+    length = _gate_on_holdout(work.model, train, hold, kinematic, setting, length, evidence)
+    sigma = _attach_predictive_sigma(work, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
     record.evidence["predictive_sigma"] = sigma
-    guard = _holdout_guard(run.model, geometric, hold)
+    guard = guard_against_geometry(work.model, geometric, hold)
     evidence["holdout_guard"] = guard
     if guard["passed"]:
         if opts.refits:
-            record.evidence["refit"] = _refit_filter(run, setting, length, geometric, ida)
+            record.evidence["refit"] = _refit_filter(work, setting, length, geometric, ida)
         return filt
     # the refit on all training samples is worse than geometry alone where neither was fitted: geometry it is (the
-    # run's robot too, which the adaptive engine changed in place and the report exports)
-    run.model, run.robot = geometric, geometric.robot
-    del run.effects[n_effects:], run.stages[n_stages:]
+    # work's robot too, which the adaptive engine changed in place and the report exports)
+    work.model = geometric
+    del work.effects[n_effects:], work.stages[n_stages:]
     why = (
         f"{setting.name}, chosen on validation, is worse than geometry alone on the held-out samples once fitted "
         f"again on all training samples ({guard['geometry_rmse_mm']:.4f} -> {guard['rmse_mm']:.4f} mm)"
     )
-    run.rejections.append(Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why))
-    run.notes.append(f"integrated: geometry alone kept: {why}")
+    work.rejections.append(
+        Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
+    )
+    work.note(f"integrated: geometry alone kept: {why}")
     if opts.refits:
-        evidence["refit"] = refit_geometry(run, ida)
+        evidence["refit"] = refit_geometry(work, ida)
     return None
 
 
-def refit_geometry(run: CalibrationRun, identifiability) -> dict:
-    """Fit the run's geometry (``run.model``, the kinematic calibration) again on all samples, training and
-    held-out (``Options.refit``), from its fit on the training samples. The fit joins ``run.fits`` (the report's
-    parameters and global test are then the refit's); the stages keep the held-out errors of the fit that did not
-    see them. Returns the report's evidence."""
-    both = run.fitted_and_held_out
-    _console.info(f"geometry fitted again on all {both.n} samples (the held-out errors stay the training fit's)")
-    fit = _geometry_on_all(run, run.model, identifiability, "refit: geometry on all samples")
-    run.fits.append(fit)
-    run.notes.append(
-        f"refit: the model written was fitted again on all {both.n} samples (training and held-out); the held-out "
-        f"errors reported are those of the same fit on the {len(run.train_idx)} training samples only"
-    )
-    return {"n_samples": both.n, "model": "geometry", "status": fit.result.status}
-
-
-def _geometry_on_all(run: CalibrationRun, model: MeasurementModel, identifiability, stage: str):
-    """``model``'s geometry fitted (in place) on all of ``run``'s samples, training and held-out; returns the fit."""
-    return solve(
-        model,
-        run.fitted_and_held_out,
-        GEOMETRIC_GROUPS,
-        run.options,
-        stage,
-        run.trajectory,
-        identifiability=identifiability,
-    )
-
-
-def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometric: MeasurementModel, ida) -> dict:
+def _refit_filter(work: StageWork, setting: Setting, length: float, geometric: MeasurementModel, ida) -> dict:
     """The chosen filter fitted again on all samples, training and held-out (``Options.refit``), as the model
-    ``run.model`` writes: the engine of ``setting`` on all of them (the paper's engine judges its joint refinement
+    ``work.model`` writes: the engine of ``setting`` on all of them (the paper's engine judges its joint refinement
     on its own last samples, as on the training samples), behind a gate of the chosen ``length`` around all of
     them that falls back to the geometry fitted again on all of them, with the predictive sigma's calibration of
     the fit on the training samples (scale, floor, fallback scale and growth) and the refit's own weight
     covariance. On a trajectory the held-out last samples are the nearest to the path's continuation; selection,
     held-out guard and the reported held-out errors are those of the fit on the training samples. A refit that
     fails (a diverging pass) keeps the training fit, and the note says so. Returns the report's evidence."""
-    both = run.fitted_and_held_out
+    both = work.fitted_and_held_out
     _console.info(f"integrated: {setting.name} fitted again on all {both.n} samples, training and held-out")
     geo_all = copy.deepcopy(geometric)
-    fit = _geometry_on_all(run, geo_all, ida, "integrated: geometry on all samples (refit)")
-    trial = _scratch(run, geometric, torch.cat([run.train_idx, run.holdout_idx]), run.holdout_idx[:0])
+    fit = geometry_on_all(work, geo_all, ida, "integrated: geometry on all samples (refit)")
+    trial = _scratch(work, geometric, torch.cat([work.train_idx, work.holdout_idx]), work.holdout_idx[:0])
     try:
         filt = _run_setting(trial, both, both.subset(slice(both.n, None)), setting)
     except EstimationError as err:
         why = f"the refit on all {both.n} samples failed ({err}); the model written is the training fit"
-        run.notes.append(f"refit: {why}")
+        work.note(f"refit: {why}")
         return {"n_samples": both.n, "skipped": why}
-    old = run.model.effects[-1]  # the training fit's gate, with the predictive sigma's calibration
+    old = work.model.effects[-1]  # the training fit's gate, with the predictive sigma's calibration
     gate = _predictive_gate(
         trial.model,
         filt,
@@ -857,11 +672,11 @@ def _refit_filter(run: CalibrationRun, setting: Setting, length: float, geometri
     )
     gate.sigma_fallback, gate.fallback_growth = old.sigma_fallback, old.fallback_growth
     trial.model.effects[-1] = gate
-    run.model, run.robot = trial.model, trial.model.robot
-    run.notes.append(
+    work.model = trial.model
+    work.note(
         f"refit: the model written is {setting.name} fitted again on all {both.n} samples (training and held-out), "
         f"behind the same gate around all of them; the held-out errors reported are those of the same choice "
-        f"fitted on the {len(run.train_idx)} training samples only"
+        f"fitted on the {len(work.train_idx)} training samples only"
     )
     return {
         "n_samples": both.n,
@@ -909,27 +724,8 @@ def _gate_on_holdout(
     return kept
 
 
-def _holdout_guard(model: MeasurementModel, geometric: MeasurementModel, hold: Measurements) -> dict:
-    """Whether the final ``model`` is better than the kinematic calibration ``geometric`` on the held-out samples
-    (the continuation of the path, fitted by neither): a lower RMSE there with any one of its
-    :data:`VALIDATION_PIECES` pieces left out, as on validation (no significance asked: validation chose, this only
-    refuses a refit that made things worse). Passed when there are no held-out samples to judge on."""
-    if hold.n < VALIDATION_PIECES:
-        return {"passed": True, "n": hold.n, "rule": "too few held-out samples to judge"}
-    e, e_geo = _errors(model, hold), _errors(geometric, hold)
-    _, left_out = leave_one_piece_out(e, e_geo)
-    return {
-        "passed": bool(_rmse(e) < _rmse(e_geo) and max(left_out) < 1.0),
-        "n": hold.n,
-        "rmse_mm": _rmse(e) * 1e3,
-        "geometry_rmse_mm": _rmse(e_geo) * 1e3,
-        "leave_one_piece_out_ratios": left_out,
-        "rule": "lower held-out RMSE than geometry alone with any one of the pieces left out",
-    }
-
-
 def _attach_predictive_sigma(
-    run: CalibrationRun,
+    work: StageWork,
     filt: IntegratedFilter,
     kinematic,
     geo: MeasurementModel,
@@ -959,7 +755,7 @@ def _attach_predictive_sigma(
     prediction): it carries the standard deviation. Returns the report's evidence (scale, coverage of 2 sigma on
     validation and on the held-out samples, the rule, the variance's parts).
     """
-    noise = _observation_sigma(run.model, train, run.options)
+    noise = _observation_sigma(work.model, train, work.options)
     # each fallback's residuals beyond its own support: geometry on the fitting samples on the validation block,
     # the kinematic calibration (geometry on all training samples) on the held-out samples
     e_geo = _residuals(geo, val)
@@ -967,37 +763,37 @@ def _attach_predictive_sigma(
     far = e_geo.square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
     sigma_length = length if math.isfinite(length) else max(g for g in sup.GATE_LENGTHS if math.isfinite(g))
     val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
-    fb_sigma, fb_growth = _fallback_growth(run, kinematic, e_geo, e_kin, val, train, hold, val_gate)
+    fb_sigma, fb_growth = _fallback_growth(work, kinematic, e_geo, e_kin, val, train, hold, val_gate)
     val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
     e_val = _residuals(val_model, val, val_gate)
     # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry's on the
     # validation block for the candidate; the kinematic calibration's on the held-out samples for the final model
     # (a geometry on all training samples, better determined than the one on fewer)
     far_final = far if e_kin is None else e_kin.square().mean(dim=0).sqrt()
-    gate = _predictive_gate(run.model, filt, train.q, length, kinematic, noise, far_final, sigma_length)
+    gate = _predictive_gate(work.model, filt, train.q, length, kinematic, noise, far_final, sigma_length)
     gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
     holdout = None
     if hold.n:  # the final model's residuals and variance parts where it was not fitted (its own P_w, its gate)
         with torch.no_grad():
-            holdout = (_residuals(run.model, hold, gate), *gate.variance_parts(run.model.robot, hold.q))
+            holdout = (_residuals(work.model, hold, gate), *gate.variance_parts(work.model.robot, hold.q))
     scale, floor = sup.fit_predictive_scale(
         e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET, holdout=holdout
     )
     val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
     gate.sigma_scale, gate.sigma_floor = scale, floor
-    run.model.effects[-1] = gate
-    run.stages.pop()
-    run.effects[-1].rmse_after_mm = run.add_stage(StageName.INTEGRATED).rmse * 1e3
+    work.model.effects[-1] = gate
+    work.stages.pop()
+    work.effects[-1].rmse_after_mm = work.add_stage(StageName.INTEGRATED).rmse * 1e3
     # each block's residuals (computed above; the scale changes no prediction) against its predicted sigma
     with torch.no_grad():
         blocks = [(e_val, val_gate.predictive_std(val_model.robot, val.q))]
         if hold.n:
-            blocks.append((holdout[0], gate.predictive_std(run.model.robot, hold.q)))
+            blocks.append((holdout[0], gate.predictive_std(work.model.robot, hold.q)))
     cov_val = sup.coverage(*blocks[0])
     cov_hold = sup.coverage(*blocks[1]) if hold.n else None
     check = _sigma_check(blocks)
     if check["suspect"]:
-        run.notes.append(
+        work.note(
             f"integrated: the predictive sigma reaches {check['max_sigma_mm']} mm, {check['ratio']} times the "
             "largest validation or held-out residual: the widening factor was set by samples where the network's "
             "part of the variance is nearly zero; treat the sx, sy, sz columns of predict as unreliable"
@@ -1025,7 +821,7 @@ def _attach_predictive_sigma(
 
 
 def _fallback_growth(
-    run: CalibrationRun,
+    work: StageWork,
     kinematic,
     e_geo: Tensor,
     e_kin: Tensor | None,
@@ -1048,10 +844,10 @@ def _fallback_growth(
     (README, *Predictive standard deviation*)."""
     half = train.n // 2
     first, second = train.subset(slice(0, half)), train.subset(slice(half, None))
-    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    ida = work.identifiability
     geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
     stage = "integrated: geometry on the first half (sigma)"
-    solve(geo_half, first, GEOMETRIC_GROUPS, run.options, stage, True, identifiability=ida)
+    solve(geo_half, first, GEOMETRIC_GROUPS, work.options, stage, True, identifiability=ida)
     half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
     e = torch.cat([e_geo, _residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
@@ -1126,3 +922,14 @@ def _sigma_check(blocks: list[tuple[Tensor, Tensor]]) -> dict:
         "ratio": ratio if math.isfinite(ratio) else None,
         "suspect": not math.isfinite(ratio) or ratio > SIGMA_CHECK_RATIO,
     }
+
+
+#: the engines of the integrated method (``Options.engine``)
+ENGINES = {"auto": integrate_selected, "adaptive": integrate_adaptive, "ekf": integrate}
+
+
+def integrated_stage(run: CalibrationRun) -> StageResult:
+    """The ``integrated`` method's filter on the trajectory, with the engine ``Options.engine`` names."""
+    work = StageWork(run, "integrated")
+    work.filter = ENGINES[run.options.engine](work, run.train, run.hold)
+    return work.result()

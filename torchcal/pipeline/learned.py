@@ -1,4 +1,4 @@
-"""The learned stage of a run: a residual model where the data demand it, and the correction network.
+"""The learned stage of a work: a residual model where the data demand it, and the correction network.
 
 * ``auto``: :func:`learned_stage`: an additive + ARD Gaussian process (:mod:`torchcal.effects.gp`), a kernel
   regression (:mod:`torchcal.effects.kernel`; only up to :data:`KERNEL_CANDIDATE_MAX` fitting poses) and the
@@ -16,10 +16,10 @@ from __future__ import annotations
 import copy
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
-from typing import TYPE_CHECKING
 
 import torch
 
+from torchcal import _console
 from torchcal import stats as S
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
@@ -31,10 +31,9 @@ from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, corrections, solve
 from torchcal.estimate.netfit import NetFitResult, fit_net
-from torchcal.pipeline.records import EffectRecord, Rejection, StageName
-
-if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
-    from torchcal.pipeline.run import CalibrationRun, Options
+from torchcal.pipeline.options import Options
+from torchcal.pipeline.records import Cause, EffectRecord, Rejection, StageName
+from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
 
 Tensor = torch.Tensor
 
@@ -48,30 +47,41 @@ VALIDATION_FRACTION = 0.2
 KERNEL_CANDIDATE_MAX = 1000
 
 
-def learned_stage(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
-    """The ``auto`` method's learned stage (module docstring); adds the ``learned`` stage when a model is kept."""
-    record = select_learned(run, train, trajectory)
+def learned_stage(run: CalibrationRun) -> StageResult:
+    """The ``auto`` method's learned stage (module docstring); adds the ``learned`` checkpoint when a model is kept."""
+    work = StageWork(run, "learned")
+    if not run.options.learned:
+        return work.result(model_changed=False)
+    # its fits pin their own threads (the GP's evidence and posterior, the LM refits); the model evaluations between
+    # them are small kernels too, so the whole stage runs on one, as the closed loop does
+    with torch_threads(1):
+        _learned(work, run.train, run.trajectory)
+    return work.result()
+
+
+def _learned(work: StageWork, train: Measurements, trajectory: bool) -> None:
+    record = select_learned(work, train, trajectory)
     if record is None:
         return
-    gp = None if run.options.learned_hyper else _conditioner(run, train, trajectory)
-    e_val = refine_learned(run, record, train, trajectory, gp=gp)
-    if any(e.kind in NAMED_KINDS for e in run.model.effects):
-        prune_named(run, train, trajectory, e_val, gp=gp)
-    condition_on_all(run, train, trajectory)
-    before = run.stages[-1]
-    after = run.add_stage(StageName.LEARNED)
+    gp = None if work.options.learned_hyper else _conditioner(work, train, trajectory)
+    e_val = refine_learned(work, record, train, trajectory, gp=gp)
+    if any(e.kind in NAMED_KINDS for e in work.model.effects):
+        prune_named(work, train, trajectory, e_val, gp=gp)
+    condition_on_all(work, train, trajectory)
+    before = work.stages[-1]
+    after = work.add_stage(StageName.LEARNED)
     record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
-    if run.diagnosis is not None and run.diagnosis.unexplained:
-        refresh_unexplained(run, train, trajectory, run.options.alpha)
+    if work.diagnosis is not None and work.diagnosis.unexplained:
+        refresh_unexplained(work, train, trajectory, work.options.alpha)
 
 
-def condition_on_all(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
+def condition_on_all(work: StageWork, train: Measurements, trajectory: bool) -> None:
     """A kept Gaussian process conditioned on every training pose, its hyperparameters as fitted.
 
     It was fitted and judged on the learned stage's fitting poses alone; the validation poses, a fifth of the
     training poses, would otherwise never inform the final model (the kernel regression already refits on all).
     """
-    model = run.model
+    model = work.model
     index = len(model.effects) - 1
     eff = model.effects[index]
     if not isinstance(eff, GPCorrection):
@@ -79,11 +89,11 @@ def condition_on_all(run: CalibrationRun, train: Measurements, trajectory: bool)
     others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
     corr = corrections(others, train, trajectory)
     ctx = Context.from_measurements(train, trajectory=trajectory)
-    model.effects[index] = condition_gp(eff, ctx, corr, _gp_settings(run))
-    run.notes.append(f"learned residual model: the Gaussian process conditioned on all {train.n} training poses")
+    model.effects[index] = condition_gp(eff, ctx, corr, _gp_settings(work))
+    work.note(f"learned residual model: the Gaussian process conditioned on all {train.n} training poses")
 
 
-def _conditioner(run: CalibrationRun, train: Measurements, trajectory: bool) -> GPConditioner | None:
+def _conditioner(work: StageWork, train: Measurements, trajectory: bool) -> GPConditioner | None:
     """When the kept model is a GP: its posterior's input-only factors on the learned stage's fitting poses, so that
     the alternating refits and the pruning of named effects re-condition it on new corrections with its
     hyperparameters held (:class:`~torchcal.effects.gp.GPConditioner`) instead of refitting them
@@ -93,24 +103,24 @@ def _conditioner(run: CalibrationRun, train: Measurements, trajectory: bool) -> 
     nothing after the first. The hyperparameters then do not follow the residual field a dropped effect leaves,
     so the pruning's paired tests see slightly different validation errors (a borderline decision can change).
     """
-    eff = run.model.effects[len(run.model.effects) - 1]
+    eff = work.model.effects[len(work.model.effects) - 1]
     if not isinstance(eff, GPCorrection):
         return None
-    fi, va = _learned_split(train, run.options.seed, run.options.group_tol, trajectory)
-    return GPConditioner(eff, Context(q=train.q[fi]), Context(q=train.q[va]), threads=_gp_settings(run).threads)
+    fi, va = _learned_split(train, work.options.seed, work.options.group_tol, trajectory)
+    return GPConditioner(eff, Context(q=train.q[fi]), Context(q=train.q[va]), threads=_gp_settings(work).threads)
 
 
-def _gp_settings(run: CalibrationRun) -> GPSettings:
-    return GPSettings(seed=int(run.options.seed))
+def _gp_settings(work: StageWork) -> GPSettings:
+    return GPSettings(seed=int(work.options.seed))
 
 
-def _fit_gp(run: CalibrationRun, train: Measurements, corr: Tensor, fi: Tensor, va: Tensor, warm=None):
+def _fit_gp(work: StageWork, train: Measurements, corr: Tensor, fi: Tensor, va: Tensor, warm=None):
     """A GP fitted to the corrections of the fitting poses ``fi`` and judged on the validation poses ``va``
     (:func:`~torchcal.effects.gp.fit_gp_correction`; ``warm``: a previous fit to start from)."""
     return fit_gp_correction(
         Context(q=train.q[fi]),
         corr[fi],
-        _gp_settings(run),
+        _gp_settings(work),
         ctx_val=Context(q=train.q[va]),
         y_val=corr[va],
         warm=warm,
@@ -133,13 +143,13 @@ def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory:
 
 
 def select_learned(
-    run: CalibrationRun, train: Measurements, trajectory: bool, min_gain: float = 0.05, alpha: float = 0.01
+    work: StageWork, train: Measurements, trajectory: bool, min_gain: float = 0.05, alpha: float = 0.01
 ) -> EffectRecord | None:
     """Add the better of a kernel correction and a correction network if it earns its place (module docstring).
 
-    Returns the record of the kept model (appended to the run), or None when neither earned its place.
+    Returns the record of the kept model (appended to the work), or None when neither earned its place.
     """
-    model, opts = run.model, run.options
+    model, opts = work.model, work.options
     corr = corrections(model, train, trajectory)
     fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
     e0 = corr[va].norm(dim=-1)
@@ -149,7 +159,7 @@ def select_learned(
     # step's time; every fit on one torch thread (as the GP's always was), so that the results do not depend on
     # the interleaving
     with torch_threads(1), ThreadPoolExecutor(max_workers=1, initializer=torch.set_num_threads, initargs=(1,)) as pool:
-        gp_job = pool.submit(_fit_gp, run, train, corr, fi, va)
+        gp_job = pool.submit(_fit_gp, work, train, corr, fi, va)
         init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
         net, res = _fitted_network(model, opts, init, train.q, corr, fi, va)
         with torch.no_grad():
@@ -173,12 +183,12 @@ def select_learned(
                 },
             )
         except EstimationError as err:  # its evidence fit diverged: the other candidates compete without it
-            run.notes.append(f"learned residual model: the Gaussian process was left out ({err})")
+            work.note(f"learned residual model: the Gaussian process was left out ({err})")
     if kernel is not None:
         kern, info = kernel
         candidates["kernel"] = (kern, info["val_errors"], kern.describe())
     else:  # a dozen dense solves of that size, for a candidate the GP has beaten on every data set measured
-        run.notes.append(
+        work.note(
             f"learned residual model: the dense kernel regression is left out ({len(fi)} fitting poses, "
             f"more than the {KERNEL_CANDIDATE_MAX} at which it competes)"
         )
@@ -210,22 +220,22 @@ def select_learned(
         "n_validation": len(va),
     }
     accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
-    run.notes.append(
+    work.note(
         f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
         f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})"
     )
     if not accepted:
-        run.rejections.append(Rejection("learned", None, evidence))
+        work.rejections.append(Rejection("learned", None, evidence, cause=Cause.SELECTION))
         return None
     model.add(effect)
-    run.learned_validation_errors = e1
+    work.learned_validation_errors = e1
     record = EffectRecord("learned", None, params, evidence, name="learned", label="learned")
-    run.effects.append(record)
+    work.effects.append(record)
     return record
 
 
 def _refit_with_learned(
-    run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool, gp: GPConditioner | None = None
+    work: StageWork, model: MeasurementModel, train: Measurements, trajectory: bool, gp: GPConditioner | None = None
 ) -> tuple[Fit, Tensor]:
     """One alternating round on ``model`` (its last effect is the learned one): the geometry and the named
     effects with the learned correction in place, then the learned model on the new corrections.
@@ -234,18 +244,18 @@ def _refit_with_learned(
     a refitted kernel or GP replaces the old one in ``model``. ``gp``: a GP is re-conditioned through it, its
     hyperparameters held (:func:`_conditioner`), instead of refitted.
     """
-    fit, corr = _refit_geometry(run, model, train, trajectory)
-    return fit, _refit_learned_model(run, model, train, trajectory, corr, gp)
+    fit, corr = _refit_geometry(work, model, train, trajectory)
+    return fit, _refit_learned_model(work, model, train, trajectory, corr, gp)
 
 
 def _refit_geometry(
-    run: CalibrationRun, model: MeasurementModel, train: Measurements, trajectory: bool
+    work: StageWork, model: MeasurementModel, train: Measurements, trajectory: bool
 ) -> tuple[Fit, Tensor]:
     """The first half of :func:`_refit_with_learned`: the least-squares refit with the learned correction in place;
     returns it and the corrections ``(N, 3)`` [m] that the learned model is then refitted to."""
-    opts = run.options
+    opts = work.options
     index = len(model.effects) - 1
-    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    ida = next((f.identifiability for f in reversed(work.fits) if f.identifiability is not None), None)
     groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
     # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
     # data its valley is flat and an uncapped LM crawls for minutes without changing the comparison
@@ -264,7 +274,7 @@ def _refit_geometry(
 
 
 def _refit_learned_model(
-    run: CalibrationRun,
+    work: StageWork,
     model: MeasurementModel,
     train: Measurements,
     trajectory: bool,
@@ -273,7 +283,7 @@ def _refit_learned_model(
 ) -> Tensor:
     """The second half of :func:`_refit_with_learned`: the learned model (``model``'s last effect) refitted to the
     corrections ``corr``; returns its validation errors ``(n_val,)`` [m]."""
-    opts = run.options
+    opts = work.options
     index = len(model.effects) - 1
     eff = model.effects[index]
     fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
@@ -294,7 +304,7 @@ def _refit_learned_model(
         model.effects[index] = new
         e_val = info["val_errors"]
     elif isinstance(eff, GPCorrection):
-        new, info = _fit_gp(run, train, corr, fi, va, warm=eff)
+        new, info = _fit_gp(work, train, corr, fi, va, warm=eff)
         model.effects[index] = new
         e_val = info["val_errors"]
     else:
@@ -313,7 +323,7 @@ def _refit_learned_model(
 
 
 def refine_learned(
-    run: CalibrationRun,
+    work: StageWork,
     record: EffectRecord,
     train: Measurements,
     trajectory: bool,
@@ -330,16 +340,16 @@ def refine_learned(
     RMSE of the learned model falls. Returns the learned model's validation errors per pose.
     ``gp``: re-conditions a GP with its hyperparameters held (:func:`_conditioner`).
     """
-    model = run.model
+    model = work.model
     best = record.evidence["validation_rmse_after_mm"] * 1e-3
     best_e = None
     history = [best * 1e3]
     for _ in range(rounds):
         trial = copy.deepcopy(model)
         try:
-            fit, e_val = _refit_with_learned(run, trial, train, trajectory, gp)
-        except EstimationError as err:  # a rank-deficient refit: the model stays as it is, and the run says so
-            run.notes.append(f"learned residual model: an alternating refit failed and was not kept ({err})")
+            fit, e_val = _refit_with_learned(work, trial, train, trajectory, gp)
+        except EstimationError as err:  # a rank-deficient refit: the model stays as it is, and the work says so
+            work.note(f"learned residual model: an alternating refit failed and was not kept ({err})")
             break
         v = S.rmse(e_val)
         if not v < best * (1.0 - 1e-3):
@@ -347,11 +357,11 @@ def refine_learned(
         _adopt(model, trial)
         best, best_e = v, e_val
         history.append(v * 1e3)
-        run.fits.append(fit)
+        work.fits.append(fit)
     if best_e is None:  # no round helped: the errors of the model as it stands
-        best_e = run.learned_validation_errors
+        best_e = work.learned_validation_errors
     record.evidence["alternating_refit_validation_rmse_mm"] = history
-    run.notes.append(
+    work.note(
         f"learned residual model: {len(history) - 1} alternating refits of geometry and learned model, "
         f"validation {history[0]:.4f} -> {history[-1]:.4f} mm"
     )
@@ -367,7 +377,7 @@ def _adopt(model: MeasurementModel, other: MeasurementModel) -> None:
 
 
 def prune_named(
-    run: CalibrationRun, train: Measurements, trajectory: bool, e_val: Tensor, gp: GPConditioner | None = None
+    work: StageWork, train: Measurements, trajectory: bool, e_val: Tensor, gp: GPConditioner | None = None
 ) -> None:
     """With a learned model in place, drop each named effect the learned model explains as well.
 
@@ -382,7 +392,7 @@ def prune_named(
     effect before is dropped, that refit is discarded and done again on the new model, so the decisions and
     numbers are those of one effect after the other. Every fit on one torch thread, as in :func:`select_learned`.
     """
-    model = run.model
+    model = work.model
     labels = [e.label() for e in model.effects if e.kind in NAMED_KINDS]
     # the learned model is the last effect; only a GP refitted by its evidence runs beside the next geometry refit
     ahead_of_time = isinstance(model.effects[len(model.effects) - 1], GPCorrection) and gp is None
@@ -391,17 +401,17 @@ def prune_named(
         for pos, label in enumerate(labels):
             k = next(i for i, e in enumerate(model.effects) if e.label() == label)
             eff = model.effects[k]
-            job = ahead if ahead is not None else _Without(run, model, label, train, trajectory)
+            job = ahead if ahead is not None else _Without(work, model, label, train, trajectory)
             job.start(gp, pool)
             ahead = None
             if ahead_of_time and pos + 1 < len(labels):  # the next one's geometry refit while this one's GP refits
-                ahead = _Without(run, model, labels[pos + 1], train, trajectory)
+                ahead = _Without(work, model, labels[pos + 1], train, trajectory)
             try:
                 trial, fit, e_without = job.result()
             except EstimationError as err:  # cannot judge it without the effect: the effect stays
-                run.notes.append(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
+                work.note(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
                 continue
-            if _prune_one(run, model, eff, trial, fit, e_without, e_val):
+            if _prune_one(work, model, eff, trial, fit, e_without, e_val):
                 e_val = e_without
                 ahead = None  # refitted on the model with this effect: again on the model without it
 
@@ -412,20 +422,20 @@ class _Without:
     :meth:`start` (a GP refitted by its evidence in ``pool``, any other at once). :meth:`result` gives
     ``(trial, fit, validation errors)`` or raises the refit's EstimationError."""
 
-    def __init__(self, run: CalibrationRun, model: MeasurementModel, label: str, train: Measurements, trajectory: bool):
-        self.run, self.train, self.trajectory = run, train, trajectory
+    def __init__(self, work: StageWork, model: MeasurementModel, label: str, train: Measurements, trajectory: bool):
+        self.work, self.train, self.trajectory = work, train, trajectory
         self.trial = copy.deepcopy(model)
         del self.trial.effects[next(i for i, e in enumerate(model.effects) if e.label() == label)]
         self.error, self.job, self.e_val = None, None, None
         try:
-            self.fit, self.corr = _refit_geometry(run, self.trial, train, trajectory)
+            self.fit, self.corr = _refit_geometry(work, self.trial, train, trajectory)
         except EstimationError as err:
             self.error = err
 
     def start(self, gp: GPConditioner | None, pool: ThreadPoolExecutor) -> None:
         if self.error is not None:
             return
-        args = (self.run, self.trial, self.train, self.trajectory, self.corr)
+        args = (self.work, self.trial, self.train, self.trajectory, self.corr)
         if isinstance(self.trial.effects[len(self.trial.effects) - 1], GPCorrection) and gp is None:
             self.job = pool.submit(_refit_learned_model, *args)
             return
@@ -442,7 +452,7 @@ class _Without:
 
 
 def _prune_one(
-    run: CalibrationRun,
+    work: StageWork,
     model: MeasurementModel,
     eff: Effect,
     trial: MeasurementModel,
@@ -451,8 +461,8 @@ def _prune_one(
     e_val: Tensor,
 ) -> bool:
     """:func:`prune_named`'s decision on ``eff`` from the refit without it; drops it (``model`` takes ``trial``'s
-    effects and values, the run's records say why) and returns True, or records why it stays and returns False."""
-    opts = run.options
+    effects and values, the work's records say why) and returns True, or records why it stays and returns False."""
+    opts = work.options
     test = S.paired_improvement(e_without, e_val)
     evidence = {
         "validation_rmse_with_mm": S.rmse(e_val) * 1e3,
@@ -462,42 +472,46 @@ def _prune_one(
         "n": test["n"],
         "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}",
     }
-    entry = next((r for r in run.effects if r.label == eff.label()), None)
+    entry = next((r for r in work.effects if r.label == eff.label()), None)
     if entry is not None:
-        entry.evidence["with_learned_model"] = evidence
+        entry = work.amend(entry, with_learned_model=evidence)
     if test["p_value"] < opts.alpha_validation:
         return False
     _adopt(model, trial)
-    run.fits.append(fit)
+    work.fits.append(fit)
     reason = (
         f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
         f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})"
     )
-    run.notes.append(f"diagnosis: {eff.label()} dropped: {reason}")
+    work.note(f"diagnosis: {eff.label()} dropped: {reason}")
     if entry is not None:
-        run.effects.remove(entry)
-        run.rejections.append(
+        work.effects[:] = [r for r in work.effects if r is not entry]
+        work.rejections.append(
             Rejection(
                 entry.kind,
                 entry.joint,
                 entry.evidence,
                 name=entry.name,
                 reason=f"accepted in round {entry.evidence.get('round')}, then dropped: {reason}",
+                cause=Cause.EXPLAINED,
             )
         )
-    run.stages[:] = [st for st in run.stages if st.name != eff.label()]
-    if run.diagnosis is not None:
-        run.diagnosis.drop(eff.label(), f"dropped after the learned stage: {reason}")
+    work.stages[:] = [st for st in work.stages if st.name != eff.label()]
+    if work.diagnosis is not None:
+        work.diagnosis.drop(eff.label(), f"dropped after the learned stage: {reason}")
     return True
 
 
-def correction_net_stage(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
-    """The ``pcm`` / ``kinematic+ann`` step: a correction network on what remains, as the ``learned`` stage."""
-    model, opts = run.model, run.options
-    fit_correction_net(run, train, trajectory)
-    before = run.stages[-1]
-    after = run.add_stage(StageName.LEARNED)
-    run.effects.append(
+def correction_net_stage(run: CalibrationRun) -> StageResult:
+    """The ``pcm`` / ``kinematic+ann`` step: a correction network on what remains (paper Eq. 22: corrections in the
+    base frame), as the ``learned`` checkpoint."""
+    work = StageWork(run, "correction network")
+    model, opts = work.model, work.options
+    _console.info(f"correction network {model.robot.dof}-{opts.hidden}-3 on the remaining position corrections")
+    fit_correction_net(work, run.train, run.trajectory)
+    before = work.stages[-1]
+    after = work.add_stage(StageName.LEARNED)
+    work.effects.append(
         EffectRecord(
             "learned",
             None,
@@ -507,11 +521,12 @@ def correction_net_stage(run: CalibrationRun, train: Measurements, trajectory: b
             rmse_after_mm=after.rmse * 1e3,
         )
     )
+    return work.result()
 
 
-def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: bool) -> None:
+def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -> None:
     """Add a :class:`LearnedEffect` fitted to the training corrections, early-stopped on a validation share."""
-    model, opts = run.model, run.options
+    model, opts = work.model, work.options
     corr = corrections(model, train, trajectory)  # R^T (y - f): the correction in the base frame
     g = torch.Generator().manual_seed(int(opts.seed) + S.Stream.CORRECTION_NET)
     # the generator goes on to the network's initial weights and to the fit
@@ -524,7 +539,7 @@ def fit_correction_net(run: CalibrationRun, train: Measurements, trajectory: boo
         sort=False,
     )
     net, res = _fitted_network(model, opts, g, train.q, corr, fit_i, val_i, fit_generator=g)
-    run.notes.append(
+    work.note(
         f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
         f"best validation at {res.best_iteration}"
     )

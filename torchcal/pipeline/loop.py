@@ -34,8 +34,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import torch
 
@@ -57,115 +56,33 @@ from torchcal.effects.drift import Drift
 from torchcal.effects.joint import SupportedForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
-from torchcal.pipeline.records import EffectRecord, Rejection, StageName
-
-if TYPE_CHECKING:  # the run imports this module: only the type, no import at run time
-    from torchcal.pipeline.run import CalibrationRun
+from torchcal.pipeline.holdout import at_edges
+from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
+from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
 
 Tensor = torch.Tensor
 GROUPS = GEOMETRIC_GROUPS
 DESCRIPTORS = ("source", "harmonics", "variable", "target", "reference", "payload_kg")  # fixed settings of effects
 
 
-@dataclass
-class Decision:
-    """One candidate that reached validation: accepted or not, with the evidence."""
-
-    round: int
-    candidate: Candidate
-    score: Score
-    accepted: bool
-    why: str  # the loop's verdict
-    validation: dict
-    stage: str | None = None  # the stage an accepted effect opened
-    models: tuple | None = None  # (before, after) models for the plots; after fitted on the training poses
-    dropped: str | None = None  # why a later stage dropped the accepted effect again
-
-    @property
-    def reason(self) -> str:
-        """The verdict, and the later drop if any."""
-        return self.why if self.dropped is None else f"{self.why}; {self.dropped}"
-
-    def to_dict(self) -> dict:
-        return {
-            "round": self.round,
-            **self.candidate.to_dict(),
-            "accepted": self.accepted,
-            "reason": self.reason,
-            "score": self.score.to_dict(),
-            "validation": self.validation,
-            "stage": self.stage,
-        }
-
-
-@dataclass
-class Diagnosis:
-    """Everything the loop looked at, for the report."""
-
-    alpha: float
-    alpha_validation: float
-    n_fit: int
-    n_validation: int
-    candidates: list[Candidate]
-    skipped: list[dict]
-    rounds: list[dict] = field(default_factory=list)  # per round: scores and the global test before it
-    decisions: list[Decision] = field(default_factory=list)
-    stop: str = ""
-    unexplained: list[dict] = field(default_factory=list)  # tracing.unexplained_entries of the final model
-
-    def to_dict(self) -> dict:
-        return {
-            "method": "score tests at the current fit (Bonferroni over the candidates), joint refit, "
-            "confirmation on validation poses (paired one-sided test)",
-            "alpha": self.alpha,
-            "alpha_validation": self.alpha_validation,
-            "n_fit": self.n_fit,
-            "n_validation": self.n_validation,
-            "candidates": [c.name for c in self.candidates],
-            "skipped": self.skipped,
-            "rounds": [
-                {
-                    "round": r["round"],
-                    "global_test": r["global_test"],
-                    "scores": [s.to_dict() for s in r["scores"]],
-                    **{k: r[k] for k in ("localisation", "open_candidates", "open_notes") if k in r},
-                }
-                for r in self.rounds
-            ],
-            "decisions": [d.to_dict() for d in self.decisions],
-            "stop": self.stop,
-        }
-
-    def drop(self, stage: str, why: str) -> None:
-        """Mark the decisions that opened ``stage`` as dropped by a later stage, with ``why``."""
-        for d in self.decisions:
-            if d.stage == stage:
-                d.dropped = why
-
-
 def close_loop(
-    run: CalibrationRun,
-    train: Measurements,
-    trajectory: bool,
-    *,
-    max_effects: int = 8,
-    max_tries: int = 3,
-    open_forms: bool = True,
-) -> Diagnosis:
-    """Add the effects the training data demand to ``run.model`` (module docstring).
+    run: CalibrationRun, *, max_effects: int = 8, max_tries: int = 3, open_forms: bool = True
+) -> StageResult:
+    """The effects the training data demand, added to the run's model (module docstring).
 
-    Each accepted effect becomes a stage of the run, with its :class:`EffectRecord`; each candidate that
-    validation does not confirm, a :class:`Rejection`.
+    Each accepted effect becomes a checkpoint of the story, with its :class:`EffectRecord`; each candidate that
+    validation does not confirm, a :class:`Rejection`; the search itself, the result's ``diagnosis``.
 
     Args:
-        run: a :class:`~torchcal.pipeline.run.CalibrationRun` whose last fit is the geometric one.
-        train: the training measurements (the held-out poses are never seen here).
+        run: a run whose last fit is the geometric one; only its training poses are seen here.
         max_effects: at most this many effects are added.
         max_tries: significant candidates validated per round before the loop gives up.
         open_forms: also localise the residual each round and propose the form chosen there
             (:mod:`torchcal.diagnose.tracing`); at the end, report what is left (``Diagnosis.unexplained``).
     """
-    opts, model = run.options, run.model
+    work = StageWork(run, "closed loop")
+    train, trajectory = run.train, run.trajectory
+    opts, model = run.options, work.model
     # the levels: of the score tests (family-wise, Bonferroni over the candidates) and of the paired validation test
     alpha, alpha_val = opts.alpha, opts.alpha_validation
     ctx = Context.from_measurements(train, trajectory=trajectory)
@@ -180,12 +97,12 @@ def close_loop(
     )
     fit_part, val_part = train.subset(fi), train.subset(va)
     diag = Diagnosis(alpha, alpha_val, len(fi), len(va), list(cands), skipped)
-    run.diagnosis = diag
+    work.diagnosis = diag
     if not cands:
         diag.stop = "no candidate effects for these data"
-        return diag
+        return work.result()
 
-    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    ida = run.identifiability
 
     def fit_on(m: MeasurementModel, data, stage: str):
         return solve(m, data, GROUPS, opts, stage, trajectory, effects=True, identifiability=ida)
@@ -209,13 +126,13 @@ def close_loop(
         if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
             _validate_edge(v, base, fit_on, fit_part, trajectory, alpha_val, edge_bases)
         if not v.passed:
-            _reject(run, diag, v)
+            _reject(work, diag, v)
             if isinstance(cand, OpenCandidate):
                 open_notes[cand.choice.variable.name] = f"{cand.name} ({cand.choice.form}) rejected: {v.reason}"
         return v
 
     for rnd in range(1, max_effects + 1):
-        fit = run.fits[-1]
+        fit = work.fits[-1]
         remaining = [c for c in cands if c.name not in tried and c.name not in accepted_names]
         scores = (
             score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining, tol=opts.rank_tol)
@@ -272,8 +189,8 @@ def close_loop(
         accepted = None
         remaining = list(passed)
         while remaining:
-            v = _choose(remaining, trajectory, alpha_val, run)
-            if _accept(run, diag, v, fit_on, train):
+            v = _choose(remaining, trajectory, alpha_val, work)
+            if _accept(work, diag, v, fit_on, train):
                 accepted = v
                 break
             remaining.remove(v)
@@ -288,12 +205,12 @@ def close_loop(
         edge_bases.clear()
     else:
         diag.stop = f"reached the limit of {max_effects} effects"
-        for loc in localise_fit(model, ctx, train.p, run.fits[-1])[0] if open_forms else []:
+        for loc in localise_fit(model, ctx, train.p, work.fits[-1])[0] if open_forms else []:
             open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
-    final = run.fits[-1]
+    final = work.fits[-1]
     if open_forms and not final.global_test.get("passed", True):
         diag.unexplained = unexplained_entries(model, ctx, train.p, final, alpha, open_notes)
-    return diag
+    return work.result()
 
 
 @dataclass
@@ -311,6 +228,7 @@ class _Validation:
     reason: str
     bic: float = float("nan")  # BIC of the trial's fit on the fitting poses (n ln(RSS / n) + k ln n, whitened)
     rejected: bool = False  # confirmed on validation, but its refit on all training poses failed
+    cause: Cause = Cause.VALIDATION  # why it was rejected, where it was
 
 
 def _validate(
@@ -339,12 +257,12 @@ def _validate(
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
         reason = f"its joint refit on the fitting poses failed ({err})"
         validation = _untested(e_base, None, refit_failed=str(err))
-        return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason)
+        return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason, cause=Cause.REFIT_FAILED)
     e_trial = errors(trial, val_part, trajectory)
     unsure = joint_function_check(trial.effects[-1], fit_part.q, trial.robot, max_size)
     if unsure is not None:  # fits the poses, but explodes just beyond them: never better than without it
         validation = _untested(e_base, e_trial, ill_determined=unsure)
-        return _Validation(s, rnd, cand, base, trial, e_trial, validation, False, unsure)
+        return _Validation(s, rnd, cand, base, trial, e_trial, validation, False, unsure, cause=Cause.ILL_DETERMINED)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
     validation = {
@@ -380,7 +298,7 @@ def _edge_split(q: Tensor, joint: int, share: float = EDGE_SHARE) -> tuple[Tenso
     """The fitting poses' indices in the middle of joint ``joint``'s (1-based) range and at its two edges (the
     outer ``share`` of the poses on each side)."""
     qj = q[:, joint - 1 : joint]
-    edge = _at_edges(qj, qj, share)
+    edge = at_edges(qj, qj, share)
     return torch.nonzero(~edge)[:, 0], torch.nonzero(edge)[:, 0]
 
 
@@ -431,7 +349,7 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         f">= {alpha_val})",
     }
     if r1 > r0 and worse["p_value"] < alpha_val:
-        v.passed = False
+        v.passed, v.cause = False, Cause.EDGE
         v.reason = (
             f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
             f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
@@ -465,7 +383,7 @@ def _untested(e_base: Tensor, e_trial: Tensor | None, **why: str) -> dict:
     }
 
 
-def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, run: CalibrationRun) -> _Validation:
+def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, work: StageWork) -> _Validation:
     """The candidate to accept among those that passed validation: the lowest validation RMSE, unless another
     is not significantly worse on the validation poses (paired one-sided test, ``alpha_val``); among such ties
     the lowest BIC of the fit on the fitting poses wins. Two forms that explain the same structure equally well
@@ -479,7 +397,7 @@ def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, run: 
     ]
     chosen = min(tied, key=lambda v: v.bic)
     if chosen is not best:
-        run.notes.append(
+        work.note(
             f"diagnosis: {chosen.candidate.name} preferred to {best.candidate.name} (validation RMSE "
             f"{chosen.validation['rmse_after_mm']:.4f} vs {best.validation['rmse_after_mm']:.4f} mm, not significantly "
             f"different; BIC {chosen.bic:.1f} vs {best.bic:.1f})"
@@ -487,25 +405,22 @@ def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, run: 
     return chosen
 
 
-def _reject(run: CalibrationRun, diag: Diagnosis, v: _Validation) -> None:
+def _reject(work: StageWork, diag: Diagnosis, v: _Validation) -> None:
     """Record a candidate that validation did not confirm."""
     cand = v.candidate
     diag.decisions.append(Decision(v.round, cand, v.score, False, v.reason, v.validation, None, (v.base, v.trial)))
-    run.rejections.append(
-        Rejection(
-            cand.kind, cand.joint, {**v.score.to_dict(), "validation": v.validation}, name=cand.name, reason=v.reason
-        )
-    )
-    run.notes.append(f"diagnosis: {cand.name} rejected, {v.reason}")
+    evidence = {**v.score.to_dict(), "validation": v.validation}
+    work.rejections.append(Rejection(cand.kind, cand.joint, evidence, name=cand.name, reason=v.reason, cause=v.cause))
+    work.note(f"diagnosis: {cand.name} rejected, {v.reason}")
 
 
-def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> bool:
+def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> bool:
     """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it.
 
     Returns False, with the candidate rejected and the model as it was, when the refit fails (the solver writes
     no parameter then).
     """
-    model, s, cand = run.model, v.score, v.candidate
+    model, s, cand = work.model, v.score, v.candidate
     before = copy.deepcopy(model)
     eff = _made(cand, train)
     model.add(eff)
@@ -518,19 +433,19 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     try:
         new_fit = fit_on(model, train, label)
         # the refit on all training poses is judged like the validation refit: determined and of a physical size
-        unsure = joint_function_check(eff, train.q, model.robot, run.options.max_joint_error)
+        unsure = joint_function_check(eff, train.q, model.robot, work.options.max_joint_error)
         if unsure is not None:
             raise EstimationError(unsure)
     except EstimationError as err:
         del model.effects[len(model.effects) - 1]
         model.load_state_dict(before.state_dict())
-        v.passed, v.rejected = False, True
+        v.passed, v.rejected, v.cause = False, True, Cause.REFIT_FAILED
         v.reason = f"confirmed on validation, but its joint refit on all training poses failed ({err})"
-        _reject(run, diag, v)
+        _reject(work, diag, v)
         return False
-    run.fits.append(new_fit)
-    st_before = run.stages[-1]
-    st_after = run.add_stage(label)
+    work.fits.append(new_fit)
+    st_before = work.stages[-1]
+    st_after = work.add_stage(label)
     diag.decisions.append(
         Decision(
             v.round,
@@ -550,7 +465,7 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
     }
     if isinstance(cand, OpenCandidate):
         params = effect_form_params(model, index, cand, params)
-    run.effects.append(
+    work.effects.append(
         EffectRecord(
             cand.kind,
             cand.joint,
@@ -562,124 +477,9 @@ def _accept(run: CalibrationRun, diag: Diagnosis, v: _Validation, fit_on, train:
             rmse_after_mm=st_after.rmse * 1e3,
         )
     )
-    run.notes.append(
+    work.note(
         f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
         f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
     return True
-
-
-#: the guard's edge: a held-out pose with a joint beyond this quantile of the training poses' (either side)
-HOLDOUT_EDGE = 0.025
-
-
-def _at_edges(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
-    """Which poses ``q_hold`` ``(M,)`` lie at the edges of the poses ``q_train``'s joint ranges: some joint below its
-    ``share`` quantile or above its ``1 - share`` quantile in ``q_train`` (or beyond their range)."""
-    if len(q_hold) == 0 or len(q_train) == 0:
-        return torch.zeros(len(q_hold), dtype=torch.bool, device=q_hold.device)
-    lo = torch.quantile(q_train, share, dim=0)
-    hi = torch.quantile(q_train, 1.0 - share, dim=0)
-    return ((q_hold < lo) | (q_hold > hi)).any(dim=1)
-
-
-def guard_holdout(run: CalibrationRun, train: Measurements, trajectory: bool) -> dict | None:
-    """The ``auto`` method never ends worse than the kinematic calibration on the held-out poses.
-
-    The closed loop and the learned stage confirm every effect on validation poses cut from the training poses;
-    an effect fitted jointly with the geometry can still win there and extrapolate badly elsewhere (on an
-    outside-style trajectory, a cyclic error of the wrist fitted with the geometry raised the held-out error from
-    0.090 to 0.104 mm and the continuation's from 0.12 to 1.03 mm). Where the final model's held-out RMSE is not
-    below the geometric stage's, the run steps back to the last stage whose held-out RMSE is (the stages are
-    nested: each holds the model as it stood), or to the kinematic calibration when none is; the effects of the
-    stages dropped become rejections that say why, with the held-out errors of every stage
-    (``run.holdout_guard``, report.json ``holdout_guard``). The held-out RMSE reported is then that of a model the
-    held-out poses helped choose; the guard only ever steps back towards the geometry, never adds anything.
-
-    Returns the evidence (None where the run has no stage after the geometric one or no held-out poses).
-    """
-    geo = run.stage(StageName.GEOMETRIC)
-    final = run.stages[-1]
-    if final is geo or len(run.holdout_idx) == 0:
-        return None
-    i_geo = run.stages.index(geo)
-    # the held-out poses at the edges of the training poses' joint ranges: a stage must not lose there either
-    edge = _at_edges(train.q, run.data.q[run.holdout_idx])
-    alpha_val = run.options.alpha_validation
-
-    def edge_worse(st) -> bool:
-        if int(edge.sum()) < 10:
-            return False
-        e1, e0 = st.holdout_errors[edge], geo.holdout_errors[edge]
-        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=trajectory)["p_value"] < alpha_val
-
-    def edge_rmse(st) -> float | None:
-        return S.rmse(st.holdout_errors[edge]) * 1e3 if bool(edge.any()) else None
-
-    evidence = {
-        "rule": "the final model's held-out RMSE must be below the kinematic calibration's, and on the held-out poses "
-        f"at the edges of the joint ranges (a joint beyond the {HOLDOUT_EDGE:.1%} / {1 - HOLDOUT_EDGE:.1%} quantiles "
-        "of the training poses) not significantly above it; otherwise the run keeps the last stage that is, or the "
-        "kinematic calibration",
-        "geometric_rmse_mm": geo.rmse * 1e3,
-        "n_edge": int(edge.sum()),
-        "stages": [
-            {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_edge_mm": edge_rmse(s)} for s in run.stages[i_geo:]
-        ],
-        "passed": bool(final.rmse < geo.rmse) and not edge_worse(final),
-    }
-    run.holdout_guard = evidence
-    if evidence["passed"]:
-        return evidence
-    k = next(
-        j
-        for j in range(len(run.stages) - 1, i_geo - 1, -1)
-        if j == i_geo or (run.stages[j].rmse < geo.rmse and not edge_worse(run.stages[j]))
-    )
-    kept = run.stages[k]
-    evidence["kept_stage"] = kept.name
-    lost = (
-        f"({geo.rmse * 1e3:.4f} -> {final.rmse * 1e3:.4f} mm)"
-        if final.rmse >= geo.rmse
-        else f"at the edges of the joint ranges ({evidence['n_edge']} poses: {edge_rmse(geo):.4f} -> "
-        f"{edge_rmse(final):.4f} mm), though better in the middle"
-    )
-    reason = (
-        f"held-out guard: the final model is worse than the kinematic calibration on the held-out poses "
-        f"{lost}; the run keeps "
-        + (
-            "the kinematic calibration"
-            if k == i_geo
-            else f"the model as it stood after {kept.name} ({kept.rmse * 1e3:.4f} mm)"
-        )
-    )
-    kept_names = {s.name for s in run.stages[: k + 1]}
-    dropped = [r for r in run.effects if r.label not in kept_names]
-    for rec in dropped:
-        run.rejections.append(
-            Rejection(
-                rec.kind,
-                rec.joint,
-                {"params": rec.params, "admitted_by": rec.evidence, "holdout_guard": evidence},
-                name=rec.name or rec.label,
-                reason=reason,
-            )
-        )
-    run.effects[:] = [r for r in run.effects if r.label in kept_names]
-    del run.stages[k + 1 :]
-    run.model = copy.deepcopy(kept.model)
-    run.robot = run.model.robot
-    # the report's global test, parameters and unexplained structure: those of the kept stage's own fit (the
-    # geometric one, or the joint refit that admitted the kept effect), not of a fit the dropped stages added
-    n = max((j for j, f in enumerate(run.fits) if f.stage == kept.name), default=None)
-    if n is not None:
-        del run.fits[n + 1 :]
-        diag = run.diagnosis
-        if diag is not None and not run.fits[-1].global_test.get("passed", True):
-            ctx = Context.from_measurements(train, trajectory=trajectory)
-            why = {f"q{r.joint}" if r.joint else "t": reason for r in dropped}
-            diag.unexplained = unexplained_entries(run.model, ctx, train.p, run.fits[-1], run.options.alpha, why)
-    run.notes.append(reason)
-    _console.info(reason)
-    return evidence

@@ -1,0 +1,88 @@
+"""Checks a run makes before and after its geometric fit: enough held-out poses, poses that can determine a
+calibration, and geometric corrections of a plausible size."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from torchcal import stats as S
+from torchcal.data import Measurements
+from torchcal.effects import MeasurementModel
+from torchcal.errors import EstimationError, MeasurementFileError, OptionError
+from torchcal.estimate.fit import Fit, prior_ratios
+from torchcal.pipeline.options import Options
+
+#: fewest held-out poses a run reports an error on
+MIN_HOLDOUT = 3
+#: the largest geometric correction, in prior standard deviations, a calibration accepts: lengths and angles
+#: (docs/prior_ratios.md: measured on legitimate data, simulated and real, and on data of another robot)
+MAX_PRIOR_RATIO = {"m": 50.0, "rad": 300.0}
+
+
+def check_holdout(n: int, holdout: float) -> None:
+    """Refuse a held-out fraction that leaves fewer than :data:`MIN_HOLDOUT` of ``n`` poses: a held-out RMSE of one
+    or two poses is no evidence. (The command line's rule; scripts that refit on nearly everything may hold out
+    less through the library.)"""
+    n_hold = S.holdout_count(n, holdout)
+    if n_hold < MIN_HOLDOUT:
+        raise OptionError(
+            f"--holdout {holdout:g} of {n} poses holds out {n_hold}; at least {MIN_HOLDOUT} are needed for a "
+            f"held-out error (--holdout >= {MIN_HOLDOUT / n:.3g})"
+        )
+
+
+def check_poses(data: Measurements) -> None:
+    """Refuse poses that cannot determine a calibration, naming the file and the cause, before any fitting: all
+    rows with the same joint readings, measured positions that are one point or lie on one line, or only one joint
+    moving (its circle leaves the other joints' geometry undetermined)."""
+    src = data.source or "the measurements"
+    q, p = data.q.detach().cpu(), data.p.detach().cpu()
+    spread = q.max(dim=0).values - q.min(dim=0).values
+    moving = [f"q{k + 1}" for k in range(data.dof) if float(spread[k]) > S.GROUP_TOL]
+    if data.n > 1 and not moving:
+        raise MeasurementFileError(
+            src,
+            f"all {data.n} poses have the same joint readings; a calibration needs the robot measured in many "
+            "different poses",
+        )
+    if data.n > 1 and len(moving) == 1 and data.dof > 1:
+        raise MeasurementFileError(
+            src,
+            f"only {moving[0]} moves across the {data.n} poses; a calibration needs poses that move the joints "
+            "together (one joint's circle leaves the rest of the geometry undetermined)",
+            column=moving[0],
+        )
+    if data.n > 2:
+        centred = p - p.mean(dim=0)
+        sv = torch.linalg.svdvals(centred)
+        if float(sv[0]) <= 1e-9 * max(1.0, float(p.abs().max())):
+            raise MeasurementFileError(src, f"all {data.n} measured positions x, y, z are the same point")
+        if float(sv[1]) <= 1e-9 * float(sv[0]):
+            raise MeasurementFileError(
+                src,
+                f"the {data.n} measured positions x, y, z lie on one straight line; the tracker's pose cannot be "
+                "fitted to them (were the columns filled in by hand?)",
+            )
+
+
+def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Measurements) -> None:
+    """Stop a run whose geometric corrections are many times their priors (:data:`MAX_PRIOR_RATIO`): the data were
+    measured on another robot, in other units, or the description is not the robot's."""
+    ratios = prior_ratios(fit, model, opts)
+    units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+    worst = sorted(((r / MAX_PRIOR_RATIO[units[n]], r, n) for n, r in ratios.items()), reverse=True)
+    if not worst or worst[0][0] <= 1.0:
+        return
+    listed = []
+    for _, r, n in worst[:3]:
+        value = float(fit.result.x[fit.free.names.index(n)])
+        shown = f"{value * 1e3:+.4g} mm" if units[n] == "m" else f"{math.degrees(value):+.4g} deg"
+        listed.append(f"{n} {shown} ({r:.0f} x its prior)")
+    raise EstimationError(
+        f"{data.source or 'the measurements'}: the geometric fit of robot '{model.robot.name}' needs corrections "
+        f"many times their a-priori size: {', '.join(listed)} (limits: {MAX_PRIOR_RATIO['m']:g} x for lengths, "
+        f"{MAX_PRIOR_RATIO['rad']:g} x for angles). Wrong robot (were the data measured on another model?), wrong "
+        "units (--length-unit, --angle-unit), or a description that is not this robot's"
+    )

@@ -1,0 +1,144 @@
+"""The calibration methods as declared sequences of stages, and the stages every method shares.
+
+A stage reads the run and returns a :class:`~torchcal.pipeline.state.StageResult`; a method is the list of its
+stages (:data:`METHOD_TABLE`); :func:`torchcal.pipeline.run.calibrate` applies each result in turn.
+
+* ``kinematic``: kinematic calibration (Horvath & Neuner 2024, Eq. 11): the identifiable DH / joint-origin errors,
+  the instrument pose and the lever arm, by weighted LM (then, with ``Options.refit``, fitted again on all samples).
+* ``pcm``: the paper's position correction model (Eq. 10 + Sec. 2.2): instrument pose and lever arm with the nominal
+  geometry, then a correction network on the position corrections.
+* ``kinematic+ann``: the literature's sequential "kinCalib+": ``kinematic``, then the network on what remains.
+* ``auto`` (default): ``kinematic``, then the closed loop (:mod:`torchcal.pipeline.loop`): the named effects the
+  residuals demand, each chosen by a score test, refitted jointly with the geometry and confirmed on validation
+  poses; then a learned residual model only where the data demand it (:mod:`torchcal.pipeline.learned`); then the
+  held-out guard (:mod:`torchcal.pipeline.holdout`): never worse than the kinematic calibration.
+* ``integrated``: ``kinematic`` (the reference stage), then the integrated ANN-EKF on a continuous trajectory
+  (:mod:`torchcal.pipeline.integrated`) with the engine ``Options.engine`` names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from torchcal import _console
+from torchcal._threads import torch_threads
+from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, place_instrument_and_tool, solve
+from torchcal.pipeline.checks import check_corrections
+from torchcal.pipeline.holdout import guard_stages, refit_kinematic
+from torchcal.pipeline.integrated import integrated_stage
+from torchcal.pipeline.learned import correction_net_stage, learned_stage
+from torchcal.pipeline.loop import close_loop
+from torchcal.pipeline.records import StageName
+from torchcal.pipeline.state import CalibrationRun, StageFn, StageResult, StageWork
+
+
+def nominal(run: CalibrationRun) -> StageResult:
+    """The baseline: the nominal geometry with the instrument pose and lever arm fitted (closed form, then LM)."""
+    work = StageWork(run, StageName.NOMINAL)
+    train, opts = run.train, run.options
+    _console.info(
+        f"{work.robot.name}: {train.n} training and {run.hold.n} held-out poses; fitting tracker pose and lever arm"
+    )
+    noise = float(train.sigma.median()) if train.sigma is not None else opts.sigma_tracker
+    place_instrument_and_tool(work.robot, train.q, train.p, lever_prior=opts.lever_prior(noise))
+    work.fits.append(
+        solve(work.model, train, ("instrument", "tool"), opts, StageName.NOMINAL, run.trajectory, identify=False)
+    )
+    work.add_stage(StageName.NOMINAL)
+    return work.result()
+
+
+def geometric(run: CalibrationRun) -> StageResult:
+    """The kinematic calibration: identifiability analysis and weighted LM over geometry, instrument and lever arm;
+    stopped where the corrections are many times their priors (:func:`~torchcal.pipeline.checks.check_corrections`)."""
+    work = StageWork(run, StageName.GEOMETRIC)
+    _console.info("kinematic calibration: identifiability analysis and weighted LM")
+    fit = solve(work.model, run.train, GEOMETRIC_GROUPS, run.options, StageName.GEOMETRIC, run.trajectory)
+    check_corrections(fit, work.model, run.options, run.data)
+    work.fits.append(fit)
+    work.add_stage(StageName.GEOMETRIC)
+    return work.result()
+
+
+def nominal_geometry(run: CalibrationRun) -> StageResult:
+    """The ``geometric`` checkpoint of a method that keeps the nominal geometry (the paper's position correction
+    model): the story's reference is the baseline itself."""
+    work = StageWork(run, StageName.GEOMETRIC, model=run.model)
+    work.add_stage(StageName.GEOMETRIC)
+    return work.result(model_changed=False)
+
+
+def closed_loop(run: CalibrationRun) -> StageResult:
+    """The closed loop (:func:`~torchcal.pipeline.loop.close_loop`), where ``Options.diagnose`` asks for it."""
+    if not run.options.diagnose:
+        return StageResult("closed loop")
+    _console.info("diagnosis: score tests of the candidate effects, joint refits, validation")
+    # small kernels throughout (u x u solves, one pass over the poses, score tests, smooths): one thread, so that
+    # another process on the machine does not multiply the time (torch's threads spin while one waits for a core)
+    with torch_threads(1):
+        return close_loop(run)
+
+
+def learned(run: CalibrationRun) -> StageResult:
+    """The learned residual model (:func:`~torchcal.pipeline.learned.learned_stage`)."""
+    if run.options.learned:
+        _console.info("residual model: kernel regression and correction network judged on validation poses")
+    return learned_stage(run)
+
+
+def guard(run: CalibrationRun) -> StageResult:
+    """Never worse than the kinematic calibration on the held-out poses (:func:`~torchcal.pipeline.holdout.
+    guard_stages`)."""
+    with torch_threads(1):
+        return guard_stages(run)
+
+
+def finish(run: CalibrationRun) -> StageResult:
+    """The model written: its calibrated region (the training rows, or all rows where the run refitted on them),
+    and the parameter covariance of the run's last least-squares fit (``predict``'s sx, sy, sz)."""
+    work = StageWork(run, "finish")
+    rows = torch.cat([run.train.q, run.hold.q]) if run.options.refits else run.train.q
+    work.model.set_region(rows, fade=METHOD_TABLE[run.options.method].fades)
+    work.covariance = _covariance(run)
+    return work.result()
+
+
+def _covariance(run: CalibrationRun) -> ParameterCovariance | None:
+    """The parameter covariance of the run's last least-squares fit, for the parameters the final model has (a
+    later stage works on a copy of the model: the names are the same)."""
+    if not run.fits:
+        return None
+    last = run.fits[-1]
+    cov = ParameterCovariance.from_fit(last.free, last.result)
+    params = dict(run.model.named_parameters())
+    if cov is None or any(n not in params for n in cov.names):
+        return None
+    return cov
+
+
+@dataclass(frozen=True)
+class Method:
+    """A calibration method: its stages in order, and how its model behaves beyond the calibrated region."""
+
+    name: str
+    stages: tuple[StageFn, ...]
+    #: the learned corrections fade to geometry beyond the region: the methods that add them to a geometry fitted
+    #: alone (the integrated method's own gates fade its filters, whose geometry may only be right with their network)
+    fades: bool
+    trajectory_only: bool = False
+
+
+#: the methods (``Options.method`` names one; tests/pipeline/test_state.py checks both lists agree)
+METHOD_TABLE: dict[str, Method] = {
+    m.name: m
+    for m in (
+        Method("auto", (nominal, geometric, closed_loop, learned, guard, finish), fades=True),
+        Method("kinematic", (nominal, geometric, refit_kinematic, finish), fades=False),
+        Method("pcm", (nominal, nominal_geometry, correction_net_stage, finish), fades=True),
+        Method("kinematic+ann", (nominal, geometric, correction_net_stage, finish), fades=True),
+        Method("integrated", (nominal, geometric, integrated_stage, finish), fades=False, trajectory_only=True),
+    )
+}
