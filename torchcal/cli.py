@@ -331,7 +331,7 @@ def build_parser() -> argparse.ArgumentParser:
         "kept in the file.",
     )
     cp.add_argument("run", help="run directory written by calibrate")
-    cp.add_argument("targets", help="CSV with x,y,z and/or q1..qN (CONTRACT §1 units)")
+    cp.add_argument("targets", help="CSV with x,y,z [m] and/or q1..qN [rad] (the measurement file format)")
     cp.add_argument(
         "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
     )

@@ -556,6 +556,9 @@ def test_continuous_joint_past_one_turn_is_accepted(tmp_path):
 
 
 def test_help_cites_no_outside_document():
-    for cmd in ("simulate", "calibrate", "predict", "convert", "demo"):
-        text = torchcal.cli.build_parser()._subparsers._group_actions[0].choices[cmd].format_help()
-        assert "CONTRACT" not in text and "progress bar" not in text
+    """No help text (the command's or any subcommand's) cites a document users do not have."""
+    parser = torchcal.cli.build_parser()
+    commands = parser._subparsers._group_actions[0].choices
+    assert {"simulate", "calibrate", "predict", "compensate", "convert", "demo"} <= set(commands)
+    for text in [parser.format_help()] + [sub.format_help() for sub in commands.values()]:
+        assert "CONTRACT" not in text and "§" not in text and "progress bar" not in text

@@ -353,7 +353,7 @@ def test_euler_conversion_matches_scipy():
 
 # ----------------------------------------------------------------------------- the real data set
 
-SERIES = {  # folder, file, rows, distinct goals, temperature range [degC] (README, 0.1 degC rounding)
+SERIES = {  # folder, file, rows, distinct goals, temperature range [degC] (0.1 degC rounding)
     "A": ("Series_A", "measurements_grid.csv", 11911, 11911, (22.9, 23.7)),
     "B": ("Series_B", "measurements_joint_configurations.csv", 1495, 757, (21.6, 22.2)),
     "C": ("Series_C", "measurements_random_poses.csv", 2773, 2773, (21.7, 22.1)),
@@ -388,7 +388,7 @@ def test_real_series_shapes_and_ranges(real, series):
     assert m.meta["series"] == series
     assert int(m.extra["goal_id"].max()) + 1 == goals
     distance = m.p.norm(dim=1)
-    # README: 1.5-3.5 m; Series D actually reaches 3.71 m
+    # 1.5-3.5 m from the tracker; Series D actually reaches 3.71 m
     assert 1.5 < distance.min() and distance.max() < 3.8
     assert t_lo - 0.05 <= m.temperature.min() and m.temperature.max() <= t_hi + 0.05
     assert m.q.abs().max() <= 2 * math.pi
@@ -419,7 +419,7 @@ def test_real_goals_match_nominal_fk(real, ur10, series):
 
 
 def test_real_nominal_fit_series_c(real, ur10):
-    """Nominal UR10 + fitted tracker pose and lever arm: the uncalibrated ~1 mm error of the README."""
+    """Nominal UR10 + fitted tracker pose and lever arm: the uncalibrated ~1 mm error of docs/real-data.md."""
     m = real["C"]
     with torch.no_grad():
         T_tracker_base, lever, rms = fit_instrument_and_tool(ur10(m.q), m.p)

@@ -95,7 +95,7 @@ def test_auto_adds_nothing_to_clean_data_and_a_kernel_reloads_exactly(tmp_path):
 def test_real_ur10_series_c_default_method_beats_045mm():
     """The issue's real-data target. The search for named effects (``diagnose``) is switched off here: on
     these 2773 poses it runs about 20 joint refits (minutes on 2 cores) for named effects worth 0.01 mm
-    next to the learned model's 0.2 mm, and it is tested on simulated data (tests/diagnose); the README's
+    next to the learned model's 0.2 mm, and it is tested on simulated data (tests/diagnose); docs/real-data.md's
     numbers come from the full default run (scripts/ur10_real.py)."""
     from torchcal.data import read_ipa
 

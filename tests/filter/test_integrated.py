@@ -269,7 +269,7 @@ def test_both_engines_beat_geometry_alone(trajectory, run_dir):
 
     On this short trajectory the paper's filter happens to extrapolate better (0.110 against 0.175 mm, geometry
     alone 0.28); on the paper-sized 7342-sample trajectories of scripts/integrated_trajectory.py the adaptive
-    engine is the far better one (README)."""
+    engine is the far better one (docs/integrated.md)."""
     data, _ = trajectory
     adaptive = json.loads((run_dir / "report.json").read_text())
     assert adaptive["effects"][0]["evidence"]["filter"]["engine"] == "adaptive"
