@@ -311,6 +311,9 @@ class ModuleJacobian:
         self.q, self.R = q, R
         module = net.module if isinstance(net, FlatModule) else net
         self.copies = [copy.deepcopy(module) for _ in range(D)]
+        # (owner, name) of every parameter of each copy in parameters() order, recorded here because bind replaces
+        # the parameters by plain tensors, which the module then no longer lists as parameters
+        self.slots = [[(m, n) for m in c.modules() for n, _ in m.named_parameters(recurse=False)] for c in self.copies]
         nw = net.n_weights
         kw = {"dtype": q.dtype, "device": q.device}
         self.H = torch.zeros(D, 3, nw + 3, **kw)
@@ -329,15 +332,16 @@ class ModuleJacobian:
         each allocate a gradient of the whole weight vector.
         """
         self.ptr, self.leaves, self.rows = w.data_ptr(), [], [[], [], []]
-        for d, c in enumerate(self.copies):
+        for d, slots in enumerate(self.slots):
             off = 0
-            for name, mod, p in _parameters(c):
+            for mod, name in slots:
+                p = getattr(mod, name)
                 n = p.numel()
                 leaf = w[d, off : off + n].view(p.shape).detach().requires_grad_(True)  # shares w's storage
                 for k in range(3):
                     self.rows[k].append(self.H[d, k, off : off + n].view(p.shape))
                 off += n
-                mod._parameters.pop(name, None)
+                delattr(mod, name)  # the parameter (at the first bind) or the previous leaf
                 setattr(mod, name, leaf)
                 self.leaves.append(leaf)
 
@@ -363,13 +367,3 @@ def _backward(out: Tensor, cotangent: Tensor, retain: bool) -> None:
         torch.autograd.backward(out, cotangent, retain_graph=retain)
     else:
         _ENGINE.run_backward((out,), (cotangent,), retain, False, (), True, True)
-
-
-def _parameters(module: nn.Module) -> list[tuple[str, nn.Module, Tensor]]:
-    """``(name, owner, tensor)`` of every parameter of ``module`` in ``parameters()`` order, including those
-    already replaced by plain leaf tensors by :meth:`ModuleJacobian.bind` (recorded on the owner)."""
-    out = []
-    for mod in module.modules():
-        names = mod.__dict__.setdefault("_torchcal_leaves", [n for n, p in mod._parameters.items() if p is not None])
-        out.extend((n, mod, getattr(mod, n)) for n in names)
-    return out
