@@ -50,6 +50,7 @@ import torch
 
 from torchcal import _lbfgs
 from torchcal._threads import torch_threads
+from torchcal._torch import same_version, version_key
 from torchcal.effects.base import Context, Effect
 from torchcal.errors import EstimationError, OptionError, ShapeError
 
@@ -367,18 +368,11 @@ class GPCorrection(Effect):
             return torch.zeros(q.shape[0], 3, dtype=q.dtype, device=q.device)
         # as KernelCorrection: the output depends on the context and the buffers only, and a least-squares
         # fit evaluates it at the same q dozens of times, so the last plain result is reused
-        if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
+        inputs = (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
+        key = None if q.requires_grad else version_key(*inputs)
+        if key is None:
             return self.predict(ctx, std=False)[0]
-        key = [
-            (t, t._version)
-            for t in (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
-            if t is not None
-        ]
-        if (
-            self._cache is not None
-            and len(self._cache[0]) == len(key)
-            and all(a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key))
-        ):
+        if self._cache is not None and same_version(self._cache[0], key):
             return self._cache[1]
         out = self.predict(ctx, std=False)[0]
         if not out.requires_grad:
