@@ -1,10 +1,10 @@
 """A kernel (Gaussian-process mean) correction: local structure in joint space.
 
 What a real arm leaves after its geometry is fitted is often repeatable but local: poses
-close in joint space share their residual, poses a few tenths of a radian apart do not (on
-the UR10 data of Landgraf et al. the correlation of nearest-neighbour residuals is 0.8 at
-0.05 rad and 0.2-0.4 at 0.2-0.4 rad; scripts/ur10_investigate.py). A global network like
-the paper's 6-29-3 cannot follow such short-range structure; kernel regression can. The correction in the base frame is
+close in joint space share their residual, poses a few tenths of a radian apart do not (so
+on the UR10 data of Landgraf et al.: scripts/ur10_investigate.py measures the correlation of
+neighbouring residuals against their distance). A global network like the paper's 6-29-3
+cannot follow such short-range structure; kernel regression can. The correction in the base frame is
 
     dp(q) = sum_i k(q, q_i) alpha_i,   k(q, q') = exp(-|S (q - q')|^2 / (2 l^2)),
     alpha = (K + lambda I)^-1 y,
