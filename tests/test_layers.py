@@ -33,6 +33,7 @@ LEAVES = {
     "_dual",
     "_lbfgs",
     "_bounds",
+    "_torch",
 }
 #: the package's __init__ re-exports from the layers (and reaches the pipeline lazily); nothing imports it
 TOP = "__init__"

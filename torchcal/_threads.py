@@ -11,9 +11,9 @@ import torch
 def torch_threads(n: int):
     """Run the block with ``n`` torch threads (at least 1), then restore the previous number.
 
-    The filters and the many small least-squares kernels gain nothing from a second thread, and on a shared
-    2-core machine two threads per process are many times slower (measured: 190 s instead of 17 s for one
-    integrated calibration).
+    The filters and the many small least-squares kernels gain nothing from a second thread: a call's work is too
+    small to share, so the threads only add synchronisation, and where several processes share a few cores their
+    thread teams contend for the same cores and every call waits for its slowest thread.
     """
     before = torch.get_num_threads()
     torch.set_num_threads(max(1, n))

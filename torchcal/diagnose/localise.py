@@ -150,7 +150,7 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
             s, what = ctx.direction[:, j], "motion direction"
         elif tau is not None and _varies(tau[:, j]):
             # a torque of round-off size (a wrist whose link masses sit on its axis) has a sign that is noise of
-            # the arithmetic, and which poses it splits changed with the BLAS kernels; the candidates skip its
+            # the arithmetic, and which poses it splits depends on the BLAS kernels; the candidates skip its
             # backlash for the same reason (:func:`torchcal.diagnose.candidates.candidates`)
             s, what = torch.sign(tau[:, j]), "sign of the gravity torque"
         else:

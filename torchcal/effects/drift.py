@@ -93,8 +93,8 @@ class Drift(Effect):
     def regressor(self, robot, ctx: Context) -> Tensor:
         """``dv (N,)``: the drift variable relative to its reference; a drift in time held at its value at the ends of
         the span it was fitted on (``span``): a linear drift is the first term of a set-up that settles, and
-        continued beyond the campaign it grows without a law (on an outside-style trajectory a drift kept on the
-        held-out samples doubled the continuation's error). Thermal expansion in temperature extends."""
+        continued beyond the campaign it grows without a law, while held at its ends its error stays bounded.
+        Thermal expansion in temperature extends."""
         v = ctx.t if self.variable == "t" else ctx.temperature
         if v is None:
             raise EstimationError(f"drift with '{self.variable}' needs a '{self.variable}' column in the data")

@@ -50,6 +50,7 @@ import torch
 
 from torchcal import _lbfgs
 from torchcal._threads import torch_threads
+from torchcal._torch import same_version, version_key
 from torchcal.effects.base import Context, Effect
 from torchcal.errors import EstimationError, OptionError, ShapeError
 
@@ -163,8 +164,8 @@ def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: b
     if torch.is_grad_enabled() and any(t.requires_grad for t in (x, z, *h.values())):
         return _kern(_dist(x, z, periodic), h, ard)
     # no gradient (posterior, prediction): one variable at a time and in place, on chunks of rows whose
-    # temporaries stay in the processor's cache (every variable makes five passes over them: with (256 x 1774)
-    # chunks, out of cache, the kernel took twice as long), so that streaming many blocks does not fragment the heap
+    # temporaries stay in the processor's cache (every variable makes five passes over them, which out of cache
+    # wait on memory), so that streaming many blocks does not fragment the heap
     n, m = len(x), len(z)
     K = torch.zeros(n, m, dtype=x.dtype, device=x.device)
     add_c = [float(-0.5 / v.square()) for v in h["add_len"]]
@@ -367,18 +368,11 @@ class GPCorrection(Effect):
             return torch.zeros(q.shape[0], 3, dtype=q.dtype, device=q.device)
         # as KernelCorrection: the output depends on the context and the buffers only, and a least-squares
         # fit evaluates it at the same q dozens of times, so the last plain result is reused
-        if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
+        inputs = (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
+        key = None if q.requires_grad else version_key(*inputs)
+        if key is None:
             return self.predict(ctx, std=False)[0]
-        key = [
-            (t, t._version)
-            for t in (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
-            if t is not None
-        ]
-        if (
-            self._cache is not None
-            and len(self._cache[0]) == len(key)
-            and all(a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key))
-        ):
+        if self._cache is not None and same_version(self._cache[0], key):
             return self._cache[1]
         out = self.predict(ctx, std=False)[0]
         if not out.requires_grad:
@@ -729,7 +723,7 @@ def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
         yield from map(fn, starts)
         return
     # each worker on one torch thread of its own: a new thread starts with the process's default (OpenMP's
-    # per-thread setting), and blocks computed with a varying team gave results that differed in the last bits
+    # per-thread setting), and a team of varying size sums in a varying order: the blocks' last bits would vary
     with ThreadPoolExecutor(BLOCK_WORKERS, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         pending: deque = deque()
         for i in starts:

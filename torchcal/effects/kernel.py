@@ -1,10 +1,10 @@
 """A kernel (Gaussian-process mean) correction: local structure in joint space.
 
 What a real arm leaves after its geometry is fitted is often repeatable but local: poses
-close in joint space share their residual, poses a few tenths of a radian apart do not (on
-the UR10 data of Landgraf et al. the correlation of nearest-neighbour residuals is 0.8 at
-0.05 rad and 0.2-0.4 at 0.2-0.4 rad; scripts/ur10_investigate.py). A global network like
-the paper's 6-29-3 cannot follow such short-range structure; kernel regression can. The correction in the base frame is
+close in joint space share their residual, poses a few tenths of a radian apart do not (so
+on the UR10 data of Landgraf et al.: scripts/ur10_investigate.py measures the correlation of
+neighbouring residuals against their distance). A global network like the paper's 6-29-3
+cannot follow such short-range structure; kernel regression can. The correction in the base frame is
 
     dp(q) = sum_i k(q, q_i) alpha_i,   k(q, q') = exp(-|S (q - q')|^2 / (2 l^2)),
     alpha = (K + lambda I)^-1 y,
@@ -22,6 +22,7 @@ import math
 
 import torch
 
+from torchcal._torch import same_version, version_key
 from torchcal.effects.base import Context, Effect
 from torchcal.stats import paired_improvement  # noqa: F401 (the paired test's old home, kept importable)
 
@@ -65,10 +66,10 @@ class KernelCorrection(Effect):
         # least-squares fit with the kernel in place evaluates it at the same q dozens of times:
         # the last result is reused while q and the buffers are the same tensor objects, unmodified
         # (in-place version counters). Tensors under a torch.func transform are never cached.
-        if q.requires_grad or torch._C._functorch.is_functorch_wrapped_tensor(q):
+        key = None if q.requires_grad else version_key(q, self.support, self.alpha, self.metric)
+        if key is None:
             return self.kernel(q) @ self.alpha
-        key = [(t, t._version) for t in (q, self.support, self.alpha, self.metric)]
-        if self._cache is not None and all(a is b and u == v for (a, u), (b, v) in zip(self._cache[0], key)):
+        if self._cache is not None and same_version(self._cache[0], key):
             return self._cache[1]
         out = self.kernel(q) @ self.alpha
         if not out.requires_grad:

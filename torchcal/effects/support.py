@@ -393,7 +393,7 @@ def fit_predictive_scale(
 
 #: the most a widening factor (:func:`calibrate_factor`) may make the largest predicted standard deviation, in units
 #: of the largest residual it is calibrated on: where the near part is almost nothing (a gate almost closed) the
-#: factor that covers such residuals runs away (1.6e44 on one outside-style run), and every other sample's sigma
+#: factor that covers such residuals grows without bound as the near part vanishes, and every other sample's sigma
 #: with it; capped here, the target coverage is then not reached on those residuals
 FACTOR_SIGMA_RATIO = 100.0
 

@@ -236,8 +236,8 @@ def weak_after_fit(
         x: ``(P,)`` the fitted values as departures from the priors' centres: with them a correlated parameter is
             held only where its prior value is compatible with the fit, ``x_j^2 / (s0^2 Q_jj) <= compatible``
             (``s0^2``: ``sigma0_sq``, at least 1); a parameter the data pin far from its prior's centre (a lever arm
-            fitted to 95 +- 4 mm along a tool axis that turned by 0.03 deg, correlated 0.9999999 with the
-            instrument's position) is determined despite the correlation, and holding it would bias the fit.
+            along a tool axis that hardly turns, correlated almost perfectly with the instrument's position) is
+            determined despite the correlation, and holding it would bias the fit.
 
     Returns:
         ``fixed`` entries as :class:`Identifiability` writes them (``name``, ``reason``, ``depends_on``,

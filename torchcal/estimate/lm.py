@@ -45,8 +45,8 @@ SINGULAR_MIN = 4
 #: the Jacobi-scaled normal matrix (unit diagonal) counts as singular there when its smallest eigenvalue is below
 #: this (its Cholesky factorisation fails once this is subtracted from the diagonal): an exact null space leaves
 #: eigenvalues of a few 1e-15 of either sign, and whether the factorisation of the matrix itself then fails or ends
-#: with small pivots is a matter of rounding (a change in the last bits of the kinematics turned one rank-deficient
-#: fit of the Series C default run from 5 iterations into 100)
+#: with small pivots is a matter of rounding (a change in the last bits of the kinematics can then turn a
+#: rank-deficient fit of a few iterations into one that runs to its iteration limit)
 SINGULAR_EIGENVALUE = 1e-13
 
 

@@ -173,9 +173,9 @@ def residual_function(
         k += dict(model.named_parameters())[name].numel()
     kin = [(j, offsets[e.name] + int(i)) for j, e, i in _columns(free) if e.name in offsets]
     # the instrument pose's columns: the prediction is T(d) q' with q' the base-frame point it transforms, so
-    # they are dT/dd q' (Instrument.point_jacobian) from the plain prediction; pushed through jacfwd they were a
-    # quarter of every Jacobian's time (six more tangents through the transform's exponential map). Not where an
-    # effect reads the pose itself (Effect.reads_instrument): then q' depends on it too, and jacfwd takes them
+    # they are dT/dd q' (Instrument.point_jacobian) from the plain prediction, which spares every Jacobian six more
+    # tangents through the transform's exponential map (jacfwd's way). Not where an effect reads the pose itself
+    # (Effect.reads_instrument): then q' depends on it too, and jacfwd takes them
     closed = not any(e.reads_instrument for e in model.effects)
     inst = [(j, int(i)) for j, e, i in _columns(free) if e.name == _INSTRUMENT] if closed else []
     dev = ctx.q.device
@@ -283,8 +283,8 @@ def linear_kinematics(
         d0 = d0[columns.to(d0.device)]
 
     def fk(rb, q: Tensor, d: Tensor | None = None) -> Tensor:
-        # under torch.func these become one batched product over the poses and one plain matrix product (measured
-        # faster than elementwise products and sums, or einsum). The constants of the linearisation meet the
+        # under torch.func these become one batched product over the poses and one plain matrix product (matrix
+        # kernels, faster than elementwise products and sums, or einsum). The constants of the linearisation meet the
         # differentiated q and d through torchcal._dual: torch's Python path (and an import of torch._dynamo)
         # otherwise, in every Jacobian
         dq = (Jq @ _dual.sub(q, q0).unsqueeze(-1)).squeeze(-1)

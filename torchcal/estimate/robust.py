@@ -31,10 +31,10 @@ so that a data set that follows its stochastic model loses a row with probabilit
 (default 0.001) per screening, and ``GROSS_FACTOR^2``: a row is a gross error only when its error is also
 at least ``GROSS_FACTOR`` (15) robust standard deviations (``sqrt(T_i) > 15``). The second bound is there
 because an unmodelled effect is not normal noise: a warm-up drift or a joint-scale error leaves a long
-systematic tail of residuals (up to about 10 robust standard deviations on the outside test campaigns)
+systematic tail of residuals (up to about 10 robust standard deviations)
 that the chi-square test alone would strip off as "outliers", taking away the very rows the closed loop
-needs to find the effect. A 10 mm error lies hundreds of standard deviations out on simulated data and
-about 30 on real UR10 data (0.5 mm residuals), far past both bounds. Variance factor:
+needs to find the effect. A 10 mm error lies hundreds of standard deviations out against a tracker's noise
+and still about 30 against the half-millimetre residuals a real arm leaves, far past both bounds. Variance factor:
 ``s0^2 = max(1, median(T_i) / median(chi2_3))`` over the kept rows: the a-priori 1 of the stochastic
 model, unless the data show a larger scatter (unmodelled effects on real arms), so a model that is only
 approximately right does not turn its largest systematic residuals into "gross errors".

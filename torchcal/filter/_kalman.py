@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchcal._torch import backward
 from torchcal.effects.learned import CorrectionNet
 from torchcal.errors import ShapeError
 from torchcal.estimate.lm import chi2_quantile
@@ -296,11 +297,12 @@ class ModuleJacobian:
     directly. The module runs as a private copy whose parameters are leaves sharing storage with the filter's
     weights (a step copies no weights), and whose gradient buffers are views of ``H``: before backward pass
     ``k`` they are pointed at row ``k``, so the backward accumulates into ``H`` and nothing is copied out of
-    gradients. The engine is called directly where torch exposes it (the public wrapper's argument handling
-    costs as much as a small backward). ``torch.func`` (``vmap(jacrev)`` of ``functional_call``, as
-    :meth:`FlatModule.jacobian_flat` and the baseline use) gives the same numbers, but its per-call parameter
-    swapping and transforms cost several Kalman steps, and a ``vmap``-batched backward (``is_grads_batched``)
-    no less than three plain ones; ``scripts/bench_ekf.py`` measures this path against the hand-derived one.
+    gradients. The backward passes go straight to the engine (:func:`torchcal._torch.backward`: the public
+    wrapper's argument handling costs as much as a small backward). ``torch.func`` (``vmap(jacrev)`` of
+    ``functional_call``, as :meth:`FlatModule.jacobian_flat` and the baseline use) gives the same numbers, but its
+    per-call parameter swapping and transforms cost several Kalman steps, and a ``vmap``-batched backward
+    (``is_grads_batched``) no less than three plain ones; ``scripts/bench_ekf.py`` measures this path against the
+    hand-derived one.
 
     Args:
         net: a :class:`FlatModule` (or a :class:`CorrectionNet`, to compare with the hand-derived Jacobian).
@@ -311,6 +313,9 @@ class ModuleJacobian:
         self.q, self.R = q, R
         module = net.module if isinstance(net, FlatModule) else net
         self.copies = [copy.deepcopy(module) for _ in range(D)]
+        # (owner, name) of every parameter of each copy in parameters() order, recorded here because bind replaces
+        # the parameters by plain tensors, which the module then no longer lists as parameters
+        self.slots = [[(m, n) for m in c.modules() for n, _ in m.named_parameters(recurse=False)] for c in self.copies]
         nw = net.n_weights
         kw = {"dtype": q.dtype, "device": q.device}
         self.H = torch.zeros(D, 3, nw + 3, **kw)
@@ -329,15 +334,16 @@ class ModuleJacobian:
         each allocate a gradient of the whole weight vector.
         """
         self.ptr, self.leaves, self.rows = w.data_ptr(), [], [[], [], []]
-        for d, c in enumerate(self.copies):
+        for d, slots in enumerate(self.slots):
             off = 0
-            for name, mod, p in _parameters(c):
+            for mod, name in slots:
+                p = getattr(mod, name)
                 n = p.numel()
                 leaf = w[d, off : off + n].view(p.shape).detach().requires_grad_(True)  # shares w's storage
                 for k in range(3):
                     self.rows[k].append(self.H[d, k, off : off + n].view(p.shape))
                 off += n
-                mod._parameters.pop(name, None)
+                delattr(mod, name)  # the parameter (at the first bind) or the previous leaf
                 setattr(mod, name, leaf)
                 self.leaves.append(leaf)
 
@@ -350,26 +356,5 @@ class ModuleJacobian:
             for k in range(3):  # cotangent k is row k of R: the backward accumulates row k of R dg/dw into H
                 for leaf, row in zip(self.leaves, self.rows[k]):
                     leaf.grad = row
-                _backward(g, self.cot[k], k < 2)
+                backward(g, self.cot[k], k < 2)
         return g.detach() @ self.R.T, self.H
-
-
-_ENGINE = getattr(torch.autograd.Variable, "_execution_engine", None)
-
-
-def _backward(out: Tensor, cotangent: Tensor, retain: bool) -> None:
-    """``out.backward(cotangent, retain_graph=retain)``, straight into the engine where torch exposes it."""
-    if _ENGINE is None:
-        torch.autograd.backward(out, cotangent, retain_graph=retain)
-    else:
-        _ENGINE.run_backward((out,), (cotangent,), retain, False, (), True, True)
-
-
-def _parameters(module: nn.Module) -> list[tuple[str, nn.Module, Tensor]]:
-    """``(name, owner, tensor)`` of every parameter of ``module`` in ``parameters()`` order, including those
-    already replaced by plain leaf tensors by :meth:`ModuleJacobian.bind` (recorded on the owner)."""
-    out = []
-    for mod in module.modules():
-        names = mod.__dict__.setdefault("_torchcal_leaves", [n for n, p in mod._parameters.items() if p is not None])
-        out.extend((n, mod, getattr(mod, n)) for n in names)
-    return out

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchcal._torch import plain, same_version, version_key
 from torchcal.errors import ShapeError
 from torchcal.robot import transforms as tf
 
@@ -526,27 +527,21 @@ class RobotModel(nn.Module):
         each joint-angle tensor (the same object, unchanged in place) and each geometry (and lever arm, with a
         payload) by value, so the results are those of computing it every time.
         """
-        wrapped = torch._C._functorch.is_functorch_wrapped_tensor
         geo = self.geometry.delta
-        if q.is_meta or q.requires_grad or wrapped(q) or wrapped(geo) or (payload and wrapped(self.tool.delta)):
+        tool = self.tool.delta if payload else None
+        kq = None if q.is_meta or q.requires_grad else version_key(q)
+        if kq is None or not plain(geo) or (tool is not None and not plain(tool)):
             with torch.no_grad():
                 return self.gravity_torques(q, payload)
-        tool = self.tool.delta if payload else None
         cache = self.__dict__.setdefault("_torque_cache", [])
-        for (kq, kv, kp, kg, kt), tau in cache:
-            if (
-                kq is q
-                and kv == q._version
-                and kp == payload
-                and torch.equal(kg, geo)
-                and (kt is None or torch.equal(kt, tool))
-            ):
+        for (k, kp, kg, kt), tau in cache:
+            if same_version(k, kq) and kp == payload and torch.equal(kg, geo) and (kt is None or torch.equal(kt, tool)):
                 return tau
         with torch.no_grad():
             tau = self.gravity_torques(q, payload)
-        if wrapped(tau):  # a transform's tensor reached it through the robot's other values: not a plain result
+        if not plain(tau):  # a transform's tensor reached it through the robot's other values: not a plain result
             return tau
-        key = (q, q._version, float(payload), geo.detach().clone(), None if tool is None else tool.detach().clone())
+        key = (kq, float(payload), geo.detach().clone(), None if tool is None else tool.detach().clone())
         cache.insert(0, (key, tau))
         del cache[_TORQUE_CACHE:]
         return tau

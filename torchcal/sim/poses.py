@@ -41,7 +41,7 @@ class SightRule:
 
 
 #: poses per block of :func:`visible`: its skeleton test holds poses x skeleton points x 3 numbers at once
-#: (a block of 2048 poses needs tens of MB, and runs about twice as fast as blocks of 8192: the arrays stay in cache)
+#: (a block of 2048 poses needs tens of MB; much larger blocks leave the processor's cache and run slower)
 VISIBLE_BLOCK = 2048
 
 
