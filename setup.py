@@ -8,7 +8,12 @@ where :func:`torchcal.robot.load.builtin_robots` finds them with ``importlib.res
 from setuptools import find_packages, setup
 
 setup(
-    packages=[*find_packages(include=["torchcal", "torchcal.*"]), "torchcal.robots"],
+    # torchcal.experiments holds the code of scripts/ (reproductions, benchmarks, studies): it runs from a checkout
+    # (an editable install maps torchcal to its folder) and stays out of the wheel a user installs
+    packages=[
+        *find_packages(include=["torchcal", "torchcal.*"], exclude=["torchcal.experiments", "torchcal.experiments.*"]),
+        "torchcal.robots",
+    ],
     package_dir={"torchcal.robots": "robots"},
     # package data lives here, not in pyproject.toml: a [tool.setuptools.package-data] table there replaces
     # this argument as a whole, and the wheel then ships without its robots

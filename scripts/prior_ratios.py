@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The largest geometric correction of a kinematic calibration in prior standard deviations, per unit (lengths,
 angles), on legitimate data and on data of another robot: the measurement behind
-``torchcal.pipeline.run.MAX_PRIOR_RATIO`` (docs/prior_ratios.md).
+``torchcal.pipeline.checks.MAX_PRIOR_RATIO`` (docs/prior_ratios.md).
 
     python scripts/prior_ratios.py sim                  # simulated UR5, UR10, Panda campaigns
     python scripts/prior_ratios.py outside DIR          # every DIR/*/train.csv (UR5 campaigns)
@@ -17,7 +17,7 @@ from pathlib import Path
 from torchcal.data import read_measurements
 from torchcal.estimate.fit import prior_ratios
 from torchcal.pipeline import Options
-from torchcal.pipeline import run as P
+from torchcal.pipeline import checks as P
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 
@@ -29,7 +29,7 @@ def largest(robot: str, m, **options) -> dict:
     finally:
         P.MAX_PRIOR_RATIO = limits
     fit = next(f for f in run.fits if f.stage == "geometric")
-    ratios = prior_ratios(fit, run.model, run.options)
+    ratios = prior_ratios(fit, run.model, run.options.fit)
     units = {i.name: i.unit for i in run.model.robot.parameter_info() if i.group == "geometry"}
     out = {}
     for u in ("m", "rad"):

@@ -44,7 +44,9 @@ def test_kinematic_calibration_reaches_the_noise_floor(ur5_campaign, ur5_run):
     data = torchcal.read_measurements(ur5_campaign[1] / "train.csv")
     opts = Options()
     assert report["outliers"]["training"]["n_rejected"] == report["outliers"]["holdout"]["n_rejected"] == 0
-    hold = data.subset(holdout_split(data, opts.holdout, opts.seed + Stream.HOLDOUT, False, opts.group_tol).held)
+    hold = data.subset(
+        holdout_split(data, opts.split.holdout, opts.seed + Stream.HOLDOUT, False, opts.split.group_tol).held
+    )
     assert hold.n == report["n_holdout"]
     oracle = errors(c.model, hold, trajectory=False)
     floor = float(oracle.square().mean().sqrt())
@@ -195,7 +197,7 @@ def test_predict_writes_every_row_in_order(ur5_campaign, ur5_run, tmp_path):
 
 def test_noise_free_data_are_recovered_to_1e9(tmp_path):
     c = simulate(SimConfig(robot="ur10", poses=300, test_poses=100, seed=8, sigma_tracker=0.0, sigma_joint_deg=0.0))
-    opts = Options(sigma_joint=0.0, prior_length=None, prior_angle=None, stat_tol=0.0)
+    opts = Options.of(sigma_joint=0.0, prior_length=None, prior_angle=None, stat_tol=0.0)
     run = calibrate("ur10", c.train, opts)
     assert run.stages[-1].rmse < 1e-9
     with torch.no_grad():
@@ -206,7 +208,7 @@ def test_noise_free_data_are_recovered_to_1e9(tmp_path):
 @pytest.mark.parametrize("method", ["pcm", "kinematic+ann"])
 def test_network_methods_learn_a_smooth_field(method):
     c = simulate(SimConfig(robot="ur5", poses=600, test_poses=0, seed=9, effects=[EffectSpec.parse("field=0.15mm")]))
-    run = calibrate("ur5", c.train, Options(method=method, net_iterations=40))
+    run = calibrate("ur5", c.train, Options.of(method=method, net_iterations=40))
     st = {s.name: s.rmse for s in run.stages}
     assert [s.name for s in run.stages] == ["nominal", "geometric", "learned"]
     assert st["learned"] < 0.8 * st["geometric"]

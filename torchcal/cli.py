@@ -428,6 +428,30 @@ def _reading(args, robot) -> dict:
     )
 
 
+def _same(v):
+    return v
+
+
+def _mm(v):
+    return None if v is None else v * 1e-3
+
+
+#: ``calibrate``'s flags (argparse dest) -> the option each sets (its flat name, torchcal.pipeline.options.FLAGS)
+#: and the conversion from the flag's unit to SI: one flag, one field
+CALIBRATE_FLAGS = {
+    "seed": ("seed", _same),
+    "holdout": ("holdout", _same),
+    "tracker_noise": ("sigma_tracker", lambda um: um * 1e-6),
+    "joint_noise": ("sigma_joint", math.radians),
+    "engine": ("engine", _same),
+    "device": ("device", _same),
+    "refit": ("refit", _same),
+    "max_joint_error": ("max_joint_error", _mm),
+    "tool": ("tool", _same),  # its argument type gives metres
+    "tool_sigma": ("tool_sigma", _mm),
+}
+
+
 def cmd_calibrate(args) -> int:
     C = calibration_module()
     from torchcal.data import read_measurements
@@ -440,29 +464,20 @@ def cmd_calibrate(args) -> int:
     # a run's robot_calibrated.urdf: the chain to calibrate ends at the flange, not at the earlier run's probe
     tip_link = args.tip_link or calibrated_flange(args.robot)
     robot = load_robot(args.robot, base_link=args.base_link, tip_link=tip_link)
-    opts = C.Options(
-        method=args.method or C.DEFAULT_METHOD,
-        seed=args.seed,
-        holdout=args.holdout,
-        sigma_tracker=args.tracker_noise * 1e-6,
-        sigma_joint=math.radians(args.joint_noise),
-        engine=args.engine,
-        device=args.device,
-        refit=args.refit,
-        max_joint_error=args.max_joint_error * 1e-3,
+    opts = C.Options.of(
+        **{field: convert(getattr(args, dest)) for dest, (field, convert) in CALIBRATE_FLAGS.items()},
+        **({} if args.method is None else {"method": args.method}),
         **({} if args.rank_tol is None else {"rank_tol": args.rank_tol}),
-        tool=args.tool,
-        tool_sigma=args.tool_sigma * 1e-3,
     )
     data = read_measurements(
         args.data,
         require_positions=True,
-        min_poses=C.min_poses(robot, opts.holdout),
+        min_poses=C.min_poses(robot, opts.split.holdout),
         purpose=f"a {opts.method} calibration of '{robot.name}'",
         **_reading(args, robot),
     )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
-    C.check_holdout(data.n, opts.holdout)
+    C.check_holdout(data.n, opts.split.holdout)
     run = C.calibrate(robot, data, opts, robot_spec=args.robot)
     out = write_run(run, out, inputs=inputs)
     st = {s.name: s for s in run.stages}

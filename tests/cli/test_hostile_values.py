@@ -152,12 +152,12 @@ def test_legitimate_corrections_are_far_below_the_limits(campaign):
     from torchcal.estimate.fit import prior_ratios
     from torchcal.pipeline import Options
     from torchcal.pipeline import calibrate as run_calibration
-    from torchcal.pipeline.run import MAX_PRIOR_RATIO
+    from torchcal.pipeline.checks import MAX_PRIOR_RATIO
 
     m = torchcal.read_measurements(campaign / "train.csv", dof=6)
     run = run_calibration("ur5", m, Options(method="kinematic"))
     fit = next(f for f in run.fits if f.stage == "geometric")
-    ratios = prior_ratios(fit, run.model, run.options)
+    ratios = prior_ratios(fit, run.model, run.options.fit)
     assert ratios and max(ratios.values()) < MAX_PRIOR_RATIO["m"] / 10  # docs/prior_ratios.md: at most 22 on real data
 
 
@@ -409,8 +409,8 @@ def test_library_options_carry_the_same_bounds(kwargs, match):
     from torchcal.pipeline import Options
 
     with pytest.raises(OptionError, match=match):
-        Options(**kwargs)
-    Options(sigma_joint=math.radians(1.0), rank_tol=1e-2, sigma_tracker=1e-2)  # the bounds themselves are allowed
+        Options.of(**kwargs)
+    Options.of(sigma_joint=math.radians(1.0), rank_tol=1e-2, sigma_tracker=1e-2)  # the bounds themselves are allowed
 
 
 def test_library_simulation_carries_the_bounds():

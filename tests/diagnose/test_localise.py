@@ -48,7 +48,7 @@ def geometric_fit(train):
     """Kinematic calibration on (nearly) all of ``train``; returns what localisation and a refit need."""
     from torchcal.pipeline import Options, calibrate
 
-    opts = Options(method="kinematic", holdout=0.01)
+    opts = Options.of(method="kinematic", holdout=0.01)
     run = calibrate("ur5", train, opts)
     tr = train.subset(run.train_idx)
     ctx = Context.from_measurements(tr, trajectory=False)

@@ -21,7 +21,7 @@ pytestmark = pytest.mark.usefixtures("one_thread")  # tests/conftest.py
 
 
 def _loop(train):
-    return calibrate("ur5", train, Options(seed=1, learned=False, holdout=0.01))
+    return calibrate("ur5", train, Options.of(seed=1, learned=False, holdout=0.01))
 
 
 def test_third_harmonic_on_a_wrist_joint_is_named_with_its_order():
@@ -42,7 +42,7 @@ def test_third_harmonic_on_a_wrist_joint_is_named_with_its_order():
         true,
         tr,
         ("geometry", "instrument", "tool"),
-        run.options,
+        run.options.fit,
         "true",
         False,
         effects=True,
@@ -97,7 +97,7 @@ def test_a_failing_global_test_without_a_localised_variable_is_not_silent():
     """Noise twice the stated tracker sigma: the global test fails, yet no variable carries structure. The report
     still says so: the strongest variable, marked not significant, with a reason."""
     c = simulate_outside([], SimConfig(poses=400, test_poses=20, seed=9, sigma_tracker=30e-6, write_sigma=False))
-    run = calibrate("ur5", c.train, Options(seed=1, learned=False, holdout=0.01, sigma_tracker=15e-6))
+    run = calibrate("ur5", c.train, Options.of(seed=1, learned=False, holdout=0.01, sigma_tracker=15e-6))
     assert not run.fits[-1].global_test["passed"] and run.effects_report == []
     unx = run.diagnosis.unexplained
     assert len(unx) == 1 and unx[0]["significant"] is False and unx[0]["p_bonferroni"] >= 0.01

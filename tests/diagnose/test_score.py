@@ -57,7 +57,7 @@ def test_score_statistic_predicts_the_refit_gain():
     c = simulate(
         SimConfig(robot="ur5", poses=300, test_poses=0, seed=2, effects=[EffectSpec.parse("compliance:3=20um")])
     )
-    opts = Options(method="kinematic", stat_tol=0.0)
+    opts = Options.of(method="kinematic", stat_tol=0.0)
     run = calibrate("ur5", c.train, opts)
     train = c.train.subset(run.train_idx)
     geo = run.fits[-1]
@@ -70,7 +70,7 @@ def test_score_statistic_predicts_the_refit_gain():
         run.model,
         train,
         ("geometry", "instrument", "tool"),
-        opts,
+        opts.fit,
         "x",
         False,
         effects=True,

@@ -100,7 +100,7 @@ def test_real_ur10_series_c_default_method_beats_045mm():
     from torchcal.data import read_ipa
 
     m = read_ipa(IPA / "Series_C" / "measurements_random_poses.csv")
-    run = calibrate("ur10", m, Options(diagnose=False))
+    run = calibrate("ur10", m, Options.of(diagnose=False))
     st = {s.name: s.rmse for s in run.stages}
     assert st["geometric"] < 0.55e-3 < st["nominal"]
     assert run.stages[-1].rmse <= 0.45e-3

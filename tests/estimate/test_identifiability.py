@@ -89,8 +89,8 @@ def test_urdf_robot_redundant_errors_are_resolved_and_noise_free_data_recovered(
         T, t, _ = fit_instrument_and_tool(robot(c.train.q), c.train.p)
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(t)
-    opts = Options(sigma_joint=0.0, prior_length=None, prior_angle=None, stat_tol=0.0)  # the bare solver
-    fit = solve(model, c.train, ("geometry", "instrument", "tool"), opts, "geometric", trajectory=False)
+    opts = Options.of(sigma_joint=0.0, prior_length=None, prior_angle=None, stat_tol=0.0)  # the bare solver
+    fit = solve(model, c.train, ("geometry", "instrument", "tool"), opts.fit, "geometric", trajectory=False)
     ida = fit.identifiability
     assert ida.rank < len(ida.names)  # 6 errors per joint are heavily redundant
     assert fit.result.status == "converged"

@@ -90,7 +90,7 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
     assert sel["n_validation"] == round(0.2 * sel["n_fit"] / 0.8)
     st = {s.name: s.rmse for s in run.stages}
     if run.effects:  # a filter won validation: it must have beaten geometry there, by the paired test
-        assert sel["test"]["p_value"] < run.options.alpha_validation
+        assert sel["test"]["p_value"] < run.options.levels.validation
         assert st["integrated"] <= st["geometric"]
         # the gate: the shorter of validation's choice and the held-out samples' choice for the final model
         gh = sel["gate_on_holdout"]
@@ -273,7 +273,7 @@ def test_both_engines_beat_geometry_alone(trajectory, run_dir):
     data, _ = trajectory
     adaptive = json.loads((run_dir / "report.json").read_text())
     assert adaptive["effects"][0]["evidence"]["filter"]["engine"] == "adaptive"
-    ekf = calibrate("ur5", data, Options(method="integrated", engine="ekf", seed=0))
+    ekf = calibrate("ur5", data, Options.of(method="integrated", engine="ekf", seed=0))
     st = {s.name: s.rmse * 1e3 for s in ekf.stages}
     assert st["geometric"] == pytest.approx(adaptive["rmse_geometric_mm"], rel=1e-9)  # the same reference stage
     assert st["integrated"] < 0.8 * st["geometric"] and adaptive["rmse_after_mm"] < 0.8 * st["geometric"]

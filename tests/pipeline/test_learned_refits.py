@@ -13,7 +13,7 @@ from torchcal.sim import EffectSpec, SimConfig, simulate
 def test_held_hyperparameters_are_the_selected_ones_and_refitted_ones_move():
     c = golden_campaign()
     with torch_threads(1):
-        held = calibrate("ur5", c.train, Options(seed=7, learned_hyper=False))
+        held = calibrate("ur5", c.train, Options.of(seed=7, learned_hyper=False))
     refit = golden_auto_run()  # Options(seed=7), the default refits; shared with tests/test_golden.py
     out = {}
     for name, run in (("held", held), ("refit", refit)):
@@ -62,7 +62,7 @@ def test_pruning_with_the_next_refit_ahead_decides_as_one_effect_after_the_other
 
     def recording(work, train, trajectory, e_val, gp=None):
         if drop_all:
-            work.run = replace(work.run, options=replace(work.options, alpha_validation=0.0))
+            work.run = replace(work.run, options=work.options.with_flags(alpha_validation=0.0))
         before["run"], before["args"] = copy.deepcopy(work), (train, trajectory, e_val.clone())
         return original(work, train, trajectory, e_val, gp=gp)
 

@@ -21,7 +21,7 @@ def campaign():
 def test_the_default_refits_only_the_integrated_methods_auto_engine():
     assert Options(method="integrated").refits and not Options(method="integrated", refit=False).refits
     assert not Options().refits and not Options(method="kinematic").refits
-    assert not Options(method="integrated", engine="adaptive").refits
+    assert not Options.of(method="integrated", engine="adaptive").refits
     assert Options(method="kinematic", refit=True).refits
 
 

@@ -29,17 +29,17 @@ import threading
 import time
 
 #: (module, attribute, stage) wrapped when the module is imported; the attribute is looked up where it is called
-#: (``torchcal.report.write_run`` is what the CLI calls, ``torchcal.pipeline.run.solve`` what the run calls)
+#: (``torchcal.report.write_run`` is what the CLI calls, ``torchcal.pipeline.methods.solve`` what the stages call)
 TARGETS = [
     ("torchcal.robot", "load_robot", "robot"),
     ("torchcal.data", "read_measurements", "read"),
     ("torchcal.data", "convert_ipa", "convert"),
     ("torchcal.pipeline", "calibrate", "fit"),
     ("torchcal.pipeline.run", "screen_gross_errors", "screening"),
-    ("torchcal.pipeline.run", "solve", "least squares"),
-    ("torchcal.pipeline.run", "CalibrationRun.add_stage", "held-out errors"),
-    ("torchcal.pipeline.run", "close_loop", "closed loop"),
-    ("torchcal.pipeline.run", "learned_stage", "learned stage"),
+    ("torchcal.pipeline.methods", "solve", "least squares"),
+    ("torchcal.pipeline.state", "StageWork.add_stage", "held-out errors"),
+    ("torchcal.pipeline.methods", "close_loop", "closed loop"),
+    ("torchcal.pipeline.methods", "learned_stage", "learned stage"),
     ("torchcal.estimate.robust", "screen_geometric", "robust fit and snooping"),
     ("torchcal.estimate.fit", "whitening", "whitening"),
     ("torchcal.estimate.fit", "jacobian_of", "identifiability Jacobian"),

@@ -139,7 +139,14 @@ def run_case(
             model.add(cand.make())
         ida = next((f.identifiability for f in run.fits if f.stage == "geometric"), None)
         solve(
-            model, train, ("geometry", "instrument", "tool"), opts, "true form", traj, effects=True, identifiability=ida
+            model,
+            train,
+            ("geometry", "instrument", "tool"),
+            opts.fit,
+            "true form",
+            traj,
+            effects=True,
+            identifiability=ida,
         )
         out["true_form_mm"], out["test_true_form_mm"] = both(model)
     return out

@@ -97,7 +97,7 @@ def one_seed(samples: int, field: str, seed: int, engine: str = "adaptive") -> d
     if field.startswith("auto"):
         field = field_for(samples, seed, float(field.split(":")[1]) if ":" in field else 0.19)
     c, data = trajectory_data(samples, field, seed)
-    run = calibrate("ur5", data, Options(method="integrated", seed=seed, engine=engine))
+    run = calibrate("ur5", data, Options.of(method="integrated", seed=seed, engine=engine))
     hold = data.subset(run.holdout_idx)
     with torch.no_grad():
         oracle = (c.model(Context.from_measurements(hold, trajectory=True)) - hold.p).norm(dim=-1)

@@ -94,7 +94,7 @@ def _kinematic(robot_spec: str, train):
     """The kinematic calibration of ``train`` (the pipeline's ``kinematic`` method; 1 % of it held out there)."""
     from torchcal.pipeline import Options, calibrate
 
-    return calibrate(robot_spec, train, Options(method="kinematic", holdout=0.01)).model
+    return calibrate(robot_spec, train, Options.of(method="kinematic", holdout=0.01)).model
 
 
 def residuals(model, m) -> torch.Tensor:

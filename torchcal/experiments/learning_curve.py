@@ -123,7 +123,7 @@ def _point(robot, factory, sub: Measurements, test: Measurements, size, k: int, 
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         # 0.5 / k: calibrate holds out round(0.5) -> its minimum of one pose; everything else is fitted
-        opts = Options(method=method, seed=seed, holdout=min(0.5 / k, 0.5), trajectory=False)
+        opts = Options.of(method=method, seed=seed, holdout=min(0.5 / k, 0.5), trajectory=False)
         run = calibrate(factory() if factory is not None else robot, sub, opts)
     except TorchcalError as err:  # too few poses for this method: the curve says so and goes on
         return {**out, "error": f"{type(err).__name__}: {err}"}

@@ -45,7 +45,7 @@ def _refit(run, train, fit, opts, effect, test) -> float:
         model,
         train,
         ("geometry", "instrument", "tool"),
-        opts,
+        opts.fit,
         "joint",
         False,
         effects=True,
@@ -56,7 +56,7 @@ def _refit(run, train, fit, opts, effect, test) -> float:
 
 def one(train, test, oracle_mm=None, true_effect=None) -> dict:
     t0 = time.perf_counter()
-    opts = Options(method="kinematic", holdout=0.01)
+    opts = Options.of(method="kinematic", holdout=0.01)
     run = calibrate("ur5", train, opts)
     tr = train.subset(run.train_idx)
     ctx = Context.from_measurements(tr, trajectory=False)
@@ -91,7 +91,7 @@ def clean(n: int, seed: int, alpha: float = 0.01) -> dict:
     ps = []
     for i in range(n):
         c = simulate_outside([], SimConfig(poses=800, test_poses=0, seed=seed + 1000 + i))
-        run = calibrate("ur5", c.train, Options(method="kinematic", holdout=0.01))
+        run = calibrate("ur5", c.train, Options.of(method="kinematic", holdout=0.01))
         tr = c.train.subset(run.train_idx)
         ctx = Context.from_measurements(tr, trajectory=False)
         fit = run.fits[-1]

@@ -81,12 +81,12 @@ def calibrate_draw(setup, biases: dict[str, float]) -> dict:
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(t)
     pcm = {"deviation": t1.deviation(T, t, setup), "rmse_mm": _rmse_mm(robot, setup.q_test, p_test)}
-    opts = Options(prior_length=None, prior_angle=None, stat_tol=0.0)
+    opts = Options.of(prior_length=None, prior_angle=None, stat_tol=0.0)
     fit = solve(
         MeasurementModel(robot),
         Measurements(q=setup.q, p=p),
         ("geometry", "instrument", "tool"),
-        opts,
+        opts.fit,
         "geometric",
         trajectory=False,
     )

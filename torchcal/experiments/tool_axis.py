@@ -31,9 +31,9 @@ CASES = ("no_priors", "unknown_tool", "given_tool")
 
 def _options(case: str, truth_tool: list[float]) -> Options:
     if case == "no_priors":
-        return Options(method="kinematic", prior_tool=None, prior_instrument=None)
+        return Options.of(method="kinematic", prior_tool=None, prior_instrument=None)
     if case == "given_tool":
-        return Options(method="kinematic", tool=tuple(round(v, 6) for v in truth_tool))
+        return Options.of(method="kinematic", tool=tuple(round(v, 6) for v in truth_tool))
     return Options(method="kinematic")
 
 

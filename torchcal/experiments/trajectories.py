@@ -44,7 +44,7 @@ def compare(train: Measurements, test: Measurements, robot: str = "ur5", engines
     }
     for engine in engines:
         t0 = time.perf_counter()
-        run = calibrate(robot, train, Options(method="integrated", engine=engine, seed=seed))
+        run = calibrate(robot, train, Options.of(method="integrated", engine=engine, seed=seed))
         sel = next(
             (r.evidence.get("selection") for r in list(run.effects) + list(run.rejections) if r.name == "integrated"),
             None,

@@ -449,7 +449,7 @@ def investigate(name: str, path: Path, a_rows: int, pair_rows: int, tol: float) 
     goal_R = read_goal_rotation(path, m_all.n)
     fit_idx = subsample_idx(m_all.n, a_rows if name == "A" else 0, SEED)
     m_fit = m_all.subset(fit_idx)
-    run = calibrate(ROBOT, m_fit, Options(method="kinematic", seed=SEED, holdout=0.5 / m_fit.n, trajectory=False))
+    run = calibrate(ROBOT, m_fit, Options.of(method="kinematic", seed=SEED, holdout=0.5 / m_fit.n, trajectory=False))
     model, nominal = run.model, run.stages[0].model
     m = m_all
     ctx = Context.from_measurements(m, trajectory=False)

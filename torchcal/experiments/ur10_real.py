@@ -77,7 +77,7 @@ def stats(e: torch.Tensor) -> dict:
 
 def within_series(name: str, m: Measurements, method: str) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
-    run = calibrate(ROBOT, m, Options(method=method, seed=SEED, holdout=HOLDOUT, trajectory=False))
+    run = calibrate(ROBOT, m, Options.of(method=method, seed=SEED, holdout=HOLDOUT, trajectory=False))
     runtime, cpu = time.perf_counter() - t0, time.process_time() - c0
     st = {s.name: stats(s.holdout_errors) for s in run.stages}
     fit = run.fits[-1]
@@ -157,7 +157,7 @@ def transfer(src: str, dst: str, source_run, target: Measurements) -> dict:
 def source_calibration(m: Measurements):
     """Kinematic calibration on (practically) every row: calibrate() always keeps one pose out at least."""
     t0 = time.perf_counter()
-    run = calibrate(ROBOT, m, Options(method="kinematic", seed=SEED, holdout=0.5 / m.n, trajectory=False))
+    run = calibrate(ROBOT, m, Options.of(method="kinematic", seed=SEED, holdout=0.5 / m.n, trajectory=False))
     return run, time.perf_counter() - t0
 
 

@@ -70,7 +70,7 @@ def check_poses(data: Measurements) -> None:
 def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Measurements) -> None:
     """Stop a run whose geometric corrections are many times their priors (:data:`MAX_PRIOR_RATIO`): the data were
     measured on another robot, in other units, or the description is not the robot's."""
-    ratios = prior_ratios(fit, model, opts)
+    ratios = prior_ratios(fit, model, opts.fit)
     units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
     worst = sorted(((r / MAX_PRIOR_RATIO[units[n]], r, n) for n, r in ratios.items()), reverse=True)
     if not worst or worst[0][0] <= 1.0:

@@ -77,7 +77,7 @@ def geometry_on_all(run: CalibrationRun | StageWork, model: MeasurementModel, id
         model,
         run.fitted_and_held_out,
         GEOMETRIC_GROUPS,
-        run.options,
+        run.options.fit,
         stage,
         run.trajectory,
         identifiability=identifiability,
@@ -148,7 +148,7 @@ def guard_stages(run: CalibrationRun) -> StageResult:
     i_geo = run.stages.index(geo)
     # the held-out poses at the edges of the training poses' joint ranges: a stage must not lose there either
     edge = at_edges(train.q, run.data.q[run.holdout_idx])
-    alpha_val = run.options.alpha_validation
+    alpha_val = run.options.levels.validation
 
     def edge_worse(st) -> bool:
         if int(edge.sum()) < 10:
@@ -221,7 +221,9 @@ def guard_stages(run: CalibrationRun) -> StageResult:
         if diag is not None and not work.fits[-1].global_test.get("passed", True):
             ctx = Context.from_measurements(train, trajectory=trajectory)
             why = {f"q{r.joint}" if r.joint else "t": reason for r in dropped}
-            diag.unexplained = unexplained_entries(work.model, ctx, train.p, work.fits[-1], run.options.alpha, why)
+            diag.unexplained = unexplained_entries(
+                work.model, ctx, train.p, work.fits[-1], run.options.levels.score, why
+            )
     work.note(reason)
     _console.info(reason)
     return work.result()

@@ -159,22 +159,22 @@ def integrate(
         train, hold: the training samples and the held-out last samples of the trajectory, in time order.
         joint_iterations: LM iterations of the joint refinement (0: none).
         reiterate_every: the paper's ANN re-iteration period in samples (0, the default: none; module docstring).
-        pcm_iterations: LM iterations of the network's initial fit (default ``work.options.net_iterations``).
+        pcm_iterations: LM iterations of the network's initial fit (default ``work.options.network.iterations``).
     """
     model, robot, opts = work.model, work.model.robot, work.options
-    cfg = filter_config(model, train, opts.sigma_tracker, opts.sigma_joint, reiterate_every)
-    net = CorrectionNet(robot.dof, opts.hidden, device=robot.device)
+    cfg = filter_config(model, train, opts.fit.sigma_tracker, opts.fit.sigma_joint, reiterate_every)
+    net = CorrectionNet(robot.dof, opts.network.hidden, device=robot.device)
     net.reset_parameters(torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT), gain=0.5)
     trainer = EKFTrainer(robot, net, cfg)
     steps = {}
     _console.info(
-        f"integrated ANN-EKF: network {robot.dof}-{opts.hidden}-3 initialised by LM on the training corrections"
+        f"integrated ANN-EKF: network {robot.dof}-{opts.network.hidden}-3 initialised by LM on the training corrections"
     )
     n_fit = train.n - max(1, int(round(FORWARD_FRACTION * train.n)))
     fit, forward = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
     net.set_flat(
         trainer.pcm_weights(
-            fit.q, fit.p, net.flat(), iterations=pcm_iterations or opts.net_iterations, seed=int(opts.seed)
+            fit.q, fit.p, net.flat(), iterations=pcm_iterations or opts.network.iterations, seed=int(opts.seed)
         )
     )
     model.add(LearnedEffect(net))
@@ -187,7 +187,7 @@ def integrate(
             f"(up to {joint_iterations} LM iterations, judged on the last {forward.n} training samples)"
         )
         joint, joint_info = refine_jointly(
-            model, fit.subset(slice(None, None, JOINT_STRIDE)), ida, opts, joint_iterations, validation=forward
+            model, fit.subset(slice(None, None, JOINT_STRIDE)), ida, opts.fit, joint_iterations, validation=forward
         )
         joint_info["status"] = joint.status
         steps["joint_refinement"] = _rmse(_errors(model, hold))
@@ -197,7 +197,7 @@ def integrate(
             model,
             train,
             GEOMETRIC_GROUPS,
-            opts,
+            opts.fit,
             "integrated (geometry with the network in place)",
             True,
             identifiability=ida,
@@ -259,7 +259,7 @@ def _record_ekf(
             after,
             params={
                 "model": "network",
-                "hidden": opts.hidden,
+                "hidden": opts.network.hidden,
                 "n_weights": n_weights,
                 "fit": "integrated ANN-EKF (Horvath & Neuner 2024, Sec. 2.3) after an LM initialisation and a "
                 "joint LM refinement with the geometry",
@@ -353,7 +353,10 @@ def _adaptive_pass(
     start = _nominal_copy(robot)
     place_instrument_and_tool(start, train.q, train.p)
     cfg = AdaptiveConfig(
-        sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, rank_tol=opts.rank_tol, sigma_field=sigma_field
+        sigma_tracker=opts.fit.sigma_tracker,
+        sigma_joint=opts.fit.sigma_joint,
+        rank_tol=opts.fit.rank_tol,
+        sigma_field=sigma_field,
     )
     net = random_features(dof=robot.dof, hidden=hidden, gain=gain, seed=int(opts.seed) + 1)
     flt = AdaptiveEKF(start, net, cfg)
@@ -528,7 +531,7 @@ def integrate_selected(
     the lengths in :data:`~torchcal.effects.support.GATE_LENGTHS` (no gate among them), which fades the
     prediction back to the kinematic calibration where the path leaves the joints the filter was trained on. The
     candidate with the lowest validation RMSE is kept only if it beats geometry alone by a one-sided paired test
-    at ``work.options.alpha_validation``, with the standard error inflated for the autocorrelation of
+    at ``work.options.levels.validation``, with the standard error inflated for the autocorrelation of
     neighbouring samples (:func:`torchcal.stats.paired_test`); it is then fitted again on all training samples
     (the held-out samples its test phase) with the gate length chosen. Otherwise the work ends with the geometric
     model and says why. A candidate must also beat geometry alone on the validation block with any one of its
@@ -543,7 +546,9 @@ def integrate_selected(
     fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
     ida = work.identifiability
     geo = copy.deepcopy(work.model)
-    solve(geo, fit, GEOMETRIC_GROUPS, opts, "integrated: geometry on the fitting samples", True, identifiability=ida)
+    solve(
+        geo, fit, GEOMETRIC_GROUPS, opts.fit, "integrated: geometry on the fitting samples", True, identifiability=ida
+    )
     e_geo = _errors(geo, val)
     table = [{"candidate": "geometry alone", "validation_rmse_mm": _rmse(e_geo) * 1e3}]
     best = None
@@ -576,7 +581,7 @@ def integrate_selected(
     evidence = {
         "rule": f"lowest validation RMSE among the candidates better than geometry alone on the validation block "
         f"with any one of its {VALIDATION_PIECES} consecutive pieces left out, kept when it beats geometry alone by "
-        f"a one-sided paired test (autocorrelation-corrected) at p < {opts.alpha_validation}",
+        f"a one-sided paired test (autocorrelation-corrected) at p < {opts.levels.validation}",
         "n_fit": fit.n,
         "n_validation": val.n,
         "candidates": table,
@@ -585,7 +590,7 @@ def integrate_selected(
     if best is not None:
         test = S.paired_test(e_geo, best[2], ordered=True)
         evidence.update(chosen=best[3]["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
-        accepted = _rmse(best[2]) < _rmse(e_geo) and test["p_value"] < opts.alpha_validation
+        accepted = _rmse(best[2]) < _rmse(e_geo) and test["p_value"] < opts.levels.validation
     if not accepted:
         why = (
             "no candidate beats geometry alone on the validation block with any one of its pieces left out"
@@ -847,7 +852,7 @@ def _fallback_growth(
     ida = work.identifiability
     geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
     stage = "integrated: geometry on the first half (sigma)"
-    solve(geo_half, first, GEOMETRIC_GROUPS, work.options, stage, True, identifiability=ida)
+    solve(geo_half, first, GEOMETRIC_GROUPS, work.options.fit, stage, True, identifiability=ida)
     half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
     e = torch.cat([e_geo, _residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
@@ -865,10 +870,10 @@ COVERAGE_TARGET = 0.95
 def _observation_sigma(model: MeasurementModel, m: Measurements, opts) -> Tensor:
     """Measurement noise per tracker axis ``(3,)`` [m]: the tracker's (median of the per-point sigmas where the
     data have them) and the joint noise at the probe, ``sigma_joint |J_q|_F / sqrt(3)`` (median over the samples)."""
-    tracker = float(m.sigma.median()) if m.sigma is not None else opts.sigma_tracker
+    tracker = float(m.sigma.median()) if m.sigma is not None else opts.fit.sigma_tracker
     with torch.no_grad():
         _, Jq = model.robot.probe_jacobian(m.q)
-    joint = opts.sigma_joint * float(Jq.flatten(-2).norm(dim=-1).median()) / math.sqrt(3.0)
+    joint = opts.fit.sigma_joint * float(Jq.flatten(-2).norm(dim=-1).median()) / math.sqrt(3.0)
     return torch.full((3,), math.hypot(tracker, joint), dtype=m.q.dtype, device=m.q.device)
 
 
@@ -931,5 +936,5 @@ ENGINES = {"auto": integrate_selected, "adaptive": integrate_adaptive, "ekf": in
 def integrated_stage(run: CalibrationRun) -> StageResult:
     """The ``integrated`` method's filter on the trajectory, with the engine ``Options.engine`` names."""
     work = StageWork(run, "integrated")
-    work.filter = ENGINES[run.options.engine](work, run.train, run.hold)
+    work.filter = ENGINES[run.options.integrated.engine](work, run.train, run.hold)
     return work.result()

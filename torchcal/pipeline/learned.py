@@ -50,7 +50,7 @@ KERNEL_CANDIDATE_MAX = 1000
 def learned_stage(run: CalibrationRun) -> StageResult:
     """The ``auto`` method's learned stage (module docstring); adds the ``learned`` checkpoint when a model is kept."""
     work = StageWork(run, "learned")
-    if not run.options.learned:
+    if not run.options.learned.enabled:
         return work.result(model_changed=False)
     # its fits pin their own threads (the GP's evidence and posterior, the LM refits); the model evaluations between
     # them are small kernels too, so the whole stage runs on one, as the closed loop does
@@ -63,7 +63,7 @@ def _learned(work: StageWork, train: Measurements, trajectory: bool) -> None:
     record = select_learned(work, train, trajectory)
     if record is None:
         return
-    gp = None if work.options.learned_hyper else _conditioner(work, train, trajectory)
+    gp = None if work.options.learned.hyper else _conditioner(work, train, trajectory)
     e_val = refine_learned(work, record, train, trajectory, gp=gp)
     if any(e.kind in NAMED_KINDS for e in work.model.effects):
         prune_named(work, train, trajectory, e_val, gp=gp)
@@ -72,7 +72,7 @@ def _learned(work: StageWork, train: Measurements, trajectory: bool) -> None:
     after = work.add_stage(StageName.LEARNED)
     record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
     if work.diagnosis is not None and work.diagnosis.unexplained:
-        refresh_unexplained(work, train, trajectory, work.options.alpha)
+        refresh_unexplained(work, train, trajectory, work.options.levels.score)
 
 
 def condition_on_all(work: StageWork, train: Measurements, trajectory: bool) -> None:
@@ -106,7 +106,7 @@ def _conditioner(work: StageWork, train: Measurements, trajectory: bool) -> GPCo
     eff = work.model.effects[len(work.model.effects) - 1]
     if not isinstance(eff, GPCorrection):
         return None
-    fi, va = _learned_split(train, work.options.seed, work.options.group_tol, trajectory)
+    fi, va = _learned_split(train, work.options.seed, work.options.split.group_tol, trajectory)
     return GPConditioner(eff, Context(q=train.q[fi]), Context(q=train.q[va]), threads=_gp_settings(work).threads)
 
 
@@ -151,7 +151,7 @@ def select_learned(
     """
     model, opts = work.model, work.options
     corr = corrections(model, train, trajectory)
-    fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
+    fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
     e0 = corr[va].norm(dim=-1)
 
     # the three candidates are independent: the GP's evidence fit (large kernels, which release the GIL) runs in a
@@ -198,7 +198,7 @@ def select_learned(
             e_net,
             {
                 "model": "network",
-                "hidden": opts.hidden,
+                "hidden": opts.network.hidden,
                 "n_weights": net.n_weights,
                 "fit": res.method,
                 "best_iteration": res.best_iteration,
@@ -263,7 +263,7 @@ def _refit_geometry(
         model,
         train,
         groups,
-        replace(opts, max_iter=min(opts.max_iter, REFIT_MAX_ITER)),
+        replace(opts.fit, max_iter=min(opts.fit.max_iter, REFIT_MAX_ITER)),
         "learned (alternating refit)",
         trajectory,
         effects=True,
@@ -286,15 +286,15 @@ def _refit_learned_model(
     opts = work.options
     index = len(model.effects) - 1
     eff = model.effects[index]
-    fi, va = _learned_split(train, opts.seed, opts.group_tol, trajectory)
+    fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
     if isinstance(eff, LearnedEffect):
         fit_net(
             eff.net,
             train.q[fi],
             corr[fi],
             val=(train.q[va], corr[va]),
-            method=opts.net_method,
-            iterations=opts.net_iterations,
+            method=opts.network.method,
+            iterations=opts.network.iterations,
             ftol=1e-6,
         )
         with torch.no_grad():
@@ -470,12 +470,12 @@ def _prune_one(
         "z": test["z"],
         "p_value": test["p_value"],
         "n": test["n"],
-        "rule": f"kept when the model with it is better, one-sided paired p < {opts.alpha_validation}",
+        "rule": f"kept when the model with it is better, one-sided paired p < {opts.levels.validation}",
     }
     entry = next((r for r in work.effects if r.label == eff.label()), None)
     if entry is not None:
         entry = work.amend(entry, with_learned_model=evidence)
-    if test["p_value"] < opts.alpha_validation:
+    if test["p_value"] < opts.levels.validation:
         return False
     _adopt(model, trial)
     work.fits.append(fit)
@@ -507,7 +507,7 @@ def correction_net_stage(run: CalibrationRun) -> StageResult:
     base frame), as the ``learned`` checkpoint."""
     work = StageWork(run, "correction network")
     model, opts = work.model, work.options
-    _console.info(f"correction network {model.robot.dof}-{opts.hidden}-3 on the remaining position corrections")
+    _console.info(f"correction network {model.robot.dof}-{opts.network.hidden}-3 on the remaining position corrections")
     fit_correction_net(work, run.train, run.trajectory)
     before = work.stages[-1]
     after = work.add_stage(StageName.LEARNED)
@@ -515,7 +515,7 @@ def correction_net_stage(run: CalibrationRun) -> StageResult:
         EffectRecord(
             "learned",
             None,
-            {"hidden": opts.hidden, "n_weights": model.effects[-1].net.n_weights, "fit": opts.net_method},
+            {"hidden": opts.network.hidden, "n_weights": model.effects[-1].net.n_weights, "fit": opts.network.method},
             {"validation": "early stopping on a seeded 20 % of the training poses"},
             rmse_before_mm=before.rmse * 1e3,
             rmse_after_mm=after.rmse * 1e3,
@@ -535,7 +535,7 @@ def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -
         S.holdout_count(train.n, VALIDATION_FRACTION, rounding="floor"),
         generator=g,
         q=train.q,
-        group_tol=opts.group_tol,
+        group_tol=opts.split.group_tol,
         sort=False,
     )
     net, res = _fitted_network(model, opts, g, train.q, corr, fit_i, val_i, fit_generator=g)
@@ -556,17 +556,17 @@ def _fitted_network(
     val_i: Tensor,
     fit_generator: torch.Generator | None = None,
 ) -> tuple[CorrectionNet, NetFitResult]:
-    """A :class:`CorrectionNet` of ``opts.hidden`` units, initialised from ``init`` and fitted to the corrections
-    ``corr`` at the poses ``fit_i`` with early stopping on ``val_i``; the network and the fit's result."""
-    net = CorrectionNet(model.robot.dof, opts.hidden, device=model.robot.device)
+    """A :class:`CorrectionNet` of ``opts.network.hidden`` units, initialised from ``init`` and fitted to the
+    corrections ``corr`` at the poses ``fit_i`` with early stopping on ``val_i``; the network and the fit's result."""
+    net = CorrectionNet(model.robot.dof, opts.network.hidden, device=model.robot.device)
     net.reset_parameters(init, gain=0.5)
     res = fit_net(
         net,
         q[fit_i],
         corr[fit_i],
         val=(q[val_i], corr[val_i]),
-        method=opts.net_method,
-        iterations=opts.net_iterations,
+        method=opts.network.method,
+        iterations=opts.network.iterations,
         generator=fit_generator,
     )
     return net, res

@@ -84,7 +84,7 @@ def close_loop(
     train, trajectory = run.train, run.trajectory
     opts, model = run.options, work.model
     # the levels: of the score tests (family-wise, Bonferroni over the candidates) and of the paired validation test
-    alpha, alpha_val = opts.alpha, opts.alpha_validation
+    alpha, alpha_val = opts.levels.score, opts.levels.validation
     ctx = Context.from_measurements(train, trajectory=trajectory)
     cands, skipped = candidates(model.robot, ctx)
     fi, va = S.split(
@@ -93,7 +93,7 @@ def close_loop(
         seed=opts.seed + S.Stream.VALIDATION,
         last=trajectory,
         q=train.q,
-        group_tol=opts.group_tol,
+        group_tol=opts.split.group_tol,
     )
     fit_part, val_part = train.subset(fi), train.subset(va)
     diag = Diagnosis(alpha, alpha_val, len(fi), len(va), list(cands), skipped)
@@ -105,7 +105,7 @@ def close_loop(
     ida = run.identifiability
 
     def fit_on(m: MeasurementModel, data, stage: str):
-        return solve(m, data, GROUPS, opts, stage, trajectory, effects=True, identifiability=ida)
+        return solve(m, data, GROUPS, opts.fit, stage, trajectory, effects=True, identifiability=ida)
 
     base = copy.deepcopy(model)
     fit_on(base, fit_part, "validation baseline")
@@ -121,7 +121,7 @@ def close_loop(
 
     def validate(rnd: int, cand, s) -> _Validation:
         v = _validate(
-            s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand, opts.max_joint_error
+            s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand, opts.loop.max_joint_error
         )
         if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
             _validate_edge(v, base, fit_on, fit_part, trajectory, alpha_val, edge_bases)
@@ -135,7 +135,7 @@ def close_loop(
         fit = work.fits[-1]
         remaining = [c for c in cands if c.name not in tried and c.name not in accepted_names]
         scores = (
-            score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining, tol=opts.rank_tol)
+            score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining, tol=opts.fit.rank_tol)
             if remaining
             else []
         )
@@ -433,7 +433,7 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
     try:
         new_fit = fit_on(model, train, label)
         # the refit on all training poses is judged like the validation refit: determined and of a physical size
-        unsure = joint_function_check(eff, train.q, model.robot, work.options.max_joint_error)
+        unsure = joint_function_check(eff, train.q, model.robot, work.options.loop.max_joint_error)
         if unsure is not None:
             raise EstimationError(unsure)
     except EstimationError as err:

@@ -42,10 +42,10 @@ def nominal(run: CalibrationRun) -> StageResult:
     _console.info(
         f"{work.robot.name}: {train.n} training and {run.hold.n} held-out poses; fitting tracker pose and lever arm"
     )
-    noise = float(train.sigma.median()) if train.sigma is not None else opts.sigma_tracker
-    place_instrument_and_tool(work.robot, train.q, train.p, lever_prior=opts.lever_prior(noise))
+    noise = float(train.sigma.median()) if train.sigma is not None else opts.fit.sigma_tracker
+    place_instrument_and_tool(work.robot, train.q, train.p, lever_prior=opts.fit.lever_prior(noise, opts.device))
     work.fits.append(
-        solve(work.model, train, ("instrument", "tool"), opts, StageName.NOMINAL, run.trajectory, identify=False)
+        solve(work.model, train, ("instrument", "tool"), opts.fit, StageName.NOMINAL, run.trajectory, identify=False)
     )
     work.add_stage(StageName.NOMINAL)
     return work.result()
@@ -56,7 +56,7 @@ def geometric(run: CalibrationRun) -> StageResult:
     stopped where the corrections are many times their priors (:func:`~torchcal.pipeline.checks.check_corrections`)."""
     work = StageWork(run, StageName.GEOMETRIC)
     _console.info("kinematic calibration: identifiability analysis and weighted LM")
-    fit = solve(work.model, run.train, GEOMETRIC_GROUPS, run.options, StageName.GEOMETRIC, run.trajectory)
+    fit = solve(work.model, run.train, GEOMETRIC_GROUPS, run.options.fit, StageName.GEOMETRIC, run.trajectory)
     check_corrections(fit, work.model, run.options, run.data)
     work.fits.append(fit)
     work.add_stage(StageName.GEOMETRIC)
@@ -73,7 +73,7 @@ def nominal_geometry(run: CalibrationRun) -> StageResult:
 
 def closed_loop(run: CalibrationRun) -> StageResult:
     """The closed loop (:func:`~torchcal.pipeline.loop.close_loop`), where ``Options.diagnose`` asks for it."""
-    if not run.options.diagnose:
+    if not run.options.loop.enabled:
         return StageResult("closed loop")
     _console.info("diagnosis: score tests of the candidate effects, joint refits, validation")
     # small kernels throughout (u x u solves, one pass over the poses, score tests, smooths): one thread, so that
@@ -84,7 +84,7 @@ def closed_loop(run: CalibrationRun) -> StageResult:
 
 def learned(run: CalibrationRun) -> StageResult:
     """The learned residual model (:func:`~torchcal.pipeline.learned.learned_stage`)."""
-    if run.options.learned:
+    if run.options.learned.enabled:
         _console.info("residual model: kernel regression and correction network judged on validation poses")
     return learned_stage(run)
 

@@ -101,10 +101,10 @@ def start(
         raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
     check_poses(data)
     method = METHOD_TABLE[opts.method]
-    trajectory = is_trajectory(data) if opts.trajectory is None else bool(opts.trajectory)
+    trajectory = is_trajectory(data) if opts.split.trajectory is None else bool(opts.split.trajectory)
     if method.trajectory_only:
         require_trajectory(data, trajectory)
-    split = holdout_split(data, opts.holdout, opts.seed + S.Stream.HOLDOUT, trajectory, opts.group_tol)
+    split = holdout_split(data, opts.split.holdout, opts.seed + S.Stream.HOLDOUT, trajectory, opts.split.group_tol)
     tr, ho, screening = screen_gross_errors(robot, data, *split, opts, trajectory)
     model = MeasurementModel(robot)
     model.set_region(data.q[tr], fade=method.fades)
@@ -152,10 +152,10 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
     """The training and held-out rows without their gross errors (:func:`torchcal.estimate.robust.screen_geometric`).
 
     Returns the kept training and held-out indices into ``data`` and the screening (None when
-    ``opts.outlier_alpha`` is None). Every later stage sees only the kept rows, and the held-out errors
+    ``opts.levels.outlier`` is None). Every later stage sees only the kept rows, and the held-out errors
     leave the rejected held-out rows out; on data without gross errors nothing changes.
     """
-    if opts.outlier_alpha is None:
+    if opts.levels.outlier is None:
         return tr, ho, None
     from torchcal.estimate.robust import screen_geometric
 
@@ -165,9 +165,9 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
             MeasurementModel(robot),
             data.subset(tr),
             data.subset(ho),
-            opts,
+            opts.fit,
             trajectory=trajectory,
-            alpha=opts.outlier_alpha,
+            alpha=opts.levels.outlier,
         )
     for name, part in (("training", sc.training), ("held-out", sc.holdout)):
         if part.rejected:

@@ -278,7 +278,7 @@ def plot_joint_function(run: CalibrationRun, effect, path: Path) -> None:
         ax.axvspan(a, b, color="tab:green", alpha=0.12, label="fitted range")
     ax.plot(grid.tolist(), raw.tolist(), "--", color="0.5", lw=1, label="as fitted, continued")
     ax.plot(grid.tolist(), applied.tolist(), color="tab:blue", lw=1.5, label="as applied (fades beyond)")
-    bound = run.options.max_joint_error
+    bound = run.options.loop.max_joint_error
     if bound is not None:
         for y in (bound * 1e3, -bound * 1e3):
             ax.axhline(y, color="tab:red", lw=0.8, ls=":")

@@ -126,7 +126,7 @@ def build_report(run: CalibrationRun) -> dict:
         "n_holdout": int(len(run.holdout_idx)),
         "split": {
             "kind": "last samples (trajectory)" if run.trajectory else "seeded random",
-            "holdout_fraction": run.options.holdout,
+            "holdout_fraction": run.options.split.holdout,
             "seed": run.options.seed,
             **(run.split.to_dict() if run.split is not None else {}),
         },
@@ -138,8 +138,10 @@ def build_report(run: CalibrationRun) -> dict:
         "rmse_train_after_mm": rmse(final.train_errors) * 1e3,
         "global_test": {k: last.global_test[k] for k in ("statistic", "threshold", "passed", "alpha", "redundancy")},
         "stochastic_model": {
-            "tracker_sigma_m": "per point (sx, sy, sz)" if run.data.sigma is not None else run.options.sigma_tracker,
-            "joint_sigma_rad": run.options.sigma_joint,
+            "tracker_sigma_m": "per point (sx, sy, sz)"
+            if run.data.sigma is not None
+            else run.options.fit.sigma_tracker,
+            "joint_sigma_rad": run.options.fit.sigma_joint,
         },
         "outliers": _json_safe(outliers),
         "effects": _json_safe(run.effects_report),
