@@ -25,7 +25,7 @@ def largest(robot: str, m, **options) -> dict:
     """Per unit ('m', 'rad'): (largest ratio, its parameter) after the geometric fit of ``robot`` to ``m``."""
     limits, P.MAX_PRIOR_RATIO = P.MAX_PRIOR_RATIO, {"m": float("inf"), "rad": float("inf")}  # measure, do not stop
     try:
-        run = P.calibrate(robot, m, Options(method="kinematic", **options))
+        run = P.calibrate(robot, m, Options.of(method="kinematic", **options))
     finally:
         P.MAX_PRIOR_RATIO = limits
     fit = next(f for f in run.fits if f.stage == "geometric")

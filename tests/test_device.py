@@ -184,7 +184,7 @@ def _fit(m, dev=None):
     m = m if dev is None else m.to(dev)
     place_instrument_and_tool(robot, m.q, m.p)
     model = MeasurementModel(robot)
-    fit = solve(model, m, GEOMETRIC_GROUPS, Options(), "geometric", False)
+    fit = solve(model, m, GEOMETRIC_GROUPS, Options().fit, "geometric", False)
     W = whitening(model, Context(q=m.q), None, 15e-6, 1e-5)
     return model, fit, cpu(fit.result.x), cpu(W)
 
@@ -252,7 +252,7 @@ def test_calibrate_and_predict_on_another_device(campaign, monkeypatch, tmp_path
     ref = calibrate("ur5", data, Options(method="kinematic"))
     opts = Options(method="kinematic")
     with virtual_device(monkeypatch) as dev:
-        opts.device = str(dev)  # Options accepts cpu and cuda only; the test sets its virtual device directly
+        object.__setattr__(opts, "device", str(dev))  # Options accepts cpu and cuda only; set the virtual one directly
         run = calibrate("ur5", data, opts)
         assert isinstance(run.data.q, Virtual) and isinstance(run.robot.geometry.delta, Virtual)
         out = write_run(run, tmp_path / "run")
@@ -301,7 +301,7 @@ class _InlineExecutor:
 def test_default_method_on_another_device(monkeypatch):
     """The default method end to end (screening, kinematic, the closed loop's score tests and joint refits, the
     Gaussian process, kernel and network of the learned stage) on the virtual device, against the CPU."""
-    import torchcal.pipeline.run as pipeline_run
+    import torchcal.pipeline.options as pipeline_run
     from torchcal.effects import gp
     from torchcal.estimate import robust
     from torchcal.pipeline import learned
@@ -327,7 +327,7 @@ def test_default_method_on_another_device(monkeypatch):
     ref = calibrate("ur5", camp.train, Options())
     opts = Options()
     with virtual_device(monkeypatch) as dev:
-        opts.device = str(dev)
+        object.__setattr__(opts, "device", str(dev))
         run = calibrate("ur5", camp.train, opts)
     assert [s.name for s in run.stages] == [s.name for s in ref.stages]
     assert len(run.stages) >= 3  # a named effect or the learned stage was found, so their paths ran

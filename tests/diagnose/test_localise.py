@@ -78,7 +78,7 @@ def joint_refit_rmse(g, effect, test) -> float:
         model,
         g["train"],
         ("geometry", "instrument", "tool"),
-        g["opts"],
+        g["opts"].fit,
         "joint",
         False,
         effects=True,

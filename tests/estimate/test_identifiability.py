@@ -128,7 +128,7 @@ def _geometric_fit(spec, train):
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(t)
     return solve(
-        model, train, ("geometry", "instrument", "tool"), Options(method="kinematic"), "geometric", trajectory=False
+        model, train, ("geometry", "instrument", "tool"), Options(method="kinematic").fit, "geometric", trajectory=False
     )
 
 

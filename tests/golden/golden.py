@@ -47,7 +47,7 @@ def golden_run(method: str):
     from torchcal.pipeline import Options, calibrate
 
     with torch_threads(1):
-        return calibrate(SIM["robot"], campaign().train, Options(method=method, seed=SIM["seed"], **CASES[method]))
+        return calibrate(SIM["robot"], campaign().train, Options.of(method=method, seed=SIM["seed"], **CASES[method]))
 
 
 def golden_report(method: str) -> dict:

@@ -30,7 +30,7 @@ def test_the_default_refits_only_the_integrated_methods_auto_engine():
 )
 def test_refit_where_it_does_not_apply_is_an_option_error(kw):
     with pytest.raises(OptionError, match="refit applies to"):
-        Options(refit=True, **kw)
+        Options.of(refit=True, **kw)
 
 
 def test_a_kinematic_refit_is_the_geometry_fitted_on_all_samples_and_keeps_the_held_out_errors(campaign):
@@ -49,7 +49,7 @@ def test_a_kinematic_refit_is_the_geometry_fitted_on_all_samples_and_keeps_the_h
         plain.model,
         both,
         GEOMETRIC_GROUPS,
-        plain.options,
+        plain.options.fit,
         "by hand",
         True,
         identifiability=plain.fits[-1].identifiability,
