@@ -16,8 +16,8 @@ geometry, the instrument pose and the lever arm to be known, and network weights
 3. a joint LM refinement of geometry, instrument pose, lever arm and network weights on the training part:
    the batch form of the simultaneous estimation the paper aims at. The kinematic calibration of step 1 has
    taken the share of the non-geometric field that looks geometric into the geometry, and a network fitted
-   to what is left extrapolates badly (with the *true* geometry the same network fit extrapolates several times
-   better, ``scripts/integrated_trajectory.py``); estimating both together can move
+   to what is left extrapolates worse than one fitted with the true geometry (``scripts/integrated_trajectory.py``
+   compares the two); estimating both together can move
    that share back, but it can also make things worse, so the last 10 % of the training samples judge it
    after every restart and the best state (possibly the unrefined start) is kept;
 4. the EKF pass over the training samples (:class:`~torchcal.filter.EKFTrainer`) from the refined weights,
@@ -28,9 +28,9 @@ geometry, the instrument pose and the lever arm to be known, and network weights
 
 The paper's ANN re-iteration (Fig. 10: an LM re-fit every 500 samples to the corrections of Eq. 22, taken
 against the filter's own geometric state, without a validation share) is off by default
-(``reiterate_every=0``; the argument switches it on): on measured data, re-fitting to the filter's own
-corrections without a validation share raised the held-out error several-fold in our trials, and each pass
-costs an LM fit every 500 samples.
+(``reiterate_every=0``; the argument switches it on): without a validation share nothing keeps such a re-fit from
+fitting the filter's own corrections of the training stretch at the expense of the path's continuation
+(docs/integrated.md, *The engines*), and each pass costs an LM fit every 500 samples.
 
 The final model is the refined geometry plus a :class:`~torchcal.effects.LearnedEffect` with the filter's
 last weights; ``torchcal predict`` reloads it, and its held-out error is the ``integrated`` stage. The
@@ -323,7 +323,8 @@ def integrate_adaptive(
     sharper features fit more, fewer and smoother ones extrapolate more gently), ``sigma_field`` the prior of the
     output layer (the field's expected RMS): the regularisation settings :func:`integrate_selected` chooses among
     on validation samples.
-    ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (README, "integrated").
+    ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (docs/integrated.md,
+    *The engines*).
     Steps: :func:`_adaptive_pass` (the filter), :func:`_install_adaptive` (the final model),
     :func:`_record_adaptive` (the report's record).
     """
@@ -467,8 +468,9 @@ class Setting:
     def gate_lengths(self) -> tuple[float, ...]:
         """Support-gate lengths tried on validation. The paper's engine is kept only behind a finite gate: its
         6-29-3 network, refined jointly with a geometry of its own, can beat geometry alone on every piece of the
-        validation block and still extrapolate worse than geometry on the path's continuation (README,
-        *The integrated method on paths it was not tuned on*); a gate bounds how far that can go."""
+        validation block and still extrapolate worse than geometry on the path's continuation, far from the joints
+        it was fitted on; a gate bounds how far from them it acts (docs/integrated.md, *Paths it was not tuned
+        on*)."""
         return tuple(g for g in sup.GATE_LENGTHS if g <= EKF_LONGEST_GATE) if self.engine == "ekf" else sup.GATE_LENGTHS
 
     @property
@@ -702,9 +704,9 @@ def _gate_on_holdout(
     the candidate fitted on the fitting samples) and the one the held-out samples choose for the final model fitted
     on all training samples (``model``, its learned effect not yet gated; the gate around the training samples,
     falling back to the kinematic calibration). Each block is one stretch of the path leaving the samples fitted,
-    and a gate is kept only as long as both support: where the validation block favoured a long gate and the
-    held-out samples a shorter one, the longer one extrapolated worse on the continuation (README, *The integrated
-    method on paths it was not tuned on*). Only shortens: the held-out samples never lengthen the gate, so the held-out
+    and a gate is kept only as long as both support: a gate longer than one of them chose lets the network act
+    where that stretch showed it extrapolating worse than the shorter gate (docs/integrated.md, *Paths it was not
+    tuned on*). Only shortens: the held-out samples never lengthen the gate, so the held-out
     guard that follows judges a model at most as far from geometry as validation chose. The table goes into
     ``evidence["gate_on_holdout"]``; with fewer held-out samples than validation pieces, ``length`` is kept."""
     if hold.n < VALIDATION_PIECES:
