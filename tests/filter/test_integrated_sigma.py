@@ -14,6 +14,7 @@ from torchcal.cli import main
 from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context, LearnedEffect, MeasurementModel
 from torchcal.effects.base import Effect
+from torchcal.effects.predictive import GatedBlock, calibrate_predictive_sigma, sigma_check
 from torchcal.effects.registry import effect_from_config
 from torchcal.effects.support import (
     SupportGate,
@@ -344,21 +345,67 @@ class _Offset(Effect):
 
 def test_a_predictive_sigma_far_beyond_the_residuals_is_reported():
     e = torch.full((4, 3), 1e-4, dtype=torch.float64)
-    sane = I._sigma_check([(e, torch.full((4, 3), 5e-5, dtype=torch.float64))])
+    sane = sigma_check([(e, torch.full((4, 3), 5e-5, dtype=torch.float64))])
     assert not sane["suspect"] and sane["ratio"] == pytest.approx(0.5)
     assert sane["max_sigma_mm"] == pytest.approx(0.05) and sane["max_residual_mm"] == pytest.approx(0.1)
     wide = torch.full((4, 3), 5e-5, dtype=torch.float64)
     wide[2, 1] = 7e7  # a widening factor set by a sample whose near part was nearly zero
-    check = I._sigma_check([(e, torch.full((4, 3), 5e-5, dtype=torch.float64)), (e, wide)])
+    check = sigma_check([(e, torch.full((4, 3), 5e-5, dtype=torch.float64)), (e, wide)])
     assert check["suspect"] and check["ratio"] == pytest.approx(7e11)
     # a widening factor at its cap (support.FACTOR_SIGMA_RATIO times the largest residual) is always reported
     from torchcal.effects.support import FACTOR_SIGMA_RATIO
 
-    capped = I._sigma_check([(e, torch.full((4, 3), FACTOR_SIGMA_RATIO * 1e-4, dtype=torch.float64))])
+    capped = sigma_check([(e, torch.full((4, 3), FACTOR_SIGMA_RATIO * 1e-4, dtype=torch.float64))])
     assert capped["suspect"] and capped["ratio"] == pytest.approx(FACTOR_SIGMA_RATIO)
-    inf = I._sigma_check([(e, torch.full((4, 3), math.inf, dtype=torch.float64))])
+    inf = sigma_check([(e, torch.full((4, 3), math.inf, dtype=torch.float64))])
     assert inf["suspect"] and inf["ratio"] is None and inf["max_sigma_mm"] is None
     json.dumps(inf)  # report.json takes it as it is
+
+
+def test_the_calibration_sets_both_gates_from_the_growth_the_fallback_and_both_blocks():
+    """:func:`calibrate_predictive_sigma` on hand-built gates: the fallback's growth from the refits' residuals,
+    its scale from the fallback's own residuals on the held-out block, then scale and floor by likelihood on
+    validation widened over both blocks; both gates get the same calibration, and the evidence says so."""
+    robot, val_gate, support = _gate(length=1.0, seed=0)
+    _, final, _ = _gate(length=1.0, seed=0)
+    g = torch.Generator().manual_seed(7)
+    q_val, q_hold = support[:80] + 0.2, support[80:200] + 0.4
+
+    def draw(n, s):
+        return s * torch.randn(n, 3, generator=g, dtype=torch.float64)
+
+    d_growth = 3.0 * torch.rand(300, generator=g, dtype=torch.float64)
+    e_growth = 5e-5 * (1.0 + 0.5 * d_growth[:, None] ** 2).sqrt() * torch.randn(300, 3, generator=g).double()
+    e_fb = draw(120, 4e-5)
+    validation = GatedBlock(val_gate, robot, q_val, draw(80, 3e-5))
+    holdout = GatedBlock(final, robot, q_hold, draw(120, 5e-5))
+    ev = calibrate_predictive_sigma(validation, final, holdout, e_growth, d_growth, e_fb)
+    s_fb, c = fit_fallback_growth(e_growth, d_growth)
+    assert ev["fallback_growth"] == c and c > 0
+    expected_fb = fit_fallback_scale(e_fb, final.distance(q_hold), c)
+    assert ev["fallback_sigma_mm"] == pytest.approx([x * 1e3 for x in expected_fb], rel=1e-12)
+    for gate in (val_gate, final):
+        assert (gate.sigma_fallback, gate.fallback_growth) == (expected_fb, c)
+    with torch.no_grad():
+        parts_val, parts_hold = val_gate.variance_parts(robot, q_val), final.variance_parts(robot, q_hold)
+    scale, floor = fit_predictive_scale(validation.e, *parts_val, 0.95, holdout=(holdout.e, *parts_hold))
+    assert (ev["scale"], ev["floor_mm"]) == (scale, [f * 1e3 for f in floor])
+    assert (val_gate.sigma_scale, val_gate.sigma_floor) == (final.sigma_scale, final.sigma_floor) == (scale, floor)
+    with torch.no_grad():
+        sd_val, sd_hold = val_gate.predictive_std(robot, q_val), final.predictive_std(robot, q_hold)
+    assert ev["coverage_2sigma_validation"] == coverage(validation.e, sd_val)
+    assert ev["coverage_2sigma_holdout"] == coverage(holdout.e, sd_hold)
+    assert ev["sigma_check"] == sigma_check([(validation.e, sd_val), (holdout.e, sd_hold)])
+    assert (ev["n_validation"], ev["n_holdout"], ev["sigma_length"]) == (80, 120, 1.0)
+    json.dumps(ev)
+    # without held-out samples: the refits alone size the fallback, validation alone the scale
+    alone = calibrate_predictive_sigma(validation, final, None, e_growth, d_growth)
+    assert alone["fallback_sigma_mm"] == pytest.approx([x * 1e3 for x in s_fb], rel=1e-12)
+    assert alone["n_holdout"] == 0 and alone["coverage_2sigma_holdout"] is None
+    with pytest.raises(ValueError, match="final gate"):
+        calibrate_predictive_sigma(
+            validation, final, GatedBlock(val_gate, robot, q_hold, holdout.e), e_growth, d_growth
+        )
 
 
 class _Shift(Effect):

@@ -46,7 +46,7 @@ from those (:func:`fit_fallback_growth`), since geometry fitted along one stretc
 than further away; where the fallback itself (geometry on all training samples) has residuals on samples it was not
 fitted on, those size ``s_fb`` with the growth's shape kept (:func:`fit_fallback_scale`): it is better determined than
 the refits the growth comes from. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's support
-the variance is ``s_far^2``.
+the variance is ``s_far^2``. :mod:`torchcal.effects.predictive` calibrates these parts on a model's residuals.
 """
 
 from __future__ import annotations

@@ -127,9 +127,9 @@ def guard_stages(run: CalibrationRun) -> StageResult:
     """The ``auto`` method never ends worse than the kinematic calibration on the held-out poses.
 
     The closed loop and the learned stage confirm every effect on validation poses cut from the training poses;
-    an effect fitted jointly with the geometry can still win there and extrapolate badly elsewhere (on an
-    outside-style trajectory, a cyclic error of the wrist fitted with the geometry raised the held-out error from
-    0.090 to 0.104 mm and the continuation's from 0.12 to 1.03 mm). Where the final model's held-out RMSE is not
+    an effect fitted jointly with the geometry can still win there and extrapolate badly elsewhere: those poses
+    test it among the poses it was fitted on, not beyond them, where a trajectory's held-out samples continue the
+    path (docs/integrated.md, *The default method on a trajectory*). Where the final model's held-out RMSE is not
     below the geometric stage's, the run steps back to the last stage whose held-out RMSE is (the stages are
     nested: each holds the model as it stood), or to the kinematic calibration when none is; the effects of the
     stages dropped become rejections that say why, with the held-out errors of every stage

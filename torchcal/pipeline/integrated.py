@@ -16,8 +16,8 @@ geometry, the instrument pose and the lever arm to be known, and network weights
 3. a joint LM refinement of geometry, instrument pose, lever arm and network weights on the training part:
    the batch form of the simultaneous estimation the paper aims at. The kinematic calibration of step 1 has
    taken the share of the non-geometric field that looks geometric into the geometry, and a network fitted
-   to what is left extrapolates badly (with the *true* geometry the same network fit extrapolates several times
-   better, ``scripts/integrated_trajectory.py``); estimating both together can move
+   to what is left extrapolates worse than one fitted with the true geometry (``scripts/integrated_trajectory.py``
+   compares the two); estimating both together can move
    that share back, but it can also make things worse, so the last 10 % of the training samples judge it
    after every restart and the best state (possibly the unrefined start) is kept;
 4. the EKF pass over the training samples (:class:`~torchcal.filter.EKFTrainer`) from the refined weights,
@@ -28,9 +28,9 @@ geometry, the instrument pose and the lever arm to be known, and network weights
 
 The paper's ANN re-iteration (Fig. 10: an LM re-fit every 500 samples to the corrections of Eq. 22, taken
 against the filter's own geometric state, without a validation share) is off by default
-(``reiterate_every=0``; the argument switches it on): on measured data, re-fitting to the filter's own
-corrections without a validation share raised the held-out error several-fold in our trials, and each pass
-costs an LM fit every 500 samples.
+(``reiterate_every=0``; the argument switches it on): without a validation share nothing keeps such a re-fit from
+fitting the filter's own corrections of the training stretch at the expense of the path's continuation
+(docs/integrated.md, *The engines*), and each pass costs an LM fit every 500 samples.
 
 The final model is the refined geometry plus a :class:`~torchcal.effects.LearnedEffect` with the filter's
 last weights; ``torchcal predict`` reloads it, and its held-out error is the ``integrated`` stage. The
@@ -51,6 +51,7 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
+from torchcal.effects import predictive as P
 from torchcal.effects import support as sup
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
@@ -322,7 +323,8 @@ def integrate_adaptive(
     sharper features fit more, fewer and smoother ones extrapolate more gently), ``sigma_field`` the prior of the
     output layer (the field's expected RMS): the regularisation settings :func:`integrate_selected` chooses among
     on validation samples.
-    ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (README, "integrated").
+    ``scripts/integrated_trajectory.py`` measures the engines on simulated trajectories (docs/integrated.md,
+    *The engines*).
     Steps: :func:`_adaptive_pass` (the filter), :func:`_install_adaptive` (the final model),
     :func:`_record_adaptive` (the report's record).
     """
@@ -469,8 +471,9 @@ class Setting:
     def gate_lengths(self) -> tuple[float, ...]:
         """Support-gate lengths tried on validation. The paper's engine is kept only behind a finite gate: its
         6-29-3 network, refined jointly with a geometry of its own, can beat geometry alone on every piece of the
-        validation block and still extrapolate worse than geometry on the path's continuation (README,
-        *The integrated method on paths it was not tuned on*); a gate bounds how far that can go."""
+        validation block and still extrapolate worse than geometry on the path's continuation, far from the joints
+        it was fitted on; a gate bounds how far from them it acts (docs/integrated.md, *Paths it was not tuned
+        on*)."""
         return tuple(g for g in sup.GATE_LENGTHS if g <= EKF_LONGEST_GATE) if self.engine == "ekf" else sup.GATE_LENGTHS
 
     @property
@@ -663,9 +666,10 @@ def _refit_filter(work: StageWork, setting: Setting, length: float, geometric: M
         work.note(f"refit: {why}")
         return {"n_samples": both.n, "skipped": why}
     old = work.model.effects[-1]  # the training fit's gate, with the predictive sigma's calibration
-    gate = _predictive_gate(
+    gate = P.predictive_gate(
         trial.model,
-        filt,
+        filt.weight_cov,
+        filt.weight_index,
         both.q,
         length,
         geo_all.robot,
@@ -705,9 +709,9 @@ def _gate_on_holdout(
     the candidate fitted on the fitting samples) and the one the held-out samples choose for the final model fitted
     on all training samples (``model``, its learned effect not yet gated; the gate around the training samples,
     falling back to the kinematic calibration). Each block is one stretch of the path leaving the samples fitted,
-    and a gate is kept only as long as both support: where the validation block favoured a long gate and the
-    held-out samples a shorter one, the longer one extrapolated worse on the continuation (README, *The integrated
-    method on paths it was not tuned on*). Only shortens: the held-out samples never lengthen the gate, so the held-out
+    and a gate is kept only as long as both support: a gate longer than one of them chose lets the network act
+    where that stretch showed it extrapolating worse than the shorter gate (docs/integrated.md, *Paths it was not
+    tuned on*). Only shortens: the held-out samples never lengthen the gate, so the held-out
     guard that follows judges a model at most as far from geometry as validation chose. The table goes into
     ``evidence["gate_on_holdout"]``; with fewer held-out samples than validation pieces, ``length`` is kept."""
     if hold.n < VALIDATION_PIECES:
@@ -746,107 +750,66 @@ def _attach_predictive_sigma(
 
     The scale factor is calibrated on the validation block with the candidate fitted on the fitting samples
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
-    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The fallback's
-    error and its growth with distance come from geometry's own residuals (:func:`_fallback_growth`) before the
-    scale is fitted. The network's error far from the support tends to its gate's fallback's residual scale
-    ``s_far``: geometry on the fitting samples on the validation block for the candidate's gate, the kinematic
-    calibration on the held-out samples for the final gate (without held-out samples, the former for both). The
-    scale and floor are fitted by likelihood on the validation block, then widened (never
-    narrowed) by the factor that puts :data:`COVERAGE_TARGET` of the validation and held-out residuals together
-    within 2 sigma, each block with its own model: the candidate on validation, the final model on the held-out
-    samples (:func:`~torchcal.effects.support.fit_predictive_scale`); without held-out samples, to the target on
-    validation only. The held-out coverage is then part of the calibration, not an independent
-    check: the test file (the path's continuation) is. Always a gate, an infinite one included (it changes no
-    prediction): it carries the standard deviation. Returns the report's evidence (scale, coverage of 2 sigma on
-    validation and on the held-out samples, the rule, the variance's parts).
+    the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The network's
+    error far from the support tends to its gate's fallback's residual scale ``s_far``: geometry on the fitting
+    samples on the validation block for the candidate's gate, the kinematic calibration on the held-out samples for
+    the final gate (without held-out samples, the former for both). The fallback's error and its growth with
+    distance come from geometry's own residuals (:func:`_growth_residuals`). Here the models are fitted and their
+    residuals taken; the calibration itself, scale, floor and the fallback's growth on both gates, is
+    :func:`~torchcal.effects.predictive.calibrate_predictive_sigma`. Always a gate, an infinite one included (it
+    changes no prediction): it carries the standard deviation. Returns the report's evidence (scale, coverage of
+    2 sigma on validation and on the held-out samples, the rule, the variance's parts).
     """
-    noise = _observation_sigma(work.model, train, work.options)
+    opts = work.options
+    noise = P.observation_sigma(work.model.robot, train, opts.fit.sigma_tracker, opts.fit.sigma_joint)
     # each fallback's residuals beyond its own support: geometry on the fitting samples on the validation block,
     # the kinematic calibration (geometry on all training samples) on the held-out samples
-    e_geo = _residuals(geo, val)
-    e_kin = _residuals(MeasurementModel(kinematic, []), hold) if hold.n else None
-    far = e_geo.square().mean(dim=0).sqrt()  # geometry's residual scale per axis on validation
-    sigma_length = length if math.isfinite(length) else max(g for g in sup.GATE_LENGTHS if math.isfinite(g))
-    val_gate = _predictive_gate(val_model, val_filter, fit.q, length, geo.robot, noise, far, sigma_length)
-    fb_sigma, fb_growth = _fallback_growth(work, kinematic, e_geo, e_kin, val, train, hold, val_gate)
-    val_gate.sigma_fallback, val_gate.fallback_growth = fb_sigma, fb_growth
-    e_val = _residuals(val_model, val, val_gate)
+    e_geo = P.residuals(geo, val)
+    e_kin = P.residuals(MeasurementModel(kinematic, []), hold) if hold.n else None
+    far = P.residual_scale(e_geo)
+    ell = P.sigma_length(length)
+    val_gate = P.predictive_gate(
+        val_model, val_filter.weight_cov, val_filter.weight_index, fit.q, length, geo.robot, noise, far, ell
+    )
+    e_growth, d_growth = _growth_residuals(work, kinematic, e_geo, val, train, val_gate)
+    validation = P.GatedBlock(val_gate, val_model.robot, val.q, P.residuals(val_model, val, val_gate))
     # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry's on the
     # validation block for the candidate; the kinematic calibration's on the held-out samples for the final model
     # (a geometry on all training samples, better determined than the one on fewer)
-    far_final = far if e_kin is None else e_kin.square().mean(dim=0).sqrt()
-    gate = _predictive_gate(work.model, filt, train.q, length, kinematic, noise, far_final, sigma_length)
-    gate.sigma_fallback, gate.fallback_growth = fb_sigma, fb_growth
-    holdout = None
-    if hold.n:  # the final model's residuals and variance parts where it was not fitted (its own P_w, its gate)
-        with torch.no_grad():
-            holdout = (_residuals(work.model, hold, gate), *gate.variance_parts(work.model.robot, hold.q))
-    scale, floor = sup.fit_predictive_scale(
-        e_val, *val_gate.variance_parts(val_model.robot, val.q), COVERAGE_TARGET, holdout=holdout
+    far_final = far if e_kin is None else P.residual_scale(e_kin)
+    gate = P.predictive_gate(
+        work.model, filt.weight_cov, filt.weight_index, train.q, length, kinematic, noise, far_final, ell
     )
-    val_gate.sigma_scale, val_gate.sigma_floor = scale, floor
-    gate.sigma_scale, gate.sigma_floor = scale, floor
+    # the final model's residuals where it was not fitted (its own P_w, its gate)
+    holdout = P.GatedBlock(gate, work.model.robot, hold.q, P.residuals(work.model, hold, gate)) if hold.n else None
+    evidence = P.calibrate_predictive_sigma(validation, gate, holdout, e_growth, d_growth, e_kin)
     work.model.effects[-1] = gate
     work.stages.pop()
     work.effects[-1].rmse_after_mm = work.add_stage(StageName.INTEGRATED).rmse * 1e3
-    # each block's residuals (computed above; the scale changes no prediction) against its predicted sigma
-    with torch.no_grad():
-        blocks = [(e_val, val_gate.predictive_std(val_model.robot, val.q))]
-        if hold.n:
-            blocks.append((holdout[0], gate.predictive_std(work.model.robot, hold.q)))
-    cov_val = sup.coverage(*blocks[0])
-    cov_hold = sup.coverage(*blocks[1]) if hold.n else None
-    check = _sigma_check(blocks)
+    check = evidence["sigma_check"]
     if check["suspect"]:
         work.note(
             f"integrated: the predictive sigma reaches {check['max_sigma_mm']} mm, {check['ratio']} times the "
             "largest validation or held-out residual: the widening factor was set by samples where the network's "
             "part of the variance is nearly zero; treat the sx, sy, sz columns of predict as unreliable"
         )
-    return {
-        "scale": scale,
-        "floor_mm": [f * 1e3 for f in floor],
-        "target_coverage_2sigma": COVERAGE_TARGET,
-        "calibration": "likelihood on validation, then widened (never narrowed) to the target over validation and "
-        "held-out residuals together (held-out coverage calibrated, not independent)"
-        if hold.n
-        else "likelihood on validation, then widened (never narrowed) to the target on validation",
-        "coverage_2sigma_validation": cov_val,
-        "coverage_2sigma_holdout": cov_hold,
-        "n_validation": val.n,
-        "n_holdout": hold.n,
-        "sigma_noise_mm": (noise * 1e3).tolist(),
-        "sigma_far_mm": (far * 1e3).tolist(),
-        "sigma_far_final_mm": (far_final * 1e3).tolist(),
-        "sigma_length": sigma_length,
-        "fallback_sigma_mm": [x * 1e3 for x in fb_sigma],
-        "fallback_growth": fb_growth,
-        "sigma_check": check,
-    }
+    return evidence
 
 
-def _fallback_growth(
+def _growth_residuals(
     work: StageWork,
     kinematic,
     e_geo: Tensor,
-    e_kin: Tensor | None,
     val: Measurements,
     train: Measurements,
-    hold: Measurements,
     val_gate: sup.SupportGate,
-) -> tuple[list[float], float]:
-    """How the geometric model's error grows with the distance from the samples it was fitted on
-    (:func:`~torchcal.effects.support.fit_fallback_growth`): its residuals on the validation block (geometry on the
-    fitting samples, ``e_geo``) and on the second half of the training samples (geometry refitted on the first half,
-    from the kinematic calibration), each at its distance from the samples fitted. The validation block alone
-    reaches only a short way from the support; a path's continuation can leave it much further (a random walk),
-    and the second half of the training samples shows how far geometry's residual grows over a longer stretch.
-    Those refits only give the growth's shape where there are held-out samples: the scale then comes from the
-    kinematic calibration itself, the fallback the prediction uses, on the held-out samples at their distance from
-    all training samples, ``e_kin`` (:func:`~torchcal.effects.support.fit_fallback_scale`; None without them).
-    Geometry fitted on all training samples is better determined than one fitted on half of them: scaled by the
-    refits, the fallback part overstated its error on the continuation where the path leaves the training joints
-    (README, *Predictive standard deviation*)."""
+) -> tuple[Tensor, Tensor]:
+    """The residuals ``(N, 3)`` [m] and distances ``(N,)`` [spreads] the fallback's growth with distance is fitted
+    on (:func:`~torchcal.effects.predictive.fallback_growth`): geometric models' residuals on samples after the ones
+    each was fitted on, at their distance from those. Geometry on the fitting samples on the validation block
+    (``e_geo``) reaches only a short way from the support; a path's continuation can leave it much further (a random
+    walk), so geometry is also refitted on the first half of the training samples (from the kinematic calibration)
+    and its residuals on the second half show how far geometry's residual grows over a longer stretch."""
     half = train.n // 2
     first, second = train.subset(slice(0, half)), train.subset(slice(half, None))
     ida = work.identifiability
@@ -854,79 +817,9 @@ def _fallback_growth(
     stage = "integrated: geometry on the first half (sigma)"
     solve(geo_half, first, GEOMETRIC_GROUPS, work.options.fit, stage, True, identifiability=ida)
     half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
-    e = torch.cat([e_geo, _residuals(geo_half, second)])
+    e = torch.cat([e_geo, P.residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
-    s_fb, growth = sup.fit_fallback_growth(e, d)
-    if e_kin is None:
-        return s_fb, growth
-    all_gate = sup.SupportGate(val_gate.inner, train.q, math.inf)  # the final gate's support: all training samples
-    return sup.fit_fallback_scale(e_kin, all_gate.distance(hold.q), growth), growth
-
-
-#: the share of residual components within two predicted standard deviations the scale factor is calibrated to
-COVERAGE_TARGET = 0.95
-
-
-def _observation_sigma(model: MeasurementModel, m: Measurements, opts) -> Tensor:
-    """Measurement noise per tracker axis ``(3,)`` [m]: the tracker's (median of the per-point sigmas where the
-    data have them) and the joint noise at the probe, ``sigma_joint |J_q|_F / sqrt(3)`` (median over the samples)."""
-    tracker = float(m.sigma.median()) if m.sigma is not None else opts.fit.sigma_tracker
-    with torch.no_grad():
-        _, Jq = model.robot.probe_jacobian(m.q)
-    joint = opts.fit.sigma_joint * float(Jq.flatten(-2).norm(dim=-1).median()) / math.sqrt(3.0)
-    return torch.full((3,), math.hypot(tracker, joint), dtype=m.q.dtype, device=m.q.device)
-
-
-def _residuals(model: MeasurementModel, m: Measurements, gate: sup.SupportGate | None = None) -> Tensor:
-    """Prediction minus measurement per tracker axis ``(N, 3)`` [m]; with ``gate`` replacing the last effect."""
-    if gate is not None:
-        model = MeasurementModel(model.robot, [*model.effects[:-1], gate])
-    with torch.no_grad():
-        return model(Context.from_measurements(m, trajectory=True)) - m.p
-
-
-def _predictive_gate(
-    model: MeasurementModel,
-    filt: IntegratedFilter,
-    support: Tensor,
-    length: float,
-    fallback,
-    noise: Tensor,
-    far: Tensor,
-    sigma_length: float,
-    scale: float = 1.0,
-    floor=None,
-) -> sup.SupportGate:
-    """``model``'s last (learned) effect behind a support gate that also predicts its standard deviation."""
-    inner = model.effects[-1]
-    inner = inner.inner if isinstance(inner, sup.SupportGate) else inner
-    gate = sup.SupportGate(inner, support, length, fallback=fallback)
-    gate.set_predictive(filt.weight_cov, filt.weight_index, noise, far, sigma_length, scale, floor)
-    return gate
-
-
-#: a predictive sigma this many times the largest residual of the blocks it was calibrated on is numerical trouble:
-#: half the cap of the widening factor (support.FACTOR_SIGMA_RATIO), so that a capped factor is always reported
-SIGMA_CHECK_RATIO = 0.5 * sup.FACTOR_SIGMA_RATIO
-
-
-def _sigma_check(blocks: list[tuple[Tensor, Tensor]]) -> dict:
-    """The largest predicted standard deviation of ``(residuals, sigma)`` blocks (the validation and held-out ones,
-    ``(N, 3)`` [m] each) against their largest residual: ``suspect`` when it is not finite or more than
-    :data:`SIGMA_CHECK_RATIO` times that residual. The widening factor
-    (:func:`~torchcal.effects.support.calibrate_factor`) is a quantile of what each residual component needs from the
-    near part of the variance; where that part is nearly zero (a gate almost closed) the need, and with it every
-    other sample's sigma, grows until the factor's cap. Reported, not hidden."""
-    sd = torch.cat([b[1].flatten() for b in blocks])
-    e = torch.cat([b[0].abs().flatten() for b in blocks])
-    top, worst = float(sd.max()), float(e.max().clamp_min(1e-12))
-    ratio = top / worst
-    return {
-        "max_sigma_mm": top * 1e3 if math.isfinite(top) else None,
-        "max_residual_mm": worst * 1e3,
-        "ratio": ratio if math.isfinite(ratio) else None,
-        "suspect": not math.isfinite(ratio) or ratio > SIGMA_CHECK_RATIO,
-    }
+    return e, d
 
 
 #: the engines of the integrated method (``Options.engine``)

@@ -41,9 +41,9 @@ Tensor = torch.Tensor
 REFIT_MAX_ITER = 10
 #: share of the training poses that judge a learned model
 VALIDATION_FRACTION = 0.2
-#: the most fitting poses at which the dense kernel regression competes: its dozen dense solves then cost more than
-#: the Gaussian process (exact up to 3000 rows, GPSettings.max_exact) that it lost to on every data set measured
-#: (UR10 Series B, C and D, the simulated golden campaign; README, *Real data*), and the GP uses every pose anyway
+#: the most fitting poses at which the dense kernel regression competes: beyond, its dozen dense solves cost more
+#: than the Gaussian process (exact up to 3000 rows, GPSettings.max_exact), which models the same smooth residual
+#: fields and uses every pose anyway (docs/methods.md, *The split and the methods*)
 KERNEL_CANDIDATE_MAX = 1000
 
 
@@ -156,7 +156,7 @@ def select_learned(
 
     # the three candidates are independent: the GP's evidence fit (large kernels, which release the GIL) runs in a
     # second thread beside the network's and the kernel regression's, so that a second core takes half of this
-    # step's time; every fit on one torch thread (as the GP's always was), so that the results do not depend on
+    # step's time; every fit on one torch thread (the GP's own fits pin one), so that the results do not depend on
     # the interleaving
     with torch_threads(1), ThreadPoolExecutor(max_workers=1, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         gp_job = pool.submit(_fit_gp, work, train, corr, fi, va)
@@ -187,7 +187,7 @@ def select_learned(
     if kernel is not None:
         kern, info = kernel
         candidates["kernel"] = (kern, info["val_errors"], kern.describe())
-    else:  # a dozen dense solves of that size, for a candidate the GP has beaten on every data set measured
+    else:  # a dozen dense solves of that size, for a candidate the GP covers (KERNEL_CANDIDATE_MAX)
         work.note(
             f"learned residual model: the dense kernel regression is left out ({len(fi)} fitting poses, "
             f"more than the {KERNEL_CANDIDATE_MAX} at which it competes)"
@@ -257,8 +257,8 @@ def _refit_geometry(
     index = len(model.effects) - 1
     ida = next((f.identifiability for f in reversed(work.fits) if f.identifiability is not None), None)
     groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
-    # warm-started from the current fit and used to compare models, the refit needs few iterations; on real
-    # data its valley is flat and an uncapped LM crawls for minutes without changing the comparison
+    # warm-started from the current fit and used to compare models, the refit needs few iterations; where the
+    # valley is flat (real data) an uncapped LM crawls on without changing the comparison
     fit = solve(
         model,
         train,
@@ -315,7 +315,7 @@ def _refit_learned_model(
             q_val=train.q[va],
             y_val=corr[va],
             seed=opts.seed,
-            start=(float(eff.length_scale), float(eff.noise_ratio)),  # speed (issue 14.3): a local search from there
+            start=(float(eff.length_scale), float(eff.noise_ratio)),  # new corrections, near the old: search locally
         )
         model.effects[index] = new
         e_val = info["val_errors"]

@@ -7,7 +7,7 @@ After the geometric fit, repeat:
    over the candidates, identifiability against the current parameters), and localise the training
    residual (:mod:`torchcal.diagnose.tracing`: a penalised smooth per variable, Bonferroni over the
    variables); at the strongest significant variable whose BIC-chosen form has an effect class, that
-   form is an open candidate (it replaces the menu's fixed form of the same name this round);
+   form is an open candidate (in that pass it replaces the menu's fixed form of the same name);
 2. refit the whole model (geometry, instrument, lever arm, the effects accepted so far and the
    candidate, jointly) on 80 % of the training poses with the open candidate and with the significant
    menu candidates in order of evidence (smallest p first) until one of them passes; a candidate passes
