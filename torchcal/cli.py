@@ -172,6 +172,11 @@ def _add_units(p: argparse.ArgumentParser) -> None:
     p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the joint columns")
 
 
+#: calibrate's methods, named here so that the parser needs no torch (tests/pipeline/test_state.py: the same as
+#: torchcal.pipeline.METHODS)
+METHOD_CHOICES = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchcal", description="Robot arm calibration from laser-tracker data.")
     parser.add_argument("--debug", action="store_true", help="print the full traceback of an unexpected error")
@@ -250,6 +255,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument(
         "--method",
         default=None,
+        choices=METHOD_CHOICES,
         help="auto (default: geometry, then a learned residual model where validation data demand it), "
         "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
         "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)",

@@ -131,7 +131,9 @@ def test_options_are_validated_in_one_place_whichever_way_they_are_made():
 
 
 def test_each_calibrate_flag_sets_one_option():
-    from torchcal.cli import CALIBRATE_FLAGS, build_parser
+    from torchcal.cli import CALIBRATE_FLAGS, METHOD_CHOICES, build_parser
+
+    assert METHOD_CHOICES == METHODS
 
     names = [field for field, _ in CALIBRATE_FLAGS.values()]
     assert len(names) == len(set(names)) and set(names) <= set(FLAGS)

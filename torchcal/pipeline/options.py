@@ -47,7 +47,7 @@ class SplitOptions:
 @dataclass(frozen=True)
 class FitSettings:
     """What every least-squares fit reads (:class:`torchcal.estimate.fit.FitOptions`): the stochastic model, the
-    solver's limits and the priors (docs/methods.md, *Priors*)."""
+    solver's limits and the priors (docs/methods.md, *A-priori information*)."""
 
     sigma_tracker: float = 15e-6  # m per axis, when the data carry no sx, sy, sz
     sigma_joint: float = math.radians(0.0005)  # rad, joint reading noise
