@@ -17,7 +17,7 @@ from torchcal.robot.load import resolve_robot_spec
 F64 = torch.float64
 # DH tables, a URDF robot made here (so that the URDF path is tested even without built-in URDFs),
 # and the built-in URDFs where present
-ROBOTS = ["ur5", "ur10", "exported", "panda.urdf", "ur5.urdf"]
+ROBOTS = ["ur5", "ur10", "exported", "panda.urdf", "ur5.urdf", "ur10_track", "exported_track"]
 
 
 def random_q(robot, n, seed=0):
@@ -40,11 +40,14 @@ def perturb(robot, seed):
 
 
 def make_robot(name, tmp_path):
-    if name == "exported":
-        # ur5 written as URDF and loaded back is a URDFGeometry robot with masses
-        path = write_urdf(perturb(torchcal.load_robot("ur5"), 7), tmp_path / "ur5_nominal.urdf")
+    if name in ("exported", "exported_track"):
+        # ur5 (or the UR10 on its prismatic track) written as URDF and loaded back is a URDFGeometry robot with
+        # masses
+        source = "ur5" if name == "exported" else "ur10_track"
+        path = write_urdf(perturb(torchcal.load_robot(source), 7), tmp_path / f"{source}_nominal.urdf")
         robot = torchcal.load_robot(path, tip_link="flange")
         assert robot.kind == "urdf" and robot.has_masses
+        assert robot.joint_types == torchcal.load_robot(source).joint_types
     else:
         try:
             resolve_robot_spec(name)

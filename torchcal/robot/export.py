@@ -10,8 +10,9 @@ Two routes:
 * A DH robot: a URDF is generated (:func:`urdf_string`), as follows.
 
 The generated file holds the chain exactly as torchcal computes it, ``T_base_flange(q) = O_1 R_1(q_1) ... O_n R_n(q_n)
-O_tip``: one revolute joint per robot joint with origin ``O_i`` and the joint's axis, a fixed joint to the
-tip with ``O_tip``, and optionally two extra fixed frames carrying the rest of the calibration:
+O_tip``: one revolute or prismatic joint per robot joint with origin ``O_i``, the joint's axis and limits (rad or
+m), a fixed joint to the tip with ``O_tip``, and optionally two extra fixed frames carrying the rest of the
+calibration:
 
 * ``probe``, fixed to the tip at the lever arm ``t_flange_probe`` (no rotation);
 * ``tracker``, fixed to the base at ``T_base_tracker = inv(T_tracker_base)``.
@@ -248,7 +249,7 @@ def urdf_string(robot: RobotModel, options: ExportOptions | None = None) -> str:
         link(links[i + 1], inertial)
         joint(
             robot.joint_names[i],
-            "revolute",
+            robot.joint_types[i],
             links[i],
             links[i + 1],
             _origin(O[i]),
@@ -284,7 +285,7 @@ def write_urdf(
 
     Links: ``robot.link_names`` (base, each moving link, tip), plus ``probe`` fixed to the tip at
     ``t_flange_probe`` and ``tracker`` fixed to the base at ``T_base_tracker = inv(T_tracker_base)``.
-    Joints: one revolute joint per robot joint, named ``robot.joint_names[i]``, origin ``O_i``; a fixed
+    Joints: one revolute or prismatic joint per robot joint, named ``robot.joint_names[i]``, origin ``O_i``; a fixed
     ``<tip>_joint`` with ``O_tip``; ``probe_joint``, ``tracker_joint``. With masses, each moving link
     gets an ``<inertial>`` with its mass and centre of mass (inertia: a placeholder, see
     :data:`PLACEHOLDER_INERTIA`). Effort and velocity limits are written as 0: not calibrated.

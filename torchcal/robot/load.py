@@ -172,6 +172,12 @@ def _yaml_error(path: Path, e) -> str:
     return f"{where}: not valid YAML: {' '.join(str(text).split())}"
 
 
+#: Joint types a DH table may declare (``type:``): the reading is an angle [rad] or a length [m]
+JOINT_TYPES = ("revolute", "prismatic")
+#: Default limits of a prismatic joint that declares none [m], as +-2 pi is a revolute joint's: the readings are
+#: checked against them, so a default must hold every track and slide (a longer one declares its limits)
+PRISMATIC_DEFAULT_REACH = 10.0
+
 #: Largest length [m] and angle [rad] a robot description may hold: a robot is not a kilometre long, and an angle
 #: beyond a few turns is a typo (its sine and cosine would be noise)
 MAX_DESCRIPTION_LENGTH = 1000.0
@@ -189,8 +195,9 @@ def _safe_name(path, what: str, name) -> str:
 def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") -> RobotModel:
     """Load a DH table: ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
 
-    Optional per joint: ``lower``, ``upper`` [rad] (default +-2 pi), ``mass`` [kg] and ``com``
-    [m, in DH frame i] (all joints or none), ``name``.
+    Optional per joint: ``type`` (``revolute``, the default, or ``prismatic``: the reading [m] adds to ``d`` and
+    ``theta`` is fixed), ``lower``, ``upper`` [rad, m for a prismatic joint] (default +-2 pi rad, +-1 m), ``mass``
+    [kg] and ``com`` [m, in DH frame i] (all joints or none), ``name``.
     """
     import yaml
 
@@ -233,17 +240,21 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     if not isinstance(joints, list) or not joints:
         raise RobotSpecError(f"{path}: 'joints' must be a non-empty list, base to tip")
     cols = {k: [] for k in ("a", "alpha", "d", "theta", "lower", "upper")}
-    masses, coms, names = [], [], []
+    masses, coms, names, prismatic = [], [], [], []
     for i, j in enumerate(joints):
         where = f"joint {i + 1}"
         if not isinstance(j, dict):
             raise RobotSpecError(f"{path}: {where}: expected a mapping like {{a: .., alpha: .., d: .., theta: ..}}")
-        unknown = set(j) - {"a", "alpha", "d", "theta", "lower", "upper", "mass", "com", "name"}
+        unknown = set(j) - {"a", "alpha", "d", "theta", "lower", "upper", "mass", "com", "name", "type"}
         if unknown:
             raise RobotSpecError(
                 f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, "
-                "lower, upper, mass, com, name"
+                "lower, upper, mass, com, name, type"
             )
+        kind = j.get("type", "revolute")
+        if kind not in JOINT_TYPES:
+            raise RobotSpecError(f"{path}: {where}: type {kind!r} is not one of {', '.join(JOINT_TYPES)}")
+        prismatic.append(kind == "prismatic")
         for key in ("a", "alpha", "d", "theta"):
             if key not in j:
                 raise RobotSpecError(f"{path}: {where}: missing '{key}'")
@@ -255,8 +266,9 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
                     f"{path}: {where}: '{key}' = {j[key]!r} {unit} is beyond {bound:g} {unit}; lengths are metres and "
                     "angles radians"
                 )
-        cols["lower"].append(_number(path, where, "lower", j.get("lower", -2 * math.pi)))
-        cols["upper"].append(_number(path, where, "upper", j.get("upper", 2 * math.pi)))
+        reach = PRISMATIC_DEFAULT_REACH if prismatic[-1] else 2 * math.pi
+        cols["lower"].append(_number(path, where, "lower", j.get("lower", -reach)))
+        cols["upper"].append(_number(path, where, "upper", j.get("upper", reach)))
         if cols["lower"][-1] >= cols["upper"][-1]:
             raise RobotSpecError(
                 f"{path}: {where}: lower limit {cols['lower'][-1]} is not below upper {cols['upper'][-1]}"
@@ -283,6 +295,7 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
         d=cols["d"],
         theta=cols["theta"],
         convention=convention,
+        prismatic=prismatic,
         dtype=dtype,
         device=device,
     )
@@ -327,8 +340,8 @@ def load_urdf(
 
     The chain runs from ``base_link`` (default: the root) to ``tip_link`` (default: the leaf
     reached through the most movable joints; ambiguous trees must name it). Fixed joints
-    are folded into the neighbouring origins; revolute and continuous joints are the
-    robot's joints (prismatic joints are not supported yet and raise).
+    are folded into the neighbouring origins; revolute, continuous and prismatic joints are the
+    robot's joints (a prismatic joint's reading and limits are metres).
 
     Args:
         reader: ``"yourdfpy"`` (default: the maintained parser and its checks) or ``"elements"``: the joints,
@@ -431,7 +444,7 @@ def load_urdf(
     if not chain:
         raise RobotSpecError(f"{path}: tip link '{tip_link}' is not below base link '{base_link}'")
 
-    origins, axes, lims, jnames, lnames = [], [], [], [], [base_link]
+    origins, axes, lims, jnames, lnames, prismatic = [], [], [], [], [base_link], []
     masses, coms = [], []
     pending = np.eye(4)
     for j in chain:
@@ -443,8 +456,10 @@ def load_urdf(
         if j.type == "fixed":
             pending = pending @ origin
             continue
-        if j.type not in ("revolute", "continuous"):
-            raise RobotSpecError(f"{path}: joint '{j.name}' is {j.type}; torchcal supports revolute chains")
+        if j.type not in ("revolute", "continuous", "prismatic"):
+            raise RobotSpecError(
+                f"{path}: joint '{j.name}' is {j.type}; torchcal supports revolute, continuous and prismatic joints"
+            )
         if getattr(j, "mimic", None) is not None:
             raise RobotSpecError(
                 f"{path}: joint '{j.name}' mimics joint '{j.mimic.joint}'; torchcal does not "
@@ -465,7 +480,8 @@ def load_urdf(
             # no limit at all: readings past one turn are fine (and not taken for degrees)
             lims.append((-math.inf, math.inf))
         elif j.limit is None or j.limit.lower is None or j.limit.upper is None:
-            lims.append((-2 * math.pi, 2 * math.pi))
+            reach = PRISMATIC_DEFAULT_REACH if j.type == "prismatic" else 2 * math.pi
+            lims.append((-reach, reach))
         else:
             lo, hi = float(j.limit.lower), float(j.limit.upper)
             if math.isnan(lo) or math.isnan(hi) or lo > hi:
@@ -475,6 +491,7 @@ def load_urdf(
             lims.append((lo, hi))
         jnames.append(j.name)
         lnames.append(j.child)
+        prismatic.append(j.type == "prismatic")
     if not origins:
         raise RobotSpecError(f"{path}: no movable joint between '{base_link}' and '{tip_link}'")
     origins.append(pending)
@@ -513,6 +530,7 @@ def load_urdf(
         origins=torch.tensor(np.stack(origins), dtype=dtype),
         axes=torch.tensor(np.stack(axes), dtype=dtype),
         joint_names=jnames,
+        prismatic=prismatic,
         dtype=dtype,
         device=device,
     )

@@ -5,8 +5,9 @@ Every serial arm, whether described by a DH table or a URDF, is reduced to one f
     T_base_flange(q) = O_1 R_1(q_1) O_2 R_2(q_2) ... O_n R_n(q_n) O_tip
 
 where ``O_i`` is the constant transform in front of joint ``i`` (it depends on the
-calibration parameters) and ``R_i`` the rotation about the joint's unit axis. The
-parameterisation of the ``O_i`` is what differs:
+calibration parameters) and ``R_i`` the joint's motion along its unit axis: a rotation by ``q_i`` [rad]
+for a revolute joint, a translation by ``q_i`` [m] for a prismatic one (``prismatic``, a boolean per
+joint on the geometry). The parameterisation of the ``O_i`` is what differs:
 
 * :class:`DHGeometry`: per joint ``[a, alpha, d, theta, beta]`` (Hayati's ``beta``, a
   rotation about y, for nearly parallel consecutive axes, which DH cannot represent);
@@ -76,6 +77,16 @@ class _Group(nn.Module):
         with torch.no_grad():
             self.delta.zero_()
 
+    def _init_joint_types(self, prismatic, dof: int, device) -> None:
+        """The per-joint boolean ``prismatic`` (default all revolute): a buffer for tensor code, left out of the
+        state dict (the robot description says it, and runs written before prismatic joints load unchanged), and
+        the same flags as a tuple for the chain's Python-level branches."""
+        flags = [False] * dof if prismatic is None else [bool(f) for f in prismatic]
+        if len(flags) != dof:
+            raise ShapeError(f"prismatic must have {dof} flags, got {len(flags)}")
+        self.register_buffer("prismatic", torch.tensor(flags, dtype=torch.bool, device=device), persistent=False)
+        self.joint_types = tuple("prismatic" if f else "revolute" for f in flags)
+
 
 class DHGeometry(_Group):
     """Per-joint DH errors ``[a, alpha, d, theta, beta]`` on nominal buffers.
@@ -83,11 +94,15 @@ class DHGeometry(_Group):
     Args:
         a, alpha, d, theta: nominal values, shape (dof,), metres and radians.
         convention: :class:`DHConvention`.
+        prismatic: per joint, whether it is prismatic (its reading [m] adds to ``d``, ``theta`` is fixed);
+            default all revolute (the reading adds to ``theta``).
     """
 
     COLUMNS = ("a", "alpha", "d", "theta", "beta")
 
-    def __init__(self, *, a, alpha, d, theta, convention: DHConvention, dtype=torch.float64, device="cpu"):
+    def __init__(
+        self, *, a, alpha, d, theta, convention: DHConvention, prismatic=None, dtype=torch.float64, device="cpu"
+    ):
         super().__init__()
         if dtype != torch.float64:
             raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
@@ -107,7 +122,10 @@ class DHGeometry(_Group):
             mask[-1, 4] = False  # the flange frame has no next joint axis to be parallel to
         names = [f"{c}{i + 1}" for i in range(dof) for c in self.COLUMNS]
         self._init_group((dof, 5), names, mask, dtype, device)
+        # the joint moves along (prismatic) or about (revolute) z of the frame in front of it: Tz(q) commutes with
+        # Rz(theta) Tz(d), so the chain's form O_i R_i(q_i) holds for both
         self.register_buffer("axes", torch.tensor([[0.0, 0.0, 1.0]] * dof, dtype=dtype, device=device))
+        self._init_joint_types(prismatic, dof, device)
 
     @property
     def dof(self) -> int:
@@ -153,11 +171,21 @@ class URDFGeometry(_Group):
         origins: nominal ``(dof + 1, 4, 4)`` (fixed joints folded in), the last one ``O_tip``.
         axes: unit joint axes ``(dof, 3)`` in the joint frames.
         joint_names: the URDF joint names, used to name the parameters.
+        prismatic: per joint, whether it is prismatic; default all revolute.
     """
 
     COLUMNS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
-    def __init__(self, *, origins: Tensor, axes: Tensor, joint_names: Sequence[str], dtype=torch.float64, device="cpu"):
+    def __init__(
+        self,
+        *,
+        origins: Tensor,
+        axes: Tensor,
+        joint_names: Sequence[str],
+        prismatic=None,
+        dtype=torch.float64,
+        device="cpu",
+    ):
         super().__init__()
         if dtype != torch.float64:
             raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
@@ -166,6 +194,7 @@ class URDFGeometry(_Group):
         self.register_buffer("axes", axes.to(dtype=dtype, device=device).clone())
         names = [f"{j}.{c}" for j in joint_names for c in self.COLUMNS]
         self._init_group((dof, 6), names, torch.ones(dof, 6, dtype=torch.bool), dtype, device)
+        self._init_joint_types(prismatic, dof, device)
 
     @property
     def dof(self) -> int:
@@ -298,6 +327,16 @@ class RobotModel(nn.Module):
         return self.geometry.dof
 
     @property
+    def joint_types(self) -> tuple[str, ...]:
+        """``"revolute"`` or ``"prismatic"`` per joint: the unit of its reading (rad or m)."""
+        return self.geometry.joint_types
+
+    @property
+    def prismatic(self) -> Tensor:
+        """Boolean ``(dof,)``: which joints are prismatic (reading in m)."""
+        return self.geometry.prismatic
+
+    @property
     def dtype(self) -> torch.dtype:
         return self.limits.dtype
 
@@ -359,6 +398,7 @@ class RobotModel(nn.Module):
         OK = rot[:dof] @ K
         Ct = torch.cat([rot[:dof], OK, OK @ K, off[:dof].unsqueeze(-1)], dim=-1).transpose(-1, -2)  # (dof, 10, 3)
         s, c = torch.sin(qt), 1.0 - torch.cos(qt)  # (dof, M)
+        prismatic = self.geometry.joint_types
         Rt, t = None, off[0].unsqueeze(-1).expand(3, m)  # Rt[k, a, pose] = R[a, k]; t[a, pose]
         Rts, ts = [], []
         for i in range(dof):
@@ -367,7 +407,11 @@ class RobotModel(nn.Module):
             else:
                 X = (Ct[i] @ Rt.reshape(3, 3 * m)).reshape(10, 3, m)
                 t = t + X[9]
-            Rt = X[0:3] + s[i] * X[3:6] + c[i] * X[6:9]
+            if prismatic[i] == "prismatic":  # no turn; a move by q_i [m] along the axis, R O_i a_i
+                Rt = X[0:3].expand(3, 3, m)
+                t = t + _rotate(Rt, self.geometry.axes[i]) * qt[i]
+            else:
+                Rt = X[0:3] + s[i] * X[3:6] + c[i] * X[6:9]
             if frames:
                 Rts.append(Rt)
                 ts.append(t)
@@ -375,7 +419,8 @@ class RobotModel(nn.Module):
         return Rts, ts, end[0:3], t + end[3]
 
     def forward(self, q: Tensor) -> Tensor:
-        """``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)`` [rad], current geometry."""
+        """``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)`` [rad, m for a prismatic joint], current
+        geometry."""
         _, _, R, t = self._chain(self._check_q(q), self.geometry.origins(), frames=False)
         return tf.homogeneous(R, t)
 
@@ -394,14 +439,17 @@ class RobotModel(nn.Module):
     def probe_jacobian(self, q: Tensor) -> tuple[Tensor, Tensor]:
         """Probe position in the base frame ``(..., 3)`` and its joint Jacobian ``(..., 3, dof)``.
 
-        The geometric Jacobian of revolute joints, ``dp/dq_j = z_j x (p - o_j)`` with ``z_j`` the axis and
-        ``o_j`` a point of joint j: exact, and far cheaper than differentiating the FK per pose.
+        The geometric Jacobian, ``dp/dq_j = z_j x (p - o_j)`` for a revolute joint with ``z_j`` the axis and
+        ``o_j`` a point of joint j, ``z_j`` itself for a prismatic one [m/m]: exact, and far cheaper than
+        differentiating the FK per pose.
         """
         q = self._check_q(q)
         Rts, ts, Rt, t = self._chain_t(q, self.geometry.origins(), frames=True)
         p = _rotate(Rt, self.t_flange_probe()) + t  # (3, M)
         z = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])  # (dof, 3, M)
         J = torch.linalg.cross(z, p - torch.stack(ts), dim=1)  # (dof, 3, M)
+        if "prismatic" in self.geometry.joint_types:
+            J = torch.where(self.geometry.prismatic[:, None, None], z, J)
         batch = q.shape[:-1]
         return _poses_first(p, batch), J.permute(2, 1, 0).reshape(*batch, 3, self.dof)
 
@@ -458,9 +506,12 @@ class RobotModel(nn.Module):
             sin, one_cos = torch.sin(q.T), 1.0 - torch.cos(q.T)  # (dof, N)
             for i in range(dof - 1, -1, -1):
                 s = O[i + 1, :3, :3] @ s + O[i + 1, :3, 3:]
-                K = tf.skew(self.geometry.axes[i])
-                Ks = K @ s
-                s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
+                if self.geometry.joint_types[i] == "prismatic":  # moved along the axis by q_i
+                    s = s + self.geometry.axes[i].unsqueeze(-1) * q.T[i]
+                else:
+                    K = tf.skew(self.geometry.axes[i])
+                    Ks = K @ s
+                    s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
                 behind.append(s)
             behind.reverse()
             Jb = torch.zeros(3, len(idx), n, dtype=q.dtype, device=q.device)
@@ -495,7 +546,8 @@ class RobotModel(nn.Module):
         """Static gravity torque at each joint ``(..., dof)`` [N m], robot base z pointing up.
 
         ``tau_j = z_j . sum_{k >= j} (c_k - o_j) x (m_k g)`` with ``z_j, o_j`` the axis and a point
-        of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe.
+        of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe. A prismatic
+        joint's generalised force is ``z_j . sum_{k >= j} m_k g`` [N].
         """
         q = self._check_q(q)
         Rts, ts, Rt_flange, t_flange = self._chain_t(q, self.geometry.origins(), frames=True)
@@ -516,6 +568,8 @@ class RobotModel(nn.Module):
         W = w.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof,)
         total_xy = suffix - torch.stack([origins_w[:, 1], -origins_w[:, 0]], dim=1) * W[:, None, None]
         tau = (total_xy * axes_w[:, :2]).sum(1)  # (dof, M)
+        if "prismatic" in self.geometry.joint_types:  # the weights beyond the joint along its axis (z-component)
+            tau = torch.where(self.geometry.prismatic[:, None], axes_w[:, 2] * W[:, None], tau)
         return tau.T.reshape(*q.shape[:-1], self.dof)
 
     def static_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
@@ -649,7 +703,7 @@ def build_pk_chain(robot: RobotModel, origins: Tensor):
         joint = pk.Joint(
             name=robot.joint_names[i],
             offset=pk.Transform3d(matrix=origins[i].clone(), dtype=dtype, device=device),
-            joint_type="revolute",
+            joint_type=robot.geometry.joint_types[i],
             axis=robot.geometry.axes[i].clone(),
             dtype=dtype,
             device=device,
