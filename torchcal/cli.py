@@ -168,8 +168,13 @@ def _add_computing(p: argparse.ArgumentParser) -> None:
 
 
 def _add_units(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the file")
-    p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the joint columns")
+    p.add_argument(
+        "--length-unit",
+        choices=["m", "mm"],
+        default="m",
+        help="unit of x,y,z,sx,sy,sz and of prismatic joints' columns",
+    )
+    p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the revolute joints' columns")
 
 
 #: calibrate's methods, named here so that the parser needs no torch (tests/pipeline/test_state.py: the same as
@@ -227,7 +232,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--length-bias", type=LENGTH_BIAS_MM, default=0.1, help="sigma of the geometric length biases [mm]")
     s.add_argument("--angle-bias", type=ANGLE_BIAS_DEG, default=0.01, help="sigma of the geometric angle biases [deg]")
     s.add_argument("--no-sigma", action="store_true", help="leave out the sx,sy,sz columns")
-    s.add_argument("--length-unit", choices=["m", "mm"], default="m", help="unit of x,y,z,sx,sy,sz in the files")
+    s.add_argument(
+        "--length-unit",
+        choices=["m", "mm"],
+        default="m",
+        help="unit of x,y,z,sx,sy,sz and prismatic joints in the files",
+    )
     s.add_argument(
         "--fixed-tool-axis",
         type=POSITIVE,
@@ -431,6 +441,7 @@ def _reading(args, robot) -> dict:
         length_unit=args.length_unit,
         angle_unit=args.angle_unit,
         robot_name=robot.name,
+        joint_types=robot.joint_types,
     )
 
 
@@ -542,6 +553,7 @@ def cmd_predict(args) -> int:
         angle_unit=args.angle_unit,
         require_positions=False,
         robot_name=robot.name,
+        joint_types=robot.joint_types,
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     # how far to trust each row (on the CPU, before the model moves to --device): the predicted standard deviation
@@ -689,11 +701,18 @@ def cmd_simulate(args) -> int:
 
 
 def _to_mm(campaign):
+    """The campaign's lengths in millimetres: positions, their standard deviations and prismatic joints' readings."""
     from dataclasses import replace
+
+    linear = torch.tensor([k == "prismatic" for k in campaign.model.robot.joint_types], dtype=torch.bool)
 
     def mm(m):
         return replace(
-            m, p=m.p * 1000.0, sigma=None if m.sigma is None else m.sigma * 1000.0, meta={**m.meta, "length_unit": "mm"}
+            m,
+            q=torch.where(linear, m.q * 1000.0, m.q),
+            p=m.p * 1000.0,
+            sigma=None if m.sigma is None else m.sigma * 1000.0,
+            meta={**m.meta, "length_unit": "mm"},
         )
 
     campaign.train, campaign.test = mm(campaign.train), mm(campaign.test)

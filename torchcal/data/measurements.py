@@ -217,22 +217,25 @@ def read_measurements(
     robot_name: str | None = None,
     purpose: str | None = None,
     require_joints: bool = True,
+    joint_types: Sequence[str] | None = None,
 ) -> Measurements:
     """Read and validate a measurement file; return it in SI units.
 
     Args:
         path: the CSV file (UTF-8, optional BOM, LF or CRLF line ends).
         dof: number of joints the robot has; the file must have exactly ``q1..q<dof>``.
-        joint_limits: (dof, 2) float64 [lower, upper] per joint [rad]; readings outside
+        joint_limits: (dof, 2) float64 [lower, upper] per joint [rad, m]; readings outside
             (beyond a 1e-12 tolerance) are errors.
-        length_unit: ``"m"`` or ``"mm"``, the unit of x, y, z, sx, sy, sz in the file.
-        angle_unit: ``"rad"`` or ``"deg"``, the unit of q1..qN in the file.
+        length_unit: ``"m"`` or ``"mm"``, the unit of x, y, z, sx, sy, sz and of the prismatic joints' readings.
+        angle_unit: ``"rad"`` or ``"deg"``, the unit of the revolute joints' readings.
         require_positions: whether x, y, z must be present (fitting) or may be absent (predict).
         min_poses: fewer rows than this is an error.
         robot_name: named in messages about the joint count and limits.
         purpose: what the poses are needed for, named in the too-few-poses message.
         require_joints: whether q1..qN must be present; False lets a file of x, y, z alone through
             (compensation targets), with ``q`` of shape (N, 0).
+        joint_types: ``"revolute"`` or ``"prismatic"`` per joint (default all revolute): a prismatic joint's
+            reading is a length, in ``length_unit``, and its limits are metres.
 
     Returns:
         The measurements, with ``source`` set to ``str(path)``.
@@ -279,19 +282,24 @@ def read_measurements(
     if n < min_poses:
         for_what = f" for {purpose}" if purpose else ""
         raise MeasurementFileError(path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}")
-    _check_units(path_str, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits)
+    # which readings are lengths (prismatic joints): the length unit applies to them, the angle unit does not
+    linear = torch.zeros(q.shape[1], dtype=torch.bool)
+    if joint_types is not None and q.shape[1]:
+        linear = torch.tensor([k == "prismatic" for k in joint_types], dtype=torch.bool)
+    _check_units(path_str, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits, linear)
 
     divisor = LENGTH_UNITS[length_unit]
     if divisor != 1.0:
         # Division (not multiplication by 1e-3) keeps e.g. 1234.5 mm -> 1.2345 m correctly rounded.
         p = None if p is None else p / divisor
         sigma = None if sigma is None else sigma / divisor
+        q = torch.where(linear, q / divisor, q)
     if angle_unit != "rad":
-        q = q * ANGLE_UNITS[angle_unit]
+        q = torch.where(linear, q, q * ANGLE_UNITS[angle_unit])
 
     _check_ranges(path_str, p, sigma, temperature, lines, layout, length_unit)
     if joint_limits is not None and n and layout.joints:
-        _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name)
+        _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name, linear, length_unit)
 
     return Measurements(
         q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str, lines=tuple(lines), extra=extra
@@ -332,7 +340,7 @@ def _comments_and_header(path: str, text: str, raw_lines: list[str]) -> tuple[di
     raise MeasurementFileError(path, f"the file {what}; expected a header row such as 'q1,...,q6,x,y,z'")
 
 
-def _check_units(path, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits) -> None:
+def _check_units(path, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits, linear) -> None:
     """Refuse values that look like another unit than the one declared (in the file's units, before conversion).
 
     Unit mix-ups are checked before the joint limits: they explain limit violations and absurd positions better.
@@ -343,10 +351,13 @@ def _check_units(path, q, p, sigma, lines, layout, length_unit, angle_unit, join
         _check_length_unit(path, p, lines, layout, length_unit)
     if sigma is not None and length_unit == "m":
         _check_sigma_unit(path, sigma, lines, layout)
+    # the angle checks read the revolute joints alone: a prismatic joint's reading is a length
+    q_angles = q.masked_fill(linear, 0.0)
     if angle_unit == "rad" and q.shape[1]:
-        _check_angle_unit(path, q, lines, layout, joint_limits)
+        _check_angle_unit(path, q_angles, lines, layout, joint_limits)
     if angle_unit == "deg" and q.shape[1]:
-        _check_degrees_are_not_radians(path, q, lines, layout, joint_limits)
+        angle_limits = None if joint_limits is None else joint_limits.masked_fill(linear[:, None], 0.0)
+        _check_degrees_are_not_radians(path, q_angles, lines, layout, angle_limits)
 
 
 def _read_text(path: str) -> str:
@@ -749,7 +760,7 @@ def _check_degrees_are_not_radians(path, q, lines, layout: _Layout, limits=None)
     )
 
 
-def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, robot_name) -> None:
+def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, robot_name, linear, length_unit) -> None:
     lower, upper = limits[:, 0], limits[:, 1]
     bad = (q < lower - _JOINT_LIMIT_TOL) | (q > upper + _JOINT_LIMIT_TOL)
     if not bad.any():
@@ -757,7 +768,11 @@ def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, rob
     i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
     name = layout.joints[j]
     value, lo, hi = q[i, j].item(), lower[j].item(), upper[j].item()
-    if angle_unit == "deg":
+    if bool(linear[j]):  # a prismatic joint: metres, and the file's unit where it is another
+        factor = LENGTH_UNITS[length_unit]
+        shown = f"{value:.6g} m" if factor == 1.0 else f"{value * factor:.6g} {length_unit} ({value:.6g} m)"
+        bounds = f"[{lo:.6g}, {hi:.6g}] m"
+    elif angle_unit == "deg":
         shown = f"{math.degrees(value):.6g} deg ({value:.6g} rad)"
         bounds = f"[{math.degrees(lo):.6g}, {math.degrees(hi):.6g}] deg"
     else:
