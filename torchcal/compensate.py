@@ -14,6 +14,9 @@ the exact derivative of the model by autograd (three backward passes over the ba
 effects whose regressors are computed without gradients (compliance's gravity torque): their derivative
 is left out, which only slows convergence by a factor of the order of the effect's relative size.
 
+Prismatic joints take steps, limits and the tolerances below in metres (their Jacobian columns are m/m, of the
+size of a revolute joint's at a 1 m lever, so one damping serves both).
+
 Joint limits: a step is clipped to the limits, and a joint that sits on a limit and whose step pushes
 outward is frozen (active set) for the next step. A row whose target needs a joint beyond its limit
 ends with status ``limit``.

@@ -4,11 +4,13 @@ Every named effect family of :mod:`torchcal.effects` that the data could reveal 
 candidate: ``compliance`` per joint whose gravity torque varies over the poses (the robot
 description must carry masses), ``backlash`` per joint whose loaded flank changes (the sign of
 the gravity torque for static poses, the direction of motion along a trajectory),
-``cyclic`` per joint (harmonics 1 and 2), ``drift`` of the instrument pose with the
-acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
+``cyclic`` per revolute joint (harmonics 1 and 2), ``transmission`` (degree 1: a scale error of the
+reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``drift`` of the
+instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
+A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
 
 A candidate is left out, with the reason recorded, where it cannot matter: a joint whose
-motion does not move the probe (less than 0.1 mm per radian), a regressor that is constant
+motion does not move the probe (less than 0.1 mm per radian, or per metre), a regressor that is constant
 over the data (then the effect is a joint offset or an instrument pose the geometry already
 has; a gravity torque of round-off size has no loaded flank either), a variable the file does not have.
 """
@@ -19,7 +21,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.effects import Backlash, Compliance, Context, Cyclic, Drift
+from torchcal.effects import Backlash, Compliance, Context, Cyclic, Drift, Transmission
 from torchcal.effects.base import Effect
 
 Tensor = torch.Tensor
@@ -35,7 +37,7 @@ class Candidate:
     """One effect the model could be missing.
 
     Attributes:
-        kind: effect kind (as report.json names it): compliance, backlash, cyclic or drift.
+        kind: effect kind (as report.json names it): compliance, backlash, cyclic, transmission or drift.
         joint: 1-based joint, or None for drift.
         variable: drift variable (``t`` or ``temperature``), else None.
         reference: drift reference value (the variable at the first training sample).
@@ -63,6 +65,8 @@ class Candidate:
             return Backlash(self.joint, source="auto")
         if self.kind == "cyclic":
             return Cyclic(self.joint, harmonics=(1, 2))
+        if self.kind == "transmission":
+            return Transmission(self.joint, degree=1)
         if self.kind == "drift":
             return Drift(self.variable, DRIFT_FORMS[self.variable][0], reference=self.reference)
         raise ValueError(f"unknown candidate kind {self.kind!r}")
@@ -77,6 +81,8 @@ class Candidate:
             return eff.regressor(robot, ctx), f"loaded flank of joint {self.joint} ({what})"
         if self.kind == "cyclic":
             return ctx.q[:, self.joint - 1], f"q{self.joint} [rad]"
+        if self.kind == "transmission":
+            return ctx.q[:, self.joint - 1], f"q{self.joint} [m]"
         return eff.regressor(robot, ctx), f"{self.variable} - {self.reference:g} [{DRIFT_FORMS[self.variable][1]}]"
 
     def to_dict(self) -> dict:
@@ -113,11 +119,14 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
     levers = joint_levers(robot, ctx.q)
     tau = robot.gravity_torques(ctx.q).detach() if robot.has_masses else None
     for j in range(1, robot.dof + 1):
+        prismatic = robot.joint_types[j - 1] == "prismatic"
+        shape = "transmission" if prismatic else "cyclic"  # the reading's own error function
         if float(levers[j - 1]) < MIN_LEVER:
-            for kind in ("compliance", "backlash", "cyclic"):
+            per = "m" if prismatic else "rad"
+            for kind in ("compliance", "backlash", shape):
                 skip(
                     f"{kind}:{j}",
-                    f"joint {j} moves the probe by {float(levers[j - 1]) * 1e3:.2g} mm/rad (< {MIN_LEVER * 1e3:g})",
+                    f"joint {j} moves the probe by {float(levers[j - 1]) * 1e3:.2g} mm/{per} (< {MIN_LEVER * 1e3:g})",
                 )
             continue
         if tau is None:
@@ -139,9 +148,9 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
             else:
                 out.append(Candidate("backlash", j))
         if not _varies(ctx.q[:, j - 1]):
-            skip(f"cyclic:{j}", f"joint {j} does not move over the data")
+            skip(f"{shape}:{j}", f"joint {j} does not move over the data")
         else:
-            out.append(Candidate("cyclic", j))
+            out.append(Candidate(shape, j))
     for var in DRIFT_FORMS:
         v = ctx.t if var == "t" else ctx.temperature
         if v is None:

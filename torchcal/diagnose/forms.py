@@ -8,7 +8,8 @@ the form with the smallest BIC wins, ``none`` (no effect, ``k = 0``) included. T
 
 * joint angle ``q_j`` (through the joint's Jacobian column): Fourier series, harmonics chosen by forward
   selection among orders ``1..10`` (each order adds a sine and a cosine), and the first-K series for
-  comparison; polynomials ``q_j, q_j^2, .., q_j^D`` (degree 1 is a transmission-ratio error).
+  comparison; polynomials ``q_j, q_j^2, .., q_j^D`` (degree 1 is a transmission-ratio error). A prismatic
+  joint's reading [m] takes the polynomials alone (degree 1 is a scale error of its reading).
 * gravity torque ``tau_j``: polynomials (degree 1 is compliance) and the sign step (backlash).
 * flank ``flank_j``: the step (backlash).
 * time ``t`` (additive translation in the tracker frame, one amplitude per axis): linear, polynomial, and
@@ -51,6 +52,7 @@ MAX_DEGREE = 3
 PHYSICAL = {
     ("fourier", "fourier"): "cyclic",
     ("fourier", "polynomial"): "transmission",
+    ("slide", "polynomial"): "transmission",
     ("tau", "linear"): "compliance",
     ("tau", "step"): "backlash",
     ("flank", "step"): "backlash",
@@ -170,6 +172,8 @@ def _family(var: Variable) -> str:
         return "product"
     if var.basis == "fourier":
         return "fourier"
+    if var.kind == "joint" and var.name.startswith("q"):  # a prismatic joint's reading (not periodic)
+        return "slide"
     if var.name.startswith("tau"):
         return "tau"
     if var.name.startswith("flank"):
@@ -299,6 +303,9 @@ def _identify(ws: Workspace, var: Variable, max_harmonic: int, max_degree: int) 
     reference, scale = 0.0, 1.0
     if fam == "fourier":
         table += _fourier_forms(f, x, max_harmonic)
+        for d in range(1, max_degree + 1):
+            table.append(f.fit("polynomial", d, f.cols(_poly_basis(x, d)), [f"c{i}" for i in range(1, d + 1)]))
+    elif fam == "slide":
         for d in range(1, max_degree + 1):
             table.append(f.fit("polynomial", d, f.cols(_poly_basis(x, d)), [f"c{i}" for i in range(1, d + 1)]))
     elif fam == "tau":

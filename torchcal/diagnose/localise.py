@@ -124,7 +124,10 @@ def candidate_variables(model: MeasurementModel, ctx: Context) -> list[Variable]
             continue
         G = Jt[:, :, j]
         q = ctx.q[:, j]
-        if _varies(q):
+        if _varies(q) and robot.joint_types[j] == "prismatic":
+            # a length [m]: no turn for harmonics to repeat over; a smooth of the reading (its forms: polynomials)
+            out.append(Variable(f"q{j + 1}", f"q{j + 1} [m]", "joint", "spline", q, j + 1, G))
+        elif _varies(q):
             out.append(Variable(f"q{j + 1}", f"q{j + 1} [rad]", "joint", "fourier", q, j + 1, G))
             if u_t is not None:
                 products.append(

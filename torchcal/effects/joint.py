@@ -17,7 +17,9 @@ Tensor = torch.Tensor
 #: peak-to-peak there: a constant part is the joint's offset, which the geometry carries). Harmonic drives and
 #: gearboxes of industrial arms have transmission errors of a few arcminutes at most (1 arcmin = 0.29 mrad); 5 mrad
 #: (17 arcmin, 5 mm at a 1 m lever) is loose for a real one and rules out what only cancelling terms can make.
-#: Settable per run (``Options.max_joint_error``, ``--max-joint-error``).
+#: A prismatic joint moves the probe by its own error (a lever of 1 m per m), so the same number bounds it in metres:
+#: 5 mm, the same displacement at the probe (:func:`joint_bound_scale`), and far beyond a track's or a ball screw's
+#: error. Settable per run (``Options.max_joint_error``, ``--max-joint-error``).
 MAX_JOINT_ERROR = 5e-3
 
 #: the fade length [rad or m] of an open joint-angle form beyond the range its joint covered in the fit: the
@@ -343,9 +345,10 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         peak = float(terms.sum(-1).abs().max())
         peak_terms = float(terms.abs().max(0).values.sum())
         if peak_terms > CANCELLATION_RATIO * max(peak, 1e-15):
+            unit = "m" if robot is not None and robot.joint_types[effect.joint - 1] == "prismatic" else "rad"
             return (
-                f"its terms cancel on the fitting poses (sum of |terms| {peak_terms:.3g} rad against a function of "
-                f"{peak:.3g} rad): the range of joint {effect.joint} seen ({seen} rad) does not determine them, "
+                f"its terms cancel on the fitting poses (sum of |terms| {peak_terms:.3g} {unit} against a function of "
+                f"{peak:.3g} {unit}): the range of joint {effect.joint} seen ({seen} {unit}) does not determine them, "
                 "and beyond it the function would explode"
             )
     if robot is None or max_size is None:
@@ -355,14 +358,16 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
     bound = max_size * joint_bound_scale(robot, q, effect.joint)
     if size <= bound:
         return None
+    # a prismatic joint's error is a length: the same bound read in metres (the probe moves 1 m per m)
+    unit, small = ("m", "mm") if robot.joint_types[effect.joint - 1] == "prismatic" else ("rad", "mrad")
     where = (
-        f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} rad (fitted on {seen})"
+        f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} {unit} (fitted on {seen})"
         if isinstance(effect, SupportedForm)
         else "on the fitting poses"
     )
     scaled = "" if bound == max_size else f" ({max_size * 1e3:.3g} mrad at a 1 m lever arm, scaled to this joint's)"
     return (
-        f"its size {size * 1e3:.3g} mrad {where} exceeds the physical bound of {bound * 1e3:.3g} mrad"
+        f"its size {size * 1e3:.3g} {small} {where} exceeds the physical bound of {bound * 1e3:.3g} {small}"
         f"{scaled} (max_joint_error): a joint error that large is not a transmission error, and it is only the sum "
         "of terms the joint range does not determine"
     )

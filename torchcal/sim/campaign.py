@@ -4,7 +4,9 @@ tracker and joint noise, and non-geometric effects of a chosen size.
 The settings follow Horvath & Neuner (2024), Sec. 2.2 and 3.1: DH biases of sigma 0.1 mm
 for lengths and 0.01 deg for angles, a tracker noise of 15 um per axis, joint noise of
 0.0005 deg (about 1.5e-5 m at the probe), a smooth non-geometric field from a random
-6-29-3 tanh network, 7342 trajectory samples of which the first 5874 train.
+6-29-3 tanh network, 7342 trajectory samples of which the first 5874 train. A prismatic joint's reading
+gets the joint noise's number in metres (8.7 um at the default, a linear encoder's), and its DH ``d`` bias
+is its zero offset.
 
 Effect size: every injected effect is scaled so that the root-mean-square displacement it
 causes at the probe, over all simulated poses, equals the requested size (the field's
@@ -206,6 +208,11 @@ def _true_robot(
     for name, joint in effects:
         if joint is not None and not 1 <= joint <= nominal.dof:
             raise OptionError(f"effect {name}: joint {joint} is outside 1..{nominal.dof} of '{nominal.name}'")
+        if name == "cyclic" and nominal.joint_types[joint - 1] == "prismatic":
+            raise OptionError(
+                f"effect cyclic: joint {joint} of '{nominal.name}' is prismatic; its reading [m] has no turn for "
+                "harmonics of the angle to repeat over"
+            )
     _bias_geometry(truth, cfg, g)
     T_tracker_base = _place_tracker(cfg, g)
     lever = torch.tensor(cfg.lever_arm, dtype=F64) + torch.randn(3, generator=g, dtype=F64) * cfg.lever_arm_sigma
