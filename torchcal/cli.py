@@ -306,8 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-joint-error",
         type=POSITIVE,
         default=5.0,
-        help="the largest size [mrad] a named joint-angle effect (cyclic, transmission, compliance, backlash) may "
-        "have anywhere on its joint's range; larger ones are rejected (default 5)",
+        help="the largest size [mrad; mm on a prismatic joint] a named joint-angle effect (cyclic, transmission, "
+        "compliance, backlash) may have anywhere on its joint's range; larger ones are rejected (default 5)",
     )
     c.add_argument(
         "--tool",

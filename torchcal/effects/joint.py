@@ -251,7 +251,8 @@ class Transmission(SupportedForm):
     A transmission ratio that differs from the controller's value scales the angle
     (degree 1: ``dq_j = c_1 q_j``, ``c_1`` the relative ratio error); a slightly
     non-linear encoder or a cam-like drive adds degrees 2 and 3. The constant term is
-    the joint offset, which the geometry already carries, so degrees start at 1.
+    the joint offset, which the geometry already carries, so degrees start at 1. On a
+    prismatic joint the reading is a length and degree 1 is its scale error (``c`` in m/m).
 
     Args:
         joint: 1-based joint.
