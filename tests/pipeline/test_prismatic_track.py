@@ -84,3 +84,20 @@ def test_calibrated_urdf_reloads_with_the_prismatic_track(runs):
     with torch.no_grad():
         T = back(q)
     assert (chain.forward_kinematics(q.float()).get_matrix().double() - T).abs().max() < 1e-5  # pk reads float32
+
+
+def test_a_scale_error_of_the_track_is_found_as_its_transmission():
+    from torchcal.effects import Context, Transmission
+    from torchcal.pipeline import Options
+
+    c = simulate(SimConfig(robot=ROBOT, seed=3, poses=300, test_poses=100))
+    c.model.add(Transmission(1, degree=1, c=[2e-4]))  # the track reads 0.2 mm short per metre of travel
+    g = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        noise = torch.randn(c.train.n, 3, generator=g, dtype=torch.float64) * 15e-6
+        train = c.train.with_positions(c.model(Context(q=c.train.q)) + noise)
+    run = torchcal.calibrate(ROBOT, train, Options())
+    assert [(e["kind"], e["joint"]) for e in run.effects_report] == [("transmission", 1)]
+    c1 = run.effects_report[0]["params"]["c"]
+    assert abs(c1["value"] - 2e-4) < 4 * c1["std"]
+    assert run.stages[-1].rmse < 0.5 * run.stages[1].rmse  # held out: the geometry alone cannot absorb a scale
