@@ -189,14 +189,27 @@ def test_dh_export_writes_model_joints_and_the_map():
 
 
 def test_simulated_coupling_is_named_by_the_closed_loop():
+    """A wrist coupling the readings block does not declare (J5's error proportional to J4's reading, a
+    differential's ratio): the loop names it as a coupling, not as geometry or a learned field."""
     campaign = simulate(
-        SimConfig(robot="ur5", poses=250, test_poses=0, seed=4, effects=[EffectSpec.parse("coupling:3<-2=80um")])
+        SimConfig(robot=FANUC, poses=250, test_poses=0, seed=4, effects=[EffectSpec.parse("coupling:5<-4=80um")])
     )
-    run = torchcal.calibrate("ur5", campaign.train, Options())
+    run = torchcal.calibrate(FANUC, campaign.train, Options())
     found = [(e["kind"], e["joint"]) for e in run.effects_report]
-    assert ("coupling", 3) in found, found
+    assert ("coupling", 5) in found, found
     eff = next(e for e in run.model.effects if e.kind == "coupling")
-    assert eff.source == 2
+    assert eff.source == 4
+
+
+def test_plain_arms_get_no_coupling_candidates():
+    from torchcal.diagnose.candidates import candidates
+    from torchcal.effects import Context
+
+    q = torch.rand(20, 6, generator=torch.Generator().manual_seed(0), dtype=F64)
+    names = [c.name for c in candidates(torchcal.load_robot("ur5"), Context(q=q))[0]]
+    assert not [n for n in names if n.startswith("coupling")]
+    names = [c.name for c in candidates(torchcal.load_robot(FANUC), Context(q=q))[0]]
+    assert "coupling:5<-4" in names and "coupling:5<-3" not in names
 
 
 def test_coupling_spec_and_dataclass_round_trip():

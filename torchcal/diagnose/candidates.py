@@ -5,13 +5,15 @@ candidate: ``compliance`` per joint whose gravity torque varies over the poses (
 description must carry masses), ``backlash`` per joint whose loaded flank changes (the sign of
 the gravity torque for static poses, the direction of motion along a trajectory),
 ``cyclic`` per joint (harmonics 1 and 2), ``coupling`` of each joint to its neighbours in the chain
-(``dq_j = c q_k``, ``|j - k| = 1``), ``drift`` of the instrument pose with the
-acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
+(``dq_j = c q_k``, ``|j - k| = 1``) on robots whose description declares a readings map, ``drift`` of the
+instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
 
-Couplings are tried between neighbouring joints only: a parallelogram, a cable routed through the next joint and a
-wrist differential join neighbours, and all ``dof (dof - 1)`` pairs would more than double the Bonferroni family (30
-pairs for a 6R arm against its 19 other candidates), taking power from every other test for pairs no mechanism
-joins.
+Couplings are tried between neighbouring joints only, and only where the description declares a readings map (a
+``readings:`` block, mimic joints): a parallelogram, a cable routed through the next joint and a wrist differential
+join neighbours, and such mechanisms are what a readings map declares, so an undeclared coupling is plausible there.
+On an arm whose motors each drive their own joint no mechanism joins two joints; all ``dof (dof - 1)`` pairs would
+more than double the Bonferroni family there (30 pairs for a 6R arm against its 19 other candidates) and take power
+from every other test.
 
 A candidate is left out, with the reason recorded, where it cannot matter: a joint whose
 motion does not move the probe (less than 0.1 mm per radian), a regressor that is constant
@@ -157,7 +159,7 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
             skip(f"cyclic:{j}", f"joint {j} does not move over the data")
         else:
             out.append(Candidate("cyclic", j))
-        for k in (j - 1, j + 1):
+        for k in (j - 1, j + 1) if robot.has_readings_map else ():
             if not 1 <= k <= robot.dof:
                 continue
             if not _varies(ctx.q[:, k - 1]):
