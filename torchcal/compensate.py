@@ -147,11 +147,13 @@ def _value_and_jacobian(model: MeasurementModel, ctx: Context) -> tuple[Tensor, 
 
 
 def full_jacobian(robot: RobotModel, q: Tensor) -> Tensor:
-    """The geometric Jacobian of the flange ``(N, 6, dof)``: linear (flange origin) over angular rows."""
+    """The geometric Jacobian of the flange by the joint readings ``(N, 6, dof)``: linear (flange origin) over angular
+    rows (``J_joints A`` with a readings map)."""
     F, T = robot.joint_frames(q)
     z = (F[..., :3, :3] @ robot.geometry.axes.unsqueeze(-1)).squeeze(-1)
     lin = torch.linalg.cross(z, T[..., None, :3, 3] - F[..., :3, 3])
-    return torch.cat([lin, z], dim=-1).transpose(-1, -2)
+    J = torch.cat([lin, z], dim=-1).transpose(-1, -2)
+    return J @ robot.readings.matrix().detach() if robot.has_readings_map else J
 
 
 def configuration_sign(robot: RobotModel, q: Tensor) -> Tensor:

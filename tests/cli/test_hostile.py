@@ -313,10 +313,10 @@ def test_a_good_test_urdf_loads(tmp_path):
             {
                 "extra_joint": '<joint name="j4" type="revolute"><parent link="tool"/><child link="l3"/>'
                 '<axis xyz="0 0 1"/>'
-                '<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="j2"/></joint>'
+                '<limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="nowhere"/></joint>'
                 '<link name="l3"/>'
             },
-            "mimics joint 'j2'",
+            "mimics joint 'nowhere', which is not a movable joint",
         ),
     ],
 )

@@ -5,9 +5,18 @@ candidate: ``compliance`` per joint whose gravity torque varies over the poses (
 description must carry masses), ``backlash`` per joint whose loaded flank changes (the sign of
 the gravity torque for static poses, the direction of motion along a trajectory),
 ``cyclic`` per revolute joint (harmonics 1 and 2), ``transmission`` (degree 1: a scale error of the
-reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``drift`` of the
-instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
+reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``coupling`` of each
+joint to its neighbours in the chain (``dq_j = c q_k``, ``|j - k| = 1``) on robots whose description declares a
+readings map, ``drift`` of the instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale
+with ``temperature``.
 A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
+
+Couplings are tried between neighbouring joints only, and only where the description declares a readings map (a
+``readings:`` block, mimic joints): a parallelogram, a cable routed through the next joint and a wrist differential
+join neighbours, and such mechanisms are what a readings map declares, so an undeclared coupling is plausible there.
+On an arm whose motors each drive their own joint no mechanism joins two joints; all ``dof (dof - 1)`` pairs would
+more than double the Bonferroni family there (30 pairs for a 6R arm against its 19 other candidates) and take power
+from every other test.
 
 A candidate is left out, with the reason recorded, where it cannot matter: a joint whose
 motion does not move the probe (less than 0.1 mm per radian, or per metre), a regressor that is constant
@@ -21,7 +30,7 @@ from dataclasses import dataclass
 
 import torch
 
-from torchcal.effects import Backlash, Compliance, Context, Cyclic, Drift, Transmission
+from torchcal.effects import Backlash, Compliance, Context, Coupling, Cyclic, Drift, Transmission
 from torchcal.effects.base import Effect
 
 Tensor = torch.Tensor
@@ -47,10 +56,13 @@ class Candidate:
     joint: int | None = None
     variable: str | None = None
     reference: float = 0.0
+    source: int | None = None  # coupling: the 1-based joint whose reading drives joint ``joint``'s error
 
     @property
     def name(self) -> str:
-        """Short name as the simulator spells it: ``compliance:2``, ``drift:t``."""
+        """Short name as the simulator spells it: ``compliance:2``, ``drift:t``, ``coupling:3<-2``."""
+        if self.kind == "coupling":
+            return f"coupling:{self.joint}<-{self.source}"
         return f"{self.kind}:{self.joint if self.joint is not None else self.variable}"
 
     @property
@@ -65,8 +77,11 @@ class Candidate:
             return Backlash(self.joint, source="auto")
         if self.kind == "cyclic":
             return Cyclic(self.joint, harmonics=(1, 2))
+
         if self.kind == "transmission":
             return Transmission(self.joint, degree=1)
+        if self.kind == "coupling":
+            return Coupling(self.joint, self.source)
         if self.kind == "drift":
             return Drift(self.variable, DRIFT_FORMS[self.variable][0], reference=self.reference)
         raise ValueError(f"unknown candidate kind {self.kind!r}")
@@ -81,12 +96,17 @@ class Candidate:
             return eff.regressor(robot, ctx), f"loaded flank of joint {self.joint} ({what})"
         if self.kind == "cyclic":
             return ctx.q[:, self.joint - 1], f"q{self.joint} [rad]"
+
         if self.kind == "transmission":
             return ctx.q[:, self.joint - 1], f"q{self.joint} [m]"
+        if self.kind == "coupling":
+            return ctx.q[:, self.source - 1], f"q{self.source} [rad] (error of joint {self.joint})"
         return eff.regressor(robot, ctx), f"{self.variable} - {self.reference:g} [{DRIFT_FORMS[self.variable][1]}]"
 
     def to_dict(self) -> dict:
         out = {"name": self.name, "kind": self.kind, "joint": self.joint}
+        if self.source is not None:
+            out["source"] = self.source
         if self.variable is not None:
             out["variable"] = self.variable
             out["form"] = DRIFT_FORMS[self.variable][0]
@@ -151,6 +171,13 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
             skip(f"{shape}:{j}", f"joint {j} does not move over the data")
         else:
             out.append(Candidate(shape, j))
+        for k in (j - 1, j + 1) if robot.has_readings_map else ():
+            if not 1 <= k <= robot.dof:
+                continue
+            if not _varies(ctx.q[:, k - 1]):
+                skip(f"coupling:{j}<-{k}", f"joint {k} does not move over the data")
+            else:
+                out.append(Candidate("coupling", j, source=k))
     for var in DRIFT_FORMS:
         v = ctx.t if var == "t" else ctx.temperature
         if v is None:

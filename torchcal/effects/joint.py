@@ -1,4 +1,4 @@
-"""Effects that act on one joint angle: compliance, backlash, cyclic transmission errors."""
+"""Effects that act on one joint angle: compliance, backlash, cyclic transmission errors, couplings."""
 
 from __future__ import annotations
 
@@ -285,6 +285,50 @@ class Transmission(SupportedForm):
 
     def describe(self) -> dict:
         return {"degree": self.degree, "c": self.c.detach().tolist()}
+
+
+class Coupling(Effect):
+    """One joint's reading error proportional to another joint's reading: ``dq_j = c q_k``.
+
+    A cable or belt routed through joint ``k`` to joint ``j``'s drive, or a wrist differential whose ratio the
+    controller does not compensate exactly, turns joint ``j`` when joint ``k`` moves while ``j``'s encoder (on the
+    motor) reads nothing. A physical law (linear in the other joint's reading), so it needs no fade beyond the data.
+    A coupling the description declares in its ``readings:`` block is a ratio of the readings map and calibrated with
+    the geometry; this effect is the one the description does not declare.
+
+    Args:
+        joint: 1-based joint whose reading errs.
+        source: 1-based joint whose reading drives the error (``!= joint``; the same joint is a
+            :class:`Transmission` of degree 1).
+        c: the coupling ratio [rad/rad].
+    """
+
+    kind = "coupling"
+
+    def __init__(self, joint: int, source: int, c: float = 0.0):
+        super().__init__(joint)
+        if int(source) == int(joint):
+            from torchcal.errors import OptionError
+
+            raise OptionError(f"a coupling joins two joints, got joint {joint} from itself (that is a transmission)")
+        self.source = int(source)
+        self.c = nn.Parameter(torch.tensor(float(c), dtype=torch.float64))
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """The source joint's reading ``(N,)`` [rad]: the term multiplied by ``c``."""
+        return ctx.q[:, self.source - 1]
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        return self._joint_delta(ctx, _dual.mul(self.c, self.regressor(robot, ctx)))
+
+    def config(self) -> dict:
+        return {"joint": self.joint, "source": self.source}
+
+    def describe(self) -> dict:
+        return {"source": self.source, "c": float(self.c.detach())}
+
+    def label(self) -> str:
+        return f"coupling(joint {self.joint} <- {self.source})"
 
 
 # A joint-angle function fitted on poses whose joint covers a narrow range can be a sum of large terms that cancel

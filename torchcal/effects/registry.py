@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from torchcal.effects.base import Acts, Effect
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
-from torchcal.effects.joint import Backlash, Compliance, Cyclic, Transmission
+from torchcal.effects.joint import Backlash, Compliance, Coupling, Cyclic, Transmission
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.support import SupportGate
@@ -46,6 +46,8 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("learned", (LearnedEffect, KernelCorrection, GPCorrection, SupportGate), (Acts.CARTESIAN,), False),
     # a joint-angle error polynomial in the joint's own angle (transmission ratio / scale, README)
     EffectKind("transmission", (Transmission,), (Acts.JOINT,), True),
+    # one joint's reading error proportional to another joint's reading (an undeclared coupling, README)
+    EffectKind("coupling", (Coupling,), (Acts.JOINT,), True),
 )
 
 #: effect kinds as named in report.json (CONTRACT §4)

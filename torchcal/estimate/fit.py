@@ -27,6 +27,10 @@ from torchcal.robot.model import RobotModel
 Tensor = torch.Tensor
 #: the groups a kinematic calibration fits
 GEOMETRIC_GROUPS = ("geometry", "instrument", "tool")
+#: Prior standard deviation of a readings map's ratio [1]: a transmission or differential ratio is known to about
+#: 0.1 % (a gear's tooth count is exact; a belt's or a cable drum's diameter is not), so the fit moves it only where the
+#: data demand it
+PRIOR_READINGS_RATIO = 1e-3
 
 
 #: the endings after which the fitted values are unusable
@@ -102,7 +106,9 @@ def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
     out: dict[str, float] = {}
     inst, lever = getattr(opts, "prior_instrument", None), getattr(opts, "prior_lever", None)
     for info in model.robot.parameter_info():
-        if info.group == "instrument" and inst is not None:
+        if info.group == "readings":
+            out[info.name] = PRIOR_READINGS_RATIO
+        elif info.group == "instrument" and inst is not None:
             out[info.name] = float(inst[0] if info.unit == "m" else inst[1])
         elif info.group == "tool" and lever is not None:
             out[info.name] = float(lever)
@@ -190,8 +196,11 @@ def selection(
     only the ones ``keep`` marks True) and with ``effects`` the named effects' parameters (those ``keep`` does
     not mark False)."""
     sel, labels = {}, {}
+    robot_groups = model.robot.groups()
+    if "geometry" in groups and "readings" in robot_groups:  # the readings map's ratios are fitted with the geometry
+        groups = (*groups, "readings")
     for g in groups:
-        grp = model.robot.groups()[g]
+        grp = robot_groups[g]
         mask = grp.mask.clone()
         if keep is not None:
             mask &= torch.tensor([keep.get(n, False) for n in grp.names], device=mask.device).reshape(mask.shape)

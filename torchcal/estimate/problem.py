@@ -117,7 +117,12 @@ def whitening(
 #: one copy of every intermediate of the forward pass per parameter, so its memory grows with poses x parameters
 JACOBIAN_CHUNK = 1024
 
-_ROBOT_GROUPS = {"robot.geometry.delta": "geometry", "robot.instrument.delta": "instrument", "robot.tool.delta": "tool"}
+_ROBOT_GROUPS = {
+    "robot.geometry.delta": "geometry",
+    "robot.instrument.delta": "instrument",
+    "robot.tool.delta": "tool",
+    "robot.readings.delta": "readings",
+}
 
 
 def residual_function(
@@ -168,7 +173,7 @@ def residual_function(
     # the free columns of the geometry and the lever arm, and where each sits in the flat corrections of
     # _corrections: they reach the prediction through the kinematics' tangent alone (linearised below)
     offsets, k = {}, 0
-    for name in _KINEMATIC:
+    for name in _kinematic(model.robot):
         offsets[name] = k
         k += dict(model.named_parameters())[name].numel()
     kin = [(j, offsets[e.name] + int(i)) for j, e, i in _columns(free) if e.name in offsets]
@@ -202,7 +207,8 @@ def residual_function(
         def pred(z: Tensor) -> Tensor:
             y = x.index_put((rest.to(x.device),), z[3:])
             params = free.params(y)
-            plain = {k: at[k] if k in _KINEMATIC or (k == _INSTRUMENT and inst) else v for k, v in params.items()}
+            kinematic = _kinematic(model.robot)
+            plain = {k: at[k] if k in kinematic or (k == _INSTRUMENT and inst) else v for k, v in params.items()}
             shifted = lambda rb, q: _dual.add(fk(rb, q), z[:3])  # noqa: E731 (fk's may be constant)
             return torch.func.functional_call(model, plain, (c,), {"fk": shifted})
 
@@ -267,7 +273,7 @@ def linear_kinematics(
 
     def record(rb, q: Tensor) -> Tensor:
         q = q.detach()
-        cols = [(g, i) for g in ("geometry", "tool") for i in range(rb.groups()[g].delta.numel())]
+        cols = [(g.split(".")[1], i) for g in _kinematic(rb) for i in range(rb.groups()[g.split(".")[1]].delta.numel())]
         if columns is not None:
             cols = [cols[int(i)] for i in columns]
         p_tr, J = rb.tracker_jacobian(q, cols)
@@ -299,8 +305,17 @@ def linear_kinematics(
     return fk
 
 
-#: the parameters :func:`linear_kinematics` carries: geometry and lever-arm corrections
+#: the parameters :func:`linear_kinematics` carries: geometry and lever-arm corrections (and the readings map's, where
+#: the robot calibrates one: :func:`_kinematic`)
 _KINEMATIC = ("robot.geometry.delta", "robot.tool.delta")
+
+
+def _kinematic(robot) -> tuple[str, ...]:
+    """The parameters the kinematics' linearisation carries for ``robot``: :data:`_KINEMATIC`, then the readings
+    map's correction where the robot has free ratios (they reach the prediction through the chain alone)."""
+    return _KINEMATIC + (("robot.readings.delta",) if "readings" in robot.groups() else ())
+
+
 #: the instrument pose's correction, whose Jacobian columns :func:`residual_function` computes in closed form
 _INSTRUMENT = "robot.instrument.delta"
 
@@ -308,7 +323,7 @@ _INSTRUMENT = "robot.instrument.delta"
 def _corrections(robot, params: dict[str, Tensor] | None = None) -> Tensor:
     """The geometry and lever-arm corrections of ``robot`` as one flat vector (``params``' values where given)."""
     params = params or {}
-    parts = [params.get(k, getattr(robot, k.split(".")[1]).delta) for k in _KINEMATIC]
+    parts = [params.get(k, getattr(robot, k.split(".")[1]).delta) for k in _kinematic(robot)]
     return torch.cat([v.reshape(-1) for v in parts])
 
 

@@ -414,6 +414,8 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     except (KeyError, TypeError, ValueError) as e:
         raise _run_error(run_dir, f"model.json: an effect cannot be rebuilt ({type(e).__name__}: {e})") from None
     model = MeasurementModel(robot, effects)
+    if "robot.readings.delta" not in state and robot.readings.is_identity:  # written before readings maps existed
+        state["robot.readings.delta"] = robot.readings.delta.detach().clone()
     try:
         model.load_state_dict(state)
     except (RuntimeError, TypeError) as e:

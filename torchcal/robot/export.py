@@ -151,11 +151,13 @@ def urdf_string(robot: RobotModel, options: ExportOptions | None = None) -> str:
     O, T_base_tracker, t_flange_probe = _calibrated(robot)
     with torch.no_grad():
         axes = robot.geometry.axes.detach().to("cpu", torch.float64)
-        limits = robot.limits.detach().to("cpu", torch.float64)
+        limits = robot.joint_limits.detach().to("cpu", torch.float64)
+        A = robot.readings.matrix().detach().to("cpu", torch.float64)
+        b = robot.readings.offset.detach().to("cpu", torch.float64)
         masses = robot.masses.detach().to("cpu", torch.float64)
         coms = robot.coms.detach().to("cpu", torch.float64)
 
-    dof = robot.dof
+    dof = robot.n_joints
     links = list(robot.link_names)
     if len(links) != dof + 2:
         raise RobotSpecError(
@@ -209,6 +211,9 @@ def urdf_string(robot: RobotModel, options: ExportOptions | None = None) -> str:
             f"Link masses and centres of mass are the robot's; inertia tensors are a placeholder "
             f"diagonal ({PLACEHOLDER_INERTIA!r} kg m^2), not calibrated."
         )
+    mimic = _mimic_rows(A, b) if robot.has_readings_map else {}
+    if robot.has_readings_map:
+        header += _readings_note(robot, A, b, mimic)
     header += list(opts.notes)
     out = ['<?xml version="1.0"?>', "<!--"]
     out += [f"  {_comment(line)}" for line in header]
@@ -256,7 +261,15 @@ def urdf_string(robot: RobotModel, options: ExportOptions | None = None) -> str:
             [
                 f'<axis xyz="{_vec(axes[i])}"/>',
                 f'<limit lower="{_num(limits[i, 0])}" upper="{_num(limits[i, 1])}" effort="0.0" velocity="0.0"/>',
-            ],
+            ]
+            + (
+                [
+                    f"<mimic joint={quoteattr(robot.joint_names[mimic[i][0]])} "
+                    f'multiplier="{_num(mimic[i][1])}" offset="{_num(mimic[i][2])}"/>'
+                ]
+                if i in mimic
+                else []
+            ),
         )
     if not tip_is_last:
         link(tip)
@@ -270,6 +283,44 @@ def urdf_string(robot: RobotModel, options: ExportOptions | None = None) -> str:
         joint("tracker_joint", "fixed", base, "tracker", _origin(T_base_tracker), [])
     out.append("</robot>")
     return "\n".join(out) + "\n"
+
+
+def _mimic_rows(A: torch.Tensor, b: torch.Tensor) -> dict[int, tuple[int, float, float]]:
+    """Model joints a URDF ``<mimic>`` can express: joint ``i`` follows one reading ``k`` alone (``q_i = s r_k +
+    b_i``) that an earlier joint ``j`` also follows alone (``q_j = s_j r_k + b_j``), so ``q_i = (s / s_j) q_j + b_i -
+    (s / s_j) b_j``. Returns ``i -> (j, multiplier, offset)``."""
+    out, owner = {}, {}
+    for i in range(A.shape[0]):
+        nz = torch.nonzero(A[i]).flatten().tolist()
+        if len(nz) != 1:
+            continue
+        k = nz[0]
+        if k not in owner:
+            owner[k] = i
+            continue
+        j = owner[k]
+        m = float(A[i, k] / A[j, k])
+        out[i] = (j, m, float(b[i] - m * b[j]))
+    return out
+
+
+def _readings_note(robot: RobotModel, A: torch.Tensor, b: torch.Tensor, mimic: dict) -> list[str]:
+    """Header lines for a robot whose controller readings are not its joints: a URDF's joints are the model's; the
+    map from the readings (calibrated) is written out, and which joints are mimic joints."""
+    rows = "; ".join(
+        f"{robot.joint_names[i]} = "
+        + " + ".join(f"{_num(A[i, k])}*{robot.reading_names[k]}" for k in range(A.shape[1]) if A[i, k] != 0)
+        + (f" + {_num(b[i])}" if b[i] != 0 else "")
+        for i in range(A.shape[0])
+    )
+    lines = [
+        "The joints below are the model's joints, not the controller's readings. The controller's readings map",
+        f"to them as (calibrated): {rows}.",
+    ]
+    if mimic:
+        lines.append("Joints that follow another joint alone are written as <mimic> joints.")
+    lines.append("Command the robot through `torchcal compensate`, which writes readings.")
+    return lines
 
 
 def write_urdf(

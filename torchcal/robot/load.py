@@ -11,6 +11,7 @@ import torch
 
 from torchcal.errors import OptionError, RobotSpecError
 from torchcal.robot.model import DHConvention, DHGeometry, RobotModel, URDFGeometry
+from torchcal.robot.readings import Readings, check_coupling
 
 #: Largest robot description file accepted [bytes]: real URDFs and DH tables are kilobytes.
 MAX_DESCRIPTION_BYTES = 8 * 1024 * 1024
@@ -309,8 +310,14 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
             M = geometry.origins()[1:].detach()
             com_t = (M[:, :3, :3] @ com_t.unsqueeze(-1)).squeeze(-1) + M[:, :3, 3]
     dof = len(joints)
+    readings, reading_limits, reading_names = (None, None, None)
+    if doc.get("readings") is not None:
+        readings, reading_limits, reading_names = _readings_block(path, doc["readings"], dof, dtype)
     return RobotModel(
         name=_safe_name(path, "robot name", doc.get("name", path.stem)),
+        readings=readings,
+        reading_limits=reading_limits,
+        reading_names=reading_names,
         geometry=geometry,
         limits=limits,
         joint_names=names,
@@ -324,6 +331,67 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
         dtype=dtype,
         device=device,
     ).to(device)
+
+
+def _readings_block(path: Path, block, n_joints: int, dtype):
+    """The ``readings:`` block of a DH table: ``coupling`` (n_joints x n_readings), optional ``offset`` (n_joints,
+    rad), ``lower``/``upper`` (n_readings,, rad) and ``names``. Model joint ``i = sum_k coupling[i][k] reading_k +
+    offset[i]``; the coupling's declared non-zero entries are ratios the calibration may correct."""
+    where = "readings"
+    if not isinstance(block, dict):
+        raise RobotSpecError(f"{path}: '{where}' must be a mapping with 'coupling' and optional 'offset'")
+    unknown = set(block) - {"coupling", "offset", "lower", "upper", "names"}
+    if unknown:
+        raise RobotSpecError(
+            f"{path}: '{where}': unknown keys {sorted(unknown)}; valid: coupling, offset, lower, upper, names"
+        )
+    rows = block.get("coupling")
+    if not isinstance(rows, list) or not rows or not all(isinstance(r, list) for r in rows):
+        raise RobotSpecError(
+            f"{path}: '{where}.coupling' must be a list of {n_joints} rows (one per model joint), each a list of "
+            "numbers (one per reading)"
+        )
+    width = {len(r) for r in rows}
+    if len(width) != 1:
+        raise RobotSpecError(f"{path}: '{where}.coupling' rows have different lengths {sorted(width)}")
+    A = [[_number(path, f"{where}.coupling row {i + 1}", f"column {k + 1}", v) for k, v in enumerate(r)]
+         for i, r in enumerate(rows)]  # fmt: skip
+    why = check_coupling(A, n_joints, f"'{where}.coupling'")
+    if why:
+        raise RobotSpecError(f"{path}: {why}")
+    n_read = len(A[0])
+
+    def vector(key: str, n: int, default):
+        v = block.get(key, default)
+        if not isinstance(v, list) or len(v) != n:
+            raise RobotSpecError(f"{path}: '{where}.{key}' must be a list of {n} numbers [rad]")
+        out = [_number(path, where, key, x) for x in v]
+        if key == "offset" and any(abs(x) > MAX_DESCRIPTION_ANGLE for x in out):
+            raise RobotSpecError(
+                f"{path}: '{where}.offset' is beyond {MAX_DESCRIPTION_ANGLE:g} rad; angles are radians"
+            )
+        return out
+
+    offset = vector("offset", n_joints, [0.0] * n_joints)
+    limits = None
+    if "lower" in block or "upper" in block:
+        lower = vector("lower", n_read, [-2 * math.pi] * n_read)
+        upper = vector("upper", n_read, [2 * math.pi] * n_read)
+        for k, (lo, hi) in enumerate(zip(lower, upper)):
+            if lo >= hi:
+                raise RobotSpecError(f"{path}: '{where}': reading {k + 1}: lower limit {lo} is not below upper {hi}")
+        limits = torch.tensor(list(zip(lower, upper)), dtype=dtype)
+    names = None
+    if "names" in block:
+        v = block["names"]
+        if not isinstance(v, list) or len(v) != n_read:
+            raise RobotSpecError(f"{path}: '{where}.names' must be a list of {n_read} names")
+        names = [_safe_name(path, f"{where}.names", x) for x in v]
+        if len(set(names)) != n_read:
+            raise RobotSpecError(f"{path}: '{where}.names' must be unique")
+    At = torch.tensor(A, dtype=dtype)
+    readings = Readings(At, torch.tensor(offset, dtype=dtype), free=At != 0, dtype=dtype)
+    return readings, limits, names
 
 
 # ------------------------------------------------------------------------- URDF
@@ -446,6 +514,7 @@ def load_urdf(
 
     origins, axes, lims, jnames, lnames, prismatic = [], [], [], [], [base_link], []
     masses, coms = [], []
+    mimics: dict = {}  # joint name -> its <mimic> (joint, multiplier, offset)
     pending = np.eye(4)
     for j in chain:
         origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
@@ -461,11 +530,7 @@ def load_urdf(
                 f"{path}: joint '{j.name}' is {j.type}; torchcal supports revolute, continuous and prismatic joints"
             )
         if getattr(j, "mimic", None) is not None:
-            raise RobotSpecError(
-                f"{path}: joint '{j.name}' mimics joint '{j.mimic.joint}'; torchcal does not "
-                "model mimic joints (they are not independent degrees of freedom). End the "
-                "chain before it with --tip-link, or make it fixed"
-            )
+            mimics[j.name] = j.mimic
         origins.append(pending @ origin)
         pending = np.eye(4)
         axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=np.float64)
@@ -526,6 +591,7 @@ def load_urdf(
             body_m[movable_idx] = total
     masses, coms = (body_m, body_c) if have_inertia else (None, None)
 
+    readings, reading_names = _mimic_readings(path, jnames, mimics, dtype) if mimics else (None, None)
     geometry = URDFGeometry(
         origins=torch.tensor(np.stack(origins), dtype=dtype),
         axes=torch.tensor(np.stack(axes), dtype=dtype),
@@ -546,9 +612,46 @@ def load_urdf(
         kind="urdf",
         base_link=base_link,
         tip_link=tip_link,
+        readings=readings,
+        reading_names=reading_names,
         dtype=dtype,
         device=device,
     ).to(device)
+
+
+def _mimic_readings(path: Path, jnames: list[str], mimics: dict, dtype) -> tuple[Readings, list[str]]:
+    """The readings map of a chain with mimic joints: one reading per joint that mimics none, a mimic joint's row
+    ``multiplier`` at its source's reading and ``offset`` in ``b`` (a mimic of a mimic composes the two)."""
+    readers = [n for n in jnames if n not in mimics]
+    if not readers:
+        raise RobotSpecError(f"{path}: every movable joint of the chain is a mimic joint; none takes a reading")
+    col = {n: k for k, n in enumerate(readers)}
+    A = torch.zeros(len(jnames), len(readers), dtype=dtype)
+    b = torch.zeros(len(jnames), dtype=dtype)
+    for i, name in enumerate(jnames):
+        scale, shift, at, seen = 1.0, 0.0, name, [name]
+        while at in mimics:
+            m = mimics[at]
+            mult = 1.0 if getattr(m, "multiplier", None) is None else float(m.multiplier)
+            off = 0.0 if getattr(m, "offset", None) is None else float(m.offset)
+            if not (math.isfinite(mult) and math.isfinite(off)):
+                raise RobotSpecError(f"{path}: joint '{at}': mimic multiplier and offset must be finite numbers")
+            shift, scale = shift + scale * off, scale * mult
+            src = m.joint
+            if src not in jnames:
+                raise RobotSpecError(
+                    f"{path}: joint '{at}' mimics joint '{src}', which is not a movable joint of the chain "
+                    f"({', '.join(jnames)})"
+                )
+            if src in seen:
+                raise RobotSpecError(f"{path}: the mimic joints {' -> '.join(seen + [src])} form a cycle")
+            seen.append(src)
+            at = src
+        if scale == 0.0:
+            raise RobotSpecError(f"{path}: joint '{name}': mimic multiplier 0 makes it a fixed joint; write it fixed")
+        A[i, col[at]] = scale
+        b[i] = shift
+    return Readings(A, b, dtype=dtype), readers
 
 
 def calibrated_flange(spec: str | os.PathLike) -> str | None:
@@ -719,7 +822,13 @@ def _urdf_elements(path: Path, tree):
                     if axis is None
                     else np.array([float(v) for v in axis.get("xyz", "1 0 0").split()]),
                     limit=None if lim is None else NS(lower=num(lim, "lower"), upper=num(lim, "upper")),
-                    mimic=None if mimic is None else NS(joint=mimic.get("joint")),
+                    mimic=None
+                    if mimic is None
+                    else NS(
+                        joint=mimic.get("joint"),
+                        multiplier=float(mimic.get("multiplier", 1.0)),
+                        offset=float(mimic.get("offset", 0.0)),
+                    ),
                 )
             )
         links = []

@@ -33,6 +33,7 @@ from torch import nn
 from torchcal._torch import plain, same_version, version_key
 from torchcal.errors import ShapeError
 from torchcal.robot import transforms as tf
+from torchcal.robot.readings import Readings
 
 Tensor = torch.Tensor
 GRAVITY = 9.80665  # m/s^2, standard gravity, along -z of the robot base frame
@@ -268,16 +269,21 @@ class Tool(_Group):
 class ParameterInfo:
     """One element of a calibration parameter group, for reports and estimators."""
 
-    group: str  # "geometry" | "instrument" | "tool"
-    name: str  # e.g. "d1", "shoulder_pan_joint.tz", "instrument.rz", "tool.x"
+    group: str  # "geometry" | "instrument" | "tool" | "readings"
+    name: str  # e.g. "d1", "shoulder_pan_joint.tz", "instrument.rz", "tool.x", "readings.c3_2"
     index: tuple[int, ...]  # index into the group's delta tensor
-    unit: str  # "m" or "rad"
+    unit: str  # "m", "rad" or "1" (a ratio of the readings map)
 
 
 class RobotModel(nn.Module):
     """A serial robot arm with calibration parameters, float64, batched over poses.
 
     Calling the module gives ``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)``.
+
+    ``q`` are always the controller's readings (``dof`` of them, what files, effects and ``compensate`` see); the
+    chain turns by ``n_joints`` model joints ``A q + b`` (:class:`~torchcal.robot.readings.Readings`: a
+    parallelogram, reversed directions, URDF mimic joints). Without a readings map the two are the same and every
+    entry point skips the map. ``limits`` are per reading, ``joint_limits`` per model joint.
     """
 
     def __init__(
@@ -294,6 +300,9 @@ class RobotModel(nn.Module):
         kind: str = "dh",
         base_link: str = "base",
         tip_link: str = "flange",
+        readings: Readings | None = None,
+        reading_limits: Tensor | None = None,
+        reading_names: Sequence[str] | None = None,
         dtype=torch.float64,
         device="cpu",
     ):
@@ -307,11 +316,28 @@ class RobotModel(nn.Module):
         self.instrument = Instrument(dtype=dtype, device=device)
         self.tool = Tool(dtype=dtype, device=device)
         dof = geometry.dof
+        self.readings = Readings.identity(dof, dtype=dtype, device=device) if readings is None else readings
+        if self.readings.n_joints != dof:
+            raise ShapeError(f"the readings map has {self.readings.n_joints} rows for a chain of {dof} joints")
         self.joint_names = list(joint_names)
         self.link_names = list(link_names)  # dof + 2: base, the link moved by each joint, tip
         self.base_link = base_link
         self.tip_link = tip_link
-        self.register_buffer("limits", torch.as_tensor(limits, dtype=dtype).reshape(dof, 2).to(device).clone())
+        joint_limits = torch.as_tensor(limits, dtype=dtype).reshape(dof, 2).to(device).clone()
+        # from the description, which every reload reads again: not in the state (old run directories load as before)
+        self.register_buffer("joint_limits", joint_limits, persistent=False)
+        n_read = self.readings.n_readings
+        if reading_limits is not None:
+            lim = torch.as_tensor(reading_limits, dtype=dtype).reshape(n_read, 2).to(device).clone()
+        else:
+            lim = joint_limits.clone() if self.readings.is_identity else self.readings.reading_limits(joint_limits)
+        self.register_buffer("limits", lim)
+        if reading_names is not None:
+            self.reading_names = list(reading_names)
+        elif self.readings.is_identity:
+            self.reading_names = list(self.joint_names)
+        else:
+            self.reading_names = [f"J{k + 1}" for k in range(n_read)]
         # link masses [kg] and centres of mass in each joint's child frame (the frame that
         # rotates with joint i, F_i below): what gravity-torque effects need
         m = torch.zeros(dof, dtype=dtype) if masses is None else torch.as_tensor(masses, dtype=dtype)
@@ -324,17 +350,43 @@ class RobotModel(nn.Module):
     # ----------------------------------------------------------------- basics
     @property
     def dof(self) -> int:
+        """The number of joint readings (the controller's joints; the model's chain has :attr:`n_joints`)."""
+        return self.readings.n_readings
+
+    @property
+    def n_joints(self) -> int:
+        """The number of the chain's model joints (mimic joints included)."""
         return self.geometry.dof
 
     @property
     def joint_types(self) -> tuple[str, ...]:
-        """``"revolute"`` or ``"prismatic"`` per joint: the unit of its reading (rad or m)."""
-        return self.geometry.joint_types
+        """``"revolute"`` or ``"prismatic"`` per reading: the unit of its column (rad or m), that of the model joints
+        it drives (``geometry.joint_types`` are the chain's)."""
+        types = self.geometry.joint_types
+        if self.readings.is_identity:
+            return types
+        A = self.readings.nominal
+        return tuple(
+            "prismatic" if any(t == "prismatic" and float(A[i, k]) != 0.0 for i, t in enumerate(types)) else "revolute"
+            for k in range(A.shape[1])
+        )
 
     @property
     def prismatic(self) -> Tensor:
-        """Boolean ``(dof,)``: which joints are prismatic (reading in m)."""
-        return self.geometry.prismatic
+        """Boolean ``(dof,)``: which readings drive prismatic joints (reading in m)."""
+        return torch.tensor([k == "prismatic" for k in self.joint_types], dtype=torch.bool, device=self.device)
+
+    @property
+    def has_readings_map(self) -> bool:
+        """True when the readings are not the model joints themselves (a ``readings:`` block, mimic joints)."""
+        return not self.readings.is_identity
+
+    def model_joints(self, q: Tensor, delta: Tensor | None = None) -> Tensor:
+        """The chain's joint angles ``(..., n_joints)`` [rad] of readings ``q (..., dof)``: ``q`` itself without a
+        readings map. ``delta`` replaces the readings map's correction."""
+        if self.readings.is_identity and delta is None:
+            return q
+        return self.readings.joints(q, delta)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -357,14 +409,14 @@ class RobotModel(nn.Module):
         """Frames of every joint's child link and the flange.
 
         Args:
-            q: joints ``(..., dof)`` [rad].
-            origins: ``(dof + 1, 4, 4)`` to use instead of the geometry's current ones.
+            q: joint readings ``(..., dof)`` [rad].
+            origins: ``(n_joints + 1, 4, 4)`` to use instead of the geometry's current ones.
 
         Returns:
-            ``F (..., dof, 4, 4)`` with ``F_i = T_base_(link moved by joint i)`` (the joint
+            ``F (..., n_joints, 4, 4)`` (one per model joint) with ``F_i = T_base_(link moved by joint i)`` (the joint
             rotation included; its origin lies on joint i's axis), and ``T_base_flange (..., 4, 4)``.
         """
-        q = self._check_q(q)
+        q = self.model_joints(self._check_q(q))
         Rs, ts, R, t = self._chain(q, self.geometry.origins() if origins is None else origins, frames=True)
         return tf.homogeneous(torch.stack(Rs, dim=-3), torch.stack(ts, dim=-2)), tf.homogeneous(R, t)
 
@@ -390,7 +442,7 @@ class RobotModel(nn.Module):
     def _chain_t(self, q: Tensor, O: Tensor, frames: bool) -> tuple[list[Tensor], list[Tensor], Tensor, Tensor]:
         """:meth:`_chain` with the poses in the last dimension: ``Rt (3, 3, M)`` with ``Rt[k, a, pose] = R[a, k]``
         and ``t (3, M)``, the ``M`` poses of ``q`` flattened (:func:`_rotate` applies such an ``R`` to a vector)."""
-        dof = self.dof
+        dof = self.n_joints
         qt = q.reshape(-1, dof).T  # (dof, M)
         m = qt.shape[1]
         rot, off = O[:, :3, :3], O[:, :3, 3]
@@ -419,9 +471,9 @@ class RobotModel(nn.Module):
         return Rts, ts, end[0:3], t + end[3]
 
     def forward(self, q: Tensor) -> Tensor:
-        """``T_base_flange (..., 4, 4)`` for joints ``q (..., dof)`` [rad, m for a prismatic joint], current
+        """``T_base_flange (..., 4, 4)`` for joint readings ``q (..., dof)`` [rad, m for a prismatic joint], current
         geometry."""
-        _, _, R, t = self._chain(self._check_q(q), self.geometry.origins(), frames=False)
+        _, _, R, t = self._chain(self.model_joints(self._check_q(q)), self.geometry.origins(), frames=False)
         return tf.homogeneous(R, t)
 
     def T_tracker_base(self) -> Tensor:
@@ -433,7 +485,7 @@ class RobotModel(nn.Module):
     def probe_in_base(self, q: Tensor) -> Tensor:
         """Probe position in the robot base frame ``(..., 3)`` [m]."""
         q = self._check_q(q)
-        _, _, Rt, t = self._chain_t(q, self.geometry.origins(), frames=False)
+        _, _, Rt, t = self._chain_t(self.model_joints(q), self.geometry.origins(), frames=False)
         return _poses_first(_rotate(Rt, self.t_flange_probe()) + t, q.shape[:-1])
 
     def probe_jacobian(self, q: Tensor) -> tuple[Tensor, Tensor]:
@@ -441,17 +493,19 @@ class RobotModel(nn.Module):
 
         The geometric Jacobian, ``dp/dq_j = z_j x (p - o_j)`` for a revolute joint with ``z_j`` the axis and
         ``o_j`` a point of joint j, ``z_j`` itself for a prismatic one [m/m]: exact, and far cheaper than
-        differentiating the FK per pose.
+        differentiating the FK per pose. With a readings map the derivative is by the readings:
+        ``J_readings = J_joints A``.
         """
         q = self._check_q(q)
-        Rts, ts, Rt, t = self._chain_t(q, self.geometry.origins(), frames=True)
+        Rts, ts, Rt, t = self._chain_t(self.model_joints(q), self.geometry.origins(), frames=True)
         p = _rotate(Rt, self.t_flange_probe()) + t  # (3, M)
         z = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])  # (dof, 3, M)
         J = torch.linalg.cross(z, p - torch.stack(ts), dim=1)  # (dof, 3, M)
         if "prismatic" in self.geometry.joint_types:
             J = torch.where(self.geometry.prismatic[:, None, None], z, J)
         batch = q.shape[:-1]
-        return _poses_first(p, batch), J.permute(2, 1, 0).reshape(*batch, 3, self.dof)
+        J = J.permute(2, 1, 0).reshape(*batch, 3, self.n_joints)
+        return _poses_first(p, batch), J if self.readings.is_identity else J @ self.readings.matrix()
 
     def probe_position(self, q: Tensor) -> Tensor:
         """Probe position in the tracker frame ``(..., 3)`` [m]: what a laser tracker measures."""
@@ -471,9 +525,10 @@ class RobotModel(nn.Module):
         copy of every intermediate per parameter and imports ``torch._dynamo`` at its first use.
 
         Args:
-            q: joints ``(N, dof)`` [rad].
+            q: joint readings ``(N, dof)`` [rad].
             columns: the parameters, as ``(group, flat index into the group's delta)`` with group one of
-                ``"geometry"``, ``"instrument"``, ``"tool"``.
+                ``"geometry"``, ``"instrument"``, ``"tool"`` and, where the robot calibrates its readings map,
+                ``"readings"`` (``dp/dA_ik = dp/dq_i r_k``).
             deltas: group -> corrections to use instead of the module's own (the deltas' shapes).
 
         Returns:
@@ -486,15 +541,17 @@ class RobotModel(nn.Module):
         if sum(len(c) for c in cols.values()) != len(columns):
             bad = sorted({g for g, _ in columns} - set(d))
             raise ShapeError(f"unknown parameter groups {bad}; groups: {', '.join(d)}")
+        r = q
         with torch.no_grad():
+            q = self.model_joints(r, d.get("readings"))
             O = self.geometry.origins(d["geometry"])
             T = self.instrument.matrix(d["instrument"])
             t = self.tool.vector(d["tool"])
             # the poses in the last dimension, as the chain computes them (every product below runs along them)
-            Rts, _, Rt_flange, t_flange = self._chain_t(q, O, frames=True)
+            Rts, ts, Rt_flange, t_flange = self._chain_t(q, O, frames=True)
             p_base = _rotate(Rt_flange, t) + t_flange  # (3, N)
             p = (T[:3, :3] @ p_base + T[:3, 3:]).T
-        n, dof = q.shape[0], self.dof
+        n, dof = q.shape[0], self.n_joints
         Jt = torch.zeros(3, len(columns), n, dtype=q.dtype, device=q.device)  # J[pose, a, k] = Jt[a, k, pose]
         if cols["geometry"]:
             idx = [i for _, i in cols["geometry"]]
@@ -539,17 +596,30 @@ class RobotModel(nn.Module):
             RC = (C.T @ Rt_flange.reshape(3, -1)).reshape(k, 3, n)  # RC[k, c, pose] = (R_flange C)[c, k]
             TRC = (T[:3, :3] @ RC.transpose(0, 1).reshape(3, -1)).reshape(3, k, n)
             J[..., [kk for kk, _ in cols["tool"]]] = TRC.permute(2, 0, 1)
+        if cols.get("readings"):
+            # q = A r + b: dp/dA_ik = dp/dq_i r_k, with dp/dq_i = z_i x (p - o_i) as in probe_jacobian
+            n_read = self.dof
+            for kk, flat in cols["readings"]:
+                i, k = divmod(flat, n_read)
+                z = _rotate(Rts[i], self.geometry.axes[i])
+                if self.geometry.joint_types[i] == "prismatic":  # moved along its axis by q_i
+                    Ji = T[:3, :3] @ z.expand_as(p_base)
+                else:
+                    Ji = T[:3, :3] @ torch.linalg.cross(z, p_base - ts[i], dim=0)  # (3, N)
+                J[..., kk] = (Ji * r[:, k]).T
         return p, J.contiguous()
 
     # ---------------------------------------------------------------- gravity
     def gravity_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
-        """Static gravity torque at each joint ``(..., dof)`` [N m], robot base z pointing up.
+        """Static gravity torque at each joint reading ``(..., dof)`` [N m], robot base z pointing up.
 
         ``tau_j = z_j . sum_{k >= j} (c_k - o_j) x (m_k g)`` with ``z_j, o_j`` the axis and a point
         of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe. A prismatic
-        joint's generalised force is ``z_j . sum_{k >= j} m_k g`` [N].
+        joint's generalised force is ``z_j . sum_{k >= j} m_k g`` [N]. With a readings map the torques are the
+        generalised forces of the readings, ``A^T tau`` (virtual work: what the drive of each reading holds).
         """
-        q = self._check_q(q)
+        r = self._check_q(q)
+        q = self.model_joints(r)
         Rts, ts, Rt_flange, t_flange = self._chain_t(q, self.geometry.origins(), frames=True)
         # the poses in the last dimension (as the chain computes them): every product below runs along them
         origins_w = torch.stack(ts)  # (dof, 3, M)
@@ -564,13 +634,15 @@ class RobotModel(nn.Module):
             w = torch.cat([w, w.new_tensor([-GRAVITY * payload])])
         # c x (0, 0, w) = w (c_y, -c_x, 0)
         m_xy = torch.stack([com[:, 1], -com[:, 0]], dim=1) * w[:, None, None]  # (links, 2, M)
-        suffix = m_xy.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof, 2, M)
-        W = w.flip(0).cumsum(0).flip(0)[: self.dof]  # (dof,)
+        suffix = m_xy.flip(0).cumsum(0).flip(0)[: self.n_joints]  # (dof, 2, M)
+        W = w.flip(0).cumsum(0).flip(0)[: self.n_joints]  # (dof,)
         total_xy = suffix - torch.stack([origins_w[:, 1], -origins_w[:, 0]], dim=1) * W[:, None, None]
         tau = (total_xy * axes_w[:, :2]).sum(1)  # (dof, M)
         if "prismatic" in self.geometry.joint_types:  # the weights beyond the joint along its axis (z-component)
             tau = torch.where(self.geometry.prismatic[:, None], axes_w[:, 2] * W[:, None], tau)
-        return tau.T.reshape(*q.shape[:-1], self.dof)
+        if not self.readings.is_identity:
+            tau = self.readings.matrix().T @ tau  # (readings, M)
+        return tau.T.reshape(*r.shape[:-1], self.dof)
 
     def static_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
         """:meth:`gravity_torques` without gradient, as the joint effects take them for their regressor, the last
@@ -582,6 +654,8 @@ class RobotModel(nn.Module):
         payload) by value, so the results are those of computing it every time.
         """
         geo = self.geometry.delta
+        if not self.readings.is_identity:  # the map moves the torques too: one key for both
+            geo = torch.cat([geo.reshape(-1), self.readings.delta.reshape(-1)])
         tool = self.tool.delta if payload else None
         kq = None if q.is_meta or q.requires_grad else version_key(q)
         if kq is None or not plain(geo) or (tool is not None and not plain(tool)):
@@ -609,15 +683,25 @@ class RobotModel(nn.Module):
 
     # ------------------------------------------------------------- parameters
     def groups(self) -> dict[str, _Group]:
-        return {"geometry": self.geometry, "instrument": self.instrument, "tool": self.tool}
+        """The parameter groups: geometry, instrument, tool, and ``readings`` where the description declares ratios
+        of its readings map that may be calibrated."""
+        out = {"geometry": self.geometry, "instrument": self.instrument, "tool": self.tool}
+        if bool(self.readings.mask.any()):
+            out["readings"] = self.readings
+        return out
 
     def parameter_info(self) -> list[ParameterInfo]:
-        """Every calibration parameter element, in a fixed order (geometry, instrument, tool)."""
+        """Every calibration parameter element, in a fixed order (geometry, instrument, tool, then the readings map's
+        free ratios, unit 1)."""
         out = []
         for gname, g in self.groups().items():
             shape = g.delta.shape
             for flat, name in enumerate(g.names):
                 idx = _unravel(flat, tuple(shape))  # torch.unravel_index imports sympy (0.3 s, 40 MB)
+                if gname == "readings":
+                    if bool(g.mask[idx]):  # the map's fixed entries (zeros, mimic rows) are no parameters
+                        out.append(ParameterInfo(gname, name, idx, "1"))
+                    continue
                 col = name.rsplit(".", 1)[-1] if "." in name else name.rstrip("0123456789")
                 unit = "rad" if col in ("alpha", "theta", "beta", "rx", "ry", "rz") else "m"
                 out.append(ParameterInfo(gname, name, idx, unit))
@@ -699,7 +783,7 @@ def build_pk_chain(robot: RobotModel, origins: Tensor):
         joint=pk.Joint(name="root", dtype=dtype, device=device),
     )
     parent = root
-    for i in range(robot.dof):
+    for i in range(robot.n_joints):
         joint = pk.Joint(
             name=robot.joint_names[i],
             offset=pk.Transform3d(matrix=origins[i].clone(), dtype=dtype, device=device),
@@ -707,7 +791,7 @@ def build_pk_chain(robot: RobotModel, origins: Tensor):
             axis=robot.geometry.axes[i].clone(),
             dtype=dtype,
             device=device,
-            limits=(float(robot.limits[i, 0]), float(robot.limits[i, 1])),
+            limits=(float(robot.joint_limits[i, 0]), float(robot.joint_limits[i, 1])),
         )
         frame = pk.Frame(name=robot.link_names[i + 1], link=pk.Link(name=robot.link_names[i + 1]), joint=joint)
         parent.add_child(frame)

@@ -28,7 +28,7 @@ import torch
 
 from torchcal._bounds import MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER, check_range
 from torchcal.data import Measurements, write_measurements
-from torchcal.effects import Backlash, Compliance, Context, CorrectionNet, Cyclic, Drift, LearnedEffect
+from torchcal.effects import Backlash, Compliance, Context, CorrectionNet, Coupling, Cyclic, Drift, LearnedEffect
 from torchcal.effects.base import Effect, motion_direction
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
@@ -41,27 +41,37 @@ Tensor = torch.Tensor
 F64 = torch.float64
 
 #: default sizes (RMS probe displacement, m) when an effect spec gives none
-DEFAULT_SIZES = {"compliance": 5e-5, "backlash": 3e-5, "cyclic": 3e-5, "drift": 5e-5, "field": 1.5e-4}
+DEFAULT_SIZES = {
+    "compliance": 5e-5,
+    "backlash": 3e-5,
+    "cyclic": 3e-5,
+    "drift": 5e-5,
+    "field": 1.5e-4,
+    "coupling": 5e-5,
+}
 EFFECT_NAMES = tuple(DEFAULT_SIZES)
 _UNITS = {"m": 1.0, "mm": 1e3, "um": 1e6}  # divisors to metres (exact for decimal input)
 
 
 @dataclass
 class EffectSpec:
-    """One effect to inject: ``kind``, ``joint`` (1-based) or drift ``variable``, ``size`` [m RMS]."""
+    """One effect to inject: ``kind``, ``joint`` (1-based) or drift ``variable``, ``size`` [m RMS]; a coupling's
+    ``source`` joint (1-based)."""
 
     kind: str
     joint: int | None = None
     variable: str | None = None
     size: float | None = None
+    source: int | None = None
 
     @classmethod
     def parse(cls, text: str) -> EffectSpec:
         """Parse ``KIND[:JOINT|:VARIABLE][=SIZE UNIT]``.
 
-        Examples: ``compliance:2=50um``, ``field=0.6mm``, ``drift:temperature``.
+        Examples: ``compliance:2=50um``, ``field=0.6mm``, ``drift:temperature``, ``coupling:3<-2=50um`` (joint 3's
+        reading error proportional to joint 2's reading).
         """
-        m = re.fullmatch(r"\s*([a-z]+)(?::([A-Za-z0-9_]+))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um))?\s*", text)
+        m = re.fullmatch(r"\s*([a-z]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um))?\s*", text)
         if not m:
             if re.fullmatch(r".*=\s*[0-9.eE+-]+\s*", text):
                 raise OptionError(f"effect '{text}': give the size with a unit, e.g. '=50um', '=0.05mm' or '=5e-5m'")
@@ -74,6 +84,11 @@ class EffectSpec:
             if arg is None or not arg.isdigit():
                 raise OptionError(f"effect '{text}': {kind} needs a joint number, e.g. '{kind}:2'")
             spec.joint = int(arg)
+        elif kind == "coupling":
+            pair = re.fullmatch(r"([0-9]+)<-([0-9]+)", arg or "")
+            if pair is None or pair[1] == pair[2]:
+                raise OptionError(f"effect '{text}': coupling needs two different joints, e.g. 'coupling:3<-2'")
+            spec.joint, spec.source = int(pair[1]), int(pair[2])
         elif kind == "drift":
             spec.variable = arg or "t"
             if spec.variable not in Drift.VARIABLES:
@@ -114,6 +129,9 @@ class SimConfig:
     base_link: str | None = None
     tip_link: str | None = None
     tool_axis_deg: float | None = None  # static poses whose tool axis turns by at most this [deg] (None: free)
+    # errors of the readings map's ratios in the true robot (parameter name -> correction, e.g. {"readings.c3_3": 2e-3}
+    # for a 0.2 % error of J3's ratio): what a `readings:` block's calibration recovers
+    ratio_errors: dict[str, float] = field(default_factory=dict)
     turned_min_deg: float = 30.0  # with tool_axis_deg: the turned poses' tool axis is at least this far off [deg]
 
     def __post_init__(self):
@@ -176,6 +194,8 @@ def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator) -> Eff
     if spec.kind == "cyclic":
         ab = torch.randn(4, generator=g, dtype=F64) * 1e-4
         return Cyclic(spec.joint, harmonics=(1, 2), a=ab[:2], b=ab[2:])
+    if spec.kind == "coupling":
+        return Coupling(spec.joint, spec.source, c=1e-3)
     if spec.kind == "drift":
         if spec.variable == "t":
             return Drift("t", "instrument", rates=torch.randn(6, generator=g, dtype=F64) * 1e-8)
@@ -219,6 +239,15 @@ def _true_robot(
     with torch.no_grad():
         truth.instrument.set_matrix(T_tracker_base)
         truth.tool.nominal.copy_(lever)
+    free = {i.name: i.index for i in truth.parameter_info() if i.group == "readings"}
+    for name, value in cfg.ratio_errors.items():
+        if name not in free:
+            raise OptionError(
+                f"ratio error '{name}': not a calibratable ratio of '{truth.name}'s readings map; "
+                f"ratios: {', '.join(free) or 'none (the robot declares no readings: block)'}"
+            )
+        with torch.no_grad():
+            truth.readings.delta[free[name]] = float(value)
     return nominal, truth, T_tracker_base, tf.invert(T_tracker_base)[:3, 3], torch.tensor(cfg.lever_arm, dtype=F64)
 
 
@@ -335,6 +364,7 @@ def _effects(
                 "kind": "learned" if spec.kind == "field" else spec.kind,
                 "spec": spec.kind,
                 "joint": spec.joint,
+                **({"source": spec.source} if spec.source is not None else {}),
                 "variable": spec.variable,
                 "size_m": size,
                 "rms_m": float(mag.square().mean().sqrt()),
@@ -352,7 +382,9 @@ def _effects(
 def simulate(cfg: SimConfig) -> Campaign:
     """Simulate a campaign; see the module docstring for what is modelled."""
     g = torch.Generator().manual_seed(int(cfg.seed))
-    joints = [(spec.kind, spec.joint) for spec in cfg.effects]
+    joints = [(spec.kind, spec.joint) for spec in cfg.effects] + [
+        (spec.kind, spec.source) for spec in cfg.effects if spec.source is not None
+    ]
     nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
 
     ctx, n_train = _poses_and_times(cfg, nominal, tracker_in_base, lever_nominal, g, truth_robot)
@@ -388,6 +420,17 @@ def simulate(cfg: SimConfig) -> Campaign:
         "instrument": {"T_tracker_base": T_tracker_base.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
         "tool": {"t_flange_probe": truth_robot.tool.nominal.tolist(), "nominal_lever_arm": list(cfg.lever_arm)},
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": sigma_q},
+        **(
+            {
+                "readings": {
+                    "coupling": truth_robot.readings.matrix().detach().tolist(),
+                    "offset": truth_robot.readings.offset.tolist(),
+                    "ratio_errors": dict(cfg.ratio_errors),
+                }
+            }
+            if truth_robot.has_readings_map
+            else {}
+        ),
         "effects": effect_truth,
         "line_of_sight": asdict(cfg.sight),
         "files": {
