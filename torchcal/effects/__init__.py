@@ -8,6 +8,7 @@ from torchcal.effects.joint import (
     Backlash,
     Compliance,
     Cyclic,
+    LumpedCompliance,
     Transmission,
     joint_function_check,
 )
@@ -35,4 +36,4 @@ __all__ = [
     "motion_direction",
 ]
 __all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction", "joint_function_check"]
-__all__ += ["MAX_JOINT_ERROR"]
+__all__ += ["MAX_JOINT_ERROR", "LumpedCompliance"]
