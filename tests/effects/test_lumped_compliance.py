@@ -20,6 +20,7 @@ from torchcal.diagnose.candidates import candidates
 from torchcal.effects import Compliance, Context, LumpedCompliance, MeasurementModel, effect_from_config
 from torchcal.effects.joint import LUMPED_FORM, geometric_span, lumped_basis
 from torchcal.estimate.fit import errors, solve
+from torchcal.experiments.lumped_compliance import final_modes, true_modes
 from torchcal.pipeline import Options
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse
@@ -128,23 +129,13 @@ def test_the_loop_names_lumped_compliance_of_a_massless_arm_and_matches_the_true
     ratio = rmse(errors(run.model, c.test, False)) / rmse(errors(true, c.test, False))
     assert ratio <= RATIO, ratio
 
-    # the identifiable combinations of the true moments: the modes whose probe displacement beyond the geometry
-    # equals the truth's, against the estimates and their standard deviations
-    robot = run.model.robot
-    span = geometric_span(robot, train.q)
+    # the identifiable combinations of the true moments (the modes whose probe displacement beyond the geometry
+    # equals the truth's) against the final estimates and their standard deviations
     truth = {e.joint: e for e in c.model.effects}
     for eff in run.model.effects:
-        j = eff.joint - 1
-        Y = robot.gravity_regressor(train.q)[:, j]
-        _, Jq = robot.probe_jacobian(train.q)
-        M = (Jq[:, :, j, None] * Y[:, None, :]).reshape(-1, Y.shape[1])
-        M = M - span @ (span.T @ M)
-        beta = truth[eff.joint].basis @ truth[eff.joint].mode.detach()
-        m_true = torch.linalg.lstsq(M @ eff.basis, (M @ beta)[:, None]).solution[:, 0]
-        est = named[f"compliance:{eff.joint}"]["params"]
-        for i, t in enumerate(m_true.tolist()):
-            p = est[f"mode[{i}]"]
-            assert abs(p["value"] - t) <= 3 * p["std"], (eff.joint, i, p, t)
+        m_true = true_modes(run.model.robot, train.q, eff, truth[eff.joint])
+        for i, ((v, s), t) in enumerate(zip(final_modes(run, eff), m_true.tolist())):
+            assert abs(v - t) <= 3 * s, (eff.joint, i, v, s, t)
 
 
 def test_a_clean_campaign_of_the_massless_arm_names_nothing():
