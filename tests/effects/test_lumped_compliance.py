@@ -141,3 +141,15 @@ def test_the_loop_names_lumped_compliance_of_a_massless_arm_and_matches_the_true
 def test_a_clean_campaign_of_the_massless_arm_names_nothing():
     _, run = _calibrated((), seed=2)
     assert run.effects_report == []
+
+
+def test_a_run_with_lumped_compliance_predicts_the_same_after_reloading(tmp_path):
+    from torchcal.report import predict, write_run
+
+    c, run = _calibrated(EFFECTS, seed=1)
+    write_run(run, tmp_path / "cal")
+    model = json.loads((tmp_path / "cal" / "model.json").read_text(encoding="utf-8"))
+    assert [e["class"] for e in model["effects"]] == ["LumpedCompliance", "LumpedCompliance"]
+    with torch.no_grad():
+        expected = run.model(Context(q=c.test.q))
+    assert torch.allclose(predict(tmp_path / "cal", c.test), expected, rtol=0, atol=1e-12)
