@@ -1,8 +1,9 @@
 """The effects a calibration could lack, for one robot and one data set.
 
 Every named effect family of :mod:`torchcal.effects` that the data could reveal becomes a
-candidate: ``compliance`` per joint whose gravity torque varies over the poses (the robot
-description must carry masses), ``backlash`` per joint whose loaded flank changes (the sign of
+candidate: ``compliance`` per joint whose gravity torque varies over the poses (with the masses of
+the robot description; without them in lumped form, :class:`~torchcal.effects.LumpedCompliance`, in the
+directions the poses identify beyond the geometry), ``backlash`` per joint whose loaded flank changes (the sign of
 the gravity torque for static poses, the direction of motion along a trajectory),
 ``cyclic`` per revolute joint (harmonics 1 and 2), ``transmission`` (degree 1: a scale error of the
 reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``coupling`` of each
@@ -26,12 +27,13 @@ has; a gravity torque of round-off size has no loaded flank either), a variable 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
-from torchcal.effects import Backlash, Compliance, Context, Coupling, Cyclic, Drift, Transmission
+from torchcal.effects import Backlash, Compliance, Context, Coupling, Cyclic, Drift, LumpedCompliance, Transmission
 from torchcal.effects.base import Effect
+from torchcal.effects.joint import geometric_span, lumped_basis
 
 Tensor = torch.Tensor
 
@@ -50,6 +52,8 @@ class Candidate:
         joint: 1-based joint, or None for drift.
         variable: drift variable (``t`` or ``temperature``), else None.
         reference: drift reference value (the variable at the first training sample).
+        basis: a lumped compliance's identifiable directions ``(4 dof, r)`` on the training poses
+            (:func:`~torchcal.effects.joint.lumped_basis`); None: the mass-based compliance.
     """
 
     kind: str
@@ -57,6 +61,7 @@ class Candidate:
     variable: str | None = None
     reference: float = 0.0
     source: int | None = None  # coupling: the 1-based joint whose reading drives joint ``joint``'s error
+    basis: Tensor | None = field(default=None, compare=False, repr=False)
 
     @property
     def name(self) -> str:
@@ -72,7 +77,7 @@ class Candidate:
     def make(self) -> Effect:
         """A fresh effect of this form with zero parameters."""
         if self.kind == "compliance":
-            return Compliance(self.joint)
+            return Compliance(self.joint) if self.basis is None else LumpedCompliance(self.joint, self.basis)
         if self.kind == "backlash":
             return Backlash(self.joint, source="auto")
         if self.kind == "cyclic":
@@ -89,6 +94,8 @@ class Candidate:
     def regressor(self, robot, ctx: Context) -> tuple[Tensor, str]:
         """The variable the effect follows, one value per pose ``(N,)``, and its axis label (for plots)."""
         eff = self.make()
+        if self.kind == "compliance" and self.basis is not None:
+            return eff.regressor(robot, ctx)[:, 0], f"first lumped gravity mode at joint {self.joint} [rad/rad]"
         if self.kind == "compliance":
             return eff.regressor(robot, ctx), f"gravity torque at joint {self.joint} [N m]"
         if self.kind == "backlash":
@@ -107,6 +114,9 @@ class Candidate:
         out = {"name": self.name, "kind": self.kind, "joint": self.joint}
         if self.source is not None:
             out["source"] = self.source
+        if self.basis is not None:
+            out["form"] = "lumped (no link masses)"
+            out["modes"] = int(self.basis.shape[1])
         if self.variable is not None:
             out["variable"] = self.variable
             out["form"] = DRIFT_FORMS[self.variable][0]
@@ -138,6 +148,7 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
 
     levers = joint_levers(robot, ctx.q)
     tau = robot.gravity_torques(ctx.q).detach() if robot.has_masses else None
+    span = None  # the geometry's probe columns, for the lumped compliances of a robot without masses
     for j in range(1, robot.dof + 1):
         prismatic = robot.joint_types[j - 1] == "prismatic"
         shape = "transmission" if prismatic else "cyclic"  # the reading's own error function
@@ -150,7 +161,13 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
                 )
             continue
         if tau is None:
-            skip(f"compliance:{j}", "the robot description has no link masses")
+            # no masses: the lumped form, in the directions these poses identify beyond the geometry
+            span = geometric_span(robot, ctx.q) if span is None else span
+            basis = lumped_basis(robot, ctx.q, j, span=span)
+            if basis.shape[1] == 0:
+                skip(f"compliance:{j}", f"no lumped gravity mode of joint {j} shows beyond the geometry on these poses")
+            else:
+                out.append(Candidate("compliance", j, basis=basis))
         elif not _varies(tau[:, j - 1]):
             skip(f"compliance:{j}", f"the gravity torque at joint {j} does not vary over the poses")
         else:

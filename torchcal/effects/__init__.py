@@ -9,6 +9,7 @@ from torchcal.effects.joint import (
     Compliance,
     Coupling,
     Cyclic,
+    LumpedCompliance,
     Transmission,
     joint_function_check,
 )
@@ -36,4 +37,4 @@ __all__ = [
     "motion_direction",
 ]
 __all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction", "joint_function_check"]
-__all__ += ["MAX_JOINT_ERROR", "Coupling"]
+__all__ += ["MAX_JOINT_ERROR", "Coupling", "LumpedCompliance"]

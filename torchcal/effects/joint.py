@@ -135,6 +135,127 @@ class Compliance(Effect):
         return {"k_rad_per_Nm": float(self.k.detach()), "payload_kg": self.payload}
 
 
+#: the smallest share of a unit mass-moment column's probe displacement, beyond what the geometry already moves,
+#: that makes a direction of a lumped compliance one of its modes (:func:`lumped_basis`): the gravity regressor of a
+#: joint has exact null directions (moments along an axis that stays vertical, masses of links whose frames share an
+#: origin) and directions only the geometry's columns reach; 1e-3 keeps what a tracker can tell from them and drops
+#: what only round-off separates
+LUMPED_TOL = 1e-3
+#: the form a lumped compliance reports (``report.json`` ``params["form"]``)
+LUMPED_FORM = "lumped (no link masses)"
+
+
+class LumpedCompliance(Effect):
+    """Joint compliance under gravity for a robot whose description has no link masses.
+
+    A joint of stiffness ``K_j`` twists by ``dq_j = tau_j(q) / K_j``, and the gravity torque is linear in the links'
+    unknown mass moments ``pi`` through the gravity regressor (:meth:`~torchcal.robot.model.RobotModel.
+    gravity_regressor`): ``dq_j = Y_j(q) . beta`` with the lumped parameters ``beta = pi / K_j`` [kg rad/(N m) and
+    kg m rad/(N m), four per link]. Most of them cannot be told apart from the joint's torque over a set of poses
+    (nor from the geometry), so the effect is parameterised in the identifiable directions only:
+    ``dq_j = Y_j(q) B m`` with ``B (4 dof, r)`` a fixed basis (:func:`lumped_basis`) and ``m (r,)`` the modes [rad]:
+    with the basis scaled to unit RMS deflection on the poses it was made from, mode ``i`` is the RMS twist it
+    gives there. Where masses are known :class:`Compliance` (one stiffness per joint) is the physical form.
+
+    Args:
+        joint: 1-based joint.
+        basis: ``B (4 dof, r)``, columns per link ``k`` ordered ``(m_k, m_k c_k,x, m_k c_k,y, m_k c_k,z)``.
+        mode: the modes ``(r,)`` [rad] (default zero).
+    """
+
+    kind = "compliance"
+
+    def __init__(self, joint: int, basis, mode=None):
+        super().__init__(joint)
+        B = torch.as_tensor(basis, dtype=torch.float64)
+        if B.ndim != 2 or B.shape[0] % 4 or B.shape[0] // 4 < joint:
+            from torchcal.errors import OptionError
+
+            raise OptionError(
+                f"a lumped compliance of joint {joint} needs a basis of shape (4 dof, r), got {tuple(B.shape)}"
+            )
+        self.register_buffer("basis", B.clone())
+        m = torch.zeros(B.shape[1], dtype=torch.float64) if mode is None else torch.as_tensor(mode, dtype=torch.float64)
+        self.mode = nn.Parameter(m.reshape(B.shape[1]).clone())
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """The modes' deflection shapes ``(N, r)`` [rad per rad of mode]: ``Y_j(q) B`` (held constant in
+        derivatives, as :class:`Compliance` holds its torque)."""
+        Y = robot.static_gravity_regressor(ctx.q)[:, self.j]  # (N, 4 dof)
+        if Y.shape[-1] != self.basis.shape[0]:
+            from torchcal.errors import ShapeError
+
+            raise ShapeError(
+                f"lumped compliance of joint {self.joint}: its basis has {self.basis.shape[0]} rows, the robot's "
+                f"gravity regressor {Y.shape[-1]} columns (4 per joint)"
+            )
+        return Y @ self.basis
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        # the shapes are constants of the estimators' forward-mode Jacobians: torchcal._dual keeps the product in C++
+        return self._joint_delta(ctx, _dual.mul(self.regressor(robot, ctx), self.mode).sum(-1))
+
+    def deflection(self, robot, q: Tensor) -> Tensor:
+        """The twist ``dq_j (N,)`` [rad] at the joints ``q`` ``(N, dof)``."""
+        with torch.no_grad():
+            return self.regressor(robot, Context(q=q)) @ self.mode
+
+    def config(self) -> dict:
+        return {"joint": self.joint, "basis": self.basis.tolist()}
+
+    def describe(self) -> dict:
+        return {
+            "form": LUMPED_FORM,
+            "mode_rad": self.mode.detach().tolist(),
+            # beta = B m: the mass moments over the stiffness [kg rad/(N m), kg m rad/(N m)], per link (m, mc_x..z)
+            "moments_over_stiffness": (self.basis @ self.mode.detach()).reshape(-1, 4).tolist(),
+        }
+
+
+def geometric_span(robot, q: Tensor) -> Tensor:
+    """An orthonormal basis ``(3N, u)`` of the probe displacements in the tracker frame that the robot's free
+    calibration parameters (geometry, instrument, lever arm) make at the poses ``q``."""
+    columns = [
+        (g, int(i)) for g, grp in robot.groups().items() for i in torch.nonzero(grp.mask.flatten()).flatten().tolist()
+    ]
+    _, G = robot.tracker_jacobian(q, columns)
+    G = G.reshape(-1, len(columns))
+    G = G / G.norm(dim=0).clamp(min=1e-300)
+    U, S, _ = torch.linalg.svd(G, full_matrices=False)
+    return U[:, S > 1e-10 * S.max()]
+
+
+def lumped_basis(robot, q: Tensor, joint: int, tol: float = LUMPED_TOL, span: Tensor | None = None) -> Tensor:
+    """The identifiable directions of a lumped compliance of ``joint`` (1-based) on the poses ``q`` ``(N, dof)``:
+    ``B (4 dof, r)``, ``r`` possibly 0.
+
+    Method: the probe displacement (tracker frame) of each mass-moment column, ``J_j(q) Y_jc(q)``, stacked over the
+    poses ``(3N, 4 dof)`` and each scaled to unit norm, is projected off the span of the geometry's, instrument's and
+    lever arm's columns (``span``, default :func:`geometric_span`: what the joint refit absorbs anyway, the joint's
+    own offset among it); the right singular vectors of the rest whose singular value exceeds ``tol`` are the
+    directions (largest first). Each is scaled so that its deflection ``Y_j B_i`` has unit RMS over the poses, so a
+    mode is the RMS twist [rad] it gives there.
+    """
+    j = joint - 1
+    with torch.no_grad():
+        Y = robot.gravity_regressor(q)[:, j]  # (N, 4 dof)
+        _, Jq = robot.probe_jacobian(q)
+        Jt = Jq[:, :, j] @ robot.T_tracker_base()[:3, :3].T  # (N, 3): the joint's column in the tracker frame
+        M = (Jt[:, :, None] * Y[:, None, :]).reshape(-1, Y.shape[1])
+        norm = M.norm(dim=0)
+        live = norm > 1e-12 * float(norm.max()) if float(norm.max()) > 0 else norm > 0
+        scale = torch.where(live, 1.0 / norm.clamp(min=1e-300), torch.zeros_like(norm))
+        Mn = M * scale
+        U = geometric_span(robot, q) if span is None else span
+        for _ in range(2):  # projected twice for round-off
+            Mn = Mn - U @ (U.T @ Mn)
+        _, S, Vh = torch.linalg.svd(Mn, full_matrices=False)
+        keep = S > tol
+        B = scale[:, None] * Vh[keep].T  # (4 dof, r)
+        rms = (Y @ B).square().mean(0).sqrt()
+        return B / rms.clamp(min=1e-300)
+
+
 class Backlash(Effect):
     """Gear backlash: a dead zone of width ``b`` between the gear flanks.
 
@@ -362,6 +483,8 @@ def joint_function_size(effect: Effect, robot, q: Tensor, reach: tuple[float, fl
             return abs(float(effect.b)) / 2
         if isinstance(effect, Compliance):
             return abs(float(effect.k)) * float(effect.regressor(robot, Context(q=q)).abs().max())
+        if isinstance(effect, LumpedCompliance):
+            return float(effect.deflection(robot, q).abs().max())
     return 0.0
 
 
@@ -381,7 +504,7 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         so that the poses do not determine them and the function explodes beyond them; or it exceeds the bound
         somewhere on its joint's range.
     """
-    if not isinstance(effect, (Cyclic, Transmission, Compliance, Backlash)):
+    if not isinstance(effect, (Cyclic, Transmission, Compliance, LumpedCompliance, Backlash)):
         return None
     qj = q[:, effect.j]
     seen = f"{float(qj.min()):.3f} to {float(qj.max()):.3f}"

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from torchcal.effects.base import Acts, Effect
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
-from torchcal.effects.joint import Backlash, Compliance, Coupling, Cyclic, Transmission
+from torchcal.effects.joint import Backlash, Compliance, Coupling, Cyclic, LumpedCompliance, Transmission
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.support import SupportGate
@@ -39,7 +39,8 @@ class EffectKind:
 
 
 KIND_TABLE: tuple[EffectKind, ...] = (
-    EffectKind("compliance", (Compliance,), (Acts.JOINT,), True),
+    # the mass-based form where the robot description has masses, the lumped one (no link masses) elsewhere
+    EffectKind("compliance", (Compliance, LumpedCompliance), (Acts.JOINT,), True),
     EffectKind("backlash", (Backlash,), (Acts.JOINT,), True),
     EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),

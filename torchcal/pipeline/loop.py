@@ -53,7 +53,7 @@ from torchcal.diagnose.tracing import (
 )
 from torchcal.effects import Context, MeasurementModel, joint_function_check
 from torchcal.effects.drift import Drift
-from torchcal.effects.joint import SupportedForm
+from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, SupportedForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.holdout import at_edges
@@ -465,6 +465,8 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
     }
     if isinstance(cand, OpenCandidate):
         params = effect_form_params(model, index, cand, params)
+    if isinstance(eff, LumpedCompliance):  # which compliance this is, and what its modes stand for
+        params = {**params, "form": LUMPED_FORM, "moments_over_stiffness": eff.describe()["moments_over_stiffness"]}
     work.effects.append(
         EffectRecord(
             cand.kind,

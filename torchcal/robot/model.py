@@ -674,11 +674,70 @@ class RobotModel(nn.Module):
         del cache[_TORQUE_CACHE:]
         return tau
 
+    def gravity_regressor(self, q: Tensor) -> Tensor:
+        """The gravity torques' regressor ``Y (..., dof, 4 n_joints)`` [N m per kg, N per kg]: ``tau = Y @ pi``.
+
+        The static gravity torque is linear in the links' mass moments ``pi_k = (m_k, m_k c_k)`` (``c_k`` the centre
+        of mass in joint k's child frame, as :attr:`coms`), ``pi = (pi_1, ..., pi_n)``; column block ``k`` of row
+        ``j`` is zero for ``k < j`` and else ``[z_j . ((o_k - o_j) x g), z_j . ((R_k e_x) x g), z_j . ((R_k e_y) x g),
+        z_j . ((R_k e_z) x g)]`` with ``z_j, o_j`` joint j's axis and a point on it, ``o_k, R_k`` link k's frame and
+        ``g = (0, 0, -GRAVITY)``; for a prismatic joint ``[z_j . g, 0, 0, 0]`` (the weight along its axis). With a
+        readings map the rows are the readings' generalised forces, ``A^T Y``. For a robot with masses, ``Y @ pi``
+        equals :meth:`gravity_torques` (no payload). Without masses it is what a lumped compliance estimates through
+        (:class:`~torchcal.effects.LumpedCompliance`).
+        """
+        r = self._check_q(q)
+        Rts, ts, _, _ = self._chain_t(self.model_joints(r), self.geometry.origins(), frames=True)
+        n, m = self.n_joints, ts[0].shape[-1]
+        o = torch.stack(ts)  # (n, 3, M)
+        z = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])  # (n, 3, M)
+        # vectors whose torque the links' moments weigh: o_k (times m_k) and the link axes R_k e_a (times m_k c_k,a)
+        axes = torch.stack(Rts)  # (n, 3 [a], 3 [xyz], M): R_k e_a, column a of R_k, is row a of the held Rt
+        # v x g with g = (0, 0, -G): (-G v_y, G v_x, 0); z_j . (v x g) = G (z_j,y v_x - z_j,x v_y)
+        zx, zy = z[:, 0], z[:, 1]  # (n [j], M)
+
+        def lever(vx: Tensor, vy: Tensor) -> Tensor:  # (n [k], M) -> (n [j], n [k], M)
+            return GRAVITY * (zy[:, None] * vx[None] - zx[:, None] * vy[None])
+
+        mass = lever(o[:, 0], o[:, 1]) - GRAVITY * (zy * o[:, 0] - zx * o[:, 1])[:, None]  # (o_k - o_j) x g
+        moment = torch.stack([lever(axes[:, a, 0], axes[:, a, 1]) for a in range(3)], dim=2)  # (j, k, 3, M)
+        if "prismatic" in self.geometry.joint_types:  # a prismatic joint holds the weight along its axis: z_j . g
+            slide = self.geometry.prismatic[:, None, None]
+            mass = torch.where(slide, (-GRAVITY * z[:, 2])[:, None].expand_as(mass), mass)
+            moment = torch.where(slide[..., None], torch.zeros_like(moment), moment)
+        Y = torch.cat([mass.unsqueeze(2), moment], dim=2)  # (j, k, 4, M)
+        below = torch.ones(n, n, dtype=torch.bool, device=r.device).tril(-1)  # k < j: link k is behind joint j
+        Y = Y.masked_fill(below[:, :, None, None], 0.0).reshape(n, 4 * n, m)
+        if not self.readings.is_identity:
+            Y = torch.einsum("jr,jcm->rcm", self.readings.matrix(), Y)  # the readings' generalised forces
+        return Y.permute(2, 0, 1).reshape(*r.shape[:-1], self.dof, 4 * n)
+
+    def static_gravity_regressor(self, q: Tensor) -> Tensor:
+        """:meth:`gravity_regressor` without gradient, the last results reused as :meth:`static_torques` reuses its
+        own ``(..., dof, 4 dof)``."""
+        geo, ratios = self.geometry.delta, self.readings.delta
+        kq = None if q.is_meta or q.requires_grad else version_key(q)
+        if kq is None or not plain(geo) or not plain(ratios):
+            with torch.no_grad():
+                return self.gravity_regressor(q)
+        cache = self.__dict__.setdefault("_regressor_cache", [])
+        for (k, kg, kr), Y in cache:
+            if same_version(k, kq) and torch.equal(kg, geo) and torch.equal(kr, ratios):
+                return Y
+        with torch.no_grad():
+            Y = self.gravity_regressor(q)
+        if not plain(Y):
+            return Y
+        cache.insert(0, ((kq, geo.detach().clone(), ratios.detach().clone()), Y))
+        del cache[_TORQUE_CACHE:]
+        return Y
+
     def __getstate__(self):
         # a copy (deepcopy, pickle) leaves the torque cache behind: its keys are the original's joint tensors, which
         # the copy never sees again, and it holds a few tensors of the size of the data
         state = super().__getstate__()
         state.pop("_torque_cache", None)
+        state.pop("_regressor_cache", None)
         return state
 
     # ------------------------------------------------------------- parameters

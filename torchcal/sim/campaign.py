@@ -28,7 +28,17 @@ import torch
 
 from torchcal._bounds import MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER, check_range
 from torchcal.data import Measurements, write_measurements
-from torchcal.effects import Backlash, Compliance, Context, CorrectionNet, Coupling, Cyclic, Drift, LearnedEffect
+from torchcal.effects import (
+    Backlash,
+    Compliance,
+    Context,
+    CorrectionNet,
+    Coupling,
+    Cyclic,
+    Drift,
+    LearnedEffect,
+    LumpedCompliance,
+)
 from torchcal.effects.base import Effect, motion_direction
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
@@ -187,7 +197,7 @@ def _place_tracker(cfg: SimConfig, g: torch.Generator) -> Tensor:
 def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator) -> Effect:
     if spec.kind == "compliance":
         if not robot.has_masses:
-            raise OptionError(f"compliance needs link masses, and robot '{robot.name}' has none in its description")
+            return _lumped_truth(spec.joint, robot, g)
         return Compliance(spec.joint, k=1e-6)
     if spec.kind == "backlash":
         return Backlash(spec.joint, b=1e-4, source="auto")
@@ -203,6 +213,16 @@ def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator) -> Eff
     net = CorrectionNet(robot.dof, 29)
     net.reset_parameters(g, gain=2.0)
     return LearnedEffect(net)
+
+
+def _lumped_truth(joint: int, robot: RobotModel, g: torch.Generator) -> LumpedCompliance:
+    """A compliance of a robot without masses: seeded link masses (1 to 5 kg) and centres of mass (0.1 m per axis
+    in each link's frame) over a stiffness of 1e6 N m/rad, as the lumped form's full set of moments (identity
+    basis; the simulation scales it to the requested size)."""
+    m = 1.0 + 4.0 * torch.rand(robot.dof, generator=g, dtype=F64)
+    c = torch.randn(robot.dof, 3, generator=g, dtype=F64) * 0.1
+    moments = torch.cat([m[:, None], m[:, None] * c], dim=1).reshape(-1)
+    return LumpedCompliance(joint, torch.eye(4 * robot.dof, dtype=F64), mode=moments * 1e-6)
 
 
 def _rms_displacement(model: MeasurementModel, effect: Effect, ctx: Context) -> Tensor:
