@@ -441,6 +441,9 @@ CPU_BY_DESIGN = (
 
 #: Constructors without ``device=`` that are right where they are: (file, the call's source) -> why.
 ALLOWED = {
+    ("torchcal/robot/readings.py", "torch.as_tensor(A, dtype=torch.float64)"): (
+        "validates the description's nested list before any robot exists: host-side, read with float()"
+    ),
     ("torchcal/estimate/problem.py", "torch.tensor([i for _, i in kin], dtype=torch.long)"): (
         "host-side indices: linear_kinematics reads them with int() and moves them (.to) where it indexes"
     ),

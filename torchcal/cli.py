@@ -704,7 +704,8 @@ def _to_mm(campaign):
     """The campaign's lengths in millimetres: positions, their standard deviations and prismatic joints' readings."""
     from dataclasses import replace
 
-    linear = torch.tensor([k == "prismatic" for k in campaign.model.robot.joint_types], dtype=torch.bool)
+    robot = campaign.model.robot
+    linear = torch.tensor([k == "prismatic" for k in robot.joint_types], dtype=torch.bool, device=robot.device)
 
     def mm(m):
         return replace(

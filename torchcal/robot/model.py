@@ -745,7 +745,7 @@ class RobotModel(nn.Module):
         """The parameter groups: geometry, instrument, tool, and ``readings`` where the description declares ratios
         of its readings map that may be calibrated."""
         out = {"geometry": self.geometry, "instrument": self.instrument, "tool": self.tool}
-        if bool(self.readings.mask.any()):
+        if self.readings.has_free:
             out["readings"] = self.readings
         return out
 

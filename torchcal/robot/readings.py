@@ -60,12 +60,15 @@ class Readings(nn.Module):
         self.delta = nn.Parameter(torch.zeros(n, r, dtype=dtype, device=device))
         self.names = [f"readings.c{i + 1}_{k + 1}" for i in range(n) for k in range(r)]
         self._identity = self._check_identity()
+        # whether any ratio may be calibrated, as a Python bool: the description fixes it, and a robot moved to the
+        # meta device (shape checks) must still list its parameter groups
+        self.has_free = bool(self.mask.any())
         self.register_load_state_dict_post_hook(lambda module, _keys: module._refresh())
 
     @classmethod
     def identity(cls, n: int, *, dtype=torch.float64, device="cpu") -> Readings:
         """Every reading is its model joint: the map every description without readings gets."""
-        return cls(torch.eye(n, dtype=dtype), dtype=dtype, device=device)
+        return cls(torch.eye(n, dtype=dtype, device=device), dtype=dtype, device=device)
 
     def _check_identity(self) -> bool:
         A = self.nominal
