@@ -22,6 +22,7 @@ LIMITS = {
     "measurement file": 256 * MiB,
     "robot description": 8 * MiB,
     "model.json": 16 * MiB,
+    "report.json": 64 * MiB,
     "model.pt": 1024 * MiB,
     "covariance.pt": 64 * MiB,
     "marker": 1 * MiB,

@@ -1,0 +1,561 @@
+"""Re-stationing a calibrated run: a new instrument placement (and, where asked, lever arm) from a few points.
+
+A robot calibrated once is measured again from another placement of the tracker (a total station moved on a
+construction site, a second cell): the robot's calibration holds, only the instrument pose ``T_tracker_base`` (6
+parameters) and, with another tool, the lever arm ``t_flange_probe`` (3 more) are new. :func:`fit_station` fits them
+to three or more measured points with everything else held, and :func:`write_station` writes a run directory that
+``predict`` and ``compensate`` use as they use the calibrated one.
+
+The fit:
+
+1. Closed-form start: the run's predictions in the robot base frame (geometry and effects) rigidly fitted to the
+   points (:func:`~torchcal.estimate.rigid.rigid_fit`); with the lever arm free, the alternating tracker/lever fit
+   (:func:`~torchcal.estimate.rigid.fit_instrument_and_tool`) on the geometry.
+2. Conditioning: the identifiability analysis (:func:`~torchcal.estimate.identifiability.analyse`) of the free
+   parameters at the points; a direction the points do not fix is an error that names it (it is never held
+   silently: a placement is either determined or not).
+3. Weighted LM (:func:`~torchcal.estimate.fit.solve`) over ``("instrument",)`` or ``("instrument", "tool")``, no
+   priors; its covariance ``s0^2 N^-1`` (scaled by the fit's own variance factor: on real data the robot's remaining
+   model error, not the tracker noise, sets the scatter of a few points).
+4. The run's own parameter uncertainty carried into the new placement: with ``g`` the run's parameters that stay
+   (covariance ``C_gg`` from ``covariance.pt``) and ``A = -(J_s^T J_s)^-1 J_s^T J_g`` (whitened Jacobians at the
+   points), the placement is ``s = s_noise + A g``, so ``C_ss = C_noise + A C_gg A^T`` and ``C_gs = C_gg A^T``;
+   RUN2's ``covariance.pt`` holds the whole matrix, so ``predict``'s ``sx, sy, sz`` include the placement.
+5. Checks: per-point residuals and leave-one-out errors (the point predicted by the placement fitted to the others,
+   the linear formula ``(I - H_ii)^-1 r_i``); a point whose leave-one-out error exceeds :data:`OUTLIER_FACTOR` times
+   what the run predicts is named; a chi-square test of the residuals against what the run predicts per point
+   (the run's held-out RMSE as an isotropic model error plus the measurement noise).
+6. The placement's predicted effect on accuracy: the placement's covariance carried to poses of the calibrated
+   region (:data:`REGION_POSES` poses drawn uniformly, seeded, in the joint ranges of ``model.json``'s region; the
+   points themselves where the run has none), RMS and max of the position sigma, added in quadrature to the run's
+   held-out RMSE.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchcal._outdir import MARKER, replace_dir
+from torchcal.data import Measurements
+from torchcal.effects import Context, MeasurementModel
+from torchcal.errors import EstimationError, TorchcalError
+from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.fit import selection, solve
+from torchcal.estimate.identifiability import analyse
+from torchcal.estimate.lm import chi2_quantile
+from torchcal.estimate.problem import FreeParameters, jacobian_of, residual_function, whitening
+from torchcal.estimate.rigid import fit_instrument_and_tool, rigid_fit
+from torchcal.robot import transforms as tf
+
+Tensor = torch.Tensor
+F64 = torch.float64
+
+#: a point whose leave-one-out error exceeds this many times the run's predicted error per point is named
+OUTLIER_FACTOR = 5.0
+#: poses drawn in the calibrated region to carry the placement's covariance to
+REGION_POSES = 500
+#: the points' spread: the second singular value of the centred points over the first below this is "collinear"
+COLLINEAR_RATIO = 1e-3
+#: significance level of the chi-square test
+ALPHA = 0.05
+
+
+class StationError(EstimationError):
+    """The points cannot fix the placement: too few, collinear, or a direction they leave free."""
+
+
+@dataclass(frozen=True)
+class StationOptions:
+    """What :func:`fit_station` reads.
+
+    ``sigma_tracker`` and ``sigma_joint`` weight the points where they carry no ``sx, sy, sz`` (the run's stochastic
+    model by default); ``run_rmse`` is the run's held-out RMSE [m] (the model error the points are tested against).
+    """
+
+    tool: bool = False
+    sigma_tracker: float = 15e-6
+    sigma_joint: float = math.radians(0.0005)
+    run_rmse: float = 0.0
+    rank_tol: float = 1e-3
+    max_iter: int = 100
+    stat_tol: float = 1e-6
+    seed: int = 0
+    # solve() reads these; a re-stationing has no priors: the points determine the placement or it is refused
+    prior_length: float | None = None
+    prior_angle: float | None = None
+    prior_instrument: tuple[float, float] | None = None
+    prior_lever: float | None = None
+
+
+@dataclass
+class Station:
+    """A fitted placement: the model it was written into, its covariance and the checks."""
+
+    T_tracker_base: Tensor  # (4, 4)
+    t_flange_probe: Tensor  # (3,) [m]
+    names: list[str]  # the fitted parameters
+    covariance: Tensor  # (u, u) the placement's, the run's own uncertainty included [m, rad]
+    covariance_noise: Tensor  # (u, u) from the points' scatter alone
+    residuals: Tensor  # (N, 3) measured minus predicted [m]
+    loo: Tensor  # (N,) leave-one-out error norm [m] (nan where a point is needed to fix the placement)
+    lines: tuple[int, ...]
+    chi_square: dict
+    fit_status: str
+    iterations: int
+    sigma0_sq: float
+    region_sigma_rms: float  # [m] RMS of the placement's position sigma over the calibrated region
+    region_sigma_max: float  # [m]
+    region_source: str
+    run_rmse: float  # [m]
+    tool: bool
+    run_covariance: ParameterCovariance | None = None  # RUN2's covariance.pt
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def std(self) -> Tensor:
+        return self.covariance.diagonal().clamp(min=0).sqrt()
+
+    @property
+    def predicted_rmse(self) -> float:
+        """The run's held-out RMSE and the placement's RMS sigma in quadrature [m]."""
+        return math.hypot(self.run_rmse, self.region_sigma_rms)
+
+    def to_dict(self) -> dict:
+        """report.json's and model.json's ``station`` block (SI units, and mm where the key says so)."""
+        std = self.std.tolist()
+        units = ["m" if n.endswith(("tx", "ty", "tz")) or n.startswith("tool.") else "rad" for n in self.names]
+        res = self.residuals.norm(dim=-1)
+        return {
+            "n_points": len(self.residuals),
+            "lever_arm_fitted": self.tool,
+            "T_tracker_base": self.T_tracker_base.tolist(),
+            "t_flange_probe_m": self.t_flange_probe.tolist(),
+            "parameters": [{"name": n, "unit": u, "std": s} for n, u, s in zip(self.names, units, std)],
+            "covariance": self.covariance.tolist(),
+            "covariance_points_only": self.covariance_noise.tolist(),
+            "fit": {"status": self.fit_status, "iterations": self.iterations, "sigma0_sq": self.sigma0_sq},
+            "points": [
+                {
+                    "line": int(line),
+                    "residual_m": r.tolist(),
+                    "residual_mm": float(e) * 1e3,
+                    "leave_one_out_mm": None if not math.isfinite(float(lo)) else float(lo) * 1e3,
+                }
+                for line, r, e, lo in zip(self.lines, self.residuals, res, self.loo)
+            ],
+            "rmse_points_mm": float(res.square().mean().sqrt()) * 1e3,
+            "chi_square": self.chi_square,
+            "accuracy": {
+                "run_rmse_mm": self.run_rmse * 1e3,
+                "placement_sigma_rms_mm": self.region_sigma_rms * 1e3,
+                "placement_sigma_max_mm": self.region_sigma_max * 1e3,
+                "predicted_rmse_mm": self.predicted_rmse * 1e3,
+                "over": self.region_source,
+            },
+            "warnings": list(self.warnings),
+        }
+
+
+def _fd_jacobian(model: MeasurementModel, free: FreeParameters, ctx: Context, steps: Tensor) -> Tensor:
+    """``d model(ctx) / d free`` ``(N, 3, u)`` by central differences of the given ``steps`` (the model is restored)."""
+    x0 = free.vector()
+    J = torch.empty(len(ctx.q), 3, len(x0), dtype=x0.dtype, device=x0.device)
+    try:
+        with torch.no_grad():
+            for k in range(len(x0)):
+                h = float(steps[k]) if float(steps[k]) > 0 else 1e-9
+                e = torch.zeros_like(x0)
+                e[k] = h
+                free.assign(x0 + e)
+                up = model(ctx)
+                free.assign(x0 - e)
+                J[:, :, k] = (up - model(ctx)) / (2 * h)
+    finally:
+        free.assign(x0)
+    return J
+
+
+def _check_points(points: Measurements, tool: bool) -> None:
+    n = points.n
+    need = 4 if tool else 3
+    if n < need:
+        what = (
+            "the instrument pose and the lever arm (9 parameters) need at least 4 points"
+            if tool
+            else "the instrument pose (6 parameters) needs at least 3 points"
+        )
+        raise StationError(f"{n} point{'s' if n != 1 else ''} given; {what}")
+    c = points.p - points.p.mean(0)
+    S = torch.linalg.svdvals(c)
+    if float(S[0]) == 0.0 or float(S[1]) < COLLINEAR_RATIO * float(S[0]):
+        raise StationError(
+            f"the {n} points are (nearly) collinear (spread {float(S[0]):.3g} along their line, "
+            f"{float(S[1]):.3g} across it, singular values in m): a rotation about their line is not fixed; "
+            "measure points that span a plane or a volume"
+        )
+
+
+def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tuple[Context, str]:
+    """Poses of the calibrated region (uniform in its joint ranges, seeded), or the points where it has none."""
+    region = model.region
+    if region is None:
+        return Context.from_measurements(points, trajectory=False), "the points (the run stores no calibrated region)"
+    g = torch.Generator().manual_seed(int(seed))
+    u = torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64).to(region)
+    q = region[0] + u * (region[1] - region[0])
+
+    def mean(x):  # effects in time or temperature: at the points' mean
+        return None if x is None else x.mean().expand(REGION_POSES).to(q)
+
+    ctx = Context(q=q, t=mean(points.t), temperature=mean(points.temperature))
+    return ctx, f"{REGION_POSES} poses drawn uniformly in the calibrated region's joint ranges"
+
+
+def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
+    """The least determined directions of the column-scaled ``J``, in words."""
+    s = J.norm(dim=0).clamp(min=1e-300)
+    _, S, Vh = torch.linalg.svd(J / s, full_matrices=False)
+    out = []
+    for i in range(1, min(k, len(S)) + 1):
+        v = Vh[-i]
+        top = v.abs().argsort(descending=True)[:3]
+        out.append(
+            " + ".join(f"{float(v[j]):+.2f} {names[j]}" for j in top)
+            + f" (relative singular value {float(S[-i] / S[0]):.1e})"
+        )
+    return "; ".join(out)
+
+
+def fit_station(
+    model: MeasurementModel,
+    points: Measurements,
+    opts: StationOptions,
+    run_covariance: ParameterCovariance | None = None,
+) -> Station:
+    """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
+
+    Args:
+        model: a run's loaded model (:func:`~torchcal.report.rundir.load_model`); its instrument pose (and lever arm)
+            is overwritten, nothing else changes.
+        points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
+        opts: :class:`StationOptions`.
+        run_covariance: the run's ``covariance.pt`` (None: the run's own uncertainty is left out).
+
+    Raises:
+        StationError: too few points, collinear points, or a direction of the placement they do not fix.
+    """
+    if points.dof != model.robot.dof:
+        raise StationError(f"the points have {points.dof} joints but the run's robot has {model.robot.dof}")
+    _check_points(points, opts.tool)
+    robot = model.robot
+    ctx = Context.from_measurements(points, trajectory=False)
+    warnings: list[str] = []
+    # 1. closed-form start
+    with torch.no_grad():
+        if opts.tool:
+            T, t, _ = fit_instrument_and_tool(robot(points.q), points.p, robot.t_flange_probe().detach())
+            robot.tool.nominal.copy_(t)
+            robot.tool.delta.zero_()
+            robot.instrument.set_matrix(T)
+        base = tf.transform_points(tf.invert(robot.T_tracker_base().detach()), model(ctx))
+        try:
+            robot.instrument.set_matrix(rigid_fit(base, points.p))
+        except EstimationError as e:
+            raise StationError(f"the points do not fix the instrument pose: {e}") from None
+    groups = ("instrument", "tool") if opts.tool else ("instrument",)
+    # 2. conditioning
+    W = whitening(model, ctx, points.sigma, opts.sigma_tracker, opts.sigma_joint)
+    sel, labels = selection(model, groups)
+    free = FreeParameters(model, sel, labels)
+    J = jacobian_of(residual_function(model, free, ctx, points.p, W))(free.vector())
+    ida = analyse(J, free.names, tol=opts.rank_tol)
+    if ida.fixed:
+        held = ", ".join(f["name"] for f in ida.fixed)
+        hint = " (leave the lever arm as calibrated: no --tool, or turn the tool between points)" if opts.tool else ""
+        raise StationError(
+            f"the {points.n} points do not fix {held}; weakest directions: {_weak_directions(J, free.names)}{hint}"
+        )
+    # 3. LM
+    fit = solve(model, points, groups, opts, "station", trajectory=False, identify=False)
+    res = fit.result
+    free = fit.free
+    try:
+        C_noise = res.covariance
+    except EstimationError:
+        raise StationError(
+            f"the points do not fix the placement (singular normal matrix); weakest directions: "
+            f"{_weak_directions(res.jacobian, free.names)}"
+        ) from None
+    if res.redundancy <= 0 or not math.isfinite(res.sigma0_sq):
+        C_noise = torch.linalg.inv(res.normal)
+        warnings.append("no redundancy: the covariance is that of the stochastic model alone, untested")
+    # 4. the run's own uncertainty carried into the placement
+    Js_w = fit.whitening @ _fd_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64))
+    Js_w = Js_w.reshape(-1, len(free.names))
+    C_s, kept = C_noise, None
+    if run_covariance is not None:
+        refit = {e.name for e in free.entries}
+        kept = _without(run_covariance, refit)
+    if kept is not None and len(kept.labels):
+        g_free = kept.free(model)
+        C_gg = kept.matrix.to(Js_w)
+        Jg_w = (fit.whitening @ _fd_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
+            -1, len(kept.labels)
+        )
+        A = -torch.linalg.solve(Js_w.T @ Js_w, Js_w.T @ Jg_w)
+        C_s = C_noise + A @ C_gg @ A.T
+        C_gs = C_gg @ A.T
+        full = torch.cat([torch.cat([C_gg, C_gs], 1), torch.cat([C_gs.T, C_s], 1)], 0)
+        run_cov = ParameterCovariance(
+            kept.names + [e.name for e in free.entries],
+            kept.index + [[int(i) for i in e.index] for e in free.entries],
+            kept.labels + list(free.names),
+            (0.5 * (full + full.T)).detach().cpu(),
+        )
+    else:
+        run_cov = ParameterCovariance(
+            [e.name for e in free.entries],
+            [[int(i) for i in e.index] for e in free.entries],
+            list(free.names),
+            C_s.detach().cpu(),
+        )
+    # 5. residuals, leave-one-out, chi-square against what the run predicts
+    with torch.no_grad():
+        r = points.p - model(ctx)
+    n = points.n
+    Jb = Js_w.reshape(n, 3, -1)
+    Ninv = torch.linalg.inv(Js_w.T @ Js_w)
+    rw = (fit.whitening @ r.unsqueeze(-1)).squeeze(-1)
+    loo = torch.full((n,), float("nan"), dtype=F64)
+    eye = torch.eye(3, dtype=F64)
+    for i in range(n):
+        H_ii = Jb[i] @ Ninv @ Jb[i].T
+        M = eye - H_ii
+        if float(torch.linalg.svdvals(M)[-1]) > 1e-8:
+            e_w = torch.linalg.solve(M, rw[i])
+            loo[i] = torch.linalg.solve(fit.whitening[i], e_w).norm()
+    sig = points.sigma if points.sigma is not None else torch.full_like(points.p, opts.sigma_tracker)
+    var = sig.square() + opts.run_rmse**2 / 3.0  # the run's model error, isotropic, per axis
+    stat = float((r.square() / var).sum())
+    dof = 3 * n - len(free.names)
+    thr = chi2_quantile(1.0 - ALPHA, dof) if dof > 0 else float("nan")
+    chi = {
+        "statistic": stat,
+        "dof": dof,
+        "threshold": thr,
+        "alpha": ALPHA,
+        "passed": bool(dof > 0 and stat <= thr),
+        "against": "the run's held-out RMSE (isotropic model error) and the points' measurement sigma",
+    }
+    if dof > 0 and not chi["passed"]:
+        warnings.append(
+            f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
+            "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
+        )
+    expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
+    for i in range(n):
+        if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
+            warnings.append(
+                f"line {points.lines[i]}: the point is {float(loo[i]) * 1e3:.3g} mm from where the others place it "
+                f"(more than {OUTLIER_FACTOR:g} times the {expected * 1e3:.3g} mm the run predicts); check it"
+            )
+    # 6. the placement's effect on accuracy over the calibrated region
+    rctx, source = _region_ctx(model, points, opts.seed)
+    Jr = _fd_jacobian(model, free, rctx, torch.full((len(free.names),), 1e-6, dtype=F64))
+    var_r = torch.einsum("nau,uv,nav->n", Jr, C_s, Jr).clamp(min=0)
+    return Station(
+        T_tracker_base=robot.T_tracker_base().detach().clone(),
+        t_flange_probe=robot.t_flange_probe().detach().clone(),
+        names=list(free.names),
+        covariance=C_s.detach(),
+        covariance_noise=C_noise.detach(),
+        residuals=r.detach(),
+        loo=loo,
+        lines=tuple(points.lines),
+        chi_square=chi,
+        fit_status=str(res.status),
+        iterations=res.iterations,
+        sigma0_sq=res.sigma0_sq,
+        region_sigma_rms=float(var_r.mean().sqrt()),
+        region_sigma_max=float(var_r.max().sqrt()),
+        region_source=source,
+        run_rmse=opts.run_rmse,
+        tool=opts.tool,
+        run_covariance=run_cov,
+        warnings=warnings,
+    )
+
+
+def _without(cov: ParameterCovariance, names: set[str]) -> ParameterCovariance:
+    """``cov`` restricted to the blocks not in ``names``."""
+    keep_blocks = [k for k, n in enumerate(cov.names) if n not in names]
+    starts, pos = [], 0
+    for idx in cov.index:
+        starts.append(pos)
+        pos += len(idx)
+    rows = [starts[k] + j for k in keep_blocks for j in range(len(cov.index[k]))]
+    r = torch.tensor(rows, dtype=torch.long)
+    return ParameterCovariance(
+        [cov.names[k] for k in keep_blocks],
+        [list(cov.index[k]) for k in keep_blocks],
+        [cov.labels[i] for i in rows],
+        cov.matrix[r][:, r].clone(),
+    )
+
+
+def _run_numbers(report: dict) -> tuple[float | None, float | None, float]:
+    """The run's stochastic model (tracker sigma [m] or None for per-point sigmas, joint sigma [rad]) and its held-out
+    RMSE [m] from ``report.json``."""
+    sm = report.get("stochastic_model") or {}
+    st, sj = sm.get("tracker_sigma_m"), sm.get("joint_sigma_rad")
+    rmse = report.get("rmse_after_mm")
+    return (
+        float(st) if isinstance(st, int | float) and st > 0 else None,
+        float(sj) if isinstance(sj, int | float) and sj >= 0 else None,
+        float(rmse) * 1e-3 if isinstance(rmse, int | float) and math.isfinite(rmse) and rmse >= 0 else 0.0,
+    )
+
+
+def _read_report(run_dir: Path) -> dict:
+    """The run's ``report.json`` (empty where it has none)."""
+    from torchcal._inputs import load_json
+
+    path = run_dir / "report.json"
+    if not path.exists():
+        return {}
+    report = load_json(path, "report.json", lambda m: TorchcalError(f"{run_dir}: report.json {m}"))
+    if not isinstance(report, dict):
+        raise TorchcalError(f"{run_dir}: report.json is not a JSON object")
+    return report
+
+
+def station_options(run_dir: str | os.PathLike, tool: bool = False, seed: int = 0) -> StationOptions:
+    """:class:`StationOptions` with the run's stochastic model and held-out RMSE (``report.json``; defaults where it
+    lacks them)."""
+    st, sj, rmse = _run_numbers(_read_report(Path(run_dir)))
+    base = StationOptions()
+    return StationOptions(
+        tool=tool,
+        sigma_tracker=base.sigma_tracker if st is None else st,
+        sigma_joint=base.sigma_joint if sj is None else sj,
+        run_rmse=rmse,
+        seed=seed,
+    )
+
+
+def restation(run_dir: str | os.PathLike, points: Measurements, *, tool: bool = False, seed: int = 0):
+    """Load the run, fit the placement; returns ``(model, meta, station)`` (nothing is written)."""
+    from torchcal.report.rundir import load_covariance, load_model
+
+    model, meta = load_model(run_dir)
+    cov = load_covariance(run_dir, model)
+    station = fit_station(model, points, station_options(run_dir, tool, seed), cov)
+    return model, meta, station
+
+
+def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
+    d = station.to_dict()
+    acc = d["accuracy"]
+    lines = [
+        "",
+        "## Re-stationed",
+        "",
+        f"This run is `{run_dir}` with a new instrument placement"
+        + (" and lever arm" if station.tool else "")
+        + f", fitted to {d['n_points']} points of `{points_file}`; the robot's calibration is unchanged. "
+        "The numbers above describe the original calibration at its own placement.",
+        "",
+        "| parameter | std |",
+        "|---|---|",
+    ]
+    for p in d["parameters"]:
+        s = p["std"] * (1e3 if p["unit"] == "m" else 180 / math.pi)
+        lines.append(f"| {p['name']} | {s:.4g} {'mm' if p['unit'] == 'm' else 'deg'} |")
+    lines += ["", "| line | residual [mm] | leave-one-out [mm] |", "|---|---|---|"]
+    for p in d["points"]:
+        lo = "-" if p["leave_one_out_mm"] is None else f"{p['leave_one_out_mm']:.4f}"
+        lines.append(f"| {p['line']} | {p['residual_mm']:.4f} | {lo} |")
+    chi = d["chi_square"]
+    lines += [
+        "",
+        f"Chi-square of the residuals against the run's predicted error: {chi['statistic']:.3g} with {chi['dof']} "
+        f"degrees of freedom (threshold {chi['threshold']:.3g} at {chi['alpha']}): "
+        f"{'passed' if chi['passed'] else 'not passed'}.",
+        "",
+        f"Predicted effect on accuracy over {acc['over']}: the placement's position sigma is "
+        f"{acc['placement_sigma_rms_mm']:.4f} mm RMS (max {acc['placement_sigma_max_mm']:.4f} mm); with the run's "
+        f"held-out {acc['run_rmse_mm']:.4f} mm in quadrature, {acc['predicted_rmse_mm']:.4f} mm.",
+        "",
+    ]
+    for w in d["warnings"]:
+        lines.append(f"- Warning: {w}")
+    return "\n".join(lines) + "\n"
+
+
+def write_station(
+    run_dir: str | os.PathLike,
+    points: Measurements,
+    out: str | os.PathLike,
+    *,
+    tool: bool = False,
+    points_file: str = "points",
+    inputs=(),
+    seed: int = 0,
+) -> tuple[Path, Station]:
+    """Re-station the run ``run_dir`` on ``points`` and write the result as a run directory ``out`` (all or nothing,
+    ``out`` replaced only when absent or an earlier torchcal output): a copy of the run with the new placement in
+    ``model.pt``, ``covariance.pt`` and ``robot_calibrated.urdf``, and a ``station`` block in ``model.json`` and
+    ``report.json`` (and a section in ``report.md``)."""
+    from torchcal.robot.export import write_urdf
+
+    run_dir = Path(run_dir)
+    model, meta, station = restation(run_dir, points, tool=tool, seed=seed)
+    state = {k: v.cpu() for k, v in model.state_dict().items()}
+    if not all(bool(torch.isfinite(v).all()) for k, v in state.items() if v.is_floating_point() and "limits" not in k):
+        raise EstimationError("the re-stationed model has non-finite values; nothing was written")
+    block = {"from_run": str(run_dir), "points_file": str(points_file), **station.to_dict()}
+    report = copy.deepcopy(_read_report(run_dir))
+    report["station"] = block
+    params = report.get("parameters")
+    if isinstance(params, dict):
+        params["instrument"] = {"T_tracker_base": station.T_tracker_base.tolist()}
+        params["tool"] = {"t_flange_probe_m": station.t_flange_probe.tolist()}
+    meta = dict(meta)
+    meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted")}
+    with replace_dir(out, kind="station", inputs=inputs) as tmp:
+        for entry in sorted(run_dir.iterdir()):
+            if entry.name == MARKER or entry.name.startswith(".") or entry.is_symlink():
+                continue
+            if entry.is_file():
+                shutil.copy2(entry, tmp / entry.name)
+            elif entry.is_dir() and entry.name == "robot":
+                (tmp / "robot").mkdir()
+                for f in entry.iterdir():
+                    if f.is_file() and not f.is_symlink():
+                        shutil.copy2(f, tmp / "robot" / f.name)
+        torch.save(state, tmp / "model.pt")
+        if station.run_covariance is not None:
+            torch.save(station.run_covariance.state(), tmp / "covariance.pt")
+        (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        from torchcal.report.rundir import _json_safe
+
+        (tmp / "report.json").write_text(
+            json.dumps(_json_safe(report), indent=1, allow_nan=False) + "\n", encoding="utf-8"
+        )
+        with open(tmp / "report.md", "a", encoding="utf-8") as f:
+            f.write(_markdown(station, run_dir, str(points_file)))
+        if (tmp / "robot_calibrated.urdf").exists():
+            write_urdf(
+                model.robot,
+                tmp / "robot_calibrated.urdf",
+                notes=[f"re-stationed from {run_dir.name} on {points.n} points: tracker frame (and probe) new"],
+            )
+    return Path(out), station
