@@ -183,6 +183,22 @@ def _fd_jacobian(model: MeasurementModel, free: FreeParameters, ctx: Context, st
     return J
 
 
+def _placement_var(model: MeasurementModel, free: FreeParameters, C: Tensor, ctx: Context) -> Tensor:
+    """The variance ``(N,)`` [m^2] of the predicted position (all three axes) at ``ctx`` through the placement's
+    covariance ``C``."""
+    J = _fd_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64))
+    return torch.einsum("nau,uv,nav->n", J, C.to(J), J).clamp(min=0)
+
+
+def placement_std(model: MeasurementModel, station: Station, ctx: Context) -> Tensor:
+    """The position standard deviation ``(N,)`` [m] the placement's uncertainty causes at ``ctx``, for a ``model``
+    that holds the ``station``'s placement."""
+    groups = ("instrument", "tool") if station.tool else ("instrument",)
+    sel, labels = selection(model, groups, {n: True for n in station.names})
+    free = FreeParameters(model, sel, labels)
+    return _placement_var(model, free, station.covariance, ctx).sqrt()
+
+
 def _check_points(points: Measurements, tool: bool) -> None:
     n = points.n
     need = 4 if tool else 3
@@ -258,33 +274,49 @@ def fit_station(
     robot = model.robot
     ctx = Context.from_measurements(points, trajectory=False)
     warnings: list[str] = []
-    # 1. closed-form start
-    with torch.no_grad():
-        if opts.tool:
+    # 1. closed-form start: the run's predictions in the base frame (its lever arm) rigidly fitted to the points
+    groups = ("instrument", "tool") if opts.tool else ("instrument",)
+    W = whitening(model, ctx, points.sigma, opts.sigma_tracker, opts.sigma_joint)
+
+    def rigid_start() -> None:
+        with torch.no_grad():
+            base = tf.transform_points(tf.invert(robot.T_tracker_base().detach()), model(ctx))
+            try:
+                robot.instrument.set_matrix(rigid_fit(base, points.p))
+            except EstimationError as e:
+                raise StationError(f"the points do not fix the instrument pose: {e}") from None
+
+    def analysis():
+        sel, labels = selection(model, groups)
+        free = FreeParameters(model, sel, labels)
+        J = jacobian_of(residual_function(model, free, ctx, points.p, W))(free.vector())
+        return analyse(J, free.names, tol=opts.rank_tol), J, free.names
+
+    rigid_start()
+    # 2. conditioning: an instrument direction the points do not fix is refused; a lever-arm one is held at the run's
+    ida, J, names = analysis()
+    weak_inst = [f["name"] for f in ida.fixed if f["name"].startswith("instrument.")]
+    if weak_inst:
+        raise StationError(
+            f"the {points.n} points do not fix {', '.join(weak_inst)}; weakest directions: "
+            f"{_weak_directions(J, names)}; measure points that span a volume"
+        )
+    held = [f["name"] for f in ida.fixed]
+    if held:
+        warnings.append(
+            f"the points do not fix {', '.join(held)} (weakest directions: {_weak_directions(J, names)}): held at "
+            "the run's lever arm; the tool's orientation hardly changes between the points, so these components "
+            "are indistinguishable from the instrument's position (predictions at the same tool orientation are "
+            "not affected)"
+        )
+    elif opts.tool:  # the lever arm is determined: the alternating closed form from the run's lever arm
+        with torch.no_grad():
             T, t, _ = fit_instrument_and_tool(robot(points.q), points.p, robot.t_flange_probe().detach())
             robot.tool.nominal.copy_(t)
             robot.tool.delta.zero_()
-            robot.instrument.set_matrix(T)
-        base = tf.transform_points(tf.invert(robot.T_tracker_base().detach()), model(ctx))
-        try:
-            robot.instrument.set_matrix(rigid_fit(base, points.p))
-        except EstimationError as e:
-            raise StationError(f"the points do not fix the instrument pose: {e}") from None
-    groups = ("instrument", "tool") if opts.tool else ("instrument",)
-    # 2. conditioning
-    W = whitening(model, ctx, points.sigma, opts.sigma_tracker, opts.sigma_joint)
-    sel, labels = selection(model, groups)
-    free = FreeParameters(model, sel, labels)
-    J = jacobian_of(residual_function(model, free, ctx, points.p, W))(free.vector())
-    ida = analyse(J, free.names, tol=opts.rank_tol)
-    if ida.fixed:
-        held = ", ".join(f["name"] for f in ida.fixed)
-        hint = " (leave the lever arm as calibrated: no --tool, or turn the tool between points)" if opts.tool else ""
-        raise StationError(
-            f"the {points.n} points do not fix {held}; weakest directions: {_weak_directions(J, free.names)}{hint}"
-        )
+        rigid_start()
     # 3. LM
-    fit = solve(model, points, groups, opts, "station", trajectory=False, identify=False)
+    fit = solve(model, points, groups, opts, "station", trajectory=False, identifiability=ida)
     res = fit.result
     free = fit.free
     try:
@@ -369,8 +401,7 @@ def fit_station(
             )
     # 6. the placement's effect on accuracy over the calibrated region
     rctx, source = _region_ctx(model, points, opts.seed)
-    Jr = _fd_jacobian(model, free, rctx, torch.full((len(free.names),), 1e-6, dtype=F64))
-    var_r = torch.einsum("nau,uv,nav->n", Jr, C_s, Jr).clamp(min=0)
+    var_r = _placement_var(model, free, C_s, rctx)
     return Station(
         T_tracker_base=robot.T_tracker_base().detach().clone(),
         t_flange_probe=robot.t_flange_probe().detach().clone(),
