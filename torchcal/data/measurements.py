@@ -128,8 +128,8 @@ class Measurements:
             if not _valid_extra_name(key):
                 raise ShapeError(
                     f"extra column name {key!r} is not allowed: it must be non-empty, must not be a "
-                    "standard column (q1.., x, y, z, t, temperature, sx, sy, sz, rx, ry, rz, srx, sry, srz) and must not contain "
-                    "',', quotes, '#' at its start or line breaks"
+                    "standard column (q1.., x, y, z, t, temperature, sx, sy, sz, rx, ry, rz, srx, sry, srz) "
+                    "and must not contain ',', quotes, '#' at its start or line breaks"
                 )
 
     @property
