@@ -112,6 +112,7 @@ POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _numbe
 TRACKER_UM = _number("positive", MAX_SIGMA_TRACKER * 1e6)
 TRACKER_UM_SIM = _number("nonnegative", MAX_SIGMA_TRACKER * 1e6)
 JOINT_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_JOINT))
+ORIENTATION_DEG = _number("positive", 5.0)
 RANK_TOL = _number("positive", MAX_RANK_TOL)
 LENGTH_BIAS_MM = _number("nonnegative", MAX_SIGMA_LENGTH * 1e3)
 ANGLE_BIAS_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_ANGLE))
@@ -231,6 +232,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     s.add_argument("--length-bias", type=LENGTH_BIAS_MM, default=0.1, help="sigma of the geometric length biases [mm]")
     s.add_argument("--angle-bias", type=ANGLE_BIAS_DEG, default=0.01, help="sigma of the geometric angle biases [deg]")
+    s.add_argument(
+        "--orientation",
+        type=ORIENTATION_DEG,
+        default=None,
+        metavar="DEG",
+        help="a 6-D probe (a T-Mac): write its orientation rx,ry,rz [rad] (and srx,sry,srz) with this noise per "
+        "axis [deg], e.g. 0.01",
+    )
     s.add_argument("--no-sigma", action="store_true", help="leave out the sx,sy,sz columns")
     s.add_argument(
         "--length-unit",
@@ -295,6 +304,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=TRACKER_UM,
         default=15.0,
         help="tracker noise per axis [um] when the file has no sx,sy,sz, <= 10000 (default 15)",
+    )
+    c.add_argument(
+        "--orientation-noise",
+        type=ORIENTATION_DEG,
+        default=None,
+        help="a 6-D probe's orientation noise per axis [deg] when the file has rx,ry,rz but no srx,sry,srz, "
+        "in (0, 5] (default 0.01)",
     )
     c.add_argument(
         "--joint-noise", type=JOINT_DEG, default=0.0005, help="joint reading noise [deg], <= 1 (default 0.0005)"
@@ -481,6 +497,7 @@ CALIBRATE_FLAGS = {
     "seed": ("seed", _same),
     "holdout": ("holdout", _same),
     "tracker_noise": ("sigma_tracker", lambda um: um * 1e-6),
+    "orientation_noise": ("sigma_orientation", lambda deg: None if deg is None else math.radians(deg)),
     "joint_noise": ("sigma_joint", math.radians),
     "engine": ("engine", _same),
     "device": ("device", _same),
@@ -561,7 +578,7 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import predict_with, trust
+    from torchcal.report.rundir import predict_orientation, predict_with, trust
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -591,8 +608,17 @@ def cmd_predict(args) -> int:
         )
     if sigma is None:
         _console.info(f"{args.run}: the run has no parameter covariance or predictive model; no sx, sy, sz columns")
+    # rx, ry, rz where the run fitted a 6-D probe's orientation (no srx, sry, srz: their covariance is not carried)
+    r = predict_orientation(model, meta, data)
     out = replace(
-        data, p=p, sigma=sigma, temperature=None, extra={"extrapolation": ext}, meta={"predicted_by": str(args.run)}
+        data,
+        p=p,
+        sigma=sigma,
+        temperature=None,
+        extra={"extrapolation": ext},
+        meta={"predicted_by": str(args.run)},
+        r=r,
+        sigma_r=None,
     )
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, ext, fade)
@@ -741,6 +767,7 @@ def cmd_simulate(args) -> int:
         base_link=args.base_link,
         tip_link=args.tip_link,
         tool_axis_deg=args.fixed_tool_axis,
+        orientation_sigma_deg=args.orientation,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")

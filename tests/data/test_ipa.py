@@ -161,7 +161,7 @@ def test_series_b_layout_units_and_columns(tmp_path):
     assert m.meta["source"] == "ipa-robot-accuracy" and "CASE 2021" in m.meta["citation"]
     assert "sigma_replaced" not in m.meta
     # the T-Mac orientation: intrinsic XYZ degrees -> rotation vector [rad]
-    rotvec = torch.stack([m.extra[f"tmac_r{a}"] for a in "xyz"], dim=1)
+    rotvec = m.r
     expected = euler_xyz_deg(
         [-90.14477, -90.179302, -90.213735], [-30.089752, -20.118749, -30.006856], [-90.358505, -90.169308, -90.255949]
     )
@@ -302,7 +302,8 @@ def test_convert_ipa_writes_the_contract_format(tmp_path):
     out = tmp_path / "out.csv"
     m = convert_ipa(src, out)
     back = read_measurements(out, dof=6, joint_limits=torchcal.load_robot("ur10").limits)
-    for name in ("q", "p", "sigma", "temperature"):
+    assert m.r is not None and m.sigma_r is not None  # the T-Mac's orientation and its sigma are kept
+    for name in ("q", "p", "sigma", "temperature", "r", "sigma_r"):
         assert torch.equal(getattr(back, name), getattr(m, name)), name
     assert back.t is None
     assert back.meta["series"] == "X" and back.meta["source"] == "ipa-robot-accuracy"
@@ -436,7 +437,7 @@ def test_real_orientation_matches_scipy(real, ipa_dir):
     cols = [header.index(c) for c in ("measurement_rx", "measurement_ry", "measurement_rz")]
     euler = [[float(line.split(";")[k].replace(",", ".")) for k in cols] for line in lines[1:] if line]
     theirs = f64(rotation.from_euler("XYZ", euler, degrees=True).as_rotvec())
-    ours = torch.stack([m.extra[f"tmac_r{a}"] for a in "xyz"], dim=1)
+    ours = m.r
     torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-12)
 
 

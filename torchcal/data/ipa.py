@@ -36,6 +36,7 @@ _GOAL = ("Goal x", "Goal y", "Goal z", "Goal roll", "Goal pitch", "Goal yaw")
 _POSITION = ("measurement_x", "measurement_y", "measurement_z")
 _EULER = ("measurement_rx", "measurement_ry", "measurement_rz")
 _STD = ("measurement_std_x", "measurement_std_y", "measurement_std_z")
+_STD_EULER = ("measurement_std_rx", "measurement_std_ry", "measurement_std_rz")
 _TEMPERATURE = "measurement_temperature"
 _TIMESTAMP = "Timestamp"
 _REQUIRED = (*_GOAL, *IPA_JOINTS, _TEMPERATURE, *_POSITION, *_EULER)
@@ -75,6 +76,11 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
         - ``sigma`` (N, 3) [m] from ``measurement_std_x/_y/_z`` when present, else None;
           non-positive values are replaced by the median of the positive values of their
           column (count in ``meta['sigma_replaced']``);
+        - ``r`` (N, 3) [rad]: the measured T-Mac orientation in the tracker frame as a rotation vector (from the
+          intrinsic XYZ Euler angles ``measurement_rx/_ry/_rz``, ``R = Rx(rx) Ry(ry) Rz(rz)``);
+        - ``sigma_r`` (N, 3) [rad] from ``measurement_std_rx/_ry/_rz`` when present, else None: the Euler angles'
+          standard deviations carried to small rotations about the tracker's axes (:func:`euler_sigma_to_tracker`),
+          non-positive values replaced by their column's median as for ``sigma``;
         - ``t`` (N,) [s] since the first row, only when every ``Timestamp`` is an intact
           ``YYYYMMDDhhmmss`` and they are non-decreasing; else None and ``meta['time']`` says why;
         - ``extra``: ``row`` (0-based order in the file), ``goal_id`` (rows with the same
@@ -119,7 +125,17 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
                 f"{replaced} non-positive measurement_std_x/_y/_z value(s) replaced by their column's median"
             )
 
-    extra = _extra(columns(_GOAL), columns(_EULER))
+    euler = columns(_EULER) * tf.DEG
+    extra = _extra(columns(_GOAL))
+    r = matrix_to_rotvec(tf.rot_x(euler[:, 0]) @ tf.rot_y(euler[:, 1]) @ tf.rot_z(euler[:, 2]))
+    sigma_r = None
+    if _STD_EULER[0] in index:
+        std, replaced = _positive_sigma(path_str, columns(_STD_EULER) * tf.DEG, lines, _STD_EULER)
+        sigma_r = euler_sigma_to_tracker(euler, std)
+        if replaced:
+            meta["sigma_r_replaced"] = (
+                f"{replaced} non-positive measurement_std_rx/_ry/_rz value(s) replaced by their column's median"
+            )
 
     t = None
     if _TIMESTAMP in index:
@@ -132,7 +148,17 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
         meta["time"] = "no Timestamp column; t left out"
 
     return Measurements(
-        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str, lines=tuple(lines), extra=extra
+        q=q,
+        p=p,
+        t=t,
+        temperature=temperature,
+        sigma=sigma,
+        meta=meta,
+        source=path_str,
+        lines=tuple(lines),
+        extra=extra,
+        r=r,
+        sigma_r=sigma_r,
     )
 
 
@@ -176,15 +202,23 @@ def _positions_m(path: str, p_mm: torch.Tensor, lines: list[int]) -> torch.Tenso
     return p_mm / 1000.0
 
 
-def _extra(goal: torch.Tensor, euler_deg: torch.Tensor) -> dict[str, torch.Tensor]:
-    """``row``, ``goal_id``, ``tmac_rx/ry/rz`` and ``goal_x/y/z`` of :func:`read_ipa` from the commanded goals
-    (N, 6) [m, deg] and the measured T-Mac Euler angles (N, 3) [deg]."""
+def euler_sigma_to_tracker(euler: torch.Tensor, std: torch.Tensor) -> torch.Tensor:
+    """Per-axis standard deviations ``(N, 3)`` [rad] of the small rotation ``e`` (``R_true = exp(e) R``, tracker
+    axes) that independent errors of intrinsic XYZ Euler angles ``euler (N, 3)`` [rad] with standard deviations
+    ``std (N, 3)`` [rad] make: ``e = J d(euler)``, ``J = [x, Rx(a) y, Rx(a) Ry(b) z]`` (the angular velocity of
+    ``Rx(a) Ry(b) Rz(c)``), and the square roots of ``diag(J diag(std^2) J^T)`` (the correlations are left out:
+    the file gives none either)."""
+    n = len(euler)
+    eye = torch.eye(3, dtype=euler.dtype).expand(n, 3, 3)
+    Rx = tf.rot_x(euler[:, 0])
+    J = torch.stack([eye[:, :, 0], Rx[:, :, 1], (Rx @ tf.rot_y(euler[:, 1]))[:, :, 2]], dim=2)
+    return ((J.square() @ std.square().unsqueeze(-1)).squeeze(-1)).sqrt()
+
+
+def _extra(goal: torch.Tensor) -> dict[str, torch.Tensor]:
+    """``row``, ``goal_id`` and ``goal_x/y/z`` of :func:`read_ipa` from the commanded goals (N, 6) [m, rad]."""
     extra: dict[str, torch.Tensor] = {"row": torch.arange(len(goal), dtype=torch.float64)}
     extra["goal_id"] = _goal_ids(goal)
-    euler = euler_deg * tf.DEG
-    R = tf.rot_x(euler[:, 0]) @ tf.rot_y(euler[:, 1]) @ tf.rot_z(euler[:, 2])
-    rotvec = matrix_to_rotvec(R)
-    extra.update({f"tmac_r{a}": rotvec[:, k].clone() for k, a in enumerate("xyz")})
     extra.update({f"goal_{a}": goal[:, k].clone() for k, a in enumerate("xyz")})
     return extra
 
@@ -274,15 +308,16 @@ def _check_header(path: str, header: list[str], line: int) -> dict[str, int]:
             line=line,
             column=missing[0],
         )
-    std = [c for c in _STD if c in index]
-    if std and len(std) != len(_STD):
-        absent = [c for c in _STD if c not in index]
-        raise MeasurementFileError(
-            path,
-            f"standard deviations must be given for x, y and z together; missing {', '.join(absent)}",
-            line=line,
-            column=absent[0],
-        )
+    for names, what in ((_STD, "x, y and z"), (_STD_EULER, "rx, ry and rz")):
+        std = [c for c in names if c in index]
+        if std and len(std) != len(names):
+            absent = [c for c in names if c not in index]
+            raise MeasurementFileError(
+                path,
+                f"standard deviations must be given for {what} together; missing {', '.join(absent)}",
+                line=line,
+                column=absent[0],
+            )
     return index
 
 
@@ -299,7 +334,7 @@ def _number(path: str, cell: str, line: int, column: str) -> float:
     )
 
 
-def _positive_sigma(path: str, sigma: torch.Tensor, lines: list[int]) -> tuple[torch.Tensor, int]:
+def _positive_sigma(path: str, sigma: torch.Tensor, lines: list[int], names=_STD) -> tuple[torch.Tensor, int]:
     bad = sigma <= 0
     if not bad.any():
         return sigma, 0
@@ -308,9 +343,9 @@ def _positive_sigma(path: str, sigma: torch.Tensor, lines: list[int]) -> tuple[t
         if good.numel() == 0:
             raise MeasurementFileError(
                 path,
-                f"every {_STD[j]} is <= 0; no positive standard deviation to fall back on",
+                f"every {names[j]} is <= 0; no positive standard deviation to fall back on",
                 line=lines[0],
-                column=_STD[j],
+                column=names[j],
             )
         sigma[bad[:, j], j] = torch.quantile(good, 0.5)  # mean of the middle two for even counts
     return sigma, int(bad.sum())

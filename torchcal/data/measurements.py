@@ -36,7 +36,10 @@ ANGLE_UNITS: dict[str, float] = {"rad": 1.0, "deg": math.pi / 180.0}
 
 _POSITION = ("x", "y", "z")
 _SIGMA = ("sx", "sy", "sz")
-_RESERVED = frozenset(_POSITION + _SIGMA + ("t", "temperature"))
+#: the measured orientation (a rotation vector, instrument frame) of a 6-D probe and its standard deviations [rad]
+_ROTATION = ("rx", "ry", "rz")
+_ROTATION_SIGMA = ("srx", "sry", "srz")
+_RESERVED = frozenset(_POSITION + _SIGMA + _ROTATION + _ROTATION_SIGMA + ("t", "temperature"))
 _JOINT_RE = re.compile(r"q([0-9]+)")
 _META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*")
 
@@ -73,6 +76,10 @@ class Measurements:
         source: the path the set was read from, or None.
         lines: 1-based file line of each row, for error messages downstream.
         extra: other numeric columns, (N,) float64 each, in file order.
+        r: (N, 3) float64 measured orientation of the probe frame in the tracker frame as a rotation vector [rad]
+            (a 6-D probe such as a T-Mac: columns rx, ry, rz), or None.
+        sigma_r: (N, 3) float64 standard deviations of the orientation [rad] (srx, sry, srz): of a small rotation
+            of the measured frame about the tracker's x, y, z axes (``R_true = exp(e) R_measured``), or None.
     """
 
     q: torch.Tensor
@@ -84,6 +91,8 @@ class Measurements:
     source: str | None = None
     lines: tuple[int, ...] = ()
     extra: dict[str, torch.Tensor] = field(default_factory=dict)
+    r: torch.Tensor | None = None
+    sigma_r: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         q = self.q
@@ -95,6 +104,8 @@ class Measurements:
             ("t", self.t, (n,)),
             ("temperature", self.temperature, (n,)),
             ("sigma", self.sigma, (n, 3)),
+            ("r", self.r, (n, 3)),
+            ("sigma_r", self.sigma_r, (n, 3)),
             *((f"extra[{k!r}]", v, (n,)) for k, v in self.extra.items()),
         ):
             if value is None and not name.startswith("extra"):
@@ -107,6 +118,8 @@ class Measurements:
                 )
             if value.device != q.device:
                 raise ShapeError(f"{name} is on {value.device} but q is on {q.device}")
+        if self.sigma_r is not None and self.r is None:
+            raise ShapeError("sigma_r (orientation standard deviations) needs r (the measured orientation)")
         if len(self.lines) not in (0, n):
             raise ShapeError(f"lines must hold one line number per row ({n}), got {len(self.lines)}")
         if not self.lines:
@@ -115,8 +128,8 @@ class Measurements:
             if not _valid_extra_name(key):
                 raise ShapeError(
                     f"extra column name {key!r} is not allowed: it must be non-empty, must not be a "
-                    "standard column (q1.., x, y, z, t, temperature, sx, sy, sz) and must not contain "
-                    "',', quotes, '#' at its start or line breaks"
+                    "standard column (q1.., x, y, z, t, temperature, sx, sy, sz, rx, ry, rz, srx, sry, srz) "
+                    "and must not contain ',', quotes, '#' at its start or line breaks"
                 )
 
     @property
@@ -156,6 +169,8 @@ class Measurements:
             meta=dict(self.meta),
             lines=lines,
             extra={k: v[index] for k, v in self.extra.items()},
+            r=pick(self.r),
+            sigma_r=pick(self.sigma_r),
         )
 
     def to(self, device: torch.device | str) -> Measurements:
@@ -173,11 +188,17 @@ class Measurements:
             sigma=move(self.sigma),
             meta=dict(self.meta),
             extra={k: v.to(device) for k, v in self.extra.items()},
+            r=move(self.r),
+            sigma_r=move(self.sigma_r),
         )
 
     def with_positions(self, p: torch.Tensor | None) -> Measurements:
         """The same rows with positions ``p`` ((N, 3) float64 [m], or None to drop them)."""
         return dataclasses.replace(self, p=p, meta=dict(self.meta), extra=dict(self.extra))
+
+    def without_orientation(self) -> Measurements:
+        """The same rows without the measured orientation (``r``, ``sigma_r`` dropped): a position-only set."""
+        return dataclasses.replace(self, r=None, sigma_r=None, meta=dict(self.meta), extra=dict(self.extra))
 
 
 def _describe(x: object) -> str:
@@ -273,12 +294,18 @@ def read_measurements(
     t = column("t") if "t" in layout.index else None
     temperature = column("temperature") if "temperature" in layout.index else None
     sigma = columns(_SIGMA) if layout.has_sigma else None
+    r = columns(_ROTATION) if layout.has_rotation else None
+    sigma_r = columns(_ROTATION_SIGMA) if layout.has_rotation_sigma else None
     extra = {name: column(name) for name in layout.extra}
 
     if t is not None:
         _check_monotonic(path_str, t, lines)
     if sigma is not None:
         _check_positive_sigma(path_str, sigma, lines, layout, length_unit)
+    if sigma_r is not None:
+        _check_positive_sigma(path_str, sigma_r, lines, layout, "rad", _ROTATION_SIGMA)
+    if r is not None:
+        _check_rotation(path_str, r, lines, layout)
     if n < min_poses:
         for_what = f" for {purpose}" if purpose else ""
         raise MeasurementFileError(path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}")
@@ -302,7 +329,17 @@ def read_measurements(
         _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name, linear, length_unit)
 
     return Measurements(
-        q=q, p=p, t=t, temperature=temperature, sigma=sigma, meta=meta, source=path_str, lines=tuple(lines), extra=extra
+        q=q,
+        p=p,
+        t=t,
+        temperature=temperature,
+        sigma=sigma,
+        meta=meta,
+        source=path_str,
+        lines=tuple(lines),
+        extra=extra,
+        r=r,
+        sigma_r=sigma_r,
     )
 
 
@@ -419,6 +456,8 @@ class _Layout:
     has_positions: bool
     has_sigma: bool
     extra: list[str]
+    has_rotation: bool = False
+    has_rotation_sigma: bool = False
 
     @classmethod
     def from_header(
@@ -454,8 +493,12 @@ class _Layout:
         if require_positions and not has_positions:
             _missing(path, header, line, list(_POSITION), "probe positions x, y, z are required here")
         has_sigma = _all_or_none(path, header, line, _SIGMA, "standard deviations")
+        has_rotation = _all_or_none(path, header, line, _ROTATION, "orientations")
+        has_rotation_sigma = _all_or_none(path, header, line, _ROTATION_SIGMA, "orientation standard deviations")
+        if has_rotation_sigma and not has_rotation:
+            _missing(path, header, line, list(_ROTATION), "srx, sry, srz are the standard deviations of rx, ry, rz")
         extra = [n for n in header if n not in _RESERVED and n not in numbers.values()]
-        return cls(index, joints, has_positions, has_sigma, extra)
+        return cls(index, joints, has_positions, has_sigma, extra, has_rotation, has_rotation_sigma)
 
 
 def _all_or_none(path: str, header: list[str], line: int, names: Sequence[str], what: str) -> bool:
@@ -632,15 +675,31 @@ def _check_monotonic(path: str, t: torch.Tensor, lines: list[int]) -> None:
         )
 
 
-def _check_positive_sigma(path, sigma, lines, layout: _Layout, unit: str) -> None:
+def _check_positive_sigma(path, sigma, lines, layout: _Layout, unit: str, names=_SIGMA) -> None:
     bad = ~(sigma > 0)
     if bad.any():
-        i, j = _first_bad(bad, [layout.index[c] for c in _SIGMA])
+        i, j = _first_bad(bad, [layout.index[c] for c in names])
         raise MeasurementFileError(
             path,
-            f"{_SIGMA[j]} = {sigma[i, j].item()!r} {unit}; a standard deviation must be > 0",
+            f"{names[j]} = {sigma[i, j].item()!r} {unit}; a standard deviation must be > 0",
             line=lines[i],
-            column=_SIGMA[j],
+            column=names[j],
+        )
+
+
+def _check_rotation(path, r, lines, layout: _Layout) -> None:
+    """A rotation vector longer than one turn is no orientation in radians (degrees, most likely)."""
+    bad = r.norm(dim=1) > _MAX_ABS_ANGLE_RAD
+    if bad.any():
+        i = int(bad.nonzero()[0, 0])
+        j = int(r[i].abs().argmax())
+        raise MeasurementFileError(
+            path,
+            f"the orientation (rx, ry, rz) turns by {float(r[i].norm())!r} rad, more than one turn (2*pi); "
+            "rx, ry, rz are a rotation vector in radians",
+            line=lines[i],
+            column=_ROTATION[j],
+            hint="convert degrees to radians; rx, ry, rz are read in radians whatever --angle-unit says",
         )
 
 
@@ -805,7 +864,7 @@ def write_measurements(
 ) -> None:
     """Write ``m`` in the contract format, SI units, atomically.
 
-    The header is ``q1..qN,x,y,z[,t][,temperature][,sx,sy,sz][,extra...]`` (x, y, z left
+    The header is ``q1..qN,x,y,z[,t][,temperature][,sx,sy,sz][,rx,ry,rz][,srx,sry,srz][,extra...]`` (x, y, z left
     out when ``m.p`` is None). Values are written with ``repr(float)``, so reading the file
     back gives bit-identical tensors. The file is written to a temporary file in the same
     directory and moved into place with ``os.replace``: a failure never leaves partial output.
@@ -833,6 +892,10 @@ def write_measurements(
         available["temperature"] = m.temperature
     if m.sigma is not None:
         available.update({c: m.sigma[:, k] for k, c in enumerate(_SIGMA)})
+    if m.r is not None:
+        available.update({c: m.r[:, k] for k, c in enumerate(_ROTATION)})
+    if m.sigma_r is not None:
+        available.update({c: m.sigma_r[:, k] for k, c in enumerate(_ROTATION_SIGMA)})
     available.update(m.extra)
 
     if columns is None:

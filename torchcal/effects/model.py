@@ -103,17 +103,43 @@ class MeasurementModel(nn.Module):
                     p = _dual.add(p, dp)
         return p
 
-    def forward(self, ctx: Context, fk=None) -> Tensor:
-        """Probe position in the tracker frame ``(N, 3)`` [m] (``fk``: see :meth:`probe_in_base`)."""
-        p = self.probe_in_base(ctx, fk=fk)
-        T = self.robot.T_tracker_base()
+    def _instrument_offset(self, ctx: Context) -> Tensor | None:
+        """The instrument effects' per-sample perturbation ``xi (N, 6)`` of ``T_tracker_base``, or None."""
         inst = [e for e in self.effects if e.acts_on == Acts.INSTRUMENT]
         if not inst:
-            return tf.transform_points(T, p)
+            return None
         xi = _dual.add_scalar(inst[0](self.robot, ctx), 0)  # = sum(...), which starts from 0
         for e in inst[1:]:
             xi = _dual.add(xi, e(self.robot, ctx))
+        return xi
+
+    def forward(self, ctx: Context, fk=None, *, orientation: bool = False) -> Tensor:
+        """Probe position in the tracker frame ``(N, 3)`` [m] (``fk``: see :meth:`probe_in_base`); with
+        ``orientation`` the probe frame's orientation there instead (:meth:`orientation`)."""
+        if orientation:
+            return self.orientation(ctx)
+        p = self.probe_in_base(ctx, fk=fk)
+        T = self.robot.T_tracker_base()
+        xi = self._instrument_offset(ctx)
+        if xi is None:
+            return tf.transform_points(T, p)
         return tf.transform_points(T @ tf.se3_from_vector(xi), p)
+
+    def orientation(self, ctx: Context) -> Tensor:
+        """The probe frame's orientation in the tracker frame ``(N, 3, 3)``:
+        ``R_tracker_base(ctx) R_base_flange(q + dq) R_flange_probe``.
+
+        Joint effects (``dq``) and instrument effects turn it; Cartesian effects (a position correction, a learned
+        residual model) do not: they say nothing about orientation. Needs a robot with a probe orientation
+        (:meth:`~torchcal.robot.model.RobotModel.enable_orientation`).
+        """
+        q = _dual.add(ctx.q, self.joint_offsets(ctx))
+        R = self.robot.probe_rotation(q)
+        T = self.robot.T_tracker_base()
+        xi = self._instrument_offset(ctx)
+        if xi is not None:
+            T = T @ tf.se3_from_vector(xi)
+        return T[..., :3, :3] @ R
 
     def predict(self, q: Tensor, **kw) -> Tensor:
         """Convenience: ``forward(Context(q, **kw))`` without gradients."""

@@ -20,13 +20,26 @@ from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
 from torchcal.estimate.identifiability import Identifiability, analyse, preference_order, weak_after_fit
 from torchcal.estimate.lm import FitStatus, LMResult, global_test, levenberg_marquardt
-from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
+from torchcal.estimate.problem import (
+    FreeParameters,
+    jacobian_of,
+    orientation_angle,
+    orientation_function,
+    orientation_whitening,
+    prior_sigmas,
+    residual_function,
+    stack_functions,
+    whitening,
+)
 from torchcal.estimate.rigid import fit_instrument_and_tool
 from torchcal.robot.model import RobotModel
 
 Tensor = torch.Tensor
 #: the groups a kinematic calibration fits
 GEOMETRIC_GROUPS = ("geometry", "instrument", "tool")
+#: Default standard deviation of a 6-D probe's measured orientation per axis [rad], where the data give none (srx, sry,
+#: srz): 0.01 deg, a T-Mac's order of magnitude (the IPA Series B-D report a median near 0.001-0.01 deg)
+SIGMA_ORIENTATION = 0.01 * torch.pi / 180.0
 #: Prior standard deviation of a readings map's ratio [1]: a transmission or differential ratio is known to about
 #: 0.1 % (a gear's tooth count is exact; a belt's or a cable drum's diameter is not), so the fit moves it only where the
 #: data demand it
@@ -62,6 +75,10 @@ class Fit:
     identifiability: Identifiability | None = None
     global_test: dict = field(default_factory=dict)
     whitening: Tensor | None = None  # (N, 3, 3) the L_i^-1 the residuals were whitened with
+    #: the parameters the analysis frees only because the data carry orientation (a 6-D probe): fixed by the same
+    #: analysis of the position rows alone (the probe frame's own rotation, ``tool.r*``, not counted)
+    orientation_only: list[str] = field(default_factory=list)
+    n_orientation: int = 0  # rows whose orientation the fit used
 
 
 def place_instrument_and_tool(
@@ -100,6 +117,35 @@ def place_instrument_and_tool(
     return rms
 
 
+def place_tool_rotation(robot: RobotModel, q: Tensor, r: Tensor) -> float:
+    """Enable and fit the probe frame's orientation in the flange frame for the robot's current geometry and
+    instrument pose, in closed form, and write it into ``robot`` (its correction zero): the start of a 6-D probe's
+    calibration, after :func:`place_instrument_and_tool`.
+
+    Each pose gives ``R_flange_probe,i = R_base_flange(q_i)^T R_tracker_base^T R_meas,i``; their chordal mean
+    (the rotation nearest to their sum, by SVD) is the estimate.
+
+    Args:
+        q: ``(N, dof)`` joint readings.
+        r: ``(N, 3)`` measured orientations (rotation vectors, tracker frame) [rad].
+
+    Returns:
+        The RMS angle between the poses' estimates and their mean [rad].
+    """
+    from torchcal.robot import transforms as tf
+
+    with torch.no_grad():
+        robot.enable_orientation()
+        R_tb = robot.T_tracker_base()[:3, :3]
+        Ri = robot(q)[:, :3, :3].transpose(1, 2) @ R_tb.T @ tf.so3_exp(r)
+        U, _, Vh = torch.linalg.svd(Ri.sum(0))
+        D = torch.eye(3, dtype=U.dtype, device=U.device)
+        D[2, 2] = torch.sign(torch.linalg.det(U @ Vh))
+        R = U @ D @ Vh
+        robot.tool_rotation.set_matrix(R)
+        return float(orientation_angle(R.expand_as(Ri), Ri).square().mean().sqrt())
+
+
 def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
     """A-priori standard deviations of the instrument pose's and the lever arm's corrections by parameter name
     (``opts.prior_instrument``, ``opts.prior_lever``; none where the options do not set them)."""
@@ -110,6 +156,8 @@ def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
             out[info.name] = PRIOR_READINGS_RATIO
         elif info.group == "instrument" and inst is not None:
             out[info.name] = float(inst[0] if info.unit == "m" else inst[1])
+        elif info.group == "tool_rotation":
+            continue  # the probe frame's rotation: the closed-form start is no prior
         elif info.group == "tool" and lever is not None:
             out[info.name] = float(lever)
     return out
@@ -142,6 +190,18 @@ def errors(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor
     """Norm of the position error per pose ``(N,)`` [m]."""
     with torch.no_grad():
         return (model(Context.from_measurements(m, trajectory=trajectory)) - m.p).norm(dim=-1)
+
+
+def orientation_errors(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor | None:
+    """Angle between the predicted and the measured probe orientation per pose ``(N,)`` [rad], or None where the
+    data or the model carry no orientation."""
+    if m.r is None or not model.robot.has_orientation:
+        return None
+    from torchcal.robot import transforms as tf
+
+    with torch.no_grad():
+        R = model.orientation(Context.from_measurements(m, trajectory=trajectory))
+        return orientation_angle(R, tf.so3_exp(m.r))
 
 
 def corrections(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
@@ -199,6 +259,8 @@ def selection(
     robot_groups = model.robot.groups()
     if "geometry" in groups and "readings" in robot_groups:  # the readings map's ratios are fitted with the geometry
         groups = (*groups, "readings")
+    if "tool" in groups and "tool_rotation" in robot_groups:  # a 6-D probe's frame: part of the tool
+        groups = (*groups, "tool_rotation")
     for g in groups:
         grp = robot_groups[g]
         mask = grp.mask.clone()
@@ -246,6 +308,8 @@ def solve(
     """
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
+    Wr = _orientation_rows(model, ctx, m, opts)
+    orientation_only: list[str] = []
     sel, labels = selection(model, groups, effects=effects)
     free = FreeParameters(model, sel, labels)
     ida = None
@@ -256,10 +320,18 @@ def solve(
         sel, labels = selection(model, groups, keep, effects=effects)
         free = FreeParameters(model, sel, labels)
     elif identify:
-        fun = residual_function(model, free, ctx, m.p, W)
+        fun = _residuals(model, free, ctx, m, W, Wr)
         J = jacobian_of(fun)(free.vector())
         ps = _priors(model, free, opts, groups)  # the identifiability tolerance from the noise and the priors
         ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
+        if Wr is not None:  # what the orientation rows make estimable: the same analysis of the position rows alone
+            pos = analyse(J[: 3 * m.n], free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
+            rotation = {i.name for i in model.robot.parameter_info() if i.group == "tool_rotation"}
+            orientation_only = [
+                n
+                for n, a, b in zip(free.names, ida.free.tolist(), pos.free.tolist())
+                if a and not b and n not in rotation
+            ]
         # an instrument or lever-arm element the data cannot fix goes back to its prior's value (the start's)
         scaled = prior_scales(model, opts)
         back = [f for f in ida.fixed if f["name"] in scaled]
@@ -268,7 +340,7 @@ def solve(
             f["reason"] = f["reason"].replace("held at its current value", "held at its prior value")
         sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
-    res = _lm(model, free, ctx, m, W, opts, groups, stage)
+    res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage)
     if identifiability is None and ida is not None:
         scaled = prior_scales(model, opts)
         units = {i.name: i.unit for i in model.robot.parameter_info()}
@@ -289,13 +361,33 @@ def solve(
             _hold(model, held)
             sel, labels = selection(model, groups, dict(zip(ida.names, ida.free.tolist())), effects=effects)
             free = FreeParameters(model, sel, labels)
-            res = _lm(model, free, ctx, m, W, opts, groups, stage)
-    return Fit(stage, res, free, ida, global_test(res), W)
+            res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage)
+    n_orientation = m.n if Wr is not None else 0
+    return Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation)
 
 
-def _lm(model, free: FreeParameters, ctx: Context, m: Measurements, W: Tensor, opts: FitOptions, groups, stage: str):
+def _orientation_rows(model: MeasurementModel, ctx: Context, m: Measurements, opts: FitOptions) -> Tensor | None:
+    """The whitening of the orientation rows ``(N, 3, 3)`` where the data and the model carry orientation (their
+    own ``sigma_r``, else ``opts.sigma_orientation``, default :data:`SIGMA_ORIENTATION`), else None."""
+    if m.r is None or not model.robot.has_orientation:
+        return None
+    sigma = getattr(opts, "sigma_orientation", None) or SIGMA_ORIENTATION
+    return orientation_whitening(model, ctx, m.sigma_r, sigma, opts.sigma_joint)
+
+
+def _residuals(model, free, ctx: Context, m: Measurements, W: Tensor, Wr: Tensor | None, prior_sigma=None):
+    """The whitened residuals of :func:`solve`: the positions (with the priors), then the orientations (``Wr``)."""
+    fun = residual_function(model, free, ctx, m.p, W, prior_sigma)
+    if Wr is None:
+        return fun
+    from torchcal.robot import transforms as tf
+
+    return stack_functions(fun, orientation_function(model, free, ctx, tf.so3_exp(m.r), Wr))
+
+
+def _lm(model, free: FreeParameters, ctx: Context, m: Measurements, W, Wr, opts: FitOptions, groups, stage: str):
     """The weighted LM of :func:`solve` over ``free`` with its priors; the result is written into the model."""
-    fun = residual_function(model, free, ctx, m.p, W, _priors(model, free, opts, groups))
+    fun = _residuals(model, free, ctx, m, W, Wr, _priors(model, free, opts, groups))
     res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
     if res.status in FAILED:
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")

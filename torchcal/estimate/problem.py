@@ -167,8 +167,17 @@ def residual_function(
         rows[torch.arange(len(idx), device=x.device), idx] = inv
         return rows
 
-    analytic = len(model.effects) == 0 and all(e.name in _ROBOT_GROUPS for e in free.entries)
-    columns = [(_ROBOT_GROUPS[e.name], int(i)) for e in free.entries for i in e.index] if analytic else []
+    # the probe frame's rotation in the flange (a 6-D probe) does not move the probe's position: zero columns here
+    unmoved = [j for j, e, _ in _columns(free) if e.name == _TOOL_ROTATION]
+    analytic = len(model.effects) == 0 and all(
+        e.name in _ROBOT_GROUPS or e.name == _TOOL_ROTATION for e in free.entries
+    )
+    columns = (
+        [(_ROBOT_GROUPS[e.name], int(i)) for e in free.entries if e.name != _TOOL_ROTATION for i in e.index]
+        if analytic
+        else []
+    )
+    moved = torch.tensor([j for j in range(len(free)) if j not in set(unmoved)], dtype=torch.long, device=ctx.q.device)
 
     # the free columns of the geometry and the lever arm, and where each sits in the flat corrections of
     # _corrections: they reach the prediction through the kinematics' tangent alone (linearised below)
@@ -188,7 +197,7 @@ def residual_function(
     kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)  # host indices: linear_kinematics reads them
     inst_cols = torch.tensor([j for j, _ in inst], dtype=torch.long, device=dev)
     inst_d = [i for _, i in inst]
-    fixed = {j for j, _ in kin} | {j for j, _ in inst}
+    fixed = {j for j, _ in kin} | {j for j, _ in inst} | set(unmoved)
     rest = torch.tensor([j for j in range(len(free)) if j not in fixed], dtype=torch.long, device=dev)
 
     def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
@@ -228,8 +237,10 @@ def residual_function(
         x = x.detach()
         n = ctx.q.shape[0]
         if analytic:
-            values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items()}
+            values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items() if k != _TOOL_ROTATION}
             _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values)
+            if unmoved:
+                Jp = Jp.new_zeros(n, 3, len(x)).index_copy_(2, moved.to(x.device), Jp)
             J = (W @ Jp).reshape(3 * n, len(x))
         elif linear:
             J = linearised(x, ctx, W)
@@ -316,6 +327,9 @@ def _kinematic(robot) -> tuple[str, ...]:
     return _KINEMATIC + (("robot.readings.delta",) if "readings" in robot.groups() else ())
 
 
+#: the probe frame's rotation in the flange frame (a 6-D probe: RobotModel.enable_orientation)
+_TOOL_ROTATION = "robot.tool_rotation.delta"
+
 #: the instrument pose's correction, whose Jacobian columns :func:`residual_function` computes in closed form
 _INSTRUMENT = "robot.instrument.delta"
 
@@ -362,3 +376,111 @@ def prior_sigmas(
         elif unit == "rad" and sigma_angle is not None:
             out[i] = sigma_angle
     return out
+
+
+# ----------------------------------------------------------------------------- orientation (6-D probes)
+
+
+def orientation_error(R_pred: Tensor, R_meas: Tensor) -> Tensor:
+    """The small rotation that takes the measured orientation to the predicted one, in the tracker frame
+    ``(N, 3)`` [rad]: the axial vector of ``E = R_pred R_meas^T`` (``sin(angle) * axis``, the rotation vector of
+    ``E`` to third order in the angle, smooth everywhere, so its Jacobian is exact where the angle is 0).
+    A 6-D probe's orientation error after calibration is a fraction of a degree, where the two agree to 1e-7."""
+    E = R_pred @ R_meas.transpose(-1, -2)
+    w = torch.stack([E[..., 2, 1] - E[..., 1, 2], E[..., 0, 2] - E[..., 2, 0], E[..., 1, 0] - E[..., 0, 1]], -1)
+    return w * 0.5
+
+
+def orientation_angle(R_pred: Tensor, R_meas: Tensor) -> Tensor:
+    """The angle between the predicted and the measured orientation ``(N,)`` [rad], accurate at every angle
+    (``atan2(|sin|, cos)`` of ``E = R_pred R_meas^T``)."""
+    E = R_pred @ R_meas.transpose(-1, -2)
+    cos = (E[..., 0, 0] + E[..., 1, 1] + E[..., 2, 2] - 1.0) * 0.5
+    return torch.atan2(orientation_error(R_pred, R_meas).norm(dim=-1), cos)
+
+
+def orientation_joint_jacobian(model: MeasurementModel, ctx: Context) -> Tensor:
+    """``d e / d q`` per pose ``(N, 3, dof)`` [rad/rad]: how a joint reading turns the probe frame, in the tracker
+    frame (the geometric model's; a prismatic joint does not turn it), by one forward-mode pass per joint."""
+    robot = model.robot
+    R_tb = robot.T_tracker_base()[:3, :3]
+    cols = []
+    with torch.no_grad():
+        for j in range(ctx.q.shape[1]):
+            tangent = torch.zeros_like(ctx.q)
+            tangent[:, j] = 1.0
+            R, dR = torch.func.jvp(robot.probe_rotation, (ctx.q,), (tangent,))
+            W = dR @ R.transpose(-1, -2)  # skew: the angular velocity in the base frame
+            cols.append(torch.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], -1) @ R_tb.T)
+    return torch.stack(cols, -1) if cols else ctx.q.new_zeros(len(ctx.q), 3, 0)
+
+
+def orientation_whitening(
+    model: MeasurementModel, ctx: Context, sigma_r: Tensor | None, sigma_orientation: float, sigma_joint: float
+) -> Tensor:
+    """Per-pose whitening ``L_i^-1 (N, 3, 3)`` of the orientation residuals: ``Sigma_i = diag(s_r^2) +
+    sigma_q^2 J_w J_w^T``, the probe's own orientation precision (``sigma_r (N, 3)`` [rad], else
+    ``sigma_orientation`` per axis) plus the joint noise turning the probe (``J_w``,
+    :func:`orientation_joint_jacobian`). The cross-covariance with the position that the joint noise makes is left
+    out: each row's position and orientation are whitened separately."""
+    n = ctx.q.shape[0]
+    s = (
+        sigma_r
+        if sigma_r is not None
+        else torch.full((n, 3), float(sigma_orientation), dtype=ctx.q.dtype, device=ctx.q.device)
+    )
+    C = torch.diag_embed(s.square())
+    if sigma_joint > 0:
+        Jw = orientation_joint_jacobian(model, ctx)
+        C = C + sigma_joint**2 * Jw @ Jw.transpose(1, 2)
+    L, info = torch.linalg.cholesky_ex(C)
+    if bool((info != 0).any()):
+        bad = int(torch.nonzero(info).flatten()[0])
+        raise EstimationError(f"orientation covariance of pose {bad} is not positive definite")
+    eye = torch.eye(3, dtype=C.dtype, device=C.device).expand_as(C)
+    return torch.linalg.solve_triangular(L, eye, upper=False)
+
+
+def orientation_function(
+    model: MeasurementModel, free: FreeParameters, ctx: Context, R_meas: Tensor, W: Tensor, chunk: int = JACOBIAN_CHUNK
+):
+    """``x -> r(x)``: whitened orientation residuals ``W_i e_i(x)`` flattened to ``(3N,)`` with
+    ``e_i = orientation_error(R_pred,i(x), R_meas,i)`` (:func:`orientation_error`), and their Jacobian
+    ``fun.jacobian`` (``torch.func.jacfwd`` of the model's :meth:`~torchcal.effects.model.MeasurementModel.
+    orientation` over ``chunk`` poses at a time: exact; the analytic Jacobian of
+    :meth:`~torchcal.robot.model.RobotModel.tracker_jacobian` is the position's alone).
+
+    Args:
+        R_meas: measured orientations ``(N, 3, 3)`` (tracker frame).
+        W: whitening ``(N, 3, 3)`` (:func:`orientation_whitening`).
+    """
+
+    def residuals(x: Tensor, c: Context, Rm: Tensor, WW: Tensor) -> Tensor:
+        R = torch.func.functional_call(model, free.params(x), (c,), {"orientation": True})
+        return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
+
+    def fun(x: Tensor) -> Tensor:
+        return residuals(x, ctx, R_meas, W)
+
+    def jacobian(x: Tensor) -> Tensor:
+        x = x.detach()
+        n, parts = ctx.q.shape[0], []
+        for lo in range(0, n, max(1, int(chunk))):
+            sl = slice(lo, min(n, lo + max(1, int(chunk))))
+            part = functools.partial(residuals, c=ctx.subset(sl), Rm=R_meas[sl], WW=W[sl])
+            parts.append(torch.func.jacfwd(part)(x).detach())
+        return torch.cat(parts) if parts else x.new_zeros(0, len(x))
+
+    fun.jacobian = jacobian
+    return fun
+
+
+def stack_functions(*funs):
+    """One residual function of several (their residuals and Jacobians stacked): a 6-D probe's position and
+    orientation rows, each whitened by its own covariance."""
+
+    def fun(x: Tensor) -> Tensor:
+        return torch.cat([f(x) for f in funs])
+
+    fun.jacobian = lambda x: torch.cat([jacobian_of(f)(x) for f in funs])
+    return fun

@@ -475,7 +475,7 @@ def investigate(name: str, path: Path, a_rows: int, pair_rows: int, tol: float) 
     los = m.p / dist[:, None]
     r_los = (r * los).sum(1)
     comp_tracker = {"line_of_sight": r_los, "transverse": (r - r_los[:, None] * los).norm(dim=1)}
-    rotvec = torch.stack([m.extra[f"tmac_r{a}"] for a in "xyz"], 1)
+    rotvec = m.r
     R_tm = tf.so3_exp(rotvec)
     u = (R_tm.transpose(-1, -2) @ (-los).unsqueeze(-1)).squeeze(-1)  # direction to the tracker, T-Mac frame
     u_mean = u.mean(0)

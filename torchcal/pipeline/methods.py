@@ -25,7 +25,7 @@ import torch
 from torchcal import _console
 from torchcal._threads import torch_threads
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.estimate.fit import GEOMETRIC_GROUPS, place_instrument_and_tool, solve
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, place_instrument_and_tool, place_tool_rotation, solve
 from torchcal.pipeline.checks import check_corrections
 from torchcal.pipeline.holdout import guard_stages, refit_kinematic
 from torchcal.pipeline.integrated import integrated_stage
@@ -36,7 +36,8 @@ from torchcal.pipeline.state import CalibrationRun, StageFn, StageResult, StageW
 
 
 def nominal(run: CalibrationRun) -> StageResult:
-    """The baseline: the nominal geometry with the instrument pose and lever arm fitted (closed form, then LM)."""
+    """The baseline: the nominal geometry with the instrument pose and lever arm fitted (closed form, then LM); with a
+    6-D probe's orientations also the probe frame's rotation in the flange, and every later fit weighs them too."""
     work = StageWork(run, StageName.NOMINAL)
     train, opts = run.train, run.options
     _console.info(
@@ -44,6 +45,8 @@ def nominal(run: CalibrationRun) -> StageResult:
     )
     noise = float(train.sigma.median()) if train.sigma is not None else opts.fit.sigma_tracker
     place_instrument_and_tool(work.robot, train.q, train.p, lever_prior=opts.fit.lever_prior(noise, opts.device))
+    if train.r is not None:  # a 6-D probe: its frame's rotation in the flange, from the orientations (closed form)
+        place_tool_rotation(work.robot, train.q, train.r)
     work.fits.append(
         solve(work.model, train, ("instrument", "tool"), opts.fit, StageName.NOMINAL, run.trajectory, identify=False)
     )

@@ -51,6 +51,9 @@ class FitSettings:
 
     sigma_tracker: float = 15e-6  # m per axis, when the data carry no sx, sy, sz
     sigma_joint: float = math.radians(0.0005)  # rad, joint reading noise
+    # rad per axis: a 6-D probe's orientation noise when the data carry no srx, sry, srz (None: 0.01 deg,
+    # torchcal.estimate.fit.SIGMA_ORIENTATION); each row's orientation is weighted by it, no metres-to-radians factor
+    sigma_orientation: float | None = None
     rank_tol: float = DEFAULT_TOL
     max_iter: int = 100
     stat_tol: float = 1e-2  # stop LM when a step gains less than 1 % of the variance factor
@@ -153,6 +156,10 @@ class Options:
         fit = self.fit
         check_range("sigma_tracker", fit.sigma_tracker, 0.0, MAX_SIGMA_TRACKER, low_open=True, scale=1e6, unit="um")
         check_range("sigma_joint", fit.sigma_joint, 0.0, MAX_SIGMA_JOINT, scale=180 / math.pi, unit="deg")
+        if fit.sigma_orientation is not None:
+            check_range(
+                "sigma_orientation", fit.sigma_orientation, 0.0, 0.1, low_open=True, scale=180 / math.pi, unit="deg"
+            )
         check_range("rank_tol", fit.rank_tol, 0.0, MAX_RANK_TOL, low_open=True)
         if self.refit and not (self.method == "kinematic" or (self.method == "integrated" and engine == "auto")):
             raise OptionError(

@@ -172,6 +172,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "![error map](error_map.png)",
         "",
     ]
+    lines += _orientation_section(report)
     lines += _diagnosis_section(run, report, out)
     lines += _region_section(run, report, out)
     lines += _unexplained_section(report, out)
@@ -255,6 +256,35 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     if report["notes"]:
         lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+
+
+def _orientation_section(report: dict) -> list[str]:
+    """The held-out orientation errors of a 6-D probe, stage by stage (only where the data carry orientation)."""
+    o = report.get("orientation")
+    if o is None:
+        return []
+    sigma = o["sigma_rad"]
+    sigma = sigma if isinstance(sigma, str) else f"{math.degrees(sigma):.3g} deg per axis"
+    lines = [
+        "## Orientation",
+        "",
+        f"The probe measured its orientation too (a 6-D probe, {o['rows_fitted']} rows fitted; standard deviation "
+        f"{sigma}). Each row's orientation residual is weighted by its own covariance, so no factor turns metres into "
+        f"radians. Used in {o['fitted_in']}. The positions above are the same rows' positions.",
+        "",
+        "| step | RMS [deg] | max [deg] |",
+        "|---|---:|---:|",
+    ]
+    lines += [f"| {s['name']} | {s['rms_holdout_deg']:.4f} | {s['max_holdout_deg']:.4f} |" for s in o["stages"]]
+    only = o["estimable_only_with_orientation"]
+    lines += [
+        "",
+        "Estimable only with the orientation rows (fixed by the same analysis of the positions alone): "
+        + (", ".join(only) if only else "none")
+        + "; the probe frame's rotation in the flange (tool.rx, tool.ry, tool.rz) is fitted from them.",
+        "",
+    ]
+    return lines
 
 
 def plot_joint_function(run: CalibrationRun, effect, path: Path) -> None:

@@ -106,6 +106,49 @@ def _json_safe(x):
     return x
 
 
+#: where a run uses a 6-D probe's orientation (report.json ``orientation.fitted_in``)
+ORIENTATION_SCOPE = (
+    "the least-squares fits: the nominal start, the kinematic calibration and the closed loop's joint refits (joint "
+    "effects turn the probe frame too); the learned corrections and the integrated filter are position-only"
+)
+
+
+def _orientation_report(run: CalibrationRun) -> dict | None:
+    """report.json's ``orientation`` (only where the data carry a 6-D probe's orientation): the held-out angle
+    between predicted and measured probe orientation per stage (RMS and max, degrees), the stochastic model, the probe
+    frame's rotation in the flange, and the parameters the orientation rows make estimable."""
+    from torchcal.estimate.fit import SIGMA_ORIENTATION, orientation_errors
+
+    if run.data.r is None or not run.model.robot.has_orientation:
+        return None
+    stages = []
+    for s in run.stages:
+        e = orientation_errors(s.model, run.hold, run.trajectory)
+        if e is None:
+            continue
+        stages.append(
+            {"name": s.name, "rms_holdout_deg": math.degrees(rmse(e)), "max_holdout_deg": math.degrees(float(e.max()))}
+        )
+    by = {s["name"]: s for s in stages}
+    final = stages[-1]
+    only = next((f.orientation_only for f in run.fits if f.identifiability is not None and f.n_orientation), [])
+    rot = run.model.robot.tool_rotation
+    return {
+        "rms_before_deg": by["nominal"]["rms_holdout_deg"] if "nominal" in by else None,
+        "rms_geometric_deg": by["geometric"]["rms_holdout_deg"] if "geometric" in by else None,
+        "rms_after_deg": final["rms_holdout_deg"],
+        "max_after_deg": final["max_holdout_deg"],
+        "stages": stages,
+        "sigma_rad": "per row (srx, sry, srz)"
+        if run.data.sigma_r is not None
+        else (run.options.fit.sigma_orientation or SIGMA_ORIENTATION),
+        "rows_fitted": max((f.n_orientation for f in run.fits), default=0),
+        "fitted_in": ORIENTATION_SCOPE,
+        "R_flange_probe": rot.matrix().detach().tolist(),
+        "estimable_only_with_orientation": list(only),
+    }
+
+
 def build_report(run: CalibrationRun) -> dict:
     st = {s.name: s for s in run.stages}
     final = run.stages[-1]
@@ -169,6 +212,8 @@ def build_report(run: CalibrationRun) -> dict:
         ],
         "notes": run.notes,
         "region": _region_report(run.model),
+        # a 6-D probe's orientation (held-out errors in degrees per stage); absent for position-only data
+        **({"orientation": _json_safe(o)} if (o := _orientation_report(run)) is not None else {}),
     }
 
 
@@ -413,6 +458,8 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
         raise
     except (KeyError, TypeError, ValueError) as e:
         raise _run_error(run_dir, f"model.json: an effect cannot be rebuilt ({type(e).__name__}: {e})") from None
+    if "robot.tool_rotation.delta" in state:  # a run on a 6-D probe's data: the probe frame's rotation in the flange
+        robot.enable_orientation()
     model = MeasurementModel(robot, effects)
     if "robot.readings.delta" not in state and robot.readings.is_identity:  # written before readings maps existed
         state["robot.readings.delta"] = robot.readings.delta.detach().clone()
@@ -497,3 +544,17 @@ def predict_with(
         return model(
             Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None)
         ).cpu()
+
+
+def predict_orientation(model: MeasurementModel, meta: dict, data: Measurements) -> torch.Tensor | None:
+    """Predicted probe orientations in the tracker frame as rotation vectors ``(N, 3)`` [rad] where the run fitted a
+    6-D probe's orientation (its model has the probe frame's rotation), else None. Joint effects turn the probe;
+    Cartesian corrections (the learned ones) do not."""
+    if not model.robot.has_orientation:
+        return None
+    from torchcal.data.ipa import matrix_to_rotvec
+
+    data = data.to(model.robot.device)
+    with torch.no_grad():
+        ctx = Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None)
+        return matrix_to_rotvec(model.orientation(ctx)).cpu()

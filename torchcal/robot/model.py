@@ -265,11 +265,38 @@ class Tool(_Group):
         return self.nominal + (self.delta if delta is None else delta)
 
 
+class ToolRotation(_Group):
+    """The probe frame's orientation in the flange frame ``R_flange_probe = R_nominal @ exp(delta)``, correction
+    ``[rx, ry, rz]`` [rad] (part of the tool: element names ``tool.rx``, ``tool.ry``, ``tool.rz``).
+
+    Only a robot measured with a 6-D probe (a T-Mac: position and orientation) has it
+    (:meth:`RobotModel.enable_orientation`): a reflector has no orientation to fit.
+    """
+
+    COLUMNS = ("rx", "ry", "rz")
+
+    def __init__(self, R_nominal: Tensor | None = None, dtype=torch.float64, device="cpu"):
+        super().__init__()
+        R = torch.eye(3, dtype=dtype) if R_nominal is None else torch.as_tensor(R_nominal, dtype=dtype)
+        self.register_buffer("nominal", R.to(device).clone())
+        self._init_group((3,), [f"tool.{c}" for c in self.COLUMNS], torch.ones(3, dtype=torch.bool), dtype, device)
+
+    def matrix(self, delta: Tensor | None = None) -> Tensor:
+        """``R_flange_probe (3, 3)``; ``delta (..., 3)`` replaces the module's correction (then ``(..., 3, 3)``)."""
+        return self.nominal @ tf.so3_exp(self.delta if delta is None else delta)
+
+    def set_matrix(self, R: Tensor) -> None:
+        """Make ``R`` the new nominal and zero the correction (after the closed-form start)."""
+        with torch.no_grad():
+            self.nominal.copy_(R)
+            self.delta.zero_()
+
+
 @dataclass(frozen=True)
 class ParameterInfo:
     """One element of a calibration parameter group, for reports and estimators."""
 
-    group: str  # "geometry" | "instrument" | "tool" | "readings"
+    group: str  # "geometry" | "instrument" | "tool" | "tool_rotation" | "readings"
     name: str  # e.g. "d1", "shoulder_pan_joint.tz", "instrument.rz", "tool.x", "readings.c3_2"
     index: tuple[int, ...]  # index into the group's delta tensor
     unit: str  # "m", "rad" or "1" (a ratio of the readings map)
@@ -315,6 +342,7 @@ class RobotModel(nn.Module):
         self.geometry = geometry
         self.instrument = Instrument(dtype=dtype, device=device)
         self.tool = Tool(dtype=dtype, device=device)
+        self.tool_rotation: ToolRotation | None = None  # enable_orientation: a 6-D probe's frame in the flange's
         dof = geometry.dof
         self.readings = Readings.identity(dof, dtype=dtype, device=device) if readings is None else readings
         if self.readings.n_joints != dof:
@@ -481,6 +509,32 @@ class RobotModel(nn.Module):
 
     def t_flange_probe(self) -> Tensor:
         return self.tool.vector()
+
+    @property
+    def has_orientation(self) -> bool:
+        """Whether the model carries the probe frame's orientation (:meth:`enable_orientation`)."""
+        return self.tool_rotation is not None
+
+    def enable_orientation(self, R_flange_probe: Tensor | None = None) -> None:
+        """Give the model the probe frame's orientation in the flange frame (a 6-D probe such as a T-Mac): the
+        group ``tool_rotation`` (``tool.rx, tool.ry, tool.rz``), nominal ``R_flange_probe (3, 3)`` (default the
+        identity, or the present one where it is enabled already)."""
+        if self.tool_rotation is None:
+            self.tool_rotation = ToolRotation(dtype=self.dtype, device=self.device)
+        if R_flange_probe is not None:
+            self.tool_rotation.set_matrix(R_flange_probe.to(self.dtype).to(self.device))
+
+    def probe_rotation(self, q: Tensor) -> Tensor:
+        """Orientation of the probe frame in the robot base frame ``R_base_flange(q) R_flange_probe (..., 3, 3)``.
+
+        Raises:
+            OptionError: the model has no probe orientation (:meth:`enable_orientation`).
+        """
+        if self.tool_rotation is None:
+            from torchcal.errors import OptionError
+
+            raise OptionError(f"robot '{self.name}' carries no probe orientation (enable_orientation)")
+        return self(q)[..., :3, :3] @ self.tool_rotation.matrix()
 
     def probe_in_base(self, q: Tensor) -> Tensor:
         """Probe position in the robot base frame ``(..., 3)`` [m]."""
@@ -745,6 +799,8 @@ class RobotModel(nn.Module):
         """The parameter groups: geometry, instrument, tool, and ``readings`` where the description declares ratios
         of its readings map that may be calibrated."""
         out = {"geometry": self.geometry, "instrument": self.instrument, "tool": self.tool}
+        if self.tool_rotation is not None:
+            out["tool_rotation"] = self.tool_rotation
         if self.readings.has_free:
             out["readings"] = self.readings
         return out

@@ -15,6 +15,7 @@ peak-to-peak variation of |correction| is reported in truth.json too, as the pap
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -143,6 +144,11 @@ class SimConfig:
     # for a 0.2 % error of J3's ratio): what a `readings:` block's calibration recovers
     ratio_errors: dict[str, float] = field(default_factory=dict)
     turned_min_deg: float = 30.0  # with tool_axis_deg: the turned poses' tool axis is at least this far off [deg]
+    # a 6-D probe (a T-Mac): its orientation noise per axis [deg]; the files then carry rx, ry, rz (and srx, sry, srz
+    # with write_sigma) from the true model, whose probe frame is turned by a random rotation in the flange frame.
+    # None: a reflector, positions only. Drawn after everything else: the positions are those of the same campaign
+    # without orientation
+    orientation_sigma_deg: float | None = None
 
     def __post_init__(self):
         if self.poses < 1 or self.test_poses < 0:
@@ -157,6 +163,8 @@ class SimConfig:
         check_range("sigma_angle_deg", self.sigma_angle_deg, 0.0, math.degrees(MAX_SIGMA_ANGLE), unit="deg")
         if self.tool_axis_deg is not None and (self.trajectory or not self.tool_axis_deg > 0):
             raise OptionError(f"tool_axis_deg needs static poses and a positive angle, got {self.tool_axis_deg}")
+        if self.orientation_sigma_deg is not None:
+            check_range("orientation_sigma_deg", self.orientation_sigma_deg, 0.0, 5.0, unit="deg")
 
 
 @dataclass
@@ -418,6 +426,15 @@ def simulate(cfg: SimConfig) -> Campaign:
     n_test = n_train + cfg.test_poses if cfg.tool_axis_deg is not None else None
     train, test = part(slice(0, n_train), "train"), part(slice(n_train, n_test), "test")
     turned = part(slice(n_test, None), "turned") if n_test is not None else None
+    orientation = None
+    if cfg.orientation_sigma_deg is not None:
+        r, sigma_r, orientation = _orientations(cfg, g, model, ctx)
+        train, test = (
+            _with_orientation(train, r, sigma_r, slice(0, n_train)),
+            _with_orientation(test, r, sigma_r, slice(n_train, n_test)),
+        )
+        if turned is not None:
+            turned = _with_orientation(turned, r, sigma_r, slice(n_test, None))
 
     geo = truth_robot.geometry
     truth = {
@@ -461,10 +478,45 @@ def simulate(cfg: SimConfig) -> Campaign:
             else "poses drawn independently; first `poses` train",
         },
     }
+    if orientation is not None:
+        truth["orientation"] = orientation
     if turned is not None:
         truth["files"]["turned"] = {"n": turned.n}
         truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)
     return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _orientations(cfg: SimConfig, g: torch.Generator, model: MeasurementModel, ctx: Context):
+    """A 6-D probe's measured orientations: the true probe frame (a random rotation in the flange frame, drawn from
+    ``g``) turned by the true model, then noise ``exp(e) R`` with ``e ~ N(0, sigma^2)`` per tracker axis.
+
+    Returns:
+        ``r (N, 3)`` [rad], ``sigma_r (N, 3)`` [rad] or None (``cfg.write_sigma``), and truth.json's entry.
+    """
+    sigma = math.radians(float(cfg.orientation_sigma_deg))
+    rotvec = torch.randn(3, generator=g, dtype=F64)
+    rotvec = rotvec / rotvec.norm() * float(torch.rand(1, generator=g, dtype=F64)) * math.pi  # any probe frame
+    R_fp = tf.so3_exp(rotvec)
+    model.robot.enable_orientation(R_fp)
+    with torch.no_grad():
+        R_true = model.orientation(ctx)
+        noise = torch.randn(len(R_true), 3, generator=g, dtype=F64) * sigma
+        r = _rotvec(tf.so3_exp(noise) @ R_true)
+    sigma_r = torch.full_like(r, sigma) if cfg.write_sigma and sigma > 0 else None
+    truth = {"R_flange_probe": R_fp.tolist(), "rotvec_flange_probe": rotvec.tolist(), "sigma_rad": sigma}
+    return r, sigma_r, truth
+
+
+def _rotvec(R: Tensor) -> Tensor:
+    from torchcal.data.ipa import matrix_to_rotvec
+
+    return matrix_to_rotvec(R)
+
+
+def _with_orientation(m: Measurements, r: Tensor, sigma_r: Tensor | None, rows: slice) -> Measurements:
+    return dataclasses.replace(
+        m, r=r[rows].clone(), sigma_r=None if sigma_r is None else sigma_r[rows].clone(), meta=dict(m.meta)
+    )
 
 
 def _axis_spread(robot: RobotModel, q: Tensor, n_train: int, n_test: int, tracker_in_base: Tensor) -> dict:
