@@ -184,3 +184,19 @@ def test_cli_full_pose_end_to_end(tmp_path):
     test = read_measurements(sim / "test.csv", dof=6)
     angle = torch.stack([tf.so3_log(a @ b.T).norm() for a, b in zip(tf.so3_exp(got.r), tf.so3_exp(test.r))])
     assert math.degrees(float(angle.max())) < 0.1
+
+
+def test_the_orientation_rows_get_the_positions_variance_factor():
+    """Orientation sigmas reported ten times too small (a probe's own noise, not what the model leaves): the factor
+    that scales them gives both groups the same variance factor; priors between the two blocks are not counted."""
+    from torchcal.estimate.fit import orientation_scale
+
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    pos, prior, ori = (
+        torch.randn(3 * n, generator=g),
+        torch.randn(7, generator=g) * 100,
+        10 * torch.randn(3 * n, generator=g),
+    )
+    assert orientation_scale(torch.cat([pos, prior, ori]), n) == pytest.approx(10.0, rel=0.05)
+    assert orientation_scale(torch.cat([pos, prior, pos]), n) == pytest.approx(1.0)

@@ -9,6 +9,7 @@ identifiability analysis (:func:`solve`), the names of the named effects' parame
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -79,6 +80,9 @@ class Fit:
     #: analysis of the position rows alone (the probe frame's own rotation, ``tool.r*``, not counted)
     orientation_only: list[str] = field(default_factory=list)
     n_orientation: int = 0  # rows whose orientation the fit used
+    #: the factor the orientation rows' sigmas were multiplied by so that their variance factor matches the
+    #: positions' (:func:`orientation_scale`); 1 without orientation
+    orientation_scale: float = 1.0
 
 
 def place_instrument_and_tool(
@@ -309,6 +313,11 @@ def solve(
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
     Wr = _orientation_rows(model, ctx, m, opts)
+    # the orientation rows' variance component: estimated by a fit that analyses its own identifiability (the
+    # nominal and geometric fits, a refit), reused by the fits that take that analysis (the closed loop's)
+    scale = getattr(model.robot, "orientation_scale", 1.0) if Wr is not None and identifiability is not None else 1.0
+    if Wr is not None:
+        Wr = Wr / scale
     orientation_only: list[str] = []
     sel, labels = selection(model, groups, effects=effects)
     free = FreeParameters(model, sel, labels)
@@ -341,6 +350,12 @@ def solve(
         sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
     res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage)
+    if Wr is not None and identifiability is None:
+        factor = orientation_scale(res.residuals, m.n)
+        if abs(math.log(factor)) > math.log(ORIENTATION_SCALE_TOL):
+            scale, Wr = factor, Wr / factor
+            res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage)
+        model.robot.orientation_scale = scale
     if identifiability is None and ida is not None:
         scaled = prior_scales(model, opts)
         units = {i.name: i.unit for i in model.robot.parameter_info()}
@@ -363,7 +378,29 @@ def solve(
             free = FreeParameters(model, sel, labels)
             res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage)
     n_orientation = m.n if Wr is not None else 0
-    return Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation)
+    return Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation, scale)
+
+
+#: the orientation rows are reweighted only when their variance factor differs from the positions' by more than this
+#: ratio in sigma: below it the two groups' stochastic models agree as well as a few hundred rows can tell
+ORIENTATION_SCALE_TOL = 1.5
+
+
+def orientation_scale(residuals: Tensor, n: int) -> float:
+    """The factor for the orientation rows' sigmas that gives them the positions' variance factor: ``sqrt(s_r^2 /
+    s_p^2)`` of the whitened residuals ``(3 n [positions], priors, 3 n [orientations])``.
+
+    A 6-D probe reports its orientation's own noise (a T-Mac about 0.001 deg); what a calibration leaves is the model's
+    error, in positions and orientations alike. Weighted by the instrument's sigmas alone, orientation rows then
+    outweigh the positions many times over and the fit trades position accuracy for orientation; with the factor
+    each group counts as much as its residuals show it can (a variance-component estimate, one step, redundancy
+    shared in proportion to the rows)."""
+    r = residuals.detach()
+    s_p = float(r[: 3 * n].square().mean())
+    s_r = float(r[-3 * n :].square().mean())
+    if not (s_p > 0 and s_r > 0 and math.isfinite(s_p) and math.isfinite(s_r)):
+        return 1.0
+    return math.sqrt(s_r / s_p)
 
 
 def _orientation_rows(model: MeasurementModel, ctx: Context, m: Measurements, opts: FitOptions) -> Tensor | None:
