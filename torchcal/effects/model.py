@@ -92,7 +92,12 @@ class MeasurementModel(nn.Module):
         to differentiate everything else cheaply, :func:`torchcal.estimate.problem.residual_function`).
         """
         q = _dual.add(ctx.q, self.joint_offsets(ctx))
-        p = self.robot.probe_in_base(q) if fk is None else fk(self.robot, q)
+        if fk is not None:
+            p = fk(self.robot, q)
+        elif self.robot.probes:  # one lever arm per probe: each row's own
+            p = self.robot.probe_in_base(q, ctx.probe)
+        else:
+            p = self.robot.probe_in_base(q)
         if with_cartesian:
             w = self.region_weight(ctx.q)
             for e in self.effects:
@@ -106,7 +111,8 @@ class MeasurementModel(nn.Module):
     def forward(self, ctx: Context, fk=None) -> Tensor:
         """Probe position in the tracker frame ``(N, 3)`` [m] (``fk``: see :meth:`probe_in_base`)."""
         p = self.probe_in_base(ctx, fk=fk)
-        T = self.robot.T_tracker_base()
+        # one instrument pose per station: each row's own, (N, 4, 4); drift effects perturb every station's pose alike
+        T = self.robot.instrument.rows(ctx.station) if self.robot.stations else self.robot.T_tracker_base()
         inst = [e for e in self.effects if e.acts_on == Acts.INSTRUMENT]
         if not inst:
             return tf.transform_points(T, p)
