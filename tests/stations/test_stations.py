@@ -119,3 +119,38 @@ def test_cli_stations_and_probes_end_to_end(tmp_path):
     floor = (3 * sigma**2 + (15e-6) ** 2) ** 0.5  # tracker noise and about 15 um of joint noise at the probe
     assert err < 1.2 * floor, (err, floor)
     assert report["rmse_after_mm"] * 1e-3 < 1.2 * floor
+
+
+def test_stations_together_beat_alone_and_one_pose_fails():
+    """Three placements with 60 poses each: calibrated together the shared geometry predicts each station's test
+    poses better than each station calibrated alone; the same rows with one instrument pose (no station column) fail
+    by orders of magnitude (the issue's 664 mm campaign)."""
+    import dataclasses
+
+    import torchcal
+    from torchcal.pipeline import Options
+    from torchcal.sim import SimConfig, simulate
+
+    c = simulate(SimConfig(robot="ur5", poses=180, test_poses=90, seed=5, stations=3))
+    opts = Options(method="kinematic")
+    together = torchcal.calibrate("ur5", c.train, opts).model
+
+    def rms(model, m):
+        with torch.no_grad():
+            return float((model(Context.from_measurements(m)) - m.p).norm(dim=1).square().mean().sqrt())
+
+    joint = rms(together, c.test)
+    alone = []
+    for k in range(3):
+        tr = c.train.subset(c.train.station == k)
+        te = c.test.subset(c.test.station == k)
+        plain = dataclasses.replace(tr, station=None, station_names=())
+        model = torchcal.calibrate("ur5", plain, opts).model
+        alone.append(rms(model, dataclasses.replace(te, station=None, station_names=())) ** 2 * te.n)
+    alone = (sum(alone) / c.test.n) ** 0.5
+    assert joint < alone, (joint, alone)
+    from torchcal.errors import EstimationError
+
+    # one instrument pose for three placements: the geometric fit would need corrections of metres, and says so
+    with pytest.raises(EstimationError, match="many times their a-priori size"):
+        torchcal.calibrate("ur5", dataclasses.replace(c.train, station=None, station_names=()), opts)
