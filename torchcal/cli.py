@@ -255,6 +255,20 @@ def build_parser() -> argparse.ArgumentParser:
         help="static poses whose tool axis turns by at most DEG degrees (e.g. 0.03: a lifting-column robot "
         "measured by a total station), plus turned.csv: poses with the tool turned at least 30 deg away",
     )
+    s.add_argument(
+        "--stations",
+        type=int,
+        default=1,
+        metavar="K",
+        help="K instrument placements, each measuring an equal share of the poses (a station column S1..SK)",
+    )
+    s.add_argument(
+        "--probes",
+        type=int,
+        default=1,
+        metavar="P",
+        help="P reflectors on a nest at the flange, every pose measured by each (a probe column P1..PP)",
+    )
     _add_common(s)
 
     c = sub.add_parser(
@@ -368,6 +382,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
+    cp.add_argument(
+        "--station",
+        default=None,
+        help="a run calibrated from several instrument stations: the station whose frame the targets are in "
+        "(default the first)",
+    )
+    cp.add_argument("--probe", default=None, help="a run with several probes: the probe to put on the targets")
     _add_force(cp)
     _add_units(cp)
     _add_common(cp)
@@ -578,7 +599,7 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import predict_orientation, predict_with, trust
+    from torchcal.report.rundir import predict_orientation, predict_with, rows_of, trust
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -595,6 +616,7 @@ def cmd_predict(args) -> int:
         joint_types=robot.joint_types,
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
+    data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
     # how far to trust each row (on the CPU, before the model moves to --device): the predicted standard deviation
     # (the parameters' covariance and the learned model's posterior) and how far the pose lies outside the
     # calibrated region
@@ -633,12 +655,14 @@ def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import trust
+    from torchcal.report.rundir import at_station, trust
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
     )
-    model, meta = load_model(args.run)
+    full, meta = load_model(args.run)
+    # one frame: the station the targets are given in (and the probe to place), default the first
+    model, station, probe = at_station(full, args.station, args.probe)
     robot = model.robot
     kw = dict(require_positions=False, **_reading(args, robot))
     data = read_measurements(args.targets, require_joints=False, **kw)
@@ -658,7 +682,16 @@ def cmd_compensate(args) -> int:
     res, ext, _ = compensate_in_region(model, targets, q_start, context=context)
     # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
     ctx = Context(q=res.q, t=data.t, temperature=data.temperature)
-    sigma, _ = trust(args.run, model, ctx)
+    if full is not model:  # the run's covariance is of its stations and probes: the rows are the chosen ones'
+        n = len(res.q)
+        ctx = Context(
+            q=res.q,
+            t=data.t,
+            temperature=data.temperature,
+            station=torch.full((n,), station, dtype=torch.long, device=res.q.device) if full.robot.stations else None,
+            probe=torch.full((n,), probe, dtype=torch.long, device=res.q.device) if full.robot.probes else None,
+        )
+    sigma, _ = trust(args.run, full, ctx)
     extra = dict(data.extra)
     if sigma is not None:
         extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
@@ -768,6 +801,8 @@ def cmd_simulate(args) -> int:
         tip_link=args.tip_link,
         tool_axis_deg=args.fixed_tool_axis,
         orientation_sigma_deg=args.orientation,
+        stations=args.stations,
+        probes=args.probes,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")

@@ -39,7 +39,9 @@ _SIGMA = ("sx", "sy", "sz")
 #: the measured orientation (a rotation vector, instrument frame) of a 6-D probe and its standard deviations [rad]
 _ROTATION = ("rx", "ry", "rz")
 _ROTATION_SIGMA = ("srx", "sry", "srz")
-_RESERVED = frozenset(_POSITION + _SIGMA + _ROTATION + _ROTATION_SIGMA + ("t", "temperature"))
+#: label columns: integers or names, stored as index tensors with the names in order of first appearance
+_LABELS = ("station", "probe")
+_RESERVED = frozenset(_POSITION + _SIGMA + _ROTATION + _ROTATION_SIGMA + ("t", "temperature") + _LABELS)
 _JOINT_RE = re.compile(r"q([0-9]+)")
 _META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*")
 
@@ -80,6 +82,11 @@ class Measurements:
             (a 6-D probe such as a T-Mac: columns rx, ry, rz), or None.
         sigma_r: (N, 3) float64 standard deviations of the orientation [rad] (srx, sry, srz): of a small rotation
             of the measured frame about the tracker's x, y, z axes (``R_true = exp(e) R_measured``), or None.
+        station: (N,) int64 index into ``station_names`` of the instrument placement that measured each row, or None
+            (one placement).
+        station_names: the stations' names (the file's text), in order of first appearance.
+        probe: (N,) int64 index into ``probe_names`` of the reflector each row measured, or None (one probe).
+        probe_names: the probes' names, in order of first appearance.
     """
 
     q: torch.Tensor
@@ -93,6 +100,10 @@ class Measurements:
     extra: dict[str, torch.Tensor] = field(default_factory=dict)
     r: torch.Tensor | None = None
     sigma_r: torch.Tensor | None = None
+    station: torch.Tensor | None = None
+    station_names: tuple[str, ...] = ()
+    probe: torch.Tensor | None = None
+    probe_names: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         q = self.q
@@ -120,6 +131,8 @@ class Measurements:
                 raise ShapeError(f"{name} is on {value.device} but q is on {q.device}")
         if self.sigma_r is not None and self.r is None:
             raise ShapeError("sigma_r (orientation standard deviations) needs r (the measured orientation)")
+        for name in _LABELS:
+            _check_label(name, getattr(self, name), getattr(self, f"{name}_names"), q)
         if len(self.lines) not in (0, n):
             raise ShapeError(f"lines must hold one line number per row ({n}), got {len(self.lines)}")
         if not self.lines:
@@ -171,7 +184,19 @@ class Measurements:
             extra={k: v[index] for k, v in self.extra.items()},
             r=pick(self.r),
             sigma_r=pick(self.sigma_r),
+            station=pick(self.station),
+            probe=pick(self.probe),
         )
+
+    @property
+    def n_stations(self) -> int:
+        """Number of instrument placements (1 without a ``station`` column)."""
+        return max(1, len(self.station_names))
+
+    @property
+    def n_probes(self) -> int:
+        """Number of probes (1 without a ``probe`` column)."""
+        return max(1, len(self.probe_names))
 
     def to(self, device: torch.device | str) -> Measurements:
         """The same rows with every tensor on ``device`` (float64 kept; tensors already there are not copied)."""
@@ -190,6 +215,8 @@ class Measurements:
             extra={k: v.to(device) for k, v in self.extra.items()},
             r=move(self.r),
             sigma_r=move(self.sigma_r),
+            station=move(self.station),
+            probe=move(self.probe),
         )
 
     def with_positions(self, p: torch.Tensor | None) -> Measurements:
@@ -199,6 +226,35 @@ class Measurements:
     def without_orientation(self) -> Measurements:
         """The same rows without the measured orientation (``r``, ``sigma_r`` dropped): a position-only set."""
         return dataclasses.replace(self, r=None, sigma_r=None, meta=dict(self.meta), extra=dict(self.extra))
+
+
+def _check_label(name: str, index: torch.Tensor | None, names: tuple[str, ...], q: torch.Tensor) -> None:
+    """A label column: an int64 ``(N,)`` index into ``names`` (non-empty, distinct, writable as one CSV cell)."""
+    if index is None:
+        if names:
+            raise ShapeError(f"{name}_names given without a {name} index")
+        return
+    if not isinstance(index, torch.Tensor) or index.dtype != torch.int64 or tuple(index.shape) != (q.shape[0],):
+        raise ShapeError(f"{name} must be an int64 tensor of shape ({q.shape[0]},), got {_describe(index)}")
+    if index.device != q.device:
+        raise ShapeError(f"{name} is on {index.device} but q is on {q.device}")
+    if len(set(names)) != len(names) or not all(_valid_label(v) for v in names):
+        raise ShapeError(
+            f"{name}_names must be distinct non-empty names without ',', quotes or line breaks, got {names}"
+        )
+    if index.numel() and (int(index.min()) < 0 or int(index.max()) >= len(names)):
+        raise ShapeError(f"{name} indices must lie in 0..{len(names) - 1} ({name}_names {names})")
+
+
+def _valid_label(v: object) -> bool:
+    return isinstance(v, str) and v == v.strip() and v != "" and not any(c in v for c in ",\"'\r\n")
+
+
+def labels_of(values: Sequence[object]) -> tuple[torch.Tensor, tuple[str, ...]]:
+    """Index tensor ``(N,)`` int64 and names in order of first appearance of a station or probe column's values."""
+    names: dict[str, int] = {}
+    idx = [names.setdefault(str(v), len(names)) for v in values]
+    return torch.tensor(idx, dtype=torch.int64), tuple(names)
 
 
 def _describe(x: object) -> str:
@@ -279,7 +335,7 @@ def read_measurements(
     if layout.joints or require_joints:
         _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
 
-    values, lines = _parse_rows(path_str, raw_lines, header_index + 1, header)
+    values, lines, labels = _parse_rows(path_str, raw_lines, header_index + 1, header)
     n = len(lines)
     table = torch.tensor(values, dtype=torch.float64).reshape(n, len(header))
 
@@ -297,6 +353,8 @@ def read_measurements(
     r = columns(_ROTATION) if layout.has_rotation else None
     sigma_r = columns(_ROTATION_SIGMA) if layout.has_rotation_sigma else None
     extra = {name: column(name) for name in layout.extra}
+    station, station_names = labels_of(labels["station"]) if "station" in labels else (None, ())
+    probe, probe_names = labels_of(labels["probe"]) if "probe" in labels else (None, ())
 
     if t is not None:
         _check_monotonic(path_str, t, lines)
@@ -340,6 +398,10 @@ def read_measurements(
         extra=extra,
         r=r,
         sigma_r=sigma_r,
+        station=station,
+        station_names=station_names,
+        probe=probe,
+        probe_names=probe_names,
     )
 
 
@@ -544,8 +606,13 @@ def _check_joint_count(path, layout: _Layout, line: int, dof, joint_limits, robo
 
 
 def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
-    """Parse every data row after the header; return (row-major values, line numbers)."""
+    """Parse every data row after the header; return (row-major values, line numbers, label column -> cells).
+
+    A label column (``station``, ``probe``) holds integers or names: its cells are kept as text (stripped) and
+    stand as 0.0 in the values."""
     ncol = len(header)
+    label_cols = {name: header.index(name) for name in _LABELS if name in header}
+    labels: dict[str, list[str]] = {name: [] for name in label_cols}
     data_lines = []
     line_numbers = []
     for i in range(start, len(raw_lines)):
@@ -582,6 +649,18 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
             )
         if len(row) != ncol:
             _wrong_cell_count(path, row, header, line_no, data_lines[index])
+        for name, k in label_cols.items():
+            cell = row[k].strip()
+            if not _valid_label(cell):
+                what = "is empty" if not cell else f"{_escape(cell)!r} is not a valid name (no ',', quotes)"
+                raise MeasurementFileError(
+                    path,
+                    f"the {name} {what}; every row needs its {name} (an integer or a name)",
+                    line=line_no,
+                    column=name,
+                )
+            labels[name].append(cell)
+            row[k] = "0"
         try:
             vals = [float(cell) for cell in row]
         except ValueError:
@@ -594,7 +673,7 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
                 raise MeasurementFileError(path, "unreadable row", line=line_no)
         values.extend(vals)
         rows.append(line_no)
-    return values, rows
+    return values, rows, labels
 
 
 def _escape(text: str) -> str:
@@ -849,9 +928,9 @@ def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, rob
 # --------------------------------------------------------------------------- writing
 
 
-def _format_row(values: Sequence[float]) -> str:
+def _format_row(values: Sequence[float | str]) -> str:
     # repr(float) is the shortest text that reads back to the same double: round trips are exact.
-    return ",".join([repr(v) for v in values]) + "\n"
+    return ",".join([v if isinstance(v, str) else repr(v) for v in values]) + "\n"
 
 
 def write_measurements(
@@ -897,6 +976,12 @@ def write_measurements(
     if m.sigma_r is not None:
         available.update({c: m.sigma_r[:, k] for k, c in enumerate(_ROTATION_SIGMA)})
     available.update(m.extra)
+    names: dict[str, tuple[str, ...]] = {}
+    for label in _LABELS:
+        index = getattr(m, label)
+        if index is not None:
+            available[label] = index.to(torch.float64)
+            names[label] = getattr(m, f"{label}_names")
 
     if columns is None:
         columns = list(available)
@@ -934,7 +1019,12 @@ def write_measurements(
             column=columns[j],
         )
 
-    _atomic_write(path_str, head, table.tolist())
+    rows = table.tolist()
+    for j, c in enumerate(columns):  # a label column's cells are its names
+        if c in names:
+            for row in rows:
+                row[j] = names[c][int(row[j])]
+    _atomic_write(path_str, head, rows)
 
 
 def _atomic_write(path: str, head: list[str], rows: list[list[float]]) -> None:

@@ -27,25 +27,41 @@ class Context:
         t: acquisition time ``(N,)`` [s] or None.
         temperature: ``(N,)`` [degC] or None.
         direction: sign of each joint's motion ``(N, dof)`` in {-1, 0, +1} (trajectories), or None.
+        station: which instrument placement measured each row ``(N,)`` int64, or None (station 0 everywhere).
+        probe: which probe each row measured ``(N,)`` int64, or None (probe 0 everywhere).
     """
 
     q: Tensor
     t: Tensor | None = None
     temperature: Tensor | None = None
     direction: Tensor | None = None
+    station: Tensor | None = None
+    probe: Tensor | None = None
 
     @classmethod
     def from_measurements(cls, m, *, trajectory: bool | None = None) -> Context:
         """Context of a :class:`~torchcal.data.Measurements`; motion direction when it is a trajectory."""
         traj = (m.t is not None) if trajectory is None else trajectory
-        return cls(q=m.q, t=m.t, temperature=m.temperature, direction=motion_direction(m.q) if traj else None)
+        return cls(
+            q=m.q,
+            t=m.t,
+            temperature=m.temperature,
+            direction=motion_direction(m.q) if traj else None,
+            station=getattr(m, "station", None),
+            probe=getattr(m, "probe", None),
+        )
 
     def subset(self, idx) -> Context:
         def pick(x):
             return None if x is None else x[idx]
 
         return Context(
-            q=self.q[idx], t=pick(self.t), temperature=pick(self.temperature), direction=pick(self.direction)
+            q=self.q[idx],
+            t=pick(self.t),
+            temperature=pick(self.temperature),
+            direction=pick(self.direction),
+            station=pick(self.station),
+            probe=pick(self.probe),
         )
 
 

@@ -92,7 +92,12 @@ class MeasurementModel(nn.Module):
         to differentiate everything else cheaply, :func:`torchcal.estimate.problem.residual_function`).
         """
         q = _dual.add(ctx.q, self.joint_offsets(ctx))
-        p = self.robot.probe_in_base(q) if fk is None else fk(self.robot, q)
+        if fk is not None:
+            p = fk(self.robot, q)
+        elif self.robot.probes:  # one lever arm per probe: each row's own
+            p = self.robot.probe_in_base(q, ctx.probe)
+        else:
+            p = self.robot.probe_in_base(q)
         if with_cartesian:
             w = self.region_weight(ctx.q)
             for e in self.effects:
@@ -102,6 +107,11 @@ class MeasurementModel(nn.Module):
                         dp = _dual.mul(dp, w)
                     p = _dual.add(p, dp)
         return p
+
+    def _instrument(self, ctx: Context) -> Tensor:
+        """``T_tracker_base`` ``(4, 4)``, or each row's ``(N, 4, 4)`` with one instrument pose per station (the
+        context's ``station``); drift effects perturb every station's pose alike (:meth:`_instrument_offset`)."""
+        return self.robot.instrument.rows(ctx.station) if self.robot.stations else self.robot.T_tracker_base()
 
     def _instrument_offset(self, ctx: Context) -> Tensor | None:
         """The instrument effects' per-sample perturbation ``xi (N, 6)`` of ``T_tracker_base``, or None."""
@@ -119,7 +129,7 @@ class MeasurementModel(nn.Module):
         if orientation:
             return self.orientation(ctx)
         p = self.probe_in_base(ctx, fk=fk)
-        T = self.robot.T_tracker_base()
+        T = self._instrument(ctx)
         xi = self._instrument_offset(ctx)
         if xi is None:
             return tf.transform_points(T, p)
@@ -135,7 +145,7 @@ class MeasurementModel(nn.Module):
         """
         q = _dual.add(ctx.q, self.joint_offsets(ctx))
         R = self.robot.probe_rotation(q)
-        T = self.robot.T_tracker_base()
+        T = self._instrument(ctx)
         xi = self._instrument_offset(ctx)
         if xi is not None:
             T = T @ tf.se3_from_vector(xi)

@@ -91,6 +91,8 @@ def place_instrument_and_tool(
     p: Tensor,
     lever: Tensor | None = None,
     lever_prior: tuple[Tensor, float] | None = None,
+    station: Tensor | None = None,
+    probe: Tensor | None = None,
 ) -> float:
     """Fit the tracker pose and the lever arm for the robot's current geometry and write them into ``robot``.
 
@@ -106,9 +108,15 @@ def place_instrument_and_tool(
             ``centre`` where the poses do not fix it; the lever arm's nominal is then ``centre`` and its correction
             the fitted lever arm minus it, so that a prior on the correction (zero mean) is centred on ``centre``.
 
+        station, probe: ``(N,)`` int64 station and probe of each row, where the robot has several
+            (:attr:`~torchcal.robot.model.RobotModel.stations`, ``probes``): one pose per station and one lever arm
+            per probe, by :func:`place_stations_and_probes`.
+
     Returns:
         The RMS residual of the fit [m].
     """
+    if robot.stations or robot.probes:
+        return place_stations_and_probes(robot, q, p, station, probe, lever=lever, lever_prior=lever_prior)
     with torch.no_grad():
         T, t, rms = fit_instrument_and_tool(robot(q), p, lever, lever_prior=lever_prior)
         robot.instrument.set_matrix(T)
@@ -148,6 +156,82 @@ def place_tool_rotation(robot: RobotModel, q: Tensor, r: Tensor) -> float:
         R = U @ D @ Vh
         robot.tool_rotation.set_matrix(R)
         return float(orientation_angle(R.expand_as(Ri), Ri).square().mean().sqrt())
+
+
+#: alternations of :func:`place_stations_and_probes` at most (each lowers the same cost; it settles in a few)
+PLACE_ROUNDS = 50
+
+
+def place_stations_and_probes(
+    robot: RobotModel,
+    q: Tensor,
+    p: Tensor,
+    station: Tensor | None,
+    probe: Tensor | None,
+    lever: Tensor | None = None,
+    lever_prior: tuple[Tensor, float] | None = None,
+) -> float:
+    """:func:`place_instrument_and_tool` with several stations or probes: one pose per station, one lever arm per
+    probe, by alternating closed-form steps (as :func:`~torchcal.estimate.rigid.fit_instrument_and_tool`): each
+    station's rotation by a rigid fit of its rows with the current lever arms, then every station's translation and
+    every lever arm together by linear least squares (MAP towards ``lever_prior``'s centre where given). Each step
+    lowers the same cost. Written into ``robot``; returns the RMS residual [m]."""
+    from torchcal.estimate.rigid import rigid_fit
+
+    n = len(q)
+    S, P = max(1, len(robot.stations)), max(1, len(robot.probes))
+    st = torch.zeros(n, dtype=torch.long, device=q.device) if station is None or S == 1 else station
+    pr = torch.zeros(n, dtype=torch.long, device=q.device) if probe is None or P == 1 else probe
+    with torch.no_grad():
+        Tf = robot(q)
+        Rf, pf = Tf[:, :3, :3], Tf[:, :3, 3]
+        t = torch.zeros(P, 3, dtype=q.dtype, device=q.device)
+        if lever is not None:
+            t[:] = lever
+        eye = torch.eye(3, dtype=q.dtype, device=q.device)
+        Rs = torch.zeros(S, 3, 3, dtype=q.dtype, device=q.device)
+        t0 = torch.zeros(S, 3, dtype=q.dtype, device=q.device)
+        prev = None
+        for _ in range(PLACE_ROUNDS):
+            pb = (Rf @ t[pr].unsqueeze(-1)).squeeze(-1) + pf
+            for s in range(S):
+                rows = st == s
+                T = rigid_fit(pb[rows], p[rows])
+                Rs[s], t0[s] = T[:3, :3], T[:3, 3]
+            # for fixed rotations, the translations and lever arms are jointly linear: p - R pf = t0_s + R Rf t_p
+            u = 3 * S + 3 * P
+            A = torch.zeros(n, 3, u, dtype=q.dtype, device=q.device)
+            cols = torch.arange(3, device=q.device)
+            A[torch.arange(n)[:, None], :, 3 * st[:, None] + cols] = eye.expand(n, 3, 3).transpose(1, 2)
+            RRf = Rs[st] @ Rf
+            A[torch.arange(n)[:, None], :, 3 * S + 3 * pr[:, None] + cols] = RRf.transpose(1, 2)
+            b = p - (Rs[st] @ pf.unsqueeze(-1)).squeeze(-1)
+            AtA = torch.einsum("nau,nav->uv", A, A)
+            Atb = torch.einsum("nau,na->u", A, b)
+            if lever_prior is not None:
+                centre, ratio = lever_prior
+                AtA[3 * S :, 3 * S :] += float(ratio) * torch.eye(3 * P, dtype=q.dtype, device=q.device)
+                Atb[3 * S :] += float(ratio) * centre.to(Atb).repeat(P)
+            x = torch.linalg.solve(AtA, Atb)
+            t0, t = x[: 3 * S].reshape(S, 3), x[3 * S :].reshape(P, 3)
+            r = (A @ x) - b
+            cost = float(r.square().sum(-1).mean())
+            if prev is not None and prev - cost <= 1e-12 * prev:
+                break
+            prev = cost
+        for s in range(S):
+            T = torch.eye(4, dtype=q.dtype, device=q.device)
+            T[:3, :3], T[:3, 3] = Rs[s], t0[s]
+            robot.instrument.set_matrix(T, s if robot.stations else None)
+        centre = lever_prior[0].to(t) if lever_prior is not None else None
+        tool = robot.tool
+        if robot.probes:
+            tool.nominal.copy_(t if centre is None else centre.expand(P, 3))
+            tool.delta.copy_(torch.zeros_like(t) if centre is None else t - centre)
+        else:
+            tool.nominal.copy_(t[0] if centre is None else centre)
+            tool.delta.copy_(torch.zeros_like(t[0]) if centre is None else t[0] - centre)
+    return float(cost**0.5)
 
 
 def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
@@ -211,7 +295,11 @@ def orientation_errors(model: MeasurementModel, m: Measurements, trajectory: boo
 def corrections(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
     """What the model misses, in the robot base frame ``(N, 3)`` [m] (paper Eq. 22)."""
     with torch.no_grad():
-        pred = model(Context.from_measurements(m, trajectory=trajectory))
+        ctx = Context.from_measurements(m, trajectory=trajectory)
+        pred = model(ctx)
+        if model.robot.stations:  # each row back through its own station's rotation
+            R = model.robot.instrument.rows(ctx.station)[:, :3, :3]
+            return ((m.p - pred).unsqueeze(1) @ R).squeeze(1)
         return (m.p - pred) @ model.robot.T_tracker_base()[:3, :3]
 
 

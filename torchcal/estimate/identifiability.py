@@ -333,10 +333,11 @@ def _merge(links: list[list[str]]) -> list[list[str]]:
 
 
 def preference_order(names: list[str]) -> list[int]:
-    """Instrument first, then the lever arm, then everything else in the given order."""
+    """Instrument first, then the lever arm, then everything else in the given order (every station's pose,
+    ``instrument[NAME].tx``, and every probe's lever arm, ``tool[NAME].x``, alike)."""
 
     def rank(i):
         n = names[i]
-        return (0 if n.startswith("instrument.") else 1 if n.startswith("tool.") else 2, i)
+        return (0 if n.startswith(("instrument.", "instrument[")) else 1 if n.startswith(("tool.", "tool[")) else 2, i)
 
     return sorted(range(len(names)), key=rank)

@@ -86,8 +86,19 @@ class FreeParameters:
 def probe_joint_jacobian(model: MeasurementModel, ctx: Context) -> Tensor:
     """``dp_tracker / dq`` per pose ``(N, 3, dof)`` of the geometric model (the effects' share is negligible)."""
     with torch.no_grad():
-        _, J = model.robot.probe_jacobian(ctx.q)
-        return model.robot.T_tracker_base()[:3, :3] @ J
+        robot = model.robot
+        if robot.stations or robot.probes:
+            _, J = robot.probe_jacobian(ctx.q, ctx.probe if robot.probes else None)
+            return station_rotation(robot, ctx) @ J
+        _, J = robot.probe_jacobian(ctx.q)
+        return robot.T_tracker_base()[:3, :3] @ J
+
+
+def station_rotation(robot, ctx: Context) -> Tensor:
+    """The rotation of the instrument pose that measured each row: ``(3, 3)`` for a single station, else
+    ``(N, 3, 3)`` by ``ctx.station``."""
+    T = robot.instrument.rows(ctx.station) if robot.stations else robot.T_tracker_base()
+    return T[..., :3, :3]
 
 
 def whitening(
@@ -228,9 +239,16 @@ def residual_function(
             Jp[..., kin_cols.to(x.device)] = Jz[..., :3] @ fk.jd
         if inst:
             instrument = model.robot.instrument
-            T = instrument.matrix(at.get(_INSTRUMENT)).detach()
-            base = (fk.prediction - T[:3, 3]) @ T[:3, :3]  # q' = T^-1 p
-            Jp[..., inst_cols.to(x.device)] = instrument.point_jacobian(base, inst_d, at.get(_INSTRUMENT))
+            if instrument.stations:  # each row's station: q' = T_s^-1 p, the columns of other stations zero
+                T = instrument.rows(c.station, at.get(_INSTRUMENT)).detach()
+                base = ((fk.prediction - T[:, :3, 3]).unsqueeze(1) @ T[:, :3, :3]).squeeze(1)
+                Jp[..., inst_cols.to(x.device)] = instrument.rows_point_jacobian(
+                    base, c.station, inst_d, at.get(_INSTRUMENT)
+                )
+            else:
+                T = instrument.matrix(at.get(_INSTRUMENT)).detach()
+                base = (fk.prediction - T[:3, 3]) @ T[:3, :3]  # q' = T^-1 p
+                Jp[..., inst_cols.to(x.device)] = instrument.point_jacobian(base, inst_d, at.get(_INSTRUMENT))
         return (WW @ Jp).reshape(-1, len(x))
 
     def jacobian(x: Tensor) -> Tensor:
@@ -238,7 +256,7 @@ def residual_function(
         n = ctx.q.shape[0]
         if analytic:
             values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items() if k != _TOOL_ROTATION}
-            _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values)
+            _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values, **_rows(model.robot, ctx))
             if unmoved:
                 Jp = Jp.new_zeros(n, 3, len(x)).index_copy_(2, moved.to(x.device), Jp)
             J = (W @ Jp).reshape(3 * n, len(x))
@@ -287,10 +305,15 @@ def linear_kinematics(
         cols = [(g.split(".")[1], i) for g in _kinematic(rb) for i in range(rb.groups()[g.split(".")[1]].delta.numel())]
         if columns is not None:
             cols = [cols[int(i)] for i in columns]
-        p_tr, J = rb.tracker_jacobian(q, cols)
-        R = rb.T_tracker_base()[:3, :3]
-        pb, Jq = rb.probe_jacobian(q)
-        out.update(q=q, p=pb, Jq=Jq, Jd=R.T @ J, d=_corrections(rb))
+        if rb.stations or rb.probes:
+            p_tr, J = rb.tracker_jacobian(q, cols, **_rows(rb, ctx))
+            R = station_rotation(rb, ctx)
+            pb, Jq = rb.probe_jacobian(q, ctx.probe if rb.probes else None)
+        else:
+            p_tr, J = rb.tracker_jacobian(q, cols)
+            R = rb.T_tracker_base()[:3, :3]
+            pb, Jq = rb.probe_jacobian(q)
+        out.update(q=q, p=pb, Jq=Jq, Jd=R.transpose(-1, -2) @ J, d=_corrections(rb))
         return pb
 
     with torch.no_grad():
@@ -348,6 +371,11 @@ def _columns(free: FreeParameters):
         for i in e.index.tolist():
             yield j, e, i
             j += 1
+
+
+def _rows(robot, ctx: Context) -> dict[str, Tensor | None]:
+    """The station and probe indices :meth:`~torchcal.robot.model.RobotModel.tracker_jacobian` needs for ``robot``."""
+    return {"station": ctx.station if robot.stations else None, "probe": ctx.probe if robot.probes else None}
 
 
 def jacobian_of(fun):

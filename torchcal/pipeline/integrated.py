@@ -353,7 +353,7 @@ def _adaptive_pass(
 
     opts, robot = work.options, work.model.robot
     start = _nominal_copy(robot)
-    place_instrument_and_tool(start, train.q, train.p)
+    place_instrument_and_tool(start, train.q, train.p, station=train.station, probe=train.probe)
     cfg = AdaptiveConfig(
         sigma_tracker=opts.fit.sigma_tracker,
         sigma_joint=opts.fit.sigma_joint,

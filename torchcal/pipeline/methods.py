@@ -44,7 +44,14 @@ def nominal(run: CalibrationRun) -> StageResult:
         f"{work.robot.name}: {train.n} training and {run.hold.n} held-out poses; fitting tracker pose and lever arm"
     )
     noise = float(train.sigma.median()) if train.sigma is not None else opts.fit.sigma_tracker
-    place_instrument_and_tool(work.robot, train.q, train.p, lever_prior=opts.fit.lever_prior(noise, opts.device))
+    place_instrument_and_tool(
+        work.robot,
+        train.q,
+        train.p,
+        lever_prior=opts.fit.lever_prior(noise, opts.device),
+        station=train.station,
+        probe=train.probe,
+    )
     if train.r is not None:  # a 6-D probe: its frame's rotation in the flange, from the orientations (closed form)
         place_tool_rotation(work.robot, train.q, train.r)
     work.fits.append(

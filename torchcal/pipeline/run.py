@@ -8,6 +8,7 @@ sides before any stage sees them.
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 
@@ -57,14 +58,48 @@ def is_trajectory(m: Measurements, max_step: float = 0.05) -> bool:
     if m.t is None or m.n < 3 or not bool((torch.diff(m.t) >= 0).all()):
         return False
     steps = torch.diff(m.q, dim=0).abs().max(dim=-1).values
+    if m.probe is not None:  # several probes measured at one set of joints: the steps between poses
+        steps = steps[steps > 0]
+        if len(steps) == 0:
+            return False
     return float(steps.median()) < max_step
 
 
 def holdout_split(
     m: Measurements, holdout: float, seed: int, trajectory: bool, group_tol: float = S.GROUP_TOL
 ) -> S.Split:
-    """Training and held-out indices (module docstring): the run's split, also of its training poses."""
-    return S.split(m.n, S.holdout_count(m.n, holdout), seed=seed, last=trajectory, q=m.q, group_tol=group_tol)
+    """Training and held-out indices (module docstring): the run's split, also of its training poses.
+
+    With several stations or probes the split is stratified: each station (each probe's rows in it) is split on its
+    own with the same share, so that every station and probe is on both sides; revisits are grouped within each
+    stratum. Rows of several probes that share one set of joints (one visit of a nest) are revisits of each other
+    and stay together."""
+    strata = _strata(m)
+    if strata is None or trajectory:
+        return S.split(m.n, S.holdout_count(m.n, holdout), seed=seed, last=trajectory, q=m.q, group_tol=group_tol)
+    keep, out, merged_groups, merged_rows = [], [], 0, 0
+    for k, rows in enumerate(strata):
+        part = S.split(
+            len(rows),
+            S.holdout_count(len(rows), holdout),
+            seed=seed + k,
+            q=m.q[rows.to(m.q.device)],
+            group_tol=group_tol,
+        )
+        keep.append(rows[part.keep])
+        out.append(rows[part.held])
+        merged_groups += part.merged_groups
+        merged_rows += part.merged_rows
+    return S.Split(torch.sort(torch.cat(keep)).values, torch.sort(torch.cat(out)).values, merged_groups, merged_rows)
+
+
+def _strata(m: Measurements) -> list[Tensor] | None:
+    """Row indices of each station (None for a single station): probes of one nest share their joints and are
+    grouped as revisits within it, so the station alone stratifies."""
+    if m.station is None or m.n_stations < 2:
+        return None
+    st = m.station.cpu()
+    return [torch.nonzero(st == s).flatten() for s in range(m.n_stations) if bool((st == s).any())]
 
 
 def min_poses(robot: RobotModel, holdout: float) -> int:
@@ -96,6 +131,10 @@ def start(
         raise OptionError("calibration needs measured positions (x, y, z columns)")
     spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
     robot = _robot(robot, base_link, tip_link).to(opts.device)  # the run computes on opts.device
+    if data.n_stations > 1 or data.n_probes > 1:  # one instrument pose per station, one lever arm per probe
+        robot = copy.deepcopy(robot)
+        robot.set_stations(data.station_names if data.n_stations > 1 else None)
+        robot.set_probes(data.probe_names if data.n_probes > 1 else None)
     data = data.to(opts.device)
     if data.dof != robot.dof:
         raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
@@ -156,6 +195,9 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
     leave the rejected held-out rows out; on data without gross errors nothing changes.
     """
     if opts.levels.outlier is None:
+        return tr, ho, None
+    if robot.stations or robot.probes:  # the robust start fits one tracker pose and one lever arm
+        _console.info("gross-error screening skipped: it fits a single instrument pose and lever arm")
         return tr, ho, None
     from torchcal.estimate.robust import screen_geometric
 

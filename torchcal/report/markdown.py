@@ -144,6 +144,56 @@ def _g(v, fmt=".3g") -> str:
     return "-" if v is None else format(v, fmt)
 
 
+def _stations_section(report: dict) -> list[str]:
+    """A table of the instrument stations (tracker position in the base frame, its sigma, held-out RMSE, rows) and
+    one of the probes (lever arm and sigma), for a run of several."""
+    lines: list[str] = []
+
+    def um(v):
+        return "-" if v is None else f"{v * 1e6:.1f}"
+
+    if report.get("stations"):
+        lines += [
+            "## Instrument stations",
+            "",
+            "One instrument pose per station, the robot's calibration shared. Tracker origin in the robot base frame "
+            "[m]; sigma of the pose's translation [um] and rotation [urad]; held-out RMSE of the station's rows.",
+            "",
+            "| station | tracker in base x, y, z [m] | sigma t [um] | sigma r [urad] | held-out RMSE [mm] | rows "
+            "train / held out |",
+            "|---|---|---|---|---:|---|",
+        ]
+        for name, st in report["stations"].items():
+            T = torch.tensor(st["T_tracker_base"], dtype=torch.float64)
+            pos = (-T[:3, :3].T @ T[:3, 3]).tolist()
+            sd = st["std"]
+            rm = "-" if st["rmse_holdout_mm"] is None else f"{st['rmse_holdout_mm']:.4f}"
+            sig_t = ", ".join(um(sd[c]) for c in ("tx", "ty", "tz"))
+            sig_r = ", ".join(um(sd[c]) for c in ("rx", "ry", "rz"))
+            lines.append(
+                f"| {name} | {pos[0]:.4f}, {pos[1]:.4f}, {pos[2]:.4f} | {sig_t} | {sig_r} "
+                f"| {rm} | {st['n_train']} / {st['n_holdout']} |"
+            )
+        lines.append("")
+    if report.get("probes"):
+        lines += [
+            "## Probes",
+            "",
+            "One lever arm per probe (flange frame).",
+            "",
+            "| probe | x, y, z [mm] | sigma x, y, z [um] |",
+            "|---|---|---|",
+        ]
+        for name, pr in report["probes"].items():
+            t = pr["t_flange_probe_m"]
+            lines.append(
+                f"| {name} | {t[0] * 1e3:.4f}, {t[1] * 1e3:.4f}, {t[2] * 1e3:.4f} | "
+                f"{', '.join(um(pr['std_m'][c]) for c in ('x', 'y', 'z'))} |"
+            )
+        lines.append("")
+    return lines
+
+
 def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     plot_errors_per_pose(run, out / "errors_per_pose.png")
     plot_histograms(run, out / "histogram.png")
@@ -173,6 +223,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
     ]
     lines += _orientation_section(report)
+    lines += _stations_section(report)
     lines += _diagnosis_section(run, report, out)
     lines += _region_section(run, report, out)
     lines += _unexplained_section(report, out)

@@ -20,6 +20,7 @@ or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import json
 import math
@@ -216,7 +217,43 @@ def build_report(run: CalibrationRun) -> dict:
         "region": _region_report(run.model),
         # a 6-D probe's orientation (held-out errors in degrees per stage); absent for position-only data
         **({"orientation": _json_safe(o)} if (o := _orientation_report(run)) is not None else {}),
+        **_stations_report(run),
     }
+
+
+def _stations_report(run: CalibrationRun) -> dict:
+    """report.json's ``stations`` (each instrument placement's pose, its parameters' standard deviations, its
+    held-out RMSE and rows) and ``probes`` (each lever arm with its standard deviations), for a run of several; empty
+    for one station and one probe."""
+    robot = run.robot
+    if not robot.stations and not robot.probes:
+        return {}
+    std = {e["name"]: e.get("std") for e in _param_table(run)["estimated"]}
+    final = run.stages[-1]
+    out: dict = {}
+    if robot.stations:
+        hold_st = run.hold.station.cpu()
+        train_st = run.train.station.cpu()
+        errs = final.holdout_errors.cpu()
+        out["stations"] = {}
+        for k, name in enumerate(robot.stations):
+            e = errs[hold_st == k]
+            out["stations"][name] = {
+                "T_tracker_base": robot.T_tracker_base(k).detach().cpu().tolist(),
+                "std": {c: std.get(f"instrument[{name}].{c}") for c in robot.instrument.COLUMNS},
+                "rmse_holdout_mm": rmse(e) * 1e3 if len(e) else None,
+                "n_train": int((train_st == k).sum()),
+                "n_holdout": int(len(e)),
+            }
+    if robot.probes:
+        out["probes"] = {
+            name: {
+                "t_flange_probe_m": robot.t_flange_probe(k).detach().cpu().tolist(),
+                "std_m": {c: std.get(f"tool[{name}].{c}") for c in robot.tool.COLUMNS},
+            }
+            for k, name in enumerate(robot.probes)
+        }
+    return _json_safe(out)
 
 
 def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
@@ -271,6 +308,8 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
         "method": run.options.method,
         "region": _region_config(run.model),
+        **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
+        **({"probes": list(run.robot.probes)} if run.robot.probes else {}),
     }
     (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return tmp
@@ -446,6 +485,14 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
     if not isinstance(meta["effects"], list) or not all(isinstance(c, dict) for c in meta["effects"]):
         raise _run_error(run_dir, "model.json: effects must be a list of objects")
     robot = load_robot(robot_path, base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
+    for key in ("stations", "probes"):  # one instrument pose per station, one lever arm per probe
+        names = meta.get(key)
+        if names is None:
+            continue
+        ok = isinstance(names, list) and 1 < len(names) <= MAX_LABELS and all(isinstance(v, str) for v in names)
+        if not ok or len(set(names)) != len(names):
+            raise _run_error(run_dir, f"model.json: {key} must be a list of 2..{MAX_LABELS} distinct names")
+        (robot.set_stations if key == "stations" else robot.set_probes)(names)
     pt = run_dir / "model.pt"
     if not pt.exists():
         raise _run_error(run_dir, "model.pt is missing")
@@ -528,6 +575,62 @@ def _check_state(run_dir: Path, model: MeasurementModel) -> None:
         )
 
 
+#: stations or probes a run directory may name (each is a 6- or 3-element group of model.pt)
+MAX_LABELS = 10000
+
+
+def rows_of(model: MeasurementModel, data: Measurements) -> Measurements:
+    """``data`` with its station and probe indices in the model's order (by name); rows of a file without a
+    ``station`` (``probe``) column take the model's first station (probe). A name the model does not know is an error
+    naming it and the model's names; a model of one station (probe) ignores the column."""
+    out = {}
+    for key, known in (("station", model.robot.stations), ("probe", model.robot.probes)):
+        index, names = getattr(data, key), getattr(data, f"{key}_names")
+        if not known:
+            out[key], out[f"{key}_names"] = None, ()
+            continue
+        if index is None:
+            index = torch.zeros(data.n, dtype=torch.long, device=data.q.device)
+        else:
+            unknown = [n for n in names if n not in known]
+            if unknown:
+                raise OptionError(
+                    f"{data.source or 'the data'}: {key} {unknown[0]!r} is not one of the run's {key}s "
+                    f"({', '.join(known)})"
+                )
+            lut = torch.tensor([known.index(n) for n in names], dtype=torch.long, device=index.device)
+            index = lut[index]
+        out[key], out[f"{key}_names"] = index, tuple(known)
+    return dataclasses.replace(data, meta=dict(data.meta), **out)
+
+
+def at_station(
+    model: MeasurementModel, station: str | None = None, probe: str | None = None
+) -> tuple[MeasurementModel, int, int]:
+    """A copy of ``model`` with one instrument pose and one lever arm, those of ``station`` and ``probe`` (names;
+    None: the first), for what works in one frame (``compensate``); with their indices in ``model``. A model of one
+    station and one probe comes back as it is (a name given for it must then be absent)."""
+    import copy
+
+    from torchcal.robot.model import Instrument, Tool
+
+    robot = model.robot
+    picked = []
+    for key, name, known in (("station", station, robot.stations), ("probe", probe, robot.probes)):
+        if name is not None and name not in known:
+            have = f"the run's {key}s are {', '.join(known)}" if known else f"the run has a single {key}"
+            raise OptionError(f"{key} {name!r} is not one of the run's: {have}")
+        picked.append(known.index(name) if name is not None else 0)
+    if not robot.stations and not robot.probes:
+        return model, 0, 0
+    out = copy.deepcopy(model)
+    r = out.robot
+    with torch.no_grad():
+        r.instrument = Instrument(robot.T_tracker_base(picked[0]).detach(), dtype=r.dtype, device=r.device)
+        r.tool = Tool(robot.t_flange_probe(picked[1]).detach(), dtype=r.dtype, device=r.device)
+    return out, picked[0], picked[1]
+
+
 def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device | str = "cpu") -> torch.Tensor:
     """Predicted probe positions in the tracker frame ``(N, 3)`` [m] with everything the run learned, computed
     on ``device`` and returned on the CPU."""
@@ -542,6 +645,7 @@ def predict_with(
     model, data = model.to(device), data.to(device)
     if data.dof != model.robot.dof:
         raise OptionError(f"data have {data.dof} joints but the run's robot '{model.robot.name}' has {model.robot.dof}")
+    data = rows_of(model, data)
     with torch.no_grad():
         return model(
             Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None)

@@ -72,11 +72,12 @@ class ExportOptions:
 
 def _calibrated(robot: RobotModel) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The calibrated numbers both routes write, float64 on the CPU: the joint origins ``O`` ``(dof + 1, 4, 4)``,
-    ``T_base_tracker`` ``(4, 4)`` and ``t_flange_probe`` ``(3,)`` [m]."""
+    ``T_base_tracker`` ``(4, 4)`` and ``t_flange_probe`` ``(3,)`` [m] (a robot calibrated from several stations or
+    with several probes: the first station's tracker frame and the first probe's lever arm; report.json has all)."""
     with torch.no_grad():
         O = robot.geometry.origins().detach().to("cpu", torch.float64)
-        T_base_tracker = tf.invert(robot.instrument.matrix().detach().to("cpu", torch.float64))
-        t_flange_probe = robot.tool.vector().detach().to("cpu", torch.float64)
+        T_base_tracker = tf.invert(robot.T_tracker_base().detach().to("cpu", torch.float64))
+        t_flange_probe = robot.t_flange_probe().detach().to("cpu", torch.float64)
     return O, T_base_tracker, t_flange_probe
 
 

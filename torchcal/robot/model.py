@@ -215,21 +215,44 @@ class Instrument(_Group):
     The correction acts in robot-base coordinates, so that its components line up with the
     robot's own parameters (``tz`` with ``d1``, ``rz`` with ``theta1``) whatever the tracker's
     orientation.
+
+    With ``stations`` (two or more names: the placements of the instrument, one pose each) the group holds one pose
+    per station: ``nominal (S, 4, 4)``, ``delta (S, 6)``, element names ``instrument[NAME].tx``; without them it is the
+    one pose of a single placement, ``(4, 4)`` and ``(6,)`` as ever.
     """
 
     COLUMNS = ("tx", "ty", "tz", "rx", "ry", "rz")
 
-    def __init__(self, T_nominal: Tensor | None = None, dtype=torch.float64, device="cpu"):
+    def __init__(
+        self, T_nominal: Tensor | None = None, dtype=torch.float64, device="cpu", stations: Sequence[str] | None = None
+    ):
         super().__init__()
+        self.stations = tuple(str(s) for s in stations) if stations is not None and len(stations) > 1 else ()
         T = torch.eye(4, dtype=dtype) if T_nominal is None else torch.as_tensor(T_nominal, dtype=dtype)
+        if self.stations:
+            T = T.expand(len(self.stations), 4, 4) if T.dim() == 2 else T
+            if tuple(T.shape) != (len(self.stations), 4, 4):
+                raise ShapeError(f"T_nominal must be (4, 4) or ({len(self.stations)}, 4, 4), got {tuple(T.shape)}")
         self.register_buffer("nominal", T.to(device).clone())
-        self._init_group(
-            (6,), [f"instrument.{c}" for c in self.COLUMNS], torch.ones(6, dtype=torch.bool), dtype, device
-        )
+        if self.stations:
+            names = [f"instrument[{s}].{c}" for s in self.stations for c in self.COLUMNS]
+            shape = (len(self.stations), 6)
+        else:
+            names, shape = [f"instrument.{c}" for c in self.COLUMNS], (6,)
+        self._init_group(shape, names, torch.ones(shape, dtype=torch.bool), dtype, device)
 
     def matrix(self, delta: Tensor | None = None) -> Tensor:
-        """``T_tracker_base (4, 4)``; ``delta (..., 6)`` replaces the module's correction (then ``(..., 4, 4)``)."""
+        """``T_tracker_base (4, 4)`` (``(S, 4, 4)`` with stations); ``delta (..., 6)`` (``(..., S, 6)``) replaces the
+        module's correction (then ``(..., [S,] 4, 4)``)."""
         return self.nominal @ tf.se3_from_vector(self.delta if delta is None else delta)
+
+    def rows(self, station: Tensor | None, delta: Tensor | None = None) -> Tensor:
+        """The pose that measured each row: ``(4, 4)`` for a single station (every row), else ``(N, 4, 4)`` picked by
+        ``station (N,)`` int64 (None: the first station's ``(4, 4)``)."""
+        M = self.matrix(delta)
+        if not self.stations:
+            return M
+        return M[..., 0, :, :] if station is None else M[..., station, :, :]
 
     def point_jacobian(self, points: Tensor, columns: Sequence[int], delta: Tensor | None = None) -> Tensor:
         """``d (T p) / d delta`` of base-frame points ``p (N, 3)`` [m] for the flat ``columns`` of the correction:
@@ -242,27 +265,71 @@ class Instrument(_Group):
         B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :], d, columns).reshape(3, 4, -1)
         return torch.einsum("abk,nb->nak", B[:, :3], points) + B[:, 3]
 
-    def set_matrix(self, T: Tensor) -> None:
-        """Make ``T`` the new nominal and zero the correction (used after a closed-form initial fit)."""
+    def rows_point_jacobian(
+        self, points: Tensor, station: Tensor | None, columns: Sequence[int], delta: Tensor | None = None
+    ) -> Tensor:
+        """:meth:`point_jacobian` for rows measured from several stations: ``(N, 3, len(columns))``, zero where a
+        column belongs to another station than the row's (``station (N,)``; a single station: the plain one)."""
+        if not self.stations:
+            return self.point_jacobian(points, columns, delta)
+        d = (self.delta if delta is None else delta).detach()
+        S = len(self.stations)
+        B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :], d, columns).reshape(S, 3, 4, -1)
+        owner = torch.tensor([c // 6 for c in columns], dtype=torch.long, device=points.device)
+        Br = B[station]  # (N, 3, 4, k): the row's own station's derivative, zero for the other stations' columns
+        J = torch.einsum("nabk,nb->nak", Br[:, :, :3], points) + Br[:, :, 3]
+        return J * (station[:, None] == owner[None, :]).to(J.dtype)[:, None, :]
+
+    def set_matrix(self, T: Tensor, station: int | None = None) -> None:
+        """Make ``T`` the new nominal and zero the correction (used after a closed-form initial fit); with stations,
+        of ``station`` (None: every station)."""
         with torch.no_grad():
-            self.nominal.copy_(T)
-            self.delta.zero_()
+            if self.stations and station is not None:
+                self.nominal[station].copy_(T)
+                self.delta[station].zero_()
+            else:
+                self.nominal.copy_(T)
+                self.delta.zero_()
 
 
 class Tool(_Group):
-    """The lever arm ``t_flange_probe = nominal + delta`` (probe position in the flange frame, m)."""
+    """The lever arm ``t_flange_probe = nominal + delta`` (probe position in the flange frame, m).
+
+    With ``probes`` (two or more names: reflectors on one tool) one lever arm per probe, ``nominal, delta (P, 3)``,
+    element names ``tool[NAME].x``.
+    """
 
     COLUMNS = ("x", "y", "z")
 
-    def __init__(self, t_nominal: Tensor | None = None, dtype=torch.float64, device="cpu"):
+    def __init__(
+        self, t_nominal: Tensor | None = None, dtype=torch.float64, device="cpu", probes: Sequence[str] | None = None
+    ):
         super().__init__()
+        self.probes = tuple(str(p) for p in probes) if probes is not None and len(probes) > 1 else ()
         t = torch.zeros(3, dtype=dtype) if t_nominal is None else torch.as_tensor(t_nominal, dtype=dtype)
+        if self.probes:
+            t = t.expand(len(self.probes), 3) if t.dim() == 1 else t
+            if tuple(t.shape) != (len(self.probes), 3):
+                raise ShapeError(f"t_nominal must be (3,) or ({len(self.probes)}, 3), got {tuple(t.shape)}")
+            names = [f"tool[{p}].{c}" for p in self.probes for c in self.COLUMNS]
+            shape = (len(self.probes), 3)
+        else:
+            names, shape = [f"tool.{c}" for c in self.COLUMNS], (3,)
         self.register_buffer("nominal", t.to(device).clone())
-        self._init_group((3,), [f"tool.{c}" for c in self.COLUMNS], torch.ones(3, dtype=torch.bool), dtype, device)
+        self._init_group(shape, names, torch.ones(shape, dtype=torch.bool), dtype, device)
 
     def vector(self, delta: Tensor | None = None) -> Tensor:
-        """``t_flange_probe (3,)`` [m]; ``delta (..., 3)`` replaces the module's correction (then ``(..., 3)``)."""
+        """``t_flange_probe (3,)`` [m] (``(P, 3)`` with probes); ``delta (..., 3)`` replaces the module's correction
+        (then ``(..., 3)``)."""
         return self.nominal + (self.delta if delta is None else delta)
+
+    def rows(self, probe: Tensor | None, delta: Tensor | None = None) -> Tensor:
+        """The lever arm of each row: ``(3,)`` for a single probe, else ``(N, 3)`` picked by ``probe (N,)`` (None: the
+        first probe's)."""
+        t = self.vector(delta)
+        if not self.probes:
+            return t
+        return t[..., 0, :] if probe is None else t[..., probe, :]
 
 
 class ToolRotation(_Group):
@@ -297,7 +364,7 @@ class ParameterInfo:
     """One element of a calibration parameter group, for reports and estimators."""
 
     group: str  # "geometry" | "instrument" | "tool" | "tool_rotation" | "readings"
-    name: str  # e.g. "d1", "shoulder_pan_joint.tz", "instrument.rz", "tool.x", "readings.c3_2"
+    name: str  # e.g. "d1", "shoulder_pan_joint.tz", "instrument.rz", "instrument[B].rz", "tool.x", "tool[2].x"
     index: tuple[int, ...]  # index into the group's delta tensor
     unit: str  # "m", "rad" or "1" (a ratio of the readings map)
 
@@ -504,11 +571,15 @@ class RobotModel(nn.Module):
         _, _, R, t = self._chain(self.model_joints(self._check_q(q)), self.geometry.origins(), frames=False)
         return tf.homogeneous(R, t)
 
-    def T_tracker_base(self) -> Tensor:
-        return self.instrument.matrix()
+    def T_tracker_base(self, station: int | None = None) -> Tensor:
+        """``T_tracker_base (4, 4)``: of ``station`` (index, default 0) when the instrument has several."""
+        M = self.instrument.matrix()
+        return M if M.dim() == 2 else M[station or 0]
 
-    def t_flange_probe(self) -> Tensor:
-        return self.tool.vector()
+    def t_flange_probe(self, probe: int | None = None) -> Tensor:
+        """``t_flange_probe (3,)`` [m]: of ``probe`` (index, default 0) when the tool has several."""
+        t = self.tool.vector()
+        return t if t.dim() == 1 else t[probe or 0]
 
     @property
     def has_orientation(self) -> bool:
@@ -536,13 +607,46 @@ class RobotModel(nn.Module):
             raise OptionError(f"robot '{self.name}' carries no probe orientation (enable_orientation)")
         return self(q)[..., :3, :3] @ self.tool_rotation.matrix()
 
-    def probe_in_base(self, q: Tensor) -> Tensor:
-        """Probe position in the robot base frame ``(..., 3)`` [m]."""
+    @property
+    def stations(self) -> tuple[str, ...]:
+        """The instrument's station names (empty for a single placement)."""
+        return self.instrument.stations
+
+    @property
+    def probes(self) -> tuple[str, ...]:
+        """The tool's probe names (empty for a single probe)."""
+        return self.tool.probes
+
+    def set_stations(self, names: Sequence[str] | None) -> None:
+        """One instrument pose per station ``names`` (two or more; fewer: a single pose), each starting from the
+        current (first) pose; the corrections restart at zero."""
+        T = self.T_tracker_base().detach()
+        self.instrument = Instrument(T, dtype=self.dtype, device=self.device, stations=names)
+
+    def set_probes(self, names: Sequence[str] | None) -> None:
+        """One lever arm per probe ``names`` (two or more; fewer: a single lever arm), each starting from the current
+        (first) one."""
+        t = self.t_flange_probe().detach()
+        self.tool = Tool(t, dtype=self.dtype, device=self.device, probes=names)
+
+    def _lever(self, t: Tensor, probe: Tensor | None) -> Tensor:
+        """``t (3,)`` or ``(P, 3)`` -> ``(3,)`` or the rows' ``(N, 3)``."""
+        if t.dim() == 1:
+            return t
+        # no index: the first probe (what works in one frame, e.g. a diagnostic plot of the probe's path)
+        return t[0] if probe is None else t[probe]
+
+    def probe_in_base(self, q: Tensor, probe: Tensor | None = None) -> Tensor:
+        """Probe position in the robot base frame ``(..., 3)`` [m]; with several probes ``probe (N,)`` picks each
+        row's lever arm."""
         q = self._check_q(q)
         _, _, Rt, t = self._chain_t(self.model_joints(q), self.geometry.origins(), frames=False)
-        return _poses_first(_rotate(Rt, self.t_flange_probe()) + t, q.shape[:-1])
+        lever = self._lever(self.tool.vector(), probe)
+        if lever.dim() == 1:
+            return _poses_first(_rotate(Rt, lever) + t, q.shape[:-1])
+        return _poses_first(_rotate_rows(Rt, lever) + t, q.shape[:-1])
 
-    def probe_jacobian(self, q: Tensor) -> tuple[Tensor, Tensor]:
+    def probe_jacobian(self, q: Tensor, probe: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Probe position in the base frame ``(..., 3)`` and its joint Jacobian ``(..., 3, dof)``.
 
         The geometric Jacobian, ``dp/dq_j = z_j x (p - o_j)`` for a revolute joint with ``z_j`` the axis and
@@ -552,7 +656,8 @@ class RobotModel(nn.Module):
         """
         q = self._check_q(q)
         Rts, ts, Rt, t = self._chain_t(self.model_joints(q), self.geometry.origins(), frames=True)
-        p = _rotate(Rt, self.t_flange_probe()) + t  # (3, M)
+        lever = self._lever(self.tool.vector(), probe)
+        p = (_rotate(Rt, lever) if lever.dim() == 1 else _rotate_rows(Rt, lever)) + t  # (3, M)
         z = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])  # (dof, 3, M)
         J = torch.linalg.cross(z, p - torch.stack(ts), dim=1)  # (dof, 3, M)
         if "prismatic" in self.geometry.joint_types:
@@ -561,13 +666,21 @@ class RobotModel(nn.Module):
         J = J.permute(2, 1, 0).reshape(*batch, 3, self.n_joints)
         return _poses_first(p, batch), J if self.readings.is_identity else J @ self.readings.matrix()
 
-    def probe_position(self, q: Tensor) -> Tensor:
-        """Probe position in the tracker frame ``(..., 3)`` [m]: what a laser tracker measures."""
-        return tf.transform_points(self.T_tracker_base(), self.probe_in_base(q))
+    def probe_position(self, q: Tensor, station: Tensor | None = None, probe: Tensor | None = None) -> Tensor:
+        """Probe position in the tracker frame ``(..., 3)`` [m]: what a laser tracker measures (with several stations
+        or probes, ``station``/``probe (N,)`` pick each row's)."""
+        if not self.stations and not self.probes:
+            return tf.transform_points(self.T_tracker_base(), self.probe_in_base(q))
+        return tf.transform_points(self.instrument.rows(station), self.probe_in_base(q, probe))
 
     # ------------------------------------------------------ parameter Jacobian
     def tracker_jacobian(
-        self, q: Tensor, columns: Sequence[tuple[str, int]], deltas: dict[str, Tensor] | None = None
+        self,
+        q: Tensor,
+        columns: Sequence[tuple[str, int]],
+        deltas: dict[str, Tensor] | None = None,
+        station: Tensor | None = None,
+        probe: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         """Probe position in the tracker frame and its exact derivative by calibration parameters.
 
@@ -584,6 +697,9 @@ class RobotModel(nn.Module):
                 ``"geometry"``, ``"instrument"``, ``"tool"`` and, where the robot calibrates its readings map,
                 ``"readings"`` (``dp/dA_ik = dp/dq_i r_k``).
             deltas: group -> corrections to use instead of the module's own (the deltas' shapes).
+            station, probe: ``(N,)`` int64, each row's station and probe where the instrument has several stations or
+                the tool several probes (a column of one station's pose or one probe's lever arm is zero in the other
+                rows).
 
         Returns:
             ``p (N, 3)`` [m] and ``J (N, 3, len(columns))`` [m per m or rad].
@@ -595,6 +711,8 @@ class RobotModel(nn.Module):
         if sum(len(c) for c in cols.values()) != len(columns):
             bad = sorted({g for g, _ in columns} - set(d))
             raise ShapeError(f"unknown parameter groups {bad}; groups: {', '.join(d)}")
+        if self.stations or self.probes:
+            return self._tracker_jacobian_rows(q, columns, d, cols, station, probe)
         r = q
         with torch.no_grad():
             q = self.model_joints(r, d.get("readings"))
@@ -661,6 +779,78 @@ class RobotModel(nn.Module):
                 else:
                     Ji = T[:3, :3] @ torch.linalg.cross(z, p_base - ts[i], dim=0)  # (3, N)
                 J[..., kk] = (Ji * r[:, k]).T
+        return p, J.contiguous()
+
+    def _tracker_jacobian_rows(self, r, columns, d, cols, station, probe) -> tuple[Tensor, Tensor]:
+        """:meth:`tracker_jacobian` with several stations or probes: the same products with each row's instrument
+        pose and lever arm (a separate path, so that a single station and probe compute exactly as before)."""
+        with torch.no_grad():
+            q = self.model_joints(r, d.get("readings"))
+            O = self.geometry.origins(d["geometry"])
+            T = self.instrument.rows(station, d["instrument"])
+            T = T.expand(len(q), 4, 4) if T.dim() == 2 else T  # (N, 4, 4)
+            t = self._lever(self.tool.vector(d["tool"]), probe)
+            t = t.expand(len(q), 3) if t.dim() == 1 else t  # (N, 3)
+            Rts, ts, Rt_flange, t_flange = self._chain_t(q, O, frames=True)
+            p_base = _rotate_rows(Rt_flange, t) + t_flange  # (3, N)
+            R = T[:, :3, :3]  # (N, 3, 3)
+            p = (R @ p_base.T.unsqueeze(-1)).squeeze(-1) + T[:, :3, 3]
+        n, dof = q.shape[0], self.n_joints
+        J = torch.zeros(n, 3, len(columns), dtype=q.dtype, device=q.device)
+        if cols["geometry"]:
+            idx = [i for _, i in cols["geometry"]]
+            A = _small_jacobian(lambda x: self.geometry.origins(x)[..., :3, :], d["geometry"], idx)
+            A = A.reshape(dof + 1, 3, 4, len(idx))
+            s = t.T  # (3, N): each row's lever arm
+            behind = [s]
+            sin, one_cos = torch.sin(q.T), 1.0 - torch.cos(q.T)
+            for i in range(dof - 1, -1, -1):
+                s = O[i + 1, :3, :3] @ s + O[i + 1, :3, 3:]
+                if self.geometry.joint_types[i] == "prismatic":
+                    s = s + self.geometry.axes[i].unsqueeze(-1) * q.T[i]
+                else:
+                    K = tf.skew(self.geometry.axes[i])
+                    Ks = K @ s
+                    s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
+                behind.append(s)
+            behind.reverse()
+            Jb = torch.zeros(3, len(idx), n, dtype=q.dtype, device=q.device)
+            for i in range(dof + 1):
+                nz = torch.nonzero(A[i].reshape(12, -1).abs().amax(0)).flatten()
+                if len(nz) == 0:
+                    continue
+                Ai = A[i][..., nz]
+                k = len(nz)
+                V = Ai[:, :3].transpose(1, 2).reshape(3 * k, 3) @ behind[i] + Ai[:, 3].reshape(3 * k, 1)
+                V = V.reshape(3, k, n)
+                if i > 0:
+                    V = (Rts[i - 1].unsqueeze(2) * V.unsqueeze(1)).sum(0)
+                Jb[:, nz] += V
+            J[..., [k for k, _ in cols["geometry"]]] = torch.einsum("nab,bkn->nak", R, Jb)
+        if cols["instrument"]:
+            idx = [i for _, i in cols["instrument"]]
+            J[..., [k for k, _ in cols["instrument"]]] = self.instrument.rows_point_jacobian(
+                p_base.T, station, idx, d["instrument"]
+            )
+        if cols["tool"]:
+            # d p / d t = R_tracker R_flange e_c, in the rows of the column's probe only
+            RRf = torch.einsum("nab,cbn->nac", R, Rt_flange)  # (N, 3, 3): R Rf (Rt_flange[c, b] = Rf[b, c])
+            for kk, flat in cols["tool"]:
+                pi, c = divmod(flat, 3) if self.probes else (0, flat)
+                col = RRf[:, :, c]
+                if self.probes:
+                    col = col * (probe == pi).to(col.dtype)[:, None]
+                J[..., kk] = col
+        if cols.get("readings"):
+            n_read = self.dof
+            for kk, flat in cols["readings"]:
+                i, k = divmod(flat, n_read)
+                z = _rotate(Rts[i], self.geometry.axes[i])
+                if self.geometry.joint_types[i] == "prismatic":
+                    Ji = z.expand_as(p_base)
+                else:
+                    Ji = torch.linalg.cross(z, p_base - ts[i], dim=0)
+                J[..., kk] = (R @ Ji.T.unsqueeze(-1)).squeeze(-1) * r[:, k : k + 1]
         return p, J.contiguous()
 
     # ---------------------------------------------------------------- gravity
@@ -864,6 +1054,11 @@ def _rotate(Rt: Tensor, v: Tensor) -> Tensor:
     one product ``v^T (3, 3 M)``."""
     m = Rt.shape[-1]
     return (v @ Rt.reshape(3, 3 * m)).reshape(3, m)
+
+
+def _rotate_rows(Rt: Tensor, v: Tensor) -> Tensor:
+    """``R_m v_m`` per pose ``(3, M)``: a pose-last rotation ``Rt (3, 3, M)``, one vector per pose ``v (M, 3)``."""
+    return torch.einsum("kam,mk->am", Rt, v)
 
 
 def _small_jacobian(f, d0: Tensor, columns: Sequence[int]) -> Tensor:

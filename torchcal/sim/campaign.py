@@ -149,6 +149,9 @@ class SimConfig:
     # None: a reflector, positions only. Drawn after everything else: the positions are those of the same campaign
     # without orientation
     orientation_sigma_deg: float | None = None
+    stations: int = 1  # instrument placements, each measuring an equal share of the (static) poses
+    probes: int = 1  # reflectors on a nest at the flange; every pose is measured by each of them (one row each)
+    nest_radius: float = 0.05  # m: the probes sit on a circle of this radius about the nominal lever arm
 
     def __post_init__(self):
         if self.poses < 1 or self.test_poses < 0:
@@ -161,6 +164,12 @@ class SimConfig:
         check_range("sigma_joint_deg", self.sigma_joint_deg, 0.0, math.degrees(MAX_SIGMA_JOINT), unit="deg")
         check_range("sigma_length", self.sigma_length, 0.0, MAX_SIGMA_LENGTH, scale=1e3, unit="mm")
         check_range("sigma_angle_deg", self.sigma_angle_deg, 0.0, math.degrees(MAX_SIGMA_ANGLE), unit="deg")
+        if self.stations < 1 or self.probes < 1:
+            raise OptionError(f"stations and probes must be >= 1, got {self.stations} and {self.probes}")
+        if (self.stations > 1 or self.probes > 1) and (self.trajectory or self.tool_axis_deg is not None):
+            raise OptionError("several stations or probes need static poses (no trajectory, no fixed tool axis)")
+        if self.stations > 1 and self.poses < 3 * self.stations:
+            raise OptionError(f"{self.stations} stations need at least {3 * self.stations} poses, got {self.poses}")
         if self.tool_axis_deg is not None and (self.trajectory or not self.tool_axis_deg > 0):
             raise OptionError(f"tool_axis_deg needs static poses and a positive angle, got {self.tool_axis_deg}")
         if self.orientation_sigma_deg is not None:
@@ -409,6 +418,8 @@ def _effects(
 
 def simulate(cfg: SimConfig) -> Campaign:
     """Simulate a campaign; see the module docstring for what is modelled."""
+    if cfg.stations > 1 or cfg.probes > 1:
+        return _simulate_stations(cfg)
     g = torch.Generator().manual_seed(int(cfg.seed))
     joints = [(spec.kind, spec.joint) for spec in cfg.effects] + [
         (spec.kind, spec.source) for spec in cfg.effects if spec.source is not None
@@ -517,6 +528,104 @@ def _with_orientation(m: Measurements, r: Tensor, sigma_r: Tensor | None, rows: 
     return dataclasses.replace(
         m, r=r[rows].clone(), sigma_r=None if sigma_r is None else sigma_r[rows].clone(), meta=dict(m.meta)
     )
+
+
+def _simulate_stations(cfg: SimConfig) -> Campaign:
+    """A campaign of ``cfg.stations`` instrument placements (each measuring an equal share of the training and of the
+    test poses, planned for its own line of sight) and ``cfg.probes`` reflectors on a nest (each pose measured by
+    every probe: one row per probe, the rows of a pose sharing its joints). One true robot for all; the files carry
+    ``station`` (``S1``, ``S2``, ...) and ``probe`` (``P1``, ...) columns; rows run station by station, pose by pose."""
+    g = torch.Generator().manual_seed(int(cfg.seed))
+    joints = [(spec.kind, spec.joint) for spec in cfg.effects] + [
+        (spec.kind, spec.source) for spec in cfg.effects if spec.source is not None
+    ]
+    nominal, truth_robot, T0, _, lever_nominal = _true_robot(cfg, g, joints)
+    K, P = cfg.stations, cfg.probes
+    Ts = torch.stack([T0] + [_place_tracker(cfg, g) for _ in range(K - 1)])
+    angles = 2 * math.pi * torch.arange(P, dtype=F64) / P
+    nest = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros(P, dtype=F64)], dim=1) * cfg.nest_radius
+    levers = truth_robot.tool.nominal + (nest if P > 1 else torch.zeros(1, 3, dtype=F64))
+    levers = levers + torch.randn(P, 3, generator=g, dtype=F64) * (1e-4 if P > 1 else 0.0)
+    truth_robot.set_stations([f"S{k + 1}" for k in range(K)] if K > 1 else None)
+    truth_robot.set_probes([f"P{k + 1}" for k in range(P)] if P > 1 else None)
+    with torch.no_grad():
+        truth_robot.instrument.nominal.copy_(Ts if K > 1 else T0)
+        truth_robot.tool.nominal.copy_(levers if P > 1 else levers[0])
+    share = [cfg.poses // K + (k < cfg.poses % K) for k in range(K)]
+    share_test = [cfg.test_poses // K + (k < cfg.test_poses % K) for k in range(K)]
+    q_tr, q_te, st_tr, st_te = [], [], [], []
+    for k in range(K):
+        scene = Scene(nominal, tf.invert(Ts[k])[:3, 3], lever_nominal, cfg.sight)
+        q = random_poses(scene, share[k] + share_test[k], g)
+        q_tr.append(q[: share[k]])
+        q_te.append(q[share[k] :])
+        st_tr += [k] * share[k]
+        st_te += [k] * share_test[k]
+    n_train = cfg.poses * P
+    # every pose once per probe: rows (pose, probe) in pose order
+    q_pose = torch.cat(q_tr + q_te)
+    station_pose = torch.tensor(st_tr + st_te, dtype=torch.long)
+    q_true = q_pose.repeat_interleave(P, dim=0)
+    station = station_pose.repeat_interleave(P)
+    probe = torch.arange(P).repeat(len(q_pose))
+    n = len(q_true)
+    jitter = torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
+    t = torch.arange(n, dtype=F64) * cfg.pose_interval_s + jitter
+    duration = float(t[-1]) if n > 1 else 1.0
+    temperature = 20.0 + 1.0 * (1.0 - torch.exp(-t / (0.5 * duration))) + torch.randn(n, generator=g, dtype=F64) * 0.02
+    ctx = Context(
+        q=q_true, t=t, temperature=temperature, station=station if K > 1 else None, probe=probe if P > 1 else None
+    )
+    model, effect_truth = _effects(cfg, truth_robot, ctx, g)
+    with torch.no_grad():
+        p_true = model(ctx)
+    part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
+    names_s = tuple(f"S{k + 1}" for k in range(K))
+    # the probes of one pose are measured at one set of joint readings: the first probe row's, shared
+    first = torch.arange(n) - probe
+    names_p = tuple(f"P{k + 1}" for k in range(P))
+
+    def labelled(rows: slice, name: str) -> Measurements:
+        m = part(rows, name)
+        return dataclasses.replace(
+            m,
+            q=part(first[rows], name).q,
+            station=station[rows].clone() if K > 1 else None,
+            station_names=names_s if K > 1 else (),
+            probe=probe[rows].clone() if P > 1 else None,
+            probe_names=names_p if P > 1 else (),
+        )
+
+    train, test = labelled(slice(0, n_train), "train"), labelled(slice(n_train, None), "test")
+    geo = truth_robot.geometry
+    truth = {
+        "generator": "torchcal simulate",
+        "config": _config_dict(cfg),
+        "robot": {"spec": str(cfg.robot), "name": truth_robot.name, "kind": truth_robot.kind, "dof": truth_robot.dof},
+        "geometry": {
+            "parametrisation": type(geo).__name__,
+            "columns": list(geo.COLUMNS),
+            "names": list(geo.names),
+            "delta": geo.delta.detach().flatten().tolist(),
+            "values": (geo.values if hasattr(geo, "values") else geo.origins()).detach().tolist(),
+        },
+        "instrument": {"T_tracker_base": T0.tolist(), "tracker_in_base_m": tf.invert(T0)[:3, 3].tolist()},
+        "stations": {
+            name: {"T_tracker_base": Ts[k].tolist(), "tracker_in_base_m": tf.invert(Ts[k])[:3, 3].tolist()}
+            for k, name in enumerate(names_s)
+        },
+        "tool": {"t_flange_probe": levers[0].tolist(), "nominal_lever_arm": list(cfg.lever_arm)},
+        "probes": {name: {"t_flange_probe": levers[k].tolist()} for k, name in enumerate(names_p)},
+        "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": math.radians(cfg.sigma_joint_deg)},
+        "effects": effect_truth,
+        "line_of_sight": asdict(cfg.sight),
+        "files": {
+            "train": {"n": train.n},
+            "test": {"n": test.n},
+            "split": "each station's share of poses drawn independently, the first of each train; one row per probe",
+        },
+    }
+    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true)
 
 
 def _axis_spread(robot: RobotModel, q: Tensor, n_train: int, n_test: int, tracker_in_base: Tensor) -> dict:
