@@ -441,6 +441,9 @@ CPU_BY_DESIGN = (
 
 #: Constructors without ``device=`` that are right where they are: (file, the call's source) -> why.
 ALLOWED = {
+    ("torchcal/report/station.py", "torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64)"): (
+        "CPU generator (the same poses on every device), moved (.to) to the region's device"
+    ),
     ("torchcal/robot/readings.py", "torch.as_tensor(A, dtype=torch.float64)"): (
         "validates the description's nested list before any robot exists: host-side, read with float()"
     ),

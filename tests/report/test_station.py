@@ -166,3 +166,20 @@ def test_cli_station_predict_compensate(setup, tmp_path):
     bad.write_text("q1,q2,q3,q4,q5,q6,x,y\n0,0,0,0,0,0,1,2\n")
     assert main(["station", str(setup["run"]), str(bad), "--out", str(tmp_path / "x"), "--quiet"]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_a_run_of_several_stations_is_refused_with_its_stations_named(tmp_path):
+    """Re-stationing replaces one placement: a run calibrated from several says which it has and is refused
+    (exit 2), nothing written."""
+    from torchcal.pipeline import calibrate
+
+    c = simulate(SimConfig(robot="ur5", poses=120, test_poses=12, seed=4, stations=2))
+    run_dir = write_run(calibrate("ur5", c.train, Options(method="kinematic", seed=4)), tmp_path / "run")
+    points = c.test.subset(torch.arange(6))
+    write_measurements(tmp_path / "pts.csv", replace(points, station=None, station_names=()))
+    code = main(["station", str(run_dir), str(tmp_path / "pts.csv"), "--out", str(tmp_path / "run2"), "--quiet"])
+    assert code == 2 and not (tmp_path / "run2").exists()
+    with pytest.raises(StationError, match=r"2 stations \(S1, S2\)"):
+        from torchcal.report.station import restation
+
+        restation(run_dir, points)

@@ -186,7 +186,7 @@ def _fd_jacobian(model: MeasurementModel, free: FreeParameters, ctx: Context, st
 def _placement_var(model: MeasurementModel, free: FreeParameters, C: Tensor, ctx: Context) -> Tensor:
     """The variance ``(N,)`` [m^2] of the predicted position (all three axes) at ``ctx`` through the placement's
     covariance ``C``."""
-    J = _fd_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64))
+    J = _fd_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device))
     return torch.einsum("nau,uv,nav->n", J, C.to(J), J).clamp(min=0)
 
 
@@ -225,7 +225,7 @@ def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tup
     if region is None:
         return Context.from_measurements(points, trajectory=False), "the points (the run stores no calibrated region)"
     g = torch.Generator().manual_seed(int(seed))
-    u = torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64).to(region)
+    u = torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64).to(region)  # CPU generator, moved
     q = region[0] + u * (region[1] - region[0])
 
     def mean(x):  # effects in time or temperature: at the points' mean
@@ -330,7 +330,9 @@ def fit_station(
         C_noise = torch.linalg.inv(res.normal)
         warnings.append("no redundancy: the covariance is that of the stochastic model alone, untested")
     # 4. the run's own uncertainty carried into the placement
-    Js_w = fit.whitening @ _fd_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64))
+    Js_w = fit.whitening @ _fd_jacobian(
+        model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device)
+    )
     Js_w = Js_w.reshape(-1, len(free.names))
     C_s, kept = C_noise, None
     if run_covariance is not None:
@@ -366,8 +368,8 @@ def fit_station(
     Jb = Js_w.reshape(n, 3, -1)
     Ninv = torch.linalg.inv(Js_w.T @ Js_w)
     rw = (fit.whitening @ r.unsqueeze(-1)).squeeze(-1)
-    loo = torch.full((n,), float("nan"), dtype=F64)
-    eye = torch.eye(3, dtype=F64)
+    loo = torch.full((n,), float("nan"), dtype=F64, device=r.device)
+    eye = torch.eye(3, dtype=F64, device=r.device)
     for i in range(n):
         H_ii = Jb[i] @ Ninv @ Jb[i].T
         M = eye - H_ii
@@ -433,7 +435,7 @@ def _without(cov: ParameterCovariance, names: set[str]) -> ParameterCovariance:
         starts.append(pos)
         pos += len(idx)
     rows = [starts[k] + j for k in keep_blocks for j in range(len(cov.index[k]))]
-    r = torch.tensor(rows, dtype=torch.long)
+    r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
     return ParameterCovariance(
         [cov.names[k] for k in keep_blocks],
         [list(cov.index[k]) for k in keep_blocks],
@@ -487,6 +489,20 @@ def restation(run_dir: str | os.PathLike, points: Measurements, *, tool: bool = 
     from torchcal.report.rundir import load_covariance, load_model
 
     model, meta = load_model(run_dir)
+    robot = model.robot
+    if robot.stations or robot.probes:
+        # one new placement of one instrument, with one lever arm: a run calibrated from several stations or probes
+        # would need to say which of its frames the points share, and its covariance is by station and probe
+        what = ", ".join(
+            f"{len(names)} {kind} ({', '.join(names)})"
+            for kind, names in (("stations", robot.stations), ("probes", robot.probes))
+            if names
+        )
+        raise StationError(
+            f"{run_dir}: the run was calibrated with {what}; re-stationing takes a run of one instrument placement "
+            "and one probe (calibrate the data of one station and probe, or use the run's station column with "
+            "predict and compensate --station)"
+        )
     cov = load_covariance(run_dir, model)
     station = fit_station(model, points, station_options(run_dir, tool, seed), cov)
     return model, meta, station
