@@ -154,3 +154,19 @@ def test_stations_together_beat_alone_and_one_pose_fails():
     # one instrument pose for three placements: the geometric fit would need corrections of metres, and says so
     with pytest.raises(EstimationError, match="many times their a-priori size"):
         torchcal.calibrate("ur5", dataclasses.replace(c.train, station=None, station_names=()), opts)
+
+
+def test_a_robot_without_masses_and_with_a_readings_map_calibrates_from_two_stations():
+    """The closed loop's lumped-compliance candidates project off the geometry's span, which the parameter
+    Jacobian computes without a station per row: it takes the first station's frame there (this crashed)."""
+    from pathlib import Path
+
+    from torchcal._threads import torch_threads
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.sim import SimConfig, simulate
+
+    robot = str(Path(__file__).resolve().parents[1] / "robot" / "data" / "fanuc_like.yaml")
+    c = simulate(SimConfig(robot=robot, poses=160, test_poses=10, seed=2, stations=2))
+    with torch_threads(1):
+        run = calibrate(robot, c.train, Options(seed=2))
+    assert run.robot.stations == ("S1", "S2") and run.stage("geometric").rmse < 0.5 * run.stage("nominal").rmse

@@ -783,7 +783,11 @@ class RobotModel(nn.Module):
 
     def _tracker_jacobian_rows(self, r, columns, d, cols, station, probe) -> tuple[Tensor, Tensor]:
         """:meth:`tracker_jacobian` with several stations or probes: the same products with each row's instrument
-        pose and lever arm (a separate path, so that a single station and probe compute exactly as before)."""
+        pose and lever arm (a separate path, so that a single station and probe compute exactly as before). Rows that
+        name no station or probe (a caller in one frame: a candidate's geometric span) take the first."""
+        first = torch.zeros(r.shape[0], dtype=torch.long, device=r.device)
+        station = first if self.stations and station is None else station
+        probe = first if self.probes and probe is None else probe
         with torch.no_grad():
             q = self.model_joints(r, d.get("readings"))
             O = self.geometry.origins(d["geometry"])
