@@ -215,6 +215,8 @@ def build_report(run: CalibrationRun) -> dict:
         ],
         "notes": run.notes,
         "region": _region_report(run.model),
+        # a calibration from a prior run: each parameter's change in its prior sigmas, the ones that moved
+        **({"prior": _json_safe(run.prior_update.to_dict())} if run.prior_update is not None else {}),
         # a 6-D probe's orientation (held-out errors in degrees per stage); absent for position-only data
         **({"orientation": _json_safe(o)} if (o := _orientation_report(run)) is not None else {}),
         **_stations_report(run),
