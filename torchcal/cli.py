@@ -305,6 +305,14 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--seed", type=_seed, default=0, help="seed of the held-out split and the network (0 to 2**63 - 1)")
     c.add_argument("--holdout", type=FRACTION, default=0.2, help="held-out fraction (default 0.2)")
     c.add_argument(
+        "--prior",
+        metavar="RUN",
+        default=None,
+        help="start from a calibrated run directory and update it from these rows (kinematic, MAP about its values "
+        "with its covariance; as few as 5 rows; report.json 'prior' names the parameters that moved). With few rows "
+        "the held-out error is of one or two rows: judge the update on a separate check file (torchcal predict)",
+    )
+    c.add_argument(
         "--refit",
         action=argparse.BooleanOptionalAction,
         default=None,
@@ -536,7 +544,7 @@ def cmd_calibrate(args) -> int:
     from torchcal.robot import load_robot
     from torchcal.robot.load import calibrated_flange
 
-    inputs = [args.data, *_robot_input(args.robot)]
+    inputs = [args.data, *_robot_input(args.robot), *([args.prior] if args.prior else [])]
     out = check_out_dir(args.out, inputs=inputs)  # before any fitting: refuse, touching nothing; resolved once
     # a run's robot_calibrated.urdf: the chain to calibrate ends at the flange, not at the earlier run's probe
     tip_link = args.tip_link or calibrated_flange(args.robot)
@@ -546,16 +554,24 @@ def cmd_calibrate(args) -> int:
         **({} if args.method is None else {"method": args.method}),
         **({} if args.rank_tol is None else {"rank_tol": args.rank_tol}),
     )
+    prior = None
+    if args.prior:
+        from torchcal.report.rundir import load_prior
+
+        prior = load_prior(args.prior)
     data = read_measurements(
         args.data,
         require_positions=True,
-        min_poses=C.min_poses(robot, opts.split.holdout),
-        purpose=f"a {opts.method} calibration of '{robot.name}'",
+        min_poses=C.MIN_PRIOR_POSES if prior is not None else C.min_poses(robot, opts.split.holdout),
+        purpose=f"a calibration from the prior run {args.prior}"
+        if prior is not None
+        else f"a {opts.method} calibration of '{robot.name}'",
         **_reading(args, robot),
     )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
-    C.check_holdout(data.n, opts.split.holdout)
-    run = C.calibrate(robot, data, opts, robot_spec=args.robot)
+    if prior is None:  # an update from a few rows is judged on a separate check file, not on one or two rows
+        C.check_holdout(data.n, opts.split.holdout)
+    run = C.calibrate(robot, data, opts, robot_spec=args.robot, prior=prior)
     out = write_run(run, out, inputs=inputs)
     st = {s.name: s for s in run.stages}
     _console.info(

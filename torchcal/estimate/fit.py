@@ -236,7 +236,8 @@ def place_stations_and_probes(
 
 def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
     """A-priori standard deviations of the instrument pose's and the lever arm's corrections by parameter name
-    (``opts.prior_instrument``, ``opts.prior_lever``; none where the options do not set them)."""
+    (``opts.prior_instrument``, ``opts.prior_lever``; none where the options do not set them), and of every element
+    a robot rebased on a prior run names in its ``prior_sigma`` (:mod:`torchcal.pipeline.prior`)."""
     out: dict[str, float] = {}
     inst, lever = getattr(opts, "prior_instrument", None), getattr(opts, "prior_lever", None)
     for info in model.robot.parameter_info():
@@ -248,6 +249,8 @@ def prior_scales(model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
             continue  # the probe frame's rotation: the closed-form start is no prior
         elif info.group == "tool" and lever is not None:
             out[info.name] = float(lever)
+    # a robot rebased on a prior run (torchcal.pipeline.prior) carries each element's a-priori sigma about it
+    out.update(getattr(model.robot, "prior_sigma", None) or {})
     return out
 
 

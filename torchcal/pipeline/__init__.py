@@ -9,6 +9,7 @@ guards and refit (:mod:`~torchcal.pipeline.holdout`).
 """
 
 from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
+from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, PriorUpdate, prior_from_run
 from torchcal.pipeline.records import Cause, EffectRecord, Note, Rejection, StageName
 from torchcal.pipeline.run import calibrate, check_holdout, holdout_split, is_trajectory, min_poses
 from torchcal.pipeline.state import CalibrationRun, Stage, StageResult
@@ -16,11 +17,14 @@ from torchcal.pipeline.state import CalibrationRun, Stage, StageResult
 __all__ = [
     "DEFAULT_METHOD",
     "METHODS",
+    "MIN_PRIOR_POSES",
     "CalibrationRun",
     "Cause",
     "EffectRecord",
     "Note",
     "Options",
+    "Prior",
+    "PriorUpdate",
     "Rejection",
     "Stage",
     "StageName",
@@ -30,4 +34,5 @@ __all__ = [
     "holdout_split",
     "is_trajectory",
     "min_poses",
+    "prior_from_run",
 ]

@@ -18,6 +18,7 @@ stages (:data:`METHOD_TABLE`); :func:`torchcal.pipeline.run.calibrate` applies e
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -31,7 +32,8 @@ from torchcal.pipeline.holdout import guard_stages, refit_kinematic
 from torchcal.pipeline.integrated import integrated_stage
 from torchcal.pipeline.learned import correction_net_stage, learned_stage
 from torchcal.pipeline.loop import close_loop
-from torchcal.pipeline.records import StageName
+from torchcal.pipeline.prior import MAX_RELEASED, MOVED_SIGMAS, prior_update, release
+from torchcal.pipeline.records import Note, StageName
 from torchcal.pipeline.state import CalibrationRun, StageFn, StageResult, StageWork
 
 
@@ -106,12 +108,91 @@ def guard(run: CalibrationRun) -> StageResult:
         return guard_stages(run)
 
 
+def prior_start(run: CalibrationRun) -> StageResult:
+    """The baseline of a calibration from a prior run (:mod:`torchcal.pipeline.prior`): the prior run's model as it
+    stands, on the new poses (no fit: its instrument pose and lever arm are the prior's too)."""
+    work = StageWork(run, StageName.NOMINAL)
+    _console.info(
+        f"{work.robot.name}: {run.train.n} training and {run.hold.n} held-out poses; starting from {run.prior.source}"
+    )
+    work.note(
+        f"prior: started from {run.prior.source}; {len(run.prior.sigma)} parameters may change (MAP about its "
+        f"values), its {len(run.model.effects)} effect(s) held; the 'nominal' stage is the prior run's model"
+    )
+    work.add_stage(StageName.NOMINAL)
+    return work.result(model_changed=False)
+
+
+def _fit_about_prior(run: CalibrationRun, rows, stage: str):
+    """The MAP fit of the geometry, instrument pose and lever arm about the prior on ``rows``, from the prior's
+    values, with the priors that fail their test released one at a time (:func:`prior_geometric`). No
+    identifiability analysis: every element has its prior, so the normal matrix is regular, and an element held
+    where the rows add little to its prior could not show that it changed. Returns the model and the fit."""
+    released: list[str] = []
+    while True:
+        model = copy.deepcopy(run.model)
+        model.robot.prior_sigma = release(run.prior, released, run.options.fit)
+        fit = solve(model, rows, GEOMETRIC_GROUPS, run.options.fit, stage, run.trajectory, identify=False)
+        worst = prior_update(run.prior, model).worst
+        if worst is None or len(released) >= MAX_RELEASED:
+            return model, fit, released
+        released.append(worst)
+
+
+def prior_geometric(run: CalibrationRun) -> StageResult:
+    """The kinematic calibration from a prior run: MAP about its values; a prior that fails its test (a change
+    beyond :data:`~torchcal.pipeline.prior.MOVED_SIGMAS` of its sigma) is released, largest first, one at a time, and
+    the fit repeated (:func:`~torchcal.pipeline.prior.release`): a Gaussian prior pulls a real change back by the
+    square of its size and spreads it over its correlated neighbours, where a released one lets the poses fit it."""
+    work = StageWork(run, StageName.GEOMETRIC)
+    _console.info("kinematic calibration about the prior run: MAP, the changed parameters released")
+    model, fit, released = _fit_about_prior(run, run.train, StageName.GEOMETRIC)
+    check_corrections(fit, model, run.options, run.data)
+    if released:
+        work.note(f"prior: released (changed beyond {MOVED_SIGMAS:g} prior sigma): {', '.join(released)}")
+    work.model = model
+    work.fits.append(fit)
+    work.add_stage(StageName.GEOMETRIC)
+    return work.result()
+
+
+def prior_refit(run: CalibrationRun) -> StageResult:
+    """With ``Options.refit``, the fit about the prior again on all rows, training and held-out (the held-out errors
+    reported stay the training fit's)."""
+    work = StageWork(run, "refit")
+    if not run.options.refits:
+        return work.result(model_changed=False)
+    both = run.fitted_and_held_out
+    _console.info(f"geometry fitted again about the prior on all {both.n} samples")
+    work.model, fit, _ = _fit_about_prior(run, both, "refit: geometry on all samples")
+    work.fits.append(fit)
+    work.note(f"refit: the model written was fitted again about the prior on all {both.n} samples")
+    return work.result()
+
+
+def prior_moved(run: CalibrationRun) -> StageResult:
+    """What the new poses changed of the prior run: each parameter's change in its prior sigmas, and the moved ones
+    (:func:`~torchcal.pipeline.prior.prior_update`)."""
+    update = prior_update(run.prior, run.model)
+    moved = ", ".join(update.moved) or "none"
+    _console.info(f"prior: moved beyond {update.threshold:g} prior sigma: {moved}")
+    return StageResult(
+        "prior", notes=(Note("prior", f"prior: moved beyond {update.threshold:g} sigma: {moved}"),), prior_update=update
+    )
+
+
 def finish(run: CalibrationRun) -> StageResult:
-    """The model written: its calibrated region (the training rows, or all rows where the run refitted on them),
-    and the parameter covariance of the run's last least-squares fit (``predict``'s sx, sy, sz)."""
+    """The model written: its calibrated region (the training rows, or all rows where the run refitted on them;
+    from a prior run, together with the prior's region), and the parameter covariance of the run's last
+    least-squares fit (``predict``'s sx, sy, sz)."""
     work = StageWork(run, "finish")
     rows = torch.cat([run.train.q, run.hold.q]) if run.options.refits else run.train.q
-    work.model.set_region(rows, fade=METHOD_TABLE[run.options.method].fades)
+    fade = METHOD_TABLE[run.options.method].fades
+    if run.prior is not None:  # the prior run's region stays calibrated, its learned corrections fade as they did
+        if run.prior.model.region is not None:
+            rows = torch.cat([rows, run.prior.model.region.to(rows)])
+        fade = run.prior.model.region_fade
+    work.model.set_region(rows, fade=fade)
     work.covariance = _covariance(run)
     return work.result()
 
@@ -152,3 +233,7 @@ METHOD_TABLE: dict[str, Method] = {
         Method("integrated", (nominal, geometric, integrated_stage, finish), fades=False, trajectory_only=True),
     )
 }
+
+#: a calibration from a prior run (``calibrate(..., prior=)``): the kinematic method, started from the prior's model
+#: and fitted about it (MAP), then what moved
+PRIOR_METHOD = Method("kinematic", (prior_start, prior_geometric, prior_refit, prior_moved, finish), fades=False)

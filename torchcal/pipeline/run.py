@@ -9,6 +9,7 @@ sides before any stage sees them.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import os
 
@@ -22,8 +23,9 @@ from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.pipeline.checks import MAX_PRIOR_RATIO, MIN_HOLDOUT, check_corrections, check_holdout, check_poses
 from torchcal.pipeline.integrated import require_trajectory
-from torchcal.pipeline.methods import METHOD_TABLE
+from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
 from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
+from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, prior_from_run
 from torchcal.pipeline.state import CalibrationRun, Stage
 from torchcal.robot.model import RobotModel
 
@@ -34,6 +36,8 @@ __all__ = [
     "MAX_PRIOR_RATIO",
     "METHODS",
     "MIN_HOLDOUT",
+    "MIN_PRIOR_POSES",
+    "Prior",
     "CalibrationRun",
     "Options",
     "Stage",
@@ -44,6 +48,7 @@ __all__ = [
     "holdout_split",
     "is_trajectory",
     "min_poses",
+    "prior_from_run",
     "screen_gross_errors",
 ]
 
@@ -124,11 +129,18 @@ def start(
     robot_spec: str | os.PathLike | None = None,
     base_link: str | None = None,
     tip_link: str | None = None,
+    prior: Prior | None = None,
 ) -> CalibrationRun:
     """The run before its first stage: the data checked and split, the gross errors screened out, the nominal model
-    with its calibrated region (the training poses)."""
+    with its calibrated region (the training poses); from a ``prior``, its model with its region, unscreened."""
     if data.p is None:
         raise OptionError("calibration needs measured positions (x, y, z columns)")
+    if prior is not None:
+        if data.n_stations > 1 or data.n_probes > 1:
+            raise OptionError("a calibration from a prior run takes data of one station and one probe")
+        if opts.method != "kinematic":
+            raise OptionError(f"a calibration from a prior run is kinematic, not method '{opts.method}'")
+        robot = prior.model.robot
     spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
     robot = _robot(robot, base_link, tip_link).to(opts.device)  # the run computes on opts.device
     if data.n_stations > 1 or data.n_probes > 1:  # one instrument pose per station, one lever arm per probe
@@ -144,9 +156,13 @@ def start(
     if method.trajectory_only:
         require_trajectory(data, trajectory)
     split = holdout_split(data, opts.split.holdout, opts.seed + S.Stream.HOLDOUT, trajectory, opts.split.group_tol)
-    tr, ho, screening = screen_gross_errors(robot, data, *split, opts, trajectory)
-    model = MeasurementModel(robot)
-    model.set_region(data.q[tr], fade=method.fades)
+    if prior is None:
+        tr, ho, screening = screen_gross_errors(robot, data, *split, opts, trajectory)
+        model = MeasurementModel(robot)
+        model.set_region(data.q[tr], fade=method.fades)
+    else:  # the robust screening fits the geometry from scratch, which the few rows of an update cannot
+        tr, ho, screening = split.keep, split.held, None
+        model = copy.deepcopy(prior.model).to(opts.device)
     notes = ()
     if split.merged_groups:
         from torchcal.pipeline.records import Note
@@ -158,7 +174,9 @@ def start(
                 f"kept wholly on one side",
             ),
         )
-    return CalibrationRun(spec, model, opts, data, tr, ho, trajectory, split=split, screening=screening, notes=notes)
+    return CalibrationRun(
+        spec, model, opts, data, tr, ho, trajectory, split=split, screening=screening, notes=notes, prior=prior
+    )
 
 
 def calibrate(
@@ -169,6 +187,7 @@ def calibrate(
     robot_spec: str | os.PathLike | None = None,
     base_link: str | None = None,
     tip_link: str | None = None,
+    prior: Prior | None = None,
 ) -> CalibrationRun:
     """Run a calibration: the method's stages (:mod:`torchcal.pipeline.methods`) in order, each result applied.
 
@@ -179,10 +198,19 @@ def calibrate(
         opts: the run's options (default :class:`Options`).
         robot_spec: how the report names the robot's description (default: the spec passed as ``robot``, or the
             robot's source file).
+        prior: a prior run (:func:`torchcal.pipeline.prior.prior_from_run`): the calibration starts from its model
+            and fits the changes to it (MAP, :data:`~torchcal.pipeline.methods.PRIOR_METHOD`); ``robot`` then only
+            names the robot (its name must be the prior's). The method is kinematic (``auto`` means it too).
     """
     opts = opts or Options()
-    run = start(robot, data, opts, robot_spec=robot_spec, base_link=base_link, tip_link=tip_link)
-    for stage in METHOD_TABLE[opts.method].stages:
+    if prior is not None:
+        named = _robot(robot, base_link, tip_link).name
+        if named != prior.model.robot.name:
+            raise OptionError(f"the prior run calibrated robot '{prior.model.robot.name}', not '{named}'")
+        if opts.method == DEFAULT_METHOD:
+            opts = dataclasses.replace(opts, method="kinematic")
+    run = start(robot, data, opts, robot_spec=robot_spec, base_link=base_link, tip_link=tip_link, prior=prior)
+    for stage in (PRIOR_METHOD if prior is not None else METHOD_TABLE[opts.method]).stages:
         run = run.apply(stage(run))
     return run
 

@@ -23,6 +23,7 @@ from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import Fit, errors
 from torchcal.estimate.robust import Screening
 from torchcal.pipeline.options import Options
+from torchcal.pipeline.prior import Prior, PriorUpdate
 from torchcal.pipeline.records import Diagnosis, EffectRecord, IntegratedFilter, Note, Rejection
 from torchcal.robot.model import RobotModel
 
@@ -69,6 +70,8 @@ class CalibrationRun:
     diagnosis: Diagnosis | None = None  # the closed loop's search
     filter: IntegratedFilter | None = None  # the integrated method's filter pass
     holdout_guard: dict | None = None  # the held-out guard's evidence (torchcal.pipeline.holdout)
+    prior: Prior | None = None  # the prior run the calibration started from (torchcal.pipeline.prior)
+    prior_update: PriorUpdate | None = None  # what the new poses changed of it
 
     @property
     def robot(self) -> RobotModel:
@@ -129,7 +132,7 @@ class CalibrationRun:
         )
         if result.model is not None:
             changes["model"] = result.model
-        for name in ("covariance", "learned_validation_errors", "diagnosis", "filter", "holdout_guard"):
+        for name in ("covariance", "learned_validation_errors", "diagnosis", "filter", "holdout_guard", "prior_update"):
             if getattr(result, name) is not None:
                 changes[name] = getattr(result, name)
         return dataclasses.replace(self, **changes)
@@ -155,6 +158,7 @@ class StageResult:
     diagnosis: Diagnosis | None = None
     filter: IntegratedFilter | None = None
     holdout_guard: dict | None = None
+    prior_update: PriorUpdate | None = None
 
     @property
     def changed(self) -> bool:

@@ -222,6 +222,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "![error map](error_map.png)",
         "",
     ]
+    lines += _prior_section(report)
     lines += _orientation_section(report)
     lines += _stations_section(report)
     lines += _diagnosis_section(run, report, out)
@@ -307,6 +308,32 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     if report["notes"]:
         lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
     (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+
+
+def _prior_section(report: dict) -> list[str]:
+    """A calibration from a prior run: what the new poses moved, and every parameter's change in its prior sigmas."""
+    pr = report.get("prior")
+    if pr is None:
+        return []
+    moved = ", ".join(pr["moved"]) or "nothing"
+    lines = [
+        "## What moved since the prior run",
+        "",
+        f"Started from {pr['source']} (its model: the 'nominal' stage above). Moved beyond "
+        f"{pr['moved_threshold_sigma']:g} prior sigma: **{moved}**"
+        + (f" (released from their prior: {', '.join(pr['released'])})" if pr["released"] else "")
+        + ". Prior sigma: the run's own, x"
+        f"{pr['inflation']:g}, at least {pr['floor']['m'] * 1e6:g} um or urad; its s0 {pr['s0']:.3g}.",
+        "",
+        "| parameter | prior run | change | prior sigma | change / sigma |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for r in sorted(pr["parameters"], key=lambda r: -r["ratio"]):
+        lines.append(
+            f"| {r['name']} | {_fmt(r['prior'], r['unit'])} | {_fmt(r['change'], r['unit'])} | "
+            f"{_fmt(r['sigma'], r['unit'])} | {r['ratio']:.2f} |"
+        )
+    return [*lines, ""]
 
 
 def _orientation_section(report: dict) -> list[str]:

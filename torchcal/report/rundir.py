@@ -37,7 +37,7 @@ from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import EstimationError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.pipeline import CalibrationRun
+from torchcal.pipeline import CalibrationRun, Prior, prior_from_run
 from torchcal.robot import load_robot, resolve_robot_spec
 from torchcal.robot.load import MAX_DESCRIPTION_BYTES
 from torchcal.stats import rmse
@@ -215,6 +215,8 @@ def build_report(run: CalibrationRun) -> dict:
         ],
         "notes": run.notes,
         "region": _region_report(run.model),
+        # a calibration from a prior run: each parameter's change in its prior sigmas, the ones that moved
+        **({"prior": _json_safe(run.prior_update.to_dict())} if run.prior_update is not None else {}),
         # a 6-D probe's orientation (held-out errors in degrees per stage); absent for position-only data
         **({"orientation": _json_safe(o)} if (o := _orientation_report(run)) is not None else {}),
         **_stations_report(run),
@@ -534,6 +536,21 @@ def load_covariance(run_dir: str | os.PathLike, model: MeasurementModel) -> Para
         return ParameterCovariance.from_state(state, model)
     except ValueError as e:
         raise _run_error(run_dir, f"covariance.pt does not fit model.pt: it {e}") from None
+
+
+def load_prior(run_dir: str | os.PathLike) -> Prior:
+    """A run directory as the prior of a new calibration (:func:`torchcal.pipeline.prior.prior_from_run`): its
+    model, its parameter covariance and the variance factor of the fit that covariance is of (report.json's
+    ``global_test.statistic``; 1 where the report lacks it)."""
+    run_dir = Path(run_dir)
+    model, _ = load_model(run_dir)
+    s0_sq = 1.0
+    if (run_dir / "report.json").exists():
+        rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
+        stat = rep.get("global_test", {}).get("statistic") if isinstance(rep, dict) else None
+        if isinstance(stat, (int, float)) and math.isfinite(stat) and stat > 0:
+            s0_sq = float(stat)
+    return prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
 
 
 def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:

@@ -1,0 +1,31 @@
+#!/usr/bin/env python3
+"""The command line of :mod:`torchcal.experiments.prior_update`: calibrate a series of the real UR10, simulate a
+crash of one joint, and update the calibration from a few crashed rows (``calibrate --prior``)."""
+
+import sys
+from pathlib import Path
+
+from torchcal.experiments import common, prior_update
+
+ap = common.parser(prior_update.__doc__.split("\n\n")[0])
+ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")
+ap.add_argument("--series", default="C", help="series to calibrate (default C)")
+ap.add_argument("--rows", type=int, default=10, help="crashed training rows to update from (default 10)")
+ap.add_argument("--seeds", type=int, default=5, help="random draws of the rows (default 5)")
+ap.add_argument("--joint", type=int, default=2, help="the crashed joint, 1-based (default 2)")
+ap.add_argument("--shift-mrad", type=float, default=2.0, help="its readings' shift [mrad] (default 2)")
+
+
+def experiment(a):
+    if not a.data_dir.is_dir():
+        ap.error(f"data folder not found: {a.data_dir}")
+    res = prior_update.run(a.data_dir, a.series.upper(), a.rows, a.seeds, a.joint, a.shift_mrad * 1e-3)
+    return res, prior_update.markdown(res)
+
+
+def main(argv=None) -> int:
+    return common.run_markdown(ap, experiment, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

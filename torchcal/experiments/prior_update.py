@@ -1,0 +1,128 @@
+"""A calibration from a prior run on the real UR10 (issue 27 item 2): a simulated crash of joint 2, updated from
+a few rows.
+
+Series ``series`` (default C) is calibrated (kinematic, calibrate's grouped 20 % held out) and written as a run
+directory. The crash: joint 2's readings shifted by ``shift`` rad (2 mrad), as a re-zeroed encoder would report
+them, in the held-out rows and in ``rows`` rows drawn (seeded) from the series' training rows. For each seed the
+run is updated from those rows (:func:`torchcal.pipeline.calibrate` with ``prior=``, refitted on all of them:
+``Options.refit``) and judged on the crashed held-out rows, against the pre-crash calibration on the uncrashed ones
+(the bar: within 1.1x) and the prior run alone on the crashed ones (what not updating costs); the parameters the
+update names as moved are listed. From scratch the rows are too few to calibrate (:func:`~torchcal.pipeline.
+min_poses`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from torchcal.data import Measurements, read_ipa
+from torchcal.estimate.fit import errors
+from torchcal.experiments.ipa_series import series_file
+from torchcal.pipeline import Options, calibrate, min_poses
+from torchcal.report import write_run
+from torchcal.report.rundir import load_prior
+from torchcal.robot import load_robot
+
+ROBOT = "ur10"
+SEED = 0
+HOLDOUT = 0.2
+MM = 1e3
+
+
+def crash(m: Measurements, joint: int, shift: float) -> Measurements:
+    """``m`` with joint ``joint``'s (1-based) readings shifted by ``shift`` [rad]: the robot stands where it stood,
+    its encoder reports another angle."""
+    q = m.q.clone()
+    q[:, joint - 1] += shift
+    return dataclasses.replace(m, q=q)
+
+
+def _rmse(e: torch.Tensor) -> float:
+    return float(e.square().mean().sqrt()) * MM
+
+
+def _median(v: list[float]) -> float:
+    s = sorted(v)
+    return s[len(s) // 2] if len(s) % 2 else 0.5 * (s[len(s) // 2 - 1] + s[len(s) // 2])
+
+
+def run(data_dir: Path, series: str = "C", rows: int = 10, seeds: int = 5, joint: int = 2, shift: float = 2e-3) -> dict:
+    t0 = time.perf_counter()
+    data = read_ipa(series_file(data_dir, series))
+    before = calibrate(ROBOT, data, Options.of(method="kinematic", seed=SEED, holdout=HOLDOUT, trajectory=False))
+    train_idx, held_idx = before.train_idx, before.holdout_idx
+    held = data.subset(held_idx)
+    held_crashed = crash(held, joint, shift)
+    out: dict = {
+        "series": series,
+        "rows": rows,
+        "seeds": seeds,
+        "crash": {"joint": joint, "shift_rad": shift},
+        "n_train": int(len(train_idx)),
+        "n_holdout": int(len(held_idx)),
+        "min_poses_from_scratch": min_poses(load_robot(ROBOT), HOLDOUT),
+        "before_crash_mm": _rmse(errors(before.model, held, False)),
+    }
+    with tempfile.TemporaryDirectory() as tmp:
+        d = write_run(before, Path(tmp) / "before")
+        prior = load_prior(d)
+    out["prior_alone_on_crashed_mm"] = _rmse(errors(prior.model, held_crashed, False))
+    per_seed = []
+    for s in range(seeds):
+        g = torch.Generator().manual_seed(s)
+        pick = torch.sort(train_idx[torch.randperm(len(train_idx), generator=g)[:rows]]).values
+        new = crash(data.subset(pick), joint, shift)
+        up = calibrate(
+            ROBOT,
+            new,
+            Options.of(method="kinematic", seed=s, holdout=HOLDOUT, refit=True, trajectory=False),
+            prior=prior,
+        )
+        upd = up.prior_update
+        change = {r["name"]: r for r in upd.rows}
+        theta = change.get(f"theta{joint}")
+        per_seed.append(
+            {
+                "seed": s,
+                "rmse_mm": _rmse(errors(up.model, held_crashed, False)),
+                "moved": list(upd.moved),
+                "theta_change_mrad": theta["change"] * 1e3 if theta else None,
+                "theta_ratio": theta["ratio"] if theta else None,
+            }
+        )
+    vals = [p["rmse_mm"] for p in per_seed]
+    out["update_mm"] = {"median": _median(vals), "min": min(vals), "max": max(vals)}
+    out["ratio_to_before"] = {k: v / out["before_crash_mm"] for k, v in out["update_mm"].items()}
+    out["s0_prior"] = prior.scale
+    out["per_seed"] = per_seed
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def markdown(res: dict) -> str:
+    c = res["crash"]
+    lines = [
+        f"Series {res['series']} kinematic, then joint {c['joint']}'s readings shifted by "
+        f"{c['shift_rad'] * 1e3:g} mrad; "
+        f"updated from {res['rows']} crashed training rows (seeds 0..{res['seeds'] - 1}), held-out RMSE on "
+        f"{res['n_holdout']} poses:",
+        "",
+        f"- before the crash: {res['before_crash_mm']:.3f} mm",
+        f"- the prior run alone on the crashed rows: {res['prior_alone_on_crashed_mm']:.3f} mm",
+        f"- updated: median {res['update_mm']['median']:.3f} mm ({res['update_mm']['min']:.3f}-"
+        f"{res['update_mm']['max']:.3f}), {res['ratio_to_before']['median']:.2f}x the pre-crash error",
+        f"- from scratch: {res['rows']} rows, {res['min_poses_from_scratch']} needed",
+        "",
+        "| seed | RMSE [mm] | moved | theta change [mrad] |",
+        "|---|---|---|---|",
+    ]
+    for p in res["per_seed"]:
+        lines.append(
+            f"| {p['seed']} | {p['rmse_mm']:.3f} | {', '.join(p['moved']) or '-'} | {p['theta_change_mrad']:+.3f} |"
+        )
+    return "\n".join(lines) + "\n"
