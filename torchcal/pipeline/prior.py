@@ -1,4 +1,4 @@
-"""A calibrated run as the prior of a new one: a few new poses update what changed (issue 27 item 2).
+"""A calibrated run as the prior of a new one: a few new poses update what changed.
 
 After a crash, a motor swap, a re-mounted tool, the robot is mostly what an earlier calibration found; a handful of
 new poses should move only what changed. :func:`prior_from_run` turns that calibration (its model and the parameter
