@@ -12,6 +12,8 @@ ap = common.parser(plan_poses.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")
 ap.add_argument("--series", default="A", help="series (default A)")
 ap.add_argument("--k", default="30,100,500", help="design sizes, comma-separated (default 30,100,500)")
+ap.add_argument("--criterion", choices=("I", "D"), default="I", help="design criterion (default I)")
+ap.add_argument("--edge-share", type=float, default=0.1, help="share of picks at the region's edges (default 0.1)")
 ap.add_argument("--seeds", type=int, default=5, help="random designs per size (default 5)")
 ap.add_argument(
     "--reference", type=int, default=200, help="random poses of the reference design (default 200; 0: none)"
@@ -25,7 +27,9 @@ def experiment(a):
         ks = tuple(int(v) for v in common.comma_list(ap, a.k, None, what="size"))
     except ValueError:
         ap.error(f"--k must be whole numbers separated by commas, got {a.k!r}")
-    res = plan_poses.run(a.data_dir, a.series.upper(), ks, a.seeds, a.reference or None)
+    res = plan_poses.run(
+        a.data_dir, a.series.upper(), ks, a.seeds, a.reference or None, edge_share=a.edge_share, criterion=a.criterion
+    )
     return res, plan_poses.markdown(res)
 
 

@@ -419,9 +419,10 @@ def build_parser() -> argparse.ArgumentParser:
         "plan",
         help="choose the poses to measure: the most informative K for a kinematic calibration",
         description="Choose K poses from candidates (a file of joint configurations, or sampled within the joint "
-        "limits where the tracker sees the probe) by a greedy D-optimal criterion on the identifiable geometric, "
-        "instrument and lever-arm parameters, a share of them at the edges of the region. Writes OUT (q1..qN, a "
-        "measurement file without positions) and next to it OUT's name with .plan.json and .plan.md: the predicted "
+        "limits where the tracker sees the probe) by a greedy I-optimal (or D-optimal) criterion on the "
+        "identifiable geometric, instrument and lever-arm parameters, a share of them at the edges of the region. "
+        "Writes OUT (q1..qN, a measurement file without positions) and next to it OUT's name with .plan.json and "
+        ".plan.md: the predicted "
         "parameter sigmas, the predicted held-out error for K (and for K random candidates) and a curve of "
         "predicted error against K.",
     )
@@ -445,6 +446,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--pool", type=_count, default=10_000, help="candidates to sample without --candidates (default 10000)"
     )
     pl.add_argument("--seed", type=_seed, default=0, help="seed of the sampled candidates and the random reference")
+    pl.add_argument(
+        "--criterion",
+        choices=("I", "D"),
+        default="I",
+        help="I (default): the least mean position variance over the candidates; D: the largest determinant of "
+        "the parameters' information",
+    )
     pl.add_argument(
         "--edge-share",
         type=_number("nonnegative", 0.5),
@@ -882,6 +890,7 @@ def cmd_plan(args) -> int:
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
     opts = PlanOptions(
         k=args.n,
+        criterion=args.criterion,
         edge_share=args.edge_share,
         sigma_tracker=sigma_tracker,
         sigma_joint=sigma_joint,

@@ -56,6 +56,7 @@ def compare(
     seeds: int,
     reference: int | None = 200,
     edge_share: float = 0.1,
+    criterion: str = "I",
 ) -> dict:
     """Planned and random designs of each size in ``ks`` from ``pool``, scored on ``held`` (module docstring)."""
     t0 = time.perf_counter()
@@ -71,6 +72,8 @@ def compare(
         "n_holdout": held.n,
         "variance_factor": s0_sq,
         "pool_kinematic_holdout_mm": _rmse(errors(base.model, held, trajectory=False)),
+        "criterion": criterion,
+        "edge_share": edge_share,
         "sizes": [],
     }
     for k in ks:
@@ -80,6 +83,7 @@ def compare(
             pool.q,
             PlanOptions(
                 k=k,
+                criterion=criterion,
                 edge_share=edge_share,
                 sigma_tracker=sigma_tracker,
                 sigma_joint=opts_fit.sigma_joint,
@@ -121,17 +125,26 @@ def split(m: Measurements) -> tuple[Measurements, Measurements]:
     return m.subset(torch.sort(sp.keep).values), m.subset(torch.sort(sp.held).values)
 
 
-def run(data_dir: Path, series: str, ks: tuple[int, ...], seeds: int, reference: int | None = 200) -> dict:
+def run(
+    data_dir: Path,
+    series: str,
+    ks: tuple[int, ...],
+    seeds: int,
+    reference: int | None = 200,
+    edge_share: float = 0.1,
+    criterion: str = "I",
+) -> dict:
     """:func:`compare` on a UR10 series: the pool its training split's rows, scored on its held-out split."""
     pool, held = split(read_ipa(series_file(data_dir, series)))
-    return {"series": series, **compare("ur10", pool, held, ks, seeds, reference)}
+    return {"series": series, **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion)}
 
 
 def markdown(res: dict) -> str:
     ref = res.get("reference")
     lines = [
         f"Series {res.get('series', '?')}: pool {res['n_pool']} poses, {res['n_holdout']} held out; variance factor "
-        f"{res['variance_factor']:.3g}; kinematic on the whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
+        f"{res['variance_factor']:.3g}; criterion {res['criterion']}, edge share {res['edge_share']}; kinematic on the "
+        f"whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
         "",
         "| K | planned [mm] | predicted [mm] | pred/meas | random median [mm] (min-max) | planned / random "
         + (f"{ref['k']} |" if ref else "|"),

@@ -1,13 +1,14 @@
 """Plan a measurement campaign: the ``K`` poses that make a kinematic calibration most informative.
 
-Candidates are given (a file of joint configurations the robot may take) or sampled within the joint limits where
-the tracker sees the probe (:func:`sample_candidates`, the simulator's line-of-sight rule). Among them
-:func:`plan_poses` picks ``K`` by the greedy D-optimal criterion on the identifiable geometric, instrument and
-lever-arm parameters (:mod:`torchcal.estimate.design`), a share of the picks (``edge_share``, default 10 %) among
-the candidates at the edges of the region (some joint beyond the 2.5 % or 97.5 % quantile of the candidates', as
-calibrate's held-out guard defines them, :func:`~torchcal.pipeline.holdout.at_edges`): the D criterion favours
-poses that separate parameters, which are not always those at the limits of where the robot will work, and a
-calibration is trusted there only if it was measured there.
+Candidates are given (a file of joint configurations the robot may take) or sampled within the joint limits where the
+tracker sees the probe (:func:`sample_candidates`, the simulator's line-of-sight rule). Among them :func:`plan_poses`
+picks ``K`` greedily by the I-optimal criterion (the mean position variance over the candidates; or the D-optimal one)
+on the identifiable geometric, instrument and lever-arm parameters (:mod:`torchcal.estimate.design`), a share of the
+picks (``edge_share``, default 10 %) among the candidates at the edges of the region (some joint beyond the 2.5 % or
+97.5 % quantile of the candidates', as calibrate's held-out guard defines them,
+:func:`~torchcal.pipeline.holdout.at_edges`): an optimal design favours poses that separate parameters, which are not
+always those at the limits of where the robot will work, and a calibration is trusted there only if it was measured
+there.
 
 The prediction: the parameters' standard deviations after ``K`` poses and the predicted held-out RMSE over the
 candidates (the region), for ``K`` and for a grid of sizes (the curve), with the same for ``K`` random candidates as a
@@ -27,7 +28,7 @@ from torchcal.estimate.design import (
     Priors,
     covariance,
     design_problem,
-    greedy_d_optimal,
+    greedy_design,
     information,
     log_det,
     predicted_rmse,
@@ -53,6 +54,7 @@ class PlanOptions:
 
     Attributes:
         k: poses to pick.
+        criterion: ``"I"`` (default) or ``"D"`` (:mod:`torchcal.estimate.design`).
         edge_share: share of the picks made among the candidates at the edges of the region (0: none).
         sigma_tracker: tracker noise per axis [m]; sigma_joint: joint noise [rad] (the fits' stochastic model).
         s0_sq: variance factor of the stochastic model (a run's own; 1 for simulated data).
@@ -61,6 +63,7 @@ class PlanOptions:
     """
 
     k: int
+    criterion: str = "I"
     edge_share: float = 0.1
     sigma_tracker: float = 15e-6
     sigma_joint: float = math.radians(0.0005)
@@ -106,8 +109,8 @@ class Plan:
         return {
             "k": len(self.index),
             "n_candidates": self.n_candidates,
-            "criterion": "greedy D-optimal on the whitened Jacobian of the identifiable geometry, instrument pose and "
-            "lever arm, priors as the starting information",
+            "criterion": f"greedy {self.options.criterion}-optimal on the whitened Jacobian of the identifiable "
+            "geometry, instrument pose and lever arm, priors as the starting information",
             "edge_share": self.options.edge_share,
             "n_edge": int(self.edge.sum()),
             "stochastic_model": {
@@ -193,7 +196,7 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
     every = round(1.0 / opts.edge_share) if opts.edge_share > 0 else 0
     top = min(N, 2 * opts.k)
     grid = tuple(sorted({c for c in CURVE if c <= top} | {opts.k, top}))
-    design = greedy_d_optimal(problem, max(grid), restrict=edge, every=every, checkpoints=grid)
+    design = greedy_design(problem, max(grid), criterion=opts.criterion, restrict=edge, every=every, checkpoints=grid)
     curve = []
     for c in grid:
         S = covariance(design.information[c], opts.s0_sq)
