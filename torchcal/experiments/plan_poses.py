@@ -136,13 +136,33 @@ def run(
 ) -> dict:
     """:func:`compare` on a UR10 series: the pool its training split's rows, scored on its held-out split."""
     pool, held = split(read_ipa(series_file(data_dir, series)))
-    return {"series": series, **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion)}
+    return {"series": f"Series {series}", **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion)}
+
+
+def simulated(
+    robot: str,
+    ks: tuple[int, ...],
+    seeds: int,
+    reference: int | None = 200,
+    edge_share: float = 0.1,
+    criterion: str = "I",
+    poses: int = 2000,
+    test_poses: int = 500,
+    seed: int = 3,
+) -> dict:
+    """:func:`compare` on a simulated campaign (no effects beyond the geometry): the pool its training file, scored
+    on its test file."""
+    from torchcal.sim import SimConfig, simulate
+
+    c = simulate(SimConfig(robot=robot, poses=poses, test_poses=test_poses, seed=seed))
+    res = compare(robot, c.train, c.test, ks, seeds, reference, edge_share, criterion)
+    return {"series": f"simulated {robot} (seed {seed})", **res}
 
 
 def markdown(res: dict) -> str:
     ref = res.get("reference")
     lines = [
-        f"Series {res.get('series', '?')}: pool {res['n_pool']} poses, {res['n_holdout']} held out; variance factor "
+        f"{res.get('series', '?')}: pool {res['n_pool']} poses, {res['n_holdout']} held out; variance factor "
         f"{res['variance_factor']:.3g}; criterion {res['criterion']}, edge share {res['edge_share']}; kinematic on the "
         f"whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
         "",
