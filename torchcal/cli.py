@@ -460,6 +460,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="share of the picks made at the edges of the region (default 0.1)",
     )
     pl.add_argument(
+        "--learned-share",
+        type=_number("nonnegative", 0.5),
+        default=0.2,
+        help="with a --run whose learned correction has a predictive sigma (a GP): share of the picks made where it "
+        "is least certain (default 0.2)",
+    )
+    pl.add_argument(
         "--tracker",
         type=_tool,
         default=None,
@@ -892,6 +899,7 @@ def cmd_plan(args) -> int:
         k=args.n,
         criterion=args.criterion,
         edge_share=args.edge_share,
+        learned_share=args.learned_share,
         sigma_tracker=sigma_tracker,
         sigma_joint=sigma_joint,
         s0_sq=s0_sq,

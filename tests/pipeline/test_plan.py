@@ -71,8 +71,65 @@ def test_edge_share_is_kept(campaign):
     assert int(plan.edge[4::5].sum()) == 10  # every fifth pick is an edge pose
 
 
+def test_learned_share_goes_where_the_learned_correction_is_least_certain(campaign, monkeypatch):
+    """A model whose learned correction is uncertain around one pose: every fifth pick goes there, spread by the
+    discount, and the JSON counts them."""
+    import torchcal.pipeline.plan as plan_module
+
+    q = campaign.train.q
+    where = (q - q.min(0).values) / (q.max(0).values - q.min(0).values)
+    d2 = (where - where[0]).square().sum(-1)
+
+    def fake_std(model, ctx):
+        return torch.exp(-d2 / 0.5).unsqueeze(-1).expand(-1, 3) * 1e-4
+
+    monkeypatch.setattr(plan_module, "learned_std", fake_std)
+    model = MeasurementModel(load_robot("ur5"))
+    plan = plan_poses(model, q, PlanOptions(k=40, learned_share=0.2))
+    assert int(plan.learned.sum()) == 8 and bool(plan.learned[2::5].all())
+    assert int(plan.index[2]) == 0  # the first turn takes the most uncertain candidate
+    picked = plan.index[plan.learned]
+    assert len(set(picked.tolist())) == 8
+    # the discount spreads them: no two of them closer than the nearest neighbours of the hot pose typically are
+    w = where[picked]
+    gaps = (w[:, None] - w[None]).norm(dim=-1) + torch.eye(8, dtype=w.dtype) * 9
+    assert float(gaps.min()) > 0.05
+    assert plan.to_dict()["n_learned"] == 8
+    # without a learned correction (the real learned_std on a geometric model): no turns
+    monkeypatch.undo()
+    assert int(plan_poses(model, q, PlanOptions(k=20)).learned.sum()) == 0
+
+
 def test_predicted_holdout_error_within_25_percent(campaign):
     res = compare("ur5", campaign.train, campaign.test, (30, 100), seeds=1, reference=None)
     for row in res["sizes"]:
         print(row["k"], row["planned_mm"], row["predicted_mm"], row["random_mm"]["median"])
         assert 0.75 < row["predicted_over_measured"] < 1.25, row
+
+
+def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_path):
+    """A simulated campaign with a smooth field the geometry lacks: the default method learns it (a GP), and plan
+    --run sends every fifth pick where that correction is least certain."""
+    sim = tmp_path / "sim"
+    assert (
+        main(
+            ["simulate", "--robot", "ur5", "--out", str(sim), "--poses", "500", "--test-poses", "50"]
+            + ["--effect", "field=0.05mm", "--quiet"]
+        )
+        == 0
+    )
+    run = tmp_path / "run"
+    assert main(["calibrate", str(sim / "train.csv"), "--robot", "ur5", "--out", str(run), "--quiet"]) == 0
+    out = tmp_path / "poses.csv"
+    assert main(["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--quiet"]) == 0
+    d = json.loads((tmp_path / "poses.plan.json").read_text())
+    assert d["n_learned"] == 6 and d["learned_share"] == 0.2
+    assert 0.5 < d["stochastic_model"]["variance_factor"] < 2.0
+    assert (
+        main(
+            ["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--learned-share", "0"]
+            + ["--quiet"]
+        )
+        == 0
+    )
+    assert json.loads((tmp_path / "poses.plan.json").read_text())["n_learned"] == 0

@@ -38,6 +38,7 @@ right up to the noise (a variance factor ``s0^2`` absorbs unmodelled errors only
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -195,6 +196,7 @@ def greedy_design(
     restrict: Tensor | None = None,
     every: int = 0,
     checkpoints: tuple[int, ...] = (),
+    other: Callable[[int, Tensor], Tensor | None] | None = None,
 ) -> Design:
     """Pick ``k`` candidates greedily by the I or the D criterion (module docstring).
 
@@ -204,6 +206,9 @@ def greedy_design(
         restrict: ``(N,)`` bool; with ``every > 0`` every ``every``-th pick (picks ``every``, ``2 every``, ...) is
             made among these candidates only (poses at the edges of the region: any prefix holds its share).
         checkpoints: pick counts at which to keep ``M`` (for the curve of predicted error against ``k``).
+        other: ``(j, taken) -> scores (N,)`` or None: where it returns scores, pick ``j`` (0-based) is the candidate
+            with the highest score among those not taken (another criterion's turn; ``taken`` is the ``(N,)`` bool
+            of the picks so far).
     """
     N = problem.n
     if not 1 <= k <= N:
@@ -233,7 +238,8 @@ def greedy_design(
         if restrict is not None and every > 0 and (j + 1) % every == 0 and bool((restrict & ~taken).any()):
             blocked |= ~restrict
         gain = gain.masked_fill(blocked, -math.inf)
-        i = int(torch.argmax(gain))
+        turn = other(j, taken) if other is not None else None
+        i = int(torch.argmax(gain if turn is None else turn.masked_fill(taken, -math.inf)))
         u = B[i].T  # Sigma A_i^T (P, 3)
         Sigma = Sigma - u @ torch.linalg.solve(G[i], u.T)
         Sigma = 0.5 * (Sigma + Sigma.T)
