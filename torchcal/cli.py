@@ -423,6 +423,83 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(st)
     _add_common(st)
 
+    pl = sub.add_parser(
+        "plan",
+        help="choose the poses to measure: the most informative K for a kinematic calibration",
+        description="Choose K poses from candidates (a file of joint configurations, or sampled within the joint "
+        "limits where the tracker sees the probe) by a greedy I-optimal (or D-optimal) criterion on the "
+        "identifiable geometric, instrument and lever-arm parameters, a share of them at the edges of the region. "
+        "Writes OUT (q1..qN, a measurement file without positions) and next to it OUT's name with .plan.json and "
+        ".plan.md: the predicted "
+        "parameter sigmas, the predicted held-out error for K (and for K random candidates) and a curve of "
+        "predicted error against K.",
+    )
+    pl.add_argument(
+        "--robot",
+        default=None,
+        help="built-in name (ur5, ur10, panda, ...), a URDF file or a DH YAML file (default: the --run's robot)",
+    )
+    pl.add_argument("--base-link", default=None, help="URDF: first link of the chain (default: the root)")
+    pl.add_argument("--tip-link", default=None, help="URDF: last link of the chain (default: the only deepest leaf)")
+    pl.add_argument(
+        "--run",
+        default=None,
+        help="run directory written by calibrate: plan with its calibrated model, instrument pose, lever arm, "
+        "stochastic model and variance factor",
+    )
+    pl.add_argument("--candidates", default=None, help="file with q1..qN per row (other columns ignored)")
+    pl.add_argument("--n", type=_count, required=True, help="poses to choose (K)")
+    pl.add_argument("--out", required=True, help="CSV to write: q1..qN [rad] of the chosen poses")
+    pl.add_argument(
+        "--pool", type=_count, default=10_000, help="candidates to sample without --candidates (default 10000)"
+    )
+    pl.add_argument("--seed", type=_seed, default=0, help="seed of the sampled candidates and the random reference")
+    pl.add_argument(
+        "--criterion",
+        choices=("I", "D"),
+        default="I",
+        help="I (default): the least mean position variance over the candidates; D: the largest determinant of "
+        "the parameters' information",
+    )
+    pl.add_argument(
+        "--edge-share",
+        type=_number("nonnegative", 0.5),
+        default=0.1,
+        help="share of the picks made at the edges of the region (default 0.1)",
+    )
+    pl.add_argument(
+        "--learned-share",
+        type=_number("nonnegative", 0.5),
+        default=0.2,
+        help="with a --run whose learned correction has a predictive sigma (a GP): share of the picks made where it "
+        "is least certain (default 0.2)",
+    )
+    pl.add_argument(
+        "--tracker",
+        type=_tool,
+        default=None,
+        help="X,Y,Z [mm]: the tracker's position in the robot base frame, for the line of sight of sampled "
+        "candidates (default: the --run's, else 2500,0,200)",
+    )
+    pl.add_argument(
+        "--tool",
+        type=_tool,
+        default=None,
+        help="X,Y,Z [mm]: the probe's lever arm (default: the --run's, else 0,0,100)",
+    )
+    pl.add_argument(
+        "--tracker-noise",
+        type=TRACKER_UM,
+        default=None,
+        help="tracker sigma per axis [um] (default: the run's, else 15)",
+    )
+    pl.add_argument(
+        "--joint-noise", type=JOINT_DEG, default=None, help="joint sigma [deg] (default: the run's, else 0.0005)"
+    )
+    _add_force(pl)
+    _add_units(pl)
+    _add_common(pl)
+
     cv = sub.add_parser(
         "convert",
         help="convert a third-party data set into a measurement file",
@@ -769,6 +846,95 @@ def cmd_station(args) -> int:
     return 0
 
 
+def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
+    """``plan``'s summary next to its poses: an earlier plan's JSON (``"written_by": "torchcal plan"``, JSON has no
+    comment line for the usual mark) is replaced like a marked file; anything else as :func:`check_out_file` says."""
+    p = Path(path)
+    if p.suffix == ".json" and p.is_file() and not p.is_symlink():
+        try:
+            earlier = json.loads(p.read_text(encoding="utf-8")).get("written_by") == "torchcal plan"
+        except (ValueError, OSError, AttributeError):
+            earlier = False
+        if earlier:
+            return check_out_file(path, inputs=inputs, force=True)
+    return check_out_file(path, inputs=inputs, force=force)
+
+
+def cmd_plan(args) -> int:
+    from torchcal.data import Measurements, read_measurements, write_measurements
+    from torchcal.effects import MeasurementModel
+    from torchcal.pipeline.plan import PlanOptions, plan_poses, sample_candidates, scene_of
+
+    inputs = [p for p in (args.candidates, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
+    out_file = check_out_file(args.out, inputs=inputs, force=args.force)
+    stem = out_file.with_suffix("")
+    side = {ext: _plan_side_file(f"{stem}.plan.{ext}", inputs, args.force) for ext in ("json", "md")}
+    if args.run is None and args.robot is None:
+        raise OptionError("give --robot or --run (the robot to plan for)")
+    sigma_tracker, sigma_joint, s0_sq = 15e-6, math.radians(0.0005), 1.0
+    tracker = lever = None
+    if args.run is not None:
+        from torchcal.report import load_model
+        from torchcal.report.station import station_options
+
+        model, meta = load_model(args.run)
+        so = station_options(args.run)
+        sigma_tracker, sigma_joint = so.sigma_tracker, so.sigma_joint
+        report = Path(args.run) / "report.json"
+        if report.exists():
+            s0 = json.loads(report.read_text(encoding="utf-8")).get("parameters", {}).get("sigma0_sq")
+            s0_sq = float(s0) if isinstance(s0, (int, float)) and math.isfinite(s0) and s0 > 0 else 1.0
+        tracker, lever = scene_of(model)
+        robot_name = meta["robot_file"]
+    else:
+        from torchcal.robot import load_robot
+
+        model = MeasurementModel(load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link))
+        robot_name = args.robot
+    robot = model.robot
+    if args.tracker is not None:
+        tracker = torch.tensor(args.tracker, dtype=F64)
+    if args.tool is not None:
+        lever = torch.tensor(args.tool, dtype=F64)
+    if args.tracker_noise is not None:
+        sigma_tracker = args.tracker_noise * 1e-6
+    if args.joint_noise is not None:
+        sigma_joint = math.radians(args.joint_noise)
+    if args.candidates is not None:
+        data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
+        check_header_robot(data, robot_name, robot, f"--robot {robot_name}")
+        q = data.q
+        source = args.candidates
+    else:
+        _console.info(f"sampling {args.pool} candidate poses the tracker sees (seed {args.seed})")
+        q = sample_candidates(model, args.pool, args.seed, tracker, lever)
+        source = f"{args.pool} sampled (seed {args.seed})"
+    if args.n > len(q):
+        raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
+    opts = PlanOptions(
+        k=args.n,
+        criterion=args.criterion,
+        edge_share=args.edge_share,
+        learned_share=args.learned_share,
+        sigma_tracker=sigma_tracker,
+        sigma_joint=sigma_joint,
+        s0_sq=s0_sq,
+        seed=args.seed,
+    )
+    plan = plan_poses(model, q, opts)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    meta_out = {"robot": Path(str(robot_name)).name, "planned_from": source}
+    write_measurements(out_file, Measurements(q=plan.q.detach().cpu()), meta=meta_out, written_by="torchcal plan")
+    summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": source, **plan.to_dict()}
+    side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+    _console.info(
+        f"planned {args.n} of {len(q)} poses: predicted held-out RMSE {plan.predicted_rmse * 1e3:.4f} mm "
+        f"({args.n} random: {plan.random_rmse * 1e3:.4f} mm); wrote {args.out}, {side['json'].name}, {side['md'].name}"
+    )
+    return 0
+
+
 def cmd_convert(args) -> int:
     from torchcal.data import convert_ipa
 
@@ -921,6 +1087,7 @@ COMMANDS = {
     "convert": cmd_convert,
     "compensate": cmd_compensate,
     "station": cmd_station,
+    "plan": cmd_plan,
     "demo": cmd_demo,
 }
 

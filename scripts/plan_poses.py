@@ -1,0 +1,49 @@
+#!/usr/bin/env python3
+"""The command line of :mod:`torchcal.experiments.plan_poses`: on a real UR10 series (ipa-robot-accuracy data), poses
+chosen by ``torchcal plan`` from the series' training split against random ones, each calibrated (kinematic) and
+scored on the series' held-out poses, with the held-out error the plan predicted."""
+
+import sys
+from pathlib import Path
+
+from torchcal.experiments import common, plan_poses
+
+ap = common.parser(plan_poses.__doc__.split("\n\n")[0])
+ap.add_argument("data_dir", type=Path, nargs="?", help="the ur10-ipa folder (holds Series_A ... Series_D)")
+ap.add_argument(
+    "--simulated", default=None, help="a robot (ur5, ...): a simulated campaign instead of the real data (no data_dir)"
+)
+ap.add_argument("--series", default="A", help="series (default A)")
+ap.add_argument("--k", default="30,100,500", help="design sizes, comma-separated (default 30,100,500)")
+ap.add_argument("--criterion", choices=("I", "D"), default="I", help="design criterion (default I)")
+ap.add_argument("--edge-share", type=float, default=0.1, help="share of picks at the region's edges (default 0.1)")
+ap.add_argument("--seeds", type=int, default=5, help="random designs per size (default 5)")
+ap.add_argument(
+    "--reference", type=int, default=200, help="random poses of the reference design (default 200; 0: none)"
+)
+
+
+def experiment(a):
+    if a.simulated is None and (a.data_dir is None or not a.data_dir.is_dir()):
+        ap.error(f"data folder not found: {a.data_dir}")
+    try:
+        ks = tuple(int(v) for v in common.comma_list(ap, a.k, None, what="size"))
+    except ValueError:
+        ap.error(f"--k must be whole numbers separated by commas, got {a.k!r}")
+    if a.simulated is not None:
+        res = plan_poses.simulated(
+            a.simulated, ks, a.seeds, a.reference or None, edge_share=a.edge_share, criterion=a.criterion
+        )
+        return res, plan_poses.markdown(res)
+    res = plan_poses.run(
+        a.data_dir, a.series.upper(), ks, a.seeds, a.reference or None, edge_share=a.edge_share, criterion=a.criterion
+    )
+    return res, plan_poses.markdown(res)
+
+
+def main(argv=None) -> int:
+    return common.run_markdown(ap, experiment, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

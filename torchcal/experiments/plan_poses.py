@@ -1,0 +1,182 @@
+"""Planned against random poses: a pool of measured poses, ``K`` of them chosen by ``torchcal plan`` or at random,
+calibrated (``--method kinematic``) and scored on held-out poses; and the error the plan predicted.
+
+The pool and the held-out poses are calibrate's own grouped split of a data set (a UR10 series of Landgraf et al.,
+or a simulated campaign's training file, scored on its test file). The plan is made as ``torchcal plan --run`` makes
+it: with the model, the stochastic model and the variance factor of a kinematic calibration of the whole pool (what
+an earlier campaign gives a user), the candidates being the pool's joint configurations. Each design is then
+calibrated on its ``K`` measured rows (all of them fitted: ``refit``) and its held-out RMSE measured; random designs
+are drawn per seed (``seeds``), and ``reference`` random poses give the baseline the issue names (kinematic with 200
+random poses).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import torch
+
+from torchcal.data import Measurements, read_ipa
+from torchcal.estimate.fit import errors
+from torchcal.experiments.ipa_series import series_file
+from torchcal.pipeline import Options, calibrate, holdout_split
+from torchcal.pipeline.plan import PlanOptions, plan_poses
+
+HOLDOUT = 0.2
+SEED = 0
+MM = 1e3
+
+
+def _rmse(e: torch.Tensor) -> float:
+    return float(e.square().mean().sqrt()) * MM
+
+
+def fit_and_score(robot: str, rows: Measurements, held: Measurements, sigma_tracker: float | None = None) -> float:
+    """Held-out RMSE [mm] on ``held`` of a kinematic calibration on all of ``rows``."""
+    k = rows.n
+    # calibrate keeps at least one pose out to score its stages; refit fits the model written on all of them
+    kw = {} if sigma_tracker is None else {"sigma_tracker": sigma_tracker}
+    opts = Options.of(method="kinematic", seed=SEED, holdout=min(0.5 / k, 0.5), trajectory=False, refit=True, **kw)
+    run = calibrate(robot, rows, opts)
+    return _rmse(errors(run.model, held, trajectory=False))
+
+
+def _median(v: list[float]) -> float:
+    s = sorted(v)
+    n = len(s)
+    return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
+
+
+def compare(
+    robot: str,
+    pool: Measurements,
+    held: Measurements,
+    ks: tuple[int, ...],
+    seeds: int,
+    reference: int | None = 200,
+    edge_share: float = 0.1,
+    criterion: str = "I",
+) -> dict:
+    """Planned and random designs of each size in ``ks`` from ``pool``, scored on ``held`` (module docstring)."""
+    t0 = time.perf_counter()
+    base = calibrate(robot, pool, Options.of(method="kinematic", seed=SEED, holdout=HOLDOUT, trajectory=False))
+    fit = base.fits[-1]
+    s0_sq = float(fit.result.sigma0_sq)
+    opts_fit = base.options.fit
+    # the plan's stochastic model: the data's own tracker sigmas (their RMS) where they carry them, as the fit used
+    sigma_tracker = opts_fit.sigma_tracker if pool.sigma is None else float(pool.sigma.square().mean().sqrt())
+    out: dict = {
+        "robot": robot,
+        "n_pool": pool.n,
+        "n_holdout": held.n,
+        "variance_factor": s0_sq,
+        "pool_kinematic_holdout_mm": _rmse(errors(base.model, held, trajectory=False)),
+        "criterion": criterion,
+        "edge_share": edge_share,
+        "sizes": [],
+    }
+    for k in ks:
+        t1 = time.perf_counter()
+        plan = plan_poses(
+            base.model,
+            pool.q,
+            PlanOptions(
+                k=k,
+                criterion=criterion,
+                edge_share=edge_share,
+                sigma_tracker=sigma_tracker,
+                sigma_joint=opts_fit.sigma_joint,
+                s0_sq=s0_sq,
+            ),
+        )
+        plan_s = time.perf_counter() - t1
+        planned = fit_and_score(robot, pool.subset(torch.sort(plan.index).values), held)
+        rnd = []
+        for s in range(seeds):
+            idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:k]
+            rnd.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held))
+        out["sizes"].append(
+            {
+                "k": k,
+                "planned_mm": planned,
+                "predicted_mm": plan.predicted_rmse * MM,
+                "predicted_random_mm": plan.random_rmse * MM,
+                "predicted_over_measured": plan.predicted_rmse * MM / planned,
+                "random_mm": {"median": _median(rnd), "min": min(rnd), "max": max(rnd), "values": rnd},
+                "plan_s": plan_s,
+            }
+        )
+    if reference:
+        ref = []
+        for s in range(seeds):
+            idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:reference]
+            ref.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held))
+        out["reference"] = {"k": reference, "random_mm": {"median": _median(ref), "values": ref}}
+        for row in out["sizes"]:
+            row["planned_over_reference"] = row["planned_mm"] / _median(ref)
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+def split(m: Measurements) -> tuple[Measurements, Measurements]:
+    """Calibrate's own grouped split of ``m`` (seed 0, 20 % held out): the pool and the held-out poses."""
+    sp = holdout_split(m, HOLDOUT, SEED, trajectory=False)
+    return m.subset(torch.sort(sp.keep).values), m.subset(torch.sort(sp.held).values)
+
+
+def run(
+    data_dir: Path,
+    series: str,
+    ks: tuple[int, ...],
+    seeds: int,
+    reference: int | None = 200,
+    edge_share: float = 0.1,
+    criterion: str = "I",
+) -> dict:
+    """:func:`compare` on a UR10 series: the pool its training split's rows, scored on its held-out split."""
+    pool, held = split(read_ipa(series_file(data_dir, series)))
+    return {"series": f"Series {series}", **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion)}
+
+
+def simulated(
+    robot: str,
+    ks: tuple[int, ...],
+    seeds: int,
+    reference: int | None = 200,
+    edge_share: float = 0.1,
+    criterion: str = "I",
+    poses: int = 2000,
+    test_poses: int = 500,
+    seed: int = 3,
+) -> dict:
+    """:func:`compare` on a simulated campaign (no effects beyond the geometry): the pool its training file, scored
+    on its test file."""
+    from torchcal.sim import SimConfig, simulate
+
+    c = simulate(SimConfig(robot=robot, poses=poses, test_poses=test_poses, seed=seed))
+    res = compare(robot, c.train, c.test, ks, seeds, reference, edge_share, criterion)
+    return {"series": f"simulated {robot} (seed {seed})", **res}
+
+
+def markdown(res: dict) -> str:
+    ref = res.get("reference")
+    lines = [
+        f"{res.get('series', '?')}: pool {res['n_pool']} poses, {res['n_holdout']} held out; variance factor "
+        f"{res['variance_factor']:.3g}; criterion {res['criterion']}, edge share {res['edge_share']}; kinematic on the "
+        f"whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
+        "",
+        "| K | planned [mm] | predicted [mm] | pred/meas | random median [mm] (min-max) | planned / random "
+        + (f"{ref['k']} |" if ref else "|"),
+        "|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in res["sizes"]:
+        rm = r["random_mm"]
+        lines.append(
+            f"| {r['k']} | {r['planned_mm']:.4f} | {r['predicted_mm']:.4f} | {r['predicted_over_measured']:.2f} | "
+            f"{rm['median']:.4f} ({rm['min']:.4f}-{rm['max']:.4f}) | "
+            + (f"{r['planned_over_reference']:.3f} |" if ref else "|")
+        )
+    if ref:
+        lines += ["", f"reference: {ref['k']} random poses, median {ref['random_mm']['median']:.4f} mm"]
+    return "\n".join(lines)

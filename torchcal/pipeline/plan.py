@@ -1,0 +1,285 @@
+"""Plan a measurement campaign: the ``K`` poses that make a kinematic calibration most informative.
+
+Candidates are given (a file of joint configurations the robot may take) or sampled within the joint limits where the
+tracker sees the probe (:func:`sample_candidates`, the simulator's line-of-sight rule). Among them :func:`plan_poses`
+picks ``K`` greedily by the I-optimal criterion (the mean position variance over the candidates; or the D-optimal one)
+on the identifiable geometric, instrument and lever-arm parameters (:mod:`torchcal.estimate.design`), a share of the
+picks (``edge_share``, default 10 %) among the candidates at the edges of the region (some joint beyond the 2.5 % or
+97.5 % quantile of the candidates', as calibrate's held-out guard defines them,
+:func:`~torchcal.pipeline.holdout.at_edges`): an optimal design favours poses that separate parameters, which are not
+always those at the limits of where the robot will work, and a calibration is trusted there only if it was measured
+there.
+
+The prediction: the parameters' standard deviations after ``K`` poses and the predicted held-out RMSE over the
+candidates (the region), for ``K`` and for a grid of sizes (the curve), with the same for ``K`` random candidates as a
+reference.
+
+With a run whose model has a learned correction with a predictive standard deviation (a Gaussian process,
+:func:`~torchcal.estimate.covariance.learned_std`), a share of the picks (``learned_share``, default 20 %) goes to
+where that correction is least certain instead: the candidate with the largest predictive variance, discounted by
+``1 - exp(-d^2 / 2 l^2)`` for each pose planned so far at distance ``d`` (joints scaled to the candidates' range,
+``l`` = :data:`LEARNED_LENGTH`), a squared-exponential kernel's variance reduction, so that these picks spread over the
+uncertain region instead of piling up at its worst point. The kinematic prediction does not count what they add.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from torchcal.effects import Context
+from torchcal.effects.model import MeasurementModel
+from torchcal.errors import OptionError
+from torchcal.estimate.covariance import learned_std
+from torchcal.estimate.design import (
+    Priors,
+    covariance,
+    design_problem,
+    greedy_design,
+    information,
+    log_det,
+    predicted_rmse,
+)
+from torchcal.pipeline.holdout import HOLDOUT_EDGE, at_edges
+from torchcal.robot import transforms as tf
+from torchcal.sim.poses import Scene, random_poses
+
+Tensor = torch.Tensor
+
+#: the sizes of the curve of predicted error against K (those up to twice K or the candidates' number, K and that)
+CURVE = (5, 10, 20, 30, 50, 100, 200, 300, 500, 1000, 2000, 5000, 10000)
+#: the correlation length of the learned correction's discount between planned poses, in joints scaled to the
+#: candidates' range [1]: a tenth of each joint's range
+LEARNED_LENGTH = 0.1
+#: where a tracker stands when nothing says where: 2.5 m in front of the base, 0.2 m above its plane (the simulator
+#: draws 2-3 m and -0.3..0.5 m)
+DEFAULT_TRACKER = (2.5, 0.0, 0.2)
+#: the probe's lever arm on the flange when nothing says which [m] (the simulator's nominal)
+DEFAULT_LEVER = (0.0, 0.0, 0.1)
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    """What :func:`plan_poses` reads.
+
+    Attributes:
+        k: poses to pick.
+        criterion: ``"I"`` (default) or ``"D"`` (:mod:`torchcal.estimate.design`).
+        edge_share: share of the picks made among the candidates at the edges of the region (0: none).
+        learned_share: share of the picks made where the learned correction is least certain (where the model has
+            one with a predictive standard deviation; 0: none).
+        sigma_tracker: tracker noise per axis [m]; sigma_joint: joint noise [rad] (the fits' stochastic model).
+        s0_sq: variance factor of the stochastic model (a run's own; 1 for simulated data).
+        priors: the fits' priors.
+        seed: of the random reference design.
+    """
+
+    k: int
+    criterion: str = "I"
+    edge_share: float = 0.1
+    learned_share: float = 0.2
+    sigma_tracker: float = 15e-6
+    sigma_joint: float = math.radians(0.0005)
+    s0_sq: float = 1.0
+    priors: Priors = field(default_factory=Priors)
+    seed: int = 0
+
+
+@dataclass
+class Plan:
+    """The planned poses and what they predict.
+
+    Attributes:
+        index: ``(K,)`` the chosen candidates' indices, in the order picked.
+        q: ``(K, dof)`` their joints [rad].
+        edge: ``(K,)`` bool, at the edges of the region.
+        learned: ``(K,)`` bool, picked where the learned correction is least certain.
+        names, units, sigma: the identifiable parameters and their predicted standard deviations after the ``K``
+            poses [m or rad].
+        held: the parameters no choice among the candidates determines (held in the fit), with the reason.
+        predicted_rmse: predicted held-out RMSE over the candidates after the ``K`` poses [m].
+        random_rmse: the same for ``K`` random candidates (seeded) [m].
+        curve: ``[(k, predicted RMSE [m])]`` of the planned order's first ``k``.
+        log_det, random_log_det: the D criterion of the planned and the random design.
+    """
+
+    index: Tensor
+    q: Tensor
+    edge: Tensor
+    learned: Tensor
+    names: list[str]
+    units: list[str]
+    sigma: Tensor
+    held: list[dict]
+    predicted_rmse: float
+    random_rmse: float
+    curve: list[tuple[int, float]]
+    log_det: float
+    random_log_det: float
+    n_candidates: int
+    options: PlanOptions
+
+    def to_dict(self) -> dict:
+        scale = {"m": (1e3, "mm"), "rad": (180.0 / math.pi, "deg")}
+        return {
+            "k": len(self.index),
+            "n_candidates": self.n_candidates,
+            "criterion": f"greedy {self.options.criterion}-optimal on the whitened Jacobian of the identifiable "
+            "geometry, instrument pose and lever arm, priors as the starting information",
+            "edge_share": self.options.edge_share,
+            "n_edge": int(self.edge.sum()),
+            "learned_share": self.options.learned_share if bool(self.learned.any()) else 0.0,
+            "n_learned": int(self.learned.sum()),
+            "stochastic_model": {
+                "tracker_noise_um": self.options.sigma_tracker * 1e6,
+                "joint_noise_deg": math.degrees(self.options.sigma_joint),
+                "variance_factor": self.options.s0_sq,
+            },
+            "predicted_holdout_rmse_mm": self.predicted_rmse * 1e3,
+            "random_predicted_holdout_rmse_mm": self.random_rmse * 1e3,
+            "log_det": self.log_det,
+            "random_log_det": self.random_log_det,
+            "curve": [{"k": k, "predicted_holdout_rmse_mm": v * 1e3} for k, v in self.curve],
+            "parameters": [
+                {"name": n, "unit": scale[u][1], "sigma": float(s) * scale[u][0]}
+                for n, u, s in zip(self.names, self.units, self.sigma.tolist())
+            ],
+            "held": [{"name": h["name"], "reason": h["reason"]} for h in self.held],
+            "index": self.index.tolist(),
+        }
+
+    def markdown(self) -> str:
+        d = self.to_dict()
+        lines = [
+            f"# Planned poses: {d['k']} of {d['n_candidates']} candidates",
+            "",
+            f"{d['criterion']}; {d['n_edge']} at the edges of the region, {d['n_learned']} picked where the learned "
+            "correction is least certain.",
+            "",
+            f"- predicted held-out RMSE: {d['predicted_holdout_rmse_mm']:.4f} mm "
+            f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm)",
+            f"- variance factor {d['stochastic_model']['variance_factor']:.3g}, tracker noise "
+            f"{d['stochastic_model']['tracker_noise_um']:.3g} um",
+            "",
+            "| K | predicted held-out RMSE [mm] |",
+            "|---:|---:|",
+            *[f"| {c['k']} | {c['predicted_holdout_rmse_mm']:.4f} |" for c in d["curve"]],
+            "",
+            "| parameter | predicted sigma |",
+            "|---|---:|",
+            *[f"| {p['name']} | {p['sigma']:.3g} {p['unit']} |" for p in d["parameters"]],
+            "",
+        ]
+        return "\n".join(lines)
+
+
+def sample_candidates(
+    model: MeasurementModel, n: int, seed: int, tracker_in_base: Tensor | None = None, lever: Tensor | None = None
+) -> Tensor:
+    """``n`` random poses ``(n, dof)`` within the joint limits that a tracker at ``tracker_in_base`` ``(3,)`` [m]
+    (default :data:`DEFAULT_TRACKER`) sees with the lever arm ``lever`` ``(3,)`` [m] (default :data:`DEFAULT_LEVER`)
+    (:func:`~torchcal.sim.poses.random_poses`)."""
+    robot = model.robot
+    dt = robot.dtype
+    tb = torch.tensor(DEFAULT_TRACKER, dtype=dt) if tracker_in_base is None else tracker_in_base.to(dt)
+    lv = torch.tensor(DEFAULT_LEVER, dtype=dt) if lever is None else lever.to(dt)
+    try:
+        return random_poses(Scene(robot, tb, lv), n, torch.Generator().manual_seed(seed))
+    except RuntimeError as e:
+        raise OptionError(f"{e}; give candidates in a file instead") from None
+
+
+def scene_of(model: MeasurementModel) -> tuple[Tensor, Tensor]:
+    """The tracker's position in the base frame ``(3,)`` and the lever arm ``(3,)`` [m] of a calibrated model."""
+    robot = model.robot
+    with torch.no_grad():
+        return tf.invert(robot.T_tracker_base())[:3, 3].clone(), robot.t_flange_probe().clone()
+
+
+class LearnedTurns:
+    """Every ``round(1 / share)``-th pick (offset from the edge picks) goes to the candidate whose learned
+    correction is least certain, discounted near the poses planned so far (module docstring)."""
+
+    def __init__(self, std: Tensor, where: Tensor, share: float, length: float = LEARNED_LENGTH):
+        self.score = std.square().clone()  # (N,) predictive variance [m^2]
+        self.where = where  # (N, d) joints scaled to [0, 1]
+        self.every = max(1, round(1.0 / share))
+        self.length = length
+        self.seen: set[int] = set()  # picks already folded into the discount
+        self.turns: list[int] = []
+
+    def __call__(self, j: int, taken: Tensor) -> Tensor | None:
+        for i in set(torch.nonzero(taken).flatten().tolist()) - self.seen:
+            d2 = (self.where - self.where[i]).square().sum(-1)
+            self.score = self.score * (1.0 - torch.exp(-0.5 * d2 / self.length**2))
+            self.seen.add(i)
+        if (j + 1 + self.every // 2) % self.every != 0 or not bool((self.score[~taken] > 0).any()):
+            return None
+        self.turns.append(j)
+        return self.score
+
+
+def learned_turns(model: MeasurementModel, q: Tensor, share: float) -> LearnedTurns | None:
+    """The learned correction's turns (:class:`LearnedTurns`), or None where ``share`` is 0 or the model's learned
+    corrections have no predictive standard deviation."""
+    if share <= 0:
+        return None
+    std = learned_std(model, Context(q=q))
+    if std is None:
+        return None
+    lo = q.min(0).values
+    span = (q.max(0).values - lo).clamp(min=1e-12)
+    return LearnedTurns(std.norm(dim=-1), (q - lo) / span, share)
+
+
+def _random_index(n: int, k: int, seed: int) -> Tensor:
+    return torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]
+
+
+def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
+    """Pick ``opts.k`` of the candidates ``q (N, dof)`` [rad] for ``model``'s robot (module docstring)."""
+    for name in ("edge_share", "learned_share"):
+        if not 0.0 <= getattr(opts, name) <= 0.5:
+            raise OptionError(f"{name} must lie in [0, 0.5], got {getattr(opts, name)}")
+    N = len(q)
+    if not 1 <= opts.k <= N:
+        raise OptionError(f"can plan 1 to {N} poses from {N} candidates, asked for {opts.k}")
+    problem = design_problem(
+        model, q, sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, priors=opts.priors
+    )
+    edge = at_edges(q, q, HOLDOUT_EDGE)
+    every = round(1.0 / opts.edge_share) if opts.edge_share > 0 else 0
+    top = min(N, 2 * opts.k)
+    grid = tuple(sorted({c for c in CURVE if c <= top} | {opts.k, top}))
+    other = learned_turns(model, q, opts.learned_share)
+    design = greedy_design(
+        problem, max(grid), criterion=opts.criterion, restrict=edge, every=every, checkpoints=grid, other=other
+    )
+    turns = set(other.turns) if other is not None else set()
+    curve = []
+    for c in grid:
+        S = covariance(design.information[c], opts.s0_sq)
+        curve.append((c, predicted_rmse(problem.J, problem.noise, S, opts.s0_sq)))
+    S_k = covariance(design.information[opts.k], opts.s0_sq)
+    rnd = _random_index(N, opts.k, opts.seed)
+    S_r = covariance(information(problem, rnd), opts.s0_sq)
+    index = design.order[: opts.k]
+    return Plan(
+        index=index,
+        q=q[index],
+        edge=edge[index],
+        learned=torch.tensor([j in turns for j in range(opts.k)], dtype=torch.bool),
+        names=problem.names,
+        units=problem.units,
+        sigma=S_k.diagonal().sqrt(),
+        held=problem.identifiability.fixed,
+        predicted_rmse=dict(curve)[opts.k],
+        random_rmse=predicted_rmse(problem.J, problem.noise, S_r, opts.s0_sq),
+        curve=curve,
+        log_det=float(design.log_det[opts.k - 1]),
+        random_log_det=log_det(problem, rnd),
+        n_candidates=N,
+        options=opts,
+    )
