@@ -893,9 +893,9 @@ def cmd_plan(args) -> int:
         robot_name = args.robot
     robot = model.robot
     if args.tracker is not None:
-        tracker = torch.tensor(args.tracker, dtype=F64)
+        tracker = torch.tensor(args.tracker, dtype=F64, device=robot.device)
     if args.tool is not None:
-        lever = torch.tensor(args.tool, dtype=F64)
+        lever = torch.tensor(args.tool, dtype=F64, device=robot.device)
     if args.tracker_noise is not None:
         sigma_tracker = args.tracker_noise * 1e-6
     if args.joint_noise is not None:

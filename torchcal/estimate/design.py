@@ -250,7 +250,11 @@ def greedy_design(
         history.append(ld)
         if j + 1 in checkpoints:
             kept[j + 1] = M.clone()
-    return Design(torch.tensor(order, dtype=torch.long), torch.tensor(history, dtype=A.dtype), kept)
+    return Design(
+        torch.tensor(order, dtype=torch.long, device=A.device),
+        torch.tensor(history, dtype=A.dtype, device=A.device),
+        kept,
+    )
 
 
 def greedy_d_optimal(problem: DesignProblem, k: int, **kw) -> Design:

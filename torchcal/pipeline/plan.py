@@ -183,8 +183,12 @@ def sample_candidates(
     (:func:`~torchcal.sim.poses.random_poses`)."""
     robot = model.robot
     dt = robot.dtype
-    tb = torch.tensor(DEFAULT_TRACKER, dtype=dt) if tracker_in_base is None else tracker_in_base.to(dt)
-    lv = torch.tensor(DEFAULT_LEVER, dtype=dt) if lever is None else lever.to(dt)
+    tb = (
+        torch.tensor(DEFAULT_TRACKER, dtype=dt, device=robot.device)
+        if tracker_in_base is None
+        else tracker_in_base.to(dt)
+    )
+    lv = torch.tensor(DEFAULT_LEVER, dtype=dt, device=robot.device) if lever is None else lever.to(dt)
     try:
         return random_poses(Scene(robot, tb, lv), n, torch.Generator().manual_seed(seed))
     except RuntimeError as e:
@@ -270,7 +274,7 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
         index=index,
         q=q[index],
         edge=edge[index],
-        learned=torch.tensor([j in turns for j in range(opts.k)], dtype=torch.bool),
+        learned=torch.tensor([j in turns for j in range(opts.k)], dtype=torch.bool, device=q.device),
         names=problem.names,
         units=problem.units,
         sigma=S_k.diagonal().sqrt(),
