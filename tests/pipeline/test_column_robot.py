@@ -1,5 +1,5 @@
 """A construction robot as its vendor describes it (a UR10 on a lifting column whose upper segment follows the
-middle one as a URDF mimic joint; tests/data/robots/column_ur10.urdf) end to end through the command line: loaded as
+middle one as a URDF mimic joint; tests/robot/data/column_ur10.urdf) end to end through the command line: loaded as
 written, simulated, calibrated with the closed loop, predicted, compensated in the controller's readings and
 exported."""
 
@@ -16,7 +16,7 @@ from torchcal.data import read_measurements
 from torchcal.robot import load_robot
 from torchcal.sim import SimConfig, simulate
 
-ROBOT = str(Path(__file__).resolve().parents[1] / "data" / "robots" / "column_ur10.urdf")
+ROBOT = str(Path(__file__).resolve().parents[1] / "robot" / "data" / "column_ur10.urdf")
 SIM = ["--seed", "2", "--poses", "200", "--test-poses", "80"]
 
 

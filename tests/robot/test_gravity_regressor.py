@@ -9,7 +9,7 @@ import torch
 
 from torchcal.robot import load_robot
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "robots"
+DATA = Path(__file__).resolve().parent / "data"
 ROBOTS = [
     "ur5",
     "ur10_track",

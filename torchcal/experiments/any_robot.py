@@ -35,7 +35,7 @@ DATA = Path(__file__).resolve().parents[2] / "tests"
 CASES: dict[str, dict] = {
     "track": {"robot": "ur10_track", "effects": ["compliance:3=50um", "cyclic:4=30um"], "ratios": {}},
     "column": {
-        "robot": str(DATA / "data" / "robots" / "column_ur10.urdf"),
+        "robot": str(DATA / "robot" / "data" / "column_ur10.urdf"),
         "effects": ["compliance:3=50um"],
         "ratios": {},
     },
