@@ -723,39 +723,11 @@ class RobotModel(nn.Module):
             Rts, ts, Rt_flange, t_flange = self._chain_t(q, O, frames=True)
             p_base = _rotate(Rt_flange, t) + t_flange  # (3, N)
             p = (T[:3, :3] @ p_base + T[:3, 3:]).T
-        n, dof = q.shape[0], self.n_joints
+        n = q.shape[0]
         Jt = torch.zeros(3, len(columns), n, dtype=q.dtype, device=q.device)  # J[pose, a, k] = Jt[a, k, pose]
         if cols["geometry"]:
             idx = [i for _, i in cols["geometry"]]
-            A = _small_jacobian(lambda x: self.geometry.origins(x)[..., :3, :], d["geometry"], idx)
-            A = A.reshape(dof + 1, 3, 4, len(idx))
-            # the probe right behind each origin: s_n = t, s_i = R_i(q_i) O_{i+1} s_{i+1}
-            s = t.unsqueeze(-1).expand(3, n)
-            behind = [s]
-            sin, one_cos = torch.sin(q.T), 1.0 - torch.cos(q.T)  # (dof, N)
-            for i in range(dof - 1, -1, -1):
-                s = O[i + 1, :3, :3] @ s + O[i + 1, :3, 3:]
-                if self.geometry.joint_types[i] == "prismatic":  # moved along the axis by q_i
-                    s = s + self.geometry.axes[i].unsqueeze(-1) * q.T[i]
-                else:
-                    K = tf.skew(self.geometry.axes[i])
-                    Ks = K @ s
-                    s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
-                behind.append(s)
-            behind.reverse()
-            Jb = torch.zeros(3, len(idx), n, dtype=q.dtype, device=q.device)
-            for i in range(dof + 1):
-                nz = torch.nonzero(A[i].reshape(12, -1).abs().amax(0)).flatten()
-                if len(nz) == 0:
-                    continue
-                Ai = A[i][..., nz]  # (3, 4, k)
-                k = len(nz)
-                # V[a, k, pose] = sum_d Ai[a, d, k] s_i[d] + Ai[a, 3, k]: the derivative in the frame in front of O_i
-                V = Ai[:, :3].transpose(1, 2).reshape(3 * k, 3) @ behind[i] + Ai[:, 3].reshape(3 * k, 1)
-                V = V.reshape(3, k, n)
-                if i > 0:  # rotated by the frame in front: sum_b R[a, b] V[b] with R[a, b] = Rt[b, a]
-                    V = (Rts[i - 1].unsqueeze(2) * V.unsqueeze(1)).sum(0)
-                Jb[:, nz] += V
+            Jb = self._geometry_derivative(q, O, t.unsqueeze(-1).expand(3, n), Rts, d["geometry"], idx)
             Jt[:, [k for k, _ in cols["geometry"]]] = (T[:3, :3] @ Jb.reshape(3, -1)).reshape(3, len(idx), n)
         J = Jt.permute(2, 0, 1)
         if cols["instrument"]:
@@ -781,6 +753,46 @@ class RobotModel(nn.Module):
                 J[..., kk] = (Ji * r[:, k]).T
         return p, J.contiguous()
 
+    def _geometry_derivative(
+        self, q: Tensor, O: Tensor, lever: Tensor, Rts: list[Tensor], delta: Tensor, idx: list[int]
+    ) -> Tensor:
+        """The probe's derivative by the geometry elements ``idx`` in the base frame ``(3, len(idx), N)``: joints
+        ``q (N, n_joints)``, origins ``O``, the lever arm ``lever (3, N)`` and the chain's frames ``Rts``
+        (:meth:`_chain_t`). The chain is linear in each origin, so each column is the small ``dO_i/dd`` (no pose in
+        it, by reverse mode on :meth:`origins`) applied to the probe right behind ``O_i`` and turned by the frame
+        in front of it."""
+        n, dof = q.shape[0], self.n_joints
+        A = _small_jacobian(lambda x: self.geometry.origins(x)[..., :3, :], delta, idx)
+        A = A.reshape(dof + 1, 3, 4, len(idx))
+        # the probe right behind each origin: s_n = t, s_i = R_i(q_i) O_{i+1} s_{i+1}
+        s = lever
+        behind = [s]
+        sin, one_cos = torch.sin(q.T), 1.0 - torch.cos(q.T)  # (dof, N)
+        for i in range(dof - 1, -1, -1):
+            s = O[i + 1, :3, :3] @ s + O[i + 1, :3, 3:]
+            if self.geometry.joint_types[i] == "prismatic":  # moved along the axis by q_i
+                s = s + self.geometry.axes[i].unsqueeze(-1) * q.T[i]
+            else:
+                K = tf.skew(self.geometry.axes[i])
+                Ks = K @ s
+                s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
+            behind.append(s)
+        behind.reverse()
+        Jb = torch.zeros(3, len(idx), n, dtype=q.dtype, device=q.device)
+        for i in range(dof + 1):
+            nz = torch.nonzero(A[i].reshape(12, -1).abs().amax(0)).flatten()
+            if len(nz) == 0:
+                continue
+            Ai = A[i][..., nz]  # (3, 4, k)
+            k = len(nz)
+            # V[a, k, pose] = sum_d Ai[a, d, k] s_i[d] + Ai[a, 3, k]: the derivative in the frame in front of O_i
+            V = Ai[:, :3].transpose(1, 2).reshape(3 * k, 3) @ behind[i] + Ai[:, 3].reshape(3 * k, 1)
+            V = V.reshape(3, k, n)
+            if i > 0:  # rotated by the frame in front: sum_b R[a, b] V[b] with R[a, b] = Rt[b, a]
+                V = (Rts[i - 1].unsqueeze(2) * V.unsqueeze(1)).sum(0)
+            Jb[:, nz] += V
+        return Jb
+
     def _tracker_jacobian_rows(self, r, columns, d, cols, station, probe) -> tuple[Tensor, Tensor]:
         """:meth:`tracker_jacobian` with several stations or probes: the same products with each row's instrument
         pose and lever arm (a separate path, so that a single station and probe compute exactly as before). Rows that
@@ -799,37 +811,11 @@ class RobotModel(nn.Module):
             p_base = _rotate_rows(Rt_flange, t) + t_flange  # (3, N)
             R = T[:, :3, :3]  # (N, 3, 3)
             p = (R @ p_base.T.unsqueeze(-1)).squeeze(-1) + T[:, :3, 3]
-        n, dof = q.shape[0], self.n_joints
+        n = q.shape[0]
         J = torch.zeros(n, 3, len(columns), dtype=q.dtype, device=q.device)
         if cols["geometry"]:
             idx = [i for _, i in cols["geometry"]]
-            A = _small_jacobian(lambda x: self.geometry.origins(x)[..., :3, :], d["geometry"], idx)
-            A = A.reshape(dof + 1, 3, 4, len(idx))
-            s = t.T  # (3, N): each row's lever arm
-            behind = [s]
-            sin, one_cos = torch.sin(q.T), 1.0 - torch.cos(q.T)
-            for i in range(dof - 1, -1, -1):
-                s = O[i + 1, :3, :3] @ s + O[i + 1, :3, 3:]
-                if self.geometry.joint_types[i] == "prismatic":
-                    s = s + self.geometry.axes[i].unsqueeze(-1) * q.T[i]
-                else:
-                    K = tf.skew(self.geometry.axes[i])
-                    Ks = K @ s
-                    s = s + sin[i] * Ks + one_cos[i] * (K @ Ks)
-                behind.append(s)
-            behind.reverse()
-            Jb = torch.zeros(3, len(idx), n, dtype=q.dtype, device=q.device)
-            for i in range(dof + 1):
-                nz = torch.nonzero(A[i].reshape(12, -1).abs().amax(0)).flatten()
-                if len(nz) == 0:
-                    continue
-                Ai = A[i][..., nz]
-                k = len(nz)
-                V = Ai[:, :3].transpose(1, 2).reshape(3 * k, 3) @ behind[i] + Ai[:, 3].reshape(3 * k, 1)
-                V = V.reshape(3, k, n)
-                if i > 0:
-                    V = (Rts[i - 1].unsqueeze(2) * V.unsqueeze(1)).sum(0)
-                Jb[:, nz] += V
+            Jb = self._geometry_derivative(q, O, t.T, Rts, d["geometry"], idx)  # each row's lever arm
             J[..., [k for k, _ in cols["geometry"]]] = torch.einsum("nab,bkn->nak", R, Jb)
         if cols["instrument"]:
             idx = [i for _, i in cols["instrument"]]
