@@ -110,16 +110,25 @@ def whitening(
         sigma: per-pose tracker standard deviations ``(N, 3)`` [m], or None to use ``sigma_tracker``.
         sigma_joint: joint reading noise [rad].
     """
+    jac = (lambda: probe_joint_jacobian(model, ctx)) if sigma_joint > 0 else None
+    return _whitening_of(ctx, sigma, sigma_tracker, sigma_joint, jac, "observation")
+
+
+def _whitening_of(
+    ctx: Context, sigma: Tensor | None, default: float, sigma_joint: float, jacobian, what: str
+) -> Tensor:
+    """``L_i^-1 (N, 3, 3)`` of ``C_i = diag(sigma_i^2) + sigma_joint^2 J_i J_i^T``: ``sigma (N, 3)`` or ``default``
+    per axis, ``jacobian()`` the ``(N, 3, dof)`` joint Jacobian of the observed quantity (None: no joint noise)."""
     n = ctx.q.shape[0]
-    s = torch.full((n, 3), float(sigma_tracker), dtype=ctx.q.dtype, device=ctx.q.device) if sigma is None else sigma
+    s = torch.full((n, 3), float(default), dtype=ctx.q.dtype, device=ctx.q.device) if sigma is None else sigma
     C = torch.diag_embed(s.square())
-    if sigma_joint > 0:
-        Jq = probe_joint_jacobian(model, ctx)
-        C = C + sigma_joint**2 * Jq @ Jq.transpose(1, 2)
+    if jacobian is not None:
+        J = jacobian()
+        C = C + sigma_joint**2 * J @ J.transpose(1, 2)
     L, info = torch.linalg.cholesky_ex(C)
     if bool((info != 0).any()):
         bad = int(torch.nonzero(info).flatten()[0])
-        raise EstimationError(f"observation covariance of pose {bad} is not positive definite")
+        raise EstimationError(f"{what} covariance of pose {bad} is not positive definite")
     eye = torch.eye(3, dtype=C.dtype, device=C.device).expand_as(C)
     return torch.linalg.solve_triangular(L, eye, upper=False)
 
@@ -451,22 +460,8 @@ def orientation_whitening(
     ``sigma_orientation`` per axis) plus the joint noise turning the probe (``J_w``,
     :func:`orientation_joint_jacobian`). The cross-covariance with the position that the joint noise makes is left
     out: each row's position and orientation are whitened separately."""
-    n = ctx.q.shape[0]
-    s = (
-        sigma_r
-        if sigma_r is not None
-        else torch.full((n, 3), float(sigma_orientation), dtype=ctx.q.dtype, device=ctx.q.device)
-    )
-    C = torch.diag_embed(s.square())
-    if sigma_joint > 0:
-        Jw = orientation_joint_jacobian(model, ctx)
-        C = C + sigma_joint**2 * Jw @ Jw.transpose(1, 2)
-    L, info = torch.linalg.cholesky_ex(C)
-    if bool((info != 0).any()):
-        bad = int(torch.nonzero(info).flatten()[0])
-        raise EstimationError(f"orientation covariance of pose {bad} is not positive definite")
-    eye = torch.eye(3, dtype=C.dtype, device=C.device).expand_as(C)
-    return torch.linalg.solve_triangular(L, eye, upper=False)
+    jac = (lambda: orientation_joint_jacobian(model, ctx)) if sigma_joint > 0 else None
+    return _whitening_of(ctx, sigma_r, sigma_orientation, sigma_joint, jac, "orientation")
 
 
 def orientation_function(
