@@ -12,6 +12,7 @@ random poses).
 
 from __future__ import annotations
 
+import statistics
 import time
 from pathlib import Path
 
@@ -40,12 +41,6 @@ def fit_and_score(robot: str, rows: Measurements, held: Measurements, sigma_trac
     opts = Options.of(method="kinematic", seed=SEED, holdout=min(0.5 / k, 0.5), trajectory=False, refit=True, **kw)
     run = calibrate(robot, rows, opts)
     return _rmse(errors(run.model, held, trajectory=False))
-
-
-def _median(v: list[float]) -> float:
-    s = sorted(v)
-    n = len(s)
-    return s[n // 2] if n % 2 else 0.5 * (s[n // 2 - 1] + s[n // 2])
 
 
 def compare(
@@ -103,7 +98,7 @@ def compare(
                 "predicted_mm": plan.predicted_rmse * MM,
                 "predicted_random_mm": plan.random_rmse * MM,
                 "predicted_over_measured": plan.predicted_rmse * MM / planned,
-                "random_mm": {"median": _median(rnd), "min": min(rnd), "max": max(rnd), "values": rnd},
+                "random_mm": {"median": statistics.median(rnd), "min": min(rnd), "max": max(rnd), "values": rnd},
                 "plan_s": plan_s,
             }
         )
@@ -112,9 +107,9 @@ def compare(
         for s in range(seeds):
             idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:reference]
             ref.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held))
-        out["reference"] = {"k": reference, "random_mm": {"median": _median(ref), "values": ref}}
+        out["reference"] = {"k": reference, "random_mm": {"median": statistics.median(ref), "values": ref}}
         for row in out["sizes"]:
-            row["planned_over_reference"] = row["planned_mm"] / _median(ref)
+            row["planned_over_reference"] = row["planned_mm"] / statistics.median(ref)
     out["seconds"] = time.perf_counter() - t0
     return out
 

@@ -14,6 +14,7 @@ min_poses`).
 from __future__ import annotations
 
 import dataclasses
+import statistics
 import tempfile
 import time
 from pathlib import Path
@@ -44,11 +45,6 @@ def crash(m: Measurements, joint: int, shift: float) -> Measurements:
 
 def _rmse(e: torch.Tensor) -> float:
     return float(e.square().mean().sqrt()) * MM
-
-
-def _median(v: list[float]) -> float:
-    s = sorted(v)
-    return s[len(s) // 2] if len(s) % 2 else 0.5 * (s[len(s) // 2 - 1] + s[len(s) // 2])
 
 
 def run(data_dir: Path, series: str = "C", rows: int = 10, seeds: int = 5, joint: int = 2, shift: float = 2e-3) -> dict:
@@ -96,7 +92,7 @@ def run(data_dir: Path, series: str = "C", rows: int = 10, seeds: int = 5, joint
             }
         )
     vals = [p["rmse_mm"] for p in per_seed]
-    out["update_mm"] = {"median": _median(vals), "min": min(vals), "max": max(vals)}
+    out["update_mm"] = {"median": statistics.median(vals), "min": min(vals), "max": max(vals)}
     out["ratio_to_before"] = {k: v / out["before_crash_mm"] for k, v in out["update_mm"].items()}
     out["s0_prior"] = prior.scale
     out["per_seed"] = per_seed
