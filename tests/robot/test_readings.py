@@ -218,3 +218,24 @@ def test_coupling_spec_and_dataclass_round_trip():
     with pytest.raises(torchcal.errors.OptionError, match="two different joints"):
         EffectSpec.parse("coupling:3<-3")
     assert dataclasses.asdict(spec)["source"] == 2
+
+
+def test_a_coupling_is_held_to_the_physical_bound_over_its_source_joints_range():
+    """A coupling continues linearly in its source's reading: its size is judged over that joint's whole range,
+    so a ratio that fits the poses but would turn the joint by degrees at the source's limits is refused."""
+    import math
+
+    from torchcal.effects import Coupling
+    from torchcal.effects.joint import joint_function_check
+
+    robot = torchcal.load_robot("ur5")
+    q = torch.zeros(20, 6, dtype=torch.float64)
+    q[:, 1] = torch.linspace(-0.1, 0.1, 20, dtype=torch.float64)  # the source seen over a narrow range only
+    small, large = Coupling(3, 2, c=1e-4), Coupling(3, 2, c=0.01)
+    assert joint_function_check(small, q, robot) is None
+    why = joint_function_check(large, q, robot)
+    lo, hi = (float(v) for v in robot.limits[1])
+    assert why is not None and "over joint 2's range" in why and f"{0.01 * (hi - lo) / 2 * 1e3:.3g} mrad" in why
+    assert 0.01 * 0.1 < 5e-3 < 0.01 * (hi - lo) / 2 and math.isfinite(
+        hi - lo
+    )  # small where fitted, large at the limits

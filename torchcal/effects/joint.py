@@ -485,6 +485,9 @@ def joint_function_size(effect: Effect, robot, q: Tensor, reach: tuple[float, fl
             return abs(float(effect.k)) * float(effect.regressor(robot, Context(q=q)).abs().max())
         if isinstance(effect, LumpedCompliance):
             return float(effect.deflection(robot, q).abs().max())
+        if isinstance(effect, Coupling):  # linear in the source's reading: half its swing over the source's range
+            lo, hi = joint_range(robot, effect.source)
+            return abs(float(effect.c)) * (hi - lo) / 2
     return 0.0
 
 
@@ -504,7 +507,7 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         so that the poses do not determine them and the function explodes beyond them; or it exceeds the bound
         somewhere on its joint's range.
     """
-    if not isinstance(effect, (Cyclic, Transmission, Compliance, LumpedCompliance, Backlash)):
+    if not isinstance(effect, (Cyclic, Transmission, Compliance, LumpedCompliance, Backlash, Coupling)):
         return None
     qj = q[:, effect.j]
     seen = f"{float(qj.min()):.3f} to {float(qj.max()):.3f}"
@@ -528,11 +531,13 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return None
     # a prismatic joint's error is a length: the same bound read in metres (the probe moves 1 m per m)
     unit, small = ("m", "mm") if robot.joint_types[effect.joint - 1] == "prismatic" else ("rad", "mrad")
-    where = (
-        f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} {unit} (fitted on {seen})"
-        if isinstance(effect, SupportedForm)
-        else "on the fitting poses"
-    )
+    if isinstance(effect, SupportedForm):
+        where = f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} {unit} (fitted on {seen})"
+    elif isinstance(effect, Coupling):
+        lo, hi = joint_range(robot, effect.source)
+        where = f"over joint {effect.source}'s range {lo:.3f} to {hi:.3f}, which drives it"
+    else:
+        where = "on the fitting poses"
     scaled = "" if bound == max_size else f" ({max_size * 1e3:.3g} mrad at a 1 m lever arm, scaled to this joint's)"
     return (
         f"its size {size * 1e3:.3g} {small} {where} exceeds the physical bound of {bound * 1e3:.3g} {small}"
