@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from torchcal.effects.base import Acts, Effect
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
+from torchcal.effects.grouped import GroupedCorrection
 from torchcal.effects.joint import Backlash, Compliance, Coupling, Cyclic, LumpedCompliance, Transmission
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
@@ -44,7 +45,12 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("backlash", (Backlash,), (Acts.JOINT,), True),
     EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),
-    EffectKind("learned", (LearnedEffect, KernelCorrection, GPCorrection, SupportGate), (Acts.CARTESIAN,), False),
+    EffectKind(
+        "learned",
+        (LearnedEffect, KernelCorrection, GPCorrection, SupportGate, GroupedCorrection),
+        (Acts.CARTESIAN,),
+        False,
+    ),
     # a joint-angle error polynomial in the joint's own angle (transmission ratio / scale, README)
     EffectKind("transmission", (Transmission,), (Acts.JOINT,), True),
     # one joint's reading error proportional to another joint's reading (an undeclared coupling, README)
@@ -79,6 +85,8 @@ def effect_from_config(cfg: dict, robot=None) -> Effect:
         raise OptionError(f"unknown effect class '{name}'; known: {', '.join(CLASSES)}")
     if name == "LearnedEffect":
         return LearnedEffect(CorrectionNet(cfg["dof"], cfg["hidden"]))
+    if name == "GroupedCorrection":
+        return GroupedCorrection(cfg["groups"], [effect_from_config(c, robot) for c in cfg["inner"]])
     if name == "SupportGate":
         if cfg.get("fallback") and robot is None:
             raise OptionError("a SupportGate with a fallback geometry needs the run's robot to be rebuilt")

@@ -26,6 +26,7 @@ from torchcal.data import Measurements
 from torchcal.diagnose.tracing import refresh_unexplained
 from torchcal.effects import Context, CorrectionNet, Effect, LearnedEffect, MeasurementModel
 from torchcal.effects.gp import GPConditioner, GPCorrection, GPSettings, condition_gp, fit_gp_correction
+from torchcal.effects.grouped import GroupedCorrection
 from torchcal.effects.kernel import fit_kernel_correction
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
@@ -45,6 +46,8 @@ VALIDATION_FRACTION = 0.2
 #: than the Gaussian process (exact up to 3000 rows, GPSettings.max_exact), which models the same smooth residual
 #: fields and uses every pose anyway (docs/methods.md, *The split and the methods*)
 KERNEL_CANDIDATE_MAX = 1000
+#: the fewest rows of a ``(station, probe)`` group with a learned correction of its own (:func:`_grouped_candidate`)
+GROUP_MIN_ROWS = 50
 
 
 def learned_stage(run: CalibrationRun) -> StageResult:
@@ -84,6 +87,21 @@ def condition_on_all(work: StageWork, train: Measurements, trajectory: bool) -> 
     model = work.model
     index = len(model.effects) - 1
     eff = model.effects[index]
+    if isinstance(eff, GroupedCorrection):
+        if not any(isinstance(e, GPCorrection) for e in eff.inner):
+            return
+        others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
+        corr = corrections(others, train, trajectory)
+        ctx = Context.from_measurements(train, trajectory=trajectory)
+        keys, inverse = _groups(train)
+        inner = list(eff.inner)
+        for k, (key, sub) in enumerate(zip(eff.groups, eff.inner)):
+            if isinstance(sub, GPCorrection):
+                rows = torch.nonzero(inverse == _group_index(keys, key)).flatten()
+                inner[k] = condition_gp(sub, ctx.subset(rows), corr[rows], _gp_settings(work))
+        model.effects[index] = GroupedCorrection(eff.groups, inner)
+        work.note("learned residual model: each group's Gaussian process conditioned on all its training poses")
+        return
     if not isinstance(eff, GPCorrection):
         return
     others = MeasurementModel(model.robot, [e for i, e in enumerate(model.effects) if i != index])
@@ -104,9 +122,18 @@ def _conditioner(work: StageWork, train: Measurements, trajectory: bool) -> GPCo
     so the pruning's paired tests see slightly different validation errors (a borderline decision can change).
     """
     eff = work.model.effects[len(work.model.effects) - 1]
+    fi, va = _learned_split(train, work.options.seed, work.options.split.group_tol, trajectory)
+    if isinstance(eff, GroupedCorrection):  # one per group's GP, on the group's fitting and validation rows
+        keys, inverse = _groups(train)
+        out = {}
+        for key, sub in zip(eff.groups, eff.inner):
+            if isinstance(sub, GPCorrection):
+                fg, vg, _ = _group_split(inverse, _group_index(keys, key), fi, va)
+                threads = _gp_settings(work).threads
+                out[key] = GPConditioner(sub, Context(q=train.q[fg]), Context(q=train.q[vg]), threads=threads)
+        return out or None
     if not isinstance(eff, GPCorrection):
         return None
-    fi, va = _learned_split(train, work.options.seed, work.options.split.group_tol, trajectory)
     return GPConditioner(eff, Context(q=train.q[fi]), Context(q=train.q[va]), threads=_gp_settings(work).threads)
 
 
@@ -140,6 +167,78 @@ def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory:
         idx = torch.arange(train.n)
         return idx[: train.n - n_val], idx[train.n - n_val :]
     return tuple(S.split(train.n, n_val, seed=seed + S.Stream.VALIDATION, q=train.q, group_tol=group_tol, sort=False))
+
+
+def _groups(train: Measurements) -> Tensor | None:
+    """Each training row's ``(station, probe)`` group index ``(N,)`` and the groups ``(G, 2)``, or None when the data
+    carry one group only."""
+    st, pr = getattr(train, "station", None), getattr(train, "probe", None)
+    if st is None and pr is None:
+        return None
+    zero = torch.zeros(train.n, dtype=torch.long)
+    key = torch.stack([zero if st is None else st.to(torch.long), zero if pr is None else pr.to(torch.long)], 1)
+    keys, inverse = torch.unique(key, dim=0, return_inverse=True)
+    if len(keys) < 2:
+        return None
+    return keys, inverse
+
+
+def _group_index(keys: Tensor, key: tuple[int, int]) -> int:
+    """The index of group ``key`` among ``keys`` (:func:`_groups`)."""
+    return next(i for i, k in enumerate(keys.tolist()) if tuple(k) == tuple(key))
+
+
+def _group_split(inverse: Tensor, g: int, fi: Tensor, va: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Group ``g``'s fitting rows, its validation rows and their positions in ``va``."""
+    in_va = inverse[va] == g
+    return fi[inverse[fi] == g], va[in_va], torch.nonzero(in_va).flatten()
+
+
+def _grouped_candidate(work: StageWork, train: Measurements, corr: Tensor, fi: Tensor, va: Tensor) -> tuple | None:
+    """Where the data carry several ``(station, probe)`` groups: one learned correction per group of at least
+    :data:`GROUP_MIN_ROWS` rows (the best of a GP, a kernel regression and a network on the group's fitting rows,
+    judged on its validation rows; none where no candidate lowers its validation RMSE), as one
+    :class:`~torchcal.effects.grouped.GroupedCorrection`; its validation errors on all of ``va``. None on one group."""
+    found = _groups(train)
+    if found is None:
+        return None
+    keys, inverse = found
+    model, opts = work.model, work.options
+    e_val = corr[va].norm(dim=-1).clone()
+    effs, groups, described = [], [], []
+    for g, key in enumerate(keys.tolist()):
+        fg, vg, pos = _group_split(inverse, g, fi, va)
+        if len(fg) + len(vg) < GROUP_MIN_ROWS or len(vg) < 3:
+            described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": None})
+            continue
+        cands = {}
+        try:
+            gp, info = _fit_gp(work, train, corr, fg, vg)
+            cands["gp"] = (gp, info["val_errors"])
+        except EstimationError as err:
+            work.note(f"learned residual model: group {key}'s Gaussian process was left out ({err})")
+        if len(fg) <= KERNEL_CANDIDATE_MAX:
+            kern, info = fit_kernel_correction(
+                model.robot, train.q[fg], corr[fg], q_val=train.q[vg], y_val=corr[vg], seed=opts.seed
+            )
+            cands["kernel"] = (kern, info["val_errors"])
+        init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
+        net, _ = _fitted_network(model, opts, init, train.q, corr, fg, vg)
+        with torch.no_grad():
+            cands["network"] = (LearnedEffect(net), (corr[vg] - net(train.q[vg])).norm(dim=-1))
+        best = min(cands, key=lambda k: S.rmse(cands[k][1]))
+        eff, e_g = cands[best]
+        if not S.rmse(e_g) < S.rmse(corr[vg].norm(dim=-1)):
+            described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": None})
+            continue
+        effs.append(eff)
+        groups.append(key)
+        e_val[pos] = e_g
+        described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": best})
+    if not effs:
+        return None
+    eff = GroupedCorrection(groups, effs)
+    return eff, e_val, {"model": "one learned correction per station and probe", "groups": described}
 
 
 def select_learned(
@@ -205,6 +304,10 @@ def select_learned(
             },
         ),
     }
+    with torch_threads(1):  # as the shared candidates: one torch thread, results independent of the machine
+        grouped = _grouped_candidate(work, train, corr, fi, va)
+    if grouped is not None:
+        candidates["grouped"] = grouped
     name = min(candidates, key=lambda k: S.rmse(candidates[k][1]))
     effect, e1, params = candidates[name]
     rmse0, rmse1 = S.rmse(e0), S.rmse(e1)
@@ -285,8 +388,32 @@ def _refit_learned_model(
     corrections ``corr``; returns its validation errors ``(n_val,)`` [m]."""
     opts = work.options
     index = len(model.effects) - 1
-    eff = model.effects[index]
     fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
+    model.effects[index], e_val = _refit_one(work, model.effects[index], train, corr, fi, va, gp)
+    return e_val
+
+
+def _refit_one(
+    work: StageWork,
+    eff: Effect,
+    train: Measurements,
+    corr: Tensor,
+    fi: Tensor,
+    va: Tensor,
+    gp: GPConditioner | dict | None = None,
+) -> tuple[Effect, Tensor]:
+    """A learned correction ``eff`` refitted to the corrections ``corr`` at the fitting rows ``fi``; the refitted
+    correction and its validation errors at ``va``. A grouped correction refits each group's on its own rows."""
+    opts = work.options
+    if isinstance(eff, GroupedCorrection):
+        keys, inverse = _groups(train)
+        e_val = corr[va].norm(dim=-1).clone()
+        inner = []
+        for key, sub in zip(eff.groups, eff.inner):
+            fg, vg, pos = _group_split(inverse, _group_index(keys, key), fi, va)
+            new, e_val[pos] = _refit_one(work, sub, train, corr, fg, vg, gp.get(key) if isinstance(gp, dict) else None)
+            inner.append(new)
+        return GroupedCorrection(eff.groups, inner), e_val
     if isinstance(eff, LearnedEffect):
         fit_net(
             eff.net,
@@ -299,27 +426,23 @@ def _refit_learned_model(
         )
         with torch.no_grad():
             e_val = (corr[va] - eff.net(train.q[va])).norm(dim=-1)
-    elif isinstance(eff, GPCorrection) and gp is not None:
+        return eff, e_val
+    if isinstance(eff, GPCorrection) and gp is not None:
         new, info = gp.condition(corr[fi], corr[va])
-        model.effects[index] = new
-        e_val = info["val_errors"]
-    elif isinstance(eff, GPCorrection):
+        return new, info["val_errors"]
+    if isinstance(eff, GPCorrection):
         new, info = _fit_gp(work, train, corr, fi, va, warm=eff)
-        model.effects[index] = new
-        e_val = info["val_errors"]
-    else:
-        new, info = fit_kernel_correction(
-            model.robot,
-            train.q[fi],
-            corr[fi],
-            q_val=train.q[va],
-            y_val=corr[va],
-            seed=opts.seed,
-            start=(float(eff.length_scale), float(eff.noise_ratio)),  # new corrections, near the old: search locally
-        )
-        model.effects[index] = new
-        e_val = info["val_errors"]
-    return e_val
+        return new, info["val_errors"]
+    new, info = fit_kernel_correction(
+        work.model.robot,
+        train.q[fi],
+        corr[fi],
+        q_val=train.q[va],
+        y_val=corr[va],
+        seed=opts.seed,
+        start=(float(eff.length_scale), float(eff.noise_ratio)),  # new corrections, near the old: search locally
+    )
+    return new, info["val_errors"]
 
 
 def refine_learned(
