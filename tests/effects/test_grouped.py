@@ -85,3 +85,59 @@ def test_one_group_has_no_grouped_candidate():
     work = SimpleNamespace(model=MeasurementModel(load_robot("ur5")), options=opts, note=lambda text: None)
     fi, va = _learned_split(one, opts.seed, opts.split.group_tol)
     assert _grouped_candidate(work, one, corr, fi, va) is None
+
+
+def test_one_station_and_probe_keeps_that_pairs_correction():
+    """compensate's single-frame model (:func:`~torchcal.report.rundir.at_station`) carries the picked pair's
+    correction, and none where the pair has none, not the first group's."""
+    from torchcal.report.rundir import at_station
+
+    robot = load_robot("ur5")
+    robot.set_stations(["S0", "S1"])
+    robot.set_probes(["P0", "P1"])
+    eff = GroupedCorrection([(0, 0), (1, 1)], [_net(1), _net(2)])
+    model = MeasurementModel(robot, [eff])
+    one, s, p = at_station(model, "S1", "P1")
+    assert (s, p) == (1, 1) and one.effects[0] is not eff and isinstance(one.effects[0], LearnedEffect)
+    q = torch.rand(4, 6, dtype=F64, generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        assert torch.equal(one.effects[0].net(q), eff.inner[1].net(q))
+    none, _, _ = at_station(model, "S1", "P0")
+    assert len(none.effects) == 0
+
+
+def test_each_row_has_its_own_groups_predictive_sigma():
+    from torchcal.effects.gp import GPSettings, fit_gp_correction
+    from torchcal.estimate.covariance import learned_std
+
+    train, corr = _campaign(120)
+    gps = []
+    for g in (0, 1):
+        rows = torch.nonzero(train.station == g).flatten()
+        gp, _ = fit_gp_correction(Context(q=train.q[rows]), corr[rows], GPSettings(seed=0))
+        gps.append(gp)
+    robot = load_robot("ur5")
+    eff = GroupedCorrection([(0, 0), (1, 1)], gps)
+    q = torch.rand(6, 6, dtype=F64, generator=torch.Generator().manual_seed(2)) * 3 - 1.5
+    st, pr = torch.tensor([0, 1, 1, 0, 1, 0]), torch.tensor([0, 1, 0, 0, 1, 1])
+    ctx = Context(q=q, station=st, probe=pr)
+    out = learned_std(MeasurementModel(robot, [eff]), ctx)
+    for g, rows in ((0, [0, 3]), (1, [1, 4])):
+        alone = learned_std(MeasurementModel(robot, [gps[g]]), Context(q=q[rows]))
+        assert torch.allclose(out[rows], alone, rtol=1e-12, atol=0)
+    assert torch.equal(out[[2, 5]], torch.zeros(2, 3, dtype=F64))  # pairs without a correction
+
+
+def test_a_groups_correction_fades_beyond_the_joints_it_was_measured_over():
+    eff = GroupedCorrection([(0, 0)], [_net(1)], regions=[torch.tensor([[-0.5] * 6, [0.5] * 6], dtype=F64)])
+    q = torch.zeros(3, 6, dtype=F64)
+    q[1, 2] = 0.5  # at the edge: in
+    q[2, 2] = 0.5 + 1.0  # a radian beyond q3's range
+    ctx = Context(q=q, station=torch.zeros(3, dtype=torch.long), probe=torch.zeros(3, dtype=torch.long))
+    with torch.no_grad():
+        out, raw = eff(None, ctx), eff.inner[0].net(q)
+        assert torch.equal(out[:2], raw[:2])
+        assert float(out[2].norm()) < 0.01 * float(raw[2].norm())
+        twin = effect_from_config({"class": "GroupedCorrection", **eff.config()})
+        twin.load_state_dict(eff.state_dict())
+        assert torch.equal(twin(None, ctx), out)

@@ -4,7 +4,10 @@ Where the data carry several instrument stations or probes (measurement days, to
 geometry and named effects leave differs between them; one correction, a function of the joints alone, fits their
 average. :class:`GroupedCorrection` holds one learned correction per ``(station, probe)`` group present in the
 training data and dispatches each row to its group's one by the context's ``station`` and ``probe``; a group
-without a correction (too few rows, or none earned its place) adds nothing.
+without a correction (too few rows, or none earned its place) adds nothing. Each group's correction fades to zero
+beyond the range of joints that group was measured over, as the model's learned corrections fade beyond the whole
+calibration's (:meth:`~torchcal.effects.model.MeasurementModel.set_region`): a group measured over a small part of the
+region (one day's cube of poses) says nothing about the rest of it.
 """
 
 from __future__ import annotations
@@ -33,18 +36,22 @@ class GroupedCorrection(Effect):
     Args:
         groups: the ``(station, probe)`` index of each inner correction.
         inner: the corrections (Cartesian effects of kind ``learned``), in the order of ``groups``.
+        regions: each group's joint range ``(2, dof)`` (lower, upper) its correction fades beyond; None: no fade.
     """
 
     kind = "learned"
     acts_on = "cartesian"
     fades_beyond_region = True
 
-    def __init__(self, groups, inner):
+    def __init__(self, groups, inner, regions=None):
         super().__init__(joint=None)
         self.groups = [(int(s), int(p)) for s, p in groups]
         self.inner = nn.ModuleList(list(inner))
         if len(self.groups) != len(self.inner):
             raise ValueError("GroupedCorrection: one inner correction per group")
+        if regions is not None and len(regions) != len(self.groups):
+            raise ValueError("GroupedCorrection: one region per group")
+        self.regions = None if regions is None else [torch.as_tensor(r, dtype=torch.float64) for r in regions]
         self._cache: tuple | None = None
 
     def _split(self, ctx: Context) -> list[tuple[Tensor, Context]]:
@@ -63,12 +70,25 @@ class GroupedCorrection(Effect):
             self._cache = (key, parts)
         return parts
 
+    def fade(self, k: int, q: Tensor) -> Tensor | None:
+        """Group ``k``'s fade at ``q`` ``(n, 1)``: 1 within its joint range, ``exp(-d^2 / (2 FADE_LENGTH^2))`` at a
+        distance ``d`` beyond it (the model's own rule); None without regions."""
+        if self.regions is None:
+            return None
+        from torchcal.effects.joint import FADE_LENGTH
+
+        lo, hi = (r.to(dtype=q.dtype, device=q.device) for r in self.regions[k])
+        d = torch.maximum(lo - q.detach(), q.detach() - hi).clamp(min=0).amax(dim=1)
+        return torch.exp(-0.5 * (d / FADE_LENGTH) ** 2)[:, None]
+
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         out = torch.zeros(ctx.q.shape[0], 3, dtype=ctx.q.dtype, device=ctx.q.device)
-        for (rows, sub), eff in zip(self._split(ctx), self.inner):
+        for k, ((rows, sub), eff) in enumerate(zip(self._split(ctx), self.inner)):
             if len(rows) == 0:
                 continue
-            out = out.index_put((rows,), eff(robot, sub, None if p_base is None else p_base[rows]))
+            dp = eff(robot, sub, None if p_base is None else p_base[rows])
+            w = self.fade(k, sub.q)
+            out = out.index_put((rows,), dp if w is None else dp * w)
         return out
 
     def scale_(self, factor: float) -> None:
@@ -76,10 +96,13 @@ class GroupedCorrection(Effect):
             eff.scale_(factor)
 
     def config(self) -> dict:
-        return {
+        out = {
             "groups": [list(g) for g in self.groups],
             "inner": [{"class": type(e).__name__, **e.config()} for e in self.inner],
         }
+        if self.regions is not None:
+            out["regions"] = [r.tolist() for r in self.regions]
+        return out
 
     def describe(self) -> dict:
         return {

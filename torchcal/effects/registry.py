@@ -86,7 +86,9 @@ def effect_from_config(cfg: dict, robot=None) -> Effect:
     if name == "LearnedEffect":
         return LearnedEffect(CorrectionNet(cfg["dof"], cfg["hidden"]))
     if name == "GroupedCorrection":
-        return GroupedCorrection(cfg["groups"], [effect_from_config(c, robot) for c in cfg["inner"]])
+        return GroupedCorrection(
+            cfg["groups"], [effect_from_config(c, robot) for c in cfg["inner"]], cfg.get("regions")
+        )
     if name == "SupportGate":
         if cfg.get("fallback") and robot is None:
             raise OptionError("a SupportGate with a fallback geometry needs the run's robot to be rebuilt")

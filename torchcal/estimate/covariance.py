@@ -138,7 +138,11 @@ def learned_std(model: MeasurementModel, ctx: Context) -> Tensor | None:
     have one (a Gaussian process, the integrated method's gates), faded as the corrections are beyond the calibrated
     region; None where none has."""
     from torchcal.effects.gp import GPCorrection
+    from torchcal.effects.grouped import GroupedCorrection, row_groups
     from torchcal.effects.support import predictive_sigma
+
+    def gp_std(e: GPCorrection, sub: Context) -> Tensor:
+        return e.predict(sub, std=True)[1]  # robot base frame
 
     parts = []
     w = model.region_weight(ctx.q)
@@ -146,9 +150,19 @@ def learned_std(model: MeasurementModel, ctx: Context) -> Tensor | None:
     with torch.no_grad():
         for e in model.effects:
             if isinstance(e, GPCorrection) and len(e.inducing):
-                s = e.predict(ctx, std=True)[1]  # robot base frame
-                s = ((R * R) @ s.square().T).T.sqrt()  # per tracker axis, components taken as independent
-                parts.append(s if w is None or not e.fades_beyond_region else s * w)
+                s = gp_std(e, ctx)
+            elif isinstance(e, GroupedCorrection) and any(isinstance(g, GPCorrection) for g in e.inner):
+                # each row the std of its own group's GP; rows of a group without one have none
+                s = ctx.q.new_zeros(ctx.q.shape[0], 3)
+                st, pr = row_groups(ctx)
+                for (gs, gp), inner in zip(e.groups, e.inner):
+                    rows = torch.nonzero((st == gs) & (pr == gp)).flatten()
+                    if isinstance(inner, GPCorrection) and len(inner.inducing) and len(rows):
+                        s[rows] = gp_std(inner, ctx.subset(rows))
+            else:
+                continue
+            s = ((R * R) @ s.square().T).T.sqrt()  # per tracker axis, components taken as independent
+            parts.append(s if w is None or not e.fades_beyond_region else s * w)
         gate = predictive_sigma(model, ctx.q)
         if gate is not None:
             parts.append(gate)

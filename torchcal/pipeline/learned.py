@@ -99,7 +99,7 @@ def condition_on_all(work: StageWork, train: Measurements, trajectory: bool) -> 
             if isinstance(sub, GPCorrection):
                 rows = torch.nonzero(inverse == _group_index(keys, key)).flatten()
                 inner[k] = condition_gp(sub, ctx.subset(rows), corr[rows], _gp_settings(work))
-        model.effects[index] = GroupedCorrection(eff.groups, inner)
+        model.effects[index] = GroupedCorrection(eff.groups, inner, eff.regions)
         work.note("learned residual model: each group's Gaussian process conditioned on all its training poses")
         return
     if not isinstance(eff, GPCorrection):
@@ -169,13 +169,13 @@ def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory:
     return tuple(S.split(train.n, n_val, seed=seed + S.Stream.VALIDATION, q=train.q, group_tol=group_tol, sort=False))
 
 
-def _groups(train: Measurements) -> Tensor | None:
-    """Each training row's ``(station, probe)`` group index ``(N,)`` and the groups ``(G, 2)``, or None when the data
+def _groups(train: Measurements) -> tuple[Tensor, Tensor] | None:
+    """The groups ``(G, 2)`` and each training row's ``(station, probe)`` group index ``(N,)``, or None when the data
     carry one group only."""
     st, pr = getattr(train, "station", None), getattr(train, "probe", None)
     if st is None and pr is None:
         return None
-    zero = torch.zeros(train.n, dtype=torch.long)
+    zero = torch.zeros(train.n, dtype=torch.long, device=train.q.device)
     key = torch.stack([zero if st is None else st.to(torch.long), zero if pr is None else pr.to(torch.long)], 1)
     keys, inverse = torch.unique(key, dim=0, return_inverse=True)
     if len(keys) < 2:
@@ -205,7 +205,7 @@ def _grouped_candidate(work: StageWork, train: Measurements, corr: Tensor, fi: T
     keys, inverse = found
     model, opts = work.model, work.options
     e_val = corr[va].norm(dim=-1).clone()
-    effs, groups, described = [], [], []
+    effs, groups, regions, described = [], [], [], []
     for g, key in enumerate(keys.tolist()):
         fg, vg, pos = _group_split(inverse, g, fi, va)
         if len(fg) + len(vg) < GROUP_MIN_ROWS or len(vg) < 3:
@@ -233,11 +233,13 @@ def _grouped_candidate(work: StageWork, train: Measurements, corr: Tensor, fi: T
             continue
         effs.append(eff)
         groups.append(key)
+        q_g = train.q[inverse == g]  # the joints this group was measured over: its correction fades beyond them
+        regions.append(torch.stack([q_g.min(0).values, q_g.max(0).values]))
         e_val[pos] = e_g
         described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": best})
     if not effs:
         return None
-    eff = GroupedCorrection(groups, effs)
+    eff = GroupedCorrection(groups, effs, regions)
     return eff, e_val, {"model": "one learned correction per station and probe", "groups": described}
 
 
@@ -413,7 +415,7 @@ def _refit_one(
             fg, vg, pos = _group_split(inverse, _group_index(keys, key), fi, va)
             new, e_val[pos] = _refit_one(work, sub, train, corr, fg, vg, gp.get(key) if isinstance(gp, dict) else None)
             inner.append(new)
-        return GroupedCorrection(eff.groups, inner), e_val
+        return GroupedCorrection(eff.groups, inner, eff.regions), e_val
     if isinstance(eff, LearnedEffect):
         fit_net(
             eff.net,

@@ -625,10 +625,12 @@ def at_station(
     model: MeasurementModel, station: str | None = None, probe: str | None = None
 ) -> tuple[MeasurementModel, int, int]:
     """A copy of ``model`` with one instrument pose and one lever arm, those of ``station`` and ``probe`` (names;
-    None: the first), for what works in one frame (``compensate``); with their indices in ``model``. A model of one
-    station and one probe comes back as it is (a name given for it must then be absent)."""
+    None: the first), for what works in one frame (``compensate``); with their indices in ``model``. A learned
+    correction per station and probe becomes that pair's (none where the pair has none). A model of one station and
+    one probe comes back as it is (a name given for it must then be absent)."""
     import copy
 
+    from torchcal.effects.grouped import GroupedCorrection
     from torchcal.robot.model import Instrument, Tool
 
     robot = model.robot
@@ -645,6 +647,13 @@ def at_station(
     with torch.no_grad():
         r.instrument = Instrument(robot.T_tracker_base(picked[0]).detach(), dtype=r.dtype, device=r.device)
         r.tool = Tool(robot.t_flange_probe(picked[1]).detach(), dtype=r.dtype, device=r.device)
+    for i, e in reversed(list(enumerate(out.effects))):
+        if isinstance(e, GroupedCorrection):
+            key = (picked[0], picked[1])
+            if key in e.groups:
+                out.effects[i] = e.inner[e.groups.index(key)]
+            else:
+                del out.effects[i]
     return out, picked[0], picked[1]
 
 
