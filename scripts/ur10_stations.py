@@ -15,6 +15,9 @@ ap = common.parser(ur10_stations.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")
 ap.add_argument("--series", default=",".join(SERIES), help="series, comma separated (default A,B,C,D)")
 ap.add_argument("--methods", default=",".join(METHODS), help="methods, comma separated (default kinematic,auto)")
+ap.add_argument(
+    "--bc-one-station", action="store_true", help="B and C as one tracker placement, as the data's README has them"
+)
 ap.add_argument("--a-rows", type=int, default=0, help="subsample Series A to this many rows (default 0: all)")
 
 
@@ -23,7 +26,7 @@ def experiment(a):
         ap.error(f"data folder not found: {a.data_dir}")
     names = common.comma_list(ap, a.series, SERIES, what="series", upper=True)
     methods = common.comma_list(ap, a.methods, ("kinematic", "auto", "pcm", "kinematic+ann"), what="method")
-    res = run(a.data_dir, names, methods, a.a_rows)
+    res = run(a.data_dir, names, methods, a.a_rows, a.bc_one_station)
     return res, markdown(res)
 
 

@@ -27,7 +27,7 @@ def test_series_together_subset():
     )  # fmt: skip
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(r.stdout.strip().splitlines()[-1])
-    assert res["stations"] == ["BC", "D"] and res["probes"] == ["T1", "T2"]
+    assert res["stations"] == ["C", "D"] and res["probes"] == ["T1", "T2"]
     kin = res["methods"]["kinematic"]
     for s in ("C", "D"):
         p = kin["per_series"][s]
