@@ -4,9 +4,9 @@ tool (issue 26).
 The ipa-robot-accuracy series were measured on four days with two T-Mac mounts (about 93 mm for A-C, 342 mm for D).
 Merged into one file with a ``station`` column (one per series) and a ``probe`` column (``T1`` for A-C, ``T2`` for D),
 they are calibrated together. The data's README calls B's and C's tracker placement the same (their home poses agree
-within 0.2 mm), but fitted as two stations their tracker origins lie 11 mm apart in the robot's base and B's held-out
-error drops from 0.516 to 0.497 mm (kinematic): at this accuracy they are two placements (``--bc-one-station``
-merges them, for the comparison).
+within 0.2 mm), but they were measured on different days, and fitted as two stations (all four series together,
+kinematic) their tracker origins lie 0.8 mm apart in the robot's base and B's held-out error drops from 0.516 to 0.497
+mm: at this accuracy they are two placements (``--bc-one-station`` merges them, for the comparison).
 
 Held-out rows: each series' own rows held out when it is calibrated alone (``calibrate``'s seeded, revisit-grouped
 80/20 split of that series, its gross errors screened as alone), so each series' held-out error of the joint
