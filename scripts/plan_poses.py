@@ -15,9 +15,20 @@ ap.add_argument(
 )
 ap.add_argument("--series", default="A", help="series (default A)")
 ap.add_argument("--k", default="30,100,500", help="design sizes, comma-separated (default 30,100,500)")
+ap.add_argument(
+    "--method",
+    choices=("kinematic", "auto"),
+    default="kinematic",
+    help="the method each design is calibrated with (default kinematic; auto: the default method)",
+)
 ap.add_argument("--criterion", choices=("I", "D"), default="I", help="design criterion (default I)")
 ap.add_argument("--edge-share", type=float, default=0.1, help="share of picks at the region's edges (default 0.1)")
-ap.add_argument("--seeds", type=int, default=5, help="random designs per size (default 5)")
+ap.add_argument(
+    "--spread-share", type=float, default=0.5, help="share of picks spreading the design (default 0.5; 0: none)"
+)
+ap.add_argument(
+    "--seeds", type=int, default=5, help="seeds per size: a planned design from a seeded half of the pool, a random one"
+)
 ap.add_argument(
     "--reference", type=int, default=200, help="random poses of the reference design (default 200; 0: none)"
 )
@@ -32,11 +43,25 @@ def experiment(a):
         ap.error(f"--k must be whole numbers separated by commas, got {a.k!r}")
     if a.simulated is not None:
         res = plan_poses.simulated(
-            a.simulated, ks, a.seeds, a.reference or None, edge_share=a.edge_share, criterion=a.criterion
+            a.simulated,
+            ks,
+            a.seeds,
+            a.reference or None,
+            edge_share=a.edge_share,
+            criterion=a.criterion,
+            spread_share=a.spread_share,
         )
         return res, plan_poses.markdown(res)
     res = plan_poses.run(
-        a.data_dir, a.series.upper(), ks, a.seeds, a.reference or None, edge_share=a.edge_share, criterion=a.criterion
+        a.data_dir,
+        a.series.upper(),
+        ks,
+        a.seeds,
+        a.reference or None,
+        edge_share=a.edge_share,
+        criterion=a.criterion,
+        spread_share=a.spread_share,
+        method=a.method,
     )
     return res, plan_poses.markdown(res)
 

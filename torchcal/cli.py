@@ -475,6 +475,13 @@ def build_parser() -> argparse.ArgumentParser:
         "is least certain (default 0.2)",
     )
     pl.add_argument(
+        "--spread-share",
+        type=_number("nonnegative", 0.9),
+        default=0.5,
+        help="share of the picks that follow the candidates' spread (kernel herding) instead of the criterion: they "
+        "guard the geometry against the robot's non-geometric error (default 0.5; 0: the criterion alone)",
+    )
+    pl.add_argument(
         "--tracker",
         type=_tool,
         default=None,
@@ -916,6 +923,7 @@ def cmd_plan(args) -> int:
         criterion=args.criterion,
         edge_share=args.edge_share,
         learned_share=args.learned_share,
+        spread_share=args.spread_share,
         sigma_tracker=sigma_tracker,
         sigma_joint=sigma_joint,
         s0_sq=s0_sq,

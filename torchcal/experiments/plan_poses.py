@@ -5,9 +5,10 @@ The pool and the held-out poses are calibrate's own grouped split of a data set 
 or a simulated campaign's training file, scored on its test file). The plan is made as ``torchcal plan --run`` makes
 it: with the model, the stochastic model and the variance factor of a kinematic calibration of the whole pool (what
 an earlier campaign gives a user), the candidates being the pool's joint configurations. Each design is then
-calibrated on its ``K`` measured rows (all of them fitted: ``refit``) and its held-out RMSE measured; random designs
-are drawn per seed (``seeds``), and ``reference`` random poses give the baseline the issue names (kinematic with 200
-random poses).
+calibrated on its ``K`` measured rows (all of them fitted: ``refit``) and its held-out RMSE measured. Per seed
+(``seeds``), the planner sees a seeded share of the pool (``candidate_share``, half by default: a plan depends on the
+candidates it is offered as a random design on its draw) and a random design is drawn from the whole pool; ``reference``
+random poses give the baseline the issue names (kinematic with 200 random poses).
 """
 
 from __future__ import annotations
@@ -33,12 +34,16 @@ def _rmse(e: torch.Tensor) -> float:
     return float(e.square().mean().sqrt()) * MM
 
 
-def fit_and_score(robot: str, rows: Measurements, held: Measurements, sigma_tracker: float | None = None) -> float:
-    """Held-out RMSE [mm] on ``held`` of a kinematic calibration on all of ``rows``."""
+def fit_and_score(
+    robot: str, rows: Measurements, held: Measurements, sigma_tracker: float | None = None, method: str = "kinematic"
+) -> float:
+    """Held-out RMSE [mm] on ``held`` of a calibration (``method``) on ``rows``: kinematic on all of them, another
+    method with the learning curve's options (docs/real-data.md, *How many poses*), its default's baseline."""
     k = rows.n
     # calibrate keeps at least one pose out to score its stages; refit fits the model written on all of them
     kw = {} if sigma_tracker is None else {"sigma_tracker": sigma_tracker}
-    opts = Options.of(method="kinematic", seed=SEED, holdout=min(0.5 / k, 0.5), trajectory=False, refit=True, **kw)
+    kw |= {"refit": True} if method == "kinematic" else {}
+    opts = Options.of(method=method, seed=SEED, holdout=min(0.5 / k, 0.5), trajectory=False, **kw)
     run = calibrate(robot, rows, opts)
     return _rmse(errors(run.model, held, trajectory=False))
 
@@ -52,6 +57,9 @@ def compare(
     reference: int | None = 200,
     edge_share: float = 0.1,
     criterion: str = "I",
+    spread_share: float = 0.5,
+    candidate_share: float = 0.5,
+    method: str = "kinematic",
 ) -> dict:
     """Planned and random designs of each size in ``ks`` from ``pool``, scored on ``held`` (module docstring)."""
     t0 = time.perf_counter()
@@ -68,45 +76,54 @@ def compare(
         "variance_factor": s0_sq,
         "pool_kinematic_holdout_mm": _rmse(errors(base.model, held, trajectory=False)),
         "criterion": criterion,
+        "method": method,
         "edge_share": edge_share,
+        "spread_share": spread_share,
+        "candidate_share": candidate_share,
         "sizes": [],
     }
+    n_cand = max(1, round(candidate_share * pool.n))
     for k in ks:
-        t1 = time.perf_counter()
-        plan = plan_poses(
-            base.model,
-            pool.q,
-            PlanOptions(
-                k=k,
-                criterion=criterion,
-                edge_share=edge_share,
-                sigma_tracker=sigma_tracker,
-                sigma_joint=opts_fit.sigma_joint,
-                s0_sq=s0_sq,
-            ),
-        )
-        plan_s = time.perf_counter() - t1
-        planned = fit_and_score(robot, pool.subset(torch.sort(plan.index).values), held)
-        rnd = []
+        planned, predicted, plan_s, rnd = [], [], [], []
         for s in range(seeds):
+            cand = torch.sort(torch.randperm(pool.n, generator=torch.Generator().manual_seed(1000 + s))[:n_cand]).values
+            t1 = time.perf_counter()
+            plan = plan_poses(
+                base.model,
+                pool.q[cand],
+                PlanOptions(
+                    k=k,
+                    criterion=criterion,
+                    edge_share=edge_share,
+                    spread_share=spread_share,
+                    sigma_tracker=sigma_tracker,
+                    sigma_joint=opts_fit.sigma_joint,
+                    s0_sq=s0_sq,
+                ),
+            )
+            plan_s.append(time.perf_counter() - t1)
+            planned.append(fit_and_score(robot, pool.subset(torch.sort(cand[plan.index]).values), held, method=method))
+            predicted.append(plan.predicted_rmse * MM)
             idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:k]
-            rnd.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held))
+            rnd.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held, method=method))
+        med = statistics.median(planned)
         out["sizes"].append(
             {
                 "k": k,
-                "planned_mm": planned,
-                "predicted_mm": plan.predicted_rmse * MM,
-                "predicted_random_mm": plan.random_rmse * MM,
-                "predicted_over_measured": plan.predicted_rmse * MM / planned,
+                "planned_mm": med,
+                "planned_range_mm": [min(planned), max(planned)],
+                "planned_values_mm": planned,
+                "predicted_mm": statistics.median(predicted),
+                "predicted_over_measured": statistics.median(p / m for p, m in zip(predicted, planned)),
                 "random_mm": {"median": statistics.median(rnd), "min": min(rnd), "max": max(rnd), "values": rnd},
-                "plan_s": plan_s,
+                "plan_s": statistics.median(plan_s),
             }
         )
     if reference:
         ref = []
         for s in range(seeds):
             idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:reference]
-            ref.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held))
+            ref.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held, method=method))
         out["reference"] = {"k": reference, "random_mm": {"median": statistics.median(ref), "values": ref}}
         for row in out["sizes"]:
             row["planned_over_reference"] = row["planned_mm"] / statistics.median(ref)
@@ -128,10 +145,15 @@ def run(
     reference: int | None = 200,
     edge_share: float = 0.1,
     criterion: str = "I",
+    spread_share: float = 0.5,
+    method: str = "kinematic",
 ) -> dict:
     """:func:`compare` on a UR10 series: the pool its training split's rows, scored on its held-out split."""
     pool, held = split(read_ipa(series_file(data_dir, series)))
-    return {"series": f"Series {series}", **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion)}
+    return {
+        "series": f"Series {series}",
+        **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion, spread_share),
+    }
 
 
 def simulated(
@@ -141,6 +163,7 @@ def simulated(
     reference: int | None = 200,
     edge_share: float = 0.1,
     criterion: str = "I",
+    spread_share: float = 0.5,
     poses: int = 2000,
     test_poses: int = 500,
     seed: int = 3,
@@ -150,7 +173,7 @@ def simulated(
     from torchcal.sim import SimConfig, simulate
 
     c = simulate(SimConfig(robot=robot, poses=poses, test_poses=test_poses, seed=seed))
-    res = compare(robot, c.train, c.test, ks, seeds, reference, edge_share, criterion)
+    res = compare(robot, c.train, c.test, ks, seeds, reference, edge_share, criterion, spread_share)
     return {"series": f"simulated {robot} (seed {seed})", **res}
 
 
@@ -158,17 +181,21 @@ def markdown(res: dict) -> str:
     ref = res.get("reference")
     lines = [
         f"{res.get('series', '?')}: pool {res['n_pool']} poses, {res['n_holdout']} held out; variance factor "
-        f"{res['variance_factor']:.3g}; criterion {res['criterion']}, edge share {res['edge_share']}; kinematic on the "
-        f"whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
+        f"{res['variance_factor']:.3g}; criterion {res['criterion']}, edge share {res['edge_share']}, spread share "
+        f"{res['spread_share']}; the planner offered {res['candidate_share']:.0%} of the pool per seed; method "
+        f"{res.get('method', 'kinematic')}; "
+        f"kinematic on the whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
         "",
-        "| K | planned [mm] | predicted [mm] | pred/meas | random median [mm] (min-max) | planned / random "
+        "| K | planned median [mm] (min-max) | predicted [mm] | pred/meas | random median [mm] (min-max) | "
+        + "planned / random "
         + (f"{ref['k']} |" if ref else "|"),
         "|---:|---:|---:|---:|---:|---:|",
     ]
     for r in res["sizes"]:
         rm = r["random_mm"]
         lines.append(
-            f"| {r['k']} | {r['planned_mm']:.4f} | {r['predicted_mm']:.4f} | {r['predicted_over_measured']:.2f} | "
+            f"| {r['k']} | {r['planned_mm']:.4f} ({r['planned_range_mm'][0]:.4f}-{r['planned_range_mm'][1]:.4f}) | "
+            f"{r['predicted_mm']:.4f} | {r['predicted_over_measured']:.2f} | "
             f"{rm['median']:.4f} ({rm['min']:.4f}-{rm['max']:.4f}) | "
             + (f"{r['planned_over_reference']:.3f} |" if ref else "|")
         )

@@ -20,6 +20,13 @@ where that correction is least certain instead: the candidate with the largest p
 ``1 - exp(-d^2 / 2 l^2)`` for each pose planned so far at distance ``d`` (joints scaled to the candidates' range,
 ``l`` = :data:`LEARNED_LENGTH`), a squared-exponential kernel's variance reduction, so that these picks spread over the
 uncertain region instead of piling up at its worst point. The kinematic prediction does not count what they add.
+
+A share of the picks (``spread_share``, default 50 %) spreads the design over where the robot works instead, by kernel
+herding on the candidates (:class:`SpreadTurns`). The I and D criteria assume the geometric model is right; a real
+robot also has a non-geometric residual, a smooth field over the joints that the geometry absorbs wherever the design
+samples it, and a design that piles up where the geometry is most informative lets that field bias it. Poses that
+follow the candidates' density average the field out as a random design does (docs/real-data.md, *Planning the
+poses*, has the measurements).
 """
 
 from __future__ import annotations
@@ -53,6 +60,8 @@ CURVE = (5, 10, 20, 30, 50, 100, 200, 300, 500, 1000, 2000, 5000, 10000)
 #: the correlation length of the learned correction's discount between planned poses, in joints scaled to the
 #: candidates' range [1]: a tenth of each joint's range
 LEARNED_LENGTH = 0.1
+#: the kernel length of the spreading picks (:class:`SpreadTurns`), in joints scaled to the candidates' range [1]
+SPREAD_LENGTH = 0.25
 #: where a tracker stands when nothing says where: 2.5 m in front of the base, 0.2 m above its plane (the simulator
 #: draws 2-3 m and -0.3..0.5 m)
 DEFAULT_TRACKER = (2.5, 0.0, 0.2)
@@ -70,6 +79,7 @@ class PlanOptions:
         edge_share: share of the picks made among the candidates at the edges of the region (0: none).
         learned_share: share of the picks made where the learned correction is least certain (where the model has
             one with a predictive standard deviation; 0: none).
+        spread_share: share of the picks made farthest from the poses planned so far (0: none; module docstring).
         sigma_tracker: tracker noise per axis [m]; sigma_joint: joint noise [rad] (the fits' stochastic model).
         s0_sq: variance factor of the stochastic model (a run's own; 1 for simulated data).
         priors: the fits' priors.
@@ -80,6 +90,7 @@ class PlanOptions:
     criterion: str = "I"
     edge_share: float = 0.1
     learned_share: float = 0.2
+    spread_share: float = 0.5
     sigma_tracker: float = 15e-6
     sigma_joint: float = math.radians(0.0005)
     s0_sq: float = 1.0
@@ -96,6 +107,7 @@ class Plan:
         q: ``(K, dof)`` their joints [rad].
         edge: ``(K,)`` bool, at the edges of the region.
         learned: ``(K,)`` bool, picked where the learned correction is least certain.
+        spread: ``(K,)`` bool, picked farthest from the poses planned before it.
         names, units, sigma: the identifiable parameters and their predicted standard deviations after the ``K``
             poses [m or rad].
         held: the parameters no choice among the candidates determines (held in the fit), with the reason.
@@ -109,6 +121,7 @@ class Plan:
     q: Tensor
     edge: Tensor
     learned: Tensor
+    spread: Tensor
     names: list[str]
     units: list[str]
     sigma: Tensor
@@ -132,6 +145,8 @@ class Plan:
             "n_edge": int(self.edge.sum()),
             "learned_share": self.options.learned_share if bool(self.learned.any()) else 0.0,
             "n_learned": int(self.learned.sum()),
+            "spread_share": self.options.spread_share,
+            "n_spread": int(self.spread.sum()),
             "stochastic_model": {
                 "tracker_noise_um": self.options.sigma_tracker * 1e6,
                 "joint_noise_deg": math.degrees(self.options.sigma_joint),
@@ -156,7 +171,7 @@ class Plan:
             f"# Planned poses: {d['k']} of {d['n_candidates']} candidates",
             "",
             f"{d['criterion']}; {d['n_edge']} at the edges of the region, {d['n_learned']} picked where the learned "
-            "correction is least certain.",
+            f"correction is least certain, {d['n_spread']} farthest from the poses planned before them.",
             "",
             f"- predicted held-out RMSE: {d['predicted_holdout_rmse_mm']:.4f} mm "
             f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm)",
@@ -203,26 +218,59 @@ def scene_of(model: MeasurementModel) -> tuple[Tensor, Tensor]:
 
 
 class LearnedTurns:
-    """Every ``round(1 / share)``-th pick (offset from the edge picks) goes to the candidate whose learned
-    correction is least certain, discounted near the poses planned so far (module docstring)."""
+    """Every ``round(1 / share)``-th pick (offset from the edge picks) goes to the candidate with the largest
+    variance ``score``, discounted near the poses planned so far (module docstring): the learned correction's
+    predictive variance, or a uniform one to spread the design (``spaced``: pick ``j`` is a turn where
+    ``floor((j + 1) share)`` steps up, any share of the picks, the first the criterion's)."""
 
-    def __init__(self, std: Tensor, where: Tensor, share: float, length: float = LEARNED_LENGTH):
+    def __init__(self, std: Tensor, where: Tensor, share: float, length: float = LEARNED_LENGTH, spaced: bool = False):
         self.score = std.square().clone()  # (N,) predictive variance [m^2]
         self.where = where  # (N, d) joints scaled to [0, 1]
+        self.share = share
+        self.spaced = spaced
         self.every = max(1, round(1.0 / share))
         self.length = length
         self.seen: set[int] = set()  # picks already folded into the discount
         self.turns: list[int] = []
 
-    def __call__(self, j: int, taken: Tensor) -> Tensor | None:
+    def fold(self, taken: Tensor) -> None:
+        """Discount the score near the picks not yet folded in."""
         for i in set(torch.nonzero(taken).flatten().tolist()) - self.seen:
             d2 = (self.where - self.where[i]).square().sum(-1)
             self.score = self.score * (1.0 - torch.exp(-0.5 * d2 / self.length**2))
             self.seen.add(i)
+
+    def __call__(self, j: int, taken: Tensor) -> Tensor | None:
+        self.fold(taken)
         if (j + 1 + self.every // 2) % self.every != 0 or not bool((self.score[~taken] > 0).any()):
             return None
         self.turns.append(j)
         return self.score
+
+
+def _scaled(q: Tensor) -> Tensor:
+    """The joints scaled to the candidates' range, ``[0, 1]`` per joint."""
+    lo = q.min(0).values
+    return (q - lo) / (q.max(0).values - lo).clamp(min=1e-12)
+
+
+class Turns:
+    """The other criteria's turns in order of precedence: the first that claims pick ``j`` makes it. A pick the edge
+    rule claims (every ``edge_every``-th) stays the I or D criterion's among the edge candidates."""
+
+    def __init__(self, turns: list[LearnedTurns | SpreadTurns], edge_every: int = 0):
+        self.turns = turns
+        self.edge_every = edge_every
+
+    def __call__(self, j: int, taken: Tensor) -> Tensor | None:
+        edge = self.edge_every > 0 and (j + 1) % self.edge_every == 0
+        out = None
+        for t in self.turns:
+            if out is None and not edge:
+                out = t(j, taken)
+            else:  # every one keeps its discount current, whether it has the turn or not
+                t.fold(taken)
+        return out
 
 
 def learned_turns(model: MeasurementModel, q: Tensor, share: float) -> LearnedTurns | None:
@@ -233,9 +281,48 @@ def learned_turns(model: MeasurementModel, q: Tensor, share: float) -> LearnedTu
     std = learned_std(model, Context(q=q))
     if std is None:
         return None
-    lo = q.min(0).values
-    span = (q.max(0).values - lo).clamp(min=1e-12)
-    return LearnedTurns(std.norm(dim=-1), (q - lo) / span, share)
+    return LearnedTurns(std.norm(dim=-1), _scaled(q), share)
+
+
+class SpreadTurns:
+    """A share of the picks (pick ``j`` where ``floor((j + 1) share)`` steps up: any share, the first pick the
+    criterion's) by kernel herding: the candidate that brings the planned poses' kernel mean closest to the
+    candidates', ``mean_k K(x, x_k) - sum_p K(x, x_p) / (n + 1)`` over the ``n`` poses planned so far, with a
+    squared-exponential kernel of length ``length`` in joints scaled to the candidates' range. These picks follow the
+    candidates' density, as a random design does, without a random design's clumps and gaps."""
+
+    def __init__(self, where: Tensor, share: float, length: float = SPREAD_LENGTH, chunk: int = 1024):
+        self.where = where  # (N, d) joints scaled to [0, 1]
+        self.share = share
+        self.length = length
+        mean = torch.zeros(len(where), dtype=where.dtype, device=where.device)
+        for lo in range(0, len(where), chunk):  # (chunk, N) at a time: 10,000 candidates stay within memory
+            mean[lo : lo + chunk] = self._kernel(where[lo : lo + chunk], where).mean(-1)
+        self.mean = mean
+        self.sum = torch.zeros_like(mean)
+        self.seen: set[int] = set()
+        self.turns: list[int] = []
+
+    def _kernel(self, a: Tensor, b: Tensor) -> Tensor:
+        return torch.exp(-0.5 * torch.cdist(a, b).square() / self.length**2)
+
+    def fold(self, taken: Tensor) -> None:
+        """Add the picks not yet counted to the planned poses' kernel sum."""
+        for i in set(torch.nonzero(taken).flatten().tolist()) - self.seen:
+            self.sum = self.sum + self._kernel(self.where, self.where[i : i + 1]).squeeze(-1)
+            self.seen.add(i)
+
+    def __call__(self, j: int, taken: Tensor) -> Tensor | None:
+        self.fold(taken)
+        if math.floor((j + 1) * self.share + 1e-9) <= math.floor(j * self.share + 1e-9):
+            return None
+        self.turns.append(j)
+        return self.mean - self.sum / (len(self.seen) + 1)
+
+
+def spread_turns(q: Tensor, share: float) -> SpreadTurns | None:
+    """The turns that spread the design (:class:`SpreadTurns`); None where ``share`` is 0."""
+    return SpreadTurns(_scaled(q), share) if share > 0 else None
 
 
 def _random_index(n: int, k: int, seed: int) -> Tensor:
@@ -244,9 +331,9 @@ def _random_index(n: int, k: int, seed: int) -> Tensor:
 
 def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
     """Pick ``opts.k`` of the candidates ``q (N, dof)`` [rad] for ``model``'s robot (module docstring)."""
-    for name in ("edge_share", "learned_share"):
-        if not 0.0 <= getattr(opts, name) <= 0.5:
-            raise OptionError(f"{name} must lie in [0, 0.5], got {getattr(opts, name)}")
+    for name, top in (("edge_share", 0.5), ("learned_share", 0.5), ("spread_share", 0.9)):
+        if not 0.0 <= getattr(opts, name) <= top:
+            raise OptionError(f"{name} must lie in [0, {top}], got {getattr(opts, name)}")
     N = len(q)
     if not 1 <= opts.k <= N:
         raise OptionError(f"can plan 1 to {N} poses from {N} candidates, asked for {opts.k}")
@@ -257,11 +344,14 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
     every = round(1.0 / opts.edge_share) if opts.edge_share > 0 else 0
     top = min(N, 2 * opts.k)
     grid = tuple(sorted({c for c in CURVE if c <= top} | {opts.k, top}))
-    other = learned_turns(model, q, opts.learned_share)
+    learned = learned_turns(model, q, opts.learned_share)
+    spread = spread_turns(q, opts.spread_share)
+    other = Turns([t for t in (learned, spread) if t is not None], every)
     design = greedy_design(
         problem, max(grid), criterion=opts.criterion, restrict=edge, every=every, checkpoints=grid, other=other
     )
-    turns = set(other.turns) if other is not None else set()
+    turns = set(learned.turns) if learned is not None else set()
+    spread_picks = set(spread.turns) if spread is not None else set()
     curve = []
     for c in grid:
         S = covariance(design.information[c], opts.s0_sq)
@@ -275,6 +365,7 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
         q=q[index],
         edge=edge[index],
         learned=torch.tensor([j in turns for j in range(opts.k)], dtype=torch.bool, device=q.device),
+        spread=torch.tensor([j in spread_picks for j in range(opts.k)], dtype=torch.bool, device=q.device),
         names=problem.names,
         units=problem.units,
         sigma=S_k.diagonal().sqrt(),
