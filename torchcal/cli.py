@@ -420,6 +420,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="fit the lever arm too (another tool or probe than the run's; needs four or more points whose tool "
         "orientations differ)",
     )
+    st.add_argument(
+        "--probe",
+        default=None,
+        help="a run with several probes: the probe the points were measured with (default: the points' probe "
+        "column, else the run's first). A run of several stations is re-stationed as one: the new placement "
+        "replaces them all, and a learned correction per station and probe does not apply there",
+    )
     _add_units(st)
     _add_common(st)
 
@@ -839,7 +846,9 @@ def cmd_station(args) -> int:
         **_reading(args, robot),
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
-    out, station = write_station(args.run, data, out, tool=args.tool, points_file=args.points, inputs=inputs)
+    out, station = write_station(
+        args.run, data, out, tool=args.tool, points_file=args.points, inputs=inputs, probe=args.probe
+    )
     d = station.to_dict()
     acc = d["accuracy"]
     for w in station.warnings:

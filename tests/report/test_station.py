@@ -168,18 +168,51 @@ def test_cli_station_predict_compensate(setup, tmp_path):
     assert not (tmp_path / "x").exists()
 
 
-def test_a_run_of_several_stations_is_refused_with_its_stations_named(tmp_path):
-    """Re-stationing replaces one placement: a run calibrated from several says which it has and is refused
-    (exit 2), nothing written."""
+def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
+    """A run calibrated from two stations and two probes, re-stationed on 6 points measured with its second probe
+    from a new placement: the new placement predicts within 1.3x of the run's own held-out error; points naming two
+    probes, or a probe the run lacks, are refused."""
     from torchcal.pipeline import calibrate
+    from torchcal.report.rundir import at_station
 
-    c = simulate(SimConfig(robot="ur5", poses=120, test_poses=12, seed=4, stations=2))
-    run_dir = write_run(calibrate("ur5", c.train, Options(method="kinematic", seed=4)), tmp_path / "run")
-    points = c.test.subset(torch.arange(6))
-    write_measurements(tmp_path / "pts.csv", replace(points, station=None, station_names=()))
-    code = main(["station", str(run_dir), str(tmp_path / "pts.csv"), "--out", str(tmp_path / "run2"), "--quiet"])
-    assert code == 2 and not (tmp_path / "run2").exists()
-    with pytest.raises(StationError, match=r"2 stations \(S1, S2\)"):
-        from torchcal.report.station import restation
+    c = simulate(SimConfig(robot="ur5", poses=240, test_poses=60, seed=4, stations=2, probes=2))
+    run = calibrate("ur5", c.train, Options(method="kinematic", seed=4))
+    run_dir = write_run(run, tmp_path / "run")
+    own = _rmse(errors(run.model, c.test, trajectory=False))
+    probe = run.robot.probes[1]
+    truth, _, _ = at_station(c.model, None, probe)  # the true robot, one frame: the second probe's lever arm
+    K = torch.tensor([[0, -0.7, 0], [0.7, 0, 0], [0, 0, 0.0]], dtype=F64)
+    move = tf.homogeneous(torch.linalg.matrix_exp(K), torch.tensor([0.5, -1.2, 0.3], dtype=F64))
+    n0 = c.train.n
+    q_true = c.q_true[n0 : n0 + c.test.n]
+    with torch.no_grad():
+        truth.robot.instrument.set_matrix(move @ truth.robot.instrument.matrix())
+        p = truth(Context(q=q_true)) + torch.randn(c.test.n, 3, generator=torch.Generator().manual_seed(0)) * 15e-6
+    new = replace(c.test, p=p, t=None, temperature=None, station=None, station_names=(), probe=None, probe_names=())
+    points, rest = new.subset(torch.arange(6)), new.subset(torch.arange(6, new.n))
+    write_measurements(tmp_path / "pts.csv", points)
+    code = main(
+        [
+            "station",
+            str(run_dir),
+            str(tmp_path / "pts.csv"),
+            "--out",
+            str(tmp_path / "run2"),
+            "--probe",
+            probe,
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    meta = json.loads((tmp_path / "run2" / "model.json").read_text())
+    assert "stations" not in meta and meta["restationed_from"]["probe"] == probe
+    got = predict(tmp_path / "run2", rest)
+    assert _rmse((got - rest.p).norm(dim=-1)) < 1.3 * own
+    assert load_covariance(tmp_path / "run2", load_model(tmp_path / "run2")[0]) is not None
+    from torchcal.report.station import restation
 
-        restation(run_dir, points)
+    with pytest.raises(StationError, match="not one of the run's"):
+        restation(run_dir, points, probe="nope")
+    two = replace(points, probe=torch.tensor([0, 1, 0, 1, 0, 1]), probe_names=tuple(run.robot.probes))
+    with pytest.raises(StationError, match="2 probes"):
+        restation(run_dir, two)

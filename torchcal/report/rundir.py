@@ -622,12 +622,13 @@ def rows_of(model: MeasurementModel, data: Measurements) -> Measurements:
 
 
 def at_station(
-    model: MeasurementModel, station: str | None = None, probe: str | None = None
+    model: MeasurementModel, station: str | None = None, probe: str | None = None, *, groups: bool = True
 ) -> tuple[MeasurementModel, int, int]:
     """A copy of ``model`` with one instrument pose and one lever arm, those of ``station`` and ``probe`` (names;
     None: the first), for what works in one frame (``compensate``); with their indices in ``model``. A learned
-    correction per station and probe becomes that pair's (none where the pair has none). A model of one station and
-    one probe comes back as it is (a name given for it must then be absent)."""
+    correction per station and probe becomes that pair's (none where the pair has none; none at all without
+    ``groups``: at a new placement no station's applies). A model of one station and one probe comes back as it is
+    (a name given for it must then be absent)."""
     import copy
 
     from torchcal.effects.grouped import GroupedCorrection
@@ -650,7 +651,7 @@ def at_station(
     for i, e in reversed(list(enumerate(out.effects))):
         if isinstance(e, GroupedCorrection):
             key = (picked[0], picked[1])
-            if key in e.groups:
+            if groups and key in e.groups:
                 out.effects[i] = e.inner[e.groups.index(key)]
             else:
                 del out.effects[i]

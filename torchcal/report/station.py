@@ -4,7 +4,8 @@ A robot calibrated once is measured again from another placement of the tracker 
 construction site, a second cell): the robot's calibration holds, only the instrument pose ``T_tracker_base`` (6
 parameters) and, with another tool, the lever arm ``t_flange_probe`` (3 more) are new. :func:`fit_station` fits them
 to three or more measured points with everything else held, and :func:`write_station` writes a run directory that
-``predict`` and ``compensate`` use as they use the calibrated one.
+``predict`` and ``compensate`` use as they use the calibrated one. A run calibrated from several stations (and
+probes) is re-stationed as a run of one placement and one probe (:func:`one_frame`).
 
 The fit:
 
@@ -484,28 +485,83 @@ def station_options(run_dir: str | os.PathLike, tool: bool = False, seed: int = 
     )
 
 
-def restation(run_dir: str | os.PathLike, points: Measurements, *, tool: bool = False, seed: int = 0):
-    """Load the run, fit the placement; returns ``(model, meta, station)`` (nothing is written)."""
+def restation(
+    run_dir: str | os.PathLike, points: Measurements, *, tool: bool = False, seed: int = 0, probe: str | None = None
+):
+    """Load the run, fit the placement; returns ``(model, meta, station)`` (nothing is written).
+
+    A run calibrated from several stations or probes is first reduced to one frame (:func:`one_frame`): the new
+    placement replaces all of its stations, the points' probe is ``probe`` (default: the points' own ``probe``
+    column where it names one of the run's, else the run's first)."""
     from torchcal.report.rundir import load_covariance, load_model
 
     model, meta = load_model(run_dir)
-    robot = model.robot
-    if robot.stations or robot.probes:
-        # one new placement of one instrument, with one lever arm: a run calibrated from several stations or probes
-        # would need to say which of its frames the points share, and its covariance is by station and probe
-        what = ", ".join(
-            f"{len(names)} {kind} ({', '.join(names)})"
-            for kind, names in (("stations", robot.stations), ("probes", robot.probes))
-            if names
-        )
-        raise StationError(
-            f"{run_dir}: the run was calibrated with {what}; re-stationing takes a run of one instrument placement "
-            "and one probe (calibrate the data of one station and probe, or use the run's station column with "
-            "predict and compensate --station)"
-        )
     cov = load_covariance(run_dir, model)
+    if model.robot.stations or model.robot.probes:
+        model, meta, cov = one_frame(model, meta, cov, _points_probe(model, points, probe, run_dir))
     station = fit_station(model, points, station_options(run_dir, tool, seed), cov)
     return model, meta, station
+
+
+def _points_probe(model: MeasurementModel, points: Measurements, probe: str | None, run_dir) -> str | None:
+    """The run's probe the points were measured with (:func:`restation`)."""
+    known = model.robot.probes
+    named = tuple(points.probe_names[int(i)] for i in torch.unique(points.probe)) if points.probe is not None else ()
+    if len(named) > 1:
+        raise StationError(
+            f"the points name {len(named)} probes ({', '.join(named)}); re-station on one probe's points"
+        )
+    pick = probe if probe is not None else (named[0] if named else None)
+    if pick is not None and known and pick not in known:
+        raise StationError(f"{run_dir}: probe {pick!r} is not one of the run's ({', '.join(known)})")
+    if pick is not None and not known:
+        raise StationError(f"{run_dir}: the run has a single probe; drop --probe {pick!r}")
+    return pick
+
+
+def one_frame(
+    model: MeasurementModel, meta: dict, cov: ParameterCovariance | None, probe: str | None
+) -> tuple[MeasurementModel, dict, ParameterCovariance | None]:
+    """A several-station (or several-probe) run as a run of one placement and one probe, to be re-stationed: the
+    first station's pose as the start (the points replace it), ``probe``'s lever arm (None: the first), no learned
+    correction per station and probe (a new placement is none of theirs). The covariance keeps the geometry and the
+    effects, and the probe's lever-arm rows as the one lever arm's; the stations' rows go (the points refit the
+    placement)."""
+    from torchcal.report.rundir import at_station
+
+    robot = model.robot
+    one, _, p = at_station(model, None, probe, groups=False)
+    meta = {k: v for k, v in meta.items() if k not in ("stations", "probes")}
+    meta["effects"] = [{"class": type(e).__name__, **e.config()} for e in one.effects]
+    meta["restationed_from"] = {
+        "stations": list(robot.stations),
+        "probe": robot.probes[p] if robot.probes else None,
+        "dropped": ["a learned correction per station and probe"] if len(one.effects) < len(model.effects) else [],
+    }
+    if cov is None:
+        return one, meta, None
+    names, index, labels, rows = [], [], [], []
+    start = 0
+    for name, idx in zip(cov.names, cov.index):
+        block = list(range(start, start + len(idx)))
+        start += len(idx)
+        if name == "robot.instrument.delta" and robot.stations:
+            continue
+        if name == "robot.tool.delta" and robot.probes:  # (P, 3) flattened: the probe's three rows
+            mine = [(j, int(i) - 3 * p) for j, i in zip(block, idx) if 3 * p <= int(i) < 3 * p + 3]
+            if not mine:
+                continue
+            names.append(name)
+            index.append([i for _, i in mine])
+            labels += [f"tool.{'xyz'[i]}" for _, i in mine]
+            rows += [j for j, _ in mine]
+            continue
+        names.append(name)
+        index.append([int(i) for i in idx])
+        labels += [cov.labels[j] for j in block]
+        rows += block
+    r = torch.tensor(rows, dtype=torch.long)
+    return one, meta, ParameterCovariance(names, index, labels, cov.matrix[r][:, r].clone())
 
 
 def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
@@ -556,6 +612,7 @@ def write_station(
     points_file: str = "points",
     inputs=(),
     seed: int = 0,
+    probe: str | None = None,
 ) -> tuple[Path, Station]:
     """Re-station the run ``run_dir`` on ``points`` and write the result as a run directory ``out`` (all or nothing,
     ``out`` replaced only when absent or an earlier torchcal output): a copy of the run with the new placement in
@@ -564,7 +621,7 @@ def write_station(
     from torchcal.robot.export import write_urdf
 
     run_dir = Path(run_dir)
-    model, meta, station = restation(run_dir, points, tool=tool, seed=seed)
+    model, meta, station = restation(run_dir, points, tool=tool, seed=seed, probe=probe)
     state = {k: v.cpu() for k, v in model.state_dict().items()}
     if not all(bool(torch.isfinite(v).all()) for k, v in state.items() if v.is_floating_point() and "limits" not in k):
         raise EstimationError("the re-stationed model has non-finite values; nothing was written")
