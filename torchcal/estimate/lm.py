@@ -64,6 +64,10 @@ class LMResult:
     normal: Tensor | None = None  # N = J^T J at the solution
     residuals: Tensor | None = None  # whitened, at the solution
     jacobian: Tensor | None = None  # whitened, at the solution
+    #: per residual, the factor its square counts with in the variance factor (None: 1): rows the estimate weighs
+    #: below their stochastic model (a 6-D probe's orientations, ``fit.ORIENTATION_LEAD``) count there at the model's
+    #: weight, so that ``s0^2`` and the covariance stay those of the stochastic model
+    variance_weights: Tensor | None = None
 
     @property
     def redundancy(self) -> int:
@@ -74,7 +78,10 @@ class LMResult:
         """A-posteriori variance factor ``r^T r / (n - u)`` (1 when the stochastic model fits)."""
         if self.residuals is None or self.redundancy <= 0:
             return float("nan")
-        return float(self.residuals.square().sum()) / self.redundancy
+        r2 = self.residuals.square()
+        if self.variance_weights is not None:
+            r2 = r2 * self.variance_weights
+        return float(r2.sum()) / self.redundancy
 
     @property
     def cofactor(self) -> Tensor:
