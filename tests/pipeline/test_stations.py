@@ -170,3 +170,31 @@ def test_a_robot_without_masses_and_with_a_readings_map_calibrates_from_two_stat
     with torch_threads(1):
         run = calibrate(robot, c.train, Options(seed=2))
     assert run.robot.stations == ("S1", "S2") and run.stage("geometric").rmse < 0.5 * run.stage("nominal").rmse
+
+
+def test_full_pose_from_two_stations_and_two_probes_within_1_2x_of_the_true_model():
+    """A 6-D probe measured from two placements with two targets: one calibration, each row's orientation whitened by
+    its own sigma and seen from its own station; held-out position and orientation errors within 1.2x and 1.5x of
+    the true model's on the same poses (the noise)."""
+    import math
+
+    from torchcal.estimate.fit import errors, orientation_errors
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.sim import SimConfig, simulate
+
+    c = simulate(
+        SimConfig(robot="ur5", poses=240, test_poses=60, seed=4, stations=2, probes=2, orientation_sigma_deg=0.001)
+    )
+    assert c.train.r is not None and c.train.station_names == ("S1", "S2") and "orientation" in c.truth
+    run = calibrate("ur5", c.train, Options(method="kinematic", seed=4))
+
+    def rms(e):
+        return float(e.square().mean().sqrt())
+
+    test = c.test
+    with torch.no_grad():
+        truth_pos = rms(errors(c.model, test, trajectory=False))
+        truth_ori = rms(orientation_errors(c.model, test, False))
+    assert rms(errors(run.model, test, trajectory=False)) < 1.2 * truth_pos
+    assert rms(orientation_errors(run.model, test, False)) < 1.5 * truth_ori
+    assert math.degrees(truth_ori) < 0.005

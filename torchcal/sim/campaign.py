@@ -580,6 +580,10 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
     with torch.no_grad():
         p_true = model(ctx)
     part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
+    # a 6-D probe: each row's orientation of the one probe frame, seen from the row's station
+    r, sigma_r, orientation = (
+        _orientations(cfg, g, model, ctx) if cfg.orientation_sigma_deg is not None else (None,) * 3
+    )
     names_s = tuple(f"S{k + 1}" for k in range(K))
     # the probes of one pose are measured at one set of joint readings: the first probe row's, shared
     first = torch.arange(n) - probe
@@ -587,6 +591,8 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
 
     def labelled(rows: slice, name: str) -> Measurements:
         m = part(rows, name)
+        if r is not None:
+            m = _with_orientation(m, r, sigma_r, rows)
         return dataclasses.replace(
             m,
             q=part(first[rows], name).q,
@@ -625,6 +631,8 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
             "split": "each station's share of poses drawn independently, the first of each train; one row per probe",
         },
     }
+    if orientation is not None:
+        truth["orientation"] = orientation
     return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true)
 
 
