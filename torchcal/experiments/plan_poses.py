@@ -152,7 +152,7 @@ def run(
     pool, held = split(read_ipa(series_file(data_dir, series)))
     return {
         "series": f"Series {series}",
-        **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion, spread_share),
+        **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion, spread_share, method=method),
     }
 
 
