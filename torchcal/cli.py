@@ -454,6 +454,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="run directory written by calibrate: plan with its calibrated model, instrument pose, lever arm, "
         "stochastic model and variance factor",
     )
+    pl.add_argument(
+        "--station",
+        default=None,
+        help="a --run calibrated from several stations: plan for this one's placement (default the first)",
+    )
+    pl.add_argument(
+        "--probe", default=None, help="a --run with several probes: plan for this one's lever arm (default the first)"
+    )
     pl.add_argument("--candidates", default=None, help="file with q1..qN per row (other columns ignored)")
     pl.add_argument("--n", type=_count, required=True, help="poses to choose (K)")
     pl.add_argument("--out", required=True, help="CSV to write: q1..qN [rad] of the chosen poses")
@@ -894,6 +902,12 @@ def cmd_plan(args) -> int:
         from torchcal.report.station import station_options
 
         model, meta = load_model(args.run)
+        if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
+            from torchcal.report.rundir import at_station
+
+            model, _, _ = at_station(model, args.station, args.probe)
+        elif args.station is not None or args.probe is not None:
+            raise OptionError("--station and --probe name one of a run's several stations or probes; this run has one")
         so = station_options(args.run)
         sigma_tracker, sigma_joint = so.sigma_tracker, so.sigma_joint
         report = Path(args.run) / "report.json"

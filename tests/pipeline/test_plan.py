@@ -133,3 +133,22 @@ def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_pat
         == 0
     )
     assert json.loads((tmp_path / "poses.plan.json").read_text())["n_learned"] == 0
+
+
+def test_plan_for_one_station_of_a_several_station_run(tmp_path):
+    """A run calibrated from two placements plans for the one named (its pose sets the line of sight), and refuses a
+    station it does not have."""
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.report import write_run
+
+    c = simulate(SimConfig(robot="ur5", poses=120, test_poses=12, seed=4, stations=2))
+    run_dir = write_run(calibrate("ur5", c.train, Options(method="kinematic", seed=4)), tmp_path / "run")
+    rows = {}
+    for st in ("S1", "S2"):
+        out = tmp_path / f"{st}.csv"
+        argv = ["plan", "--run", str(run_dir), "--station", st, "--n", "8", "--pool", "300", "--out", str(out)]
+        assert main([*argv, "--quiet"]) == 0
+        rows[st] = read_measurements(out, dof=6, require_positions=False).q
+    assert rows["S1"].shape == rows["S2"].shape == (8, 6) and not torch.equal(rows["S1"], rows["S2"])
+    bad = ["plan", "--run", str(run_dir), "--station", "S9", "--n", "8", "--out", str(tmp_path / "x.csv"), "--quiet"]
+    assert main(bad) == 2

@@ -122,7 +122,10 @@ def design_problem(
     candidates keeps."""
     robot = model.robot
     if robot.stations or robot.probes:
-        raise OptionError("planning poses for several instrument stations or probes is not supported; plan per station")
+        raise OptionError(
+            "planning poses for several instrument stations or probes at once is not supported; plan per station "
+            "(torchcal plan --run RUN --station S --probe P)"
+        )
     priors = priors or Priors()
     unit_of = {i.name: i.unit for i in robot.parameter_info()}
     groups = robot.groups()
