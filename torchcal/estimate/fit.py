@@ -445,10 +445,17 @@ def solve(
         free = FreeParameters(model, sel, labels)
     res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
     if Wr is not None and identifiability is None:
-        factor = orientation_scale(res.residuals, m.n) * ORIENTATION_LEAD
+        vce = orientation_scale(res.residuals, m.n)
+        factor = vce * ORIENTATION_LEAD
+        # the sigmas as applied against the variance component's: the variance factor counts the orientation rows at
+        # the component's weight (also where the given sigmas were close enough to the lead's to be kept)
         if abs(math.log(factor)) > math.log(ORIENTATION_SCALE_TOL):
-            scale, lead, Wr = factor, ORIENTATION_LEAD, Wr / factor
+            scale, Wr = factor, Wr / factor
+            lead = scale / vce
             res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
+        else:
+            lead = scale / vce
+            res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
         model.robot.orientation_scale, model.robot.orientation_lead = scale, lead
     if identifiability is None and ida is not None:
         scaled = prior_scales(model, opts)
@@ -546,11 +553,17 @@ def _lm(
     if res.status in FAILED:
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
     if Wr is not None and lead != 1.0 and res.residuals is not None:
-        w = torch.ones_like(res.residuals)
-        w[-3 * m.n :] = lead**2  # the orientation block ends the residual vector (orientation_scale)
-        res.variance_weights = w
+        res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
     free.assign(res.x)
     return res
+
+
+def _orientation_weights(residuals: Tensor, n: int, lead: float) -> Tensor:
+    """``LMResult.variance_weights``: ``lead^2`` on the ``3 n`` orientation residuals that end the vector
+    (:func:`orientation_scale`), 1 elsewhere."""
+    w = torch.ones_like(residuals)
+    w[-3 * n :] = lead**2
+    return w
 
 
 def prior_ratios(fit: Fit, model: MeasurementModel, opts: FitOptions) -> dict[str, float]:
