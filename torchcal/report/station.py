@@ -560,7 +560,7 @@ def one_frame(
         index.append([int(i) for i in idx])
         labels += [cov.labels[j] for j in block]
         rows += block
-    r = torch.tensor(rows, dtype=torch.long)
+    r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
     return one, meta, ParameterCovariance(names, index, labels, cov.matrix[r][:, r].clone())
 
 
