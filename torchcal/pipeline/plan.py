@@ -173,8 +173,10 @@ class Plan:
             f"{d['criterion']}; {d['n_edge']} at the edges of the region, {d['n_learned']} picked where the learned "
             f"correction is least certain, {d['n_spread']} farthest from the poses planned before them.",
             "",
-            f"- predicted held-out RMSE: {d['predicted_holdout_rmse_mm']:.4f} mm "
-            f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm)",
+            f"- predicted held-out RMSE of a kinematic calibration: {d['predicted_holdout_rmse_mm']:.4f} mm "
+            f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm). A learned correction is "
+            "not counted, and it needs poses where the robot works rather than these: for the default method, "
+            "measure most poses at random there (docs/real-data.md, *Planning the poses*)",
             f"- variance factor {d['stochastic_model']['variance_factor']:.3g}, tracker noise "
             f"{d['stochastic_model']['tracker_noise_um']:.3g} um",
             "",
