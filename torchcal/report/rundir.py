@@ -144,7 +144,7 @@ def _orientation_report(run: CalibrationRun) -> dict | None:
         if run.data.sigma_r is not None
         else (run.options.fit.sigma_orientation or SIGMA_ORIENTATION),
         "rows_fitted": max((f.n_orientation for f in run.fits), default=0),
-        # the factor the orientation sigmas were scaled by to give them the positions' variance factor
+        # the factor the orientation sigmas were scaled by: the positions' variance factor, times the lead (fit.py)
         "sigma_scale": next((f.orientation_scale for f in reversed(run.fits) if f.n_orientation), 1.0),
         "fitted_in": ORIENTATION_SCOPE,
         "R_flange_probe": rot.matrix().detach().tolist(),
