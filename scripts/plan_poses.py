@@ -41,28 +41,19 @@ def experiment(a):
         ks = tuple(int(v) for v in common.comma_list(ap, a.k, None, what="size"))
     except ValueError:
         ap.error(f"--k must be whole numbers separated by commas, got {a.k!r}")
-    if a.simulated is not None:
-        res = plan_poses.simulated(
-            a.simulated,
-            ks,
-            a.seeds,
-            a.reference or None,
-            edge_share=a.edge_share,
-            criterion=a.criterion,
-            spread_share=a.spread_share,
-        )
-        return res, plan_poses.markdown(res)
-    res = plan_poses.run(
-        a.data_dir,
-        a.series.upper(),
-        ks,
-        a.seeds,
-        a.reference or None,
+    protocol = plan_poses.Protocol(
+        ks=ks,
+        seeds=a.seeds,
+        reference=a.reference or None,
         edge_share=a.edge_share,
         criterion=a.criterion,
         spread_share=a.spread_share,
         method=a.method,
     )
+    if a.simulated is not None:
+        res = plan_poses.simulated(a.simulated, protocol)
+    else:
+        res = plan_poses.run(a.data_dir, a.series.upper(), protocol)
     return res, plan_poses.markdown(res)
 
 

@@ -11,7 +11,7 @@ from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
-from torchcal.experiments.plan_poses import compare
+from torchcal.experiments.plan_poses import Protocol, compare
 from torchcal.pipeline.plan import PlanOptions, plan_poses
 from torchcal.robot import load_robot
 from torchcal.sim import SimConfig, simulate
@@ -101,7 +101,7 @@ def test_learned_share_goes_where_the_learned_correction_is_least_certain(campai
 
 
 def test_predicted_holdout_error_within_25_percent(campaign):
-    res = compare("ur5", campaign.train, campaign.test, (30, 100), seeds=1, reference=None)
+    res = compare("ur5", campaign.train, campaign.test, Protocol((30, 100), seeds=1, reference=None))
     for row in res["sizes"]:
         print(row["k"], row["planned_mm"], row["predicted_mm"], row["random_mm"]["median"])
         assert 0.75 < row["predicted_over_measured"] < 1.25, row
@@ -151,4 +151,4 @@ def test_plan_for_one_station_of_a_several_station_run(tmp_path):
         rows[st] = read_measurements(out, dof=6, require_positions=False).q
     assert rows["S1"].shape == rows["S2"].shape == (8, 6) and not torch.equal(rows["S1"], rows["S2"])
     bad = ["plan", "--run", str(run_dir), "--station", "S9", "--n", "8", "--out", str(tmp_path / "x.csv"), "--quiet"]
-    assert main(bad) == 2
+    assert main(bad) == 2 and not (tmp_path / "x.csv").exists() and not (tmp_path / "x.plan.json").exists()

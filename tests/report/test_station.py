@@ -24,10 +24,11 @@ from torchcal.sim import SimConfig, simulate
 F64 = torch.float64
 
 
-def _placed(campaign, lever_shift, seed=0):
+def _placed(campaign, lever_shift, seed=0, truth=None):
     """The campaign's test poses measured from another tracker placement (turned 40 deg, moved 1.3 m) with the lever
-    arm shifted by ``lever_shift`` [m]: (measurements, the true model there)."""
-    truth = copy.deepcopy(campaign.model)
+    arm shifted by ``lever_shift`` [m], one placement and one probe: (measurements, the true model there). ``truth``:
+    the true model in one frame (default the campaign's own)."""
+    truth = copy.deepcopy(campaign.model if truth is None else truth)
     K = torch.tensor([[0, -0.7, 0], [0.7, 0, 0], [0, 0, 0.0]], dtype=F64)
     move = tf.homogeneous(torch.linalg.matrix_exp(K), torch.tensor([0.5, -1.2, 0.3], dtype=F64))
     n0 = campaign.train.n
@@ -38,7 +39,8 @@ def _placed(campaign, lever_shift, seed=0):
         p = truth(Context(q=q_true))
     g = torch.Generator().manual_seed(seed)
     p = p + torch.randn(p.shape, generator=g, dtype=F64) * 15e-6
-    return replace(campaign.test, p=p, t=None, temperature=None), truth
+    one = {"station": None, "station_names": (), "probe": None, "probe_names": ()}
+    return replace(campaign.test, p=p, t=None, temperature=None, **one), truth
 
 
 @pytest.fixture(scope="module")
@@ -180,15 +182,8 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
     run_dir = write_run(run, tmp_path / "run")
     own = _rmse(errors(run.model, c.test, trajectory=False))
     probe = run.robot.probes[1]
-    truth, _, _ = at_station(c.model, None, probe)  # the true robot, one frame: the second probe's lever arm
-    K = torch.tensor([[0, -0.7, 0], [0.7, 0, 0], [0, 0, 0.0]], dtype=F64)
-    move = tf.homogeneous(torch.linalg.matrix_exp(K), torch.tensor([0.5, -1.2, 0.3], dtype=F64))
-    n0 = c.train.n
-    q_true = c.q_true[n0 : n0 + c.test.n]
-    with torch.no_grad():
-        truth.robot.instrument.set_matrix(move @ truth.robot.instrument.matrix())
-        p = truth(Context(q=q_true)) + torch.randn(c.test.n, 3, generator=torch.Generator().manual_seed(0)) * 15e-6
-    new = replace(c.test, p=p, t=None, temperature=None, station=None, station_names=(), probe=None, probe_names=())
+    one_frame, _, _ = at_station(c.model, None, probe)  # the true robot, one frame: the second probe's lever arm
+    new, _ = _placed(c, (0.0, 0.0, 0.0), truth=one_frame)
     points, rest = new.subset(torch.arange(6)), new.subset(torch.arange(6, new.n))
     write_measurements(tmp_path / "pts.csv", points)
     code = main(
@@ -213,6 +208,8 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
 
     with pytest.raises(StationError, match="not one of the run's"):
         restation(run_dir, points, probe="nope")
+    bad = ["station", str(run_dir), str(tmp_path / "pts.csv"), "--out", str(tmp_path / "run3"), "--probe", "nope"]
+    assert main([*bad, "--quiet"]) == 2 and not (tmp_path / "run3").exists()
     two = replace(points, probe=torch.tensor([0, 1, 0, 1, 0, 1]), probe_names=tuple(run.robot.probes))
     with pytest.raises(StationError, match="2 probes"):
         restation(run_dir, two)

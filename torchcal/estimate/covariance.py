@@ -100,6 +100,28 @@ class ParameterCovariance:
         return free
 
 
+def central_jacobian(
+    model: MeasurementModel, free: FreeParameters, ctx: Context, steps: Tensor, zero_step: float = 1e-9
+) -> Tensor:
+    """``d model(ctx) / d free`` ``(N, 3, u)`` by central differences of ``steps`` ``(u,)`` (a step of 0 takes
+    ``zero_step``); the model's parameters are restored afterwards."""
+    x0 = free.vector()
+    J = torch.empty(len(ctx.q), 3, len(x0), dtype=x0.dtype, device=x0.device)
+    try:
+        with torch.no_grad():
+            for k in range(len(x0)):
+                h = float(steps[k]) if float(steps[k]) > 0 else zero_step
+                step = torch.zeros_like(x0)
+                step[k] = h
+                free.assign(x0 + step)
+                up = model(ctx)
+                free.assign(x0 - step)
+                J[:, :, k] = (up - model(ctx)) / (2 * h)
+    finally:
+        free.assign(x0)
+    return J
+
+
 def prediction_std(model: MeasurementModel, ctx: Context, cov: ParameterCovariance) -> Tensor:
     """The standard deviation ``(N, 3)`` [m] of the model's predicted positions at ``ctx`` through its parameters.
 
@@ -115,20 +137,7 @@ def prediction_std(model: MeasurementModel, ctx: Context, cov: ParameterCovarian
     n = len(ctx.q)
     if u == 0 or n == 0:
         return torch.zeros(n, 3, dtype=x0.dtype, device=x0.device)
-    J = torch.empty(n, 3, u, dtype=x0.dtype, device=x0.device)
-    try:
-        with torch.no_grad():
-            for k in range(u):
-                h = float(sd[k]) if float(sd[k]) > 0 else 1e-12
-                step = torch.zeros_like(x0)
-                step[k] = h
-                free.assign(x0 + step)
-                up = model(ctx)
-                free.assign(x0 - step)
-                down = model(ctx)
-                J[:, :, k] = (up - down) / (2 * h)
-    finally:
-        free.assign(x0)
+    J = central_jacobian(model, free, ctx, sd, zero_step=1e-12)
     var = torch.einsum("nau,uv,nav->na", J, C, J)
     return var.clamp(min=0).sqrt()
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import statistics
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -48,20 +49,26 @@ def fit_and_score(
     return _rmse(errors(run.model, held, trajectory=False))
 
 
-def compare(
-    robot: str,
-    pool: Measurements,
-    held: Measurements,
-    ks: tuple[int, ...],
-    seeds: int,
-    reference: int | None = 200,
-    edge_share: float = 0.1,
-    criterion: str = "I",
-    spread_share: float = 0.5,
-    candidate_share: float = 0.5,
-    method: str = "kinematic",
-) -> dict:
-    """Planned and random designs of each size in ``ks`` from ``pool``, scored on ``held`` (module docstring)."""
+@dataclass(frozen=True)
+class Protocol:
+    """What :func:`compare` measures: the design sizes ``ks``, the seeds, the reference design's size (None: none),
+    the plan's options (criterion, edge and spread shares), the share of the pool the planner is offered per seed and
+    the method each design is calibrated with."""
+
+    ks: tuple[int, ...]
+    seeds: int = 5
+    reference: int | None = 200
+    edge_share: float = 0.1
+    criterion: str = "I"
+    spread_share: float = 0.5
+    candidate_share: float = 0.5
+    method: str = "kinematic"
+
+
+def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protocol) -> dict:
+    """Planned and random designs of each size in ``protocol.ks`` from ``pool``, scored on ``held`` (module
+    docstring)."""
+    pr = protocol
     t0 = time.perf_counter()
     base = calibrate(robot, pool, Options.of(method="kinematic", seed=SEED, holdout=HOLDOUT, trajectory=False))
     fit = base.fits[-1]
@@ -75,17 +82,17 @@ def compare(
         "n_holdout": held.n,
         "variance_factor": s0_sq,
         "pool_kinematic_holdout_mm": _rmse(errors(base.model, held, trajectory=False)),
-        "criterion": criterion,
-        "method": method,
-        "edge_share": edge_share,
-        "spread_share": spread_share,
-        "candidate_share": candidate_share,
+        "criterion": pr.criterion,
+        "method": pr.method,
+        "edge_share": pr.edge_share,
+        "spread_share": pr.spread_share,
+        "candidate_share": pr.candidate_share,
         "sizes": [],
     }
-    n_cand = max(1, round(candidate_share * pool.n))
-    for k in ks:
+    n_cand = max(1, round(pr.candidate_share * pool.n))
+    for k in pr.ks:
         planned, predicted, plan_s, rnd = [], [], [], []
-        for s in range(seeds):
+        for s in range(pr.seeds):
             cand = torch.sort(torch.randperm(pool.n, generator=torch.Generator().manual_seed(1000 + s))[:n_cand]).values
             t1 = time.perf_counter()
             plan = plan_poses(
@@ -93,19 +100,21 @@ def compare(
                 pool.q[cand],
                 PlanOptions(
                     k=k,
-                    criterion=criterion,
-                    edge_share=edge_share,
-                    spread_share=spread_share,
+                    criterion=pr.criterion,
+                    edge_share=pr.edge_share,
+                    spread_share=pr.spread_share,
                     sigma_tracker=sigma_tracker,
                     sigma_joint=opts_fit.sigma_joint,
                     s0_sq=s0_sq,
                 ),
             )
             plan_s.append(time.perf_counter() - t1)
-            planned.append(fit_and_score(robot, pool.subset(torch.sort(cand[plan.index]).values), held, method=method))
+            planned.append(
+                fit_and_score(robot, pool.subset(torch.sort(cand[plan.index]).values), held, method=pr.method)
+            )
             predicted.append(plan.predicted_rmse * MM)
             idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:k]
-            rnd.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held, method=method))
+            rnd.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held, method=pr.method))
         med = statistics.median(planned)
         out["sizes"].append(
             {
@@ -119,12 +128,12 @@ def compare(
                 "plan_s": statistics.median(plan_s),
             }
         )
-    if reference:
+    if pr.reference:
         ref = []
-        for s in range(seeds):
-            idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[:reference]
-            ref.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held, method=method))
-        out["reference"] = {"k": reference, "random_mm": {"median": statistics.median(ref), "values": ref}}
+        for s in range(pr.seeds):
+            idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))[: pr.reference]
+            ref.append(fit_and_score(robot, pool.subset(torch.sort(idx).values), held, method=pr.method))
+        out["reference"] = {"k": pr.reference, "random_mm": {"median": statistics.median(ref), "values": ref}}
         for row in out["sizes"]:
             row["planned_over_reference"] = row["planned_mm"] / statistics.median(ref)
     out["seconds"] = time.perf_counter() - t0
@@ -137,43 +146,19 @@ def split(m: Measurements) -> tuple[Measurements, Measurements]:
     return m.subset(torch.sort(sp.keep).values), m.subset(torch.sort(sp.held).values)
 
 
-def run(
-    data_dir: Path,
-    series: str,
-    ks: tuple[int, ...],
-    seeds: int,
-    reference: int | None = 200,
-    edge_share: float = 0.1,
-    criterion: str = "I",
-    spread_share: float = 0.5,
-    method: str = "kinematic",
-) -> dict:
+def run(data_dir: Path, series: str, protocol: Protocol) -> dict:
     """:func:`compare` on a UR10 series: the pool its training split's rows, scored on its held-out split."""
     pool, held = split(read_ipa(series_file(data_dir, series)))
-    return {
-        "series": f"Series {series}",
-        **compare("ur10", pool, held, ks, seeds, reference, edge_share, criterion, spread_share, method=method),
-    }
+    return {"series": f"Series {series}", **compare("ur10", pool, held, protocol)}
 
 
-def simulated(
-    robot: str,
-    ks: tuple[int, ...],
-    seeds: int,
-    reference: int | None = 200,
-    edge_share: float = 0.1,
-    criterion: str = "I",
-    spread_share: float = 0.5,
-    poses: int = 2000,
-    test_poses: int = 500,
-    seed: int = 3,
-) -> dict:
+def simulated(robot: str, protocol: Protocol, poses: int = 2000, test_poses: int = 500, seed: int = 3) -> dict:
     """:func:`compare` on a simulated campaign (no effects beyond the geometry): the pool its training file, scored
     on its test file."""
     from torchcal.sim import SimConfig, simulate
 
     c = simulate(SimConfig(robot=robot, poses=poses, test_poses=test_poses, seed=seed))
-    res = compare(robot, c.train, c.test, ks, seeds, reference, edge_share, criterion, spread_share)
+    res = compare(robot, c.train, c.test, protocol)
     return {"series": f"simulated {robot} (seed {seed})", **res}
 
 

@@ -203,58 +203,37 @@ def _grouped_candidate(work: StageWork, train: Measurements, corr: Tensor, fi: T
     if found is None:
         return None
     keys, inverse = found
-    model, opts = work.model, work.options
     e_val = corr[va].norm(dim=-1).clone()
     effs, groups, regions, described = [], [], [], []
     for g, key in enumerate(keys.tolist()):
         fg, vg, pos = _group_split(inverse, g, fi, va)
-        if len(fg) + len(vg) < GROUP_MIN_ROWS or len(vg) < 3:
-            described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": None})
-            continue
-        cands = {}
-        try:
-            gp, info = _fit_gp(work, train, corr, fg, vg)
-            cands["gp"] = (gp, info["val_errors"])
-        except EstimationError as err:
-            work.note(f"learned residual model: group {key}'s Gaussian process was left out ({err})")
-        if len(fg) <= KERNEL_CANDIDATE_MAX:
-            kern, info = fit_kernel_correction(
-                model.robot, train.q[fg], corr[fg], q_val=train.q[vg], y_val=corr[vg], seed=opts.seed
-            )
-            cands["kernel"] = (kern, info["val_errors"])
-        init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
-        net, _ = _fitted_network(model, opts, init, train.q, corr, fg, vg)
-        with torch.no_grad():
-            cands["network"] = (LearnedEffect(net), (corr[vg] - net(train.q[vg])).norm(dim=-1))
-        best = min(cands, key=lambda k: S.rmse(cands[k][1]))
-        eff, e_g = cands[best]
-        if not S.rmse(e_g) < S.rmse(corr[vg].norm(dim=-1)):
-            described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": None})
-            continue
-        effs.append(eff)
-        groups.append(key)
-        q_g = train.q[inverse == g]  # the joints this group was measured over: its correction fades beyond them
-        regions.append(torch.stack([q_g.min(0).values, q_g.max(0).values]))
-        e_val[pos] = e_g
-        described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": best})
+        chosen = None
+        if len(fg) + len(vg) >= GROUP_MIN_ROWS and len(vg) >= 3:
+            cands = _fit_candidates(work, train, corr, fg, vg, who=f"group {tuple(key)}: ")
+            best = min(cands, key=lambda k: S.rmse(cands[k][1]))
+            eff, e_g, _ = cands[best]
+            if S.rmse(e_g) < S.rmse(corr[vg].norm(dim=-1)):  # a group no candidate helps keeps no correction
+                chosen = best
+                effs.append(eff)
+                groups.append(key)
+                q_g = train.q[inverse == g]  # the joints this group was measured over: its correction fades beyond
+                regions.append(torch.stack([q_g.min(0).values, q_g.max(0).values]))
+                e_val[pos] = e_g
+        described.append({"station": key[0], "probe": key[1], "rows": len(fg) + len(vg), "model": chosen})
     if not effs:
         return None
     eff = GroupedCorrection(groups, effs, regions)
     return eff, e_val, {"model": "one learned correction per station and probe", "groups": described}
 
 
-def select_learned(
-    work: StageWork, train: Measurements, trajectory: bool, min_gain: float = 0.05, alpha: float = 0.01
-) -> EffectRecord | None:
-    """Add the better of a kernel correction and a correction network if it earns its place (module docstring).
-
-    Returns the record of the kept model (appended to the work), or None when neither earned its place.
-    """
+def _fit_candidates(
+    work: StageWork, train: Measurements, corr: Tensor, fi: Tensor, va: Tensor, who: str = ""
+) -> dict[str, tuple[Effect, Tensor, dict]]:
+    """The learned candidates fitted to the corrections ``corr`` at the fitting rows ``fi``: name -> (effect, its
+    validation errors at ``va``, its description), in the order GP, kernel regression, network (a GP whose evidence
+    fit diverged and a kernel regression over :data:`KERNEL_CANDIDATE_MAX` fitting rows are left out, with a note;
+    ``who`` prefixes the notes)."""
     model, opts = work.model, work.options
-    corr = corrections(model, train, trajectory)
-    fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
-    e0 = corr[va].norm(dim=-1)
-
     # the three candidates are independent: the GP's evidence fit (large kernels, which release the GIL) runs in a
     # second thread beside the network's and the kernel regression's, so that a second core takes half of this
     # step's time; every fit on one torch thread (the GP's own fits pin one), so that the results do not depend on
@@ -284,30 +263,42 @@ def select_learned(
                 },
             )
         except EstimationError as err:  # its evidence fit diverged: the other candidates compete without it
-            work.note(f"learned residual model: the Gaussian process was left out ({err})")
+            work.note(f"learned residual model: {who}the Gaussian process was left out ({err})")
     if kernel is not None:
         kern, info = kernel
         candidates["kernel"] = (kern, info["val_errors"], kern.describe())
     else:  # a dozen dense solves of that size, for a candidate the GP covers (KERNEL_CANDIDATE_MAX)
         work.note(
-            f"learned residual model: the dense kernel regression is left out ({len(fi)} fitting poses, "
+            f"learned residual model: {who}the dense kernel regression is left out ({len(fi)} fitting poses, "
             f"more than the {KERNEL_CANDIDATE_MAX} at which it competes)"
         )
-    candidates |= {
-        "network": (
-            LearnedEffect(net),
-            e_net,
-            {
-                "model": "network",
-                "hidden": opts.network.hidden,
-                "n_weights": net.n_weights,
-                "fit": res.method,
-                "best_iteration": res.best_iteration,
-            },
-        ),
-    }
-    with torch_threads(1):  # as the shared candidates: one torch thread, results independent of the machine
-        grouped = _grouped_candidate(work, train, corr, fi, va)
+    candidates["network"] = (
+        LearnedEffect(net),
+        e_net,
+        {
+            "model": "network",
+            "hidden": opts.network.hidden,
+            "n_weights": net.n_weights,
+            "fit": res.method,
+            "best_iteration": res.best_iteration,
+        },
+    )
+    return candidates
+
+
+def select_learned(
+    work: StageWork, train: Measurements, trajectory: bool, min_gain: float = 0.05, alpha: float = 0.01
+) -> EffectRecord | None:
+    """Add the better of a kernel correction and a correction network if it earns its place (module docstring).
+
+    Returns the record of the kept model (appended to the work), or None when neither earned its place.
+    """
+    model, opts = work.model, work.options
+    corr = corrections(model, train, trajectory)
+    fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
+    e0 = corr[va].norm(dim=-1)
+    candidates = _fit_candidates(work, train, corr, fi, va)
+    grouped = _grouped_candidate(work, train, corr, fi, va)
     if grouped is not None:
         candidates["grouped"] = grouped
     name = min(candidates, key=lambda k: S.rmse(candidates[k][1]))

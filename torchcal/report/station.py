@@ -48,7 +48,7 @@ from torchcal._outdir import MARKER, replace_dir
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel
 from torchcal.errors import EstimationError, TorchcalError
-from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.covariance import ParameterCovariance, central_jacobian
 from torchcal.estimate.fit import selection, solve
 from torchcal.estimate.identifiability import analyse
 from torchcal.estimate.lm import chi2_quantile
@@ -165,29 +165,10 @@ class Station:
         }
 
 
-def _fd_jacobian(model: MeasurementModel, free: FreeParameters, ctx: Context, steps: Tensor) -> Tensor:
-    """``d model(ctx) / d free`` ``(N, 3, u)`` by central differences of the given ``steps`` (the model is restored)."""
-    x0 = free.vector()
-    J = torch.empty(len(ctx.q), 3, len(x0), dtype=x0.dtype, device=x0.device)
-    try:
-        with torch.no_grad():
-            for k in range(len(x0)):
-                h = float(steps[k]) if float(steps[k]) > 0 else 1e-9
-                e = torch.zeros_like(x0)
-                e[k] = h
-                free.assign(x0 + e)
-                up = model(ctx)
-                free.assign(x0 - e)
-                J[:, :, k] = (up - model(ctx)) / (2 * h)
-    finally:
-        free.assign(x0)
-    return J
-
-
 def _placement_var(model: MeasurementModel, free: FreeParameters, C: Tensor, ctx: Context) -> Tensor:
     """The variance ``(N,)`` [m^2] of the predicted position (all three axes) at ``ctx`` through the placement's
     covariance ``C``."""
-    J = _fd_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device))
+    J = central_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device))
     return torch.einsum("nau,uv,nav->n", J, C.to(J), J).clamp(min=0)
 
 
@@ -331,7 +312,7 @@ def fit_station(
         C_noise = torch.linalg.inv(res.normal)
         warnings.append("no redundancy: the covariance is that of the stochastic model alone, untested")
     # 4. the run's own uncertainty carried into the placement
-    Js_w = fit.whitening @ _fd_jacobian(
+    Js_w = fit.whitening @ central_jacobian(
         model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device)
     )
     Js_w = Js_w.reshape(-1, len(free.names))
@@ -342,7 +323,7 @@ def fit_station(
     if kept is not None and len(kept.labels):
         g_free = kept.free(model)
         C_gg = kept.matrix.to(Js_w)
-        Jg_w = (fit.whitening @ _fd_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
+        Jg_w = (fit.whitening @ central_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
             -1, len(kept.labels)
         )
         A = -torch.linalg.solve(Js_w.T @ Js_w, Js_w.T @ Jg_w)

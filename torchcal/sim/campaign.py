@@ -447,7 +447,6 @@ def simulate(cfg: SimConfig) -> Campaign:
         if turned is not None:
             turned = _with_orientation(turned, r, sigma_r, slice(n_test, None))
 
-    geo = truth_robot.geometry
     truth = {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
@@ -458,13 +457,7 @@ def simulate(cfg: SimConfig) -> Campaign:
             "dof": truth_robot.dof,
             "source": truth_robot.source,
         },
-        "geometry": {
-            "parametrisation": type(geo).__name__,
-            "columns": list(geo.COLUMNS),
-            "names": list(geo.names),
-            "delta": geo.delta.detach().flatten().tolist(),
-            "values": (geo.values if hasattr(geo, "values") else geo.origins()).detach().tolist(),
-        },
+        "geometry": _geometry_truth(truth_robot.geometry),
         "instrument": {"T_tracker_base": T_tracker_base.tolist(), "tracker_in_base_m": tracker_in_base.tolist()},
         "tool": {"t_flange_probe": truth_robot.tool.nominal.tolist(), "nominal_lever_arm": list(cfg.lever_arm)},
         "noise": {"tracker_sigma_m": cfg.sigma_tracker, "joint_sigma_rad": sigma_q},
@@ -495,6 +488,17 @@ def simulate(cfg: SimConfig) -> Campaign:
         truth["files"]["turned"] = {"n": turned.n}
         truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)
     return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _geometry_truth(geo) -> dict:
+    """truth.json's ``geometry``: the parametrisation, its columns, the elements' names, true errors and values."""
+    return {
+        "parametrisation": type(geo).__name__,
+        "columns": list(geo.COLUMNS),
+        "names": list(geo.names),
+        "delta": geo.delta.detach().flatten().tolist(),
+        "values": (geo.values if hasattr(geo, "values") else geo.origins()).detach().tolist(),
+    }
 
 
 def _orientations(cfg: SimConfig, g: torch.Generator, model: MeasurementModel, ctx: Context):
@@ -603,18 +607,11 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
         )
 
     train, test = labelled(slice(0, n_train), "train"), labelled(slice(n_train, None), "test")
-    geo = truth_robot.geometry
     truth = {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
         "robot": {"spec": str(cfg.robot), "name": truth_robot.name, "kind": truth_robot.kind, "dof": truth_robot.dof},
-        "geometry": {
-            "parametrisation": type(geo).__name__,
-            "columns": list(geo.COLUMNS),
-            "names": list(geo.names),
-            "delta": geo.delta.detach().flatten().tolist(),
-            "values": (geo.values if hasattr(geo, "values") else geo.origins()).detach().tolist(),
-        },
+        "geometry": _geometry_truth(truth_robot.geometry),
         "instrument": {"T_tracker_base": T0.tolist(), "tracker_in_base_m": tf.invert(T0)[:3, 3].tolist()},
         "stations": {
             name: {"T_tracker_base": Ts[k].tolist(), "tracker_in_base_m": tf.invert(Ts[k])[:3, 3].tolist()}
