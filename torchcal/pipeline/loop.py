@@ -66,7 +66,7 @@ DESCRIPTORS = ("source", "harmonics", "variable", "target", "reference", "payloa
 
 
 def close_loop(
-    run: CalibrationRun, *, max_effects: int = 8, max_tries: int = 3, open_forms: bool = True
+    run: CalibrationRun, *, max_effects: int = 8, max_tries: int = 4, open_forms: bool = True
 ) -> StageResult:
     """The effects the training data demand, added to the run's model (module docstring).
 
