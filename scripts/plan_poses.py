@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """The command line of :mod:`torchcal.experiments.plan_poses`: on a real UR10 series (ipa-robot-accuracy data), poses
-chosen by ``torchcal plan`` from the series' training split against random ones, each calibrated (kinematic) and
-scored on the series' held-out poses, with the held-out error the plan predicted."""
+chosen by ``torchcal plan`` from the series' training split against random ones, each calibrated (kinematic, or the
+default method) and scored on the series' held-out poses, with the held-out error the plan predicted."""
 
 import sys
 from pathlib import Path
@@ -19,18 +19,28 @@ ap.add_argument(
     "--method",
     choices=("kinematic", "auto"),
     default="kinematic",
-    help="the method each design is calibrated with (default kinematic; auto: the default method)",
+    help="the method each design is planned for and calibrated with (default kinematic; auto: the default method)",
 )
 ap.add_argument("--criterion", choices=("I", "D"), default="I", help="design criterion (default I)")
-ap.add_argument("--edge-share", type=float, default=0.1, help="share of picks at the region's edges (default 0.1)")
 ap.add_argument(
-    "--spread-share", type=float, default=0.5, help="share of picks spreading the design (default 0.5; 0: none)"
+    "--edge-share", type=float, default=None, help="share of picks at the region's edges (default: the method's design)"
+)
+ap.add_argument(
+    "--spread-share",
+    type=float,
+    default=None,
+    help="share of picks spreading the design (default: the method's design; 0: none)",
 )
 ap.add_argument(
     "--seeds", type=int, default=5, help="seeds per size: a planned design from a seeded half of the pool, a random one"
 )
 ap.add_argument(
     "--reference", type=int, default=200, help="random poses of the reference design (default 200; 0: none)"
+)
+ap.add_argument(
+    "--oracle",
+    action="store_true",
+    help="per seed also a design whose spread picks follow the held-out poses themselves (what no planner knows)",
 )
 
 
@@ -49,6 +59,7 @@ def experiment(a):
         criterion=a.criterion,
         spread_share=a.spread_share,
         method=a.method,
+        oracle=a.oracle,
     )
     if a.simulated is not None:
         res = plan_poses.simulated(a.simulated, protocol)

@@ -463,6 +463,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--probe", default=None, help="a --run with several probes: plan for this one's lever arm (default the first)"
     )
     pl.add_argument("--candidates", default=None, help="file with q1..qN per row (other columns ignored)")
+    pl.add_argument(
+        "--work",
+        default=None,
+        help="file with q1..qN of the poses the robot will work at (other columns ignored): the spread picks follow "
+        "their density instead of the candidates' (the prediction stays over the candidates)",
+    )
     pl.add_argument("--n", type=_count, required=True, help="poses to choose (K)")
     pl.add_argument("--out", required=True, help="CSV to write: q1..qN [rad] of the chosen poses")
     pl.add_argument(
@@ -477,10 +483,18 @@ def build_parser() -> argparse.ArgumentParser:
         "the parameters' information",
     )
     pl.add_argument(
+        "--method",
+        default=None,
+        choices=METHOD_CHOICES,
+        help="the method the poses will be calibrated with (default: the --run's, else auto). kinematic: the "
+        "criterion's design with half the picks spread; any other method ends in a learned correction, which needs "
+        "poses where the robot works: the first 30 picks the criterion's, then the candidates' density",
+    )
+    pl.add_argument(
         "--edge-share",
         type=_number("nonnegative", 0.5),
-        default=0.1,
-        help="share of the picks made at the edges of the region (default 0.1)",
+        default=None,
+        help="share of the picks made at the edges of the region (default 0.1 for kinematic, else 0.02)",
     )
     pl.add_argument(
         "--learned-share",
@@ -491,10 +505,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     pl.add_argument(
         "--spread-share",
-        type=_number("nonnegative", 0.9),
-        default=0.5,
+        type=_number("nonnegative", 1.0),
+        default=None,
         help="share of the picks that follow the candidates' spread (kernel herding) instead of the criterion: they "
-        "guard the geometry against the robot's non-geometric error (default 0.5; 0: the criterion alone)",
+        "guard the geometry against the robot's non-geometric error (default 0.5 for kinematic, else 1 after the "
+        "first 30 picks; 0: the criterion alone)",
     )
     pl.add_argument(
         "--tracker",
@@ -889,7 +904,7 @@ def cmd_plan(args) -> int:
     from torchcal.effects import MeasurementModel
     from torchcal.pipeline.plan import PlanOptions, plan_poses, sample_candidates, scene_of
 
-    inputs = [p for p in (args.candidates, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
+    inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
     stem = out_file.with_suffix("")
     side = {ext: _plan_side_file(f"{stem}.plan.{ext}", inputs, args.force) for ext in ("json", "md")}
@@ -897,11 +912,13 @@ def cmd_plan(args) -> int:
         raise OptionError("give --robot or --run (the robot to plan for)")
     sigma_tracker, sigma_joint, s0_sq = 15e-6, math.radians(0.0005), 1.0
     tracker = lever = None
+    method = args.method or "auto"
     if args.run is not None:
         from torchcal.report import load_model
         from torchcal.report.station import station_options
 
         model, meta = load_model(args.run)
+        method = args.method or meta.get("method") or method
         if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
             from torchcal.report.rundir import at_station
 
@@ -930,6 +947,11 @@ def cmd_plan(args) -> int:
         sigma_tracker = args.tracker_noise * 1e-6
     if args.joint_noise is not None:
         sigma_joint = math.radians(args.joint_noise)
+    work = None
+    if args.work is not None:
+        wd = read_measurements(args.work, require_positions=False, **_reading(args, robot))
+        check_header_robot(wd, robot_name, robot, f"--robot {robot_name}")
+        work = wd.q
     if args.candidates is not None:
         data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
         check_header_robot(data, robot_name, robot, f"--robot {robot_name}")
@@ -941,8 +963,9 @@ def cmd_plan(args) -> int:
         source = f"{args.pool} sampled (seed {args.seed})"
     if args.n > len(q):
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
-    opts = PlanOptions(
-        k=args.n,
+    opts = PlanOptions.for_method(
+        method,
+        args.n,
         criterion=args.criterion,
         edge_share=args.edge_share,
         learned_share=args.learned_share,
@@ -952,7 +975,7 @@ def cmd_plan(args) -> int:
         s0_sq=s0_sq,
         seed=args.seed,
     )
-    plan = plan_poses(model, q, opts)
+    plan = plan_poses(model, q, opts, work)
     out_file.parent.mkdir(parents=True, exist_ok=True)
     meta_out = {"robot": Path(str(robot_name)).name, "planned_from": source}
     write_measurements(out_file, Measurements(q=plan.q.detach().cpu()), meta=meta_out, written_by="torchcal plan")

@@ -34,7 +34,8 @@ def test_plan_end_to_end_into_calibrate(campaign, tmp_path):
     rows = {tuple(r) for r in campaign.train.q.tolist()}
     assert all(tuple(r) in rows for r in planned.q.tolist())
     summary = json.loads((tmp_path / "plan" / "poses.plan.json").read_text())
-    assert summary["k"] == 40 and summary["n_candidates"] == 1500
+    assert summary["k"] == 40 and summary["n_candidates"] == 1500 and summary["method"] == "auto"
+    assert summary["n_spread"] == 10  # the ten picks after the geometry's 30 follow the candidates
     assert [c["k"] for c in summary["curve"]][-1] == 80
     assert summary["predicted_holdout_rmse_mm"] > 0 and summary["parameters"]
     assert (tmp_path / "plan" / "poses.plan.md").read_text().startswith("# written_by: torchcal plan")
@@ -69,6 +70,77 @@ def test_edge_share_is_kept(campaign):
     model = MeasurementModel(load_robot("ur5"))
     plan = plan_poses(model, campaign.train.q, PlanOptions(k=50, edge_share=0.2))
     assert int(plan.edge[4::5].sum()) == 10  # every fifth pick is an edge pose
+
+
+def _discrepancy(a: torch.Tensor, b: torch.Tensor, length: float = 0.25) -> float:
+    """Squared maximum mean discrepancy between two sets of scaled joints (squared-exponential kernel)."""
+
+    def k(x, y):
+        return torch.exp(-0.5 * torch.cdist(x, y).square() / length**2).mean()
+
+    return float(k(a, a) + k(b, b) - 2 * k(a, b))
+
+
+def test_a_design_for_a_learned_correction_follows_the_candidates_after_the_geometry(campaign):
+    """Planned for the default method: the first picks are the criterion's, every later one but the edges' follows
+    the candidates' density, closer to it than a random design of the same size or the kinematic design."""
+    from torchcal.pipeline.plan import GEOMETRY_PICKS, LEARNED_LENGTH, _scaled
+
+    assert PlanOptions.for_method("kinematic", 10) == PlanOptions(k=10)
+    auto = PlanOptions.for_method("auto", 150, spread_share=None, seed=3)
+    assert (auto.spread_from, auto.spread_share, auto.edge_share, auto.seed) == (GEOMETRY_PICKS, 1.0, 0.02, 3)
+    assert auto.spread_length == LEARNED_LENGTH < PlanOptions(k=1).spread_length
+    assert PlanOptions.for_method("pcm", 150, edge_share=0.1).edge_share == 0.1  # what is given is kept
+    model = MeasurementModel(load_robot("ur5"))
+    q = campaign.train.q
+    plan = plan_poses(model, q, auto)
+    assert not bool(plan.spread[:GEOMETRY_PICKS].any())
+    later = torch.arange(GEOMETRY_PICKS, 150)
+    edge_turn = (later + 1) % 50 == 0
+    assert bool(plan.spread[later[~edge_turn]].all()) and not bool(plan.spread[later[edge_turn]].any())
+    assert plan.to_dict()["method"] == "auto" and plan.to_dict()["spread_from"] == GEOMETRY_PICKS
+    where = _scaled(q)
+    kinematic = plan_poses(model, q, PlanOptions.for_method("kinematic", 150))
+    rnd = torch.randperm(len(q), generator=torch.Generator().manual_seed(0))[:150]
+    d_auto, d_kin, d_rnd = (_discrepancy(where[i], where, LEARNED_LENGTH) for i in (plan.index, kinematic.index, rnd))
+    print(f"discrepancy to the candidates: auto {d_auto:.2e}, kinematic {d_kin:.2e}, random {d_rnd:.2e}")
+    assert d_auto < 0.9 * min(d_rnd, d_kin)
+    assert "For the auto method" in plan.markdown() and "plan with --method auto" in kinematic.markdown()
+    with pytest.raises(OptionError, match="spread_from"):
+        plan_poses(model, q, PlanOptions(k=5, spread_from=-1))
+
+
+def test_spread_picks_follow_the_work_poses_where_given(campaign, tmp_path):
+    """Work poses in one half of joint 1's range: the spread picks after the geometry's go there, the file is read
+    and named by the command, and a work file of the wrong robot is refused before anything is written."""
+    q = campaign.train.q
+    low = q[q[:, 0] < q[:, 0].median()]
+    model = MeasurementModel(load_robot("ur5"))
+    plan = plan_poses(model, q, PlanOptions.for_method("auto", 80), work=low)
+    spread_q = plan.q[plan.spread]
+    assert len(spread_q) >= 45 and float((spread_q[:, 0] < q[:, 0].median()).float().mean()) > 0.9
+    assert plan.to_dict()["spread_toward"] == f"{len(low)} work poses"
+    with pytest.raises(OptionError, match="work poses"):
+        plan_poses(model, q, PlanOptions(k=5), work=low[:, :5])
+    cand, work = tmp_path / "cand.csv", tmp_path / "work.csv"
+    write_measurements(cand, campaign.train)
+    write_measurements(work, Measurements(q=low))
+    out = tmp_path / "poses.csv"
+    argv = ["plan", "--robot", "ur5", "--candidates", str(cand), "--work", str(work), "--n", "40", "--out", str(out)]
+    assert main([*argv, "--quiet"]) == 0
+    assert json.loads((tmp_path / "poses.plan.json").read_text())["spread_toward"] == f"{len(low)} work poses"
+    bad = tmp_path / "bad.csv"
+    write_measurements(bad, Measurements(q=low[:, :5]))
+    out2 = tmp_path / "other.csv"
+    argv = ["plan", "--robot", "ur5", "--candidates", str(cand), "--work", str(bad), "--n", "40", "--out", str(out2)]
+    assert main([*argv, "--quiet"]) == 2 and not out2.exists() and not (tmp_path / "other.plan.json").exists()
+
+
+def test_the_oracle_design_is_measured_beside_the_plan(campaign):
+    res = compare("ur5", campaign.train, campaign.test, Protocol((30,), seeds=1, reference=None, oracle=True))
+    (row,) = res["sizes"]
+    assert row["oracle_mm"]["values"][0] > 0 and len(row["oracle_mm"]["values"]) == 1
+    assert res["spread_from"] == 0 and res["spread_share"] == 0.5  # the kinematic design
 
 
 def test_learned_share_goes_where_the_learned_correction_is_least_certain(campaign, monkeypatch):
@@ -124,6 +196,7 @@ def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_pat
     assert main(["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--quiet"]) == 0
     d = json.loads((tmp_path / "poses.plan.json").read_text())
     assert d["n_learned"] == 6 and d["learned_share"] == 0.2
+    assert d["method"] == "auto"  # the run's method: the design for a learned correction
     assert 0.5 < d["stochastic_model"]["variance_factor"] < 2.0
     assert (
         main(
@@ -133,6 +206,10 @@ def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_pat
         == 0
     )
     assert json.loads((tmp_path / "poses.plan.json").read_text())["n_learned"] == 0
+    argv = ["plan", "--run", str(run), "--n", "40", "--pool", "1000", "--out", str(out), "--method", "kinematic"]
+    assert main([*argv, "--quiet"]) == 0
+    d = json.loads((tmp_path / "poses.plan.json").read_text())
+    assert (d["method"], d["spread_share"], d["edge_share"]) == ("kinematic", 0.5, 0.1) and d["n_edge"] >= 4
 
 
 def test_plan_for_one_station_of_a_several_station_run(tmp_path):

@@ -52,17 +52,20 @@ def fit_and_score(
 @dataclass(frozen=True)
 class Protocol:
     """What :func:`compare` measures: the design sizes ``ks``, the seeds, the reference design's size (None: none),
-    the plan's options (criterion, edge and spread shares), the share of the pool the planner is offered per seed and
-    the method each design is calibrated with."""
+    the plan's options (criterion, edge and spread shares: None takes the method's design,
+    :meth:`~torchcal.pipeline.plan.PlanOptions.for_method`), the share of the pool the planner is offered per seed and
+    the method each design is planned for and calibrated with; ``oracle``: per seed also a design whose spread picks
+    follow the held-out poses themselves (``plan --work``), what a planner that knew where it is judged could do."""
 
     ks: tuple[int, ...]
     seeds: int = 5
     reference: int | None = 200
-    edge_share: float = 0.1
+    edge_share: float | None = None
     criterion: str = "I"
-    spread_share: float = 0.5
+    spread_share: float | None = None
     candidate_share: float = 0.5
     method: str = "kinematic"
+    oracle: bool = False
 
 
 def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protocol) -> dict:
@@ -76,6 +79,7 @@ def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protoc
     opts_fit = base.options.fit
     # the plan's stochastic model: the data's own tracker sigmas (their RMS) where they carry them, as the fit used
     sigma_tracker = opts_fit.sigma_tracker if pool.sigma is None else float(pool.sigma.square().mean().sqrt())
+    design = PlanOptions.for_method(pr.method, 1, edge_share=pr.edge_share, spread_share=pr.spread_share)
     out: dict = {
         "robot": robot,
         "n_pool": pool.n,
@@ -84,31 +88,32 @@ def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protoc
         "pool_kinematic_holdout_mm": _rmse(errors(base.model, held, trajectory=False)),
         "criterion": pr.criterion,
         "method": pr.method,
-        "edge_share": pr.edge_share,
-        "spread_share": pr.spread_share,
+        **{n: getattr(design, n) for n in ("edge_share", "spread_share", "spread_from", "spread_length")},
         "candidate_share": pr.candidate_share,
         "sizes": [],
     }
     n_cand = max(1, round(pr.candidate_share * pool.n))
     for k in pr.ks:
-        planned, predicted, plan_s, rnd = [], [], [], []
+        planned, predicted, plan_s, rnd, oracle = [], [], [], [], []
         for s in range(pr.seeds):
             cand = torch.sort(torch.randperm(pool.n, generator=torch.Generator().manual_seed(1000 + s))[:n_cand]).values
-            t1 = time.perf_counter()
-            plan = plan_poses(
-                base.model,
-                pool.q[cand],
-                PlanOptions(
-                    k=k,
-                    criterion=pr.criterion,
-                    edge_share=pr.edge_share,
-                    spread_share=pr.spread_share,
-                    sigma_tracker=sigma_tracker,
-                    sigma_joint=opts_fit.sigma_joint,
-                    s0_sq=s0_sq,
-                ),
+            plan_opts = PlanOptions.for_method(
+                pr.method,
+                k,
+                criterion=pr.criterion,
+                edge_share=pr.edge_share,
+                spread_share=pr.spread_share,
+                sigma_tracker=sigma_tracker,
+                sigma_joint=opts_fit.sigma_joint,
+                s0_sq=s0_sq,
             )
+            t1 = time.perf_counter()
+            plan = plan_poses(base.model, pool.q[cand], plan_opts)
             plan_s.append(time.perf_counter() - t1)
+            if pr.oracle:
+                toward = plan_poses(base.model, pool.q[cand], plan_opts, work=held.q)
+                rows = pool.subset(torch.sort(cand[toward.index]).values)
+                oracle.append(fit_and_score(robot, rows, held, method=pr.method))
             planned.append(
                 fit_and_score(robot, pool.subset(torch.sort(cand[plan.index]).values), held, method=pr.method)
             )
@@ -126,6 +131,7 @@ def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protoc
                 "predicted_over_measured": statistics.median(p / m for p, m in zip(predicted, planned)),
                 "random_mm": {"median": statistics.median(rnd), "min": min(rnd), "max": max(rnd), "values": rnd},
                 "plan_s": statistics.median(plan_s),
+                **({"oracle_mm": {"median": statistics.median(oracle), "values": oracle}} if oracle else {}),
             }
         )
     if pr.reference:
@@ -167,7 +173,8 @@ def markdown(res: dict) -> str:
     lines = [
         f"{res.get('series', '?')}: pool {res['n_pool']} poses, {res['n_holdout']} held out; variance factor "
         f"{res['variance_factor']:.3g}; criterion {res['criterion']}, edge share {res['edge_share']}, spread share "
-        f"{res['spread_share']}; the planner offered {res['candidate_share']:.0%} of the pool per seed; method "
+        f"{res['spread_share']} from pick {res.get('spread_from', 0)}; the planner offered "
+        f"{res['candidate_share']:.0%} of the pool per seed; method "
         f"{res.get('method', 'kinematic')}; "
         f"kinematic on the whole pool {res['pool_kinematic_holdout_mm']:.4f} mm",
         "",
@@ -186,4 +193,8 @@ def markdown(res: dict) -> str:
         )
     if ref:
         lines += ["", f"reference: {ref['k']} random poses, median {ref['random_mm']['median']:.4f} mm"]
+    for r in res["sizes"]:
+        if "oracle_mm" in r:
+            vals = ", ".join(f"{v:.4f}" for v in r["oracle_mm"]["values"])
+            lines += ["", f"K = {r['k']}, spread picks following the held-out poses (oracle): {vals} mm"]
     return "\n".join(lines)

@@ -27,6 +27,15 @@ robot also has a non-geometric residual, a smooth field over the joints that the
 samples it, and a design that piles up where the geometry is most informative lets that field bias it. Poses that
 follow the candidates' density average the field out as a random design does (docs/real-data.md, *Planning the
 poses*, has the measurements).
+
+The design depends on the method the poses will be calibrated with (:meth:`PlanOptions.for_method`). For
+``kinematic`` it is the one above. Every other method ends in a learned correction, which needs poses where the robot
+works, as densely as it will work there: the criterion's picks, at the poses that separate the parameters, and the
+edge picks are poses it lacks. There the first :data:`GEOMETRY_PICKS` picks are the criterion's (the geometry is
+settled on about that many planned poses) and every later pick but the edges' (``edge_share`` 2 %) is a spread pick,
+with the kernel length of the learned correction's discount (:data:`LEARNED_LENGTH`): the density is matched at the
+scale the correction varies on.
+The predicted error still counts the kinematic calibration only.
 """
 
 from __future__ import annotations
@@ -62,6 +71,13 @@ CURVE = (5, 10, 20, 30, 50, 100, 200, 300, 500, 1000, 2000, 5000, 10000)
 LEARNED_LENGTH = 0.1
 #: the kernel length of the spreading picks (:class:`SpreadTurns`), in joints scaled to the candidates' range [1]
 SPREAD_LENGTH = 0.25
+#: a design for a learned correction (module docstring): the picks left to the criterion before the spread picks
+#: take over, and the share of the edge picks (one in fifty: the learned correction's support reaches the region's
+#: edges, and every edge pick is a pose less where the robot works)
+GEOMETRY_PICKS = 30
+LEARNED_EDGE_SHARE = 0.02
+#: the methods whose design is the kinematic one; every other method of calibrate ends in a learned correction
+KINEMATIC_METHODS = ("kinematic",)
 #: where a tracker stands when nothing says where: 2.5 m in front of the base, 0.2 m above its plane (the simulator
 #: draws 2-3 m and -0.3..0.5 m)
 DEFAULT_TRACKER = (2.5, 0.0, 0.2)
@@ -79,7 +95,10 @@ class PlanOptions:
         edge_share: share of the picks made among the candidates at the edges of the region (0: none).
         learned_share: share of the picks made where the learned correction is least certain (where the model has
             one with a predictive standard deviation; 0: none).
-        spread_share: share of the picks made farthest from the poses planned so far (0: none; module docstring).
+        spread_share: share of the picks that follow the candidates' density (0: none; module docstring).
+        spread_from: the first this many picks are left to the criterion (and the edges) before the spread picks begin.
+        spread_length: the spread picks' kernel length, in joints scaled to the candidates' range [1].
+        method: the method the poses will be calibrated with, as reported (:meth:`for_method` sets the shares).
         sigma_tracker: tracker noise per axis [m]; sigma_joint: joint noise [rad] (the fits' stochastic model).
         s0_sq: variance factor of the stochastic model (a run's own; 1 for simulated data).
         priors: the fits' priors.
@@ -91,11 +110,29 @@ class PlanOptions:
     edge_share: float = 0.1
     learned_share: float = 0.2
     spread_share: float = 0.5
+    spread_from: int = 0
+    spread_length: float = SPREAD_LENGTH
+    method: str = "kinematic"
     sigma_tracker: float = 15e-6
     sigma_joint: float = math.radians(0.0005)
     s0_sq: float = 1.0
     priors: Priors = field(default_factory=Priors)
     seed: int = 0
+
+    @classmethod
+    def for_method(cls, method: str, k: int, **given) -> PlanOptions:
+        """The design for poses calibrated with ``method`` (module docstring); ``given`` options override it (a
+        None among them keeps the method's)."""
+        given = {n: v for n, v in given.items() if v is not None}
+        if method in KINEMATIC_METHODS:
+            return cls(k=k, method=method, **given)
+        learned = {
+            "edge_share": LEARNED_EDGE_SHARE,
+            "spread_share": 1.0,
+            "spread_from": GEOMETRY_PICKS,
+            "spread_length": LEARNED_LENGTH,
+        }
+        return cls(k=k, method=method, **(learned | given))
 
 
 @dataclass
@@ -107,7 +144,7 @@ class Plan:
         q: ``(K, dof)`` their joints [rad].
         edge: ``(K,)`` bool, at the edges of the region.
         learned: ``(K,)`` bool, picked where the learned correction is least certain.
-        spread: ``(K,)`` bool, picked farthest from the poses planned before it.
+        spread: ``(K,)`` bool, picked to follow the candidates' density.
         names, units, sigma: the identifiable parameters and their predicted standard deviations after the ``K``
             poses [m or rad].
         held: the parameters no choice among the candidates determines (held in the fit), with the reason.
@@ -133,11 +170,13 @@ class Plan:
     random_log_det: float
     n_candidates: int
     options: PlanOptions
+    n_work: int = 0  # the work poses the spread picks followed (0: the candidates)
 
     def to_dict(self) -> dict:
         scale = {"m": (1e3, "mm"), "rad": (180.0 / math.pi, "deg")}
         return {
             "k": len(self.index),
+            "method": self.options.method,
             "n_candidates": self.n_candidates,
             "criterion": f"greedy {self.options.criterion}-optimal on the whitened Jacobian of the identifiable "
             "geometry, instrument pose and lever arm, priors as the starting information",
@@ -146,7 +185,10 @@ class Plan:
             "learned_share": self.options.learned_share if bool(self.learned.any()) else 0.0,
             "n_learned": int(self.learned.sum()),
             "spread_share": self.options.spread_share,
+            "spread_from": self.options.spread_from,
+            "spread_length": self.options.spread_length,
             "n_spread": int(self.spread.sum()),
+            "spread_toward": f"{self.n_work} work poses" if self.n_work else "the candidates",
             "stochastic_model": {
                 "tracker_noise_um": self.options.sigma_tracker * 1e6,
                 "joint_noise_deg": math.degrees(self.options.sigma_joint),
@@ -167,16 +209,27 @@ class Plan:
 
     def markdown(self) -> str:
         d = self.to_dict()
+        if d["method"] in KINEMATIC_METHODS:
+            learned = (
+                "A learned correction is not counted, and it needs poses where the robot works rather than these: "
+                "for the default method, plan with --method auto"
+            )
+        else:
+            learned = (
+                f"For the {d['method']} method: after the first {d['spread_from']} picks every pick but the edges' "
+                f"follows the density of {d['spread_toward']}, where the learned correction needs its poses; what it "
+                "adds is not counted"
+            )
         lines = [
             f"# Planned poses: {d['k']} of {d['n_candidates']} candidates",
             "",
             f"{d['criterion']}; {d['n_edge']} at the edges of the region, {d['n_learned']} picked where the learned "
-            f"correction is least certain, {d['n_spread']} farthest from the poses planned before them.",
+            f"correction is least certain, {d['n_spread']} following the density of {d['spread_toward']}.",
             "",
-            f"- predicted held-out RMSE of a kinematic calibration: {d['predicted_holdout_rmse_mm']:.4f} mm "
-            f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm). A learned correction is "
-            "not counted, and it needs poses where the robot works rather than these: for the default method, "
-            "measure most poses at random there (docs/real-data.md, *Planning the poses*)",
+            f"- predicted held-out RMSE of a kinematic calibration over the candidates: "
+            f"{d['predicted_holdout_rmse_mm']:.4f} mm "
+            f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm). {learned} "
+            "(docs/real-data.md, *Planning the poses*)",
             f"- variance factor {d['stochastic_model']['variance_factor']:.3g}, tracker noise "
             f"{d['stochastic_model']['tracker_noise_um']:.3g} um",
             "",
@@ -221,15 +274,13 @@ def scene_of(model: MeasurementModel) -> tuple[Tensor, Tensor]:
 
 class LearnedTurns:
     """Every ``round(1 / share)``-th pick (offset from the edge picks) goes to the candidate with the largest
-    variance ``score``, discounted near the poses planned so far (module docstring): the learned correction's
-    predictive variance, or a uniform one to spread the design (``spaced``: pick ``j`` is a turn where
-    ``floor((j + 1) share)`` steps up, any share of the picks, the first the criterion's)."""
+    variance ``score``, the learned correction's predictive variance, discounted near the poses planned so far (module
+    docstring)."""
 
-    def __init__(self, std: Tensor, where: Tensor, share: float, length: float = LEARNED_LENGTH, spaced: bool = False):
+    def __init__(self, std: Tensor, where: Tensor, share: float, length: float = LEARNED_LENGTH):
         self.score = std.square().clone()  # (N,) predictive variance [m^2]
         self.where = where  # (N, d) joints scaled to [0, 1]
         self.share = share
-        self.spaced = spaced
         self.every = max(1, round(1.0 / share))
         self.length = length
         self.seen: set[int] = set()  # picks already folded into the discount
@@ -250,10 +301,10 @@ class LearnedTurns:
         return self.score
 
 
-def _scaled(q: Tensor) -> Tensor:
-    """The joints scaled to the candidates' range, ``[0, 1]`` per joint."""
+def _scaled(q: Tensor, of: Tensor | None = None) -> Tensor:
+    """The joints ``of`` (default ``q``) scaled to the candidates' ``q`` range, ``[0, 1]`` per joint."""
     lo = q.min(0).values
-    return (q - lo) / (q.max(0).values - lo).clamp(min=1e-12)
+    return ((q if of is None else of) - lo) / (q.max(0).values - lo).clamp(min=1e-12)
 
 
 class Turns:
@@ -287,19 +338,30 @@ def learned_turns(model: MeasurementModel, q: Tensor, share: float) -> LearnedTu
 
 
 class SpreadTurns:
-    """A share of the picks (pick ``j`` where ``floor((j + 1) share)`` steps up: any share, the first pick the
-    criterion's) by kernel herding: the candidate that brings the planned poses' kernel mean closest to the
-    candidates', ``mean_k K(x, x_k) - sum_p K(x, x_p) / (n + 1)`` over the ``n`` poses planned so far, with a
-    squared-exponential kernel of length ``length`` in joints scaled to the candidates' range. These picks follow the
-    candidates' density, as a random design does, without a random design's clumps and gaps."""
+    """A share of the picks (pick ``j >= start`` where ``floor((j + 1) share)`` steps up: any share; below a share
+    of 1 the first pick is the criterion's) by kernel herding: the candidate that brings the planned poses' kernel
+    mean closest to the candidates', ``mean_k K(x, x_k) - sum_p K(x, x_p) / (n + 1)`` over the ``n`` poses planned so
+    far, with a squared-exponential kernel of length ``length`` in joints scaled to the candidates' range. These picks
+    follow the candidates' density, as a random design does, without a random design's clumps and gaps; given
+    ``toward``, the poses where the robot will work (scaled alike), they follow those instead (``x_k`` over them)."""
 
-    def __init__(self, where: Tensor, share: float, length: float = SPREAD_LENGTH, chunk: int = 1024):
+    def __init__(
+        self,
+        where: Tensor,
+        share: float,
+        length: float = SPREAD_LENGTH,
+        chunk: int = 1024,
+        start: int = 0,
+        toward: Tensor | None = None,
+    ):
         self.where = where  # (N, d) joints scaled to [0, 1]
+        toward = where if toward is None else toward
         self.share = share
+        self.start = start
         self.length = length
         mean = torch.zeros(len(where), dtype=where.dtype, device=where.device)
         for lo in range(0, len(where), chunk):  # (chunk, N) at a time: 10,000 candidates stay within memory
-            mean[lo : lo + chunk] = self._kernel(where[lo : lo + chunk], where).mean(-1)
+            mean[lo : lo + chunk] = self._kernel(where[lo : lo + chunk], toward).mean(-1)
         self.mean = mean
         self.sum = torch.zeros_like(mean)
         self.seen: set[int] = set()
@@ -316,24 +378,31 @@ class SpreadTurns:
 
     def __call__(self, j: int, taken: Tensor) -> Tensor | None:
         self.fold(taken)
-        if math.floor((j + 1) * self.share + 1e-9) <= math.floor(j * self.share + 1e-9):
+        if j < self.start or math.floor((j + 1) * self.share + 1e-9) <= math.floor(j * self.share + 1e-9):
             return None
         self.turns.append(j)
         return self.mean - self.sum / (len(self.seen) + 1)
 
 
-def spread_turns(q: Tensor, share: float) -> SpreadTurns | None:
-    """The turns that spread the design (:class:`SpreadTurns`); None where ``share`` is 0."""
-    return SpreadTurns(_scaled(q), share) if share > 0 else None
+def spread_turns(
+    q: Tensor, share: float, start: int = 0, length: float = SPREAD_LENGTH, work: Tensor | None = None
+) -> SpreadTurns | None:
+    """The turns that spread the design (:class:`SpreadTurns`) from pick ``start`` on, toward the candidates' density
+    or the ``work`` poses'; None where ``share`` is 0."""
+    if share <= 0:
+        return None
+    toward = None if work is None else _scaled(q, work)
+    return SpreadTurns(_scaled(q), share, length=length, start=start, toward=toward)
 
 
 def _random_index(n: int, k: int, seed: int) -> Tensor:
     return torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]
 
 
-def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
-    """Pick ``opts.k`` of the candidates ``q (N, dof)`` [rad] for ``model``'s robot (module docstring)."""
-    for name, top in (("edge_share", 0.5), ("learned_share", 0.5), ("spread_share", 0.9)):
+def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tensor | None = None) -> Plan:
+    """Pick ``opts.k`` of the candidates ``q (N, dof)`` [rad] for ``model``'s robot (module docstring); the spread
+    picks follow the poses ``work (M, dof)`` [rad] where given (where the robot will work), else the candidates."""
+    for name, top in (("edge_share", 0.5), ("learned_share", 0.5), ("spread_share", 1.0)):
         if not 0.0 <= getattr(opts, name) <= top:
             raise OptionError(f"{name} must lie in [0, {top}], got {getattr(opts, name)}")
     N = len(q)
@@ -347,7 +416,13 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
     top = min(N, 2 * opts.k)
     grid = tuple(sorted({c for c in CURVE if c <= top} | {opts.k, top}))
     learned = learned_turns(model, q, opts.learned_share)
-    spread = spread_turns(q, opts.spread_share)
+    if opts.spread_from < 0 or not opts.spread_length > 0:
+        raise OptionError(
+            f"spread_from must be at least 0 and spread_length positive, got {opts.spread_from}, {opts.spread_length}"
+        )
+    if work is not None and (work.ndim != 2 or work.shape[1] != q.shape[1] or len(work) == 0):
+        raise OptionError(f"the work poses must be (M, {q.shape[1]}) joints, got {tuple(work.shape)}")
+    spread = spread_turns(q, opts.spread_share, opts.spread_from, opts.spread_length, work)
     other = Turns([t for t in (learned, spread) if t is not None], every)
     design = greedy_design(
         problem, max(grid), criterion=opts.criterion, restrict=edge, every=every, checkpoints=grid, other=other
@@ -379,4 +454,5 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> Plan:
         random_log_det=log_det(problem, rnd),
         n_candidates=N,
         options=opts,
+        n_work=0 if work is None else len(work),
     )
