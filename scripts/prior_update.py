@@ -14,12 +14,18 @@ ap.add_argument("--rows", type=int, default=10, help="crashed training rows to u
 ap.add_argument("--seeds", type=int, default=5, help="random draws of the rows (default 5)")
 ap.add_argument("--joint", type=int, default=2, help="the crashed joint, 1-based (default 2)")
 ap.add_argument("--shift-mrad", type=float, default=2.0, help="its readings' shift [mrad] (default 2)")
+ap.add_argument(
+    "--method",
+    choices=("kinematic", "auto"),
+    default="kinematic",
+    help="the method of the calibration before the crash and of the update (default kinematic; auto: the default)",
+)
 
 
 def experiment(a):
     if not a.data_dir.is_dir():
         ap.error(f"data folder not found: {a.data_dir}")
-    res = prior_update.run(a.data_dir, a.series.upper(), a.rows, a.seeds, a.joint, a.shift_mrad * 1e-3)
+    res = prior_update.run(a.data_dir, a.series.upper(), a.rows, a.seeds, a.joint, a.shift_mrad * 1e-3, a.method)
     return res, prior_update.markdown(res)
 
 
