@@ -104,3 +104,23 @@ def test_a_final_model_that_wins_in_the_middle_and_loses_at_the_edges_steps_back
     assert not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)" and ev["n_edge"] == int(edge.sum())
     (rej,) = [r for r in run.rejections if r.name == "learned"]
     assert "at the edges of the joint ranges" in rej.reason and "better in the middle" in rej.reason
+
+
+def test_too_few_held_out_poses_are_not_judged(auto_run):
+    """Three held-out poses say nothing about a model the validation poses chose: the guard does not step back on
+    them, and says it did not judge; ten are judged."""
+    from torchcal.pipeline.holdout import GUARD_MIN_POSES
+
+    def shrunk(n: int):
+        geo = auto_run.stage("geometric")
+        errs = {s.name: s.holdout_errors[:n] for s in auto_run.stages}
+        errs["learned"] = geo.holdout_errors[:n] * 1.5  # worse than the geometry on every one of them
+        run = _with_errors(auto_run, errs)
+        return dataclasses.replace(run, holdout_idx=auto_run.holdout_idx[:n])
+
+    run, ev = guard_holdout(shrunk(3))
+    assert ev["judged"] is False and ev["passed"] is True and "kept_stage" not in ev
+    assert [s.name for s in run.stages][-1] == "learned" and [r.label for r in run.effects][-1] == "learned"
+    assert any("not judged, 3 held-out pose(s)" in n for n in run.notes)
+    run, ev = guard_holdout(shrunk(GUARD_MIN_POSES))
+    assert ev["judged"] is True and not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)"
