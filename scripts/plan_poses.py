@@ -6,7 +6,9 @@ default method) and scored on the series' held-out poses, with the held-out erro
 import sys
 from pathlib import Path
 
+from torchcal.data import read_ipa
 from torchcal.experiments import common, plan_poses
+from torchcal.experiments.ipa_series import series_file
 
 ap = common.parser(plan_poses.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, nargs="?", help="the ur10-ipa folder (holds Series_A ... Series_D)")
@@ -38,6 +40,16 @@ ap.add_argument(
     "--reference", type=int, default=200, help="random poses of the reference design (default 200; 0: none)"
 )
 ap.add_argument(
+    "--sequential",
+    type=int,
+    default=0,
+    help="instead: FIRST random poses calibrated with the default method, then K - FIRST planned with that run, "
+    "once per --learned-shares value (one K)",
+)
+ap.add_argument(
+    "--learned-shares", default="0,0.2", help="with --sequential: the learned correction's shares (default 0,0.2)"
+)
+ap.add_argument(
     "--oracle",
     action="store_true",
     help="per seed also a design whose spread picks follow the held-out poses themselves (what no planner knows)",
@@ -61,6 +73,19 @@ def experiment(a):
         method=a.method,
         oracle=a.oracle,
     )
+    if a.sequential:
+        if a.simulated is not None or len(ks) != 1 or not 0 < a.sequential < ks[0]:
+            ap.error("--sequential takes the real data and one --k above it")
+        try:
+            shares = tuple(float(v) for v in common.comma_list(ap, a.learned_shares, None, what="share"))
+        except ValueError:
+            ap.error(f"--learned-shares must be numbers separated by commas, got {a.learned_shares!r}")
+        pool, held = plan_poses.split(read_ipa(series_file(a.data_dir, a.series.upper())))
+        res = plan_poses.sequential("ur10", pool, held, a.sequential, ks[0], shares, a.seeds)
+        lines = [f"| learned share | held-out RMSE [mm], median (values) over {a.seeds} seeds |", "|---:|---|"]
+        for share, e in res["by_share"].items():
+            lines.append(f"| {share} | {e['median_mm']:.4f} ({', '.join(f'{v:.4f}' for v in e['values_mm'])}) |")
+        return res, "\n".join(lines)
     if a.simulated is not None:
         res = plan_poses.simulated(a.simulated, protocol)
     else:

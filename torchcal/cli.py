@@ -499,9 +499,9 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument(
         "--learned-share",
         type=_number("nonnegative", 0.5),
-        default=0.2,
+        default=0.0,
         help="with a --run whose learned correction has a predictive sigma (a GP): share of the picks made where it "
-        "is least certain (default 0.2)",
+        "is least certain (default 0: on the real UR10 they made a second campaign worse)",
     )
     pl.add_argument(
         "--spread-share",

@@ -181,7 +181,7 @@ def test_predicted_holdout_error_within_25_percent(campaign):
 
 def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_path):
     """A simulated campaign with a smooth field the geometry lacks: the default method learns it (a GP), and plan
-    --run sends every fifth pick where that correction is least certain."""
+    --run --learned-share 0.2 sends every fifth pick where that correction is least certain (none by default)."""
     sim = tmp_path / "sim"
     assert (
         main(
@@ -193,18 +193,13 @@ def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_pat
     run = tmp_path / "run"
     assert main(["calibrate", str(sim / "train.csv"), "--robot", "ur5", "--out", str(run), "--quiet"]) == 0
     out = tmp_path / "poses.csv"
-    assert main(["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--quiet"]) == 0
+    argv = ["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--learned-share", "0.2"]
+    assert main([*argv, "--quiet"]) == 0
     d = json.loads((tmp_path / "poses.plan.json").read_text())
     assert d["n_learned"] == 6 and d["learned_share"] == 0.2
     assert d["method"] == "auto"  # the run's method: the design for a learned correction
     assert 0.5 < d["stochastic_model"]["variance_factor"] < 2.0
-    assert (
-        main(
-            ["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--learned-share", "0"]
-            + ["--quiet"]
-        )
-        == 0
-    )
+    assert main(["plan", "--run", str(run), "--n", "30", "--pool", "1000", "--out", str(out), "--quiet"]) == 0
     assert json.loads((tmp_path / "poses.plan.json").read_text())["n_learned"] == 0
     argv = ["plan", "--run", str(run), "--n", "40", "--pool", "1000", "--out", str(out), "--method", "kinematic"]
     assert main([*argv, "--quiet"]) == 0

@@ -30,3 +30,15 @@ def test_a_missing_folder_is_a_usage_error(tmp_path):
         cwd=ROOT,
     )
     assert proc.returncode == 2 and "data folder not found" in proc.stderr
+
+
+def test_a_sequential_plan_needs_one_size_above_its_first_campaign(tmp_path):
+    (tmp_path / "Series_A").mkdir()
+    for extra in (["--k", "100,500", "--sequential", "50"], ["--k", "100", "--sequential", "100"]):
+        proc = subprocess.run(
+            [sys.executable, str(ROOT / "scripts" / "plan_poses.py"), str(tmp_path), *extra],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
+        assert proc.returncode == 2 and "--sequential takes the real data and one --k above it" in proc.stderr

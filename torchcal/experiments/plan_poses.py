@@ -146,6 +146,36 @@ def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protoc
     return out
 
 
+def sequential(
+    robot: str, pool: Measurements, held: Measurements, first: int, k: int, shares: tuple[float, ...], seeds: int = 5
+) -> dict:
+    """A second campaign planned with the first one's run: per seed, ``first`` random poses calibrated with the
+    default method, then ``k - first`` more planned for it (``plan --run``: its model, variance factor and learned
+    correction) from a seeded half of the rest, with each of the learned correction's shares of the picks in
+    ``shares``; all ``k`` calibrated and scored on ``held``."""
+    t0 = time.perf_counter()
+    res: dict = {"first": first, "k": k, "seeds": seeds, "by_share": {}}
+    for s in range(seeds):
+        idx = torch.randperm(pool.n, generator=torch.Generator().manual_seed(s))
+        done, rest = idx[:first], idx[first:]
+        half = torch.randperm(len(rest), generator=torch.Generator().manual_seed(1000 + s))[: len(rest) // 2]
+        cand = torch.sort(rest[half]).values
+        opts = Options.of(method="auto", seed=SEED, holdout=min(0.5 / first, 0.5), trajectory=False)
+        run = calibrate(robot, pool.subset(torch.sort(done).values), opts)
+        s0_sq = float(run.fits[-1].result.sigma0_sq)
+        for share in shares:
+            plan_opts = PlanOptions.for_method("auto", k - first, learned_share=share, s0_sq=s0_sq)
+            plan = plan_poses(run.model, pool.q[cand], plan_opts)
+            rows = pool.subset(torch.sort(torch.cat([done, cand[plan.index]])).values)
+            entry = res["by_share"].setdefault(str(share), {"values_mm": [], "n_learned": []})
+            entry["values_mm"].append(fit_and_score(robot, rows, held, method="auto"))
+            entry["n_learned"].append(int(plan.learned.sum()))
+    for entry in res["by_share"].values():
+        entry["median_mm"] = statistics.median(entry["values_mm"])
+    res["seconds"] = time.perf_counter() - t0
+    return res
+
+
 def split(m: Measurements) -> tuple[Measurements, Measurements]:
     """Calibrate's own grouped split of ``m`` (seed 0, 20 % held out): the pool and the held-out poses."""
     sp = holdout_split(m, HOLDOUT, SEED, trajectory=False)

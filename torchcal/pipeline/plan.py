@@ -15,11 +15,14 @@ candidates (the region), for ``K`` and for a grid of sizes (the curve), with the
 reference.
 
 With a run whose model has a learned correction with a predictive standard deviation (a Gaussian process,
-:func:`~torchcal.estimate.covariance.learned_std`), a share of the picks (``learned_share``, default 20 %) goes to
-where that correction is least certain instead: the candidate with the largest predictive variance, discounted by
+:func:`~torchcal.estimate.covariance.learned_std`), a share of the picks (``learned_share``, none by default) can go
+to where that correction is least certain instead: the candidate with the largest predictive variance, discounted by
 ``1 - exp(-d^2 / 2 l^2)`` for each pose planned so far at distance ``d`` (joints scaled to the candidates' range,
 ``l`` = :data:`LEARNED_LENGTH`), a squared-exponential kernel's variance reduction, so that these picks spread over the
-uncertain region instead of piling up at its worst point. The kinematic prediction does not count what they add.
+uncertain region instead of piling up at its worst point. The kinematic prediction does not count what they add. On
+the real UR10 they did not help a second campaign planned with the first one's run (docs/real-data.md, *Planning the
+poses*): the least certain poses are those where the robot seldom works, and every one of them is a pose less where
+it does.
 
 A share of the picks (``spread_share``, default 50 %) spreads the design over where the robot works instead, by kernel
 herding on the candidates (:class:`SpreadTurns`). The I and D criteria assume the geometric model is right; a real
@@ -108,7 +111,7 @@ class PlanOptions:
     k: int
     criterion: str = "I"
     edge_share: float = 0.1
-    learned_share: float = 0.2
+    learned_share: float = 0.0
     spread_share: float = 0.5
     spread_from: int = 0
     spread_length: float = SPREAD_LENGTH
