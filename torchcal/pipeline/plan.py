@@ -147,7 +147,7 @@ class Plan:
         q: ``(K, dof)`` their joints [rad].
         edge: ``(K,)`` bool, at the edges of the region.
         learned: ``(K,)`` bool, picked where the learned correction is least certain.
-        spread: ``(K,)`` bool, picked to follow the candidates' density.
+        spread: ``(K,)`` bool, picked to follow the candidates' (or the work poses') density.
         names, units, sigma: the identifiable parameters and their predicted standard deviations after the ``K``
             poses [m or rad].
         held: the parameters no choice among the candidates determines (held in the fit), with the reason.
