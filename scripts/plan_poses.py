@@ -6,9 +6,7 @@ default method) and scored on the series' held-out poses, with the held-out erro
 import sys
 from pathlib import Path
 
-from torchcal.data import read_ipa
 from torchcal.experiments import common, plan_poses
-from torchcal.experiments.ipa_series import series_file
 
 ap = common.parser(plan_poses.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, nargs="?", help="the ur10-ipa folder (holds Series_A ... Series_D)")
@@ -80,12 +78,8 @@ def experiment(a):
             shares = tuple(float(v) for v in common.comma_list(ap, a.learned_shares, None, what="share"))
         except ValueError:
             ap.error(f"--learned-shares must be numbers separated by commas, got {a.learned_shares!r}")
-        pool, held = plan_poses.split(read_ipa(series_file(a.data_dir, a.series.upper())))
-        res = plan_poses.sequential("ur10", pool, held, a.sequential, ks[0], shares, a.seeds)
-        lines = [f"| learned share | held-out RMSE [mm], median (values) over {a.seeds} seeds |", "|---:|---|"]
-        for share, e in res["by_share"].items():
-            lines.append(f"| {share} | {e['median_mm']:.4f} ({', '.join(f'{v:.4f}' for v in e['values_mm'])}) |")
-        return res, "\n".join(lines)
+        res = plan_poses.run_sequential(a.data_dir, a.series.upper(), a.sequential, ks[0], shares, a.seeds)
+        return res, plan_poses.sequential_markdown(res)
     if a.simulated is not None:
         res = plan_poses.simulated(a.simulated, protocol)
     else:

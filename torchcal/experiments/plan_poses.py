@@ -77,8 +77,7 @@ def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protoc
     fit = base.fits[-1]
     s0_sq = float(fit.result.sigma0_sq)
     opts_fit = base.options.fit
-    # the plan's stochastic model: the data's own tracker sigmas (their RMS) where they carry them, as the fit used
-    sigma_tracker = opts_fit.sigma_tracker if pool.sigma is None else float(pool.sigma.square().mean().sqrt())
+    sigma_tracker = _sigma_tracker(pool, opts_fit.sigma_tracker)
     design = PlanOptions.for_method(pr.method, 1, edge_share=pr.edge_share, spread_share=pr.spread_share)
     out: dict = {
         "robot": robot,
@@ -146,6 +145,11 @@ def compare(robot: str, pool: Measurements, held: Measurements, protocol: Protoc
     return out
 
 
+def _sigma_tracker(pool: Measurements, default: float) -> float:
+    """The plan's tracker noise: the data's own sigmas (their RMS) where they carry them, as the fit used."""
+    return default if pool.sigma is None else float(pool.sigma.square().mean().sqrt())
+
+
 def sequential(
     robot: str, pool: Measurements, held: Measurements, first: int, k: int, shares: tuple[float, ...], seeds: int = 5
 ) -> dict:
@@ -163,8 +167,10 @@ def sequential(
         opts = Options.of(method="auto", seed=SEED, holdout=min(0.5 / first, 0.5), trajectory=False)
         run = calibrate(robot, pool.subset(torch.sort(done).values), opts)
         s0_sq = float(run.fits[-1].result.sigma0_sq)
+        noise = {"sigma_tracker": _sigma_tracker(pool, run.options.fit.sigma_tracker)}
+        noise["sigma_joint"] = run.options.fit.sigma_joint
         for share in shares:
-            plan_opts = PlanOptions.for_method("auto", k - first, learned_share=share, s0_sq=s0_sq)
+            plan_opts = PlanOptions.for_method("auto", k - first, learned_share=share, s0_sq=s0_sq, **noise)
             plan = plan_poses(run.model, pool.q[cand], plan_opts)
             rows = pool.subset(torch.sort(torch.cat([done, cand[plan.index]])).values)
             entry = res["by_share"].setdefault(str(share), {"values_mm": [], "n_learned": []})
@@ -180,6 +186,19 @@ def split(m: Measurements) -> tuple[Measurements, Measurements]:
     """Calibrate's own grouped split of ``m`` (seed 0, 20 % held out): the pool and the held-out poses."""
     sp = holdout_split(m, HOLDOUT, SEED, trajectory=False)
     return m.subset(torch.sort(sp.keep).values), m.subset(torch.sort(sp.held).values)
+
+
+def sequential_markdown(res: dict) -> str:
+    lines = [f"| learned share | held-out RMSE [mm], median (values) over {res['seeds']} seeds |", "|---:|---|"]
+    for share, e in res["by_share"].items():
+        lines.append(f"| {share} | {e['median_mm']:.4f} ({', '.join(f'{v:.4f}' for v in e['values_mm'])}) |")
+    return "\n".join(lines)
+
+
+def run_sequential(data_dir: Path, series: str, first: int, k: int, shares: tuple[float, ...], seeds: int) -> dict:
+    """:func:`sequential` on a UR10 series' training split, scored on its held-out split."""
+    pool, held = split(read_ipa(series_file(data_dir, series)))
+    return {"series": f"Series {series}", **sequential("ur10", pool, held, first, k, shares, seeds)}
 
 
 def run(data_dir: Path, series: str, protocol: Protocol) -> dict:

@@ -4,12 +4,11 @@ a few rows.
 Series ``series`` (default C) is calibrated (``method``, kinematic by default; calibrate's grouped 20 % held out)
 and written as a run directory. The crash: joint 2's readings shifted by ``shift`` rad (2 mrad), as a re-zeroed
 encoder would report them, in the held-out rows and in ``rows`` rows drawn (seeded) from the series' training rows.
-For each seed the
-run is updated from those rows (:func:`torchcal.pipeline.calibrate` with ``prior=``, refitted on all of them:
-``Options.refit``) and judged on the crashed held-out rows, against the pre-crash calibration on the uncrashed ones
-(the bar: within 1.1x) and the prior run alone on the crashed ones (what not updating costs); the parameters the
-update names as moved are listed. From scratch the rows are too few to calibrate (:func:`~torchcal.pipeline.
-min_poses`).
+For each seed the run is updated from those rows (:func:`torchcal.pipeline.calibrate` with ``prior=``; the kinematic
+method refitted on all of them, ``Options.refit``, the default method keeping its validation split) and judged on
+the crashed held-out rows, against the pre-crash calibration on the uncrashed ones (the bar: within 1.1x) and the
+prior run alone on the crashed ones (what not updating costs); the parameters the update names as moved are listed.
+From scratch the rows are too few to calibrate (:func:`~torchcal.pipeline.min_poses`).
 """
 
 from __future__ import annotations

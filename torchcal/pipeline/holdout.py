@@ -162,7 +162,7 @@ def guard_stages(run: CalibrationRun) -> StageResult:
     def edge_rmse(st) -> float | None:
         return S.rmse(st.holdout_errors[edge]) * 1e3 if bool(edge.any()) else None
 
-    n_held = len(run.holdout_idx)
+    judged = len(run.holdout_idx) >= GUARD_MIN_POSES
     evidence = {
         "rule": "the final model's held-out RMSE must be below the kinematic calibration's, and on the held-out poses "
         f"at the edges of the joint ranges (a joint beyond the {HOLDOUT_EDGE:.1%} / {1 - HOLDOUT_EDGE:.1%} quantiles "
@@ -173,15 +173,14 @@ def guard_stages(run: CalibrationRun) -> StageResult:
         "stages": [
             {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_edge_mm": edge_rmse(s)} for s in run.stages[i_geo:]
         ],
-        "judged": n_held >= GUARD_MIN_POSES,
-        "passed": bool(final.rmse < geo.rmse) and not edge_worse(final),
+        "judged": judged,
+        "passed": not judged or (bool(final.rmse < geo.rmse) and not edge_worse(final)),
     }
     work.holdout_guard = evidence
-    if not evidence["judged"]:
-        evidence["passed"] = True
+    if not judged:
         note = (
-            f"held-out guard: not judged, {n_held} held-out pose(s) (fewer than {GUARD_MIN_POSES}); the stages stand "
-            "on their validation poses"
+            f"held-out guard: not judged, {len(run.holdout_idx)} held-out pose(s) (fewer than {GUARD_MIN_POSES}); "
+            "the stages stand on their validation poses"
         )
         work.note(note)
         _console.info(note)

@@ -283,7 +283,6 @@ class LearnedTurns:
     def __init__(self, std: Tensor, where: Tensor, share: float, length: float = LEARNED_LENGTH):
         self.score = std.square().clone()  # (N,) predictive variance [m^2]
         self.where = where  # (N, d) joints scaled to [0, 1]
-        self.share = share
         self.every = max(1, round(1.0 / share))
         self.length = length
         self.seen: set[int] = set()  # picks already folded into the discount
@@ -408,6 +407,12 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tens
     for name, top in (("edge_share", 0.5), ("learned_share", 0.5), ("spread_share", 1.0)):
         if not 0.0 <= getattr(opts, name) <= top:
             raise OptionError(f"{name} must lie in [0, {top}], got {getattr(opts, name)}")
+    if opts.spread_from < 0 or not opts.spread_length > 0:
+        raise OptionError(
+            f"spread_from must be at least 0 and spread_length positive, got {opts.spread_from}, {opts.spread_length}"
+        )
+    if work is not None and (work.ndim != 2 or work.shape[1] != q.shape[1] or len(work) == 0):
+        raise OptionError(f"the work poses must be (M, {q.shape[1]}) joints, got {tuple(work.shape)}")
     N = len(q)
     if not 1 <= opts.k <= N:
         raise OptionError(f"can plan 1 to {N} poses from {N} candidates, asked for {opts.k}")
@@ -419,12 +424,6 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tens
     top = min(N, 2 * opts.k)
     grid = tuple(sorted({c for c in CURVE if c <= top} | {opts.k, top}))
     learned = learned_turns(model, q, opts.learned_share)
-    if opts.spread_from < 0 or not opts.spread_length > 0:
-        raise OptionError(
-            f"spread_from must be at least 0 and spread_length positive, got {opts.spread_from}, {opts.spread_length}"
-        )
-    if work is not None and (work.ndim != 2 or work.shape[1] != q.shape[1] or len(work) == 0):
-        raise OptionError(f"the work poses must be (M, {q.shape[1]}) joints, got {tuple(work.shape)}")
     spread = spread_turns(q, opts.spread_share, opts.spread_from, opts.spread_length, work)
     other = Turns([t for t in (learned, spread) if t is not None], every)
     design = greedy_design(
