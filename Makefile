@@ -22,8 +22,8 @@ demo: $(STAMP)
 	$(BIN)/torchcal demo --out runs/demo
 
 lint: $(STAMP)
-	$(BIN)/ruff check torchcal tests scripts setup.py
-	$(BIN)/ruff format --check torchcal tests scripts setup.py
+	$(BIN)/ruff check torchcal tests scripts experiments setup.py
+	$(BIN)/ruff format --check torchcal tests scripts experiments setup.py
 
 # two workers: the suite is hundreds of small single-threaded fits, and a second process uses the second core
 # (about 240 s instead of 330-360 s on a 2-core 2.6 GHz Xeon); every test is independent of the others' process

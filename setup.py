@@ -8,10 +8,10 @@ where :func:`torchcal.robot.load.builtin_robots` finds them with ``importlib.res
 from setuptools import find_packages, setup
 
 setup(
-    # torchcal.experiments holds the code of scripts/ (reproductions, benchmarks, studies): it runs from a checkout
-    # (an editable install maps torchcal to its folder) and stays out of the wheel a user installs
+    # the top-level experiments/ (the code of scripts/: reproductions, benchmarks, studies) runs from a checkout
+    # and stays out of the wheel a user installs
     packages=[
-        *find_packages(include=["torchcal", "torchcal.*"], exclude=["torchcal.experiments", "torchcal.experiments.*"]),
+        *find_packages(include=["torchcal", "torchcal.*"]),
         "torchcal.robots",
     ],
     package_dir={"torchcal.robots": "robots"},

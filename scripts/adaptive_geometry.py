@@ -1,8 +1,10 @@
 """Adaptive geometry in the integrated ANN-EKF (Horvath & Neuner 2024, Sec. 4 "future work"): geometry and network
-estimated together on a simulated UR5 trajectory; see torchcal.experiments.adaptive_geometry."""
+estimated together on a simulated UR5 trajectory; see experiments.adaptive_geometry."""
 
-from torchcal.experiments import common
-from torchcal.experiments.adaptive_geometry import run, table
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.adaptive_geometry import run, table
 
 ap = common.parser(__doc__)
 ap.add_argument("--samples", type=int, default=7342)

@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
 """Robots that are not UR-like: a linear track, a lifting column with a mimic segment, a parallelogram robot fed its
-controller readings and a 7-axis arm with a wrist differential and no masses (torchcal.experiments.any_robot).
+controller readings and a 7-axis arm with a wrist differential and no masses (experiments.any_robot).
 
 python scripts/any_robot.py [--cases track,column,parallelogram,arm7_differential] [--seeds 1,2] [--poses 300] [--json]
 """
 
-from torchcal.experiments import any_robot, common
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import any_robot, common
 
 ap = common.parser(__doc__)
 ap.add_argument("--cases", default=",".join(any_robot.CASES))

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Accuracy and speed of the geometric calibration on simulated UR5 campaigns; prints JSON
-(torchcal.experiments.bench_calibration).
+(experiments.bench_calibration).
 
     python scripts/bench_calibration.py [--seeds 5] [--json]
 
@@ -12,8 +12,10 @@ import json
 import tempfile
 from pathlib import Path
 
-from torchcal.experiments import common
-from torchcal.experiments.bench_calibration import accuracy, compare
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.bench_calibration import accuracy, compare
 
 ap = common.parser(__doc__, threads=2)
 ap.add_argument("--seeds", type=int, default=5)

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Speed of one integrated ANN-EKF pass: the fast path against a per-step autograd baseline, a user's own
 ``nn.Module`` of the same size, and (``--load``) the fast path beside a busy process
-(torchcal.experiments.bench_ekf); prints a summary to stderr and the result as JSON (``--json``: one line).
+(experiments.bench_ekf); prints a summary to stderr and the result as JSON (``--json``: one line).
 
     python scripts/bench_ekf.py [--samples 7342] [--device cpu|cuda] [--threads 1] [--load] [--no-baseline]
         [--repeat 3] [--json]
@@ -9,10 +9,11 @@
 
 import sys
 
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
 import torch
 
-from torchcal.experiments import common
-from torchcal.experiments.bench_ekf import run
+from experiments import common
+from experiments.bench_ekf import run
 
 #: the process's own thread count, before --threads sets one: what ``--load`` measures with
 DEFAULT_THREADS = torch.get_num_threads()

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Peak memory and time of each stage of a calibration, each command in a fresh process with one torch thread
-(torchcal.experiments.bench_memory).
+(experiments.bench_memory).
 
     python scripts/bench_memory.py --data series_c.csv --robot ur10 --method kinematic [--json]
     python scripts/bench_memory.py --simulate 50000 --robot ur10 --method kinematic [--json]
@@ -15,8 +15,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-from torchcal.experiments import common
-from torchcal.experiments.bench_memory import calibration, campaign, table
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.bench_memory import calibration, campaign, table
 
 ap = common.parser(__doc__)
 src = ap.add_mutually_exclusive_group(required=True)

@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
-"""The closed loop against issue 5's targets on simulated UR5 campaigns (torchcal.experiments.loop_targets).
+"""The closed loop against issue 5's targets on simulated UR5 campaigns (experiments.loop_targets).
 
 python scripts/closed_loop.py [--seeds 3] [--workers 2] [--json]
 """
 
-from torchcal.experiments import common, loop_targets
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, loop_targets
 
 ap = common.parser(__doc__)
 ap.add_argument("--seeds", type=int, default=3)

@@ -6,8 +6,10 @@ Calibrates a simulated UR5 campaign with undeclared effects, then commands fresh
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 python scripts/compensation.py --seed 0
 """
 
-from torchcal.experiments import common
-from torchcal.experiments.compensation import DEFAULT_EFFECTS, ExperimentConfig, run
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.compensation import DEFAULT_EFFECTS, ExperimentConfig, run
 
 ap = common.parser(__doc__)
 ap.add_argument("--robot", default="ur5")

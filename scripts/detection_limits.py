@@ -1,13 +1,15 @@
 #!/usr/bin/env python3
 """Detection limits of the closed loop: per effect family, the smallest size it names reliably
-(torchcal.experiments.detection_limits).
+(experiments.detection_limits).
 
     python scripts/detection_limits.py [--seeds 10] [--sizes 5,7.5,10,15,20,30] [--workers 2] [--json]
 """
 
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.detection_limits import FAMILIES, run
 from torchcal import _console
-from torchcal.experiments import common
-from torchcal.experiments.detection_limits import FAMILIES, run
 
 ap = common.parser(__doc__)
 ap.add_argument("--robot", default="ur5")

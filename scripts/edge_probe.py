@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Probe a calibration just outside its data (torchcal.experiments.edge_probe); prints JSON.
+"""Probe a calibration just outside its data (experiments.edge_probe); prints JSON.
 
     python scripts/edge_probe.py probe DATA.csv --robot ur5
     python scripts/edge_probe.py probe ../shared/data/real/ur10-ipa/Series_C/measurements_random_poses.csv \\
@@ -15,7 +15,9 @@ errors and the error at the home pose.
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common, edge_probe
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, edge_probe
 
 ap = common.parser(__doc__)
 ap.add_argument("what", choices=("probe", "home"))

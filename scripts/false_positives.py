@@ -1,13 +1,15 @@
 #!/usr/bin/env python3
 """False-positive rate of the closed loop: clean simulated campaigns (geometry only) over many seeds
-(torchcal.experiments.false_positives).
+(experiments.false_positives).
 
     python scripts/false_positives.py [--seeds 100] [--poses 800] [--trajectories 10] [--workers 4] [--json]
 """
 
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.false_positives import run
 from torchcal import _console
-from torchcal.experiments import common
-from torchcal.experiments.false_positives import run
 
 ap = common.parser(__doc__)
 ap.add_argument("--robot", default="ur5")

@@ -4,15 +4,17 @@
     python scripts/gross_errors.py --mode mm --count 5  # five rows in millimetres among rows in metres
     python scripts/gross_errors.py --count 1 --where holdout --seeds 0 1 2
 
-Prints one JSON object per seed as it finishes (torchcal.experiments.gross_errors.gross_error_trial): the test-file
+Prints one JSON object per seed as it finishes (experiments.gross_errors.gross_error_trial): the test-file
 RMSE of the clean and of the contaminated calibration and their ratio, found and false-rejection rates, and the
 rejected file lines; ``--json`` adds ``{"trials": [...]}`` as the last line.
 """
 
 import json
 
-from torchcal.experiments import common
-from torchcal.experiments.gross_errors import MODES, gross_error_trial
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.gross_errors import MODES, gross_error_trial
 
 ap = common.parser(__doc__)
 ap.add_argument("--seeds", type=int, nargs="+", default=[0], help="campaign seeds (default 0)")

@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
 """``calibrate --method integrated`` on simulated continuous trajectories in the paper's setting
-(torchcal.experiments.integrated_trajectory); prints JSON (``--json``: one line)."""
+(experiments.integrated_trajectory); prints JSON (``--json``: one line)."""
 
 import sys
 
-from torchcal.experiments import common
-from torchcal.experiments.integrated_trajectory import one_seed
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.integrated_trajectory import one_seed
 
 ap = common.parser(__doc__)
 ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])

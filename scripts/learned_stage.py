@@ -1,4 +1,4 @@
-"""Measure the learned stage alone (torchcal.experiments.learned_stage) and print the result as JSON.
+"""Measure the learned stage alone (experiments.learned_stage) and print the result as JSON.
 
 python scripts/learned_stage.py --case harmonic3 --case field           # simulated UR5
 python scripts/learned_stage.py --case C --data ../shared/data/real/ur10-ipa
@@ -6,9 +6,11 @@ python scripts/learned_stage.py --case A --data ../shared/data/real/ur10-ipa --m
 python scripts/learned_stage.py --case synthetic-50000                   # time and memory at scale
 """
 
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.learned_stage import run_cases
 from torchcal.effects.gp import GPSettings
-from torchcal.experiments import common
-from torchcal.experiments.learned_stage import run_cases
 
 ap = common.parser(__doc__)
 ap.add_argument("--case", action="append", required=True, help="harmonic3, field, synthetic-N, or UR10 series A-D")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Held-out RMSE against the number of training poses (torchcal.experiments.learning_curve).
+"""Held-out RMSE against the number of training poses (experiments.learning_curve).
 
     python scripts/learning_curve.py --data ../shared/data/real/ur10-ipa --series C,A --out runs/learning_curve
     python scripts/learning_curve.py --data ../shared/data/real/ur10-ipa --series A --sizes 50,100,200,500,1000
@@ -12,8 +12,10 @@ Writes learning_curve.json, learning_curve.md (tables) and learning_curve.png in
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common
-from torchcal.experiments.learning_curve import METHODS, SIZES, parse_sizes, run
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.learning_curve import METHODS, SIZES, parse_sizes, run
 
 ap = common.parser(__doc__)
 ap.add_argument("--data", type=Path, default=Path("../shared/data/real/ur10-ipa"), help="the ur10-ipa folder")

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Localise and identify one undeclared effect after a kinematic calibration; held-out RMSE of geometry + it
-(torchcal.experiments.localise_outside). Prints one JSON object.
+(experiments.localise_outside). Prints one JSON object.
 
     python scripts/localise_outside.py --outside ../shared/data/outside --simulated
 """
@@ -8,8 +8,10 @@
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common
-from torchcal.experiments.localise_outside import run
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.localise_outside import run
 
 ap = common.parser(__doc__)
 ap.add_argument("--outside", type=Path, help="folder of outside campaigns (with index.json)")

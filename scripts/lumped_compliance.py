@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
-"""Compliance of a DH-only 7-axis arm without link masses (torchcal.experiments.lumped_compliance, issue 25).
+"""Compliance of a DH-only 7-axis arm without link masses (experiments.lumped_compliance, issue 25).
 
 python scripts/lumped_compliance.py [--seeds 5] [--poses 215] [--effects compliance:2=60um,compliance:4=40um] [--json]
 """
 
-from torchcal.experiments import common, lumped_compliance
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, lumped_compliance
 
 ap = common.parser(__doc__)
 ap.add_argument("--seeds", type=int, default=5)

@@ -10,7 +10,9 @@
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
 from torchcal.robot.ur_urdf import MODELS, TOLERANCE, check_numerics, load_table, render
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.plan_poses`: on a real UR10 series (ipa-robot-accuracy data), poses
+"""The command line of :mod:`experiments.plan_poses`: on a real UR10 series (ipa-robot-accuracy data), poses
 chosen by ``torchcal plan`` from the series' training split against random ones, each calibrated (kinematic, or the
 default method) and scored on the series' held-out poses, with the held-out error the plan predicted."""
 
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common, plan_poses
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, plan_poses
 
 ap = common.parser(plan_poses.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, nargs="?", help="the ur10-ipa folder (holds Series_A ... Series_D)")

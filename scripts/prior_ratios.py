@@ -63,7 +63,7 @@ def main() -> None:
         for f in sorted(a.data.glob("*/train.csv")):
             print(f.parent.name, largest("ur5", read_measurements(f, dof=6)), flush=True)
     elif a.what == "real":
-        from torchcal.experiments.ur10_real import load_series
+        from experiments.ur10_real import load_series
 
         data, _ = load_series(a.data, ("A", "B", "C", "D"), 0)
         for s, m in data.items():

@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.prior_update`: calibrate a series of the real UR10, simulate a
+"""The command line of :mod:`experiments.prior_update`: calibrate a series of the real UR10, simulate a
 crash of one joint, and update the calibration from a few crashed rows (``calibrate --prior``)."""
 
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common, prior_update
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, prior_update
 
 ap = common.parser(prior_update.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")

@@ -1,15 +1,17 @@
 #!/usr/bin/env python3
 """Reproduce Table 2 of Horvath & Neuner (2024): the kinematic calibration with the paper's fixed parameters.
 
-The experiment is torchcal.experiments.table2; this prints the table (``--json``: and the result as one JSON
+The experiment is experiments.table2; this prints the table (``--json``: and the result as one JSON
 object on the last line) and writes table2.json and table2.md into ``--out``.
 """
 
 import sys
 
-from torchcal.experiments import common
-from torchcal.experiments.table1 import add_arguments, fill_sizes, script_main
-from torchcal.experiments.table2 import run, text_table, write_outputs
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.table1 import add_arguments, fill_sizes, script_main
+from experiments.table2 import run, text_table, write_outputs
 
 SIZES = {
     "draws": (20, 3, "Monte Carlo draws per variant"),

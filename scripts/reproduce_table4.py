@@ -1,15 +1,17 @@
 #!/usr/bin/env python3
 """Reproduce (and beat) Table 4 and Figs. 9, 11, 12 of Horvath & Neuner (2024): the integrated ANN-EKF.
 
-The experiment is torchcal.experiments.table4; this writes table4.json, table4.md and the figures into ``--out``,
+The experiment is experiments.table4; this writes table4.json, table4.md and the figures into ``--out``,
 prints the table to stderr and the result as JSON (``--json``: one line).
 """
 
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common
-from torchcal.experiments.table4 import markdown, run
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.table4 import markdown, run
 
 ap = common.parser(__doc__)
 ap.add_argument("--draws", type=int, default=10)

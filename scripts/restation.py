@@ -1,11 +1,13 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.restation`: calibrate one series of the real UR10 (ipa-robot-accuracy
+"""The command line of :mod:`experiments.restation`: calibrate one series of the real UR10 (ipa-robot-accuracy
 data), re-station it on a few points of another series and predict that series' held-out poses."""
 
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common, restation
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, restation
 
 ap = common.parser(restation.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")

@@ -1,12 +1,14 @@
 #!/usr/bin/env python3
 """Reproduce the sensitivity analysis of Horvath & Neuner (2024), Sec. 3.3 and Fig. 13: how a bias in one parameter of
-the filter's kinematic model moves the geometric part of the integrated ANN-EKF (torchcal.experiments.sensitivity)."""
+the filter's kinematic model moves the geometric part of the integrated ANN-EKF (experiments.sensitivity)."""
 
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common
-from torchcal.experiments.sensitivity import run, text_table, write_outputs
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.sensitivity import run, text_table, write_outputs
 
 ap = common.parser(__doc__)
 ap.add_argument("--samples", type=int, default=3000, help="trajectory samples, 80 %% filtered (default 3000)")

@@ -1,14 +1,16 @@
 #!/usr/bin/env python3
 """A campaign whose tool axis hardly turns: the lever arm held at its prior, errors on turned-over poses
-(torchcal.experiments.tool_axis). Prints one JSON object.
+(experiments.tool_axis). Prints one JSON object.
 
     python scripts/tool_axis.py --poses 200 --spread 0.03 --seed 1
 """
 
 import sys
 
-from torchcal.experiments import common
-from torchcal.experiments.tool_axis import CASES, run
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.tool_axis import CASES, run
 
 ap = common.parser(__doc__)
 ap.add_argument("--robot", default="ur5")

@@ -4,8 +4,10 @@ python scripts/trajectory_families.py --paths p2p multisine randomwalk sweeps --
 python scripts/trajectory_families.py --outside ../shared/data/outside/trajectory-ann-s31
 """
 
-from torchcal.experiments import common
-from torchcal.experiments.trajectories import family_table, outside_campaign
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.trajectories import family_table, outside_campaign
 from torchcal.sim import PATHS
 
 ap = common.parser(__doc__)

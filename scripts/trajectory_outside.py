@@ -5,9 +5,11 @@ python scripts/trajectory_outside.py --seeds 0 1 --fields tanh fourier
 python scripts/trajectory_outside.py --seeds 3 --fields product --size 0.15mm --out /tmp/campaigns
 """
 
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common
+from experiments.trajectory_outside import markdown, summary, table
 from torchcal.errors import OptionError
-from torchcal.experiments import common
-from torchcal.experiments.trajectory_outside import markdown, summary, table
 from torchcal.sim import EffectSpec
 from torchcal.sim.outside import FIELD_KINDS
 

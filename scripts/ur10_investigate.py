@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.ur10_investigate`: what remains on the real UR10 after the
+"""The command line of :mod:`experiments.ur10_investigate`: what remains on the real UR10 after the
 geometric fit (issue 5, item 5): noise, configuration, reach, drift.
 
 The experiment and its outputs are described there; this script parses the arguments, runs it and prints.
@@ -8,8 +8,10 @@ The experiment and its outputs are described there; this script parses the argum
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common, ur10_investigate
-from torchcal.experiments.ur10_investigate import SERIES, run, summary
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, ur10_investigate
+from experiments.ur10_investigate import SERIES, run, summary
 
 ap = common.parser(ur10_investigate.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.ur10_orientation`: the real UR10's full 6-D pose, position-only
+"""The command line of :mod:`experiments.ur10_orientation`: the real UR10's full 6-D pose, position-only
 against full-pose calibration on the same grouped held-out split (issue 26, item 4).
 
 The experiment is described there; this script parses the arguments, runs it and prints a table (stderr) and, with
@@ -9,8 +9,10 @@ The experiment is described there; this script parses the arguments, runs it and
 import sys
 from pathlib import Path
 
-from torchcal.experiments import common, ur10_orientation
-from torchcal.experiments.ur10_orientation import METHODS, SERIES, run, table
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
+
+from experiments import common, ur10_orientation
+from experiments.ur10_orientation import METHODS, SERIES, run, table
 
 ap = common.parser(ur10_orientation.__doc__.split("\n\n")[0])
 ap.add_argument("data_dir", type=Path, help="the ur10-ipa folder (holds Series_A ... Series_D)")

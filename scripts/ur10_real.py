@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The command line of :mod:`torchcal.experiments.ur10_real`: calibrate the real UR10 (ipa-robot-accuracy data,
+"""The command line of :mod:`experiments.ur10_real`: calibrate the real UR10 (ipa-robot-accuracy data,
 Leica tracker + T-Mac) and test across series.
 
 The experiment and its outputs are described there; this script parses the arguments, runs it and prints.
@@ -8,10 +8,11 @@ The experiment and its outputs are described there; this script parses the argum
 import sys
 from pathlib import Path
 
+import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
 import torch
 
-from torchcal.experiments import common, ur10_real
-from torchcal.experiments.ur10_real import METHODS, PAIRS, SERIES, run
+from experiments import common, ur10_real
+from experiments.ur10_real import METHODS, PAIRS, SERIES, run
 
 # the default keeps torch's own thread count; 1 is steadier on a shared, busy machine
 ap = common.parser(ur10_real.__doc__.split("\n\n")[0], threads=torch.get_num_threads())

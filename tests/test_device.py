@@ -431,7 +431,6 @@ def test_cli_device_without_cuda_exits_2(tmp_path, capsys):
 CPU_BY_DESIGN = (
     "torchcal/data/",
     "torchcal/sim/",
-    "torchcal/experiments/",
     "torchcal/robot/load.py",
     "torchcal/robot/export.py",
     "torchcal/report/markdown.py",

@@ -77,7 +77,7 @@ def test_wheel_installs_and_runs_outside_the_source_tree(tmp_path):
         assert f"torchcal/robots/{robot}" in names
     assert any(n.endswith(".dist-info/licenses/LICENSE") for n in names)
     # the scripts' experiment code runs from a checkout; a user's wheel has the library only
-    assert not [n for n in names if n.startswith("torchcal/experiments/")] and "torchcal/pipeline/run.py" in names
+    assert not [n for n in names if n.startswith("experiments/")] and "torchcal/pipeline/run.py" in names
 
     # a fresh venv that sees the test environment's site-packages through a .pth line (its .pth files,
     # among them the editable install's finder of the source tree, are not run: only the path is added)

@@ -13,10 +13,10 @@ import torch
 from _cli import cli_simulate
 
 import torchcal
+from experiments.closed_loop import found_names, run_case, truth_names
 from torchcal.cli import main
 from torchcal.effects import Context
 from torchcal.estimate.fit import errors
-from torchcal.experiments.closed_loop import found_names, run_case, truth_names
 from torchcal.pipeline import Options, calibrate
 from torchcal.report import load_model, predict, write_run
 from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign

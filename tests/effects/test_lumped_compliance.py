@@ -16,11 +16,11 @@ import pytest
 import torch
 
 import torchcal
+from experiments.lumped_compliance import final_modes, true_modes
 from torchcal.diagnose.candidates import candidates
 from torchcal.effects import Compliance, Context, LumpedCompliance, MeasurementModel, effect_from_config
 from torchcal.effects.joint import LUMPED_FORM, geometric_span, lumped_basis
 from torchcal.estimate.fit import errors, solve
-from torchcal.experiments.lumped_compliance import final_modes, true_modes
 from torchcal.pipeline import Options
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse

@@ -7,11 +7,11 @@ import math
 import pytest
 import torch
 
+from experiments.gross_errors import contaminate, gross_error_trial
 from torchcal.cli import main
 from torchcal.data import read_measurements, write_measurements
 from torchcal.estimate.rigid import fit_instrument_and_tool, robust_instrument_and_tool
 from torchcal.estimate.robust import chi2_isf, chi2_sf, robust_least_squares
-from torchcal.experiments.gross_errors import contaminate, gross_error_trial
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf

@@ -6,12 +6,12 @@ import json
 import pytest
 import torch
 
+from experiments.plan_poses import Protocol, compare
 from torchcal.cli import main
 from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
-from torchcal.experiments.plan_poses import Protocol, compare
 from torchcal.pipeline.plan import PlanOptions, plan_poses
 from torchcal.robot import load_robot
 from torchcal.sim import SimConfig, simulate

@@ -8,10 +8,10 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.errors import RobotSpecError, ShapeError
 
 # the independent numpy standard DH and UR's tables (one copy, also behind scripts/fk_agreement.py)
-from torchcal.experiments.fk_agreement import UR_DH, numpy_standard_dh
+from experiments.fk_agreement import UR_DH, numpy_standard_dh
+from torchcal.errors import RobotSpecError, ShapeError
 from torchcal.robot import transforms as tf
 
 F64 = torch.float64

@@ -2,8 +2,8 @@
 
 import pytest
 
+from experiments import any_robot
 from torchcal._threads import torch_threads
-from torchcal.experiments import any_robot
 
 
 @pytest.mark.parametrize("name", ["column", "arm7_differential"])

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from torchcal.experiments.bench_memory import calibration, measure, table
+from experiments.bench_memory import calibration, measure, table
 
 HEAVY = ("matplotlib", "yourdfpy", "trimesh", "scipy", "pytorch_kinematics", "networkx")
 
@@ -79,7 +79,7 @@ def test_a_failing_command_raises_with_its_message(tmp_path):
 
 
 def test_the_calibration_bench_times_each_stage_through_the_probe(campaign_dir, tmp_path):
-    from torchcal.experiments.bench_calibration import compare
+    from experiments.bench_calibration import compare
 
     sim, _ = campaign_dir
     res = compare(str(sim / "train.csv"), "ur5", ["kinematic"], False, tmp_path)
@@ -100,7 +100,7 @@ def test_a_stage_in_a_worker_thread_nests_on_its_own_stack():
     import threading
     import time
 
-    from torchcal.experiments._memprobe import Meter
+    from experiments._memprobe import Meter
 
     meter = Meter(reset=False)
     meter.enter("fit")

@@ -1,13 +1,13 @@
-"""torchcal.experiments.common (every script's --threads / --json) and the closed loop's target bookkeeping
-(torchcal.experiments.loop_targets), without running a calibration."""
+"""experiments.common (every script's --threads / --json) and the closed loop's target bookkeeping
+(experiments.loop_targets), without running a calibration."""
 
 import json
 
 import pytest
 import torch
 
+from experiments import common, loop_targets
 from torchcal._threads import torch_threads
-from torchcal.experiments import common, loop_targets
 
 
 def test_run_pins_the_threads_and_restores_the_callers():

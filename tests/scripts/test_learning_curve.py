@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from torchcal.experiments import learning_curve as lc
+from experiments import learning_curve as lc
 
 
 @pytest.fixture(scope="module")
@@ -76,8 +76,8 @@ IPA = Path(
 def test_the_default_is_never_far_worse_than_geometry_on_few_real_poses(one_thread):
     """On 100 Series C poses the closed loop once accepted cyclic terms of 35-50 rad that cancel over the narrow
     joint ranges there and gave 25.8 mm held-out against the kinematic fit's 0.508 mm."""
+    from experiments.ipa_series import series_file
     from torchcal.data import read_ipa
-    from torchcal.experiments.ipa_series import series_file
 
     data = read_ipa(series_file(IPA, "C"))
     res = lc.learning_curve("ur10", data, sizes=(100,), methods=("kinematic", "auto"), seed=0, name="C")

@@ -12,8 +12,8 @@ import pytest
 import torch
 
 import torchcal
-from torchcal.experiments import table1 as t1
-from torchcal.experiments import table2 as t2
+from experiments import table1 as t1
+from experiments import table2 as t2
 
 SCRIPTS = Path(__file__).resolve().parents[2] / "scripts"
 

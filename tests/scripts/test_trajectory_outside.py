@@ -33,7 +33,7 @@ def test_bad_size_is_a_usage_error():
 
 
 def test_summary_flags_worse_and_miscovered_campaigns():
-    from torchcal.experiments.trajectory_outside import markdown, summary
+    from experiments.trajectory_outside import markdown, summary
 
     base = {"width": 29, "size_mm": 0.1, "geometry_mm": 0.1, "chosen": "x"}
     rows = [
@@ -50,7 +50,7 @@ def test_summary_flags_worse_and_miscovered_campaigns():
 
 
 def test_the_default_methods_table_when_asked():
-    from torchcal.experiments.trajectory_outside import markdown
+    from experiments.trajectory_outside import markdown
 
     base = {"width": 29, "size_mm": 0.1, "geometry_mm": 0.1, "chosen": "x", "integrated_mm": 0.05, "ratio": 0.5}
     rows = [

@@ -1,4 +1,4 @@
-"""scripts/ur10_investigate.py (torchcal.experiments.ur10_investigate): its pair search and correlation helpers
+"""scripts/ur10_investigate.py (experiments.ur10_investigate): its pair search and correlation helpers
 on synthetic data, and a run on the real
 UR10 Series D (ISO cubes, 632 poses) when the ur10-ipa data are present."""
 
@@ -17,7 +17,7 @@ DEFAULT_DATA = ROOT.parent / "shared" / "data" / "real" / "ur10-ipa"
 
 def load_script():
     """The experiment behind the script (its helpers live in the package)."""
-    return importlib.import_module("torchcal.experiments.ur10_investigate")
+    return importlib.import_module("experiments.ur10_investigate")
 
 
 # ----------------------------------------------------------------------------- helpers, no data needed

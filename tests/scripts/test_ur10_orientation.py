@@ -1,4 +1,4 @@
-"""scripts/ur10_orientation.py (torchcal.experiments.ur10_orientation): position-only against full-pose calibration
+"""scripts/ur10_orientation.py (experiments.ur10_orientation): position-only against full-pose calibration
 on the real UR10 Series D (ISO cubes, 632 poses) when the ur10-ipa data are present."""
 
 import os

@@ -48,9 +48,9 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file, subsample_idx
 from torchcal.data import read_ipa
 from torchcal.effects import Context
-from torchcal.experiments.ipa_series import series_file, subsample_idx
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import transforms as tf
 

@@ -16,8 +16,8 @@ import random
 import sys
 import time
 
+from experiments.closed_loop import run_cases
 from torchcal._version import __version__
-from torchcal.experiments.closed_loop import run_cases
 
 #: joints per family on a UR arm where the effect moves the probe in a way geometry cannot absorb
 #: (joint 1's gravity torque is zero: its compliance and backlash are a constant offset; joint 6

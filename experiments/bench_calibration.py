@@ -7,7 +7,7 @@ reference is the error of the *true* model at the same held-out poses, i.e. the 
 noise; the ratio ``rmse_after / floor`` is the figure of merit (1.0 = as good as knowing the truth).
 
 :func:`compare` instead times one calibration of DATA per method (default: ``auto``, then ``kinematic``) in a fresh
-process with one torch thread, through the memory probe of :mod:`~torchcal.experiments.bench_memory`, stage by stage
+process with one torch thread, through the memory probe of :mod:`~experiments.bench_memory`, stage by stage
 (import, robot, read, fit, report: wall and CPU seconds, each stage's own peak resident memory; ``parts``: the nested
 stages of the fit -- screening, closed loop with its score tests, localisation and refits, learned stage with its
 kernel, GP and network fits, every LM fit), and with ``--load`` every run again while a busy Python process holds one
@@ -26,9 +26,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from experiments import bench_memory
 from torchcal._version import __version__
 from torchcal.estimate.fit import errors
-from torchcal.experiments import bench_memory
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import SimConfig, simulate, write_campaign
 
@@ -95,7 +95,7 @@ def one(seed: int, work: Path) -> dict:
     }
 
 
-#: the default method's nested stages the probe times besides its own (:data:`~torchcal.experiments._memprobe.TARGETS`:
+#: the default method's nested stages the probe times besides its own (:data:`~experiments._memprobe.TARGETS`:
 #: screening, closed loop, learned stage, every LM fit as ``LM``), as ``MODULE:ATTR=NAME``
 PARTS = [
     "torchcal.pipeline.loop:score_candidates=closed loop: score tests",
@@ -117,7 +117,7 @@ _TOP = {"robot": "command/robot", "read": "command/read", "fit": "command/fit", 
 
 def stages(data: str, robot: str, method: str, work: Path) -> dict:
     """One ``torchcal calibrate`` in a fresh process (one torch thread) through the memory probe
-    (:func:`~torchcal.experiments.bench_memory.calibration`), stage by stage: ``stages`` import, robot, read, fit and
+    (:func:`~experiments.bench_memory.calibration`), stage by stage: ``stages`` import, robot, read, fit and
     report (wall and CPU seconds, each one's own peak resident memory), ``parts`` every stage inside the fit by name
     (the closed loop, its score tests and refits, the learned stage and its fits, every LM fit; summed where a name
     comes at several depths), and the run's held-out errors and effects from its report.json."""

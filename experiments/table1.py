@@ -64,8 +64,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from experiments import common
 from torchcal.estimate.rigid import fit_instrument_and_tool
-from torchcal.experiments import common
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
@@ -171,7 +171,7 @@ def script_main(
     table: Callable[[dict], str],
     argv: list[str] | None = None,
 ) -> int:
-    """A table script's run: ``experiment`` (:func:`~torchcal.experiments.common.run`), its files written into
+    """A table script's run: ``experiment`` (:func:`~experiments.common.run`), its files written into
     ``--out`` by ``write``, the ``table`` of the result and the files' summary printed, the result as JSON with
     ``--json``; returns the exit status 0."""
     args, result = common.run(ap, experiment, argv)

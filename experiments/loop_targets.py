@@ -2,7 +2,7 @@
 
 Cases (each over several seeds): single effects of every family on several joints, three effects at once, the
 smooth non-geometric field (a random 6-29-3 tanh network, the paper's kind), and clean data. Each case is one
-:func:`torchcal.experiments.closed_loop.run_case`; the targets:
+:func:`experiments.closed_loop.run_case`; the targets:
 
 * single effect: held-out RMSE <= 1.2 x the true-form model's, and the right kind named;
 * three at once: <= 0.040 mm, all three named;
@@ -16,9 +16,9 @@ from __future__ import annotations
 import sys
 import time
 
+from experiments.closed_loop import run_cases
 from torchcal import _console
 from torchcal._version import __version__
-from torchcal.experiments.closed_loop import run_cases
 
 SINGLE = [
     "compliance:2=50um",

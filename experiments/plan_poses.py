@@ -20,9 +20,9 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file
 from torchcal.data import Measurements, read_ipa
 from torchcal.estimate.fit import errors
-from torchcal.experiments.ipa_series import series_file
 from torchcal.pipeline import Options, calibrate, holdout_split
 from torchcal.pipeline.plan import PlanOptions, plan_poses
 

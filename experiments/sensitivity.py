@@ -69,10 +69,10 @@ from pathlib import Path
 
 import torch
 
+from experiments.table4 import campaign
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.problem import FreeParameters, residual_function, whitening
-from torchcal.experiments.table4 import campaign
 from torchcal.filter import EKFConfig, EKFTrainer
 from torchcal.robot.model import RobotModel
 

@@ -25,9 +25,9 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file, subsample
 from torchcal.data import Measurements, read_ipa
 from torchcal.estimate.fit import errors, orientation_errors, place_tool_rotation
-from torchcal.experiments.ipa_series import series_file, subsample
 from torchcal.pipeline import Options, calibrate
 
 ROBOT = "ur10"

@@ -3,7 +3,7 @@
 Run as a script in a fresh interpreter (``python _memprobe.py [--no-reset] -- calibrate DATA ...``): it imports
 only the standard library, then runs ``python -m torchcal ARGS`` in this process (``runpy``), so the stages see
 every import the command makes (``import torchcal``: torch; ``import torchcal.cli``).
-:mod:`torchcal.experiments.bench_memory` starts it and reads the JSON line it prints last.
+:mod:`experiments.bench_memory` starts it and reads the JSON line it prints last.
 
 How: the functions of :data:`TARGETS` are wrapped as their modules are imported, and the imports of
 :data:`IMPORTS` are stages themselves (a ``sys.meta_path`` hook, so that a stage's own imports stay in that

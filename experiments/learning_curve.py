@@ -20,11 +20,11 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file
 from torchcal import stats as S
 from torchcal.data import Measurements, read_ipa
 from torchcal.errors import TorchcalError
 from torchcal.estimate.fit import errors
-from torchcal.experiments.ipa_series import series_file
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.run import holdout_split
 

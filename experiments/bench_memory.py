@@ -1,7 +1,7 @@
 """Peak memory and time of each stage of a ``torchcal`` command (``scripts/bench_memory.py``).
 
 :func:`measure` runs one command line of the CLI (``calibrate DATA --robot R --method kinematic --out DIR``, or
-``simulate ...``) in a fresh interpreter with one torch thread through :mod:`torchcal.experiments._memprobe`, which
+``simulate ...``) in a fresh interpreter with one torch thread through :mod:`experiments._memprobe`, which
 wraps the command's stages as their modules are imported and reports, per stage, the calls, wall and CPU
 seconds, the stage's own peak resident memory (the kernel's high-water mark, reset at every stage boundary: torch's
 allocator is invisible to ``tracemalloc``), the resident memory before and after it, and the packages it imported.

@@ -26,7 +26,7 @@ import time
 import torch
 from torch import nn
 
-from torchcal.experiments.bench_calibration import busy_process
+from experiments.bench_calibration import busy_process
 from torchcal.filter import EKFConfig, EKFTrainer
 from torchcal.sim import EffectSpec, SimConfig, simulate
 

@@ -31,12 +31,12 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file, subsample
+from experiments.ur10_real import HOLDOUT, MM, ROBOT, SEED, refit_tracker
 from torchcal import stats as S
 from torchcal.data import Measurements, read_ipa
 from torchcal.effects import MeasurementModel
 from torchcal.estimate.fit import errors
-from torchcal.experiments.ipa_series import series_file, subsample
-from torchcal.experiments.ur10_real import HOLDOUT, MM, ROBOT, SEED, refit_tracker
 from torchcal.pipeline import Options
 from torchcal.pipeline.methods import METHOD_TABLE
 from torchcal.pipeline.run import holdout_split, screen_gross_errors, start

@@ -1,6 +1,6 @@
 """The integrated method on outside-style trajectories, judged on the continuation of each path.
 
-:mod:`torchcal.experiments.trajectories` uses the project's own path families and field
+:mod:`experiments.trajectories` uses the project's own path families and field
 (:mod:`torchcal.sim.campaign`); here the campaigns come from :func:`torchcal.sim.outside.simulate_outside_trajectory`,
 whose multi-sine path and formula field share neither. For each seed and field kind: geometry alone
 (``--method kinematic``) and ``--method integrated`` (its default engine) calibrated on the training part, both

@@ -21,9 +21,9 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file
 from torchcal.data import Measurements, read_ipa
 from torchcal.estimate.fit import errors
-from torchcal.experiments.ipa_series import series_file
 from torchcal.pipeline import Options, calibrate, min_poses
 from torchcal.report import write_run
 from torchcal.report.rundir import load_prior

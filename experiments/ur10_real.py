@@ -35,10 +35,10 @@ from pathlib import Path
 
 import torch
 
+from experiments.ipa_series import series_file, subsample
 from torchcal.data import Measurements, read_ipa
 from torchcal.effects import MeasurementModel
 from torchcal.estimate.fit import errors, place_instrument_and_tool
-from torchcal.experiments.ipa_series import series_file, subsample
 from torchcal.pipeline import Options, calibrate
 from torchcal.robot import load_robot
 

@@ -45,11 +45,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from experiments import table1 as t1
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.estimate.fit import solve
 from torchcal.estimate.rigid import fit_instrument_and_tool
-from torchcal.experiments import table1 as t1
 from torchcal.pipeline import Options
 from torchcal.robot import load_robot
 

@@ -15,8 +15,8 @@ import statistics
 import sys
 import time
 
+from experiments.closed_loop import run_cases
 from torchcal._version import __version__
-from torchcal.experiments.closed_loop import run_cases
 
 
 def binom_cdf(k: int, n: int, p: float) -> float:
