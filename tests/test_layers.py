@@ -23,6 +23,7 @@ LAYERS: list[set[str]] = [
 ]
 #: leaf utilities: importable from anywhere, importing no other torchcal module but each other
 LEAVES = {
+    "_method",
     "errors",
     "_console",
     "_threads",

@@ -20,6 +20,7 @@ import torch
 from torchcal import _console
 from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER
 from torchcal._device import resolve_device
+from torchcal._method import DEFAULT_METHOD, ENGINES, METHODS, Engine
 from torchcal._outdir import check_out_dir, check_out_file
 from torchcal.errors import OptionError, TorchcalError
 
@@ -178,9 +179,8 @@ def _add_units(p: argparse.ArgumentParser) -> None:
     p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the revolute joints' columns")
 
 
-#: calibrate's methods, named here so that the parser needs no torch (tests/pipeline/test_state.py: the same as
-#: torchcal.pipeline.METHODS)
-METHOD_CHOICES = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
+#: calibrate's methods and the integrated method's engines (declared once, in a module without torch)
+METHOD_CHOICES = METHODS
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -295,8 +295,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     c.add_argument(
         "--engine",
-        choices=("auto", "adaptive", "ekf"),
-        default="auto",
+        choices=ENGINES,
+        default=Engine.AUTO.value,
         help="integrated method: auto (default: the engines and their settings, and geometry alone, "
         "judged on the last 20 %% of the training samples; the best is kept only if it beats geometry), "
         "adaptive (geometry and network in one filter state) or ekf (the paper's filter on the kinematic "
@@ -912,7 +912,7 @@ def cmd_plan(args) -> int:
         raise OptionError("give --robot or --run (the robot to plan for)")
     sigma_tracker, sigma_joint, s0_sq = 15e-6, math.radians(0.0005), 1.0
     tracker = lever = None
-    method = args.method or "auto"
+    method = args.method or DEFAULT_METHOD.value
     if args.run is not None:
         from torchcal.report import load_model
         from torchcal.report.station import station_options

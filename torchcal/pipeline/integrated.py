@@ -49,6 +49,7 @@ import torch
 
 from torchcal import _console
 from torchcal import stats as S
+from torchcal._method import Engine
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
 from torchcal.effects import predictive as P
@@ -823,7 +824,7 @@ def _growth_residuals(
 
 
 #: the engines of the integrated method (``Options.engine``)
-ENGINES = {"auto": integrate_selected, "adaptive": integrate_adaptive, "ekf": integrate}
+ENGINES = {Engine.AUTO: integrate_selected, Engine.ADAPTIVE: integrate_adaptive, Engine.EKF: integrate}
 
 
 def integrated_stage(run: CalibrationRun) -> StageResult:

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from torchcal import _console
+from torchcal._method import Method
 from torchcal._threads import torch_threads
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, place_instrument_and_tool, place_tool_rotation, solve
@@ -211,10 +212,10 @@ def _covariance(run: CalibrationRun) -> ParameterCovariance | None:
 
 
 @dataclass(frozen=True)
-class Method:
+class MethodStages:
     """A calibration method: its stages in order, and how its model behaves beyond the calibrated region."""
 
-    name: str
+    name: Method
     stages: tuple[StageFn, ...]
     #: the learned corrections fade to geometry beyond the region: the methods that add them to a geometry fitted
     #: alone (the integrated method's own gates fade its filters, whose geometry may only be right with their network)
@@ -223,17 +224,21 @@ class Method:
 
 
 #: the methods (``Options.method`` names one; tests/pipeline/test_state.py checks both lists agree)
-METHOD_TABLE: dict[str, Method] = {
+METHOD_TABLE: dict[Method, MethodStages] = {
     m.name: m
     for m in (
-        Method("auto", (nominal, geometric, closed_loop, learned, guard, finish), fades=True),
-        Method("kinematic", (nominal, geometric, refit_kinematic, finish), fades=False),
-        Method("pcm", (nominal, nominal_geometry, correction_net_stage, finish), fades=True),
-        Method("kinematic+ann", (nominal, geometric, correction_net_stage, finish), fades=True),
-        Method("integrated", (nominal, geometric, integrated_stage, finish), fades=False, trajectory_only=True),
+        MethodStages(Method.AUTO, (nominal, geometric, closed_loop, learned, guard, finish), fades=True),
+        MethodStages(Method.KINEMATIC, (nominal, geometric, refit_kinematic, finish), fades=False),
+        MethodStages(Method.PCM, (nominal, nominal_geometry, correction_net_stage, finish), fades=True),
+        MethodStages(Method.KINEMATIC_ANN, (nominal, geometric, correction_net_stage, finish), fades=True),
+        MethodStages(
+            Method.INTEGRATED, (nominal, geometric, integrated_stage, finish), fades=False, trajectory_only=True
+        ),
     )
 }
 
 #: a calibration from a prior run (``calibrate(..., prior=)``): the kinematic method, started from the prior's model
 #: and fitted about it (MAP), then what moved
-PRIOR_METHOD = Method("kinematic", (prior_start, prior_geometric, prior_refit, prior_moved, finish), fades=False)
+PRIOR_METHOD = MethodStages(
+    Method.KINEMATIC, (prior_start, prior_geometric, prior_refit, prior_moved, finish), fades=False
+)

@@ -22,17 +22,13 @@ import torch
 from torchcal import stats as S
 from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_JOINT, MAX_SIGMA_TRACKER, MAX_TOOL, check_range
 from torchcal._device import resolve_device
+from torchcal._method import DEFAULT_METHOD, ENGINES, METHODS, Engine, Method
 from torchcal.effects import MAX_JOINT_ERROR
 from torchcal.errors import OptionError
 from torchcal.estimate.identifiability import DEFAULT_TOL
 
 Tensor = torch.Tensor
 F64 = torch.float64
-
-METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
-#: engines of the integrated method (:mod:`torchcal.pipeline.integrated`)
-ENGINES = ("auto", "adaptive", "ekf")
-DEFAULT_METHOD = "auto"
 
 
 @dataclass(frozen=True)
@@ -119,8 +115,7 @@ class NetworkOptions:
 class IntegratedOptions:
     """The ``integrated`` method."""
 
-    engine: str = "auto"  # "auto" (chosen on validation, geometry alone among the candidates), "adaptive" (geometry in
-    # the filter state) or "ekf" (the paper's filter)
+    engine: Engine = Engine.AUTO  # (torchcal._method.Engine; its name as a string is accepted)
 
 
 @dataclass(frozen=True)
@@ -128,7 +123,7 @@ class Options:
     """A run's options (module docstring). ``Options(method="kinematic", seed=3)`` sets run-wide fields;
     ``Options.of(max_iter=50, hidden=16)`` sets any field by its flat name (:data:`FLAGS`)."""
 
-    method: str = DEFAULT_METHOD
+    method: Method = DEFAULT_METHOD  # (torchcal._method.Method; its name as a string is accepted)
     seed: int = 0
     device: str = "cpu"  # where the run computes: cpu, cuda, cuda:N (torchcal._device.resolve_device)
     refit: bool | None = None  # the model written fitted again on all samples, training and held-out, once chosen
@@ -143,11 +138,8 @@ class Options:
     integrated: IntegratedOptions = field(default_factory=IntegratedOptions)
 
     def __post_init__(self):
-        if self.method not in METHODS:
-            raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
+        self._typed_method_and_engine()
         engine = self.integrated.engine
-        if engine not in ENGINES:
-            raise OptionError(f"engine '{engine}' is not one of {', '.join(ENGINES)}")
         mje = self.loop.max_joint_error
         if mje is not None and not 0.0 < mje <= 0.5:
             raise OptionError(f"max_joint_error must lie in (0, 0.5] rad, got {mje}")
@@ -161,10 +153,12 @@ class Options:
                 "sigma_orientation", fit.sigma_orientation, 0.0, 0.1, low_open=True, scale=180 / math.pi, unit="deg"
             )
         check_range("rank_tol", fit.rank_tol, 0.0, MAX_RANK_TOL, low_open=True)
-        if self.refit and not (self.method == "kinematic" or (self.method == "integrated" and engine == "auto")):
+        if self.refit and not (
+            self.method == Method.KINEMATIC or (self.method == Method.INTEGRATED and engine == Engine.AUTO)
+        ):
             raise OptionError(
                 f"refit applies to the kinematic method and the integrated method's auto engine, not to method "
-                f"'{self.method}'" + (f" with engine '{engine}'" if self.method == "integrated" else "")
+                f"'{self.method}'" + (f" with engine '{engine}'" if self.method == Method.INTEGRATED else "")
             )
         if fit.tool is not None and (len(fit.tool) != 3 or not fit.tool_sigma > 0):
             raise OptionError(
@@ -176,6 +170,17 @@ class Options:
             check_range("tool_sigma", fit.tool_sigma, 0.0, MAX_TOOL, low_open=True, scale=1e3, unit="mm")
         # an unknown or absent device raises here, before any work
         object.__setattr__(self, "device", str(resolve_device(self.device)))
+
+    def _typed_method_and_engine(self) -> None:
+        """The method and the engine as their types (a name given as a string is looked up; an unknown one raises)."""
+        if self.method not in METHODS:
+            raise OptionError(f"method '{self.method}' is not one of {', '.join(METHODS)}")
+        if self.integrated.engine not in ENGINES:
+            raise OptionError(f"engine '{self.integrated.engine}' is not one of {', '.join(ENGINES)}")
+        object.__setattr__(self, "method", Method(self.method))
+        object.__setattr__(
+            self, "integrated", dataclasses.replace(self.integrated, engine=Engine(self.integrated.engine))
+        )
 
     @classmethod
     def of(cls, **flags) -> Options:
@@ -206,7 +211,7 @@ class Options:
         method's auto engine does, the rest do not). On a trajectory the held-out last samples are the ones
         nearest the path's continuation, and the model a user predicts that continuation with should have them."""
         if self.refit is None:
-            return self.method == "integrated" and self.integrated.engine == "auto"
+            return self.method == Method.INTEGRATED and self.integrated.engine == Engine.AUTO
         return bool(self.refit)
 
 

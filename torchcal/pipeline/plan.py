@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchcal._method import Method
 from torchcal.effects import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
@@ -80,7 +81,7 @@ SPREAD_LENGTH = 0.25
 GEOMETRY_PICKS = 30
 LEARNED_EDGE_SHARE = 0.02
 #: the methods whose design is the kinematic one; every other method of calibrate ends in a learned correction
-KINEMATIC_METHODS = ("kinematic",)
+KINEMATIC_METHODS = (Method.KINEMATIC,)
 #: where a tracker stands when nothing says where: 2.5 m in front of the base, 0.2 m above its plane (the simulator
 #: draws 2-3 m and -0.3..0.5 m)
 DEFAULT_TRACKER = (2.5, 0.0, 0.2)

@@ -17,6 +17,7 @@ import torch
 
 from torchcal import _console
 from torchcal import stats as S
+from torchcal._method import Method
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
@@ -138,7 +139,7 @@ def start(
     if prior is not None:
         if data.n_stations > 1 or data.n_probes > 1:
             raise OptionError("a calibration from a prior run takes data of one station and one probe")
-        if opts.method != "kinematic":
+        if opts.method != Method.KINEMATIC:
             raise OptionError(f"a calibration from a prior run is kinematic, not method '{opts.method}'")
         robot = prior.model.robot
     spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
@@ -208,7 +209,7 @@ def calibrate(
         if named != prior.model.robot.name:
             raise OptionError(f"the prior run calibrated robot '{prior.model.robot.name}', not '{named}'")
         if opts.method == DEFAULT_METHOD:
-            opts = dataclasses.replace(opts, method="kinematic")
+            opts = dataclasses.replace(opts, method=Method.KINEMATIC)
     run = start(robot, data, opts, robot_spec=robot_spec, base_link=base_link, tip_link=tip_link, prior=prior)
     for stage in (PRIOR_METHOD if prior is not None else METHOD_TABLE[opts.method]).stages:
         run = run.apply(stage(run))
