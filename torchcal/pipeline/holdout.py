@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 import copy
+from dataclasses import dataclass
 
 import torch
 
@@ -21,7 +22,7 @@ from torchcal.diagnose.tracing import unexplained_entries
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, solve
 from torchcal.pipeline.records import Cause, Rejection, StageName
-from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
+from torchcal.pipeline.state import CalibrationRun, Stage, StageResult, StageWork
 
 Tensor = torch.Tensor
 
@@ -126,6 +127,85 @@ def at_edges(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Te
     return ((q_hold < lo) | (q_hold > hi)).any(dim=1)
 
 
+@dataclass
+class _GuardView:
+    """What the guard compares: every stage from the geometric one on, on all held-out poses and on those at the
+    edges of the training poses' joint ranges (a stage must not lose there either)."""
+
+    run: CalibrationRun
+    geo: Stage  # the geometric stage: the kinematic calibration
+    i_geo: int  # its index among the run's stages
+    edge: Tensor  # (n_holdout,) bool: the held-out poses at the edges (:func:`at_edges`)
+
+    @classmethod
+    def of(cls, run: CalibrationRun) -> _GuardView:
+        geo = run.stage(StageName.GEOMETRIC)
+        return cls(run, geo, run.stages.index(geo), at_edges(run.train.q, run.data.q[run.holdout_idx]))
+
+    @property
+    def n_edge(self) -> int:
+        return int(self.edge.sum())
+
+    def edge_worse(self, st) -> bool:
+        """Whether stage ``st`` is significantly worse than the geometric one at the edges (judged on enough poses)."""
+        if self.n_edge < GUARD_MIN_POSES:
+            return False
+        e1, e0 = st.holdout_errors[self.edge], self.geo.holdout_errors[self.edge]
+        alpha_val = self.run.options.levels.validation
+        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=self.run.trajectory)["p_value"] < alpha_val
+
+    def edge_rmse(self, st) -> float | None:
+        return S.rmse(st.holdout_errors[self.edge]) * 1e3 if bool(self.edge.any()) else None
+
+    def holds(self, st) -> bool:
+        """Whether stage ``st`` passes: below the kinematic calibration overall, not worse at the edges."""
+        return bool(st.rmse < self.geo.rmse) and not self.edge_worse(st)
+
+    def evidence(self) -> dict:
+        """report.json ``holdout_guard``: the rule, every stage's held-out RMSE, whether it was judged and passed."""
+        run, geo = self.run, self.geo
+        judged = len(run.holdout_idx) >= GUARD_MIN_POSES
+        return {
+            "rule": "the final model's held-out RMSE must be below the kinematic calibration's, and on the held-out "
+            f"poses at the edges of the joint ranges (a joint beyond the {HOLDOUT_EDGE:.1%} / {1 - HOLDOUT_EDGE:.1%} "
+            "quantiles of the training poses) not significantly above it; otherwise the run keeps the last stage "
+            f"that is, or the kinematic calibration. Judged on {GUARD_MIN_POSES} held-out poses or more",
+            "geometric_rmse_mm": geo.rmse * 1e3,
+            "n_edge": self.n_edge,
+            "stages": [
+                {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_edge_mm": self.edge_rmse(s)}
+                for s in run.stages[self.i_geo :]
+            ],
+            "judged": judged,
+            "passed": not judged or self.holds(run.stages[-1]),
+        }
+
+    def kept_index(self) -> int:
+        """The last stage that holds, else the geometric one (the stages are nested: each holds the model as it
+        stood)."""
+        stages = self.run.stages
+        return next(j for j in range(len(stages) - 1, self.i_geo - 1, -1) if j == self.i_geo or self.holds(stages[j]))
+
+    def step_back_reason(self, k: int) -> str:
+        """Why the run steps back to stage ``k``, in the words of the report."""
+        geo, final, kept = self.geo, self.run.stages[-1], self.run.stages[k]
+        lost = (
+            f"({geo.rmse * 1e3:.4f} -> {final.rmse * 1e3:.4f} mm)"
+            if final.rmse >= geo.rmse
+            else f"at the edges of the joint ranges ({self.n_edge} poses: {self.edge_rmse(geo):.4f} -> "
+            f"{self.edge_rmse(final):.4f} mm), though better in the middle"
+        )
+        kept_words = (
+            "the kinematic calibration"
+            if k == self.i_geo
+            else f"the model as it stood after {kept.name} ({kept.rmse * 1e3:.4f} mm)"
+        )
+        return (
+            f"held-out guard: the final model is worse than the kinematic calibration on the held-out poses "
+            f"{lost}; the run keeps {kept_words}"
+        )
+
+
 def guard_stages(run: CalibrationRun) -> StageResult:
     """The ``auto`` method never ends worse than the kinematic calibration on the held-out poses.
 
@@ -143,41 +223,12 @@ def guard_stages(run: CalibrationRun) -> StageResult:
     held-out poses).
     """
     work = StageWork(run, "held-out guard", model=run.model)  # the model is only replaced, never edited
-    train, trajectory = run.train, run.trajectory
-    geo = run.stage(StageName.GEOMETRIC)
-    final = run.stages[-1]
-    if final is geo or len(run.holdout_idx) == 0:
+    if run.stages[-1] is run.stage(StageName.GEOMETRIC) or len(run.holdout_idx) == 0:
         return work.result(model_changed=False)
-    i_geo = run.stages.index(geo)
-    # the held-out poses at the edges of the training poses' joint ranges: a stage must not lose there either
-    edge = at_edges(train.q, run.data.q[run.holdout_idx])
-    alpha_val = run.options.levels.validation
-
-    def edge_worse(st) -> bool:
-        if int(edge.sum()) < GUARD_MIN_POSES:
-            return False
-        e1, e0 = st.holdout_errors[edge], geo.holdout_errors[edge]
-        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=trajectory)["p_value"] < alpha_val
-
-    def edge_rmse(st) -> float | None:
-        return S.rmse(st.holdout_errors[edge]) * 1e3 if bool(edge.any()) else None
-
-    judged = len(run.holdout_idx) >= GUARD_MIN_POSES
-    evidence = {
-        "rule": "the final model's held-out RMSE must be below the kinematic calibration's, and on the held-out poses "
-        f"at the edges of the joint ranges (a joint beyond the {HOLDOUT_EDGE:.1%} / {1 - HOLDOUT_EDGE:.1%} quantiles "
-        "of the training poses) not significantly above it; otherwise the run keeps the last stage that is, or the "
-        f"kinematic calibration. Judged on {GUARD_MIN_POSES} held-out poses or more",
-        "geometric_rmse_mm": geo.rmse * 1e3,
-        "n_edge": int(edge.sum()),
-        "stages": [
-            {"name": s.name, "rmse_holdout_mm": s.rmse * 1e3, "rmse_edge_mm": edge_rmse(s)} for s in run.stages[i_geo:]
-        ],
-        "judged": judged,
-        "passed": not judged or (bool(final.rmse < geo.rmse) and not edge_worse(final)),
-    }
+    view = _GuardView.of(run)
+    evidence = view.evidence()
     work.holdout_guard = evidence
-    if not judged:
+    if not evidence["judged"]:
         note = (
             f"held-out guard: not judged, {len(run.holdout_idx)} held-out pose(s) (fewer than {GUARD_MIN_POSES}); "
             "the stages stand on their validation poses"
@@ -187,28 +238,19 @@ def guard_stages(run: CalibrationRun) -> StageResult:
         return work.result(model_changed=False)
     if evidence["passed"]:
         return work.result(model_changed=False)
-    k = next(
-        j
-        for j in range(len(run.stages) - 1, i_geo - 1, -1)
-        if j == i_geo or (run.stages[j].rmse < geo.rmse and not edge_worse(run.stages[j]))
-    )
+    k = view.kept_index()
+    evidence["kept_stage"] = run.stages[k].name
+    reason = view.step_back_reason(k)
+    _step_back(work, run, k, reason, evidence)
+    work.note(reason)
+    _console.info(reason)
+    return work.result()
+
+
+def _step_back(work: StageWork, run: CalibrationRun, k: int, reason: str, evidence: dict) -> None:
+    """Keep the run's stages up to ``k``: the effects of the later ones become rejections that say why, the model
+    is stage ``k``'s, and the fits and what stays unexplained are those of its own fit."""
     kept = run.stages[k]
-    evidence["kept_stage"] = kept.name
-    lost = (
-        f"({geo.rmse * 1e3:.4f} -> {final.rmse * 1e3:.4f} mm)"
-        if final.rmse >= geo.rmse
-        else f"at the edges of the joint ranges ({evidence['n_edge']} poses: {edge_rmse(geo):.4f} -> "
-        f"{edge_rmse(final):.4f} mm), though better in the middle"
-    )
-    reason = (
-        f"held-out guard: the final model is worse than the kinematic calibration on the held-out poses "
-        f"{lost}; the run keeps "
-        + (
-            "the kinematic calibration"
-            if k == i_geo
-            else f"the model as it stood after {kept.name} ({kept.rmse * 1e3:.4f} mm)"
-        )
-    )
     kept_names = {s.name for s in run.stages[: k + 1]}
     dropped = [r for r in run.effects if r.label not in kept_names]
     for rec in dropped:
@@ -228,15 +270,13 @@ def guard_stages(run: CalibrationRun) -> StageResult:
     # the report's global test, parameters and unexplained structure: those of the kept stage's own fit (the
     # geometric one, or the joint refit that admitted the kept effect), not of a fit the dropped stages added
     n = max((j for j, f in enumerate(run.fits) if f.stage == kept.name), default=None)
-    if n is not None:
-        del work.fits[n + 1 :]
-        diag = work.diagnosis
-        if diag is not None and not work.fits[-1].global_test.get("passed", True):
-            ctx = Context.from_measurements(train, trajectory=trajectory)
-            why = {f"q{r.joint}" if r.joint else "t": reason for r in dropped}
-            diag.unexplained = unexplained_entries(
-                work.model, ctx, train.p, work.fits[-1], run.options.levels.score, why
-            )
-    work.note(reason)
-    _console.info(reason)
-    return work.result()
+    if n is None:
+        return
+    del work.fits[n + 1 :]
+    diag = work.diagnosis
+    if diag is not None and not work.fits[-1].global_test.get("passed", True):
+        ctx = Context.from_measurements(run.train, trajectory=run.trajectory)
+        why = {f"q{r.joint}" if r.joint else "t": reason for r in dropped}
+        diag.unexplained = unexplained_entries(
+            work.model, ctx, run.train.p, work.fits[-1], run.options.levels.score, why
+        )
