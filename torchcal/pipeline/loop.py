@@ -34,7 +34,7 @@ from __future__ import annotations
 
 import copy
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
@@ -81,69 +81,115 @@ def close_loop(
             (:mod:`torchcal.diagnose.tracing`); at the end, report what is left (``Diagnosis.unexplained``).
     """
     work = StageWork(run, "closed loop")
-    train, trajectory = run.train, run.trajectory
-    opts, model = run.options, work.model
-    # the levels: of the score tests (family-wise, Bonferroni over the candidates) and of the paired validation test
-    alpha, alpha_val = opts.levels.score, opts.levels.validation
-    ctx = Context.from_measurements(train, trajectory=trajectory)
-    cands, skipped = candidates(model.robot, ctx)
-    fi, va = S.split(
-        train.n,
-        S.holdout_count(train.n, 0.2),
-        seed=opts.seed + S.Stream.VALIDATION,
-        last=trajectory,
-        q=train.q,
-        group_tol=opts.split.group_tol,
-    )
-    fit_part, val_part = train.subset(fi), train.subset(va)
-    diag = Diagnosis(alpha, alpha_val, len(fi), len(va), list(cands), skipped)
-    work.diagnosis = diag
-    if not cands:
-        diag.stop = "no candidate effects for these data"
+    search = _Search.start(run, work, open_forms)
+    if not search.cands:
+        search.diag.stop = "no candidate effects for these data"
         return work.result()
-
-    ida = run.identifiability
-
-    def fit_on(m: MeasurementModel, data, stage: str):
-        return solve(m, data, GROUPS, opts.fit, stage, trajectory, effects=True, identifiability=ida)
-
-    base = copy.deepcopy(model)
-    fit_on(base, fit_part, "validation baseline")
-    e_base = errors(base, val_part, trajectory)
-    tried: set[str] = set()  # menu candidates tried
-    tried_open: set[str] = set()  # open candidates tried (by effect name)
-    accepted_names: set[str] = set()
-    open_notes: dict[str, str] = {}  # variable -> why no open effect came from it (for ``unexplained``)
-
-    # joint -> the current base refitted without that joint's edge poses: its errors there (None: the refit failed);
-    # emptied when a new effect makes a new base
-    edge_bases: dict[int, Tensor | None] = {}
-
-    def validate(rnd: int, cand, s) -> _Validation:
-        v = _validate(
-            s, rnd, base, e_base, fit_on, fit_part, val_part, trajectory, alpha_val, cand, opts.loop.max_joint_error
-        )
-        if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
-            _validate_edge(v, base, fit_on, fit_part, trajectory, alpha_val, edge_bases)
-        if not v.passed:
-            _reject(work, diag, v)
-            if isinstance(cand, OpenCandidate):
-                open_notes[cand.choice.variable.name] = f"{cand.name} ({cand.choice.form}) rejected: {v.reason}"
-        return v
-
     for rnd in range(1, max_effects + 1):
-        fit = work.fits[-1]
-        remaining = [c for c in cands if c.name not in tried and c.name not in accepted_names]
+        scores, significant, opens = search.propose(rnd)
+        if not significant and not opens:
+            break
+        passed = search.validate_round(rnd, significant, opens, max_tries)
+        if not passed:
+            search.diag.stop = f"round {rnd}: no significant candidate passed validation"
+            break
+        if not search.accept_best(passed):
+            search.diag.stop = f"round {rnd}: no confirmed candidate could be refitted on all training poses"
+            break
+    else:
+        search.diag.stop = f"reached the limit of {max_effects} effects"
+        for loc in localise_fit(work.model, search.ctx, run.train.p, work.fits[-1])[0] if open_forms else []:
+            search.open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
+    final = work.fits[-1]
+    if open_forms and not final.global_test.get("passed", True):
+        search.diag.unexplained = unexplained_entries(
+            work.model, search.ctx, run.train.p, final, run.options.levels.score, search.open_notes
+        )
+    return work.result()
+
+
+@dataclass
+class _Search:
+    """The closed loop's search as it stands: the candidates, the fitting and validation poses, the base model the
+    next candidate is judged against, and what was tried, accepted and noted."""
+
+    run: CalibrationRun
+    work: StageWork
+    ctx: Context  # the training poses' context
+    cands: list  # the menu of candidate effects
+    fit_part: Measurements  # the training poses each candidate is fitted on
+    val_part: Measurements  # the training poses it is judged on (never fitted)
+    diag: Diagnosis
+    open_forms: bool
+    base: MeasurementModel | None = None  # the model with the effects accepted so far, fitted on ``fit_part``
+    e_base: Tensor | None = None  # its validation errors
+    tried: set[str] = field(default_factory=set)  # menu candidates tried
+    tried_open: set[str] = field(default_factory=set)  # open candidates tried (by effect name)
+    accepted_names: set[str] = field(default_factory=set)
+    open_notes: dict[str, str] = field(default_factory=dict)  # variable -> why no open effect came from it
+    # joint -> the current base refitted without that joint's edge poses: its errors there (None: the refit
+    # failed); emptied when a new effect makes a new base
+    edge_bases: dict[int, Tensor | None] = field(default_factory=dict)
+
+    @classmethod
+    def start(cls, run: CalibrationRun, work: StageWork, open_forms: bool) -> _Search:
+        """The search before its first round: the candidates, the split, the base fitted on the fitting poses."""
+        train, opts = run.train, run.options
+        ctx = Context.from_measurements(train, trajectory=run.trajectory)
+        cands, skipped = candidates(work.model.robot, ctx)
+        fi, va = S.split(
+            train.n,
+            S.holdout_count(train.n, 0.2),
+            seed=opts.seed + S.Stream.VALIDATION,
+            last=run.trajectory,
+            q=train.q,
+            group_tol=opts.split.group_tol,
+        )
+        # the levels: of the score tests (family-wise, Bonferroni over the candidates) and of the paired validation
+        diag = Diagnosis(opts.levels.score, opts.levels.validation, len(fi), len(va), list(cands), skipped)
+        work.diagnosis = diag
+        search = cls(run, work, ctx, cands, train.subset(fi), train.subset(va), diag, open_forms)
+        if cands:
+            search.base = copy.deepcopy(work.model)
+            search.fit_on(search.base, search.fit_part, "validation baseline")
+            search.e_base = errors(search.base, search.val_part, run.trajectory)
+        return search
+
+    def fit_on(self, m: MeasurementModel, data: Measurements, stage: str):
+        opts = self.run.options
+        return solve(
+            m,
+            data,
+            GROUPS,
+            opts.fit,
+            stage,
+            self.run.trajectory,
+            effects=True,
+            identifiability=self.run.identifiability,
+        )
+
+    def propose(self, rnd: int) -> tuple[list, list, list]:
+        """Round ``rnd``'s scores of the menu candidates left, the significant ones, and the open candidates of the
+        localisation; recorded in the diagnosis, with the reason to stop where none is significant."""
+        model, fit, train = self.work.model, self.work.fits[-1], self.run.train
+        alpha = self.diag.alpha
+        remaining = [c for c in self.cands if c.name not in self.tried and c.name not in self.accepted_names]
         scores = (
-            score_candidates(model, fit.result, ctx, train.p, fit.whitening, remaining, tol=opts.fit.rank_tol)
+            score_candidates(
+                model, fit.result, self.ctx, train.p, fit.whitening, remaining, tol=self.run.options.fit.rank_tol
+            )
             if remaining
             else []
         )
-        locs, ws = localise_fit(model, ctx, train.p, fit)
-        opens, notes = open_candidates(model, locs, ws, alpha, tried_open | accepted_names) if open_forms else ([], [])
+        locs, ws = localise_fit(model, self.ctx, train.p, fit)
+        opens, notes = (
+            open_candidates(model, locs, ws, alpha, self.tried_open | self.accepted_names)
+            if self.open_forms
+            else ([], [])
+        )
         for n in notes:
-            open_notes.setdefault(n["variable"], n["reason"])
-        diag.rounds.append(
+            self.open_notes.setdefault(n["variable"], n["reason"])
+        self.diag.rounds.append(
             {
                 "round": rnd,
                 "scores": scores,
@@ -155,62 +201,95 @@ def close_loop(
         )
         significant = [s for s in scores if s.significant(alpha)]
         if not significant and not opens:
-            best = (
-                f"best {scores[0].candidate.name}: Bonferroni p = {scores[0].p_bonferroni:.2g}"
-                if scores
-                else "no menu candidate left"
+            self.diag.stop = _no_candidate_reason(rnd, scores, locs, alpha)
+        return scores, significant, opens
+
+    def validate(self, rnd: int, cand, s) -> _Validation:
+        """``cand`` refitted with the base on the fitting poses and judged on the validation poses (an open joint
+        form at the edges of its joint's range too); a candidate that fails is recorded as rejected."""
+        v = _validate(
+            s,
+            rnd,
+            self.base,
+            self.e_base,
+            self.fit_on,
+            self.fit_part,
+            self.val_part,
+            self.run.trajectory,
+            self.diag.alpha_validation,
+            cand,
+            self.run.options.loop.max_joint_error,
+        )
+        if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
+            _validate_edge(
+                v,
+                self.base,
+                self.fit_on,
+                self.fit_part,
+                self.run.trajectory,
+                self.diag.alpha_validation,
+                self.edge_bases,
             )
-            top = f"; localisation: {locs[0].name}, Bonferroni p = {locs[0].p_bonferroni:.2g}" if locs else ""
-            if any(loc.significant(alpha) for loc in locs):
-                top += " (significant, but no form with an effect class that was not tried)"
-            diag.stop = f"round {rnd}: no candidate significant ({best} >= {alpha}{top})"
-            break
+        if not v.passed:
+            _reject(self.work, self.diag, v)
+            if isinstance(cand, OpenCandidate):
+                self.open_notes[cand.choice.variable.name] = f"{cand.name} ({cand.choice.form}) rejected: {v.reason}"
+        return v
+
+    def validate_round(self, rnd: int, significant: list, opens: list, max_tries: int) -> list[_Validation]:
+        """The round's confirmed candidates: the strongest open form, then the significant menu candidates in order
+        of evidence until one passes (at most ``max_tries``)."""
         passed: list[_Validation] = []
         for c in opens[:1]:
-            tried_open.add(c.name)
-            v = validate(rnd, c, LocalisationScore(c.localisation, c.choice))
+            self.tried_open.add(c.name)
+            v = self.validate(rnd, c, LocalisationScore(c.localisation, c.choice))
             if v.passed:
                 passed.append(v)
         # a confirmed open form at a place replaces the menu's fixed form there (same effect name)
         open_names = {v.candidate.name for v in passed}
         menu = [s for s in significant if s.candidate.name not in open_names]
         for s in menu[:max_tries]:
-            tried.add(s.candidate.name)
-            v = validate(rnd, s.candidate, s)
+            self.tried.add(s.candidate.name)
+            v = self.validate(rnd, s.candidate, s)
             if v.passed:
                 passed.append(v)
                 break
-        if not passed:
-            diag.stop = f"round {rnd}: no significant candidate passed validation"
-            break
-        # the candidate chosen on validation (ties by BIC); the others stay untried for the next round. One whose
-        # refit on all the training poses fails (rank deficient there, at the edge of what the fitting poses allowed)
-        # is rejected and the next choice among the rest takes its place
+        return passed
+
+    def accept_best(self, passed: list[_Validation]) -> bool:
+        """Accept the candidate chosen on validation (ties by BIC); the others stay untried for the next round.
+        One whose refit on all the training poses fails (rank deficient there, at the edge of what the fitting
+        poses allowed) is rejected and the next choice among the rest takes its place. False: none could be."""
         accepted = None
         remaining = list(passed)
         while remaining:
-            v = _choose(remaining, trajectory, alpha_val, work)
-            if _accept(work, diag, v, fit_on, train):
+            v = _choose(remaining, self.run.trajectory, self.diag.alpha_validation, self.work)
+            if _accept(self.work, self.diag, v, self.fit_on, self.run.train):
                 accepted = v
                 break
             remaining.remove(v)
         if accepted is None:
-            diag.stop = f"round {rnd}: no confirmed candidate could be refitted on all training poses"
-            break
+            return False
         for v in passed:
             if v is not accepted and not v.rejected:
-                (tried_open if isinstance(v.candidate, OpenCandidate) else tried).discard(v.candidate.name)
-        accepted_names.add(accepted.candidate.name)
-        base, e_base = accepted.trial, accepted.errors
-        edge_bases.clear()
-    else:
-        diag.stop = f"reached the limit of {max_effects} effects"
-        for loc in localise_fit(model, ctx, train.p, work.fits[-1])[0] if open_forms else []:
-            open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
-    final = work.fits[-1]
-    if open_forms and not final.global_test.get("passed", True):
-        diag.unexplained = unexplained_entries(model, ctx, train.p, final, alpha, open_notes)
-    return work.result()
+                (self.tried_open if isinstance(v.candidate, OpenCandidate) else self.tried).discard(v.candidate.name)
+        self.accepted_names.add(accepted.candidate.name)
+        self.base, self.e_base = accepted.trial, accepted.errors
+        self.edge_bases.clear()
+        return True
+
+
+def _no_candidate_reason(rnd: int, scores: list, locs: list, alpha: float) -> str:
+    """Why the loop stops in round ``rnd``: no menu candidate nor localisation significant at ``alpha``."""
+    best = (
+        f"best {scores[0].candidate.name}: Bonferroni p = {scores[0].p_bonferroni:.2g}"
+        if scores
+        else "no menu candidate left"
+    )
+    top = f"; localisation: {locs[0].name}, Bonferroni p = {locs[0].p_bonferroni:.2g}" if locs else ""
+    if any(loc.significant(alpha) for loc in locs):
+        top += " (significant, but no form with an effect class that was not tried)"
+    return f"round {rnd}: no candidate significant ({best} >= {alpha}{top})"
 
 
 @dataclass
