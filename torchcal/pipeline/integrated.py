@@ -523,6 +523,19 @@ def _not_selected(evidence: dict, why: str) -> Rejection:
     return Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
 
 
+@dataclass
+class _Chosen:
+    """The best candidate on validation: its setting, the gate length chosen, its validation errors, its row of the
+    selection table, and the model and filter fitted on the fitting samples."""
+
+    setting: Setting
+    length: float
+    errors: Tensor  # (n_validation,) m
+    row: dict
+    model: MeasurementModel
+    filt: IntegratedFilter
+
+
 def integrate_selected(
     work: StageWork, train: Measurements, hold: Measurements, *, settings: tuple[Setting, ...] = SETTINGS
 ) -> IntegratedFilter | None:
@@ -545,17 +558,43 @@ def integrate_selected(
     ``evidence["predictive_sigma"]``; ``predict`` writes it as ``sx, sy, sz``).
     """
     opts = work.options
-    n_val = max(1, int(round(VALIDATION_FRACTION * train.n)))
-    n_fit = train.n - n_val
+    n_fit = train.n - max(1, int(round(VALIDATION_FRACTION * train.n)))
     fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
-    ida = work.identifiability
     geo = copy.deepcopy(work.model)
     solve(
-        geo, fit, GEOMETRIC_GROUPS, opts.fit, "integrated: geometry on the fitting samples", True, identifiability=ida
+        geo,
+        fit,
+        GEOMETRIC_GROUPS,
+        opts.fit,
+        "integrated: geometry on the fitting samples",
+        True,
+        identifiability=work.identifiability,
     )
     e_geo = _errors(geo, val)
+    table, best = _validate_settings(work, geo, fit, val, e_geo, settings)
+    evidence = {
+        "rule": f"lowest validation RMSE among the candidates better than geometry alone on the validation block "
+        f"with any one of its {VALIDATION_PIECES} consecutive pieces left out, kept when it beats geometry alone by "
+        f"a one-sided paired test (autocorrelation-corrected) at p < {opts.levels.validation}",
+        "n_fit": fit.n,
+        "n_validation": val.n,
+        "candidates": table,
+    }
+    why = _why_not_chosen(best, e_geo, evidence, opts.levels.validation)
+    if why is not None:
+        return _keep_geometry(work, evidence, why)
+    return _fit_chosen(work, train, hold, best, geo, (fit, val), evidence)
+
+
+def _validate_settings(
+    work: StageWork, geo: MeasurementModel, fit: Measurements, val: Measurements, e_geo: Tensor, settings
+) -> tuple[list[dict], _Chosen | None]:
+    """Every setting fitted on the fitting samples and judged on the validation block behind the gate length that
+    predicts it best: the selection table (geometry alone first) and the best candidate that beats geometry alone
+    with any one piece of the block left out (None where none does)."""
     table = [{"candidate": "geometry alone", "validation_rmse_mm": _rmse(e_geo) * 1e3}]
     best = None
+    n_fit = fit.n
     for setting in settings:
         _console.info(f"integrated: validating {setting.name} on the last {val.n} training samples")
         trial = _scratch(work, geo, work.train_idx[:n_fit], work.train_idx[n_fit:])
@@ -580,37 +619,47 @@ def integrate_selected(
             "gates": [{"length": g["length"], "validation_rmse_mm": g["validation_rmse_m"] * 1e3} for g in gates],
         }
         table.append(row)
-        if max(left_out) < 1.0 and (best is None or _rmse(e) < _rmse(best[2])):
-            best = (setting, length, e, row, trial.model, trial_filter)
-    evidence = {
-        "rule": f"lowest validation RMSE among the candidates better than geometry alone on the validation block "
-        f"with any one of its {VALIDATION_PIECES} consecutive pieces left out, kept when it beats geometry alone by "
-        f"a one-sided paired test (autocorrelation-corrected) at p < {opts.levels.validation}",
-        "n_fit": fit.n,
-        "n_validation": val.n,
-        "candidates": table,
-    }
-    accepted = False
-    if best is not None:
-        test = S.paired_test(e_geo, best[2], ordered=True)
-        evidence.update(chosen=best[3]["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
-        accepted = _rmse(best[2]) < _rmse(e_geo) and test["p_value"] < opts.levels.validation
-    if not accepted:
-        why = (
-            "no candidate beats geometry alone on the validation block with any one of its pieces left out"
-            if best is None
-            else f"the best candidate, {best[3]['candidate']}, does not beat geometry alone on the validation block "
-            f"({_rmse(e_geo) * 1e3:.4f} -> {best[3]['validation_rmse_mm']:.4f} mm, p = "
-            f"{evidence['test']['p_value']:.2g})"
-        )
-        work.rejections.append(
-            Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
-        )
-        work.note(f"integrated: geometry alone kept: {why}")
-        if opts.refits:
-            evidence["refit"] = refit_geometry(work, ida)
+        if max(left_out) < 1.0 and (best is None or _rmse(e) < _rmse(best.errors)):
+            best = _Chosen(setting, length, e, row, trial.model, trial_filter)
+    return table, best
+
+
+def _why_not_chosen(best: _Chosen | None, e_geo: Tensor, evidence: dict, alpha: float) -> str | None:
+    """Why geometry alone is kept (None: the best candidate beats it by the paired test at ``alpha``); the test
+    goes into ``evidence``."""
+    if best is None:
+        return "no candidate beats geometry alone on the validation block with any one of its pieces left out"
+    test = S.paired_test(e_geo, best.errors, ordered=True)
+    evidence.update(chosen=best.row["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
+    if _rmse(best.errors) < _rmse(e_geo) and test["p_value"] < alpha:
         return None
-    setting, length = best[0], best[1]
+    return (
+        f"the best candidate, {best.row['candidate']}, does not beat geometry alone on the validation block "
+        f"({_rmse(e_geo) * 1e3:.4f} -> {best.row['validation_rmse_mm']:.4f} mm, p = {test['p_value']:.2g})"
+    )
+
+
+def _keep_geometry(work: StageWork, evidence: dict, why: str) -> None:
+    """The work ends with the geometric model: a rejection that says why, a note, the refit where asked."""
+    work.rejections.append(_not_selected(evidence, why))
+    work.note(f"integrated: geometry alone kept: {why}")
+    if work.options.refits:
+        evidence["refit"] = refit_geometry(work, work.identifiability)
+    return None
+
+
+def _fit_chosen(
+    work: StageWork,
+    train: Measurements,
+    hold: Measurements,
+    best: _Chosen,
+    geo: MeasurementModel,
+    fit_val: tuple[Measurements, Measurements],
+    evidence: dict,
+) -> IntegratedFilter | None:
+    """The chosen candidate fitted again on all training samples behind its gate, with its predictive sigma; kept
+    where it is not worse than geometry alone on the held-out samples, else geometry it is (None)."""
+    setting, length = best.setting, best.length
     _console.info(f"integrated: {setting.name} chosen on validation; fitted again on all {train.n} training samples")
     # the kinematic calibration on all training samples, kept apart: the engines edit work.model's robot in place
     geometric = copy.deepcopy(work.model)
@@ -619,15 +668,16 @@ def integrate_selected(
     filt = _run_setting(work, train, hold, setting)
     record = work.effects[-1]
     length = _gate_on_holdout(work.model, train, hold, kinematic, setting, length, evidence)
-    sigma = _attach_predictive_sigma(work, filt, kinematic, geo, best[4], best[5], fit, val, train, hold, length)
+    fit, val = fit_val
+    sigma = _attach_predictive_sigma(work, filt, kinematic, geo, best.model, best.filt, fit, val, train, hold, length)
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
     record.evidence["predictive_sigma"] = sigma
     guard = guard_against_geometry(work.model, geometric, hold)
     evidence["holdout_guard"] = guard
     if guard["passed"]:
-        if opts.refits:
-            record.evidence["refit"] = _refit_filter(work, setting, length, geometric, ida)
+        if work.options.refits:
+            record.evidence["refit"] = _refit_filter(work, setting, length, geometric, work.identifiability)
         return filt
     # the refit on all training samples is worse than geometry alone where neither was fitted: geometry it is (the
     # work's robot too, which the adaptive engine changed in place and the report exports)
@@ -637,13 +687,7 @@ def integrate_selected(
         f"{setting.name}, chosen on validation, is worse than geometry alone on the held-out samples once fitted "
         f"again on all training samples ({guard['geometry_rmse_mm']:.4f} -> {guard['rmse_mm']:.4f} mm)"
     )
-    work.rejections.append(
-        Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
-    )
-    work.note(f"integrated: geometry alone kept: {why}")
-    if opts.refits:
-        evidence["refit"] = refit_geometry(work, ida)
-    return None
+    return _keep_geometry(work, evidence, why)
 
 
 def _refit_filter(work: StageWork, setting: Setting, length: float, geometric: MeasurementModel, ida) -> dict:
