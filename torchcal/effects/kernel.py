@@ -146,57 +146,10 @@ def fit_kernel_correction(
     """
     scale = joint_metric(robot, torch.cat([q, q_val]))
     g = torch.Generator().manual_seed(int(seed))
-
-    def subset(qq, yy):
-        if len(qq) <= MAX_SUPPORT:
-            return qq, yy
-        idx = torch.randperm(len(qq), generator=g)[:MAX_SUPPORT]
-        return qq[idx], yy[idx]
-
-    qs, ys = subset(q, y)
-    grams: dict[int, tuple[Tensor, Tensor]] = {}  # per length scale: K of the support, K(validation, support)
-    tried: dict[tuple[int, int], tuple[dict, Tensor]] = {}
-
-    def evaluate(i: int, j: int) -> float:
-        if (i, j) not in tried:
-            metric = scale / length_scales[i]
-            if i not in grams:
-                while len(grams) >= 2:  # each is N x N: keep the current length scale's and one more
-                    grams.pop(next(iter(grams)))
-                grams[i] = (_gram(qs, metric), torch.exp(-0.5 * torch.cdist(q_val * metric, qs * metric).square()))
-            K, Kv = grams[i]
-            e = (y_val - Kv @ _solve(qs, ys, metric, noise_ratios[j], gram=K)).norm(dim=-1)
-            row = {"length_scale_m": length_scales[i], "noise_ratio": noise_ratios[j]}
-            tried[(i, j)] = ({**row, "val_rmse_m": float(e.square().mean().sqrt())}, e)
-        return tried[(i, j)][0]["val_rmse_m"]
-
-    def nearest(values, v):
-        return min(range(len(values)), key=lambda k: abs(math.log(values[k] / v)))
-
-    if exhaustive:
-        for i in range(len(length_scales)):
-            for j in range(len(noise_ratios)):
-                evaluate(i, j)
-        at = min(sorted(tried), key=lambda k: tried[k][0]["val_rmse_m"])
-    elif start is None:
-        # the length scale matters most (the validation error falls and rises again along it; the noise ratio moves
-        # it little): every length scale at the middle noise ratio, then the local search from the best of them
-        j0 = len(noise_ratios) // 2
-        at = (min(range(len(length_scales)), key=lambda i: evaluate(i, j0)), j0)
-    else:
-        at = (nearest(length_scales, start[0]), nearest(noise_ratios, start[1]))
-    while True:
-        around = [(at[0] + di, at[1] + dj) for di, dj in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))]
-        around = [(i, j) for i, j in around if 0 <= i < len(length_scales) and 0 <= j < len(noise_ratios)]
-        step = min(around, key=lambda ij: evaluate(*ij))
-        if step == at:
-            break
-        at = step
-    # in the order of the full grid, so that ties go the same way as in a full search
-    grid = [tried[k][0] for k in sorted(tried)]
-    best_key = min(sorted(tried), key=lambda k: tried[k][0]["val_rmse_m"])
-    best, best_errors = tried[best_key]
-    qa, ya = subset(torch.cat([q, q_val]), torch.cat([y, y_val]))
+    qs, ys = _at_most_support(q, y, g)
+    search = _GridSearch(qs, ys, q_val, y_val, scale, length_scales, noise_ratios)
+    best, best_errors, grid = search.run(exhaustive, start)
+    qa, ya = _at_most_support(torch.cat([q, q_val]), torch.cat([y, y_val]), g)
     eff = KernelCorrection(q.shape[1], len(qa)).to(q.device)
     metric = scale / best["length_scale_m"]
     with torch.no_grad():
@@ -214,3 +167,70 @@ def fit_kernel_correction(
         "max_support": MAX_SUPPORT,
         "rmse_unit": "m",
     }
+
+
+def _at_most_support(q: Tensor, y: Tensor, g: torch.Generator) -> tuple[Tensor, Tensor]:
+    """``q, y``, or a seeded random :data:`MAX_SUPPORT` of their rows where they have more."""
+    if len(q) <= MAX_SUPPORT:
+        return q, y
+    idx = torch.randperm(len(q), generator=g)[:MAX_SUPPORT]
+    return q[idx], y[idx]
+
+
+class _GridSearch:
+    """The validation RMSE of a kernel correction over the grid of length scales and noise ratios, each setting
+    computed once (``tried``), the Gram matrices of the last two length scales kept."""
+
+    def __init__(self, qs, ys, q_val, y_val, scale, length_scales, noise_ratios):
+        self.qs, self.ys, self.q_val, self.y_val, self.scale = qs, ys, q_val, y_val, scale
+        self.length_scales, self.noise_ratios = length_scales, noise_ratios
+        self.grams: dict[int, tuple[Tensor, Tensor]] = {}  # per length scale: K of the support, K(validation, support)
+        self.tried: dict[tuple[int, int], tuple[dict, Tensor]] = {}
+
+    def evaluate(self, i: int, j: int) -> float:
+        """The validation RMSE [m] of length scale ``i`` and noise ratio ``j``."""
+        if (i, j) not in self.tried:
+            metric = self.scale / self.length_scales[i]
+            if i not in self.grams:
+                while len(self.grams) >= 2:  # each is N x N: keep the current length scale's and one more
+                    self.grams.pop(next(iter(self.grams)))
+                Kv = torch.exp(-0.5 * torch.cdist(self.q_val * metric, self.qs * metric).square())
+                self.grams[i] = (_gram(self.qs, metric), Kv)
+            K, Kv = self.grams[i]
+            e = (self.y_val - Kv @ _solve(self.qs, self.ys, metric, self.noise_ratios[j], gram=K)).norm(dim=-1)
+            row = {"length_scale_m": self.length_scales[i], "noise_ratio": self.noise_ratios[j]}
+            self.tried[(i, j)] = ({**row, "val_rmse_m": float(e.square().mean().sqrt())}, e)
+        return self.tried[(i, j)][0]["val_rmse_m"]
+
+    def _nearest(self, values, v) -> int:
+        return min(range(len(values)), key=lambda k: abs(math.log(values[k] / v)))
+
+    def _first(self, exhaustive: bool, start) -> tuple[int, int]:
+        """Where the local search starts (see :func:`fit_kernel_correction`'s ``start`` and ``exhaustive``)."""
+        if exhaustive:
+            for i in range(len(self.length_scales)):
+                for j in range(len(self.noise_ratios)):
+                    self.evaluate(i, j)
+            return min(sorted(self.tried), key=lambda k: self.tried[k][0]["val_rmse_m"])
+        if start is None:
+            # the length scale matters most (the validation error falls and rises again along it; the noise ratio
+            # moves it little): every length scale at the middle noise ratio, then the local search from the best
+            j0 = len(self.noise_ratios) // 2
+            return (min(range(len(self.length_scales)), key=lambda i: self.evaluate(i, j0)), j0)
+        return (self._nearest(self.length_scales, start[0]), self._nearest(self.noise_ratios, start[1]))
+
+    def run(self, exhaustive: bool, start) -> tuple[dict, Tensor, list[dict]]:
+        """The best setting's row, its per-pose validation errors, and every setting tried (in the grid's order,
+        so that ties go the same way as in a full search)."""
+        at = self._first(exhaustive, start)
+        while True:
+            around = [(at[0] + di, at[1] + dj) for di, dj in ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))]
+            around = [(i, j) for i, j in around if 0 <= i < len(self.length_scales) and 0 <= j < len(self.noise_ratios)]
+            step = min(around, key=lambda ij: self.evaluate(*ij))
+            if step == at:
+                break
+            at = step
+        grid = [self.tried[k][0] for k in sorted(self.tried)]
+        best_key = min(sorted(self.tried), key=lambda k: self.tried[k][0]["val_rmse_m"])
+        best, best_errors = self.tried[best_key]
+        return best, best_errors, grid
