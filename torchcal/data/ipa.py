@@ -97,56 +97,20 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
     """
     path_str = str(path)
     header, index, rows, lines = _cells(path_str, _read_text(path_str))
-    numeric = [c for c in header if c != _TIMESTAMP]
-    table = torch.tensor(
-        [[_number(path_str, row[index[c]], line, c) for c in numeric] for row, line in zip(rows, lines)],
-        dtype=torch.float64,
-    ).reshape(len(rows), len(numeric))
-    col = {c: k for k, c in enumerate(numeric)}
-
-    def columns(names) -> torch.Tensor:
-        return table[:, [col[c] for c in names]].clone()
-
+    columns = _numeric_columns(path_str, header, index, rows, lines)
     q = columns(IPA_JOINTS)
     p = _positions_m(path_str, columns(_POSITION), lines)
-    temperature = table[:, col[_TEMPERATURE]].clone()
-
+    temperature = columns([_TEMPERATURE])[:, 0]
     meta = dict(META)
     series = _SERIES_RE.fullmatch(Path(path_str).absolute().parent.name)
     if series:
         meta["series"] = series.group(1)
     meta["file"] = Path(path_str).name
-
-    sigma = None
-    if _STD[0] in index:
-        sigma, replaced = _positive_sigma(path_str, columns(_STD) / 1000.0, lines)
-        if replaced:
-            meta["sigma_replaced"] = (
-                f"{replaced} non-positive measurement_std_x/_y/_z value(s) replaced by their column's median"
-            )
-
     euler = columns(_EULER) * tf.DEG
     extra = _extra(columns(_GOAL))
     r = matrix_to_rotvec(tf.rot_x(euler[:, 0]) @ tf.rot_y(euler[:, 1]) @ tf.rot_z(euler[:, 2]))
-    sigma_r = None
-    if _STD_EULER[0] in index:
-        std, replaced = _positive_sigma(path_str, columns(_STD_EULER) * tf.DEG, lines, _STD_EULER)
-        sigma_r = euler_sigma_to_tracker(euler, std)
-        if replaced:
-            meta["sigma_r_replaced"] = (
-                f"{replaced} non-positive measurement_std_rx/_ry/_rz value(s) replaced by their column's median"
-            )
-
-    t = None
-    if _TIMESTAMP in index:
-        t, seconds, note = _times(path_str, [row[index[_TIMESTAMP]] for row in rows], lines)
-        if seconds is not None:
-            extra["timestamp_s"] = seconds
-        if note:
-            meta["time"] = note
-    else:
-        meta["time"] = "no Timestamp column; t left out"
-
+    sigma, sigma_r = _sigmas(path_str, index, columns, euler, lines, meta)
+    t = _time_column(path_str, index, rows, lines, extra, meta)
     return Measurements(
         q=q,
         p=p,
@@ -160,6 +124,56 @@ def read_ipa(path: str | os.PathLike) -> Measurements:
         r=r,
         sigma_r=sigma_r,
     )
+
+
+def _numeric_columns(path: str, header: list[str], index: dict[str, int], rows: list[list[str]], lines: list[int]):
+    """The numeric cells of an IPA file as one float64 table (a malformed cell names its file, line and column);
+    returns the function that takes columns out of it by name, ``(N, len(names))``."""
+    numeric = [c for c in header if c != _TIMESTAMP]
+    table = torch.tensor(
+        [[_number(path, row[index[c]], line, c) for c in numeric] for row, line in zip(rows, lines)],
+        dtype=torch.float64,
+    ).reshape(len(rows), len(numeric))
+    col = {c: k for k, c in enumerate(numeric)}
+
+    def columns(names) -> torch.Tensor:
+        return table[:, [col[c] for c in names]].clone()
+
+    return columns
+
+
+def _sigmas(path: str, index: dict, columns, euler: torch.Tensor, lines: list[int], meta: dict):
+    """The per-row standard deviations of position [m] and orientation [rad, tracker axes] where the file has
+    them (else None), non-positive values replaced by their column's median and counted in ``meta``."""
+    sigma = None
+    if _STD[0] in index:
+        sigma, replaced = _positive_sigma(path, columns(_STD) / 1000.0, lines)
+        if replaced:
+            meta["sigma_replaced"] = (
+                f"{replaced} non-positive measurement_std_x/_y/_z value(s) replaced by their column's median"
+            )
+    sigma_r = None
+    if _STD_EULER[0] in index:
+        std, replaced = _positive_sigma(path, columns(_STD_EULER) * tf.DEG, lines, _STD_EULER)
+        sigma_r = euler_sigma_to_tracker(euler, std)
+        if replaced:
+            meta["sigma_r_replaced"] = (
+                f"{replaced} non-positive measurement_std_rx/_ry/_rz value(s) replaced by their column's median"
+            )
+    return sigma, sigma_r
+
+
+def _time_column(path: str, index: dict, rows: list[list[str]], lines: list[int], extra: dict, meta: dict):
+    """``t`` [s] from the ``Timestamp`` column where intact and in order (else None, ``meta['time']`` says why)."""
+    if _TIMESTAMP not in index:
+        meta["time"] = "no Timestamp column; t left out"
+        return None
+    t, seconds, note = _times(path, [row[index[_TIMESTAMP]] for row in rows], lines)
+    if seconds is not None:
+        extra["timestamp_s"] = seconds
+    if note:
+        meta["time"] = note
+    return t
 
 
 def _cells(path: str, text: str) -> tuple[list[str], dict[str, int], list[list[str]], list[int]]:
