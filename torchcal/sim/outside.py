@@ -111,19 +111,7 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     g = torch.Generator().manual_seed(int(cfg.seed))
     nominal, robot, T, tracker_in_base, lever_nominal = _true_robot(cfg, g, [(e.form, e.joint) for e in effects])
     scene = Scene(nominal, tracker_in_base, lever_nominal, cfg.sight)
-    if cfg.trajectory:
-        q = trajectory(scene, cfg.samples, g)
-        t = torch.arange(len(q), dtype=F64) * cfg.sample_interval_s
-        train_idx, test_idx = torch.arange(cfg.train_samples), torch.arange(cfg.train_samples, len(q))
-    else:
-        n = cfg.poses + cfg.test_poses
-        q = random_poses(scene, n, g)
-        t = (
-            torch.arange(n, dtype=F64) * cfg.pose_interval_s
-            + torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
-        )
-        perm = torch.randperm(n, generator=g)
-        train_idx, test_idx = torch.sort(perm[cfg.test_poses :]).values, torch.sort(perm[: cfg.test_poses]).values
+    q, t, train_idx, test_idx = _outside_poses(cfg, scene, g)
     duration = float(t[-1] - t[0]) if len(t) > 1 else 1.0
     temperature = 20.0 + torch.randn(len(t), generator=g, dtype=F64) * 0.02
 
@@ -133,48 +121,14 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     dp = torch.zeros_like(p0)
     truth_effects = []
     for e in effects:
-        rec = {"form": e.form, "size_m": e.size}
         if e.form in ("harmonic", "polynomial", "joint_time"):
-            phase = float(torch.rand(1, generator=g, dtype=F64)) * 2 * math.pi if e.phase is None else float(e.phase)
-            coeffs = torch.as_tensor(e.coeffs if e.coeffs is not None else (1.0,), dtype=F64)
-            shape = _joint_term(e, q, 1.0, phase, coeffs, (t - t[0]) / duration)
-            with torch.no_grad():
-                dq1 = torch.zeros_like(q)
-                dq1[:, e.joint - 1] = shape
-                disp = tf.transform_points(T, robot.probe_in_base(q + dq1)) - p0
-            amp = e.size / float(disp.norm(dim=-1).square().mean().sqrt())
-            term = amp * shape
+            term, rec = _joint_effect(
+                e, q, (t - t[0]) / duration, lambda dq1: tf.transform_points(T, robot.probe_in_base(q + dq1)) - p0, g
+            )
             dq[:, e.joint - 1] += term
-            rec.update(joint=e.joint, variable=f"q{e.joint}" if e.form != "joint_time" else f"q{e.joint}_t")
-            if e.form == "joint_time":
-                rec.update(order=e.order or 0, amplitude_rad_at_end=amp, phase=phase, variables=[f"q{e.joint}", "t"])
-            elif e.form == "harmonic":
-                rec.update(
-                    order=e.order,
-                    amplitude_rad=amp,
-                    phase=phase,
-                    a_sin=amp * math.cos(phase),
-                    b_cos=amp * math.sin(phase),
-                )
-            else:
-                rec.update(degree=len(coeffs), coeffs=(amp * coeffs).tolist())
         else:
-            if isinstance(e.axis, str):
-                if e.axis != "horizontal":
-                    raise OptionError(f"warmup axis '{e.axis}' is not 'horizontal', an index or a vector")
-                ang = float(torch.rand(1, generator=g, dtype=F64)) * 2 * math.pi
-                u = torch.tensor([math.cos(ang), math.sin(ang), 0.0], dtype=F64)
-            elif isinstance(e.axis, int):
-                u = torch.zeros(3, dtype=F64)
-                u[e.axis] = 1.0
-            else:
-                u = torch.as_tensor(e.axis, dtype=F64)
-                u = u / u.norm()
-            tau = float(e.tau) if e.tau is not None else 60.0 * (5 + 55 * float(torch.rand(1, generator=g, dtype=F64)))
-            shape = -torch.expm1(-(t - t[0]) / tau)
-            amp = e.size / float(shape.square().mean().sqrt())
-            dp += amp * shape[:, None] * u
-            rec.update(variable="t", axis_tracker=u.tolist(), amplitude_m=amp, tau_s=tau, t0_s=float(t[0]))
+            shift, rec = _warmup_effect(e, t, g)
+            dp += shift
         truth_effects.append(rec)
 
     with torch.no_grad():
@@ -197,6 +151,70 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     }
     model = MeasurementModel(robot, [])
     return Campaign(train=part(train_idx, "train"), test=part(test_idx, "test"), truth=truth, model=model, q_true=q)
+
+
+def _outside_poses(cfg: SimConfig, scene: Scene, g: torch.Generator) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The campaign's joints ``(N, dof)``, times ``(N,)`` [s] and training / test indices: a trajectory split in
+    time, or random poses with ``cfg.test_poses`` drawn among them."""
+    if cfg.trajectory:
+        q = trajectory(scene, cfg.samples, g)
+        t = torch.arange(len(q), dtype=F64) * cfg.sample_interval_s
+        return q, t, torch.arange(cfg.train_samples), torch.arange(cfg.train_samples, len(q))
+    n = cfg.poses + cfg.test_poses
+    q = random_poses(scene, n, g)
+    t = (
+        torch.arange(n, dtype=F64) * cfg.pose_interval_s
+        + torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
+    )
+    perm = torch.randperm(n, generator=g)
+    return q, t, torch.sort(perm[cfg.test_poses :]).values, torch.sort(perm[: cfg.test_poses]).values
+
+
+def _joint_effect(e: OutsideEffect, q: Tensor, s: Tensor, displacement, g: torch.Generator) -> tuple[Tensor, dict]:
+    """A joint effect's term added to joint ``e.joint`` ``(N,)`` [rad], scaled so that the probe's displacement has
+    RMS ``e.size`` (``displacement``: a joint change ``(N, dof)`` -> the probe's displacement ``(N, 3)``; ``s`` the
+    time from 0 to 1), and its truth record."""
+    rec = {"form": e.form, "size_m": e.size}
+    phase = float(torch.rand(1, generator=g, dtype=F64)) * 2 * math.pi if e.phase is None else float(e.phase)
+    coeffs = torch.as_tensor(e.coeffs if e.coeffs is not None else (1.0,), dtype=F64)
+    shape = _joint_term(e, q, 1.0, phase, coeffs, s)
+    with torch.no_grad():
+        dq1 = torch.zeros_like(q)
+        dq1[:, e.joint - 1] = shape
+        disp = displacement(dq1)
+    amp = e.size / float(disp.norm(dim=-1).square().mean().sqrt())
+    rec.update(joint=e.joint, variable=f"q{e.joint}" if e.form != "joint_time" else f"q{e.joint}_t")
+    if e.form == "joint_time":
+        rec.update(order=e.order or 0, amplitude_rad_at_end=amp, phase=phase, variables=[f"q{e.joint}", "t"])
+    elif e.form == "harmonic":
+        rec.update(
+            order=e.order, amplitude_rad=amp, phase=phase, a_sin=amp * math.cos(phase), b_cos=amp * math.sin(phase)
+        )
+    else:
+        rec.update(degree=len(coeffs), coeffs=(amp * coeffs).tolist())
+    return amp * shape, rec
+
+
+def _warmup_effect(e: OutsideEffect, t: Tensor, g: torch.Generator) -> tuple[Tensor, dict]:
+    """A warm-up drift of the measured points ``(N, 3)`` [m] along an axis of the tracker, RMS ``e.size``, and its
+    truth record."""
+    if isinstance(e.axis, str):
+        if e.axis != "horizontal":
+            raise OptionError(f"warmup axis '{e.axis}' is not 'horizontal', an index or a vector")
+        ang = float(torch.rand(1, generator=g, dtype=F64)) * 2 * math.pi
+        u = torch.tensor([math.cos(ang), math.sin(ang), 0.0], dtype=F64)
+    elif isinstance(e.axis, int):
+        u = torch.zeros(3, dtype=F64)
+        u[e.axis] = 1.0
+    else:
+        u = torch.as_tensor(e.axis, dtype=F64)
+        u = u / u.norm()
+    tau = float(e.tau) if e.tau is not None else 60.0 * (5 + 55 * float(torch.rand(1, generator=g, dtype=F64)))
+    shape = -torch.expm1(-(t - t[0]) / tau)
+    amp = e.size / float(shape.square().mean().sqrt())
+    rec = {"form": e.form, "size_m": e.size}
+    rec.update(variable="t", axis_tracker=u.tolist(), amplitude_m=amp, tau_s=tau, t0_s=float(t[0]))
+    return amp * shape[:, None] * u, rec
 
 
 @dataclass
