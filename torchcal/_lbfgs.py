@@ -43,36 +43,51 @@ def _cubic_interpolate(x1, f1, g1, x2, f2, g2, bounds=None):
     return (xmin_bound + xmax_bound) / 2.0
 
 
+class _Probe:
+    """The objective along the search direction: ``at(t)`` evaluates it at ``x + t d`` and counts the
+    evaluations; ``sufficient(t, f_new)`` and ``curved(gtd_new)`` are the strong Wolfe conditions."""
+
+    def __init__(self, obj_func, x, d, f, gtd, c1: float, c2: float):
+        self.obj_func, self.x, self.d, self.f, self.gtd, self.c1, self.c2 = obj_func, x, d, f, gtd, c1, c2
+        self.evals = 0
+
+    def at(self, t):
+        f_new, g_new = self.obj_func(self.x, t, self.d)
+        self.evals += 1
+        return f_new, g_new, g_new.dot(self.d)
+
+    def sufficient(self, t, f_new) -> bool:
+        return not f_new > (self.f + self.c1 * t * self.gtd)
+
+    def curved(self, gtd_new) -> bool:
+        return abs(gtd_new) <= -self.c2 * self.gtd
+
+
 def _strong_wolfe(obj_func, x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_change=1e-9, max_ls=25):
     """A step ``t`` along ``d`` from ``x`` that satisfies the strong Wolfe conditions (sufficient decrease ``c1``,
     curvature ``c2``), or the best point found in ``max_ls`` evaluations: ``(f, g, t, evaluations)``."""
-    d_norm = d.abs().max()
+    probe = _Probe(obj_func, x, d, f, gtd, c1, c2)
     g = g.clone(memory_format=torch.contiguous_format)
-    f_new, g_new = obj_func(x, t, d)
-    ls_func_evals = 1
-    gtd_new = g_new.dot(d)
+    bracket, done, ls_iter = _bracket(probe, t, g, max_ls)
+    low_pos = _zoom(probe, bracket, done, ls_iter, max_ls, d.abs().max(), tolerance_change)
+    return bracket[1][low_pos], bracket[2][low_pos], bracket[0][low_pos], probe.evals
 
-    # bracket an interval containing a point that satisfies the conditions
+
+def _bracket(probe: _Probe, t, g, max_ls: int):
+    """Bracket an interval that holds a point satisfying the conditions, extrapolating by cubic interpolation.
+    Returns ``([steps, values, gradients, slopes], done, iterations)``; ``done``: the bracket's one step already
+    satisfies them."""
+    f, gtd = probe.f, probe.gtd
+    f_new, g_new, gtd_new = probe.at(t)
     t_prev, f_prev, g_prev, gtd_prev = 0, f, g, gtd
-    done = False
     ls_iter = 0
     while ls_iter < max_ls:
-        if f_new > (f + c1 * t * gtd) or (ls_iter > 1 and f_new >= f_prev):
-            bracket = [t_prev, t]
-            bracket_f = [f_prev, f_new]
-            bracket_g = [g_prev, g_new.clone(memory_format=torch.contiguous_format)]
-            bracket_gtd = [gtd_prev, gtd_new]
-            break
-        if abs(gtd_new) <= -c2 * gtd:
-            bracket, bracket_f, bracket_g = [t], [f_new], [g_new]
-            done = True
-            break
-        if gtd_new >= 0:
-            bracket = [t_prev, t]
-            bracket_f = [f_prev, f_new]
-            bracket_g = [g_prev, g_new.clone(memory_format=torch.contiguous_format)]
-            bracket_gtd = [gtd_prev, gtd_new]
-            break
+        passed = not probe.sufficient(t, f_new) or (ls_iter > 1 and f_new >= f_prev)
+        if not passed and probe.curved(gtd_new):
+            return [[t], [f_new], [g_new], [gtd_new]], True, ls_iter
+        if passed or gtd_new >= 0:  # beyond a minimum: it lies between the last two steps
+            g_new = g_new.clone(memory_format=torch.contiguous_format)
+            return [[t_prev, t], [f_prev, f_new], [g_prev, g_new], [gtd_prev, gtd_new]], False, ls_iter
         # extrapolate by cubic interpolation, at least 1 % beyond t and at most 10 t
         min_step = t + 0.01 * (t - t_prev)
         max_step = t * 10
@@ -82,63 +97,51 @@ def _strong_wolfe(obj_func, x, t, d, f, g, gtd, c1=1e-4, c2=0.9, tolerance_chang
         f_prev = f_new
         g_prev = g_new.clone(memory_format=torch.contiguous_format)
         gtd_prev = gtd_new
-        f_new, g_new = obj_func(x, t, d)
-        ls_func_evals += 1
-        gtd_new = g_new.dot(d)
+        f_new, g_new, gtd_new = probe.at(t)
         ls_iter += 1
+    # no bracket in max_ls evaluations: the zoom does not run, the better end is returned
+    return [[0, t], [f, f_new], [g, g_new], [None, None]], False, ls_iter
 
-    if ls_iter == max_ls:
-        bracket = [0, t]
-        bracket_f = [f, f_new]
-        bracket_g = [g, g_new]
 
-    # zoom: shrink the bracket until a point satisfies the conditions
+def _zoom(probe: _Probe, bracket, done: bool, ls_iter: int, max_ls: int, d_norm, tolerance_change: float) -> int:
+    """Shrink ``bracket`` (edited in place) until a point satisfies the conditions; returns its low end's index."""
+    steps, values, grads, slopes = bracket
     insuf_progress = False
-    low_pos, high_pos = (0, 1) if bracket_f[0] <= bracket_f[-1] else (1, 0)
+    low_pos, high_pos = (0, 1) if values[0] <= values[-1] else (1, 0)
     while not done and ls_iter < max_ls:
-        if abs(bracket[1] - bracket[0]) * d_norm < tolerance_change:
+        if abs(steps[1] - steps[0]) * d_norm < tolerance_change:
             break
-        t = _cubic_interpolate(bracket[0], bracket_f[0], bracket_gtd[0], bracket[1], bracket_f[1], bracket_gtd[1])
-        # a trial within a tenth of the bracket from its ends counts as insufficient progress; twice in a row (or at
-        # an end) it moves to a tenth of the bracket from the nearer end
-        eps = 0.1 * (max(bracket) - min(bracket))
-        if min(max(bracket) - t, t - min(bracket)) < eps:
-            if insuf_progress or t >= max(bracket) or t <= min(bracket):
-                if abs(t - max(bracket)) < abs(t - min(bracket)):
-                    t = max(bracket) - eps
-                else:
-                    t = min(bracket) + eps
-                insuf_progress = False
-            else:
-                insuf_progress = True
-        else:
-            insuf_progress = False
-        f_new, g_new = obj_func(x, t, d)
-        ls_func_evals += 1
-        gtd_new = g_new.dot(d)
+        t = _cubic_interpolate(steps[0], values[0], slopes[0], steps[1], values[1], slopes[1])
+        t, insuf_progress = _away_from_ends(t, steps, insuf_progress)
+        f_new, g_new, gtd_new = probe.at(t)
         ls_iter += 1
-        if f_new > (f + c1 * t * gtd) or f_new >= bracket_f[low_pos]:
+        if not probe.sufficient(t, f_new) or f_new >= values[low_pos]:
             # no sufficient decrease, or not below the low end: the new high end
-            bracket[high_pos] = t
-            bracket_f[high_pos] = f_new
-            bracket_g[high_pos] = g_new.clone(memory_format=torch.contiguous_format)
-            bracket_gtd[high_pos] = gtd_new
-            low_pos, high_pos = (0, 1) if bracket_f[0] <= bracket_f[1] else (1, 0)
-        else:
-            if abs(gtd_new) <= -c2 * gtd:
-                done = True
-            elif gtd_new * (bracket[high_pos] - bracket[low_pos]) >= 0:
-                # the old low end becomes the high end
-                bracket[high_pos] = bracket[low_pos]
-                bracket_f[high_pos] = bracket_f[low_pos]
-                bracket_g[high_pos] = bracket_g[low_pos]
-                bracket_gtd[high_pos] = bracket_gtd[low_pos]
-            bracket[low_pos] = t
-            bracket_f[low_pos] = f_new
-            bracket_g[low_pos] = g_new.clone(memory_format=torch.contiguous_format)
-            bracket_gtd[low_pos] = gtd_new
+            steps[high_pos], values[high_pos], slopes[high_pos] = t, f_new, gtd_new
+            grads[high_pos] = g_new.clone(memory_format=torch.contiguous_format)
+            low_pos, high_pos = (0, 1) if values[0] <= values[1] else (1, 0)
+            continue
+        if probe.curved(gtd_new):
+            done = True
+        elif gtd_new * (steps[high_pos] - steps[low_pos]) >= 0:
+            # the old low end becomes the high end
+            for part in bracket:
+                part[high_pos] = part[low_pos]
+        steps[low_pos], values[low_pos], slopes[low_pos] = t, f_new, gtd_new
+        grads[low_pos] = g_new.clone(memory_format=torch.contiguous_format)
+    return low_pos
 
-    return bracket_f[low_pos], bracket_g[low_pos], bracket[low_pos], ls_func_evals
+
+def _away_from_ends(t, steps, insuf_progress: bool):
+    """A trial within a tenth of the bracket from its ends counts as insufficient progress; twice in a row (or at
+    an end) it moves to a tenth of the bracket from the nearer end. Returns the trial and the flag."""
+    eps = 0.1 * (max(steps) - min(steps))
+    if min(max(steps) - t, t - min(steps)) >= eps:
+        return t, False
+    if not (insuf_progress or t >= max(steps) or t <= min(steps)):
+        return t, True
+    t = max(steps) - eps if abs(t - max(steps)) < abs(t - min(steps)) else min(steps) + eps
+    return t, False
 
 
 def minimize(
