@@ -105,56 +105,82 @@ def fit_net(
         res = _fit_lbfgs(net, w, residual, val_rmse, iterations, patience, res)
         best_w = w  # _fit_lbfgs leaves its best weights in w
     else:
-        lam = 1e-2
-        r = residual(w).detach()
-        cost = float(r.square().sum())
-        since_best = 0
-        n_w = len(w)
-        for it in range(1, iterations + 1):
-            Jnet = net_jacobian(net, w, q).reshape(-1, n_w) * scale
-            # the ridge rows sqrt(ridge) * w enter the normal equations directly (no stacked Jacobian)
-            g = Jnet.T @ r[:-n_w] + ridge * w
-            N = Jnet.T @ Jnet
-            N.diagonal().add_(ridge)
-            d = N.diagonal().clamp(min=1e-12)
-            accepted = False
-            while lam < 1e12:
-                L, info = torch.linalg.cholesky_ex(N + lam * torch.diag(d))
-                if int(info) != 0:
-                    lam *= 10
-                    continue
-                w_new = w - torch.cholesky_solve(g[:, None], L)[:, 0]
-                r_new = residual(w_new).detach()
-                c_new = float(r_new.square().sum())
-                if math.isfinite(c_new) and c_new < cost:
-                    accepted = True
-                    break
-                lam *= 10
-            res.iterations = it
-            if not accepted:
-                res.status = FitStatus.CONVERGED
-                break
-            rel = (cost - c_new) / max(cost, 1e-300)
-            w, r, cost = w_new, r_new, c_new
-            lam = max(lam / 10, 1e-9)
-            with torch.no_grad():
-                res.train_rmse.append(_rmse(net_forward(net, w, q) - target))
-            v = val_rmse(w)
-            res.val_rmse.append(v)
-            if val is None or v < best_val:
-                best_w, best_val, res.best_iteration, since_best = w.clone(), v, it, 0
-            else:
-                since_best += 1
-            if rel < ftol:
-                res.status = FitStatus.CONVERGED
-                break
-            if val is not None and since_best >= patience:
-                res.status = FitStatus.CONVERGED
-                break
-        if val is None:
-            best_w = w
+        problem = _NetProblem(net, q, target, residual, val_rmse, ridge, scale, has_val=val is not None)
+        best_w = _fit_lm(problem, w, best_w, best_val, res, iterations=iterations, patience=patience, ftol=ftol)
     torch.nn.utils.vector_to_parameters(best_w, net.parameters())
     return res
+
+
+@dataclass
+class _NetProblem:
+    """What the LM iterations of :func:`fit_net` need: the network and its data, the residual (in mm, with the
+    ridge rows) and the validation RMSE of a weight vector."""
+
+    net: CorrectionNet
+    q: Tensor
+    target: Tensor
+    residual: object  # weights -> stacked residual (mm, then the ridge rows)
+    val_rmse: object  # weights -> validation RMSE [m] (nan without validation poses)
+    ridge: float
+    scale: float
+    has_val: bool
+
+
+def _lm_step(p: _NetProblem, w: Tensor, r: Tensor, cost: float, lam: float):
+    """One LM step from ``w``: the damping raised until the cost falls. Returns ``(w, r, cost, lam)`` of the step
+    taken, or None where no damping below 1e12 lowers the cost."""
+    n_w = len(w)
+    Jnet = net_jacobian(p.net, w, p.q).reshape(-1, n_w) * p.scale
+    # the ridge rows sqrt(ridge) * w enter the normal equations directly (no stacked Jacobian)
+    g = Jnet.T @ r[:-n_w] + p.ridge * w
+    N = Jnet.T @ Jnet
+    N.diagonal().add_(p.ridge)
+    d = N.diagonal().clamp(min=1e-12)
+    while lam < 1e12:
+        L, info = torch.linalg.cholesky_ex(N + lam * torch.diag(d))
+        if int(info) != 0:
+            lam *= 10
+            continue
+        w_new = w - torch.cholesky_solve(g[:, None], L)[:, 0]
+        r_new = p.residual(w_new).detach()
+        c_new = float(r_new.square().sum())
+        if math.isfinite(c_new) and c_new < cost:
+            return w_new, r_new, c_new, lam
+        lam *= 10
+    return None
+
+
+def _fit_lm(
+    p: _NetProblem, w: Tensor, best_w: Tensor, best_val: float, res, *, iterations: int, patience: int, ftol: float
+) -> Tensor:
+    """Levenberg-Marquardt on the network's weights from ``w``, with early stopping on the validation error;
+    ``res`` records the history. Returns the weights to keep (the best on validation, else the last)."""
+    lam = 1e-2
+    r = p.residual(w).detach()
+    cost = float(r.square().sum())
+    since_best = 0
+    for it in range(1, iterations + 1):
+        step = _lm_step(p, w, r, cost, lam)
+        res.iterations = it
+        if step is None:
+            res.status = FitStatus.CONVERGED
+            break
+        w_new, r, c_new, lam = step
+        rel = (cost - c_new) / max(cost, 1e-300)
+        w, cost = w_new, c_new
+        lam = max(lam / 10, 1e-9)
+        with torch.no_grad():
+            res.train_rmse.append(_rmse(net_forward(p.net, w, p.q) - p.target))
+        v = p.val_rmse(w)
+        res.val_rmse.append(v)
+        if not p.has_val or v < best_val:
+            best_w, best_val, res.best_iteration, since_best = w.clone(), v, it, 0
+        else:
+            since_best += 1
+        if rel < ftol or (p.has_val and since_best >= patience):
+            res.status = FitStatus.CONVERGED
+            break
+    return w if not p.has_val else best_w
 
 
 def _fit_lbfgs(net, w, residual, val_rmse, iterations, patience, res):
