@@ -504,53 +504,21 @@ class AdaptiveEKF:
             parameters: default :attr:`parameters` or :meth:`identify`.
             priors: include the filter's a-priori information on ``gamma``.
         """
-        cfg, robot = self.config, self.robot
         self._check(q, y, len(q))
         params = parameters or self.parameters or self.identify(q)
-        trans = [i for i in robot.parameter_info() if i.name in ("instrument.tx", "instrument.ty", "instrument.tz")]
-        index = _Index(robot, trans + list(params))
+        trans = [
+            i for i in self.robot.parameter_info() if i.name in ("instrument.tx", "instrument.ty", "instrument.tz")
+        ]
+        index = _Index(self.robot, trans + list(params))
         z0 = index.values()
-        kw = {"dtype": q.dtype, "device": q.device}
-        prior = torch.cat(
-            [
-                torch.zeros(3, **kw),
-                torch.tensor(
-                    [1.0 / (cfg.sigma_length if p.unit == "m" else cfg.sigma_angle) ** 2 for p in params], **kw
-                ),
-            ]
-        )
-        prior = prior * float(priors)
-        with torch.no_grad():
-            RJ = robot.T_tracker_base()[:3, :3] @ robot.probe_jacobian(q)[1]
-            C = cfg.sigma_tracker**2 * torch.eye(3, **kw) + cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2)
-            L = torch.linalg.cholesky(C)
-        W = torch.linalg.solve_triangular(L, torch.eye(3, **kw).expand_as(C), upper=False)  # whitening L^-1
+        prior = self._batch_prior(params, q) * float(priors)
+        W = self._batch_whitening(q)
 
         def fn(z):
             out = torch.func.functional_call(self._module, index.params(z, prefix="robot."), (q, True))
             return out, out
 
-        z = z0.clone()
-        status = FitStatus.MAX_ITERATIONS
-        n_it = 0
-        for it in range(1, iterations + 1):
-            n_it = it
-            with torch.no_grad():
-                Jz, f = torch.func.jacfwd(fn, has_aux=True)(z)
-            A = (W @ Jz).reshape(-1, len(z))
-            r = (W @ (y - f).unsqueeze(-1)).reshape(-1)
-            Nm = A.T @ A + torch.diag(prior)
-            g = A.T @ r - prior * (z - z0)
-            Lc, info = torch.linalg.cholesky_ex(Nm)
-            if int(info) != 0:
-                raise EstimationError(
-                    "batch geometry: normal matrix not positive definite (parameters not identifiable at these poses?)"
-                )
-            dz = torch.cholesky_solve(g[:, None], Lc)[:, 0]
-            z = z + dz
-            if float(dz.abs().max()) < tol:
-                status = FitStatus.CONVERGED
-                break
+        z, Lc, n_it, status = _gauss_newton(fn, z0, y, W, prior, iterations, tol)
         with torch.no_grad():
             f = torch.func.functional_call(self._module, index.params(z, prefix="robot."), (q, True))
         r = (W @ (y - f).unsqueeze(-1)).reshape(-1)
@@ -567,6 +535,24 @@ class AdaptiveEKF:
             iterations=n_it,
             status=status,
         )
+
+    def _batch_prior(self, params: list[ParameterInfo], q: Tensor) -> Tensor:
+        """The filter's prior weights of the batch's parameters: none on the instrument translation, ``1 / sigma^2``
+        on each correction (the filter's a-priori information)."""
+        cfg = self.config
+        kw = {"dtype": q.dtype, "device": q.device}
+        weights = [1.0 / (cfg.sigma_length if p.unit == "m" else cfg.sigma_angle) ** 2 for p in params]
+        return torch.cat([torch.zeros(3, **kw), torch.tensor(weights, **kw)])
+
+    def _batch_whitening(self, q: Tensor) -> Tensor:
+        """``L^-1`` ``(N, 3, 3)`` of the filter's observation covariance per pose (tracker and joint noise)."""
+        cfg, robot = self.config, self.robot
+        kw = {"dtype": q.dtype, "device": q.device}
+        with torch.no_grad():
+            RJ = robot.T_tracker_base()[:3, :3] @ robot.probe_jacobian(q)[1]
+            C = cfg.sigma_tracker**2 * torch.eye(3, **kw) + cfg.sigma_joint**2 * RJ @ RJ.transpose(-1, -2)
+            L = torch.linalg.cholesky(C)
+        return torch.linalg.solve_triangular(L, torch.eye(3, **kw).expand_as(C), upper=False)
 
     # ----------------------------------------------------------------------------- internals
     def _check(self, q: Tensor, y: Tensor, n_train: int) -> None:
@@ -883,3 +869,32 @@ def _strides(shape: torch.Size) -> list[int]:
         out.append(s)
         s *= d
     return out[::-1]
+
+
+def _gauss_newton(fn, z0: Tensor, y: Tensor, W: Tensor, prior: Tensor, iterations: int, tol: float):
+    """Gauss-Newton of the whitened residual ``W (y - f(z))`` with prior weights ``prior`` on ``z - z0``.
+
+    Returns ``(z, Cholesky factor of the last normal matrix, iterations, status)``; raises where the normal matrix
+    is not positive definite."""
+    z = z0.clone()
+    status = FitStatus.MAX_ITERATIONS
+    n_it = 0
+    for it in range(1, iterations + 1):
+        n_it = it
+        with torch.no_grad():
+            Jz, f = torch.func.jacfwd(fn, has_aux=True)(z)
+        A = (W @ Jz).reshape(-1, len(z))
+        r = (W @ (y - f).unsqueeze(-1)).reshape(-1)
+        Nm = A.T @ A + torch.diag(prior)
+        g = A.T @ r - prior * (z - z0)
+        Lc, info = torch.linalg.cholesky_ex(Nm)
+        if int(info) != 0:
+            raise EstimationError(
+                "batch geometry: normal matrix not positive definite (parameters not identifiable at these poses?)"
+            )
+        dz = torch.cholesky_solve(g[:, None], Lc)[:, 0]
+        z = z + dz
+        if float(dz.abs().max()) < tol:
+            status = FitStatus.CONVERGED
+            break
+    return z, Lc, n_it, status
