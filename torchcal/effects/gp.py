@@ -629,67 +629,9 @@ def fit_hyperparameters(
         (the last: the bound per row that each start reached, the chosen one the best).
     """
     d = x.shape[1]
-    exact = z is x
-    centre = _initial(d, n_joints, False).to(x.device)
-    # exact: the pairs' distances alone (the closed-form evidence); sparse: both blocks (autograd through the bound)
-    pairs = pair_distances(x, periodic) if exact else None
-    dists = None if exact else (_dist(z, z, periodic), _dist(z, x, periodic))
-
-    def run(theta0: Tensor, max_iter: int) -> tuple[float, Tensor, int]:
-        """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations."""
-        theta = theta0.detach().to(x.device).clone().requires_grad_(True)
-        best = [math.inf, theta0.detach().clone()]
-        count = [0]  # per start: the starts run in threads
-        work = torch.empty_like(pairs.D) if exact else None  # per start, as the starts run side by side
-
-        def closure():
-            theta.grad = None
-            if exact:
-                try:
-                    loss, grad = _exact_loss_and_grad(theta, pairs, y, ard, centre, work)
-                except EstimationError:  # not positive definite at this trial point: send the line search back
-                    loss, grad = torch.tensor(1e10, dtype=F64, device=theta.device), torch.zeros_like(theta)
-                if not bool(torch.isfinite(loss)) or not bool(torch.isfinite(grad).all()):
-                    loss, grad = torch.tensor(1e10, dtype=F64, device=theta.device), torch.zeros_like(theta)
-                theta.grad = grad
-                count[0] += 1
-                value = float(loss)
-                if value < best[0]:
-                    best[0], best[1] = value, theta.detach().clone()
-                return loss
-            # a weak log-normal prior keeps the length scales and variances off 0 and infinity where the data
-            # say little
-            prior = 0.5 * ((theta[:-1] - centre[:-1]) / 3.0).square().sum()
-            try:
-                loss = -_bound(x, y, z, _unpack(theta, d, ard), periodic, ard, exact, dists) / len(x) + prior / len(x)
-            except EstimationError:
-                # not positive definite at this trial point: a large loss that sends the line search back
-                loss = (theta * 0.0).sum() + 1e10
-            if not torch.isfinite(loss):
-                loss = (theta * 0.0).sum() + 1e10
-            loss.backward()
-            count[0] += 1
-            value = float(loss.detach())
-            if value < best[0]:
-                best[0], best[1] = value, theta.detach().clone()
-            return loss
-
-        # torch.optim.LBFGS's method to the bit, without torch.optim (which imports torch._dynamo): torchcal._lbfgs
-        _lbfgs.minimize(closure, theta, max_iter=max_iter, history_size=20, tolerance_grad=1e-6, tolerance_change=1e-9)
-        return best[0], best[1], count[0]
-
+    evidence = _Evidence(x, y, z, periodic, ard, _initial(d, n_joints, False).to(x.device))
     if start is not None:
-        noise = (start["noise"] - 1e-6).clamp_min(1e-6)
-        theta0 = torch.cat(
-            [
-                start["add_var"].clamp_min(1e-12).log(),
-                start["add_len"].log(),
-                start["ard_var"].clamp_min(1e-12).log().reshape(1),
-                start["ard_len"].log(),
-                noise.log().reshape(1),
-            ]
-        ).to(F64)
-        tried = []
+        theta0, tried = _theta_of(start), []
     else:
         g = generator if generator is not None else torch.Generator().manual_seed(0)
         starts = [_initial(d, n_joints, bool(periodic[:n_joints].any()))]
@@ -699,9 +641,9 @@ def fit_hyperparameters(
             # the starts are independent (their points drawn above): side by side in threads of one torch thread each
             # (an evaluation's Cholesky and products release the GIL), in order, so the choice is the same
             with ThreadPoolExecutor(RESTART_WORKERS, initializer=torch.set_num_threads, initargs=(1,)) as pool:
-                tried = list(pool.map(lambda t0: run(t0, restart_iterations), starts))
+                tried = list(pool.map(lambda t0: evidence.run(t0, restart_iterations), starts))
         theta0 = min(tried, key=lambda r: r[0])[1] if tried else starts[0]
-    loss, theta, evaluations = run(theta0, iterations)
+    loss, theta, evaluations = evidence.run(theta0, iterations)
     evaluations += sum(r[2] for r in tried)
     if tried:
         loss, theta = min([(loss, theta)] + [r[:2] for r in tried], key=lambda r: r[0])
@@ -714,6 +656,84 @@ def fit_hyperparameters(
         "evaluations": evaluations,
         "restart_log_evidence_per_row": [-r[0] for r in tried],
     }
+
+
+def _theta_of(start: dict[str, Tensor]) -> Tensor:
+    """The log hyperparameters of a previous fit's :meth:`GPCorrection.hyper`."""
+    noise = (start["noise"] - 1e-6).clamp_min(1e-6)
+    return torch.cat(
+        [
+            start["add_var"].clamp_min(1e-12).log(),
+            start["add_len"].log(),
+            start["ard_var"].clamp_min(1e-12).log().reshape(1),
+            start["ard_len"].log(),
+            noise.log().reshape(1),
+        ]
+    ).to(F64)
+
+
+#: the loss that sends L-BFGS's line search back from a trial point where the covariance is not positive definite
+_WALL = 1e10
+
+
+class _Evidence:
+    """The negative log evidence per row of :func:`fit_hyperparameters`'s data over the log hyperparameters, with
+    a weak log-normal prior about ``centre`` that keeps the length scales and variances off 0 and infinity where
+    the data say little: exact (closed form, its gradient by hand) where ``z is x``, else the sparse bound
+    (autograd)."""
+
+    def __init__(self, x: Tensor, y: Tensor, z: Tensor, periodic: Tensor, ard: bool, centre: Tensor):
+        self.x, self.y, self.z, self.periodic, self.ard, self.centre = x, y, z, periodic, ard, centre
+        self.d = x.shape[1]
+        self.exact = z is x
+        # exact: the pairs' distances alone (the closed-form evidence); sparse: both blocks (autograd through it)
+        self.pairs = pair_distances(x, periodic) if self.exact else None
+        self.dists = None if self.exact else (_dist(z, z, periodic), _dist(z, x, periodic))
+
+    def exact_loss(self, theta: Tensor, work: Tensor) -> Tensor:
+        """The loss at ``theta``, its gradient set on ``theta.grad`` (the wall where it cannot be evaluated)."""
+        try:
+            loss, grad = _exact_loss_and_grad(theta, self.pairs, self.y, self.ard, self.centre, work)
+        except EstimationError:  # not positive definite at this trial point: send the line search back
+            loss, grad = torch.tensor(_WALL, dtype=F64, device=theta.device), torch.zeros_like(theta)
+        if not bool(torch.isfinite(loss)) or not bool(torch.isfinite(grad).all()):
+            loss, grad = torch.tensor(_WALL, dtype=F64, device=theta.device), torch.zeros_like(theta)
+        theta.grad = grad
+        return loss
+
+    def sparse_loss(self, theta: Tensor) -> Tensor:
+        """The loss at ``theta``, back-propagated into ``theta.grad`` (the wall where it cannot be evaluated)."""
+        x, n = self.x, len(self.x)
+        prior = 0.5 * ((theta[:-1] - self.centre[:-1]) / 3.0).square().sum()
+        try:
+            h = _unpack(theta, self.d, self.ard)
+            loss = -_bound(x, self.y, self.z, h, self.periodic, self.ard, self.exact, self.dists) / n + prior / n
+        except EstimationError:
+            loss = (theta * 0.0).sum() + _WALL
+        if not torch.isfinite(loss):
+            loss = (theta * 0.0).sum() + _WALL
+        loss.backward()
+        return loss
+
+    def run(self, theta0: Tensor, max_iter: int) -> tuple[float, Tensor, int]:
+        """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations."""
+        theta = theta0.detach().to(self.x.device).clone().requires_grad_(True)
+        best = [math.inf, theta0.detach().clone()]
+        count = [0]  # per start: the starts run in threads
+        work = torch.empty_like(self.pairs.D) if self.exact else None  # per start, as the starts run side by side
+
+        def closure():
+            theta.grad = None
+            loss = self.exact_loss(theta, work) if self.exact else self.sparse_loss(theta)
+            count[0] += 1
+            value = float(loss.detach())
+            if value < best[0]:
+                best[0], best[1] = value, theta.detach().clone()
+            return loss
+
+        # torch.optim.LBFGS's method to the bit, without torch.optim (which imports torch._dynamo): torchcal._lbfgs
+        _lbfgs.minimize(closure, theta, max_iter=max_iter, history_size=20, tolerance_grad=1e-6, tolerance_change=1e-9)
+        return best[0], best[1], count[0]
 
 
 def _in_order(fn: Callable, starts: Iterable[int]) -> Iterator:
@@ -832,55 +852,14 @@ def _fit(
     n, dof = ctx.q.shape
     exact = n <= s.max_exact
     eff = GPCorrection(dof, n if exact else min(n, s.max_inducing), s.extras, s.additive, s.ard, exact).to(ctx.q.device)
-    with torch.no_grad():
-        for k, name in enumerate(s.extras):
-            v = getattr(ctx, name)
-            if v is None:
-                raise ShapeError(f"GP settings name the extra input '{name}', and the data carry none")
-            eff.x_offset[dof + k] = v.mean()
-            eff.x_scale[dof + k] = v.std().clamp_min(1e-12)
-        x = eff.inputs(ctx)
-        eff.y_mean.copy_(y.mean(0))
-        eff.y_scale.copy_((y - eff.y_mean).square().mean(0).sqrt().clamp_min(1e-12))
-        ys = (y - eff.y_mean) / eff.y_scale
-
+    x, ys = _standardise(eff, ctx, y, s)
     # 1. hyperparameters by the evidence on a seeded subset
     sub = torch.randperm(n, generator=g)[: s.max_fit] if n > s.max_fit else torch.arange(n)
     xf, yf = x[sub], ys[sub]
     zf = xf if len(xf) <= s.m_fit else kmeans(xf, s.m_fit, g, s.kmeans_iterations)
     if warm is not None and warm.config() != eff.config() | {"n_inducing": warm.config()["n_inducing"]}:
         raise OptionError(f"GP warm start: the previous model's structure {warm.config()} differs from {eff.config()}")
-    common = {"periodic": eff.periodic, "ard": s.ard, "n_joints": dof}
-    start, coarse = None if warm is None else warm.hyper(), None
-    if warm is None and s.coarse_rows < len(xf):
-        # the restarts and most iterations on the first rows of the subset (cheap: the exact evidence costs
-        # O(n^3)), then a few iterations on all of it from the best point found there
-        xc, yc = xf[: s.coarse_rows], yf[: s.coarse_rows]
-        zc = xc if len(xc) <= s.m_fit else kmeans(xc, s.m_fit, g, s.kmeans_iterations)
-        start, coarse = fit_hyperparameters(
-            xc,
-            yc,
-            zc,
-            **common,
-            iterations=s.iterations,
-            restarts=s.restarts,
-            restart_iterations=s.restart_iterations,
-            generator=g,
-        )
-    h, info = fit_hyperparameters(
-        xf,
-        yf,
-        zf,
-        **common,
-        iterations=(s.refine_iterations if coarse is not None else s.iterations) if warm is None else warm_iterations,
-        start=start,
-        restarts=s.restarts,
-        restart_iterations=s.restart_iterations,
-        generator=g,
-    )
-    if coarse is not None:
-        info["evaluations"] += coarse["evaluations"]
-        info["restart_log_evidence_per_row"] = coarse["restart_log_evidence_per_row"]
+    h, info = _evidence_fit(eff, (xf, yf, zf), s, g, warm, warm_iterations)
     with torch.no_grad():
         for k, v in h.items():
             getattr(eff, k).copy_(v)
@@ -892,12 +871,6 @@ def _fit(
             eff.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
         # 3. posterior over all rows
         _posterior(eff, x, ys)
-        if summary:
-            # each variable's share, a summary, from the rows of the evidence fit (memory and time stay bounded)
-            comp = eff.component_means(ctx.subset(sub))
-            var = comp.square().sum(-1).mean(1)
-            share = (var / var.sum().clamp_min(1e-30)).tolist()
-    names = eff.variable_names() + (["ard"] if s.ard else [])
     out = {
         **eff.describe(),
         "log_evidence_per_row": info["log_evidence_per_row"],
@@ -907,18 +880,73 @@ def _fit(
         "rows_for_hyperparameters": len(xf),
         "inducing_for_hyperparameters": len(zf),
         "exact": exact or n <= s.max_inducing,
-        **({"variable_share": dict(zip(names, share[: len(names)]))} if summary else {}),
+        **({"variable_share": _variable_share(eff, ctx.subset(sub), s)} if summary else {}),
         "rmse_unit": "m",
     }
     if ctx_val is not None and y_val is not None:
-        with torch.no_grad():
-            mean, sd = eff.predict(ctx_val, std=summary, noise=True)
-            e = (y_val - mean).norm(dim=-1)
-            out["val_errors"] = e
-            out["val_rmse_m"] = float(e.square().mean().sqrt())
-            if summary:
-                out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
+        out.update(_validation(eff, ctx_val, y_val, summary))
     return eff, out
+
+
+def _standardise(eff: GPCorrection, ctx: Context, y: Tensor, s: GPSettings) -> tuple[Tensor, Tensor]:
+    """Set ``eff``'s input and output standardisation from the data; returns the inputs ``x`` and the
+    standardised outputs."""
+    dof = ctx.q.shape[1]
+    with torch.no_grad():
+        for k, name in enumerate(s.extras):
+            v = getattr(ctx, name)
+            if v is None:
+                raise ShapeError(f"GP settings name the extra input '{name}', and the data carry none")
+            eff.x_offset[dof + k] = v.mean()
+            eff.x_scale[dof + k] = v.std().clamp_min(1e-12)
+        x = eff.inputs(ctx)
+        eff.y_mean.copy_(y.mean(0))
+        eff.y_scale.copy_((y - eff.y_mean).square().mean(0).sqrt().clamp_min(1e-12))
+        return x, (y - eff.y_mean) / eff.y_scale
+
+
+def _evidence_fit(eff: GPCorrection, xyz: tuple[Tensor, Tensor, Tensor], s: GPSettings, g, warm, warm_iterations):
+    """The hyperparameters by the evidence on the subset ``xyz`` (inputs, outputs, inducing inputs): from a warm
+    start, or with the restarts and most iterations on its first rows (cheap: the exact evidence costs O(n^3))
+    and a few iterations on all of it from the best point found there."""
+    xf, yf, zf = xyz
+    common = {"periodic": eff.periodic, "ard": s.ard, "n_joints": eff.dof}
+    restarts = {"restarts": s.restarts, "restart_iterations": s.restart_iterations, "generator": g}
+    start, coarse = None if warm is None else warm.hyper(), None
+    if warm is None and s.coarse_rows < len(xf):
+        xc, yc = xf[: s.coarse_rows], yf[: s.coarse_rows]
+        zc = xc if len(xc) <= s.m_fit else kmeans(xc, s.m_fit, g, s.kmeans_iterations)
+        start, coarse = fit_hyperparameters(xc, yc, zc, **common, iterations=s.iterations, **restarts)
+    iterations = (s.refine_iterations if coarse is not None else s.iterations) if warm is None else warm_iterations
+    h, info = fit_hyperparameters(xf, yf, zf, **common, iterations=iterations, start=start, **restarts)
+    if coarse is not None:
+        info["evaluations"] += coarse["evaluations"]
+        info["restart_log_evidence_per_row"] = coarse["restart_log_evidence_per_row"]
+    return h, info
+
+
+def _variable_share(eff: GPCorrection, ctx: Context, s: GPSettings) -> dict[str, float]:
+    """Each variable's share of the correction's variance, a summary from the rows ``ctx`` of the evidence fit
+    (memory and time stay bounded)."""
+    with torch.no_grad():
+        comp = eff.component_means(ctx)
+        var = comp.square().sum(-1).mean(1)
+        share = (var / var.sum().clamp_min(1e-30)).tolist()
+    names = eff.variable_names() + (["ard"] if s.ard else [])
+    return dict(zip(names, share[: len(names)]))
+
+
+def _validation(eff: GPCorrection, ctx_val: Context, y_val: Tensor, summary: bool) -> dict:
+    """The validation errors and RMSE, and (with ``summary``) the share of components within 2 sigma."""
+    out = {}
+    with torch.no_grad():
+        mean, sd = eff.predict(ctx_val, std=summary, noise=True)
+        e = (y_val - mean).norm(dim=-1)
+        out["val_errors"] = e
+        out["val_rmse_m"] = float(e.square().mean().sqrt())
+        if summary:
+            out["val_coverage_2sigma"] = float(((y_val - mean).abs() <= 2 * sd).double().mean())
+    return out
 
 
 def condition_gp(eff: GPCorrection, ctx: Context, y: Tensor, settings: GPSettings | None = None) -> GPCorrection:
