@@ -21,6 +21,7 @@ from torchcal import _console
 from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER
 from torchcal._device import resolve_device
 from torchcal._outdir import check_out_dir, check_out_file
+from torchcal._version import __version__
 from torchcal.errors import OptionError, TorchcalError
 
 F64 = torch.float64
@@ -186,6 +187,7 @@ METHOD_CHOICES = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchcal", description="Robot arm calibration from laser-tracker data.")
     parser.add_argument("--debug", action="store_true", help="print the full traceback of an unexpected error")
+    parser.add_argument("--version", action="version", version=f"torchcal {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser(
