@@ -117,10 +117,12 @@ ORIENTATION_DEG = _number("positive", 5.0)
 RANK_TOL = _number("positive", MAX_RANK_TOL)
 LENGTH_BIAS_MM = _number("nonnegative", MAX_SIGMA_LENGTH * 1e3)
 ANGLE_BIAS_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_ANGLE))
-OUT_HELP = (
-    "output directory; an existing one is replaced only when it is an earlier torchcal output "
-    "(marked by .torchcal-run), anything else is refused"
+#: what happens to an existing --out directory, said once for every command that writes one
+REPLACED_HELP = (
+    "an existing one is replaced only when it is an earlier torchcal output (marked by .torchcal-run), anything "
+    "else is refused"
 )
+OUT_HELP = "output directory; " + REPLACED_HELP
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -223,8 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="KIND[:JOINT][=SIZE]",
         help="inject an effect; repeatable. KIND: compliance, backlash, cyclic (need :JOINT), "
+        "coupling (:J<-K, joint J's reading picks up a share of joint K's), "
         "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
-        "displacement with a unit, e.g. compliance:2=50um, field=0.6mm",
+        "displacement with a unit, e.g. compliance:2=50um, coupling:3<-2=50um, field=0.6mm",
     )
     s.add_argument(
         "--tracker-noise", type=TRACKER_UM_SIM, default=15.0, help="tracker noise per axis [um], <= 10000 (default 15)"
@@ -277,21 +280,24 @@ def build_parser() -> argparse.ArgumentParser:
         "calibrate",
         help="fit the robot to measurements and write a run directory",
         description="Fit the robot to laser-tracker measurements (a CSV file: q1..qN, x, y, z, "
-        "optional t, temperature, sx, sy, sz) and write the run "
+        "optional t, temperature, sx, sy, sz, rx, ry, rz, station, probe) and write the run "
         "directory: report.json, report.md with plots, robot_calibrated.urdf, model for predict.",
     )
     c.add_argument(
         "data",
-        help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature]"
-        "[,sx,sy,sz]; '# key: value' comment lines before it)",
+        help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature][,sx,sy,sz]"
+        "[,rx,ry,rz[,srx,sry,srz]][,station][,probe]; '# key: value' comment lines before it; "
+        "torchcal convert imports other layouts)",
     )
     _add_robot(c)
-    c.add_argument("--out", required=True, help="run directory to write; " + OUT_HELP)
+    c.add_argument("--out", required=True, help="run directory to write; " + REPLACED_HELP)
     c.add_argument(
         "--method",
         default=None,
         choices=METHOD_CHOICES,
-        help="auto (default: geometry, then a learned residual model where validation data demand it), "
+        help="auto (default: geometry, then the named effects (joint compliance, backlash, cyclic joint errors, "
+        "transmission, drift) that the residuals demand and validation poses confirm, then a learned residual model "
+        "where validation data demand it), "
         "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
         "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)",
     )
@@ -369,7 +375,10 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
     pr.add_argument(
-        "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
+        "--out",
+        required=True,
+        help="CSV to write: x,y,z [m], the trust columns sx,sy,sz [m] and extrapolation, plus the q*, t, station "
+        "and probe columns (never one of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
@@ -415,7 +424,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     st.add_argument("run", help="run directory written by calibrate (or by an earlier station)")
     st.add_argument("points", help="measurement file with q1..qN and x,y,z (optional sx,sy,sz) of three or more points")
-    st.add_argument("--out", required=True, help="run directory to write; " + OUT_HELP)
+    st.add_argument("--out", required=True, help="run directory to write; " + REPLACED_HELP)
     st.add_argument(
         "--tool",
         action="store_true",
@@ -434,7 +443,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     pl = sub.add_parser(
         "plan",
-        help="choose the poses to measure: the most informative K for a kinematic calibration",
+        help="choose the poses to measure: the K that best serve the calibration method (default: the default "
+        "method's design; --method kinematic for a geometric calibration)",
         description="Choose K poses from candidates (a file of joint configurations, or sampled within the joint "
         "limits where the tracker sees the probe) by a greedy I-optimal (or D-optimal) criterion on the "
         "identifiable geometric, instrument and lever-arm parameters, a share of them at the edges of the region. "
@@ -1126,7 +1136,11 @@ def cmd_demo(args) -> int:
     for s in run.stages:
         label = labels.get(s.name, f"+ {s.name}")
         if s.name in found and "log10_p" in found[s.name]["evidence"]:
-            label += f" (p = 1e{found[s.name]['evidence']['log10_p']:.0f})"
+            ev = found[s.name]["evidence"]
+            # report.md's round table gives every candidate's score test; an effect found by localising the residual
+            # was admitted on the localisation's test, a different p for the same candidate: name the one shown
+            test = "localisation" if str(ev.get("test", "")).startswith("localisation") else "score"
+            label += f" ({test} p = 1e{ev['log10_p']:.0f})"
         print(f"{label:47s} {s.rmse * 1e3:12.4f}   {float(s.holdout_errors.max()) * 1e3:9.4f}")
     print(f"{'final model on the separate test file':47s} {test_rmse * 1e3:12.4f}")
     named = [f"{e['kind']}" + (f" (joint {e['joint']})" if e["joint"] is not None else "") for e in run.effects_report]
