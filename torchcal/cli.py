@@ -22,6 +22,7 @@ from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX
 from torchcal._device import resolve_device
 from torchcal._method import DEFAULT_METHOD, ENGINES, METHODS, Engine
 from torchcal._outdir import check_out_dir, check_out_file
+from torchcal._version import __version__
 from torchcal.errors import OptionError, TorchcalError
 
 F64 = torch.float64
@@ -117,10 +118,12 @@ ORIENTATION_DEG = _number("positive", 5.0)
 RANK_TOL = _number("positive", MAX_RANK_TOL)
 LENGTH_BIAS_MM = _number("nonnegative", MAX_SIGMA_LENGTH * 1e3)
 ANGLE_BIAS_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_ANGLE))
-OUT_HELP = (
-    "output directory; an existing one is replaced only when it is an earlier torchcal output "
-    "(marked by .torchcal-run), anything else is refused"
+#: what happens to an existing --out directory, said once for every command that writes one
+REPLACED_HELP = (
+    "an existing one is replaced only when it is an earlier torchcal output (marked by .torchcal-run), anything "
+    "else is refused"
 )
+OUT_HELP = "output directory; " + REPLACED_HELP
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -183,9 +186,52 @@ def _add_units(p: argparse.ArgumentParser) -> None:
 METHOD_CHOICES = METHODS
 
 
+def _add_import_export(sub) -> None:
+    """``convert`` (other layouts in) and ``export`` (the calibration out to other software)."""
+    cv = sub.add_parser(
+        "convert",
+        help="import measurements in another layout (--map) or a third-party data set (--from)",
+        description="Write a torchcal measurement file (CSV) from measurements in other layouts. --map MAP.yaml: "
+        "joints and points in one file or several (text with any delimiter, header or not; YAML; MATLAB .mat), "
+        "their units, joint order, signs and offsets, 4x4 or quaternion poses, several reflectors (probe) or "
+        "placements (station), extra columns kept, as the MAP describes (docs/reference.md, 'Importing "
+        "measurements'). --from ipa-robot-accuracy: the public UR10 data set.",
+    )
+    cv.add_argument("inputs", nargs="+", metavar="INPUT", help="the file(s) to convert; the MAP numbers them from 1")
+    cv.add_argument("--map", default=None, metavar="MAP.yaml", help="the YAML file that describes the inputs' layout")
+    cv.add_argument(
+        "--from",
+        dest="fmt",
+        default=None,
+        choices=["ipa-robot-accuracy"],
+        help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
+        "(Landgraf et al., IEEE CASE 2021, MIT licence)",
+    )
+    cv.add_argument("--out", required=True, help="measurement file to write")
+    _add_force(cv)
+    _add_common(cv)
+
+    ex = sub.add_parser(
+        "export",
+        help="write a calibrated run's geometry for other software (UR ROS 2 driver, DH table, URDF)",
+        description="Write the calibrated chain of a run directory in another software's format. ur-ros2: the UR "
+        "ROS 2 driver's kinematics parameter file (as ur_calibration writes it: per joint x, y, z, roll, pitch, yaw "
+        "under 'kinematics'; base_link_inertia is the run's base frame, tool0 its flange); a robot that is not six "
+        "revolute joints, or whose flange is off the last axis, is refused. dh: a DH / MDH robot file that --robot "
+        "loads back with the same forward kinematics (DH robots). urdf: the calibrated URDF with the probe and "
+        "tracker frames. The instrument pose, lever arm and non-geometric effects stay in the run (report.json).",
+    )
+    ex.add_argument("run", help="run directory written by calibrate (or station)")
+    ex.add_argument("--format", required=True, choices=("ur-ros2", "dh", "urdf"), help="the file to write")
+    ex.add_argument("--out", required=True, help="file to write")
+    _add_force(ex)
+    _add_common(ex)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchcal", description="Robot arm calibration from laser-tracker data.")
     parser.add_argument("--debug", action="store_true", help="print the full traceback of an unexpected error")
+    parser.add_argument("--version", action="version", version=f"torchcal {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser(
@@ -221,8 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=[],
         metavar="KIND[:JOINT][=SIZE]",
         help="inject an effect; repeatable. KIND: compliance, backlash, cyclic (need :JOINT), "
+        "coupling (:J<-K, joint J's reading picks up a share of joint K's), "
         "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
-        "displacement with a unit, e.g. compliance:2=50um, field=0.6mm",
+        "displacement with a unit, e.g. compliance:2=50um, coupling:3<-2=50um, field=0.6mm",
     )
     s.add_argument(
         "--tracker-noise", type=TRACKER_UM_SIM, default=15.0, help="tracker noise per axis [um], <= 10000 (default 15)"
@@ -275,21 +322,24 @@ def build_parser() -> argparse.ArgumentParser:
         "calibrate",
         help="fit the robot to measurements and write a run directory",
         description="Fit the robot to laser-tracker measurements (a CSV file: q1..qN, x, y, z, "
-        "optional t, temperature, sx, sy, sz) and write the run "
+        "optional t, temperature, sx, sy, sz, rx, ry, rz, station, probe) and write the run "
         "directory: report.json, report.md with plots, robot_calibrated.urdf, model for predict.",
     )
     c.add_argument(
         "data",
-        help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature]"
-        "[,sx,sy,sz]; '# key: value' comment lines before it)",
+        help="measurement file (CSV with a header row q1..qN,x,y,z[,t][,temperature][,sx,sy,sz]"
+        "[,rx,ry,rz[,srx,sry,srz]][,station][,probe]; '# key: value' comment lines before it; "
+        "torchcal convert imports other layouts)",
     )
     _add_robot(c)
-    c.add_argument("--out", required=True, help="run directory to write; " + OUT_HELP)
+    c.add_argument("--out", required=True, help="run directory to write; " + REPLACED_HELP)
     c.add_argument(
         "--method",
         default=None,
         choices=METHOD_CHOICES,
-        help="auto (default: geometry, then a learned residual model where validation data demand it), "
+        help="auto (default: geometry, then the named effects (joint compliance, backlash, cyclic joint errors, "
+        "transmission, drift) that the residuals demand and validation poses confirm, then a learned residual model "
+        "where validation data demand it), "
         "kinematic, pcm (paper Eq. 10 + network), kinematic+ann (kinCalib+), "
         "integrated (the paper's ANN-EKF; needs a continuous trajectory with a monotonic t column)",
     )
@@ -367,7 +417,10 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
     pr.add_argument(
-        "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
+        "--out",
+        required=True,
+        help="CSV to write: x,y,z [m], the trust columns sx,sy,sz [m] and extrapolation, plus the q*, t, station "
+        "and probe columns (never one of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
@@ -413,7 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     st.add_argument("run", help="run directory written by calibrate (or by an earlier station)")
     st.add_argument("points", help="measurement file with q1..qN and x,y,z (optional sx,sy,sz) of three or more points")
-    st.add_argument("--out", required=True, help="run directory to write; " + OUT_HELP)
+    st.add_argument("--out", required=True, help="run directory to write; " + REPLACED_HELP)
     st.add_argument(
         "--tool",
         action="store_true",
@@ -432,7 +485,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     pl = sub.add_parser(
         "plan",
-        help="choose the poses to measure: the most informative K for a kinematic calibration",
+        help="choose the poses to measure: the K that best serve the calibration method (default: the default "
+        "method's design; --method kinematic for a geometric calibration)",
         description="Choose K poses from candidates (a file of joint configurations, or sampled within the joint "
         "limits where the tracker sees the probe) by a greedy I-optimal (or D-optimal) criterion on the "
         "identifiable geometric, instrument and lever-arm parameters, a share of them at the edges of the region. "
@@ -537,23 +591,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(pl)
     _add_common(pl)
 
-    cv = sub.add_parser(
-        "convert",
-        help="convert a third-party data set into a measurement file",
-        description="Convert a third-party data set into a torchcal measurement file (CSV).",
-    )
-    cv.add_argument("source", help="the file to convert")
-    cv.add_argument(
-        "--from",
-        dest="fmt",
-        required=True,
-        choices=["ipa-robot-accuracy"],
-        help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
-        "(Landgraf et al., IEEE CASE 2021, MIT licence)",
-    )
-    cv.add_argument("--out", required=True, help="measurement file to write")
-    _add_force(cv)
-    _add_common(cv)
+    _add_import_export(sub)
 
     d = sub.add_parser(
         "demo",
@@ -991,10 +1029,40 @@ def cmd_plan(args) -> int:
 
 def cmd_convert(args) -> int:
     from torchcal.data import convert_ipa
+    from torchcal.data.mapped import convert_mapped
 
-    out_file = check_out_file(args.out, inputs=[args.source], force=args.force)
-    m = convert_ipa(args.source, out_file, written_by="torchcal convert")
+    if (args.map is None) == (args.fmt is None):
+        raise OptionError("convert takes one of --map MAP.yaml (a layout you describe) and --from FORMAT")
+    if args.fmt is not None and len(args.inputs) != 1:
+        raise OptionError(f"--from {args.fmt} converts one file, got {len(args.inputs)}")
+    out_file = check_out_file(args.out, inputs=[*args.inputs, args.map], force=args.force)
+    if args.map is not None:
+        m = convert_mapped(args.map, args.inputs, out_file, written_by="torchcal convert")
+        kinds = [k for k in ("station", "probe") if getattr(m, k) is not None]
+        what = "".join(f", {len(getattr(m, f'{k}_names'))} {k}s" for k in kinds)
+        _console.info(f"wrote {m.n} rows of {m.dof} joints{what} to {args.out}")
+        return 0
+    m = convert_ipa(args.inputs[0], out_file, written_by="torchcal convert")
     _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")
+    return 0
+
+
+def cmd_export(args) -> int:
+    from torchcal.compensate import urdf_left_out
+    from torchcal.report.rundir import load_model
+    from torchcal.robot.export import write_urdf
+    from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml, write_text
+
+    out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
+    model, _ = load_model(args.run)
+    left = urdf_left_out(model)
+    notes = (f"NOT in this file: {', '.join(left)} (torchcal compensate {args.run} applies them)",) if left else ()
+    if args.format == "urdf":
+        write_urdf(model.robot, out_file, notes=list(notes))
+    else:
+        write = ur_ros2_yaml if args.format == "ur-ros2" else dh_yaml
+        write_text(out_file, f"# written_by: torchcal export\n{write(model.robot, notes)}")
+    _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
     return 0
 
 
@@ -1124,7 +1192,11 @@ def cmd_demo(args) -> int:
     for s in run.stages:
         label = labels.get(s.name, f"+ {s.name}")
         if s.name in found and "log10_p" in found[s.name]["evidence"]:
-            label += f" (p = 1e{found[s.name]['evidence']['log10_p']:.0f})"
+            ev = found[s.name]["evidence"]
+            # report.md's round table gives every candidate's score test; an effect found by localising the residual
+            # was admitted on the localisation's test, a different p for the same candidate: name the one shown
+            test = "localisation" if str(ev.get("test", "")).startswith("localisation") else "score"
+            label += f" ({test} p = 1e{ev['log10_p']:.0f})"
         print(f"{label:47s} {s.rmse * 1e3:12.4f}   {float(s.holdout_errors.max()) * 1e3:9.4f}")
     print(f"{'final model on the separate test file':47s} {test_rmse * 1e3:12.4f}")
     named = [f"{e['kind']}" + (f" (joint {e['joint']})" if e["joint"] is not None else "") for e in run.effects_report]
@@ -1139,6 +1211,7 @@ COMMANDS = {
     "calibrate": cmd_calibrate,
     "predict": cmd_predict,
     "convert": cmd_convert,
+    "export": cmd_export,
     "compensate": cmd_compensate,
     "station": cmd_station,
     "plan": cmd_plan,

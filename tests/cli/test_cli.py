@@ -69,6 +69,10 @@ def test_demo_runs_and_reports(tmp_path, capsys):
     assert summary["test_file_rmse_mm"] < 0.035
     assert "+ compliance(joint 2)" in printed and "effects found: compliance (joint 2), learned" in printed
     report = json.loads((tmp_path / "demo" / "run" / "report.json").read_text())
+    # one p per candidate where a user reads it, its test named: the demo's line and the report's note agree
+    log10_p = report["effects"][0]["evidence"]["log10_p"]
+    assert f"(localisation p = 1e{log10_p:.0f})" in printed
+    assert any(n.startswith("diagnosis: compliance:2 added (localisation chi2") for n in report["notes"])
     assert (
         report["effects"][0]["kind"] == "compliance"
         and report["effects"][0]["rmse_after_mm"] < report["effects"][0]["rmse_before_mm"]

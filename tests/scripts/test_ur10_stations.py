@@ -11,12 +11,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-DATA = Path(os.environ.get("TORCHCAL_UR10_IPA", ROOT.parent / "shared" / "data" / "real" / "ur10-ipa"))
+DATA = Path(os.environ.get("TORCHCAL_IPA_DATA", ROOT.parent / "shared" / "data" / "real" / "ur10-ipa"))
 
 
 @pytest.mark.skipif(
     not (DATA / "Series_D").is_dir(),
-    reason=f"the ipa-robot-accuracy UR10 data set is not at {DATA} (set TORCHCAL_UR10_IPA to its folder)",
+    reason=f"the ipa-robot-accuracy UR10 data set is not at {DATA} (set TORCHCAL_IPA_DATA to its folder)",
 )
 def test_series_together_subset():
     """Series C and D together, kinematic: two stations and two probes, each series' held-out error near its own."""

@@ -493,6 +493,12 @@ def _reject(work: StageWork, diag: Diagnosis, v: _Validation) -> None:
     work.note(f"diagnosis: {cand.name} rejected, {v.reason}")
 
 
+def _test_name(s: Score) -> str:
+    """Which test gave ``s`` its statistic: an open candidate is admitted on the localisation of the residual, a
+    named one on its score test (report.md's round table gives the score test of every candidate)."""
+    return "localisation" if str(s.to_dict().get("test", "")).startswith("localisation") else "score"
+
+
 def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> bool:
     """Add a confirmed candidate to the run's model, refit on all training poses, open its stage and record it.
 
@@ -559,7 +565,7 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
         )
     )
     work.note(
-        f"diagnosis: {cand.name} added (score chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
+        f"diagnosis: {cand.name} added ({_test_name(s)} chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
         f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
