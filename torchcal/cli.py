@@ -567,6 +567,22 @@ def build_parser() -> argparse.ArgumentParser:
     _add_force(cv)
     _add_common(cv)
 
+    ex = sub.add_parser(
+        "export",
+        help="write a calibrated run's geometry for other software (UR ROS 2 driver, DH table, URDF)",
+        description="Write the calibrated chain of a run directory in another software's format. ur-ros2: the UR "
+        "ROS 2 driver's kinematics parameter file (as ur_calibration writes it: per joint x, y, z, roll, pitch, yaw "
+        "under 'kinematics'; base_link_inertia is the run's base frame, tool0 its flange); a robot that is not six "
+        "revolute joints, or whose flange is off the last axis, is refused. dh: a DH / MDH robot file that --robot "
+        "loads back with the same forward kinematics (DH robots). urdf: the calibrated URDF with the probe and "
+        "tracker frames. The instrument pose, lever arm and non-geometric effects stay in the run (report.json).",
+    )
+    ex.add_argument("run", help="run directory written by calibrate (or station)")
+    ex.add_argument("--format", required=True, choices=("ur-ros2", "dh", "urdf"), help="the file to write")
+    ex.add_argument("--out", required=True, help="file to write")
+    _add_force(ex)
+    _add_common(ex)
+
     d = sub.add_parser(
         "demo",
         help="run the main job end to end on built-in simulated data",
@@ -1010,6 +1026,25 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from torchcal.compensate import urdf_left_out
+    from torchcal.report.rundir import load_model
+    from torchcal.robot.export import write_urdf
+    from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml, write_text
+
+    out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
+    model, _ = load_model(args.run)
+    left = urdf_left_out(model)
+    notes = (f"NOT in this file: {', '.join(left)} (torchcal compensate {args.run} applies them)",) if left else ()
+    if args.format == "urdf":
+        write_urdf(model.robot, out_file, notes=list(notes))
+    else:
+        write = ur_ros2_yaml if args.format == "ur-ros2" else dh_yaml
+        write_text(out_file, f"# written_by: torchcal export\n{write(model.robot, notes)}")
+    _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
+    return 0
+
+
 def _simulate(cfg):
     """``simulate(cfg)``, with the line-of-sight failure told in terms of the command's options."""
     from torchcal.sim import simulate
@@ -1155,6 +1190,7 @@ COMMANDS = {
     "calibrate": cmd_calibrate,
     "predict": cmd_predict,
     "convert": cmd_convert,
+    "export": cmd_export,
     "compensate": cmd_compensate,
     "station": cmd_station,
     "plan": cmd_plan,

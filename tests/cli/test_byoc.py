@@ -4,7 +4,10 @@ import re
 from pathlib import Path
 
 import pytest
+import torch
+import yaml
 
+import torchcal
 from torchcal import __version__
 from torchcal.cli import main
 
@@ -50,3 +53,26 @@ def test_help_texts_say_what_the_commands_do(monkeypatch):
     assert "run directory to write; an existing one" in _help("station")
     assert "coupling (:J<-K" in _help("simulate")
     assert "trust columns sx,sy,sz [m] and extrapolation" in _help("predict")
+
+
+def test_export_writes_what_other_software_reads(run_dir, tmp_path):
+    """A calibrated run exported for the UR ROS 2 driver and as a DH table, each refused where it cannot hold
+    the robot, nothing written then."""
+    from torchcal.report.rundir import load_model
+
+    robot = load_model(run_dir)[0].robot
+    q = torch.rand(200, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 4 - 2
+    assert main(["export", str(run_dir), "--format", "dh", "--out", str(tmp_path / "cal.yaml"), "--quiet"]) == 0
+    back = torchcal.load_robot(tmp_path / "cal.yaml")
+    assert float((back(q) - robot(q)).detach().abs().max()) < 1e-9
+    assert main(["export", str(run_dir), "--format", "ur-ros2", "--out", str(tmp_path / "ur.yaml"), "--quiet"]) == 0
+    doc = yaml.safe_load((tmp_path / "ur.yaml").read_text())
+    assert doc["kinematics"]["shoulder"].keys() == {"x", "y", "z", "roll", "pitch", "yaw"}
+    # the same file again: torchcal wrote it, it is replaced without --force
+    assert main(["export", str(run_dir), "--format", "ur-ros2", "--out", str(tmp_path / "ur.yaml"), "--quiet"]) == 0
+    assert main(["export", str(run_dir), "--format", "urdf", "--out", str(tmp_path / "cal.urdf"), "--quiet"]) == 0
+    assert "<robot" in (tmp_path / "cal.urdf").read_text()
+    urdf_run = tmp_path / "not-a-run"
+    urdf_run.mkdir()
+    assert main(["export", str(urdf_run), "--format", "dh", "--out", str(tmp_path / "x.yaml"), "--quiet"]) == 2
+    assert not (tmp_path / "x.yaml").exists()

@@ -197,7 +197,9 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     """Load a DH table: ``name``, ``convention``, ``joints: [{a, alpha, d, theta, ...}]``.
 
     Optional per joint: ``type`` (``revolute``, the default, or ``prismatic``: the reading [m] adds to ``d`` and
-    ``theta`` is fixed), ``lower``, ``upper`` [rad, m for a prismatic joint] (default +-2 pi rad, +-1 m), ``mass``
+    ``theta`` is fixed), ``beta`` [rad] (a tilt about y after alpha, as a calibrated table written back by ``torchcal
+    export --format dh`` holds it; default 0), ``lower``, ``upper`` [rad, m for a prismatic joint] (default +-2 pi
+    rad, +-1 m), ``mass``
     [kg] and ``com`` [m, in DH frame i] (all joints or none), ``name``.
     """
     import yaml
@@ -241,17 +243,20 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     if not isinstance(joints, list) or not joints:
         raise RobotSpecError(f"{path}: 'joints' must be a non-empty list, base to tip")
     cols = {k: [] for k in ("a", "alpha", "d", "theta", "lower", "upper")}
-    masses, coms, names, prismatic = [], [], [], []
+    masses, coms, names, prismatic, betas = [], [], [], [], []
     for i, j in enumerate(joints):
         where = f"joint {i + 1}"
         if not isinstance(j, dict):
             raise RobotSpecError(f"{path}: {where}: expected a mapping like {{a: .., alpha: .., d: .., theta: ..}}")
-        unknown = set(j) - {"a", "alpha", "d", "theta", "lower", "upper", "mass", "com", "name", "type"}
+        unknown = set(j) - {"a", "alpha", "d", "theta", "beta", "lower", "upper", "mass", "com", "name", "type"}
         if unknown:
             raise RobotSpecError(
-                f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, "
+                f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, beta, "
                 "lower, upper, mass, com, name, type"
             )
+        betas.append(_number(path, where, "beta", j.get("beta", 0.0)))
+        if abs(betas[-1]) > MAX_DESCRIPTION_ANGLE:
+            raise RobotSpecError(f"{path}: {where}: 'beta' = {j['beta']!r} rad is beyond {MAX_DESCRIPTION_ANGLE:g} rad")
         kind = j.get("type", "revolute")
         if kind not in JOINT_TYPES:
             raise RobotSpecError(f"{path}: {where}: type {kind!r} is not one of {', '.join(JOINT_TYPES)}")
@@ -297,6 +302,7 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
         theta=cols["theta"],
         convention=convention,
         prismatic=prismatic,
+        beta=betas,
         dtype=dtype,
         device=device,
     )

@@ -94,6 +94,8 @@ class DHGeometry(_Group):
 
     Args:
         a, alpha, d, theta: nominal values, shape (dof,), metres and radians.
+        beta: nominal tilt about y between nearly parallel axes (dof,) [rad], default zero (a calibrated table
+            written back, :func:`torchcal.robot.export_formats.dh_yaml`).
         convention: :class:`DHConvention`.
         prismatic: per joint, whether it is prismatic (its reading [m] adds to ``d``, ``theta`` is fixed);
             default all revolute (the reading adds to ``theta``).
@@ -102,14 +104,25 @@ class DHGeometry(_Group):
     COLUMNS = ("a", "alpha", "d", "theta", "beta")
 
     def __init__(
-        self, *, a, alpha, d, theta, convention: DHConvention, prismatic=None, dtype=torch.float64, device="cpu"
+        self,
+        *,
+        a,
+        alpha,
+        d,
+        theta,
+        convention: DHConvention,
+        prismatic=None,
+        beta=None,
+        dtype=torch.float64,
+        device="cpu",
     ):
         super().__init__()
         if dtype != torch.float64:
             raise ShapeError(f"the calibration path is float64, got dtype {dtype}")
         nominal = torch.stack([torch.as_tensor(v, dtype=dtype) for v in (a, alpha, d, theta)], dim=-1)
         dof = nominal.shape[0]
-        nominal = torch.cat([nominal, torch.zeros(dof, 1, dtype=dtype)], dim=-1)
+        b = torch.zeros(dof, dtype=dtype) if beta is None else torch.as_tensor(beta, dtype=dtype).reshape(dof)
+        nominal = torch.cat([nominal, b.unsqueeze(-1)], dim=-1)
         self.register_buffer("nominal", nominal.to(device))
         self.convention = DHConvention(convention)
         # beta only where consecutive axes are (nearly) parallel: there DH's d is ill-defined
