@@ -551,14 +551,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     cv = sub.add_parser(
         "convert",
-        help="convert a third-party data set into a measurement file",
-        description="Convert a third-party data set into a torchcal measurement file (CSV).",
+        help="import measurements in another layout (--map) or a third-party data set (--from)",
+        description="Write a torchcal measurement file (CSV) from measurements in other layouts. --map MAP.yaml: "
+        "joints and points in one file or several (text with any delimiter, header or not; YAML; MATLAB .mat), "
+        "their units, joint order, signs and offsets, 4x4 or quaternion poses, several reflectors (probe) or "
+        "placements (station), extra columns kept, as the MAP describes (docs/reference.md, 'Importing "
+        "measurements'). --from ipa-robot-accuracy: the public UR10 data set.",
     )
-    cv.add_argument("source", help="the file to convert")
+    cv.add_argument("inputs", nargs="+", metavar="INPUT", help="the file(s) to convert; the MAP numbers them from 1")
+    cv.add_argument("--map", default=None, metavar="MAP.yaml", help="the YAML file that describes the inputs' layout")
     cv.add_argument(
         "--from",
         dest="fmt",
-        required=True,
+        default=None,
         choices=["ipa-robot-accuracy"],
         help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
         "(Landgraf et al., IEEE CASE 2021, MIT licence)",
@@ -1019,9 +1024,20 @@ def cmd_plan(args) -> int:
 
 def cmd_convert(args) -> int:
     from torchcal.data import convert_ipa
+    from torchcal.data.mapped import convert_mapped
 
-    out_file = check_out_file(args.out, inputs=[args.source], force=args.force)
-    m = convert_ipa(args.source, out_file, written_by="torchcal convert")
+    if (args.map is None) == (args.fmt is None):
+        raise OptionError("convert takes one of --map MAP.yaml (a layout you describe) and --from FORMAT")
+    if args.fmt is not None and len(args.inputs) != 1:
+        raise OptionError(f"--from {args.fmt} converts one file, got {len(args.inputs)}")
+    out_file = check_out_file(args.out, inputs=[*args.inputs, args.map], force=args.force)
+    if args.map is not None:
+        m = convert_mapped(args.map, args.inputs, out_file, written_by="torchcal convert")
+        kinds = [k for k in ("station", "probe") if getattr(m, k) is not None]
+        what = "".join(f", {len(getattr(m, f'{k}_names'))} {k}s" for k in kinds)
+        _console.info(f"wrote {m.n} rows of {m.dof} joints{what} to {args.out}")
+        return 0
+    m = convert_ipa(args.inputs[0], out_file, written_by="torchcal convert")
     _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")
     return 0
 

@@ -1,0 +1,540 @@
+"""Import measurements in other layouts into the measurement format, as a MAP file describes them.
+
+``torchcal convert --map MAP.yaml INPUT... --out DATA.csv``. The MAP is a small YAML mapping (docs/reference.md,
+*Importing measurements*, has the full description and an example per layout)::
+
+    read: {delimiter: whitespace, header: false}      # how every INPUT is read (text, YAML or .mat)
+    units: {length: mm, angle: deg}                   # the inputs' units (default m, rad)
+    joints: {input: 1, columns: 1-6, sign: [1, -1, 1, 1, 1, 1], offset: [0, 90, 0, 0, 0, 0]}
+    position: {input: [2, 3], columns: 1-3}           # or matrix: (4x4 / 3x4 row-major), quaternion:
+    probe: [A, B]                                      # one name per position input; or {column: ..}, {block: ..}
+    extra: {tau: 8-14, temperature: Temp}              # other columns, kept
+
+Columns are 1-based numbers, ranges ``"3-8"``, header names, or lists of them; a YAML row's list value ``q: [..]``
+is the columns ``q[1]``, ``q[2]``, ... and the name ``q`` takes them all. A model joint is ``sign * reading +
+offset`` (offset in the angle unit), in the order the columns are listed. Rows of separate joint and point files pair
+by their order. Every error names the file, line and column; nothing is written before every row has been read.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from torchcal.data.ipa import matrix_to_rotvec
+from torchcal.data.measurements import Measurements, labels_of, write_measurements
+from torchcal.errors import MeasurementFileError, OptionError
+
+F64 = torch.float64
+MAP_KEYS = ("read", "units", "joints", "position", "matrix", "quaternion", "extra", "station", "probe")
+READ_KEYS = ("delimiter", "header", "comment", "decimal", "blocks", "rows", "variable")
+#: how far a 4x4 pose's rotation may be from orthonormal, and a quaternion's norm from 1 (a pose printed to 6 digits)
+ROTATION_TOLERANCE = 1e-5
+LENGTH = {"m": 1.0, "mm": 1e-3}
+ANGLE = {"rad": 1.0, "deg": math.pi / 180}
+
+
+@dataclass
+class Table:
+    """One input read as rows of cells.
+
+    Attributes:
+        path: the file; header: column names (None: numbers only); rows: the cells, text or numbers;
+        lines: the 1-based line (or row of a .mat array) of each row; blocks: a YAML row's block name, or None.
+    """
+
+    path: str
+    header: list[str] | None
+    rows: list[list]
+    lines: list[int]
+    blocks: list[str | None] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------------------------- the MAP file
+def _yaml_loader():
+    """A safe YAML loader whose mappings remember the line of each key (``where``) for error messages."""
+    import yaml
+
+    class Lined(dict):
+        where: dict
+
+    class Loader(yaml.SafeLoader):
+        pass
+
+    def mapping(loader, node):
+        out = Lined(loader.construct_mapping(node, deep=True))
+        out.where = {loader.construct_object(k): k.start_mark.line + 1 for k, _ in node.value}
+        out.where[None] = node.start_mark.line + 1
+        return out
+
+    Loader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, mapping)
+    return Loader
+
+
+def _load_yaml(path: str, what: str):
+    import yaml
+
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise MeasurementFileError(path, f"cannot read the {what}: {e}") from None
+    try:
+        return yaml.load(text, Loader=_yaml_loader())  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        line = None if mark is None else mark.line + 1
+        raise MeasurementFileError(path, f"not valid YAML: {getattr(e, 'problem', e)}", line=line) from None
+
+
+def _line(doc, key=None) -> int | None:
+    return getattr(doc, "where", {}).get(key)
+
+
+def read_map(path: str | os.PathLike) -> dict:
+    """The MAP as a mapping, its keys checked (unknown ones name the MAP's line and list the valid ones)."""
+    path = str(path)
+    doc = _load_yaml(path, "MAP")
+    if not isinstance(doc, dict):
+        raise MeasurementFileError(path, "a MAP is a YAML mapping with 'joints' and 'position', 'matrix' or ...")
+    for key in doc:
+        if key not in MAP_KEYS:
+            raise MeasurementFileError(
+                path, f"unknown key {key!r}; valid: {', '.join(MAP_KEYS)}", line=_line(doc, key), column=str(key)
+            )
+    if "joints" not in doc:
+        raise MeasurementFileError(path, "the MAP needs 'joints' (the columns of the joint readings)")
+    for key, valid in (("read", READ_KEYS), ("units", ("length", "angle"))):
+        block = doc.get(key, {})
+        if not isinstance(block, dict) or set(block) - set(valid):
+            raise MeasurementFileError(path, f"'{key}' takes {', '.join(valid)}", line=_line(doc, key), column=key)
+    units = doc.get("units", {})
+    for key, table in (("length", LENGTH), ("angle", ANGLE)):
+        if units.get(key, "m" if key == "length" else "rad") not in table:
+            raise MeasurementFileError(
+                path, f"units.{key} must be one of {', '.join(table)}", line=_line(units, key), column=key
+            )
+    return doc
+
+
+def _role(spec, map_path: str, doc: dict, key: str) -> dict:
+    """A role (``joints``, ``position``, ...) as ``{"columns": ..., "input": [..], ...}`` (a bare spec is its
+    columns; inputs are 1-based, default the first)."""
+    role = dict(spec) if isinstance(spec, dict) else {"columns": spec}
+    if "columns" not in role:
+        raise MeasurementFileError(map_path, f"'{key}' needs 'columns'", line=_line(doc, key), column=key)
+    given = role.get("input", 1)
+    inputs = given if isinstance(given, list) else [given]
+    if not inputs or not all(isinstance(i, int) and i >= 1 for i in inputs):
+        raise MeasurementFileError(
+            map_path, f"'{key}.input' must be input numbers from 1, got {given!r}", line=_line(doc, key), column=key
+        )
+    role["input"] = inputs
+    return role
+
+
+# ------------------------------------------------------------------------------------------------- the inputs
+def read_table(path: str, read: dict) -> Table:
+    """An input as a :class:`Table`: ``.mat`` through scipy.io, ``.yaml``/``.yml`` as rows of mappings or lists,
+    anything else as delimited text."""
+    if not Path(path).is_file():
+        raise MeasurementFileError(path, "no such file (an INPUT of convert --map)")
+    suffix = Path(path).suffix.lower()
+    if suffix == ".mat":
+        return _mat_table(path, read.get("variable"))
+    if suffix in (".yaml", ".yml"):
+        return _yaml_table(path, read)
+    return _text_table(path, read)
+
+
+def _mat_table(path: str, variable: str | None) -> Table:
+    import numpy as np
+    from scipy.io import loadmat
+
+    try:
+        content = loadmat(path)
+    except Exception as e:  # scipy raises several types for a file that is not MATLAB's
+        raise MeasurementFileError(path, f"not a MATLAB file scipy.io reads: {e}") from None
+    arrays = {k: v for k, v in content.items() if not k.startswith("__") and isinstance(v, np.ndarray) and v.ndim == 2}
+    if variable is None and len(arrays) != 1:
+        raise MeasurementFileError(path, f"holds {len(arrays)} matrices ({', '.join(arrays)}); name one: read.variable")
+    name = variable if variable is not None else next(iter(arrays))
+    if name not in arrays or arrays[name].dtype.kind not in "fiu":
+        raise MeasurementFileError(path, f"no numeric matrix named {name!r}; it has {', '.join(arrays) or 'none'}")
+    rows = arrays[name].astype(float).tolist()
+    return Table(path, None, rows, list(range(1, len(rows) + 1)), [None] * len(rows))
+
+
+def _split(line: str, delimiter: str) -> list[str]:
+    cells = line.split() if delimiter == "whitespace" else line.split(delimiter)
+    return [c.strip() for c in cells]
+
+
+def _delimiter(first: str, read: dict) -> str:
+    given = read.get("delimiter", "auto")
+    if given != "auto":
+        return {"tab": "\t", "space": "whitespace"}.get(given, given)
+    for d in ("\t", ";"):
+        if d in first:
+            return d
+    return "," if "," in first and read.get("decimal", ".") != "," else "whitespace"
+
+
+def _text_table(path: str, read: dict) -> Table:
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as e:
+        raise MeasurementFileError(path, f"cannot read the file as UTF-8 text: {e}") from None
+    comment = tuple(read.get("comment", "#%"))
+    body = [(k + 1, ln) for k, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith(comment)]
+    if not body:
+        raise MeasurementFileError(path, "no rows (blank and comment lines only)")
+    delimiter = _delimiter(body[0][1], read)
+    first = _split(body[0][1], delimiter)
+    header = read.get("header", "auto")
+    if header == "auto":
+        header = any(_to_float(c, read) is None for c in first)
+    names = first if header else None
+    rows = body[1:] if header else body
+    return Table(path, names, [_split(ln, delimiter) for _, ln in rows], [k for k, _ in rows], [None] * len(rows))
+
+
+def _flatten(row) -> tuple[list, list[str] | None]:
+    """A YAML row as cells and their names: a mapping's list values become ``key[1]``, ``key[2]``, ..."""
+    if isinstance(row, list):
+        return row, None
+    cells, names = [], []
+    for k, v in row.items():
+        values = v if isinstance(v, list) else [v]
+        cells += values
+        names += [f"{k}[{i + 1}]" for i in range(len(values))] if isinstance(v, list) else [str(k)]
+    return cells, names
+
+
+def _yaml_blocks(path: str, doc, read: dict) -> list[tuple[str | None, object, int | None]]:
+    """``(block name, its rows' list, line)`` per block (one unnamed block without ``read.blocks``)."""
+    key_blocks, key_rows = read.get("blocks"), read.get("rows")
+    if key_blocks is None:
+        rows = doc.get(key_rows) if key_rows is not None and isinstance(doc, dict) else doc
+        return [(None, rows, _line(doc, key_rows))]
+    blocks = doc.get(key_blocks) if isinstance(doc, dict) else None
+    if isinstance(blocks, dict):  # name: block
+        items = [(str(k), b, _line(blocks, k)) for k, b in blocks.items()]
+    elif isinstance(blocks, list):
+        items = [(None, b, _line(b)) for b in blocks]
+    else:
+        raise MeasurementFileError(path, f"expected a list or mapping of blocks under {key_blocks!r}")
+    out = []
+    for k, (name, block, line) in enumerate(items):
+        if not isinstance(block, dict) and key_rows is not None:
+            raise MeasurementFileError(path, f"block {k + 1} is not a mapping with {key_rows!r}", line=line)
+        rows = block.get(key_rows) if key_rows is not None else block
+        out.append((name if name is not None else block.get("name", f"B{k + 1}"), rows, line))
+    return out
+
+
+def _yaml_table(path: str, read: dict) -> Table:
+    doc = _load_yaml(path, "file")
+    table = Table(path, None, [], [], [])
+    for name, rows, line in _yaml_blocks(path, doc, read):
+        if not isinstance(rows, list):
+            raise MeasurementFileError(path, f"expected a list of rows under {read.get('rows')!r}", line=line)
+        for row in rows:
+            cells, names = _flatten(row if isinstance(row, (list, dict)) else [row])
+            if table.header is None and names is not None:
+                table.header = names
+            if names is not None and names != table.header:
+                raise MeasurementFileError(
+                    path, f"this row's keys {names} differ from the first row's {table.header}", line=_line(row)
+                )
+            table.rows.append(cells)
+            table.lines.append(_line(row) or line)
+            table.blocks.append(name)
+    if not table.rows:
+        raise MeasurementFileError(path, "no rows")
+    return table
+
+
+# ------------------------------------------------------------------------------------------------ the columns
+def _to_float(cell, read: dict) -> float | None:
+    if isinstance(cell, bool):
+        return None
+    if isinstance(cell, (int, float)):
+        return float(cell)
+    text = str(cell).strip()
+    if read.get("decimal", ".") == ",":
+        text = text.replace(",", ".")
+    try:
+        return float(text)
+    except ValueError:
+        return None
+
+
+def columns_of(spec, table: Table, map_path: str, where: str) -> list[int]:
+    """0-based column indices of a column spec (numbers, ``"a-b"`` ranges, header names, lists of them)."""
+    if isinstance(spec, list):
+        return [c for s in spec for c in columns_of(s, table, map_path, where)]
+    header = table.header or []
+    if isinstance(spec, str) and spec in header:
+        return [header.index(spec)]
+    if isinstance(spec, str) and any(h.startswith(f"{spec}[") for h in header):
+        return [i for i, h in enumerate(header) if re.fullmatch(rf"{re.escape(spec)}\[\d+\]", h)]
+    m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", str(spec)) if not isinstance(spec, bool) else None
+    if m is None:
+        known = f"; its columns: {', '.join(header)}" if header else " (it has no header: give column numbers)"
+        raise MeasurementFileError(map_path, f"{where}: {spec!r} is no column of {table.path}{known}")
+    lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
+    if lo < 1 or hi < lo:
+        raise MeasurementFileError(map_path, f"{where}: {spec!r}: columns count from 1, ranges go up")
+    return list(range(lo - 1, hi))
+
+
+def numbers(table: Table, cols: list[int], read: dict) -> torch.Tensor:
+    """The cells of ``cols`` as ``(rows, len(cols))`` float64; a missing or non-numeric cell is an error naming the
+    file, line and column."""
+    out = torch.empty(len(table.rows), len(cols), dtype=F64)
+    for i, row in enumerate(table.rows):
+        for j, c in enumerate(cols):
+            name = table.header[c] if table.header and c < len(table.header) else f"{c + 1}"
+            if c >= len(row):
+                raise MeasurementFileError(
+                    table.path, f"the row has {len(row)} cells, column {c + 1} is missing", line=table.lines[i]
+                )
+            v = _to_float(row[c], read)
+            if v is None or not math.isfinite(v):
+                raise MeasurementFileError(
+                    table.path, f"{str(row[c])[:40]!r} is not a finite number", line=table.lines[i], column=name
+                )
+            out[i, j] = v
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- the import
+@dataclass
+class _Inputs:
+    """The INPUT files, each read once when a role first names it."""
+
+    map_path: str
+    paths: list[str]
+    read: dict
+    tables: dict = field(default_factory=dict)
+
+    def table(self, k: int, doc: dict, key: str) -> Table:
+        if k > len(self.paths):
+            raise MeasurementFileError(
+                self.map_path,
+                f"'{key}' reads input {k}, the command gave {len(self.paths)} INPUT file(s)",
+                line=_line(doc, key),
+                column=key,
+            )
+        if k not in self.tables:
+            self.tables[k] = read_table(self.paths[k - 1], self.read)
+        return self.tables[k]
+
+
+def _joints(doc: dict, inputs: _Inputs, angle: float) -> tuple[Table, torch.Tensor]:
+    """The joints' table and the model joints ``(N, dof)`` [rad]: ``sign * reading + offset`` per listed column."""
+    role = _role(doc["joints"], inputs.map_path, doc, "joints")
+    if len(role["input"]) != 1:
+        raise MeasurementFileError(inputs.map_path, "'joints' come from one input", line=_line(doc, "joints"))
+    table = inputs.table(role["input"][0], doc, "joints")
+    cols = columns_of(role["columns"], table, inputs.map_path, "joints.columns")
+    raw = numbers(table, cols, inputs.read)
+    dof = len(cols)
+    for key, default in (("sign", 1.0), ("offset", 0.0)):
+        v = role.get(key, [default] * dof)
+        ok = isinstance(v, list) and len(v) == dof and all(_to_float(x, {}) is not None for x in v)
+        if not ok or (key == "sign" and any(float(x) not in (1.0, -1.0) for x in v)):
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"joints.{key} must list {dof} {'signs (1 or -1)' if key == 'sign' else 'numbers'}, got {v!r}",
+                line=_line(doc["joints"], key) if isinstance(doc["joints"], dict) else None,
+                column=key,
+            )
+        role[key] = torch.tensor([float(x) for x in v], dtype=F64)
+    return table, (role["sign"] * raw + role["offset"]) * angle
+
+
+def _rotation_rows(R: torch.Tensor, table: Table, cols: list[int]) -> torch.Tensor:
+    """Rotation vectors ``(N, 3)`` of ``R (N, 3, 3)``; a matrix that is not a rotation names its row."""
+    eye = torch.eye(3, dtype=F64)
+    bad = ((R.transpose(-1, -2) @ R - eye).abs().amax((-1, -2)) > ROTATION_TOLERANCE) | (torch.linalg.det(R) <= 0)
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        raise MeasurementFileError(
+            table.path,
+            f"columns {cols[0] + 1}..{cols[-1] + 1} hold no rotation (R^T R differs from I by more than "
+            f"{ROTATION_TOLERANCE:g}, or det R <= 0)",
+            line=table.lines[i],
+        )
+    return matrix_to_rotvec(R)
+
+
+def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: float):
+    """``(p (N, 3) [m] or None, r (N, 3) [rad] or None)`` of one points table for ``position``, ``matrix`` (16 or
+    12 values, row-major) or ``quaternion`` (``order: wxyz`` default, or ``xyzw``)."""
+    cols = columns_of(role["columns"], table, inputs.map_path, f"{role_key}.columns")
+    v = numbers(table, cols, inputs.read)
+    want = {"position": (3,), "matrix": (16, 12), "quaternion": (4,)}[role_key]
+    if len(cols) not in want:
+        raise MeasurementFileError(
+            inputs.map_path, f"{role_key}.columns names {len(cols)} columns, {' or '.join(map(str, want))} expected"
+        )
+    if role_key == "position":
+        return v * length, None
+    if role_key == "matrix":
+        M = v.reshape(-1, len(cols) // 4, 4)
+        return M[:, :3, 3] * length, _rotation_rows(M[:, :3, :3], table, cols)
+    order = role.get("order", "wxyz")
+    if order not in ("wxyz", "xyzw"):
+        raise MeasurementFileError(inputs.map_path, f"quaternion.order must be wxyz or xyzw, got {order!r}")
+    w, x, y, z = (v if order == "wxyz" else v[:, [3, 0, 1, 2]]).unbind(-1)
+    n = torch.stack([w, x, y, z], -1).norm(dim=-1)
+    if bool(((n - 1).abs() > 1e-3).any()):
+        i = int(((n - 1).abs() > 1e-3).nonzero()[0, 0])
+        raise MeasurementFileError(
+            table.path, f"the quaternion's norm is {float(n[i]):.6g}, not 1", line=table.lines[i]
+        )
+    w, x, y, z = w / n, x / n, y / n, z / n
+    R = torch.stack(
+        [
+            torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            torch.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            torch.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+    return None, matrix_to_rotvec(R)
+
+
+def _points(doc: dict, inputs: _Inputs, joints: Table, length: float) -> list[tuple[int, Table, dict]]:
+    """Per points input ``(input number, table, {"p": .., "r": ..})``; every table pairs row by row with the
+    joints' (the same table, or as many rows)."""
+    keys = [k for k in ("position", "matrix", "quaternion") if k in doc]
+    if "matrix" in keys and len(keys) > 1:
+        raise MeasurementFileError(inputs.map_path, "a 'matrix' holds position and orientation: give it alone")
+    roles = {k: _role(doc[k], inputs.map_path, doc, k) for k in keys}
+    given = {tuple(r.get("input") if isinstance(doc[k], dict) and "input" in doc[k] else []) for k, r in roles.items()}
+    if len(given) > 1:
+        raise MeasurementFileError(inputs.map_path, f"{' and '.join(keys)} must read the same inputs")
+    numbers_in = list(next(iter(given))) if given and next(iter(given)) else [inputs.paths.index(joints.path) + 1]
+    out = []
+    for k in numbers_in:
+        table = inputs.table(k, doc, keys[0] if keys else "joints")
+        if len(table.rows) != len(joints.rows):
+            raise MeasurementFileError(
+                table.path,
+                f"{len(table.rows)} rows, the joints' file {joints.path} has {len(joints.rows)}: rows pair by order",
+            )
+        pose = {"p": None, "r": None}
+        for key, role in roles.items():
+            p, r = _pose(key, role, table, inputs, length)
+            pose["p"] = p if p is not None else pose["p"]
+            pose["r"] = r if r is not None else pose["r"]
+        out.append((k, table, pose))
+    return out
+
+
+def _label_cell(cell) -> str:
+    if isinstance(cell, float) and cell.is_integer():
+        return str(int(cell))
+    return str(cell).strip()
+
+
+def _labels(doc: dict, key: str, points: list, inputs: _Inputs) -> list[str] | None:
+    """The ``station`` or ``probe`` name of every output row (points inputs in order, rows in order), or None."""
+    spec = doc.get(key)
+    if spec is None:
+        return None
+    if isinstance(spec, list):
+        if len(spec) != len(points):
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"'{key}' names {len(spec)} inputs, the points come from {len(points)}",
+                line=_line(doc, key),
+                column=key,
+            )
+        return [str(name) for (_, table, _), name in zip(points, spec) for _ in table.rows]
+    if isinstance(spec, dict) and set(spec) == {"column"}:
+        out = []
+        for _, table, _ in points:
+            (c,) = columns_of(spec["column"], table, inputs.map_path, f"{key}.column")
+            out += [_label_cell(row[c]) if c < len(row) else "" for row in table.rows]
+        return out
+    if isinstance(spec, dict) and set(spec) == {"block"}:
+        return [str(b) for _, table, _ in points for b in table.blocks]
+    raise MeasurementFileError(
+        inputs.map_path,
+        f"'{key}' is a list of names (one per points input), {{column: ..}} or {{block: ..}}",
+        line=_line(doc, key),
+        column=key,
+    )
+
+
+def _extra(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
+    """``extra: {name: columns}`` of the joints' table; a name over k > 1 columns becomes name1..namek."""
+    spec = doc.get("extra", {})
+    if not isinstance(spec, dict):
+        raise MeasurementFileError(inputs.map_path, "'extra' maps names to columns", line=_line(doc, "extra"))
+    out = {}
+    for name, cols_spec in spec.items():
+        cols = columns_of(cols_spec, table, inputs.map_path, f"extra.{name}")
+        v = numbers(table, cols, inputs.read)
+        names = [str(name)] if len(cols) == 1 else [f"{name}{i + 1}" for i in range(len(cols))]
+        out.update({n: v[:, i].contiguous() for i, n in enumerate(names)})
+    return out
+
+
+def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements:
+    """The measurements the MAP reads from ``paths`` (the INPUT files, numbered from 1), in SI units.
+
+    Rows: per points input in order (one per probe or station where ``probe``/``station`` lists them), its rows in
+    order, each with the joints of the row of the same number.
+
+    Raises:
+        MeasurementFileError: the MAP or an input, naming the file, line and column.
+    """
+    doc = read_map(map_path)
+    units = doc.get("units", {})
+    length, angle = LENGTH[units.get("length", "m")], ANGLE[units.get("angle", "rad")]
+    inputs = _Inputs(str(map_path), [str(p) for p in paths], doc.get("read", {}))
+    table, q = _joints(doc, inputs, angle)
+    points = _points(doc, inputs, table, length)
+    if len(points) > 1 and doc.get("probe") is None and doc.get("station") is None:
+        raise MeasurementFileError(
+            inputs.map_path, "the points come from several inputs: name them, 'probe: [..]' or 'station: [..]'"
+        )
+    k = len(points)
+    extra = {n: v.repeat(k) for n, v in _extra(doc, table, inputs).items()}
+    cat = [pose[key] for _, _, pose in points for key in ("p", "r")]
+    p = torch.cat([pose["p"] for _, _, pose in points]) if cat[0] is not None else None
+    r = torch.cat([pose["r"] for _, _, pose in points]) if cat[1] is not None else None
+    labels = {}
+    for key in ("station", "probe"):
+        names = _labels(doc, key, points, inputs)
+        if names is not None:
+            labels[key], labels[f"{key}_names"] = labels_of(names)
+    return Measurements(
+        q=q.repeat(k, 1),
+        p=p,
+        r=r,
+        t=extra.pop("t", None),
+        temperature=extra.pop("temperature", None),
+        extra=extra,
+        lines=tuple(table.lines) * k,
+        meta={"converted_from": ", ".join(Path(x).name for x in paths)},
+        **labels,
+    )
+
+
+def convert_mapped(map_path, paths: list[str], out, *, written_by: str | None = None) -> Measurements:
+    """:func:`import_mapped`, then the measurement file ``out`` written (atomically; nothing on an error)."""
+    if not paths:
+        raise OptionError("convert --map needs at least one INPUT file")
+    m = import_mapped(map_path, paths)
+    write_measurements(out, m, written_by=written_by)
+    return m
