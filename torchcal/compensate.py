@@ -47,6 +47,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal import _console
 from torchcal._threads import torch_threads
 from torchcal.effects.base import Context, motion_direction
 from torchcal.effects.model import MeasurementModel
@@ -192,7 +193,7 @@ def _solve(
     lam = torch.full((q.shape[0],), lam0, dtype=F64, device=q.device)
     eye = torch.eye(3, dtype=F64, device=q.device)
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in _console.progress(range(1, max_iter + 1), desc=f"compensate: {q.shape[0]} rows"):
         active = err > tol
         if not bool(active.any()):
             it -= 1

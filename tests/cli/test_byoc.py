@@ -76,3 +76,47 @@ def test_export_writes_what_other_software_reads(run_dir, tmp_path):
     urdf_run.mkdir()
     assert main(["export", str(urdf_run), "--format", "dh", "--out", str(tmp_path / "x.yaml"), "--quiet"]) == 2
     assert not (tmp_path / "x.yaml").exists()
+
+
+def _on_a_terminal(args: list[str], cwd) -> str:
+    """Run ``python -m torchcal ARGS`` with stdout and stderr on a pseudo-terminal; what it printed there."""
+    import fcntl
+    import os
+    import pty
+    import struct
+    import subprocess
+    import sys
+    import termios
+
+    master, slave = pty.openpty()
+    # a terminal of 30 x 120 (a fresh pseudo-terminal is 0 x 0, where tqdm draws an empty bar)
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 120, 0, 0))
+    env = {**os.environ, "PYTHONPATH": str(TESTS.parent), "OMP_NUM_THREADS": "1", "COLUMNS": "120"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "torchcal", *args],
+        stdout=slave,
+        stderr=slave,
+        stdin=subprocess.DEVNULL,
+        cwd=cwd,
+        env=env,
+    )
+    os.close(slave)
+    chunks = []
+    while True:
+        try:
+            data = os.read(master, 4096)
+        except OSError:  # EIO: the child closed the terminal
+            break
+        if not data:
+            break
+        chunks.append(data)
+    os.close(master)
+    assert proc.wait(timeout=120) == 0
+    return b"".join(chunks).decode("utf-8", "replace")
+
+
+def test_a_long_step_shows_progress_on_a_terminal_and_nothing_with_quiet(tmp_path):
+    args = ["plan", "--robot", "ur5", "--n", "40", "--pool", "300", "--out"]
+    shown = _on_a_terminal([*args, str(tmp_path / "a.csv")], tmp_path)
+    assert "plan: picks:" in shown and "%|" in shown  # tqdm's bar, drawn on the terminal
+    assert _on_a_terminal([*args, str(tmp_path / "b.csv"), "--quiet"], tmp_path) == ""

@@ -56,7 +56,7 @@ from collections.abc import Callable, Sequence
 
 import torch
 
-from torchcal import _lbfgs
+from torchcal import _console, _lbfgs
 from torchcal.effects.base import Context, Effect
 
 Tensor = torch.Tensor
@@ -191,7 +191,7 @@ class SupportGate(Effect):
         R = robot.T_tracker_base()[:3, :3].detach()
         w = net.flat().detach()
         var_net = torch.empty(len(q), 3, dtype=q.dtype, device=q.device)
-        for i in range(0, len(q), 1024):  # bounded memory: (1024, 3, n_weights) Jacobian rows at a time
+        for i in _console.progress(range(0, len(q), 1024), desc="predictive sigma"):  # (1024, 3, n_weights) rows
             J = net.jacobian_flat(w, q[i : i + 1024].detach())[1][..., self.weight_index]
             J = R @ J  # (n, 3, k) in the tracker frame
             var_net[i : i + 1024] = torch.einsum("nak,kl,nal->na", J, self.weight_cov, J)

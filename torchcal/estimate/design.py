@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchcal import _console
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
@@ -228,7 +229,7 @@ def greedy_design(
         raise OptionError(f"unknown design criterion {criterion!r}; valid: {', '.join(CRITERIA)}")
     W = mean_information(problem) if criterion == "I" else None
     order, history, kept = [], [], {}
-    for j in range(k):
+    for j in _console.progress(range(k), desc="plan: picks"):
         B = (A2 @ Sigma).reshape(N, 3, P)  # A_i Sigma
         G = eye + B @ A.transpose(1, 2)  # I + A_i Sigma A_i^T
         d_gain = torch.linalg.slogdet(G).logabsdet

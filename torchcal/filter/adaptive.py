@@ -95,6 +95,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import nn
 
+from torchcal import _console
 from torchcal._threads import torch_threads
 from torchcal.effects.learned import CorrectionNet
 from torchcal.errors import EstimationError, OptionError, ShapeError
@@ -756,7 +757,7 @@ class _Pass:
     def filter(self) -> FilterStatus | str:
         """Run the pass; returns its status (OK, or why it stopped)."""
         s, cfg = self.s, self.cfg
-        for i in range(s.n_train):
+        for i in _console.progress(range(s.n_train), desc="integrated: filter"):
             self.last = i
             if i % cfg.relinearise_every == 0:
                 self.relinearise(i)

@@ -50,6 +50,7 @@ from enum import Enum
 import torch
 from torch import nn
 
+from torchcal import _console
 from torchcal._threads import torch_threads
 from torchcal.effects.learned import CorrectionNet
 from torchcal.errors import EstimationError, OptionError
@@ -410,7 +411,7 @@ class _Pass:
 
     def filter(self) -> None:
         cfg = self.cfg
-        for i in range(self.n_train):
+        for i in _console.progress(range(self.n_train), desc="integrated: filter"):
             self.last = i
             if i > 0:
                 self.predict(i)

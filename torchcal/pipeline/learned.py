@@ -460,7 +460,7 @@ def refine_learned(
     best = record.evidence["validation_rmse_after_mm"] * 1e-3
     best_e = None
     history = [best * 1e3]
-    for _ in range(rounds):
+    for _ in _console.progress(range(rounds), desc="learned: alternating refits"):
         trial = copy.deepcopy(model)
         try:
             fit, e_val = _refit_with_learned(work, trial, train, trajectory, gp)

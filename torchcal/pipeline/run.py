@@ -210,7 +210,8 @@ def calibrate(
         if opts.method == DEFAULT_METHOD:
             opts = dataclasses.replace(opts, method="kinematic")
     run = start(robot, data, opts, robot_spec=robot_spec, base_link=base_link, tip_link=tip_link, prior=prior)
-    for stage in (PRIOR_METHOD if prior is not None else METHOD_TABLE[opts.method]).stages:
+    stages = (PRIOR_METHOD if prior is not None else METHOD_TABLE[opts.method]).stages
+    for stage in _console.progress(stages, desc="calibrate: stages"):
         run = run.apply(stage(run))
     return run
 

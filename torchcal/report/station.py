@@ -44,6 +44,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal import _console
 from torchcal._outdir import MARKER, replace_dir
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel
@@ -352,7 +353,7 @@ def fit_station(
     rw = (fit.whitening @ r.unsqueeze(-1)).squeeze(-1)
     loo = torch.full((n,), float("nan"), dtype=F64, device=r.device)
     eye = torch.eye(3, dtype=F64, device=r.device)
-    for i in range(n):
+    for i in _console.progress(range(n), desc="station: leave-one-out"):
         H_ii = Jb[i] @ Ninv @ Jb[i].T
         M = eye - H_ii
         if float(torch.linalg.svdvals(M)[-1]) > 1e-8:
