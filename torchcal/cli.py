@@ -186,6 +186,48 @@ def _add_units(p: argparse.ArgumentParser) -> None:
 METHOD_CHOICES = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
 
 
+def _add_import_export(sub) -> None:
+    """``convert`` (other layouts in) and ``export`` (the calibration out to other software)."""
+    cv = sub.add_parser(
+        "convert",
+        help="import measurements in another layout (--map) or a third-party data set (--from)",
+        description="Write a torchcal measurement file (CSV) from measurements in other layouts. --map MAP.yaml: "
+        "joints and points in one file or several (text with any delimiter, header or not; YAML; MATLAB .mat), "
+        "their units, joint order, signs and offsets, 4x4 or quaternion poses, several reflectors (probe) or "
+        "placements (station), extra columns kept, as the MAP describes (docs/reference.md, 'Importing "
+        "measurements'). --from ipa-robot-accuracy: the public UR10 data set.",
+    )
+    cv.add_argument("inputs", nargs="+", metavar="INPUT", help="the file(s) to convert; the MAP numbers them from 1")
+    cv.add_argument("--map", default=None, metavar="MAP.yaml", help="the YAML file that describes the inputs' layout")
+    cv.add_argument(
+        "--from",
+        dest="fmt",
+        default=None,
+        choices=["ipa-robot-accuracy"],
+        help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
+        "(Landgraf et al., IEEE CASE 2021, MIT licence)",
+    )
+    cv.add_argument("--out", required=True, help="measurement file to write")
+    _add_force(cv)
+    _add_common(cv)
+
+    ex = sub.add_parser(
+        "export",
+        help="write a calibrated run's geometry for other software (UR ROS 2 driver, DH table, URDF)",
+        description="Write the calibrated chain of a run directory in another software's format. ur-ros2: the UR "
+        "ROS 2 driver's kinematics parameter file (as ur_calibration writes it: per joint x, y, z, roll, pitch, yaw "
+        "under 'kinematics'; base_link_inertia is the run's base frame, tool0 its flange); a robot that is not six "
+        "revolute joints, or whose flange is off the last axis, is refused. dh: a DH / MDH robot file that --robot "
+        "loads back with the same forward kinematics (DH robots). urdf: the calibrated URDF with the probe and "
+        "tracker frames. The instrument pose, lever arm and non-geometric effects stay in the run (report.json).",
+    )
+    ex.add_argument("run", help="run directory written by calibrate (or station)")
+    ex.add_argument("--format", required=True, choices=("ur-ros2", "dh", "urdf"), help="the file to write")
+    ex.add_argument("--out", required=True, help="file to write")
+    _add_force(ex)
+    _add_common(ex)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="torchcal", description="Robot arm calibration from laser-tracker data.")
     parser.add_argument("--debug", action="store_true", help="print the full traceback of an unexpected error")
@@ -549,44 +591,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(pl)
     _add_common(pl)
 
-    cv = sub.add_parser(
-        "convert",
-        help="import measurements in another layout (--map) or a third-party data set (--from)",
-        description="Write a torchcal measurement file (CSV) from measurements in other layouts. --map MAP.yaml: "
-        "joints and points in one file or several (text with any delimiter, header or not; YAML; MATLAB .mat), "
-        "their units, joint order, signs and offsets, 4x4 or quaternion poses, several reflectors (probe) or "
-        "placements (station), extra columns kept, as the MAP describes (docs/reference.md, 'Importing "
-        "measurements'). --from ipa-robot-accuracy: the public UR10 data set.",
-    )
-    cv.add_argument("inputs", nargs="+", metavar="INPUT", help="the file(s) to convert; the MAP numbers them from 1")
-    cv.add_argument("--map", default=None, metavar="MAP.yaml", help="the YAML file that describes the inputs' layout")
-    cv.add_argument(
-        "--from",
-        dest="fmt",
-        default=None,
-        choices=["ipa-robot-accuracy"],
-        help="ipa-robot-accuracy: Series_*/measurements_*.csv of the UR10 + Leica data set "
-        "(Landgraf et al., IEEE CASE 2021, MIT licence)",
-    )
-    cv.add_argument("--out", required=True, help="measurement file to write")
-    _add_force(cv)
-    _add_common(cv)
-
-    ex = sub.add_parser(
-        "export",
-        help="write a calibrated run's geometry for other software (UR ROS 2 driver, DH table, URDF)",
-        description="Write the calibrated chain of a run directory in another software's format. ur-ros2: the UR "
-        "ROS 2 driver's kinematics parameter file (as ur_calibration writes it: per joint x, y, z, roll, pitch, yaw "
-        "under 'kinematics'; base_link_inertia is the run's base frame, tool0 its flange); a robot that is not six "
-        "revolute joints, or whose flange is off the last axis, is refused. dh: a DH / MDH robot file that --robot "
-        "loads back with the same forward kinematics (DH robots). urdf: the calibrated URDF with the probe and "
-        "tracker frames. The instrument pose, lever arm and non-geometric effects stay in the run (report.json).",
-    )
-    ex.add_argument("run", help="run directory written by calibrate (or station)")
-    ex.add_argument("--format", required=True, choices=("ur-ros2", "dh", "urdf"), help="the file to write")
-    ex.add_argument("--out", required=True, help="file to write")
-    _add_force(ex)
-    _add_common(ex)
+    _add_import_export(sub)
 
     d = sub.add_parser(
         "demo",

@@ -152,3 +152,27 @@ def test_bad_input_names_file_line_and_column_and_writes_nothing(tmp_path, capsy
         assert not (tmp_path / "out.csv").exists()
     assert main(["convert", str(tmp_path / "data.csv"), "--out", str(tmp_path / "out.csv")]) == 2
     assert "one of --map" in capsys.readouterr().err
+
+
+def test_quaternions_in_either_order_and_a_probe_column(tmp_path):
+    m = campaign(tmp_path, "--orientation", "0.01")
+    angle = m.r.norm(dim=-1, keepdim=True)
+    quat = torch.cat([torch.cos(angle / 2), torch.sin(angle / 2) * m.r / angle], -1)  # w, x, y, z
+    quat[::2] = -quat[::2]  # q and -q are the same rotation
+    names = ["front" if i % 3 else "back" for i in range(m.n)]
+    lines = ["J1,J2,J3,J4,J5,J6,X,Y,Z,QX,QY,QZ,QW,Reflector"]
+    for i in range(m.n):
+        cells = [*m.q[i].tolist(), *m.p[i].tolist(), *quat[i, [1, 2, 3, 0]].tolist()]
+        lines.append(",".join(f"{v:.17g}" for v in cells) + f",{names[i]}")
+    (tmp_path / "poses.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    map_text = """joints: [J1, J2, J3, J4, J5, J6]
+position: [X, Y, Z]
+quaternion: {columns: [QX, QY, QZ, QW], order: xyzw}
+probe: {column: Reflector}
+"""
+    assert convert(map_text, [tmp_path / "poses.csv"], tmp_path / "q.csv", tmp_path) == 0
+    out = torchcal.read_measurements(tmp_path / "q.csv")
+    _close(out.q, m.q)
+    _close(out.p, m.p)
+    _close(tf.so3_exp(out.r), tf.so3_exp(m.r), 1e-12)
+    assert out.probe_names == ("back", "front") and [out.probe_names[int(k)] for k in out.probe] == names
