@@ -138,10 +138,13 @@ def test_bad_input_names_file_line_and_column_and_writes_nothing(tmp_path, capsy
     good = "joints: [J1, J2]\nposition: [X, Y, Z]\n"
     cases = [
         (good, "data.csv, line 3, column 'J2': 'two' is not a finite number"),
-        ("joints: [J1, J2]\nposition: [X, Y, W]\n", "'W' is no column of"),
+        ("joints: [J1, J2]\nposition: [X, Y, W]\n", "map.yaml, line 2: position.columns: 'W' is no column of"),
         ("joints: [J1, J2]\npositions: [X, Y, Z]\n", "map.yaml, line 2, column 'positions': unknown key"),
         ("joints: {columns: [J1, J2], sign: [1, 2]}\n", "joints.sign must list 2 signs"),
         ("joints: [J1, J2]\nposition: {input: 2, columns: 1-3}\n", "'position' reads input 2"),
+        ("joints: [J1, J2]\nposition: [X, Y, Z]\nextra: {x: 1}\n", "line 3, column 'x': extra: 'x' is a column of"),
+        ("read: {comment: 5}\njoints: [J1, J2]\n", "line 1, column 'comment': read.comment = 5"),
+        ("joints: [J1, J2]\nposition: [X, Y, Z]\nprobe: {column: 1-2}\n", "'probe.column' names 2 columns"),
     ]
     for k, (map_text, message) in enumerate(cases):
         if k == 1:  # the other errors on a file whose cells are all numbers

@@ -27,7 +27,13 @@ from pathlib import Path
 import torch
 
 from torchcal.data.ipa import matrix_to_rotvec
-from torchcal.data.measurements import Measurements, labels_of, write_measurements
+from torchcal.data.measurements import (
+    Measurements,
+    _valid_extra_name,
+    _valid_label,
+    labels_of,
+    write_measurements,
+)
 from torchcal.errors import MeasurementFileError, OptionError
 
 F64 = torch.float64
@@ -112,6 +118,17 @@ def read_map(path: str | os.PathLike) -> dict:
         block = doc.get(key, {})
         if not isinstance(block, dict) or set(block) - set(valid):
             raise MeasurementFileError(path, f"'{key}' takes {', '.join(valid)}", line=_line(doc, key), column=key)
+    for key, value in doc.get("read", {}).items():
+        ok = isinstance(value, bool) or value == "auto" if key == "header" else isinstance(value, str) and value != ""
+        if not ok or (key == "decimal" and value not in (".", ",")):
+            raise MeasurementFileError(
+                path,
+                f"read.{key} = {value!r}: "
+                + ("true, false or auto" if key == "header" else "a text")
+                + (" ('.' or ',')" if key == "decimal" else ""),
+                line=_line(doc["read"], key),
+                column=key,
+            )
     units = doc.get("units", {})
     for key, table in (("length", LENGTH), ("angle", ANGLE)):
         if units.get(key, "m" if key == "length" else "rad") not in table:
@@ -134,6 +151,7 @@ def _role(spec, map_path: str, doc: dict, key: str) -> dict:
             map_path, f"'{key}.input' must be input numbers from 1, got {given!r}", line=_line(doc, key), column=key
         )
     role["input"] = inputs
+    role["line"] = _line(doc, key)
     return role
 
 
@@ -230,8 +248,8 @@ def _yaml_blocks(path: str, doc, read: dict) -> list[tuple[str | None, object, i
         raise MeasurementFileError(path, f"expected a list or mapping of blocks under {key_blocks!r}")
     out = []
     for k, (name, block, line) in enumerate(items):
-        if not isinstance(block, dict) and key_rows is not None:
-            raise MeasurementFileError(path, f"block {k + 1} is not a mapping with {key_rows!r}", line=line)
+        if not isinstance(block, dict) and (key_rows is not None or name is None):
+            raise MeasurementFileError(path, f"block {k + 1} is not a mapping (with its rows under 'rows')", line=line)
         rows = block.get(key_rows) if key_rows is not None else block
         out.append((name if name is not None else block.get("name", f"B{k + 1}"), rows, line))
     return out
@@ -274,10 +292,11 @@ def _to_float(cell, read: dict) -> float | None:
         return None
 
 
-def columns_of(spec, table: Table, map_path: str, where: str) -> list[int]:
-    """0-based column indices of a column spec (numbers, ``"a-b"`` ranges, header names, lists of them)."""
+def columns_of(spec, table: Table, map_path: str, where: str, line: int | None = None) -> list[int]:
+    """0-based column indices of a column spec (numbers, ``"a-b"`` ranges, header names, lists of them); an error
+    names the MAP's ``line`` where the spec stands."""
     if isinstance(spec, list):
-        return [c for s in spec for c in columns_of(s, table, map_path, where)]
+        return [c for s in spec for c in columns_of(s, table, map_path, where, line)]
     header = table.header or []
     if isinstance(spec, str) and spec in header:
         return [header.index(spec)]
@@ -286,10 +305,10 @@ def columns_of(spec, table: Table, map_path: str, where: str) -> list[int]:
     m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", str(spec)) if not isinstance(spec, bool) else None
     if m is None:
         known = f"; its columns: {', '.join(header)}" if header else " (it has no header: give column numbers)"
-        raise MeasurementFileError(map_path, f"{where}: {spec!r} is no column of {table.path}{known}")
+        raise MeasurementFileError(map_path, f"{where}: {spec!r} is no column of {table.path}{known}", line=line)
     lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
     if lo < 1 or hi < lo:
-        raise MeasurementFileError(map_path, f"{where}: {spec!r}: columns count from 1, ranges go up")
+        raise MeasurementFileError(map_path, f"{where}: {spec!r}: columns count from 1, ranges go up", line=line)
     return list(range(lo - 1, hi))
 
 
@@ -342,7 +361,7 @@ def _joints(doc: dict, inputs: _Inputs, angle: float) -> tuple[Table, torch.Tens
     if len(role["input"]) != 1:
         raise MeasurementFileError(inputs.map_path, "'joints' come from one input", line=_line(doc, "joints"))
     table = inputs.table(role["input"][0], doc, "joints")
-    cols = columns_of(role["columns"], table, inputs.map_path, "joints.columns")
+    cols = columns_of(role["columns"], table, inputs.map_path, "joints.columns", role["line"])
     raw = numbers(table, cols, inputs.read)
     dof = len(cols)
     for key, default in (("sign", 1.0), ("offset", 0.0)):
@@ -377,7 +396,7 @@ def _rotation_rows(R: torch.Tensor, table: Table, cols: list[int]) -> torch.Tens
 def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: float):
     """``(p (N, 3) [m] or None, r (N, 3) [rad] or None)`` of one points table for ``position``, ``matrix`` (16 or
     12 values, row-major) or ``quaternion`` (``order: wxyz`` default, or ``xyzw``)."""
-    cols = columns_of(role["columns"], table, inputs.map_path, f"{role_key}.columns")
+    cols = columns_of(role["columns"], table, inputs.map_path, f"{role_key}.columns", role["line"])
     v = numbers(table, cols, inputs.read)
     want = {"position": (3,), "matrix": (16, 12), "quaternion": (4,)}[role_key]
     if len(cols) not in want:
@@ -458,12 +477,28 @@ def _labels(doc: dict, key: str, points: list, inputs: _Inputs) -> list[str] | N
                 line=_line(doc, key),
                 column=key,
             )
+        bad = [name for name in spec if not _valid_label(str(name))]
+        if bad:
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"'{key}': {bad[0]!r} is no name (non-empty, no ',', quotes or line breaks)",
+                line=_line(doc, key),
+                column=key,
+            )
         return [str(name) for (_, table, _), name in zip(points, spec) for _ in table.rows]
     if isinstance(spec, dict) and set(spec) == {"column"}:
         out = []
         for _, table, _ in points:
-            (c,) = columns_of(spec["column"], table, inputs.map_path, f"{key}.column")
-            out += [_label_cell(row[c]) if c < len(row) else "" for row in table.rows]
+            cols = columns_of(spec["column"], table, inputs.map_path, f"{key}.column", _line(doc, key))
+            if len(cols) != 1:
+                raise MeasurementFileError(inputs.map_path, f"'{key}.column' names {len(cols)} columns, not one")
+            for row, line in zip(table.rows, table.lines):
+                name = _label_cell(row[cols[0]]) if cols[0] < len(row) else ""
+                if not _valid_label(name):
+                    raise MeasurementFileError(
+                        table.path, f"{name!r} is no {key} name (non-empty, no quotes)", line=line, column=key
+                    )
+                out.append(name)
         return out
     if isinstance(spec, dict) and set(spec) == {"block"}:
         return [str(b) for _, table, _ in points for b in table.blocks]
@@ -482,9 +517,17 @@ def _extra(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
         raise MeasurementFileError(inputs.map_path, "'extra' maps names to columns", line=_line(doc, "extra"))
     out = {}
     for name, cols_spec in spec.items():
-        cols = columns_of(cols_spec, table, inputs.map_path, f"extra.{name}")
+        cols = columns_of(cols_spec, table, inputs.map_path, f"extra.{name}", _line(spec, name))
         v = numbers(table, cols, inputs.read)
         names = [str(name)] if len(cols) == 1 else [f"{name}{i + 1}" for i in range(len(cols))]
+        bad = [n for n in names if n not in ("t", "temperature") and not _valid_extra_name(n)]
+        if bad:
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"extra: {bad[0]!r} is a column of the format or not a name (no ',', quotes, leading '#')",
+                line=_line(spec, name),
+                column=str(name),
+            )
         out.update({n: v[:, i].contiguous() for i, n in enumerate(names)})
     return out
 

@@ -40,15 +40,15 @@ def _num(x: float) -> str:
 
 def _axis_frame(axis: torch.Tensor) -> torch.Tensor:
     """A rotation ``A (3, 3)`` whose z column is the unit ``axis (3,)``: ``R_axis(q) = A Rz(q) A^T``."""
-    z = torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype)
+    z = torch.tensor([0.0, 0.0, 1.0], dtype=axis.dtype, device=axis.device)
     c = float(axis @ z)
     if c > 1 - EXACT:
-        return torch.eye(3, dtype=axis.dtype)
+        return torch.eye(3, dtype=axis.dtype, device=axis.device)
     if c < -1 + EXACT:
-        return tf.rot_x(torch.tensor(math.pi, dtype=axis.dtype))
+        return tf.rot_x(torch.tensor(math.pi, dtype=axis.dtype, device=axis.device))
     v = torch.linalg.cross(z, axis)
     K = tf.skew(v)
-    return torch.eye(3, dtype=axis.dtype) + K + K @ K / (1 + c)  # Rodrigues from z to axis
+    return torch.eye(3, dtype=axis.dtype, device=axis.device) + K + K @ K / (1 + c)  # Rodrigues from z to axis
 
 
 def _readings_as_signs(robot: RobotModel) -> tuple[torch.Tensor, torch.Tensor]:
@@ -60,8 +60,8 @@ def _readings_as_signs(robot: RobotModel) -> tuple[torch.Tensor, torch.Tensor]:
     """
     A = robot.readings.matrix().detach().to("cpu", torch.float64)
     b = robot.readings.offset.detach().to("cpu", torch.float64)
-    s = torch.diagonal(A) if A.shape[0] == A.shape[1] else torch.zeros(A.shape[0], dtype=torch.float64)
-    off_diagonal = (A - torch.diag_embed(s)).abs().max() if A.shape[0] == A.shape[1] else torch.tensor(1.0)
+    s = torch.diagonal(A) if A.shape[0] == A.shape[1] else torch.zeros(A.shape[0], dtype=A.dtype, device=A.device)
+    off_diagonal = (A - torch.diag_embed(s)).abs().max() if A.shape[0] == A.shape[1] else A.new_tensor(1.0)
     if A.shape[0] != A.shape[1] or float(off_diagonal) > EXACT or bool(((s.abs() - 1).abs() > EXACT).any()):
         raise RobotSpecError(
             f"robot '{robot.name}': its readings map (model joint = coupling x reading + offset) is not one reading "
@@ -88,11 +88,12 @@ def ur_chain_origins(robot: RobotModel) -> torch.Tensor:
     with torch.no_grad():
         O = g.origins().detach().to("cpu", torch.float64).clone()
         axes = g.axes.detach().to("cpu", torch.float64) * sign.unsqueeze(-1)  # R_a(-r) = R_-a(r)
-    A = torch.eye(4, dtype=torch.float64).repeat(7, 1, 1)  # A[i]: joint i's z onto its axis; A[6] = I
+    A = torch.eye(4, dtype=O.dtype, device=O.device).repeat(7, 1, 1)  # A[i]: joint i's z onto its axis; A[6] = I
     for i in range(6):
         A[i, :3, :3] = _axis_frame(axes[i] / axes[i].norm())
         turn = tf.homogeneous(
-            A[i, :3, :3] @ tf.rot_z(sign[i] * offset[i]) @ A[i, :3, :3].T, torch.zeros(3, dtype=O.dtype)
+            A[i, :3, :3] @ tf.rot_z(sign[i] * offset[i]) @ A[i, :3, :3].T,
+            torch.zeros(3, dtype=O.dtype, device=O.device),
         )
         O[i] = O[i] @ turn  # R_a(s r + c) = R_a(c) R_sa(r), R_a(c) = R_sa(s c): the offset turns the origin
     out = torch.stack([tf.invert(A[i - 1]) @ O[i] @ A[i] if i else O[i] @ A[i] for i in range(6)])
