@@ -266,17 +266,19 @@ def unexplained_entries(
     return out
 
 
-def refresh_unexplained(run, train, trajectory: bool, alpha: float) -> None:
-    """After an accepted learned stage, recompute ``run.diagnosis.unexplained`` on the final model's training
-    residual (the learned correction in place; whitening and Jacobian of the last least-squares fit), keeping
-    the loop's reasons. The entries then carry ``"after": "learned"``."""
-    diag = run.diagnosis
-    reasons = {e["variable"]: e["reason"] for e in diag.unexplained}
+def unexplained_after_learned(
+    model: MeasurementModel, fit, previous: list[dict], train, trajectory: bool, alpha: float
+) -> list[dict]:
+    """What stays unexplained after an accepted learned stage: the entries of the final ``model``'s training
+    residual (the learned correction in place; whitening and Jacobian of ``fit``, the last least-squares fit),
+    keeping the reasons of the loop's ``previous`` entries; each carries ``"after": "learned"``. The pipeline
+    puts them into its diagnosis."""
+    reasons = {e["variable"]: e["reason"] for e in previous}
     ctx = Context.from_measurements(train, trajectory=trajectory)
-    entries = unexplained_entries(run.model, ctx, train.p, run.fits[-1], alpha, reasons)
+    entries = unexplained_entries(model, ctx, train.p, fit, alpha, reasons)
     for e in entries:
         e["after"] = "learned"
-    diag.unexplained = entries
+    return entries
 
 
 def effect_form_params(model: MeasurementModel, index: int, cand: OpenCandidate, fitted: dict) -> dict:
@@ -297,7 +299,7 @@ __all__ = [
     "effect_form_params",
     "localise_fit",
     "open_candidates",
-    "refresh_unexplained",
+    "unexplained_after_learned",
     "residual_workspace",
     "unexplained_entries",
     "MAX_VARIABLES",

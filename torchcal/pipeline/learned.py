@@ -23,7 +23,7 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
-from torchcal.diagnose.tracing import refresh_unexplained
+from torchcal.diagnose.tracing import unexplained_after_learned
 from torchcal.effects import Context, CorrectionNet, Effect, LearnedEffect, MeasurementModel
 from torchcal.effects.gp import GPConditioner, GPCorrection, GPSettings, condition_gp, fit_gp_correction
 from torchcal.effects.grouped import GroupedCorrection
@@ -74,8 +74,11 @@ def _learned(work: StageWork, train: Measurements, trajectory: bool) -> None:
     before = work.stages[-1]
     after = work.add_stage(StageName.LEARNED)
     record.rmse_before_mm, record.rmse_after_mm = before.rmse * 1e3, after.rmse * 1e3
-    if work.diagnosis is not None and work.diagnosis.unexplained:
-        refresh_unexplained(work, train, trajectory, work.options.levels.score)
+    diag = work.diagnosis
+    if diag is not None and diag.unexplained:
+        diag.unexplained = unexplained_after_learned(
+            work.model, work.fits[-1], diag.unexplained, train, trajectory, work.options.levels.score
+        )
 
 
 def condition_on_all(work: StageWork, train: Measurements, trajectory: bool) -> None:
