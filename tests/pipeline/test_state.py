@@ -139,3 +139,20 @@ def test_each_calibrate_flag_sets_one_option():
     assert len(names) == len(set(names)) and set(names) <= set(FLAGS)
     args = build_parser().parse_args(["calibrate", "data.csv", "--robot", "ur5", "--out", "o"])
     assert all(hasattr(args, dest) for dest in CALIBRATE_FLAGS)
+
+
+def test_every_replacing_field_of_a_stage_result_is_a_field_of_the_run_and_is_applied(monkeypatch):
+    """A StageResult field marked ``replaces`` names a field of the run, and apply() carries it over; a field added
+    to StageResult without the mark or a structural rule would be silently dropped, so the set is pinned here."""
+    import dataclasses
+
+    from torchcal.pipeline.state import CalibrationRun, StageResult
+
+    run_fields = {f.name for f in dataclasses.fields(CalibrationRun)}
+    marked = {f.name for f in dataclasses.fields(StageResult) if f.metadata.get("replaces")}
+    assert marked and marked <= run_fields
+    structural = {
+        "stage", "model", "checkpoints", "dropped_stages", "fits_kept", "fits", "effects", "amended",
+        "dropped_effects", "rejections", "notes",
+    }  # fmt: skip
+    assert {f.name for f in dataclasses.fields(StageResult)} == structural | marked

@@ -132,10 +132,14 @@ class CalibrationRun:
         )
         if result.model is not None:
             changes["model"] = result.model
-        for name in ("covariance", "learned_validation_errors", "diagnosis", "filter", "holdout_guard", "prior_update"):
-            if getattr(result, name) is not None:
-                changes[name] = getattr(result, name)
+        for f in dataclasses.fields(result):
+            if f.metadata.get("replaces") and getattr(result, f.name) is not None:
+                changes[f.name] = getattr(result, f.name)
         return dataclasses.replace(self, **changes)
+
+
+#: the mark of a :class:`StageResult` field that replaces the run's field of the same name
+_REPLACES = {"replaces": True}
 
 
 @dataclass(frozen=True)
@@ -153,12 +157,14 @@ class StageResult:
     dropped_effects: tuple[str, ...] = ()  # records taken out, by label
     rejections: tuple[Rejection, ...] = ()
     notes: tuple[Note, ...] = ()
-    covariance: ParameterCovariance | None = None
-    learned_validation_errors: Tensor | None = None
-    diagnosis: Diagnosis | None = None
-    filter: IntegratedFilter | None = None
-    holdout_guard: dict | None = None
-    prior_update: PriorUpdate | None = None
+    # the run's fields of the same name, replaced where set (None: unchanged); :meth:`CalibrationRun.apply` finds
+    # them by this mark, so a field declared here with it is applied without a second list to keep in step
+    covariance: ParameterCovariance | None = field(default=None, metadata=_REPLACES)
+    learned_validation_errors: Tensor | None = field(default=None, metadata=_REPLACES)
+    diagnosis: Diagnosis | None = field(default=None, metadata=_REPLACES)
+    filter: IntegratedFilter | None = field(default=None, metadata=_REPLACES)
+    holdout_guard: dict | None = field(default=None, metadata=_REPLACES)
+    prior_update: PriorUpdate | None = field(default=None, metadata=_REPLACES)
 
     @property
     def changed(self) -> bool:
