@@ -141,7 +141,7 @@ def test_each_calibrate_flag_sets_one_option():
     assert all(hasattr(args, dest) for dest in CALIBRATE_FLAGS)
 
 
-def test_every_replacing_field_of_a_stage_result_is_a_field_of_the_run_and_is_applied(monkeypatch):
+def test_every_replacing_field_of_a_stage_result_is_a_field_of_the_run_and_is_applied():
     """A StageResult field marked ``replaces`` names a field of the run, and apply() carries it over; a field added
     to StageResult without the mark or a structural rule would be silently dropped, so the set is pinned here."""
     import dataclasses
