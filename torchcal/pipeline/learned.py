@@ -354,7 +354,7 @@ def _refit_geometry(
     returns it and the corrections ``(N, 3)`` [m] that the learned model is then refitted to."""
     opts = work.options
     index = len(model.effects) - 1
-    ida = next((f.identifiability for f in reversed(work.fits) if f.identifiability is not None), None)
+    ida = work.identifiability
     groups = GEOMETRIC_GROUPS if ida is not None else ("instrument", "tool")
     # warm-started from the current fit and used to compare models, the refit needs few iterations; where the
     # valley is flat (real data) an uncapped LM crawls on without changing the comparison

@@ -44,6 +44,11 @@ class Stage:
         return S.rmse(self.holdout_errors)
 
 
+def last_identifiability(fits):
+    """The identifiability analysis of the last of ``fits`` that made one (None where none did)."""
+    return next((f.identifiability for f in reversed(fits) if f.identifiability is not None), None)
+
+
 @dataclass(frozen=True)
 class CalibrationRun:
     """Everything a calibration did: the data and their split, the model, the story, the fits and the records.
@@ -97,7 +102,7 @@ class CalibrationRun:
     @property
     def identifiability(self):
         """The identifiability analysis of the last fit that made one (None before the geometric fit)."""
-        return next((f.identifiability for f in reversed(self.fits) if f.identifiability is not None), None)
+        return last_identifiability(self.fits)
 
     @property
     def effects_report(self) -> list[dict]:
@@ -225,7 +230,8 @@ class StageWork:
 
     @property
     def identifiability(self):
-        return next((f.identifiability for f in reversed(self.fits) if f.identifiability is not None), None)
+        """The identifiability analysis of the last fit that made one, the stage's own fits included."""
+        return last_identifiability(self.fits)
 
     def stage(self, name: str) -> Stage:
         return next(s for s in self.stages if s.name == name)
