@@ -26,7 +26,13 @@ import torch
 from torchcal import _console
 from torchcal._threads import torch_threads
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.estimate.fit import GEOMETRIC_GROUPS, place_instrument_and_tool, place_tool_rotation, solve
+from torchcal.estimate.fit import (
+    GEOMETRIC_GROUPS,
+    fit_covariance,
+    place_instrument_and_tool,
+    place_tool_rotation,
+    solve,
+)
 from torchcal.pipeline.checks import check_corrections
 from torchcal.pipeline.holdout import guard_stages, refit_kinematic
 from torchcal.pipeline.integrated import integrated_stage
@@ -203,7 +209,7 @@ def _covariance(run: CalibrationRun) -> ParameterCovariance | None:
     if not run.fits:
         return None
     last = run.fits[-1]
-    cov = ParameterCovariance.from_fit(last.free, last.result)
+    cov = fit_covariance(last)
     params = dict(run.model.named_parameters())
     if cov is None or any(n not in params for n in cov.names):
         return None
