@@ -248,3 +248,34 @@ def test_weak_after_fit_holds_a_weak_combination_where_its_prior_fits_or_the_fit
     assert kept["held"] is False and "part of a weak combination" in kept["reason"]
     far = judged(2.0)  # 4 prior sigma off along a weak direction: the model's error amplified, held all the same
     assert far.get("held", True) and "4.0 of its prior sigma" in far["reason"]
+
+
+def test_detectability_is_the_share_a_map_fit_gives_each_move_and_counts_the_rows_that_tell_it():
+    """A linear toy: each row sees the sum of the first two parameters (weakly) and the third alone; every parameter
+    has a prior of 1 (noise 1). A move of either of the first two shows at most half in itself, the rest in its
+    partner: with 10 rows (information 0.5 on the sum) a 10-sigma move shows 0.25 of it in itself (2.5 sigma in the
+    partner), untold; from 16 rows (0.8: share 0.31) on it is told. The third is told from the start."""
+    from torchcal.estimate.identifiability import detectability
+
+    names = ["a", "b", "c"]
+
+    def normal(n: int, prior: float = 1.0):
+        w = 0.05**0.5  # information 0.05 on the sum per row
+        J = torch.tensor([[w, w, 0.0], [0.0, 0.0, 1.0]], dtype=F64).repeat(n, 1)
+        return J.T @ J + torch.eye(3, dtype=F64) / prior**2, J
+
+    N, J = normal(10)
+    sigma = torch.ones(3, dtype=F64)
+    d = detectability(names, N, sigma, sigma, rows=10)
+    for j in range(3):  # the share is the MAP estimate's own change for a unit move (known answer)
+        x = torch.linalg.solve(N, J.T @ (J @ torch.eye(3, dtype=F64)[j]))
+        assert d.share[j] == pytest.approx(float(x[j]), rel=1e-12)
+    untold = {u["name"]: u for u in d.untold}
+    assert set(untold) == {"a", "b"} and untold["a"]["absorbed_by"] == ["b"] and untold["b"]["absorbed_by"] == ["a"]
+    assert d.confounded == ["a", "b"] or d.confounded == ["b", "a"]
+    # the rows it asks for tell them: with that many rows like these, every share passes 3 / 10
+    N2, _ = normal(d.rows_needed)
+    assert detectability(names, N2, sigma, sigma, rows=d.rows_needed).untold == ()
+    N3, _ = normal(d.rows_needed - 1)
+    assert detectability(names, N3, sigma, sigma, rows=d.rows_needed - 1).untold != ()
+    assert d.rows_needed == 16 and d.to_dict()["poses_to_add"] == 6

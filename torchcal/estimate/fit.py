@@ -511,19 +511,17 @@ def considered(model: MeasurementModel, fit: Fit, residuals, opts: FitOptions, g
         fit's normal matrix is singular.
     """
     free, res = fit.free, fit.result
-    scaled = prior_scales(model, opts)
-    held = [n for n in fit.identifiability.prior_held if n in scaled and n not in free.names]
+    held = [n for n in fit.identifiability.prior_held if n not in free.names]
+    sel, labels = selection(model, groups, {n: True for n in [*free.names, *held]}, effects=effects)
+    both = FreeParameters(model, sel, labels)
+    ps = _priors(model, both, opts, groups)
+    held = [n for n in held if n in both.names and ps is not None and math.isfinite(float(ps[both.names.index(n)]))]
     if not held:
         return None
-    keep = {n: True for n in [*free.names, *held]}
-    sel, labels = selection(model, groups, keep, effects=effects)
-    both = FreeParameters(model, sel, labels)
-    ps = prior_sigmas(both, {}, None, None, scaled)
-    ps_free = _priors(model, both, opts, groups)
     h = torch.tensor([both.names.index(n) for n in held])
     f = torch.tensor([both.names.index(n) for n in free.names])
-    if ps_free is not None:
-        ps_free[h] = float("inf")  # the held members' prior is their doubt below, not data
+    ps_free = ps.clone()
+    ps_free[h] = float("inf")  # the held members' prior is their doubt below, not data
     J = jacobian_of(residuals(both, ps_free))(both.vector())
     try:
         C_free = res.covariance

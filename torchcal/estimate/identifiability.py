@@ -387,16 +387,17 @@ PRIOR_CONFLICT = 3.0
 
 
 def _judge(names, Q, ps, cand, combo: WeakCombination, fmt, x, sigma0_sq, compatible, max_correlation) -> dict | None:
-    """The :func:`weak_after_fit` entry of one weak combination: its member latest in :func:`preference_order` with a
-    prior is held (``held: False``: kept and named, where the data reject its prior value and the prior allows the
-    fitted one), or None where no member has a prior or none is a candidate."""
+    """The :func:`weak_after_fit` entry of one weak combination: its candidate member latest in
+    :func:`preference_order` (of those carrying :data:`HOLD_SHARE` whose holding settles it) is held (``held:
+    False``: kept and named, where the data reject its prior value and the prior allows the fitted one, or where no
+    candidate settles it), or None where no member is a candidate."""
     has = torch.isfinite(ps) & (ps > 0)
     if not any(bool(cand[i]) for i in combo.indices if bool(has[i])):
         return None
-    members = [i for i in combo.cures if bool(has[i]) and combo.shares[combo.indices.index(i)] >= HOLD_SHARE]
+    members = [i for i in combo.cures if bool(cand[i]) and combo.shares[combo.indices.index(i)] >= HOLD_SHARE]
     if not members:  # no member with a prior settles it alone: named, for the report
         j = next(i for i in combo.indices if bool(cand[i]) and bool(has[i]))
-        why = "no member with a prior settles it alone: kept"
+        why = "no member this check may hold (a lever arm, instrument pose or ratio) carries a quarter of it: kept"
         return {
             "name": names[j],
             "held": False,
@@ -466,3 +467,115 @@ def preference_order(names: list[str]) -> list[int]:
         return (0 if n.startswith(("instrument.", "instrument[")) else 1 if n.startswith(("tool.", "tool[")) else 2, i)
 
     return sorted(range(len(names)), key=rank)
+
+
+#: a calibration from a prior run asks whether its rows could have told a move of this many prior sigmas of each
+#: parameter (:func:`detectability`): a crash of 2 mrad on a joint is about 10 of a UR10 calibration's (0.19 mrad)
+DETECT_SIGMAS = 10.0
+
+
+@dataclass(frozen=True)
+class Detectability:
+    """Whether a fit about a prior could have told a move of each parameter (:func:`detectability`)."""
+
+    names: tuple[str, ...]
+    share: tuple[float, ...]  # (P,) the share of a move of each parameter its own change shows (0..1)
+    #: name, share, detectable_from (the smallest move seen, in prior sigmas), absorbed_by, rows_needed (to tell it)
+    untold: tuple[dict, ...]
+    k: float  # the move asked about, in prior sigmas
+    threshold: float  # a change counts as moved beyond this many prior sigmas
+    rows: int  # the rows the fit had
+    rows_needed: int | None  # rows like these for every untold parameter to be told (None: nothing untold)
+
+    @property
+    def confounded(self) -> list[str]:
+        """The untold parameters and those their moves go to, in order of first mention."""
+        out: list[str] = []
+        for u in self.untold:
+            out += [n for n in [u["name"], *u["absorbed_by"]] if n not in out]
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "move_sigma": self.k,
+            "threshold_sigma": self.threshold,
+            "rows": self.rows,
+            "cannot_tell": [dict(u) for u in self.untold],
+            "confounded": self.confounded,
+            "rows_needed": self.rows_needed,
+            "poses_to_add": None if self.rows_needed is None else max(self.rows_needed - self.rows, 0),
+        }
+
+
+def detectability(
+    names: list[str],
+    N: Tensor,
+    fit_sigma: Tensor,
+    test_sigma: Tensor,
+    rows: int,
+    k: float = DETECT_SIGMAS,
+    threshold: float = 3.0,
+) -> Detectability:
+    """Which parameters' moves a fit about a prior (MAP, each parameter with an a-priori sigma) could have told.
+
+    A true change ``delta`` of parameter ``j`` moves the fit's estimate by ``Q N_d e_j delta`` (linearised), ``Q`` the
+    cofactor (priors included), ``N_d = N - diag(1 / s^2)`` the rows' own information: parameter ``j`` itself shows
+    ``r_j = 1 - Q_jj / s_j^2`` of it, the rest goes to the parameters it is confounded with (``-Q_ij / s_j^2`` each).
+    A move of ``k`` test sigmas is told where its own change passes the test, ``r_j k > threshold``; else it is
+    *untold*: the rows could not have said it moved, and "nothing moved" would be a silent miss. More rows like these
+    scale ``N_d``; ``rows_needed`` is the fewest (``t N_d``, ``t`` found by bisection) that tell every untold one,
+    None where even a thousand times the rows would not (a direction these poses never separate: other poses must).
+
+    Args:
+        names: the ``P`` fitted parameters.
+        N: ``(P, P)`` the fit's normal matrix at its solution, the priors' pseudo-observations included.
+        fit_sigma: ``(P,)`` the a-priori sigmas the fit used (inf: none) [m or rad].
+        test_sigma: ``(P,)`` the sigmas a change is judged in (the prior's, :attr:`Prior.sigma`); inf: not asked.
+        rows: the rows the fit had.
+    """
+    prec = torch.where(torch.isfinite(fit_sigma), fit_sigma.clamp(min=1e-300) ** -2, torch.zeros_like(fit_sigma))
+    Nd = N - torch.diag(prec)
+    Q = _cofactor(N)
+    share = (1.0 - Q.diagonal() * prec).clamp(0.0, 1.0)
+    asked = torch.isfinite(test_sigma)
+    untold = []
+    for j in range(len(names)):
+        if not bool(asked[j]) or float(share[j]) * k > threshold:
+            continue
+        ratio = (k * float(test_sigma[j]) * Q[:, j].abs() * prec[j] / test_sigma).nan_to_num(0.0)
+        ratio[j] = 0.0
+        absorbed = [names[i] for i in torch.argsort(ratio, descending=True).tolist()[:4] if float(ratio[i]) >= 1.0]
+        r = float(share[j])
+        untold.append({"name": names[j], "share": r, "detectable_from": threshold / r if r > 0 else None})
+        untold[-1]["absorbed_by"] = absorbed
+    untold.sort(key=lambda u: u["share"])
+    for u in untold:  # the rows like these that tell this one
+        t = _rows_factor(Nd, prec, torch.tensor([names.index(u["name"])]), threshold / k)
+        u["rows_needed"] = None if t is None else math.ceil(rows * t)
+    idx = torch.tensor([names.index(u["name"]) for u in untold], dtype=torch.long)
+    need = _rows_factor(Nd, prec, idx, threshold / k) if untold else None
+    rows_needed = None if need is None else math.ceil(rows * need)
+    return Detectability(tuple(names), tuple(share.tolist()), tuple(untold), k, threshold, rows, rows_needed)
+
+
+def _cofactor(N: Tensor) -> Tensor:
+    """``N^-1`` through the Cholesky factor of the Jacobi-scaled ``N``."""
+    s = N.diagonal().clamp(min=1e-300).rsqrt()
+    return torch.cholesky_inverse(torch.linalg.cholesky(N * s[:, None] * s[None, :])) * s[:, None] * s[None, :]
+
+
+def _rows_factor(Nd: Tensor, prec: Tensor, idx: Tensor, need: float, most: float = 1e3) -> float | None:
+    """The smallest ``t`` for which ``t Nd + diag(prec)`` gives every parameter ``idx`` a share above ``need``
+    (bisection on ``log t``; the share grows with ``t``), or None where ``t = most`` does not."""
+
+    def tells(t: float) -> bool:
+        sh = 1.0 - _cofactor(t * Nd + torch.diag(prec)).diagonal()[idx] * prec[idx]
+        return bool((sh > need).all())
+
+    if not tells(most):
+        return None
+    lo, hi = 0.0, math.log(most)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if tells(math.exp(mid)) else (mid, hi)
+    return math.exp(hi)
