@@ -40,7 +40,13 @@ deviation is not clearly below the prior's (above ``prior_ratio`` of it, the sam
 correlated above :data:`MAX_CORRELATION` with another parameter, is held at its prior value and the fit is
 repeated; a pair gives up the member later in the preference order (the lever arm before the instrument pose),
 unless the fit puts that member significantly away from its prior value (the data then determine it, correlated or
-not: holding it would bias everything else).
+not: holding it would bias everything else). A pair is the smallest case of a weak *combination*
+(:func:`weak_combinations`: an eigen-direction of the unit-diagonal normal matrix, a lever arm with every station's
+offset, a ratio with the geometry); its candidate member carrying most of it is held the same way, and held even
+against the data where they put it beyond :data:`PRIOR_CONFLICT` prior sigmas. A held member keeps its prior's doubt
+in the run's covariance (:func:`torchcal.estimate.fit.considered`).
+
+After a fit about a prior (:func:`detectability`): whether the rows could have told a move of each parameter.
 
 For ``n`` rows much more than ``P`` columns the analysis runs on the triangular factor ``R`` of
 ``J = QR`` (``P x P``): an orthogonal ``Q`` keeps every norm and angle.
