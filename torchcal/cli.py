@@ -300,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="DEG",
         help="static poses whose tool axis turns by at most DEG degrees (e.g. 0.03: a lifting-column robot "
-        "measured by a total station), plus turned.csv: poses with the tool turned at least 30 deg away",
+        "measured by a total station; with --stations, each placement's axis faces its own instrument), plus "
+        "turned.csv: poses with the tool turned at least 30 deg away",
     )
     s.add_argument(
         "--stations",
@@ -725,6 +726,9 @@ def cmd_calibrate(args) -> int:
         C.check_holdout(data.n, opts.split.holdout)
     run = C.calibrate(robot, data, opts, robot_spec=args.robot, prior=prior)
     out = write_run(run, out, inputs=inputs)
+    ida = next((f.identifiability for f in reversed(run.fits) if f.identifiability is not None), None)
+    for line in ida.combinations() if ida is not None else []:  # a weak combination: what a user must not miss
+        _console.info(f"torchcal calibrate: warning: {line}")
     st = {s.name: s for s in run.stages}
     _console.info(
         f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "

@@ -4,6 +4,7 @@ import math
 import re
 from pathlib import Path
 
+import pytest
 import torch
 
 import torchcal
@@ -206,3 +207,75 @@ def test_weak_after_fit_gives_up_the_later_of_a_correlated_pair_unless_the_data_
     assert "23.8 sigma" in kept[0]["reason"]
     rho[1, 2] = rho[2, 1] = -0.99  # below 0.999: nothing to hold
     assert weak_after_fit(names, rho * sd[:, None] * sd[None, :], ps, cand) == []
+
+
+def _triple(k: float = 700.0, a: float = 1e-6):
+    """Three parameters tied along ``(1, 1, -1)``: ``Q = a (I + k u u^T)``; each pair correlated ``k / (1 + k)``
+    (0.9986 at k = 700: below the pairwise 0.999), the unit-diagonal normal matrix's smallest eigenvalue
+    ``1 / (1 + 2 k)`` (7.1e-4: below 1 - 0.999)."""
+    names = ["instrument[S1].tx", "instrument[S2].tx", "tool.z"]
+    u = torch.tensor([1.0, 1.0, -1.0], dtype=F64)
+    return names, a * (torch.eye(3, dtype=F64) + k * u[:, None] * u[None, :])
+
+
+def test_weak_combinations_find_a_direction_no_pair_shows():
+    from torchcal.estimate.identifiability import weak_combinations
+
+    names, Q = _triple()
+    rho = Q[0, 1] / Q[0, 0]
+    assert 0.998 < float(rho) < 0.999  # no pair beyond the pairwise rule
+    (combo,) = weak_combinations(names, Q, torch.ones(3, dtype=torch.bool))
+    assert set(combo.names) == set(names) and combo.eigenvalue == pytest.approx(1 / 1401, rel=1e-9)
+    d = dict(zip(combo.names, combo.direction))
+    assert d["tool.z"] / d["instrument[S1].tx"] == pytest.approx(-1.0, rel=1e-9)
+    assert weak_combinations(*_triple(k=400.0), torch.ones(3, dtype=torch.bool)) == []  # 1/801 > 1e-3: not weak
+
+
+def test_weak_after_fit_holds_a_weak_combination_where_its_prior_fits_or_the_fit_defies_the_prior():
+    from torchcal.estimate.identifiability import weak_after_fit
+
+    names, Q = _triple()  # tool.z's posterior sigma: 26.5 mm
+    ps = torch.full((3,), 0.5, dtype=F64)
+    cand = torch.ones(3, dtype=torch.bool)
+
+    def judged(tool_z: float) -> dict:
+        (e,) = weak_after_fit(names, Q, ps, cand, x=torch.tensor([0.0, 0.0, tool_z], dtype=F64))
+        assert e["name"] == "tool.z" and set(e["combination"]) == set(names), e
+        return e
+
+    assert judged(0.01).get("held", True) and "held at its prior value" in judged(0.01)["reason"]  # compatible
+    kept = judged(0.095)  # 3.6 posterior sigma from its prior, 0.19 prior sigma: the data determine it
+    assert kept["held"] is False and "part of a weak combination" in kept["reason"]
+    far = judged(2.0)  # 4 prior sigma off along a weak direction: the model's error amplified, held all the same
+    assert far.get("held", True) and "4.0 of its prior sigma" in far["reason"]
+
+
+def test_detectability_is_the_share_a_map_fit_gives_each_move_and_counts_the_rows_that_tell_it():
+    """A linear toy: each row sees the sum of the first two parameters (weakly) and the third alone; every parameter
+    has a prior of 1 (noise 1). A move of either of the first two shows at most half in itself, the rest in its
+    partner: with 10 rows (information 0.5 on the sum) a 10-sigma move shows 0.25 of it in itself (2.5 sigma in the
+    partner), untold; from 16 rows (0.8: share 0.31) on it is told. The third is told from the start."""
+    from torchcal.estimate.identifiability import detectability
+
+    names = ["a", "b", "c"]
+
+    def normal(n: int, prior: float = 1.0):
+        w = 0.05**0.5  # information 0.05 on the sum per row
+        J = torch.tensor([[w, w, 0.0], [0.0, 0.0, 1.0]], dtype=F64).repeat(n, 1)
+        return J.T @ J + torch.eye(3, dtype=F64) / prior**2, J
+
+    N, J = normal(10)
+    sigma = torch.ones(3, dtype=F64)
+    d = detectability(names, N, sigma, sigma, rows=10)
+    for j in range(3):  # the share is the MAP estimate's own change for a unit move (known answer)
+        x = torch.linalg.solve(N, J.T @ (J @ torch.eye(3, dtype=F64)[j]))
+        assert d.share[j] == pytest.approx(float(x[j]), rel=1e-12)
+    untold = {u["name"]: u for u in d.untold}
+    assert set(untold) == {"a", "b"} and untold["a"]["absorbed_by"] == ["b"] and untold["b"]["absorbed_by"] == ["a"]
+    assert d.confounded == ["a", "b"] or d.confounded == ["b", "a"]
+    # the rows it asks for tell them: with that many rows like these, every share passes 3 / 10
+    N2, _ = normal(d.rows_needed)
+    assert detectability(names, N2, sigma, sigma, rows=d.rows_needed).untold == ()
+    N3, _ = normal(d.rows_needed - 1)
+    assert detectability(names, N3, sigma, sigma, rows=d.rows_needed - 1).untold != ()
+    assert d.rows_needed == 16 and d.to_dict()["poses_to_add"] == 6

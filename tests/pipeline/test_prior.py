@@ -88,3 +88,31 @@ def test_a_prior_run_of_another_robot_is_refused(before):
     c, _, d = before
     with pytest.raises(Exception, match="the prior run calibrated robot 'ur10', not 'ur5'"):
         calibrate("ur5", c.train.subset(torch.arange(10)), Options(method="kinematic"), prior=load_prior(d))
+
+
+def test_an_update_says_what_its_rows_cannot_tell_and_how_many_poses_would(before, tmp_path, capsys):
+    """Issue 34 item 4: "moved beyond 3 prior sigma: nothing" must not hide a move the rows could not have seen. Five
+    crashed rows find theta2 but cannot tell a 10-sigma move of several others (their own change would show less
+    than 3 sigma of it): report.json, report.md and stderr name them, what their moves would go to, and the poses to
+    add (plan --run chooses where)."""
+    c, _, d = before
+    data = tmp_path / "crash5.csv"
+    write_measurements(data, crash(c.train.subset(torch.arange(5))))
+    out = tmp_path / "up"
+    capsys.readouterr()
+    assert main(["calibrate", str(data), "--robot", "ur10", "--prior", str(d), "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    rep = json.loads((out / "report.json").read_text())["prior"]
+    det = rep["detectability"]
+    assert det["rows"] == 4 and det["move_sigma"] == 10 and det["cannot_tell"], det  # one of the 5 held out
+    for u in det["cannot_tell"]:
+        assert u["share"] * det["move_sigma"] <= det["threshold_sigma"] and u["name"] not in rep["moved"]
+    assert "theta2" in rep["moved"]
+    # rows like these tell each one from some count on, or never (a direction four poses never separate: None)
+    assert det["poses_to_add"] is None or det["poses_to_add"] > 0
+    assert all(u["rows_needed"] is None or u["rows_needed"] > det["rows"] for u in det["cannot_tell"])
+    first = det["cannot_tell"][0]["name"]
+    assert f"cannot tell a move of 10 prior sigma of {first}" in err and "torchcal plan --run" in err
+    assert "theta2 of what these rows can tell" in err
+    md = (out / "report.md").read_text()
+    assert "### What these rows cannot tell" in md and f"| {first} |" in md

@@ -189,3 +189,14 @@ def test_families_differ_in_how_they_revisit():
     assert nearest_gap("multisine") > 1e-3
     with pytest.raises(OptionError, match="multisine"):
         SimConfig(trajectory=True, path="zigzag")
+
+
+def test_a_fixed_tool_axis_takes_several_stations_each_axis_facing_its_instrument_but_one_probe():
+    c = simulate(SimConfig(robot="ur5", poses=24, test_poses=8, seed=3, stations=2, tool_axis_deg=0.03))
+    assert c.turned is not None and c.turned.n == 8 and c.turned.station_names == ("S1", "S2")
+    spread = c.truth["tool_axis"]
+    assert spread["max_deg_train_test"] <= 0.03 and spread["min_deg_turned"] >= 30
+    a1, a2 = (torch.tensor(spread["per_station"][s]["axis_in_base"]) for s in ("S1", "S2"))
+    assert float(a1 @ a2) < 0.999  # each placement's own axis
+    with pytest.raises(OptionError, match="a fixed tool axis takes one probe"):
+        SimConfig(stations=2, probes=2, tool_axis_deg=0.03)

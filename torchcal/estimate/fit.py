@@ -19,6 +19,7 @@ from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
+from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.identifiability import Identifiability, analyse, preference_order, weak_after_fit
 from torchcal.estimate.lm import FitStatus, LMResult, global_test, levenberg_marquardt
 from torchcal.estimate.problem import (
@@ -83,6 +84,10 @@ class Fit:
     #: the factor the orientation rows' sigmas were multiplied by so that their variance factor matches the
     #: positions' (:func:`orientation_scale`) times :data:`ORIENTATION_LEAD`; 1 without orientation
     orientation_scale: float = 1.0
+    #: the parameters held at their prior value after the fit (:attr:`Identifiability.prior_held`) beside the free
+    #: ones, and the covariance ``(u + h, u + h)`` of both with the held ones' prior as their uncertainty
+    #: (:func:`considered`); None where none is held
+    consider: tuple[FreeParameters, Tensor] | None = None
 
 
 def place_instrument_and_tool(
@@ -479,7 +484,67 @@ def solve(
             free = FreeParameters(model, sel, labels)
             res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
     n_orientation = m.n if Wr is not None else 0
-    return Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation, scale)
+    fit = Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation, scale)
+    if ida is not None and ida.prior_held:
+        fit.consider = considered(
+            model, fit, lambda f, ps: _residuals(model, f, ctx, m, W, Wr, ps), opts, groups, effects
+        )
+    return fit
+
+
+def considered(model: MeasurementModel, fit: Fit, residuals, opts: FitOptions, groups, effects: bool):
+    """The covariance of ``fit``'s free parameters together with those it held at their prior value, whose prior
+    sigma ``s_h`` stays their uncertainty (a *consider* covariance, Schmidt): held, they still move the poses, and
+    what the data made of the free ones depends on where they were held.
+
+    With ``N`` the normal matrix (priors of the free ones included) at the solution, ``A = -N_ff^-1 N_fh`` is how the
+    free parameters follow a held one; ``C_ff = s0^2 N_ff^-1 + A S A^T``, ``C_fh = A S``, ``C_hh = S``,
+    ``S = diag(s_h^2)``. Along a combination the data cannot see (a lever arm along a tool axis that never turns,
+    with every station's offset) ``A`` carries the held member's doubt to its partners so that predictions like the
+    training poses keep their small sigma and poses that turn the axis get the prior's.
+
+    Args:
+        residuals: ``(free, prior_sigma) -> function`` of the fit's whitened residuals (:func:`_residuals`).
+
+    Returns:
+        ``(free and held parameters, covariance (u + h, u + h))``, or None where none of the held has a prior or the
+        fit's normal matrix is singular.
+    """
+    free, res = fit.free, fit.result
+    held = [n for n in fit.identifiability.prior_held if n not in free.names]
+    sel, labels = selection(model, groups, {n: True for n in [*free.names, *held]}, effects=effects)
+    both = FreeParameters(model, sel, labels)
+    ps = _priors(model, both, opts, groups)
+    held = [n for n in held if n in both.names and ps is not None and math.isfinite(float(ps[both.names.index(n)]))]
+    if not held:
+        return None
+    h = torch.tensor([both.names.index(n) for n in held])
+    f = torch.tensor([both.names.index(n) for n in free.names])
+    ps_free = ps.clone()
+    ps_free[h] = float("inf")  # the held members' prior is their doubt below, not data
+    J = jacobian_of(residuals(both, ps_free))(both.vector())
+    try:
+        C_free = res.covariance
+    except EstimationError:
+        return None
+    A = -res.cofactor @ (J[:, f].T @ J[:, h])
+    S = torch.diag(ps[h].square())
+    C = torch.zeros(len(both), len(both), dtype=C_free.dtype, device=C_free.device)
+    C[f[:, None], f[None, :]] = C_free + A @ S @ A.T
+    C[f[:, None], h[None, :]] = A @ S
+    C[h[:, None], f[None, :]] = (A @ S).T
+    C[h[:, None], h[None, :]] = S
+    return both, C
+
+
+def fit_covariance(fit: Fit) -> ParameterCovariance | None:
+    """The parameter covariance a run keeps of ``fit``: of its free parameters, and of those it held at their prior
+    value where there are (:attr:`Fit.consider`); None where the fit's normal matrix is singular."""
+    if fit.consider is None:
+        return ParameterCovariance.from_fit(fit.free, fit.result)
+    both, C = fit.consider
+    index = [[int(i) for i in e.index] for e in both.entries]
+    return ParameterCovariance([e.name for e in both.entries], index, list(both.names), C.detach().cpu())
 
 
 #: the orientation rows are reweighted only when their variance factor differs from the positions' by more than this

@@ -40,7 +40,13 @@ deviation is not clearly below the prior's (above ``prior_ratio`` of it, the sam
 correlated above :data:`MAX_CORRELATION` with another parameter, is held at its prior value and the fit is
 repeated; a pair gives up the member later in the preference order (the lever arm before the instrument pose),
 unless the fit puts that member significantly away from its prior value (the data then determine it, correlated or
-not: holding it would bias everything else).
+not: holding it would bias everything else). A pair is the smallest case of a weak *combination*
+(:func:`weak_combinations`: an eigen-direction of the unit-diagonal normal matrix, a lever arm with every station's
+offset, a ratio with the geometry); its candidate member carrying most of it is held the same way, and held even
+against the data where they put it beyond :data:`PRIOR_CONFLICT` prior sigmas. A held member keeps its prior's doubt
+in the run's covariance (:func:`torchcal.estimate.fit.considered`).
+
+After a fit about a prior (:func:`detectability`): whether the rows could have told a move of each parameter.
 
 For ``n`` rows much more than ``P`` columns the analysis runs on the triangular factor ``R`` of
 ``J = QR`` (``P x P``): an orthogonal ``Q`` keeps every norm and angle.
@@ -80,6 +86,9 @@ class Identifiability:
     prior_ratio: float | None = None  # None: no priors given, the structural tolerance alone
     sigma_data: Tensor | None = None  # (P,) 1/|v_j|: the data's standard deviation of each direction [m or rad]
     weak: list[dict] = field(default_factory=list)  # kept after the fit though correlated beyond MAX_CORRELATION
+    #: the parameters :meth:`hold` put back at their prior value: their prior's uncertainty stays in the run's
+    #: covariance (:func:`torchcal.estimate.fit.considered`), so a prediction that depends on them says so
+    prior_held: list[str] = field(default_factory=list)
 
     @property
     def rank(self) -> int:
@@ -94,7 +103,14 @@ class Identifiability:
         for e in entries:
             self.free[self.names.index(e["name"])] = False
             self.fixed.append(e)
+            self.prior_held.append(e["name"])
         self.groups = _merge(self.groups + [[e["name"], *e["depends_on"]] for e in entries if e["depends_on"]])
+
+    def combinations(self) -> list[str]:
+        """One line per weak combination found after the fit (:func:`weak_combinations`): its member held at its prior
+        value, or kept and named, with the reason (for stderr; report.json carries the entries)."""
+        out = [f"`{e['name']}` held: {e['reason']}" for e in self.fixed if e.get("combination")]
+        return out + [f"`{e['name']}` weakly determined: {e['reason']}" for e in self.weak if e.get("combination")]
 
     def to_dict(self) -> dict:
         sv = self.singular_values
@@ -242,10 +258,12 @@ def weak_after_fit(
     Returns:
         ``fixed`` entries as :class:`Identifiability` writes them (``name``, ``reason``, ``depends_on``,
         ``independence`` = 0): every candidate whose posterior deviation exceeds ``prior_ratio`` of its prior,
-        and of the pairs correlated beyond ``max_correlation`` only the most correlated one's later member (holding
-        one member decorrelates the others it was tied to; the caller refits and asks again). A correlated
-        parameter kept because the fit rejects its prior value comes as an entry with ``held: False`` (a warning
-        for the report, :attr:`Identifiability.weak`).
+        and of the weak combinations (:func:`weak_combinations`: a pair correlated beyond ``max_correlation``, or
+        any number of parameters as weakly tied) only the weakest one's member latest in the preference order
+        (holding one member frees the others it was tied to; the caller refits and asks again), its entry naming
+        the ``combination``. A member kept because the fit rejects its prior value comes as an entry with
+        ``held: False`` (a warning for the report, :attr:`Identifiability.weak`), unless the fitted value lies more
+        than :data:`PRIOR_CONFLICT` prior sigmas from the prior's: then it is held all the same (:func:`_judge`).
     """
     units = units or {}
     P = len(names)
@@ -273,49 +291,163 @@ def weak_after_fit(
             )
     if out:
         return out
-    rho = Q / sd.clamp(min=1e-300)[:, None] / sd.clamp(min=1e-300)[None, :]
-    pair = (cand[:, None] | cand[None, :]) & has[:, None] & has[None, :]
-    pair &= torch.triu(torch.ones(P, P, dtype=torch.bool, device=Q.device), diagonal=1)
-    a = rho.abs().where(pair, torch.zeros_like(rho))
-    if P < 2 or float(a.max()) <= max_correlation:
-        return out
-    rank = {k: n for n, k in enumerate(preference_order(names))}
-    order = torch.argsort(a.flatten(), descending=True)
-    for flat in order.tolist():
-        i, j = divmod(flat, P)
-        if float(a[i, j]) <= max_correlation:
-            break
-        if rank[i] > rank[j]:  # the member later in the preference order is held
-            i, j = j, i
-        if x is not None:
-            s0 = sigma0_sq if math.isfinite(sigma0_sq) and sigma0_sq > 1.0 else 1.0
-            z2 = float(x[j]) ** 2 / (s0 * float(Q[j, j]))
-            if z2 > compatible:  # the data reject its prior value: determined after all, despite the correlation
-                sd_j = fmt(j, math.sqrt(s0 * float(Q[j, j])))
-                if not any(e["name"] == names[j] for e in out):
-                    out.append(
-                        {
-                            "name": names[j],
-                            "held": False,
-                            "reason": f"correlated {float(rho[i, j]):+.4f} with {names[i]} after the fit (beyond "
-                            f"{max_correlation}), but fitted {math.sqrt(z2):.1f} sigma ({sd_j}) "
-                            "from its prior value, which the data reject: kept; its value rests on that weak "
-                            "direction alone (a known value, e.g. --tool for the lever arm, removes the doubt)",
-                            "depends_on": [names[i]],
-                            "independence": 0.0,
-                        }
-                    )
-                continue
-        return out + [
-            {
-                "name": names[j],
-                "reason": f"correlated {float(rho[i, j]):+.4f} with {names[i]} after the fit (beyond "
-                f"{max_correlation}): the data do not tell them apart; held at its prior value",
-                "depends_on": [names[i]],
-                "independence": 0.0,
-            }
-        ]
+    for combo in weak_combinations(names, Q, has, max_correlation):
+        entry = _judge(names, Q, ps, cand, combo, fmt, x, sigma0_sq, compatible, max_correlation)
+        if entry is None:
+            continue
+        if entry.get("held") is not False:
+            return out + [entry]  # one hold per round: the caller refits and asks again
+        out.append(entry)
     return out
+
+
+@dataclass(frozen=True)
+class WeakCombination:
+    """A direction in parameter space the fit hardly determines: the smallest eigen-directions of the normal matrix
+    scaled to unit diagonal (:func:`weak_combinations`)."""
+
+    names: tuple[str, ...]  # its members, largest share first
+    indices: tuple[int, ...]  # their positions in the fit's parameters
+    direction: tuple[float, ...]  # (len(names),) a move of the members that the data hardly see [m or rad]
+    eigenvalue: float  # of the unit-diagonal normal matrix: 1 - |rho| for a pair, 0 for an exact dependency
+    #: the members whose holding settles a weak direction (the unit-diagonal normal matrix without them has one
+    #: eigenvalue fewer below the bound): a member with a small share leaves the combination as weak as it was
+    cures: tuple[int, ...] = ()
+    shares: tuple[float, ...] = ()  # each member's share of the unit eigenvector (squared component), summing to <= 1
+
+    def describe(self) -> str:
+        """``tool.z - 0.33 instrument[S1].tx + ...``: the move, scaled to 1 on the first member, in m and rad."""
+        d = self.direction
+        terms = [f"{self.names[0]}"] + [
+            f"{'-' if c / d[0] < 0 else '+'} {abs(c / d[0]):.2g} {n}" for n, c in zip(self.names[1:], d[1:])
+        ]
+        return " ".join(terms)
+
+
+#: a member of a weak combination carries at least this share of its (unit) eigenvector's squared length
+MEMBER_SHARE = 0.01
+
+
+def weak_combinations(names: list[str], Q: Tensor, among: Tensor, max_correlation: float = MAX_CORRELATION):
+    """The combinations of parameters the fit leaves weak, weakest first.
+
+    Method: the normal matrix ``N = Q^-1`` scaled to unit diagonal (``N_s = D^-1/2 N D^-1/2``, ``D = diag N``);
+    an eigenvalue ``mu`` of ``N_s`` is the squared sine between its direction and the span of the others'
+    (:func:`analyse`'s independence, for a combination instead of one column). A pair correlated ``rho`` has
+    ``mu = 1 - |rho|``, so ``mu < 1 - max_correlation`` is the pairwise rule for any number of members: a lever arm
+    along a tool axis that never turns, with every station's offset along it; a readings ratio with the geometry;
+    an effect with the geometry. The members are the parameters carrying :data:`MEMBER_SHARE` of the eigenvector.
+
+    Args:
+        names: the ``P`` fitted parameters.
+        Q: ``(P, P)`` the fit's cofactor matrix (priors included).
+        among: ``(P,)`` bool: a combination counts only where it has at least one such member (those with a prior).
+
+    Returns:
+        :class:`WeakCombination` per eigenvalue below ``1 - max_correlation``, weakest first.
+    """
+    sd = Q.diagonal().clamp(min=1e-300).sqrt()
+    C = Q / sd[:, None] / sd[None, :]
+    L, info = torch.linalg.cholesky_ex(C)
+    if int(info) != 0 or len(names) < 2:
+        return []
+    Ci = torch.cholesky_inverse(L)  # D_Q^1/2 N D_Q^1/2
+    r = Ci.diagonal().clamp(min=1e-300).sqrt()
+    mu, V = torch.linalg.eigh(Ci / r[:, None] / r[None, :])
+    Ns = Ci / r[:, None] / r[None, :]
+    mu, V = torch.linalg.eigh(Ns)
+    scale = sd / r  # y = x / scale: the coordinates of N_s
+    bound = 1.0 - max_correlation
+    weak = int((mu < bound).sum())
+    out = []
+    for k in range(weak):
+        v = V[:, k]
+        idx = sorted((i for i in range(len(names)) if float(v[i]) ** 2 >= MEMBER_SHARE), key=lambda i: -abs(v[i]))
+        if len(idx) < 2 or not any(bool(among[i]) for i in idx):
+            continue
+        d = tuple(float(v[i] * scale[i]) for i in idx)
+        cures = tuple(i for i in idx if _weak_without(Ns, i, bound) < weak)
+        share = tuple(float(v[i]) ** 2 for i in idx)
+        out.append(WeakCombination(tuple(names[i] for i in idx), tuple(idx), d, float(mu[k]), cures, share))
+    return out
+
+
+def _weak_without(Ns: Tensor, i: int, bound: float) -> int:
+    """How many eigenvalues of the unit-diagonal normal matrix ``Ns`` lie below ``bound`` once parameter ``i`` is
+    held (its row and column gone)."""
+    keep = torch.arange(len(Ns), device=Ns.device) != i
+    return int((torch.linalg.eigvalsh(Ns[keep][:, keep]) < bound).sum())
+
+
+#: a weak combination's member is held only where it carries at least this share of the direction (of the unit
+#: eigenvector, in the unit-diagonal coordinates; a pair's members carry half each, a lever arm along a still tool axis
+#: with four stations' offsets 0.50): a minor member (a URDF's joint origins tied with the lever arm at 7 %) leaves the
+#: direction to the others, and holding it would only bias them by its own doubt
+HOLD_SHARE = 0.25
+
+#: a weak combination's member fitted further than this many a-priori sigmas from its prior value is held even where
+#: the data reject that value: the data pin the combination by its weak part alone, and a value the prior rules out
+#: there is the model's error amplified (a lever arm 3.15 m along a tool axis that never turned, 6.3 sigma of its
+#: 0.5 m prior), not information
+PRIOR_CONFLICT = 3.0
+
+
+def _judge(names, Q, ps, cand, combo: WeakCombination, fmt, x, sigma0_sq, compatible, max_correlation) -> dict | None:
+    """The :func:`weak_after_fit` entry of one weak combination: its candidate member latest in
+    :func:`preference_order` (of those carrying :data:`HOLD_SHARE` whose holding settles it) is held (``held:
+    False``: kept and named, where the data reject its prior value and the prior allows the fitted one, or where no
+    candidate settles it), or None where no member is a candidate."""
+    has = torch.isfinite(ps) & (ps > 0)
+    if not any(bool(cand[i]) for i in combo.indices if bool(has[i])):
+        return None
+    members = [i for i in combo.cures if bool(cand[i]) and combo.shares[combo.indices.index(i)] >= HOLD_SHARE]
+    if not members:  # no member with a prior settles it alone: named, for the report
+        j = next(i for i in combo.indices if bool(cand[i]) and bool(has[i]))
+        why = "no member this check may hold (a lever arm, instrument pose or ratio) carries a quarter of it: kept"
+        return {
+            "name": names[j],
+            "held": False,
+            "reason": f"part of a weak combination after the fit, {combo.describe()} (independence "
+            f"{math.sqrt(max(combo.eigenvalue, 0.0)):.1e}): {why}; its value rests on that weak direction",
+            "depends_on": [names[i] for i in combo.indices if i != j],
+            "independence": 0.0,
+            "combination": list(combo.names),
+        }
+    rank = {k: n for n, k in enumerate(preference_order(names))}
+    j = max(members, key=lambda i: (rank[i], -combo.indices.index(i)))
+    others = [names[i] for i in combo.indices if i != j]
+    if len(combo.indices) == 2:
+        i = next(i for i in combo.indices if i != j)
+        rho = float(Q[i, j] / (Q[i, i] * Q[j, j]).sqrt())
+        what = f"correlated {rho:+.4f} with {names[i]} after the fit (beyond {max_correlation})"
+    else:
+        what = (
+            f"part of a weak combination after the fit, {combo.describe()} (independence "
+            f"{math.sqrt(max(combo.eigenvalue, 0.0)):.1e}): a move along it hardly changes the measured positions"
+        )
+    entry = {"name": names[j], "depends_on": others, "independence": 0.0, "combination": list(combo.names)}
+    if x is not None:
+        s0 = sigma0_sq if math.isfinite(sigma0_sq) and sigma0_sq > 1.0 else 1.0
+        z2 = float(x[j]) ** 2 / (s0 * float(Q[j, j]))
+        away = abs(float(x[j])) / float(ps[j])
+        if z2 > compatible and away <= PRIOR_CONFLICT:  # the data reject its prior value and the prior allows theirs
+            entry["held"] = False
+            entry["reason"] = (
+                f"{what}, but fitted {math.sqrt(z2):.1f} sigma ({fmt(j, math.sqrt(s0 * float(Q[j, j])))}) from its "
+                "prior value, which the data reject: kept; its value rests on that weak direction alone (a known "
+                "value, e.g. --tool for the lever arm, removes the doubt)"
+            )
+            return entry
+        if z2 > compatible:
+            entry["reason"] = (
+                f"{what}; fitted {fmt(j, float(x[j]))} from its prior value, {away:.1f} of its prior sigma "
+                f"{fmt(j, float(ps[j]))} (beyond {PRIOR_CONFLICT:g}): the data pin it by that weak direction alone, "
+                "at a value the prior rules out (the model's error, amplified); held at its prior value (a known "
+                "value, e.g. --tool for the lever arm, or poses that turn it, determine it)"
+            )
+            return entry
+    entry["reason"] = f"{what}: the data do not tell them apart; held at its prior value"
+    return entry
 
 
 def _merge(links: list[list[str]]) -> list[list[str]]:
@@ -341,3 +473,115 @@ def preference_order(names: list[str]) -> list[int]:
         return (0 if n.startswith(("instrument.", "instrument[")) else 1 if n.startswith(("tool.", "tool[")) else 2, i)
 
     return sorted(range(len(names)), key=rank)
+
+
+#: a calibration from a prior run asks whether its rows could have told a move of this many prior sigmas of each
+#: parameter (:func:`detectability`): a crash of 2 mrad on a joint is about 10 of a UR10 calibration's (0.19 mrad)
+DETECT_SIGMAS = 10.0
+
+
+@dataclass(frozen=True)
+class Detectability:
+    """Whether a fit about a prior could have told a move of each parameter (:func:`detectability`)."""
+
+    names: tuple[str, ...]
+    share: tuple[float, ...]  # (P,) the share of a move of each parameter its own change shows (0..1)
+    #: name, share, detectable_from (the smallest move seen, in prior sigmas), absorbed_by, rows_needed (to tell it)
+    untold: tuple[dict, ...]
+    k: float  # the move asked about, in prior sigmas
+    threshold: float  # a change counts as moved beyond this many prior sigmas
+    rows: int  # the rows the fit had
+    rows_needed: int | None  # rows like these for every untold parameter to be told (None: nothing untold)
+
+    @property
+    def confounded(self) -> list[str]:
+        """The untold parameters and those their moves go to, in order of first mention."""
+        out: list[str] = []
+        for u in self.untold:
+            out += [n for n in [u["name"], *u["absorbed_by"]] if n not in out]
+        return out
+
+    def to_dict(self) -> dict:
+        return {
+            "move_sigma": self.k,
+            "threshold_sigma": self.threshold,
+            "rows": self.rows,
+            "cannot_tell": [dict(u) for u in self.untold],
+            "confounded": self.confounded,
+            "rows_needed": self.rows_needed,
+            "poses_to_add": None if self.rows_needed is None else max(self.rows_needed - self.rows, 0),
+        }
+
+
+def detectability(
+    names: list[str],
+    N: Tensor,
+    fit_sigma: Tensor,
+    test_sigma: Tensor,
+    rows: int,
+    k: float = DETECT_SIGMAS,
+    threshold: float = 3.0,
+) -> Detectability:
+    """Which parameters' moves a fit about a prior (MAP, each parameter with an a-priori sigma) could have told.
+
+    A true change ``delta`` of parameter ``j`` moves the fit's estimate by ``Q N_d e_j delta`` (linearised), ``Q`` the
+    cofactor (priors included), ``N_d = N - diag(1 / s^2)`` the rows' own information: parameter ``j`` itself shows
+    ``r_j = 1 - Q_jj / s_j^2`` of it, the rest goes to the parameters it is confounded with (``-Q_ij / s_j^2`` each).
+    A move of ``k`` test sigmas is told where its own change passes the test, ``r_j k > threshold``; else it is
+    *untold*: the rows could not have said it moved, and "nothing moved" would be a silent miss. More rows like these
+    scale ``N_d``; ``rows_needed`` is the fewest (``t N_d``, ``t`` found by bisection) that tell every untold one,
+    None where even a thousand times the rows would not (a direction these poses never separate: other poses must).
+
+    Args:
+        names: the ``P`` fitted parameters.
+        N: ``(P, P)`` the fit's normal matrix at its solution, the priors' pseudo-observations included.
+        fit_sigma: ``(P,)`` the a-priori sigmas the fit used (inf: none) [m or rad].
+        test_sigma: ``(P,)`` the sigmas a change is judged in (the prior's, :attr:`Prior.sigma`); inf: not asked.
+        rows: the rows the fit had.
+    """
+    prec = torch.where(torch.isfinite(fit_sigma), fit_sigma.clamp(min=1e-300) ** -2, torch.zeros_like(fit_sigma))
+    Nd = N - torch.diag(prec)
+    Q = _cofactor(N)
+    share = (1.0 - Q.diagonal() * prec).clamp(0.0, 1.0)
+    asked = torch.isfinite(test_sigma)
+    untold = []
+    for j in range(len(names)):
+        if not bool(asked[j]) or float(share[j]) * k > threshold:
+            continue
+        ratio = (k * float(test_sigma[j]) * Q[:, j].abs() * prec[j] / test_sigma).nan_to_num(0.0)
+        ratio[j] = 0.0
+        absorbed = [names[i] for i in torch.argsort(ratio, descending=True).tolist()[:4] if float(ratio[i]) >= 1.0]
+        r = float(share[j])
+        untold.append({"name": names[j], "share": r, "detectable_from": threshold / r if r > 0 else None})
+        untold[-1]["absorbed_by"] = absorbed
+    untold.sort(key=lambda u: u["share"])
+    for u in untold:  # the rows like these that tell this one
+        t = _rows_factor(Nd, prec, torch.tensor([names.index(u["name"])]), threshold / k)
+        u["rows_needed"] = None if t is None else math.ceil(rows * t)
+    idx = torch.tensor([names.index(u["name"]) for u in untold], dtype=torch.long)
+    need = _rows_factor(Nd, prec, idx, threshold / k) if untold else None
+    rows_needed = None if need is None else math.ceil(rows * need)
+    return Detectability(tuple(names), tuple(share.tolist()), tuple(untold), k, threshold, rows, rows_needed)
+
+
+def _cofactor(N: Tensor) -> Tensor:
+    """``N^-1`` through the Cholesky factor of the Jacobi-scaled ``N``."""
+    s = N.diagonal().clamp(min=1e-300).rsqrt()
+    return torch.cholesky_inverse(torch.linalg.cholesky(N * s[:, None] * s[None, :])) * s[:, None] * s[None, :]
+
+
+def _rows_factor(Nd: Tensor, prec: Tensor, idx: Tensor, need: float, most: float = 1e3) -> float | None:
+    """The smallest ``t`` for which ``t Nd + diag(prec)`` gives every parameter ``idx`` a share above ``need``
+    (bisection on ``log t``; the share grows with ``t``), or None where ``t = most`` does not."""
+
+    def tells(t: float) -> bool:
+        sh = 1.0 - _cofactor(t * Nd + torch.diag(prec)).diagonal()[idx] * prec[idx]
+        return bool((sh > need).all())
+
+    if not tells(most):
+        return None
+    lo, hi = 0.0, math.log(most)
+    for _ in range(50):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if tells(math.exp(mid)) else (mid, hi)
+    return math.exp(hi)

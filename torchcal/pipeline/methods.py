@@ -19,6 +19,7 @@ stages (:data:`METHOD_TABLE`); :func:`torchcal.pipeline.run.calibrate` applies e
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -27,7 +28,15 @@ from torchcal import _console
 from torchcal._method import Method
 from torchcal._threads import torch_threads
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.estimate.fit import GEOMETRIC_GROUPS, place_instrument_and_tool, place_tool_rotation, solve
+from torchcal.estimate.fit import (
+    GEOMETRIC_GROUPS,
+    fit_covariance,
+    place_instrument_and_tool,
+    place_tool_rotation,
+    prior_scales,
+    solve,
+)
+from torchcal.estimate.identifiability import Detectability, detectability
 from torchcal.pipeline.checks import check_corrections
 from torchcal.pipeline.holdout import guard_stages, refit_kinematic
 from torchcal.pipeline.integrated import integrated_stage
@@ -175,10 +184,55 @@ def prior_moved(run: CalibrationRun) -> StageResult:
     """What the new poses changed of the prior run: each parameter's change in its prior sigmas, and the moved ones
     (:func:`~torchcal.pipeline.prior.prior_update`)."""
     update = prior_update(run.prior, run.model)
-    moved = ", ".join(update.moved) or "none"
-    _console.info(f"prior: moved beyond {update.threshold:g} prior sigma: {moved}")
-    return StageResult(
-        "prior", notes=(Note("prior", f"prior: moved beyond {update.threshold:g} sigma: {moved}"),), prior_update=update
+    update = dataclasses.replace(update, detect=_detectability(run, update))
+    notes = [f"prior: moved beyond {update.threshold:g} prior sigma: {', '.join(update.moved) or 'none'}"]
+    if update.detect is not None and update.detect.untold:
+        notes[0] += " of what these rows can tell"
+        notes.append(untold_message(update.detect))
+    for n in notes:
+        _console.info(n)
+    return StageResult("prior", notes=tuple(Note("prior", n) for n in notes), prior_update=update)
+
+
+def _detectability(run: CalibrationRun, update) -> Detectability | None:
+    """Whether the last fit about the prior could have told a move of each prior parameter
+    (:func:`~torchcal.estimate.identifiability.detectability`), or None where its normal matrix is singular."""
+    fit = run.fits[-1]
+    if fit.result.normal is None:
+        return None
+    scales = prior_scales(run.model, run.options.fit)
+    inf = float("inf")
+    N = fit.result.normal
+    fit_sigma = torch.tensor([scales.get(n, inf) for n in fit.free.names], dtype=N.dtype, device=N.device)
+    test_sigma = torch.tensor([run.prior.sigma.get(n, inf) for n in fit.free.names], dtype=N.dtype, device=N.device)
+    try:
+        rows = len(fit.whitening) if fit.whitening is not None else 0
+        d = detectability(fit.free.names, N, fit_sigma, test_sigma, rows)
+    except torch.linalg.LinAlgError:
+        return None
+    # the untold that already changed most first: a move the rows saw in part (theta2 at 2.9 of its 10 sigma) and
+    # spread over its neighbours is the one a user must hear of
+    ratio = {r["name"]: r["ratio"] for r in update.rows}
+    untold = [{**u, "change_sigma": ratio.get(u["name"])} for u in d.untold]
+    return dataclasses.replace(d, untold=tuple(sorted(untold, key=lambda u: -(u["change_sigma"] or 0.0))))
+
+
+def untold_message(d: Detectability) -> str:
+    """The note and stderr line of the parameters a calibration from a prior could not have seen move."""
+    names = ", ".join(u["name"] for u in d.untold[:8]) + (f" and {len(d.untold) - 8} more" if len(d.untold) > 8 else "")
+    spread = [n for n in d.confounded if n not in {u["name"] for u in d.untold}]
+    first, every = d.untold[0], d.to_dict()["poses_to_add"]
+    more = None if first["rows_needed"] is None else max(first["rows_needed"] - d.rows, 1)
+    how = (
+        f"add about {more} poses like these to tell {first['name']} ({every if every is not None else 'more'} "
+        f"for all; torchcal plan --run THIS_RUN --n {more} chooses better ones) and update again"
+        if more
+        else f"poses like these never tell {first['name']}: torchcal plan --run THIS_RUN chooses ones that do"
+    )
+    return (
+        f"prior: these rows cannot tell a move of {d.k:g} prior sigma of {names}"
+        + (f" (it would go to {', '.join(spread[:6])})" if spread else "")
+        + f": they may have moved unseen; {how}"
     )
 
 
@@ -204,7 +258,7 @@ def _covariance(run: CalibrationRun) -> ParameterCovariance | None:
     if not run.fits:
         return None
     last = run.fits[-1]
-    cov = ParameterCovariance.from_fit(last.free, last.result)
+    cov = fit_covariance(last)
     params = dict(run.model.named_parameters())
     if cov is None or any(n not in params for n in cov.names):
         return None

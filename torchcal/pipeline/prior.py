@@ -39,6 +39,7 @@ import torch
 from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.identifiability import Detectability
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import DHGeometry, RobotModel
 
@@ -177,6 +178,8 @@ class PriorUpdate:
     released: tuple[str, ...] = ()  # fitted without their prior (:func:`release`)
     s0: float = 1.0  # the prior run's (Prior.scale)
     threshold: float = MOVED_SIGMAS
+    #: whether the rows could have told a move of each parameter (None: not analysed)
+    detect: Detectability | None = None
 
     @property
     def worst(self) -> str | None:
@@ -194,6 +197,7 @@ class PriorUpdate:
             "moved": list(self.moved),
             "released": list(self.released),
             "parameters": [dict(r) for r in self.rows],
+            **({"detectability": self.detect.to_dict()} if self.detect is not None else {}),
         }
 
 

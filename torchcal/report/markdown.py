@@ -316,6 +316,8 @@ def _prior_section(report: dict) -> list[str]:
     if pr is None:
         return []
     moved = ", ".join(pr["moved"]) or "nothing"
+    if (pr.get("detectability") or {}).get("cannot_tell"):
+        moved += " of what these rows can tell (below: what they cannot)"
     lines = [
         "## What moved since the prior run",
         "",
@@ -333,6 +335,35 @@ def _prior_section(report: dict) -> list[str]:
             f"| {r['name']} | {_fmt(r['prior'], r['unit'])} | {_fmt(r['change'], r['unit'])} | "
             f"{_fmt(r['sigma'], r['unit'])} | {r['ratio']:.2f} |"
         )
+    return [*lines, "", *_untold_lines(pr.get("detectability"))]
+
+
+def _untold_lines(d: dict | None) -> list[str]:
+    """What the rows of a calibration from a prior could not have seen move (report.json ``prior.detectability``)."""
+    if not d or not d["cannot_tell"]:
+        return []
+    more = d["poses_to_add"]
+    lines = [
+        "### What these rows cannot tell",
+        "",
+        f"A move of {d['move_sigma']:g} prior sigma of these parameters would not pass the "
+        f"{d['threshold_sigma']:g}-sigma test here: the {d['rows']} rows give it only the share below and spread the "
+        "rest over the parameters named; "
+        "they may have moved unseen, so 'nothing moved' does not hold for them. "
+        + (
+            f"About {more} more poses like these would tell them all; `torchcal plan --run THIS_RUN --n {more}` "
+            "chooses where, then update again with them."
+            if more
+            else "More poses that move them apart would (`torchcal plan --run THIS_RUN` chooses where)."
+        ),
+        "",
+        "| parameter | change / sigma | share seen | seen from [sigma] | would go to |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for u in d["cannot_tell"]:
+        seen = f"{u['detectable_from']:.1f}" if u["detectable_from"] is not None else "never"
+        change = f"{u['change_sigma']:.2f}" if u.get("change_sigma") is not None else "-"
+        lines.append(f"| {u['name']} | {change} | {u['share']:.2f} | {seen} | {', '.join(u['absorbed_by']) or '-'} |")
     return [*lines, ""]
 
 

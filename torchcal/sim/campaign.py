@@ -166,8 +166,10 @@ class SimConfig:
         check_range("sigma_angle_deg", self.sigma_angle_deg, 0.0, math.degrees(MAX_SIGMA_ANGLE), unit="deg")
         if self.stations < 1 or self.probes < 1:
             raise OptionError(f"stations and probes must be >= 1, got {self.stations} and {self.probes}")
-        if (self.stations > 1 or self.probes > 1) and (self.trajectory or self.tool_axis_deg is not None):
-            raise OptionError("several stations or probes need static poses (no trajectory, no fixed tool axis)")
+        if (self.stations > 1 or self.probes > 1) and self.trajectory:
+            raise OptionError("several stations or probes need static poses (no trajectory)")
+        if self.probes > 1 and self.tool_axis_deg is not None:
+            raise OptionError("a fixed tool axis takes one probe (several stations are fine)")
         if self.stations > 1 and self.poses < 3 * self.stations:
             raise OptionError(f"{self.stations} stations need at least {3 * self.stations} poses, got {self.poses}")
         if self.tool_axis_deg is not None and (self.trajectory or not self.tool_axis_deg > 0):
@@ -557,18 +559,18 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
         truth_robot.tool.nominal.copy_(levers if P > 1 else levers[0])
     share = [cfg.poses // K + (k < cfg.poses % K) for k in range(K)]
     share_test = [cfg.test_poses // K + (k < cfg.test_poses % K) for k in range(K)]
-    q_tr, q_te, st_tr, st_te = [], [], [], []
+    q_tr, q_te, q_tu, st_tr, st_te = [], [], [], [], []
     for k in range(K):
-        scene = Scene(nominal, tf.invert(Ts[k])[:3, 3], lever_nominal, cfg.sight)
-        q = random_poses(scene, share[k] + share_test[k], g)
+        q, turned = _station_poses(cfg, nominal, truth_robot, tf.invert(Ts[k])[:3, 3], lever_nominal, g, share, k)
         q_tr.append(q[: share[k]])
         q_te.append(q[share[k] :])
+        q_tu.append(turned)
         st_tr += [k] * share[k]
         st_te += [k] * share_test[k]
     n_train = cfg.poses * P
-    # every pose once per probe: rows (pose, probe) in pose order
-    q_pose = torch.cat(q_tr + q_te)
-    station_pose = torch.tensor(st_tr + st_te, dtype=torch.long)
+    # every pose once per probe: rows (pose, probe) in pose order; a fixed axis' turned poses last
+    q_pose = torch.cat(q_tr + q_te + q_tu)
+    station_pose = torch.tensor(st_tr + st_te + (st_te if cfg.tool_axis_deg is not None else []), dtype=torch.long)
     q_true = q_pose.repeat_interleave(P, dim=0)
     station = station_pose.repeat_interleave(P)
     probe = torch.arange(P).repeat(len(q_pose))
@@ -606,7 +608,9 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
             probe_names=names_p if P > 1 else (),
         )
 
-    train, test = labelled(slice(0, n_train), "train"), labelled(slice(n_train, None), "test")
+    n_test = n_train + cfg.test_poses * P
+    train, test = labelled(slice(0, n_train), "train"), labelled(slice(n_train, n_test), "test")
+    turned = labelled(slice(n_test, None), "turned") if cfg.tool_axis_deg is not None else None
     truth = {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
@@ -630,7 +634,47 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
     }
     if orientation is not None:
         truth["orientation"] = orientation
-    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true)
+    if turned is not None:
+        truth["files"]["turned"] = {"n": turned.n}
+        truth["tool_axis"] = _stations_axis_spread(truth_robot, q_true, station, share, share_test, Ts, names_s)
+    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _stations_axis_spread(robot, q, station, share, share_test, Ts, names) -> dict:
+    """truth.json's ``tool_axis`` of a fixed-axis campaign of several stations: :func:`_axis_spread` per station (its
+    rows run training, test, turned), and the largest spread and the smallest turn over all."""
+    spreads = [
+        _axis_spread(robot, q[station == k], share[k], share[k] + share_test[k], tf.invert(Ts[k])[:3, 3])
+        for k in range(len(names))
+    ]
+    return {
+        "per_station": dict(zip(names, spreads)),
+        "max_deg_train_test": max(s["max_deg_train_test"] for s in spreads),
+        "min_deg_turned": min(s["min_deg_turned"] for s in spreads),
+    }
+
+
+def _station_poses(
+    cfg: SimConfig,
+    nominal: RobotModel,
+    truth: RobotModel,
+    tracker_in_base: Tensor,
+    lever_nominal: Tensor,
+    g: torch.Generator,
+    share: list[int],
+    k: int,
+) -> tuple[Tensor, Tensor]:
+    """Station ``k``'s training and test poses ``(share[k] + its test share, dof)`` and, with a fixed tool axis, its
+    turned poses (its test share; else none): each placement's own tool axis faces its own instrument
+    (:func:`tool_axis`), as a construction robot's prism faces the total station of each placement."""
+    K = cfg.stations
+    n_test = cfg.test_poses // K + (k < cfg.test_poses % K)
+    scene = Scene(nominal, tracker_in_base, lever_nominal, cfg.sight)
+    if cfg.tool_axis_deg is None:
+        return random_poses(scene, share[k] + n_test, g), torch.zeros(0, nominal.dof, dtype=F64)
+    true_scene = Scene(truth, tracker_in_base, lever_nominal, cfg.sight)
+    fixed = fixed_axis_poses(true_scene, share[k] + n_test, g, tool_axis(tracker_in_base), cfg.tool_axis_deg)
+    return fixed, turned_poses(scene, dataclasses.replace(cfg, test_poses=n_test), tracker_in_base, g)
 
 
 def _axis_spread(robot: RobotModel, q: Tensor, n_train: int, n_test: int, tracker_in_base: Tensor) -> dict:
