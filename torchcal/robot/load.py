@@ -591,7 +591,8 @@ def load_urdf(
             body_m[movable_idx] = total
     masses, coms = (body_m, body_c) if have_inertia else (None, None)
 
-    readings, reading_names = _mimic_readings(path, jnames, mimics, dtype) if mimics else (None, None)
+    movable = {j.name: j for j in joints if j.type in ("revolute", "continuous", "prismatic")}
+    readings, reading_names = _mimic_readings(path, jnames, mimics, movable, dtype) if mimics else (None, None)
     geometry = URDFGeometry(
         origins=torch.tensor(np.stack(origins), dtype=dtype),
         axes=torch.tensor(np.stack(axes), dtype=dtype),
@@ -619,39 +620,57 @@ def load_urdf(
     ).to(device)
 
 
-def _mimic_readings(path: Path, jnames: list[str], mimics: dict, dtype) -> tuple[Readings, list[str]]:
+def _mimic_readings(path: Path, jnames: list[str], mimics: dict, movable: dict, dtype) -> tuple[Readings, list[str]]:
     """The readings map of a chain with mimic joints: one reading per joint that mimics none, a mimic joint's row
-    ``multiplier`` at its source's reading and ``offset`` in ``b`` (a mimic of a mimic composes the two)."""
-    readers = [n for n in jnames if n not in mimics]
+    ``multiplier`` at its source's reading and ``offset`` in ``b`` (a mimic of a mimic composes the two).
+
+    A source off the chain (``movable``: every movable joint of the URDF by name), such as the virtual joint on a side
+    branch that vendors drive a lifting column's mimicking segments with, takes a reading too: it moves no link of the
+    chain itself, but the controller reports it. Its reading comes where its first mimic joint is in the chain.
+    """
+    mimics = dict(mimics)
+    for name, j in movable.items():  # an off-chain source may itself mimic another joint
+        if name not in jnames and getattr(j, "mimic", None) is not None:
+            mimics[name] = j.mimic
+    rows = [_mimic_row(path, name, jnames, mimics, movable) for name in jnames]
+    readers: list[str] = []
+    for name, (_, _, source) in zip(jnames, rows):
+        if (name not in mimics or source not in jnames) and source not in readers:
+            readers.append(source)
     if not readers:
         raise RobotSpecError(f"{path}: every movable joint of the chain is a mimic joint; none takes a reading")
     col = {n: k for k, n in enumerate(readers)}
     A = torch.zeros(len(jnames), len(readers), dtype=dtype)
     b = torch.zeros(len(jnames), dtype=dtype)
-    for i, name in enumerate(jnames):
-        scale, shift, at, seen = 1.0, 0.0, name, [name]
-        while at in mimics:
-            m = mimics[at]
-            mult = 1.0 if getattr(m, "multiplier", None) is None else float(m.multiplier)
-            off = 0.0 if getattr(m, "offset", None) is None else float(m.offset)
-            if not (math.isfinite(mult) and math.isfinite(off)):
-                raise RobotSpecError(f"{path}: joint '{at}': mimic multiplier and offset must be finite numbers")
-            shift, scale = shift + scale * off, scale * mult
-            src = m.joint
-            if src not in jnames:
-                raise RobotSpecError(
-                    f"{path}: joint '{at}' mimics joint '{src}', which is not a movable joint of the chain "
-                    f"({', '.join(jnames)})"
-                )
-            if src in seen:
-                raise RobotSpecError(f"{path}: the mimic joints {' -> '.join(seen + [src])} form a cycle")
-            seen.append(src)
-            at = src
-        if scale == 0.0:
-            raise RobotSpecError(f"{path}: joint '{name}': mimic multiplier 0 makes it a fixed joint; write it fixed")
-        A[i, col[at]] = scale
+    for i, (scale, shift, source) in enumerate(rows):
+        A[i, col[source]] = scale
         b[i] = shift
     return Readings(A, b, dtype=dtype), readers
+
+
+def _mimic_row(path: Path, name: str, jnames: list[str], mimics: dict, movable: dict) -> tuple[float, float, str]:
+    """Joint ``name`` as ``scale * reading + shift`` of the joint its mimics end at (itself when it mimics none)."""
+    scale, shift, at, seen = 1.0, 0.0, name, [name]
+    while at in mimics:
+        m = mimics[at]
+        mult = 1.0 if getattr(m, "multiplier", None) is None else float(m.multiplier)
+        off = 0.0 if getattr(m, "offset", None) is None else float(m.offset)
+        if not (math.isfinite(mult) and math.isfinite(off)):
+            raise RobotSpecError(f"{path}: joint '{at}': mimic multiplier and offset must be finite numbers")
+        shift, scale = shift + scale * off, scale * mult
+        src = m.joint
+        if src not in movable:
+            raise RobotSpecError(
+                f"{path}: joint '{at}' mimics joint '{src}', which is not a movable joint of the URDF "
+                f"(the chain's: {', '.join(jnames)})"
+            )
+        if src in seen:
+            raise RobotSpecError(f"{path}: the mimic joints {' -> '.join(seen + [src])} form a cycle")
+        seen.append(src)
+        at = src
+    if scale == 0.0:
+        raise RobotSpecError(f"{path}: joint '{name}': mimic multiplier 0 makes it a fixed joint; write it fixed")
+    return scale, shift, at
 
 
 def calibrated_flange(spec: str | os.PathLike) -> str | None:
