@@ -6,12 +6,15 @@ Every case is a clear refusal (exit 2, naming the file, row, column or parameter
 result; never exit 1, never a hang. Campaigns are tiny and module-scoped.
 """
 
+import json
+from pathlib import Path
 
 import pytest
 import test_hostile as hostile
 from _cli import cli_simulate, deadline
 
 import torchcal
+from torchcal.cli import main
 
 write = hostile.write
 
@@ -76,3 +79,65 @@ def test_a_mimic_of_nothing_is_still_refused(tmp_path):
     )
     with pytest.raises(torchcal.RobotSpecError, match="mimics joint 'lift', which is not a movable joint"):
         torchcal.load_robot(write(tmp_path / "column.urdf", text))
+
+
+# ---------------------------------- issue 35 items 5 and 11: fewer readings than joints; a run's URDF as --robot
+
+FANUC = Path(__file__).resolve().parents[1] / "robot" / "data" / "fanuc_like.yaml"
+#: the FANUC-like parallelogram arm whose wrist's last joint turns with the one before (a cable differential): six
+#: model joints, five readings
+FEWER = "[[1,0,0,0,0], [0,1,0,0,0], [0,-1,-1,0,0], [0,0,0,-1,0], [0,0,0,0,-1], [0,0,0,0,-1]]"
+
+
+@pytest.fixture(scope="module")
+def fewer(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fewer")
+    text = FANUC.read_text().split("readings:")[0] + f"readings:\n  coupling: {FEWER}\n"
+    robot = write(root / "fewer.yaml", text)
+    assert cli_simulate(root / "s", "--poses", "40", "--test-poses", "5", "--seed", "2", robot=str(robot)) == 0
+    # the file's '# robot:' line names fewer.yaml; the run's URDF is the same robot under another file name
+    data = write(
+        root / "train.csv", "".join(x for x in (root / "s" / "train.csv").open() if not x.startswith("# robot"))
+    )
+    return robot, data
+
+
+def _calibrate(data, robot, out) -> int:
+    return main(["calibrate", str(data), "--robot", str(robot), "--method", "kinematic", "--out", str(out), "--quiet"])
+
+
+@pytest.fixture(scope="module")
+def fewer_run(fewer, tmp_path_factory):
+    """The kinematic run of :func:`fewer` and its exit status (before the fix: 1, an IndexError writing the URDF)."""
+    robot, data = fewer
+    out = tmp_path_factory.mktemp("fewer_run") / "c"
+    with deadline(300):
+        return _calibrate(data, robot, out), out
+
+
+def test_fewer_readings_than_joints_write_their_urdf(fewer_run):
+    code, run = fewer_run
+    assert code == 0
+    urdf = torchcal.load_robot(run / "robot_calibrated.urdf")
+    assert (urdf.dof, urdf.n_joints) == (5, 6) and urdf.reading_names == ["J1", "J2", "J3", "J4", "J5"]
+
+
+def test_the_run_urdf_of_a_parallelogram_arm_works_as_robot(fewer, fewer_run, tmp_path):
+    robot, data = fewer
+    code, first = fewer_run
+    assert code == 0
+    with deadline(300):
+        assert _calibrate(data, first / "robot_calibrated.urdf", tmp_path / "again") == 0
+    one, two = (json.loads((d / "report.json").read_text()) for d in (first, tmp_path / "again"))
+    # the run's URDF is its calibrated robot (readings map included): calibrated again from it, it starts where the
+    # first run ended (before the fix: refused, its readings taken for the model's joints)
+    assert two["rmse_before_mm"] == pytest.approx(one["rmse_after_mm"], rel=1e-3)
+    assert two["rmse_after_mm"] == pytest.approx(one["rmse_after_mm"], rel=0.05)
+
+
+def test_an_old_run_urdf_without_its_readings_map_is_refused(fewer_run, tmp_path, capsys):
+    _, run = fewer_run
+    text = (run / "robot_calibrated.urdf").read_text()
+    old = write(tmp_path / "old.urdf", "\n".join(x for x in text.splitlines() if "readings map (JSON)" not in x))
+    with pytest.raises(torchcal.RobotSpecError, match="older torchcal"):
+        torchcal.load_robot(old)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -11,7 +12,7 @@ import torch
 
 from torchcal.errors import OptionError, RobotSpecError
 from torchcal.robot.model import DHConvention, DHGeometry, RobotModel, URDFGeometry
-from torchcal.robot.readings import Readings, check_coupling
+from torchcal.robot.readings import READINGS_MAP_TAG, Readings, check_coupling
 
 #: Largest robot description file accepted [bytes]: real URDFs and DH tables are kilobytes.
 MAX_DESCRIPTION_BYTES = 8 * 1024 * 1024
@@ -593,6 +594,10 @@ def load_urdf(
 
     movable = {j.name: j for j in joints if j.type in ("revolute", "continuous", "prismatic")}
     readings, reading_names = _mimic_readings(path, jnames, mimics, movable, dtype) if mimics else (None, None)
+    reading_limits = None
+    written = _written_map(path, raw, jnames, dtype)
+    if written is not None:  # a DH robot's readings map, as torchcal wrote it: the <mimic> tags are part of it
+        readings, reading_limits, reading_names = written
     geometry = URDFGeometry(
         origins=torch.tensor(np.stack(origins), dtype=dtype),
         axes=torch.tensor(np.stack(axes), dtype=dtype),
@@ -614,10 +619,48 @@ def load_urdf(
         base_link=base_link,
         tip_link=tip_link,
         readings=readings,
+        reading_limits=reading_limits,
         reading_names=reading_names,
         dtype=dtype,
         device=device,
     ).to(device)
+
+
+def _written_map(path: Path, raw: bytes, jnames: list[str], dtype) -> tuple[Readings, torch.Tensor, list[str]] | None:
+    """The readings map a URDF torchcal wrote for a DH robot with a ``readings:`` block carries in its header
+    (:data:`~torchcal.robot.readings.READINGS_MAP_TAG`): the readings, the map as calibrated (its non-zero ratios free
+    again, as the block's are) and the readings' limits; None for any other file.
+
+    Without it a run's ``robot_calibrated.urdf`` of a parallelogram arm would take the file's readings for the
+    model's joints (the ``<mimic>`` tags can say only the rows that follow one reading).
+    """
+    if not _written_by_torchcal(raw):
+        return None
+    tag = READINGS_MAP_TAG.encode()
+    at = raw.find(tag)
+    if at < 0:
+        if b"The controller's readings map" in raw:
+            raise RobotSpecError(
+                f"{path}: this URDF was written by an older torchcal for a robot whose readings are not its joints, "
+                "and its header does not carry the readings map in a form that can be read back; calibrate with the "
+                "robot's own description (the DH table with its readings: block)"
+            )
+        return None
+    line = raw[at + len(tag) :].split(b"\n", 1)[0]
+    try:
+        doc = json.loads(line)
+        A = torch.tensor(doc["coupling"], dtype=dtype)
+        b = torch.tensor(doc["offset"], dtype=dtype)
+        limits = torch.tensor(list(zip(doc["lower"], doc["upper"])), dtype=dtype)
+        names = [_safe_name(path, "reading name", n) for n in doc["readings"]]
+    except (ValueError, KeyError, TypeError, RuntimeError) as e:
+        raise RobotSpecError(f"{path}: the header's readings map cannot be read ({type(e).__name__}: {e})") from None
+    why = check_coupling(A.tolist(), len(jnames), "the header's readings map")
+    if why is None and (b.shape != (len(jnames),) or limits.shape != (A.shape[1], 2) or len(names) != A.shape[1]):
+        why = f"the header's readings map does not fit the chain's {len(jnames)} joints"
+    if why:
+        raise RobotSpecError(f"{path}: {why}")
+    return Readings(A, b, free=A != 0, dtype=dtype), limits, names
 
 
 def _mimic_readings(path: Path, jnames: list[str], mimics: dict, movable: dict, dtype) -> tuple[Readings, list[str]]:

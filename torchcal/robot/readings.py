@@ -25,6 +25,10 @@ from torchcal.errors import ShapeError
 
 Tensor = torch.Tensor
 
+#: the header comment line of a URDF torchcal wrote (:mod:`torchcal.robot.export`) that carries a DH robot's readings
+#: map as JSON (reading names, coupling, offset, reading limits), read back by :mod:`torchcal.robot.load`
+READINGS_MAP_TAG = "torchcal readings map (JSON):"
+
 
 class Readings(nn.Module):
     """The map ``q = (A_nominal + delta) r + b`` from controller readings ``r (..., n_readings)`` to model joints.
