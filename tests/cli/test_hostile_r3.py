@@ -141,3 +141,53 @@ def test_an_old_run_urdf_without_its_readings_map_is_refused(fewer_run, tmp_path
     old = write(tmp_path / "old.urdf", "\n".join(x for x in text.splitlines() if "readings map (JSON)" not in x))
     with pytest.raises(torchcal.RobotSpecError, match="older torchcal"):
         torchcal.load_robot(old)
+
+
+def test_readings_ratios_print_without_a_unit(fewer_run):
+    """Issue 34 item 7: report.md printed a ratio as a length (``readings.c2_2 | -4.2899 mm`` for -0.00429)."""
+    code, run = fewer_run
+    assert code == 0
+    lines = [x for x in (run / "report.md").read_text().splitlines() if x.startswith("| readings.c")]
+    assert lines and not any("mm" in x or "″" in x for x in lines), lines
+    rep = json.loads((run / "report.json").read_text())
+    entry = next(e for e in rep["parameters"]["estimated"] if e["name"] == "readings.c3_2")
+    assert f"| readings.c3_2 | {entry['correction']:.6g} |" in "\n".join(lines)
+
+
+# ---------------------------------------------- issue 35 item 1: a readings ratio that absorbs a unit error
+
+
+def _scaled_column(src: Path, dst: Path, column: int, factor: float) -> Path:
+    """``src`` without its ``# robot:`` line, data column ``column`` (0-based) times ``factor``."""
+    out, header = [], None
+    for line in src.read_text().splitlines():
+        if line.startswith("#"):
+            out += [] if line.startswith("# robot") else [line]
+        elif header is None:
+            header = line
+            out.append(line)
+        else:
+            cells = line.split(",")
+            cells[column] = repr(float(cells[column]) * factor)
+            out.append(",".join(cells))
+    return write(dst, "\n".join(out) + "\n")
+
+
+def test_a_ratio_that_absorbs_a_unit_error_stops_the_run(tmp_path, capsys):
+    """The track of ``ur10_track`` read in units 10 % off (an identity ``readings:`` block makes its ratio free): the
+    ratio moved by 0.11, 111 x its 0.1 % prior, and the run went on (exit 0); now it stops as a geometric correction
+    beyond its prior does."""
+    track = Path(torchcal.robot.load.resolve_robot_spec("ur10_track"))
+    robot = write(
+        tmp_path / "track.yaml",
+        track.read_text()
+        + "readings:\n  coupling: "
+        + str([[1.0 if i == k else 0.0 for k in range(7)] for i in range(7)])
+        + "\n",
+    )
+    assert cli_simulate(tmp_path / "s", "--poses", "50", "--test-poses", "5", "--seed", "3", robot="ur10_track") == 0
+    data = _scaled_column(tmp_path / "s" / "train.csv", tmp_path / "train.csv", 0, 0.9)
+    with deadline(300):
+        assert _calibrate(data, robot, tmp_path / "c") == 2
+    refused(capsys, "train.csv", "readings.c1_1", "x its prior", "another unit")
+    assert not (tmp_path / "c").exists()
