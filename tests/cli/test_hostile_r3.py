@@ -191,3 +191,25 @@ def test_a_ratio_that_absorbs_a_unit_error_stops_the_run(tmp_path, capsys):
         assert _calibrate(data, robot, tmp_path / "c") == 2
     refused(capsys, "train.csv", "readings.c1_1", "x its prior", "another unit")
     assert not (tmp_path / "c").exists()
+
+
+def test_a_singular_fit_of_a_readings_map_hints_at_the_signs(fewer, tmp_path, monkeypatch, capsys):
+    """Issue 34 item 7: a ``readings:`` block with only ``q3 = -(J2+J3)`` for an arm whose wrist readings are also
+    reversed failed with a bare "normal matrix singular". The solver's ending is forced here (the real data are the
+    vendor's); the message must say what to try."""
+    from torchcal.estimate import fit as fit_module
+    from torchcal.estimate.lm import FitStatus
+
+    real = fit_module.levenberg_marquardt
+
+    def singular(*args, **kwargs):
+        res = real(*args, **kwargs)
+        res.status, res.message = FitStatus.FAILED_SOLVE, "the normal matrix was singular (rank deficient)"
+        return res
+
+    monkeypatch.setattr(fit_module, "levenberg_marquardt", singular)
+    robot, data = fewer
+    with deadline(300):
+        assert _calibrate(data, robot, tmp_path / "c") == 2
+    refused(capsys, "normal matrix was singular", "try the sign of each reading")
+    assert not (tmp_path / "c").exists()
