@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import test_hostile as hostile
-from _cli import cli_simulate, deadline
+from _cli import calibrate, cli_simulate, deadline, snapshot
 
 import torchcal
 from torchcal.cli import main
@@ -213,3 +213,42 @@ def test_a_singular_fit_of_a_readings_map_hints_at_the_signs(fewer, tmp_path, mo
         assert _calibrate(data, robot, tmp_path / "c") == 2
     refused(capsys, "normal matrix was singular", "try the sign of each reading")
     assert not (tmp_path / "c").exists()
+
+
+# ------------------------------------------------------- issue 35 items 6, 11: station labels that cannot be used
+
+
+def _labelled(src: Path, dst: Path, label) -> Path:
+    """``src`` with a ``station`` column, row ``i`` (0-based) labelled ``label(i)``."""
+    out, header, i = [], None, 0
+    for line in src.read_text().splitlines():
+        if line.startswith("#"):
+            out.append(line)
+        elif header is None:
+            header = line
+            out.append(line + ",station")
+        else:
+            out.append(f"{line},{label(i)}")
+            i += 1
+    return write(dst, "\n".join(out) + "\n")
+
+
+@pytest.mark.parametrize(
+    "label, needles",
+    [
+        # every row its own station: IndexError (min() of an empty training set) before the fix
+        (lambda i: f"S{i}", ["line 6, column 'station'", "station 'S0' has 1 row(s) (99 more such stations)"]),
+        # "1" and "1.0": two stations before the fix, though the numbers are equal
+        (
+            lambda i: "1" if i % 2 else "1.0",
+            ["line 7, column 'station'", "label '1' is the number of an earlier label '1.0'"],
+        ),
+    ],
+)
+def test_station_labels_that_cannot_be_stations_are_refused(campaign, tmp_path, capsys, label, needles):
+    data = _labelled(campaign / "train.csv", tmp_path / "st.csv", label)
+    before = snapshot(tmp_path)
+    with deadline(120):
+        assert calibrate(data, tmp_path / "c") == 2
+    refused(capsys, "st.csv", *needles)
+    assert snapshot(tmp_path) == before
