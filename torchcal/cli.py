@@ -8,6 +8,7 @@ summary and where to report it; the traceback with ``--debug``); 130 interrupted
 from __future__ import annotations
 
 import argparse
+import errno
 import json
 import math
 import sys
@@ -1174,17 +1175,42 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"torchcal {args.command}: interrupted; the output was left as it was", file=sys.stderr)
         return 130
-    except Exception as e:  # the last line of defence: a summary, never a bare traceback
+    except OSError as e:
+        if e.errno not in _REFUSED_ERRNOS:
+            return _internal_error(args.command, e, debug)
         if debug:
             traceback.print_exc()
-        first = _console.one_line(str(e).strip().splitlines()[0]) if str(e).strip() else ""
-        print(f"torchcal {args.command}: internal error: {type(e).__name__}: {first[:300]}", file=sys.stderr)
+        where = f"{e.filename}: " if e.filename else ""
         print(
-            f"torchcal {args.command}: this is a bug; please report it at {REPORT_TO} with the command line"
-            + ("" if debug else " and the output of the same command with --debug"),
+            f"torchcal {args.command}: error: cannot write {where}{e.strerror or e}; nothing was written "
+            "(the output was left as it was)",
             file=sys.stderr,
         )
-        return 1
+        return 2
+    except Exception as e:  # the last line of defence: a summary, never a bare traceback
+        return _internal_error(args.command, e, debug)
+
+
+#: what the file system answers when the output cannot be written for a reason the user can act on (a full disk or
+#: quota, a file too large, a name over 255 bytes or a path over PATH_MAX, a read-only file system): a refusal, exit
+#: 2. Every writer writes into a temporary and renames it (``torchcal._outdir``), so nothing half-written stays.
+_REFUSED_ERRNOS = frozenset(
+    getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG", "ENAMETOOLONG", "EROFS") if hasattr(errno, n)
+)
+
+
+def _internal_error(command: str, e: BaseException, debug: bool) -> int:
+    """Exit 1 with a one-line summary and where to report it (a bug; never a bare traceback)."""
+    if debug:
+        traceback.print_exc()
+    first = _console.one_line(str(e).strip().splitlines()[0]) if str(e).strip() else ""
+    print(f"torchcal {command}: internal error: {type(e).__name__}: {first[:300]}", file=sys.stderr)
+    print(
+        f"torchcal {command}: this is a bug; please report it at {REPORT_TO} with the command line"
+        + ("" if debug else " and the output of the same command with --debug"),
+        file=sys.stderr,
+    )
+    return 1
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,7 +6,9 @@ Every case is a clear refusal (exit 2, naming the file, row, column or parameter
 result; never exit 1, never a hang. Campaigns are tiny and module-scoped.
 """
 
+import errno
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -14,6 +16,7 @@ import test_hostile as hostile
 from _cli import calibrate, cli_simulate, deadline, snapshot
 
 import torchcal
+import torchcal._outdir
 from torchcal.cli import main
 
 write = hostile.write
@@ -251,4 +254,57 @@ def test_station_labels_that_cannot_be_stations_are_refused(campaign, tmp_path, 
     with deadline(120):
         assert calibrate(data, tmp_path / "c") == 2
     refused(capsys, "st.csv", *needles)
+    assert snapshot(tmp_path) == before
+
+
+# ------------------------------------------------------------- issue 35 item 7: a full disk, names too long
+
+
+def _full_disk(*_args, **_kwargs):
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+@pytest.mark.parametrize("command", ["calibrate", "simulate"])
+def test_a_full_disk_is_a_refusal_that_writes_nothing(campaign, tmp_path, monkeypatch, capsys, command):
+    """Every run directory is written into a temporary that is renamed last (``torchcal._outdir``): the disk fills
+    up before the rename. ``calibrate`` exited 1 ("this is a bug")."""
+    monkeypatch.setattr(torchcal._outdir, "_write_listings", _full_disk)
+    before = snapshot(tmp_path)
+    with deadline(300):
+        if command == "calibrate":
+            code = calibrate(campaign / "train.csv", tmp_path / "out")
+        else:
+            code = cli_simulate(tmp_path / "out", "--poses", "20", "--test-poses", "5")
+    assert code == 2
+    refused(capsys, "No space left on device", "nothing was written")
+    assert snapshot(tmp_path) == before
+
+
+def test_a_full_disk_in_compensate_writes_nothing(run_dir, campaign, tmp_path, monkeypatch, capsys):
+    targets = write(
+        tmp_path / "targets.csv",
+        "x,y,z\n"
+        + "".join(",".join(c.split(",")[6:9]) + "\n" for c in (campaign / "test.csv").read_text().splitlines()[5:8]),
+    )
+    monkeypatch.setattr(os, "replace", _full_disk)
+    before = snapshot(tmp_path)
+    with deadline(300):
+        assert main(["compensate", str(run_dir), str(targets), "--out", str(tmp_path / "q.csv"), "--quiet"]) == 2
+    refused(capsys, "No space left on device")
+    assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("command", ["predict", "calibrate"])
+@pytest.mark.parametrize("long", ["name", "path"])
+def test_an_out_name_beyond_the_file_system_is_refused(run_dir, campaign, tmp_path, capsys, command, long):
+    """An ``--out`` name over 255 bytes, or a path over PATH_MAX (4096): OSError, exit 1, before the fix."""
+    out = tmp_path / ("n" * 300) if long == "name" else tmp_path.joinpath(*["d" * 200] * 22) / "out"
+    before = snapshot(tmp_path)
+    with deadline(300):
+        if command == "predict":
+            code = main(["predict", str(run_dir), str(campaign / "test.csv"), "--out", str(out / "p.csv"), "--quiet"])
+        else:
+            code = calibrate(campaign / "train.csv", out)
+    assert code == 2
+    refused(capsys, "error")
     assert snapshot(tmp_path) == before
