@@ -699,28 +699,49 @@ def cmd_calibrate(args) -> int:
 
 #: how many rows outside the calibrated region predict and compensate name on stderr before counting the rest
 MAX_OUTSIDE_LINES = 20
+#: how far beyond the calibrated region a reading must lie to be warned about, in joint reading noises (the default
+#: ``sigma_joint``, 0.0005 deg: 1.7e-4 rad or m): a pose 2.5e-7 rad beyond, or compensate's own solution 2-6e-5 rad
+#: beyond a training pose, is the same pose within the readings' noise
+OUTSIDE_TOL_SIGMAS = 20.0
 
 
-def warn_outside(path, lines, ext, what: str) -> None:
-    """Warn on stderr, one line per row (the first ``MAX_OUTSIDE_LINES``, then a count), for the rows whose pose
-    lies outside the calibrated region (``ext > 0``)."""
-    rows = [i for i in range(len(ext)) if float(ext[i]) > 0]
-    for i in rows[:MAX_OUTSIDE_LINES]:
+def outside_rows(model, q) -> list[tuple[int, str]]:
+    """The rows of ``q (N, dof)`` worth a warning, with why: a joint beyond the range it covered in the calibration
+    by more than the tolerance (:data:`OUTSIDE_TOL_SIGMAS`), or a joint the calibration held still (a range within
+    the tolerance) moved away from where it was held."""
+    from torchcal.pipeline.options import FitSettings
+
+    if model.region is None:
+        return []
+    tol = OUTSIDE_TOL_SIGMAS * FitSettings.__dataclass_fields__["sigma_joint"].default
+    lo, hi = (x.detach().cpu() for x in model.region)
+    beyond = torch.maximum(lo - q.detach().cpu(), q.detach().cpu() - hi).clamp(min=0)  # (N, dof)
+    held = (hi - lo) <= tol
+    out = []
+    for i in range(beyond.shape[0]):
+        far = [k for k in range(beyond.shape[1]) if float(beyond[i, k]) > tol]
+        if not far:
+            continue
+        k = max(far, key=lambda j: float(beyond[i, j]))
+        if bool(held[k]):
+            why = f"q{k + 1} moved {float(beyond[i, k]):.3g} from where the calibration held it (it never moved there)"
+        else:
+            why = f"the pose lies {float(beyond[i, k]):.3g} beyond the calibrated region (q{k + 1}; rad or m)"
+        out.append((i, why))
+    return out
+
+
+def warn_outside(path, lines, model, q, what: str) -> None:
+    """Warn on stderr (not under ``--quiet``), one line per row (the first ``MAX_OUTSIDE_LINES``, then a count), for
+    the rows of :func:`outside_rows`."""
+    rows = outside_rows(model, q)
+    for i, why in rows[:MAX_OUTSIDE_LINES]:
         line = lines[i] if lines is not None and i < len(lines) else i + 1
-        print(
-            _console.one_line(
-                f"torchcal: warning: {path}: line {line}: the pose lies {float(ext[i]):.3g} beyond the calibrated "
-                f"region (extrapolation, rad or m)" + (f"; {what}" if what else "")
-            ),
-            file=sys.stderr,
-        )
+        _console.info(f"torchcal: warning: {path}: line {line}: {why}" + (f"; {what}" if what else ""))
     if len(rows) > MAX_OUTSIDE_LINES:
-        print(
-            _console.one_line(
-                f"torchcal: warning: {path}: {len(rows) - MAX_OUTSIDE_LINES} more rows outside the calibrated region "
-                "(the extrapolation column names them)"
-            ),
-            file=sys.stderr,
+        _console.info(
+            f"torchcal: warning: {path}: {len(rows) - MAX_OUTSIDE_LINES} more rows outside the calibrated region "
+            "(the extrapolation column names them)"
         )
 
 
@@ -774,7 +795,7 @@ def cmd_predict(args) -> int:
         sigma_r=None,
     )
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
-    warn_outside(args.data, data.lines, ext, fade)
+    warn_outside(args.data, data.lines, model, data.q, fade)
     out_file.parent.mkdir(parents=True, exist_ok=True)
     write_measurements(out_file, out, written_by="torchcal predict")
     _console.info(f"wrote {len(p)} predictions to {args.out}")
@@ -838,7 +859,7 @@ def cmd_compensate(args) -> int:
         written_by="torchcal compensate",
     )
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
-    warn_outside(args.targets, data.lines, ext, alone)
+    warn_outside(args.targets, data.lines, model, res.q, alone)
     bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
     for i in bad:
         print(

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import test_hostile as hostile
+import torch
 from _cli import calibrate, cli_simulate, deadline, snapshot
 
 import torchcal
@@ -308,3 +309,51 @@ def test_an_out_name_beyond_the_file_system_is_refused(run_dir, campaign, tmp_pa
     assert code == 2
     refused(capsys, "error")
     assert snapshot(tmp_path) == before
+
+
+# ---------------------------------------------- issue 34 item 8: noise-level warnings, held joints, --quiet
+
+
+def _beyond(campaign: Path, dst: Path, delta: float) -> Path:
+    """The training row of the largest q2, moved ``delta`` beyond it."""
+    comments, header, rows = [], None, []
+    for line in (campaign / "train.csv").read_text().splitlines():
+        if line.startswith("#"):
+            comments.append(line)
+        elif header is None:
+            header = line.split(",")
+        else:
+            rows.append(line.split(","))
+    k = header.index("q2")
+    top = max(rows, key=lambda r: float(r[k]))
+    top = [*top[:k], repr(float(top[k]) + delta), *top[k + 1 :]]
+    return write(dst, "\n".join(comments + [",".join(header), ",".join(top)]) + "\n")
+
+
+@pytest.mark.parametrize("delta, quiet, warned", [(2.5e-7, False, False), (0.3, False, True), (0.3, True, False)])
+def test_predict_warns_beyond_the_noise_and_not_under_quiet(run_dir, campaign, tmp_path, capsys, delta, quiet, warned):
+    """A pose 2.5e-7 rad beyond the region is a training pose within the readings' noise: no warning (before: one,
+    on every such row); ``--quiet`` silences the warnings (before: printed)."""
+    data = _beyond(campaign, tmp_path / "rows.csv", delta)
+    quiet_flag = ["--quiet"] if quiet else []
+    assert main(["predict", str(run_dir), str(data), "--out", str(tmp_path / "p.csv"), *quiet_flag]) == 0
+    err = capsys.readouterr().err
+    assert ("beyond the calibrated region" in err) is warned, err
+    if quiet:
+        assert err == ""
+
+
+def test_a_joint_held_still_is_held_not_outside():
+    """A campaign that moves two joints only: the held joint's readings scatter by 1e-4 rad about 0, and every row
+    was named as outside the calibrated region; a held joint moved away is named as held."""
+    from types import SimpleNamespace
+
+    from torchcal.cli import outside_rows
+
+    region = torch.tensor([[-1.0, -1.0, -5e-5], [1.0, 1.0, 5e-5]], dtype=torch.float64)
+    model = SimpleNamespace(region=region)
+    q = torch.tensor([[0.5, 0.5, 1e-4], [0.5, 0.5, -1e-4], [0.5, 0.5, 0.4], [1.3, 0.0, 0.0]], dtype=torch.float64)
+    rows = outside_rows(model, q)
+    assert [i for i, _ in rows] == [2, 3]
+    assert "q3 moved 0.4 from where the calibration held it" in rows[0][1]
+    assert "0.3 beyond the calibrated region (q1" in rows[1][1]
