@@ -8,6 +8,7 @@ result; never exit 1, never a hang. Campaigns are tiny and module-scoped.
 
 import errno
 import json
+import math
 import os
 from pathlib import Path
 
@@ -357,3 +358,46 @@ def test_a_joint_held_still_is_held_not_outside():
     assert [i for i, _ in rows] == [2, 3]
     assert "q3 moved 0.4 from where the calibration held it" in rows[0][1]
     assert "0.3 beyond the calibrated region (q1" in rows[1][1]
+
+
+# ------------------------------------------------ issue 34 item 9: orientation rows in the gross-error screening
+
+
+def _turned_row(src: Path, dst: Path, row: int, deg: float) -> tuple[Path, int]:
+    """``src`` with data row ``row`` (0-based)'s orientation turned ``deg`` about its x axis; and its file line."""
+    from torchcal.robot.transforms import so3_exp, so3_log
+
+    lines = src.read_text().splitlines()
+    head = next(i for i, x in enumerate(lines) if not x.startswith("#"))
+    cols, k = lines[head].split(","), head + 1 + row
+    cells = lines[k].split(",")
+    at = [cols.index(n) for n in ("rx", "ry", "rz")]
+    r = torch.tensor([float(cells[j]) for j in at], dtype=torch.float64)
+    turn = torch.tensor([math.radians(deg), 0.0, 0.0], dtype=torch.float64)
+    for j, v in zip(at, so3_log(so3_exp(r) @ so3_exp(turn)).tolist()):
+        cells[j] = repr(v)
+    lines[k] = ",".join(cells)
+    return write(dst, "\n".join(lines) + "\n"), k + 1
+
+
+@pytest.fixture(scope="module")
+def oriented(tmp_path_factory):
+    root = tmp_path_factory.mktemp("oriented")
+    assert cli_simulate(root / "s", "--poses", "60", "--test-poses", "5", "--seed", "5", "--orientation", "0.01") == 0
+    return root / "s"
+
+
+@pytest.mark.parametrize("deg", [0.0, 11.7])
+def test_an_orientation_gross_error_is_screened_out(oriented, tmp_path, deg):
+    data, line = _turned_row(oriented / "train.csv", tmp_path / "train.csv", 9, deg)
+    with deadline(300):
+        assert calibrate(data, tmp_path / "c") == 0
+    rows = [
+        r
+        for part in ("training", "holdout")
+        for r in json.loads((tmp_path / "c" / "report.json").read_text())["outliers"][part]["rows"]
+    ]
+    if deg == 0.0:  # clean rows: nothing rejected
+        assert rows == []
+    else:  # kept and "0 outliers" before the fix
+        assert [r["line"] for r in rows] == [line] and "11.7 deg off" in rows[0]["hint"]
