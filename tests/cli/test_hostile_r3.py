@@ -401,3 +401,41 @@ def test_an_orientation_gross_error_is_screened_out(oriented, tmp_path, deg):
         assert rows == []
     else:  # kept and "0 outliers" before the fix
         assert [r["line"] for r in rows] == [line] and "11.7 deg off" in rows[0]["hint"]
+
+
+# ------------------------------------------------ issue 35 item 4: orientations that are no rotation of the probe
+
+
+def test_random_orientations_are_refused(oriented, tmp_path, capsys):
+    """Random rx, ry, rz calibrated with exit 0 and nothing on stderr (held-out orientation error 129 deg)."""
+    g = torch.Generator().manual_seed(0)
+    lines = (oriented / "train.csv").read_text().splitlines()
+    head = next(i for i, x in enumerate(lines) if not x.startswith("#"))
+    at = [lines[head].split(",").index(n) for n in ("rx", "ry", "rz")]
+    for k in range(head + 1, len(lines)):
+        cells = lines[k].split(",")
+        v = torch.randn(3, generator=g, dtype=torch.float64)
+        v = v / v.norm() * float(torch.rand(1, generator=g, dtype=torch.float64)) * math.pi
+        for j, x in zip(at, v.tolist()):
+            cells[j] = repr(x)
+        lines[k] = ",".join(cells)
+    data = write(tmp_path / "random.csv", "\n".join(lines) + "\n")
+    with deadline(300):
+        assert calibrate(data, tmp_path / "c") == 2
+    refused(capsys, "random.csv, column 'rx'", "do not turn with the robot")
+    assert not (tmp_path / "c").exists()
+
+
+@pytest.mark.parametrize("statistic, warned", [(2607.0, True), (1.5, False), (0.9, False)])
+def test_a_global_test_failed_by_far_is_a_warning(capsys, monkeypatch, statistic, warned):
+    from types import SimpleNamespace
+
+    from torchcal import _console
+    from torchcal.cli import _warn_global_test
+
+    monkeypatch.setattr(_console, "_quiet", False)  # an earlier command of this process may have left --quiet on
+
+    test = {"statistic": statistic, "threshold": 1.06, "passed": statistic <= 1.06}
+    _warn_global_test(SimpleNamespace(fits=[SimpleNamespace(global_test=test)]))
+    err = capsys.readouterr().err
+    assert ("warning: the global test failed by far: variance factor 2607" in err) is warned, err

@@ -56,7 +56,7 @@ import torch
 
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
-from torchcal.errors import EstimationError
+from torchcal.errors import EstimationError, MeasurementFileError
 from torchcal.estimate.fit import FAILED, FitOptions, selection
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
@@ -71,6 +71,10 @@ F64 = torch.float64
 DEFAULT_ALPHA = 1e-3
 #: a gross error lies at least this many robust standard deviations from the model (module docstring)
 GROSS_FACTOR = 15.0
+#: the largest median angle [deg] between the rows' probe frames in the flange frame (:func:`_screen_orientation`)
+#: that orientations of a rigid probe may show: the probe's noise and the geometry's own errors give a fraction of a
+#: degree (0.45 deg on the issue's real rows); orientations that are no rotation of the probe give tens of degrees
+MAX_ORIENTATION_SPREAD_DEG = 10.0
 
 
 def chi2_sf(x: float, k: int) -> float:
@@ -429,6 +433,16 @@ def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Ten
 
     R = _probe_frames(model, m)
     e = so3_log(_common_frame(R).transpose(-1, -2) @ R)  # (N, 3) rad
+    spread = math.degrees(float(e.norm(dim=-1).median()))
+    if spread > MAX_ORIENTATION_SPREAD_DEG:
+        raise MeasurementFileError(
+            m.source or "the measurements",
+            f"the orientations (rx, ry, rz) do not turn with the robot: the probe frame they give in the flange frame "
+            f"differs between rows by a median {spread:.3g} deg (a rigid probe: within a fraction of a degree)",
+            column="rx",
+            hint="rx, ry, rz must be the probe frame's orientation in the tracker frame as a rotation vector [rad]; "
+            "leave the columns out if the instrument did not measure it",
+        )
     sigma = m.sigma_r.mean(dim=-1) if m.sigma_r is not None else torch.full_like(e[:, 0], SIGMA_ORIENTATION)
     T = (e**2).sum(-1) / sigma.clamp(min=1e-12) ** 2
     s0sq = max(float(T.median()) / _chi2_median(3), 1.0)
