@@ -439,3 +439,38 @@ def test_a_global_test_failed_by_far_is_a_warning(capsys, monkeypatch, statistic
     _warn_global_test(SimpleNamespace(fits=[SimpleNamespace(global_test=test)]))
     err = capsys.readouterr().err
     assert ("warning: the global test failed by far: variance factor 2607" in err) is warned, err
+
+
+# ------------------------------------------------------------- issue 35 item 10: name the cause
+
+
+def test_a_readings_ratio_of_1e12_is_refused_at_load(tmp_path):
+    """Passed ``simulate`` and failed ``calibrate`` with 'observation covariance of pose 0 is not positive definite'."""
+    text = FANUC.read_text().replace("[0,-1,-1,0,0,0]", "[0,-1e12,-1,0,0,0]")
+    with pytest.raises(torchcal.RobotSpecError, match=r"readings.coupling' has a ratio of size 1e\+12"):
+        torchcal.load_robot(write(tmp_path / "r.yaml", text))
+
+
+def test_a_mimic_multiplier_of_1e12_is_refused_at_load(tmp_path):
+    text = VENDOR_COLUMN.replace('multiplier="0.5" offset="0.01"', 'multiplier="1e12" offset="0.01"')
+    with pytest.raises(torchcal.RobotSpecError, match="joint 'column_middle_joint': mimic multiplier 1e\\+12"):
+        torchcal.load_robot(write(tmp_path / "column.urdf", text))
+
+
+def test_a_prior_scaled_by_1e20_is_refused_naming_the_covariance(run_dir, campaign, tmp_path, capsys):
+    """Gave 'normal matrix singular'."""
+    import shutil
+
+    prior = tmp_path / "prior"
+    shutil.copytree(run_dir, prior)
+    state = torch.load(prior / "covariance.pt", weights_only=True)
+    state["covariance"] = state["covariance"] * 1e20
+    torch.save(state, prior / "covariance.pt")
+    lines = (campaign / "test.csv").read_text().splitlines()
+    head = next(i for i, x in enumerate(lines) if not x.startswith("#"))
+    rows = write(tmp_path / "rows.csv", "\n".join(lines[: head + 11]) + "\n")
+    before = snapshot(tmp_path)
+    with deadline(300):
+        assert calibrate(rows, tmp_path / "c", "--prior", str(prior)) == 2
+    refused(capsys, "covariance.pt gives", "damaged or was scaled")
+    assert snapshot(tmp_path) == before

@@ -12,7 +12,7 @@ import torch
 
 from torchcal.errors import OptionError, RobotSpecError
 from torchcal.robot.model import DHConvention, DHGeometry, RobotModel, URDFGeometry
-from torchcal.robot.readings import READINGS_MAP_TAG, Readings, check_coupling
+from torchcal.robot.readings import MAX_RATIO, MIN_RATIO, READINGS_MAP_TAG, Readings, check_coupling
 
 #: Largest robot description file accepted [bytes]: real URDFs and DH tables are kilobytes.
 MAX_DESCRIPTION_BYTES = 8 * 1024 * 1024
@@ -713,6 +713,11 @@ def _mimic_row(path: Path, name: str, jnames: list[str], mimics: dict, movable: 
         at = src
     if scale == 0.0:
         raise RobotSpecError(f"{path}: joint '{name}': mimic multiplier 0 makes it a fixed joint; write it fixed")
+    if not MIN_RATIO <= abs(scale) <= MAX_RATIO:
+        raise RobotSpecError(
+            f"{path}: joint '{name}': mimic multiplier {scale:.3g} (composed along its mimics) is outside "
+            f"{MIN_RATIO:g} to {MAX_RATIO:g}: the source's reading noise carried through it would swamp the fit"
+        )
     return scale, shift, at
 
 
