@@ -20,6 +20,7 @@ from _cli import calibrate, cli_simulate, deadline, snapshot
 import torchcal
 import torchcal._outdir
 from torchcal.cli import main
+from torchcal.report import load_model
 
 write = hostile.write
 
@@ -474,3 +475,25 @@ def test_a_prior_scaled_by_1e20_is_refused_naming_the_covariance(run_dir, campai
         assert calibrate(rows, tmp_path / "c", "--prior", str(prior)) == 2
     refused(capsys, "covariance.pt gives", "damaged or was scaled")
     assert snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_compensate_does_not_warn_about_its_own_solutions(run_dir, tmp_path, capsys, quiet):
+    """Targets the run's model reaches at the region's edge plus 5e-5 rad and plus 0.3 rad in q2: the first was named
+    as outside the calibrated region (issue 34 item 8: compensate warned about its own solutions at 2-6e-5 rad); the
+    second still is, and ``--quiet`` prints nothing at all (before: the warnings)."""
+    model = load_model(run_dir)[0]
+    lo, hi = model.region
+    q = ((lo + hi) / 2).repeat(2, 1)
+    q[0, 1], q[1, 1] = hi[1] + 5e-5, hi[1] + 0.3
+    p = model.predict(q)
+    rows = [",".join(repr(float(v)) for v in [*q[i].tolist(), *p[i].tolist()]) for i in range(2)]
+    targets = write(tmp_path / "targets.csv", "q1,q2,q3,q4,q5,q6,x,y,z\n" + "\n".join(rows) + "\n")
+    flags = ["--quiet"] if quiet else []
+    with deadline(300):
+        assert main(["compensate", str(run_dir), str(targets), "--out", str(tmp_path / "q.csv"), *flags]) == 0
+    err = capsys.readouterr().err
+    if quiet:
+        assert err == ""
+    else:
+        assert "line 2:" not in err and "line 3: the pose lies 0.3 beyond the calibrated region (q2" in err, err
