@@ -257,6 +257,30 @@ def labels_of(values: Sequence[object]) -> tuple[torch.Tensor, tuple[str, ...]]:
     return torch.tensor(idx, dtype=torch.int64), tuple(names)
 
 
+def _check_numeric_labels(path: str, column: str, values: Sequence[object], lines: Sequence[int]) -> None:
+    """Refuse two labels of one column that are different text but the same number (``1`` and ``1.0``, ``01``): a
+    label is a name, so they would silently become two stations (probes); which the user meant cannot be told."""
+    seen: dict[float, str] = {}
+    for v, line in zip(values, lines):
+        text = str(v)
+        try:
+            number = float(text)
+        except ValueError:
+            continue
+        if not math.isfinite(number):
+            continue
+        first = seen.setdefault(number, text)
+        if first != text:
+            raise MeasurementFileError(
+                path,
+                f"{column} label {text!r} is the number of an earlier label {first!r} written differently; labels are "
+                f"names, so these would be two {column}s",
+                line=line,
+                column=column,
+                hint=f"write each {column}'s label the same way on every row",
+            )
+
+
 def _describe(x: object) -> str:
     if isinstance(x, torch.Tensor):
         return f"{x.dtype} tensor of shape {tuple(x.shape)}"
@@ -353,6 +377,8 @@ def read_measurements(
     r = columns(_ROTATION) if layout.has_rotation else None
     sigma_r = columns(_ROTATION_SIGMA) if layout.has_rotation_sigma else None
     extra = {name: column(name) for name in layout.extra}
+    for name, values in labels.items():
+        _check_numeric_labels(path_str, name, values, lines)
     station, station_names = labels_of(labels["station"]) if "station" in labels else (None, ())
     probe, probe_names = labels_of(labels["probe"]) if "probe" in labels else (None, ())
 

@@ -616,11 +616,23 @@ def _lm(
     fun = _residuals(model, free, ctx, m, W, Wr, _priors(model, free, opts, groups))
     res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
     if res.status in FAILED:
-        raise EstimationError(f"{stage}: least squares {res.status}: {res.message}")
+        raise EstimationError(f"{stage}: least squares {res.status}: {res.message}{_readings_hint(model)}")
     if Wr is not None and lead != 1.0 and res.residuals is not None:
         res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
     free.assign(res.x)
     return res
+
+
+def _readings_hint(model: MeasurementModel) -> str:
+    """What to try when a robot whose readings are not its joints cannot be fitted: a reading of the other sign (a
+    wrist whose controller counts the other way, left out of the ``readings:`` block) bends the chain where the data
+    do not go, and the fit then finds no direction to move in."""
+    if not model.robot.has_readings_map:
+        return ""
+    return (
+        " (hint: the robot maps its readings to its joints; a reading of the other sign than the readings: block says "
+        "leaves the fit without a solution: try the sign of each reading in the block, as for a wrong robot)"
+    )
 
 
 def _orientation_weights(residuals: Tensor, n: int, lead: float) -> Tensor:

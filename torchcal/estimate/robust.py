@@ -56,12 +56,13 @@ import torch
 
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
-from torchcal.errors import EstimationError
+from torchcal.errors import EstimationError, MeasurementFileError
 from torchcal.estimate.fit import FAILED, FitOptions, selection
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
 from torchcal.estimate.rigid import robust_instrument_and_tool
+from torchcal.robot.transforms import so3_exp, so3_log
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -70,6 +71,10 @@ F64 = torch.float64
 DEFAULT_ALPHA = 1e-3
 #: a gross error lies at least this many robust standard deviations from the model (module docstring)
 GROSS_FACTOR = 15.0
+#: the largest median angle [deg] between the rows' probe frames in the flange frame (:func:`_screen_orientation`)
+#: that orientations of a rigid probe may show: the probe's noise and the geometry's own errors give a fraction of a
+#: degree (0.45 deg on the issue's real rows); orientations that are no rotation of the probe give tens of degrees
+MAX_ORIENTATION_SPREAD_DEG = 10.0
 
 
 def chi2_sf(x: float, k: int) -> float:
@@ -397,6 +402,69 @@ def _name_rows(res: RobustResult, m, pred: Tensor, file_unit_hint: bool = True) 
     res.rejected.sort(key=lambda x: x.line)
 
 
+def _probe_frames(model: MeasurementModel, m) -> Tensor:
+    """Each row's probe frame in the flange frame ``(N, 3, 3)`` as its measured orientation says: ``(R_tracker_base
+    R_base_flange(q))^T R_measured``. One frame for every row of a rigid probe, up to the noise."""
+    R_tb = model.robot.T_tracker_base()[:3, :3]
+    R_tf = R_tb @ model.robot(m.q)[..., :3, :3]
+    return R_tf.transpose(-1, -2) @ so3_exp(m.r)
+
+
+def _common_frame(R: Tensor, rounds: int = 5) -> Tensor:
+    """A robust centre ``(3, 3)`` of the rotations ``R (N, 3, 3)``: the component-wise median of their rotation
+    vectors about the current centre, a few times (a gross row moves a median by one rank, not by its size)."""
+    centre = R[0]
+    for _ in range(rounds):
+        v = so3_log(centre.transpose(-1, -2) @ R)
+        centre = centre @ so3_exp(v.median(dim=0).values)
+    return centre
+
+
+def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Tensor, alpha: float, gross: float):
+    """Reject the rows whose measured orientation (rx, ry, rz) is a gross error, as the positions' screening does
+    (issue 34 item 9: a row 11.7 deg off among rows within 0.45 deg was kept). Each row's probe frame in the flange
+    frame (:func:`_probe_frames`) against their robust centre: ``T_i = |log(R_c^T R_i)|^2 / sigma_i^2``, scaled by
+    ``s0^2 = max(1, median(T_i) / median(chi2_3))`` (the geometry's own orientation errors and joint noise make the
+    spread wider than the probe's sigma), rejected above the same bound as the positions (``chi2_3`` at ``1 - alpha
+    / n`` and ``gross^2``). Adds to ``res.kept`` and ``res.rejected``; rows without orientation: nothing."""
+    if m.r is None or m.n < 4:
+        return
+    from torchcal.estimate.fit import SIGMA_ORIENTATION
+
+    R = _probe_frames(model, m)
+    e = so3_log(_common_frame(R).transpose(-1, -2) @ R)  # (N, 3) rad
+    spread = math.degrees(float(e.norm(dim=-1).median()))
+    if spread > MAX_ORIENTATION_SPREAD_DEG:
+        raise MeasurementFileError(
+            m.source or "the measurements",
+            f"the orientations (rx, ry, rz) do not turn with the robot: the probe frame they give in the flange frame "
+            f"differs between rows by a median {spread:.3g} deg (a rigid probe: within a fraction of a degree)",
+            column="rx",
+            hint="rx, ry, rz must be the probe frame's orientation in the tracker frame as a rotation vector [rad]; "
+            "leave the columns out if the instrument did not measure it",
+        )
+    sigma = m.sigma_r.mean(dim=-1) if m.sigma_r is not None else torch.full_like(e[:, 0], SIGMA_ORIENTATION)
+    T = (e**2).sum(-1) / sigma.clamp(min=1e-12) ** 2
+    s0sq = max(float(T.median()) / _chi2_median(3), 1.0)
+    z = T / s0sq
+    bad = (z > max(chi2_isf(alpha / max(m.n, 1), 3), gross**2)) & res.kept
+    size = (pred - m.p).norm(dim=-1)
+    for i in torch.nonzero(bad).flatten().tolist():
+        angle = math.degrees(float(e[i].norm()))
+        res.rejected.append(
+            Rejected(
+                index=i,
+                line=int(m.lines[i]),
+                statistic=float(z[i]),
+                p_value=chi2_sf(float(z[i]), 3),
+                size_mm=float(size[i]) * 1e3,
+                hint=f"the orientation (rx, ry, rz) is {angle:.3g} deg off the probe frame the other rows agree on",
+            )
+        )
+    res.rejected.sort(key=lambda x: x.line)
+    res.kept = res.kept & ~bad
+
+
 def screen_geometric(
     model: MeasurementModel,
     train,
@@ -461,6 +529,7 @@ def screen_geometric(
     free.assign(res.result.x)
     with torch.no_grad():
         _name_rows(res, train, model(ctx))
+        _screen_orientation(res, model, train, model(ctx), alpha, gross)
 
     # held-out poses against the robust model, parameter uncertainty included
     hctx = Context.from_measurements(hold, trajectory=trajectory)
@@ -488,9 +557,11 @@ def screen_geometric(
         weights=(zh <= thr).to(F64),
     )
     _name_rows(hres, hold, pred)
+    with torch.no_grad():
+        _screen_orientation(hres, model, hold, pred, alpha, gross)
     method = (
         "robust start (Tukey-reweighted rigid fit), M-estimation (Huber, then Tukey's biweight, robust scale "
         "from the median) of the geometric model, then Baarda's data snooping one pose at a time; held-out "
         "poses tested against the robust geometric model"
-    )
+    ) + ("; orientations (rx, ry, rz) tested against the probe frame the rows agree on" if train.r is not None else "")
     return Screening(training=res, holdout=hres, model=model, method=method, gross=gross, free=free.names)

@@ -11,14 +11,15 @@ from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import EstimationError, MeasurementFileError, OptionError
-from torchcal.estimate.fit import Fit, prior_ratios
+from torchcal.estimate.fit import Fit, prior_ratios, prior_scales
 from torchcal.pipeline.options import Options
 
 #: fewest held-out poses a run reports an error on
 MIN_HOLDOUT = 3
 #: the largest geometric correction, in prior standard deviations, a calibration accepts: lengths and angles
-#: (docs/prior_ratios.md: measured on legitimate data, simulated and real, and on data of another robot)
-MAX_PRIOR_RATIO = {"m": 50.0, "rad": 300.0}
+#: (docs/prior_ratios.md: measured on legitimate data, simulated and real, and on data of another robot), and readings
+#: ratios (unit 1, prior 0.1 %: 50 x is a 5 % transmission error; a track read in mm moves its ratio by 999 x)
+MAX_PRIOR_RATIO = {"m": 50.0, "rad": 300.0, "1": 50.0}
 
 
 def check_holdout(n: int, holdout: float) -> None:
@@ -31,6 +32,34 @@ def check_holdout(n: int, holdout: float) -> None:
             f"--holdout {holdout:g} of {n} poses holds out {n_hold}; at least {MIN_HOLDOUT} are needed for a "
             f"held-out error (--holdout >= {MIN_HOLDOUT / n:.3g})"
         )
+
+
+#: fewest rows of a station a calibration of several stations takes: three points fix its pose (6 parameters), and
+#: the stratified split holds out one of them at least
+MIN_STATION_ROWS = 4
+
+
+def check_stations(data: Measurements) -> None:
+    """Refuse a station of too few rows (:data:`MIN_STATION_ROWS`) in data of several stations, naming the station
+    and its first row's line: its instrument pose would be undetermined, and the split would hold out all its rows."""
+    if data.station is None or data.n_stations < 2:
+        return
+    counts = torch.bincount(data.station.detach().cpu(), minlength=data.n_stations)
+    few = [k for k in range(data.n_stations) if int(counts[k]) < MIN_STATION_ROWS]
+    if not few:
+        return
+    k = few[0]
+    first = int(torch.nonzero(data.station.detach().cpu() == k).flatten()[0])
+    others = f" ({len(few) - 1} more such stations)" if len(few) > 1 else ""
+    raise MeasurementFileError(
+        data.source or "the measurements",
+        f"station '{data.station_names[k]}' has {int(counts[k])} row(s){others}; a calibration of several stations "
+        f"needs at least {MIN_STATION_ROWS} rows of each (three points fix its placement, one is held out)",
+        line=data.lines[first] if data.lines else None,
+        column="station",
+        hint="label the rows of one instrument placement with one station name; a label per row makes every row "
+        "its own placement",
+    )
 
 
 def check_poses(data: Measurements) -> None:
@@ -69,20 +98,44 @@ def check_poses(data: Measurements) -> None:
 
 def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Measurements) -> None:
     """Stop a run whose geometric corrections are many times their priors (:data:`MAX_PRIOR_RATIO`): the data were
-    measured on another robot, in other units, or the description is not the robot's."""
-    ratios = prior_ratios(fit, model, opts.fit)
-    units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+    measured on another robot, in other units, or the description is not the robot's. A readings map's ratios count
+    too (unit 1): a ratio that moves by 100 % absorbs a reading in another unit (a track in mm) or of the other
+    sign, and the run would then predict in neither."""
+    ratios = {**prior_ratios(fit, model, opts.fit), **_readings_ratios(fit, model, opts)}
+    units = {i.name: i.unit for i in model.robot.parameter_info() if i.group in ("geometry", "readings")}
     worst = sorted(((r / MAX_PRIOR_RATIO[units[n]], r, n) for n, r in ratios.items()), reverse=True)
     if not worst or worst[0][0] <= 1.0:
         return
     listed = []
     for _, r, n in worst[:3]:
         value = float(fit.result.x[fit.free.names.index(n)])
-        shown = f"{value * 1e3:+.4g} mm" if units[n] == "m" else f"{math.degrees(value):+.4g} deg"
+        shown = {"m": f"{value * 1e3:+.4g} mm", "rad": f"{math.degrees(value):+.4g} deg"}.get(units[n], f"{value:+.4g}")
         listed.append(f"{n} {shown} ({r:.0f} x its prior)")
+    cause = (
+        "Wrong robot (were the data measured on another model?), wrong units (--length-unit, --angle-unit), or a "
+        "description that is not this robot's"
+    )
+    if units[worst[0][2]] == "1":
+        cause = (
+            "A reading in another unit than the description's (a track in mm where the robot says m: write its "
+            "ratio in the readings: block or convert the column), a reading of the other sign (try the sign of "
+            "each reading in the readings: block), or a readings map that is not this robot's"
+        )
     raise EstimationError(
         f"{data.source or 'the measurements'}: the geometric fit of robot '{model.robot.name}' needs corrections "
         f"many times their a-priori size: {', '.join(listed)} (limits: {MAX_PRIOR_RATIO['m']:g} x for lengths, "
-        f"{MAX_PRIOR_RATIO['rad']:g} x for angles). Wrong robot (were the data measured on another model?), wrong "
-        "units (--length-unit, --angle-unit), or a description that is not this robot's"
+        f"{MAX_PRIOR_RATIO['rad']:g} x for angles, {MAX_PRIOR_RATIO['1']:g} x for readings ratios). {cause}"
     )
+
+
+def _readings_ratios(fit: Fit, model: MeasurementModel, opts: Options) -> dict[str, float]:
+    """How many prior standard deviations each fitted readings ratio of ``fit`` moved (its prior:
+    :func:`~torchcal.estimate.fit.prior_scales`, 0.1 % unless a prior run says otherwise)."""
+    scales = prior_scales(model, opts.fit)
+    readings = {i.name for i in model.robot.parameter_info() if i.group == "readings"}
+    x = fit.result.x
+    return {
+        n: float(x[i].abs()) / scales[n]
+        for i, n in enumerate(fit.free.names)
+        if n in readings and scales.get(n, 0.0) > 0.0
+    }

@@ -98,6 +98,24 @@ def rebase(robot: RobotModel) -> None:
             robot.tool_rotation.delta.zero_()
 
 
+#: the largest a-priori standard deviation a prior run's covariance may give a parameter, by unit: beyond a metre or
+#: half a turn it knows nothing of it, and the update's normal matrix turns singular instead of saying why
+MAX_PRIOR_SIGMA = {"m": 1.0, "rad": math.pi}
+
+
+def _check_plausible(source: str, sigma: dict[str, float], units: dict[str, str]) -> None:
+    """Refuse a prior whose standard deviations are beyond any calibration's (:data:`MAX_PRIOR_SIGMA`): a damaged
+    or scaled ``covariance.pt`` (issue 35 item 10: scaled by 1e20, the update failed with 'normal matrix singular')."""
+    for name, s in sigma.items():
+        limit = MAX_PRIOR_SIGMA.get(units[name])
+        if limit is not None and not s <= limit:
+            raise OptionError(
+                f"{source}: covariance.pt gives {name} a standard deviation of {s:.3g} {units[name]}, beyond any "
+                f"calibration's ({limit:.3g} {units[name]}): the file is damaged or was scaled; calibrate the prior "
+                "run again"
+            )
+
+
 def prior_from_run(
     model: MeasurementModel,
     covariance: ParameterCovariance | None,
@@ -134,6 +152,7 @@ def prior_from_run(
             k += 1
     if not sigma:
         raise OptionError(f"{source}: its covariance names none of the robot's parameters")
+    _check_plausible(source, sigma, {n: info[n].unit for n in sigma})
     groups = robot.groups()
     corrections = {n: float(groups[info[n].group].delta[info[n].index].detach()) for n in sigma}
     with torch.no_grad():  # what the prior run held stays held: the update frees only what its covariance holds

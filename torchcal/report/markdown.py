@@ -127,9 +127,13 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
 
 
 def _fmt(v: float, unit: str) -> str:
+    """A parameter's value as the report prints it: an angle in arc seconds, a length in mm, a ratio (unit 1, a
+    readings map's) as the bare number."""
     if unit == "rad":
         return f"{math.degrees(v) * 3600:.2f}″"
-    return f"{v * 1e3:.4f} mm"
+    if unit == "m":
+        return f"{v * 1e3:.4f} mm"
+    return f"{v:.6g}"
 
 
 STAGE_TEXT = {

@@ -30,6 +30,7 @@ robot's own when it has them.
 from __future__ import annotations
 
 import io
+import json
 import math
 import os
 import tempfile
@@ -42,6 +43,7 @@ import torch
 from torchcal.errors import RobotSpecError, ShapeError
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
+from torchcal.robot.readings import READINGS_MAP_TAG
 
 #: Diagonal of the placeholder inertia tensor [kg m^2] written for each moving link: torchcal does not
 #: model link inertias (only masses and centres of mass, for gravity torques); URDF consumers need one.
@@ -255,7 +257,7 @@ def urdf_string(robot: RobotModel, options: ExportOptions | None = None) -> str:
         link(links[i + 1], inertial)
         joint(
             robot.joint_names[i],
-            robot.joint_types[i],
+            robot.geometry.joint_types[i],
             links[i],
             links[i + 1],
             _origin(O[i]),
@@ -321,6 +323,17 @@ def _readings_note(robot: RobotModel, A: torch.Tensor, b: torch.Tensor, mimic: d
     if mimic:
         lines.append("Joints that follow another joint alone are written as <mimic> joints.")
     lines.append("Command the robot through `torchcal compensate`, which writes readings.")
+    # the same map for the loader (torchcal.robot.load reads it back, so that the file works as --robot: without it
+    # the readings of a measurement file would be taken for the model's joints)
+    limits = robot.limits.detach().to("cpu", torch.float64)
+    mapping = {
+        "readings": list(robot.reading_names),
+        "coupling": A.tolist(),
+        "offset": b.tolist(),
+        "lower": limits[:, 0].tolist(),
+        "upper": limits[:, 1].tolist(),
+    }
+    lines.append(f"{READINGS_MAP_TAG} {json.dumps(mapping, allow_nan=False)}")
     return lines
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from pathlib import Path
@@ -11,7 +12,7 @@ import torch
 
 from torchcal.errors import OptionError, RobotSpecError
 from torchcal.robot.model import DHConvention, DHGeometry, RobotModel, URDFGeometry
-from torchcal.robot.readings import Readings, check_coupling
+from torchcal.robot.readings import MAX_RATIO, MIN_RATIO, READINGS_MAP_TAG, Readings, check_coupling
 
 #: Largest robot description file accepted [bytes]: real URDFs and DH tables are kilobytes.
 MAX_DESCRIPTION_BYTES = 8 * 1024 * 1024
@@ -597,7 +598,12 @@ def load_urdf(
             body_m[movable_idx] = total
     masses, coms = (body_m, body_c) if have_inertia else (None, None)
 
-    readings, reading_names = _mimic_readings(path, jnames, mimics, dtype) if mimics else (None, None)
+    movable = {j.name: j for j in joints if j.type in ("revolute", "continuous", "prismatic")}
+    readings, reading_names = _mimic_readings(path, jnames, mimics, movable, dtype) if mimics else (None, None)
+    reading_limits = None
+    written = _written_map(path, raw, jnames, dtype)
+    if written is not None:  # a DH robot's readings map, as torchcal wrote it: the <mimic> tags are part of it
+        readings, reading_limits, reading_names = written
     geometry = URDFGeometry(
         origins=torch.tensor(np.stack(origins), dtype=dtype),
         axes=torch.tensor(np.stack(axes), dtype=dtype),
@@ -619,45 +625,106 @@ def load_urdf(
         base_link=base_link,
         tip_link=tip_link,
         readings=readings,
+        reading_limits=reading_limits,
         reading_names=reading_names,
         dtype=dtype,
         device=device,
     ).to(device)
 
 
-def _mimic_readings(path: Path, jnames: list[str], mimics: dict, dtype) -> tuple[Readings, list[str]]:
+def _written_map(path: Path, raw: bytes, jnames: list[str], dtype) -> tuple[Readings, torch.Tensor, list[str]] | None:
+    """The readings map a URDF torchcal wrote for a DH robot with a ``readings:`` block carries in its header
+    (:data:`~torchcal.robot.readings.READINGS_MAP_TAG`): the readings, the map as calibrated (its non-zero ratios free
+    again, as the block's are) and the readings' limits; None for any other file.
+
+    Without it a run's ``robot_calibrated.urdf`` of a parallelogram arm would take the file's readings for the
+    model's joints (the ``<mimic>`` tags can say only the rows that follow one reading).
+    """
+    if not _written_by_torchcal(raw):
+        return None
+    tag = READINGS_MAP_TAG.encode()
+    at = raw.find(tag)
+    if at < 0:
+        if b"The controller's readings map" in raw:
+            raise RobotSpecError(
+                f"{path}: this URDF was written by an older torchcal for a robot whose readings are not its joints, "
+                "and its header does not carry the readings map in a form that can be read back; calibrate with the "
+                "robot's own description (the DH table with its readings: block)"
+            )
+        return None
+    line = raw[at + len(tag) :].split(b"\n", 1)[0]
+    try:
+        doc = json.loads(line)
+        A = torch.tensor(doc["coupling"], dtype=dtype)
+        b = torch.tensor(doc["offset"], dtype=dtype)
+        limits = torch.tensor(list(zip(doc["lower"], doc["upper"])), dtype=dtype)
+        names = [_safe_name(path, "reading name", n) for n in doc["readings"]]
+    except (ValueError, KeyError, TypeError, RuntimeError) as e:
+        raise RobotSpecError(f"{path}: the header's readings map cannot be read ({type(e).__name__}: {e})") from None
+    why = check_coupling(A.tolist(), len(jnames), "the header's readings map")
+    if why is None and (b.shape != (len(jnames),) or limits.shape != (A.shape[1], 2) or len(names) != A.shape[1]):
+        why = f"the header's readings map does not fit the chain's {len(jnames)} joints"
+    if why:
+        raise RobotSpecError(f"{path}: {why}")
+    return Readings(A, b, free=A != 0, dtype=dtype), limits, names
+
+
+def _mimic_readings(path: Path, jnames: list[str], mimics: dict, movable: dict, dtype) -> tuple[Readings, list[str]]:
     """The readings map of a chain with mimic joints: one reading per joint that mimics none, a mimic joint's row
-    ``multiplier`` at its source's reading and ``offset`` in ``b`` (a mimic of a mimic composes the two)."""
-    readers = [n for n in jnames if n not in mimics]
+    ``multiplier`` at its source's reading and ``offset`` in ``b`` (a mimic of a mimic composes the two).
+
+    A source off the chain (``movable``: every movable joint of the URDF by name), such as the virtual joint on a side
+    branch that vendors drive a lifting column's mimicking segments with, takes a reading too: it moves no link of the
+    chain itself, but the controller reports it. Its reading comes where its first mimic joint is in the chain.
+    """
+    mimics = dict(mimics)
+    for name, j in movable.items():  # an off-chain source may itself mimic another joint
+        if name not in jnames and getattr(j, "mimic", None) is not None:
+            mimics[name] = j.mimic
+    rows = [_mimic_row(path, name, jnames, mimics, movable) for name in jnames]
+    readers: list[str] = []
+    for name, (_, _, source) in zip(jnames, rows):
+        if (name not in mimics or source not in jnames) and source not in readers:
+            readers.append(source)
     if not readers:
         raise RobotSpecError(f"{path}: every movable joint of the chain is a mimic joint; none takes a reading")
     col = {n: k for k, n in enumerate(readers)}
     A = torch.zeros(len(jnames), len(readers), dtype=dtype)
     b = torch.zeros(len(jnames), dtype=dtype)
-    for i, name in enumerate(jnames):
-        scale, shift, at, seen = 1.0, 0.0, name, [name]
-        while at in mimics:
-            m = mimics[at]
-            mult = 1.0 if getattr(m, "multiplier", None) is None else float(m.multiplier)
-            off = 0.0 if getattr(m, "offset", None) is None else float(m.offset)
-            if not (math.isfinite(mult) and math.isfinite(off)):
-                raise RobotSpecError(f"{path}: joint '{at}': mimic multiplier and offset must be finite numbers")
-            shift, scale = shift + scale * off, scale * mult
-            src = m.joint
-            if src not in jnames:
-                raise RobotSpecError(
-                    f"{path}: joint '{at}' mimics joint '{src}', which is not a movable joint of the chain "
-                    f"({', '.join(jnames)})"
-                )
-            if src in seen:
-                raise RobotSpecError(f"{path}: the mimic joints {' -> '.join(seen + [src])} form a cycle")
-            seen.append(src)
-            at = src
-        if scale == 0.0:
-            raise RobotSpecError(f"{path}: joint '{name}': mimic multiplier 0 makes it a fixed joint; write it fixed")
-        A[i, col[at]] = scale
+    for i, (scale, shift, source) in enumerate(rows):
+        A[i, col[source]] = scale
         b[i] = shift
     return Readings(A, b, dtype=dtype), readers
+
+
+def _mimic_row(path: Path, name: str, jnames: list[str], mimics: dict, movable: dict) -> tuple[float, float, str]:
+    """Joint ``name`` as ``scale * reading + shift`` of the joint its mimics end at (itself when it mimics none)."""
+    scale, shift, at, seen = 1.0, 0.0, name, [name]
+    while at in mimics:
+        m = mimics[at]
+        mult = 1.0 if getattr(m, "multiplier", None) is None else float(m.multiplier)
+        off = 0.0 if getattr(m, "offset", None) is None else float(m.offset)
+        if not (math.isfinite(mult) and math.isfinite(off)):
+            raise RobotSpecError(f"{path}: joint '{at}': mimic multiplier and offset must be finite numbers")
+        shift, scale = shift + scale * off, scale * mult
+        src = m.joint
+        if src not in movable:
+            raise RobotSpecError(
+                f"{path}: joint '{at}' mimics joint '{src}', which is not a movable joint of the URDF "
+                f"(the chain's: {', '.join(jnames)})"
+            )
+        if src in seen:
+            raise RobotSpecError(f"{path}: the mimic joints {' -> '.join(seen + [src])} form a cycle")
+        seen.append(src)
+        at = src
+    if scale == 0.0:
+        raise RobotSpecError(f"{path}: joint '{name}': mimic multiplier 0 makes it a fixed joint; write it fixed")
+    if not MIN_RATIO <= abs(scale) <= MAX_RATIO:
+        raise RobotSpecError(
+            f"{path}: joint '{name}': mimic multiplier {scale:.3g} (composed along its mimics) is outside "
+            f"{MIN_RATIO:g} to {MAX_RATIO:g}: the source's reading noise carried through it would swamp the fit"
+        )
+    return scale, shift, at
 
 
 def calibrated_flange(spec: str | os.PathLike) -> str | None:

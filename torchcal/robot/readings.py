@@ -25,6 +25,15 @@ from torchcal.errors import ShapeError
 
 Tensor = torch.Tensor
 
+#: the sizes a non-zero entry of a readings map (a ratio, or a URDF mimic multiplier) may have: a gear's or a track's
+#: ratio between joint values in rad or m and the model's (a track read in mm: 0.001); beyond them the reading noise
+#: carried through the map swamps the fit ("observation covariance not positive definite" at 1e12)
+MIN_RATIO, MAX_RATIO = 1e-4, 1e4
+
+#: the header comment line of a URDF torchcal wrote (:mod:`torchcal.robot.export`) that carries a DH robot's readings
+#: map as JSON (reading names, coupling, offset, reading limits), read back by :mod:`torchcal.robot.load`
+READINGS_MAP_TAG = "torchcal readings map (JSON):"
+
 
 class Readings(nn.Module):
     """The map ``q = (A_nominal + delta) r + b`` from controller readings ``r (..., n_readings)`` to model joints.
@@ -145,6 +154,14 @@ def check_coupling(A: Sequence[Sequence[float]], n_joints: int, where: str) -> s
         return f"{where} must have 1 to {n_joints} columns (one per reading), got {t.shape[1]}"
     if not bool(torch.isfinite(t).all()):
         return f"{where} has non-finite entries"
+    nz = t[t != 0].abs()
+    if len(nz) and not (float(nz.min()) >= MIN_RATIO and float(nz.max()) <= MAX_RATIO):
+        worst = float(nz.max()) if float(nz.max()) > MAX_RATIO else float(nz.min())
+        return (
+            f"{where} has a ratio of size {worst:.3g}, outside {MIN_RATIO:g} to {MAX_RATIO:g}: a reading that moves "
+            "its joint that much (or that little) per unit makes the joint's reading noise swamp the fit (readings "
+            "are the controller's joint values in rad or m, not encoder counts)"
+        )
     rank = int(torch.linalg.matrix_rank(t))
     if rank < t.shape[1]:
         return (
