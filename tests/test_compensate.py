@@ -8,6 +8,7 @@ import torch
 from _cli import cli_simulate
 
 import torchcal
+from torchcal._threads import torch_threads
 from torchcal.cli import main
 from torchcal.compensate import (
     Status,
@@ -400,3 +401,133 @@ def test_run_dir_states_what_the_urdf_leaves_out(run_dir):
     assert "## The calibrated URDF" in (run_dir / "run" / "report.md").read_text()
     head = (run_dir / "run" / "robot_calibrated.urdf").read_text().split("-->")[0]
     assert "no effect beyond geometry" in head
+
+
+# ------------------------------------------------------------------------------ stations and probes per row
+@pytest.fixture(scope="module")
+def two_stations(tmp_path_factory):
+    """A kinematic calibration of a simulated UR5 cell of two stations and two probes on a nest, with a 6-D probe's
+    orientation (issue 34's cell, small)."""
+    d = tmp_path_factory.mktemp("two")
+    with torch_threads(1):
+        assert cli_simulate(d / "sim", "--poses", "80", "--test-poses", "12", "--seed", "1", "--stations", "2",
+                            "--probes", "2", "--orientation", "0.01") == 0  # fmt: skip
+        cmd = ["calibrate", str(d / "sim" / "train.csv"), "--robot", "ur5", "--out", str(d / "run")]
+        assert main([*cmd, "--method", "kinematic", "--quiet"]) == 0
+    return d
+
+
+def _table(path, columns):
+    header, rows = _read(path)
+    return torch.tensor([[float(r[header.index(c)]) for c in columns] for r in rows], dtype=F64)
+
+
+Q6 = [f"q{k}" for k in range(1, 7)]
+
+
+def test_cli_each_row_in_its_own_station_and_probe(two_stations, tmp_path):
+    """bug before: every row was solved in the first station's frame with the first probe's lever arm (S2 rows
+    unreachable by metres, P2 rows by 100 mm) and the columns were dropped from the output."""
+    from torchcal.data import read_measurements
+    from torchcal.report import load_model
+
+    run, test = two_stations / "run", two_stations / "sim" / "test.csv"
+    out = tmp_path / "j.csv"
+    assert main(["compensate", str(run), str(test), "--out", str(out), "--quiet"]) == 0
+    header, rows = _read(out)
+    data = read_measurements(test)
+    assert [r[header.index("station")] for r in rows] == [data.station_names[i] for i in data.station.tolist()]
+    assert [r[header.index("probe")] for r in rows] == [data.probe_names[i] for i in data.probe.tolist()]
+    assert {r[header.index("station")] for r in rows} == {"S1", "S2"}
+    assert all(r[-1] == "converged" for r in rows)
+    # checked by the run's full model at each row's own station and probe
+    model, _ = load_model(run)
+    ctx = Context(q=_table(out, Q6), station=data.station, probe=data.probe)  # the run's order is the file's here
+    with torch.no_grad():
+        assert float((model(ctx) - data.p).norm(dim=-1).max()) <= 1e-9
+    # the column and --station agree: S2's rows without their column, placed by the option
+    lines = [ln for ln in test.read_text().splitlines() if not ln.startswith("#")]
+    head = lines[0].split(",")
+    keep = [i for i, c in enumerate(head) if c != "station"]
+    s2 = [ln for ln in lines[1:] if ln.split(",")[head.index("station")] == "S2"]
+    (tmp_path / "s2.csv").write_text("\n".join(",".join(ln.split(",")[i] for i in keep) for ln in [lines[0], *s2]))
+    out2 = tmp_path / "j2.csv"
+    assert (
+        main(["compensate", str(run), str(tmp_path / "s2.csv"), "--out", str(out2), "--station", "S2", "--quiet"]) == 0
+    )
+    in_s2 = [i for i, r in enumerate(rows) if r[header.index("station")] == "S2"]
+    assert torch.equal(_table(out2, Q6), _table(out, Q6)[in_s2])
+    assert {r[_read(out2)[0].index("station")] for r in _read(out2)[1]} == {"S2"}
+
+
+@pytest.mark.parametrize(
+    ("column", "value", "option", "says"),
+    [
+        ("station", "S3", None, "station 'S3' is not one of the run's stations (S1, S2)"),
+        ("probe", "P7", None, "probe 'P7' is not one of the run's probes (P1, P2)"),
+        ("station", "S1", ["--station", "S2"], "station 'S1' conflicts with --station S2"),
+        ("probe", "P2", ["--probe", "P1"], "probe 'P2' conflicts with --probe P1"),
+    ],
+)
+def test_cli_a_row_of_a_station_or_probe_the_run_lacks_is_refused(two_stations, tmp_path, capsys, column, value,
+                                                                   option, says):  # fmt: skip
+    lines = [ln for ln in (two_stations / "sim" / "test.csv").read_text().splitlines() if not ln.startswith("#")]
+    k = lines[0].split(",").index(column)
+    cells = lines[3].split(",")
+    cells[k] = value
+    lines[3] = ",".join(cells)
+    if option:  # every other row agrees with the option: only line 4 conflicts
+        for i in (1, 2, *range(4, len(lines))):
+            cells = lines[i].split(",")
+            cells[k] = option[1]
+            lines[i] = ",".join(cells)
+    (tmp_path / "t.csv").write_text("\n".join(lines) + "\n")
+    out = tmp_path / "j.csv"
+    cmd = ["compensate", str(two_stations / "run"), str(tmp_path / "t.csv"), "--out", str(out), *(option or [])]
+    assert main(cmd) == 2
+    err = capsys.readouterr().err
+    assert f"t.csv, line 4, column '{column}': {says}" in err, err
+    assert not out.exists()
+
+
+def test_each_pair_takes_its_own_learned_correction(two_stations):
+    """compensate_groups solves each row with its station's frame, its probe's lever arm and that pair's learned
+    correction: the full model (which dispatches the correction by each row's pair) puts the probe on every target."""
+    import copy
+
+    from torchcal.compensate import compensate_groups
+    from torchcal.data import read_measurements
+    from torchcal.effects.grouped import GroupedCorrection
+    from torchcal.report import load_model
+    from torchcal.report.rundir import at_station
+
+    model, _ = load_model(two_stations / "run")
+    model = copy.deepcopy(model)
+    g = torch.Generator().manual_seed(5)
+    fields = []
+    for _ in range(2):  # 0.1 mm fields, one for (S1, P2) and one for (S2, P1); (S1, P1) and (S2, P2) have none
+        net = CorrectionNet(6, 8)
+        net.reset_parameters(g, gain=2.0)
+        field = LearnedEffect(net)
+        with torch.no_grad():
+            field.scale_(1e-4 / float(net(torch.rand(50, 6, generator=g, dtype=F64)).norm(dim=-1).mean()))
+        fields.append(field)
+    model.add(GroupedCorrection([(0, 1), (1, 0)], fields))
+    data = read_measurements(two_stations / "sim" / "test.csv")
+    with torch.no_grad():
+        ctx = Context(q=data.q, station=data.station, probe=data.probe)
+        targets = model(ctx)
+        moved = (targets - MeasurementModel(model.robot, [])(ctx)).norm(dim=-1)
+    assert float(moved.min()) == 0.0 and float(moved.max()) > 2e-5  # the pairs differ
+
+    res, _, plain = compensate_groups(
+        model, data.station, data.probe, lambda m, rows: targets[rows], data.q, at=at_station
+    )
+    assert res.counts()["converged"] == data.n
+    # rows commanded outside the calibrated region go without the learned correction (compensate_in_region)
+    inside = ~plain
+    assert int(inside.sum()) >= data.n // 2
+    with torch.no_grad():
+        hit = model(Context(q=res.q, station=data.station, probe=data.probe))
+    assert float((hit - targets).norm(dim=-1)[inside].max()) <= 1e-9
+    assert float((res.q - data.q).abs()[inside].max()) <= 1e-6  # the known answer: the rows' own joints

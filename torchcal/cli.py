@@ -381,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
         "status (converged, limit, unreachable). x,y,z with q1..qN: reach x,y,z starting from q. "
         "q1..qN alone: reach the point the nominal model reaches with q. x,y,z alone: start from "
         "--start or from the nominal inverse kinematics. t and temperature columns feed effects "
-        "that read them. Output in SI units (rad, m); rows not reached are named on stderr and "
+        "that read them; station and probe columns place each row (a run of several). Output in SI units (rad, m); rows not reached are named on stderr and "
         "kept in the file.",
     )
     cp.add_argument("run", help="run directory written by calibrate")
@@ -393,10 +393,15 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument(
         "--station",
         default=None,
-        help="a run calibrated from several instrument stations: the station whose frame the targets are in "
-        "(default the first)",
+        help="a run calibrated from several instrument stations: the station whose frame the targets are in, for "
+        "rows without a station column (default the first; a row whose column names another is refused)",
     )
-    cp.add_argument("--probe", default=None, help="a run with several probes: the probe to put on the targets")
+    cp.add_argument(
+        "--probe",
+        default=None,
+        help="a run with several probes: the probe to put on the targets, for rows without a probe column (default "
+        "the first)",
+    )
     _add_force(cp)
     _add_units(cp)
     _add_common(cp)
@@ -781,7 +786,7 @@ def cmd_predict(args) -> int:
 
 
 def cmd_compensate(args) -> int:
-    from torchcal.compensate import Status, compensate_in_region, program_targets, write_joints
+    from torchcal.compensate import Status, compensate_groups, program_targets, row_groups, write_joints
     from torchcal.data import read_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
@@ -790,14 +795,13 @@ def cmd_compensate(args) -> int:
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
     )
-    full, meta = load_model(args.run)
-    # one frame: the station the targets are given in (and the probe to place), default the first
-    model, station, probe = at_station(full, args.station, args.probe)
+    model, meta = load_model(args.run)
     robot = model.robot
     kw = dict(require_positions=False, **_reading(args, robot))
     data = read_measurements(args.targets, require_joints=False, **kw)
-    has_q = data.dof > 0
-    q_start = data.q if has_q else None
+    # each row in its own station's frame with its own probe (the columns, else --station / --probe, else the first)
+    station, probe = row_groups(model, data, args.station, args.probe)
+    q_start = data.q if data.dof > 0 else None
     if args.start is not None:
         start = read_measurements(args.start, **kw)
         if start.n != data.n:
@@ -806,22 +810,16 @@ def cmd_compensate(args) -> int:
                 "give one start row per target"
             )
         q_start = start.q
-    targets = data.p if data.p is not None else program_targets(model, data.q)
+
+    def targets_of(at, rows):
+        return data.p[rows] if data.p is not None else program_targets(at, data.q[rows])
+
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
-    res, ext, _ = compensate_in_region(model, targets, q_start, context=context)
+    res, ext, _ = compensate_groups(model, station, probe, targets_of, q_start, at=at_station, context=context)
     # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
-    ctx = Context(q=res.q, t=data.t, temperature=data.temperature)
-    if full is not model:  # the run's covariance is of its stations and probes: the rows are the chosen ones'
-        n = len(res.q)
-        ctx = Context(
-            q=res.q,
-            t=data.t,
-            temperature=data.temperature,
-            station=torch.full((n,), station, dtype=torch.long, device=res.q.device) if full.robot.stations else None,
-            probe=torch.full((n,), probe, dtype=torch.long, device=res.q.device) if full.robot.probes else None,
-        )
-    sigma, _ = trust(args.run, full, ctx)
+    rows = dict(station=station if robot.stations else None, probe=probe if robot.probes else None)
+    sigma, _ = trust(args.run, model, Context(q=res.q, t=data.t, temperature=data.temperature, **rows))
     extra = dict(data.extra)
     if sigma is not None:
         extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
@@ -832,6 +830,7 @@ def cmd_compensate(args) -> int:
         targets=data.p,
         t=data.t,
         temperature=data.temperature,
+        labels=_row_labels(model, data, station, probe),
         extra=extra,
         meta={"compensated_by": str(args.run)},
         written_by="torchcal compensate",
@@ -849,6 +848,19 @@ def cmd_compensate(args) -> int:
         f"wrote {data.n} joint commands to {args.out}: " + ", ".join(f"{v} {k}" for k, v in res.counts().items())
     )
     return 0
+
+
+def _row_labels(model, data, station, probe) -> dict[str, list[str]]:
+    """The ``station`` and ``probe`` columns to write back: each row's name where the run has several (the one the
+    row was solved for), the file's own text where the run has one."""
+    out = {}
+    for key, index, known in (("station", station, model.robot.stations), ("probe", probe, model.robot.probes)):
+        column, names = getattr(data, key), getattr(data, f"{key}_names")
+        if known:
+            out[key] = [known[i] for i in index.tolist()]
+        elif column is not None:
+            out[key] = [names[i] for i in column.tolist()]
+    return out
 
 
 def cmd_station(args) -> int:

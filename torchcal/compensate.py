@@ -42,15 +42,16 @@ from __future__ import annotations
 import contextlib
 import enum
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 
 from torchcal._threads import torch_threads
+from torchcal.data.measurements import Measurements
 from torchcal.effects.base import Context, motion_direction
 from torchcal.effects.model import MeasurementModel
-from torchcal.errors import OptionError, ShapeError
+from torchcal.errors import MeasurementFileError, OptionError, ShapeError
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
 
@@ -414,6 +415,119 @@ def compensate_in_region(
     return res, model.extrapolation(res.q), plain_rows
 
 
+def row_groups(
+    model: MeasurementModel, data: Measurements, station: str | None = None, probe: str | None = None
+) -> tuple[Tensor, Tensor]:
+    """Each row's station and probe index in ``model``'s order ``(N,)`` int64, from the file's ``station`` and
+    ``probe`` columns and the ``--station`` / ``--probe`` options (names; None: not given).
+
+    A row takes its column's name; a file without the column takes the option's, or the run's first. A run of one
+    station (probe) ignores the column, as ``predict`` does.
+
+    Raises:
+        OptionError: an option names a station (probe) the run lacks.
+        MeasurementFileError: a row names a station (probe) the run lacks, or one other than the option's (file, line
+            and column named).
+    """
+    out = []
+    for key, option, known in (("station", station, model.robot.stations), ("probe", probe, model.robot.probes)):
+        if option is not None and option not in known:
+            have = f"the run's {key}s are {', '.join(known)}" if known else f"the run has a single {key}"
+            raise OptionError(f"{key} {option!r} is not one of the run's: {have}")
+        index = torch.full((data.n,), known.index(option) if option is not None else 0, dtype=torch.long)
+        column, names = getattr(data, key), getattr(data, f"{key}_names")
+        if column is not None and known:
+            for k, name in enumerate(names):
+                rows = torch.nonzero(column.cpu() == k).flatten()
+                if not len(rows):
+                    continue
+                line = data.lines[int(rows[0])] if data.lines else int(rows[0]) + 1
+                if name not in known:
+                    message = f"{key} {name!r} is not one of the run's {key}s ({', '.join(known)})"
+                    raise MeasurementFileError(data.source or "the targets", message, line=line, column=key)
+                if option is not None and name != option:
+                    message = f"{key} {name!r} conflicts with --{key} {option}"
+                    raise MeasurementFileError(data.source or "the targets", message, line=line, column=key)
+                index[rows] = known.index(name)
+        out.append(index.to(data.q.device))
+    return out[0], out[1]
+
+
+def _subset(value, rows: Tensor, n: int):
+    """``value[rows]`` for a per-row tensor of ``n`` rows; anything else as it is."""
+    return value[rows] if isinstance(value, Tensor) and value.ndim >= 1 and len(value) == n else value
+
+
+def _merge(n: int, parts: list[tuple[Tensor, CompensationResult, Tensor, Tensor]]) -> tuple:
+    """One result of ``n`` rows from each group's rows and (result, extrapolation, plain rows)."""
+    first = parts[0][1]
+    dof = first.q.shape[1]
+    q, q0 = first.q.new_zeros(n, dof), first.q.new_zeros(n, dof)
+    miss, ext = first.miss.new_zeros(n), parts[0][2].new_zeros(n)
+    kept, plain = torch.zeros(n, dtype=torch.bool), torch.zeros(n, dtype=torch.bool)
+    status: list[Status] = [Status.UNREACHABLE] * n
+    for rows, res, e, p in parts:
+        q[rows], q0[rows], miss[rows], ext[rows] = res.q, res.q_start, res.miss, e
+        kept[rows], plain[rows] = res.branch_kept.cpu(), p.cpu()
+        for k, i in enumerate(rows.tolist()):
+            status[i] = res.status[k]
+    it = max(r.iterations for _, r, _, _ in parts)
+    res = CompensationResult(q=q, miss=miss, status=status, q_start=q0, iterations=it, branch_kept=kept)
+    return res, ext, plain
+
+
+def compensate_groups(
+    full: MeasurementModel,
+    station: Tensor,
+    probe: Tensor,
+    targets_of: Callable[[MeasurementModel, Tensor], Tensor],
+    q_seed: Tensor | None = None,
+    *,
+    at: Callable,
+    context: dict | None = None,
+    **kw,
+) -> tuple[CompensationResult, Tensor, Tensor]:
+    """:func:`compensate_in_region` of each row in its own station's frame, with its own probe's lever arm and that
+    pair's learned correction (a run of several stations or probes).
+
+    Args:
+        full: the run's model, of every station and probe.
+        station, probe: each row's index ``(N,)`` int64 (:func:`row_groups`).
+        targets_of: ``(model, rows) -> (n, 3)`` the targets [m] of ``rows`` in the frame of ``model``, the run's
+            model at the rows' station and probe (a program's point depends on the probe's lever arm).
+        q_seed: start joints ``(N, dof)`` [rad] or None.
+        at: ``(model, station name or None, probe name or None) -> (model, ...)``, the run's model in one station's
+            frame with one probe (:func:`torchcal.report.rundir.at_station`, passed in: the run directory's module
+            imports this one).
+        context: per-row context (as :func:`compensate`'s); on a trajectory the direction of motion is taken from the
+            whole start before the rows are split.
+
+    Returns:
+        As :func:`compensate_in_region`, every row in the input's order.
+    """
+    n = len(station)
+    robot = full.robot
+    pairs = sorted({(int(s), int(p)) for s, p in zip(station.tolist(), probe.tolist(), strict=True)})
+    context = dict(context or {})
+    if q_seed is not None and context.get("direction") is None and context.pop("trajectory", False):
+        context["direction"] = motion_direction(q_seed)
+    parts = []
+    for s, p in pairs:
+        rows = torch.nonzero((station == s) & (probe == p)).flatten()
+        model, *_ = at(full, robot.stations[s] if robot.stations else None, robot.probes[p] if robot.probes else None)
+        sub_ctx = {k: _subset(v, rows, n) for k, v in context.items()}
+        seed = None if q_seed is None else q_seed[rows]
+        res, ext, plain = compensate_in_region(model, targets_of(model, rows), seed, context=sub_ctx, **kw)
+        parts.append((rows.cpu(), res, ext, plain))
+    if not parts:
+        empty = torch.zeros(0, robot.dof, dtype=F64)
+        res = CompensationResult(
+            q=empty, miss=empty[:, 0], status=[], q_start=empty, iterations=0, branch_kept=empty[:, 0] > 0
+        )
+        return res, empty[:, 0], empty[:, 0] > 0
+    return _merge(n, parts)
+
+
 def program_targets(
     model: MeasurementModel, q_program: Tensor, *, nominal: RobotModel | None = None, frame: str = "instrument"
 ) -> Tensor:
@@ -456,6 +570,8 @@ __all__: Sequence[str] = (
     "CompensationResult",
     "compensate",
     "compensate_in_region",
+    "compensate_groups",
+    "row_groups",
     "geometry_and_physics",
     "nominal_ik",
     "program_targets",
@@ -472,14 +588,17 @@ def write_joints(
     targets: Tensor | None = None,
     t: Tensor | None = None,
     temperature: Tensor | None = None,
+    labels: dict[str, Sequence[str]] | None = None,
     extra: dict[str, Tensor] | None = None,
     meta: dict[str, str] | None = None,
     written_by: str | None = None,
 ) -> None:
-    """Write the compensated joints as CSV, atomically: ``q1..qN[,x,y,z][,t][,temperature][,extra...],miss,status``.
+    """Write the compensated joints as CSV, atomically:
+    ``q1..qN[,x,y,z][,t][,temperature][,labels...][,extra...],miss,status``.
 
     Joints in rad, positions and ``miss`` in m, every number with ``repr`` (reads back bit-identical);
-    ``status`` is ``converged``, ``limit`` or ``unreachable``. Every input row gets one output row, in order.
+    ``labels`` are text columns (each row's ``station`` and ``probe`` name); ``status`` is ``converged``, ``limit``
+    or ``unreachable``. Every input row gets one output row, in order.
     ``written_by``: the command, written first as ``# written_by: ...`` (how ``--out`` knows torchcal's files).
     """
     import os
@@ -494,14 +613,15 @@ def write_joints(
         cols.append(("t", t))
     if temperature is not None:
         cols.append(("temperature", temperature))
-    cols += [(k, v) for k, v in (extra or {}).items() if k not in ("miss", "status")]
-    cols.append(("miss", result.miss))
+    text: list[tuple[str, list[str]]] = [(c, [repr(float(x)) for x in v.detach().to(F64).tolist()]) for c, v in cols]
+    text += [(k, [str(x) for x in v]) for k, v in (labels or {}).items()]
+    extra_cols = [(k, v) for k, v in (extra or {}).items() if k not in ("miss", "status")] + [("miss", result.miss)]
+    text += [(c, [repr(float(x)) for x in v.detach().to(F64).tolist()]) for c, v in extra_cols]
     lines = [f"# written_by: {written_by}\n"] if written_by is not None else []  # first: the --out mark
     lines += [f"# {k}: {v}\n" for k, v in (meta or {}).items() if k != "written_by"]
-    lines.append(",".join([c for c, _ in cols] + ["status"]) + "\n")
-    table = torch.stack([v.detach().to(F64) for _, v in cols], dim=1).tolist()
-    for row, st in zip(table, result.status, strict=True):
-        lines.append(",".join(repr(float(x)) for x in row) + f",{st.value}\n")
+    lines.append(",".join([c for c, _ in text] + ["status"]) + "\n")
+    for i, st in enumerate(result.status):
+        lines.append(",".join(v[i] for _, v in text) + f",{st.value}\n")
     if not path.parent.is_dir():
         raise OptionError(f"{path}: cannot write, directory '{path.parent}' does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
