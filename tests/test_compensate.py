@@ -308,6 +308,7 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
         "x",
         "y",
         "z",
+        *[f"q{k}_program" for k in range(1, 7)],  # the file's joints kept beside the commands
         "label",
         "sx",
         "sy",
@@ -317,7 +318,8 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
         "status",
     ]
     assert [r[-1] for r in rows] == ["converged"] * 3 + ["unreachable"] + ["converged"] * 2
-    assert [float(r[9]) for r in rows] == [10.0, 11.0, 12.0, 13.0, 14.0, 15.0]
+    assert [float(r[header.index("label")]) for r in rows] == [10.0, 11.0, 12.0, 13.0, 14.0, 15.0]
+    assert torch.equal(_table(out, [f"q{k}_program" for k in range(1, 7)]), q)
     model, _ = load_model(run_dir / "run")
     qc = torch.tensor([[float(v) for v in r[:6]] for r in rows], dtype=F64)
     with torch.no_grad():
@@ -362,8 +364,10 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
         == 0
     )
     header, rows = _read(out)
-    qs = torch.tensor([[float(v) for v in r[:6]] for r in rows], dtype=F64)
-    assert float((qs - qc).abs()[[0, 1, 2, 4, 5]].max()) <= 1e-6  # the same solutions as from the file's q
+    qs = torch.tensor([[float(v) for v in r[:6]] for r in rows], dtype=F64)  # in the file's units: degrees
+    assert "# angle_unit: deg" in out.read_text() and "# length_unit: mm" in out.read_text()
+    assert float((torch.deg2rad(qs) - qc).abs()[[0, 1, 2, 4, 5]].max()) <= 1e-6  # the solutions from the file's q
+    assert float((_table(out, ["x", "y", "z"]) - p * 1e3).abs().max()) <= 1e-9  # the targets as written, in mm
 
 
 def test_cli_bad_files(run_dir, tmp_path, capsys):
@@ -521,7 +525,7 @@ def test_each_pair_takes_its_own_learned_correction(two_stations):
     assert float(moved.min()) == 0.0 and float(moved.max()) > 2e-5  # the pairs differ
 
     res, _, plain = compensate_groups(
-        model, data.station, data.probe, lambda m, rows: targets[rows], data.q, at=at_station
+        model, data.station, data.probe, lambda m, rows: (targets[rows], None), data.q, at=at_station
     )
     assert res.counts()["converged"] == data.n
     # rows commanded outside the calibrated region go without the learned correction (compensate_in_region)
@@ -531,3 +535,110 @@ def test_each_pair_takes_its_own_learned_correction(two_stations):
         hit = model(Context(q=res.q, station=data.station, probe=data.probe))
     assert float((hit - targets).norm(dim=-1)[inside].max()) <= 1e-9
     assert float((res.q - data.q).abs()[inside].max()) <= 1e-6  # the known answer: the rows' own joints
+
+
+# ------------------------------------------------------------------------------ 6-D compensation
+def _with_orientation(model, seed=4):
+    g = torch.Generator().manual_seed(seed)
+    model.robot.enable_orientation(tf.so3_exp(torch.randn(3, generator=g, dtype=F64)))
+    return model
+
+
+def test_six_d_known_answers_reached_to_1e9():
+    """Position and orientation targets of known joints (a 6-joint arm: one solution near the start) are met to 1e-9
+    m and rad in the instrument frame; a position-only solve from the same start leaves the tool turned."""
+    model = _with_orientation(calibrated_model())
+    q_true = poses(model.robot, 200)
+    with torch.no_grad():
+        ctx = Context(q=q_true)
+        targets, R = model(ctx), model.orientation(ctx)
+    g = torch.Generator().manual_seed(3)
+    q0 = q_true + torch.randn(q_true.shape, generator=g, dtype=F64) * 2e-3
+    res = compensate(model, targets, q0, orientations=R)
+    assert res.counts()["converged"] == 200
+    assert float(res.miss.max()) <= 1e-9 and float(res.miss_angle.max()) <= 1e-9
+    assert float((res.q - q_true).abs().max()) <= 1e-7
+    with torch.no_grad():  # checked independently, by the model at the returned joints
+        R_hit = model.orientation(Context(q=res.q))
+    assert float((R_hit - R).abs().max()) <= 1e-9
+    free = compensate(model, targets, q0)
+    assert free.miss_angle is None and float(free.miss.max()) <= 1e-9
+    with torch.no_grad():
+        turned = torch.linalg.matrix_norm(model.orientation(Context(q=free.q)) - R)
+    assert float(turned.median()) > 1e-4  # the tool left free to turn does turn
+
+
+def test_six_d_from_nominal_ik_and_refusals():
+    model = _with_orientation(calibrated_model(effects=False))
+    q_true = poses(model.robot, 20, seed=6)
+    with torch.no_grad():
+        ctx = Context(q=q_true)
+        targets, R = model(ctx), model.orientation(ctx)
+    res = compensate(model, targets, None, orientations=R)  # no start: the 6-D nominal IK, nearest the middle
+    assert res.counts()["converged"] == 20 and float(res.miss_angle.max()) <= 1e-9
+    with pytest.raises(OptionError, match="carries no probe orientation"):
+        compensate(calibrated_model(effects=False), targets, q_true, orientations=R)
+    with pytest.raises(OptionError, match="orientation_weight"):
+        compensate(model, targets, q_true, orientations=R, orientation_weight=0.0)
+    with pytest.raises(torchcal.errors.ShapeError, match="orientations"):
+        compensate(model, targets, q_true, orientations=R[:3])
+
+
+def test_cli_six_d_program_keeps_its_joints_and_units(two_stations, tmp_path):
+    """Program joints alone, on a run that fitted the probe's orientation: the full pose the nominal model gives them
+    is reached (issue 38 item 2), the program's joints are kept beside the commands, the orientation miss is written
+    beside the position miss, and degrees in give degrees out; --position-only and a run without orientation solve
+    positions only and say so."""
+    from torchcal.compensate import program_orientations, program_targets
+    from torchcal.data import read_measurements
+    from torchcal.report import load_model
+
+    run = two_stations / "run"
+    data = read_measurements(two_stations / "sim" / "test.csv")
+    rad = "\n".join(",".join(repr(float(v)) for v in r) for r in data.q[:8])
+    deg = "\n".join(",".join(repr(math.degrees(float(v))) for v in r) for r in data.q[:8])
+    (tmp_path / "prog.csv").write_text(",".join(Q6) + "\n" + rad + "\n")
+    (tmp_path / "deg.csv").write_text(",".join(Q6) + "\n" + deg + "\n")
+    out, out_deg, free = tmp_path / "j.csv", tmp_path / "jd.csv", tmp_path / "free.csv"
+    assert main(["compensate", str(run), str(tmp_path / "prog.csv"), "--out", str(out), "--quiet"]) == 0
+    cmd = ["compensate", str(run), str(tmp_path / "deg.csv"), "--out", str(out_deg), "--angle-unit", "deg"]
+    assert main([*cmd, "--quiet"]) == 0
+    assert main(["compensate", str(run), str(tmp_path / "prog.csv"), "--out", str(free), "--position-only"]) == 0
+    header, rows = _read(out)
+    assert header[-3:] == ["miss", "miss_angle", "status"] and all(r[-1] == "converged" for r in rows)
+    assert "# compensation: position and orientation (the orientation the nominal model gives the program)" in (
+        out.read_text()
+    )
+    q = _table(out, Q6)
+    assert torch.equal(_table(out, [f"{c}_program" for c in Q6]), data.q[:8])
+    model, _ = load_model(run)  # the first station and probe: the file has no columns
+    with torch.no_grad():
+        ctx = Context(q=q, station=torch.zeros(8, dtype=torch.long), probe=torch.zeros(8, dtype=torch.long))
+        from torchcal.report.rundir import at_station
+
+        at, _, _ = at_station(model, "S1", "P1")
+        assert float((model(ctx) - program_targets(at, data.q[:8])).norm(dim=-1).max()) <= 1e-9
+        assert float((model.orientation(ctx) - program_orientations(at, data.q[:8])).abs().max()) <= 1e-9
+    # degrees in, degrees out: the same commands, the program's joints as written
+    assert float((_table(out_deg, Q6) - torch.rad2deg(q)).abs().max()) <= 1e-9
+    assert float((_table(out_deg, [f"{c}_program" for c in Q6]) - torch.rad2deg(data.q[:8])).abs().max()) <= 1e-9
+    assert "# angle_unit: deg" in out_deg.read_text()
+    # --position-only: no orientation miss, the tool turned away from the program's orientation
+    header, rows = _read(free)
+    assert "miss_angle" not in header and "# compensation: position only (--position-only)" in free.read_text()
+    with torch.no_grad():
+        ctx = Context(q=_table(free, Q6), station=ctx.station, probe=ctx.probe)
+        assert float((model.orientation(ctx) - program_orientations(at, data.q[:8])).abs().max()) > 1e-4
+
+
+def test_cli_position_only_where_the_run_has_no_orientation(run_dir, tmp_path, capsys):
+    from torchcal.data import read_measurements
+
+    data = read_measurements(run_dir / "data" / "test.csv")
+    text = "\n".join(",".join(repr(float(v)) for v in r) for r in data.q[:4])
+    (tmp_path / "prog.csv").write_text(",".join(Q6) + "\n" + text + "\n")
+    out = tmp_path / "j.csv"
+    assert main(["compensate", str(run_dir / "run"), str(tmp_path / "prog.csv"), "--out", str(out)]) == 0
+    assert "position only (the run has no orientation model" in capsys.readouterr().err
+    assert "# compensation: position only (the run has no orientation model" in out.read_text()
+    assert "miss_angle" not in _read(out)[0]

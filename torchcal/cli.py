@@ -377,19 +377,42 @@ def build_parser() -> argparse.ArgumentParser:
         help="joint commands that reach targets by the calibrated model",
         description="For every row of TARGETS (x,y,z in the instrument frame, and/or nominal joints "
         "q1..qN of a robot program), write the joint commands that the calibrated model (geometry, "
-        "effects, learned correction) says put the probe there, with the remaining miss [m] and a "
+        "effects, learned correction) says put the probe there, with the remaining miss and a "
         "status (converged, limit, unreachable). x,y,z with q1..qN: reach x,y,z starting from q. "
-        "q1..qN alone: reach the point the nominal model reaches with q. x,y,z alone: start from "
-        "--start or from the nominal inverse kinematics. t and temperature columns feed effects "
-        "that read them; station and probe columns place each row (a run of several). Output in SI units (rad, m); rows not reached are named on stderr and "
-        "kept in the file.",
+        "q1..qN alone: reach the point (and the tool orientation) the nominal model gives q. x,y,z alone: start "
+        "from --start or from the nominal inverse kinematics. With orientation targets (rx,ry,rz, or program "
+        "joints alone) and a run that fitted the probe's orientation, the full pose is solved and the orientation "
+        "miss written beside the position miss (--position-only: positions only). t and temperature columns feed "
+        "effects that read them; station and probe columns place each row (a run of several). The output keeps "
+        "the file's joints as q1_program..qN_program, and is in the file's units (--length-unit, --angle-unit; "
+        "miss_angle and rx,ry,rz in rad); rows not reached are named on stderr and kept in the file.",
     )
     cp.add_argument("run", help="run directory written by calibrate")
-    cp.add_argument("targets", help="CSV with x,y,z [m] and/or q1..qN [rad] (the measurement file format)")
     cp.add_argument(
-        "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
+        "targets", help="CSV with x,y,z [m] and/or q1..qN [rad], optional rx,ry,rz (the measurement file format)"
+    )
+    cp.add_argument(
+        "--out",
+        required=True,
+        help="CSV to write: the commands q1..qN, the file's joints q1_program..qN_program, the targets, station, "
+        "probe, extra columns, sx,sy,sz, extrapolation, miss, miss_angle [rad] (6-D), status",
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
+    cp.add_argument(
+        "--position-only",
+        action="store_true",
+        help="solve positions only (the tool free to turn), even with orientation targets (rx,ry,rz or program "
+        "joints) and a run that fitted the probe's orientation",
+    )
+    cp.add_argument(
+        "--orientation-weight",
+        dest="weight",
+        type=float,
+        default=0.1,
+        metavar="M_PER_RAD",
+        help="in a 6-D solve, the length [m] an orientation error of 1 rad weighs as (default 0.1: as a point 100 mm "
+        "from the probe moves); it decides only where position and orientation cannot both be met",
+    )
     cp.add_argument(
         "--station",
         default=None,
@@ -786,11 +809,10 @@ def cmd_predict(args) -> int:
 
 
 def cmd_compensate(args) -> int:
-    from torchcal.compensate import Status, compensate_groups, program_targets, row_groups, write_joints
+    from torchcal.compensate import Status, compensate_groups, orientation_mode, row_groups
     from torchcal.data import read_measurements
-    from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import at_station, trust
+    from torchcal.report.rundir import at_station
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
@@ -810,44 +832,81 @@ def cmd_compensate(args) -> int:
                 "give one start row per target"
             )
         q_start = start.q
-
-    def targets_of(at, rows):
-        return data.p[rows] if data.p is not None else program_targets(at, data.q[rows])
-
+    six_d, mode = orientation_mode(robot, data, args.position_only)
+    if data.r is not None and not six_d:
+        _console.info(f"torchcal: warning: {args.targets}: the rx,ry,rz columns are not used: {mode}")
+    _console.info(f"compensate: {mode}")
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
-    res, ext, _ = compensate_groups(model, station, probe, targets_of, q_start, at=at_station, context=context)
-    # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
-    rows = dict(station=station if robot.stations else None, probe=probe if robot.probes else None)
-    sigma, _ = trust(args.run, model, Context(q=res.q, t=data.t, temperature=data.temperature, **rows))
-    extra = dict(data.extra)
-    if sigma is not None:
-        extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
-    extra["extrapolation"] = ext
-    write_joints(
-        out_file,
-        res,
-        targets=data.p,
-        t=data.t,
-        temperature=data.temperature,
-        labels=_row_labels(model, data, station, probe),
-        extra=extra,
-        meta={"compensated_by": str(args.run)},
-        written_by="torchcal compensate",
+    targets_of = _compensation_targets(data, six_d)
+    res, ext, _ = compensate_groups(
+        model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
     )
+    _write_compensation(args, out_file, model, data, station, probe, res, ext, mode)
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, ext, alone)
-    bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
-    for i in bad:
+    for i in [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]:
+        turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.4f} deg"
         print(
             f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
-            f"the target by {float(res.miss[i]) * 1e3:.4f} mm",
+            f"the target by {float(res.miss[i]) * 1e3:.4f} mm{turn}",
             file=sys.stderr,
         )
     _console.info(
         f"wrote {data.n} joint commands to {args.out}: " + ", ".join(f"{v} {k}" for k, v in res.counts().items())
     )
     return 0
+
+
+def _compensation_targets(data, six_d: bool):
+    """``(model, rows) -> (positions, orientations or None)`` of a targets file, in the instrument frame of ``model``
+    (the run at the rows' station and probe): the file's ``x,y,z`` (``rx,ry,rz``), or what a program's joints mean."""
+    from torchcal.compensate import program_orientations, program_targets
+    from torchcal.robot import transforms as tf
+
+    def targets_of(at, rows):
+        p = data.p[rows] if data.p is not None else program_targets(at, data.q[rows])
+        if not six_d:
+            return p, None
+        return p, tf.so3_exp(data.r[rows]) if data.r is not None else program_orientations(at, data.q[rows])
+
+    return targets_of
+
+
+def _write_compensation(args, out_file, model, data, station, probe, res, ext, mode) -> None:
+    """Write ``compensate``'s file in the targets file's units: the commands, the program's own joints beside them
+    (``q1_program..``), the targets, labels, extra columns, trust columns, the misses and the status."""
+    import dataclasses
+
+    from torchcal.compensate import file_units, write_joints
+    from torchcal.effects import Context
+    from torchcal.report.rundir import trust
+
+    # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
+    rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
+    sigma, _ = trust(args.run, model, Context(q=res.q, t=data.t, temperature=data.temperature, **rows))
+    joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
+    extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}
+    extra.update(data.extra)
+    if sigma is not None:
+        extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
+    extra["extrapolation"] = ext
+    write_joints(
+        out_file,
+        dataclasses.replace(res, q=res.q * joint, miss=res.miss * length),
+        targets=None if data.p is None else data.p * length,
+        t=data.t,
+        temperature=data.temperature,
+        labels=_row_labels(model, data, station, probe),
+        extra=extra,
+        meta={
+            "compensated_by": str(args.run),
+            "compensation": mode,
+            "length_unit": args.length_unit,
+            "angle_unit": args.angle_unit,
+        },
+        written_by="torchcal compensate",
+    )
 
 
 def _row_labels(model, data, station, probe) -> dict[str, list[str]]:
