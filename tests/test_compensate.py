@@ -642,3 +642,28 @@ def test_cli_position_only_where_the_run_has_no_orientation(run_dir, tmp_path, c
     assert "position only (the run has no orientation model" in capsys.readouterr().err
     assert "# compensation: position only (the run has no orientation model" in out.read_text()
     assert "miss_angle" not in _read(out)[0]
+
+
+def test_six_d_next_to_a_singularity_falls_back_to_the_position():
+    """Next to the wrist singularity (q5 = 0.01 rad) a pose moved 1 mm-mrad along the arm's weakest direction needs a
+    joint move far beyond max_joint_change: not reached on the start's branch. The row is commanded for its position
+    alone (reached to 1e-9), its status still says the pose is not reached and miss_angle how far the tool stays
+    turned."""
+    from torchcal.compensate import _context, _Goal, rotation_in_base
+
+    model = _with_orientation(calibrated_model(effects=False))
+    q0 = poses(model.robot, 4, seed=8)
+    q0[:, 4] = 0.01
+    with torch.no_grad():
+        ctx = _context(model, q0, {})
+        p0, R0 = model.probe_in_base(ctx), rotation_in_base(model, ctx)
+    _, J, _, _ = _Goal(p0, R0, 0.1).residual(model, ctx)
+    weak = torch.linalg.svd(J).U[..., -1]  # (N, 6): the residual direction the arm can barely move along
+    eps = 1e-3
+    targets, R = p0 + eps * weak[:, :3], tf.so3_exp(eps * weak[:, 3:] / 0.1) @ R0
+    res = compensate(model, targets, q0, frame="base", orientations=R)
+    assert res.counts()["converged"] == 0 and bool(res.position_only.all())
+    assert float(res.miss.max()) <= 1e-9 and float(res.miss_angle.min()) > 1e-4
+    assert float((res.q - q0).abs().max()) <= 0.3  # on the start's branch
+    with torch.no_grad():
+        assert float((model.probe_in_base(Context(q=res.q)) - targets).norm(dim=-1).max()) <= 1e-9

@@ -847,6 +847,8 @@ def cmd_compensate(args) -> int:
     warn_outside(args.targets, data.lines, ext, alone)
     for i in [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]:
         turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.4f} deg"
+        if res.position_only is not None and bool(res.position_only[i]):
+            turn += " (the full pose is not reached on this arm configuration: commanded for the position alone)"
         print(
             f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
             f"the target by {float(res.miss[i]) * 1e3:.4f} mm{turn}",

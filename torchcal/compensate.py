@@ -28,6 +28,12 @@ branches) must equal the start's unless the solution lies within ``branch_tol`` 
 singularity the branches meet), and no joint may move more than ``max_joint_change`` from its start.
 A row that fails the check keeps its start joints and gets status ``unreachable`` (on the start's branch).
 
+Orientation (a 6-D solve, ``orientations``): the residual stacks the position error [m] over ``orientation_weight``
+[m/rad] times the rotation vector from the model's probe frame to the target's, and the steps solve both (module
+:func:`compensate`'s argument docs say what the weight decides). A row whose full pose is not reached on the start's
+branch (next to a singularity the pose may need a move across it) is solved again for its position alone and, where
+that converges, commanded by it; its status still says the pose was not reached (``position_only`` marks it).
+
 Context: effects may read the time ``t``, the temperature and the direction of motion; they are taken
 per row from ``context`` (the CLI takes them from the targets file's ``t`` and ``temperature``
 columns, and the direction of motion from the start joints when the run was a trajectory).
@@ -88,6 +94,9 @@ class CompensationResult:
         branch_kept: ``(N,)`` bool, the configuration check of the module docstring.
         miss_angle: remaining angle between the model's probe orientation and the target orientation ``(N,)`` [rad],
             or None for a position-only solve.
+        position_only: ``(N,)`` bool in a 6-D solve, the rows whose full pose was not reached (status ``limit`` or
+            ``unreachable``) and which are commanded by the position-only solution instead (its ``miss`` reached,
+            ``miss_angle`` the tool's remaining turn); None for a position-only solve.
     """
 
     q: Tensor
@@ -97,6 +106,7 @@ class CompensationResult:
     iterations: int
     branch_kept: Tensor
     miss_angle: Tensor | None = None
+    position_only: Tensor | None = None
 
     def rows(self, status: Status) -> list[int]:
         """0-based indices of the rows with ``status``."""
@@ -254,55 +264,68 @@ def _solve(
     model: MeasurementModel, goal: _Goal, q0: Tensor, context: dict | None, *, tol: float, max_iter: int, lam0: float
 ) -> tuple[Tensor, Tensor, Tensor | None, int]:
     """Batched LM on the goal's residual; returns ``q``, the position miss ``(N,)`` [m], the orientation miss ``(N,)``
-    [rad] (None without orientation targets) and the iterations."""
-    lo, hi = model.robot.limits[:, 0], model.robot.limits[:, 1]
+    [rad] (None without orientation targets) and the iterations. Each iteration evaluates the rows still above
+    ``tol`` only: a few rows next to a singularity then cost their own steps, not the whole batch's."""
     q = q0.clone()
-    ctx_of = _context_factory(model, context)
+    ctx_of = _context_factory(model, context, q0.shape[0])
     r, J, miss, angle = goal.residual(model, ctx_of(q))
     err = goal.error(miss, angle)
     lam = torch.full((q.shape[0],), lam0, dtype=F64, device=q.device)
-    m = r.shape[-1]
-    eye = torch.eye(m, dtype=F64, device=q.device)
     it = 0
     for it in range(1, max_iter + 1):
-        active = err > tol
-        if not bool(active.any()):
+        rows = torch.nonzero(err > tol).flatten()
+        if not len(rows):
             it -= 1
             break
-        # damping scaled by the Jacobian's size keeps lambda dimensionless across robots
-        scale = (J * J).sum(dim=(-1, -2)) / m
-        free = torch.ones_like(q, dtype=torch.bool)
-        for _ in range(2):  # active set: freeze joints on a limit that the step pushes outward
-            Jf = J * free.unsqueeze(-2)
-            A = Jf @ Jf.transpose(-1, -2) + (lam * scale)[:, None, None] * eye
-            dq = (Jf.transpose(-1, -2) @ torch.linalg.solve(A, r.unsqueeze(-1))).squeeze(-1)
-            push = ((q <= lo + 1e-12) & (dq < 0)) | ((q >= hi - 1e-12) & (dq > 0))
-            if not bool((push & free).any()):
-                break
-            free = free & ~push
-        q_new = torch.where(active.unsqueeze(-1), torch.minimum(torch.maximum(q + dq, lo), hi), q)
-        r_new, J_new, miss_new, angle_new = goal.residual(model, ctx_of(q_new))
+        q_new = _step(model, q[rows], r[rows], J[rows], lam[rows])
+        r_new, J_new, miss_new, angle_new = goal.subset(rows).residual(model, ctx_of(q_new, rows))
         err_new = goal.error(miss_new, angle_new)
-        better = active & (err_new < err)
-        q = torch.where(better.unsqueeze(-1), q_new, q)
-        r = torch.where(better.unsqueeze(-1), r_new, r)
-        J = torch.where(better[:, None, None], J_new, J)
-        err = torch.where(better, err_new, err)
-        miss = torch.where(better, miss_new, miss)
-        angle = None if angle is None else torch.where(better, angle_new, angle)
-        lam = torch.where(better, (lam / 10.0).clamp(min=1e-12), torch.where(active, lam * 10.0, lam))
+        better = err_new < err[rows]
+        up = rows[better]
+        q[up], r[up], J[up], err[up], miss[up] = (
+            q_new[better],
+            r_new[better],
+            J_new[better],
+            err_new[better],
+            miss_new[better],
+        )
+        if angle is not None:
+            angle[up] = angle_new[better]
+        lam[rows] = torch.where(better, (lam[rows] / 10.0).clamp(min=1e-12), lam[rows] * 10.0)
         # a row whose damping exploded makes no more progress: stop spending steps on it
-        if bool((~active | (lam > 1e8)).all()):
+        if bool((lam[rows] > 1e8).all()):
             break
     return q, miss, angle, it
 
 
-def _context_factory(model: MeasurementModel, context: dict | None):
-    """Context for the current joints; checks the context once (the effects' variables)."""
+def _step(model: MeasurementModel, q: Tensor, r: Tensor, J: Tensor, lam: Tensor) -> Tensor:
+    """One damped minimum-norm step ``dq = J^T (J J^T + lambda I)^-1 r`` from ``q (n, dof)``, clipped to the limits.
+
+    Active set: a joint on a limit that the step pushes outward is frozen and the step recomputed."""
+    lo, hi = model.robot.limits[:, 0], model.robot.limits[:, 1]
+    m = r.shape[-1]
+    eye = torch.eye(m, dtype=F64, device=q.device)
+    # damping scaled by the Jacobian's size keeps lambda dimensionless across robots
+    scale = (J * J).sum(dim=(-1, -2)) / m
+    free = torch.ones_like(q, dtype=torch.bool)
+    for _ in range(2):
+        Jf = J * free.unsqueeze(-2)
+        A = Jf @ Jf.transpose(-1, -2) + (lam * scale)[:, None, None] * eye
+        dq = (Jf.transpose(-1, -2) @ torch.linalg.solve(A, r.unsqueeze(-1))).squeeze(-1)
+        push = ((q <= lo + 1e-12) & (dq < 0)) | ((q >= hi - 1e-12) & (dq > 0))
+        if not bool((push & free).any()):
+            break
+        free = free & ~push
+    return torch.minimum(torch.maximum(q + dq, lo), hi)
+
+
+def _context_factory(model: MeasurementModel, context: dict | None, n: int):
+    """Context for the current joints of all ``n`` rows or of ``rows``; checks the context (the effects'
+    variables)."""
     base = dict(context or {})
 
-    def make(q: Tensor) -> Context:
-        return _context(model, q, base)
+    def make(q: Tensor, rows: Tensor | None = None) -> Context:
+        return _context(model, q, base if rows is None else {k: _subset(v, rows, n) for k, v in base.items()})
 
     return make
 
@@ -421,15 +444,52 @@ def compensate(
         if ctx.get("direction") is None and ctx.pop("trajectory", False):
             ctx["direction"] = motion_direction(q0)
         ctx.pop("trajectory", None)
-        q, miss, angle, it = _solve(model, goal, q0, ctx, tol=tol, max_iter=max_iter, lam0=damping)
-        kept = _branch_kept(robot, q0, q, branch_tol=branch_tol, max_joint_change=max_joint_change)
-        lo, hi = robot.limits[:, 0], robot.limits[:, 1]
-        at_limit = ((q <= lo + 1e-9) | (q >= hi - 1e-9)).any(dim=-1)
-        q = torch.where(kept.unsqueeze(-1), q, q0)
-        if not bool(kept.all()):  # those rows keep their start: their miss is the start's
-            _, _, miss0, angle0 = goal.residual(model, _context(model, q0, ctx))
-            miss = torch.where(kept, miss, miss0)
-            angle = None if angle is None else torch.where(kept, angle, angle0)
+        opts = dict(
+            tol=tol, max_iter=max_iter, damping=damping, branch_tol=branch_tol, max_joint_change=max_joint_change
+        )
+        q, miss, angle, kept, status, it = _solve_on_branch(model, goal, q0, ctx, **opts)
+        fallback = None
+        if angle is not None:
+            fallback = _position_fallback(model, goal, q0, ctx, (q, miss, angle, kept, status), **opts)
+    return CompensationResult(
+        q=q.detach(),
+        miss=miss.detach(),
+        status=status,
+        q_start=q0,
+        iterations=it,
+        branch_kept=kept,
+        miss_angle=None if angle is None else angle.detach(),
+        position_only=fallback,
+    )
+
+
+def _solve_on_branch(
+    model: MeasurementModel,
+    goal: _Goal,
+    q0: Tensor,
+    ctx: dict,
+    *,
+    tol: float,
+    max_iter: int,
+    damping: float,
+    branch_tol: float,
+    max_joint_change: float,
+) -> tuple[Tensor, Tensor, Tensor | None, Tensor, list[Status], int]:
+    """:func:`_solve` from ``q0``, then the configuration check: a row that left the start's branch keeps its start.
+
+    Returns:
+        ``q``, the position and orientation misses, ``kept`` (the branch check), each row's status and the iterations.
+    """
+    robot = model.robot
+    q, miss, angle, it = _solve(model, goal, q0, ctx, tol=tol, max_iter=max_iter, lam0=damping)
+    kept = _branch_kept(robot, q0, q, branch_tol=branch_tol, max_joint_change=max_joint_change)
+    lo, hi = robot.limits[:, 0], robot.limits[:, 1]
+    at_limit = ((q <= lo + 1e-9) | (q >= hi - 1e-9)).any(dim=-1)
+    q = torch.where(kept.unsqueeze(-1), q, q0)
+    if not bool(kept.all()):  # those rows keep their start: their miss is the start's
+        _, _, miss0, angle0 = goal.residual(model, _context(model, q0, ctx))
+        miss = torch.where(kept, miss, miss0)
+        angle = None if angle is None else torch.where(kept, angle, angle0)
     err = goal.error(miss, angle)
     status = []
     for i in range(q.shape[0]):
@@ -439,15 +499,90 @@ def compensate(
             status.append(Status.LIMIT)
         else:
             status.append(Status.UNREACHABLE)
-    return CompensationResult(
-        q=q.detach(),
-        miss=miss.detach(),
-        status=status,
-        q_start=q0,
-        iterations=it,
-        branch_kept=kept,
-        miss_angle=None if angle is None else angle.detach(),
-    )
+    return q, miss, angle, kept, status, it
+
+
+#: the fallback's price of a joint move against the orientation it buys, [rad^2 / rad^2]: 0.1 rad of joint motion
+#: counts as 1 mrad of orientation error (the configuration check allows 0.3 rad)
+SINGULAR_DAMPING = 1e-4
+
+
+def _position_fallback(model: MeasurementModel, goal: _Goal, q0: Tensor, ctx: dict, solved: tuple, **opts) -> Tensor:
+    """The rows of a 6-D solve not reached, solved for their position first and their orientation as far as the
+    position and a short joint move allow (:func:`_prioritised`, else the position alone); where the position
+    converges on the branch, those joints replace the 6-D compromise (in place in ``solved``: ``q``, the misses,
+    ``kept``) and the status stays (the pose is not reached). Next to a singularity (a stretched elbow, a wrist near
+    zero) the full pose may need a move across it, while the position, with three joints to spare, does not.
+
+    Returns:
+        ``(N,)`` bool, the rows commanded by a position-first solution.
+    """
+    q, miss, angle, kept, status = solved
+    fallback = torch.zeros(len(status), dtype=torch.bool)
+    rows = torch.tensor([i for i, s in enumerate(status) if s is not Status.CONVERGED], dtype=torch.long)
+    if not len(rows):
+        return fallback
+    sub_ctx = {k: _subset(v, rows, len(status)) for k, v in ctx.items()}
+    sub = goal.subset(rows)
+    position = _Goal(sub.p)
+    plain = _solve_on_branch(model, position, q0[rows], sub_ctx, **opts)[0]
+    # from the position's solution: the position steps then stay small next to a singularity; the position is
+    # polished last (next to a stretched elbow the orientation steps push it off by more than the tolerance)
+    turned = _prioritised(model, sub, q0[rows], plain, sub_ctx)
+    best_q, best_angle = None, None
+    for q1 in (plain, _solve_on_branch(model, position, turned, sub_ctx, **opts)[0]):
+        miss1, angle1 = goal_misses(model, sub, q1, sub_ctx)
+        ok = (miss1 <= opts["tol"]) & _branch_kept(model.robot, q0[rows], q1, **_branch_opts(opts))
+        angle1 = torch.where(ok, angle1, torch.full_like(angle1, math.inf))
+        if best_q is None:
+            best_q, best_angle = q1, angle1
+        else:
+            better = angle1 < best_angle
+            best_q, best_angle = torch.where(better[:, None], q1, best_q), torch.where(better, angle1, best_angle)
+    won = torch.isfinite(best_angle)
+    up = rows[won]
+    q[up], angle[up], kept[up] = best_q[won], best_angle[won], True
+    miss[up] = goal_misses(model, sub, best_q, sub_ctx)[0][won]
+    fallback[up] = True
+    return fallback
+
+
+def _branch_opts(opts: dict) -> dict:
+    return {"branch_tol": opts["branch_tol"], "max_joint_change": opts["max_joint_change"]}
+
+
+def goal_misses(model: MeasurementModel, goal: _Goal, q: Tensor, ctx: dict) -> tuple[Tensor, Tensor]:
+    """The position and orientation misses ``(N,)`` [m, rad] of joints ``q`` against a 6-D goal."""
+    with torch.no_grad():
+        c = _context(model, q, ctx)
+        miss = (goal.p - model.probe_in_base(c)).norm(dim=-1)
+        return miss, rotation_miss(goal.R, rotation_in_base(model, c))
+
+
+def _prioritised(model: MeasurementModel, goal: _Goal, q0: Tensor, q1: Tensor, ctx: dict, *, iters: int = 20) -> Tensor:
+    """Joints ``(N, dof)`` that reach the goal's positions and come as near its orientations as a short move from the
+    start ``q0`` allows, iterated from ``q1``.
+
+    Each step solves the position (Gauss-Newton, minimum norm) and, in the position's null space, the orientation
+    error plus ``SINGULAR_DAMPING`` times the squared distance from the start ``q0``: next to a singularity, where the
+    exact orientation lies far along a direction the arm barely turns in, the step stops at a short move instead."""
+    lo, hi = model.robot.limits[:, 0], model.robot.limits[:, 1]
+    q = q1.clone()
+    eye = torch.eye(q.shape[1], dtype=F64, device=q.device)
+    for _ in range(iters):
+        r, J, _, _ = goal.residual(model, _context(model, q, ctx))
+        Jp, Jw, e = J[:, :3], J[:, 3:] / goal.weight, r[:, 3:] / goal.weight
+        A = Jp @ Jp.transpose(-1, -2)
+        A = A + 1e-12 * A.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=F64)
+        pinv = torch.linalg.solve(A, Jp).transpose(-1, -2)  # (N, dof, 3): J^T (J J^T)^-1
+        dq1 = (pinv @ r[:, :3, None]).squeeze(-1)
+        N = eye - pinv @ Jp
+        Jn = Jw @ N
+        rhs = Jn.transpose(-1, -2) @ (e - (Jw @ dq1[..., None]).squeeze(-1))[..., None]
+        rhs = rhs - SINGULAR_DAMPING * (N @ (q - q0)[..., None])
+        dq2 = N @ torch.linalg.solve(Jn.transpose(-1, -2) @ Jn + SINGULAR_DAMPING * eye, rhs)
+        q = torch.minimum(torch.maximum(q + dq1 + dq2.squeeze(-1), lo), hi)
+    return q
 
 
 def _check_targets(targets: Tensor, orientations: Tensor | None, robot: RobotModel) -> None:
@@ -554,7 +689,7 @@ def compensate_in_region(
     sub = compensate(geometry_and_physics(model), targets[rows], res.q_start[rows], context=sub_ctx, **kw)
     res.q[rows], res.miss[rows], res.branch_kept[rows] = sub.q, sub.miss, sub.branch_kept
     if sub.miss_angle is not None:
-        res.miss_angle[rows] = sub.miss_angle
+        res.miss_angle[rows], res.position_only[rows] = sub.miss_angle, sub.position_only
     for k, i in enumerate(rows.tolist()):
         res.status[i] = sub.status[k]
     plain_rows[rows] = True
@@ -613,16 +748,24 @@ def _merge(n: int, parts: list[tuple[Tensor, CompensationResult, Tensor, Tensor]
     kept, plain = torch.zeros(n, dtype=torch.bool), torch.zeros(n, dtype=torch.bool)
     status: list[Status] = [Status.UNREACHABLE] * n
     angle = None if first.miss_angle is None else first.miss_angle.new_zeros(n)
+    fallback = None if first.position_only is None else torch.zeros(n, dtype=torch.bool)
     for rows, res, e, p in parts:
         q[rows], q0[rows], miss[rows], ext[rows] = res.q, res.q_start, res.miss, e
         if angle is not None:
-            angle[rows] = res.miss_angle
+            angle[rows], fallback[rows] = res.miss_angle, res.position_only
         kept[rows], plain[rows] = res.branch_kept.cpu(), p.cpu()
         for k, i in enumerate(rows.tolist()):
             status[i] = res.status[k]
     it = max(r.iterations for _, r, _, _ in parts)
     res = CompensationResult(
-        q=q, miss=miss, status=status, q_start=q0, iterations=it, branch_kept=kept, miss_angle=angle
+        q=q,
+        miss=miss,
+        status=status,
+        q_start=q0,
+        iterations=it,
+        branch_kept=kept,
+        miss_angle=angle,
+        position_only=fallback,
     )
     return res, ext, plain
 
