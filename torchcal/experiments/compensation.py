@@ -106,7 +106,14 @@ def _row(
     branch = int(((configuration_sign(nominal, q_cmd) != s0) & ((q_cmd - q_prog).abs().max(-1).values > 0.05)).sum())
     entry = _errors_mm(true_errors(truth, q_cmd, targets, ctx_kw))
     if R_target is not None:
-        entry["orientation"] = _angles_deg(true_turns(truth, q_cmd, R_target, ctx_kw))
+        turns = true_turns(truth, q_cmd, R_target, ctx_kw)
+        entry["orientation"] = _angles_deg(turns)
+        if (
+            six_d
+        ):  # the rows whose full pose the model reaches, and those next to a singularity, commanded position first
+            reached = torch.tensor([s is Status.CONVERGED for s in res.status])
+            entry["orientation_reached_rows"] = _angles_deg(turns[reached]) if bool(reached.any()) else None
+            entry["position_first_rows"] = int(res.position_only.sum())
     entry.update(
         {
             "status": res.counts(),
