@@ -4,6 +4,7 @@ Calibrates a simulated UR5 campaign with undeclared effects, then commands fresh
 1000-target path and measures where the simulated true robot puts the probe. Prints JSON.
 
     PYTHONPATH=$PWD OMP_NUM_THREADS=1 python scripts/compensation.py --seed 0
+    PYTHONPATH=$PWD OMP_NUM_THREADS=1 python scripts/compensation.py --seed 0 --orientation 0.01   # 6-D probe
 """
 
 import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
@@ -19,12 +20,20 @@ ap.add_argument("--effect", action="append", default=None, help=f"simulated effe
 ap.add_argument("--static-targets", type=int, default=500)
 ap.add_argument("--path-targets", type=int, default=1000)
 ap.add_argument("--method", default=None, help="calibration method (default: the package default)")
+ap.add_argument(
+    "--orientation",
+    type=float,
+    default=None,
+    metavar="DEG",
+    help="a 6-D probe with this orientation noise [deg]: also compensate position and orientation together and report "
+    "the true robot's orientation error beside its position error (six_d: the ratios to position-only)",
+)
 
 
 def experiment(a):
     effects = tuple(a.effect) if a.effect else DEFAULT_EFFECTS
     kw = {k: getattr(a, k) for k in ("robot", "seed", "poses", "static_targets", "path_targets", "method")}
-    return run(ExperimentConfig(effects=effects, **kw))
+    return run(ExperimentConfig(effects=effects, orientation_deg=a.orientation, **kw))
 
 
 if __name__ == "__main__":

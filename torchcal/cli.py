@@ -432,26 +432,54 @@ def build_parser() -> argparse.ArgumentParser:
         help="joint commands that reach targets by the calibrated model",
         description="For every row of TARGETS (x,y,z in the instrument frame, and/or nominal joints "
         "q1..qN of a robot program), write the joint commands that the calibrated model (geometry, "
-        "effects, learned correction) says put the probe there, with the remaining miss [m] and a "
+        "effects, learned correction) says put the probe there, with the remaining miss and a "
         "status (converged, limit, unreachable). x,y,z with q1..qN: reach x,y,z starting from q. "
-        "q1..qN alone: reach the point the nominal model reaches with q. x,y,z alone: start from "
-        "--start or from the nominal inverse kinematics. t and temperature columns feed effects "
-        "that read them. Output in SI units (rad, m); rows not reached are named on stderr and "
-        "kept in the file.",
+        "q1..qN alone: reach the point (and the tool orientation) the nominal model gives q. x,y,z alone: start "
+        "from --start or from the nominal inverse kinematics. With orientation targets (rx,ry,rz, or program "
+        "joints alone) and a run that fitted the probe's orientation, the full pose is solved and the orientation "
+        "miss written beside the position miss (--position-only: positions only). t and temperature columns feed "
+        "effects that read them; station and probe columns place each row (a run of several). The output keeps "
+        "the file's joints as q1_program..qN_program, and is in the file's units (--length-unit, --angle-unit; "
+        "miss_angle and rx,ry,rz in rad); rows not reached are named on stderr and kept in the file.",
     )
     cp.add_argument("run", help="run directory written by calibrate")
-    cp.add_argument("targets", help="CSV with x,y,z [m] and/or q1..qN [rad] (the measurement file format)")
     cp.add_argument(
-        "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
+        "targets", help="CSV with x,y,z [m] and/or q1..qN [rad], optional rx,ry,rz (the measurement file format)"
+    )
+    cp.add_argument(
+        "--out",
+        required=True,
+        help="CSV to write: the commands q1..qN, the file's joints q1_program..qN_program, the targets, station, "
+        "probe, extra columns, sx,sy,sz, extrapolation, miss, miss_angle [rad] (6-D), status",
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     cp.add_argument(
+        "--position-only",
+        action="store_true",
+        help="solve positions only (the tool free to turn), even with orientation targets (rx,ry,rz or program "
+        "joints) and a run that fitted the probe's orientation",
+    )
+    cp.add_argument(
+        "--orientation-weight",
+        dest="weight",
+        type=float,
+        default=0.1,
+        metavar="M_PER_RAD",
+        help="in a 6-D solve, the length [m] an orientation error of 1 rad weighs as (default 0.1: as a point 100 mm "
+        "from the probe moves); it decides only where position and orientation cannot both be met",
+    )
+    cp.add_argument(
         "--station",
         default=None,
-        help="a run calibrated from several instrument stations: the station whose frame the targets are in "
-        "(default the first)",
+        help="a run calibrated from several instrument stations: the station whose frame the targets are in, for "
+        "rows without a station column (default the first; a row whose column names another is refused)",
     )
-    cp.add_argument("--probe", default=None, help="a run with several probes: the probe to put on the targets")
+    cp.add_argument(
+        "--probe",
+        default=None,
+        help="a run with several probes: the probe to put on the targets, for rows without a probe column (default "
+        "the first)",
+    )
     _add_force(cp)
     _add_units(cp)
     _add_common(cp)
@@ -866,23 +894,21 @@ def cmd_predict(args) -> int:
 
 
 def cmd_compensate(args) -> int:
-    from torchcal.compensate import Status, compensate_in_region, program_targets, write_joints
+    from torchcal.compensate import Status, compensate_groups, orientation_mode, row_groups
     from torchcal.data import read_measurements
-    from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import at_station, trust
+    from torchcal.report.rundir import at_station
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
     )
-    full, meta = load_model(args.run)
-    # one frame: the station the targets are given in (and the probe to place), default the first
-    model, station, probe = at_station(full, args.station, args.probe)
+    model, meta = load_model(args.run)
     robot = model.robot
     kw = dict(require_positions=False, **_reading(args, robot))
     data = read_measurements(args.targets, require_joints=False, **kw)
-    has_q = data.dof > 0
-    q_start = data.q if has_q else None
+    # each row in its own station's frame with its own probe (the columns, else --station / --probe, else the first)
+    station, probe = row_groups(model, data, args.station, args.probe)
+    q_start = data.q if data.dof > 0 else None
     if args.start is not None:
         start = read_measurements(args.start, **kw)
         if start.n != data.n:
@@ -891,49 +917,96 @@ def cmd_compensate(args) -> int:
                 "give one start row per target"
             )
         q_start = start.q
-    targets = data.p if data.p is not None else program_targets(model, data.q)
+    six_d, mode = orientation_mode(robot, data, args.position_only)
+    if data.r is not None and not six_d:
+        _console.info(f"torchcal: warning: {args.targets}: the rx,ry,rz columns are not used: {mode}")
+    _console.info(f"compensate: {mode}")
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
-    res, ext, _ = compensate_in_region(model, targets, q_start, context=context)
-    # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
-    ctx = Context(q=res.q, t=data.t, temperature=data.temperature)
-    if full is not model:  # the run's covariance is of its stations and probes: the rows are the chosen ones'
-        n = len(res.q)
-        ctx = Context(
-            q=res.q,
-            t=data.t,
-            temperature=data.temperature,
-            station=torch.full((n,), station, dtype=torch.long, device=res.q.device) if full.robot.stations else None,
-            probe=torch.full((n,), probe, dtype=torch.long, device=res.q.device) if full.robot.probes else None,
-        )
-    sigma, _ = trust(args.run, full, ctx)
-    extra = dict(data.extra)
-    if sigma is not None:
-        extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
-    extra["extrapolation"] = ext
-    write_joints(
-        out_file,
-        res,
-        targets=data.p,
-        t=data.t,
-        temperature=data.temperature,
-        extra=extra,
-        meta={"compensated_by": str(args.run)},
-        written_by="torchcal compensate",
+    targets_of = _compensation_targets(data, six_d)
+    res, ext, _ = compensate_groups(
+        model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
     )
+    _write_compensation(args, out_file, model, data, station, probe, res, ext, mode)
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, model, res.q, alone)
-    bad = [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]
-    for i in bad:
+    for i in [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]:
+        turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.4f} deg"
+        if res.position_only is not None and bool(res.position_only[i]):
+            turn += " (the full pose is not reached on this arm configuration: commanded for the position alone)"
         print(
             f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
-            f"the target by {float(res.miss[i]) * 1e3:.4f} mm",
+            f"the target by {float(res.miss[i]) * 1e3:.4f} mm{turn}",
             file=sys.stderr,
         )
     _console.info(
         f"wrote {data.n} joint commands to {args.out}: " + ", ".join(f"{v} {k}" for k, v in res.counts().items())
     )
     return 0
+
+
+def _compensation_targets(data, six_d: bool):
+    """``(model, rows) -> (positions, orientations or None)`` of a targets file, in the instrument frame of ``model``
+    (the run at the rows' station and probe): the file's ``x,y,z`` (``rx,ry,rz``), or what a program's joints mean."""
+    from torchcal.compensate import program_orientations, program_targets
+    from torchcal.robot import transforms as tf
+
+    def targets_of(at, rows):
+        p = data.p[rows] if data.p is not None else program_targets(at, data.q[rows])
+        if not six_d:
+            return p, None
+        return p, tf.so3_exp(data.r[rows]) if data.r is not None else program_orientations(at, data.q[rows])
+
+    return targets_of
+
+
+def _write_compensation(args, out_file, model, data, station, probe, res, ext, mode) -> None:
+    """Write ``compensate``'s file in the targets file's units: the commands, the program's own joints beside them
+    (``q1_program..``), the targets, labels, extra columns, trust columns, the misses and the status."""
+    import dataclasses
+
+    from torchcal.compensate import file_units, write_joints
+    from torchcal.effects import Context
+    from torchcal.report.rundir import trust
+
+    # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
+    rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
+    sigma, _ = trust(args.run, model, Context(q=res.q, t=data.t, temperature=data.temperature, **rows))
+    joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
+    extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}
+    extra.update(data.extra)
+    if sigma is not None:
+        extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
+    extra["extrapolation"] = ext
+    write_joints(
+        out_file,
+        dataclasses.replace(res, q=res.q * joint, miss=res.miss * length),
+        targets=None if data.p is None else data.p * length,
+        t=data.t,
+        temperature=data.temperature,
+        labels=_row_labels(model, data, station, probe),
+        extra=extra,
+        meta={
+            "compensated_by": str(args.run),
+            "compensation": mode,
+            "length_unit": args.length_unit,
+            "angle_unit": args.angle_unit,
+        },
+        written_by="torchcal compensate",
+    )
+
+
+def _row_labels(model, data, station, probe) -> dict[str, list[str]]:
+    """The ``station`` and ``probe`` columns to write back: each row's name where the run has several (the one the
+    row was solved for), the file's own text where the run has one."""
+    out = {}
+    for key, index, known in (("station", station, model.robot.stations), ("probe", probe, model.robot.probes)):
+        column, names = getattr(data, key), getattr(data, f"{key}_names")
+        if known:
+            out[key] = [known[i] for i in index.tolist()]
+        elif column is not None:
+            out[key] = [names[i] for i in column.tolist()]
+    return out
 
 
 def cmd_station(args) -> int:
