@@ -33,7 +33,8 @@ What each step must give, against the truth (``simulate``'s own measured test po
 campaign simulated again in Python from the same seed, checked equal to the files):
 
 * ``predict`` on the calibrated stations' held-out rows: within 3x the run's held-out RMSE (``rmse_after_mm``) per
-  station and probe, the ``station`` and ``probe`` columns kept;
+  station and probe (a 6-D probe's orientation within 3x the run's held-out orientation error), the ``station`` and
+  ``probe`` columns kept;
 * ``compensate`` of those rows' measured points (their station and probe per row): the true robot at the commanded
   joints puts each row's probe within 3x the held-out RMSE of its target, the columns kept;
 * ``station`` on 6 points of a placement the run never saw (measured with the first probe): ``predict`` of that
@@ -66,6 +67,7 @@ from torchcal.cli import main
 from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context
 from torchcal.robot import load_robot
+from torchcal.robot import transforms as tf
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -369,11 +371,17 @@ def test_calibrate(build, name):
 
 @pytest.mark.parametrize("name", cells("predict"))
 def test_predict(build, name, tmp_path):
-    """``predict`` on held-out rows of the calibrated placements, each with its station and probe."""
+    """``predict`` on held-out rows of the calibrated placements, each with its station and probe (and a 6-D
+    probe's orientation)."""
     b = build(name)
     got, rows = _predict(b.run, b.near, tmp_path, "near")
     _assert_close_per_group(b.near, got, FACTOR * b.held_out_mm, "predict")
     _assert_columns_kept(b.near, rows)
+    if b.near.r is not None:  # a 6-D probe: the orientation too, against the run's held-out orientation error
+        r = torch.tensor([[float(row[k]) for k in ("rx", "ry", "rz")] for row in rows], dtype=torch.float64)
+        miss = tf.so3_log(tf.so3_exp(r).transpose(-1, -2) @ tf.so3_exp(b.near.r)).norm(dim=-1)
+        rms_deg = math.degrees(float(miss.square().mean().sqrt()))
+        assert rms_deg <= FACTOR * b.report["orientation"]["rms_after_deg"], rms_deg
 
 
 @pytest.mark.parametrize("name", cells("compensate"))
