@@ -37,3 +37,23 @@ def test_default_calibration_does_not_import_dynamo():
     assert "compliance" in result["effects"] and "learned" in result["effects"], result
     assert not result["before"]
     assert not result["after"], "a default calibration imported torch._dynamo"
+
+
+ORIENTATION = """
+import json, sys
+from torchcal._threads import torch_threads
+from torchcal.pipeline import Options, calibrate
+from torchcal.sim import SimConfig, simulate
+with torch_threads(1):
+    campaign = simulate(SimConfig(robot="ur5", poses=30, test_poses=0, seed=1, orientation_sigma_deg=0.01))
+    run = calibrate("ur5", campaign.train, Options(method="kinematic", seed=1))
+print(json.dumps({"after": "torch._dynamo" in sys.modules}))
+"""
+
+
+def test_calibration_of_a_6d_probe_does_not_import_dynamo():
+    """A 6-D probe's rows whiten their orientation with the joint noise turning the probe (its joint Jacobian),
+    which a forward-mode pass through the chain computed, importing torch._dynamo."""
+    proc = subprocess.run([sys.executable, "-c", ORIENTATION], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert not json.loads(proc.stdout.strip().splitlines()[-1])["after"], "a 6-D calibration imported torch._dynamo"

@@ -4,6 +4,7 @@ makes estimable, the position's held-out error not worse than position-only, and
 
 import json
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -200,3 +201,34 @@ def test_the_orientation_rows_get_the_positions_variance_factor():
     )
     assert orientation_scale(torch.cat([pos, prior, ori]), n) == pytest.approx(10.0, rel=0.05)
     assert orientation_scale(torch.cat([pos, prior, pos]), n) == pytest.approx(1.0)
+
+
+FANUC = str(Path(__file__).resolve().parents[1] / "robot" / "data" / "fanuc_like.yaml")
+
+
+@pytest.mark.parametrize("name", ["ur5", "ur10_track", FANUC], ids=["revolute", "prismatic", "readings"])
+def test_orientation_joint_jacobian_equals_forward_mode(name):
+    """The joint Jacobian of the probe frame's turn (the geometric one, from the joint axes) equals ``torch.func.jvp``
+    of the probe rotation per reading, with a prismatic joint (no turn) and a readings map (by the readings)."""
+    from torchcal.estimate.problem import orientation_joint_jacobian
+
+    robot = torchcal.load_robot(name)
+    robot.enable_orientation(tf.so3_exp(torch.tensor([0.3, -0.2, 0.5], dtype=F64)))
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        robot.geometry.delta.copy_(torch.randn(robot.geometry.delta.shape, generator=g, dtype=F64) * 1e-2)
+        robot.instrument.set_matrix(
+            tf.homogeneous(tf.so3_exp(torch.tensor([0.1, 0.2, -1.0], dtype=F64)), torch.ones(3, dtype=F64))
+        )
+    lo, hi = robot.limits[:, 0].clamp(min=-2.0), robot.limits[:, 1].clamp(max=2.0)
+    q = lo + (hi - lo) * torch.rand(5, robot.dof, generator=g, dtype=F64)
+    R_tb = robot.T_tracker_base()[:3, :3]
+    cols = []
+    for j in range(robot.dof):
+        tangent = torch.zeros_like(q)
+        tangent[:, j] = 1.0
+        R, dR = torch.func.jvp(robot.probe_rotation, (q,), (tangent,))
+        W = dR @ R.transpose(-1, -2)  # the angular velocity's cross-product matrix, base frame
+        cols.append(torch.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], -1) @ R_tb.T)
+    got = orientation_joint_jacobian(MeasurementModel(robot), Context(q=q))
+    torch.testing.assert_close(got, torch.stack(cols, -1), rtol=0, atol=1e-12)

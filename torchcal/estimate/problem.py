@@ -425,7 +425,7 @@ def orientation_error(R_pred: Tensor, R_meas: Tensor) -> Tensor:
     A 6-D probe's orientation error after calibration is a fraction of a degree, where the two agree to 1e-7."""
     E = R_pred @ R_meas.transpose(-1, -2)
     w = torch.stack([E[..., 2, 1] - E[..., 1, 2], E[..., 0, 2] - E[..., 2, 0], E[..., 1, 0] - E[..., 0, 1]], -1)
-    return w * 0.5
+    return _dual.mul_scalar(w, 0.5)  # not w * 0.5: under jacfwd that imports torch._dynamo (torchcal._dual)
 
 
 def orientation_angle(R_pred: Tensor, R_meas: Tensor) -> Tensor:
@@ -438,18 +438,20 @@ def orientation_angle(R_pred: Tensor, R_meas: Tensor) -> Tensor:
 
 def orientation_joint_jacobian(model: MeasurementModel, ctx: Context) -> Tensor:
     """``d e / d q`` per pose ``(N, 3, dof)`` [rad/rad]: how a joint reading turns the probe frame, in the tracker
-    frame (the geometric model's; a prismatic joint does not turn it), by one forward-mode pass per joint."""
+    frame (the geometric model's). The geometric Jacobian's angular rows: a revolute joint turns the frame about
+    its axis ``z_j`` (in the base frame, from the joint frames), a prismatic one not at all; with a readings map
+    the derivative is by the readings (``J A``). Exact, and no forward-mode pass: ``torch.func.jvp`` through the
+    chain imports ``torch._dynamo`` (:mod:`torchcal._dual`)."""
     robot = model.robot
+    if ctx.q.shape[1] == 0:
+        return ctx.q.new_zeros(len(ctx.q), 3, 0)
     R_tb = robot.T_tracker_base()[:3, :3]
-    cols = []
     with torch.no_grad():
-        for j in range(ctx.q.shape[1]):
-            tangent = torch.zeros_like(ctx.q)
-            tangent[:, j] = 1.0
-            R, dR = torch.func.jvp(robot.probe_rotation, (ctx.q,), (tangent,))
-            W = dR @ R.transpose(-1, -2)  # skew: the angular velocity in the base frame
-            cols.append(torch.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], -1) @ R_tb.T)
-    return torch.stack(cols, -1) if cols else ctx.q.new_zeros(len(ctx.q), 3, 0)
+        F, _ = robot.joint_frames(ctx.q)  # (N, n_joints, 4, 4)
+        z = (F[..., :3, :3] @ robot.geometry.axes.unsqueeze(-1)).squeeze(-1)  # (N, n_joints, 3)
+        z = torch.where(robot.geometry.prismatic.unsqueeze(-1), torch.zeros_like(z), z)
+        J = (z @ R_tb.T).transpose(-1, -2)  # (N, 3, n_joints)
+        return J if robot.readings.is_identity else J @ robot.readings.matrix()
 
 
 def orientation_whitening(

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from torchcal import _dual
 from torchcal._torch import plain, same_version, version_key
 from torchcal.errors import ShapeError
 from torchcal.robot import transforms as tf
@@ -148,7 +149,7 @@ class DHGeometry(_Group):
     @property
     def values(self) -> Tensor:
         """Current DH table ``(dof, 5)``: nominal + correction."""
-        return self.nominal + self.delta
+        return _dual.add(self.nominal, self.delta)  # not +: under jacfwd that imports torch._dynamo
 
     def origins(self, delta: Tensor | None = None) -> Tensor:
         """Constant transforms ``(dof + 1, 4, 4)``: ``O_1 .. O_n`` then ``O_tip``.
@@ -569,9 +570,9 @@ class RobotModel(nn.Module):
                 t = t + X[9]
             if prismatic[i] == "prismatic":  # no turn; a move by q_i [m] along the axis, R O_i a_i
                 Rt = X[0:3].expand(3, 3, m)
-                t = t + _rotate(Rt, self.geometry.axes[i]) * qt[i]
-            else:
-                Rt = X[0:3] + s[i] * X[3:6] + c[i] * X[6:9]
+                t = t + _dual.mul(_rotate(Rt, self.geometry.axes[i]), qt[i])
+            else:  # _dual: the readings carry no tangent where jacfwd differentiates by the geometry (a 6-D probe)
+                Rt = X[0:3] + _dual.mul(s[i], X[3:6]) + _dual.mul(c[i], X[6:9])
             if frames:
                 Rts.append(Rt)
                 ts.append(t)
