@@ -143,11 +143,6 @@ CELLS = {
 SEVERAL = [name for name, cell in CELLS.items() if SETUPS[cell.setup].stations > 1]
 #: the bugs that fail cells today, each owned by another branch (issue 34); how to reproduce each: the report of
 #: the branch that added this module
-COMPENSATE_COLUMNS = (
-    "compensate ignores the per-row station and probe columns (issue 34 item 3, compensate branch): every row is "
-    "solved in the first station's frame for the first probe, the true robot at the commands 80-100 mm off the S1/P2 "
-    "targets and 15-35 mm off the S2 ones, the columns dropped"
-)
 STATION_PROBES = (
     "a re-stationed run of several probes predicts every row with the first probe's lever arm (issue 34 item 2, "
     "station branch): the P2 rows ~100 mm off"
@@ -161,7 +156,6 @@ PRIOR_SEVERAL = (
     "station branch)"
 )
 XFAIL: dict[tuple[str, str], str] = {
-    **{(name, "compensate"): COMPENSATE_COLUMNS for name in SEVERAL},
     **{(name, "prior"): PRIOR_SEVERAL for name in SEVERAL},
     **{(name, "station"): STATION_PROBES for name in SEVERAL},
     ("ur5-auto-several+rx", "station"): f"{STATION_CRASH}; then {STATION_PROBES}",
