@@ -729,7 +729,7 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import predict_orientation, predict_with, rows_of, trust
+    from torchcal.report.rundir import MODEL_NAMES, predict_orientation, predict_with, row_trust, rows_of
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -747,12 +747,18 @@ def cmd_predict(args) -> int:
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
-    # how far to trust each row (on the CPU, before the model moves to --device): the predicted standard deviation
-    # (the parameters' covariance and the learned model's posterior) and how far the pose lies outside the
-    # calibrated region
+    # how far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
+    # measurement minus the prediction, how far the pose lies outside the calibrated region, and which model
+    # predicts it (beyond the region, the one with the smaller sigma)
     trajectory = bool(meta.get("trajectory")) and data.t is not None
-    sigma, ext = trust(args.run, model, Context.from_measurements(data, trajectory=trajectory))
+    rt = row_trust(args.run, model, meta, Context.from_measurements(data, trajectory=trajectory))
+    sigma, ext = rt.sigma, rt.extrapolation
     p = predict_with(model, meta, data, device=device)
+    if rt.geometric is not None and bool(rt.which.any()):
+        rows = torch.nonzero(rt.which).flatten()
+        p[rows] = predict_with(rt.geometric, meta, data.subset(rows), device=device)
+    if rt.note is not None:
+        _console.info(rt.note)
     if not bool(torch.isfinite(p).all()):
         raise OptionError(
             f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
@@ -767,7 +773,7 @@ def cmd_predict(args) -> int:
         p=p,
         sigma=sigma,
         temperature=None,
-        extra={"extrapolation": ext},
+        extra={"extrapolation": ext, "model": rt.which.to(torch.float64)},
         meta={"predicted_by": str(args.run)},
         r=r,
         sigma_r=None,
@@ -775,7 +781,7 @@ def cmd_predict(args) -> int:
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, ext, fade)
     out_file.parent.mkdir(parents=True, exist_ok=True)
-    write_measurements(out_file, out, written_by="torchcal predict")
+    write_measurements(out_file, out, written_by="torchcal predict", labels={"model": MODEL_NAMES})
     _console.info(f"wrote {len(p)} predictions to {args.out}")
     return 0
 

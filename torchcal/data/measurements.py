@@ -940,6 +940,7 @@ def write_measurements(
     meta: Mapping[str, str] | None = None,
     columns: Sequence[str] | None = None,
     written_by: str | None = None,
+    labels: Mapping[str, tuple[str, ...]] | None = None,
 ) -> None:
     """Write ``m`` in the contract format, SI units, atomically.
 
@@ -955,6 +956,8 @@ def write_measurements(
         columns: the columns to write and their order (default: all, in the order above).
         written_by: the command writing the file (``torchcal predict``): written as the first line,
             ``# written_by: ...``, the mark by which ``--out`` knows a file torchcal may replace.
+        labels: extra columns written as names: ``m.extra[key]`` holds each row's index into ``labels[key]``
+            (predict's ``model`` column).
 
     Raises:
         OptionError: a name in ``columns`` that ``m`` does not have.
@@ -982,6 +985,8 @@ def write_measurements(
         if index is not None:
             available[label] = index.to(torch.float64)
             names[label] = getattr(m, f"{label}_names")
+    for key, label_names in (labels or {}).items():
+        names[key] = tuple(label_names)
 
     if columns is None:
         columns = list(available)
