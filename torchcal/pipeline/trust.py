@@ -1,9 +1,10 @@
 """A finished run's predictive standard deviation (:mod:`torchcal.estimate.trust`) measured on its held-out rows: of
 the model it writes, and of its kinematic calibration where the two differ (beyond the calibrated region the one
-with the smaller sigma predicts)."""
+with the far smaller sigma predicts)."""
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass
 
 import torch
@@ -38,7 +39,8 @@ def noise_of(run: CalibrationRun) -> tuple[float, float, float]:
 
 
 def _held_out(run: CalibrationRun, model: MeasurementModel, cov: ParameterCovariance | None) -> Trust | None:
-    hold = run.hold
+    """``model``'s :class:`Trust` on the run's held-out rows, measured on the CPU (as predict computes it)."""
+    hold = run.hold.to("cpu")
     if hold.p is None or hold.n == 0:
         return None
     ctx = Context.from_measurements(hold, trajectory=run.trajectory)
@@ -57,13 +59,11 @@ def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> Param
 def run_trust(run: CalibrationRun) -> RunTrust:
     """Measure the run's :class:`RunTrust` on its held-out rows (those no fit of the final model saw)."""
     with torch.no_grad():
-        full = _held_out(run, run.model, run.covariance)
+        full = _held_out(run, copy.deepcopy(run.model).to("cpu"), run.covariance)
         geo = next((s.model for s in run.stages if s.name == StageName.GEOMETRIC), None)
         if geo is None or (not run.model.effects and not geo.effects):
             return RunTrust(full)
-        import copy
-
-        geo = copy.deepcopy(geo)
+        geo = copy.deepcopy(geo).to("cpu")
         geo.set_region(run.model.region, fade=False)
         cov = _geometric_covariance(run, geo)
         return RunTrust(full, geo, cov, _held_out(run, geo, cov))

@@ -11,7 +11,7 @@ Layout::
     model.json             how to rebuild it: robot description file, effects, options, calibrated region
     covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
     geometric.pt           a run with effects: its kinematic calibration (beside covariance_geometric.pt), which
-                           predicts rows beyond the region where its sigma is the smaller (model.json: trust)
+                           predicts rows beyond the region where its sigma is far the smaller (model.json: trust)
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
@@ -342,7 +342,7 @@ def _trust_report(rt) -> dict:
 
 def _write_geometric(rt, tmp: Path) -> None:
     """``geometric.pt`` (and ``covariance_geometric.pt``): the kinematic calibration beside a final model that is not
-    it, the model predict and compensate use beyond the region where its sigma is the smaller."""
+    it, the model predict and compensate use beyond the region where its sigma is far the smaller."""
     if rt.geometric_model is None or rt.geometric is None:
         return
     torch.save({k: v.cpu() for k, v in rt.geometric_model.state_dict().items()}, tmp / "geometric.pt")
@@ -629,6 +629,10 @@ def load_geometric(
 
 #: the column predict and compensate write to say which model gave each row (RowTrust.which)
 MODEL_NAMES = ("full", "geometric")
+#: beyond the region the kinematic calibration predicts a row only where the run's model's sigma is more than this
+#: many times its own: within it the richer model's error stays the smaller though its sigma is not (it knows more of
+#: what it is unsure of), far above it the richer model is guessing
+SWITCH_RATIO = 2.0
 
 
 @dataclass
@@ -640,7 +644,8 @@ class RowTrust:
             neither a covariance nor a measured level.
         extrapolation: ``(N,)`` how far each pose lies outside the calibrated region [rad or m].
         which: ``(N,)`` 0 where the run's model predicts the row, 1 where its kinematic calibration does (beyond the
-            region, where that one's sigma is the smaller): an index into :data:`MODEL_NAMES`.
+            region, where the model's sigma is more than :data:`SWITCH_RATIO` times that one's): an index into
+            :data:`MODEL_NAMES`.
         geometric: the kinematic calibration (None where the run keeps none).
         note: what the sigma lacks, for the user (a run written before the measured level), else None.
     """
@@ -677,10 +682,11 @@ def _old_run_sigma(run_dir: Path, model: MeasurementModel, ctx: Context) -> tupl
 def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, ctx: Context) -> RowTrust:
     """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx`` (CONTRACT §3): the standard
     deviation of a new measurement minus the prediction (:class:`~torchcal.estimate.trust.Trust`), and beyond the
-    calibrated region the model with the smaller one (the run's, or the kinematic calibration it keeps beside)."""
+    calibrated region the kinematic calibration the run keeps beside its model where the model's sigma is far above
+    that one's (:data:`SWITCH_RATIO`)."""
     run_dir = Path(run_dir)
     ext = model.extrapolation(ctx.q).cpu()
-    which = torch.zeros(len(ext), dtype=torch.long)
+    which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
     tr = load_trust(run_dir, meta)
     if tr is None:
         sigma, note = _old_run_sigma(run_dir, model, ctx)
@@ -693,7 +699,7 @@ def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, c
     geo, cov, geo_trust = alt
     rows = torch.nonzero(out).flatten()
     s_geo = geo_trust.std(geo, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
-    better = s_geo.norm(dim=1) < sigma[rows].norm(dim=1)
+    better = SWITCH_RATIO * s_geo.norm(dim=1) < sigma[rows].norm(dim=1)
     sigma[rows[better]] = s_geo[better]
     which[rows[better]] = 1
     return RowTrust(sigma, ext, which, geo)
