@@ -367,7 +367,11 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
     pr.add_argument(
-        "--out", required=True, help="CSV to write: x,y,z [m] plus the q* and t columns (never one of the input files)"
+        "--out",
+        required=True,
+        help="CSV to write: x,y,z [m] plus the q* and t columns, sx,sy,sz [m] (the standard deviation of a new "
+        "measurement minus the prediction), extrapolation and model (full, or geometric: the run's kinematic "
+        "calibration beyond the region where it is far surer) (never one of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
@@ -387,7 +391,10 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("run", help="run directory written by calibrate")
     cp.add_argument("targets", help="CSV with x,y,z [m] and/or q1..qN [rad] (the measurement file format)")
     cp.add_argument(
-        "--out", required=True, help="CSV to write: q1..qN [rad], the targets, extra columns, miss [m], status"
+        "--out",
+        required=True,
+        help="CSV to write: q1..qN [rad], the targets, extra columns, sx,sy,sz [m], extrapolation, model (full, "
+        "geometric or physical: which model commanded the row), miss [m], status",
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     cp.add_argument(
@@ -786,12 +793,39 @@ def cmd_predict(args) -> int:
     return 0
 
 
+#: compensate's column ``model``: the run's model, its kinematic calibration (beyond the region where the model's
+#: sigma is far above that one's), or the geometry and physical effects alone (beyond the region otherwise)
+COMPENSATE_MODELS = ("full", "geometric", "physical")
+
+
+def _compensate_trust(args, full, meta, res, ctx, targets, context, plain):
+    """compensate's ``sx, sy, sz`` and ``model`` per row: rows beyond the region where the run's model's sigma is far
+    above its kinematic calibration's are solved again with that (in place in ``res``), with its sigma."""
+    from dataclasses import replace
+
+    from torchcal.compensate import solve_rows_with
+    from torchcal.report.rundir import at_station, row_trust
+
+    rt = row_trust(args.run, full, meta, ctx)
+    which = torch.where(plain.cpu(), 2, 0)
+    if rt.geometric is None or not bool(rt.which.any()):
+        return rt.sigma, which
+    rows = torch.nonzero(rt.which).flatten()
+    geo, _, _ = at_station(rt.geometric, args.station, args.probe)
+    solve_rows_with(geo, res, rows.to(res.q.device), targets, context=context)
+    sigma = rt.sigma.clone()
+    sub = ctx.subset(rows.to(ctx.q.device))
+    sigma[rows] = rt.geometric_sigma(replace(sub, q=res.q[rows.to(res.q.device)]))  # at the new commands
+    which[rows] = 1
+    return sigma, which
+
+
 def cmd_compensate(args) -> int:
     from torchcal.compensate import Status, compensate_in_region, program_targets, write_joints
     from torchcal.data import read_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import at_station, trust
+    from torchcal.report.rundir import at_station
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
@@ -815,7 +849,7 @@ def cmd_compensate(args) -> int:
     targets = data.p if data.p is not None else program_targets(model, data.q)
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
-    res, ext, _ = compensate_in_region(model, targets, q_start, context=context)
+    res, ext, plain = compensate_in_region(model, targets, q_start, context=context)
     # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
     ctx = Context(q=res.q, t=data.t, temperature=data.temperature)
     if full is not model:  # the run's covariance is of its stations and probes: the rows are the chosen ones'
@@ -827,11 +861,13 @@ def cmd_compensate(args) -> int:
             station=torch.full((n,), station, dtype=torch.long, device=res.q.device) if full.robot.stations else None,
             probe=torch.full((n,), probe, dtype=torch.long, device=res.q.device) if full.robot.probes else None,
         )
-    sigma, _ = trust(args.run, full, ctx)
+    sigma, which = _compensate_trust(args, full, meta, res, ctx, targets, context, plain)
+    ext = model.extrapolation(res.q)  # of the commands written
     extra = dict(data.extra)
     if sigma is not None:
         extra.update(sx=sigma[:, 0], sy=sigma[:, 1], sz=sigma[:, 2])
     extra["extrapolation"] = ext
+    extra["model"] = which.to(torch.float64)
     write_joints(
         out_file,
         res,
@@ -841,6 +877,7 @@ def cmd_compensate(args) -> int:
         extra=extra,
         meta={"compensated_by": str(args.run)},
         written_by="torchcal compensate",
+        labels={"model": COMPENSATE_MODELS},
     )
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, ext, alone)

@@ -402,16 +402,27 @@ def compensate_in_region(
     if not bool((ext > 0).any()) or not model.has_learned:
         return res, ext, plain_rows
     rows = torch.nonzero(ext > 0)[:, 0]
-    n = len(ext)
+    solve_rows_with(geometry_and_physics(model), res, rows, targets, context=context, **kw)
+    plain_rows[rows] = True
+    return res, model.extrapolation(res.q), plain_rows
+
+
+def solve_rows_with(
+    model: MeasurementModel, res: CompensationResult, rows: Tensor, targets: Tensor, *, context=None, **kw
+) -> None:
+    """Solve the ``rows`` of ``res`` again with ``model``, from the same start, in place: beyond the calibrated
+    region another model than the run's may be the one to trust (:func:`compensate_in_region`, and the kinematic
+    calibration where the run's model's sigma is far above it: :func:`torchcal.report.rundir.row_trust`)."""
+    if not len(rows):
+        return
+    n = len(res.q)
     sub_ctx = {
         k: (v[rows] if isinstance(v, Tensor) and v.ndim >= 1 and len(v) == n else v) for k, v in (context or {}).items()
     }
-    sub = compensate(geometry_and_physics(model), targets[rows], res.q_start[rows], context=sub_ctx, **kw)
+    sub = compensate(model, targets[rows], res.q_start[rows], context=sub_ctx, **kw)
     res.q[rows], res.miss[rows], res.branch_kept[rows] = sub.q, sub.miss, sub.branch_kept
     for k, i in enumerate(rows.tolist()):
         res.status[i] = sub.status[k]
-    plain_rows[rows] = True
-    return res, model.extrapolation(res.q), plain_rows
 
 
 def program_targets(
@@ -453,6 +464,7 @@ def model_miss(
 
 __all__: Sequence[str] = (
     "Status",
+    "solve_rows_with",
     "CompensationResult",
     "compensate",
     "compensate_in_region",
@@ -475,12 +487,14 @@ def write_joints(
     extra: dict[str, Tensor] | None = None,
     meta: dict[str, str] | None = None,
     written_by: str | None = None,
+    labels: dict[str, tuple[str, ...]] | None = None,
 ) -> None:
     """Write the compensated joints as CSV, atomically: ``q1..qN[,x,y,z][,t][,temperature][,extra...],miss,status``.
 
     Joints in rad, positions and ``miss`` in m, every number with ``repr`` (reads back bit-identical);
     ``status`` is ``converged``, ``limit`` or ``unreachable``. Every input row gets one output row, in order.
     ``written_by``: the command, written first as ``# written_by: ...`` (how ``--out`` knows torchcal's files).
+    ``labels``: extra columns written as names (``extra[key]`` holds each row's index into ``labels[key]``).
     """
     import os
     import tempfile
@@ -500,8 +514,10 @@ def write_joints(
     lines += [f"# {k}: {v}\n" for k, v in (meta or {}).items() if k != "written_by"]
     lines.append(",".join([c for c, _ in cols] + ["status"]) + "\n")
     table = torch.stack([v.detach().to(F64) for _, v in cols], dim=1).tolist()
+    names = [(labels or {}).get(c) for c, _ in cols]
     for row, st in zip(table, result.status, strict=True):
-        lines.append(",".join(repr(float(x)) for x in row) + f",{st.value}\n")
+        cells = (repr(float(x)) if n is None else n[int(x)] for x, n in zip(row, names))
+        lines.append(",".join(cells) + f",{st.value}\n")
     if not path.parent.is_dir():
         raise OptionError(f"{path}: cannot write, directory '{path.parent}' does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)

@@ -268,6 +268,7 @@ def test_beyond_the_region_the_model_with_the_smaller_sigma_predicts(kinematic_r
     meta["geometric"] = {"trust": {**level.to_dict(), "unexplained_m": [1e-4] * 3, "unexplained_far_m": [1e-4] * 3}}
     (run / "model.json").write_text(json.dumps(meta), encoding="utf-8")
     data = _push_beyond(kinematic_run, 0.3)
+    _check_compensate_chooses(run, data, tmp_path)
     assert main(["predict", str(run), str(data), "--out", str(tmp_path / "p.csv"), "--quiet"]) == 0
     rows = _rows(tmp_path / "p.csv")
     which = [r["model"] for r in rows]
@@ -282,3 +283,32 @@ def test_beyond_the_region_the_model_with_the_smaller_sigma_predicts(kinematic_r
         assert (moved > 1e-4) == (r["model"] == "geometric")
         if r["model"] == "geometric":
             assert float(r["sx"]) < 1e-3  # the geometric model's own sigma
+
+
+def _check_compensate_chooses(run, data, tmp_path):
+    """compensate on the targets the model puts at ``data``'s joints: a row beyond the region where the run's model is
+    far less sure than its kinematic calibration is commanded by that one (its ``model`` says so, and the
+    kinematic calibration puts the probe on the target there); the rows inside by the run's model."""
+    from torchcal.data import read_measurements
+    from torchcal.report.rundir import load_geometric
+
+    model, meta = load_model(run)
+    geo = load_geometric(run, model, meta)[0]
+    q = read_measurements(data).q
+    with torch.no_grad():
+        targets = model(Context(q=q))
+    lines = ["x,y,z"] + [",".join(repr(float(v)) for v in row) for row in targets]
+    (tmp_path / "targets.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    assert main(["compensate", str(run), str(tmp_path / "targets.csv"), "--start", str(data),
+                 "--out", str(tmp_path / "j.csv"), "--quiet"]) == 0  # fmt: skip
+    rows = _rows(tmp_path / "j.csv")
+    assert rows[0]["model"] == "geometric" and float(rows[0]["extrapolation"]) > 0.1
+    qj = torch.tensor([[float(r[f"q{j}"]) for j in range(1, 7)] for r in rows], dtype=F64)
+    with torch.no_grad():
+        miss_geo = (geo(Context(q=qj)) - targets).norm(dim=1)
+        miss_full = (model(Context(q=qj)) - targets).norm(dim=1)
+    for k, r in enumerate(rows):
+        if r["model"] == "geometric":
+            assert float(miss_geo[k]) < 1e-6 and float(r["sx"]) < 1e-3
+        elif r["status"] == "converged":
+            assert r["model"] == "full" and float(miss_full[k]) < 1e-6

@@ -29,6 +29,7 @@ import math
 import os
 import pickle
 import shutil
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -655,6 +656,7 @@ class RowTrust:
     which: Tensor
     geometric: MeasurementModel | None = None
     note: str | None = None
+    geometric_sigma: Callable[[Context], Tensor] | None = None  # the kinematic calibration's sigma at other rows
 
 
 def _old_run_sigma(run_dir: Path, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, str]:
@@ -702,7 +704,7 @@ def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, c
     better = SWITCH_RATIO * s_geo.norm(dim=1) < sigma[rows].norm(dim=1)
     sigma[rows[better]] = s_geo[better]
     which[rows[better]] = 1
-    return RowTrust(sigma, ext, which, geo)
+    return RowTrust(sigma, ext, which, geo, geometric_sigma=lambda c: geo_trust.std(geo, c, cov).cpu())
 
 
 def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:
