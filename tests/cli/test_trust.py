@@ -242,6 +242,10 @@ def test_a_run_written_before_the_level_still_predicts_and_says_so(unexplained_r
     assert "written before torchcal measured what its model leaves unexplained" in capsys.readouterr().err
     sig = torch.tensor([[float(r[k]) for k in ("sx", "sy", "sz")] for r in _rows(tmp_path / "p.csv")], dtype=F64)
     assert bool((sig > 0).all())  # the parameters' (the file's per-point noise is not in report.json)
+    meta["trust"] = None  # a run with too few held-out rows to measure the level on
+    (run / "model.json").write_text(json.dumps(meta), encoding="utf-8")
+    assert main(["predict", str(run), str(unexplained_run / "sim" / "test.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    assert "had fewer than 10 held-out rows" in capsys.readouterr().err
     meta["trust"] = {"noise_m": [1, 2]}
     (run / "model.json").write_text(json.dumps(meta), encoding="utf-8")
     assert main(["predict", str(run), str(unexplained_run / "sim" / "test.csv"), "--out", str(tmp_path / "q.csv")]) == 2

@@ -41,7 +41,7 @@ from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import EstimationError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.estimate.trust import Trust
+from torchcal.estimate.trust import MIN_ROWS, Trust
 from torchcal.pipeline import CalibrationRun, Prior, prior_from_run
 from torchcal.robot import load_robot, resolve_robot_spec
 from torchcal.robot.load import MAX_DESCRIPTION_BYTES
@@ -659,9 +659,11 @@ class RowTrust:
     geometric_sigma: Callable[[Context], Tensor] | None = None  # the kinematic calibration's sigma at other rows
 
 
-def _old_run_sigma(run_dir: Path, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, str]:
-    """The sigma of a run written before its level was measured: parameters, learned posterior and the report's
-    tracker noise, and the note that says so."""
+def _old_run_sigma(
+    run_dir: Path, model: MeasurementModel, ctx: Context, measured: bool = False
+) -> tuple[Tensor | None, str]:
+    """The sigma of a run without a measured level (written before it, or ``measured`` but on too few held-out
+    rows): parameters, learned posterior and the report's tracker noise, and the note that says so."""
     from torchcal.estimate.covariance import combined_std
 
     s = combined_std(model, ctx, load_covariance(run_dir, model))
@@ -670,11 +672,17 @@ def _old_run_sigma(run_dir: Path, model: MeasurementModel, ctx: Context) -> tupl
         rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
         v = rep.get("stochastic_model", {}).get("tracker_sigma_m") if isinstance(rep, dict) else None
         noise = float(v) if isinstance(v, int | float) and math.isfinite(v) and v >= 0 else None
+    why = (
+        f"had fewer than {MIN_ROWS} held-out rows to measure what its model leaves unexplained on"
+        if measured
+        else "was written before torchcal measured what its model leaves unexplained"
+    )
     note = (
-        f"{run_dir}: the run was written before torchcal measured what its model leaves unexplained: sx, sy, sz "
-        "hold the parameters' and the learned model's uncertainty"
+        f"{run_dir}: the run {why}: sx, sy, sz hold the parameters' and the learned model's uncertainty"
         + (" and the instrument's noise" if noise is not None else "")
-        + " only, and understate the error; calibrate again for a sigma that covers it"
+        + " only, and understate the error; "
+        + (f"hold out {MIN_ROWS} rows or more" if measured else "calibrate again")
+        + " for a sigma that covers it"
     )
     if s is None or noise is None:
         return s, note
@@ -691,7 +699,7 @@ def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, c
     which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
     tr = load_trust(run_dir, meta)
     if tr is None:
-        sigma, note = _old_run_sigma(run_dir, model, ctx)
+        sigma, note = _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
         return RowTrust(None if sigma is None else sigma.cpu(), ext, which, note=note)
     sigma = tr.std(model, ctx, load_covariance(run_dir, model)).cpu()
     alt = load_geometric(run_dir, model, meta)
