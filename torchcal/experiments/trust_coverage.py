@@ -88,3 +88,43 @@ def run(path: Path, series: str, kind: str, *, seed: int = 0, method: str = "aut
         if before is not None
         else None,
     }
+
+
+def probe_check(path: Path, series: str, *, seed: int = 0, per_side: int = 25) -> dict:
+    """Which model predicts just beyond the data: the default method and the kinematic calibration on the whole
+    series (positions only), both probed on training poses with one joint pushed 0.1-0.6 rad beyond its range
+    (:func:`torchcal.experiments.edge_probe.probes`).
+
+    Returns:
+        A JSON-ready dict: each run's largest predictive sigma ``|(sx, sy, sz)|`` on the probes [mm], the largest
+        difference of their predictions [mm], and the probes that ``predict`` gives to the kinematic calibration.
+    """
+    from torchcal.experiments.edge_probe import probes
+    from torchcal.report.rundir import trust
+
+    data = read_ipa(series_file(path, series)).without_orientation()
+    robot = load_robot("ur10")
+    out: dict = {"series": series, "seed": seed}
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = {}
+        for method in ("auto", "kinematic"):
+            result = calibrate(robot, data, Options(method=method, seed=seed))
+            runs[method] = write_run(result, Path(tmp) / method)
+            if method == "auto":
+                probe, _, _ = probes(data.subset(result.train_idx), robot.limits, per_side, seed)
+                ctx = Context.from_measurements(probe, trajectory=False)
+        pred, sigma = {}, {}
+        for method, run_dir in runs.items():
+            model, meta = load_model(run_dir)
+            pred[method] = predict_with(model, meta, probe)
+            sigma[method] = trust(run_dir, model, ctx)[0].norm(dim=1)
+            if method == "auto":
+                which = row_trust(run_dir, model, meta, ctx).which
+    out.update(
+        n_probes=probe.n,
+        max_sigma_default_mm=float(sigma["auto"].max()) * 1e3,
+        max_sigma_kinematic_mm=float(sigma["kinematic"].max()) * 1e3,
+        max_difference_mm=float((pred["auto"] - pred["kinematic"]).norm(dim=1).max()) * 1e3,
+        rows_geometric=int(which.sum()),
+    )
+    return out
