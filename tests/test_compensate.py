@@ -314,6 +314,7 @@ def test_cli_round_trip(run_dir, tmp_path, capsys):
         "sy",
         "sz",
         "extrapolation",
+        "model",
         "miss",
         "status",
     ]

@@ -25,6 +25,8 @@ LIMITS = {
     "report.json": 64 * MiB,
     "model.pt": 1024 * MiB,
     "covariance.pt": 64 * MiB,
+    "geometric.pt": 64 * MiB,
+    "covariance_geometric.pt": 64 * MiB,
     "marker": 1 * MiB,
 }
 #: Deepest nesting of lists and mappings accepted in a JSON or YAML input: real files nest a handful of levels.

@@ -421,8 +421,9 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument(
         "--out",
         required=True,
-        help="CSV to write: x,y,z [m], the trust columns sx,sy,sz [m] and extrapolation, plus the q*, t, station "
-        "and probe columns (never one of the input files)",
+        help="CSV to write: x,y,z [m] plus the q*, t, station and probe columns, sx,sy,sz [m] (the standard "
+        "deviation of a new measurement minus the prediction), extrapolation and model (full, or geometric: the run's "
+        "kinematic calibration beyond the region where it is far surer) (never one of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
@@ -450,7 +451,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--out",
         required=True,
         help="CSV to write: the commands q1..qN, the file's joints q1_program..qN_program, the targets, station, "
-        "probe, extra columns, sx,sy,sz, extrapolation, miss, miss_angle [rad] (6-D), status",
+        "probe, extra columns, sx,sy,sz, extrapolation, model (full, geometric or physical: which model commanded "
+        "the row), miss, miss_angle [rad] (6-D), status",
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     cp.add_argument(
@@ -842,7 +844,7 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import predict_orientation, predict_with, rows_of, trust
+    from torchcal.report.rundir import MODEL_NAMES, predict_orientation, predict_with, row_trust, rows_of
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -860,12 +862,18 @@ def cmd_predict(args) -> int:
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
-    # how far to trust each row (on the CPU, before the model moves to --device): the predicted standard deviation
-    # (the parameters' covariance and the learned model's posterior) and how far the pose lies outside the
-    # calibrated region
+    # how far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
+    # measurement minus the prediction, how far the pose lies outside the calibrated region, and which model
+    # predicts it (beyond the region, the one with the smaller sigma)
     trajectory = bool(meta.get("trajectory")) and data.t is not None
-    sigma, ext = trust(args.run, model, Context.from_measurements(data, trajectory=trajectory))
+    rt = row_trust(args.run, model, meta, Context.from_measurements(data, trajectory=trajectory))
+    sigma, ext = rt.sigma, rt.extrapolation
     p = predict_with(model, meta, data, device=device)
+    if rt.geometric is not None and bool(rt.which.any()):
+        rows = torch.nonzero(rt.which).flatten()
+        p[rows] = predict_with(rt.geometric, meta, data.subset(rows), device=device)
+    if rt.note is not None:
+        _console.info(rt.note)
     if not bool(torch.isfinite(p).all()):
         raise OptionError(
             f"{args.run}: the run's model predicts non-finite positions for {args.data}; "
@@ -880,7 +888,7 @@ def cmd_predict(args) -> int:
         p=p,
         sigma=sigma,
         temperature=None,
-        extra={"extrapolation": ext},
+        extra={"extrapolation": ext, "model": rt.which.to(torch.float64)},
         meta={"predicted_by": str(args.run)},
         r=r,
         sigma_r=None,
@@ -888,9 +896,59 @@ def cmd_predict(args) -> int:
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, model, data.q, fade)
     out_file.parent.mkdir(parents=True, exist_ok=True)
-    write_measurements(out_file, out, written_by="torchcal predict")
+    write_measurements(out_file, out, written_by="torchcal predict", labels={"model": MODEL_NAMES})
     _console.info(f"wrote {len(p)} predictions to {args.out}")
     return 0
+
+
+#: compensate's column ``model``: the run's model, its kinematic calibration (beyond the region where the model's
+#: sigma is far above that one's), or the geometry and physical effects alone (beyond the region otherwise)
+COMPENSATE_MODELS = ("full", "geometric", "physical")
+
+
+def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
+    """compensate's ``sx, sy, sz`` and ``model`` per row: rows beyond the region where the run's model's sigma is far
+    above its kinematic calibration's are solved again with that (``resolve(geometric, rows)``, in place in
+    ``res``), with its sigma at the new commands."""
+    from dataclasses import replace
+
+    from torchcal.report.rundir import row_trust
+
+    rt = row_trust(args.run, model, meta, ctx)
+    which = torch.where(plain.cpu(), 2, 0)
+    if rt.geometric is None or not bool(rt.which.any()):
+        return rt.sigma, which
+    rows = torch.nonzero(rt.which).flatten()
+    resolve(rt.geometric, rows.to(res.q.device))
+    sigma = rt.sigma.clone()
+    sub = ctx.subset(rows.to(ctx.q.device))
+    sigma[rows] = rt.geometric_sigma(replace(sub, q=res.q[rows.to(res.q.device)]))  # at the new commands
+    which[rows] = 1
+    return sigma, which
+
+
+def _geometric_resolver(res, station, probe, targets_of, context, weight):
+    """``(geometric, rows) ->`` those rows of ``res`` solved again, in place, with the run's kinematic calibration
+    ``geometric`` in each row's own station's frame with its own probe."""
+    from torchcal.compensate import solve_rows_with
+    from torchcal.report.rundir import at_station
+
+    def resolve(geometric, rows):
+        robot, n = geometric.robot, len(res.q)
+        for s, p in sorted(set(zip(station[rows].tolist(), probe[rows].tolist(), strict=True))):
+            sel = rows[(station[rows] == s) & (probe[rows] == p)]
+            names = (robot.stations[s] if robot.stations else None, robot.probes[p] if robot.probes else None)
+            geo, *_ = at_station(geometric, *names)
+            pos, rot = targets_of(geo, sel)
+            targets = torch.zeros(n, 3, dtype=pos.dtype, device=pos.device)
+            targets[sel] = pos
+            kw = {"orientation_weight": weight}
+            if rot is not None:  # full-length, as the rows' context: solve_rows_with takes the rows of both
+                kw["orientations"] = torch.eye(3, dtype=rot.dtype, device=rot.device).repeat(n, 1, 1)
+                kw["orientations"][sel] = rot
+            solve_rows_with(geo, res, sel, targets, context=context, **kw)
+
+    return resolve
 
 
 def cmd_compensate(args) -> int:
@@ -924,10 +982,11 @@ def cmd_compensate(args) -> int:
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
     targets_of = _compensation_targets(data, six_d)
-    res, ext, _ = compensate_groups(
+    res, ext, plain = compensate_groups(
         model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
     )
-    _write_compensation(args, out_file, model, data, station, probe, res, ext, mode)
+    resolve = _geometric_resolver(res, station, probe, targets_of, context, args.weight)
+    _write_compensation(args, out_file, (model, meta), data, (station, probe), res, (plain, resolve), mode)
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, model, res.q, alone)
     for i in [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]:
@@ -960,31 +1019,35 @@ def _compensation_targets(data, six_d: bool):
     return targets_of
 
 
-def _write_compensation(args, out_file, model, data, station, probe, res, ext, mode) -> None:
+def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, mode) -> None:
     """Write ``compensate``'s file in the targets file's units: the commands, the program's own joints beside them
-    (``q1_program..``), the targets, labels, extra columns, trust columns, the misses and the status."""
+    (``q1_program..``), the targets, labels, extra columns, trust columns, the misses and the status. Rows where
+    the run's kinematic calibration is far surer are solved again with it first (:func:`_compensate_trust`)."""
     import dataclasses
 
     from torchcal.compensate import file_units, write_joints
     from torchcal.effects import Context
-    from torchcal.report.rundir import trust
 
-    # how far to trust each command: the predicted standard deviation of the probe there and its extrapolation
+    (model, meta), (station, probe), (plain, resolve) = run, groups, plain_resolve
+    # how far to trust each command: the predicted standard deviation of a measurement there, and which model
     rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
-    sigma, _ = trust(args.run, model, Context(q=res.q, t=data.t, temperature=data.temperature, **rows))
+    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, **rows)
+    sigma, which = _compensate_trust(args, model, meta, res, ctx, plain, resolve)
     joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
     extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}
     extra.update(data.extra)
     if sigma is not None:
         extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
-    extra["extrapolation"] = ext
+    extra["extrapolation"] = model.extrapolation(res.q)  # of the commands written
+    labels = _row_labels(model, data, station, probe)
+    labels["model"] = [COMPENSATE_MODELS[int(i)] for i in which.tolist()]
     write_joints(
         out_file,
         dataclasses.replace(res, q=res.q * joint, miss=res.miss * length),
         targets=None if data.p is None else data.p * length,
         t=data.t,
         temperature=data.temperature,
-        labels=_row_labels(model, data, station, probe),
+        labels=labels,
         extra=extra,
         meta={
             "compensated_by": str(args.run),

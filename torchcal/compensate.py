@@ -681,20 +681,31 @@ def compensate_in_region(
     if not bool((ext > 0).any()) or not model.has_learned:
         return res, ext, plain_rows
     rows = torch.nonzero(ext > 0)[:, 0]
-    n = len(ext)
+    solve_rows_with(geometry_and_physics(model), res, rows, targets, context=context, **kw)
+    plain_rows[rows] = True
+    return res, model.extrapolation(res.q), plain_rows
+
+
+def solve_rows_with(
+    model: MeasurementModel, res: CompensationResult, rows: Tensor, targets: Tensor, *, context=None, **kw
+) -> None:
+    """Solve the ``rows`` of ``res`` again with ``model``, from the same start, in place: beyond the calibrated
+    region another model than the run's may be the one to trust (:func:`compensate_in_region`, and the kinematic
+    calibration where the run's model's sigma is far above it: :func:`torchcal.report.rundir.row_trust`)."""
+    if not len(rows):
+        return
+    n = len(res.q)
     sub_ctx = {
         k: (v[rows] if isinstance(v, Tensor) and v.ndim >= 1 and len(v) == n else v) for k, v in (context or {}).items()
     }
     if kw.get("orientations") is not None:
         kw = {**kw, "orientations": kw["orientations"][rows]}
-    sub = compensate(geometry_and_physics(model), targets[rows], res.q_start[rows], context=sub_ctx, **kw)
+    sub = compensate(model, targets[rows], res.q_start[rows], context=sub_ctx, **kw)
     res.q[rows], res.miss[rows], res.branch_kept[rows] = sub.q, sub.miss, sub.branch_kept
     if sub.miss_angle is not None:
         res.miss_angle[rows], res.position_only[rows] = sub.miss_angle, sub.position_only
     for k, i in enumerate(rows.tolist()):
         res.status[i] = sub.status[k]
-    plain_rows[rows] = True
-    return res, model.extrapolation(res.q), plain_rows
 
 
 def row_groups(
@@ -925,6 +936,7 @@ def model_miss(
 
 __all__: Sequence[str] = (
     "Status",
+    "solve_rows_with",
     "CompensationResult",
     "compensate",
     "compensate_in_region",
@@ -960,8 +972,8 @@ def write_joints(
 
     Numbers as given (the command line scales joints, positions and ``miss`` to the targets file's units first,
     :func:`file_units`; ``miss_angle`` is in rad), every number with ``repr`` (reads back bit-identical);
-    ``labels`` are text columns (each row's ``station`` and ``probe`` name); ``status`` is ``converged``, ``limit``
-    or ``unreachable``. Every input row gets one output row, in order.
+    ``labels`` are text columns (each row's ``station``, ``probe`` and ``model`` name); ``status`` is
+    ``converged``, ``limit`` or ``unreachable``. Every input row gets one output row, in order.
     ``written_by``: the command, written first as ``# written_by: ...`` (how ``--out`` knows torchcal's files).
     """
     import os

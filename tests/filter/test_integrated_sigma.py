@@ -287,8 +287,9 @@ def test_predict_writes_sx_sy_sz_after_the_other_columns_only_where_sigma_is_def
     assert main(["predict", str(run), str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv"), "--quiet"]) == 0
     header = next(ln for ln in (tmp_path / "p.csv").read_text().splitlines() if not ln.startswith("#"))
     base = "q1,q2,q3,q4,q5,q6,x,y,z,t"
-    # no covariance.pt in this run directory: the gate's sigma is the only one (extrapolation is always written)
-    assert header == (base + ",sx,sy,sz" if with_sigma else base) + ",extrapolation"
+    # no covariance.pt and no measured trust level in this run directory: the gate's sigma is the only one
+    # (extrapolation and the model that predicted each row are always written)
+    assert header == (base + ",sx,sy,sz" if with_sigma else base) + ",extrapolation,model"
     pred = read_measurements(tmp_path / "p.csv", require_positions=True)
     if with_sigma:
         torch.testing.assert_close(pred.sigma, gate.predictive_std(model.robot, q))

@@ -213,3 +213,27 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
     two = replace(points, probe=torch.tensor([0, 1, 0, 1, 0, 1]), probe_names=tuple(run.robot.probes))
     with pytest.raises(StationError, match="2 probes"):
         restation(run_dir, two)
+
+
+def test_the_predicted_error_of_a_placement_is_predicts_sigma_over_the_region(setup, tmp_path):
+    """station's model error is the run's predictive sigma (what predict writes) over the calibrated region, and the
+    predicted error it gives is the error measured at the new placement to within a factor 1.5."""
+    from torchcal.report.rundir import row_trust
+    from torchcal.report.station import REGION_POSES, restation
+
+    new, idx = setup["new"], setup["idx"]
+    model, meta, station = restation(setup["run"], new.subset(idx[:6]), tool=True)
+    region = model.region
+    g = torch.Generator().manual_seed(0)
+    q = region[0] + torch.rand(REGION_POSES, 6, generator=g, dtype=F64) * (region[1] - region[0])
+    run_model, run_meta = load_model(setup["run"])  # as the run stands, before the placement is fitted
+    sigma = row_trust(setup["run"], run_model, run_meta, Context(q=q)).sigma
+    assert station.run_rmse == pytest.approx(float(sigma.square().sum(1).mean().sqrt()), rel=1e-9)
+    with torch.no_grad():
+        placed = copy.deepcopy(model)
+        placed.robot.instrument.set_matrix(station.T_tracker_base)
+        placed.robot.tool.nominal.copy_(station.t_flange_probe)
+        placed.robot.tool.delta.zero_()
+        rest = new.subset(idx[6:])
+        measured = _rmse((placed(Context(q=rest.q)) - rest.p).norm(dim=1))
+    assert measured / 1.5 < station.predicted_rmse < 1.5 * measured, (station.predicted_rmse, measured)

@@ -41,6 +41,9 @@ _ROTATION = ("rx", "ry", "rz")
 _ROTATION_SIGMA = ("srx", "sry", "srz")
 #: label columns: integers or names, stored as index tensors with the names in order of first appearance
 _LABELS = ("station", "probe")
+#: text columns that torchcal writes for the reader and ignores on reading (predict's ``model``: which model gave
+#: the row), so that its output reads back as measurements
+_IGNORED_TEXT = ("model",)
 _RESERVED = frozenset(_POSITION + _SIGMA + _ROTATION + _ROTATION_SIGMA + ("t", "temperature") + _LABELS)
 _JOINT_RE = re.compile(r"q([0-9]+)")
 _META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*")
@@ -585,7 +588,7 @@ class _Layout:
         has_rotation_sigma = _all_or_none(path, header, line, _ROTATION_SIGMA, "orientation standard deviations")
         if has_rotation_sigma and not has_rotation:
             _missing(path, header, line, list(_ROTATION), "srx, sry, srz are the standard deviations of rx, ry, rz")
-        extra = [n for n in header if n not in _RESERVED and n not in numbers.values()]
+        extra = [n for n in header if n not in _RESERVED and n not in _IGNORED_TEXT and n not in numbers.values()]
         return cls(index, joints, has_positions, has_sigma, extra, has_rotation, has_rotation_sigma)
 
 
@@ -639,6 +642,7 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
     ncol = len(header)
     label_cols = {name: header.index(name) for name in _LABELS if name in header}
     labels: dict[str, list[str]] = {name: [] for name in label_cols}
+    ignored = [header.index(name) for name in _IGNORED_TEXT if name in header]
     data_lines = []
     line_numbers = []
     for i in range(start, len(raw_lines)):
@@ -686,6 +690,8 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
                     column=name,
                 )
             labels[name].append(cell)
+            row[k] = "0"
+        for k in ignored:
             row[k] = "0"
         try:
             vals = [float(cell) for cell in row]
@@ -966,6 +972,7 @@ def write_measurements(
     meta: Mapping[str, str] | None = None,
     columns: Sequence[str] | None = None,
     written_by: str | None = None,
+    labels: Mapping[str, tuple[str, ...]] | None = None,
 ) -> None:
     """Write ``m`` in the contract format, SI units, atomically.
 
@@ -981,6 +988,8 @@ def write_measurements(
         columns: the columns to write and their order (default: all, in the order above).
         written_by: the command writing the file (``torchcal predict``): written as the first line,
             ``# written_by: ...``, the mark by which ``--out`` knows a file torchcal may replace.
+        labels: extra columns written as names: ``m.extra[key]`` holds each row's index into ``labels[key]``
+            (predict's ``model`` column).
 
     Raises:
         OptionError: a name in ``columns`` that ``m`` does not have.
@@ -1008,6 +1017,8 @@ def write_measurements(
         if index is not None:
             available[label] = index.to(torch.float64)
             names[label] = getattr(m, f"{label}_names")
+    for key, label_names in (labels or {}).items():
+        names[key] = tuple(label_names)
 
     if columns is None:
         columns = list(available)

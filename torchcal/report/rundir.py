@@ -10,6 +10,8 @@ Layout::
     model.pt               state_dict of the measurement model (geometry, instrument, lever arm, effects)
     model.json             how to rebuild it: robot description file, effects, options, calibrated region
     covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
+    geometric.pt           a run with effects: its kinematic calibration (beside covariance_geometric.pt), which
+                           predicts rows beyond the region where its sigma is far the smaller (model.json: trust)
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
@@ -27,6 +29,8 @@ import math
 import os
 import pickle
 import shutil
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -37,6 +41,7 @@ from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import EstimationError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.trust import MIN_ROWS, Trust
 from torchcal.pipeline import CalibrationRun, Prior, prior_from_run
 from torchcal.robot import load_robot, resolve_robot_spec
 from torchcal.robot.load import MAX_DESCRIPTION_BYTES
@@ -276,6 +281,10 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
             f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit diverged, nothing was written"
         )
     report = build_report(run)
+    from torchcal.pipeline.trust import run_trust
+
+    rtrust = run_trust(run)  # predict's sx, sy, sz: measured on the held-out rows (torchcal.estimate.trust)
+    report["trust"] = _trust_report(rtrust)
     # the URDF carries the geometry only: say what it leaves out and what that costs on the training poses
     from torchcal.compensate import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
 
@@ -301,6 +310,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     torch.save(state, tmp / "model.pt")
     if run.covariance is not None:  # predict's sx, sy, sz (absent: a fit without one; predict says so)
         torch.save(run.covariance.state(), tmp / "covariance.pt")
+    _write_geometric(rtrust, tmp)
     meta = {
         "format": "torchcal-run-1",
         "robot_file": f"robot/{src.name}",
@@ -310,11 +320,35 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
         "method": run.options.method,
         "region": _region_config(run.model),
+        "trust": None if rtrust.full is None else rtrust.full.to_dict(),
+        **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
         **({"probes": list(run.robot.probes)} if run.robot.probes else {}),
     }
     (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return tmp
+
+
+def _trust_report(rt) -> dict:
+    """report.json's ``trust``: what the predictive sigma adds to the parameters (:mod:`torchcal.estimate.trust`),
+    measured on the held-out rows, of the final model and of the kinematic calibration beside it."""
+    out = {
+        "definition": "sx, sy, sz: the standard deviation of a new measurement minus the prediction (docs/trust.md)",
+        "model": None if rt.full is None else rt.full.to_dict(),
+    }
+    if rt.geometric is not None:
+        out["geometric"] = rt.geometric.to_dict()
+    return out
+
+
+def _write_geometric(rt, tmp: Path) -> None:
+    """``geometric.pt`` (and ``covariance_geometric.pt``): the kinematic calibration beside a final model that is not
+    it, the model predict and compensate use beyond the region where its sigma is far the smaller."""
+    if rt.geometric_model is None or rt.geometric is None:
+        return
+    torch.save({k: v.cpu() for k, v in rt.geometric_model.state_dict().items()}, tmp / "geometric.pt")
+    if rt.geometric_covariance is not None:
+        torch.save(rt.geometric_covariance.state(), tmp / "covariance_geometric.pt")
 
 
 def _region_report(model: MeasurementModel) -> dict | None:
@@ -553,15 +587,144 @@ def load_prior(run_dir: str | os.PathLike) -> Prior:
     return prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
 
 
-def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:
-    """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx``: the predicted standard
-    deviation ``(N, 3)`` [m] (the parameter covariance of the run's last fit carried to each pose, and the learned
-    model's posterior where it has one; None when the run has neither) and the extrapolation ``(N,)`` (how far each
-    pose lies outside the calibrated region, in the joints' units:
-    :meth:`~torchcal.effects.MeasurementModel.extrapolation`)."""
+def load_trust(run_dir: str | os.PathLike, meta: dict, key: str = "trust") -> Trust | None:
+    """model.json's predictive-sigma entry ``key`` (:class:`~torchcal.estimate.trust.Trust`); None where the run was
+    written before it existed or measured it on too few held-out rows."""
+    d = meta.get(key) if key == "trust" else (meta.get("geometric") or {}).get("trust")
+    if d is None:
+        return None
+    try:
+        return Trust.from_dict(d)
+    except ValueError as e:
+        raise _run_error(Path(run_dir), f"model.json: {key}: {e}") from None
+
+
+def load_geometric(
+    run_dir: str | os.PathLike, model: MeasurementModel, meta: dict
+) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
+    """The kinematic calibration a run keeps beside a final model that is not it (``geometric.pt``), with its
+    covariance and :class:`~torchcal.estimate.trust.Trust`; None where the run keeps none."""
+    import copy
+
+    run_dir = Path(run_dir)
+    geo_trust = load_trust(run_dir, meta, "geometric")
+    if geo_trust is None or not (run_dir / "geometric.pt").exists():
+        return None
+    state = _load_torch_file(run_dir, "geometric.pt")
+    geo = MeasurementModel(copy.deepcopy(model.robot))
+    try:
+        geo.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"geometric.pt does not match model.json ({first})") from None
+    _check_state(run_dir, geo)
+    geo.set_region(model.region, fade=False)
+    cov = None
+    if (run_dir / "covariance_geometric.pt").exists():
+        try:
+            cov = ParameterCovariance.from_state(_load_torch_file(run_dir, "covariance_geometric.pt"), geo)
+        except ValueError as e:
+            raise _run_error(run_dir, f"covariance_geometric.pt does not fit geometric.pt: it {e}") from None
+    return geo, cov, geo_trust
+
+
+#: the column predict and compensate write to say which model gave each row (RowTrust.which)
+MODEL_NAMES = ("full", "geometric")
+#: beyond the region the kinematic calibration predicts a row only where the run's model's sigma is more than this
+#: many times its own: within it the richer model's error stays the smaller though its sigma is not (it knows more of
+#: what it is unsure of), far above it the richer model is guessing
+SWITCH_RATIO = 2.0
+
+
+@dataclass
+class RowTrust:
+    """How far to trust each row (:func:`row_trust`).
+
+    Attributes:
+        sigma: the predictive standard deviation ``(N, 3)`` [m] of the model each row uses; None where the run has
+            neither a covariance nor a measured level.
+        extrapolation: ``(N,)`` how far each pose lies outside the calibrated region [rad or m].
+        which: ``(N,)`` 0 where the run's model predicts the row, 1 where its kinematic calibration does (beyond the
+            region, where the model's sigma is more than :data:`SWITCH_RATIO` times that one's): an index into
+            :data:`MODEL_NAMES`.
+        geometric: the kinematic calibration (None where the run keeps none).
+        note: what the sigma lacks, for the user (a run written before the measured level), else None.
+    """
+
+    sigma: Tensor | None
+    extrapolation: Tensor
+    which: Tensor
+    geometric: MeasurementModel | None = None
+    note: str | None = None
+    geometric_sigma: Callable[[Context], Tensor] | None = None  # the kinematic calibration's sigma at other rows
+
+
+def _old_run_sigma(
+    run_dir: Path, model: MeasurementModel, ctx: Context, measured: bool = False
+) -> tuple[Tensor | None, str]:
+    """The sigma of a run without a measured level (written before it, or ``measured`` but on too few held-out
+    rows): parameters, learned posterior and the report's tracker noise, and the note that says so."""
     from torchcal.estimate.covariance import combined_std
 
-    sigma = combined_std(model, ctx, load_covariance(run_dir, model))
+    s = combined_std(model, ctx, load_covariance(run_dir, model))
+    noise = None
+    if (run_dir / "report.json").exists():
+        rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
+        v = rep.get("stochastic_model", {}).get("tracker_sigma_m") if isinstance(rep, dict) else None
+        noise = float(v) if isinstance(v, int | float) and math.isfinite(v) and v >= 0 else None
+    why = (
+        f"had fewer than {MIN_ROWS} held-out rows to measure what its model leaves unexplained on"
+        if measured
+        else "was written before torchcal measured what its model leaves unexplained"
+    )
+    note = (
+        f"{run_dir}: the run {why}: sx, sy, sz hold the parameters' and the learned model's uncertainty"
+        + (" and the instrument's noise" if noise is not None else "")
+        + " only, and understate the error; "
+        + (f"hold out {MIN_ROWS} rows or more" if measured else "calibrate again")
+        + " for a sigma that covers it"
+    )
+    if s is None or noise is None:
+        return s, note
+    return (s.square() + noise**2).sqrt(), note
+
+
+def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, ctx: Context) -> RowTrust:
+    """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx`` (CONTRACT §3): the standard
+    deviation of a new measurement minus the prediction (:class:`~torchcal.estimate.trust.Trust`), and beyond the
+    calibrated region the kinematic calibration the run keeps beside its model where the model's sigma is far above
+    that one's (:data:`SWITCH_RATIO`)."""
+    run_dir = Path(run_dir)
+    ext = model.extrapolation(ctx.q).cpu()
+    which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
+    tr = load_trust(run_dir, meta)
+    if tr is None:
+        sigma, note = _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
+        return RowTrust(None if sigma is None else sigma.cpu(), ext, which, note=note)
+    sigma = tr.std(model, ctx, load_covariance(run_dir, model)).cpu()
+    alt = load_geometric(run_dir, model, meta)
+    out = ext > 0
+    if alt is None or not bool(out.any()):
+        return RowTrust(sigma, ext, which, None if alt is None else alt[0])
+    geo, cov, geo_trust = alt
+    rows = torch.nonzero(out).flatten()
+    s_geo = geo_trust.std(geo, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
+    better = SWITCH_RATIO * s_geo.norm(dim=1) < sigma[rows].norm(dim=1)
+    sigma[rows[better]] = s_geo[better]
+    which[rows[better]] = 1
+    return RowTrust(sigma, ext, which, geo, geometric_sigma=lambda c: geo_trust.std(geo, c, cov).cpu())
+
+
+def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:
+    """The run's model's own predictive standard deviation ``(N, 3)`` [m] at ``ctx`` (:func:`row_trust` without the
+    choice of model; None where the run has none) and the extrapolation ``(N,)``."""
+    run_dir = Path(run_dir)
+    meta = load_json(run_dir / "model.json", "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
+    tr = load_trust(run_dir, meta if isinstance(meta, dict) else {})
+    if tr is None:
+        sigma = _old_run_sigma(run_dir, model, ctx)[0]
+    else:
+        sigma = tr.std(model, ctx, load_covariance(run_dir, model))
     return (None if sigma is None else sigma.cpu()), model.extrapolation(ctx.q).cpu()
 
 

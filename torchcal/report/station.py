@@ -35,6 +35,7 @@ The fit:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -79,7 +80,9 @@ class StationOptions:
     """What :func:`fit_station` reads.
 
     ``sigma_tracker`` and ``sigma_joint`` weight the points where they carry no ``sx, sy, sz`` (the run's stochastic
-    model by default); ``run_rmse`` is the run's held-out RMSE [m] (the model error the points are tested against).
+    model by default); ``run_rmse`` is the run's model error [m] the points are tested against: the RMS over the
+    calibrated region of its predictive sigma (:mod:`torchcal.estimate.trust`), or its held-out RMSE for a run
+    written before that.
     """
 
     tool: bool = False
@@ -481,8 +484,24 @@ def restation(
     cov = load_covariance(run_dir, model)
     if model.robot.stations or model.robot.probes:
         model, meta, cov = one_frame(model, meta, cov, _points_probe(model, points, probe, run_dir))
-    station = fit_station(model, points, station_options(run_dir, tool, seed), cov)
+    opts = station_options(run_dir, tool, seed)
+    sigma = _run_sigma(run_dir, model, meta, cov, points, seed)
+    if sigma is not None:  # the run's model error at a new placement: predict's sigma over the region
+        opts = dataclasses.replace(opts, run_rmse=sigma)
+    station = fit_station(model, points, opts, cov)
     return model, meta, station
+
+
+def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measurements, seed: int) -> float | None:
+    """The RMS over the calibrated region of the run's predictive sigma ``|(sx, sy, sz)|`` [m]
+    (:mod:`torchcal.estimate.trust`); None for a run written before it."""
+    from torchcal.report.rundir import load_trust
+
+    tr = load_trust(run_dir, meta)
+    if tr is None:
+        return None
+    ctx, _ = _region_ctx(model, points, seed)
+    return float(tr.std(model, ctx, cov).square().sum(1).mean().sqrt())
 
 
 def _points_probe(model: MeasurementModel, points: Measurements, probe: str | None, run_dir) -> str | None:
@@ -577,12 +596,17 @@ def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
         "",
         f"Predicted effect on accuracy over {acc['over']}: the placement's position sigma is "
         f"{acc['placement_sigma_rms_mm']:.4f} mm RMS (max {acc['placement_sigma_max_mm']:.4f} mm); with the run's "
-        f"held-out {acc['run_rmse_mm']:.4f} mm in quadrature, {acc['predicted_rmse_mm']:.4f} mm.",
+        f"model error {acc['run_rmse_mm']:.4f} mm (its sigma over the region, or held-out RMSE) in quadrature, "
+        f"{acc['predicted_rmse_mm']:.4f} mm.",
         "",
     ]
     for w in d["warnings"]:
         lines.append(f"- Warning: {w}")
     return "\n".join(lines) + "\n"
+
+
+#: run files of the old placement that a re-stationed run leaves out
+_OLD_PLACEMENT = ("geometric.pt", "covariance_geometric.pt")
 
 
 def write_station(
@@ -614,11 +638,11 @@ def write_station(
     if isinstance(params, dict):
         params["instrument"] = {"T_tracker_base": station.T_tracker_base.tolist()}
         params["tool"] = {"t_flange_probe_m": station.t_flange_probe.tolist()}
-    meta = dict(meta)
+    meta = {k: v for k, v in meta.items() if k != "geometric"}  # its kinematic calibration is of the old placement
     meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted")}
     with replace_dir(out, kind="station", inputs=inputs) as tmp:
         for entry in sorted(run_dir.iterdir()):
-            if entry.name == MARKER or entry.name.startswith(".") or entry.is_symlink():
+            if entry.name == MARKER or entry.name.startswith(".") or entry.is_symlink() or entry.name in _OLD_PLACEMENT:
                 continue
             if entry.is_file():
                 shutil.copy2(entry, tmp / entry.name)

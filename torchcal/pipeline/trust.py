@@ -1,0 +1,69 @@
+"""A finished run's predictive standard deviation (:mod:`torchcal.estimate.trust`) measured on its held-out rows: of
+the model it writes, and of its kinematic calibration where the two differ (beyond the calibrated region the one
+with the far smaller sigma predicts)."""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+
+import torch
+
+from torchcal.effects import Context, MeasurementModel
+from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.trust import Trust, fit_trust
+from torchcal.pipeline.records import StageName
+from torchcal.pipeline.state import CalibrationRun
+
+
+@dataclass(frozen=True)
+class RunTrust:
+    """The final model's :class:`Trust`, and the kinematic calibration's with its model and covariance where the
+    final model is not it (None otherwise: a kinematic run, or one whose guard stepped back to it)."""
+
+    full: Trust | None
+    geometric_model: MeasurementModel | None = None
+    geometric_covariance: ParameterCovariance | None = None
+    geometric: Trust | None = None
+
+
+def noise_of(run: CalibrationRun) -> tuple[float, float, float]:
+    """The instrument's standard deviation per axis [m]: the training rows' median where they carry their own, else
+    the run's tracker noise."""
+    s = run.train.sigma
+    if s is not None and len(s):
+        med = s.median(dim=0).values
+        return float(med[0]), float(med[1]), float(med[2])
+    v = float(run.options.fit.sigma_tracker)
+    return v, v, v
+
+
+def _held_out(run: CalibrationRun, model: MeasurementModel, cov: ParameterCovariance | None) -> Trust | None:
+    """``model``'s :class:`Trust` on the run's held-out rows, measured on the CPU (as predict computes it)."""
+    hold = run.hold.to("cpu")
+    if hold.p is None or hold.n == 0:
+        return None
+    ctx = Context.from_measurements(hold, trajectory=run.trajectory)
+    return fit_trust(model, cov, ctx, hold.p, noise_of(run))
+
+
+def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> ParameterCovariance | None:
+    fit = next((f for f in run.fits if f.stage == StageName.GEOMETRIC), None)
+    if fit is None:
+        return None
+    cov = ParameterCovariance.from_fit(fit.free, fit.result)
+    params = dict(model.named_parameters())
+    return cov if cov is not None and all(n in params for n in cov.names) else None
+
+
+def run_trust(run: CalibrationRun) -> RunTrust:
+    """Measure the run's :class:`RunTrust` on its held-out rows (those no fit of the final model saw)."""
+    with torch.no_grad():
+        full = _held_out(run, copy.deepcopy(run.model).to("cpu"), run.covariance)
+        geo = next((s.model for s in run.stages if s.name == StageName.GEOMETRIC), None)
+        if geo is None or (not run.model.effects and not geo.effects):
+            return RunTrust(full)
+        geo = copy.deepcopy(geo).to("cpu")
+        geo.set_region(run.model.region, fade=False)
+        cov = _geometric_covariance(run, geo)
+        return RunTrust(full, geo, cov, _held_out(run, geo, cov))
