@@ -1039,15 +1039,14 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     if sigma is not None:
         extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
     extra["extrapolation"] = model.extrapolation(res.q)  # of the commands written
-    labels = _row_labels(model, data, station, probe)
-    labels["model"] = [COMPENSATE_MODELS[int(i)] for i in which.tolist()]
+    extra["model"] = [COMPENSATE_MODELS[int(i)] for i in which.tolist()]
     write_joints(
         out_file,
         dataclasses.replace(res, q=res.q * joint, miss=res.miss * length),
         targets=None if data.p is None else data.p * length,
         t=data.t,
         temperature=data.temperature,
-        labels=labels,
+        labels=_row_labels(model, data, station, probe),
         extra=extra,
         meta={
             "compensated_by": str(args.run),

@@ -955,6 +955,13 @@ __all__: Sequence[str] = (
 )
 
 
+def _cells(v) -> list[str]:
+    """A column's cells: numbers with ``repr`` (read back bit-identical), names as they are."""
+    if isinstance(v, Tensor):
+        return [repr(float(x)) for x in v.detach().to(F64).tolist()]
+    return [str(x) for x in v]
+
+
 def write_joints(
     path,
     result: CompensationResult,
@@ -963,7 +970,7 @@ def write_joints(
     t: Tensor | None = None,
     temperature: Tensor | None = None,
     labels: dict[str, Sequence[str]] | None = None,
-    extra: dict[str, Tensor] | None = None,
+    extra: dict[str, Tensor | Sequence[str]] | None = None,
     meta: dict[str, str] | None = None,
     written_by: str | None = None,
 ) -> None:
@@ -972,7 +979,8 @@ def write_joints(
 
     Numbers as given (the command line scales joints, positions and ``miss`` to the targets file's units first,
     :func:`file_units`; ``miss_angle`` is in rad), every number with ``repr`` (reads back bit-identical);
-    ``labels`` are text columns (each row's ``station``, ``probe`` and ``model`` name); ``status`` is
+    ``labels`` are text columns (each row's ``station`` and ``probe`` name), an ``extra`` column of names (``model``)
+    is written as text where it stands; ``status`` is
     ``converged``, ``limit`` or ``unreachable``. Every input row gets one output row, in order.
     ``written_by``: the command, written first as ``# written_by: ...`` (how ``--out`` knows torchcal's files).
     """
@@ -994,7 +1002,7 @@ def write_joints(
     extra_cols.append(("miss", result.miss))
     if result.miss_angle is not None:
         extra_cols.append(("miss_angle", result.miss_angle))
-    text += [(c, [repr(float(x)) for x in v.detach().to(F64).tolist()]) for c, v in extra_cols]
+    text += [(c, _cells(v)) for c, v in extra_cols]
     lines = [f"# written_by: {written_by}\n"] if written_by is not None else []  # first: the --out mark
     lines += [f"# {k}: {v}\n" for k, v in (meta or {}).items() if k != "written_by"]
     lines.append(",".join([c for c, _ in text] + ["status"]) + "\n")
