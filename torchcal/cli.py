@@ -918,6 +918,14 @@ def cmd_plan(args) -> int:
         from torchcal.report.station import station_options
 
         model, meta = load_model(args.run)
+        if args.robot is not None and _robot_key(args.robot) not in {
+            _robot_key(meta["robot_file"]),
+            _robot_key(model.robot.name),
+        }:  # the run's model is what is planned for: another --robot would be ignored without a word (issue 35)
+            raise OptionError(
+                f"--robot {args.robot} is not the robot of the run {args.run} ({meta['robot_file']}); the plan is "
+                "made for the run's calibrated robot: drop --robot, or plan for that robot without --run"
+            )
         method = args.method or meta.get("method") or method
         if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
             from torchcal.report.rundir import at_station
@@ -982,6 +990,10 @@ def cmd_plan(args) -> int:
     summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": source, **plan.to_dict()}
     side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+    if not plan.identifies:  # written for inspection, but no accuracy is promised
+        print(_console.one_line(f"torchcal plan: warning: {plan.degenerate_reason()}"), file=sys.stderr)
+        _console.info(f"planned {args.n} of {len(q)} poses, no accuracy predicted; wrote {args.out}")
+        return 0
     _console.info(
         f"planned {args.n} of {len(q)} poses: predicted held-out RMSE {plan.predicted_rmse * 1e3:.4f} mm "
         f"({args.n} random: {plan.random_rmse * 1e3:.4f} mm); wrote {args.out}, {side['json'].name}, {side['md'].name}"
