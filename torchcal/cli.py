@@ -537,6 +537,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(pl)
     _add_common(pl)
 
+    fl = sub.add_parser(
+        "fleet",
+        help="calibrate a fleet: one calibration (or re-check from a prior run) per manifest line, in parallel on Ray",
+        description="Run one calibration per line of MANIFEST (a CSV with the columns name,data,robot and optionally "
+        "method,prior; paths relative to its folder) as independent tasks on Ray (pip install torchcal[fleet]; "
+        "without it the tasks run one after another): line NAME's run in OUT/NAME/, a summary of every robot's "
+        "held-out error, what moved since its prior and which need a new calibration in OUT/report.json and "
+        "report.md. A failed task is reported as its line's and the others go on.",
+    )
+    fl.add_argument("manifest", help="CSV: name,data,robot[,method][,prior], a header row first")
+    fl.add_argument("--out", required=True, help="fleet directory to write; " + OUT_HELP)
+    fl.add_argument("--workers", type=_count, default=None, help="CPUs of the local Ray instance (default: all)")
+    fl.add_argument(
+        "--address", default=None, help="an existing Ray cluster (ray://HOST:PORT or auto) instead of a local one"
+    )
+    _add_common(fl)
+
     cv = sub.add_parser(
         "convert",
         help="convert a third-party data set into a measurement file",
@@ -1001,6 +1018,24 @@ def cmd_plan(args) -> int:
     return 0
 
 
+def cmd_fleet(args) -> int:
+    from torchcal.fleet import print_progress, ray_available, run_fleet
+
+    if args.address and args.workers:
+        raise OptionError("--workers sizes a local Ray instance; a cluster at --address has its own")
+    if not ray_available():
+        _console.info(
+            "torchcal fleet: Ray is not installed (pip install torchcal[fleet]): the calibrations run one after another"
+        )
+    fleet = run_fleet(args.manifest, args.out, workers=args.workers, address=args.address, progress=print_progress)
+    d = fleet.to_dict()
+    _console.info(
+        f"{d['n_ok']} of {d['n_lines']} calibrated ({d['engine']}, {d['seconds']:.1f} s); needs a new calibration: "
+        f"{', '.join(d['needs_calibration']) or 'none'}; wrote {Path(args.out) / 'report.json'}"
+    )
+    return 0
+
+
 def cmd_convert(args) -> int:
     from torchcal.data import convert_ipa
 
@@ -1154,6 +1189,7 @@ COMMANDS = {
     "compensate": cmd_compensate,
     "station": cmd_station,
     "plan": cmd_plan,
+    "fleet": cmd_fleet,
     "demo": cmd_demo,
 }
 
