@@ -2,6 +2,8 @@
 the same results, a refused line reported while the others go on, a killed worker's task retried or reported, and
 the summary's verdicts. The Ray tests start and stop their own local instance (2 CPUs)."""
 
+import contextlib
+import io
 import json
 import os
 import sys
@@ -13,7 +15,11 @@ from torchcal import fleet as F
 from torchcal.cli import main
 from torchcal.errors import TorchcalError
 
-ray = pytest.importorskip("ray", reason="Ray is not installed (pip install torchcal[fleet]): the Ray path is untested")
+try:
+    import ray
+except ImportError:
+    ray = None
+needs_ray = pytest.mark.skipif(ray is None, reason="Ray is not installed (pip install torchcal[fleet]): Ray untested")
 
 
 @pytest.fixture(scope="module")
@@ -38,8 +44,15 @@ def manifest(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def serial(manifest, tmp_path_factory):
+    """The command without Ray: the same tasks one after another, and it says so."""
     out = tmp_path_factory.mktemp("serial") / "fleet"
-    return F.run_fleet(manifest, out, engine="serial"), out
+    err = io.StringIO()
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stderr(err):
+        mp.setattr(F, "ray_available", lambda: False)
+        assert main(["fleet", str(manifest), "--out", str(out)]) == 0
+    assert "one after another" in err.getvalue()
+    fleet = F.FleetResult("serial", json.loads((out / "report.json").read_text())["robots"], 0.0)
+    return fleet, out
 
 
 def _numbers(fleet):
@@ -61,6 +74,7 @@ def test_serial_fleet_writes_every_run_and_reports_the_refused_line(serial):
     assert "| gone | refused |" in (out / "report.md").read_text()
 
 
+@needs_ray
 def test_ray_fleet_gives_the_serial_results(manifest, serial, tmp_path, capsys):
     """The CLI on a local Ray of 2 CPUs: every number as one after another."""
     out = tmp_path / "fleet"
@@ -82,6 +96,7 @@ def _dies_once(line):
     return F.calibrate_line(line)
 
 
+@needs_ray
 def test_a_killed_worker_is_retried_or_reported(manifest, tmp_path):
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module
     lines = F.read_manifest(manifest)[:1]
