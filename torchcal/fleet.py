@@ -22,6 +22,7 @@ gets no verdict: it is listed with its error.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import math
@@ -33,6 +34,8 @@ import traceback
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+import torch
 
 from torchcal import _console
 from torchcal._outdir import check_out_dir, replace_dir
@@ -46,6 +49,10 @@ OPTIONAL = ("method", "prior")
 METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
 #: how often Ray runs a task again whose worker died (a killed process, a lost node) before reporting it failed
 RETRIES = 2
+#: the seed of every task's global torch generator (calibrate's own seed is its default, 0)
+SEED = 0
+#: the prefix of a task's temporary folder
+TMP = "torchcal-fleet-"
 #: the largest manifest: lines beyond are refused (a fleet is hundreds of robots, not millions)
 MAX_LINES = 10_000
 
@@ -219,7 +226,10 @@ def calibrate_line(line: Line) -> dict:
     t0 = time.perf_counter()
     out: dict = {"name": line.name, "line": line.number, "data": line.data, "robot": line.robot}
     try:
-        with torch_threads(1), tempfile.TemporaryDirectory(prefix="torchcal-fleet-") as tmp:
+        # one thread and the global generator seeded afresh: a worker that ran other lines before gives the results
+        # of this line alone (calibrate seeds its own generators; this guards any draw from the global one)
+        with torch_threads(1), torch.random.fork_rng(devices=[]), tempfile.TemporaryDirectory(prefix=TMP) as tmp:
+            torch.manual_seed(SEED)
             run = Path(tmp) / "run"
             _calibrate(line, run)
             report = json.loads((run / "report.json").read_text(encoding="utf-8"))
@@ -288,11 +298,27 @@ def ray_available() -> bool:
     return True
 
 
-def _ray_env() -> dict:
-    """The workers' environment: this torchcal importable (a local worker starts a fresh interpreter), one thread."""
+@contextlib.contextmanager
+def _worker_env():
+    """The environment a local Ray instance's workers inherit while it starts: this torchcal importable (a worker
+    is a fresh interpreter) and one thread. Set in this process for the start and restored after, not as a Ray
+    runtime environment, whose agent took as long again as the start itself on a 2-core machine."""
     here = str(Path(__file__).resolve().parents[1])
-    path = os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p)
-    return {"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}}
+    want = {
+        "PYTHONPATH": os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p),
+        "OMP_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+    }
+    before = {k: os.environ.get(k) for k in want}
+    os.environ.update(want)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def run_ray(
@@ -311,7 +337,8 @@ def run_ray(
     started = not ray.is_initialized()
     if started:
         kw = {"address": address} if address else {"num_cpus": workers or os.cpu_count() or 1}
-        ray.init(**kw, runtime_env=_ray_env(), include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+        with _worker_env():
+            ray.init(**kw, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
     try:
         remote = ray.remote(num_cpus=1, max_retries=RETRIES)(task)
         pending = {remote.remote(ln): ln for ln in lines}
