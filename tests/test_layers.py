@@ -18,7 +18,7 @@ LAYERS: list[set[str]] = [
     {"estimate", "sim"},
     {"filter", "diagnose"},
     {"pipeline"},
-    {"report", "compensate"},
+    {"report", "compensate", "fleet"},
     {"cli", "_entry", "__main__"},
 ]
 #: leaf utilities: importable from anywhere, importing no other torchcal module but each other

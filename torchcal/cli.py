@@ -623,6 +623,23 @@ def build_parser() -> argparse.ArgumentParser:
     _add_units(pl)
     _add_common(pl)
 
+    fl = sub.add_parser(
+        "fleet",
+        help="calibrate a fleet: one calibration (or re-check from a prior run) per manifest line, in parallel on Ray",
+        description="Run one calibration per line of MANIFEST (a CSV with the columns name,data,robot and optionally "
+        "method,prior; paths relative to its folder) as independent tasks on Ray (pip install torchcal[fleet]; "
+        "without it the tasks run one after another): line NAME's run in OUT/NAME/, a summary of every robot's "
+        "held-out error, what moved since its prior and which need a new calibration in OUT/report.json and "
+        "report.md. A failed task is reported as its line's and the others go on.",
+    )
+    fl.add_argument("manifest", help="CSV: name,data,robot[,method][,prior], a header row first")
+    fl.add_argument("--out", required=True, help="fleet directory to write; " + OUT_HELP)
+    fl.add_argument("--workers", type=_count, default=None, help="CPUs of the local Ray instance (default: all)")
+    fl.add_argument(
+        "--address", default=None, help="an existing Ray cluster (ray://HOST:PORT or auto) instead of a local one"
+    )
+    _add_common(fl)
+
     _add_import_export(sub)
 
     d = sub.add_parser(
@@ -1119,10 +1136,43 @@ def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
     return check_out_file(path, inputs=inputs, force=force)
 
 
+def _plan_run(args):
+    """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
+    and scene (tracker position, lever arm)."""
+    from torchcal.pipeline.plan import scene_of
+    from torchcal.report import load_model
+    from torchcal.report.station import station_options
+
+    model, meta = load_model(args.run)
+    if args.robot is not None and _robot_key(args.robot) not in {
+        _robot_key(meta["robot_file"]),
+        _robot_key(model.robot.name),
+    }:  # the run's model is what is planned for: another --robot would be ignored without a word (issue 35)
+        raise OptionError(
+            f"--robot {args.robot} is not the robot of the run {args.run} ({meta['robot_file']}); the plan is "
+            "made for the run's calibrated robot: drop --robot, or plan for that robot without --run"
+        )
+    method = args.method or meta.get("method") or "auto"
+    if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
+        from torchcal.report.rundir import at_station
+
+        model, _, _ = at_station(model, args.station, args.probe)
+    elif args.station is not None or args.probe is not None:
+        raise OptionError("--station and --probe name one of a run's several stations or probes; this run has one")
+    so = station_options(args.run)
+    s0_sq = 1.0
+    report = Path(args.run) / "report.json"
+    if report.exists():
+        s0 = json.loads(report.read_text(encoding="utf-8")).get("parameters", {}).get("sigma0_sq")
+        s0_sq = float(s0) if isinstance(s0, (int, float)) and math.isfinite(s0) and s0 > 0 else 1.0
+    tracker, lever = scene_of(model)
+    return model, meta["robot_file"], method, so.sigma_tracker, so.sigma_joint, s0_sq, tracker, lever
+
+
 def cmd_plan(args) -> int:
     from torchcal.data import Measurements, read_measurements, write_measurements
     from torchcal.effects import MeasurementModel
-    from torchcal.pipeline.plan import PlanOptions, plan_poses, sample_candidates, scene_of
+    from torchcal.pipeline.plan import PlanOptions, plan_poses, sample_candidates
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
@@ -1134,25 +1184,7 @@ def cmd_plan(args) -> int:
     tracker = lever = None
     method = args.method or DEFAULT_METHOD.value
     if args.run is not None:
-        from torchcal.report import load_model
-        from torchcal.report.station import station_options
-
-        model, meta = load_model(args.run)
-        method = args.method or meta.get("method") or method
-        if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
-            from torchcal.report.rundir import at_station
-
-            model, _, _ = at_station(model, args.station, args.probe)
-        elif args.station is not None or args.probe is not None:
-            raise OptionError("--station and --probe name one of a run's several stations or probes; this run has one")
-        so = station_options(args.run)
-        sigma_tracker, sigma_joint = so.sigma_tracker, so.sigma_joint
-        report = Path(args.run) / "report.json"
-        if report.exists():
-            s0 = json.loads(report.read_text(encoding="utf-8")).get("parameters", {}).get("sigma0_sq")
-            s0_sq = float(s0) if isinstance(s0, (int, float)) and math.isfinite(s0) and s0 > 0 else 1.0
-        tracker, lever = scene_of(model)
-        robot_name = meta["robot_file"]
+        model, robot_name, method, sigma_tracker, sigma_joint, s0_sq, tracker, lever = _plan_run(args)
     else:
         from torchcal.robot import load_robot
 
@@ -1202,9 +1234,33 @@ def cmd_plan(args) -> int:
     summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": source, **plan.to_dict()}
     side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+    if not plan.identifies:  # written for inspection, but no accuracy is promised
+        print(_console.one_line(f"torchcal plan: warning: {plan.degenerate_reason()}"), file=sys.stderr)
+        _console.info(f"planned {args.n} of {len(q)} poses, no accuracy predicted; wrote {args.out}")
+        return 0
     _console.info(
         f"planned {args.n} of {len(q)} poses: predicted held-out RMSE {plan.predicted_rmse * 1e3:.4f} mm "
-        f"({args.n} random: {plan.random_rmse * 1e3:.4f} mm); wrote {args.out}, {side['json'].name}, {side['md'].name}"
+        f"({args.n} random: "
+        + ("not identified" if math.isnan(plan.random_rmse) else f"{plan.random_rmse * 1e3:.4f} mm")
+        + f"); wrote {args.out}, {side['json'].name}, {side['md'].name}"
+    )
+    return 0
+
+
+def cmd_fleet(args) -> int:
+    from torchcal.fleet import print_progress, ray_available, run_fleet
+
+    if args.address and args.workers:
+        raise OptionError("--workers sizes a local Ray instance; a cluster at --address has its own")
+    if not ray_available():
+        _console.info(
+            "torchcal fleet: Ray is not installed (pip install torchcal[fleet]): the calibrations run one after another"
+        )
+    fleet = run_fleet(args.manifest, args.out, workers=args.workers, address=args.address, progress=print_progress)
+    d = fleet.to_dict()
+    _console.info(
+        f"{d['n_ok']} of {d['n_lines']} calibrated ({d['engine']}, {d['seconds']:.1f} s); needs a new calibration: "
+        f"{', '.join(d['needs_calibration']) or 'none'}; wrote {Path(args.out) / 'report.json'}"
     )
     return 0
 
@@ -1397,6 +1453,7 @@ COMMANDS = {
     "compensate": cmd_compensate,
     "station": cmd_station,
     "plan": cmd_plan,
+    "fleet": cmd_fleet,
     "demo": cmd_demo,
 }
 

@@ -192,6 +192,142 @@ def log_det(problem: DesignProblem, index: Tensor) -> float:
 CRITERIA = ("D", "I")
 
 
+def _cholesky3(G: Tensor) -> tuple[Tensor, ...]:
+    """The Cholesky factor ``L`` of 3x3 symmetric positive definite matrices stored by element, ``G (3, 3, N)``:
+    ``(l00, l10, l11, l20, l21, l22)``, each ``(N,)``. By hand on whole vectors: a batched factorisation of ``N``
+    3x3 matrices costs more than these few sums, and unlike a determinant by cofactors it stays accurate where the
+    priors make ``G`` large and nearly singular (the first picks)."""
+    l00 = G[0, 0].sqrt()
+    l10, l20 = G[1, 0] / l00, G[2, 0] / l00
+    l11 = (G[1, 1] - l10 * l10).sqrt()
+    l21 = (G[2, 1] - l20 * l10) / l11
+    l22 = (G[2, 2] - l20 * l20 - l21 * l21).sqrt()
+    return l00, l10, l11, l20, l21, l22
+
+
+def _log_det3(L: tuple[Tensor, ...]) -> Tensor:
+    """``log det G (N,)`` from its Cholesky factor (:func:`_cholesky3`)."""
+    return 2.0 * (L[0].log() + L[2].log() + L[5].log())
+
+
+def _trace_solve3(L: tuple[Tensor, ...], Q: Tensor) -> Tensor:
+    """``tr(G^-1 Q) (N,)`` for ``G = L L^T`` (:func:`_cholesky3`) and symmetric ``Q (3, 3, N)`` stored by element:
+    ``sum_k m_k Q m_k^T`` over the rows ``m_k`` of ``L^-1``."""
+    l00, l10, l11, l20, l21, l22 = L
+    m00, m11, m22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    m10 = -l10 * m00 * m11
+    m21 = -l21 * m11 * m22
+    m20 = (l10 * l21 - l20 * l11) * m00 * m11 * m22
+    q00, q11, q22 = Q[0, 0], Q[1, 1], Q[2, 2]
+    q01, q02, q12 = 0.5 * (Q[0, 1] + Q[1, 0]), 0.5 * (Q[0, 2] + Q[2, 0]), 0.5 * (Q[1, 2] + Q[2, 1])
+    row0 = m00 * m00 * q00
+    row1 = m10 * m10 * q00 + 2.0 * m10 * m11 * q01 + m11 * m11 * q11
+    row2 = (
+        m20 * m20 * q00
+        + m21 * m21 * q11
+        + m22 * m22 * q22
+        + 2.0 * (m20 * m21 * q01 + m20 * m22 * q02 + m21 * m22 * q12)
+    )
+    return row0 + row1 + row2
+
+
+def _outer(X: Tensor, Y: Tensor) -> Tensor:
+    """``X_n Y_n^T`` per candidate of ``(3, 3, N)`` matrices stored by element (a reduction over an outer dimension:
+    ``N`` 3x3 products as one vectorised pass, where a batched matmul of 3x3 blocks is slow)."""
+    return (X[:, None] * Y[None, :]).sum(2)
+
+
+class _Woodbury:
+    """The greedy loop's state, kept current by rank-3 updates (module docstring): ``Sigma = M^-1 (P, P)``,
+    per candidate ``G_c = I_3 + A_c Sigma A_c^T`` and, for the I criterion, ``Q_c = A_c Sigma W Sigma A_c^T``
+    (both stored by element, ``(3, 3, N)``).
+
+    A pick ``i`` changes ``Sigma`` by ``-u H u^T`` (``u = Sigma A_i^T (P, 3)``, ``H = G_i^-1``), so with
+    ``V_c = A_c u``, ``S_c = A_c Sigma W u`` (``(3, 3)``, one pass over ``A``) and ``m = u^T W u``:
+    ``G_c <- G_c - V_c H V_c^T`` and ``Q_c <- Q_c - S_c H V_c^T - V_c H S_c^T + V_c H m H V_c^T``. A pick reads
+    the candidates' whitened Jacobians once and writes 18 numbers per candidate, where forming ``A Sigma`` again
+    wrote ``3 P`` and took ``3 P^2`` products (the cost that made 100,000 candidates hang). The state is formed again
+    from ``Sigma`` every :data:`RESYNC` picks and after a pick that cancels digits (:data:`RESYNC_GAIN`).
+    """
+
+    def __init__(self, A: Tensor, Sigma: Tensor, W: Tensor | None):
+        self.A2, self.W = A.reshape(-1, A.shape[-1]), W
+        self.At = A.permute(1, 2, 0).contiguous()  # (3, P, N): a pick's products as three plain GEMMs
+        self.N, _, self.P = A.shape
+        self.eye = torch.eye(3, dtype=A.dtype, device=A.device)[:, :, None]
+        self.picks = 0
+        self.form(Sigma)
+
+    def _quadratic(self, X: Tensor) -> Tensor:
+        """``A_c X A_c^T`` for ``X (P, P)``, stored by element ``(3, 3, N)``, in blocks of candidates (memory)."""
+        out = torch.empty(3, 3, self.N, dtype=X.dtype, device=X.device)
+        for lo in range(0, self.N, BLOCK):
+            Ab = self.A2[3 * lo : 3 * (lo + BLOCK)]
+            L = (Ab @ X).reshape(-1, 3, self.P)
+            out[:, :, lo : lo + BLOCK] = (L @ Ab.reshape(-1, 3, self.P).transpose(1, 2)).permute(1, 2, 0)
+        return out
+
+    def form(self, Sigma: Tensor) -> None:
+        """``G`` (and ``Q``) from ``Sigma`` directly."""
+        self.Sigma = Sigma
+        self.G = self.eye + self._quadratic(Sigma)
+        if self.W is not None:
+            self.Q = self._quadratic(Sigma @ self.W @ Sigma)
+
+    def gains(self) -> tuple[Tensor, Tensor]:
+        """``(N,)`` the rise of ``log det M`` (the D gain) and the criterion's gain (the same for D; for I the drop
+        of ``tr(W Sigma)``, ``tr(G_c^-1 Q_c)``)."""
+        L = _cholesky3(self.G)
+        d_gain = _log_det3(L)
+        if self.W is None:
+            return d_gain, d_gain
+        return d_gain, _trace_solve3(L, self.Q)
+
+    def pick(self, i: int) -> None:
+        """Fold candidate ``i`` into the state (Woodbury, rank 3)."""
+        self.picks += 1
+        u = self.Sigma @ self.A2[3 * i : 3 * i + 3].T  # (P, 3)
+        Gi = self.G[:, :, i]
+        # a solve, not u G_i^-1 u^T: while the priors dominate G_i is nearly singular at its scale and an explicit
+        # inverse loses the digits Sigma's downdate keeps
+        Sigma = self.Sigma - u @ torch.linalg.solve(Gi, u.T)
+        H = torch.linalg.inv(Gi)  # used where no update cancels digits (below)
+        H = 0.5 * (H + H.T)
+        Sigma = 0.5 * (Sigma + Sigma.T)
+        if self.picks % RESYNC == 0:
+            self.form(Sigma)
+            return
+        # one pass over A for every 3x3 block the updates need: A_c u, A_c u H and, for I,
+        # A_c (s H - u H m H / 2) with s = Sigma W u (the old Sigma), whose outer product with A_c u taken with its
+        # transpose is Q's change S H V^T + V H S^T - V H m H V^T
+        cols = [u, u @ H]
+        if self.W is not None:
+            cols.append((self.Sigma @ (self.W @ u)) @ H - 0.5 * u @ (H @ (u.T @ self.W @ u) @ H))
+        self.Sigma = Sigma
+        X = torch.matmul(torch.cat(cols, 1).T, self.At)  # (3, 6 or 9, N)
+        V = X[:, :3]
+        dG = _outer(X[:, 3:6], V)
+        G = self.G - dG
+        # an update that shrinks some candidate's G by more than a factor RESYNC_GAIN cancels that many digits of
+        # it (and of its Q): form the state anew instead (the first picks, while the priors dominate)
+        shrink = max(float((dG[a, a] / G[a, a]).max()) for a in range(3))
+        if not shrink < RESYNC_GAIN:
+            self.form(Sigma)
+            return
+        self.G = G
+        if self.W is not None:
+            F = _outer(X[:, 6:], V)
+            self.Q = self.Q - F - F.transpose(0, 1)
+
+
+#: candidates per block where the greedy loop's state is formed (bounds the ``(3 BLOCK, P)`` temporaries)
+BLOCK = 4096
+#: the greedy loop's state (:class:`_Woodbury`) is formed again from ``Sigma`` every this many picks, and after a
+#: pick that shrinks a diagonal element of some candidate's ``G`` by more than ``RESYNC_GAIN`` (cancelled digits)
+RESYNC = 64
+RESYNC_GAIN = 10.0
+
+
 def greedy_design(
     problem: DesignProblem,
     k: int,
@@ -217,36 +353,23 @@ def greedy_design(
     N = problem.n
     if not 1 <= k <= N:
         raise OptionError(f"can pick 1 to {N} poses from {N} candidates, asked for {k}")
+    if criterion not in CRITERIA:
+        raise OptionError(f"unknown design criterion {criterion!r}; valid: {', '.join(CRITERIA)}")
     A = problem.A
-    P = A.shape[-1]
-    A2 = A.reshape(-1, P)
-    eye = torch.eye(3, dtype=A.dtype, device=A.device)
-    Sigma = torch.diag(1.0 / problem.prior_info)
+    state = _Woodbury(A, torch.diag(1.0 / problem.prior_info), mean_information(problem) if criterion == "I" else None)
     M = torch.diag(problem.prior_info.clone())
     ld = float(problem.prior_info.log().sum())
     taken = torch.zeros(N, dtype=torch.bool, device=A.device)
-    if criterion not in CRITERIA:
-        raise OptionError(f"unknown design criterion {criterion!r}; valid: {', '.join(CRITERIA)}")
-    W = mean_information(problem) if criterion == "I" else None
     order, history, kept = [], [], {}
     for j in _console.progress(range(k), desc="plan: picks"):
-        B = (A2 @ Sigma).reshape(N, 3, P)  # A_i Sigma
-        G = eye + B @ A.transpose(1, 2)  # I + A_i Sigma A_i^T
-        d_gain = torch.linalg.slogdet(G).logabsdet
-        if W is None:
-            gain = d_gain
-        else:  # the drop of tr(W Sigma) by Woodbury: tr(G_i^-1 B_i W B_i^T)
-            Q = (B.reshape(-1, P) @ W).reshape(N, 3, P) @ B.transpose(1, 2)
-            gain = torch.linalg.solve(G, Q).diagonal(dim1=1, dim2=2).sum(-1)
+        d_gain, gain = state.gains()
         blocked = taken.clone()
         if restrict is not None and every > 0 and (j + 1) % every == 0 and bool((restrict & ~taken).any()):
             blocked |= ~restrict
         gain = gain.masked_fill(blocked, -math.inf)
         turn = other(j, taken) if other is not None else None
         i = int(torch.argmax(gain if turn is None else turn.masked_fill(taken, -math.inf)))
-        u = B[i].T  # Sigma A_i^T (P, 3)
-        Sigma = Sigma - u @ torch.linalg.solve(G[i], u.T)
-        Sigma = 0.5 * (Sigma + Sigma.T)
+        state.pick(i)
         M = M + A[i].T @ A[i]
         ld += float(d_gain[i])
         taken[i] = True

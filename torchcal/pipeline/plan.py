@@ -64,7 +64,7 @@ from torchcal.estimate.design import (
 )
 from torchcal.pipeline.holdout import HOLDOUT_EDGE, at_edges
 from torchcal.robot import transforms as tf
-from torchcal.sim.poses import Scene, random_poses
+from torchcal.sim.poses import Scene, random_poses, sample_joints
 
 Tensor = torch.Tensor
 
@@ -175,6 +175,14 @@ class Plan:
     n_candidates: int
     options: PlanOptions
     n_work: int = 0  # the work poses the spread picks followed (0: the candidates)
+    n_identifiable: int = 0  # the parameters poses spread over the joint ranges identify (:func:`identifying`)
+    identifying_k: int | None = None  # the fewest planned poses (of the curve's sizes) that identify them all
+
+    @property
+    def identifies(self) -> bool:
+        """Whether the ``K`` planned poses identify every parameter poses spread over the joint ranges do: where
+        not, the calibration of these poses cannot determine the geometry and no accuracy is predicted."""
+        return self.identifying_k is not None and self.identifying_k <= len(self.index)
 
     def to_dict(self) -> dict:
         scale = {"m": (1e3, "mm"), "rad": (180.0 / math.pi, "deg")}
@@ -198,13 +206,16 @@ class Plan:
                 "joint_noise_deg": math.degrees(self.options.sigma_joint),
                 "variance_factor": self.options.s0_sq,
             },
-            "predicted_holdout_rmse_mm": self.predicted_rmse * 1e3,
-            "random_predicted_holdout_rmse_mm": self.random_rmse * 1e3,
+            "identifies": self.identifies,
+            "n_identifiable": self.n_identifiable,
+            "identifying_k": self.identifying_k,
+            "predicted_holdout_rmse_mm": _mm(self.predicted_rmse),
+            "random_predicted_holdout_rmse_mm": _mm(self.random_rmse),
             "log_det": self.log_det,
             "random_log_det": self.random_log_det,
-            "curve": [{"k": k, "predicted_holdout_rmse_mm": v * 1e3} for k, v in self.curve],
+            "curve": [{"k": k, "predicted_holdout_rmse_mm": _mm(v)} for k, v in self.curve],
             "parameters": [
-                {"name": n, "unit": scale[u][1], "sigma": float(s) * scale[u][0]}
+                {"name": n, "unit": scale[u][1], "sigma": None if math.isnan(s) else float(s) * scale[u][0]}
                 for n, u, s in zip(self.names, self.units, self.sigma.tolist())
             ],
             "held": [{"name": h["name"], "reason": h["reason"]} for h in self.held],
@@ -224,29 +235,93 @@ class Plan:
                 f"follows the density of {d['spread_toward']}, where the learned correction needs its poses; what it "
                 "adds is not counted"
             )
+        if self.identifies:
+            random = d["random_predicted_holdout_rmse_mm"]
+            random = "no more than these" if random is None else f"{random:.4f} mm"
+            predicted = (
+                f"- predicted held-out RMSE of a kinematic calibration over the candidates: "
+                f"{d['predicted_holdout_rmse_mm']:.4f} mm ({d['k']} random candidates: {random}). {learned} "
+                "(docs/real-data.md, *Planning the poses*)"
+            )
+        else:
+            predicted = f"- **no accuracy predicted**: {self.degenerate_reason()}"
         lines = [
             f"# Planned poses: {d['k']} of {d['n_candidates']} candidates",
             "",
             f"{d['criterion']}; {d['n_edge']} at the edges of the region, {d['n_learned']} picked where the learned "
             f"correction is least certain, {d['n_spread']} following the density of {d['spread_toward']}.",
             "",
-            f"- predicted held-out RMSE of a kinematic calibration over the candidates: "
-            f"{d['predicted_holdout_rmse_mm']:.4f} mm "
-            f"({d['k']} random candidates: {d['random_predicted_holdout_rmse_mm']:.4f} mm). {learned} "
-            "(docs/real-data.md, *Planning the poses*)",
+            predicted,
             f"- variance factor {d['stochastic_model']['variance_factor']:.3g}, tracker noise "
             f"{d['stochastic_model']['tracker_noise_um']:.3g} um",
             "",
             "| K | predicted held-out RMSE [mm] |",
             "|---:|---:|",
-            *[f"| {c['k']} | {c['predicted_holdout_rmse_mm']:.4f} |" for c in d["curve"]],
+            *[f"| {c['k']} | {_cell(c['predicted_holdout_rmse_mm'])} |" for c in d["curve"]],
             "",
             "| parameter | predicted sigma |",
             "|---|---:|",
-            *[f"| {p['name']} | {p['sigma']:.3g} {p['unit']} |" for p in d["parameters"]],
+            *[
+                f"| {p['name']} | {'none' if p['sigma'] is None else format(p['sigma'], '.3g')} {p['unit']} |"
+                for p in d["parameters"]
+            ],
             "",
         ]
         return "\n".join(lines)
+
+    def degenerate_reason(self) -> str:
+        """Why the planned poses predict nothing (where :attr:`identifies` is false)."""
+        k = len(self.index)
+        if self.identifying_k is None:
+            fewer = f"no choice of up to {self.curve[-1][0]} of the {self.n_candidates} candidates does"
+        else:
+            fewer = f"the first {self.identifying_k} planned poses would"
+        return (
+            f"the {k} planned poses cannot identify the {self.n_identifiable} parameters of the geometry, instrument "
+            f"pose and lever arm that poses spread over the joint ranges identify ({fewer}); a calibration of them "
+            "would be refused or would hold parameters it needs: give more distinct candidates or a larger --n"
+        )
+
+
+def _mm(v: float) -> float | None:
+    """[m] -> [mm]; None for NaN, a prediction not made."""
+    return None if math.isnan(v) else v * 1e3
+
+
+def _cell(v: float | None) -> str:
+    return "none (not identified)" if v is None else f"{v:.4f}"
+
+
+#: joint configurations spread over the joint ranges (seeded) that tell which parameters poses can identify at all
+GENERIC_POSES = 200
+
+
+def identifying(model: MeasurementModel, q: Tensor, opts: PlanOptions) -> int:
+    """How many of the design's parameters the poses ``q (N, dof)`` [rad] identify (those
+    :func:`~torchcal.estimate.design.design_problem` keeps: determined better than their priors, by the same
+    identifiability analysis as a calibration's)."""
+    problem = design_problem(
+        model, q, sigma_tracker=opts.sigma_tracker, sigma_joint=opts.sigma_joint, priors=opts.priors
+    )
+    return len(problem.names)
+
+
+def identifying_prefix(
+    model: MeasurementModel, q: Tensor, order: Tensor, sizes: tuple[int, ...], opts: PlanOptions, need: int
+) -> int | None:
+    """The smallest of ``sizes`` whose first poses of ``order`` identify ``need`` parameters (None: not even the
+    largest), by bisection: more poses never identify fewer."""
+    sizes = sorted(sizes)
+    if identifying(model, q[order[: sizes[-1]]], opts) < need:
+        return None
+    lo, hi = 0, len(sizes) - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if identifying(model, q[order[: sizes[mid]]], opts) >= need:
+            hi = mid
+        else:
+            lo = mid + 1
+    return sizes[lo]
 
 
 def sample_candidates(
@@ -362,21 +437,16 @@ class SpreadTurns:
         self.share = share
         self.start = start
         self.length = length
-        mean = torch.zeros(len(where), dtype=where.dtype, device=where.device)
-        for lo in range(0, len(where), chunk):  # (chunk, N) at a time: 10,000 candidates stay within memory
-            mean[lo : lo + chunk] = self._kernel(where[lo : lo + chunk], toward).mean(-1)
-        self.mean = mean
-        self.sum = torch.zeros_like(mean)
+        self.mean = kernel_mean(where, toward, length, chunk)
+        self.sum = torch.zeros_like(self.mean)
         self.seen: set[int] = set()
         self.turns: list[int] = []
-
-    def _kernel(self, a: Tensor, b: Tensor) -> Tensor:
-        return torch.exp(-0.5 * torch.cdist(a, b).square() / self.length**2)
 
     def fold(self, taken: Tensor) -> None:
         """Add the picks not yet counted to the planned poses' kernel sum."""
         for i in set(torch.nonzero(taken).flatten().tolist()) - self.seen:
-            self.sum = self.sum + self._kernel(self.where, self.where[i : i + 1]).squeeze(-1)
+            d2 = (self.where - self.where[i]).square().sum(-1)
+            self.sum = self.sum + torch.exp(-0.5 * d2 / self.length**2)
             self.seen.add(i)
 
     def __call__(self, j: int, taken: Tensor) -> Tensor | None:
@@ -385,6 +455,31 @@ class SpreadTurns:
             return None
         self.turns.append(j)
         return self.mean - self.sum / (len(self.seen) + 1)
+
+
+#: the most poses the spread picks' kernel mean is taken over: beyond it a seeded random subset of this size (the
+#: default pool of sampled candidates is taken whole), so that the mean costs at most ``N x SPREAD_REFERENCE``
+#: kernel values and a pool of 100,000 candidates does not take ``10^10``
+SPREAD_REFERENCE = 10_000
+
+
+def kernel_mean(where: Tensor, toward: Tensor, length: float, chunk: int = 1024) -> Tensor:
+    """``mean_k K(x, x_k) (N,)`` of a squared-exponential kernel of length ``length`` for each ``x`` of ``where
+    (N, d)`` over ``toward (M, d)`` (at most :data:`SPREAD_REFERENCE` of them, a seeded subset beyond).
+
+    The squared distances come from one matrix product per chunk of ``chunk`` rows (``|a|^2 + |b|^2 - 2 a.b``,
+    clamped at 0) and the kernel is taken in place: the ``cdist``, square and exponential of ``(chunk, M)`` each as
+    a new tensor cost several times more.
+    """
+    if len(toward) > SPREAD_REFERENCE:
+        toward = toward[torch.randperm(len(toward), generator=torch.Generator().manual_seed(0))[:SPREAD_REFERENCE]]
+    b2 = toward.square().sum(-1)
+    mean = torch.empty(len(where), dtype=where.dtype, device=where.device)
+    for lo in range(0, len(where), chunk):  # (chunk, M) at a time: memory stays bounded
+        a = where[lo : lo + chunk]
+        d2 = torch.addmm(a.square().sum(-1, keepdim=True) + b2, a, toward.T, alpha=-2.0).clamp_(min=0.0)
+        mean[lo : lo + chunk] = d2.mul_(-0.5 / length**2).exp_().mean(-1)
+    return mean
 
 
 def spread_turns(
@@ -432,13 +527,20 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tens
     )
     turns = set(learned.turns) if learned is not None else set()
     spread_picks = set(spread.turns) if spread is not None else set()
+    # a prediction only where the poses identify what poses spread over the joint ranges do (the priors alone would
+    # make one from a single pose, or from the same pose five times: issue 35)
+    generic = sample_joints(model.robot, GENERIC_POSES, torch.Generator().manual_seed(0))
+    need = identifying(model, generic.to(q.device), opts)
+    first = identifying_prefix(model, q, design.order, grid, opts, need)
     curve = []
     for c in grid:
         S = covariance(design.information[c], opts.s0_sq)
-        curve.append((c, predicted_rmse(problem.J, problem.noise, S, opts.s0_sq)))
+        ok = first is not None and c >= first
+        curve.append((c, predicted_rmse(problem.J, problem.noise, S, opts.s0_sq) if ok else math.nan))
     S_k = covariance(design.information[opts.k], opts.s0_sq)
     rnd = _random_index(N, opts.k, opts.seed)
     S_r = covariance(information(problem, rnd), opts.s0_sq)
+    random_ok = identifying(model, q[rnd], opts) >= need
     index = design.order[: opts.k]
     return Plan(
         index=index,
@@ -448,14 +550,16 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tens
         spread=torch.tensor([j in spread_picks for j in range(opts.k)], dtype=torch.bool, device=q.device),
         names=problem.names,
         units=problem.units,
-        sigma=S_k.diagonal().sqrt(),
+        sigma=S_k.diagonal().sqrt() if first is not None and opts.k >= first else torch.full_like(S_k[0], math.nan),
         held=problem.identifiability.fixed,
         predicted_rmse=dict(curve)[opts.k],
-        random_rmse=predicted_rmse(problem.J, problem.noise, S_r, opts.s0_sq),
+        random_rmse=predicted_rmse(problem.J, problem.noise, S_r, opts.s0_sq) if random_ok else math.nan,
         curve=curve,
         log_det=float(design.log_det[opts.k - 1]),
         random_log_det=log_det(problem, rnd),
         n_candidates=N,
         options=opts,
         n_work=0 if work is None else len(work),
+        n_identifiable=need,
+        identifying_k=first,
     )

@@ -78,19 +78,32 @@ def visible(
         s = torch.linspace(0.0, 1.0, n_sub, dtype=q.dtype)
         out = []
         for probe, dist, u, ok, nodes in blocks:
-            seg_a, seg_b = nodes[:, :-1], nodes[:, 1:]
-            pts = seg_a[:, :, None] + (seg_b - seg_a)[:, :, None] * s[None, None, :, None]
-            pts = pts.reshape(len(nodes), -1, 3)
-            rel = pts - probe[:, None]
-            along = (rel * u[:, None]).sum(-1)
-            perp = (rel - along[..., None] * u[:, None]).norm(dim=-1)
-            in_front = (along > 1e-3) & (along < dist)
-            ok &= ~((perp < rule.clearance) & in_front).any(-1)
-
             ok &= (nodes[:, 1:, 2] > rule.min_height).all(-1) & (probe[:, 2] > rule.min_height)
             ok &= probe[:, :2].norm(dim=-1) >= rule.min_radius
+            # the skeleton test, by far the costliest, only for the poses the cheap tests leave (per pose, so the
+            # answer is the same as testing all)
+            at = torch.nonzero(ok).flatten()
+            ok[at] = _clear(nodes[at], probe[at], u[at], dist[at], s, rule.clearance)
             out.append(ok)
     return torch.cat(out)
+
+
+def _clear(nodes: Tensor, probe: Tensor, u: Tensor, dist: Tensor, s: Tensor, clearance: float) -> Tensor:
+    """Whether the line of sight of each pose passes its arm's skeleton at ``clearance`` [m] or more ``(N,)`` bool.
+
+    Args:
+        nodes: ``(N, K, 3)`` the skeleton's joints [m]; probe: ``(N, 3)`` [m]; u: ``(N, 3)`` the unit sight from the
+            probe to the tracker; dist: ``(N, 1)`` the distance [m]; s: ``(S,)`` the sampling of each segment in
+            ``[0, 1]``.
+    """
+    seg_a, seg_b = nodes[:, :-1], nodes[:, 1:]
+    pts = seg_a[:, :, None] + (seg_b - seg_a)[:, :, None] * s[None, None, :, None]
+    pts = pts.reshape(len(nodes), -1, 3)
+    rel = pts - probe[:, None]
+    along = (rel * u[:, None]).sum(-1)
+    perp = (rel - along[..., None] * u[:, None]).norm(dim=-1)
+    in_front = (along > 1e-3) & (along < dist)
+    return ~((perp < clearance) & in_front).any(-1)
 
 
 @dataclass(eq=False)
