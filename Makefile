@@ -10,12 +10,13 @@ STAMP := $(VENV)/.installed
 setup: $(STAMP)
 
 # torch first, pinned, so the CPU wheel is used and nothing pulls a CUDA build;
-# then the package with its dev extras (editable, so robots/ stays next to it).
+# then the package with its dev extras and Ray (editable, so robots/ stays next to it; the fleet's tests run on a
+# local Ray instance they start and stop themselves).
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
 	$(BIN)/python -m pip install -q torch==2.13.0
-	$(BIN)/python -m pip install -q -e '.[dev]'
+	$(BIN)/python -m pip install -q -e '.[dev,fleet]'
 	touch $(STAMP)
 
 demo: $(STAMP)
