@@ -8,7 +8,7 @@
 3. Command fresh targets, never seen in calibration, in the tracker frame: static poses and a program of
    targets along a continuous path. The targets are where the nominal controller, with the true tool
    centre point, would put the probe for a program's joints, as seen by the real (true) tracker. Each
-   model turns them into joint commands with :func:`torchcal.compensate.compensate`, started from the
+   model turns them into joint commands with :func:`torchcal.use.compensate.compensate`, started from the
    program's joints.
 4. Send the commands to the *simulated true robot* (the simulator's truth model: true geometry, tracker
    pose, lever arm and effects; no measurement noise) and measure how far its probe lands from the target.
@@ -31,13 +31,13 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchcal.compensate import Status, compensate, configuration_sign, rotation_miss
 from torchcal.effects.base import Context, motion_direction
 from torchcal.effects.model import MeasurementModel
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.sim.poses import Scene, random_poses, trajectory
+from torchcal.use.compensate import Status, compensate, configuration_sign, rotation_miss
 
 F64 = torch.float64
 DEFAULT_EFFECTS = ("compliance:2=60um", "field=0.05mm")

@@ -24,7 +24,7 @@ from experiments.ipa_series import series_file
 from torchcal.data import Measurements, read_ipa
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate, holdout_split
-from torchcal.pipeline.plan import PlanOptions, plan_poses
+from torchcal.use.plan import PlanOptions, plan_poses
 
 HOLDOUT = 0.2
 SEED = 0
@@ -53,7 +53,7 @@ def fit_and_score(
 class Protocol:
     """What :func:`compare` measures: the design sizes ``ks``, the seeds, the reference design's size (None: none),
     the plan's options (criterion, edge and spread shares: None takes the method's design,
-    :meth:`~torchcal.pipeline.plan.PlanOptions.for_method`), the share of the pool the planner is offered per seed and
+    :meth:`~torchcal.use.plan.PlanOptions.for_method`), the share of the pool the planner is offered per seed and
     the method each design is planned for and calibrated with; ``oracle``: per seed also a design whose spread picks
     follow the held-out poses themselves (``plan --work``), what a planner that knew where it is judged could do."""
 

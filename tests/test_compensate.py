@@ -1,4 +1,4 @@
-"""Compensation: joints that make the calibrated model put the probe on targets (torchcal.compensate, CLI)."""
+"""Compensation: joints that make the calibrated model put the probe on targets (torchcal.use.compensate, CLI)."""
 
 import math
 import time
@@ -10,23 +10,21 @@ from _cli import cli_simulate
 import torchcal
 from torchcal._threads import torch_threads
 from torchcal.cli import main
-from torchcal.compensate import (
+from torchcal.effects import Compliance, Context, CorrectionNet, Drift, LearnedEffect
+from torchcal.effects.model import MeasurementModel
+from torchcal.errors import OptionError
+from torchcal.report.urdf import urdf_fk_difference, urdf_gap, urdf_notes
+from torchcal.robot import transforms as tf
+from torchcal.robot import write_urdf
+from torchcal.sim import EffectSpec, SimConfig, simulate
+from torchcal.use.compensate import (
     Status,
     compensate,
     configuration_sign,
     model_miss,
     nominal_ik,
     program_targets,
-    urdf_fk_difference,
-    urdf_gap,
-    urdf_notes,
 )
-from torchcal.effects import Compliance, Context, CorrectionNet, Drift, LearnedEffect
-from torchcal.effects.model import MeasurementModel
-from torchcal.errors import OptionError
-from torchcal.robot import transforms as tf
-from torchcal.robot import write_urdf
-from torchcal.sim import EffectSpec, SimConfig, simulate
 
 F64 = torch.float64
 
@@ -500,11 +498,11 @@ def test_each_pair_takes_its_own_learned_correction(two_stations):
     correction: the full model (which dispatches the correction by each row's pair) puts the probe on every target."""
     import copy
 
-    from torchcal.compensate import compensate_groups
     from torchcal.data import read_measurements
     from torchcal.effects.grouped import GroupedCorrection
     from torchcal.report import load_model
     from torchcal.report.rundir import at_station
+    from torchcal.use.compensate import compensate_groups
 
     model, _ = load_model(two_stations / "run")
     model = copy.deepcopy(model)
@@ -590,9 +588,9 @@ def test_cli_six_d_program_keeps_its_joints_and_units(two_stations, tmp_path):
     is reached (issue 38 item 2), the program's joints are kept beside the commands, the orientation miss is written
     beside the position miss, and degrees in give degrees out; --position-only and a run without orientation solve
     positions only and say so."""
-    from torchcal.compensate import program_orientations, program_targets
     from torchcal.data import read_measurements
     from torchcal.report import load_model
+    from torchcal.use.compensate import program_orientations, program_targets
 
     run = two_stations / "run"
     data = read_measurements(two_stations / "sim" / "test.csv")
@@ -650,7 +648,7 @@ def test_six_d_next_to_a_singularity_falls_back_to_the_position():
     joint move far beyond max_joint_change: not reached on the start's branch. The row is commanded for its position
     alone (reached to 1e-9), its status still says the pose is not reached and miss_angle how far the tool stays
     turned."""
-    from torchcal.compensate import _context, _Goal, rotation_in_base
+    from torchcal.use.compensate import _context, _Goal, rotation_in_base
 
     model = _with_orientation(calibrated_model(effects=False))
     q0 = poses(model.robot, 4, seed=8)

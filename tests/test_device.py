@@ -440,6 +440,10 @@ CPU_BY_DESIGN = (
 
 #: Constructors without ``device=`` that are right where they are: (file, the call's source) -> why.
 ALLOWED = {
+    (
+        "torchcal/use/compensate.py",
+        "torch.tensor([length if k == 'prismatic' else angle for k in joint_types], dtype=F64)",
+    ): "a file's unit factors at the I/O edge, where the rows are on the CPU as the files they are written to",
     ("torchcal/report/station.py", "torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64)"): (
         "CPU generator (the same poses on every device), moved (.to) to the region's device"
     ),
@@ -455,7 +459,7 @@ ALLOWED = {
     ("torchcal/estimate/lm.py", "torch.tensor(p, dtype=torch.float64)"): "a Python number in, a float out",
     ("torchcal/estimate/robust.py", "torch.tensor(k / 2.0, dtype=F64)"): "a Python number in, a float out",
     ("torchcal/estimate/robust.py", "torch.tensor(max(x, 0.0) / 2.0, dtype=F64)"): "a Python number in, a float out",
-    ("torchcal/compensate.py", "torch.rand(robot.dof, generator=g, dtype=F64)"): "CPU generator, moved (.to)",
+    ("torchcal/use/compensate.py", "torch.rand(robot.dof, generator=g, dtype=F64)"): "CPU generator, moved (.to)",
     ("torchcal/effects/learned.py", "torch.randn(layer.weight.shape, generator=generator, dtype=torch.float64)"): (
         "CPU generator (the same weights on every device), copied into the layer"
     ),

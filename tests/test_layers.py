@@ -18,7 +18,8 @@ LAYERS: list[set[str]] = [
     {"estimate", "sim"},
     {"filter", "diagnose"},
     {"pipeline"},
-    {"report", "compensate", "fleet"},
+    {"use"},
+    {"report", "fleet"},
     {"cli", "_entry", "__main__"},
 ]
 #: leaf utilities: importable from anywhere, importing no other torchcal module but each other

@@ -947,8 +947,8 @@ def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
 def _geometric_resolver(res, station, probe, targets_of, context, weight):
     """``(geometric, rows) ->`` those rows of ``res`` solved again, in place, with the run's kinematic calibration
     ``geometric`` in each row's own station's frame with its own probe."""
-    from torchcal.compensate import solve_rows_with
     from torchcal.report.rundir import at_station
+    from torchcal.use.compensate import solve_rows_with
 
     def resolve(geometric, rows):
         robot, n = geometric.robot, len(res.q)
@@ -969,10 +969,10 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
 
 
 def cmd_compensate(args) -> int:
-    from torchcal.compensate import Status, compensate_groups, orientation_mode, row_groups
     from torchcal.data import read_measurements
     from torchcal.report import load_model
     from torchcal.report.rundir import at_station
+    from torchcal.use.compensate import Status, compensate_groups, orientation_mode, row_groups
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
@@ -1024,8 +1024,8 @@ def cmd_compensate(args) -> int:
 def _compensation_targets(data, six_d: bool):
     """``(model, rows) -> (positions, orientations or None)`` of a targets file, in the instrument frame of ``model``
     (the run at the rows' station and probe): the file's ``x,y,z`` (``rx,ry,rz``), or what a program's joints mean."""
-    from torchcal.compensate import program_orientations, program_targets
     from torchcal.robot import transforms as tf
+    from torchcal.use.compensate import program_orientations, program_targets
 
     def targets_of(at, rows):
         p = data.p[rows] if data.p is not None else program_targets(at, data.q[rows])
@@ -1042,8 +1042,8 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     the run's kinematic calibration is far surer are solved again with it first (:func:`_compensate_trust`)."""
     import dataclasses
 
-    from torchcal.compensate import file_units, write_joints
     from torchcal.effects import Context
+    from torchcal.use.compensate import file_units, write_joints
 
     (model, meta), (station, probe), (plain, resolve) = run, groups, plain_resolve
     # how far to trust each command: the predicted standard deviation of a measurement there, and which model
@@ -1139,9 +1139,9 @@ def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
 def _plan_run(args):
     """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
     and scene (tracker position, lever arm)."""
-    from torchcal.pipeline.plan import scene_of
     from torchcal.report import load_model
     from torchcal.report.station import station_options
+    from torchcal.use.plan import scene_of
 
     model, meta = load_model(args.run)
     if args.robot is not None and _robot_key(args.robot) not in {
@@ -1172,7 +1172,7 @@ def _plan_run(args):
 def cmd_plan(args) -> int:
     from torchcal.data import Measurements, read_measurements, write_measurements
     from torchcal.effects import MeasurementModel
-    from torchcal.pipeline.plan import PlanOptions, plan_poses, sample_candidates
+    from torchcal.use.plan import PlanOptions, plan_poses, sample_candidates
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
@@ -1286,8 +1286,8 @@ def cmd_convert(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from torchcal.compensate import urdf_left_out
     from torchcal.report.rundir import load_model
+    from torchcal.report.urdf import urdf_left_out
     from torchcal.robot.export import write_urdf
     from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml, write_text
 

@@ -14,9 +14,9 @@ from torchcal.cli import main
 from torchcal.data import Measurements, write_measurements
 from torchcal.effects.model import MeasurementModel
 from torchcal.estimate import design as D
-from torchcal.pipeline import plan as plan_module
 from torchcal.robot import load_robot
 from torchcal.sim.poses import sample_joints
+from torchcal.use import plan as plan_module
 
 
 def _plan(tmp_path, q, n, capsys):

@@ -10,13 +10,13 @@ import torch
 from _cli import cli_simulate
 
 from torchcal.cli import main
-from torchcal.compensate import compensate, compensate_in_region, geometry_and_physics
 from torchcal.effects import Context, LearnedEffect, MeasurementModel
 from torchcal.effects.joint import FADE_LENGTH
 from torchcal.effects.learned import CorrectionNet
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.report import load_covariance, load_model
 from torchcal.robot import load_robot
+from torchcal.use.compensate import compensate, compensate_in_region, geometry_and_physics
 
 F64 = torch.float64
 

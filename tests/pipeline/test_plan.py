@@ -1,4 +1,4 @@
-"""``torchcal plan`` (torchcal.pipeline.plan): the command end to end into a calibration, and the predicted held-out
+"""``torchcal plan`` (torchcal.use.plan): the command end to end into a calibration, and the predicted held-out
 error against the measured one on a simulated campaign."""
 
 import json
@@ -12,10 +12,10 @@ from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
-from torchcal.pipeline.plan import PlanOptions, plan_poses
 from torchcal.robot import load_robot
 from torchcal.sim import SimConfig, simulate
 from torchcal.sim.poses import sample_joints
+from torchcal.use.plan import PlanOptions, plan_poses
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def _discrepancy(a: torch.Tensor, b: torch.Tensor, length: float = 0.25) -> floa
 def test_a_design_for_a_learned_correction_follows_the_candidates_after_the_geometry(campaign):
     """Planned for the default method: the first picks are the criterion's, every later one but the edges' follows
     the candidates' density, closer to it than a random design of the same size or the kinematic design."""
-    from torchcal.pipeline.plan import GEOMETRY_PICKS, LEARNED_LENGTH, _scaled
+    from torchcal.use.plan import GEOMETRY_PICKS, LEARNED_LENGTH, _scaled
 
     assert PlanOptions.for_method("kinematic", 10) == PlanOptions(k=10)
     auto = PlanOptions.for_method("auto", 150, spread_share=None, seed=3)
@@ -146,7 +146,7 @@ def test_the_oracle_design_is_measured_beside_the_plan(campaign):
 def test_learned_share_goes_where_the_learned_correction_is_least_certain(campaign, monkeypatch):
     """A model whose learned correction is uncertain around one pose: every fifth pick goes there, spread by the
     discount, and the JSON counts them."""
-    import torchcal.pipeline.plan as plan_module
+    import torchcal.use.plan as plan_module
 
     q = campaign.train.q
     where = (q - q.min(0).values) / (q.max(0).values - q.min(0).values)

@@ -518,8 +518,9 @@ def considered(model: MeasurementModel, fit: Fit, residuals, opts: FitOptions, g
     held = [n for n in held if n in both.names and ps is not None and math.isfinite(float(ps[both.names.index(n)]))]
     if not held:
         return None
-    h = torch.tensor([both.names.index(n) for n in held])
-    f = torch.tensor([both.names.index(n) for n in free.names])
+    dev = ps.device
+    h = torch.tensor([both.names.index(n) for n in held], device=dev)
+    f = torch.tensor([both.names.index(n) for n in free.names], device=dev)
     ps_free = ps.clone()
     ps_free[h] = float("inf")  # the held members' prior is their doubt below, not data
     J = jacobian_of(residuals(both, ps_free))(both.vector())

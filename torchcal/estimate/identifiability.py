@@ -556,9 +556,9 @@ def detectability(
         untold[-1]["absorbed_by"] = absorbed
     untold.sort(key=lambda u: u["share"])
     for u in untold:  # the rows like these that tell this one
-        t = _rows_factor(Nd, prec, torch.tensor([names.index(u["name"])]), threshold / k)
+        t = _rows_factor(Nd, prec, torch.tensor([names.index(u["name"])], device=Nd.device), threshold / k)
         u["rows_needed"] = None if t is None else math.ceil(rows * t)
-    idx = torch.tensor([names.index(u["name"]) for u in untold], dtype=torch.long)
+    idx = torch.tensor([names.index(u["name"]) for u in untold], dtype=torch.long, device=Nd.device)
     need = _rows_factor(Nd, prec, idx, threshold / k) if untold else None
     rows_needed = None if need is None else math.ceil(rows * need)
     return Detectability(tuple(names), tuple(share.tolist()), tuple(untold), k, threshold, rows, rows_needed)

@@ -286,7 +286,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     rtrust = run_trust(run)  # predict's sx, sy, sz: measured on the held-out rows (torchcal.estimate.trust)
     report["trust"] = _trust_report(rtrust)
     # the URDF carries the geometry only: say what it leaves out and what that costs on the training poses
-    from torchcal.compensate import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
+    from torchcal.report.urdf import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
 
     ctx = Context.from_measurements(run.data.subset(run.train_idx), trajectory=run.trajectory)
     write_urdf(run.robot, tmp / "robot_calibrated.urdf", notes=urdf_notes(urdf_gap(run.model, ctx)))

@@ -423,7 +423,7 @@ def load_urdf(
             links and inertials read from the XML elements as yourdfpy reads them (:func:`_urdf_elements`, the
             same numbers to the bit) without importing yourdfpy and its mesh library (trimesh, scipy, networkx:
             about a second and tens of MB). For files torchcal wrote itself, such as the round-trip check of a
-            calibrated URDF (:func:`torchcal.compensate.urdf_fk_difference`); it parses with the standard library's
+            calibrated URDF (:func:`torchcal.report.urdf.urdf_fk_difference`); it parses with the standard library's
             ``xml.etree`` (already loaded) instead of lxml.
     """
     if reader not in ("yourdfpy", "elements"):

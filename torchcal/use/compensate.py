@@ -519,8 +519,10 @@ def _position_fallback(model: MeasurementModel, goal: _Goal, q0: Tensor, ctx: di
         ``(N,)`` bool, the rows commanded by a position-first solution.
     """
     q, miss, angle, kept, status = solved
-    fallback = torch.zeros(len(status), dtype=torch.bool)
-    rows = torch.tensor([i for i, s in enumerate(status) if s is not Status.CONVERGED], dtype=torch.long)
+    fallback = torch.zeros(len(status), dtype=torch.bool, device=q.device)
+    rows = torch.tensor(
+        [i for i, s in enumerate(status) if s is not Status.CONVERGED], dtype=torch.long, device=q.device
+    )
     if not len(rows):
         return fallback
     sub_ctx = {k: _subset(v, rows, len(status)) for k, v in ctx.items()}
@@ -574,7 +576,7 @@ def _prioritised(model: MeasurementModel, goal: _Goal, q0: Tensor, q1: Tensor, c
         r, J, _, _ = goal.residual(model, _context(model, q, ctx))
         Jp, Jw, e = J[:, :3], J[:, 3:] / goal.weight, r[:, 3:] / goal.weight
         A = Jp @ Jp.transpose(-1, -2)
-        A = A + 1e-12 * A.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=F64)
+        A = A + 1e-12 * A.diagonal(dim1=-2, dim2=-1).sum(-1)[:, None, None] * torch.eye(3, dtype=F64, device=q.device)
         pinv = torch.linalg.solve(A, Jp).transpose(-1, -2)  # (N, dof, 3): J^T (J J^T)^-1
         dq1 = (pinv @ r[:, :3, None]).squeeze(-1)
         N = eye - pinv @ Jp
@@ -727,7 +729,9 @@ def row_groups(
         if option is not None and option not in known:
             have = f"the run's {key}s are {', '.join(known)}" if known else f"the run has a single {key}"
             raise OptionError(f"{key} {option!r} is not one of the run's: {have}")
-        index = torch.full((data.n,), known.index(option) if option is not None else 0, dtype=torch.long)
+        index = torch.full(
+            (data.n,), known.index(option) if option is not None else 0, dtype=torch.long, device=data.q.device
+        )
         column, names = getattr(data, key), getattr(data, f"{key}_names")
         if column is not None and known:
             for k, name in enumerate(names):
@@ -757,10 +761,10 @@ def _merge(n: int, parts: list[tuple[Tensor, CompensationResult, Tensor, Tensor]
     dof = first.q.shape[1]
     q, q0 = first.q.new_zeros(n, dof), first.q.new_zeros(n, dof)
     miss, ext = first.miss.new_zeros(n), parts[0][2].new_zeros(n)
-    kept, plain = torch.zeros(n, dtype=torch.bool), torch.zeros(n, dtype=torch.bool)
+    kept, plain = q.new_zeros(n, dtype=torch.bool), q.new_zeros(n, dtype=torch.bool)
     status: list[Status] = [Status.UNREACHABLE] * n
     angle = None if first.miss_angle is None else first.miss_angle.new_zeros(n)
-    fallback = None if first.position_only is None else torch.zeros(n, dtype=torch.bool)
+    fallback = None if first.position_only is None else q.new_zeros(n, dtype=torch.bool)
     for rows, res, e, p in parts:
         q[rows], q0[rows], miss[rows], ext[rows] = res.q, res.q_start, res.miss, e
         if angle is not None:
@@ -828,7 +832,7 @@ def compensate_groups(
         res, ext, plain = compensate_in_region(model, p, seed, context=sub_ctx, orientations=R, **kw)
         parts.append((rows.cpu(), res, ext, plain))
     if not parts:
-        empty = torch.zeros(0, robot.dof, dtype=F64)
+        empty = torch.zeros(0, robot.dof, dtype=F64, device=robot.device)
         res = CompensationResult(
             q=empty, miss=empty[:, 0], status=[], q_start=empty, iterations=0, branch_kept=empty[:, 0] > 0
         )
@@ -1022,85 +1026,3 @@ def write_joints(
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-
-
-# ------------------------------------------------------------------------------ what the URDF leaves out
-def urdf_left_out(model: MeasurementModel) -> list[str]:
-    """Labels of the model's parts that a URDF (geometry, lever arm, tracker pose only) cannot carry."""
-    return [e.label() for e in _as_model(model).effects]
-
-
-def urdf_gap(model: MeasurementModel, ctx: Context) -> dict:
-    """How far the geometry-only part of ``model`` (what a URDF carries) is from the full model on ``ctx``'s poses.
-
-    Returns:
-        ``{"n_poses", "rms_mm", "max_mm", "left_out": [labels]}``: distances between the full model's
-        prediction and the geometry-only FK (same geometry, lever arm and tracker pose) in the tracker frame.
-    """
-    model = _as_model(model)
-    with torch.no_grad():
-        full = model(ctx)
-        geo = MeasurementModel(model.robot, [])(ctx)
-    d = (full - geo).norm(dim=-1)
-    return {
-        "n_poses": int(d.shape[0]),
-        "rms_mm": float(d.square().mean().sqrt()) * 1e3 if len(d) else 0.0,
-        "max_mm": float(d.max()) * 1e3 if len(d) else 0.0,
-        "left_out": urdf_left_out(model),
-    }
-
-
-def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
-    """RMS and max difference between FK of a written URDF (base link to its ``probe`` frame, placed in the
-    tracker frame with the model's ``T_tracker_base``) and the full model's prediction ``(N, 3)`` on ``ctx``.
-
-    The URDF is read back with :func:`torchcal.robot.load_robot` (float64), so this measures the file itself, not
-    the model it was written from; from its XML elements (``reader="elements"``, the numbers yourdfpy reads, without
-    importing yourdfpy's mesh library: this check runs after every calibration).
-    """
-    from torchcal.robot import load_robot
-
-    model = _as_model(model)
-    urdf = load_robot(path, base_link=model.robot.base_link, tip_link="probe", reader="elements").to(model.robot.device)
-    with torch.no_grad():
-        p_base = urdf(ctx.q)[..., :3, 3]
-        p = tf.transform_points(model.robot.T_tracker_base(), p_base)
-        d = (model(ctx) - p).norm(dim=-1)
-    return {
-        "n_poses": int(d.shape[0]),
-        "rms_mm": float(d.square().mean().sqrt()) * 1e3,
-        "max_mm": float(d.max()) * 1e3,
-        "left_out": urdf_left_out(model),
-    }
-
-
-def urdf_notes(gap: dict) -> list[str]:
-    """Header lines for the calibrated URDF: what it leaves out and what that costs on the training poses."""
-    if not gap["left_out"]:
-        return ["The calibration found no effect beyond geometry: this URDF carries the whole calibrated model."]
-    return [
-        f"NOT in this URDF: {', '.join(gap['left_out'])} (non-geometric effects a URDF cannot express).",
-        f"On the {gap['n_poses']} training poses, FK of this URDF differs from the full calibrated model by "
-        f"RMS {gap['rms_mm']:.4f} mm, max {gap['max_mm']:.4f} mm.",
-        "To reach targets with the full model, command the joints from 'torchcal compensate RUN TARGETS.csv'.",
-    ]
-
-
-def urdf_markdown(gap: dict) -> str:
-    """A report.md section on what ``robot_calibrated.urdf`` carries and leaves out."""
-    lines = ["", "## The calibrated URDF", ""]
-    if not gap["left_out"]:
-        lines.append(
-            "`robot_calibrated.urdf` carries the whole calibrated model (geometry, lever arm as the "
-            "`probe` frame, tracker pose as the `tracker` frame): the run found no other effect."
-        )
-    else:
-        lines += [
-            f"`robot_calibrated.urdf` carries the geometry, the lever arm (`probe` frame) and the tracker pose "
-            f"(`tracker` frame). It leaves out: {', '.join(gap['left_out'])}.",
-            "",
-            f"On the {gap['n_poses']} training poses its forward kinematics differs from the full model's "
-            f"prediction by RMS {gap['rms_mm']:.4f} mm, max {gap['max_mm']:.4f} mm. To use the full model on the "
-            "robot, compensate the joint commands: `torchcal compensate RUN TARGETS.csv --out JOINTS.csv`.",
-        ]
-    return "\n".join(lines) + "\n"
