@@ -729,7 +729,7 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import predict_orientation, predict_with, rows_of, trust
+    from torchcal.report.rundir import check_placement, predict_orientation, predict_with, rows_of, trust
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -746,6 +746,8 @@ def cmd_predict(args) -> int:
         joint_types=robot.joint_types,
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
+    check_placement(meta, data)  # a re-stationed run: rows of another station are refused
+    labels = {k: getattr(data, k) for k in ("station", "station_names", "probe", "probe_names")}  # kept in the output
     data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
     # how far to trust each row (on the CPU, before the model moves to --device): the predicted standard deviation
     # (the parameters' covariance and the learned model's posterior) and how far the pose lies outside the
@@ -771,6 +773,7 @@ def cmd_predict(args) -> int:
         meta={"predicted_by": str(args.run)},
         r=r,
         sigma_r=None,
+        **labels,
     )
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, ext, fade)

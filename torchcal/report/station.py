@@ -35,6 +35,7 @@ The fit:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import math
 import os
@@ -118,6 +119,7 @@ class Station:
     run_rmse: float  # [m]
     tool: bool
     run_covariance: ParameterCovariance | None = None  # RUN2's covariance.pt
+    label: str | None = None  # the station the points' rows name (None: none)
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -136,6 +138,7 @@ class Station:
         res = self.residuals.norm(dim=-1)
         return {
             "n_points": len(self.residuals),
+            "label": self.label,
             "lever_arm_fitted": self.tool,
             "T_tracker_base": self.T_tracker_base.tolist(),
             "t_flange_probe_m": self.t_flange_probe.tolist(),
@@ -471,78 +474,113 @@ def restation(
 ):
     """Load the run, fit the placement; returns ``(model, meta, station)`` (nothing is written).
 
-    A run calibrated from several stations or probes is first reduced to one frame (:func:`one_frame`): the new
-    placement replaces all of its stations, the points' probe is ``probe`` (default: the points' own ``probe``
-    column where it names one of the run's, else the run's first)."""
+    The run becomes a run of one placement (:func:`one_placement`): the new placement replaces all of its stations,
+    every probe keeps its lever arm (a new placement moves the instrument, not the nest). The points' rows name their
+    probe (their ``probe`` column, or ``probe`` for all of them; neither: the run's first) and at most one station (its
+    label is kept: rows that name another station are then refused by ``predict``)."""
     from torchcal.report.rundir import load_covariance, load_model
 
     model, meta = load_model(run_dir)
     cov = load_covariance(run_dir, model)
-    if model.robot.stations or model.robot.probes:
-        model, meta, cov = one_frame(model, meta, cov, _points_probe(model, points, probe, run_dir))
+    points, label = _points_rows(model, points, probe, tool, run_dir)
+    model, meta, cov = one_placement(model, meta, cov, label)
     station = fit_station(model, points, station_options(run_dir, tool, seed), cov)
+    station.label = label
     return model, meta, station
 
 
-def _points_probe(model: MeasurementModel, points: Measurements, probe: str | None, run_dir) -> str | None:
-    """The run's probe the points were measured with (:func:`restation`)."""
+def _points_rows(
+    model: MeasurementModel, points: Measurements, probe: str | None, tool: bool, run_dir
+) -> tuple[Measurements, str | None]:
+    """The points with their probe indices in the run's order, and the label of the one station they name (None
+    where they name none). Refuses a probe the run lacks, ``probe`` on a run of one probe or against the points'
+    column, points of several stations, and ``tool`` on a run of several probes."""
+    from torchcal.report.rundir import rows_of
+
+    where = points.source or "the points"
     known = model.robot.probes
-    named = tuple(points.probe_names[int(i)] for i in torch.unique(points.probe)) if points.probe is not None else ()
-    if len(named) > 1:
+    if probe is not None and not known:
+        raise StationError(f"{run_dir}: the run has a single probe (its lever arm is used); drop --probe {probe!r}")
+    if tool and known:
         raise StationError(
-            f"the points name {len(named)} probes ({', '.join(named)}); re-station on one probe's points"
+            f"{run_dir}: the run has probes {', '.join(known)} on one nest, each with its lever arm; --tool fits one "
+            "new lever arm and cannot tell which probe it replaces: re-station without --tool (every probe's lever "
+            "arm is kept), or calibrate the new tool"
         )
-    pick = probe if probe is not None else (named[0] if named else None)
-    if pick is not None and known and pick not in known:
-        raise StationError(f"{run_dir}: probe {pick!r} is not one of the run's ({', '.join(known)})")
-    if pick is not None and not known:
-        raise StationError(f"{run_dir}: the run has a single probe; drop --probe {pick!r}")
-    return pick
+    stations = _names(points, "station")
+    if len(stations) > 1:
+        raise StationError(
+            f"{where}: the points name {len(stations)} stations ({', '.join(stations)}); re-station one placement "
+            "at a time (its points only)"
+        )
+    label = stations[0] if stations else None
+    if probe is not None:
+        named = _names(points, "probe")
+        if named and set(named) != {probe}:
+            raise StationError(f"{where}: --probe {probe!r} but the points' probe column names {', '.join(named)}")
+        if probe not in known:
+            raise StationError(f"{run_dir}: probe {probe!r} is not one of the run's ({', '.join(known)})")
+        idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
+        points = dataclasses.replace(points, probe=idx, probe_names=(probe,))
+    none = {"station": None, "station_names": ()}
+    return rows_of(model, dataclasses.replace(points, meta=dict(points.meta), **none)), label
 
 
-def one_frame(
-    model: MeasurementModel, meta: dict, cov: ParameterCovariance | None, probe: str | None
+def _names(points: Measurements, key: str) -> tuple[str, ...]:
+    """The ``station`` or ``probe`` names the points' rows use."""
+    index, names = getattr(points, key), getattr(points, f"{key}_names")
+    return () if index is None else tuple(names[int(i)] for i in torch.unique(index))
+
+
+def one_placement(
+    model: MeasurementModel, meta: dict, cov: ParameterCovariance | None, label: str | None = None
 ) -> tuple[MeasurementModel, dict, ParameterCovariance | None]:
-    """A several-station (or several-probe) run as a run of one placement and one probe, to be re-stationed: the
-    first station's pose as the start (the points replace it), ``probe``'s lever arm (None: the first), no learned
-    correction per station and probe (a new placement is none of theirs). The covariance keeps the geometry and the
-    effects, and the probe's lever-arm rows as the one lever arm's; the stations' rows go (the points refit the
-    placement)."""
-    from torchcal.report.rundir import at_station
+    """The run as a run of one instrument placement, to be re-stationed: the pose of station ``label`` (where the
+    run has it, else its first) as the start (the points replace it), every probe's lever arm kept, no learned
+    correction per station and probe (a new placement is none of theirs), and a fallback geometry that a learned
+    correction fades to tied to the robot's base frame (:meth:`~torchcal.effects.support.SupportGate.fallback_to_base`:
+    it moves with the instrument). The covariance keeps the geometry, the effects and the lever arms; the stations'
+    rows go (the points refit the placement)."""
+    from torchcal.effects.grouped import GroupedCorrection
+    from torchcal.effects.support import SupportGate
+    from torchcal.robot.model import Instrument
 
     robot = model.robot
-    one, _, p = at_station(model, None, probe, groups=False)
-    meta = {k: v for k, v in meta.items() if k not in ("stations", "probes")}
+    k = robot.stations.index(label) if label in robot.stations else 0
+    T0 = robot.T_tracker_base(k).detach()
+    one = copy.deepcopy(model)
+    if robot.stations:
+        one.robot.instrument = Instrument(T0.clone(), dtype=robot.dtype, device=robot.device)
+    dropped = [i for i, e in enumerate(one.effects) if isinstance(e, GroupedCorrection)]
+    for i in reversed(dropped):
+        del one.effects[i]
+    for e in one.effects:
+        if isinstance(e, SupportGate):
+            e.fallback_to_base(T0, station=k)
+    meta = {k_: v for k_, v in meta.items() if k_ != "stations"}
     meta["effects"] = [{"class": type(e).__name__, **e.config()} for e in one.effects]
-    meta["restationed_from"] = {
-        "stations": list(robot.stations),
-        "probe": robot.probes[p] if robot.probes else None,
-        "dropped": ["a learned correction per station and probe"] if len(one.effects) < len(model.effects) else [],
-    }
-    if cov is None:
-        return one, meta, None
-    names, index, labels, rows = [], [], [], []
-    start = 0
-    for name, idx in zip(cov.names, cov.index):
-        block = list(range(start, start + len(idx)))
-        start += len(idx)
-        if name == "robot.instrument.delta" and robot.stations:
-            continue
-        if name == "robot.tool.delta" and robot.probes:  # (P, 3) flattened: the probe's three rows
-            mine = [(j, int(i) - 3 * p) for j, i in zip(block, idx) if 3 * p <= int(i) < 3 * p + 3]
-            if not mine:
-                continue
-            names.append(name)
-            index.append([i for _, i in mine])
-            labels += [f"tool.{'xyz'[i]}" for _, i in mine]
-            rows += [j for j, _ in mine]
-            continue
-        names.append(name)
-        index.append([int(i) for i in idx])
-        labels += [cov.labels[j] for j in block]
-        rows += block
+    if robot.stations or robot.probes or dropped:
+        meta["restationed_from"] = {
+            "stations": list(robot.stations),
+            "probes": list(robot.probes),
+            "dropped": ["a learned correction per station and probe"] if dropped else [],
+        }
+    if cov is None or not robot.stations:
+        return one, meta, cov
+    keep = [j for j, name in enumerate(cov.names) if name != "robot.instrument.delta"]
+    starts = [sum(len(i) for i in cov.index[:j]) for j in range(len(cov.names))]
+    rows = [starts[j] + i for j in keep for i in range(len(cov.index[j]))]
     r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
-    return one, meta, ParameterCovariance(names, index, labels, cov.matrix[r][:, r].clone())
+    return (
+        one,
+        meta,
+        ParameterCovariance(
+            [cov.names[j] for j in keep],
+            [[int(i) for i in cov.index[j]] for j in keep],
+            [cov.labels[i] for i in rows],
+            cov.matrix[r][:, r].clone(),
+        ),
+    )
 
 
 def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
@@ -614,7 +652,7 @@ def write_station(
         params["instrument"] = {"T_tracker_base": station.T_tracker_base.tolist()}
         params["tool"] = {"t_flange_probe_m": station.t_flange_probe.tolist()}
     meta = dict(meta)
-    meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted")}
+    meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted", "label")}
     with replace_dir(out, kind="station", inputs=inputs) as tmp:
         for entry in sorted(run_dir.iterdir()):
             if entry.name == MARKER or entry.name.startswith(".") or entry.is_symlink():
