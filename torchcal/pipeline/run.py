@@ -20,7 +20,7 @@ from torchcal import stats as S
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
-from torchcal.errors import OptionError
+from torchcal.errors import MeasurementFileError, OptionError
 from torchcal.pipeline.checks import MAX_PRIOR_RATIO, MIN_HOLDOUT, check_corrections, check_holdout, check_poses
 from torchcal.pipeline.integrated import require_trajectory
 from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
@@ -91,11 +91,45 @@ def holdout_split(
             q=m.q[rows.to(m.q.device)],
             group_tol=group_tol,
         )
+        if _poses(m.q[rows[part.keep].to(m.q.device)]) < MIN_STATION_ROWS:  # its placement needs them all: none held
+            keep.append(rows)
+            continue
         keep.append(rows[part.keep])
         out.append(rows[part.held])
         merged_groups += part.merged_groups
         merged_rows += part.merged_rows
-    return S.Split(torch.sort(torch.cat(keep)).values, torch.sort(torch.cat(out)).values, merged_groups, merged_rows)
+    held = torch.sort(torch.cat(out)).values if out else torch.zeros(0, dtype=torch.long)
+    return S.Split(torch.sort(torch.cat(keep)).values, held, merged_groups, merged_rows)
+
+
+#: poses an instrument placement needs: three points fix its six parameters (the rows of several probes at one pose
+#: count once: the closed-form start places a station before the lever arms are known)
+MIN_STATION_ROWS = 3
+
+
+def _poses(q: Tensor) -> int:
+    """The number of distinct poses (joint rows) in ``q (N, dof)``."""
+    return int(len(torch.unique(q, dim=0))) if len(q) else 0
+
+
+def check_stations(m: Measurements) -> None:
+    """Refuse a station measured at fewer than :data:`MIN_STATION_ROWS` poses, naming the file, the station and its
+    lines: its pose cannot be fitted (the rigid fit of its rows is undetermined)."""
+    if m.station is None or m.n_stations < 2:
+        return
+    st = m.station.cpu()
+    for k, name in enumerate(m.station_names):
+        rows = torch.nonzero(st == k).flatten()
+        n = _poses(m.q[rows.to(m.q.device)])
+        if 0 < n < MIN_STATION_ROWS:
+            where = ", ".join(str(m.lines[i] if m.lines else i) for i in rows.tolist())
+            raise MeasurementFileError(
+                m.source or "the measurements",
+                f"station {name!r} was measured at {n} pose{'s' if n > 1 else ''} ({len(rows)} rows, lines {where}); "
+                f"an instrument placement needs at least {MIN_STATION_ROWS} poses to fix its pose (6 parameters): "
+                "measure more points from it, or drop its rows",
+                column="station",
+            )
 
 
 def _strata(m: Measurements) -> list[Tensor] | None:
@@ -151,6 +185,7 @@ def start(
     if data.dof != robot.dof:
         raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
     check_poses(data)
+    check_stations(data)
     method = METHOD_TABLE[opts.method]
     trajectory = is_trajectory(data) if opts.split.trajectory is None else bool(opts.split.trajectory)
     if method.trajectory_only:

@@ -68,6 +68,10 @@ REGION_POSES = 500
 COLLINEAR_RATIO = 1e-3
 #: significance level of the chi-square test
 ALPHA = 0.05
+#: points whose median residual exceeds this many times the run's predicted error per point are refused (another robot,
+#: other units: 4300 x for ur10 points on a ur5 run); a placement that fits worse than predicted is a warning (one of
+#: 8 points 5 mm off: 22 x, the lever arm fitted; real data a few x)
+MAX_RESIDUAL_FACTOR = 100.0
 
 
 class StationError(EstimationError):
@@ -380,6 +384,7 @@ def fit_station(
             "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
         )
     expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
+    _refuse_foreign(points, r, expected)
     for i in range(n):
         if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
             warnings.append(
@@ -410,6 +415,21 @@ def fit_station(
         run_covariance=run_cov,
         warnings=warnings,
     )
+
+
+def _refuse_foreign(points: Measurements, r: Tensor, expected: float) -> None:
+    """Stop points whose residuals ``r (N, 3)`` [m] are :data:`MAX_RESIDUAL_FACTOR` times what the run predicts per
+    point (``expected`` [m]), as ``calibrate`` stops a geometric fit far beyond its priors: the robot's calibration is
+    held here, so data of another robot or in other units show as residuals, and a run written from them would
+    predict nonsense with a warning only."""
+    med = float(r.norm(dim=-1).median())  # the median: one point measured wrongly is a warning (named), not this
+    if expected > 0 and med > MAX_RESIDUAL_FACTOR * expected:
+        raise StationError(
+            f"{points.source or 'the points'}: the {points.n} points fit the run's robot with a median residual of "
+            f"{med * 1e3:.4g} mm, {med / expected:.0f} times the {expected * 1e3:.3g} mm the run predicts per point "
+            f"(limit {MAX_RESIDUAL_FACTOR:g} x): points of another robot, in other units (--length-unit, "
+            "--angle-unit), joints in another order or sign, or another tool than the run's (--tool)"
+        )
 
 
 def _without(cov: ParameterCovariance, names: set[str]) -> ParameterCovariance:
