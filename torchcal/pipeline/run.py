@@ -25,7 +25,7 @@ from torchcal.pipeline.checks import MAX_PRIOR_RATIO, MIN_HOLDOUT, check_correct
 from torchcal.pipeline.integrated import require_trajectory
 from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
 from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
-from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, prior_from_run
+from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, for_data, prior_from_run
 from torchcal.pipeline.state import CalibrationRun, Stage
 from torchcal.robot.model import RobotModel
 
@@ -170,14 +170,13 @@ def start(
     if data.p is None:
         raise OptionError("calibration needs measured positions (x, y, z columns)")
     if prior is not None:
-        if data.n_stations > 1 or data.n_probes > 1:
-            raise OptionError("a calibration from a prior run takes data of one station and one probe")
         if opts.method != "kinematic":
             raise OptionError(f"a calibration from a prior run is kinematic, not method '{opts.method}'")
+        prior = for_data(prior, data)  # its stations and probes matched by label to the rows'
         robot = prior.model.robot
     spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
     robot = _robot(robot, base_link, tip_link).to(opts.device)  # the run computes on opts.device
-    if data.n_stations > 1 or data.n_probes > 1:  # one instrument pose per station, one lever arm per probe
+    if prior is None and (data.n_stations > 1 or data.n_probes > 1):  # one pose per station, one lever per probe
         robot = copy.deepcopy(robot)
         robot.set_stations(data.station_names if data.n_stations > 1 else None)
         robot.set_probes(data.probe_names if data.n_probes > 1 else None)
