@@ -111,3 +111,39 @@ def test_predict_refusal_names_file_line_and_column(tmp_path, capsys):
     first = next(i for i in range(bad.n) if int(bad.probe[i]) == 1)
     line = read_measurements(tmp_path / "bad.csv").lines[first]  # the file's line of the first P9 row
     assert code == 2 and f"bad.csv, line {line}, column 'probe'" in err and not (tmp_path / "o.csv").exists()
+
+
+def test_a_learned_corrections_fallback_moves_with_the_instrument():
+    """The integrated method's gate fades to a fallback geometry, whose prediction lived in tracker coordinates at the
+    old placement: re-stationed (:func:`one_placement`), the whole prediction moves rigidly with the instrument."""
+    import copy
+
+    from torchcal.effects import Context, MeasurementModel
+    from torchcal.effects.learned import CorrectionNet, LearnedEffect
+    from torchcal.effects.support import SupportGate
+    from torchcal.report.station import one_placement
+    from torchcal.robot import load_robot
+    from torchcal.robot import transforms as tf
+
+    torch.manual_seed(0)
+    robot = load_robot("ur5")
+    fallback = copy.deepcopy(robot)
+    with torch.no_grad():  # the fallback: a slightly different geometry and instrument pose, as a kinematic fit's
+        fallback.geometry.delta.add_(1e-3 * torch.randn_like(fallback.geometry.delta))
+        fallback.instrument.delta.add_(torch.tensor([1e-3, -2e-3, 1e-3, 1e-3, 0.0, -1e-3], dtype=torch.float64))
+    q = (torch.rand(40, 6, dtype=torch.float64) - 0.5) * 4
+    gate = SupportGate(LearnedEffect(CorrectionNet(6, 8)), q[:10], 0.5, fallback=fallback)
+    model = MeasurementModel(robot, [gate])
+    one, meta, _ = one_placement(model, {"effects": []}, None)
+    assert meta["effects"][0]["fallback_frame"] == "base"
+    ctx = Context(q=q[10:])  # mostly away from the support: the fallback carries these predictions
+    with torch.no_grad():
+        before = one(ctx)
+        K = torch.tensor([[0, -0.7, 0], [0.7, 0, 0], [0, 0, 0.0]], dtype=torch.float64)
+        M = tf.homogeneous(torch.linalg.matrix_exp(K), torch.tensor([0.5, -1.2, 0.3], dtype=torch.float64))
+        torch.testing.assert_close(before, model(ctx))  # tying the fallback to the base changes nothing in place
+        one.robot.instrument.set_matrix(M @ one.robot.instrument.matrix())
+        model.robot.instrument.set_matrix(M @ model.robot.instrument.matrix())
+        moved = tf.transform_points(M, before)
+        torch.testing.assert_close(one(ctx), moved)  # rigidly with the instrument
+        assert float((model(ctx) - moved).norm(dim=-1).max()) > 1e-4  # the untied fallback stayed behind
