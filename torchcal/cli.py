@@ -309,7 +309,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="RUN",
         default=None,
         help="start from a calibrated run directory and update it from these rows (kinematic, MAP about its values "
-        "with its covariance; as few as 5 rows; report.json 'prior' names the parameters that moved). With few rows "
+        "with its covariance; as few as 5 rows; report.json 'prior' names the parameters that moved; the rows' "
+        "stations and probes are matched to the run's by label, new ones fitted from scratch). With few rows "
         "the held-out error is of one or two rows: judge the update on a separate check file (torchcal predict)",
     )
     c.add_argument(
@@ -362,7 +363,8 @@ def build_parser() -> argparse.ArgumentParser:
         "predict",
         help="predict probe positions with a calibrated run",
         description="Predict the probe position in the tracker frame for every row of DATA with "
-        "everything the run learned (geometry, effects, network).",
+        "everything the run learned (geometry, effects, network); each row's station and probe columns are honoured "
+        "(by name; absent: the run's first) and kept in the output, and a name the run lacks is refused.",
     )
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
@@ -418,14 +420,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--tool",
         action="store_true",
         help="fit the lever arm too (another tool or probe than the run's; needs four or more points whose tool "
-        "orientations differ)",
+        "orientations differ; refused on a run of several probes, whose lever arms are kept)",
     )
     st.add_argument(
         "--probe",
         default=None,
-        help="a run with several probes: the probe the points were measured with (default: the points' probe "
-        "column, else the run's first). A run of several stations is re-stationed as one: the new placement "
-        "replaces them all, and a learned correction per station and probe does not apply there",
+        help="a run with several probes: the probe all the points were measured with (default: the points' probe "
+        "column, row by row, else the run's first); refused on a run of one probe. A run of several stations is "
+        "re-stationed as one placement (named after the points' station column where they have one: predict then "
+        "refuses rows of another station); every probe keeps its lever arm; a learned correction per station and "
+        "probe does not apply there",
     )
     _add_units(st)
     _add_common(st)
