@@ -239,32 +239,19 @@ def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
     return "; ".join(out)
 
 
-def fit_station(
+def _start(
     model: MeasurementModel,
     points: Measurements,
+    ctx: Context,
+    groups: tuple[str, ...],
     opts: StationOptions,
-    run_covariance: ParameterCovariance | None = None,
-) -> Station:
-    """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
-
-    Args:
-        model: a run's loaded model (:func:`~torchcal.report.rundir.load_model`); its instrument pose (and lever arm)
-            is overwritten, nothing else changes.
-        points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
-        opts: :class:`StationOptions`.
-        run_covariance: the run's ``covariance.pt`` (None: the run's own uncertainty is left out).
-
-    Raises:
-        StationError: too few points, collinear points, or a direction of the placement they do not fix.
-    """
-    if points.dof != model.robot.dof:
-        raise StationError(f"the points have {points.dof} joints but the run's robot has {model.robot.dof}")
-    _check_points(points, opts.tool)
+    warnings: list[str],
+):
+    """Steps 1 and 2 of the module docstring: the closed-form start written into ``model``, and the identifiability
+    analysis of the placement at the points (an instrument direction they do not fix is refused, a lever-arm one is
+    held and named in ``warnings``)."""
     robot = model.robot
-    ctx = Context.from_measurements(points, trajectory=False)
-    warnings: list[str] = []
     # 1. closed-form start: the run's predictions in the base frame (its lever arm) rigidly fitted to the points
-    groups = ("instrument", "tool") if opts.tool else ("instrument",)
     W = whitening(model, ctx, points.sigma, opts.sigma_tracker, opts.sigma_joint)
 
     def rigid_start() -> None:
@@ -304,6 +291,35 @@ def fit_station(
             robot.tool.nominal.copy_(t)
             robot.tool.delta.zero_()
         rigid_start()
+    return ida
+
+
+def fit_station(
+    model: MeasurementModel,
+    points: Measurements,
+    opts: StationOptions,
+    run_covariance: ParameterCovariance | None = None,
+) -> Station:
+    """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
+
+    Args:
+        model: a run's loaded model (:func:`~torchcal.report.rundir.load_model`); its instrument pose (and lever arm)
+            is overwritten, nothing else changes.
+        points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
+        opts: :class:`StationOptions`.
+        run_covariance: the run's ``covariance.pt`` (None: the run's own uncertainty is left out).
+
+    Raises:
+        StationError: too few points, collinear points, or a direction of the placement they do not fix.
+    """
+    if points.dof != model.robot.dof:
+        raise StationError(f"the points have {points.dof} joints but the run's robot has {model.robot.dof}")
+    _check_points(points, opts.tool)
+    robot = model.robot
+    ctx = Context.from_measurements(points, trajectory=False)
+    warnings: list[str] = []
+    groups = ("instrument", "tool") if opts.tool else ("instrument",)
+    ida = _start(model, points, ctx, groups, opts, warnings)  # 1. closed-form start, 2. conditioning
     # 3. LM
     fit = solve(model, points, groups, opts, "station", trajectory=False, identifiability=ida)
     res = fit.result
@@ -319,78 +335,9 @@ def fit_station(
         C_noise = torch.linalg.inv(res.normal)
         warnings.append("no redundancy: the covariance is that of the stochastic model alone, untested")
     # 4. the run's own uncertainty carried into the placement
-    Js_w = fit.whitening @ central_jacobian(
-        model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device)
-    )
-    Js_w = Js_w.reshape(-1, len(free.names))
-    C_s, kept = C_noise, None
-    if run_covariance is not None:
-        refit = {e.name for e in free.entries}
-        kept = _without(run_covariance, refit)
-    if kept is not None and len(kept.labels):
-        g_free = kept.free(model)
-        C_gg = kept.matrix.to(Js_w)
-        Jg_w = (fit.whitening @ central_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
-            -1, len(kept.labels)
-        )
-        A = -torch.linalg.solve(Js_w.T @ Js_w, Js_w.T @ Jg_w)
-        C_s = C_noise + A @ C_gg @ A.T
-        C_gs = C_gg @ A.T
-        full = torch.cat([torch.cat([C_gg, C_gs], 1), torch.cat([C_gs.T, C_s], 1)], 0)
-        run_cov = ParameterCovariance(
-            kept.names + [e.name for e in free.entries],
-            kept.index + [[int(i) for i in e.index] for e in free.entries],
-            kept.labels + list(free.names),
-            (0.5 * (full + full.T)).detach().cpu(),
-        )
-    else:
-        run_cov = ParameterCovariance(
-            [e.name for e in free.entries],
-            [[int(i) for i in e.index] for e in free.entries],
-            list(free.names),
-            C_s.detach().cpu(),
-        )
+    Js_w, C_s, run_cov = _carry_run_uncertainty(model, free, ctx, fit.whitening, C_noise, run_covariance)
     # 5. residuals, leave-one-out, chi-square against what the run predicts
-    with torch.no_grad():
-        r = points.p - model(ctx)
-    n = points.n
-    Jb = Js_w.reshape(n, 3, -1)
-    Ninv = torch.linalg.inv(Js_w.T @ Js_w)
-    rw = (fit.whitening @ r.unsqueeze(-1)).squeeze(-1)
-    loo = torch.full((n,), float("nan"), dtype=F64, device=r.device)
-    eye = torch.eye(3, dtype=F64, device=r.device)
-    for i in range(n):
-        H_ii = Jb[i] @ Ninv @ Jb[i].T
-        M = eye - H_ii
-        if float(torch.linalg.svdvals(M)[-1]) > 1e-8:
-            e_w = torch.linalg.solve(M, rw[i])
-            loo[i] = torch.linalg.solve(fit.whitening[i], e_w).norm()
-    sig = points.sigma if points.sigma is not None else torch.full_like(points.p, opts.sigma_tracker)
-    var = sig.square() + opts.run_rmse**2 / 3.0  # the run's model error, isotropic, per axis
-    stat = float((r.square() / var).sum())
-    dof = 3 * n - len(free.names)
-    thr = chi2_quantile(1.0 - ALPHA, dof) if dof > 0 else float("nan")
-    chi = {
-        "statistic": stat,
-        "dof": dof,
-        "threshold": thr,
-        "alpha": ALPHA,
-        "passed": bool(dof > 0 and stat <= thr),
-        "against": "the run's held-out RMSE (isotropic model error) and the points' measurement sigma",
-    }
-    if dof > 0 and not chi["passed"]:
-        warnings.append(
-            f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
-            "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
-        )
-    expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
-    _refuse_foreign(points, r, expected)
-    for i in range(n):
-        if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
-            warnings.append(
-                f"line {points.lines[i]}: the point is {float(loo[i]) * 1e3:.3g} mm from where the others place it "
-                f"(more than {OUTLIER_FACTOR:g} times the {expected * 1e3:.3g} mm the run predicts); check it"
-            )
+    r, loo, chi = _point_checks(model, points, ctx, fit.whitening, Js_w, opts, warnings)
     # 6. the placement's effect on accuracy over the calibrated region
     rctx, source = _region_ctx(model, points, opts.seed)
     var_r = _placement_var(model, free, C_s, rctx)
@@ -415,6 +362,102 @@ def fit_station(
         run_covariance=run_cov,
         warnings=warnings,
     )
+
+
+def _carry_run_uncertainty(
+    model: MeasurementModel,
+    free: FreeParameters,
+    ctx: Context,
+    W: Tensor,
+    C_noise: Tensor,
+    run_covariance: ParameterCovariance | None,
+) -> tuple[Tensor, Tensor, ParameterCovariance]:
+    """Step 4 of the module docstring: the placement's covariance with the run's own uncertainty (``C_s``), RUN2's
+    whole covariance, and the whitened placement Jacobian ``(3N, u)`` at the points (``W`` the points' whitening)."""
+    Js_w = W @ central_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device))
+    Js_w = Js_w.reshape(-1, len(free.names))
+    C_s, kept = C_noise, None
+    if run_covariance is not None:
+        refit = {e.name for e in free.entries}
+        kept = _without(run_covariance, refit)
+    if kept is not None and len(kept.labels):
+        g_free = kept.free(model)
+        C_gg = kept.matrix.to(Js_w)
+        Jg_w = (W @ central_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
+            -1, len(kept.labels)
+        )
+        A = -torch.linalg.solve(Js_w.T @ Js_w, Js_w.T @ Jg_w)
+        C_s = C_noise + A @ C_gg @ A.T
+        C_gs = C_gg @ A.T
+        full = torch.cat([torch.cat([C_gg, C_gs], 1), torch.cat([C_gs.T, C_s], 1)], 0)
+        run_cov = ParameterCovariance(
+            kept.names + [e.name for e in free.entries],
+            kept.index + [[int(i) for i in e.index] for e in free.entries],
+            kept.labels + list(free.names),
+            (0.5 * (full + full.T)).detach().cpu(),
+        )
+    else:
+        run_cov = ParameterCovariance(
+            [e.name for e in free.entries],
+            [[int(i) for i in e.index] for e in free.entries],
+            list(free.names),
+            C_s.detach().cpu(),
+        )
+    return Js_w, C_s, run_cov
+
+
+def _point_checks(
+    model: MeasurementModel,
+    points: Measurements,
+    ctx: Context,
+    W: Tensor,
+    Js_w: Tensor,
+    opts: StationOptions,
+    warnings: list[str],
+) -> tuple[Tensor, Tensor, dict]:
+    """Step 5 of the module docstring: the residuals ``(N, 3)`` [m], the leave-one-out errors ``(N,)`` [m] and the
+    chi-square test against what the run predicts; points of another robot refused, outliers named in ``warnings``."""
+    with torch.no_grad():
+        r = points.p - model(ctx)
+    n = points.n
+    Jb = Js_w.reshape(n, 3, -1)
+    Ninv = torch.linalg.inv(Js_w.T @ Js_w)
+    rw = (W @ r.unsqueeze(-1)).squeeze(-1)
+    loo = torch.full((n,), float("nan"), dtype=F64, device=r.device)
+    eye = torch.eye(3, dtype=F64, device=r.device)
+    for i in range(n):
+        H_ii = Jb[i] @ Ninv @ Jb[i].T
+        M = eye - H_ii
+        if float(torch.linalg.svdvals(M)[-1]) > 1e-8:
+            e_w = torch.linalg.solve(M, rw[i])
+            loo[i] = torch.linalg.solve(W[i], e_w).norm()
+    sig = points.sigma if points.sigma is not None else torch.full_like(points.p, opts.sigma_tracker)
+    var = sig.square() + opts.run_rmse**2 / 3.0  # the run's model error, isotropic, per axis
+    stat = float((r.square() / var).sum())
+    dof = 3 * n - Js_w.shape[1]
+    thr = chi2_quantile(1.0 - ALPHA, dof) if dof > 0 else float("nan")
+    chi = {
+        "statistic": stat,
+        "dof": dof,
+        "threshold": thr,
+        "alpha": ALPHA,
+        "passed": bool(dof > 0 and stat <= thr),
+        "against": "the run's held-out RMSE (isotropic model error) and the points' measurement sigma",
+    }
+    if dof > 0 and not chi["passed"]:
+        warnings.append(
+            f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
+            "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
+        )
+    expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
+    _refuse_foreign(points, r, expected)
+    for i in range(n):
+        if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
+            warnings.append(
+                f"line {points.lines[i]}: the point is {float(loo[i]) * 1e3:.3g} mm from where the others place it "
+                f"(more than {OUTLIER_FACTOR:g} times the {expected * 1e3:.3g} mm the run predicts); check it"
+            )
+    return r, loo, chi
 
 
 def _refuse_foreign(points: Measurements, r: Tensor, expected: float) -> None:
