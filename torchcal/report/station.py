@@ -541,12 +541,13 @@ def restation(
     every probe keeps its lever arm (a new placement moves the instrument, not the nest). The points' rows name their
     probe (their ``probe`` column, or ``probe`` for all of them; neither: the run's first) and at most one station (its
     label is kept: rows that name another station are then refused by ``predict``)."""
-    from torchcal.report.rundir import load_covariance, load_model
+    from torchcal.report.rundir import load_covariance, load_model, rows_of
 
     model, meta = load_model(run_dir)
     cov = load_covariance(run_dir, model)
     points, label = _points_rows(model, points, probe, tool, run_dir)
-    model, meta, cov = one_placement(model, meta, cov, label)
+    model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"))
+    points = rows_of(model, points)  # each point's probe in the re-stationed run's order
     station = fit_station(model, points, station_options(run_dir, tool, seed), cov)
     station.label = label
     return model, meta, station
@@ -586,7 +587,8 @@ def _points_rows(
         idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
         points = dataclasses.replace(points, probe=idx, probe_names=(probe,))
     none = {"station": None, "station_names": ()}
-    return rows_of(model, dataclasses.replace(points, meta=dict(points.meta), **none)), label
+    rows_of(model, points)  # a probe the run lacks: refused with its file, line and column
+    return dataclasses.replace(points, meta=dict(points.meta), **none), label
 
 
 def _names(points: Measurements, key: str) -> tuple[str, ...]:
@@ -595,15 +597,26 @@ def _names(points: Measurements, key: str) -> tuple[str, ...]:
     return () if index is None else tuple(names[int(i)] for i in torch.unique(index))
 
 
+def _only(points: Measurements, key: str) -> str | None:
+    """The one station or probe name all the points' rows give (None: none, or several)."""
+    names = _names(points, key)
+    return names[0] if len(names) == 1 else None
+
+
 def one_placement(
-    model: MeasurementModel, meta: dict, cov: ParameterCovariance | None, label: str | None = None
+    model: MeasurementModel,
+    meta: dict,
+    cov: ParameterCovariance | None,
+    label: str | None = None,
+    probe: str | None = None,
 ) -> tuple[MeasurementModel, dict, ParameterCovariance | None]:
     """The run as a run of one instrument placement, to be re-stationed: the pose of station ``label`` (where the
     run has it, else its first) as the start (the points replace it), every probe's lever arm kept, no learned
     correction per station and probe (a new placement is none of theirs), and a fallback geometry that a learned
     correction fades to tied to the robot's base frame (:meth:`~torchcal.effects.support.SupportGate.fallback_to_base`:
     it moves with the instrument). The covariance keeps the geometry, the effects and the lever arms; the stations'
-    rows go (the points refit the placement)."""
+    rows go (the points refit the placement). With ``probe`` (the one probe the points name) that probe comes first:
+    rows of a file without a ``probe`` column take the first, and at the new placement that is the points' probe."""
     from torchcal.effects.grouped import GroupedCorrection
     from torchcal.effects.support import SupportGate
     from torchcal.robot.model import Instrument
@@ -621,6 +634,9 @@ def one_placement(
         if isinstance(e, SupportGate):
             e.fallback_to_base(T0, station=k)
     meta = {k_: v for k_, v in meta.items() if k_ != "stations"}
+    if probe in robot.probes and robot.probes.index(probe):
+        cov = _probe_first(one, cov, robot.probes.index(probe))
+        meta["probes"] = list(one.robot.probes)
     meta["effects"] = [{"class": type(e).__name__, **e.config()} for e in one.effects]
     if robot.stations or robot.probes or dropped:
         meta["restationed_from"] = {
@@ -644,6 +660,35 @@ def one_placement(
             cov.matrix[r][:, r].clone(),
         ),
     )
+
+
+def _probe_first(model: MeasurementModel, cov: ParameterCovariance | None, k: int) -> ParameterCovariance | None:
+    """Move probe ``k`` of ``model`` (and of a learned correction's fallback geometry) to the front; the covariance's
+    lever-arm rows follow (each probe's rows keep their names, their indices in the new order)."""
+    from torchcal.robot.model import Tool
+
+    order = [k] + [i for i in range(len(model.robot.probes)) if i != k]
+    robots = [model.robot] + [e.fallback for e in model.effects if getattr(e, "fallback", None) is not None]
+    for r in robots:
+        old = r.tool
+        if len(old.probes) != len(order):
+            continue
+        new = Tool(old.nominal[order].clone(), dtype=r.dtype, device=r.device, probes=[old.probes[i] for i in order])
+        with torch.no_grad():
+            new.delta.copy_(old.delta[order])
+            new.mask.copy_(old.mask[order])
+        new.delta.requires_grad_(old.delta.requires_grad)
+        r.tool = new
+    if cov is None or "robot.tool.delta" not in cov.names:
+        return cov
+    b = cov.names.index("robot.tool.delta")
+    start = sum(len(i) for i in cov.index[:b])
+    moved = sorted((order.index(int(i) // 3) * 3 + int(i) % 3, start + j) for j, i in enumerate(cov.index[b]))
+    rows = list(range(start)) + [j for _, j in moved] + list(range(start + len(cov.index[b]), len(cov.labels)))
+    r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
+    index = [list(i) for i in cov.index]
+    index[b] = [i for i, _ in moved]
+    return ParameterCovariance(list(cov.names), index, [cov.labels[i] for i in rows], cov.matrix[r][:, r].clone())
 
 
 def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
