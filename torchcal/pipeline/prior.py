@@ -296,8 +296,8 @@ def _rebuild(robot: RobotModel, old: RobotModel, st_map, pr_map, st_names, pr_na
     from torchcal.robot.model import Instrument, Tool
 
     T_old, t_old = old.instrument.matrix().detach(), old.tool.vector().detach()
-    T = [T_old if k is not None and T_old.dim() == 2 else T_old[k] if k is not None else torch.eye(4).to(T_old)
-         for k in st_map]  # fmt: skip
+    eye = torch.eye(4, dtype=T_old.dtype, device=T_old.device)  # a new station's start, until _place_new
+    T = [T_old if k is not None and T_old.dim() == 2 else T_old[k] if k is not None else eye for k in st_map]
     mean = t_old if t_old.dim() == 1 else t_old.mean(0)
     t = [t_old if k is not None and t_old.dim() == 1 else t_old[k] if k is not None else mean for k in pr_map]
     robot.instrument = Instrument(torch.stack(T) if st_names else T[0], robot.dtype, robot.device, st_names or None)

@@ -98,7 +98,7 @@ def holdout_split(
         out.append(rows[part.held])
         merged_groups += part.merged_groups
         merged_rows += part.merged_rows
-    held = torch.sort(torch.cat(out)).values if out else torch.zeros(0, dtype=torch.long)
+    held = torch.sort(torch.cat(out)).values if out else torch.zeros(0, dtype=torch.long, device=strata[0].device)
     return S.Split(torch.sort(torch.cat(keep)).values, held, merged_groups, merged_rows)
 
 
