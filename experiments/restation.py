@@ -26,7 +26,7 @@ from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate, holdout_split
 from torchcal.report import write_run
 from torchcal.report.rundir import load_covariance, load_model
-from torchcal.report.station import fit_station, station_options
+from torchcal.report.station import fit_station, one_placement, station_options
 from torchcal.robot import load_robot
 
 ROBOT = "ur10"
@@ -110,8 +110,9 @@ def run(
             run_ = calibrate(ROBOT, src, Options.of(method=method, seed=SEED, holdout=HOLDOUT, trajectory=False))
             cal_s = time.perf_counter() - t1
             rd = write_run(run_, Path(tmp) / method.replace("+", "_"))
-            model, _ = load_model(rd)
-            cov = load_covariance(rd, model)
+            model, meta = load_model(rd)
+            # as `torchcal station` does: a learned correction's fallback geometry moves with the instrument
+            model, _, cov = one_placement(model, meta, load_covariance(rd, model))
             opts = station_options(rd, tool=tool)
             per = [_restation(model, cov, pts, held, opts) for pts in draws]
             rm = _summary([p["rmse_mm"] for p in per])

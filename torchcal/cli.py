@@ -361,7 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="RUN",
         default=None,
         help="start from a calibrated run directory and update it from these rows (kinematic, MAP about its values "
-        "with its covariance; as few as 5 rows; report.json 'prior' names the parameters that moved). With few rows "
+        "with its covariance; as few as 5 rows; report.json 'prior' names the parameters that moved; the rows' "
+        "stations and probes are matched to the run's by label, new ones fitted from scratch). With few rows "
         "the held-out error is of one or two rows: judge the update on a separate check file (torchcal predict)",
     )
     c.add_argument(
@@ -414,7 +415,8 @@ def build_parser() -> argparse.ArgumentParser:
         "predict",
         help="predict probe positions with a calibrated run",
         description="Predict the probe position in the tracker frame for every row of DATA with "
-        "everything the run learned (geometry, effects, network).",
+        "everything the run learned (geometry, effects, network); each row's station and probe columns are honoured "
+        "(by name; absent: the run's first) and kept in the output, and a name the run lacks is refused.",
     )
     pr.add_argument("run", help="run directory written by calibrate")
     pr.add_argument("data", help="file with q1..qN (and t, temperature when the run uses them)")
@@ -503,14 +505,16 @@ def build_parser() -> argparse.ArgumentParser:
         "--tool",
         action="store_true",
         help="fit the lever arm too (another tool or probe than the run's; needs four or more points whose tool "
-        "orientations differ)",
+        "orientations differ; refused on a run of several probes, whose lever arms are kept)",
     )
     st.add_argument(
         "--probe",
         default=None,
-        help="a run with several probes: the probe the points were measured with (default: the points' probe "
-        "column, else the run's first). A run of several stations is re-stationed as one: the new placement "
-        "replaces them all, and a learned correction per station and probe does not apply there",
+        help="a run with several probes: the probe all the points were measured with (default: the points' probe "
+        "column, row by row, else the run's first); refused on a run of one probe. A run of several stations is "
+        "re-stationed as one placement (named after the points' station column where they have one: predict then "
+        "refuses rows of another station); every probe keeps its lever arm; a learned correction per station and "
+        "probe does not apply there",
     )
     _add_units(st)
     _add_common(st)
@@ -861,7 +865,14 @@ def cmd_predict(args) -> int:
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
     from torchcal.report import load_model
-    from torchcal.report.rundir import MODEL_NAMES, predict_orientation, predict_with, row_trust, rows_of
+    from torchcal.report.rundir import (
+        MODEL_NAMES,
+        check_placement,
+        predict_orientation,
+        predict_with,
+        row_trust,
+        rows_of,
+    )
 
     out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
     device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
@@ -878,6 +889,8 @@ def cmd_predict(args) -> int:
         joint_types=robot.joint_types,
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
+    check_placement(meta, data)  # a re-stationed run: rows of another station are refused
+    labels = {k: getattr(data, k) for k in ("station", "station_names", "probe", "probe_names")}  # kept in the output
     data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
     # how far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
     # measurement minus the prediction, how far the pose lies outside the calibrated region, and which model
@@ -909,6 +922,7 @@ def cmd_predict(args) -> int:
         meta={"predicted_by": str(args.run)},
         r=r,
         sigma_r=None,
+        **labels,
     )
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, model, data.q, fade)
@@ -971,7 +985,7 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
 def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.report import load_model
-    from torchcal.report.rundir import at_station
+    from torchcal.report.rundir import at_station, check_placement
     from torchcal.use.compensate import Status, compensate_groups, orientation_mode, row_groups
 
     out_file = check_out_file(
@@ -981,6 +995,7 @@ def cmd_compensate(args) -> int:
     robot = model.robot
     kw = dict(require_positions=False, **_reading(args, robot))
     data = read_measurements(args.targets, require_joints=False, **kw)
+    check_placement(meta, data)  # a re-stationed run: rows of another station are refused
     # each row in its own station's frame with its own probe (the columns, else --station / --probe, else the first)
     station, probe = row_groups(model, data, args.station, args.probe)
     q_start = data.q if data.dof > 0 else None

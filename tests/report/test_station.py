@@ -173,7 +173,7 @@ def test_cli_station_predict_compensate(setup, tmp_path):
 def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
     """A run calibrated from two stations and two probes, re-stationed on 6 points measured with its second probe
     from a new placement: the new placement predicts within 1.3x of the run's own held-out error; points naming two
-    probes, or a probe the run lacks, are refused."""
+    stations, or a probe the run lacks, are refused."""
     from torchcal.pipeline import calibrate
     from torchcal.report.rundir import at_station
 
@@ -200,7 +200,9 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
     )
     assert code == 0
     meta = json.loads((tmp_path / "run2" / "model.json").read_text())
-    assert "stations" not in meta and meta["restationed_from"]["probe"] == probe
+    assert "stations" not in meta and sorted(meta["probes"]) == sorted(run.robot.probes)  # every lever arm kept
+    # rows without a probe column take the run's first probe: after re-stationing, the points' (--probe) one
+    assert meta["probes"][0] == probe
     got = predict(tmp_path / "run2", rest)
     assert _rmse((got - rest.p).norm(dim=-1)) < 1.3 * own
     assert load_covariance(tmp_path / "run2", load_model(tmp_path / "run2")[0]) is not None
@@ -210,8 +212,8 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
         restation(run_dir, points, probe="nope")
     bad = ["station", str(run_dir), str(tmp_path / "pts.csv"), "--out", str(tmp_path / "run3"), "--probe", "nope"]
     assert main([*bad, "--quiet"]) == 2 and not (tmp_path / "run3").exists()
-    two = replace(points, probe=torch.tensor([0, 1, 0, 1, 0, 1]), probe_names=tuple(run.robot.probes))
-    with pytest.raises(StationError, match="2 probes"):
+    two = replace(points, station=torch.tensor([0, 1, 0, 1, 0, 1]), station_names=tuple(run.robot.stations))
+    with pytest.raises(StationError, match="2 stations"):  # one placement at a time
         restation(run_dir, two)
 
 

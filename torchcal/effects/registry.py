@@ -103,5 +103,6 @@ def effect_from_config(cfg: dict, robot=None) -> Effect:
             max_support=cfg["n_support"],
             fallback=copy.deepcopy(robot) if cfg.get("fallback") else None,
             predictive=cfg.get("predictive"),
+            fallback_in_base=cfg.get("fallback_frame") == "base",
         )
     return CLASSES[name](**cfg)

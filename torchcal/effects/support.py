@@ -76,6 +76,8 @@ class SupportGate(Effect):
         length: gate length in units of the joints' spread (``inf`` or None: no gate).
         max_support: most support points kept (the distance costs ``N * M * dof``).
         fallback: the robot the prediction fades to (module docstring), or None (the correction fades to zero).
+        fallback_in_base: the fallback's instrument pose is its placement relative to this model's base frame
+            (:meth:`fallback_to_base`: a re-stationed run), not a tracker pose.
         predictive: ``config()["predictive"]`` of a saved gate with a predictive standard deviation: sizes its
             buffers for ``load_state_dict`` (:meth:`set_predictive` sets them on a new gate).
     """
@@ -92,6 +94,7 @@ class SupportGate(Effect):
         max_support: int = 3000,
         fallback=None,
         predictive: dict | None = None,
+        fallback_in_base: bool = False,
     ):
         super().__init__(joint=None)
         if inner.acts_on != "cartesian":
@@ -106,6 +109,7 @@ class SupportGate(Effect):
         self.register_buffer("spread", spread.clamp(min=1e-3))
         self.length = math.inf if length is None else float(length)  # None: no gate (how config() writes inf)
         self.fallback = fallback
+        self.fallback_in_base = bool(fallback_in_base) and fallback is not None
         if fallback is not None:
             for p in fallback.parameters():
                 p.requires_grad_(False)
@@ -217,7 +221,24 @@ class SupportGate(Effect):
     def reads_instrument(self) -> bool:
         """A finite gate with a fallback maps the fallback's tracker-frame prediction into this robot's base frame
         (:meth:`forward`), through this robot's instrument pose."""
-        return self.fallback is not None and not math.isinf(self.length)
+        return self.fallback is not None and not math.isinf(self.length) and not self.fallback_in_base
+
+    def fallback_to_base(self, T_tracker_base: Tensor, station: int = 0) -> None:
+        """Tie the fallback to this model's base frame: its instrument pose becomes ``T_tracker_base^-1 T_fb``
+        ``(4, 4)`` (``T_tracker_base`` the model's pose at which the two were fitted), so that a new instrument
+        placement (``torchcal station``) moves the fallback's prediction with the model's. Without it the fallback
+        would stay at the old placement in tracker coordinates, and the faded prediction would mix two placements.
+        A fallback of several stations keeps the pose of its ``station`` (index) relative to ``T_tracker_base``."""
+        if self.fallback is None or self.fallback_in_base:
+            return
+        from torchcal.robot.model import Instrument
+
+        fb = self.fallback
+        rel = torch.linalg.solve(T_tracker_base.detach(), fb.T_tracker_base(station).detach())
+        fb.instrument = Instrument(rel, dtype=fb.dtype, device=fb.device)
+        for p in fb.instrument.parameters():
+            p.requires_grad_(False)
+        self.fallback_in_base = True
 
     def distance(self, q: Tensor) -> Tensor:
         """``d(q)``: distance to the nearest support point in units of the spread ``(N,)``."""
@@ -245,6 +266,8 @@ class SupportGate(Effect):
             self.fallback.T_tracker_base()
             @ torch.cat([self.fallback.probe_in_base(ctx.q), torch.ones_like(ctx.q[:, :1])], dim=-1).T
         )
+        if self.fallback_in_base:  # y_fb is in this model's base frame already (fallback_to_base)
+            return out + (1.0 - g) * (y_fb.T[:, :3] - p_own)
         T_inv = torch.linalg.inv(robot.T_tracker_base())
         p_fb = (T_inv @ y_fb).T[:, :3]  # the fallback's probe in this model's base frame
         return out + (1.0 - g) * (p_fb - p_own)
@@ -256,6 +279,7 @@ class SupportGate(Effect):
             "n_support": int(len(self.support)),
             "dof": int(self.support.shape[1]),
             "fallback": self.fallback is not None,
+            **({"fallback_frame": "base"} if self.fallback_in_base else {}),  # absent: the tracker frame
             "predictive": {
                 "n_weights": int(len(self.weight_index)),
                 "scale": self.sigma_scale,

@@ -201,7 +201,11 @@ def place_stations_and_probes(
             pb = (Rf @ t[pr].unsqueeze(-1)).squeeze(-1) + pf
             for s in range(S):
                 rows = st == s
-                T = rigid_fit(pb[rows], p[rows])
+                try:
+                    T = rigid_fit(pb[rows], p[rows])
+                except EstimationError as e:  # name the station: the message alone names no file or placement
+                    name = f"station {robot.stations[s]!r}" if robot.stations else "the instrument"
+                    raise EstimationError(f"{name}: its training rows cannot fix its pose: {e}") from None
                 Rs[s], t0[s] = T[:3, :3], T[:3, 3]
             # for fixed rotations, the translations and lever arms are jointly linear: p - R pf = t0_s + R Rf t_p
             u = 3 * S + 3 * P

@@ -340,7 +340,8 @@ def linear_kinematics(
         d = _corrections(rb) if d is None else d
         if columns is not None and len(d) != len(d0):
             d = d[columns.to(d.device)]
-        shift = (Jd.reshape(-1, Jd.shape[-1]) @ _dual.sub(d, d0)).reshape(p0.shape)
+        # explicit rows: with no kinematic column free (a re-stationing moves the instrument only) Jd is (N, 3, 0)
+        shift = (Jd.reshape(p0.numel(), Jd.shape[-1]) @ _dual.sub(d, d0)).reshape(p0.shape)
         return _dual.add(_dual.add(p0, dq), shift)
 
     fk.jd = Jd

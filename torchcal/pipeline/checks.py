@@ -34,34 +34,6 @@ def check_holdout(n: int, holdout: float) -> None:
         )
 
 
-#: fewest rows of a station a calibration of several stations takes: three points fix its pose (6 parameters), and
-#: the stratified split holds out one of them at least
-MIN_STATION_ROWS = 4
-
-
-def check_stations(data: Measurements) -> None:
-    """Refuse a station of too few rows (:data:`MIN_STATION_ROWS`) in data of several stations, naming the station
-    and its first row's line: its instrument pose would be undetermined, and the split would hold out all its rows."""
-    if data.station is None or data.n_stations < 2:
-        return
-    counts = torch.bincount(data.station.detach().cpu(), minlength=data.n_stations)
-    few = [k for k in range(data.n_stations) if int(counts[k]) < MIN_STATION_ROWS]
-    if not few:
-        return
-    k = few[0]
-    first = int(torch.nonzero(data.station.detach().cpu() == k).flatten()[0])
-    others = f" ({len(few) - 1} more such stations)" if len(few) > 1 else ""
-    raise MeasurementFileError(
-        data.source or "the measurements",
-        f"station '{data.station_names[k]}' has {int(counts[k])} row(s){others}; a calibration of several stations "
-        f"needs at least {MIN_STATION_ROWS} rows of each (three points fix its placement, one is held out)",
-        line=data.lines[first] if data.lines else None,
-        column="station",
-        hint="label the rows of one instrument placement with one station name; a label per row makes every row "
-        "its own placement",
-    )
-
-
 def check_poses(data: Measurements) -> None:
     """Refuse poses that cannot determine a calibration, naming the file and the cause, before any fitting: all
     rows with the same joint readings, measured positions that are one point or lie on one line, or only one joint

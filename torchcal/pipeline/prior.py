@@ -127,16 +127,14 @@ def prior_from_run(
 
     Raises:
         OptionError: the run has no covariance (its last fit's normal matrix was singular, or it was written
-            before covariances were kept), or it used several stations or probes (not supported yet).
+            before covariances were kept). A run of several stations or probes is matched to the new rows by
+            :func:`for_data`.
     """
     if covariance is None:
         raise OptionError(
             f"{source}: the run has no parameter covariance (covariance.pt); a prior needs the sigmas of its "
             "parameters: calibrate it again with this version"
         )
-    robot = model.robot
-    if robot.stations or robot.probes:
-        raise OptionError(f"{source}: a prior run with several stations or probes is not supported yet")
     model = copy.deepcopy(model)
     robot = model.robot
     info = {i.name: i for i in robot.parameter_info()}
@@ -244,3 +242,131 @@ def prior_update(prior: Prior, model: MeasurementModel) -> PriorUpdate:
     ranked = sorted(rows, key=lambda r: -r["ratio"])
     moved = tuple(r["name"] for r in ranked if r["name"] in released or r["ratio"] > MOVED_SIGMAS)
     return PriorUpdate(prior.source, tuple(rows), moved, released, prior.scale)
+
+
+def for_data(prior: Prior, data) -> Prior:
+    """``prior`` for the rows of ``data`` (:class:`~torchcal.data.Measurements`): its stations and probes matched by
+    label to the prior run's. A matched station (probe) keeps the prior's pose (lever arm) and a-priori sigmas; a new
+    one is fitted from scratch (the calibration's own a-priori sigma), its pose started by a rigid fit of its rows
+    (its lever arm at the mean of the prior's). A learned correction per station and probe keeps the groups whose
+    station and probe are matched. A prior of one placement and one probe with rows of one is returned as it is.
+
+    Raises:
+        OptionError: rows with no ``station`` (``probe``) column for a prior run of several: which is theirs is
+            unknown.
+    """
+    robot = prior.model.robot
+    stations, probes = _labels(data, "station"), _labels(data, "probe")
+    if not robot.stations and not robot.probes and not stations[0] and not probes[0]:
+        return prior
+    model = copy.deepcopy(prior.model)
+    sigma, corrections, units = dict(prior.sigma), dict(prior.corrections), dict(prior.units)
+    st_map = _match(prior, robot.stations, stations, "station", sigma, corrections, units)
+    pr_map = _match(prior, robot.probes, probes, "probe", sigma, corrections, units)
+    _rebuild(model.robot, robot, st_map, pr_map, stations[0], probes[0], set(sigma))
+    _regroup(model, st_map, pr_map)
+    _place_new(model.robot, data, st_map)
+    out = Prior(model, sigma, corrections, units, prior.source, prior.scale)
+    model.robot.prior_sigma = out.fit_sigma
+    return out
+
+
+def _labels(data, key: str) -> tuple[tuple[str, ...], str | None]:
+    """The rows' names of ``key`` when they name several (else ()), and the one name they give otherwise (or None)."""
+    index, names = getattr(data, key), getattr(data, f"{key}_names")
+    if index is None:
+        return (), None
+    used = [names[int(i)] for i in torch.unique(index)]
+    return (tuple(names), None) if len(used) > 1 else ((), used[0])
+
+
+def _element(names: tuple[str, ...], k: int | None, group: str, column: str) -> str:
+    return f"{group}[{names[k]}].{column}" if names else f"{group}.{column}"
+
+
+def _match(prior: Prior, old: tuple[str, ...], target, key: str, sigma, corrections, units) -> list[int | None]:
+    """For each new station (probe) the prior's index it matches by label (None: new), renaming the a-priori sigmas,
+    corrections and units of the matched elements to the new names (and dropping the rest of the group's)."""
+    names, single = target
+    group, columns = ("instrument", ("tx", "ty", "tz", "rx", "ry", "rz")) if key == "station" else ("tool", "xyz")
+    if names:
+        mapping = [old.index(n) if n in old else None for n in names]
+    elif old:
+        if single is None:
+            raise OptionError(
+                f"{prior.source}: the prior run has {key}s {', '.join(old)}; the rows have no {key} column: name "
+                f"each row's {key}"
+            )
+        mapping = [old.index(single) if single in old else None]
+    else:
+        mapping = [0 if not names else None]
+    renamed = {}
+    for j, k in enumerate(mapping):
+        for c in columns:
+            src = _element(old, k, group, c) if k is not None else None
+            if src is not None and src in sigma:
+                renamed[_element(names, j, group, c)] = (sigma[src], corrections[src], units[src])
+    for n in [n for n in sigma if n.startswith((f"{group}.", f"{group}["))]:
+        del sigma[n], corrections[n], units[n]
+    for n, (s, c, u) in renamed.items():
+        sigma[n], corrections[n], units[n] = s, c, u
+    return mapping
+
+
+def _rebuild(robot: RobotModel, old: RobotModel, st_map, pr_map, st_names, pr_names, free: set[str]) -> None:
+    """The instrument and tool of ``robot`` for the new stations and probes: matched ones at the prior's values,
+    their elements the prior held held still; new ones free (poses at the identity until :func:`_place_new`)."""
+    from torchcal.robot.model import Instrument, Tool
+
+    T_old, t_old = old.instrument.matrix().detach(), old.tool.vector().detach()
+    eye = torch.eye(4, dtype=T_old.dtype, device=T_old.device)  # a new station's start, until _place_new
+    T = [T_old if k is not None and T_old.dim() == 2 else T_old[k] if k is not None else eye for k in st_map]
+    mean = t_old if t_old.dim() == 1 else t_old.mean(0)
+    t = [t_old if k is not None and t_old.dim() == 1 else t_old[k] if k is not None else mean for k in pr_map]
+    robot.instrument = Instrument(torch.stack(T) if st_names else T[0], robot.dtype, robot.device, st_names or None)
+    robot.tool = Tool(torch.stack(t) if pr_names else t[0], robot.dtype, robot.device, pr_names or None)
+    with torch.no_grad():
+        for grp, mapping in ((robot.instrument, st_map), (robot.tool, pr_map)):
+            flat = grp.mask.reshape(len(mapping), -1) if grp.mask.dim() == 2 else grp.mask.reshape(1, -1)
+            names = list(grp.names)
+            for j, k in enumerate(mapping):
+                if k is None:
+                    continue
+                for c in range(flat.shape[1]):
+                    flat[j, c] = names[j * flat.shape[1] + c] in free
+
+
+def _regroup(model: MeasurementModel, st_map, pr_map) -> None:
+    """A learned correction per station and probe keeps the groups of matched stations and probes, re-indexed."""
+    from torchcal.effects.grouped import GroupedCorrection
+
+    st = {k: j for j, k in enumerate(st_map) if k is not None}
+    pr = {k: j for j, k in enumerate(pr_map) if k is not None}
+    for i, e in reversed(list(enumerate(model.effects))):
+        if not isinstance(e, GroupedCorrection):
+            continue
+        keep = [g for g, (s, p) in enumerate(e.groups) if s in st and p in pr]
+        if not keep:
+            del model.effects[i]
+            continue
+        regions = None if e.regions is None else [e.regions[g] for g in keep]
+        groups = [(st[e.groups[g][0]], pr[e.groups[g][1]]) for g in keep]
+        model.effects[i] = GroupedCorrection(groups, [e.inner[g] for g in keep], regions)
+
+
+def _place_new(robot: RobotModel, data, st_map) -> None:
+    """Start each new station's pose with a rigid fit of its rows (the prior's geometry and lever arms)."""
+    from torchcal.estimate.rigid import rigid_fit
+
+    new = [j for j, k in enumerate(st_map) if k is None]
+    if not new:
+        return
+    with torch.no_grad():
+        pb = robot.probe_in_base(data.q, data.probe if robot.probes else None)
+        for j in new:
+            rows = data.station == j if robot.stations else torch.ones(data.n, dtype=torch.bool, device=data.q.device)
+            T = rigid_fit(pb[rows], data.p[rows])
+            if robot.stations:
+                robot.instrument.nominal[j] = T
+            else:
+                robot.instrument.nominal.copy_(T)

@@ -21,19 +21,12 @@ from torchcal._method import Method
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
-from torchcal.errors import OptionError
-from torchcal.pipeline.checks import (
-    MAX_PRIOR_RATIO,
-    MIN_HOLDOUT,
-    check_corrections,
-    check_holdout,
-    check_poses,
-    check_stations,
-)
+from torchcal.errors import MeasurementFileError, OptionError
+from torchcal.pipeline.checks import MAX_PRIOR_RATIO, MIN_HOLDOUT, check_corrections, check_holdout, check_poses
 from torchcal.pipeline.integrated import require_trajectory
 from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
 from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
-from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, prior_from_run
+from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, for_data, prior_from_run
 from torchcal.pipeline.state import CalibrationRun, Stage
 from torchcal.robot.model import RobotModel
 
@@ -99,11 +92,45 @@ def holdout_split(
             q=m.q[rows.to(m.q.device)],
             group_tol=group_tol,
         )
+        if _poses(m.q[rows[part.keep].to(m.q.device)]) < MIN_STATION_ROWS:  # its placement needs them all: none held
+            keep.append(rows)
+            continue
         keep.append(rows[part.keep])
         out.append(rows[part.held])
         merged_groups += part.merged_groups
         merged_rows += part.merged_rows
-    return S.Split(torch.sort(torch.cat(keep)).values, torch.sort(torch.cat(out)).values, merged_groups, merged_rows)
+    held = torch.sort(torch.cat(out)).values if out else torch.zeros(0, dtype=torch.long, device=strata[0].device)
+    return S.Split(torch.sort(torch.cat(keep)).values, held, merged_groups, merged_rows)
+
+
+#: poses an instrument placement needs: three points fix its six parameters (the rows of several probes at one pose
+#: count once: the closed-form start places a station before the lever arms are known)
+MIN_STATION_ROWS = 3
+
+
+def _poses(q: Tensor) -> int:
+    """The number of distinct poses (joint rows) in ``q (N, dof)``."""
+    return int(len(torch.unique(q, dim=0))) if len(q) else 0
+
+
+def check_stations(m: Measurements) -> None:
+    """Refuse a station measured at fewer than :data:`MIN_STATION_ROWS` poses, naming the file, the station and its
+    lines: its pose cannot be fitted (the rigid fit of its rows is undetermined)."""
+    if m.station is None or m.n_stations < 2:
+        return
+    st = m.station.cpu()
+    for k, name in enumerate(m.station_names):
+        rows = torch.nonzero(st == k).flatten()
+        n = _poses(m.q[rows.to(m.q.device)])
+        if 0 < n < MIN_STATION_ROWS:
+            where = ", ".join(str(m.lines[i] if m.lines else i) for i in rows.tolist())
+            raise MeasurementFileError(
+                m.source or "the measurements",
+                f"station {name!r} was measured at {n} pose{'s' if n > 1 else ''} ({len(rows)} rows, lines {where}); "
+                f"an instrument placement needs at least {MIN_STATION_ROWS} poses to fix its pose (6 parameters): "
+                "measure more points from it, or drop its rows",
+                column="station",
+            )
 
 
 def _strata(m: Measurements) -> list[Tensor] | None:
@@ -144,14 +171,13 @@ def start(
     if data.p is None:
         raise OptionError("calibration needs measured positions (x, y, z columns)")
     if prior is not None:
-        if data.n_stations > 1 or data.n_probes > 1:
-            raise OptionError("a calibration from a prior run takes data of one station and one probe")
         if opts.method != Method.KINEMATIC:
             raise OptionError(f"a calibration from a prior run is kinematic, not method '{opts.method}'")
+        prior = for_data(prior, data)  # its stations and probes matched by label to the rows'
         robot = prior.model.robot
     spec = robot_spec if robot_spec is not None else (robot if not isinstance(robot, RobotModel) else robot.source)
     robot = _robot(robot, base_link, tip_link).to(opts.device)  # the run computes on opts.device
-    if data.n_stations > 1 or data.n_probes > 1:  # one instrument pose per station, one lever arm per probe
+    if prior is None and (data.n_stations > 1 or data.n_probes > 1):  # one pose per station, one lever per probe
         robot = copy.deepcopy(robot)
         robot.set_stations(data.station_names if data.n_stations > 1 else None)
         robot.set_probes(data.probe_names if data.n_probes > 1 else None)

@@ -39,7 +39,7 @@ from torchcal._inputs import load_json, read_bounded
 from torchcal._outdir import replace_dir
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
-from torchcal.errors import EstimationError, OptionError, TorchcalError
+from torchcal.errors import EstimationError, MeasurementFileError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.trust import MIN_ROWS, Trust
 from torchcal.pipeline import CalibrationRun, Prior, prior_from_run
@@ -774,14 +774,34 @@ def rows_of(model: MeasurementModel, data: Measurements) -> Measurements:
         else:
             unknown = [n for n in names if n not in known]
             if unknown:
-                raise OptionError(
-                    f"{data.source or 'the data'}: {key} {unknown[0]!r} is not one of the run's {key}s "
-                    f"({', '.join(known)})"
-                )
+                raise _label_error(data, key, unknown[0], f"is not one of the run's {key}s ({', '.join(known)})")
             lut = torch.tensor([known.index(n) for n in names], dtype=torch.long, device=index.device)
             index = lut[index]
         out[key], out[f"{key}_names"] = index, tuple(known)
     return dataclasses.replace(data, meta=dict(data.meta), **out)
+
+
+def _label_error(data: Measurements, key: str, name: str, why: str) -> MeasurementFileError:
+    """The refusal of the first row of ``data`` whose ``key`` column names ``name``: file, line and column."""
+    index, names = getattr(data, key), getattr(data, f"{key}_names")
+    row = int(torch.nonzero(index.cpu() == names.index(name))[0])
+    line = data.lines[row] if data.lines else None
+    return MeasurementFileError(data.source or "the data", f"{key} {name!r} {why}", line=line, column=key)
+
+
+def check_placement(meta: dict, data: Measurements) -> None:
+    """Refuse rows that name another station than a re-stationed run's placement (``model.json``'s ``station``
+    ``label``: the station its points named); a run without that label leaves the column to :func:`rows_of`."""
+    label = (meta.get("station") or {}).get("label") if isinstance(meta.get("station"), dict) else None
+    if not isinstance(label, str) or data.station is None:
+        return
+    other = [n for n in data.station_names if n != label]
+    used = {data.station_names[int(i)] for i in torch.unique(data.station)}
+    other = [n for n in other if n in used]
+    if other:
+        raise _label_error(
+            data, "station", other[0], f"is not the run's placement: it was re-stationed on points of {label!r}"
+        )
 
 
 def at_station(
@@ -835,6 +855,7 @@ def predict_with(
     model, data = model.to(device), data.to(device)
     if data.dof != model.robot.dof:
         raise OptionError(f"data have {data.dof} joints but the run's robot '{model.robot.name}' has {model.robot.dof}")
+    check_placement(meta, data)
     data = rows_of(model, data)
     with torch.no_grad():
         return model(

@@ -69,6 +69,10 @@ REGION_POSES = 500
 COLLINEAR_RATIO = 1e-3
 #: significance level of the chi-square test
 ALPHA = 0.05
+#: points whose median residual exceeds this many times the run's predicted error per point are refused (another robot,
+#: other units: 4300 x for ur10 points on a ur5 run); a placement that fits worse than predicted is a warning (one of
+#: 8 points 5 mm off: 22 x, the lever arm fitted; real data a few x)
+MAX_RESIDUAL_FACTOR = 100.0
 
 
 class StationError(EstimationError):
@@ -122,6 +126,7 @@ class Station:
     run_rmse: float  # [m]
     tool: bool
     run_covariance: ParameterCovariance | None = None  # RUN2's covariance.pt
+    label: str | None = None  # the station the points' rows name (None: none)
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -140,6 +145,7 @@ class Station:
         res = self.residuals.norm(dim=-1)
         return {
             "n_points": len(self.residuals),
+            "label": self.label,
             "lever_arm_fitted": self.tool,
             "T_tracker_base": self.T_tracker_base.tolist(),
             "t_flange_probe_m": self.t_flange_probe.tolist(),
@@ -236,32 +242,19 @@ def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
     return "; ".join(out)
 
 
-def fit_station(
+def _start(
     model: MeasurementModel,
     points: Measurements,
+    ctx: Context,
+    groups: tuple[str, ...],
     opts: StationOptions,
-    run_covariance: ParameterCovariance | None = None,
-) -> Station:
-    """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
-
-    Args:
-        model: a run's loaded model (:func:`~torchcal.report.rundir.load_model`); its instrument pose (and lever arm)
-            is overwritten, nothing else changes.
-        points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
-        opts: :class:`StationOptions`.
-        run_covariance: the run's ``covariance.pt`` (None: the run's own uncertainty is left out).
-
-    Raises:
-        StationError: too few points, collinear points, or a direction of the placement they do not fix.
-    """
-    if points.dof != model.robot.dof:
-        raise StationError(f"the points have {points.dof} joints but the run's robot has {model.robot.dof}")
-    _check_points(points, opts.tool)
+    warnings: list[str],
+):
+    """Steps 1 and 2 of the module docstring: the closed-form start written into ``model``, and the identifiability
+    analysis of the placement at the points (an instrument direction they do not fix is refused, a lever-arm one is
+    held and named in ``warnings``)."""
     robot = model.robot
-    ctx = Context.from_measurements(points, trajectory=False)
-    warnings: list[str] = []
     # 1. closed-form start: the run's predictions in the base frame (its lever arm) rigidly fitted to the points
-    groups = ("instrument", "tool") if opts.tool else ("instrument",)
     W = whitening(model, ctx, points.sigma, opts.sigma_tracker, opts.sigma_joint)
 
     def rigid_start() -> None:
@@ -301,6 +294,35 @@ def fit_station(
             robot.tool.nominal.copy_(t)
             robot.tool.delta.zero_()
         rigid_start()
+    return ida
+
+
+def fit_station(
+    model: MeasurementModel,
+    points: Measurements,
+    opts: StationOptions,
+    run_covariance: ParameterCovariance | None = None,
+) -> Station:
+    """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
+
+    Args:
+        model: a run's loaded model (:func:`~torchcal.report.rundir.load_model`); its instrument pose (and lever arm)
+            is overwritten, nothing else changes.
+        points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
+        opts: :class:`StationOptions`.
+        run_covariance: the run's ``covariance.pt`` (None: the run's own uncertainty is left out).
+
+    Raises:
+        StationError: too few points, collinear points, or a direction of the placement they do not fix.
+    """
+    if points.dof != model.robot.dof:
+        raise StationError(f"the points have {points.dof} joints but the run's robot has {model.robot.dof}")
+    _check_points(points, opts.tool)
+    robot = model.robot
+    ctx = Context.from_measurements(points, trajectory=False)
+    warnings: list[str] = []
+    groups = ("instrument", "tool") if opts.tool else ("instrument",)
+    ida = _start(model, points, ctx, groups, opts, warnings)  # 1. closed-form start, 2. conditioning
     # 3. LM
     fit = solve(model, points, groups, opts, "station", trajectory=False, identifiability=ida)
     res = fit.result
@@ -316,77 +338,9 @@ def fit_station(
         C_noise = torch.linalg.inv(res.normal)
         warnings.append("no redundancy: the covariance is that of the stochastic model alone, untested")
     # 4. the run's own uncertainty carried into the placement
-    Js_w = fit.whitening @ central_jacobian(
-        model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device)
-    )
-    Js_w = Js_w.reshape(-1, len(free.names))
-    C_s, kept = C_noise, None
-    if run_covariance is not None:
-        refit = {e.name for e in free.entries}
-        kept = _without(run_covariance, refit)
-    if kept is not None and len(kept.labels):
-        g_free = kept.free(model)
-        C_gg = kept.matrix.to(Js_w)
-        Jg_w = (fit.whitening @ central_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
-            -1, len(kept.labels)
-        )
-        A = -torch.linalg.solve(Js_w.T @ Js_w, Js_w.T @ Jg_w)
-        C_s = C_noise + A @ C_gg @ A.T
-        C_gs = C_gg @ A.T
-        full = torch.cat([torch.cat([C_gg, C_gs], 1), torch.cat([C_gs.T, C_s], 1)], 0)
-        run_cov = ParameterCovariance(
-            kept.names + [e.name for e in free.entries],
-            kept.index + [[int(i) for i in e.index] for e in free.entries],
-            kept.labels + list(free.names),
-            (0.5 * (full + full.T)).detach().cpu(),
-        )
-    else:
-        run_cov = ParameterCovariance(
-            [e.name for e in free.entries],
-            [[int(i) for i in e.index] for e in free.entries],
-            list(free.names),
-            C_s.detach().cpu(),
-        )
+    Js_w, C_s, run_cov = _carry_run_uncertainty(model, free, ctx, fit.whitening, C_noise, run_covariance)
     # 5. residuals, leave-one-out, chi-square against what the run predicts
-    with torch.no_grad():
-        r = points.p - model(ctx)
-    n = points.n
-    Jb = Js_w.reshape(n, 3, -1)
-    Ninv = torch.linalg.inv(Js_w.T @ Js_w)
-    rw = (fit.whitening @ r.unsqueeze(-1)).squeeze(-1)
-    loo = torch.full((n,), float("nan"), dtype=F64, device=r.device)
-    eye = torch.eye(3, dtype=F64, device=r.device)
-    for i in _console.progress(range(n), desc="station: leave-one-out"):
-        H_ii = Jb[i] @ Ninv @ Jb[i].T
-        M = eye - H_ii
-        if float(torch.linalg.svdvals(M)[-1]) > 1e-8:
-            e_w = torch.linalg.solve(M, rw[i])
-            loo[i] = torch.linalg.solve(fit.whitening[i], e_w).norm()
-    sig = points.sigma if points.sigma is not None else torch.full_like(points.p, opts.sigma_tracker)
-    var = sig.square() + opts.run_rmse**2 / 3.0  # the run's model error, isotropic, per axis
-    stat = float((r.square() / var).sum())
-    dof = 3 * n - len(free.names)
-    thr = chi2_quantile(1.0 - ALPHA, dof) if dof > 0 else float("nan")
-    chi = {
-        "statistic": stat,
-        "dof": dof,
-        "threshold": thr,
-        "alpha": ALPHA,
-        "passed": bool(dof > 0 and stat <= thr),
-        "against": "the run's held-out RMSE (isotropic model error) and the points' measurement sigma",
-    }
-    if dof > 0 and not chi["passed"]:
-        warnings.append(
-            f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
-            "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
-        )
-    expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
-    for i in range(n):
-        if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
-            warnings.append(
-                f"line {points.lines[i]}: the point is {float(loo[i]) * 1e3:.3g} mm from where the others place it "
-                f"(more than {OUTLIER_FACTOR:g} times the {expected * 1e3:.3g} mm the run predicts); check it"
-            )
+    r, loo, chi = _point_checks(model, points, ctx, fit.whitening, Js_w, opts, warnings)
     # 6. the placement's effect on accuracy over the calibrated region
     rctx, source = _region_ctx(model, points, opts.seed)
     var_r = _placement_var(model, free, C_s, rctx)
@@ -411,6 +365,117 @@ def fit_station(
         run_covariance=run_cov,
         warnings=warnings,
     )
+
+
+def _carry_run_uncertainty(
+    model: MeasurementModel,
+    free: FreeParameters,
+    ctx: Context,
+    W: Tensor,
+    C_noise: Tensor,
+    run_covariance: ParameterCovariance | None,
+) -> tuple[Tensor, Tensor, ParameterCovariance]:
+    """Step 4 of the module docstring: the placement's covariance with the run's own uncertainty (``C_s``), RUN2's
+    whole covariance, and the whitened placement Jacobian ``(3N, u)`` at the points (``W`` the points' whitening)."""
+    Js_w = W @ central_jacobian(model, free, ctx, torch.full((len(free.names),), 1e-6, dtype=F64, device=ctx.q.device))
+    Js_w = Js_w.reshape(-1, len(free.names))
+    C_s, kept = C_noise, None
+    if run_covariance is not None:
+        refit = {e.name for e in free.entries}
+        kept = _without(run_covariance, refit)
+    if kept is not None and len(kept.labels):
+        g_free = kept.free(model)
+        C_gg = kept.matrix.to(Js_w)
+        Jg_w = (W @ central_jacobian(model, g_free, ctx, C_gg.diagonal().clamp(min=0).sqrt())).reshape(
+            -1, len(kept.labels)
+        )
+        A = -torch.linalg.solve(Js_w.T @ Js_w, Js_w.T @ Jg_w)
+        C_s = C_noise + A @ C_gg @ A.T
+        C_gs = C_gg @ A.T
+        full = torch.cat([torch.cat([C_gg, C_gs], 1), torch.cat([C_gs.T, C_s], 1)], 0)
+        run_cov = ParameterCovariance(
+            kept.names + [e.name for e in free.entries],
+            kept.index + [[int(i) for i in e.index] for e in free.entries],
+            kept.labels + list(free.names),
+            (0.5 * (full + full.T)).detach().cpu(),
+        )
+    else:
+        run_cov = ParameterCovariance(
+            [e.name for e in free.entries],
+            [[int(i) for i in e.index] for e in free.entries],
+            list(free.names),
+            C_s.detach().cpu(),
+        )
+    return Js_w, C_s, run_cov
+
+
+def _point_checks(
+    model: MeasurementModel,
+    points: Measurements,
+    ctx: Context,
+    W: Tensor,
+    Js_w: Tensor,
+    opts: StationOptions,
+    warnings: list[str],
+) -> tuple[Tensor, Tensor, dict]:
+    """Step 5 of the module docstring: the residuals ``(N, 3)`` [m], the leave-one-out errors ``(N,)`` [m] and the
+    chi-square test against what the run predicts; points of another robot refused, outliers named in ``warnings``."""
+    with torch.no_grad():
+        r = points.p - model(ctx)
+    n = points.n
+    Jb = Js_w.reshape(n, 3, -1)
+    Ninv = torch.linalg.inv(Js_w.T @ Js_w)
+    rw = (W @ r.unsqueeze(-1)).squeeze(-1)
+    loo = torch.full((n,), float("nan"), dtype=F64, device=r.device)
+    eye = torch.eye(3, dtype=F64, device=r.device)
+    for i in _console.progress(range(n), desc="station: leave-one-out"):
+        H_ii = Jb[i] @ Ninv @ Jb[i].T
+        M = eye - H_ii
+        if float(torch.linalg.svdvals(M)[-1]) > 1e-8:
+            e_w = torch.linalg.solve(M, rw[i])
+            loo[i] = torch.linalg.solve(W[i], e_w).norm()
+    sig = points.sigma if points.sigma is not None else torch.full_like(points.p, opts.sigma_tracker)
+    var = sig.square() + opts.run_rmse**2 / 3.0  # the run's model error, isotropic, per axis
+    stat = float((r.square() / var).sum())
+    dof = 3 * n - Js_w.shape[1]
+    thr = chi2_quantile(1.0 - ALPHA, dof) if dof > 0 else float("nan")
+    chi = {
+        "statistic": stat,
+        "dof": dof,
+        "threshold": thr,
+        "alpha": ALPHA,
+        "passed": bool(dof > 0 and stat <= thr),
+        "against": "the run's held-out RMSE (isotropic model error) and the points' measurement sigma",
+    }
+    if dof > 0 and not chi["passed"]:
+        warnings.append(
+            f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
+            "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
+        )
+    expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
+    _refuse_foreign(points, r, expected)
+    for i in range(n):
+        if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
+            warnings.append(
+                f"line {points.lines[i]}: the point is {float(loo[i]) * 1e3:.3g} mm from where the others place it "
+                f"(more than {OUTLIER_FACTOR:g} times the {expected * 1e3:.3g} mm the run predicts); check it"
+            )
+    return r, loo, chi
+
+
+def _refuse_foreign(points: Measurements, r: Tensor, expected: float) -> None:
+    """Stop points whose residuals ``r (N, 3)`` [m] are :data:`MAX_RESIDUAL_FACTOR` times what the run predicts per
+    point (``expected`` [m]), as ``calibrate`` stops a geometric fit far beyond its priors: the robot's calibration is
+    held here, so data of another robot or in other units show as residuals, and a run written from them would
+    predict nonsense with a warning only."""
+    med = float(r.norm(dim=-1).median())  # the median: one point measured wrongly is a warning (named), not this
+    if expected > 0 and med > MAX_RESIDUAL_FACTOR * expected:
+        raise StationError(
+            f"{points.source or 'the points'}: the {points.n} points fit the run's robot with a median residual of "
+            f"{med * 1e3:.4g} mm, {med / expected:.0f} times the {expected * 1e3:.3g} mm the run predicts per point "
+            f"(limit {MAX_RESIDUAL_FACTOR:g} x): points of another robot, in other units (--length-unit, "
+            "--angle-unit), joints in another order or sign, or another tool than the run's (--tool)"
+        )
 
 
 def _without(cov: ParameterCovariance, names: set[str]) -> ParameterCovariance:
@@ -475,20 +540,23 @@ def restation(
 ):
     """Load the run, fit the placement; returns ``(model, meta, station)`` (nothing is written).
 
-    A run calibrated from several stations or probes is first reduced to one frame (:func:`one_frame`): the new
-    placement replaces all of its stations, the points' probe is ``probe`` (default: the points' own ``probe``
-    column where it names one of the run's, else the run's first)."""
-    from torchcal.report.rundir import load_covariance, load_model
+    The run becomes a run of one placement (:func:`one_placement`): the new placement replaces all of its stations,
+    every probe keeps its lever arm (a new placement moves the instrument, not the nest). The points' rows name their
+    probe (their ``probe`` column, or ``probe`` for all of them; neither: the run's first) and at most one station (its
+    label is kept: rows that name another station are then refused by ``predict``)."""
+    from torchcal.report.rundir import load_covariance, load_model, rows_of
 
     model, meta = load_model(run_dir)
     cov = load_covariance(run_dir, model)
-    if model.robot.stations or model.robot.probes:
-        model, meta, cov = one_frame(model, meta, cov, _points_probe(model, points, probe, run_dir))
+    points, label = _points_rows(model, points, probe, tool, run_dir)
+    model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"))
+    points = rows_of(model, points)  # each point's probe in the re-stationed run's order
     opts = station_options(run_dir, tool, seed)
     sigma = _run_sigma(run_dir, model, meta, cov, points, seed)
     if sigma is not None:  # the run's model error at a new placement: predict's sigma over the region
         opts = dataclasses.replace(opts, run_rmse=sigma)
     station = fit_station(model, points, opts, cov)
+    station.label = label
     return model, meta, station
 
 
@@ -504,65 +572,142 @@ def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measur
     return float(tr.std(model, ctx, cov).square().sum(1).mean().sqrt())
 
 
-def _points_probe(model: MeasurementModel, points: Measurements, probe: str | None, run_dir) -> str | None:
-    """The run's probe the points were measured with (:func:`restation`)."""
+def _points_rows(
+    model: MeasurementModel, points: Measurements, probe: str | None, tool: bool, run_dir
+) -> tuple[Measurements, str | None]:
+    """The points with their probe indices in the run's order, and the label of the one station they name (None
+    where they name none). Refuses a probe the run lacks, ``probe`` on a run of one probe or against the points'
+    column, points of several stations, and ``tool`` on a run of several probes."""
+    from torchcal.report.rundir import rows_of
+
+    where = points.source or "the points"
     known = model.robot.probes
-    named = tuple(points.probe_names[int(i)] for i in torch.unique(points.probe)) if points.probe is not None else ()
-    if len(named) > 1:
+    if probe is not None and not known:
+        raise StationError(f"{run_dir}: the run has a single probe (its lever arm is used); drop --probe {probe!r}")
+    if tool and known:
         raise StationError(
-            f"the points name {len(named)} probes ({', '.join(named)}); re-station on one probe's points"
+            f"{run_dir}: the run has probes {', '.join(known)} on one nest, each with its lever arm; --tool fits one "
+            "new lever arm and cannot tell which probe it replaces: re-station without --tool (every probe's lever "
+            "arm is kept), or calibrate the new tool"
         )
-    pick = probe if probe is not None else (named[0] if named else None)
-    if pick is not None and known and pick not in known:
-        raise StationError(f"{run_dir}: probe {pick!r} is not one of the run's ({', '.join(known)})")
-    if pick is not None and not known:
-        raise StationError(f"{run_dir}: the run has a single probe; drop --probe {pick!r}")
-    return pick
+    stations = _names(points, "station")
+    if len(stations) > 1:
+        raise StationError(
+            f"{where}: the points name {len(stations)} stations ({', '.join(stations)}); re-station one placement "
+            "at a time (its points only)"
+        )
+    label = stations[0] if stations else None
+    if probe is not None:
+        named = _names(points, "probe")
+        if named and set(named) != {probe}:
+            raise StationError(f"{where}: --probe {probe!r} but the points' probe column names {', '.join(named)}")
+        if probe not in known:
+            raise StationError(f"{run_dir}: probe {probe!r} is not one of the run's ({', '.join(known)})")
+        idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
+        points = dataclasses.replace(points, probe=idx, probe_names=(probe,))
+    none = {"station": None, "station_names": ()}
+    rows_of(model, points)  # a probe the run lacks: refused with its file, line and column
+    return dataclasses.replace(points, meta=dict(points.meta), **none), label
 
 
-def one_frame(
-    model: MeasurementModel, meta: dict, cov: ParameterCovariance | None, probe: str | None
+def _names(points: Measurements, key: str) -> tuple[str, ...]:
+    """The ``station`` or ``probe`` names the points' rows use."""
+    index, names = getattr(points, key), getattr(points, f"{key}_names")
+    return () if index is None else tuple(names[int(i)] for i in torch.unique(index))
+
+
+def _only(points: Measurements, key: str) -> str | None:
+    """The one station or probe name all the points' rows give (None: none, or several)."""
+    names = _names(points, key)
+    return names[0] if len(names) == 1 else None
+
+
+def one_placement(
+    model: MeasurementModel,
+    meta: dict,
+    cov: ParameterCovariance | None,
+    label: str | None = None,
+    probe: str | None = None,
 ) -> tuple[MeasurementModel, dict, ParameterCovariance | None]:
-    """A several-station (or several-probe) run as a run of one placement and one probe, to be re-stationed: the
-    first station's pose as the start (the points replace it), ``probe``'s lever arm (None: the first), no learned
-    correction per station and probe (a new placement is none of theirs). The covariance keeps the geometry and the
-    effects, and the probe's lever-arm rows as the one lever arm's; the stations' rows go (the points refit the
-    placement)."""
-    from torchcal.report.rundir import at_station
+    """The run as a run of one instrument placement, to be re-stationed: the pose of station ``label`` (where the
+    run has it, else its first) as the start (the points replace it), every probe's lever arm kept, no learned
+    correction per station and probe (a new placement is none of theirs), and a fallback geometry that a learned
+    correction fades to tied to the robot's base frame (:meth:`~torchcal.effects.support.SupportGate.fallback_to_base`:
+    it moves with the instrument). The covariance keeps the geometry, the effects and the lever arms; the stations'
+    rows go (the points refit the placement). With ``probe`` (the one probe the points name) that probe comes first:
+    rows of a file without a ``probe`` column take the first, and at the new placement that is the points' probe."""
+    from torchcal.effects.grouped import GroupedCorrection
+    from torchcal.effects.support import SupportGate
+    from torchcal.robot.model import Instrument
 
     robot = model.robot
-    one, _, p = at_station(model, None, probe, groups=False)
-    meta = {k: v for k, v in meta.items() if k not in ("stations", "probes")}
+    k = robot.stations.index(label) if label in robot.stations else 0
+    T0 = robot.T_tracker_base(k).detach()
+    one = copy.deepcopy(model)
+    if robot.stations:
+        one.robot.instrument = Instrument(T0.clone(), dtype=robot.dtype, device=robot.device)
+    dropped = [i for i, e in enumerate(one.effects) if isinstance(e, GroupedCorrection)]
+    for i in reversed(dropped):
+        del one.effects[i]
+    for e in one.effects:
+        if isinstance(e, SupportGate):
+            e.fallback_to_base(T0, station=k)
+    meta = {k_: v for k_, v in meta.items() if k_ != "stations"}
+    if probe in robot.probes and robot.probes.index(probe):
+        cov = _probe_first(one, cov, robot.probes.index(probe))
+        meta["probes"] = list(one.robot.probes)
     meta["effects"] = [{"class": type(e).__name__, **e.config()} for e in one.effects]
-    meta["restationed_from"] = {
-        "stations": list(robot.stations),
-        "probe": robot.probes[p] if robot.probes else None,
-        "dropped": ["a learned correction per station and probe"] if len(one.effects) < len(model.effects) else [],
-    }
-    if cov is None:
-        return one, meta, None
-    names, index, labels, rows = [], [], [], []
-    start = 0
-    for name, idx in zip(cov.names, cov.index):
-        block = list(range(start, start + len(idx)))
-        start += len(idx)
-        if name == "robot.instrument.delta" and robot.stations:
-            continue
-        if name == "robot.tool.delta" and robot.probes:  # (P, 3) flattened: the probe's three rows
-            mine = [(j, int(i) - 3 * p) for j, i in zip(block, idx) if 3 * p <= int(i) < 3 * p + 3]
-            if not mine:
-                continue
-            names.append(name)
-            index.append([i for _, i in mine])
-            labels += [f"tool.{'xyz'[i]}" for _, i in mine]
-            rows += [j for j, _ in mine]
-            continue
-        names.append(name)
-        index.append([int(i) for i in idx])
-        labels += [cov.labels[j] for j in block]
-        rows += block
+    if robot.stations or robot.probes or dropped:
+        meta["restationed_from"] = {
+            "stations": list(robot.stations),
+            "probes": list(robot.probes),
+            "dropped": ["a learned correction per station and probe"] if dropped else [],
+        }
+    if cov is None or not robot.stations:
+        return one, meta, cov
+    keep = [j for j, name in enumerate(cov.names) if name != "robot.instrument.delta"]
+    starts = [sum(len(i) for i in cov.index[:j]) for j in range(len(cov.names))]
+    rows = [starts[j] + i for j in keep for i in range(len(cov.index[j]))]
     r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
-    return one, meta, ParameterCovariance(names, index, labels, cov.matrix[r][:, r].clone())
+    return (
+        one,
+        meta,
+        ParameterCovariance(
+            [cov.names[j] for j in keep],
+            [[int(i) for i in cov.index[j]] for j in keep],
+            [cov.labels[i] for i in rows],
+            cov.matrix[r][:, r].clone(),
+        ),
+    )
+
+
+def _probe_first(model: MeasurementModel, cov: ParameterCovariance | None, k: int) -> ParameterCovariance | None:
+    """Move probe ``k`` of ``model`` (and of a learned correction's fallback geometry) to the front; the covariance's
+    lever-arm rows follow (each probe's rows keep their names, their indices in the new order)."""
+    from torchcal.robot.model import Tool
+
+    order = [k] + [i for i in range(len(model.robot.probes)) if i != k]
+    robots = [model.robot] + [e.fallback for e in model.effects if getattr(e, "fallback", None) is not None]
+    for r in robots:
+        old = r.tool
+        if len(old.probes) != len(order):
+            continue
+        new = Tool(old.nominal[order].clone(), dtype=r.dtype, device=r.device, probes=[old.probes[i] for i in order])
+        with torch.no_grad():
+            new.delta.copy_(old.delta[order])
+            new.mask.copy_(old.mask[order])
+        new.delta.requires_grad_(old.delta.requires_grad)
+        r.tool = new
+    if cov is None or "robot.tool.delta" not in cov.names:
+        return cov
+    b = cov.names.index("robot.tool.delta")
+    start = sum(len(i) for i in cov.index[:b])
+    moved = sorted((order.index(int(i) // 3) * 3 + int(i) % 3, start + j) for j, i in enumerate(cov.index[b]))
+    rows = list(range(start)) + [j for _, j in moved] + list(range(start + len(cov.index[b]), len(cov.labels)))
+    r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
+    index = [list(i) for i in cov.index]
+    index[b] = [i for i, _ in moved]
+    return ParameterCovariance(list(cov.names), index, [cov.labels[i] for i in rows], cov.matrix[r][:, r].clone())
 
 
 def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
@@ -639,7 +784,7 @@ def write_station(
         params["instrument"] = {"T_tracker_base": station.T_tracker_base.tolist()}
         params["tool"] = {"t_flange_probe_m": station.t_flange_probe.tolist()}
     meta = {k: v for k, v in meta.items() if k != "geometric"}  # its kinematic calibration is of the old placement
-    meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted")}
+    meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted", "label")}
     with replace_dir(out, kind="station", inputs=inputs) as tmp:
         for entry in sorted(run_dir.iterdir()):
             if entry.name == MARKER or entry.name.startswith(".") or entry.is_symlink() or entry.name in _OLD_PLACEMENT:
