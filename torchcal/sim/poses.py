@@ -83,7 +83,8 @@ def visible(
             # the skeleton test, by far the costliest, only for the poses the cheap tests leave (per pose, so the
             # answer is the same as testing all)
             at = torch.nonzero(ok).flatten()
-            ok[at] = _clear(nodes[at], probe[at], u[at], dist[at], s, rule.clearance)
+            if len(at):  # a block the cheap tests rule out whole leaves no skeleton to test
+                ok[at] = _clear(nodes[at], probe[at], u[at], dist[at], s, rule.clearance)
             out.append(ok)
     return torch.cat(out)
 
