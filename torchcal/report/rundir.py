@@ -577,7 +577,15 @@ def load_prior(run_dir: str | os.PathLike) -> Prior:
     model, its parameter covariance and the variance factor of the fit that covariance is of (report.json's
     ``global_test.statistic``; 1 where the report lacks it)."""
     run_dir = Path(run_dir)
-    model, _ = load_model(run_dir)
+    model, meta = load_model(run_dir)
+    if meta.get("method") == "pcm":
+        # the pcm method keeps the nominal geometry and its network corrects that geometry's residual: an update of
+        # the geometry from a few rows would leave the network correcting a geometry it was not fitted with
+        raise OptionError(
+            f"{run_dir}: a run of the pcm method cannot be the prior of an update (its correction network was "
+            "fitted to the nominal geometry, which an update moves); calibrate the new rows with --method pcm, or "
+            "use a kinematic or default-method run as the prior"
+        )
     s0_sq = 1.0
     if (run_dir / "report.json").exists():
         rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
