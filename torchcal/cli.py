@@ -423,9 +423,10 @@ def build_parser() -> argparse.ArgumentParser:
     pr.add_argument(
         "--out",
         required=True,
-        help="CSV to write: x,y,z [m] plus the q*, t, station and probe columns, sx,sy,sz [m] (the standard "
-        "deviation of a new measurement minus the prediction), extrapolation and model (full, or geometric: the run's "
-        "kinematic calibration beyond the region where it is far surer) (never one of the input files)",
+        help="CSV to write: x,y,z [m], the trust columns sx,sy,sz [m] and extrapolation (sx,sy,sz: the standard "
+        "deviation of a new measurement minus the prediction) and model (full, or geometric: the run's kinematic "
+        "calibration beyond the region where it is far surer), plus the q*, t, station and probe columns (never one "
+        "of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
@@ -792,8 +793,8 @@ def cmd_calibrate(args) -> int:
 
 
 #: how many times its threshold a failed global test must be to be a warning on stderr (report.md always says it): a
-#: variance factor 100 x what the stochastic model allows is a model that does not describe the data at all (issue 35
-#: item 4: random orientations, 2607 against 1.06)
+#: variance factor 100 x what the stochastic model allows is a model that does not describe the data at all (random
+#: orientations, say, that are no rotation of the probe)
 GLOBAL_TEST_WARN = 100.0
 
 
@@ -1162,7 +1163,7 @@ def _plan_run(args):
     if args.robot is not None and _robot_key(args.robot) not in {
         _robot_key(meta["robot_file"]),
         _robot_key(model.robot.name),
-    }:  # the run's model is what is planned for: another --robot would be ignored without a word (issue 35)
+    }:  # the run's model is what is planned for: another --robot would be ignored without a word
         raise OptionError(
             f"--robot {args.robot} is not the robot of the run {args.run} ({meta['robot_file']}); the plan is "
             "made for the run's calibrated robot: drop --robot, or plan for that robot without --run"

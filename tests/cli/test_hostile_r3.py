@@ -243,7 +243,7 @@ def _labelled(src: Path, dst: Path, label) -> Path:
     "label, needles",
     [
         # every row its own station: IndexError (min() of an empty training set) before the fix
-        (lambda i: f"S{i}", ["line 6, column 'station'", "station 'S0' has 1 row(s) (99 more such stations)"]),
+        (lambda i: f"S{i}", ["line 6, column 'station'", "station 'S0' was measured at 1 pose", "a label per row"]),
         # "1" and "1.0": two stations before the fix, though the numbers are equal
         (
             lambda i: "1" if i % 2 else "1.0",

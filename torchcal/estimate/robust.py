@@ -422,11 +422,12 @@ def _common_frame(R: Tensor, rounds: int = 5) -> Tensor:
 
 def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Tensor, alpha: float, gross: float):
     """Reject the rows whose measured orientation (rx, ry, rz) is a gross error, as the positions' screening does
-    (issue 34 item 9: a row 11.7 deg off among rows within 0.45 deg was kept). Each row's probe frame in the flange
-    frame (:func:`_probe_frames`) against their robust centre: ``T_i = |log(R_c^T R_i)|^2 / sigma_i^2``, scaled by
-    ``s0^2 = max(1, median(T_i) / median(chi2_3))`` (the geometry's own orientation errors and joint noise make the
-    spread wider than the probe's sigma), rejected above the same bound as the positions (``chi2_3`` at ``1 - alpha
-    / n`` and ``gross^2``). Adds to ``res.kept`` and ``res.rejected``; rows without orientation: nothing."""
+    (a row degrees off among rows within a fraction of one would otherwise be kept). Each row's probe frame in the
+    flange frame (:func:`_probe_frames`) against their robust centre: ``T_i = |log(R_c^T R_i)|^2 / sigma_i^2``,
+    scaled by ``s0^2 = max(1, median(T_i) / median(chi2_3))`` (the geometry's own orientation errors and joint noise
+    make the spread wider than the probe's sigma), rejected above the same bound as the positions (``chi2_3`` at
+    ``1 - alpha / n`` and ``gross^2``). Adds to ``res.kept`` and ``res.rejected``; rows without orientation:
+    nothing."""
     if m.r is None or m.n < 4:
         return
     from torchcal.estimate.fit import SIGMA_ORIENTATION

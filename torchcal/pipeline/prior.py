@@ -105,7 +105,7 @@ MAX_PRIOR_SIGMA = {"m": 1.0, "rad": math.pi}
 
 def _check_plausible(source: str, sigma: dict[str, float], units: dict[str, str]) -> None:
     """Refuse a prior whose standard deviations are beyond any calibration's (:data:`MAX_PRIOR_SIGMA`): a damaged
-    or scaled ``covariance.pt`` (issue 35 item 10: scaled by 1e20, the update failed with 'normal matrix singular')."""
+    or scaled ``covariance.pt`` (whose update would otherwise end in a bare 'normal matrix singular')."""
     for name, s in sigma.items():
         limit = MAX_PRIOR_SIGMA.get(units[name])
         if limit is not None and not s <= limit:

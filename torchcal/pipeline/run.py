@@ -129,7 +129,10 @@ def check_stations(m: Measurements) -> None:
                 f"station {name!r} was measured at {n} pose{'s' if n > 1 else ''} ({len(rows)} rows, lines {where}); "
                 f"an instrument placement needs at least {MIN_STATION_ROWS} poses to fix its pose (6 parameters): "
                 "measure more points from it, or drop its rows",
+                line=m.lines[int(rows[0])] if m.lines else int(rows[0]) + 1,
                 column="station",
+                hint="label the rows of one instrument placement with one station name; a label per row makes every "
+                "row its own placement",
             )
 
 

@@ -51,7 +51,12 @@ def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> Param
     fit = next((f for f in run.fits if f.stage == StageName.GEOMETRIC), None)
     if fit is None:
         return None
-    cov = ParameterCovariance.from_fit(fit.free, fit.result)
+    return _of_model(ParameterCovariance.from_fit(fit.free, fit.result), model)
+
+
+def _of_model(cov: ParameterCovariance | None, model: MeasurementModel) -> ParameterCovariance | None:
+    """``cov`` where every parameter it is about is one of ``model``'s (a run stepped back to an earlier stage keeps
+    the covariance of a fit whose effects it dropped: that one says nothing of this model), else None."""
     params = dict(model.named_parameters())
     return cov if cov is not None and all(n in params for n in cov.names) else None
 
@@ -59,7 +64,8 @@ def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> Param
 def run_trust(run: CalibrationRun) -> RunTrust:
     """Measure the run's :class:`RunTrust` on its held-out rows (those no fit of the final model saw)."""
     with torch.no_grad():
-        full = _held_out(run, copy.deepcopy(run.model).to("cpu"), run.covariance)
+        model = copy.deepcopy(run.model).to("cpu")
+        full = _held_out(run, model, _of_model(run.covariance, model))
         geo = next((s.model for s in run.stages if s.name == StageName.GEOMETRIC), None)
         if geo is None or (not run.model.effects and not geo.effects):
             return RunTrust(full)

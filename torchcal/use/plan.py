@@ -537,7 +537,7 @@ def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tens
     turns = set(learned.turns) if learned is not None else set()
     spread_picks = set(spread.turns) if spread is not None else set()
     # a prediction only where the poses identify what poses spread over the joint ranges do (the priors alone would
-    # make one from a single pose, or from the same pose five times: issue 35)
+    # make one from a single pose, or from the same pose five times)
     generic = sample_joints(model.robot, GENERIC_POSES, torch.Generator().manual_seed(0))
     need = identifying(model, generic.to(q.device), opts)
     first = identifying_prefix(model, q, design.order, grid, opts, need - weak_allowance(need))
