@@ -29,7 +29,7 @@ from torchcal.report import build_report
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse
 
-DATA = Path(__file__).resolve().parents[2] / "tests"
+DATA = Path(__file__).resolve().parents[1] / "tests"
 
 #: name -> robot, effects, ratio errors of its readings map, poses
 CASES: dict[str, dict] = {

@@ -420,14 +420,21 @@ def _common_frame(R: Tensor, rounds: int = 5) -> Tensor:
     return centre
 
 
+#: an orientation is a gross error only this far [deg] from the probe frame the other rows agree on: against the
+#: nominal model a real arm's rows spread with heavy tails, and whole regions of its workspace can sit degrees off
+#: (the real UR10: up to two degrees in Series C, a cluster near six in Series D, their positions sound), which the
+#: statistical bound alone cut into; a probe frame a tenth of a turn off is no such model error
+ORIENTATION_GROSS_DEG = 10.0
+
+
 def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Tensor, alpha: float, gross: float):
     """Reject the rows whose measured orientation (rx, ry, rz) is a gross error, as the positions' screening does
     (a row degrees off among rows within a fraction of one would otherwise be kept). Each row's probe frame in the
     flange frame (:func:`_probe_frames`) against their robust centre: ``T_i = |log(R_c^T R_i)|^2 / sigma_i^2``,
     scaled by ``s0^2 = max(1, median(T_i) / median(chi2_3))`` (the geometry's own orientation errors and joint noise
     make the spread wider than the probe's sigma), rejected above the same bound as the positions (``chi2_3`` at
-    ``1 - alpha / n`` and ``gross^2``). Adds to ``res.kept`` and ``res.rejected``; rows without orientation:
-    nothing."""
+    ``1 - alpha / n`` and ``gross^2``) and :data:`ORIENTATION_GROSS_DEG` off. Adds to ``res.kept`` and
+    ``res.rejected``; rows without orientation: nothing."""
     if m.r is None or m.n < 4:
         return
     from torchcal.estimate.fit import SIGMA_ORIENTATION
@@ -448,7 +455,8 @@ def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Ten
     T = (e**2).sum(-1) / sigma.clamp(min=1e-12) ** 2
     s0sq = max(float(T.median()) / _chi2_median(3), 1.0)
     z = T / s0sq
-    bad = (z > max(chi2_isf(alpha / max(m.n, 1), 3), gross**2)) & res.kept
+    far = e.norm(dim=-1) > math.radians(ORIENTATION_GROSS_DEG)
+    bad = (z > max(chi2_isf(alpha / max(m.n, 1), 3), gross**2)) & far & res.kept
     size = (pred - m.p).norm(dim=-1)
     for i in torch.nonzero(bad).flatten().tolist():
         angle = math.degrees(float(e[i].norm()))
