@@ -382,6 +382,14 @@ def write_urdf(
         text = user_urdf_string(robot, opts)
     else:
         text = urdf_string(robot, opts)
+    write_text(path, text)
+    return path
+
+
+def write_text(path, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (a temporary file beside it, flushed to disk, then ``os.replace``): a
+    failure leaves nothing written."""
+    path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
@@ -396,7 +404,6 @@ def write_urdf(
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-    return path
 
 
 # ------------------------------------------------------------------------------ the user's own URDF

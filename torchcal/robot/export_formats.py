@@ -209,25 +209,3 @@ def dh_yaml(robot: RobotModel, notes: tuple[str, ...] = ()) -> str:
     lines += [_dh_joint(robot, i, values, coms) for i in range(robot.geometry.dof)]
     lines += _readings_lines(robot)
     return "\n".join(lines) + "\n"
-
-
-def write_text(path, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (a temporary file beside it, then ``os.replace``): a failure leaves
-    nothing written."""
-    import os
-    import tempfile
-    from pathlib import Path
-
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise

@@ -840,6 +840,17 @@ def compensate_groups(
     return _merge(n, parts)
 
 
+def _nominal(robot: RobotModel, nominal: RobotModel | None) -> RobotModel:
+    """``nominal``, or a copy of ``robot`` with its geometry corrections zeroed: the robot a program was written for."""
+    if nominal is not None:
+        return nominal
+    import copy
+
+    out = copy.deepcopy(robot)
+    out.geometry.reset()
+    return out
+
+
 def program_targets(
     model: MeasurementModel, q_program: Tensor, *, nominal: RobotModel | None = None, frame: str = "instrument"
 ) -> Tensor:
@@ -853,11 +864,7 @@ def program_targets(
         frame: frame of the returned points.
     """
     robot = model.robot
-    if nominal is None:
-        import copy
-
-        nominal = copy.deepcopy(robot)
-        nominal.geometry.reset()
+    nominal = _nominal(robot, nominal)
     with torch.no_grad():
         p = tf.transform_points(nominal.forward(q_program), robot.t_flange_probe().detach())
         if frame == "instrument":
@@ -881,11 +888,7 @@ def program_orientations(
         frame: frame of the returned orientations.
     """
     robot = model.robot
-    if nominal is None:
-        import copy
-
-        nominal = copy.deepcopy(robot)
-        nominal.geometry.reset()
+    nominal = _nominal(robot, nominal)
     with torch.no_grad():
         R = nominal.forward(q_program)[..., :3, :3] @ robot.tool_rotation.matrix().detach()
         if frame == "instrument":
