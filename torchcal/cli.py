@@ -1304,8 +1304,7 @@ def cmd_convert(args) -> int:
 def cmd_export(args) -> int:
     from torchcal.report.rundir import load_model
     from torchcal.report.urdf import urdf_left_out
-    from torchcal.robot.export import write_urdf
-    from torchcal.robot.export import write_text
+    from torchcal.robot.export import write_text, write_urdf
     from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml
 
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
