@@ -29,7 +29,8 @@ import threading
 import time
 
 #: (module, attribute, stage) wrapped when the module is imported; the attribute is looked up where it is called
-#: (``torchcal.report.write_run`` is what the CLI calls, ``torchcal.pipeline.methods.solve`` what the stages call)
+#: (``torchcal.report.rundir.write_run`` is what the CLI calls, ``torchcal.pipeline.methods.solve`` what the stages
+#: call)
 TARGETS = [
     ("torchcal.robot", "load_robot", "robot"),
     ("torchcal.data", "read_measurements", "read"),

@@ -25,7 +25,7 @@ from torchcal.diagnose.candidates import candidates
 from torchcal.effects import Context
 from torchcal.estimate.fit import errors, solve
 from torchcal.pipeline import Options, calibrate
-from torchcal.report import build_report
+from torchcal.report.rundir import build_report
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse
 

@@ -25,9 +25,9 @@ from experiments.ipa_series import series_file
 from torchcal.data import Measurements, read_ipa
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate, min_poses
-from torchcal.report import write_run
-from torchcal.report.rundir import load_prior
+from torchcal.report.rundir import write_run
 from torchcal.robot import load_robot
+from torchcal.use.rundir import load_prior
 
 ROBOT = "ur10"
 SEED = 0

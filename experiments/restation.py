@@ -24,10 +24,10 @@ from torchcal.data import Measurements, read_ipa
 from torchcal.effects import MeasurementModel
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate, holdout_split
-from torchcal.report import write_run
-from torchcal.report.rundir import load_covariance, load_model
+from torchcal.report.rundir import write_run
 from torchcal.report.station import fit_station, one_placement, station_options
 from torchcal.robot import load_robot
+from torchcal.use.rundir import load_covariance, load_model
 
 ROBOT = "ur10"
 SEED = 0

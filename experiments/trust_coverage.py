@@ -4,7 +4,7 @@ A UR10 series (Landgraf et al.) is split in two: ``grouped``, a seeded 20 % of i
 of a configuration stay on one side); or ``q2-central``, training on the central 70 % of q2's range and testing on
 the rest (every test row beyond the calibrated region). The training part is calibrated (default method), the run
 directory written and loaded back as ``predict`` loads it, and each test row predicted with its ``sx, sy, sz`` and
-its ``model`` (:func:`torchcal.report.rundir.row_trust`). The measures: the share of test rows whose three
+its ``model`` (:func:`torchcal.use.rundir.row_trust`). The measures: the share of test rows whose three
 ``|error| / sigma`` are all <= 3 (a Gaussian: 0.99) and the median ``|error| / sigma`` over rows and axes (a
 Gaussian: 0.67); beside them the same for the sigma of the parameters and the learned posterior alone (before
 ``torchcal`` measured what a run leaves unexplained).
@@ -22,9 +22,10 @@ from torchcal.data import Measurements, read_ipa
 from torchcal.effects import Context
 from torchcal.estimate.covariance import combined_std
 from torchcal.pipeline import Options, calibrate
-from torchcal.report.rundir import load_covariance, load_model, predict_with, row_trust, write_run
+from torchcal.report.rundir import write_run
 from torchcal.robot import load_robot
 from torchcal.stats import revisit_groups
+from torchcal.use.rundir import load_covariance, load_model, predict_with, row_trust
 
 SPLITS = ("grouped", "q2-central")
 
@@ -100,7 +101,7 @@ def probe_check(path: Path, series: str, *, seed: int = 0, per_side: int = 25) -
         difference of their predictions [mm], and the probes that ``predict`` gives to the kinematic calibration.
     """
     from experiments.edge_probe import probes
-    from torchcal.report.rundir import trust
+    from torchcal.use.rundir import trust
 
     data = read_ipa(series_file(path, series)).without_orientation()
     robot = load_robot("ur10")

@@ -12,9 +12,9 @@ from torchcal.effects import Context
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.run import holdout_split
-from torchcal.report import predict
 from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
 from torchcal.stats import Stream
+from torchcal.use.rundir import predict
 
 F64 = torch.float64
 
@@ -76,7 +76,7 @@ def test_report_has_the_contract_fields(ur5_run):
 
 
 def test_calibrated_urdf_reproduces_the_calibrated_geometry(ur5_run):
-    model, _ = torchcal.report.load_model(ur5_run)
+    model, _ = torchcal.use.rundir.load_model(ur5_run)
     urdf = torchcal.load_robot(ur5_run / "robot_calibrated.urdf", tip_link="flange")
     q = torch.rand(50, 6, dtype=F64, generator=torch.Generator().manual_seed(0)) * 4 - 2
     with torch.no_grad():

@@ -281,7 +281,7 @@ def _read(path):
 
 def test_cli_round_trip(run_dir, tmp_path, capsys):
     from torchcal.data import read_measurements
-    from torchcal.report import load_model
+    from torchcal.use.rundir import load_model
 
     test = read_measurements(run_dir / "data" / "test.csv")
     q, p = test.q[:6], test.p[:6]
@@ -432,7 +432,7 @@ def test_cli_each_row_in_its_own_station_and_probe(two_stations, tmp_path):
     """bug before: every row was solved in the first station's frame with the first probe's lever arm (S2 rows
     unreachable by metres, P2 rows by 100 mm) and the columns were dropped from the output."""
     from torchcal.data import read_measurements
-    from torchcal.report import load_model
+    from torchcal.use.rundir import load_model
 
     run, test = two_stations / "run", two_stations / "sim" / "test.csv"
     out = tmp_path / "j.csv"
@@ -500,9 +500,8 @@ def test_each_pair_takes_its_own_learned_correction(two_stations):
 
     from torchcal.data import read_measurements
     from torchcal.effects.grouped import GroupedCorrection
-    from torchcal.report import load_model
-    from torchcal.report.rundir import at_station
     from torchcal.use.compensate import compensate_groups
+    from torchcal.use.rundir import at_station, load_model
 
     model, _ = load_model(two_stations / "run")
     model = copy.deepcopy(model)
@@ -589,8 +588,8 @@ def test_cli_six_d_program_keeps_its_joints_and_units(two_stations, tmp_path):
     beside the position miss, and degrees in give degrees out; --position-only and a run without orientation solve
     positions only and say so."""
     from torchcal.data import read_measurements
-    from torchcal.report import load_model
     from torchcal.use.compensate import program_orientations, program_targets
+    from torchcal.use.rundir import load_model
 
     run = two_stations / "run"
     data = read_measurements(two_stations / "sim" / "test.csv")
@@ -613,7 +612,7 @@ def test_cli_six_d_program_keeps_its_joints_and_units(two_stations, tmp_path):
     model, _ = load_model(run)  # the first station and probe: the file has no columns
     with torch.no_grad():
         ctx = Context(q=q, station=torch.zeros(8, dtype=torch.long), probe=torch.zeros(8, dtype=torch.long))
-        from torchcal.report.rundir import at_station
+        from torchcal.use.rundir import at_station
 
         at, _, _ = at_station(model, "S1", "P1")
         assert float((model(ctx) - program_targets(at, data.q[:8])).norm(dim=-1).max()) <= 1e-9

@@ -235,7 +235,8 @@ def test_calibrate_and_predict_on_another_device(campaign, monkeypatch, tmp_path
     """A whole kinematic calibration (gross-error screening, nominal and geometric fits, held-out errors),
     the run directory written from it, and ``predict`` on the same device; all equal to the CPU's."""
     from torchcal.estimate import robust
-    from torchcal.report import predict, write_run
+    from torchcal.report.rundir import write_run
+    from torchcal.use.rundir import predict
 
     weighted = robust._weighted
 

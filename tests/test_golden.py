@@ -228,7 +228,7 @@ def test_report_matches_the_golden_report(method):
 def test_a_loaded_robot_gives_the_same_report_as_its_name():
     from torchcal._threads import torch_threads
     from torchcal.pipeline import Options, calibrate
-    from torchcal.report import build_report
+    from torchcal.report.rundir import build_report
     from torchcal.robot import load_robot
     from torchcal.sim import SimConfig, simulate
 

@@ -101,7 +101,7 @@ def test_a_calibration_keeps_revisited_configurations_on_one_side():
     from torchcal._threads import torch_threads
     from torchcal.data import Measurements
     from torchcal.pipeline import Options, calibrate
-    from torchcal.report import build_report
+    from torchcal.report.rundir import build_report
     from torchcal.sim import SimConfig, simulate
 
     with torch_threads(1):

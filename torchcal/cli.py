@@ -746,7 +746,7 @@ CALIBRATE_FLAGS = {
 def cmd_calibrate(args) -> int:
     C = calibration_module()
     from torchcal.data import read_measurements
-    from torchcal.report import write_run
+    from torchcal.report.rundir import write_run
     from torchcal.robot import load_robot
     from torchcal.robot.load import calibrated_flange
 
@@ -762,7 +762,7 @@ def cmd_calibrate(args) -> int:
     )
     prior = None
     if args.prior:
-        from torchcal.report.rundir import load_prior
+        from torchcal.use.rundir import load_prior
 
         prior = load_prior(args.prior)
     data = read_measurements(
@@ -865,10 +865,10 @@ def cmd_predict(args) -> int:
 
     from torchcal.data import read_measurements, write_measurements
     from torchcal.effects import Context
-    from torchcal.report import load_model
-    from torchcal.report.rundir import (
+    from torchcal.use.rundir import (
         MODEL_NAMES,
         check_placement,
+        load_model,
         predict_orientation,
         predict_with,
         row_trust,
@@ -944,7 +944,7 @@ def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
     ``res``), with its sigma at the new commands."""
     from dataclasses import replace
 
-    from torchcal.report.rundir import row_trust
+    from torchcal.use.rundir import row_trust
 
     rt = row_trust(args.run, model, meta, ctx)
     which = torch.where(plain.cpu(), 2, 0)
@@ -962,8 +962,8 @@ def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
 def _geometric_resolver(res, station, probe, targets_of, context, weight):
     """``(geometric, rows) ->`` those rows of ``res`` solved again, in place, with the run's kinematic calibration
     ``geometric`` in each row's own station's frame with its own probe."""
-    from torchcal.report.rundir import at_station
     from torchcal.use.compensate import solve_rows_with
+    from torchcal.use.rundir import at_station
 
     def resolve(geometric, rows):
         robot, n = geometric.robot, len(res.q)
@@ -985,9 +985,8 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
 
 def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
-    from torchcal.report import load_model
-    from torchcal.report.rundir import at_station, check_placement
     from torchcal.use.compensate import Status, compensate_groups, orientation_mode, row_groups
+    from torchcal.use.rundir import at_station, check_placement, load_model
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
@@ -1106,8 +1105,8 @@ def _row_labels(model, data, station, probe) -> dict[str, list[str]]:
 
 def cmd_station(args) -> int:
     from torchcal.data import read_measurements
-    from torchcal.report import load_model
     from torchcal.report.station import write_station
+    from torchcal.use.rundir import load_model
 
     run = Path(args.run)
     inputs = [args.points, run / "model.json", run / "model.pt"]
@@ -1155,9 +1154,9 @@ def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
 def _plan_run(args):
     """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
     and scene (tracker position, lever arm)."""
-    from torchcal.report import load_model
     from torchcal.report.station import station_options
     from torchcal.use.plan import scene_of
+    from torchcal.use.rundir import load_model
 
     model, meta = load_model(args.run)
     if args.robot is not None and _robot_key(args.robot) not in {
@@ -1170,7 +1169,7 @@ def _plan_run(args):
         )
     method = args.method or meta.get("method") or "auto"
     if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
-        from torchcal.report.rundir import at_station
+        from torchcal.use.rundir import at_station
 
         model, _, _ = at_station(model, args.station, args.probe)
     elif args.station is not None or args.probe is not None:
@@ -1302,10 +1301,10 @@ def cmd_convert(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from torchcal.report.rundir import load_model
     from torchcal.report.urdf import urdf_left_out
     from torchcal.robot.export import write_text, write_urdf
     from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml
+    from torchcal.use.rundir import load_model
 
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
     model, _ = load_model(args.run)
@@ -1403,8 +1402,9 @@ DEMO_EFFECTS = ("compliance:2=60um", "field=0.05mm")
 def cmd_demo(args) -> int:
     C = calibration_module()
     from torchcal._outdir import mark, replace_dir
-    from torchcal.report import predict, write_run_files
+    from torchcal.report.rundir import write_run_files
     from torchcal.sim import EffectSpec, SimConfig, write_campaign
+    from torchcal.use.rundir import predict
 
     out = check_out_dir(args.out)
     cfg = SimConfig(

@@ -191,7 +191,7 @@ def _calibrate(line: Line, out: Path):
     """``torchcal calibrate`` of one line into the run directory ``out`` (calibrate's defaults otherwise)."""
     from torchcal import pipeline as C
     from torchcal.data import read_measurements
-    from torchcal.report import write_run
+    from torchcal.report.rundir import write_run
     from torchcal.robot import load_robot
     from torchcal.robot.load import calibrated_flange
 
@@ -199,7 +199,7 @@ def _calibrate(line: Line, out: Path):
     opts = C.Options.of(**({} if line.method is None else {"method": line.method}))
     prior = None
     if line.prior:
-        from torchcal.report.rundir import load_prior
+        from torchcal.use.rundir import load_prior
 
         prior = load_prior(line.prior)
     data = read_measurements(

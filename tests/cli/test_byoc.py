@@ -58,7 +58,7 @@ def test_help_texts_say_what_the_commands_do(monkeypatch):
 def test_export_writes_what_other_software_reads(run_dir, tmp_path):
     """A calibrated run exported for the UR ROS 2 driver and as a DH table, each refused where it cannot hold
     the robot, nothing written then."""
-    from torchcal.report.rundir import load_model
+    from torchcal.use.rundir import load_model
 
     robot = load_model(run_dir)[0].robot
     q = torch.rand(200, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0)) * 4 - 2

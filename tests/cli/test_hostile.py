@@ -417,7 +417,7 @@ def test_damaged_run_directories_are_refused(how, match, run_dir, campaign, tmp_
     err = capsys.readouterr().err
     assert "Traceback" not in err and "pwned" not in err
     with pytest.raises(OptionError, match=match):
-        torchcal.report.load_model(bad)
+        torchcal.use.rundir.load_model(bad)
 
 
 def test_unexpected_errors_are_summarised_and_debug_shows_the_traceback(campaign, tmp_path, capsys, monkeypatch):

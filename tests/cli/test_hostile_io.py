@@ -309,7 +309,7 @@ def test_simulate_sizes_are_bounded(opts, message, tmp_path, capsys):
 def learned_run(run_dir: Path, where: Path, edit=None) -> Path:
     """A copy of ``run_dir`` whose model carries a 6-29-3 correction network; ``edit(effect_config)`` crafts it."""
     run = copy_run(run_dir, where)
-    model, meta = torchcal.report.load_model(run)
+    model, meta = torchcal.use.rundir.load_model(run)
     effect = LearnedEffect(CorrectionNet(model.robot.dof, 29, seed=0))
     torch.save(MeasurementModel(model.robot, [effect]).state_dict(), run / "model.pt")
     cfg = {"class": "LearnedEffect", **effect.config()}
@@ -442,7 +442,7 @@ def test_import_torchcal_is_light_and_the_entry_point_is_the_light_one():
 def test_the_lazy_package_keeps_its_public_names():
     for name in torchcal.__all__:
         assert getattr(torchcal, name) is not None
-    assert torchcal.report.load_model is not None  # sub-packages load on first use
+    assert torchcal.use.rundir.load_model is not None  # sub-packages load on first use
     with pytest.raises(AttributeError):
         torchcal.no_such_thing  # noqa: B018
 

@@ -20,7 +20,7 @@ from _cli import calibrate, cli_simulate, deadline, snapshot
 import torchcal
 import torchcal._outdir
 from torchcal.cli import main
-from torchcal.report import load_model
+from torchcal.use.rundir import load_model
 
 write = hostile.write
 

@@ -14,9 +14,9 @@ from torchcal.effects import Context, LearnedEffect, MeasurementModel
 from torchcal.effects.joint import FADE_LENGTH
 from torchcal.effects.learned import CorrectionNet
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.report import load_covariance, load_model
 from torchcal.robot import load_robot
 from torchcal.use.compensate import compensate, compensate_in_region, geometry_and_physics
+from torchcal.use.rundir import load_covariance, load_model
 
 F64 = torch.float64
 
@@ -294,7 +294,7 @@ def _check_compensate_chooses(run, data, tmp_path):
     far less sure than its kinematic calibration is commanded by that one (its ``model`` says so, and the
     kinematic calibration puts the probe on the target there); the rows inside by the run's model."""
     from torchcal.data import read_measurements
-    from torchcal.report.rundir import load_geometric
+    from torchcal.use.rundir import load_geometric
 
     model, meta = load_model(run)
     geo = load_geometric(run, model, meta)[0]

@@ -18,9 +18,10 @@ from torchcal.cli import main
 from torchcal.effects import Context
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
-from torchcal.report import load_model, predict, write_run
+from torchcal.report.rundir import write_run
 from torchcal.sim import EffectSpec, SimConfig, simulate, write_campaign
 from torchcal.stats import rmse
+from torchcal.use.rundir import load_model, predict
 
 STATIC = [
     # each family alone, on different joints and robots, at sizes a few um above what 320 training poses resolve

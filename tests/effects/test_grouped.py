@@ -88,9 +88,9 @@ def test_one_group_has_no_grouped_candidate():
 
 
 def test_one_station_and_probe_keeps_that_pairs_correction():
-    """compensate's single-frame model (:func:`~torchcal.report.rundir.at_station`) carries the picked pair's
+    """compensate's single-frame model (:func:`~torchcal.use.rundir.at_station`) carries the picked pair's
     correction, and none where the pair has none, not the first group's."""
-    from torchcal.report.rundir import at_station
+    from torchcal.use.rundir import at_station
 
     robot = load_robot("ur5")
     robot.set_stations(["S0", "S1"])

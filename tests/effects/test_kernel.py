@@ -74,7 +74,8 @@ def test_auto_adds_nothing_to_clean_data_and_a_kernel_reloads_exactly(tmp_path):
     assert run.effects_report == [] and [s.name for s in run.stages] == ["nominal", "geometric"]
     assert run.rejected and run.rejected[0]["kind"] == "learned"
     # a kernel effect saved in a run directory comes back bit for bit
-    from torchcal.report import load_model, write_run
+    from torchcal.report.rundir import write_run
+    from torchcal.use.rundir import load_model
 
     kern, _ = fit_kernel_correction(
         run.robot,

@@ -144,7 +144,8 @@ def test_a_clean_campaign_of_the_massless_arm_names_nothing():
 
 
 def test_a_run_with_lumped_compliance_predicts_the_same_after_reloading(tmp_path):
-    from torchcal.report import predict, write_run
+    from torchcal.report.rundir import write_run
+    from torchcal.use.rundir import predict
 
     c, run = _calibrated(EFFECTS, seed=1)
     write_run(run, tmp_path / "cal")

@@ -53,7 +53,7 @@ def golden_run(method: str):
 def golden_report(method: str) -> dict:
     """The report of the golden run of ``method``."""
     from torchcal._threads import torch_threads
-    from torchcal.report import build_report
+    from torchcal.report.rundir import build_report
 
     with torch_threads(1):
         return json.loads(json.dumps(build_report(golden_run(method))))

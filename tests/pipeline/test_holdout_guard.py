@@ -8,7 +8,7 @@ import torch
 from _cli import golden_auto_run
 
 from torchcal.pipeline.holdout import at_edges, guard_stages
-from torchcal.report import build_report
+from torchcal.report.rundir import build_report
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +84,7 @@ def test_with_no_stage_below_geometry_the_run_keeps_the_kinematic_calibration(au
 def test_a_step_back_writes_its_run_directory(auto_run, worse, tmp_path):
     """A run the guard stepped back writes report.json and report.md (a learned rejection whose evidence is the
     guard's once crashed report.md with ``KeyError: 'chosen'``)."""
-    from torchcal.report import write_run_files
+    from torchcal.report.rundir import write_run_files
 
     run, _ = guard_holdout(_forced(auto_run, worse))
     out = write_run_files(run, tmp_path)

@@ -95,7 +95,7 @@ def test_the_report_shows_where_an_open_form_was_fitted(tmp_path):
     report.json gives the calibrated region and each open form's fitted range."""
     import json
 
-    from torchcal.report import write_run_files
+    from torchcal.report.rundir import write_run_files
 
     _, run = _calibrate([OutsideEffect("harmonic", joint=3, order=4, size=3e-5)], seed=11)
     write_run_files(run, tmp_path)

@@ -211,7 +211,7 @@ def test_plan_for_one_station_of_a_several_station_run(tmp_path):
     """A run calibrated from two placements plans for the one named (its pose sets the line of sight), and refuses a
     station it does not have."""
     from torchcal.pipeline import Options, calibrate
-    from torchcal.report import write_run
+    from torchcal.report.rundir import write_run
 
     c = simulate(SimConfig(robot="ur5", poses=120, test_poses=12, seed=4, stations=2))
     run_dir = write_run(calibrate("ur5", c.train, Options(method="kinematic", seed=4)), tmp_path / "run")

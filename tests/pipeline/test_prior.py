@@ -17,9 +17,9 @@ from torchcal.errors import OptionError
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.prior import MOVED_SIGMAS
-from torchcal.report import write_run
-from torchcal.report.rundir import load_prior
+from torchcal.report.rundir import write_run
 from torchcal.sim import SimConfig, simulate
+from torchcal.use.rundir import load_prior
 
 SHIFT = 2e-3  # rad on joint 2's readings
 

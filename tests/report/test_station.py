@@ -14,12 +14,12 @@ from torchcal.data import write_measurements
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options
-from torchcal.report import write_run
-from torchcal.report.rundir import load_covariance, load_model, predict
+from torchcal.report.rundir import write_run
 from torchcal.report.station import StationError, fit_station, placement_std, station_options, write_station
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.sim import SimConfig, simulate
+from torchcal.use.rundir import load_covariance, load_model, predict
 
 F64 = torch.float64
 
@@ -175,7 +175,7 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
     from a new placement: the new placement predicts within 1.3x of the run's own held-out error; points naming two
     stations, or a probe the run lacks, are refused."""
     from torchcal.pipeline import calibrate
-    from torchcal.report.rundir import at_station
+    from torchcal.use.rundir import at_station
 
     c = simulate(SimConfig(robot="ur5", poses=240, test_poses=60, seed=4, stations=2, probes=2))
     run = calibrate("ur5", c.train, Options(method="kinematic", seed=4))
@@ -220,8 +220,8 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
 def test_the_predicted_error_of_a_placement_is_predicts_sigma_over_the_region(setup, tmp_path):
     """station's model error is the run's predictive sigma (what predict writes) over the calibrated region, and the
     predicted error it gives is the error measured at the new placement to within a factor 1.5."""
-    from torchcal.report.rundir import row_trust
     from torchcal.report.station import REGION_POSES, restation
+    from torchcal.use.rundir import row_trust
 
     new, idx = setup["new"], setup["idx"]
     model, meta, station = restation(setup["run"], new.subset(idx[:6]), tool=True)

@@ -14,9 +14,9 @@ from torchcal.cli import main
 from torchcal.data import read_measurements, write_measurements
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
-from torchcal.report import write_run
-from torchcal.report.rundir import at_station
+from torchcal.report.rundir import write_run
 from torchcal.sim import EffectSpec, SimConfig, simulate
+from torchcal.use.rundir import at_station
 
 
 def _rows(m, key, name):

@@ -15,8 +15,9 @@ import torchcal
 from torchcal.cli import main
 from torchcal.errors import RobotSpecError
 from torchcal.pipeline import Options
-from torchcal.report import load_model, write_run
+from torchcal.report.rundir import write_run
 from torchcal.sim import EffectSpec, SimConfig, simulate
+from torchcal.use.rundir import load_model
 
 DATA = Path(__file__).parent / "data"
 FANUC = str(DATA / "fanuc_like.yaml")
@@ -177,7 +178,7 @@ def test_mimic_urdf_loads_calibrates_and_exports(tmp_path):
     assert again.dof == 3
     q = campaign.test.q
     torch.testing.assert_close(again(q), run.model.robot(q).detach(), rtol=0, atol=1e-12)
-    p = torchcal.report.predict(tmp_path / "cal", campaign.test)
+    p = torchcal.use.rundir.predict(tmp_path / "cal", campaign.test)
     assert float((p - campaign.test.p).norm(dim=-1).max()) < 2e-4
 
 

@@ -2,7 +2,7 @@
 
 After a crash, a motor swap, a re-mounted tool, the robot is mostly what an earlier calibration found; a handful of
 new poses should move only what changed. :func:`prior_from_run` turns that calibration (its model and the parameter
-covariance of its last fit, read by the caller: :func:`torchcal.report.rundir.load_model`, ``load_covariance``)
+covariance of its last fit, read by the caller: :func:`torchcal.use.rundir.load_model`, ``load_covariance``)
 into a :class:`Prior`; :func:`torchcal.pipeline.run.calibrate` with ``prior=`` then runs the kinematic fit from it.
 
 The model (MAP, docs/reference.md, *Calibrating from a prior run*):

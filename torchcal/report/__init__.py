@@ -1,5 +1,5 @@
-"""Run directories: report.json, report.md with plots, the calibrated URDF, and reloading for predict."""
+"""Writing a run: report.json, report.md with plots, the calibrated URDF (reloading it: :mod:`torchcal.use`)."""
 
-from torchcal.report.rundir import build_report, load_covariance, load_model, predict, write_run, write_run_files
+from torchcal.report.rundir import build_report, write_run, write_run_files
 
-__all__ = ["build_report", "load_covariance", "load_model", "predict", "write_run", "write_run_files"]
+__all__ = ["build_report", "write_run", "write_run_files"]

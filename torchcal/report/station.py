@@ -306,7 +306,7 @@ def fit_station(
     """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
 
     Args:
-        model: a run's loaded model (:func:`~torchcal.report.rundir.load_model`); its instrument pose (and lever arm)
+        model: a run's loaded model (:func:`~torchcal.use.rundir.load_model`); its instrument pose (and lever arm)
             is overwritten, nothing else changes.
         points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
         opts: :class:`StationOptions`.
@@ -544,7 +544,7 @@ def restation(
     every probe keeps its lever arm (a new placement moves the instrument, not the nest). The points' rows name their
     probe (their ``probe`` column, or ``probe`` for all of them; neither: the run's first) and at most one station (its
     label is kept: rows that name another station are then refused by ``predict``)."""
-    from torchcal.report.rundir import load_covariance, load_model, rows_of
+    from torchcal.use.rundir import load_covariance, load_model, rows_of
 
     model, meta = load_model(run_dir)
     cov = load_covariance(run_dir, model)
@@ -563,7 +563,7 @@ def restation(
 def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measurements, seed: int) -> float | None:
     """The RMS over the calibrated region of the run's predictive sigma ``|(sx, sy, sz)|`` [m]
     (:mod:`torchcal.estimate.trust`); None for a run written before it."""
-    from torchcal.report.rundir import load_trust
+    from torchcal.use.rundir import load_trust
 
     tr = load_trust(run_dir, meta)
     if tr is None:
@@ -578,7 +578,7 @@ def _points_rows(
     """The points with their probe indices in the run's order, and the label of the one station they name (None
     where they name none). Refuses a probe the run lacks, ``probe`` on a run of one probe or against the points'
     column, points of several stations, and ``tool`` on a run of several probes."""
-    from torchcal.report.rundir import rows_of
+    from torchcal.use.rundir import rows_of
 
     where = points.source or "the points"
     known = model.robot.probes

@@ -4,3 +4,7 @@ moved, command the joints that reach targets (``compensate``), plan the poses of
 A layer above the pipeline (a run is what the pipeline made) and below the report (which writes what this reads)
 and the command line (which calls into it).
 """
+
+from torchcal.use.rundir import load_covariance, load_model, load_prior, predict
+
+__all__ = ["load_covariance", "load_model", "load_prior", "predict"]

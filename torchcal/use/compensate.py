@@ -693,7 +693,7 @@ def solve_rows_with(
 ) -> None:
     """Solve the ``rows`` of ``res`` again with ``model``, from the same start, in place: beyond the calibrated
     region another model than the run's may be the one to trust (:func:`compensate_in_region`, and the kinematic
-    calibration where the run's model's sigma is far above it: :func:`torchcal.report.rundir.row_trust`)."""
+    calibration where the run's model's sigma is far above it: :func:`torchcal.use.rundir.row_trust`)."""
     if not len(rows):
         return
     n = len(res.q)
@@ -808,7 +808,7 @@ def compensate_groups(
             ``(n, 3)`` [m] and orientations ``(n, 3, 3)`` or None (positions only).
         q_seed: start joints ``(N, dof)`` [rad] or None.
         at: ``(model, station name or None, probe name or None) -> (model, ...)``, the run's model in one station's
-            frame with one probe (:func:`torchcal.report.rundir.at_station`, passed in: the run directory's module
+            frame with one probe (:func:`torchcal.use.rundir.at_station`, passed in: the run directory's module
             imports this one).
         context: per-row context (as :func:`compensate`'s); on a trajectory the direction of motion is taken from the
             whole start before the rows are split.

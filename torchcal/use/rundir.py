@@ -1,0 +1,536 @@
+"""Reloading a calibration's run directory (its files are an outside contract; :mod:`torchcal.report.rundir`
+writes them): the model, its covariance and trust, a run as a prior, each row's station and probe, and predicting.
+
+Layout::
+
+    .torchcal-run          marker: a torchcal output directory, safe to replace
+    report.json            the numbers
+    report.md              the same in words and tables, with the plots below
+    *.png                  residual plots
+    robot_calibrated.urdf  the calibrated geometry (+ probe and tracker frames)
+    model.pt               state_dict of the measurement model (geometry, instrument, lever arm, effects)
+    model.json             how to rebuild it: robot description file, effects, options, calibrated region
+    covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
+    geometric.pt           a run with effects: its kinematic calibration (beside covariance_geometric.pt), which
+                           predicts rows beyond the region where its sigma is far the smaller (model.json: trust)
+    robot/<file>           a copy of the robot description the run started from
+
+Everything is written into a temporary directory next to ``out`` and moved into place at the
+end, so a failure leaves no partial run directory; ``out`` is replaced only when it is absent
+or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
+:mod:`torchcal._outdir`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+import os
+import pickle
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from torchcal._inputs import load_json, read_bounded
+from torchcal.data import Measurements
+from torchcal.effects import Context, MeasurementModel, effect_from_config
+from torchcal.errors import MeasurementFileError, OptionError, TorchcalError
+from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.trust import MIN_ROWS, Trust
+from torchcal.pipeline import Prior, prior_from_run
+from torchcal.robot import load_robot
+
+F64 = torch.float64
+Tensor = torch.Tensor
+
+
+def _set_region(model: MeasurementModel, cfg, run_dir: Path) -> None:
+    """Set a loaded model's region from model.json's ``region`` (absent in runs written before it: no region)."""
+    if cfg is None:
+        return
+    dof = model.robot.dof
+    try:
+        lo = [float(v) for v in cfg["joint_min"]]
+        hi = [float(v) for v in cfg["joint_max"]]
+        fade = cfg.get("fade", False)
+    except (KeyError, TypeError, ValueError, AttributeError):
+        raise _run_error(run_dir, "model.json: region must hold joint_min and joint_max lists of numbers") from None
+    ok = len(lo) == len(hi) == dof and all(math.isfinite(a) and math.isfinite(b) and a <= b for a, b in zip(lo, hi))
+    if not ok or not isinstance(fade, bool):
+        raise _run_error(
+            run_dir, f"model.json: region must give {dof} finite joint ranges (joint_min <= joint_max) and a fade flag"
+        )
+    model.set_region(torch.tensor([lo, hi], dtype=torch.float64, device=model.robot.device), fade=fade)
+
+
+def _run_error(run_dir: Path, what: str) -> OptionError:
+    return OptionError(f"{run_dir}: {what}; expected a run directory written by 'torchcal calibrate'")
+
+
+#: Integer sizes an effect's config in model.json may carry, and the largest accepted: each becomes the size of
+#: tensors allocated when the effect is rebuilt, before model.pt is loaded into them. Any other integer in a
+#: config is bounded by :data:`MAX_CONFIG_INT`; ``joint`` must name a joint of the run's robot (1-based).
+SIZE_LIMITS = {"hidden": 100_000, "n_support": 200_000, "n_inducing": 100_000, "n_weights": 10_000_000, "dof": 256}
+MAX_CONFIG_INT = 100_000
+#: Most effects (and effects nested in one another) a run may hold.
+MAX_EFFECTS = 1000
+
+
+def check_effect_configs(configs: list, robot, n_stored: int, run_dir: Path) -> None:
+    """Refuse effect configs (``model.json``) whose numbers cannot come from a run before anything is built.
+
+    Every number must be finite; every integer (not a bool) at least 0 (``hidden`` at least 1) and at most its
+    :data:`SIZE_LIMITS` entry (other keys: :data:`MAX_CONFIG_INT`); and no size may exceed ``n_stored``, the number of
+    values model.pt holds: each size counts values stored there (a network of ``hidden`` units stores at least
+    ``hidden`` weights), so a larger one cannot agree with the state (which ``load_state_dict`` checks exactly).
+    A ``joint`` must be a joint of ``robot``: 1..dof.
+    """
+    count = 0
+
+    def bad(where: str, what: str) -> OptionError:
+        return _run_error(run_dir, f"model.json: {where}: {what}")
+
+    def walk(value, where: str, key: str | None) -> None:
+        nonlocal count
+        if isinstance(value, dict):
+            if "class" in value:
+                count += 1
+                if count > MAX_EFFECTS:
+                    raise bad(where, f"more than {MAX_EFFECTS} effects")
+            for k, v in value.items():
+                walk(v, f"{where}.{k}", str(k))
+        elif isinstance(value, list):
+            for i, v in enumerate(value):
+                walk(v, f"{where}[{i}]", key)
+        elif isinstance(value, bool) or value is None or isinstance(value, str):
+            return
+        elif isinstance(value, float):
+            if not math.isfinite(value):
+                raise bad(where, f"{value} is not a finite number")
+            if key in SIZE_LIMITS or key == "joint":
+                raise bad(where, f"must be a whole number, got {value!r}")
+        elif isinstance(value, int):
+            if key == "joint":
+                if not 1 <= value <= robot.dof:
+                    raise bad(where, f"joint {value} is not a joint of robot '{robot.name}' (1..{robot.dof})")
+                return
+            cap, low = SIZE_LIMITS.get(key, MAX_CONFIG_INT), 1 if key == "hidden" else 0
+            if not low <= value <= cap:
+                raise bad(where, f"{value} is outside {low}..{cap}")
+            if key in SIZE_LIMITS and value > max(n_stored, 1):
+                raise bad(where, f"{value} is larger than the {n_stored} values model.pt holds; they cannot agree")
+        else:
+            raise bad(where, f"unexpected value {value!r}")
+
+    for i, c in enumerate(configs):
+        walk(c, f"effects[{i}]", None)
+
+
+def _load_torch_file(run_dir: Path, name: str):
+    """A run directory's tensor file ``name`` (read bounded, ``weights_only``: no pickled object runs), or the run
+    error that names it."""
+    raw = read_bounded(run_dir / name, name, lambda m: _run_error(run_dir, f"{name} {m}"))
+    try:
+        return torch.load(io.BytesIO(raw), weights_only=True, map_location="cpu")
+    except pickle.UnpicklingError:
+        raise _run_error(run_dir, f"{name} holds more than tensors (a pickled object); refused to load it") from None
+    except (RuntimeError, EOFError, OSError, ValueError) as e:
+        raise _run_error(run_dir, f"{name} cannot be read (truncated or not a torch file: {e})") from None
+
+
+def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
+    """Rebuild the calibrated measurement model of a run directory.
+
+    Raises:
+        OptionError: not a run directory, or one whose ``model.json``/``model.pt`` is missing, malformed,
+            truncated, not a plain tensor file, or names a robot file outside the run directory.
+    """
+    run_dir = Path(run_dir)
+    meta_path = run_dir / "model.json"
+    if not run_dir.is_dir():
+        raise _run_error(run_dir, "not a directory")
+    if not meta_path.exists():
+        raise _run_error(run_dir, "not a torchcal run directory (no model.json)")
+    meta = load_json(meta_path, "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
+    if not isinstance(meta, dict):
+        raise _run_error(run_dir, "model.json is not a JSON object")
+    missing = [k for k in ("robot_file", "effects") if k not in meta]
+    if missing:
+        raise _run_error(run_dir, f"model.json lacks {', '.join(missing)}")
+    rf = meta["robot_file"]
+    if not isinstance(rf, str) or not rf:
+        raise _run_error(run_dir, f"model.json: robot_file must be a relative path, got {rf!r}")
+    robot_path = Path(os.path.realpath(run_dir / rf))
+    if Path(rf).is_absolute() or Path(os.path.realpath(run_dir)) not in robot_path.parents:
+        raise _run_error(run_dir, f"model.json: robot_file {rf!r} points outside the run directory; refused")
+    for key in ("base_link", "tip_link"):
+        if meta.get(key) is not None and not isinstance(meta[key], str):
+            raise _run_error(run_dir, f"model.json: {key} must be a link name, got {meta[key]!r}")
+    if not isinstance(meta["effects"], list) or not all(isinstance(c, dict) for c in meta["effects"]):
+        raise _run_error(run_dir, "model.json: effects must be a list of objects")
+    robot = load_robot(robot_path, base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
+    for key in ("stations", "probes"):  # one instrument pose per station, one lever arm per probe
+        names = meta.get(key)
+        if names is None:
+            continue
+        ok = isinstance(names, list) and 1 < len(names) <= MAX_LABELS and all(isinstance(v, str) for v in names)
+        if not ok or len(set(names)) != len(names):
+            raise _run_error(run_dir, f"model.json: {key} must be a list of 2..{MAX_LABELS} distinct names")
+        (robot.set_stations if key == "stations" else robot.set_probes)(names)
+    pt = run_dir / "model.pt"
+    if not pt.exists():
+        raise _run_error(run_dir, "model.pt is missing")
+    state = _load_torch_file(run_dir, "model.pt")
+    if not isinstance(state, dict) or not all(isinstance(v, torch.Tensor) for v in state.values()):
+        raise _run_error(run_dir, "model.pt does not hold a state dict of tensors")
+    # every size in model.json is rebuilt as tensors before the state is loaded into them: bound them first
+    check_effect_configs(meta["effects"], robot, sum(v.numel() for v in state.values()), run_dir)
+    try:
+        effects = [effect_from_config(c, robot) for c in meta["effects"]]
+    except TorchcalError:
+        raise
+    except (KeyError, TypeError, ValueError) as e:
+        raise _run_error(run_dir, f"model.json: an effect cannot be rebuilt ({type(e).__name__}: {e})") from None
+    if "robot.tool_rotation.delta" in state:  # a run on a 6-D probe's data: the probe frame's rotation in the flange
+        robot.enable_orientation()
+    model = MeasurementModel(robot, effects)
+    if "robot.readings.delta" not in state and robot.readings.is_identity:  # written before readings maps existed
+        state["robot.readings.delta"] = robot.readings.delta.detach().clone()
+    try:
+        model.load_state_dict(state)
+    except (RuntimeError, TypeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"model.pt does not match model.json ({first})") from None
+    _check_state(run_dir, model)
+    _set_region(model, meta.get("region"), run_dir)
+    return model, meta
+
+
+def load_covariance(run_dir: str | os.PathLike, model: MeasurementModel) -> ParameterCovariance | None:
+    """The run's parameter covariance (``covariance.pt``) checked against its loaded ``model``; None when the run has
+    none (a fit whose normal matrix was singular, or a run written before it was kept)."""
+    run_dir = Path(run_dir)
+    path = run_dir / "covariance.pt"
+    if not path.exists():
+        return None
+    state = _load_torch_file(run_dir, "covariance.pt")
+    try:
+        return ParameterCovariance.from_state(state, model)
+    except ValueError as e:
+        raise _run_error(run_dir, f"covariance.pt does not fit model.pt: it {e}") from None
+
+
+def load_prior(run_dir: str | os.PathLike) -> Prior:
+    """A run directory as the prior of a new calibration (:func:`torchcal.pipeline.prior.prior_from_run`): its
+    model, its parameter covariance and the variance factor of the fit that covariance is of (report.json's
+    ``global_test.statistic``; 1 where the report lacks it)."""
+    run_dir = Path(run_dir)
+    model, meta = load_model(run_dir)
+    if meta.get("method") == "pcm":
+        # the pcm method keeps the nominal geometry and its network corrects that geometry's residual: an update of
+        # the geometry from a few rows would leave the network correcting a geometry it was not fitted with
+        raise OptionError(
+            f"{run_dir}: a run of the pcm method cannot be the prior of an update (its correction network was "
+            "fitted to the nominal geometry, which an update moves); calibrate the new rows with --method pcm, or "
+            "use a kinematic or default-method run as the prior"
+        )
+    s0_sq = 1.0
+    if (run_dir / "report.json").exists():
+        rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
+        stat = rep.get("global_test", {}).get("statistic") if isinstance(rep, dict) else None
+        if isinstance(stat, (int, float)) and math.isfinite(stat) and stat > 0:
+            s0_sq = float(stat)
+    return prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
+
+
+def load_trust(run_dir: str | os.PathLike, meta: dict, key: str = "trust") -> Trust | None:
+    """model.json's predictive-sigma entry ``key`` (:class:`~torchcal.estimate.trust.Trust`); None where the run was
+    written before it existed or measured it on too few held-out rows."""
+    d = meta.get(key) if key == "trust" else (meta.get("geometric") or {}).get("trust")
+    if d is None:
+        return None
+    try:
+        return Trust.from_dict(d)
+    except ValueError as e:
+        raise _run_error(Path(run_dir), f"model.json: {key}: {e}") from None
+
+
+def load_geometric(
+    run_dir: str | os.PathLike, model: MeasurementModel, meta: dict
+) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
+    """The kinematic calibration a run keeps beside a final model that is not it (``geometric.pt``), with its
+    covariance and :class:`~torchcal.estimate.trust.Trust`; None where the run keeps none."""
+    import copy
+
+    run_dir = Path(run_dir)
+    geo_trust = load_trust(run_dir, meta, "geometric")
+    if geo_trust is None or not (run_dir / "geometric.pt").exists():
+        return None
+    state = _load_torch_file(run_dir, "geometric.pt")
+    geo = MeasurementModel(copy.deepcopy(model.robot))
+    try:
+        geo.load_state_dict(state)
+    except (RuntimeError, TypeError, AttributeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"geometric.pt does not match model.json ({first})") from None
+    _check_state(run_dir, geo)
+    geo.set_region(model.region, fade=False)
+    cov = None
+    if (run_dir / "covariance_geometric.pt").exists():
+        try:
+            cov = ParameterCovariance.from_state(_load_torch_file(run_dir, "covariance_geometric.pt"), geo)
+        except ValueError as e:
+            raise _run_error(run_dir, f"covariance_geometric.pt does not fit geometric.pt: it {e}") from None
+    return geo, cov, geo_trust
+
+
+#: the column predict and compensate write to say which model gave each row (RowTrust.which)
+MODEL_NAMES = ("full", "geometric")
+#: beyond the region the kinematic calibration predicts a row only where the run's model's sigma is more than this
+#: many times its own: within it the richer model's error stays the smaller though its sigma is not (it knows more of
+#: what it is unsure of), far above it the richer model is guessing
+SWITCH_RATIO = 2.0
+
+
+@dataclass
+class RowTrust:
+    """How far to trust each row (:func:`row_trust`).
+
+    Attributes:
+        sigma: the predictive standard deviation ``(N, 3)`` [m] of the model each row uses; None where the run has
+            neither a covariance nor a measured level.
+        extrapolation: ``(N,)`` how far each pose lies outside the calibrated region [rad or m].
+        which: ``(N,)`` 0 where the run's model predicts the row, 1 where its kinematic calibration does (beyond the
+            region, where the model's sigma is more than :data:`SWITCH_RATIO` times that one's): an index into
+            :data:`MODEL_NAMES`.
+        geometric: the kinematic calibration (None where the run keeps none).
+        note: what the sigma lacks, for the user (a run written before the measured level), else None.
+    """
+
+    sigma: Tensor | None
+    extrapolation: Tensor
+    which: Tensor
+    geometric: MeasurementModel | None = None
+    note: str | None = None
+    geometric_sigma: Callable[[Context], Tensor] | None = None  # the kinematic calibration's sigma at other rows
+
+
+def _old_run_sigma(
+    run_dir: Path, model: MeasurementModel, ctx: Context, measured: bool = False
+) -> tuple[Tensor | None, str]:
+    """The sigma of a run without a measured level (written before it, or ``measured`` but on too few held-out
+    rows): parameters, learned posterior and the report's tracker noise, and the note that says so."""
+    from torchcal.estimate.covariance import combined_std
+
+    s = combined_std(model, ctx, load_covariance(run_dir, model))
+    noise = None
+    if (run_dir / "report.json").exists():
+        rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
+        v = rep.get("stochastic_model", {}).get("tracker_sigma_m") if isinstance(rep, dict) else None
+        noise = float(v) if isinstance(v, int | float) and math.isfinite(v) and v >= 0 else None
+    why = (
+        f"had fewer than {MIN_ROWS} held-out rows to measure what its model leaves unexplained on"
+        if measured
+        else "was written before torchcal measured what its model leaves unexplained"
+    )
+    note = (
+        f"{run_dir}: the run {why}: sx, sy, sz hold the parameters' and the learned model's uncertainty"
+        + (" and the instrument's noise" if noise is not None else "")
+        + " only, and understate the error; "
+        + (f"hold out {MIN_ROWS} rows or more" if measured else "calibrate again")
+        + " for a sigma that covers it"
+    )
+    if s is None or noise is None:
+        return s, note
+    return (s.square() + noise**2).sqrt(), note
+
+
+def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, ctx: Context) -> RowTrust:
+    """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx`` (CONTRACT §3): the standard
+    deviation of a new measurement minus the prediction (:class:`~torchcal.estimate.trust.Trust`), and beyond the
+    calibrated region the kinematic calibration the run keeps beside its model where the model's sigma is far above
+    that one's (:data:`SWITCH_RATIO`)."""
+    run_dir = Path(run_dir)
+    ext = model.extrapolation(ctx.q).cpu()
+    which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
+    tr = load_trust(run_dir, meta)
+    if tr is None:
+        sigma, note = _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
+        return RowTrust(None if sigma is None else sigma.cpu(), ext, which, note=note)
+    sigma = tr.std(model, ctx, load_covariance(run_dir, model)).cpu()
+    alt = load_geometric(run_dir, model, meta)
+    out = ext > 0
+    if alt is None or not bool(out.any()):
+        return RowTrust(sigma, ext, which, None if alt is None else alt[0])
+    geo, cov, geo_trust = alt
+    rows = torch.nonzero(out).flatten()
+    s_geo = geo_trust.std(geo, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
+    better = SWITCH_RATIO * s_geo.norm(dim=1) < sigma[rows].norm(dim=1)
+    sigma[rows[better]] = s_geo[better]
+    which[rows[better]] = 1
+    return RowTrust(sigma, ext, which, geo, geometric_sigma=lambda c: geo_trust.std(geo, c, cov).cpu())
+
+
+def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:
+    """The run's model's own predictive standard deviation ``(N, 3)`` [m] at ``ctx`` (:func:`row_trust` without the
+    choice of model; None where the run has none) and the extrapolation ``(N,)``."""
+    run_dir = Path(run_dir)
+    meta = load_json(run_dir / "model.json", "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
+    tr = load_trust(run_dir, meta if isinstance(meta, dict) else {})
+    if tr is None:
+        sigma = _old_run_sigma(run_dir, model, ctx)[0]
+    else:
+        sigma = tr.std(model, ctx, load_covariance(run_dir, model))
+    return (None if sigma is None else sigma.cpu()), model.extrapolation(ctx.q).cpu()
+
+
+def _check_state(run_dir: Path, model: MeasurementModel) -> None:
+    """Refuse a loaded model that cannot predict: a NaN anywhere, an infinite fitted value or nominal geometry
+    (joint limits alone may be infinite: a continuous joint), or joint limits whose lower is above the upper.
+    Blamed on ``model.pt``, before any data file is read against the limits."""
+    params = {name for name, _ in model.named_parameters()}
+    for name, value in model.state_dict().items():
+        if not value.is_floating_point():
+            continue
+        if bool(torch.isnan(value).any()) or (
+            not name.endswith("limits")
+            and (name in params or name.endswith("nominal"))
+            and not bool(torch.isfinite(value).all())
+        ):
+            raise _run_error(
+                run_dir, f"model.pt: {name} holds non-finite values; the run directory is damaged or the fit diverged"
+            )
+    limits = model.robot.limits
+    inverted = (limits[:, 0] > limits[:, 1]).nonzero().flatten().tolist()
+    if inverted:
+        k = inverted[0]
+        raise _run_error(
+            run_dir,
+            f"model.pt: the limits of joint {k + 1} ({model.robot.joint_names[k]}) are inverted, lower "
+            f"{float(limits[k, 0])!r} > upper {float(limits[k, 1])!r}; the run directory is damaged",
+        )
+
+
+#: stations or probes a run directory may name (each is a 6- or 3-element group of model.pt)
+MAX_LABELS = 10000
+
+
+def rows_of(model: MeasurementModel, data: Measurements) -> Measurements:
+    """``data`` with its station and probe indices in the model's order (by name); rows of a file without a
+    ``station`` (``probe``) column take the model's first station (probe). A name the model does not know is an error
+    naming it and the model's names; a model of one station (probe) ignores the column."""
+    out = {}
+    for key, known in (("station", model.robot.stations), ("probe", model.robot.probes)):
+        index, names = getattr(data, key), getattr(data, f"{key}_names")
+        if not known:
+            out[key], out[f"{key}_names"] = None, ()
+            continue
+        if index is None:
+            index = torch.zeros(data.n, dtype=torch.long, device=data.q.device)
+        else:
+            unknown = [n for n in names if n not in known]
+            if unknown:
+                raise _label_error(data, key, unknown[0], f"is not one of the run's {key}s ({', '.join(known)})")
+            lut = torch.tensor([known.index(n) for n in names], dtype=torch.long, device=index.device)
+            index = lut[index]
+        out[key], out[f"{key}_names"] = index, tuple(known)
+    return dataclasses.replace(data, meta=dict(data.meta), **out)
+
+
+def _label_error(data: Measurements, key: str, name: str, why: str) -> MeasurementFileError:
+    """The refusal of the first row of ``data`` whose ``key`` column names ``name``: file, line and column."""
+    index, names = getattr(data, key), getattr(data, f"{key}_names")
+    row = int(torch.nonzero(index.cpu() == names.index(name))[0])
+    line = data.lines[row] if data.lines else None
+    return MeasurementFileError(data.source or "the data", f"{key} {name!r} {why}", line=line, column=key)
+
+
+def check_placement(meta: dict, data: Measurements) -> None:
+    """Refuse rows that name another station than a re-stationed run's placement (``model.json``'s ``station``
+    ``label``: the station its points named); a run without that label leaves the column to :func:`rows_of`."""
+    label = (meta.get("station") or {}).get("label") if isinstance(meta.get("station"), dict) else None
+    if not isinstance(label, str) or data.station is None:
+        return
+    other = [n for n in data.station_names if n != label]
+    used = {data.station_names[int(i)] for i in torch.unique(data.station)}
+    other = [n for n in other if n in used]
+    if other:
+        raise _label_error(
+            data, "station", other[0], f"is not the run's placement: it was re-stationed on points of {label!r}"
+        )
+
+
+def at_station(
+    model: MeasurementModel, station: str | None = None, probe: str | None = None, *, groups: bool = True
+) -> tuple[MeasurementModel, int, int]:
+    """A copy of ``model`` with one instrument pose and one lever arm, those of ``station`` and ``probe`` (names;
+    None: the first), for what works in one frame (``compensate``); with their indices in ``model``. A learned
+    correction per station and probe becomes that pair's (none where the pair has none; none at all without
+    ``groups``: at a new placement no station's applies). A model of one station and one probe comes back as it is
+    (a name given for it must then be absent)."""
+    import copy
+
+    from torchcal.effects.grouped import GroupedCorrection
+    from torchcal.robot.model import Instrument, Tool
+
+    robot = model.robot
+    picked = []
+    for key, name, known in (("station", station, robot.stations), ("probe", probe, robot.probes)):
+        if name is not None and name not in known:
+            have = f"the run's {key}s are {', '.join(known)}" if known else f"the run has a single {key}"
+            raise OptionError(f"{key} {name!r} is not one of the run's: {have}")
+        picked.append(known.index(name) if name is not None else 0)
+    if not robot.stations and not robot.probes:
+        return model, 0, 0
+    out = copy.deepcopy(model)
+    r = out.robot
+    with torch.no_grad():
+        r.instrument = Instrument(robot.T_tracker_base(picked[0]).detach(), dtype=r.dtype, device=r.device)
+        r.tool = Tool(robot.t_flange_probe(picked[1]).detach(), dtype=r.dtype, device=r.device)
+    for i, e in reversed(list(enumerate(out.effects))):
+        if isinstance(e, GroupedCorrection):
+            key = (picked[0], picked[1])
+            if groups and key in e.groups:
+                out.effects[i] = e.inner[e.groups.index(key)]
+            else:
+                del out.effects[i]
+    return out, picked[0], picked[1]
+
+
+def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Predicted probe positions in the tracker frame ``(N, 3)`` [m] with everything the run learned, computed
+    on ``device`` and returned on the CPU."""
+    model, meta = load_model(run_dir)
+    return predict_with(model, meta, data, device)
+
+
+def predict_with(
+    model: MeasurementModel, meta: dict, data: Measurements, device: torch.device | str = "cpu"
+) -> torch.Tensor:
+    """:func:`predict` with a model already loaded (:func:`load_model`); the model is moved to ``device``."""
+    model, data = model.to(device), data.to(device)
+    if data.dof != model.robot.dof:
+        raise OptionError(f"data have {data.dof} joints but the run's robot '{model.robot.name}' has {model.robot.dof}")
+    check_placement(meta, data)
+    data = rows_of(model, data)
+    with torch.no_grad():
+        return model(
+            Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None)
+        ).cpu()
+
+
+def predict_orientation(model: MeasurementModel, meta: dict, data: Measurements) -> torch.Tensor | None:
+    """Predicted probe orientations in the tracker frame as rotation vectors ``(N, 3)`` [rad] where the run fitted a
+    6-D probe's orientation (its model has the probe frame's rotation), else None. Joint effects turn the probe;
+    Cartesian corrections (the learned ones) do not."""
+    if not model.robot.has_orientation:
+        return None
+    from torchcal.data.ipa import matrix_to_rotvec
+
+    data = data.to(model.robot.device)
+    with torch.no_grad():
+        ctx = Context.from_measurements(data, trajectory=bool(meta.get("trajectory")) and data.t is not None)
+        return matrix_to_rotvec(model.orientation(ctx)).cpu()
