@@ -168,6 +168,18 @@ def test_rows_that_do_not_pair(tmp_path, capsys):
     refuse(capsys, tmp_path, _convert(tmp_path, MAP, points=POINTS + "1 2 3\n"), "points.txt")
 
 
+def test_quaternion_order_unknown(tmp_path, capsys):
+    bad = QUAT_MAP.replace("columns: 4-7}", "columns: 4-7, order: zyxw}")
+    pts = "812.1 -191.5 425.0 1 0 0 0\n790.3 -50.2 520.7 1 0 0 0\n700.9 90.4 610.2 0 1 0 0\n"
+    refuse(capsys, tmp_path, _convert(tmp_path, bad, points=pts), "map.yaml", "zyxw")
+
+
+def test_convert_out_is_an_input(tmp_path, capsys):
+    argv = _convert(tmp_path, MAP)
+    argv[-1] = str(tmp_path / "in" / "points.txt")
+    refuse(capsys, tmp_path, argv, "points.txt")
+
+
 # ------------------------------------------------------------------------------------------- 6-D compensation
 
 
@@ -245,6 +257,13 @@ def test_orientation_targets_with_position_only(oriented, tmp_path, capsys):
     assert "# compensation: position only (--position-only)" in (tmp_path / "j.csv").read_text()
 
 
+def test_compensate_output_fed_back_as_targets(oriented, tmp_path, capsys):
+    """compensate's own output as TARGETS (its status column is text): refused at the first such cell."""
+    assert run_cli(_compensate(oriented, _targets(oriented, tmp_path), tmp_path)) == 0
+    (tmp_path / "j.csv").rename(tmp_path / "out1.csv")
+    refuse(capsys, tmp_path, _compensate(oriented, tmp_path / "out1.csv", tmp_path), "out1.csv", "line", "status")
+
+
 # ------------------------------------------------------------------------------------------------------ export
 
 
@@ -275,6 +294,13 @@ def test_export_of_a_damaged_run(oriented, tmp_path, capsys, damage):
         target.write_bytes(target.read_bytes()[:50])
     argv = ["export", str(run), "--format", "urdf", "--out", str(tmp_path / "r.urdf")]
     refuse(capsys, tmp_path, argv, "run")
+
+
+def test_export_over_a_file_of_the_run(oriented, tmp_path, capsys):
+    before = snapshot(oriented / "cal")
+    argv = ["export", str(oriented / "cal"), "--format", "urdf", "--out", str(oriented / "cal" / "report.json")]
+    refuse(capsys, tmp_path, argv, "report.json", "input directory")
+    assert snapshot(oriented / "cal") == before
 
 
 def test_export_of_a_folder_that_is_no_run(tmp_path, capsys):
@@ -316,8 +342,23 @@ def serial(monkeypatch):
         ("name,data,robot\n", ("manifest.csv",)),
         ("", ("manifest.csv",)),
         ("name,data\nr1,a.csv\n", ("manifest.csv", "robot")),
+        ("name,data,robot,method\nr1,a.csv,ur5,fast\n", ("manifest.csv", "line 2", "method", "fast")),
+        ("name,data,robot\nr1,a.csv\n", ("manifest.csv", "line 2")),
+        ("name,data,robot\nreport.json,a.csv,ur5\n", ("manifest.csv", "line 2", "report.json")),
+        ("name,data,robot\nr1,,ur5\n", ("manifest.csv", "line 2", "data")),
     ],
-    ids=["duplicate", "slash", "dotdot", "header-only", "empty", "no-robot-column"],
+    ids=[
+        "duplicate",
+        "slash",
+        "dotdot",
+        "header-only",
+        "empty",
+        "no-robot-column",
+        "method",
+        "ragged",
+        "summary",
+        "no-data",
+    ],
 )
 def test_fleet_manifest_refused(tmp_path, capsys, serial, text, needles):
     (tmp_path / "m").mkdir()
