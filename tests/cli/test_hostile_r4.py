@@ -267,6 +267,23 @@ def test_compensate_output_fed_back_as_targets(oriented, tmp_path, capsys):
 # ------------------------------------------------------------------------------------------------------ export
 
 
+@pytest.fixture(scope="module")
+def seven_joints(tmp_path_factory):
+    """A kinematic run of the built-in 7-joint DH arm: no UR."""
+    root = tmp_path_factory.mktemp("arm7")
+    assert cli_simulate(root / "sim", "--poses", "40", "--test-poses", "3", "--seed", "1", robot="arm7_dh") == 0
+    cmd = ["calibrate", str(root / "sim" / "train.csv"), "--robot", "arm7_dh", "--method", "kinematic"]
+    assert main([*cmd, "--out", str(root / "cal"), "--quiet"]) == 0
+    return root / "cal"
+
+
+def test_export_ur_ros2_of_a_robot_that_is_no_ur(seven_joints, tmp_path, capsys):
+    """ur-ros2 of a 7-joint arm is refused, nothing written, not even the new folder; its DH file is written."""
+    argv = ["export", str(seven_joints), "--format", "ur-ros2", "--out", str(tmp_path / "new" / "k.yaml")]
+    refuse(capsys, tmp_path, argv, "arm7_dh", "six revolute joints", "7 joints")
+    assert run_cli(["export", str(seven_joints), "--format", "dh", "--out", str(tmp_path / "arm7.yaml")]) == 0
+
+
 def test_export_over_a_foreign_file(oriented, tmp_path, capsys):
     (tmp_path / "kin.yaml").write_text("mine: true\n")
     argv = ["export", str(oriented / "cal"), "--format", "ur-ros2", "--out", str(tmp_path / "kin.yaml")]
