@@ -467,7 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument(
         "--orientation-weight",
         dest="weight",
-        type=float,
+        type=_number("positive"),  # 0, a negative, inf or nan weight is no solve: argparse's exit 2 names the option
         default=0.1,
         metavar="M_PER_RAD",
         help="in a 6-D solve, the length [m] an orientation error of 1 rad weighs as (default 0.1: as a point 100 mm "
@@ -1310,11 +1310,15 @@ def cmd_export(args) -> int:
     model, _ = load_model(args.run)
     left = urdf_left_out(model)
     notes = (f"NOT in this file: {', '.join(left)} (torchcal compensate {args.run} applies them)",) if left else ()
-    if args.format == "urdf":
+    text = None
+    if args.format != "urdf":
+        write = ur_ros2_yaml if args.format == "ur-ros2" else dh_yaml
+        text = f"# written_by: torchcal export\n{write(model.robot, notes)}"  # a refusal before any folder is made
+    out_file.parent.mkdir(parents=True, exist_ok=True)  # as predict and plan do: --out may name a new folder
+    if text is None:
         write_urdf(model.robot, out_file, notes=list(notes))
     else:
-        write = ur_ros2_yaml if args.format == "ur-ros2" else dh_yaml
-        write_text(out_file, f"# written_by: torchcal export\n{write(model.robot, notes)}")
+        write_text(out_file, text)
     _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
     return 0
 

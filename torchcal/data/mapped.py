@@ -82,10 +82,20 @@ def _yaml_loader():
     return Loader
 
 
-def _load_yaml(path: str, what: str):
+#: the largest MAP: a MAP is a few lines; a bigger file is another file given as the MAP (the YAML parser would
+#: take minutes over tens of MB before it failed)
+MAX_MAP_BYTES = 1 << 20
+
+
+def _load_yaml(path: str, what: str, max_bytes: int | None = None):
     import yaml
 
     try:
+        size = os.stat(path).st_size
+        if max_bytes is not None and size > max_bytes:
+            raise MeasurementFileError(
+                path, f"{size} bytes; a {what} is a few lines (at most {max_bytes} bytes): is it the {what}?"
+            )
         text = Path(path).read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise MeasurementFileError(path, f"cannot read the {what}: {e}") from None
@@ -104,7 +114,7 @@ def _line(doc, key=None) -> int | None:
 def read_map(path: str | os.PathLike) -> dict:
     """The MAP as a mapping, its keys checked (unknown ones name the MAP's line and list the valid ones)."""
     path = str(path)
-    doc = _load_yaml(path, "MAP")
+    doc = _load_yaml(path, "MAP", MAX_MAP_BYTES)
     if not isinstance(doc, dict):
         raise MeasurementFileError(path, "a MAP is a YAML mapping with 'joints' and 'position', 'matrix' or ...")
     for key in doc:
@@ -133,7 +143,10 @@ def read_map(path: str | os.PathLike) -> dict:
     for key, table in (("length", LENGTH), ("angle", ANGLE)):
         if units.get(key, "m" if key == "length" else "rad") not in table:
             raise MeasurementFileError(
-                path, f"units.{key} must be one of {', '.join(table)}", line=_line(units, key), column=key
+                path,
+                f"units.{key} must be one of {', '.join(table)}, got {units[key]!r}",
+                line=_line(units, key),
+                column=key,
             )
     return doc
 
@@ -296,6 +309,14 @@ def columns_of(spec, table: Table, map_path: str, where: str, line: int | None =
     """0-based column indices of a column spec (numbers, ``"a-b"`` ranges, header names, lists of them); an error
     names the MAP's ``line`` where the spec stands."""
     if isinstance(spec, list):
+        # flat only: a list of lists is no layout, and YAML aliases nest one to billions of cells (an alias bomb)
+        nested = next((s for s in spec if isinstance(s, (list, dict))), None)
+        if nested is not None:
+            raise MeasurementFileError(
+                map_path,
+                f"{where}: a list of columns holds numbers, ranges or names, not {type(nested).__name__}s",
+                line=line,
+            )
         return [c for s in spec for c in columns_of(s, table, map_path, where, line)]
     header = table.header or []
     if isinstance(spec, str) and spec in header:
@@ -532,6 +553,30 @@ def _extra(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
     return out
 
 
+def _distinct_inputs(doc: dict, numbers: list[int], inputs: _Inputs) -> None:
+    """Refuse two points inputs that the ``station``/``probe`` lists give the same names: each would be a second
+    reading of one reflector at one placement for every row, rows the fit would count twice."""
+    lists = [key for key in ("station", "probe") if isinstance(doc.get(key), list)]
+    if (
+        len(numbers) < 2
+        or not lists
+        or any(doc.get(key) is not None and key not in lists for key in ("station", "probe"))
+    ):
+        return  # names per row ({column: ..}, {block: ..}) may repeat: rows of one input differ
+    seen = {}
+    for i, names in enumerate(zip(*(doc[key] for key in lists), strict=True)):
+        names = tuple(str(n) for n in names)
+        if names in seen:
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"INPUTs {numbers[seen[names]]} and {numbers[i]} have the same {' and '.join(lists)} "
+                f"{', '.join(names)}: name each input's reflector (probe) or placement (station) apart",
+                line=_line(doc, lists[-1]),
+                column=lists[-1],
+            )
+        seen[names] = i
+
+
 def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements:
     """The measurements the MAP reads from ``paths`` (the INPUT files, numbered from 1), in SI units.
 
@@ -561,6 +606,7 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
         names = _labels(doc, key, points, inputs)
         if names is not None:
             labels[key], labels[f"{key}_names"] = labels_of(names)
+    _distinct_inputs(doc, [n for n, _, _ in points], inputs)  # after _labels: the lists' lengths are checked
     return Measurements(
         q=q.repeat(k, 1),
         p=p,
