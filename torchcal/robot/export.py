@@ -444,14 +444,27 @@ def user_urdf_string(robot: RobotModel, options: ExportOptions | None = None) ->
     Raises:
         RobotSpecError: the file does not hold the robot's chain any more, or the added frame names clash.
     """
-    import re
+    opts = options or ExportOptions()
+    src = Path(robot.source)
+    raw, root = _read_source_xml(src)
+    joints = {j.get("name"): j for j in root.findall("joint")}
+    links = {lk.get("name") for lk in root.findall("link")}
+    chain = _source_chain(src, root, robot)
+    O, T_base_tracker, t_flange_probe = _calibrated(robot)
+    _set_origins(chain, O)
+    if opts.probe:
+        _add_frame(src, root, joints, links, "probe", robot.tip_link, tf.translation(t_flange_probe))
+    if opts.tracker:
+        _add_frame(src, root, joints, links, "tracker", robot.base_link, T_base_tracker)
+    if opts.name is not None:
+        root.set("name", opts.name)
+    return _user_urdf_text(robot, opts, src, raw, root)
+
+
+def _read_source_xml(src: Path):
+    """The file's text and its XML tree, comments kept and its namespaces' prefixes registered for writing."""
     import xml.etree.ElementTree as ET
 
-    from torchcal._version import __version__
-
-    opts = options or ExportOptions()
-    probe, tracker = opts.probe, opts.tracker
-    src = Path(robot.source)
     # read again after the fit: the file may have been replaced meanwhile (by a FIFO, a huge file): bounded
     from torchcal._inputs import read_bounded
     from torchcal.robot.load import MAX_DESCRIPTION_BYTES
@@ -463,10 +476,13 @@ def user_urdf_string(robot: RobotModel, options: ExportOptions | None = None) ->
         raise RobotSpecError(f"{src}: is no longer UTF-8 text (byte offset {e.start})") from None
     for _, (prefix, uri) in ET.iterparse(io.BytesIO(data), events=("start-ns",)):
         ET.register_namespace(prefix, uri)
-    root = ET.fromstring(raw, parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
-    joints = {j.get("name"): j for j in root.findall("joint")}
+    return raw, ET.fromstring(raw, parser=ET.XMLParser(target=ET.TreeBuilder(insert_comments=True)))
+
+
+def _source_chain(src: Path, root, robot: RobotModel) -> list:
+    """The file's joints from ``robot.base_link`` to ``robot.tip_link``, base first; refused unless its movable
+    joints are the robot's."""
     by_child = {j.find("child").get("link"): j for j in root.findall("joint") if j.find("child") is not None}
-    links = {lk.get("name") for lk in root.findall("link")}
     chain, link = [], robot.tip_link
     while link != robot.base_link:
         if link not in by_child:
@@ -483,7 +499,13 @@ def user_urdf_string(robot: RobotModel, options: ExportOptions | None = None) ->
             f"{src}: the chain's movable joints {[j.get('name') for j in movable]} are not the "
             f"robot's {list(robot.joint_names)}; the file no longer holds the calibrated chain"
         )
-    O, T_base_tracker, t_flange_probe = _calibrated(robot)
+    return chain
+
+
+def _set_origins(chain: list, O: torch.Tensor) -> None:
+    """Each movable joint's ``<origin>`` set to ``inv(P_i) @ O_i``, ``P_i`` the fixed joints in front of it."""
+    import xml.etree.ElementTree as ET
+
     pending = torch.eye(4, dtype=torch.float64)
     i = 0
     for j in chain:
@@ -502,45 +524,51 @@ def user_urdf_string(robot: RobotModel, options: ExportOptions | None = None) ->
         pending = torch.eye(4, dtype=torch.float64)
         i += 1
 
-    def frame(kind: str, parent: str, T: torch.Tensor) -> None:
-        jname, lname = f"{kind}_joint", kind
-        old = joints.get(jname)
-        if old is not None and old.find("child").get("link") == lname and old.find("parent").get("link") == parent:
-            old.find("origin").attrib.update(_xml_origin(T))  # a previous torchcal export: update in place
-            return
-        if old is not None or lname in links:
-            raise RobotSpecError(
-                f"{src}: cannot add the '{lname}' frame: the file already has a "
-                f"{'joint' if old is not None else 'link'} of that name; pass {kind}=False"
-            )
-        tail = root[-1].tail if len(root) else "\n"
-        if len(root):
-            root[-1].tail = "\n  "
-        what = (
-            "lever arm t_flange_probe (probe position)"
-            if kind == "probe"
-            else "instrument pose, T_base_tracker = inv(T_tracker_base)"
-        )
-        c = ET.Comment(f" added by torchcal: the calibrated {what} ")
-        c.tail = "\n  "
-        lk = ET.Element("link", {"name": lname})
-        lk.tail = "\n  "
-        jt = ET.Element("joint", {"name": jname, "type": "fixed"})
-        jt.text = "\n    "
-        for k, (tag, attrs) in enumerate(
-            (("parent", {"link": parent}), ("child", {"link": lname}), ("origin", _xml_origin(T)))
-        ):
-            e = ET.SubElement(jt, tag, attrs)
-            e.tail = "\n    " if k < 2 else "\n  "
-        jt.tail = tail
-        root.extend([c, lk, jt])
 
-    if probe:
-        frame("probe", robot.tip_link, tf.translation(t_flange_probe))
-    if tracker:
-        frame("tracker", robot.base_link, T_base_tracker)
-    if opts.name is not None:
-        root.set("name", opts.name)
+def _add_frame(src: Path, root, joints: dict, links: set, kind: str, parent: str, T: torch.Tensor) -> None:
+    """The ``probe`` or ``tracker`` link and its fixed joint appended to the file (a previous export's updated)."""
+    import xml.etree.ElementTree as ET
+
+    jname, lname = f"{kind}_joint", kind
+    old = joints.get(jname)
+    if old is not None and old.find("child").get("link") == lname and old.find("parent").get("link") == parent:
+        old.find("origin").attrib.update(_xml_origin(T))  # a previous torchcal export: update in place
+        return
+    if old is not None or lname in links:
+        raise RobotSpecError(
+            f"{src}: cannot add the '{lname}' frame: the file already has a "
+            f"{'joint' if old is not None else 'link'} of that name; pass {kind}=False"
+        )
+    tail = root[-1].tail if len(root) else "\n"
+    if len(root):
+        root[-1].tail = "\n  "
+    what = (
+        "lever arm t_flange_probe (probe position)"
+        if kind == "probe"
+        else "instrument pose, T_base_tracker = inv(T_tracker_base)"
+    )
+    c = ET.Comment(f" added by torchcal: the calibrated {what} ")
+    c.tail = "\n  "
+    lk = ET.Element("link", {"name": lname})
+    lk.tail = "\n  "
+    jt = ET.Element("joint", {"name": jname, "type": "fixed"})
+    jt.text = "\n    "
+    for k, (tag, attrs) in enumerate(
+        (("parent", {"link": parent}), ("child", {"link": lname}), ("origin", _xml_origin(T)))
+    ):
+        e = ET.SubElement(jt, tag, attrs)
+        e.tail = "\n    " if k < 2 else "\n  "
+    jt.tail = tail
+    root.extend([c, lk, jt])
+
+
+def _user_urdf_text(robot: RobotModel, opts: ExportOptions, src: Path, raw: str, root) -> str:
+    """The edited tree as text, behind a header comment and the original file's prolog, start tag kept."""
+    import re
+    import xml.etree.ElementTree as ET
+
+    from torchcal._version import __version__
+
     # keep the comments in front of <robot>: licence and provenance notices of the original file
     prolog = raw[: raw.find("<robot")] if "<robot" in raw else ""
     prolog = re.sub(r"<\?xml[^>]*\?>\s*", "", prolog).strip()
@@ -550,7 +578,7 @@ def user_urdf_string(robot: RobotModel, options: ExportOptions | None = None) ->
         "repr() floats).",
         "Everything else is the original file's. Added frames: 'probe' (the calibrated lever arm, fixed to "
         f"'{robot.tip_link}') and 'tracker' (the instrument pose, fixed to '{robot.base_link}')."
-        if probe and tracker
+        if opts.probe and opts.tracker
         else "",
         *opts.notes,
     ]
