@@ -1033,6 +1033,33 @@ def write_measurements(
             file cannot be written.
     """
     path_str = str(path)
+    available, names = _writable_columns(m, labels)
+    columns = _chosen_columns(columns, available)
+    head = _meta_lines(path_str, {**m.meta, **(meta or {})}, written_by)
+    head.append(",".join(columns) + "\n")
+
+    table = torch.stack([available[c] for c in columns], dim=1) if columns else torch.empty(m.n, 0)
+    finite = torch.isfinite(table)
+    if not finite.all():
+        i, j = _first_bad(~finite, list(range(len(columns))))
+        raise MeasurementFileError(
+            path_str,
+            f"cannot write {table[i, j].item()!r}: values must be finite",
+            line=len(head) + i + 1,
+            column=columns[j],
+        )
+
+    rows = table.tolist()
+    for j, c in enumerate(columns):  # a label column's cells are its names
+        if c in names:
+            for row in rows:
+                row[j] = names[c][int(row[j])]
+    _atomic_write(path_str, head, rows)
+
+
+def _writable_columns(m: Measurements, labels) -> tuple[dict[str, torch.Tensor], dict[str, tuple[str, ...]]]:
+    """Every column ``m`` can be written with, in the contract's order, and the names of its label columns (a
+    label column holds each row's index into them)."""
     available: dict[str, torch.Tensor] = {f"q{k + 1}": m.q[:, k] for k in range(m.dof)}
     if m.p is not None:
         available.update({c: m.p[:, k] for k, c in enumerate(_POSITION)})
@@ -1055,18 +1082,24 @@ def write_measurements(
             names[label] = getattr(m, f"{label}_names")
     for key, label_names in (labels or {}).items():
         names[key] = tuple(label_names)
+    return available, names
 
+
+def _chosen_columns(columns: Sequence[str] | None, available: dict) -> list[str]:
+    """The columns asked for (default: all available), each available and named once."""
     if columns is None:
-        columns = list(available)
-    else:
-        columns = list(columns)
-        unknown = [c for c in columns if c not in available]
-        if unknown:
-            raise OptionError(f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}")
-        if len(set(columns)) != len(columns):
-            raise OptionError(f"columns lists a name twice: {columns}")
+        return list(available)
+    columns = list(columns)
+    unknown = [c for c in columns if c not in available]
+    if unknown:
+        raise OptionError(f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}")
+    if len(set(columns)) != len(columns):
+        raise OptionError(f"columns lists a name twice: {columns}")
+    return columns
 
-    merged = {**m.meta, **(meta or {})}
+
+def _meta_lines(path_str: str, merged: dict, written_by: str | None) -> list[str]:
+    """The ``# key: value`` lines, ``written_by`` first; refused where a key or value cannot be read back."""
     if written_by is not None:  # first, whatever the metadata read from an earlier file held
         merged = {"written_by": written_by, **{k: v for k, v in merged.items() if k != "written_by"}}
     head = []
@@ -1079,25 +1112,7 @@ def write_measurements(
                 "(keys are letters, digits, '_', '.', '-'; values are one line)",
             )
         head.append(f"# {key}: {value}\n")
-    head.append(",".join(columns) + "\n")
-
-    table = torch.stack([available[c] for c in columns], dim=1) if columns else torch.empty(m.n, 0)
-    finite = torch.isfinite(table)
-    if not finite.all():
-        i, j = _first_bad(~finite, list(range(len(columns))))
-        raise MeasurementFileError(
-            path_str,
-            f"cannot write {table[i, j].item()!r}: values must be finite",
-            line=len(head) + i + 1,
-            column=columns[j],
-        )
-
-    rows = table.tolist()
-    for j, c in enumerate(columns):  # a label column's cells are its names
-        if c in names:
-            for row in rows:
-                row[j] = names[c][int(row[j])]
-    _atomic_write(path_str, head, rows)
+    return head
 
 
 def _atomic_write(path: str, head: list[str], rows: list[list[float]]) -> None:
