@@ -351,6 +351,45 @@ def read_measurements(
     """
     joint_limits = _check_arguments(length_unit, angle_unit, dof, joint_limits)
     path_str = str(path)
+    meta, layout, table, lines, labels = _read_table(
+        path_str, dof, joint_limits, robot_name, require_positions, require_joints
+    )
+    c = _table_columns(table, layout)
+    station, station_names, probe, probe_names = _label_columns(path_str, labels, lines)
+    _check_columns(path_str, c, lines, layout, length_unit)
+    n = len(lines)
+    if n < min_poses:
+        for_what = f" for {purpose}" if purpose else ""
+        raise MeasurementFileError(path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}")
+    linear = _linear_readings(c["q"], joint_types)
+    _check_units(path_str, c["q"], c["p"], c["sigma"], lines, layout, length_unit, angle_unit, joint_limits, linear)
+    q, p, sigma = _to_si(c["q"], c["p"], c["sigma"], linear, length_unit, angle_unit)
+    _check_ranges(path_str, p, sigma, c["temperature"], lines, layout, length_unit)
+    if joint_limits is not None and n and layout.joints:
+        _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name, linear, length_unit)
+
+    return Measurements(
+        q=q,
+        p=p,
+        t=c["t"],
+        temperature=c["temperature"],
+        sigma=sigma,
+        meta=meta,
+        source=path_str,
+        lines=tuple(lines),
+        extra=c["extra"],
+        r=c["r"],
+        sigma_r=c["sigma_r"],
+        station=station,
+        station_names=station_names,
+        probe=probe,
+        probe_names=probe_names,
+    )
+
+
+def _read_table(path_str: str, dof, joint_limits, robot_name, require_positions: bool, require_joints: bool):
+    """The file's ``# key: value`` lines, its column layout, its values as an (N, columns) table, each row's line
+    number and the label columns' cells; the header checked against the robot's joint count."""
     text = _read_text(path_str)
     # Editors count '\n', '\r\n' and a lone '\r' as one line break each.
     raw_lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
@@ -363,8 +402,13 @@ def read_measurements(
         _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
 
     values, lines, labels = _parse_rows(path_str, raw_lines, header_index + 1, header)
-    n = len(lines)
-    table = torch.tensor(values, dtype=torch.float64).reshape(n, len(header))
+    table = torch.tensor(values, dtype=torch.float64).reshape(len(lines), len(header))
+    return meta, layout, table, lines, labels
+
+
+def _table_columns(table: torch.Tensor, layout: _Layout) -> dict:
+    """The table's columns by quantity, in the file's units: ``q``, ``p``, ``t``, ``temperature``, ``sigma``, ``r``,
+    ``sigma_r`` (None where the file has none) and ``extra`` (name -> column)."""
 
     def column(name: str) -> torch.Tensor:
         return table[:, layout.index[name]].clone()
@@ -372,36 +416,49 @@ def read_measurements(
     def columns(names: Sequence[str]) -> torch.Tensor:
         return table[:, [layout.index[c] for c in names]].clone()
 
-    q = columns(layout.joints)
-    p = columns(_POSITION) if layout.has_positions else None
-    t = column("t") if "t" in layout.index else None
-    temperature = column("temperature") if "temperature" in layout.index else None
-    sigma = columns(_SIGMA) if layout.has_sigma else None
-    r = columns(_ROTATION) if layout.has_rotation else None
-    sigma_r = columns(_ROTATION_SIGMA) if layout.has_rotation_sigma else None
-    extra = {name: column(name) for name in layout.extra}
+    return {
+        "q": columns(layout.joints),
+        "p": columns(_POSITION) if layout.has_positions else None,
+        "t": column("t") if "t" in layout.index else None,
+        "temperature": column("temperature") if "temperature" in layout.index else None,
+        "sigma": columns(_SIGMA) if layout.has_sigma else None,
+        "r": columns(_ROTATION) if layout.has_rotation else None,
+        "sigma_r": columns(_ROTATION_SIGMA) if layout.has_rotation_sigma else None,
+        "extra": {name: column(name) for name in layout.extra},
+    }
+
+
+def _label_columns(path_str: str, labels: dict, lines) -> tuple:
+    """Each row's station and probe as an index into their names (None and () where the file has no such column)."""
     for name, values in labels.items():
         _check_numeric_labels(path_str, name, values, lines)
     station, station_names = labels_of(labels["station"]) if "station" in labels else (None, ())
     probe, probe_names = labels_of(labels["probe"]) if "probe" in labels else (None, ())
+    return station, station_names, probe, probe_names
 
-    if t is not None:
-        _check_monotonic(path_str, t, lines)
-    if sigma is not None:
-        _check_positive_sigma(path_str, sigma, lines, layout, length_unit)
-    if sigma_r is not None:
-        _check_positive_sigma(path_str, sigma_r, lines, layout, "rad", _ROTATION_SIGMA)
-    if r is not None:
-        _check_rotation(path_str, r, lines, layout)
-    if n < min_poses:
-        for_what = f" for {purpose}" if purpose else ""
-        raise MeasurementFileError(path_str, f"file has {n} poses, at least {min_poses} are needed{for_what}")
-    # which readings are lengths (prismatic joints): the length unit applies to them, the angle unit does not
+
+def _linear_readings(q: torch.Tensor, joint_types) -> torch.Tensor:
+    """Which readings are lengths (prismatic joints): the length unit applies to them, the angle unit does not."""
     linear = torch.zeros(q.shape[1], dtype=torch.bool)
     if joint_types is not None and q.shape[1]:
         linear = torch.tensor([k == "prismatic" for k in joint_types], dtype=torch.bool)
-    _check_units(path_str, q, p, sigma, lines, layout, length_unit, angle_unit, joint_limits, linear)
+    return linear
 
+
+def _check_columns(path_str: str, c: dict, lines, layout: _Layout, length_unit: str) -> None:
+    """Times increase, standard deviations are positive, rotation vectors are rotations."""
+    if c["t"] is not None:
+        _check_monotonic(path_str, c["t"], lines)
+    if c["sigma"] is not None:
+        _check_positive_sigma(path_str, c["sigma"], lines, layout, length_unit)
+    if c["sigma_r"] is not None:
+        _check_positive_sigma(path_str, c["sigma_r"], lines, layout, "rad", _ROTATION_SIGMA)
+    if c["r"] is not None:
+        _check_rotation(path_str, c["r"], lines, layout)
+
+
+def _to_si(q: torch.Tensor, p, sigma, linear: torch.Tensor, length_unit: str, angle_unit: str):
+    """Readings, positions and their standard deviations in m and rad (``linear``: the readings that are lengths)."""
     divisor = LENGTH_UNITS[length_unit]
     if divisor != 1.0:
         # Division (not multiplication by 1e-3) keeps e.g. 1234.5 mm -> 1.2345 m correctly rounded.
@@ -410,28 +467,7 @@ def read_measurements(
         q = torch.where(linear, q / divisor, q)
     if angle_unit != "rad":
         q = torch.where(linear, q, q * ANGLE_UNITS[angle_unit])
-
-    _check_ranges(path_str, p, sigma, temperature, lines, layout, length_unit)
-    if joint_limits is not None and n and layout.joints:
-        _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name, linear, length_unit)
-
-    return Measurements(
-        q=q,
-        p=p,
-        t=t,
-        temperature=temperature,
-        sigma=sigma,
-        meta=meta,
-        source=path_str,
-        lines=tuple(lines),
-        extra=extra,
-        r=r,
-        sigma_r=sigma_r,
-        station=station,
-        station_names=station_names,
-        probe=probe,
-        probe_names=probe_names,
-    )
+    return q, p, sigma
 
 
 def _check_arguments(length_unit: str, angle_unit: str, dof: int | None, joint_limits) -> torch.Tensor | None:
@@ -997,6 +1033,33 @@ def write_measurements(
             file cannot be written.
     """
     path_str = str(path)
+    available, names = _writable_columns(m, labels)
+    columns = _chosen_columns(columns, available)
+    head = _meta_lines(path_str, {**m.meta, **(meta or {})}, written_by)
+    head.append(",".join(columns) + "\n")
+
+    table = torch.stack([available[c] for c in columns], dim=1) if columns else torch.empty(m.n, 0)
+    finite = torch.isfinite(table)
+    if not finite.all():
+        i, j = _first_bad(~finite, list(range(len(columns))))
+        raise MeasurementFileError(
+            path_str,
+            f"cannot write {table[i, j].item()!r}: values must be finite",
+            line=len(head) + i + 1,
+            column=columns[j],
+        )
+
+    rows = table.tolist()
+    for j, c in enumerate(columns):  # a label column's cells are its names
+        if c in names:
+            for row in rows:
+                row[j] = names[c][int(row[j])]
+    _atomic_write(path_str, head, rows)
+
+
+def _writable_columns(m: Measurements, labels) -> tuple[dict[str, torch.Tensor], dict[str, tuple[str, ...]]]:
+    """Every column ``m`` can be written with, in the contract's order, and the names of its label columns (a
+    label column holds each row's index into them)."""
     available: dict[str, torch.Tensor] = {f"q{k + 1}": m.q[:, k] for k in range(m.dof)}
     if m.p is not None:
         available.update({c: m.p[:, k] for k, c in enumerate(_POSITION)})
@@ -1019,18 +1082,24 @@ def write_measurements(
             names[label] = getattr(m, f"{label}_names")
     for key, label_names in (labels or {}).items():
         names[key] = tuple(label_names)
+    return available, names
 
+
+def _chosen_columns(columns: Sequence[str] | None, available: dict) -> list[str]:
+    """The columns asked for (default: all available), each available and named once."""
     if columns is None:
-        columns = list(available)
-    else:
-        columns = list(columns)
-        unknown = [c for c in columns if c not in available]
-        if unknown:
-            raise OptionError(f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}")
-        if len(set(columns)) != len(columns):
-            raise OptionError(f"columns lists a name twice: {columns}")
+        return list(available)
+    columns = list(columns)
+    unknown = [c for c in columns if c not in available]
+    if unknown:
+        raise OptionError(f"cannot write column(s) {', '.join(map(repr, unknown))}; valid: {', '.join(available)}")
+    if len(set(columns)) != len(columns):
+        raise OptionError(f"columns lists a name twice: {columns}")
+    return columns
 
-    merged = {**m.meta, **(meta or {})}
+
+def _meta_lines(path_str: str, merged: dict, written_by: str | None) -> list[str]:
+    """The ``# key: value`` lines, ``written_by`` first; refused where a key or value cannot be read back."""
     if written_by is not None:  # first, whatever the metadata read from an earlier file held
         merged = {"written_by": written_by, **{k: v for k, v in merged.items() if k != "written_by"}}
     head = []
@@ -1043,25 +1112,7 @@ def write_measurements(
                 "(keys are letters, digits, '_', '.', '-'; values are one line)",
             )
         head.append(f"# {key}: {value}\n")
-    head.append(",".join(columns) + "\n")
-
-    table = torch.stack([available[c] for c in columns], dim=1) if columns else torch.empty(m.n, 0)
-    finite = torch.isfinite(table)
-    if not finite.all():
-        i, j = _first_bad(~finite, list(range(len(columns))))
-        raise MeasurementFileError(
-            path_str,
-            f"cannot write {table[i, j].item()!r}: values must be finite",
-            line=len(head) + i + 1,
-            column=columns[j],
-        )
-
-    rows = table.tolist()
-    for j, c in enumerate(columns):  # a label column's cells are its names
-        if c in names:
-            for row in rows:
-                row[j] = names[c][int(row[j])]
-    _atomic_write(path_str, head, rows)
+    return head
 
 
 def _atomic_write(path: str, head: list[str], rows: list[list[float]]) -> None:

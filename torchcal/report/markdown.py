@@ -203,7 +203,36 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     plot_histograms(run, out / "histogram.png")
     plot_error_vs_joints(run, out / "error_vs_joints.png")
     plot_error_map(run, out / "error_map.png")
-    gt = report["global_test"]
+    lines = _story_section(run, report)
+    lines += _prior_section(report)
+    lines += _orientation_section(report)
+    lines += _stations_section(report)
+    lines += _diagnosis_section(run, report, out)
+    lines += _region_section(run, report, out)
+    lines += _unexplained_section(report, out)
+    lines += ekf_section(run, out)
+    lines += _global_test_section(report)
+    lines += _outliers_section(report)
+    lines += _parameters_section(report["parameters"])
+    lines += _effects_section(report["effects"])
+    lines += [
+        "",
+        "## Plots",
+        "",
+        "![errors per pose](errors_per_pose.png)",
+        "",
+        "![histogram](histogram.png)",
+        "",
+        "![error against joints](error_vs_joints.png)",
+        "",
+    ]
+    if report["notes"]:
+        lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
+    (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+
+
+def _story_section(run: CalibrationRun, report: dict) -> list[str]:
+    """The title and what each stage of the run brought on the held-out poses."""
     lines = [
         f"# Calibration of {report['robot']} ({report['method']})",
         "",
@@ -218,7 +247,7 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     for k, s in enumerate(run.stages):
         what = STAGE_TEXT.get(s.name, f"+ {s.name}, refitted jointly with the geometry")
         lines.append(f"| {k} | {s.name}: {what} | {s.rmse * 1e3:.4f} | {float(s.holdout_errors.max()) * 1e3:.4f} |")
-    lines += [
+    return lines + [
         "",
         f"Before: {report['rmse_before_mm']:.4f} mm; after the geometric fit: {report['rmse_geometric_mm']:.4f} mm; "
         f"final: {report['rmse_after_mm']:.4f} mm.",
@@ -226,14 +255,11 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "![error map](error_map.png)",
         "",
     ]
-    lines += _prior_section(report)
-    lines += _orientation_section(report)
-    lines += _stations_section(report)
-    lines += _diagnosis_section(run, report, out)
-    lines += _region_section(run, report, out)
-    lines += _unexplained_section(report, out)
-    lines += ekf_section(run, out)
-    lines += [
+
+
+def _global_test_section(report: dict) -> list[str]:
+    gt = report["global_test"]
+    return [
         "## Global test",
         "",
         f"Variance factor {gt['statistic']:.3f} against the bound {gt['threshold']:.3f} (chi-square, "
@@ -246,6 +272,11 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         ),
         "",
     ]
+
+
+def _outliers_section(report: dict) -> list[str]:
+    """The gross errors left out of the training and held-out rows, by file line (the first 30 of each)."""
+    lines = []
     for part, what in (("training", "training"), ("holdout", "held-out")):
         rows = (report["outliers"].get(part) or {}).get("rows") or []
         if rows:
@@ -256,8 +287,12 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
                 + ("; " + rows[0]["hint"] if rows[0].get("hint") else ""),
                 "",
             ]
-    par = report["parameters"]
-    lines += ["## Parameters", "", "| parameter | correction | std |", "|---|---:|---:|"]
+    return lines
+
+
+def _parameters_section(par: dict) -> list[str]:
+    """The corrections and their std, then the parameters held fixed, the weak ones and the largest correlations."""
+    lines = ["## Parameters", "", "| parameter | correction | std |", "|---|---:|---:|"]
     for e in par["estimated"]:
         lines.append(f"| {e['name']} | {_fmt(e['correction'], e['unit'])} | {_fmt(e['std'], e['unit'])} |")
     if par["identifiability"] and par["identifiability"]["fixed"]:
@@ -280,38 +315,31 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         lines += ["", "### Largest correlations", ""]
         for c in par["largest_correlations"][:5]:
             lines.append(f"- {c['a']} / {c['b']}: {c['rho']:+.3f}")
-    if report["effects"]:
-        lines += [
-            "",
-            "## Effects",
-            "",
-            "| kind | joint | parameters (value ± std) | RMSE before [mm] | RMSE after [mm] |",
-            "|---|---|---|---:|---:|",
-        ]
-        for e in report["effects"]:
-            params = ", ".join(
-                f"{k} = {v['value']:.3g} ± {_g(v['std'])}"
-                for k, v in e["params"].items()
-                if isinstance(v, dict) and "value" in v
-            )
-            lines.append(
-                f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
-                f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |"
-            )
-    lines += [
+    return lines
+
+
+def _effects_section(effects: list) -> list[str]:
+    """The non-geometric effects fitted: their parameters and what each took off the held-out RMSE."""
+    if not effects:
+        return []
+    lines = [
         "",
-        "## Plots",
+        "## Effects",
         "",
-        "![errors per pose](errors_per_pose.png)",
-        "",
-        "![histogram](histogram.png)",
-        "",
-        "![error against joints](error_vs_joints.png)",
-        "",
+        "| kind | joint | parameters (value ± std) | RMSE before [mm] | RMSE after [mm] |",
+        "|---|---|---|---:|---:|",
     ]
-    if report["notes"]:
-        lines += ["## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
-    (out / "report.md").write_text("\n".join(lines), encoding="utf-8")
+    for e in effects:
+        params = ", ".join(
+            f"{k} = {v['value']:.3g} ± {_g(v['std'])}"
+            for k, v in e["params"].items()
+            if isinstance(v, dict) and "value" in v
+        )
+        lines.append(
+            f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
+            f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |"
+        )
+    return lines
 
 
 def _prior_section(report: dict) -> list[str]:

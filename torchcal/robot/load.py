@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -203,11 +204,73 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     rad, +-1 m), ``mass``
     [kg] and ``com`` [m, in DH frame i] (all joints or none), ``name``.
     """
+    path = Path(path)
+    doc = _load_yaml_doc(path)
+    if not isinstance(doc, dict) or "joints" not in doc:
+        raise RobotSpecError(f"{path}: expected a mapping with 'name', 'convention' and 'joints'")
+    conv = str(doc.get("convention", "standard")).lower()
+    valid = [c.value for c in DHConvention]
+    if conv not in valid:
+        raise RobotSpecError(f"{path}: convention '{conv}' is not one of {valid}")
+    joints = doc["joints"]
+    if not isinstance(joints, list) or not joints:
+        raise RobotSpecError(f"{path}: 'joints' must be a non-empty list, base to tip")
+    rows: list[_DHJoint] = []
+    for i, j in enumerate(joints):
+        rows.append(_dh_joint(path, i, j))
+        names = [r.name for r in rows[:-1]]
+        if rows[-1].name in names:
+            raise RobotSpecError(
+                f"{path}: joint {i + 1}: name {rows[-1].name!r} is also the name of joint "
+                f"{names.index(rows[-1].name) + 1}; joint names must be unique"
+            )
+    masses = [r.mass for r in rows if r.mass is not None]
+    if masses and len(masses) != len(joints):
+        raise RobotSpecError(f"{path}: 'mass' is given for {len(masses)} of {len(joints)} joints; give all or none")
+    convention = DHConvention(conv)
+    geometry = DHGeometry(
+        a=[r.a for r in rows],
+        alpha=[r.alpha for r in rows],
+        d=[r.d for r in rows],
+        theta=[r.theta for r in rows],
+        convention=convention,
+        prismatic=[r.prismatic for r in rows],
+        beta=[r.beta for r in rows],
+        dtype=dtype,
+        device=device,
+    )
+    limits = torch.tensor([(r.lower, r.upper) for r in rows], dtype=dtype)
+    com_t = _dh_coms(geometry, [r.com for r in rows], dtype) if masses else None
+    dof = len(joints)
+    readings, reading_limits, reading_names = (None, None, None)
+    if doc.get("readings") is not None:
+        readings, reading_limits, reading_names = _readings_block(path, doc["readings"], dof, dtype)
+    return RobotModel(
+        name=_safe_name(path, "robot name", doc.get("name", path.stem)),
+        readings=readings,
+        reading_limits=reading_limits,
+        reading_names=reading_names,
+        geometry=geometry,
+        limits=limits,
+        joint_names=[r.name for r in rows],
+        link_names=["base"] + [f"link{i + 1}" for i in range(dof)] + ["flange"],
+        masses=torch.tensor(masses, dtype=dtype) if masses else None,
+        coms=com_t,
+        source=str(path),
+        kind="dh",
+        base_link="base",
+        tip_link="flange",
+        dtype=dtype,
+        device=device,
+    ).to(device)
+
+
+def _load_yaml_doc(path: Path):
+    """The YAML document in ``path``, refused before it is built when it nests too deep or uses aliases."""
     import yaml
 
     from torchcal._inputs import MAX_DEPTH
 
-    path = Path(path)
     text = _decode(path, _read_description(path))
     try:
         # Aliases ('*name') can expand a kilobyte into gigabytes; a DH table never needs them. The composer
@@ -231,113 +294,86 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
                     f"{path}, line {mark.line + 1}, column {mark.column + 1}: YAML aliases "
                     "('*name') are not accepted in a robot description; write the values out"
                 )
-        doc = yaml.load(text, Loader=_yaml_loader())
+        return yaml.load(text, Loader=_yaml_loader())
     except yaml.YAMLError as e:
         raise RobotSpecError(_yaml_error(path, e)) from None
-    if not isinstance(doc, dict) or "joints" not in doc:
-        raise RobotSpecError(f"{path}: expected a mapping with 'name', 'convention' and 'joints'")
-    conv = str(doc.get("convention", "standard")).lower()
-    valid = [c.value for c in DHConvention]
-    if conv not in valid:
-        raise RobotSpecError(f"{path}: convention '{conv}' is not one of {valid}")
-    joints = doc["joints"]
-    if not isinstance(joints, list) or not joints:
-        raise RobotSpecError(f"{path}: 'joints' must be a non-empty list, base to tip")
-    cols = {k: [] for k in ("a", "alpha", "d", "theta", "lower", "upper")}
-    masses, coms, names, prismatic, betas = [], [], [], [], []
-    for i, j in enumerate(joints):
-        where = f"joint {i + 1}"
-        if not isinstance(j, dict):
-            raise RobotSpecError(f"{path}: {where}: expected a mapping like {{a: .., alpha: .., d: .., theta: ..}}")
-        unknown = set(j) - {"a", "alpha", "d", "theta", "beta", "lower", "upper", "mass", "com", "name", "type"}
-        if unknown:
+
+
+_DH_KEYS = {"a", "alpha", "d", "theta", "beta", "lower", "upper", "mass", "com", "name", "type"}
+
+
+@dataclass
+class _DHJoint:
+    """One row of a DH table, checked: lengths [m], angles [rad], limits [rad, m], mass [kg] and com [m] or None."""
+
+    a: float
+    alpha: float
+    d: float
+    theta: float
+    beta: float
+    prismatic: bool
+    lower: float
+    upper: float
+    mass: float | None
+    com: list[float] | None
+    name: str
+
+
+def _dh_joint(path: Path, i: int, j) -> _DHJoint:
+    """Row ``i`` (from 0) of a DH table's ``joints``, each entry checked in the order a reader fixes them."""
+    where = f"joint {i + 1}"
+    if not isinstance(j, dict):
+        raise RobotSpecError(f"{path}: {where}: expected a mapping like {{a: .., alpha: .., d: .., theta: ..}}")
+    unknown = set(j) - _DH_KEYS
+    if unknown:
+        raise RobotSpecError(
+            f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, beta, "
+            "lower, upper, mass, com, name, type"
+        )
+    beta = _number(path, where, "beta", j.get("beta", 0.0))
+    if abs(beta) > MAX_DESCRIPTION_ANGLE:
+        raise RobotSpecError(f"{path}: {where}: 'beta' = {j['beta']!r} rad is beyond {MAX_DESCRIPTION_ANGLE:g} rad")
+    kind = j.get("type", "revolute")
+    if kind not in JOINT_TYPES:
+        raise RobotSpecError(f"{path}: {where}: type {kind!r} is not one of {', '.join(JOINT_TYPES)}")
+    dh = {}
+    for key in ("a", "alpha", "d", "theta"):
+        if key not in j:
+            raise RobotSpecError(f"{path}: {where}: missing '{key}'")
+        dh[key] = _number(path, where, key, j[key])
+        bound = MAX_DESCRIPTION_LENGTH if key in ("a", "d") else MAX_DESCRIPTION_ANGLE
+        if abs(dh[key]) > bound:
+            unit = "m" if key in ("a", "d") else "rad"
             raise RobotSpecError(
-                f"{path}: {where}: unknown keys {sorted(unknown)}; valid: a, alpha, d, theta, beta, "
-                "lower, upper, mass, com, name, type"
+                f"{path}: {where}: '{key}' = {j[key]!r} {unit} is beyond {bound:g} {unit}; lengths are metres and "
+                "angles radians"
             )
-        betas.append(_number(path, where, "beta", j.get("beta", 0.0)))
-        if abs(betas[-1]) > MAX_DESCRIPTION_ANGLE:
-            raise RobotSpecError(f"{path}: {where}: 'beta' = {j['beta']!r} rad is beyond {MAX_DESCRIPTION_ANGLE:g} rad")
-        kind = j.get("type", "revolute")
-        if kind not in JOINT_TYPES:
-            raise RobotSpecError(f"{path}: {where}: type {kind!r} is not one of {', '.join(JOINT_TYPES)}")
-        prismatic.append(kind == "prismatic")
-        for key in ("a", "alpha", "d", "theta"):
-            if key not in j:
-                raise RobotSpecError(f"{path}: {where}: missing '{key}'")
-            cols[key].append(_number(path, where, key, j[key]))
-            bound = MAX_DESCRIPTION_LENGTH if key in ("a", "d") else MAX_DESCRIPTION_ANGLE
-            if abs(cols[key][-1]) > bound:
-                unit = "m" if key in ("a", "d") else "rad"
-                raise RobotSpecError(
-                    f"{path}: {where}: '{key}' = {j[key]!r} {unit} is beyond {bound:g} {unit}; lengths are metres and "
-                    "angles radians"
-                )
-        reach = PRISMATIC_DEFAULT_REACH if prismatic[-1] else 2 * math.pi
-        cols["lower"].append(_number(path, where, "lower", j.get("lower", -reach)))
-        cols["upper"].append(_number(path, where, "upper", j.get("upper", reach)))
-        if cols["lower"][-1] >= cols["upper"][-1]:
-            raise RobotSpecError(
-                f"{path}: {where}: lower limit {cols['lower'][-1]} is not below upper {cols['upper'][-1]}"
-            )
-        if "mass" in j:
-            masses.append(_number(path, where, "mass", j["mass"]))
-            com = j.get("com", [0.0, 0.0, 0.0])
-            if not isinstance(com, list) or len(com) != 3:
-                raise RobotSpecError(f"{path}: {where}: 'com' must be a list of 3 numbers [m]")
-            coms.append([_number(path, where, "com", c) for c in com])
-        name = _safe_name(path, f"{where}: name", j.get("name", f"joint{i + 1}"))
-        if name in names:
-            raise RobotSpecError(
-                f"{path}: {where}: name {name!r} is also the name of joint {names.index(name) + 1}; "
-                "joint names must be unique"
-            )
-        names.append(name)
-    if masses and len(masses) != len(joints):
-        raise RobotSpecError(f"{path}: 'mass' is given for {len(masses)} of {len(joints)} joints; give all or none")
-    convention = DHConvention(conv)
-    geometry = DHGeometry(
-        a=cols["a"],
-        alpha=cols["alpha"],
-        d=cols["d"],
-        theta=cols["theta"],
-        convention=convention,
-        prismatic=prismatic,
-        beta=betas,
-        dtype=dtype,
-        device=device,
+    reach = PRISMATIC_DEFAULT_REACH if kind == "prismatic" else 2 * math.pi
+    lower = _number(path, where, "lower", j.get("lower", -reach))
+    upper = _number(path, where, "upper", j.get("upper", reach))
+    if lower >= upper:
+        raise RobotSpecError(f"{path}: {where}: lower limit {lower} is not below upper {upper}")
+    mass = com = None
+    if "mass" in j:
+        mass = _number(path, where, "mass", j["mass"])
+        com = j.get("com", [0.0, 0.0, 0.0])
+        if not isinstance(com, list) or len(com) != 3:
+            raise RobotSpecError(f"{path}: {where}: 'com' must be a list of 3 numbers [m]")
+        com = [_number(path, where, "com", c) for c in com]
+    name = _safe_name(path, f"{where}: name", j.get("name", f"joint{i + 1}"))
+    return _DHJoint(
+        **dh, beta=beta, prismatic=kind == "prismatic", lower=lower, upper=upper, mass=mass, com=com, name=name
     )
-    limits = torch.tensor(list(zip(cols["lower"], cols["upper"])), dtype=dtype)
-    com_t = None
-    if masses:
-        # centres of mass are given in DH frame i; the model keeps them in the frame that
-        # rotates with joint i (F_i). Standard DH: frame i = F_i @ M_i; modified: frame i = F_i.
-        com_t = torch.tensor(coms, dtype=dtype)
-        if convention is DHConvention.STANDARD:
-            M = geometry.origins()[1:].detach()
-            com_t = (M[:, :3, :3] @ com_t.unsqueeze(-1)).squeeze(-1) + M[:, :3, 3]
-    dof = len(joints)
-    readings, reading_limits, reading_names = (None, None, None)
-    if doc.get("readings") is not None:
-        readings, reading_limits, reading_names = _readings_block(path, doc["readings"], dof, dtype)
-    return RobotModel(
-        name=_safe_name(path, "robot name", doc.get("name", path.stem)),
-        readings=readings,
-        reading_limits=reading_limits,
-        reading_names=reading_names,
-        geometry=geometry,
-        limits=limits,
-        joint_names=names,
-        link_names=["base"] + [f"link{i + 1}" for i in range(dof)] + ["flange"],
-        masses=torch.tensor(masses, dtype=dtype) if masses else None,
-        coms=com_t,
-        source=str(path),
-        kind="dh",
-        base_link="base",
-        tip_link="flange",
-        dtype=dtype,
-        device=device,
-    ).to(device)
+
+
+def _dh_coms(geometry: DHGeometry, coms: list, dtype) -> torch.Tensor:
+    """Centres of mass given in DH frame i, moved to the frame that rotates with joint i (F_i), where the model
+    keeps them. Standard DH: frame i = F_i @ M_i; modified: frame i = F_i."""
+    com_t = torch.tensor(coms, dtype=dtype)
+    if geometry.convention is DHConvention.STANDARD:
+        M = geometry.origins()[1:].detach()
+        com_t = (M[:, :3, :3] @ com_t.unsqueeze(-1)).squeeze(-1) + M[:, :3, 3]
+    return com_t
 
 
 def _readings_block(path: Path, block, n_joints: int, dtype):
@@ -402,6 +438,9 @@ def _readings_block(path: Path, block, n_joints: int, dtype):
 
 
 # ------------------------------------------------------------------------- URDF
+_MOVABLE = ("revolute", "continuous", "prismatic")
+
+
 def load_urdf(
     path: str | os.PathLike,
     *,
@@ -431,28 +470,78 @@ def load_urdf(
 
     path = Path(path)
     raw = _read_description(path)
+    urdf = _parse_urdf(path, raw, reader)
+    child_of, children, links = _urdf_tree(path, urdf)
+    base_link = _pick_base_link(path, links, child_of, base_link)
+    tip_link = _pick_tip_link(path, links, children, child_of, base_link, tip_link)
+    chain = _joints_to(path, child_of, base_link, tip_link)
+    if not chain:
+        raise RobotSpecError(f"{path}: tip link '{tip_link}' is not below base link '{base_link}'")
+    joints = _chain_joints(path, chain, base_link, tip_link)
+    masses, coms = _chain_bodies(urdf, chain, len(joints.names))
+
+    movable = {j.name: j for j in urdf.robot.joints if j.type in _MOVABLE}
+    mimics = joints.mimics
+    readings, reading_names = _mimic_readings(path, joints.names, mimics, movable, dtype) if mimics else (None, None)
+    reading_limits = None
+    written = _written_map(path, raw, joints.names, dtype)
+    if written is not None:  # a DH robot's readings map, as torchcal wrote it: the <mimic> tags are part of it
+        readings, reading_limits, reading_names = written
+    geometry = URDFGeometry(
+        origins=torch.tensor(np.stack(joints.origins), dtype=dtype),
+        axes=torch.tensor(np.stack(joints.axes), dtype=dtype),
+        joint_names=joints.names,
+        prismatic=joints.prismatic,
+        dtype=dtype,
+        device=device,
+    )
+    return RobotModel(
+        name=urdf.robot.name or path.stem,
+        geometry=geometry,
+        limits=torch.tensor(joints.limits, dtype=dtype),
+        joint_names=joints.names,
+        link_names=joints.link_names,
+        masses=None if masses is None else torch.tensor(masses, dtype=dtype),
+        coms=None if coms is None else torch.tensor(np.stack(coms), dtype=dtype),
+        source=str(path),
+        kind="urdf",
+        base_link=base_link,
+        tip_link=tip_link,
+        readings=readings,
+        reading_limits=reading_limits,
+        reading_names=reading_names,
+        dtype=dtype,
+        device=device,
+    ).to(device)
+
+
+def _parse_urdf(path: Path, raw: bytes, reader: str):
+    """The file's ``<robot>``, its elements checked, as yourdfpy's URDF object (or :func:`_urdf_elements`' twin)."""
     tree = _parse_stdlib(path, raw) if reader == "elements" else _parse_lxml(path, raw)
     if tree.tag != "robot":
         raise RobotSpecError(f"{path}: the root element is <{tree.tag}>, expected <robot>")
     _check_urdf_elements(path, tree)
     if reader == "elements":
-        urdf = _urdf_elements(path, tree)
-    else:
-        import io
+        return _urdf_elements(path, tree)
+    import io
 
-        import yourdfpy
+    import yourdfpy
 
-        try:
-            urdf = yourdfpy.URDF.load(
-                io.BytesIO(raw),
-                load_meshes=False,
-                build_scene_graph=False,
-                build_collision_scene_graph=False,
-                load_collision_meshes=False,
-                mesh_dir=str(path.parent),
-            )
-        except Exception as e:  # yourdfpy raises assorted exception types on malformed files
-            raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
+    try:
+        return yourdfpy.URDF.load(
+            io.BytesIO(raw),
+            load_meshes=False,
+            build_scene_graph=False,
+            build_collision_scene_graph=False,
+            load_collision_meshes=False,
+            mesh_dir=str(path.parent),
+        )
+    except Exception as e:  # yourdfpy raises assorted exception types on malformed files
+        raise RobotSpecError(f"{path}: cannot parse URDF: {type(e).__name__}: {e}") from None
+
+
+def _urdf_tree(path: Path, urdf) -> tuple[dict, dict[str, list], list[str]]:
+    """The joint leading to each link, the joints leaving each link and the link names; refused unless a tree."""
     joints = urdf.robot.joints
     child_of = {}
     for j in joints:
@@ -477,51 +566,77 @@ def load_urdf(
             trail.append(link)
             link = child_of[link].parent
         done.update(trail)
+    return child_of, children, links
+
+
+def _pick_base_link(path: Path, links: list[str], child_of: dict, base_link: str | None) -> str:
+    """The base link asked for, checked, or the tree's only root."""
     roots = [lk for lk in links if lk not in child_of]
     if base_link is None:
         if len(roots) != 1:
             raise RobotSpecError(f"{path}: the URDF has {len(roots)} root links {roots}; pick one with --base-link")
-        base_link = roots[0]
-    elif base_link not in links:
+        return roots[0]
+    if base_link not in links:
         raise RobotSpecError(f"{path}: base link '{base_link}' not found; links: {', '.join(links)}")
+    return base_link
 
-    def path_to(link: str) -> list:
-        out, seen = [], {link}
-        while link != base_link:
-            if link not in child_of:
-                return []
-            j = child_of[link]
-            out.append(j)
-            link = j.parent
-            if link in seen:
-                cycle = " -> ".join([jj.child for jj in out] + [link])
-                raise RobotSpecError(f"{path}: the links form a cycle ({cycle}); a URDF is a tree")
-            seen.add(link)
-        return out[::-1]
 
-    if tip_link is None:
+def _joints_to(path: Path, child_of: dict, base_link: str, link: str) -> list:
+    """The joints from ``base_link`` down to ``link``, base first; empty when ``link`` is not below the base."""
+    out, seen = [], {link}
+    while link != base_link:
+        if link not in child_of:
+            return []
+        j = child_of[link]
+        out.append(j)
+        link = j.parent
+        if link in seen:
+            cycle = " -> ".join([jj.child for jj in out] + [link])
+            raise RobotSpecError(f"{path}: the links form a cycle ({cycle}); a URDF is a tree")
+        seen.add(link)
+    return out[::-1]
 
-        def n_movable(link):
-            return sum(j.type in ("revolute", "continuous", "prismatic") for j in path_to(link))
 
-        leaves = [lk for lk in links if lk not in children and (lk == base_link or path_to(lk))]
-        best = max((n_movable(lk) for lk in leaves), default=0)
-        cands = [lk for lk in leaves if n_movable(lk) == best]
-        if best == 0 or len(cands) != 1:
-            raise RobotSpecError(
-                f"{path}: cannot choose the tip link: leaves {cands} each end a chain of {best} "
-                "joints; pick one with --tip-link"
-            )
-        tip_link = cands[0]
-    elif tip_link not in links:
-        raise RobotSpecError(f"{path}: tip link '{tip_link}' not found; links: {', '.join(links)}")
-    chain = path_to(tip_link)
-    if not chain:
-        raise RobotSpecError(f"{path}: tip link '{tip_link}' is not below base link '{base_link}'")
+def _pick_tip_link(path: Path, links: list[str], children: dict, child_of: dict, base_link: str, tip_link) -> str:
+    """The tip link asked for, checked, or the one leaf below the base behind the most movable joints."""
+    if tip_link is not None:
+        if tip_link not in links:
+            raise RobotSpecError(f"{path}: tip link '{tip_link}' not found; links: {', '.join(links)}")
+        return tip_link
 
-    origins, axes, lims, jnames, lnames, prismatic = [], [], [], [], [base_link], []
-    masses, coms = [], []
-    mimics: dict = {}  # joint name -> its <mimic> (joint, multiplier, offset)
+    def n_movable(link):
+        return sum(j.type in _MOVABLE for j in _joints_to(path, child_of, base_link, link))
+
+    leaves = [
+        lk for lk in links if lk not in children and (lk == base_link or _joints_to(path, child_of, base_link, lk))
+    ]
+    best = max((n_movable(lk) for lk in leaves), default=0)
+    cands = [lk for lk in leaves if n_movable(lk) == best]
+    if best == 0 or len(cands) != 1:
+        raise RobotSpecError(
+            f"{path}: cannot choose the tip link: leaves {cands} each end a chain of {best} "
+            "joints; pick one with --tip-link"
+        )
+    return cands[0]
+
+
+@dataclass
+class _ChainJoints:
+    """The movable joints of a URDF chain: origins (fixed joints folded in, plus the tip's), unit axes, limits,
+    names, the link each moves (base first, tip last), which are prismatic, and their ``<mimic>`` tags."""
+
+    origins: list = field(default_factory=list)
+    axes: list = field(default_factory=list)
+    limits: list = field(default_factory=list)
+    names: list = field(default_factory=list)
+    link_names: list = field(default_factory=list)
+    prismatic: list = field(default_factory=list)
+    mimics: dict = field(default_factory=dict)  # joint name -> its <mimic> (joint, multiplier, offset)
+
+
+def _chain_joints(path: Path, chain: list, base_link: str, tip_link: str) -> _ChainJoints:
+    """The chain's movable joints, each fixed joint folded into the next movable joint's origin (or the tip's)."""
+    out = _ChainJoints(link_names=[base_link])
     pending = np.eye(4)
     for j in chain:
         origin = np.eye(4) if j.origin is None else np.asarray(j.origin, dtype=np.float64)
@@ -532,49 +647,61 @@ def load_urdf(
         if j.type == "fixed":
             pending = pending @ origin
             continue
-        if j.type not in ("revolute", "continuous", "prismatic"):
+        if j.type not in _MOVABLE:
             raise RobotSpecError(
                 f"{path}: joint '{j.name}' is {j.type}; torchcal supports revolute, continuous and prismatic joints"
             )
         if getattr(j, "mimic", None) is not None:
-            mimics[j.name] = j.mimic
-        origins.append(pending @ origin)
+            out.mimics[j.name] = j.mimic
+        out.origins.append(pending @ origin)
         pending = np.eye(4)
-        axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=np.float64)
-        norm = float(np.linalg.norm(axis)) if np.isfinite(axis).all() else float("nan")
-        if not norm > 1e-12:
-            raise RobotSpecError(
-                f"{path}: joint '{j.name}': axis xyz=\"{' '.join(map(str, axis))}\" is not a "
-                'direction; expected a finite non-zero vector such as "0 0 1"'
-            )
-        axes.append(axis / norm)
-        if j.type == "continuous":
-            # no limit at all: readings past one turn are fine (and not taken for degrees)
-            lims.append((-math.inf, math.inf))
-        elif j.limit is None or j.limit.lower is None or j.limit.upper is None:
-            reach = PRISMATIC_DEFAULT_REACH if j.type == "prismatic" else 2 * math.pi
-            lims.append((-reach, reach))
-        else:
-            lo, hi = float(j.limit.lower), float(j.limit.upper)
-            if math.isnan(lo) or math.isnan(hi) or lo > hi:
-                raise RobotSpecError(
-                    f"{path}: joint '{j.name}': limit lower={lo} upper={hi}; lower must not be above upper"
-                )
-            lims.append((lo, hi))
-        jnames.append(j.name)
-        lnames.append(j.child)
-        prismatic.append(j.type == "prismatic")
-    if not origins:
+        out.axes.append(_joint_axis(path, j))
+        out.limits.append(_joint_limits(path, j))
+        out.names.append(j.name)
+        out.link_names.append(j.child)
+        out.prismatic.append(j.type == "prismatic")
+    if not out.origins:
         raise RobotSpecError(f"{path}: no movable joint between '{base_link}' and '{tip_link}'")
-    origins.append(pending)
-    lnames.append(tip_link)
+    out.origins.append(pending)
+    out.link_names.append(tip_link)
+    return out
 
-    # masses: each moving body is the child link of a joint plus every link fixed to it
-    # before the next movable joint (on the chain); centre of mass in the joint's child frame
+
+def _joint_axis(path: Path, j) -> np.ndarray:
+    """The joint's axis as a unit vector (URDF's default x when it gives none)."""
+    axis = np.asarray(j.axis if j.axis is not None else [1.0, 0.0, 0.0], dtype=np.float64)
+    norm = float(np.linalg.norm(axis)) if np.isfinite(axis).all() else float("nan")
+    if not norm > 1e-12:
+        raise RobotSpecError(
+            f"{path}: joint '{j.name}': axis xyz=\"{' '.join(map(str, axis))}\" is not a "
+            'direction; expected a finite non-zero vector such as "0 0 1"'
+        )
+    return axis / norm
+
+
+def _joint_limits(path: Path, j) -> tuple[float, float]:
+    """The joint's (lower, upper) [rad, m]: none for a continuous joint, the default reach where the file has none."""
+    if j.type == "continuous":
+        # no limit at all: readings past one turn are fine (and not taken for degrees)
+        return (-math.inf, math.inf)
+    if j.limit is None or j.limit.lower is None or j.limit.upper is None:
+        reach = PRISMATIC_DEFAULT_REACH if j.type == "prismatic" else 2 * math.pi
+        return (-reach, reach)
+    lo, hi = float(j.limit.lower), float(j.limit.upper)
+    if math.isnan(lo) or math.isnan(hi) or lo > hi:
+        raise RobotSpecError(f"{path}: joint '{j.name}': limit lower={lo} upper={hi}; lower must not be above upper")
+    return (lo, hi)
+
+
+def _chain_bodies(urdf, chain: list, dof: int) -> tuple[list | None, list | None]:
+    """Mass and centre of mass of each moving body, or (None, None) when no link on the chain has a mass.
+
+    Each moving body is the child link of a joint plus every link fixed to it before the next movable joint (on
+    the chain); its centre of mass is in the joint's child frame."""
     link_by_name = {lk.name: lk for lk in urdf.robot.links}
     movable_idx = -1
-    body_m = [0.0] * len(jnames)
-    body_c = [np.zeros(3) for _ in jnames]
+    body_m = [0.0] * dof
+    body_c = [np.zeros(3) for _ in range(dof)]
     offset = np.eye(4)
     have_inertia = False
     for j in chain:
@@ -596,40 +723,7 @@ def load_urdf(
             total = body_m[movable_idx] + m
             body_c[movable_idx] = (body_c[movable_idx] * body_m[movable_idx] + c * m) / total
             body_m[movable_idx] = total
-    masses, coms = (body_m, body_c) if have_inertia else (None, None)
-
-    movable = {j.name: j for j in joints if j.type in ("revolute", "continuous", "prismatic")}
-    readings, reading_names = _mimic_readings(path, jnames, mimics, movable, dtype) if mimics else (None, None)
-    reading_limits = None
-    written = _written_map(path, raw, jnames, dtype)
-    if written is not None:  # a DH robot's readings map, as torchcal wrote it: the <mimic> tags are part of it
-        readings, reading_limits, reading_names = written
-    geometry = URDFGeometry(
-        origins=torch.tensor(np.stack(origins), dtype=dtype),
-        axes=torch.tensor(np.stack(axes), dtype=dtype),
-        joint_names=jnames,
-        prismatic=prismatic,
-        dtype=dtype,
-        device=device,
-    )
-    return RobotModel(
-        name=urdf.robot.name or path.stem,
-        geometry=geometry,
-        limits=torch.tensor(lims, dtype=dtype),
-        joint_names=jnames,
-        link_names=lnames,
-        masses=None if masses is None else torch.tensor(masses, dtype=dtype),
-        coms=None if coms is None else torch.tensor(np.stack(coms), dtype=dtype),
-        source=str(path),
-        kind="urdf",
-        base_link=base_link,
-        tip_link=tip_link,
-        readings=readings,
-        reading_limits=reading_limits,
-        reading_names=reading_names,
-        dtype=dtype,
-        device=device,
-    ).to(device)
+    return (body_m, body_c) if have_inertia else (None, None)
 
 
 def _written_map(path: Path, raw: bytes, jnames: list[str], dtype) -> tuple[Readings, torch.Tensor, list[str]] | None:
