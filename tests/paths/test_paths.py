@@ -143,13 +143,7 @@ CELLS = {
 SEVERAL = [name for name, cell in CELLS.items() if SETUPS[cell.setup].stations > 1]
 #: the bugs that fail cells today, each owned by another branch (issue 34); how to reproduce each: the report of
 #: the branch that added this module
-XFAIL: dict[tuple[str, str], str] = {
-    ("ur5-integrated-trajectory", "prior"): (
-        "calibrate --prior on 10 samples of a short trajectory, joint 2's readings shifted by 2 mrad: the update "
-        "predicts the shifted rows but names nothing as moved, and its detectability check does not name theta2 "
-        "among what the rows cannot tell (issue 34 items 3 and 4, still open for a trajectory's prior)"
-    ),
-}
+XFAIL: dict[tuple[str, str], str] = {}
 
 STEPS = ("calibrate", "predict", "compensate", "station", "prior", "plan")
 

@@ -147,3 +147,23 @@ def test_a_prior_of_two_stations_and_probes_is_matched_by_label(tmp_path):
     bare = dataclasses.replace(rows, station=None, station_names=())
     with pytest.raises(OptionError, match="no station column"):
         calibrate("ur10", bare, Options.of(method="kinematic"), prior=load_prior(d))
+
+
+def test_an_update_names_what_the_prior_run_held_as_what_it_cannot_tell(tmp_path):
+    """Issue 34 items 3 and 4 on a short trajectory's prior: its rows could not determine theta2 (held, absent from
+    the covariance), so the update holds it and can never name its move: 10 samples with joint 2's readings shifted
+    by 2 mrad moved nothing the update fits, and the report names theta2 among what it cannot tell, with what its
+    move went to; the elements no poses tell from the free ones (d1 against the instrument's height, the last
+    joint's against the lever arm) are not named."""
+    c = simulate(SimConfig(robot="ur5", trajectory=True, path="multisine", samples=200, train_samples=160, seed=6))
+    d = write_run(calibrate("ur5", c.train, Options(method="kinematic")), tmp_path / "before")
+    prior = load_prior(d)
+    assert "theta2" in prior.held and "theta2" not in prior.sigma
+    q = c.test.q.clone()
+    q[:, 1] += SHIFT
+    rows = dataclasses.replace(c.test, q=q).subset(torch.linspace(0, c.test.n - 1, 10).round().long())
+    up = calibrate("ur5", rows, Options(method="kinematic"), prior=prior).prior_update
+    held = {u["name"]: u for u in up.detect.untold if u.get("held")}
+    assert "theta2" in held and "theta2" in up.to_dict()["confounded"] and "theta2" not in up.moved
+    assert held["theta2"]["absorbed_by"] and all(n in prior.sigma for n in held["theta2"]["absorbed_by"])
+    assert not {"d1", "theta1", "a6", "d6", "theta6"} & set(held)

@@ -43,6 +43,7 @@ from torchcal.pipeline.integrated import integrated_stage
 from torchcal.pipeline.learned import correction_net_stage, learned_stage
 from torchcal.pipeline.loop import close_loop
 from torchcal.pipeline.prior import MAX_RELEASED, MOVED_SIGMAS, prior_update, release
+from torchcal.pipeline.priorheld import held_untold
 from torchcal.pipeline.records import Note, StageName
 from torchcal.pipeline.state import CalibrationRun, StageFn, StageResult, StageWork
 
@@ -188,7 +189,7 @@ def prior_moved(run: CalibrationRun) -> StageResult:
     notes = [f"prior: moved beyond {update.threshold:g} prior sigma: {', '.join(update.moved) or 'none'}"]
     if update.detect is not None and update.detect.untold:
         notes[0] += " of what these rows can tell"
-        notes.append(untold_message(update.detect))
+        notes += untold_messages(update.detect)
     for n in notes:
         _console.info(n)
     return StageResult("prior", notes=tuple(Note("prior", n) for n in notes), prior_update=update)
@@ -214,14 +215,38 @@ def _detectability(run: CalibrationRun, update) -> Detectability | None:
     # spread over its neighbours is the one a user must hear of
     ratio = {r["name"]: r["ratio"] for r in update.rows}
     untold = [{**u, "change_sigma": ratio.get(u["name"])} for u in d.untold]
-    return dataclasses.replace(d, untold=tuple(sorted(untold, key=lambda u: -(u["change_sigma"] or 0.0))))
+    untold = sorted(untold, key=lambda u: -(u["change_sigma"] or 0.0))
+    # what the prior run held the update holds: no poses let it name their move, which goes to the free ones
+    held = held_untold(run, list(fit.free.names), d.k)
+    return dataclasses.replace(d, untold=(*untold, *held))
 
 
-def untold_message(d: Detectability) -> str:
-    """The note and stderr line of the parameters a calibration from a prior could not have seen move."""
-    names = ", ".join(u["name"] for u in d.untold[:8]) + (f" and {len(d.untold) - 8} more" if len(d.untold) > 8 else "")
-    spread = [n for n in d.confounded if n not in {u["name"] for u in d.untold}]
-    first, every = d.untold[0], d.to_dict()["poses_to_add"]
+def untold_messages(d: Detectability) -> list[str]:
+    """The notes and stderr lines of the parameters a calibration from a prior could not have seen move: those its
+    rows cannot tell, then those the prior run held (:func:`~torchcal.pipeline.priorheld.held_untold`)."""
+    free = [u for u in d.untold if not u.get("held")]
+    held = [u for u in d.untold if u.get("held")]
+    parts = [_free_message(d, free)] if free else []
+    if held:
+        names = ", ".join(u["name"] for u in held[:8]) + (f" and {len(held) - 8} more" if len(held) > 8 else "")
+        goes = [n for u in held for n in u["absorbed_by"]]
+        goes = list(dict.fromkeys(goes))
+        parts.append(
+            f"prior: the prior run could not determine {names}, and this update holds them at its values: a move of "
+            f"theirs cannot be named by any poses"
+            + (f" (it would go to {', '.join(goes[:6])})" if goes else "")
+            + "; to tell them, calibrate from scratch on poses torchcal plan --run THIS_RUN chooses"
+        )
+    return parts
+
+
+def _free_message(d: Detectability, untold: list[dict]) -> str:
+    """:func:`untold_message`'s part of the fitted parameters the rows cannot tell."""
+    names = ", ".join(u["name"] for u in untold[:8]) + (f" and {len(untold) - 8} more" if len(untold) > 8 else "")
+    told = {u["name"] for u in untold}
+    spread = [n for u in untold for n in u["absorbed_by"] if n not in told]
+    spread = list(dict.fromkeys(spread))
+    first, every = untold[0], d.to_dict()["poses_to_add"]
     more = None if first["rows_needed"] is None else max(first["rows_needed"] - d.rows, 1)
     how = (
         f"add about {more} poses like these to tell {first['name']} ({every if every is not None else 'more'} "

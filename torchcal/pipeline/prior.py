@@ -69,6 +69,9 @@ class Prior:
     units: dict[str, str]
     source: str = ""
     scale: float = 1.0  # the prior run's a-posteriori s0 (at least 1): how far its model misses its rows, in sigma
+    #: the geometric elements the prior run held (free in its parameterisation, absent from its covariance): the
+    #: update holds them too, so it cannot name their move (:func:`torchcal.pipeline.priorheld.held_untold`)
+    held: tuple[str, ...] = ()
 
     @property
     def fit_sigma(self) -> dict[str, float]:
@@ -153,6 +156,10 @@ def prior_from_run(
     _check_plausible(source, sigma, {n: info[n].unit for n in sigma})
     groups = robot.groups()
     corrections = {n: float(groups[info[n].group].delta[info[n].index].detach()) for n in sigma}
+    geometric = ("geometry", "instrument", "tool")  # a readings map's ratios are held by design, not by the data
+    held = tuple(
+        n for n, i in info.items() if n not in sigma and i.group in geometric and bool(groups[i.group].mask[i.index])
+    )
     with torch.no_grad():  # what the prior run held stays held: the update frees only what its covariance holds
         for n, i in info.items():
             if n not in sigma:
@@ -160,7 +167,8 @@ def prior_from_run(
     if not (variance_factor > 0 and math.isfinite(variance_factor)):
         raise OptionError(f"{source}: the variance factor must be positive and finite, got {variance_factor}")
     rebase(robot)
-    prior = Prior(model, sigma, corrections, {n: info[n].unit for n in sigma}, source, max(1.0, variance_factor) ** 0.5)
+    units = {n: info[n].unit for n in sigma}
+    prior = Prior(model, sigma, corrections, units, source, max(1.0, variance_factor) ** 0.5, held)
     robot.prior_sigma = prior.fit_sigma  # read by torchcal.estimate.fit.prior_scales: every fit of this robot is MAP
     return prior
 
@@ -214,6 +222,8 @@ class PriorUpdate:
             "moved": list(self.moved),
             "released": list(self.released),
             "parameters": [dict(r) for r in self.rows],
+            # what the rows cannot tell and where its move would go, at the top: "moved" is the rest of the answer
+            **({"confounded": self.detect.confounded} if self.detect is not None else {}),
             **({"detectability": self.detect.to_dict()} if self.detect is not None else {}),
         }
 
@@ -266,7 +276,9 @@ def for_data(prior: Prior, data) -> Prior:
     _rebuild(model.robot, robot, st_map, pr_map, stations[0], probes[0], set(sigma))
     _regroup(model, st_map, pr_map)
     _place_new(model.robot, data, st_map)
-    out = Prior(model, sigma, corrections, units, prior.source, prior.scale)
+    # the geometry's held elements keep their names; a station's are renamed or new (fitted), so only those stay
+    kept = {i.name for i in model.robot.parameter_info()} - set(sigma)
+    out = Prior(model, sigma, corrections, units, prior.source, prior.scale, tuple(n for n in prior.held if n in kept))
     model.robot.prior_sigma = out.fit_sigma
     return out
 

@@ -395,7 +395,8 @@ def _untold_lines(d: dict | None) -> list[str]:
     for u in d["cannot_tell"]:
         seen = f"{u['detectable_from']:.1f}" if u["detectable_from"] is not None else "never"
         change = f"{u['change_sigma']:.2f}" if u.get("change_sigma") is not None else "-"
-        lines.append(f"| {u['name']} | {change} | {u['share']:.2f} | {seen} | {', '.join(u['absorbed_by']) or '-'} |")
+        name = u["name"] + (" (held: the prior run could not determine it)" if u.get("held") else "")
+        lines.append(f"| {name} | {change} | {u['share']:.2f} | {seen} | {', '.join(u['absorbed_by']) or '-'} |")
     return [*lines, ""]
 
 
