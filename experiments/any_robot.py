@@ -68,8 +68,16 @@ def _true_structure(run, truth: dict):
             eff.set_support(train.q)
         model.add(eff)
     ida = next((f.identifiability for f in run.fits if f.stage == "geometric"), None)
-    solve(model, train, ("geometry", "instrument", "tool"), run.options.fit, "true structure", run.trajectory,
-          effects=True, identifiability=ida)  # fmt: skip
+    solve(
+        model,
+        train,
+        ("geometry", "instrument", "tool"),
+        run.options.fit,
+        "true structure",
+        trajectory=run.trajectory,
+        effects=True,
+        identifiability=ida,
+    )
     return model
 
 

@@ -144,7 +144,7 @@ def run_case(
             ("geometry", "instrument", "tool"),
             opts.fit,
             "true form",
-            traj,
+            trajectory=traj,
             effects=True,
             identifiability=ida,
         )

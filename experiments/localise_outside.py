@@ -47,7 +47,7 @@ def _refit(run, train, fit, opts, effect, test) -> float:
         ("geometry", "instrument", "tool"),
         opts.fit,
         "joint",
-        False,
+        trajectory=False,
         effects=True,
         identifiability=fit.identifiability,
     )

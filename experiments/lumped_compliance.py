@@ -70,7 +70,7 @@ def run_seed(seed: int, effects: list[str], poses: int = 215, test_poses: int = 
 
             true.add(LumpedCompliance(s.joint, lumped_basis(geo.model.robot, train.q, s.joint)))
     ida = next(f.identifiability for f in run.fits if f.stage == "geometric")
-    solve(true, train, GROUPS, run.options.fit, "true structure", False, effects=True, identifiability=ida)
+    solve(true, train, GROUPS, run.options.fit, "true structure", trajectory=False, effects=True, identifiability=ida)
     report = {e.get("name", e["kind"]): e for e in run.effects_report}
     z = {}
     for joint, eff in fitted.items():

@@ -184,7 +184,7 @@ def _fit(m, dev=None):
     m = m if dev is None else m.to(dev)
     place_instrument_and_tool(robot, m.q, m.p)
     model = MeasurementModel(robot)
-    fit = solve(model, m, GEOMETRIC_GROUPS, Options().fit, "geometric", False)
+    fit = solve(model, m, GEOMETRIC_GROUPS, Options().fit, "geometric", trajectory=False)
     W = whitening(model, Context(q=m.q), None, 15e-6, 1e-5)
     return model, fit, cpu(fit.result.x), cpu(W)
 

@@ -37,7 +37,7 @@ def _check(data, cand_effect):
     place_instrument_and_tool(base.robot, data.q, data.p)
 
     def fit_on(m, d, stage):
-        return solve(m, d, GEOMETRIC_GROUPS, opts.fit, stage, False, effects=True)
+        return solve(m, d, GEOMETRIC_GROUPS, opts.fit, stage, trajectory=False, effects=True)
 
     fit_on(base, data, "base")
     cand = SimpleNamespace(name=f"{cand_effect.kind}:2", make=lambda: copy.deepcopy(cand_effect))

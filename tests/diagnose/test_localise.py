@@ -80,7 +80,7 @@ def joint_refit_rmse(g, effect, test) -> float:
         ("geometry", "instrument", "tool"),
         g["opts"].fit,
         "joint",
-        False,
+        trajectory=False,
         effects=True,
         identifiability=g["fit"].identifiability,
     )

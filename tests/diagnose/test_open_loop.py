@@ -44,7 +44,7 @@ def test_third_harmonic_on_a_wrist_joint_is_named_with_its_order():
         ("geometry", "instrument", "tool"),
         run.options.fit,
         "true",
-        False,
+        trajectory=False,
         effects=True,
         identifiability=run.fits[1].identifiability,
     )

@@ -72,7 +72,7 @@ def test_score_statistic_predicts_the_refit_gain():
         ("geometry", "instrument", "tool"),
         opts.fit,
         "x",
-        False,
+        trajectory=False,
         effects=True,
         identifiability=geo.identifiability,
     )

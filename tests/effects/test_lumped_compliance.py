@@ -124,7 +124,7 @@ def test_the_loop_names_lumped_compliance_of_a_massless_arm_and_matches_the_true
     for eff in run.model.effects:
         true.add(LumpedCompliance(eff.joint, eff.basis))
     ida = next(f.identifiability for f in run.fits if f.stage == "geometric")
-    solve(true, train, ("geometry", "instrument", "tool"), run.options.fit, "true form", False, effects=True,
+    solve(true, train, ("geometry", "instrument", "tool"), run.options.fit, "true form", trajectory=False, effects=True,
           identifiability=ida)  # fmt: skip
     ratio = rmse(errors(run.model, c.test, False)) / rmse(errors(true, c.test, False))
     assert ratio <= RATIO, ratio

@@ -66,7 +66,7 @@ def _ratio_to_true_form(c, run) -> float:
         true.add(eff)
     ida = next(f.identifiability for f in run.fits if f.stage == "geometric")
     groups = ("geometry", "instrument", "tool")
-    solve(true, train, groups, run.options.fit, "true form", False, effects=True, identifiability=ida)
+    solve(true, train, groups, run.options.fit, "true form", trajectory=False, effects=True, identifiability=ida)
     return rmse(errors(run.model, c.test, False)) / rmse(errors(true, c.test, False))
 
 

@@ -51,7 +51,7 @@ def test_a_kinematic_refit_is_the_geometry_fitted_on_all_samples_and_keeps_the_h
         GEOMETRIC_GROUPS,
         plain.options.fit,
         "by hand",
-        True,
+        trajectory=True,
         identifiability=plain.fits[-1].identifiability,
     )
     for a, b in zip(plain.model.parameters(), refit.model.parameters()):

@@ -387,6 +387,7 @@ def solve(
     groups: tuple[str, ...],
     opts: FitOptions,
     stage: str,
+    *,
     trajectory: bool,
     identify: bool = True,
     effects: bool = False,
@@ -412,81 +413,24 @@ def solve(
     """
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
-    Wr = _orientation_rows(model, ctx, m, opts)
-    # the orientation rows' variance component: estimated by a fit that analyses its own identifiability (the
-    # nominal and geometric fits, a refit), reused by the fits that take that analysis (the closed loop's)
-    scale, lead = 1.0, 1.0
-    if Wr is not None and identifiability is not None:
-        scale = getattr(model.robot, "orientation_scale", 1.0)
-        lead = getattr(model.robot, "orientation_lead", 1.0)
-    if Wr is not None:
-        Wr = Wr / scale
-    orientation_only: list[str] = []
+    Wr, scale, lead = _scaled_orientation_rows(model, ctx, m, opts, identifiability)
     sel, labels = selection(model, groups, effects=effects)
     free = FreeParameters(model, sel, labels)
-    ida = None
+    ida, orientation_only = identifiability, []
     if identifiability is not None:
-        ida = identifiability
         keep = dict(zip(ida.names, ida.free.tolist()))
         keep.update({n: True for n in free.names if n not in keep})  # effect parameters: checked when scored
         sel, labels = selection(model, groups, keep, effects=effects)
         free = FreeParameters(model, sel, labels)
     elif identify:
-        fun = _residuals(model, free, ctx, m, W, Wr)
-        J = jacobian_of(fun)(free.vector())
-        ps = _priors(model, free, opts, groups)  # the identifiability tolerance from the noise and the priors
-        ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
-        if Wr is not None:  # what the orientation rows make estimable: the same analysis of the position rows alone
-            pos = analyse(J[: 3 * m.n], free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
-            rotation = {i.name for i in model.robot.parameter_info() if i.group == "tool_rotation"}
-            orientation_only = [
-                n
-                for n, a, b in zip(free.names, ida.free.tolist(), pos.free.tolist())
-                if a and not b and n not in rotation
-            ]
-        # an instrument or lever-arm element the data cannot fix goes back to its prior's value (the start's)
-        scaled = prior_scales(model, opts)
-        back = [f for f in ida.fixed if f["name"] in scaled]
-        _hold(model, [f["name"] for f in back])
-        for f in back:
-            f["reason"] = f["reason"].replace("held at its current value", "held at its prior value")
+        ida, orientation_only = _analyse_fresh(model, free, ctx, m, W, Wr, opts, groups)
         sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
     res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
     if Wr is not None and identifiability is None:
-        vce = orientation_scale(res.residuals, m.n)
-        factor = vce * ORIENTATION_LEAD
-        # the sigmas as applied against the variance component's: the variance factor counts the orientation rows at
-        # the component's weight (also where the given sigmas were close enough to the lead's to be kept)
-        if abs(math.log(factor)) > math.log(ORIENTATION_SCALE_TOL):
-            scale, Wr = factor, Wr / factor
-            lead = scale / vce
-            res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
-        else:
-            lead = scale / vce
-            res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
-        model.robot.orientation_scale, model.robot.orientation_lead = scale, lead
+        res, Wr, scale, lead = _orientation_component(model, free, ctx, m, W, Wr, opts, groups, stage, res, scale)
     if identifiability is None and ida is not None:
-        scaled = prior_scales(model, opts)
-        units = {i.name: i.unit for i in model.robot.parameter_info()}
-        for _ in range(HOLD_ROUNDS):
-            ps = _priors(model, free, opts, groups)
-            if ps is None or not any(n in scaled for n in free.names):
-                break
-            try:
-                Q = res.cofactor
-            except EstimationError:
-                break  # a singular normal matrix: the structural analysis already had its say
-            cand = torch.tensor([n in scaled for n in free.names], device=ps.device)
-            found = weak_after_fit(free.names, Q, ps, cand, units, x=res.x, sigma0_sq=res.sigma0_sq)
-            ida.hold(found)
-            held = [h["name"] for h in found if h.get("held") is not False]
-            if not held:
-                break
-            _hold(model, held)
-            sel, labels = selection(model, groups, dict(zip(ida.names, ida.free.tolist())), effects=effects)
-            free = FreeParameters(model, sel, labels)
-            res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
+        res, free = _hold_weak(model, free, ida, ctx, m, W, Wr, opts, groups, stage, lead, res, effects)
     n_orientation = m.n if Wr is not None else 0
     fit = Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation, scale)
     if ida is not None and ida.prior_held:
@@ -494,6 +438,87 @@ def solve(
             model, fit, lambda f, ps: _residuals(model, f, ctx, m, W, Wr, ps), opts, groups, effects
         )
     return fit
+
+
+def _scaled_orientation_rows(model, ctx, m, opts: FitOptions, identifiability):
+    """The orientation rows' whitening (None without orientations) and their variance component ``scale`` and
+    ``lead``: estimated by a fit that analyses its own identifiability (the nominal and geometric fits, a refit),
+    reused by the fits that take that analysis (the closed loop's)."""
+    Wr = _orientation_rows(model, ctx, m, opts)
+    scale, lead = 1.0, 1.0
+    if Wr is not None and identifiability is not None:
+        scale = getattr(model.robot, "orientation_scale", 1.0)
+        lead = getattr(model.robot, "orientation_lead", 1.0)
+    if Wr is not None:
+        Wr = Wr / scale
+    return Wr, scale, lead
+
+
+def _analyse_fresh(model, free, ctx, m, W, Wr, opts: FitOptions, groups):
+    """A fresh identifiability analysis of ``free``: ``(analysis, the parameters only the orientation rows make
+    estimable)``; an instrument or lever-arm element it holds goes back to its prior value."""
+    orientation_only: list[str] = []
+    fun = _residuals(model, free, ctx, m, W, Wr)
+    J = jacobian_of(fun)(free.vector())
+    ps = _priors(model, free, opts, groups)  # the identifiability tolerance from the noise and the priors
+    ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
+    if Wr is not None:  # what the orientation rows make estimable: the same analysis of the position rows alone
+        pos = analyse(J[: 3 * m.n], free.names, preference_order(free.names), tol=opts.rank_tol, prior_sigma=ps)
+        rotation = {i.name for i in model.robot.parameter_info() if i.group == "tool_rotation"}
+        orientation_only = [
+            n for n, a, b in zip(free.names, ida.free.tolist(), pos.free.tolist()) if a and not b and n not in rotation
+        ]
+    # an instrument or lever-arm element the data cannot fix goes back to its prior's value (the start's)
+    scaled = prior_scales(model, opts)
+    back = [f for f in ida.fixed if f["name"] in scaled]
+    _hold(model, [f["name"] for f in back])
+    for f in back:
+        f["reason"] = f["reason"].replace("held at its current value", "held at its prior value")
+    return ida, orientation_only
+
+
+def _orientation_component(model, free, ctx, m, W, Wr, opts: FitOptions, groups, stage, res, scale):
+    """Estimate the orientation rows' variance component from ``res`` and refit with it where it moves the weights
+    by more than :data:`ORIENTATION_SCALE_TOL`; stores it on the robot. Returns ``(res, Wr, scale, lead)``."""
+    vce = orientation_scale(res.residuals, m.n)
+    factor = vce * ORIENTATION_LEAD
+    # the sigmas as applied against the variance component's: the variance factor counts the orientation rows at
+    # the component's weight (also where the given sigmas were close enough to the lead's to be kept)
+    if abs(math.log(factor)) > math.log(ORIENTATION_SCALE_TOL):
+        scale, Wr = factor, Wr / factor
+        lead = scale / vce
+        res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
+    else:
+        lead = scale / vce
+        res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
+    model.robot.orientation_scale, model.robot.orientation_lead = scale, lead
+    return res, Wr, scale, lead
+
+
+def _hold_weak(model, free, ida, ctx, m, W, Wr, opts: FitOptions, groups, stage, lead, res, effects: bool):
+    """Hold the instrument and lever-arm elements the fit left weak (:func:`weak_after_fit`) at their prior value
+    and refit, at most :data:`HOLD_ROUNDS` times; each is added to ``ida``. Returns ``(res, free)``."""
+    scaled = prior_scales(model, opts)
+    units = {i.name: i.unit for i in model.robot.parameter_info()}
+    for _ in range(HOLD_ROUNDS):
+        ps = _priors(model, free, opts, groups)
+        if ps is None or not any(n in scaled for n in free.names):
+            break
+        try:
+            Q = res.cofactor
+        except EstimationError:
+            break  # a singular normal matrix: the structural analysis already had its say
+        cand = torch.tensor([n in scaled for n in free.names], device=ps.device)
+        found = weak_after_fit(free.names, Q, ps, cand, units, x=res.x, sigma0_sq=res.sigma0_sq)
+        ida.hold(found)
+        held = [h["name"] for h in found if h.get("held") is not False]
+        if not held:
+            break
+        _hold(model, held)
+        sel, labels = selection(model, groups, dict(zip(ida.names, ida.free.tolist())), effects=effects)
+        free = FreeParameters(model, sel, labels)
+        res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
+    return res, free
 
 
 def considered(model: MeasurementModel, fit: Fit, residuals, opts: FitOptions, groups, effects: bool):

@@ -163,19 +163,41 @@ def analyse(
     norms = J.norm(dim=0)
     scale = float(norms.max()) if P else 1.0
     Jn = J / norms.clamp(min=1e-300)
-    # the sine each column needs: the structural tolerance, and where there is a prior, the one from noise and prior
-    need = torch.full((P,), float(tol), dtype=J.dtype, device=J.device)
+    need, ps = _needed_sines(norms, tol, prior_sigma, prior_ratio)
+    free, indep = _keep_independent(Jn, norms, order, need, scale)
+    sigma_data = 1.0 / (indep * norms).clamp(min=1e-300)
+    fixed, links = _held_columns(Jn, norms, scale, free, indep, sigma_data, names, tol, ps)
+    groups = _merge(links)
+    sv = torch.linalg.svdvals(Jn[:, norms > 1e-14 * scale]) if P else None
+    return Identifiability(
+        list(names), free, indep, fixed, groups, sv, tol, prior_ratio if prior_sigma is not None else None, sigma_data
+    )
+
+
+def _needed_sines(norms: Tensor, tol: float, prior_sigma: Tensor | None, prior_ratio: float):
+    """The sine each column needs to be kept: the structural tolerance, and where there is a prior, the one from
+    noise and prior. Returns ``(need (P,), prior sigmas (P,) or None)``."""
+    P = len(norms)
+    need = torch.full((P,), float(tol), dtype=norms.dtype, device=norms.device)
+    ps = None
     if prior_sigma is not None:
         if not 0.0 < prior_ratio < 1.0:
             raise ValueError(f"prior_ratio must lie in (0, 1), got {prior_ratio}")
-        ps = torch.as_tensor(prior_sigma, dtype=J.dtype, device=J.device).reshape(P)
+        ps = torch.as_tensor(prior_sigma, dtype=norms.dtype, device=norms.device).reshape(P)
         has = torch.isfinite(ps) & (ps > 0)
         gain = math.sqrt(1.0 / prior_ratio**2 - 1.0)
         from_prior = gain / (norms * ps).clamp(min=1e-300)
         need = torch.where(has, torch.maximum(need, from_prior), need)
-    free = torch.zeros(P, dtype=torch.bool, device=J.device)
-    indep = torch.zeros(P, dtype=J.dtype, device=J.device)
-    basis = torch.zeros(n, 0, dtype=J.dtype, device=J.device)
+    return need, ps
+
+
+def _keep_independent(Jn: Tensor, norms: Tensor, order: list[int], need: Tensor, scale: float):
+    """Walk the columns in preference order, keeping each whose sine to the kept span exceeds its ``need``:
+    ``(free (P,) bool, sine (P,))``."""
+    n, P = Jn.shape
+    free = torch.zeros(P, dtype=torch.bool, device=Jn.device)
+    indep = torch.zeros(P, dtype=Jn.dtype, device=Jn.device)
+    basis = torch.zeros(n, 0, dtype=Jn.dtype, device=Jn.device)
     for j in order:
         if float(norms[j]) <= 1e-14 * scale:
             continue  # no effect on the probe at all
@@ -187,8 +209,12 @@ def analyse(
         if s > float(need[j]):
             free[j] = True
             basis = torch.cat([basis, (v / s)[:, None]], dim=1)
-    sigma_data = 1.0 / (indep * norms).clamp(min=1e-300)
+    return free, indep
 
+
+def _held_columns(Jn, norms, scale: float, free, indep, sigma_data, names, tol: float, ps):
+    """Each held column's entry of ``Identifiability.fixed`` (its reason and the kept columns it depends on), and
+    the dependency links ``[held, *depends_on]`` the dependent groups are merged from."""
     kept = torch.nonzero(free).flatten()
     fixed, links = [], []
     if len(kept):
@@ -220,11 +246,7 @@ def analyse(
             )
         fixed.append({"name": names[j], "reason": why, "depends_on": deps, "independence": float(indep[j])})
         links.append([names[j], *deps])
-    groups = _merge(links)
-    sv = torch.linalg.svdvals(Jn[:, norms > 1e-14 * scale]) if P else None
-    return Identifiability(
-        list(names), free, indep, fixed, groups, sv, tol, prior_ratio if prior_sigma is not None else None, sigma_data
-    )
+    return fixed, links
 
 
 def weak_after_fit(

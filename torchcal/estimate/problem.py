@@ -169,10 +169,7 @@ def residual_function(
     as in reverse-mode autograd); with ``linear=False`` ``jacfwd`` of the whole model over ``chunk`` poses at a time
     (which also differentiates through ``no_grad``).
     """
-    has_prior = prior_sigma is not None and bool(torch.isfinite(prior_sigma).any())
-    if has_prior:
-        idx = torch.nonzero(torch.isfinite(prior_sigma)).flatten()
-        inv = 1.0 / prior_sigma[idx]
+    prior = _prior_pseudo_observations(prior_sigma)
 
     def residuals(x: Tensor, c: Context, pp: Tensor, WW: Tensor) -> Tensor:
         pred = torch.func.functional_call(model, free.params(x), (c,))
@@ -180,14 +177,64 @@ def residual_function(
 
     def fun(x: Tensor) -> Tensor:
         r = residuals(x, ctx, p, W)
-        return torch.cat([r, x[idx] * inv]) if has_prior else r
+        return torch.cat([r, x[prior.idx] * prior.inv]) if prior else r
 
-    def prior_rows(x: Tensor) -> Tensor:
-        rows = torch.zeros(len(idx), len(x), dtype=x.dtype, device=x.device)
-        rows[torch.arange(len(idx), device=x.device), idx] = inv
+    plan = _jacobian_plan(model, free, ctx.q.device)
+
+    def jacobian(x: Tensor) -> Tensor:
+        x = x.detach()
+        if plan.analytic:
+            J = _analytic_jacobian(model, free, plan, ctx, W, x)
+        elif linear:
+            J = _linearised_jacobian(model, free, plan, x, ctx, W)
+        else:
+            J = _chunked_jacobian(residuals, ctx, p, W, x, chunk)
+        return torch.cat([J, prior.rows(x)]) if prior else J
+
+    fun.jacobian = jacobian
+    return fun
+
+
+@dataclass
+class _Prior:
+    """The finite entries of a prior's sigmas: ``idx`` (which columns of x) and ``inv`` (1 / sigma there)."""
+
+    idx: Tensor
+    inv: Tensor
+
+    def rows(self, x: Tensor) -> Tensor:
+        """The pseudo-observations' Jacobian rows: ``inv`` on each one's own column."""
+        rows = torch.zeros(len(self.idx), len(x), dtype=x.dtype, device=x.device)
+        rows[torch.arange(len(self.idx), device=x.device), self.idx] = self.inv
         return rows
 
-    # the probe frame's rotation in the flange (a 6-D probe) does not move the probe's position: zero columns here
+
+def _prior_pseudo_observations(prior_sigma: Tensor | None) -> _Prior | None:
+    """The prior as pseudo-observations, or None where it constrains nothing (absent or all inf)."""
+    if prior_sigma is None or not bool(torch.isfinite(prior_sigma).any()):
+        return None
+    idx = torch.nonzero(torch.isfinite(prior_sigma)).flatten()
+    return _Prior(idx, 1.0 / prior_sigma[idx])
+
+
+@dataclass
+class _JacobianPlan:
+    """Which columns of x each way of computing the Jacobian fills, fixed once per residual function."""
+
+    analytic: bool  # no effects and only the robot's groups free: tracker_jacobian gives every column
+    columns: list  # analytic: (group, index) of each moved column
+    unmoved: list  # the probe frame's rotation: zero columns (it does not move the probe's position)
+    moved: Tensor  # the other columns
+    kin_cols: Tensor  # geometry and lever-arm columns of x ...
+    kin_d: Tensor  # ... and where each sits in _corrections' flat vector (host indices: linear_kinematics reads them)
+    inst: list  # (column of x, index in the instrument pose) where the closed form applies
+    inst_cols: Tensor
+    inst_d: list
+    rest: Tensor  # the columns jacfwd differentiates
+
+
+def _jacobian_plan(model: MeasurementModel, free: FreeParameters, dev) -> _JacobianPlan:
+    """Sort the free columns by how :func:`residual_function`'s Jacobian computes them."""
     unmoved = [j for j, e, _ in _columns(free) if e.name == _TOOL_ROTATION]
     analytic = len(model.effects) == 0 and all(
         e.name in _ROBOT_GROUPS or e.name == _TOOL_ROTATION for e in free.entries
@@ -197,10 +244,10 @@ def residual_function(
         if analytic
         else []
     )
-    moved = torch.tensor([j for j in range(len(free)) if j not in set(unmoved)], dtype=torch.long, device=ctx.q.device)
+    moved = torch.tensor([j for j in range(len(free)) if j not in set(unmoved)], dtype=torch.long, device=dev)
 
     # the free columns of the geometry and the lever arm, and where each sits in the flat corrections of
-    # _corrections: they reach the prediction through the kinematics' tangent alone (linearised below)
+    # _corrections: they reach the prediction through the kinematics' tangent alone (linearised)
     offsets, k = {}, 0
     for name in _kinematic(model.robot):
         offsets[name] = k
@@ -212,76 +259,86 @@ def residual_function(
     # (Effect.reads_instrument): then q' depends on it too, and jacfwd takes them
     closed = not any(e.reads_instrument for e in model.effects)
     inst = [(j, int(i)) for j, e, i in _columns(free) if e.name == _INSTRUMENT] if closed else []
-    dev = ctx.q.device
-    kin_cols = torch.tensor([j for j, _ in kin], dtype=torch.long, device=dev)
-    kin_d = torch.tensor([i for _, i in kin], dtype=torch.long)  # host indices: linear_kinematics reads them
-    inst_cols = torch.tensor([j for j, _ in inst], dtype=torch.long, device=dev)
-    inst_d = [i for _, i in inst]
     fixed = {j for j, _ in kin} | {j for j, _ in inst} | set(unmoved)
-    rest = torch.tensor([j for j in range(len(free)) if j not in fixed], dtype=torch.long, device=dev)
+    return _JacobianPlan(
+        analytic=analytic,
+        columns=columns,
+        unmoved=unmoved,
+        moved=moved,
+        kin_cols=torch.tensor([j for j, _ in kin], dtype=torch.long, device=dev),
+        kin_d=torch.tensor([i for _, i in kin], dtype=torch.long),
+        inst=inst,
+        inst_cols=torch.tensor([j for j, _ in inst], dtype=torch.long, device=dev),
+        inst_d=[i for _, i in inst],
+        rest=torch.tensor([j for j in range(len(free)) if j not in fixed], dtype=torch.long, device=dev),
+    )
 
-    def linearised(x: Tensor, c: Context, WW: Tensor) -> Tensor:
-        # exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the
-        # whitening (constant) applied to the (N, 3, u) prediction Jacobian after it. The geometry and the lever arm
-        # reach the prediction through fk only: the module sees their plain values, so what an effect computes from
-        # the robot under no_grad (a compliance's gravity torque) stays a constant, as reverse-mode autograd has it
-        # (forward-mode transforms ignore no_grad and would push every tangent through the torque's chain too).
-        # Their columns are then the chain rule G_i J_d,i with G_i = d prediction_i / d p_base,i (3 x 3 per pose:
-        # Cartesian effects and the tracker act pose by pose): jacfwd pushes 3 tangents for G instead of one per
-        # geometric parameter, and the model's other parameters as before
-        at = free.params(x)
-        fk = linear_kinematics(model, c, at, columns=kin_d)
-        x_rest = x[rest.to(x.device)]
 
-        def pred(z: Tensor) -> Tensor:
-            y = x.index_put((rest.to(x.device),), z[3:])
-            params = free.params(y)
-            kinematic = _kinematic(model.robot)
-            plain = {k: at[k] if k in kinematic or (k == _INSTRUMENT and inst) else v for k, v in params.items()}
-            shifted = lambda rb, q: _dual.add(fk(rb, q), z[:3])  # noqa: E731 (fk's may be constant)
-            return torch.func.functional_call(model, plain, (c,), {"fk": shifted})
+def _analytic_jacobian(model, free, plan: _JacobianPlan, ctx: Context, W: Tensor, x: Tensor) -> Tensor:
+    """The whitened Jacobian from :meth:`~torchcal.robot.model.RobotModel.tracker_jacobian` (no effects)."""
+    n = ctx.q.shape[0]
+    values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items() if k != _TOOL_ROTATION}
+    _, Jp = model.robot.tracker_jacobian(ctx.q, plan.columns, values, **_rows(model.robot, ctx))
+    if plan.unmoved:
+        Jp = Jp.new_zeros(n, 3, len(x)).index_copy_(2, plan.moved.to(x.device), Jp)
+    return (W @ Jp).reshape(3 * n, len(x))
 
-        Jz = torch.func.jacfwd(pred)(torch.cat([x.new_zeros(3), x_rest])).detach()  # (N, 3, 3 + len(rest))
-        Jp = x.new_zeros(Jz.shape[0], 3, len(x))
-        Jp[..., rest.to(x.device)] = Jz[..., 3:]
-        if len(kin_cols):
-            Jp[..., kin_cols.to(x.device)] = Jz[..., :3] @ fk.jd
-        if inst:
-            instrument = model.robot.instrument
-            if instrument.stations:  # each row's station: q' = T_s^-1 p, the columns of other stations zero
-                T = instrument.rows(c.station, at.get(_INSTRUMENT)).detach()
-                base = ((fk.prediction - T[:, :3, 3]).unsqueeze(1) @ T[:, :3, :3]).squeeze(1)
-                Jp[..., inst_cols.to(x.device)] = instrument.rows_point_jacobian(
-                    base, c.station, inst_d, at.get(_INSTRUMENT)
-                )
-            else:
-                T = instrument.matrix(at.get(_INSTRUMENT)).detach()
-                base = (fk.prediction - T[:3, 3]) @ T[:3, :3]  # q' = T^-1 p
-                Jp[..., inst_cols.to(x.device)] = instrument.point_jacobian(base, inst_d, at.get(_INSTRUMENT))
-        return (WW @ Jp).reshape(-1, len(x))
 
-    def jacobian(x: Tensor) -> Tensor:
-        x = x.detach()
-        n = ctx.q.shape[0]
-        if analytic:
-            values = {_ROBOT_GROUPS[k]: v for k, v in free.params(x).items() if k != _TOOL_ROTATION}
-            _, Jp = model.robot.tracker_jacobian(ctx.q, columns, values, **_rows(model.robot, ctx))
-            if unmoved:
-                Jp = Jp.new_zeros(n, 3, len(x)).index_copy_(2, moved.to(x.device), Jp)
-            J = (W @ Jp).reshape(3 * n, len(x))
-        elif linear:
-            J = linearised(x, ctx, W)
-        else:
-            parts = []
-            for lo in range(0, n, max(1, int(chunk))):
-                sl = slice(lo, min(n, lo + max(1, int(chunk))))
-                part = functools.partial(residuals, c=ctx.subset(sl), pp=p[sl], WW=W[sl])
-                parts.append(torch.func.jacfwd(part)(x).detach())
-            J = torch.cat(parts) if parts else torch.zeros(0, len(x), dtype=x.dtype, device=x.device)
-        return torch.cat([J, prior_rows(x)]) if has_prior else J
+def _chunked_jacobian(residuals, ctx: Context, p: Tensor, W: Tensor, x: Tensor, chunk: int) -> Tensor:
+    """``jacfwd`` of the whole model, ``chunk`` poses at a time (its memory grows with poses x parameters)."""
+    n = ctx.q.shape[0]
+    parts = []
+    for lo in range(0, n, max(1, int(chunk))):
+        sl = slice(lo, min(n, lo + max(1, int(chunk))))
+        part = functools.partial(residuals, c=ctx.subset(sl), pp=p[sl], WW=W[sl])
+        parts.append(torch.func.jacfwd(part)(x).detach())
+    return torch.cat(parts) if parts else torch.zeros(0, len(x), dtype=x.dtype, device=x.device)
 
-    fun.jacobian = jacobian
-    return fun
+
+def _linearised_jacobian(model, free, plan: _JacobianPlan, x: Tensor, c: Context, WW: Tensor) -> Tensor:
+    """Exact first derivatives at x: the kinematics replaced by its tangent there, the rest differentiated; the
+    whitening (constant) applied to the (N, 3, u) prediction Jacobian after it.
+
+    The geometry and the lever arm reach the prediction through fk only: the module sees their plain values, so
+    what an effect computes from the robot under no_grad (a compliance's gravity torque) stays a constant, as
+    reverse-mode autograd has it (forward-mode transforms ignore no_grad and would push every tangent through the
+    torque's chain too). Their columns are then the chain rule G_i J_d,i with G_i = d prediction_i / d p_base,i
+    (3 x 3 per pose: Cartesian effects and the tracker act pose by pose): jacfwd pushes 3 tangents for G instead of
+    one per geometric parameter, and the model's other parameters as before.
+    """
+    at = free.params(x)
+    fk = linear_kinematics(model, c, at, columns=plan.kin_d)
+    rest = plan.rest.to(x.device)
+    x_rest = x[rest]
+
+    def pred(z: Tensor) -> Tensor:
+        y = x.index_put((rest,), z[3:])
+        params = free.params(y)
+        kinematic = _kinematic(model.robot)
+        plain = {k: at[k] if k in kinematic or (k == _INSTRUMENT and plan.inst) else v for k, v in params.items()}
+        shifted = lambda rb, q: _dual.add(fk(rb, q), z[:3])  # noqa: E731 (fk's may be constant)
+        return torch.func.functional_call(model, plain, (c,), {"fk": shifted})
+
+    Jz = torch.func.jacfwd(pred)(torch.cat([x.new_zeros(3), x_rest])).detach()  # (N, 3, 3 + len(rest))
+    Jp = x.new_zeros(Jz.shape[0], 3, len(x))
+    Jp[..., rest] = Jz[..., 3:]
+    if len(plan.kin_cols):
+        Jp[..., plan.kin_cols.to(x.device)] = Jz[..., :3] @ fk.jd
+    if plan.inst:
+        Jp[..., plan.inst_cols.to(x.device)] = _instrument_columns(model, plan, c, fk.prediction, at)
+    return (WW @ Jp).reshape(-1, len(x))
+
+
+def _instrument_columns(model, plan: _JacobianPlan, c: Context, prediction: Tensor, at: dict) -> Tensor:
+    """The instrument pose's columns in closed form: dT/dd q' with q' = T^-1 p the base-frame point."""
+    instrument = model.robot.instrument
+    if instrument.stations:  # each row's station: q' = T_s^-1 p, the columns of other stations zero
+        T = instrument.rows(c.station, at.get(_INSTRUMENT)).detach()
+        base = ((prediction - T[:, :3, 3]).unsqueeze(1) @ T[:, :3, :3]).squeeze(1)
+        return instrument.rows_point_jacobian(base, c.station, plan.inst_d, at.get(_INSTRUMENT))
+    T = instrument.matrix(at.get(_INSTRUMENT)).detach()
+    base = (prediction - T[:3, 3]) @ T[:3, :3]  # q' = T^-1 p
+    return instrument.point_jacobian(base, plan.inst_d, at.get(_INSTRUMENT))
 
 
 def linear_kinematics(

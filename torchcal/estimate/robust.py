@@ -260,13 +260,34 @@ def robust_least_squares(
         :class:`RobustResult` (its ``rejected`` list empty: rows and lines are the caller's business).
     """
     n = int(n_groups)
-    k_huber = math.sqrt(chi2_isf(0.1, group))  # Huber: full weight for the central 90 % of good rows
-    c_tukey = math.sqrt(chi2_isf(1e-4, group))  # Tukey: zero weight past the 0.9999 quantile
-    med = _chi2_median(group)
     x = x0.detach().clone()
     w = torch.ones(n, dtype=F64, device=x0.device) if weights0 is None else weights0.detach().to(x0).clone()
     # a robust start's weights already exclude the gross errors: Huber's convex phase is for a plain start
     huber_rounds = huber_rounds if weights0 is None else 0
+    x, w, irls_done = _reweight(fun, x, w, group, names, huber_rounds, irls_rounds, round_iter, stat_tol, sigma0_floor)
+    threshold = max(chi2_isf(alpha / max(n, 1), group), gross**2)
+    snoop = _snoop(
+        fun, x, w > 0, group, names, threshold, max_rounds, max_iter, stat_tol, sigma0_floor, max_reject_fraction
+    )
+    return RobustResult(
+        kept=snoop.kept,
+        statistic=snoop.T / snoop.s0sq,
+        threshold=threshold,
+        alpha=alpha,
+        sigma0_sq=snoop.s0sq,
+        iterations=irls_done + snoop.rounds,
+        status=snoop.status,
+        weights=w,
+        result=snoop.res,
+    )
+
+
+def _reweight(fun, x, w, group, names, huber_rounds, irls_rounds, round_iter, stat_tol, sigma0_floor):
+    """The M-estimator's reweighting rounds (Huber's, then Tukey's): ``(x, weights, rounds run)``."""
+    n = len(w)
+    k_huber = math.sqrt(chi2_isf(0.1, group))  # Huber: full weight for the central 90 % of good rows
+    c_tukey = math.sqrt(chi2_isf(1e-4, group))  # Tukey: zero weight past the 0.9999 quantile
+    med = _chi2_median(group)
     rounds = 0
     for rnd in range(irls_rounds):
         rounds += 1
@@ -290,11 +311,27 @@ def robust_least_squares(
         # the weights only choose where snooping starts: stop once Tukey's zero set is settled
         if rnd >= huber_rounds and (change < 1e-3 or (same_zeros and change < 0.05)):
             break
+    return x, w, rounds
 
-    # data snooping from the rows the M-estimator kept
-    threshold = max(chi2_isf(alpha / max(n, 1), group), gross**2)
-    kept = w > 0
+
+@dataclass
+class _Snooping:
+    """What data snooping ends with: the kept rows, their statistics and variance factor, and the last fit."""
+
+    kept: Tensor
+    T: Tensor
+    s0sq: float
+    status: str
+    res: object
+    rounds: int
+
+
+def _snoop(fun, x, kept, group, names, threshold, max_rounds, max_iter, stat_tol, sigma0_floor, max_reject_fraction):
+    """Data snooping from the rows the M-estimator kept: refit, reject the worst row over ``threshold`` and take
+    back the rejected rows now under it, until neither happens."""
+    n = len(kept)
     status, res, T, s0sq = "max_iterations", None, torch.zeros(n, dtype=F64, device=x.device), float("nan")
+    rounds = 0
     for _ in range(max_rounds):
         rounds += 1
         if int((~kept).sum()) > max_reject_fraction * n:
@@ -317,17 +354,7 @@ def robust_least_squares(
         kept = kept | back
         if bool(bad.any()):
             kept[int(torch.argmax(torch.where(bad, z, torch.zeros_like(z))))] = False
-    return RobustResult(
-        kept=kept,
-        statistic=T / s0sq,
-        threshold=threshold,
-        alpha=alpha,
-        sigma0_sq=s0sq,
-        iterations=rounds,
-        status=status,
-        weights=w,
-        result=res,
-    )
+    return _Snooping(kept, T, s0sq, status, res, rounds)
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -503,26 +530,11 @@ def screen_geometric(
     Returns:
         :class:`Screening`; its ``training.kept`` and ``holdout.kept`` select the rows to use.
     """
-    groups = ("geometry", "instrument", "tool")
     model = copy.deepcopy(model)
-    robot = model.robot
-    with torch.no_grad():
-        T, lever, _, w0 = robust_instrument_and_tool(robot(train.q), train.p)
-        robot.instrument.set_matrix(T)
-        robot.tool.nominal.copy_(lever)
+    w0 = _robust_start(model, train)
     ctx = Context.from_measurements(train, trajectory=trajectory)
     W = whitening(model, ctx, train.sigma, opts.sigma_tracker, opts.sigma_joint)
-    sel, labels = selection(model, groups)
-    free = FreeParameters(model, sel, labels)
-    fun = residual_function(model, free, ctx, train.p, W)
-    J = jacobian_of(fun)(free.vector())  # the Jacobian does not depend on the measured points
-    ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
-    sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())))
-    free = FreeParameters(model, sel, labels)
-    prior = None
-    if opts.prior_length is not None and opts.prior_angle is not None:
-        units = {i.name: i.unit for i in robot.parameter_info() if i.group == "geometry"}
-        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+    free, prior = _identifiable_geometry(model, ctx, train, W, opts)
     fun = residual_function(model, free, ctx, train.p, W, prior)
     res = robust_least_squares(
         fun,
@@ -539,14 +551,52 @@ def screen_geometric(
     with torch.no_grad():
         _name_rows(res, train, model(ctx))
         _screen_orientation(res, model, train, model(ctx), alpha, gross)
+    hres = _test_holdout(model, free, hold, res.result.cofactor, opts, trajectory, alpha, gross)
+    method = (
+        "robust start (Tukey-reweighted rigid fit), M-estimation (Huber, then Tukey's biweight, robust scale "
+        "from the median) of the geometric model, then Baarda's data snooping one pose at a time; held-out "
+        "poses tested against the robust geometric model"
+    ) + ("; orientations (rx, ry, rz) tested against the probe frame the rows agree on" if train.r is not None else "")
+    return Screening(training=res, holdout=hres, model=model, method=method, gross=gross, free=free.names)
 
-    # held-out poses against the robust model, parameter uncertainty included
+
+def _robust_start(model: MeasurementModel, train) -> Tensor:
+    """Step 1 of :func:`screen_geometric`: set ``model``'s tracker pose and lever arm from a robust rigid fit with
+    the nominal geometry; returns that fit's row weights."""
+    robot = model.robot
+    with torch.no_grad():
+        T, lever, _, w0 = robust_instrument_and_tool(robot(train.q), train.p)
+        robot.instrument.set_matrix(T)
+        robot.tool.nominal.copy_(lever)
+    return w0
+
+
+def _identifiable_geometry(model: MeasurementModel, ctx: Context, train, W: Tensor, opts: FitOptions):
+    """The free parameters of step 2 of :func:`screen_geometric` (the identifiable geometric errors, tracker pose and
+    lever arm, as the calibration's geometric stage) and their prior sigmas (None without a geometric prior)."""
+    groups = ("geometry", "instrument", "tool")
+    sel, labels = selection(model, groups)
+    free = FreeParameters(model, sel, labels)
+    fun = residual_function(model, free, ctx, train.p, W)
+    J = jacobian_of(fun)(free.vector())  # the Jacobian does not depend on the measured points
+    ida = analyse(J, free.names, preference_order(free.names), tol=opts.rank_tol)
+    sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())))
+    free = FreeParameters(model, sel, labels)
+    prior = None
+    if opts.prior_length is not None and opts.prior_angle is not None:
+        units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+        prior = prior_sigmas(free, units, opts.prior_length, opts.prior_angle)
+    return free, prior
+
+
+def _test_holdout(model, free, hold, Q: Tensor, opts: FitOptions, trajectory: bool, alpha: float, gross: float):
+    """Step 3 of :func:`screen_geometric`: the held-out poses against the robust model, the parameters' cofactor
+    ``Q`` included."""
     hctx = Context.from_measurements(hold, trajectory=trajectory)
     Wh = whitening(model, hctx, hold.sigma, opts.sigma_tracker, opts.sigma_joint)
     hfun = residual_function(model, free, hctx, hold.p, Wh)
     x = free.vector()
     Jh = jacobian_of(hfun)(x).reshape(hold.n, 3, -1)
-    Q = res.result.cofactor
     with torch.no_grad():
         pred = model(hctx)
         e = Wh @ (pred - hold.p).unsqueeze(-1)
@@ -568,9 +618,4 @@ def screen_geometric(
     _name_rows(hres, hold, pred)
     with torch.no_grad():
         _screen_orientation(hres, model, hold, pred, alpha, gross)
-    method = (
-        "robust start (Tukey-reweighted rigid fit), M-estimation (Huber, then Tukey's biweight, robust scale "
-        "from the median) of the geometric model, then Baarda's data snooping one pose at a time; held-out "
-        "poses tested against the robust geometric model"
-    ) + ("; orientations (rx, ry, rz) tested against the probe frame the rows agree on" if train.r is not None else "")
-    return Screening(training=res, holdout=hres, model=model, method=method, gross=gross, free=free.names)
+    return hres

@@ -80,7 +80,7 @@ def geometry_on_all(run: CalibrationRun | StageWork, model: MeasurementModel, id
         GEOMETRIC_GROUPS,
         run.options.fit,
         stage,
-        run.trajectory,
+        trajectory=run.trajectory,
         identifiability=identifiability,
     )
 

@@ -201,7 +201,7 @@ def integrate(
             GEOMETRIC_GROUPS,
             opts.fit,
             "integrated (geometry with the network in place)",
-            True,
+            trajectory=True,
             identifiability=ida,
         )
     )
@@ -567,7 +567,7 @@ def integrate_selected(
         GEOMETRIC_GROUPS,
         opts.fit,
         "integrated: geometry on the fitting samples",
-        True,
+        trajectory=True,
         identifiability=work.identifiability,
     )
     e_geo = _errors(geo, val)
@@ -860,7 +860,7 @@ def _growth_residuals(
     ida = work.identifiability
     geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
     stage = "integrated: geometry on the first half (sigma)"
-    solve(geo_half, first, GEOMETRIC_GROUPS, work.options.fit, stage, True, identifiability=ida)
+    solve(geo_half, first, GEOMETRIC_GROUPS, work.options.fit, stage, trajectory=True, identifiability=ida)
     half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
     e = torch.cat([e_geo, P.residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])

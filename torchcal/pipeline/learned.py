@@ -364,7 +364,7 @@ def _refit_geometry(
         groups,
         replace(opts.fit, max_iter=min(opts.fit.max_iter, REFIT_MAX_ITER)),
         "learned (alternating refit)",
-        trajectory,
+        trajectory=trajectory,
         effects=True,
         identifiability=ida,
     )

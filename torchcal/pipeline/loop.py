@@ -163,7 +163,7 @@ class _Search:
             GROUPS,
             opts.fit,
             stage,
-            self.run.trajectory,
+            trajectory=self.run.trajectory,
             effects=True,
             identifiability=self.run.identifiability,
         )

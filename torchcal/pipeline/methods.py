@@ -68,7 +68,15 @@ def nominal(run: CalibrationRun) -> StageResult:
     if train.r is not None:  # a 6-D probe: its frame's rotation in the flange, from the orientations (closed form)
         place_tool_rotation(work.robot, train.q, train.r)
     work.fits.append(
-        solve(work.model, train, ("instrument", "tool"), opts.fit, StageName.NOMINAL, run.trajectory, identify=False)
+        solve(
+            work.model,
+            train,
+            ("instrument", "tool"),
+            opts.fit,
+            StageName.NOMINAL,
+            trajectory=run.trajectory,
+            identify=False,
+        )
     )
     work.add_stage(StageName.NOMINAL)
     return work.result()
@@ -79,7 +87,9 @@ def geometric(run: CalibrationRun) -> StageResult:
     stopped where the corrections are many times their priors (:func:`~torchcal.pipeline.checks.check_corrections`)."""
     work = StageWork(run, StageName.GEOMETRIC)
     _console.info("kinematic calibration: identifiability analysis and weighted LM")
-    fit = solve(work.model, run.train, GEOMETRIC_GROUPS, run.options.fit, StageName.GEOMETRIC, run.trajectory)
+    fit = solve(
+        work.model, run.train, GEOMETRIC_GROUPS, run.options.fit, StageName.GEOMETRIC, trajectory=run.trajectory
+    )
     check_corrections(fit, work.model, run.options, run.data)
     work.fits.append(fit)
     work.add_stage(StageName.GEOMETRIC)
@@ -143,7 +153,7 @@ def _fit_about_prior(run: CalibrationRun, rows, stage: str):
     while True:
         model = copy.deepcopy(run.model)
         model.robot.prior_sigma = release(run.prior, released, run.options.fit)
-        fit = solve(model, rows, GEOMETRIC_GROUPS, run.options.fit, stage, run.trajectory, identify=False)
+        fit = solve(model, rows, GEOMETRIC_GROUPS, run.options.fit, stage, trajectory=run.trajectory, identify=False)
         worst = prior_update(run.prior, model).worst
         if worst is None or len(released) >= MAX_RELEASED:
             return model, fit, released

@@ -541,44 +541,20 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
     test poses, planned for its own line of sight) and ``cfg.probes`` reflectors on a nest (each pose measured by
     every probe: one row per probe, the rows of a pose sharing its joints). One true robot for all; the files carry
     ``station`` (``S1``, ``S2``, ...) and ``probe`` (``P1``, ...) columns; rows run station by station, pose by pose."""
+    # the steps draw from g in this order: a seed gives the same campaign
     g = torch.Generator().manual_seed(int(cfg.seed))
     joints = [(spec.kind, spec.joint) for spec in cfg.effects] + [
         (spec.kind, spec.source) for spec in cfg.effects if spec.source is not None
     ]
     nominal, truth_robot, T0, _, lever_nominal = _true_robot(cfg, g, joints)
     K, P = cfg.stations, cfg.probes
-    Ts = torch.stack([T0] + [_place_tracker(cfg, g) for _ in range(K - 1)])
-    angles = 2 * math.pi * torch.arange(P, dtype=F64) / P
-    nest = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros(P, dtype=F64)], dim=1) * cfg.nest_radius
-    levers = truth_robot.tool.nominal + (nest if P > 1 else torch.zeros(1, 3, dtype=F64))
-    levers = levers + torch.randn(P, 3, generator=g, dtype=F64) * (1e-4 if P > 1 else 0.0)
-    truth_robot.set_stations([f"S{k + 1}" for k in range(K)] if K > 1 else None)
-    truth_robot.set_probes([f"P{k + 1}" for k in range(P)] if P > 1 else None)
-    with torch.no_grad():
-        truth_robot.instrument.nominal.copy_(Ts if K > 1 else T0)
-        truth_robot.tool.nominal.copy_(levers if P > 1 else levers[0])
-    share = [cfg.poses // K + (k < cfg.poses % K) for k in range(K)]
-    share_test = [cfg.test_poses // K + (k < cfg.test_poses % K) for k in range(K)]
-    q_tr, q_te, q_tu, st_tr, st_te = [], [], [], [], []
-    for k in range(K):
-        q, turned = _station_poses(cfg, nominal, truth_robot, tf.invert(Ts[k])[:3, 3], lever_nominal, g, share, k)
-        q_tr.append(q[: share[k]])
-        q_te.append(q[share[k] :])
-        q_tu.append(turned)
-        st_tr += [k] * share[k]
-        st_te += [k] * share_test[k]
-    n_train = cfg.poses * P
+    Ts, levers = _place_stations_and_probes(cfg, g, truth_robot, T0)
+    plan = _station_poses_all(cfg, g, nominal, truth_robot, Ts, lever_nominal)
     # every pose once per probe: rows (pose, probe) in pose order; a fixed axis' turned poses last
-    q_pose = torch.cat(q_tr + q_te + q_tu)
-    station_pose = torch.tensor(st_tr + st_te + (st_te if cfg.tool_axis_deg is not None else []), dtype=torch.long)
-    q_true = q_pose.repeat_interleave(P, dim=0)
-    station = station_pose.repeat_interleave(P)
-    probe = torch.arange(P).repeat(len(q_pose))
-    n = len(q_true)
-    jitter = torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
-    t = torch.arange(n, dtype=F64) * cfg.pose_interval_s + jitter
-    duration = float(t[-1]) if n > 1 else 1.0
-    temperature = 20.0 + 1.0 * (1.0 - torch.exp(-t / (0.5 * duration))) + torch.randn(n, generator=g, dtype=F64) * 0.02
+    q_true = plan.q.repeat_interleave(P, dim=0)
+    station = plan.station.repeat_interleave(P)
+    probe = torch.arange(P).repeat(len(plan.q))
+    t, temperature = _row_times(cfg, g, len(q_true))
     ctx = Context(
         q=q_true, t=t, temperature=temperature, station=station if K > 1 else None, probe=probe if P > 1 else None
     )
@@ -590,10 +566,80 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
     r, sigma_r, orientation = (
         _orientations(cfg, g, model, ctx) if cfg.orientation_sigma_deg is not None else (None,) * 3
     )
+    train, test, turned = _station_files(cfg, part, r, sigma_r, station, probe)
+    truth = _stations_truth(cfg, truth_robot, T0, Ts, levers, effect_truth, train, test)
+    if orientation is not None:
+        truth["orientation"] = orientation
+    if turned is not None:
+        truth["files"]["turned"] = {"n": turned.n}
+        names_s = tuple(f"S{k + 1}" for k in range(K))
+        truth["tool_axis"] = _stations_axis_spread(
+            truth_robot, q_true, station, plan.share, plan.share_test, Ts, names_s
+        )
+    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _place_stations_and_probes(cfg: SimConfig, g: torch.Generator, truth_robot, T0: Tensor):
+    """The true tracker poses ``Ts (K, 4, 4)`` (the first ``T0``, the others placed anew) and the probes' true lever
+    arms ``(P, 3)`` (on a nest of ``cfg.nest_radius`` around the tool's, each off it by a little), set on
+    ``truth_robot``."""
+    K, P = cfg.stations, cfg.probes
+    Ts = torch.stack([T0] + [_place_tracker(cfg, g) for _ in range(K - 1)])
+    angles = 2 * math.pi * torch.arange(P, dtype=F64) / P
+    nest = torch.stack([torch.cos(angles), torch.sin(angles), torch.zeros(P, dtype=F64)], dim=1) * cfg.nest_radius
+    levers = truth_robot.tool.nominal + (nest if P > 1 else torch.zeros(1, 3, dtype=F64))
+    levers = levers + torch.randn(P, 3, generator=g, dtype=F64) * (1e-4 if P > 1 else 0.0)
+    truth_robot.set_stations([f"S{k + 1}" for k in range(K)] if K > 1 else None)
+    truth_robot.set_probes([f"P{k + 1}" for k in range(P)] if P > 1 else None)
+    with torch.no_grad():
+        truth_robot.instrument.nominal.copy_(Ts if K > 1 else T0)
+        truth_robot.tool.nominal.copy_(levers if P > 1 else levers[0])
+    return Ts, levers
+
+
+@dataclass
+class _StationPoses:
+    """The poses of a campaign of several stations, once each: training, test, then turned, station by station."""
+
+    q: Tensor  # (poses, dof)
+    station: Tensor  # (poses,) each pose's station
+    share: list[int]  # training poses per station
+    share_test: list[int]  # test poses per station
+
+
+def _station_poses_all(cfg: SimConfig, g, nominal, truth_robot, Ts: Tensor, lever_nominal) -> _StationPoses:
+    """Each station's equal share of the training and test poses, planned for its own line of sight."""
+    K = cfg.stations
+    share = [cfg.poses // K + (k < cfg.poses % K) for k in range(K)]
+    share_test = [cfg.test_poses // K + (k < cfg.test_poses % K) for k in range(K)]
+    q_tr, q_te, q_tu, st_tr, st_te = [], [], [], [], []
+    for k in range(K):
+        q, turned = _station_poses(cfg, nominal, truth_robot, tf.invert(Ts[k])[:3, 3], lever_nominal, g, share, k)
+        q_tr.append(q[: share[k]])
+        q_te.append(q[share[k] :])
+        q_tu.append(turned)
+        st_tr += [k] * share[k]
+        st_te += [k] * share_test[k]
+    station = torch.tensor(st_tr + st_te + (st_te if cfg.tool_axis_deg is not None else []), dtype=torch.long)
+    return _StationPoses(torch.cat(q_tr + q_te + q_tu), station, share, share_test)
+
+
+def _row_times(cfg: SimConfig, g: torch.Generator, n: int) -> tuple[Tensor, Tensor]:
+    """The rows' times (one pose interval apart, jittered) and temperatures (a warm-up of one degree, with noise)."""
+    jitter = torch.rand(n, generator=g, dtype=F64) * 0.5 * cfg.pose_interval_s
+    t = torch.arange(n, dtype=F64) * cfg.pose_interval_s + jitter
+    duration = float(t[-1]) if n > 1 else 1.0
+    temperature = 20.0 + 1.0 * (1.0 - torch.exp(-t / (0.5 * duration))) + torch.randn(n, generator=g, dtype=F64) * 0.02
+    return t, temperature
+
+
+def _station_files(cfg: SimConfig, part, r, sigma_r, station: Tensor, probe: Tensor):
+    """The training, test and (a fixed tool axis) turned files, with their station and probe columns."""
+    K, P = cfg.stations, cfg.probes
     names_s = tuple(f"S{k + 1}" for k in range(K))
-    # the probes of one pose are measured at one set of joint readings: the first probe row's, shared
-    first = torch.arange(n) - probe
     names_p = tuple(f"P{k + 1}" for k in range(P))
+    # the probes of one pose are measured at one set of joint readings: the first probe row's, shared
+    first = torch.arange(len(probe)) - probe
 
     def labelled(rows: slice, name: str) -> Measurements:
         m = part(rows, name)
@@ -608,10 +654,18 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
             probe_names=names_p if P > 1 else (),
         )
 
+    n_train = cfg.poses * P
     n_test = n_train + cfg.test_poses * P
     train, test = labelled(slice(0, n_train), "train"), labelled(slice(n_train, n_test), "test")
     turned = labelled(slice(n_test, None), "turned") if cfg.tool_axis_deg is not None else None
-    truth = {
+    return train, test, turned
+
+
+def _stations_truth(cfg: SimConfig, truth_robot, T0, Ts, levers, effect_truth, train, test) -> dict:
+    """truth.json of a campaign of several stations or probes (before its orientation and tool axis)."""
+    names_s = tuple(f"S{k + 1}" for k in range(cfg.stations))
+    names_p = tuple(f"P{k + 1}" for k in range(cfg.probes))
+    return {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
         "robot": {"spec": str(cfg.robot), "name": truth_robot.name, "kind": truth_robot.kind, "dof": truth_robot.dof},
@@ -632,12 +686,6 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
             "split": "each station's share of poses drawn independently, the first of each train; one row per probe",
         },
     }
-    if orientation is not None:
-        truth["orientation"] = orientation
-    if turned is not None:
-        truth["files"]["turned"] = {"n": turned.n}
-        truth["tool_axis"] = _stations_axis_spread(truth_robot, q_true, station, share, share_test, Ts, names_s)
-    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
 
 
 def _stations_axis_spread(robot, q, station, share, share_test, Ts, names) -> dict:
