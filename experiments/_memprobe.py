@@ -46,7 +46,7 @@ TARGETS = [
     ("torchcal.estimate.fit", "jacobian_of", "identifiability Jacobian"),
     ("torchcal.estimate.fit", "analyse", "identifiability analysis"),
     ("torchcal.estimate.fit", "levenberg_marquardt", "LM"),
-    ("torchcal.report", "write_run", "report"),
+    ("torchcal.report.rundir", "write_run", "report"),
     ("torchcal.report.rundir", "build_report", "report.json"),
     ("torchcal.robot.export", "write_urdf", "URDF"),
     ("torchcal.report.urdf", "urdf_gap", "URDF gap"),

@@ -54,8 +54,8 @@ def _jacobian(model, names: list[str], m, opts, trajectory: bool) -> tuple[Tenso
 def _spread(m, limits: Tensor):
     """``SPREAD_POSES`` poses uniform in the joint ``limits``, each with ``m``'s first row's station and probe."""
     g = torch.Generator().manual_seed(SPREAD_SEED)
-    u = torch.rand(SPREAD_POSES, limits.shape[0], generator=g, dtype=torch.float64).to(limits)
-    rows = m.subset(torch.zeros(SPREAD_POSES, dtype=torch.long))
+    u = torch.rand(SPREAD_POSES, limits.shape[0], generator=g, dtype=torch.float64, device="cpu").to(limits)
+    rows = m.subset(torch.zeros(SPREAD_POSES, dtype=torch.long, device=m.q.device))
     return dataclasses.replace(rows, q=limits[:, 0] + u * (limits[:, 1] - limits[:, 0]), t=None)
 
 
@@ -79,12 +79,12 @@ def held_untold(run, free_names: list[str], k: float) -> list[dict]:
     if not held:
         return []
     J, cols = _jacobian(run.model, free + held, run.train, opts, run.trajectory)
-    fi = torch.tensor([cols.index(n) for n in free])
+    fi = torch.tensor([cols.index(n) for n in free], device=J.device)
     Jf = J[:, fi]
     fit_sigma = prior_scales(run.model, opts)
-    s = torch.tensor([fit_sigma.get(n, float("inf")) for n in free], dtype=J.dtype)
+    s = torch.tensor([fit_sigma.get(n, float("inf")) for n in free], dtype=J.dtype, device=J.device)
     N = Jf.T @ Jf + torch.diag(torch.where(torch.isfinite(s), s.clamp(min=1e-300) ** -2, torch.zeros_like(s)))
-    test = torch.tensor([prior.sigma[n] for n in free], dtype=J.dtype)
+    test = torch.tensor([prior.sigma[n] for n in free], dtype=J.dtype, device=J.device)
     units = {i.name: i.unit for i in run.model.robot.parameter_info()}
     out = []
     for n in held:
