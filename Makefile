@@ -26,10 +26,11 @@ lint: $(STAMP)
 	$(BIN)/ruff check torchcal tests scripts experiments setup.py
 	$(BIN)/ruff format --check torchcal tests scripts experiments setup.py
 
-# two workers: the suite is hundreds of small single-threaded fits, and a second process uses the second core
-# (about 240 s instead of 330-360 s on a 2-core 2.6 GHz Xeon); every test is independent of the others' process
+# two workers: the suite is hundreds of small single-threaded fits, and a second process uses the second core; every
+# test is independent of the others' process. worksteal: a worker that runs out takes the other's queued tests, so
+# the long ones near the end do not leave a core idle
 test: $(STAMP) lint
-	$(BIN)/python -m pytest -q -n 2
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal
 
 clean:
 	rm -rf runs build *.egg-info .pytest_cache
