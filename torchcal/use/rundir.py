@@ -1,24 +1,6 @@
 """Reloading a calibration's run directory (its files are an outside contract; :mod:`torchcal.report.rundir`
 writes them): the model, its covariance and trust, a run as a prior, each row's station and probe, and predicting.
-
-Layout::
-
-    .torchcal-run          marker: a torchcal output directory, safe to replace
-    report.json            the numbers
-    report.md              the same in words and tables, with the plots below
-    *.png                  residual plots
-    robot_calibrated.urdf  the calibrated geometry (+ probe and tracker frames)
-    model.pt               state_dict of the measurement model (geometry, instrument, lever arm, effects)
-    model.json             how to rebuild it: robot description file, effects, options, calibrated region
-    covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
-    geometric.pt           a run with effects: its kinematic calibration (beside covariance_geometric.pt), which
-                           predicts rows beyond the region where its sigma is far the smaller (model.json: trust)
-    robot/<file>           a copy of the robot description the run started from
-
-Everything is written into a temporary directory next to ``out`` and moved into place at the
-end, so a failure leaves no partial run directory; ``out`` is replaced only when it is absent
-or an earlier torchcal output (it carries the marker ``.torchcal-run``, see
-:mod:`torchcal._outdir`).
+The layout of the directory is :mod:`torchcal.report.rundir`'s.
 """
 
 from __future__ import annotations
