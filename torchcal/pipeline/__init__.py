@@ -12,7 +12,7 @@ from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
 from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, PriorUpdate, prior_from_run
 from torchcal.pipeline.records import Cause, EffectRecord, Note, Rejection, StageName
 from torchcal.pipeline.run import calibrate, check_holdout, holdout_split, is_trajectory, min_poses
-from torchcal.pipeline.state import CalibrationRun, Stage, StageResult
+from torchcal.pipeline.state import CalibrationRun, Checkpoint, StageResult
 
 __all__ = [
     "DEFAULT_METHOD",
@@ -20,13 +20,13 @@ __all__ = [
     "MIN_PRIOR_POSES",
     "CalibrationRun",
     "Cause",
+    "Checkpoint",
     "EffectRecord",
     "Note",
     "Options",
     "Prior",
     "PriorUpdate",
     "Rejection",
-    "Stage",
     "StageName",
     "StageResult",
     "calibrate",

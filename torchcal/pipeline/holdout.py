@@ -22,7 +22,7 @@ from torchcal.diagnose.tracing import unexplained_entries
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, errors, solve
 from torchcal.pipeline.records import Cause, Rejection, StageName
-from torchcal.pipeline.state import CalibrationRun, Stage, StageResult, StageWork
+from torchcal.pipeline.state import CalibrationRun, Checkpoint, StageResult, StageWork
 
 Tensor = torch.Tensor
 
@@ -133,7 +133,7 @@ class _GuardView:
     edges of the training poses' joint ranges (a stage must not lose there either)."""
 
     run: CalibrationRun
-    geo: Stage  # the geometric stage: the kinematic calibration
+    geo: Checkpoint  # the geometric stage: the kinematic calibration
     i_geo: int  # its index among the run's stages
     edge: Tensor  # (n_holdout,) bool: the held-out poses at the edges (:func:`at_edges`)
 

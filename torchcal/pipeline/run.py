@@ -27,7 +27,7 @@ from torchcal.pipeline.integrated import require_trajectory
 from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
 from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
 from torchcal.pipeline.prior import MIN_PRIOR_POSES, Prior, for_data, prior_from_run
-from torchcal.pipeline.state import CalibrationRun, Stage
+from torchcal.pipeline.state import CalibrationRun, Checkpoint
 from torchcal.robot.model import RobotModel
 
 Tensor = torch.Tensor
@@ -41,7 +41,7 @@ __all__ = [
     "Prior",
     "CalibrationRun",
     "Options",
-    "Stage",
+    "Checkpoint",
     "calibrate",
     "check_corrections",
     "check_holdout",

@@ -1,6 +1,6 @@
 """The typed state of a calibration run, and the frozen result a stage returns.
 
-A stage is a function ``CalibrationRun -> StageResult`` (:data:`StageFn`). It works on its own
+A stage is a function ``CalibrationRun -> StageResult`` (:data:`StageFn`); what it leaves in the story is a :class:`Checkpoint`. It works on its own
 :class:`StageWork` (a copy of the run's model and of the story so far) and never edits the run; only
 :func:`torchcal.pipeline.run.calibrate` applies a result (:meth:`CalibrationRun.apply`), which returns a new run.
 The result says what the stage changed: the model it ends with, the checkpoints of the before/after story it
@@ -31,7 +31,7 @@ Tensor = torch.Tensor
 
 
 @dataclass(frozen=True)
-class Stage:
+class Checkpoint:
     """A checkpoint of the before/after story: the model as it stood, with its held-out and training errors."""
 
     name: str  # a StageName, or the label of the named effect the stage added
@@ -65,7 +65,7 @@ class CalibrationRun:
     trajectory: bool
     split: S.Split | None = None  # the held-out split, with its revisit groups
     screening: Screening | None = None  # the gross errors left out
-    stages: tuple[Stage, ...] = ()
+    stages: tuple[Checkpoint, ...] = ()
     fits: tuple[Fit, ...] = ()
     effects: tuple[EffectRecord, ...] = ()
     rejections: tuple[Rejection, ...] = ()  # candidates that did not earn their place
@@ -95,7 +95,7 @@ class CalibrationRun:
         """The training samples, then the held-out ones (time order on a trajectory): what a refit uses."""
         return self.data.subset(torch.cat([self.train_idx, self.holdout_idx]))
 
-    def stage(self, name: str) -> Stage:
+    def stage(self, name: str) -> Checkpoint:
         """The first stage called ``name``."""
         return next(s for s in self.stages if s.name == name)
 
@@ -153,7 +153,7 @@ class StageResult:
 
     stage: str  # the stage that made it
     model: MeasurementModel | None = None  # the model the run goes on with (None: unchanged)
-    checkpoints: tuple[Stage, ...] = ()  # appended to the story
+    checkpoints: tuple[Checkpoint, ...] = ()  # appended to the story
     dropped_stages: tuple[str, ...] = ()  # checkpoints taken out of the story, by name
     fits_kept: int | None = None  # how many of the run's fits stay (None: all)
     fits: tuple[Fit, ...] = ()  # appended after those
@@ -192,7 +192,7 @@ class StageWork:
     run: CalibrationRun
     name: str
     model: MeasurementModel = None  # type: ignore[assignment]  # set in __post_init__ (a copy of the run's)
-    stages: list[Stage] = field(default_factory=list)
+    stages: list[Checkpoint] = field(default_factory=list)
     fits: list[Fit] = field(default_factory=list)
     effects: list[EffectRecord] = field(default_factory=list)
     rejections: list[Rejection] = field(default_factory=list)
@@ -233,12 +233,12 @@ class StageWork:
         """The identifiability analysis of the last fit that made one, the stage's own fits included."""
         return last_identifiability(self.fits)
 
-    def stage(self, name: str) -> Stage:
+    def stage(self, name: str) -> Checkpoint:
         return next(s for s in self.stages if s.name == name)
 
-    def add_stage(self, name: str) -> Stage:
+    def add_stage(self, name: str) -> Checkpoint:
         """Append the model as it stands as checkpoint ``name``, with its held-out and training errors."""
-        st = Stage(
+        st = Checkpoint(
             name,
             copy.deepcopy(self.model),
             errors(self.model, self.hold, self.trajectory),
