@@ -18,14 +18,13 @@ from __future__ import annotations
 import copy
 import time
 
-import torch
-
 from torchcal.diagnose.candidates import Candidate
 from torchcal.effects.registry import NAMED_KINDS
 from torchcal.estimate.fit import errors, solve
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse
+from torchcal.sweep import TaskFailure, map_tasks
 
 NAMED = NAMED_KINDS
 
@@ -153,29 +152,18 @@ def run_case(
 
 
 def _run_one(kw: dict) -> dict:
-    from torchcal import _console
-
-    _console.set_quiet(True)
-    torch.set_num_threads(1)
+    """One case (a keyword dict of :func:`run_case`): a task of :func:`torchcal.sweep.map_tasks`."""
     return run_case(**kw)
 
 
-def run_cases(cases: list[dict], workers: int = 1, progress=None) -> list[dict]:
-    """:func:`run_case` for every keyword dict in ``cases``, in order; ``workers`` > 1 runs them in
-    that many processes (one thread each)."""
-    if workers <= 1:
-        out = []
-        for kw in cases:
-            out.append(run_case(**kw))
-            if progress:
-                progress(out[-1])
-        return out
-    import multiprocessing as mp
+def run_cases(cases: list[dict], workers: int | None = 1, progress=None, address: str | None = None) -> list[dict]:
+    """:func:`run_case` for every keyword dict in ``cases``, in order; ``workers`` > 1 (a local Ray instance of
+    that many CPUs) or ``address`` (a Ray cluster) runs them as independent tasks
+    (:func:`torchcal.sweep.map_tasks`: the same results as one after another); ``progress`` sees each run's row
+    as it ends."""
 
-    with mp.get_context("spawn").Pool(workers) as pool:
-        out = []
-        for r in pool.imap(_run_one, cases):
-            out.append(r)
-            if progress:
-                progress(r)
-        return out
+    def show(_i: int, r) -> None:
+        if progress and not isinstance(r, TaskFailure):
+            progress(r)
+
+    return map_tasks(_run_one, cases, workers=workers, address=address, progress=show)

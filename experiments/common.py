@@ -37,6 +37,24 @@ def add_common_arguments(ap: argparse.ArgumentParser, *, threads: int = 1) -> No
     ap.add_argument("--json", action="store_true", help="print the result as one JSON object on the last line")
 
 
+def add_sweep_arguments(ap: argparse.ArgumentParser, what: str = "seeds") -> None:
+    """Add ``--workers`` and ``--address``: the experiment's independent fits (its ``what``) as tasks of
+    :func:`torchcal.sweep.map_tasks`, on a local Ray instance of N CPUs or on a Ray cluster; one after another by
+    default, with the same results."""
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help=f"run the {what}' fits as tasks on a local Ray instance of N CPUs, one torch thread each (default: one "
+        "after another; the same results; pip install torchcal[fleet])",
+    )
+    ap.add_argument(
+        "--address",
+        default=None,
+        help="run them on the Ray cluster at ADDR (ray://HOST:PORT or auto; every node sees this checkout's paths)",
+    )
+
+
 def parser(doc: str, *, threads: int = 1) -> argparse.ArgumentParser:
     """An argument parser described by ``doc`` (a script's docstring, shown as written) with the common arguments."""
     ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)

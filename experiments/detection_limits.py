@@ -51,10 +51,12 @@ def run(
     poses: int,
     reliable: float,
     first_seed: int,
-    workers: int,
+    workers: int | None = None,
+    address: str | None = None,
 ) -> dict:
-    """Calibrate ``seeds`` campaigns per family and size [um RMS] in ``workers`` processes; each run and each
-    family's table are shown on stderr.
+    """Calibrate ``seeds`` campaigns per family and size [um RMS] on ``workers`` Ray CPUs or the cluster at
+    ``address`` (:func:`~experiments.closed_loop.run_cases`; default one after another); each run and each family's
+    table are shown on stderr.
 
     Returns:
         The detection limit per family [um] (None: not reliable at any size of the grid) and the table.
@@ -76,7 +78,7 @@ def run(
                 keys.append((fam, size))
     t0 = time.perf_counter()
 
-    rows = run_cases(cases, workers, lambda r: print(_progress_line(r), file=sys.stderr))
+    rows = run_cases(cases, workers, lambda r: print(_progress_line(r), file=sys.stderr), address)
     table = {}
     for (fam, size), r in zip(keys, rows):
         t = table.setdefault(fam, {}).setdefault(size, {"runs": 0, "detected": 0, "wrong": [], "ratio_true_form": []})

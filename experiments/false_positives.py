@@ -66,9 +66,20 @@ def _progress_line(r: dict) -> str:
     )
 
 
-def run(robot: str, seeds: int, poses: int, trajectories: int, samples: int, first_seed: int, workers: int) -> dict:
+def run(
+    robot: str,
+    seeds: int,
+    poses: int,
+    trajectories: int,
+    samples: int,
+    first_seed: int,
+    workers: int | None = None,
+    address: str | None = None,
+) -> dict:
     """Calibrate ``seeds`` static campaigns of ``poses`` poses and ``trajectories`` trajectory campaigns of
-    ``samples`` samples, all clean, in ``workers`` processes; each run is shown on stderr as it ends.
+    ``samples`` samples, all clean, on ``workers`` Ray CPUs or the cluster at ``address``
+    (:func:`~experiments.closed_loop.run_cases`; default one after another); each run is shown on stderr as it
+    ends.
 
     Returns:
         The summaries (all, static, trajectory) and the rows of every run.
@@ -80,7 +91,7 @@ def run(robot: str, seeds: int, poses: int, trajectories: int, samples: int, fir
     ]
     t0 = time.perf_counter()
 
-    rows = run_cases(cases, workers, lambda r: print(_progress_line(r), file=sys.stderr))
+    rows = run_cases(cases, workers, lambda r: print(_progress_line(r), file=sys.stderr), address)
     static = [r for r in rows if not r["trajectory"]]
     traj = [r for r in rows if r["trajectory"]]
     out = {

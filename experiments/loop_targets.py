@@ -88,13 +88,14 @@ def summarise(group: str, rows: list[dict]) -> dict:
     return s
 
 
-def run(seeds: int, poses: int, first_seed: int, workers: int = 1) -> dict:
-    """Every case over ``seeds`` seeds from ``first_seed``, in ``workers`` processes; per group a summary, and
+def run(seeds: int, poses: int, first_seed: int, workers: int | None = None, address: str | None = None) -> dict:
+    """Every case over ``seeds`` seeds from ``first_seed``, on ``workers`` Ray CPUs or the cluster at ``address``
+    (:func:`~experiments.closed_loop.run_cases`; default one after another); per group a summary, and
     whether every run met its target. Progress goes to stderr (one line per run and per group)."""
     _console.set_quiet(True)
     kws, tags = cases(seeds, poses, first_seed)
     t0 = time.perf_counter()
-    rows = run_cases(kws, workers, _show)
+    rows = run_cases(kws, workers, _show, address)
     for group, r in zip(tags, rows):
         r["group"], r["meets_target"] = group, verdict(group, r)
     summary = {g: summarise(g, [r for r in rows if r["group"] == g]) for g in GROUPS}

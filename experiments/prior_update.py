@@ -14,6 +14,7 @@ From scratch the rows are too few to calibrate (:func:`~torchcal.pipeline.min_po
 from __future__ import annotations
 
 import dataclasses
+import functools
 import statistics
 import tempfile
 import time
@@ -27,6 +28,7 @@ from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate, min_poses
 from torchcal.report.rundir import write_run
 from torchcal.robot import load_robot
+from torchcal.sweep import map_tasks
 from torchcal.use.rundir import load_prior
 
 ROBOT = "ur10"
@@ -56,9 +58,13 @@ def run(
     shift: float = 2e-3,
     method: str = "kinematic",
     draw: str = "torch",
+    workers: int | None = None,
+    address: str | None = None,
 ) -> dict:
     """The experiment (module docstring); ``draw``: ``torch`` picks seed ``s``'s rows with ``torch.randperm``,
-    ``numpy`` with ``numpy.random.default_rng(s).choice`` (issue 34's protocol)."""
+    ``numpy`` with ``numpy.random.default_rng(s).choice`` (issue 34's protocol). The draws' updates, independent
+    fits, run on ``workers`` Ray CPUs or the cluster at ``address`` (:func:`torchcal.sweep.map_tasks`; default one
+    after another, the same results)."""
     t0 = time.perf_counter()
     data = read_ipa(series_file(data_dir, series))
     before = calibrate(ROBOT, data, Options.of(method=method, seed=SEED, holdout=HOLDOUT, trajectory=False))
@@ -80,39 +86,10 @@ def run(
         d = write_run(before, Path(tmp) / "before")
         prior = load_prior(d)
     out["prior_alone_on_crashed_mm"] = _rmse(errors(prior.model, held_crashed, False))
-    per_seed = []
-    refit = {"refit": True} if method == "kinematic" else {}
-    for s in range(seeds):
-        pick = _pick(train_idx, rows, s, draw)
-        new = crash(data.subset(pick), joint, shift)
-        up = calibrate(
-            ROBOT,
-            new,
-            # refit (the model written refitted on every row) is the kinematic method's; the default keeps its split
-            Options.of(method=method, seed=s, holdout=HOLDOUT, trajectory=False, **refit),
-            prior=prior,
-        )
-        upd = up.prior_update
-        change = {r["name"]: r for r in upd.rows}
-        theta = change.get(f"theta{joint}")
-        detect = upd.detect.to_dict() if upd.detect is not None else {}
-        per_seed.append(
-            {
-                "seed": s,
-                "rmse_mm": _rmse(errors(up.model, held_crashed, False)),
-                "moved": list(upd.moved),
-                "theta_change_mrad": theta["change"] * 1e3 if theta else None,
-                "theta_ratio": theta["ratio"] if theta else None,
-                "cannot_tell": [u["name"] for u in detect.get("cannot_tell", [])],
-                "theta_absorbed_by": next(
-                    (u["absorbed_by"] for u in detect.get("cannot_tell", []) if u["name"] == f"theta{joint}"), []
-                ),
-                "poses_to_add": detect.get("poses_to_add"),
-                "rows_to_tell_theta": next(
-                    (u["rows_needed"] for u in detect.get("cannot_tell", []) if u["name"] == f"theta{joint}"), None
-                ),
-            }
-        )
+    # each draw's update is an independent fit from the same prior, judged on the same crashed held-out rows
+    draws = [(s, crash(data.subset(_pick(train_idx, rows, s, draw)), joint, shift)) for s in range(seeds)]
+    update = functools.partial(_update, joint=joint, method=method, prior=prior, held_crashed=held_crashed)
+    per_seed = map_tasks(update, draws, workers=workers, address=address)
     for p in per_seed:
         p["ratio_to_before"] = p["rmse_mm"] / out["before_crash_mm"]
         p["verdict"] = _verdict(p, f"theta{joint}")
@@ -125,6 +102,35 @@ def run(
     out["verdicts"] = {v: sum(p["verdict"] == v for p in per_seed) for v in VERDICTS}
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def _update(draw: tuple[int, Measurements], *, joint: int, method: str, prior, held_crashed: Measurements) -> dict:
+    """A draw's update ``(seed, its crashed rows)``, judged on the crashed held-out rows (:func:`run`)."""
+    s, new = draw
+    refit = {"refit": True} if method == "kinematic" else {}
+    up = calibrate(
+        ROBOT,
+        new,
+        # refit (the model written refitted on every row) is the kinematic method's; the default keeps its split
+        Options.of(method=method, seed=s, holdout=HOLDOUT, trajectory=False, **refit),
+        prior=prior,
+    )
+    upd = up.prior_update
+    change = {r["name"]: r for r in upd.rows}
+    theta = change.get(f"theta{joint}")
+    detect = upd.detect.to_dict() if upd.detect is not None else {}
+    untold = {u["name"]: u for u in detect.get("cannot_tell", [])}
+    return {
+        "seed": s,
+        "rmse_mm": _rmse(errors(up.model, held_crashed, False)),
+        "moved": list(upd.moved),
+        "theta_change_mrad": theta["change"] * 1e3 if theta else None,
+        "theta_ratio": theta["ratio"] if theta else None,
+        "cannot_tell": [u["name"] for u in detect.get("cannot_tell", [])],
+        "theta_absorbed_by": untold.get(f"theta{joint}", {}).get("absorbed_by", []),
+        "poses_to_add": detect.get("poses_to_add"),
+        "rows_to_tell_theta": untold.get(f"theta{joint}", {}).get("rows_needed"),
+    }
 
 
 #: what an update did, per draw: within the bar with the crashed joint named as moved; beyond it with the joint named

@@ -27,6 +27,7 @@ from torchcal.pipeline import Options, calibrate, holdout_split
 from torchcal.report.rundir import write_run
 from torchcal.report.station import fit_station, one_placement, station_options
 from torchcal.robot import load_robot
+from torchcal.sweep import map_tasks
 from torchcal.use.rundir import load_covariance, load_model
 
 ROBOT = "ur10"
@@ -64,6 +65,11 @@ def _restation(model: MeasurementModel, cov, pts: Measurements, held: Measuremen
     }
 
 
+def _restation_task(task: tuple) -> dict:
+    """One re-stationing ``(model, cov, pts, held, opts)``: a task of :func:`torchcal.sweep.map_tasks`."""
+    return _restation(*task)
+
+
 def run(
     data_dir: Path,
     fit: str = "A",
@@ -72,7 +78,11 @@ def run(
     seeds: int = 5,
     methods: tuple[str, ...] = ("kinematic",),
     tool: bool = True,
+    workers: int | None = None,
+    address: str | None = None,
 ) -> dict:
+    """The experiment (module docstring); the re-stationings, independent fits, on ``workers`` Ray CPUs or the
+    cluster at ``address`` (:func:`torchcal.sweep.map_tasks`; default one after another, the same results)."""
     t0 = time.perf_counter()
     src = read_ipa(series_file(data_dir, fit))
     dst = read_ipa(series_file(data_dir, target))
@@ -101,9 +111,8 @@ def run(
         pick = train_idx[torch.randperm(len(train_idx), generator=g)[:points]]
         draws.append(dst.subset(torch.sort(pick).values))
     nominal = MeasurementModel(load_robot(ROBOT))
-    opts0 = station_options(Path("."), tool=tool)  # defaults; the run's own numbers per method below
-    base = [_restation(nominal, None, pts, held, opts0) for pts in draws]
-    out["nominal_restationed"] = {"rmse_mm": _summary([b["rmse_mm"] for b in base]), "per_seed": base}
+    # every (model, draw) re-stationing is an independent fit: one sweep over all of them, after the calibrations
+    models = {None: (nominal, None, station_options(Path("."), tool=tool))}  # defaults: the nominal's numbers
     with tempfile.TemporaryDirectory() as tmp:
         for method in methods:
             t1 = time.perf_counter()
@@ -113,17 +122,21 @@ def run(
             model, meta = load_model(rd)
             # as `torchcal station` does: a learned correction's fallback geometry moves with the instrument
             model, _, cov = one_placement(model, meta, load_covariance(rd, model))
-            opts = station_options(rd, tool=tool)
-            per = [_restation(model, cov, pts, held, opts) for pts in draws]
-            rm = _summary([p["rmse_mm"] for p in per])
-            out["methods"][method] = {
-                "fit_series_holdout_mm": run_.stages[-1].rmse * MM,
-                "calibration_s": cal_s,
-                "rmse_mm": rm,
-                "ratio_to_own_kinematic": rm["median"] / out["target_own_kinematic_mm"],
-                "predicted_rmse_mm": _summary([p["predicted_rmse_mm"] for p in per]),
-                "per_seed": per,
-            }
+            models[method] = (model, cov, station_options(rd, tool=tool))
+            out["methods"][method] = {"fit_series_holdout_mm": run_.stages[-1].rmse * MM, "calibration_s": cal_s}
+    tasks = [(model, cov, pts, held, opts) for model, cov, opts in models.values() for pts in draws]
+    done = map_tasks(_restation_task, tasks, workers=workers, address=address)
+    per_model = {name: done[i * seeds : (i + 1) * seeds] for i, name in enumerate(models)}
+    base = per_model.pop(None)
+    out["nominal_restationed"] = {"rmse_mm": _summary([b["rmse_mm"] for b in base]), "per_seed": base}
+    for method, per in per_model.items():
+        rm = _summary([p["rmse_mm"] for p in per])
+        out["methods"][method] |= {
+            "rmse_mm": rm,
+            "ratio_to_own_kinematic": rm["median"] / out["target_own_kinematic_mm"],
+            "predicted_rmse_mm": _summary([p["predicted_rmse_mm"] for p in per]),
+            "per_seed": per,
+        }
     out["runtime_s"] = time.perf_counter() - t0
     return out
 

@@ -2,7 +2,7 @@
 """Detection limits of the closed loop: per effect family, the smallest size it names reliably
 (experiments.detection_limits).
 
-    python scripts/detection_limits.py [--seeds 10] [--sizes 5,7.5,10,15,20,30] [--workers 2] [--json]
+    python scripts/detection_limits.py [--seeds 10] [--sizes 5,7.5,10,15,20,30] [--workers 2] [--address ADDR] [--json]
 """
 
 import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
@@ -19,13 +19,13 @@ ap.add_argument("--seeds", type=int, default=10, help="campaigns per family and 
 ap.add_argument("--poses", type=int, default=800)
 ap.add_argument("--reliable", type=float, default=0.9, help="detection rate that counts as reliable")
 ap.add_argument("--first-seed", type=int, default=2000)
-ap.add_argument("--workers", type=int, default=1)
+common.add_sweep_arguments(ap, "campaigns")
 
 
 def experiment(a) -> dict:
     families = a.families.split(",")
     sizes = [float(s) for s in a.sizes.split(",")]
-    return run(a.robot, families, sizes, a.seeds, a.poses, a.reliable, a.first_seed, a.workers)
+    return run(a.robot, families, sizes, a.seeds, a.poses, a.reliable, a.first_seed, a.workers, a.address)
 
 
 def main(argv=None) -> dict:

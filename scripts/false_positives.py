@@ -2,7 +2,8 @@
 """False-positive rate of the closed loop: clean simulated campaigns (geometry only) over many seeds
 (experiments.false_positives).
 
-    python scripts/false_positives.py [--seeds 100] [--poses 800] [--trajectories 10] [--workers 4] [--json]
+    python scripts/false_positives.py [--seeds 100] [--poses 800] [--trajectories 10] [--workers 2] [--address ADDR]
+        [--json]
 """
 
 import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
@@ -18,13 +19,15 @@ ap.add_argument("--poses", type=int, default=800, help="poses per static campaig
 ap.add_argument("--trajectories", type=int, default=10, help="trajectory campaigns (default 10)")
 ap.add_argument("--samples", type=int, default=3000, help="samples per trajectory (default 3000)")
 ap.add_argument("--first-seed", type=int, default=1000)
-ap.add_argument("--workers", type=int, default=1, help="processes (one thread each)")
+common.add_sweep_arguments(ap, "campaigns")
 
 
 def main(argv=None) -> dict:
     _console.set_quiet(True)
     args, out = common.run(
-        ap, lambda a: run(a.robot, a.seeds, a.poses, a.trajectories, a.samples, a.first_seed, a.workers), argv
+        ap,
+        lambda a: run(a.robot, a.seeds, a.poses, a.trajectories, a.samples, a.first_seed, a.workers, a.address),
+        argv,
     )
     common.emit(out, args, plain={k: v for k, v in out.items() if k != "rows"})
     return out

@@ -54,6 +54,7 @@ ap.add_argument(
     action="store_true",
     help="per seed also a design whose spread picks follow the held-out poses themselves (what no planner knows)",
 )
+common.add_sweep_arguments(ap, "designs")
 
 
 def experiment(a):
@@ -73,6 +74,7 @@ def experiment(a):
         method=a.method,
         oracle=a.oracle,
     )
+    sweep = {"workers": a.workers, "address": a.address}
     if a.sequential:
         if a.simulated is not None or len(ks) != 1 or not 0 < a.sequential < ks[0]:
             ap.error("--sequential takes the real data and one --k above it")
@@ -80,12 +82,12 @@ def experiment(a):
             shares = tuple(float(v) for v in common.comma_list(ap, a.learned_shares, None, what="share"))
         except ValueError:
             ap.error(f"--learned-shares must be numbers separated by commas, got {a.learned_shares!r}")
-        res = plan_poses.run_sequential(a.data_dir, a.series.upper(), a.sequential, ks[0], shares, a.seeds)
+        res = plan_poses.run_sequential(a.data_dir, a.series.upper(), a.sequential, ks[0], shares, a.seeds, **sweep)
         return res, plan_poses.sequential_markdown(res)
     if a.simulated is not None:
-        res = plan_poses.simulated(a.simulated, protocol)
+        res = plan_poses.simulated(a.simulated, protocol, **sweep)
     else:
-        res = plan_poses.run(a.data_dir, a.series.upper(), protocol)
+        res = plan_poses.run(a.data_dir, a.series.upper(), protocol, **sweep)
     return res, plan_poses.markdown(res)
 
 

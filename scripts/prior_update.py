@@ -31,6 +31,7 @@ ap.add_argument(
     default="kinematic",
     help="the method of the calibration before the crash and of the update (default kinematic; auto: the default)",
 )
+common.add_sweep_arguments(ap, "draws")
 
 
 def experiment(a):
@@ -38,7 +39,9 @@ def experiment(a):
         ap.error(f"data folder not found: {a.data_dir}")
     shift = a.shift if a.shift is not None else (a.shift_mrad if a.shift_mrad is not None else 2.0) * 1e-3
     draws, how = (a.draws, "numpy") if a.draws is not None else (a.seeds, "torch")
-    res = prior_update.run(a.data_dir, a.series.upper(), a.rows, draws, a.joint, shift, a.method, how)
+    res = prior_update.run(
+        a.data_dir, a.series.upper(), a.rows, draws, a.joint, shift, a.method, how, a.workers, a.address
+    )
     return res, prior_update.markdown(res)
 
 

@@ -17,6 +17,7 @@ ap.add_argument("--points", type=int, default=6, help="points to re-station on (
 ap.add_argument("--seeds", type=int, default=5, help="random draws of the points (default 5)")
 ap.add_argument("--methods", default="kinematic", help="calibration methods of the fit series (default kinematic)")
 ap.add_argument("--no-tool", action="store_true", help="hold the lever arm (default: fit it, another tool)")
+common.add_sweep_arguments(ap, "re-stationings")
 
 
 def experiment(a):
@@ -24,7 +25,15 @@ def experiment(a):
         ap.error(f"data folder not found: {a.data_dir}")
     methods = tuple(common.comma_list(ap, a.methods, None, what="method"))
     res = restation.run(
-        a.data_dir, a.fit_series.upper(), a.target.upper(), a.points, a.seeds, methods, tool=not a.no_tool
+        a.data_dir,
+        a.fit_series.upper(),
+        a.target.upper(),
+        a.points,
+        a.seeds,
+        methods,
+        tool=not a.no_tool,
+        workers=a.workers,
+        address=a.address,
     )
     return res, restation.markdown(res)
 

@@ -19,7 +19,7 @@ LAYERS: list[set[str]] = [
     {"filter", "diagnose"},
     {"pipeline"},
     {"use"},
-    {"report", "fleet"},
+    {"report", "fleet", "sweep"},
     {"cli", "_entry", "__main__"},
 ]
 #: leaf utilities: importable from anywhere, importing no other torchcal module but each other

@@ -22,7 +22,6 @@ gets no verdict: it is listed with its error.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import math
@@ -41,14 +40,14 @@ from torchcal import _console
 from torchcal._outdir import check_out_dir, replace_dir
 from torchcal._threads import torch_threads
 from torchcal.errors import OptionError, TorchcalError
+from torchcal.sweep import RETRIES as RETRIES  # the fleet's own name of it
+from torchcal.sweep import TaskFailure, on_ray, ray_available
 
 #: the manifest's columns: required, then optional
 REQUIRED = ("name", "data", "robot")
 OPTIONAL = ("method", "prior")
 #: the methods a line may name (calibrate's)
 METHODS = ("auto", "kinematic", "pcm", "kinematic+ann", "integrated")
-#: how often Ray runs a task again whose worker died (a killed process, a lost node) before reporting it failed
-RETRIES = 2
 #: the seed of every task's global torch generator (calibrate's own seed is its default, 0)
 SEED = 0
 #: the prefix of a task's temporary folder
@@ -290,37 +289,6 @@ def run_serial(lines: list[Line], done: Callable[[dict], None]) -> None:
         done(calibrate_line(ln))
 
 
-def ray_available() -> bool:
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-@contextlib.contextmanager
-def _worker_env():
-    """The environment a local Ray instance's workers inherit while it starts: this torchcal importable (a worker
-    is a fresh interpreter) and one thread. Set in this process for the start and restored after, not as a Ray
-    runtime environment, whose agent took as long again as the start itself on a 2-core machine."""
-    here = str(Path(__file__).resolve().parents[1])
-    want = {
-        "PYTHONPATH": os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH", "")) if p),
-        "OMP_NUM_THREADS": "1",
-        "MKL_NUM_THREADS": "1",
-    }
-    before = {k: os.environ.get(k) for k in want}
-    os.environ.update(want)
-    try:
-        yield
-    finally:
-        for k, v in before.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-
-
 def run_ray(
     lines: list[Line],
     done: Callable[[dict], None],
@@ -328,40 +296,24 @@ def run_ray(
     address: str | None,
     task: Callable[[Line], dict] = calibrate_line,
 ) -> None:
-    """Every line's ``task`` on Ray: a local instance of ``workers`` CPUs, or the cluster at ``address``; results are
-    handed to ``done`` as they finish. A task whose worker died is run again up to :data:`RETRIES` times, then
-    reported failed with Ray's error."""
-    import ray
-    from ray.exceptions import RayError
+    """Every line's ``task`` on Ray (:func:`torchcal.sweep.on_ray`): a local instance of ``workers`` CPUs (default:
+    this machine's), or the cluster at ``address``; results are handed to ``done`` as they finish. A task whose
+    worker died is run again up to :data:`RETRIES` times, then reported failed with Ray's error."""
 
-    started = not ray.is_initialized()
-    if started:
-        kw = {"address": address} if address else {"num_cpus": workers or os.cpu_count() or 1}
-        with _worker_env():
-            ray.init(**kw, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
-    try:
-        remote = ray.remote(num_cpus=1, max_retries=RETRIES)(task)
-        pending = {remote.remote(ln): ln for ln in lines}
-        while pending:
-            ready, _ = ray.wait(list(pending), num_returns=1)
-            ln = pending.pop(ready[0])
-            try:
-                done(ray.get(ready[0]))
-            except RayError as e:  # the worker died RETRIES + 1 times, or the cluster lost the task
-                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-                done(
-                    {
-                        "name": ln.name,
-                        "line": ln.number,
-                        "data": ln.data,
-                        "robot": ln.robot,
-                        "status": "failed",
-                        "error": f"the task was lost after {RETRIES + 1} tries: {type(e).__name__}: {first[:300]}",
-                    }
-                )
-    finally:
-        if started:
-            ray.shutdown()
+    def each(i: int, r) -> None:
+        if isinstance(r, TaskFailure):  # the worker died RETRIES + 1 times, or the cluster lost the task
+            ln = lines[i]
+            r = {
+                "name": ln.name,
+                "line": ln.number,
+                "data": ln.data,
+                "robot": ln.robot,
+                "status": "failed",
+                "error": r.error,
+            }
+        done(r)
+
+    on_ray(task, lines, workers or os.cpu_count() or 1, address, each)
 
 
 @dataclass

@@ -70,3 +70,29 @@ def test_cases_cover_every_group_and_seed_and_summaries_count_them():
     assert s["loop_mm_mean"] == pytest.approx(0.025) and s["loop_mm_max"] == 0.03
     assert s["ratio_to_true_form_max"] == pytest.approx(2.0)
     assert json.loads(json.dumps(s)) == s
+
+
+#: the scripts whose seeds are independent fits, and the positional arguments each needs
+SWEEPS = {
+    "restation": ["DATA"],
+    "prior_update": ["DATA"],
+    "plan_poses": ["DATA"],
+    "false_positives": [],
+    "detection_limits": [],
+    "closed_loop": [],
+}
+
+
+def test_the_seed_sweeps_run_one_after_another_unless_given_workers_or_an_address(monkeypatch):
+    import argparse
+    import runpy
+    from pathlib import Path
+
+    scripts = Path(__file__).resolve().parents[2] / "scripts"
+    monkeypatch.syspath_prepend(str(scripts))
+    for name, positional in SWEEPS.items():
+        found = runpy.run_path(str(scripts / f"{name}.py"), run_name="__check__")
+        (ap,) = [v for v in found.values() if isinstance(v, argparse.ArgumentParser)]
+        assert (ap.parse_args(positional).workers, ap.parse_args(positional).address) == (None, None), name
+        a = ap.parse_args([*positional, "--workers", "2", "--address", "auto"])
+        assert (a.workers, a.address) == (2, "auto"), name

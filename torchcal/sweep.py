@@ -1,0 +1,234 @@
+"""Independent tasks on Ray, or one after another: the engine of ``torchcal fleet`` and of the experiments' seed sweeps.
+
+:func:`map_tasks` calls ``fn(item)`` for every item and returns the results in the items' order. With ``workers``
+above 1 (a local Ray instance of that many CPUs) or an ``address`` (an existing Ray cluster: ``ray://HOST:PORT`` or
+``auto``) the calls are Ray tasks, one CPU and one torch thread each; otherwise, or where Ray is not installed
+(``pip install torchcal[fleet]``; said once on stderr), they run in this process one after another.
+
+The results do not depend on the engine: every call starts from the global torch generator seeded afresh
+(:data:`SEED`, restored after), so no call sees what another drew, and on Ray each runs with one torch thread, as the
+experiments' default ``--threads 1`` does here. ``fn`` and the items must pickle (``fn`` a module-level function, or
+a :func:`functools.partial` of one); a local instance's workers inherit this process's ``sys.path``, so the code of
+a checkout (``experiments/``) imports there too. On a cluster every node must have torchcal and see the same paths.
+
+A failure is the item's own, never the sweep's: a call that raises, or whose worker died (a killed process, a lost
+node) more than :data:`RETRIES` times, becomes a :class:`TaskFailure` in its place while the others run to the end;
+then :func:`map_tasks` raises :class:`SweepError`, which names every failure and carries the others' results.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import sys
+import traceback
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from torchcal._threads import torch_threads
+from torchcal.errors import OptionError, TorchcalError
+
+#: how often Ray runs a task again whose worker died (a killed process, a lost node) before reporting it failed
+RETRIES = 2
+#: the seed of the global torch generator at the start of every call
+SEED = 0
+#: the longest error message kept per failure (its first line)
+MAX_ERROR = 300
+
+_said_serial = False
+
+
+@dataclass(frozen=True)
+class TaskFailure:
+    """A call that did not return: ``index`` of its item, the ``item`` as text, the ``error`` in one line, ``lost``
+    whether its worker died (rather than the call raising) and, where it raised, the ``traceback``."""
+
+    index: int
+    item: str
+    error: str
+    lost: bool = False
+    traceback: str | None = None
+
+
+class SweepError(TorchcalError, RuntimeError):
+    """Some calls of a sweep failed; ``failures`` names each, ``results`` holds every item's outcome in order (a
+    :class:`TaskFailure` at a failed one)."""
+
+    def __init__(self, failures: list[TaskFailure], results: list):
+        self.failures, self.results = failures, results
+        named = "; ".join(f"item {f.index} ({f.item}): {f.error}" for f in failures)
+        super().__init__(f"{len(failures)} of {len(results)} tasks failed: {named}")
+
+
+def ray_available() -> bool:
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return (text.splitlines()[0] if text else "")[:MAX_ERROR]
+
+
+def _short(item: Any) -> str:
+    text = repr(item)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def call(fn: Callable, item: Any) -> Any:
+    """``fn(item)`` with the global torch generator seeded afresh (:data:`SEED`) and restored after: what every
+    engine runs per item."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(SEED)
+        return fn(item)
+
+
+def _ray_call(fn: Callable, item: Any) -> Any:
+    """:func:`call` in a Ray worker: one torch thread (the worker may have been started with more)."""
+    with torch_threads(1):
+        return call(fn, item)
+
+
+def _driver_path() -> str:
+    """This process's ``sys.path`` as ``PYTHONPATH`` (the working folder for its empty entry), this torchcal first."""
+    here = str(Path(__file__).resolve().parents[1])
+    paths = [here] + [p or os.getcwd() for p in sys.path]
+    paths += [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    return os.pathsep.join(dict.fromkeys(p for p in paths if os.path.isdir(p)))
+
+
+@contextlib.contextmanager
+def worker_env():
+    """The environment a local Ray instance's workers inherit while it starts: this process's ``sys.path`` (a worker
+    is a fresh interpreter: a checkout's torchcal and ``experiments/`` import there too) and one thread. Set in this
+    process for the start and restored after, not as a Ray runtime environment, whose agent took as long again as the
+    start itself on a 2-core machine."""
+    want = {"PYTHONPATH": _driver_path(), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    before = {k: os.environ.get(k) for k in want}
+    os.environ.update(want)
+    try:
+        yield
+    finally:
+        for k, v in before.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _ray_failure(index: int, item: Any, e: Exception) -> TaskFailure:
+    """What a Ray error of one task means: the call raised (Ray wraps its exception) or its worker was lost."""
+    from ray.exceptions import RayTaskError
+
+    if isinstance(e, RayTaskError):
+        cause = e.cause if isinstance(getattr(e, "cause", None), BaseException) else e
+        return TaskFailure(index, _short(item), f"{type(cause).__name__}: {_first_line(cause)}", traceback=str(e))
+    error = f"the task was lost after {RETRIES + 1} tries: {type(e).__name__}: {_first_line(e) or type(e).__name__}"
+    return TaskFailure(index, _short(item), error, lost=True)
+
+
+def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, done: Callable[[int, Any], None]) -> list:
+    """Every item's call on Ray: a local instance of ``cpus`` CPUs (one started here is stopped here; an instance
+    already running is used as it is), or the cluster at ``address``. ``done(index, outcome)`` is called as each
+    finishes (an outcome is the result or a :class:`TaskFailure`); returns the outcomes in the items' order."""
+    import ray
+    from ray.exceptions import RayError
+
+    started = not ray.is_initialized()
+    if started:
+        kw = {"address": address} if address else {"num_cpus": cpus or os.cpu_count() or 1}
+        with worker_env():
+            ray.init(**kw, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    try:
+        remote = ray.remote(num_cpus=1, max_retries=RETRIES)(_ray_call)
+        fn_ref = ray.put(fn)  # once, not with every task
+        pending = {remote.remote(fn_ref, it): i for i, it in enumerate(items)}
+        out: list = [None] * len(items)
+        while pending:
+            ready, _ = ray.wait(list(pending), num_returns=1)
+            i = pending.pop(ready[0])
+            try:
+                out[i] = ray.get(ready[0])
+            except RayError as e:
+                out[i] = _ray_failure(i, items[i], e)
+            done(i, out[i])
+        return out
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def in_process(fn: Callable, items: list, done: Callable[[int, Any], None]) -> list:
+    """Every item's call in this process, one after another; a call that raises is its item's
+    :class:`TaskFailure`."""
+    out: list = []
+    for i, it in enumerate(items):
+        try:
+            out.append(call(fn, it))
+        except Exception as e:  # one item's error must not end the others: it is reported with them at the end
+            tb = traceback.format_exc()[-4000:]
+            out.append(TaskFailure(i, _short(it), f"{type(e).__name__}: {_first_line(e)}", traceback=tb))
+        done(i, out[-1])
+    return out
+
+
+def _engine(workers: int | None, address: str | None, n: int) -> str:
+    """``ray`` or ``serial`` for a sweep of ``n`` items (module docstring); a bad choice raises."""
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 1):
+        raise OptionError(f"workers must be a whole number of at least 1 (or None: one after another), got {workers!r}")
+    if not address and (workers or 1) == 1:
+        return "serial"
+    if ray_available():
+        return "ray"
+    if address:
+        raise OptionError(f"--address {address} needs Ray (pip install torchcal[fleet])")
+    global _said_serial
+    if not _said_serial:
+        _said_serial = True
+        print(
+            f"torchcal: Ray is not installed (pip install torchcal[fleet]): the {n} tasks run one after another "
+            f"instead of on {workers} workers",
+            file=sys.stderr,
+        )
+    return "serial"
+
+
+def map_tasks(
+    fn: Callable[[Any], Any],
+    items: Iterable,
+    *,
+    workers: int | None = None,
+    address: str | None = None,
+    progress: Callable[[int, Any], None] | None = None,
+) -> list:
+    """``[fn(item) for item in items]``, the calls independent tasks on Ray or one after another (module docstring).
+
+    Args:
+        fn: a picklable function of one item; items: picklable, each one call.
+        workers: CPUs of a local Ray instance; None or 1: one after another in this process.
+        address: an existing Ray cluster (``ray://HOST:PORT`` or ``auto``) instead of a local instance.
+        progress: called with ``(index, outcome)`` as each call finishes, in the order they finish; the outcome is the
+            result, or a :class:`TaskFailure`.
+
+    Returns:
+        The results in the items' order.
+
+    Raises:
+        SweepError: after every call finished, where any failed; it names each failure and holds every outcome.
+        OptionError: ``workers`` below 1, or an ``address`` without Ray.
+    """
+    items = list(items)
+    engine = _engine(workers, address, len(items))
+    done = progress or (lambda i, r: None)
+    out = on_ray(fn, items, workers, address, done) if engine == "ray" and items else in_process(fn, items, done)
+    failures = [r for r in out if isinstance(r, TaskFailure)]
+    if failures:
+        raise SweepError(failures, out)
+    return out
