@@ -7,6 +7,11 @@ revisits grouped), so that the reference's process imports numpy only. :func:`co
 each in a fresh process with one thread (``OMP_NUM_THREADS=1``, as ``scripts/bench_memory.py``), alternating, and
 takes each one's shortest wall and CPU time; then each one's fit alone in this process (torchcal's
 ``pipeline.calibrate``, the reference's ``calibrate``), alternating too. The ratio is torchcal over the reference.
+
+Before the commands, torchcal's modules are compiled to bytecode (``compileall``, into the checkout's ignored
+``__pycache__``), as an installed package has them: where the environment sets ``PYTHONDONTWRITEBYTECODE`` and
+nothing compiled them, every command compiles torchcal's sources again, which costs about as much CPU as the whole
+reference (``bytecode="as found"`` measures it that way).
 """
 
 from __future__ import annotations
@@ -26,6 +31,8 @@ from experiments import numpy_reference as ref
 from torchcal.errors import TorchcalError
 
 REFERENCE = Path(ref.__file__).resolve()
+#: how torchcal's modules are found before the commands run (:func:`compare`)
+BYTECODE = ("compiled", "as found")
 
 
 def write_problem(data: str, robot: str, path: Path) -> dict:
@@ -131,8 +138,21 @@ def fits(data: str, robot: str, problem: dict, repeats: int) -> dict:
     return {k: {"wall_s": min(t[0] for t in v), "cpu_s": min(t[1] for t in v)} for k, v in times.items()}
 
 
-def compare(data: str, robot: str, work: Path, repeats: int = 3) -> dict:
-    """The benchmark (module docstring): problem file, commands, fits, and the ratios torchcal / reference."""
+def compile_torchcal() -> None:
+    """Compile the imported torchcal package's modules to bytecode (``python -m compileall -q``)."""
+    import torchcal
+
+    package = Path(torchcal.__file__).resolve().parent
+    subprocess.run([sys.executable, "-m", "compileall", "-q", str(package)], check=True, capture_output=True)
+
+
+def compare(data: str, robot: str, work: Path, repeats: int = 3, bytecode: str = "compiled") -> dict:
+    """The benchmark (module docstring): problem file, commands, fits, and the ratios torchcal / reference.
+    ``bytecode``: ``"compiled"`` (torchcal compiled first) or ``"as found"``."""
+    if bytecode not in BYTECODE:
+        raise TorchcalError(f"bytecode must be one of {', '.join(BYTECODE)}, got {bytecode!r}")
+    if bytecode == "compiled":
+        compile_torchcal()
     problem_path = work / "problem.json"
     problem = write_problem(data, robot, problem_path)
     cmd = commands(data, robot, problem_path, work, repeats)
@@ -147,6 +167,7 @@ def compare(data: str, robot: str, work: Path, repeats: int = 3) -> dict:
         "data": data,
         "robot": robot,
         "repeats": repeats,
+        "bytecode": bytecode,
         "n_train": len(problem["train"]),
         "n_holdout": len(problem["holdout"]),
         "command": cmd,

@@ -2,7 +2,7 @@
 """``torchcal calibrate --method kinematic`` against a plain numpy Gauss-Newton reference on the same rows; prints
 JSON (experiments.bench_kinematic, experiments.numpy_reference).
 
-    python scripts/bench_kinematic.py series_c.csv --robot ur10 [--repeats 3] --json
+    python scripts/bench_kinematic.py series_c.csv --robot ur10 [--repeats 3] [--bytecode "as found"] --json
 
 Both as commands in fresh processes with one thread, alternating, the shortest of ``--repeats`` each (wall and CPU
 seconds), then each fit alone in this process; ``ratio`` is torchcal over the reference. Also prints both held-out
@@ -21,11 +21,17 @@ ap = common.parser(__doc__)
 ap.add_argument("data", help="measurement file (CONTRACT.md section 1) of a standard-DH robot")
 ap.add_argument("--robot", default="ur10")
 ap.add_argument("--repeats", type=int, default=3)
+ap.add_argument(
+    "--bytecode",
+    choices=("compiled", "as found"),
+    default="compiled",
+    help="compile torchcal to bytecode first, as an installed package has it (default), or run it as found",
+)
 
 
 def experiment(a) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        return compare(a.data, a.robot, Path(tmp), a.repeats)
+        return compare(a.data, a.robot, Path(tmp), a.repeats, a.bytecode)
 
 
 if __name__ == "__main__":
