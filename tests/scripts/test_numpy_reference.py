@@ -54,3 +54,24 @@ def test_the_reference_process_imports_numpy_and_not_torch():
     code = f"import sys; sys.path.insert(0, {folder!r}); import numpy_reference; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True).stdout
     assert json.loads(out.strip().lower()) is False
+
+
+def test_the_bench_fits_both_on_calibrates_rows_and_times_both_commands(tmp_path):
+    from experiments.bench_kinematic import commands, write_problem
+
+    rng = np.random.default_rng(11)
+    true = _ur10_table()
+    true[:, :4] += rng.normal(scale=2e-4, size=(6, 4))
+    q = rng.uniform(-3.0, 3.0, size=(150, 6))
+    T = ref.forward(true, q)
+    p = T[:, :3, :3] @ np.array([0.0, 0.0, 0.093]) + T[:, :3, 3] + rng.normal(scale=1e-5, size=(150, 3))
+    data = tmp_path / "campaign.csv"
+    rows = [",".join(f"{v:.12g}" for v in row) for row in np.concatenate([q, p], axis=1)]
+    data.write_text("\n".join(["q1,q2,q3,q4,q5,q6,x,y,z", *rows]) + "\n")
+    problem = write_problem(str(data), "ur10", tmp_path / "problem.json")
+    assert sorted(problem["train"] + problem["holdout"]) == list(range(150)) and len(problem["holdout"]) == 30
+    res = commands(str(data), "ur10", tmp_path / "problem.json", tmp_path, repeats=1)
+    assert res["reference"]["status"] == "converged"
+    tc, rf = res["rmse_holdout_mm"]["torchcal"], res["rmse_holdout_mm"]["reference"]
+    assert 0.01 < rf < 0.05 and abs(tc - rf) < 0.1 * rf  # the noise (10 um per axis, 0.017 mm in 3-D), both
+    assert all(res["best"][k]["cpu_s"] > 0 for k in ("torchcal", "reference"))
