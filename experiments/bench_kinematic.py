@@ -10,8 +10,8 @@ takes each one's shortest wall and CPU time; then each one's fit alone in this p
 
 Before the commands, torchcal's modules are compiled to bytecode (``compileall``, into the checkout's ignored
 ``__pycache__``), as an installed package has them: where the environment sets ``PYTHONDONTWRITEBYTECODE`` and
-nothing compiled them, every command compiles torchcal's sources again, which costs about as much CPU as the whole
-reference (``bytecode="as found"`` measures it that way).
+nothing compiled them, every command compiles torchcal's sources again (``bytecode="as found"`` measures it that
+way).
 """
 
 from __future__ import annotations
