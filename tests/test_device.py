@@ -445,7 +445,7 @@ ALLOWED = {
         "torchcal/use/compensate.py",
         "torch.tensor([length if k == 'prismatic' else angle for k in joint_types], dtype=F64)",
     ): "a file's unit factors at the I/O edge, where the rows are on the CPU as the files they are written to",
-    ("torchcal/report/station.py", "torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64)"): (
+    ("torchcal/use/station.py", "torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64)"): (
         "CPU generator (the same poses on every device), moved (.to) to the region's device"
     ),
     ("torchcal/robot/readings.py", "torch.as_tensor(A, dtype=torch.float64)"): (

@@ -9,7 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from tests.report.test_station import _placed, _rmse
+from tests.use.test_station import _placed, _rmse
 from torchcal.cli import main
 from torchcal.data import read_measurements, write_measurements
 from torchcal.estimate.fit import errors
@@ -121,9 +121,9 @@ def test_a_learned_corrections_fallback_moves_with_the_instrument():
     from torchcal.effects import Context, MeasurementModel
     from torchcal.effects.learned import CorrectionNet, LearnedEffect
     from torchcal.effects.support import SupportGate
-    from torchcal.report.station import one_placement
     from torchcal.robot import load_robot
     from torchcal.robot import transforms as tf
+    from torchcal.use.station import one_placement
 
     torch.manual_seed(0)
     robot = load_robot("ur5")
