@@ -116,6 +116,25 @@ def register_range(module: nn.Module, name: str, span, what: str) -> None:
     module.register_buffer(name, torch.tensor([lo, hi], dtype=torch.float64))
 
 
+def read_renamed(mapping: dict, renamed: dict[str, str], prefix: str = "") -> dict:
+    """Read the keys ``mapping`` saved under an older name by their new one, in place, and return it.
+
+    ``renamed`` maps old names to new (:attr:`Effect.renamed`); ``prefix`` is a state dict's module prefix. A run
+    written before "region" became the one word for where a correction was fitted saved ``support`` or ``span``:
+    its ``model.json`` configs and ``model.pt`` state dicts load as if written now.
+
+    Raises:
+        ValueError: both the old and the new name (the file cannot say which holds).
+    """
+    for old, new in renamed.items():
+        if prefix + old not in mapping:
+            continue
+        if prefix + new in mapping:
+            raise ValueError(f"both {prefix + old!r} and its newer name {prefix + new!r} are given")
+        mapping[prefix + new] = mapping.pop(prefix + old)
+    return mapping
+
+
 class Effect(nn.Module):
     """Base class. Subclasses set ``kind`` and ``acts_on`` and implement the one signature
     ``forward(robot, ctx, p_base=None)``.
@@ -136,10 +155,17 @@ class Effect(nn.Module):
     #: whether a :class:`~torchcal.effects.model.MeasurementModel` whose region fades fades this effect beyond its
     #: calibrated region (a learned correction with no law of its own beyond the data)
     fades_beyond_region: bool = False
+    #: keys of the config and the state dict under an older name, old -> new (:func:`read_renamed`)
+    renamed: dict[str, str] = {}
 
     def __init__(self, joint: int | None = None):
         super().__init__()
         self.joint = joint
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a model.pt written before a buffer's rename holds it under the old name
+        read_renamed(state_dict, self.renamed, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def j(self) -> int:

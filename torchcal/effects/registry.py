@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from torchcal.effects.base import Acts, Effect
+from torchcal.effects.base import Acts, Effect, read_renamed
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
 from torchcal.effects.grouped import GroupedCorrection
@@ -83,6 +83,7 @@ def effect_from_config(cfg: dict, robot=None) -> Effect:
     name = cfg.pop("class")
     if name not in CLASSES:
         raise OptionError(f"unknown effect class '{name}'; known: {', '.join(CLASSES)}")
+    read_renamed(cfg, CLASSES[name].renamed)  # a run written before a key's rename
     if name == "LearnedEffect":
         return LearnedEffect(CorrectionNet(cfg["dof"], cfg["hidden"]))
     if name == "GroupedCorrection":
