@@ -479,7 +479,7 @@ ALLOWED = {
     ("torchcal/effects/gp.py", "torch.rand(1, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
     ("torchcal/effects/gp.py", "torch.rand(d + 1, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
     ("torchcal/effects/gp.py", "torch.tensor([math.log(1.0 - signal)], dtype=F64)"): "_random_initial, as above",
-    ("torchcal/effects/registry.py", "torch.zeros(cfg['n_support'], cfg['dof'], dtype=torch.float64)"): (
+    ("torchcal/effects/registry.py", "torch.zeros(cfg['n_region'], cfg['dof'], dtype=torch.float64)"): (
         "a model rebuilt from model.json on the CPU, then loaded and moved"
     ),
     ("torchcal/diagnose/forms.py", "torch.zeros(0, dtype=F64)"): "the empty 'none' form, never combined",

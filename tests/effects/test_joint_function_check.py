@@ -112,7 +112,7 @@ def test_physical_forms_are_judged_on_the_poses():
     assert "on the fitting poses" in joint_function_check(Compliance(2, k=1e-3), q, robot)  # 1e-3 rad/Nm: absurd
 
 
-# --------------------------------------------------------------------- open forms fade beyond their support
+# --------------------------------------------------------------------- open forms fade beyond their region
 
 
 def test_an_open_form_is_unchanged_on_its_region_and_fades_beyond_it():

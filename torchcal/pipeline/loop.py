@@ -406,7 +406,7 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         v.validation["edge"] = {"skipped": "the baseline's refit without the edge poses failed"}
         return
     trial = copy.deepcopy(base)
-    # the form as it continues (its support the whole range of the fitting poses, no fade at the edge poses): the
+    # the form as it continues (its region the whole range of the fitting poses, no fade at the edge poses): the
     # question is whether its shape holds there, and a form faded beyond the middle would lose to geometry that
     # absorbed part of it in any case
     trial.add(_made(v.candidate, fit_part))

@@ -626,12 +626,12 @@ def one_placement(
     """The run as a run of one instrument placement, to be re-stationed: the pose of station ``label`` (where the
     run has it, else its first) as the start (the points replace it), every probe's lever arm kept, no learned
     correction per station and probe (a new placement is none of theirs), and a fallback geometry that a learned
-    correction fades to tied to the robot's base frame (:meth:`~torchcal.effects.support.SupportGate.fallback_to_base`:
+    correction fades to tied to the robot's base frame (:meth:`~torchcal.effects.region.RegionGate.fallback_to_base`:
     it moves with the instrument). The covariance keeps the geometry, the effects and the lever arms; the stations'
     rows go (the points refit the placement). With ``probe`` (the one probe the points name) that probe comes first:
     rows of a file without a ``probe`` column take the first, and at the new placement that is the points' probe."""
     from torchcal.effects.grouped import GroupedCorrection
-    from torchcal.effects.support import SupportGate
+    from torchcal.effects.region import RegionGate
     from torchcal.robot.model import Instrument
 
     robot = model.robot
@@ -644,7 +644,7 @@ def one_placement(
     for i in reversed(dropped):
         del one.effects[i]
     for e in one.effects:
-        if isinstance(e, SupportGate):
+        if isinstance(e, RegionGate):
             e.fallback_to_base(T0, station=k)
     meta = {k_: v for k_, v in meta.items() if k_ != "stations"}
     if probe in robot.probes and robot.probes.index(probe):
