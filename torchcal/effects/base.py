@@ -98,21 +98,21 @@ class Acts(str, Enum):
         return self.value
 
 
-def register_range(module: nn.Module, name: str, span, what: str) -> None:
-    """Register the buffer ``name``: ``(lo, hi)`` from ``span`` (float64), or None when ``span`` is None (a None
+def register_range(module: nn.Module, name: str, region, what: str) -> None:
+    """Register the buffer ``name``: ``(lo, hi)`` from ``region`` (float64), or None when ``region`` is None (a None
     buffer is not in the state dict, so runs written before the range was kept load as they were).
 
     Raises:
         OptionError: ``lo > hi`` (``what`` names the range in the message).
     """
-    if span is None:
+    if region is None:
         module.register_buffer(name, None)
         return
-    lo, hi = (float(v) for v in span)
+    lo, hi = (float(v) for v in region)
     if not lo <= hi:
         from torchcal.errors import OptionError
 
-        raise OptionError(f"{what} must be (lo, hi) with lo <= hi, got {list(span)}")
+        raise OptionError(f"{what} must be (lo, hi) with lo <= hi, got {list(region)}")
     module.register_buffer(name, torch.tensor([lo, hi], dtype=torch.float64))
 
 
