@@ -23,6 +23,7 @@ import torch
 
 from torchcal.diagnose.candidates import candidates
 from torchcal.effects import Context
+from torchcal.effects.joint import RegionForm
 from torchcal.estimate.fit import errors, solve
 from torchcal.pipeline import Options, calibrate
 from torchcal.report.rundir import build_report
@@ -64,8 +65,8 @@ def _true_structure(run, truth: dict):
         if name not in menu:
             return None
         eff = menu[name].make()
-        if hasattr(eff, "set_support"):
-            eff.set_support(train.q)
+        if isinstance(eff, RegionForm):
+            eff.set_region(train.q)
         model.add(eff)
     ida = next((f.identifiability for f in run.fits if f.stage == "geometric"), None)
     solve(

@@ -5,7 +5,7 @@ The ipa-robot-accuracy series were measured from different tracker placements an
 the data set). Series ``fit`` (default A) is calibrated (``methods``: kinematic, and the default ``auto`` where
 asked) and written as a run directory; for each seed, ``points`` rows drawn at random from the training split of
 series ``target`` (default D; calibrate's own grouped held-out split, :func:`torchcal.pipeline.holdout_split`)
-re-station it (:func:`torchcal.report.station.fit_station`: the instrument pose and the lever arm, the robot's
+re-station it (:func:`torchcal.use.station.fit_station`: the instrument pose and the lever arm, the robot's
 calibration held), and the target's held-out poses are predicted. The same re-stationing of the nominal model is the
 baseline, the target's own kinematic calibration (on its whole training split) the reference.
 """
@@ -25,10 +25,10 @@ from torchcal.effects import MeasurementModel
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate, holdout_split
 from torchcal.report.rundir import write_run
-from torchcal.report.station import fit_station, one_placement, station_options
 from torchcal.robot import load_robot
 from torchcal.sweep import map_tasks
 from torchcal.use.rundir import load_covariance, load_model
+from torchcal.use.station import fit_station, one_placement, station_options
 
 ROBOT = "ur10"
 SEED = 0

@@ -15,7 +15,7 @@ import torch
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements, read_measurements
 from torchcal.effects import Context
-from torchcal.effects.support import coverage, predictive_sigma
+from torchcal.effects.region import coverage, predictive_sigma
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim import EffectSpec, SimConfig, simulate

@@ -21,7 +21,7 @@ import torch
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import Context
-from torchcal.effects.support import coverage, predictive_sigma
+from torchcal.effects.region import coverage, predictive_sigma
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.sim.campaign import write_campaign

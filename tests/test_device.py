@@ -445,7 +445,7 @@ ALLOWED = {
         "torchcal/use/compensate.py",
         "torch.tensor([length if k == 'prismatic' else angle for k in joint_types], dtype=F64)",
     ): "a file's unit factors at the I/O edge, where the rows are on the CPU as the files they are written to",
-    ("torchcal/report/station.py", "torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64)"): (
+    ("torchcal/use/station.py", "torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64)"): (
         "CPU generator (the same poses on every device), moved (.to) to the region's device"
     ),
     ("torchcal/robot/readings.py", "torch.as_tensor(A, dtype=torch.float64)"): (
@@ -479,7 +479,7 @@ ALLOWED = {
     ("torchcal/effects/gp.py", "torch.rand(1, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
     ("torchcal/effects/gp.py", "torch.rand(d + 1, generator=generator, dtype=F64)"): "_random_initial: CPU generator",
     ("torchcal/effects/gp.py", "torch.tensor([math.log(1.0 - signal)], dtype=F64)"): "_random_initial, as above",
-    ("torchcal/effects/registry.py", "torch.zeros(cfg['n_support'], cfg['dof'], dtype=torch.float64)"): (
+    ("torchcal/effects/registry.py", "torch.zeros(cfg['n_region'], cfg['dof'], dtype=torch.float64)"): (
         "a model rebuilt from model.json on the CPU, then loaded and moved"
     ),
     ("torchcal/diagnose/forms.py", "torch.zeros(0, dtype=F64)"): "the empty 'none' form, never combined",

@@ -1107,6 +1107,7 @@ def cmd_station(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.report.station import write_station
     from torchcal.use.rundir import load_model
+    from torchcal.use.station import restation
 
     run = Path(args.run)
     inputs = [args.points, run / "model.json", run / "model.pt"]
@@ -1121,9 +1122,8 @@ def cmd_station(args) -> int:
         **_reading(args, robot),
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
-    out, station = write_station(
-        args.run, data, out, tool=args.tool, points_file=args.points, inputs=inputs, probe=args.probe
-    )
+    restationed, meta, station = restation(args.run, data, tool=args.tool, probe=args.probe)
+    out = write_station(args.run, restationed, meta, station, out, points_file=args.points, inputs=inputs)
     d = station.to_dict()
     acc = d["accuracy"]
     for w in station.warnings:
@@ -1154,9 +1154,9 @@ def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
 def _plan_run(args):
     """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
     and scene (tracker position, lever arm)."""
-    from torchcal.report.station import station_options
     from torchcal.use.plan import scene_of
     from torchcal.use.rundir import load_model
+    from torchcal.use.station import station_options
 
     model, meta = load_model(args.run)
     if args.robot is not None and _robot_key(args.robot) not in {

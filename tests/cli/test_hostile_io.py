@@ -325,9 +325,11 @@ def test_a_well_formed_learned_run_loads(run_dir, campaign, tmp_path, capsys):
     assert predict(run, campaign / "test.csv", tmp_path / "p.csv") == 0
 
 
-def gate(n_support):
+def gate(n_region, cls="RegionGate", key="n_region"):
+    """A region gate around the run's effect (``cls`` and ``key``: as runs written before ``region`` named them)."""
+
     def edit(cfg):
-        return {"class": "SupportGate", "inner": cfg, "length": 1.0, "n_support": n_support, "dof": 6}
+        return {"class": cls, "inner": cfg, "length": 1.0, key: n_region, "dof": 6}
 
     return edit
 
@@ -340,7 +342,8 @@ def gate(n_support):
         (lambda c: {**c, "hidden": 1e12}, "must be a whole number"),
         (lambda c: {**c, "hidden": 5000}, "larger than the"),  # within the cap, more than model.pt holds
         (lambda c: {**c, "hidden": 30}, "does not match"),  # plausible, disagrees with the tensors
-        (gate(10**12), "n_support: 1000000000000 is outside"),
+        (gate(10**12), "n_region: 1000000000000 is outside"),
+        (gate(10**12, "SupportGate", "n_support"), "n_support: 1000000000000 is outside"),  # an older run's names
         (gate(1e12), "must be a whole number"),
         (lambda c: {"class": "GPCorrection", "dof": 6, "n_inducing": 10**9}, "n_inducing: 1000000000"),
         (lambda c: {"class": "Compliance", "joint": 7}, "joint 7 is not a joint of robot"),
@@ -588,13 +591,13 @@ def test_own_model_json_with_thousands_of_effects_is_refused(run_dir, campaign, 
 
 
 def test_own_deeply_nested_support_gates_are_refused(run_dir, campaign, tmp_path, capsys):
-    """bug before: 5,000 SupportGates nested in one another ended in a RecursionError (an internal error)."""
+    """bug before: 5,000 region gates nested in one another ended in a RecursionError (an internal error)."""
     run = copy_run(run_dir, tmp_path / "run")
     meta = json.loads((run / "model.json").read_text())
     text = json.dumps(meta)
     inner = '{"class": "LearnedEffect", "dof": 6, "hidden": 29}'
     for _ in range(5000):
-        inner = f'{{"class": "SupportGate", "inner": {inner}, "length": 1.0, "n_support": 1, "dof": 6}}'
+        inner = f'{{"class": "RegionGate", "inner": {inner}, "length": 1.0, "n_region": 1, "dof": 6}}'
     (run / "model.json").write_text(text.replace('"effects": []', f'"effects": [{inner}]'))
     with deadline(30):
         assert predict(run, campaign / "test.csv", tmp_path / "p.csv") == 2

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from torchcal.effects import Compliance, Cyclic, Transmission, joint_function_check
@@ -111,19 +112,19 @@ def test_physical_forms_are_judged_on_the_poses():
     assert "on the fitting poses" in joint_function_check(Compliance(2, k=1e-3), q, robot)  # 1e-3 rad/Nm: absurd
 
 
-# --------------------------------------------------------------------- open forms fade beyond their support
+# --------------------------------------------------------------------- open forms fade beyond their region
 
 
-def test_an_open_form_is_unchanged_on_its_support_and_fades_beyond_it():
+def test_an_open_form_is_unchanged_on_its_region_and_fades_beyond_it():
     from torchcal.effects import Context
     from torchcal.effects.joint import FADE_LENGTH
 
     q = _poses(0.4, 0.9)
     eff = Cyclic(2, harmonics=(1, 2), a=[3e-4, 1e-4], b=[2e-4, 5e-5])
     free = eff(None, Context(q=q))[:, 1]
-    eff.set_support(q)
+    eff.set_region(q)
     torch.testing.assert_close(eff(None, Context(q=q))[:, 1], free, rtol=0, atol=0)
-    hi = float(eff.support[1])
+    hi = float(eff.region[1])
     out = q[:3].clone()
     out[:, 1] = torch.tensor([hi + 0.05, hi + FADE_LENGTH, hi + 0.6], dtype=F64)
     edge = eff.function(torch.tensor([hi], dtype=F64))
@@ -138,40 +139,64 @@ def test_a_harmonic_sum_seen_over_a_whole_period_does_not_fade():
     from torchcal.effects import Context
 
     q = _poses(-3.2, 3.2)
-    eff = Cyclic(2, harmonics=(2, 4), a=[3e-4, 1e-4], b=[2e-4, 5e-5], support=(-1.6, 1.6))  # period pi
+    eff = Cyclic(2, harmonics=(2, 4), a=[3e-4, 1e-4], b=[2e-4, 5e-5], region=(-1.6, 1.6))  # period pi
     far = q[:2].clone()
     far[:, 1] = torch.tensor([3.0, -3.0], dtype=F64)
     torch.testing.assert_close(eff(None, Context(q=far))[:, 1], eff.function(far[:, 1]))
 
 
-def test_the_support_survives_config_and_state_dict():
+def test_the_region_survives_config_and_state_dict():
     from torchcal.effects import effect_from_config
 
-    eff = Transmission(3, degree=2, c=[1e-4, 2e-5], support=(-0.5, 1.25))
+    eff = Transmission(3, degree=2, c=[1e-4, 2e-5], region=(-0.5, 1.25))
     twin = effect_from_config({"class": "Transmission", **eff.config()})
     twin.load_state_dict(eff.state_dict())
-    assert twin.support.tolist() == [-0.5, 1.25] and twin.c.tolist() == eff.c.tolist()
-    old = Transmission(3, degree=2)  # a run written before the fade: no support in its config or state dict
-    assert "support" not in old.config() and "support" not in old.state_dict()
+    assert twin.region.tolist() == [-0.5, 1.25] and twin.c.tolist() == eff.c.tolist()
+    assert "region" in eff.config() and "support" not in eff.config()  # the new name is written
+    old = Transmission(3, degree=2)  # a run written before the fade: no region in its config or state dict
+    assert "region" not in old.config() and "region" not in old.state_dict()
 
 
-# ------------------------------------------------------------------------------- a drift in time holds beyond its span
+def test_a_run_written_when_the_region_was_called_support_or_span_still_loads():
+    """model.json and model.pt of runs written before "region" was the one word: an open form's ``support`` and a
+    drift's ``span``, in the config and in the state dict, load as the region; both names at once are refused."""
+    from torchcal.effects import Drift, effect_from_config
+
+    form = Transmission(3, degree=2, c=[1e-4, 2e-5], region=(-0.5, 1.25))
+    cfg = {"class": "Transmission", "joint": 3, "degree": 2, "support": [-0.5, 1.25]}  # as an older run wrote it
+    state = {("support" if k == "region" else k): v for k, v in form.state_dict().items()}
+    assert "support" in state and "region" not in state
+    twin = effect_from_config(cfg)
+    twin.load_state_dict(state)  # strict: the old key is read, nothing is left over
+    assert twin.region.tolist() == [-0.5, 1.25] and twin.c.tolist() == form.c.tolist()
+    assert twin.config() == form.config()
+    drift = Drift("t", "instrument", rates=[1e-7, 0, 0, 0, 0, 2e-9], region=(0.0, 100.0))
+    cfg = {"class": "Drift", "variable": "t", "target": "instrument", "span": [0.0, 100.0]}
+    state = {("span" if k == "region" else k): v for k, v in drift.state_dict().items()}
+    old = effect_from_config(cfg)
+    old.load_state_dict(state)
+    assert old.region.tolist() == [0.0, 100.0] and old.rates.tolist() == drift.rates.tolist()
+    with pytest.raises(ValueError, match="both 'span' and its newer name 'region'"):
+        effect_from_config({**cfg, "region": [0.0, 100.0]})
 
 
-def test_a_drift_in_time_holds_its_value_beyond_the_span_it_was_fitted_on():
+# ----------------------------------------------------------------------------- a drift in time holds beyond its region
+
+
+def test_a_drift_in_time_holds_its_value_beyond_the_time_region_it_was_fitted_on():
     from torchcal.effects import Context, Drift, effect_from_config
 
     eff = Drift("t", "instrument", rates=[1e-7, 0, 0, 0, 0, 2e-9])
     t = torch.linspace(0.0, 100.0, 11, dtype=F64)
     q = torch.zeros(11, 6, dtype=F64)
     free = eff(None, Context(q=q, t=t)).detach()
-    eff.set_span(t)
-    torch.testing.assert_close(eff(None, Context(q=q, t=t)), free, rtol=0, atol=0)  # unchanged on its span
+    eff.set_region(t)
+    torch.testing.assert_close(eff(None, Context(q=q, t=t)), free, rtol=0, atol=0)  # unchanged on its region
     later = eff(None, Context(q=q[:2], t=torch.tensor([150.0, 1e6], dtype=F64))).detach()
     torch.testing.assert_close(later, free[-1:].expand(2, 6))  # held at its end value, however far on
     twin = effect_from_config({"class": "Drift", **eff.config()})
     twin.load_state_dict(eff.state_dict())
-    assert twin.span.tolist() == [0.0, 100.0]
+    assert twin.region.tolist() == [0.0, 100.0]
     warm = Drift("temperature", "scale", rates=[1e-5])
-    warm.set_span(t)  # thermal expansion has a law: no span
-    assert warm.span is None and "span" not in warm.config()
+    warm.set_region(t)  # thermal expansion has a law: no region
+    assert warm.region is None and "region" not in warm.config()

@@ -140,12 +140,12 @@ def test_linearised_kinematics_jacobian_equals_jacfwd_with_every_kind_of_effect(
 
 def test_instrument_columns_with_an_effect_that_reads_the_instrument_pose():
     """The instrument pose's columns are computed in closed form (dT/dd applied to the point it transforms) unless an
-    effect reads the pose itself: a finite support gate maps its fallback's tracker-frame prediction into the base
+    effect reads the pose itself: a finite region gate maps its fallback's tracker-frame prediction into the base
     frame through it. Both ways the Jacobian equals reverse-mode autograd's of the whole model."""
     import copy
 
     from torchcal.effects import CorrectionNet, LearnedEffect
-    from torchcal.effects.support import SupportGate
+    from torchcal.effects.region import RegionGate
 
     robot = _perturbed("ur5")
     g = torch.Generator().manual_seed(8)
@@ -156,7 +156,7 @@ def test_instrument_columns_with_an_effect_that_reads_the_instrument_pose():
     fallback = _perturbed("ur5", seed=5)
     for length, fb in ((1.0, fallback), (math.inf, None), (1.0, None)):
         net = LearnedEffect(CorrectionNet(robot.dof, hidden=5))
-        gate = SupportGate(net, q[:20], length, fallback=copy.deepcopy(fb))
+        gate = RegionGate(net, q[:20], length, fallback=copy.deepcopy(fb))
         assert gate.reads_instrument == (fb is not None)
         model = MeasurementModel(robot, [gate])
         ctx = Context(q=q)

@@ -117,7 +117,7 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         # ... its scale from the fallback itself (the kinematic calibration) on the held-out samples, at their
         # distance from all training samples, the growth's shape kept
         from torchcal.effects import Context, MeasurementModel
-        from torchcal.effects.support import fit_fallback_scale
+        from torchcal.effects.region import fit_fallback_scale
 
         # (the gate of the fit on the training samples, the run's integrated stage: the model written is refitted)
         gate, hold = run.stage("integrated").model.effects[-1], data.subset(run.holdout_idx)
@@ -125,7 +125,7 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
             e_fb = MeasurementModel(gate.fallback, [])(Context.from_measurements(hold, trajectory=True)) - hold.p
         expected = fit_fallback_scale(e_fb, gate.distance(hold.q), ps["fallback_growth"])
         assert ps["fallback_sigma_mm"] == pytest.approx([x * 1e3 for x in expected], rel=1e-9)
-        # the network's error far from the support tends to the same fallback's residual scale on those samples
+        # the network's error far from the region tends to the same fallback's residual scale on those samples
         torch.testing.assert_close(gate.sigma_far, e_fb.square().mean(dim=0).sqrt())
         assert ps["sigma_far_final_mm"] == pytest.approx((gate.sigma_far * 1e3).tolist(), rel=1e-12)
         # and the largest predicted sigma there is of the size of the residuals, not numerical trouble
@@ -142,7 +142,7 @@ def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(tr
         assert refit["n_samples"] == both.n and refit["model"] == sel["chosen"] and refit["filter_status"] == "ok"
         assert final is not gate and final.length == gate.length == refit["gate_length"]
         stride = -(-both.n // 3000)
-        torch.testing.assert_close(final.support, both.q[::stride])
+        torch.testing.assert_close(final.region, both.q[::stride])
         assert (final.sigma_scale, final.sigma_floor, final.fallback_growth) == (
             gate.sigma_scale,
             gate.sigma_floor,

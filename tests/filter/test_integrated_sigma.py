@@ -15,9 +15,8 @@ from torchcal.data import Measurements, read_measurements, write_measurements
 from torchcal.effects import Context, LearnedEffect, MeasurementModel
 from torchcal.effects.base import Effect
 from torchcal.effects.predictive import GatedBlock, calibrate_predictive_sigma, sigma_check
-from torchcal.effects.registry import effect_from_config
-from torchcal.effects.support import (
-    SupportGate,
+from torchcal.effects.region import (
+    RegionGate,
     calibrate_factor,
     coverage,
     fit_fallback_growth,
@@ -25,6 +24,7 @@ from torchcal.effects.support import (
     fit_predictive_scale,
     predictive_sigma,
 )
+from torchcal.effects.registry import effect_from_config
 from torchcal.filter.adaptive import random_features
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline import integrated as I
@@ -36,21 +36,21 @@ NOISE, FAR = 2e-5, 3e-4  # [m]
 
 
 def _gate(length=1.0, scale=1.0, n=300, seed=0):
-    """A UR5 with a random-feature correction behind a gate with a predictive standard deviation, and its support."""
+    """A UR5 with a random-feature correction behind a gate with a predictive standard deviation, and its region."""
     g = torch.Generator().manual_seed(seed)
     robot = load_robot("ur5")
     net = random_features(hidden=16, seed=seed)
     with torch.no_grad():
         net.fc2.weight.normal_(0.0, 0.1, generator=g)
-    support = 0.3 * torch.randn(n, 6, generator=g, dtype=torch.float64)
+    region = 0.3 * torch.randn(n, 6, generator=g, dtype=torch.float64)
     idx = torch.arange(net.hidden * 7, net.hidden * 7 + 3 * net.hidden)  # the output weights
     A = torch.randn(len(idx), len(idx), generator=g, dtype=torch.float64)
-    gate = SupportGate(LearnedEffect(net), support, length)
+    gate = RegionGate(LearnedEffect(net), region, length)
     gate.set_predictive(
         1e-4 * A @ A.T / len(idx), idx, torch.full((3,), NOISE, dtype=torch.float64), torch.full((3,), FAR).double(),
         length if math.isfinite(length) else 8.0, scale,
     )  # fmt: skip
-    return robot, gate, support
+    return robot, gate, region
 
 
 def test_coverage_and_the_calibrated_factor_recover_a_known_sigma():
@@ -71,7 +71,7 @@ def test_the_scale_and_floor_by_likelihood_hold_coverage_where_the_network_term_
     g = torch.Generator().manual_seed(2)
     n = 3000
     a = torch.full((n, 3), 1e-8, dtype=torch.float64)  # the filter's term: large and flat (mostly its prior)
-    g2 = torch.rand(n, 1, generator=g, dtype=torch.float64).expand(n, 3).clone()  # some samples off the support
+    g2 = torch.rand(n, 1, generator=g, dtype=torch.float64).expand(n, 3).clone()  # some samples off the region
     b = (1.0 - g2) * (5e-5) ** 2  # the geometry's residual scale there
     truth = torch.tensor([2e-5, 3e-5, 1e-5], dtype=torch.float64)
     e = (g2 * truth**2 + b).sqrt() * torch.randn(n, 3, generator=g, dtype=torch.float64)
@@ -104,7 +104,7 @@ def test_the_calibrated_factor_is_exact_with_an_unscaled_far_part():
 
 
 def test_a_factor_that_would_run_away_on_an_almost_closed_gate_is_capped():
-    from torchcal.effects.support import FACTOR_SIGMA_RATIO
+    from torchcal.effects.region import FACTOR_SIGMA_RATIO
 
     g = torch.Generator().manual_seed(5)
     n = 2000
@@ -154,21 +154,21 @@ def test_the_scale_with_held_out_residuals_is_widened_to_the_target_over_both_ne
 
 
 def test_sigma_is_the_filters_at_the_support_and_the_geometrys_far_from_it():
-    robot, gate, support = _gate(scale=3.0)
-    near = gate.predictive_std(robot, support[:50])
+    robot, gate, region = _gate(scale=3.0)
+    near = gate.predictive_std(robot, region[:50])
     assert near.shape == (50, 3) and bool((near > 3.0 * NOISE * 0.999).all())
-    a, b, g2 = gate.variance_parts(robot, support[:50])
-    assert float(b.abs().max()) < 1e-10 * FAR**2  # on the support the gate is 1 (to round-off): no fallback part
+    a, b, g2 = gate.variance_parts(robot, region[:50])
+    assert float(b.abs().max()) < 1e-10 * FAR**2  # on the region the gate is 1 (to round-off): no fallback part
     torch.testing.assert_close(near, (9.0 * a + b).sqrt())  # the scale acts on the network's and noise's part
     gate.sigma_floor = [1e-5, 2e-5, 3e-5]
     floor = torch.tensor(gate.sigma_floor, dtype=torch.float64)
-    torch.testing.assert_close(gate.predictive_std(robot, support[:50]), (9.0 * a + g2 * floor**2 + b).sqrt())
+    torch.testing.assert_close(gate.predictive_std(robot, region[:50]), (9.0 * a + g2 * floor**2 + b).sqrt())
     # the output-weight Jacobian rotated into the tracker frame, through P: by hand for one sample
-    net, q = gate.inner.net, support[:1]
+    net, q = gate.inner.net, region[:1]
     J = robot.T_tracker_base()[:3, :3] @ net.jacobian_flat(net.flat(), q)[1][0][:, gate.weight_index]
     var = (J @ gate.weight_cov @ J.T).diagonal() + NOISE**2
     torch.testing.assert_close(a[0], var)
-    far = gate.predictive_std(robot, support[:5] + 20.0)  # many spreads away: the geometry's residual scale, unscaled
+    far = gate.predictive_std(robot, region[:5] + 20.0)  # many spreads away: the geometry's residual scale, unscaled
     torch.testing.assert_close(far, torch.full_like(far, FAR), rtol=1e-6, atol=0.0)
 
 
@@ -207,15 +207,15 @@ def test_the_fallbacks_scale_with_a_given_growth_is_recovered_from_its_own_resid
 
 
 def test_the_fallbacks_part_fades_in_with_the_predictions_gate_and_grows_with_distance():
-    robot, gate, support = _gate(length=1.0)
+    robot, gate, region = _gate(length=1.0)
     fb = [1e-4, 2e-4, 3e-4]
     gate.sigma_fallback, gate.fallback_growth = fb, 0.25
-    q = support[:5] + 20.0  # many spreads away: the gate is 0, the prediction is the fallback's
+    q = region[:5] + 20.0  # many spreads away: the gate is 0, the prediction is the fallback's
     d = gate.distance(q)[:, None]
     expected = torch.tensor(fb, dtype=torch.float64) * (1.0 + 0.25 * d**2).sqrt()
     torch.testing.assert_close(gate.predictive_std(robot, q), expected, rtol=1e-6, atol=0.0)
     # part way out the fallback's part is weighted by (1 - g)^2 (the prediction mixes the two linearly)
-    q = support[:50] + 0.5
+    q = region[:50] + 0.5
     a, b, g2 = gate.variance_parts(robot, q)
     dd = gate.distance(q)[:, None]
     g = torch.exp(-0.5 * dd**2)
@@ -224,10 +224,10 @@ def test_the_fallbacks_part_fades_in_with_the_predictions_gate_and_grows_with_di
     torch.testing.assert_close(b, g**2 * (1 - h2) * FAR**2 + (1 - g) ** 2 * fb_t**2 * (1 + 0.25 * dd**2))
     torch.testing.assert_close(g2, (g**2).expand(-1, 3))
     # an infinite gate never fades the prediction: no fallback part, the model's error grows towards s_far
-    robot, gate, support = _gate(length=math.inf)
+    robot, gate, region = _gate(length=math.inf)
     gate.sigma_fallback, gate.fallback_growth = fb, 0.25
-    far = gate.predictive_std(robot, support[:5] + 20.0)
-    a, _, _ = gate.variance_parts(robot, support[:5] + 20.0)
+    far = gate.predictive_std(robot, region[:5] + 20.0)
+    a, _, _ = gate.variance_parts(robot, region[:5] + 20.0)
     torch.testing.assert_close(far, (a + FAR**2).sqrt())
     with pytest.raises(ValueError, match="fallback_growth"):
         gate.set_predictive(
@@ -236,10 +236,10 @@ def test_the_fallbacks_part_fades_in_with_the_predictions_gate_and_grows_with_di
 
 
 def test_a_saved_gate_is_rebuilt_with_its_sigma_and_an_old_one_without(tmp_path):
-    robot, gate, support = _gate(length=math.inf, scale=2.5)  # an infinite gate: config writes None (JSON)
+    robot, gate, region = _gate(length=math.inf, scale=2.5)  # an infinite gate: config writes None (JSON)
     gate.sigma_floor = [1e-5, 2e-5, 3e-5]
     gate.sigma_fallback, gate.fallback_growth = [1e-4, 2e-4, 3e-4], 0.25
-    cfg = json.loads(json.dumps({"class": "SupportGate", **gate.config()}, allow_nan=False))
+    cfg = json.loads(json.dumps({"class": "RegionGate", **gate.config()}, allow_nan=False))
     assert cfg["length"] is None and cfg["predictive"]["scale"] == 2.5
     assert cfg["predictive"]["floor"] == [1e-5, 2e-5, 3e-5]
     assert cfg["predictive"]["fallback_sigma"] == [1e-4, 2e-4, 3e-4] and cfg["predictive"]["fallback_growth"] == 0.25
@@ -247,13 +247,13 @@ def test_a_saved_gate_is_rebuilt_with_its_sigma_and_an_old_one_without(tmp_path)
     again.load_state_dict(gate.state_dict())
     assert again.length == math.inf and again.has_predictive
     assert (again.sigma_fallback, again.fallback_growth) == (gate.sigma_fallback, gate.fallback_growth)
-    torch.testing.assert_close(again.predictive_std(robot, support[:20]), gate.predictive_std(robot, support[:20]))
-    plain = SupportGate(LearnedEffect(random_features(hidden=16)), support, 0.5)
-    cfg = {"class": "SupportGate", **plain.config()}
+    torch.testing.assert_close(again.predictive_std(robot, region[:20]), gate.predictive_std(robot, region[:20]))
+    plain = RegionGate(LearnedEffect(random_features(hidden=16)), region, 0.5)
+    cfg = {"class": "RegionGate", **plain.config()}
     assert cfg["predictive"] is None and not any("sigma" in k for k in plain.state_dict())
     assert not effect_from_config(cfg, robot).has_predictive
-    assert predictive_sigma(MeasurementModel(robot, [plain]), support) is None
-    assert predictive_sigma(MeasurementModel(robot), support) is None
+    assert predictive_sigma(MeasurementModel(robot, [plain]), region) is None
+    assert predictive_sigma(MeasurementModel(robot), region) is None
 
 
 def _run_dir(path, model):
@@ -279,10 +279,10 @@ def _run_dir(path, model):
 
 @pytest.mark.parametrize("with_sigma", [True, False])
 def test_predict_writes_sx_sy_sz_after_the_other_columns_only_where_sigma_is_defined(tmp_path, with_sigma):
-    robot, gate, support = _gate(length=0.5, scale=2.0)
+    robot, gate, region = _gate(length=0.5, scale=2.0)
     model = MeasurementModel(robot, [gate] if with_sigma else [])
     run = _run_dir(tmp_path / "run", model)
-    q = support[:30]
+    q = region[:30]
     write_measurements(tmp_path / "q.csv", Measurements(q=q, t=torch.arange(30.0, dtype=torch.float64)))
     assert main(["predict", str(run), str(tmp_path / "q.csv"), "--out", str(tmp_path / "p.csv"), "--quiet"]) == 0
     header = next(ln for ln in (tmp_path / "p.csv").read_text().splitlines() if not ln.startswith("#"))
@@ -353,8 +353,8 @@ def test_a_predictive_sigma_far_beyond_the_residuals_is_reported():
     wide[2, 1] = 7e7  # a widening factor set by a sample whose near part was nearly zero
     check = sigma_check([(e, torch.full((4, 3), 5e-5, dtype=torch.float64)), (e, wide)])
     assert check["suspect"] and check["ratio"] == pytest.approx(7e11)
-    # a widening factor at its cap (support.FACTOR_SIGMA_RATIO times the largest residual) is always reported
-    from torchcal.effects.support import FACTOR_SIGMA_RATIO
+    # a widening factor at its cap (region.FACTOR_SIGMA_RATIO times the largest residual) is always reported
+    from torchcal.effects.region import FACTOR_SIGMA_RATIO
 
     capped = sigma_check([(e, torch.full((4, 3), FACTOR_SIGMA_RATIO * 1e-4, dtype=torch.float64))])
     assert capped["suspect"] and capped["ratio"] == pytest.approx(FACTOR_SIGMA_RATIO)
@@ -367,10 +367,10 @@ def test_the_calibration_sets_both_gates_from_the_growth_the_fallback_and_both_b
     """:func:`calibrate_predictive_sigma` on hand-built gates: the fallback's growth from the refits' residuals,
     its scale from the fallback's own residuals on the held-out block, then scale and floor by likelihood on
     validation widened over both blocks; both gates get the same calibration, and the evidence says so."""
-    robot, val_gate, support = _gate(length=1.0, seed=0)
+    robot, val_gate, region = _gate(length=1.0, seed=0)
     _, final, _ = _gate(length=1.0, seed=0)
     g = torch.Generator().manual_seed(7)
-    q_val, q_hold = support[:80] + 0.2, support[80:200] + 0.4
+    q_val, q_hold = region[:80] + 0.2, region[80:200] + 0.4
 
     def draw(n, s):
         return s * torch.randn(n, 3, generator=g, dtype=torch.float64)

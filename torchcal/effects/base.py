@@ -98,22 +98,41 @@ class Acts(str, Enum):
         return self.value
 
 
-def register_range(module: nn.Module, name: str, span, what: str) -> None:
-    """Register the buffer ``name``: ``(lo, hi)`` from ``span`` (float64), or None when ``span`` is None (a None
+def register_range(module: nn.Module, name: str, region, what: str) -> None:
+    """Register the buffer ``name``: ``(lo, hi)`` from ``region`` (float64), or None when ``region`` is None (a None
     buffer is not in the state dict, so runs written before the range was kept load as they were).
 
     Raises:
         OptionError: ``lo > hi`` (``what`` names the range in the message).
     """
-    if span is None:
+    if region is None:
         module.register_buffer(name, None)
         return
-    lo, hi = (float(v) for v in span)
+    lo, hi = (float(v) for v in region)
     if not lo <= hi:
         from torchcal.errors import OptionError
 
-        raise OptionError(f"{what} must be (lo, hi) with lo <= hi, got {list(span)}")
+        raise OptionError(f"{what} must be (lo, hi) with lo <= hi, got {list(region)}")
     module.register_buffer(name, torch.tensor([lo, hi], dtype=torch.float64))
+
+
+def read_renamed(mapping: dict, renamed: dict[str, str], prefix: str = "") -> dict:
+    """Read the keys ``mapping`` saved under an older name by their new one, in place, and return it.
+
+    ``renamed`` maps old names to new (:attr:`Effect.renamed`); ``prefix`` is a state dict's module prefix. A run
+    written before "region" became the one word for where a correction was fitted saved ``support`` or ``span``:
+    its ``model.json`` configs and ``model.pt`` state dicts load as if written now.
+
+    Raises:
+        ValueError: both the old and the new name (the file cannot say which holds).
+    """
+    for old, new in renamed.items():
+        if prefix + old not in mapping:
+            continue
+        if prefix + new in mapping:
+            raise ValueError(f"both {prefix + old!r} and its newer name {prefix + new!r} are given")
+        mapping[prefix + new] = mapping.pop(prefix + old)
+    return mapping
 
 
 class Effect(nn.Module):
@@ -136,10 +155,17 @@ class Effect(nn.Module):
     #: whether a :class:`~torchcal.effects.model.MeasurementModel` whose region fades fades this effect beyond its
     #: calibrated region (a learned correction with no law of its own beyond the data)
     fades_beyond_region: bool = False
+    #: keys of the config and the state dict under an older name, old -> new (:func:`read_renamed`)
+    renamed: dict[str, str] = {}
 
     def __init__(self, joint: int | None = None):
         super().__init__()
         self.joint = joint
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # a model.pt written before a buffer's rename holds it under the old name
+        read_renamed(state_dict, self.renamed, prefix)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def j(self) -> int:

@@ -45,14 +45,16 @@ class Drift(Effect):
         reference: value of the variable where the drift is zero.
         form: "linear" or "exponential".
         tau: initial time constant of the exponential form (unit of the variable, > 0).
-        span: ``(lo, hi)`` of the time the drift was fitted on [s] (a drift in ``t`` only): beyond it the drift holds
-            its value at the nearer end. None: it continues as fitted.
+        region: ``(lo, hi)`` of the time the drift was fitted on [s], its calibrated region in time (a drift in ``t``
+            only): beyond it the drift holds its value at the nearer end. None: it continues as fitted. Runs written
+            before the name ``region`` saved it as ``span`` (:attr:`renamed`).
     """
 
     kind = "drift"
     VARIABLES = ("t", "temperature")
     TARGETS = ("instrument", "scale")
     FORMS = ("linear", "exponential")
+    renamed = {"span": "region"}
 
     def __init__(
         self,
@@ -62,7 +64,7 @@ class Drift(Effect):
         reference: float = 0.0,
         form: str = "linear",
         tau: float = 1800.0,
-        span=None,
+        region=None,
     ):
         super().__init__(joint=None)
         if variable not in self.VARIABLES:
@@ -83,23 +85,24 @@ class Drift(Effect):
         r = torch.zeros(n, dtype=torch.float64) if rates is None else torch.as_tensor(rates, dtype=torch.float64)
         self.rates = nn.Parameter(r.reshape(n).clone())
         self.register_buffer("reference", torch.tensor(float(reference), dtype=torch.float64))
-        register_range(self, "span", span, "drift span")
+        register_range(self, "region", region, "drift region")
 
-    def set_span(self, t: Tensor) -> None:
-        """Record the time span ``t`` ``(N,)`` the drift is fitted on (a drift in temperature keeps its law)."""
+    def set_region(self, t: Tensor) -> None:
+        """Record the times ``t`` ``(N,)`` the drift is fitted on as its region (a drift in temperature keeps its
+        law)."""
         if self.variable == "t":
-            self.span = torch.stack([t.detach().min(), t.detach().max()]).to(torch.float64)
+            self.region = torch.stack([t.detach().min(), t.detach().max()]).to(torch.float64)
 
     def regressor(self, robot, ctx: Context) -> Tensor:
         """``dv (N,)``: the drift variable relative to its reference; a drift in time held at its value at the ends of
-        the span it was fitted on (``span``): a linear drift is the first term of a set-up that settles, and
+        the time it was fitted on (``region``): a linear drift is the first term of a set-up that settles, and
         continued beyond the campaign it grows without a law, while held at its ends its error stays bounded.
         Thermal expansion in temperature extends."""
         v = ctx.t if self.variable == "t" else ctx.temperature
         if v is None:
             raise EstimationError(f"drift with '{self.variable}' needs a '{self.variable}' column in the data")
-        if self.span is not None:
-            v = torch.minimum(torch.maximum(v, self.span[0]), self.span[1])
+        if self.region is not None:
+            v = torch.minimum(torch.maximum(v, self.region[0]), self.region[1])
         return v - self.reference
 
     def time_course(self, dv: Tensor) -> Tensor:
@@ -133,8 +136,8 @@ class Drift(Effect):
         cfg = {"variable": self.variable, "target": self.target}
         if self.form != "linear":  # the linear default keeps the older config unchanged
             cfg["form"] = self.form
-        if self.span is not None:
-            cfg["span"] = [float(v) for v in self.span]
+        if self.region is not None:
+            cfg["region"] = [float(v) for v in self.region]
         return cfg
 
     def label(self) -> str:

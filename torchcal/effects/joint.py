@@ -30,22 +30,25 @@ MAX_JOINT_ERROR = 5e-3
 FADE_LENGTH = 0.2
 
 
-class SupportedForm(Effect):
+class RegionForm(Effect):
     """An open joint-angle form (a harmonic sum, a polynomial): a shape fitted to the range its joint covered,
     with no law that says how it continues. Beyond that range it fades to zero, i.e. to the geometry
     (:data:`FADE_LENGTH`), so that terms which the range did not determine cannot add up outside it.
 
-    ``support``: ``(lo, hi)`` of the joint's fitted range [rad]; None (the default, and runs written before the
-    fade existed): the form is applied as it is everywhere.
+    ``region``: ``(lo, hi)`` of the joint's fitted range [rad], its calibrated region; None (the default, and runs
+    written before the fade existed): the form is applied as it is everywhere. Runs written before the name
+    ``region`` saved it as ``support`` (:attr:`renamed`).
     """
 
-    def _init_support(self, support) -> None:
-        register_range(self, "support", support, f"{self.kind} support")
+    renamed = {"support": "region"}
 
-    def set_support(self, q: Tensor) -> None:
+    def _init_region(self, region) -> None:
+        register_range(self, "region", region, f"{self.kind} region")
+
+    def set_region(self, q: Tensor) -> None:
         """Record the range of this effect's joint in ``q`` ``(N, dof)`` as the fitted range."""
         qj = q[:, self.j].detach()
-        self.support = torch.stack([qj.min(), qj.max()]).to(torch.float64)
+        self.region = torch.stack([qj.min(), qj.max()]).to(torch.float64)
 
     def _unbounded(self) -> bool:
         """Whether the fitted range makes the form determined everywhere (a full period of a harmonic sum)."""
@@ -54,9 +57,9 @@ class SupportedForm(Effect):
     def _faded(self, ctx: Context) -> tuple[Tensor, Tensor | None]:
         """The joint's reading clamped to the fitted range ``(N, 1)``, and the fade weight ``(N, 1)`` (None: 1)."""
         qj = ctx.q[:, self.j : self.j + 1]
-        if self.support is None or self._unbounded():
+        if self.region is None or self._unbounded():
             return qj, None
-        lo, hi = self.support[0], self.support[1]
+        lo, hi = self.region[0], self.region[1]
         c = torch.minimum(torch.maximum(qj, lo), hi)
         d = (qj - c).abs()
         return c, torch.exp(-0.5 * (d / FADE_LENGTH) ** 2)
@@ -93,8 +96,8 @@ class SupportedForm(Effect):
     def forward(self, robot, ctx: Context) -> Tensor:
         return self._joint_delta(ctx, self.regressor(robot, ctx) @ self._coef())
 
-    def _support_config(self) -> dict:
-        return {} if self.support is None else {"support": [float(v) for v in self.support]}
+    def _region_config(self) -> dict:
+        return {} if self.region is None else {"region": [float(v) for v in self.region]}
 
 
 class Compliance(Effect):
@@ -306,7 +309,7 @@ class Backlash(Effect):
         return {"b_rad": float(self.b.detach()), "source": self.source}
 
 
-class Cyclic(SupportedForm):
+class Cyclic(RegionForm):
     """Cyclic transmission errors: ``dq_j = sum_k a_k sin(k q_j) + b_k cos(k q_j)``.
 
     Eccentric gears, encoders mounted off-centre and the flexspline's two-lobe wave
@@ -320,13 +323,13 @@ class Cyclic(SupportedForm):
         joint: 1-based joint.
         harmonics: the orders k, distinct positive integers (default 1 and 2).
         a, b: sine and cosine amplitudes [rad], one per harmonic.
-        support: the joint's fitted range ``(lo, hi)`` [rad]: beyond it the sum fades to zero, unless the range
+        region: the joint's fitted range ``(lo, hi)`` [rad]: beyond it the sum fades to zero, unless the range
             covers a whole period of the sum (``2 pi / gcd(orders)``), which determines it everywhere.
     """
 
     kind = "cyclic"
 
-    def __init__(self, joint: int, harmonics: Sequence[int] = (1, 2), a=None, b=None, support=None):
+    def __init__(self, joint: int, harmonics: Sequence[int] = (1, 2), a=None, b=None, region=None):
         super().__init__(joint)
         orders = [int(k) for k in harmonics]
         if not orders or min(orders) < 1 or len(set(orders)) != len(orders):
@@ -343,10 +346,10 @@ class Cyclic(SupportedForm):
         self.a = nn.Parameter(init(a).clone())
         self.b = nn.Parameter(init(b).clone())
         self.period = 2 * math.pi / math.gcd(*orders)
-        self._init_support(support)
+        self._init_region(region)
 
     def _unbounded(self) -> bool:
-        return float(self.support[1] - self.support[0]) >= self.period
+        return float(self.region[1] - self.region[0]) >= self.period
 
     def _basis(self, qj: Tensor) -> Tensor:
         arg = qj * self.harmonics
@@ -356,7 +359,7 @@ class Cyclic(SupportedForm):
         return torch.cat([self.a, self.b])
 
     def config(self) -> dict:
-        return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics], **self._support_config()}
+        return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics], **self._region_config()}
 
     def describe(self) -> dict:
         return {
@@ -366,7 +369,7 @@ class Cyclic(SupportedForm):
         }
 
 
-class Transmission(SupportedForm):
+class Transmission(RegionForm):
     """A joint-angle error polynomial in the joint's reading: ``dq_j = sum_{d=1..D} c_d q_j^d``.
 
     A transmission ratio that differs from the controller's value scales the angle
@@ -379,12 +382,12 @@ class Transmission(SupportedForm):
         joint: 1-based joint.
         degree: highest degree D (>= 1).
         c: coefficients ``(D,)`` [rad / rad^d].
-        support: the joint's fitted range ``(lo, hi)`` [rad]: beyond it the polynomial fades to zero.
+        region: the joint's fitted range ``(lo, hi)`` [rad]: beyond it the polynomial fades to zero.
     """
 
     kind = "transmission"
 
-    def __init__(self, joint: int, degree: int = 1, c=None, support=None):
+    def __init__(self, joint: int, degree: int = 1, c=None, region=None):
         super().__init__(joint)
         if int(degree) < 1:
             from torchcal.errors import OptionError
@@ -393,7 +396,7 @@ class Transmission(SupportedForm):
         self.degree = int(degree)
         c0 = torch.zeros(self.degree, dtype=torch.float64) if c is None else torch.as_tensor(c, dtype=torch.float64)
         self.c = nn.Parameter(c0.reshape(self.degree).clone())
-        self._init_support(support)
+        self._init_region(region)
 
     def _basis(self, qj: Tensor) -> Tensor:
         return qj ** torch.arange(1, self.degree + 1, dtype=qj.dtype, device=qj.device)
@@ -402,7 +405,7 @@ class Transmission(SupportedForm):
         return self.c
 
     def config(self) -> dict:
-        return {"joint": self.joint, "degree": self.degree, **self._support_config()}
+        return {"joint": self.joint, "degree": self.degree, **self._region_config()}
 
     def describe(self) -> dict:
         return {"degree": self.degree, "c": self.c.detach().tolist()}
@@ -474,7 +477,7 @@ def joint_function_size(effect: Effect, robot, q: Tensor, reach: tuple[float, fl
     geometry carries), the largest ``|dq|`` on the poses ``q`` for a physical one (compliance, backlash), whose law
     says how it continues."""
     with torch.no_grad():
-        if isinstance(effect, SupportedForm):
+        if isinstance(effect, RegionForm):
             lo, hi = reach
             grid = torch.linspace(lo, hi, 4001, dtype=torch.float64, device=q.device)
             f = effect.function(grid)
@@ -511,7 +514,7 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return None
     qj = q[:, effect.j]
     seen = f"{float(qj.min()):.3f} to {float(qj.max()):.3f}"
-    if isinstance(effect, SupportedForm):
+    if isinstance(effect, RegionForm):
         terms = effect._terms(q, fade=False)
         peak = float(terms.sum(-1).abs().max())
         peak_terms = float(terms.abs().max(0).values.sum())
@@ -531,7 +534,7 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return None
     # a prismatic joint's error is a length: the same bound read in metres (the probe moves 1 m per m)
     unit, small = ("m", "mm") if robot.joint_types[effect.joint - 1] == "prismatic" else ("rad", "mrad")
-    if isinstance(effect, SupportedForm):
+    if isinstance(effect, RegionForm):
         where = f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} {unit} (fitted on {seen})"
     elif isinstance(effect, Coupling):
         lo, hi = joint_range(robot, effect.source)

@@ -39,8 +39,8 @@ class MeasurementModel(nn.Module):
         """Record the calibrated region: the range of every joint in ``q`` ``(N, dof)`` (None: no region).
 
         With ``fade``, the learned Cartesian corrections (the effects whose ``fades_beyond_region`` is set: a
-        network, a kernel regression, a Gaussian process; not a :class:`~torchcal.effects.support.SupportGate`,
-        which has its own support) fade to zero beyond the region, by ``exp(-d^2 / (2 FADE_LENGTH^2))`` with ``d``
+        network, a kernel regression, a Gaussian process; not a :class:`~torchcal.effects.region.RegionGate`,
+        which has its own region) fade to zero beyond the region, by ``exp(-d^2 / (2 FADE_LENGTH^2))`` with ``d``
         the :meth:`extrapolation`: nothing in their fit says how they continue there.
         """
         if q is None:

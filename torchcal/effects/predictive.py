@@ -1,13 +1,13 @@
-"""Calibrating a support gate's predictive standard deviation on residuals the model was not fitted on.
+"""Calibrating a region gate's predictive standard deviation on residuals the model was not fitted on.
 
-:class:`~torchcal.effects.support.SupportGate` predicts ``var = k^2 a + g^2 f^2 + b`` per sample and tracker axis
-(:mod:`torchcal.effects.support`, *Predictive standard deviation*). Its parts come from different places: the
+:class:`~torchcal.effects.region.RegionGate` predicts ``var = k^2 a + g^2 f^2 + b`` per sample and tracker axis
+(:mod:`torchcal.effects.region`, *Predictive standard deviation*). Its parts come from different places: the
 network's part ``a`` from the weight covariance of the filter that estimated it, the noise from the tracker and the
 joints (:func:`observation_sigma`), the far part ``s_far`` from the fallback's residual scale on samples it was not
 fitted on (:func:`residual_scale`), the fallback's own error and its growth with the distance from residuals of
 geometric models on samples after the ones they were fitted on (:func:`fallback_growth`), and the scale ``k`` and
 floor ``f`` from the residuals of a validation block and, where there are any, of held-out samples
-(:func:`calibrate_predictive_sigma`, :func:`~torchcal.effects.support.fit_predictive_scale`).
+(:func:`calibrate_predictive_sigma`, :func:`~torchcal.effects.region.fit_predictive_scale`).
 
 This module holds the computations on residuals and gates; fitting the models whose residuals they are (the
 geometry refits, the filters) is the caller's (the integrated method, :mod:`torchcal.pipeline.integrated`).
@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from torchcal.effects import support as sup
+from torchcal.effects import region as gating
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 
@@ -35,8 +35,8 @@ Tensor = torch.Tensor
 COVERAGE_TARGET = 0.95
 
 #: a predictive sigma this many times the largest residual of the blocks it was calibrated on is numerical trouble:
-#: half the cap of the widening factor (support.FACTOR_SIGMA_RATIO), so that a capped factor is always reported
-SIGMA_CHECK_RATIO = 0.5 * sup.FACTOR_SIGMA_RATIO
+#: half the cap of the widening factor (region.FACTOR_SIGMA_RATIO), so that a capped factor is always reported
+SIGMA_CHECK_RATIO = 0.5 * gating.FACTOR_SIGMA_RATIO
 
 
 def observation_sigma(robot: RobotModel, m: Measurements, sigma_tracker: float, sigma_joint: float) -> Tensor:
@@ -56,7 +56,7 @@ def observation_sigma(robot: RobotModel, m: Measurements, sigma_tracker: float, 
     return torch.full((3,), math.hypot(tracker, joint), dtype=m.q.dtype, device=m.q.device)
 
 
-def residuals(model: MeasurementModel, m: Measurements, gate: sup.SupportGate | None = None) -> Tensor:
+def residuals(model: MeasurementModel, m: Measurements, gate: gating.RegionGate | None = None) -> Tensor:
     """Prediction minus measurement per tracker axis ``(N, 3)`` [m] of ``model`` on the trajectory ``m``.
 
     With ``gate``, the model's last effect is replaced by it (``model`` itself is left as it is).
@@ -74,16 +74,16 @@ def residual_scale(e: Tensor) -> Tensor:
 
 def sigma_length(length: float) -> float:
     """The length the model's own error fades with towards ``s_far``: the gate's own where it is finite, otherwise
-    the longest finite one of :data:`~torchcal.effects.support.GATE_LENGTHS` (a length must be finite), in units of
+    the longest finite one of :data:`~torchcal.effects.region.GATE_LENGTHS` (a length must be finite), in units of
     the joints' training spread."""
-    return length if math.isfinite(length) else max(g for g in sup.GATE_LENGTHS if math.isfinite(g))
+    return length if math.isfinite(length) else max(g for g in gating.GATE_LENGTHS if math.isfinite(g))
 
 
 def predictive_gate(
     model: MeasurementModel,
     weight_cov: Tensor,
     weight_index: Tensor,
-    support: Tensor,
+    region: Tensor,
     length: float,
     fallback,
     noise: Tensor,
@@ -91,23 +91,23 @@ def predictive_gate(
     sigma_length: float,
     scale: float = 1.0,
     floor=None,
-) -> sup.SupportGate:
-    """``model``'s last (learned) effect behind a new support gate that also predicts its standard deviation.
+) -> gating.RegionGate:
+    """``model``'s last (learned) effect behind a new region gate that also predicts its standard deviation.
 
     Args:
         model: the model; its last effect is a network's correction, or a gate around one (then its inner effect).
         weight_cov: covariance of the network's weights in the filter's state ``(k, k)`` [the network's units].
         weight_index: their indices in the network's flat weights ``(k,)``.
-        support: the joints the gate is around ``(M, dof)`` [rad].
+        region: the joints the gate is around, the correction's calibrated region ``(M, dof)`` [rad].
         length: the gate's length [spreads] (inf: no gate).
         fallback: the robot the prediction fades to, or None.
         noise, far: ``s_noise`` and ``s_far`` per tracker axis ``(3,)`` [m].
         sigma_length: the length ``s_far`` is approached with [spreads] (finite; :func:`sigma_length`).
-        scale, floor: ``k`` and ``f`` per axis [m] (:meth:`~torchcal.effects.support.SupportGate.set_predictive`).
+        scale, floor: ``k`` and ``f`` per axis [m] (:meth:`~torchcal.effects.region.RegionGate.set_predictive`).
     """
     inner = model.effects[-1]
-    inner = inner.inner if isinstance(inner, sup.SupportGate) else inner
-    gate = sup.SupportGate(inner, support, length, fallback=fallback)
+    inner = inner.inner if isinstance(inner, gating.RegionGate) else inner
+    gate = gating.RegionGate(inner, region, length, fallback=fallback)
     gate.set_predictive(weight_cov, weight_index, noise, far, sigma_length, scale, floor)
     return gate
 
@@ -123,7 +123,7 @@ class GatedBlock:
         e: the model's residuals there ``(N, 3)`` [m] (:func:`residuals` with ``gate``).
     """
 
-    gate: sup.SupportGate
+    gate: gating.RegionGate
     robot: RobotModel
     q: Tensor
     e: Tensor
@@ -147,25 +147,25 @@ def fallback_growth(
     e: Tensor, d: Tensor, e_fallback: Tensor | None = None, d_fallback: Tensor | None = None
 ) -> tuple[list[float], float]:
     """The fallback's residual scale ``s_fb`` per axis [m] and its growth ``c`` with the squared distance
-    [1 / spread^2] (:func:`~torchcal.effects.support.fit_fallback_growth`).
+    [1 / spread^2] (:func:`~torchcal.effects.region.fit_fallback_growth`).
 
     The growth's shape comes from geometric models' residuals ``e`` ``(N, 3)`` [m] on samples after the ones each was
-    fitted on, at their distances ``d`` ``(N,)`` [spreads] from those: a path's continuation can leave the support
+    fitted on, at their distances ``d`` ``(N,)`` [spreads] from those: a path's continuation can leave the region
     much further than a validation block next to it does, and samples further along show how far geometry's
     residual grows. Where the fallback itself has residuals ``e_fallback`` ``(M, 3)`` [m] on samples it was not
     fitted on, at distances ``d_fallback`` ``(M,)``, they size ``s_fb`` with that growth
-    (:func:`~torchcal.effects.support.fit_fallback_scale`): a geometry fitted on all training samples is better
+    (:func:`~torchcal.effects.region.fit_fallback_scale`): a geometry fitted on all training samples is better
     determined than the ones fitted on parts of them, and scaled by those it would overstate its own error.
     """
-    s_fb, growth = sup.fit_fallback_growth(e, d)
+    s_fb, growth = gating.fit_fallback_growth(e, d)
     if e_fallback is None:
         return s_fb, growth
-    return sup.fit_fallback_scale(e_fallback, d_fallback, growth), growth
+    return gating.fit_fallback_scale(e_fallback, d_fallback, growth), growth
 
 
 def calibrate_predictive_sigma(
     validation: GatedBlock,
-    final: sup.SupportGate,
+    final: gating.RegionGate,
     holdout: GatedBlock | None,
     growth_residuals: Tensor,
     growth_distance: Tensor,
@@ -180,8 +180,8 @@ def calibrate_predictive_sigma(
 
     * the fallback's scale and growth (:func:`fallback_growth`) from ``growth_residuals`` ``(N, 3)`` [m] at
       ``growth_distance`` ``(N,)`` [spreads] and, sizing the scale, ``fallback_residuals`` ``(M, 3)`` [m]: the final
-      gate's fallback's residuals on the held-out samples (at their distance from ``final``'s support);
-    * the scale ``k`` and floor ``f`` (:func:`~torchcal.effects.support.fit_predictive_scale`): by likelihood on
+      gate's fallback's residuals on the held-out samples (at their distance from ``final``'s region);
+    * the scale ``k`` and floor ``f`` (:func:`~torchcal.effects.region.fit_predictive_scale`): by likelihood on
       validation, then widened (never narrowed) to ``target`` within 2 sigma over the validation and held-out
       residuals together, each block with its own gate's variance. The held-out coverage is then part of the
       calibration, not an independent check.
@@ -196,7 +196,7 @@ def calibrate_predictive_sigma(
     fb_sigma, fb_growth = fallback_growth(growth_residuals, growth_distance, fallback_residuals, d_fallback)
     for g in (validation.gate, final):
         g.sigma_fallback, g.fallback_growth = fb_sigma, fb_growth
-    scale, floor = sup.fit_predictive_scale(
+    scale, floor = gating.fit_predictive_scale(
         *validation.variance_parts(), target, holdout=None if holdout is None else holdout.variance_parts()
     )
     for g in (validation.gate, final):
@@ -210,8 +210,8 @@ def calibrate_predictive_sigma(
         "held-out residuals together (held-out coverage calibrated, not independent)"
         if holdout is not None
         else "likelihood on validation, then widened (never narrowed) to the target on validation",
-        "coverage_2sigma_validation": sup.coverage(*blocks[0]),
-        "coverage_2sigma_holdout": sup.coverage(*blocks[1]) if holdout is not None else None,
+        "coverage_2sigma_validation": gating.coverage(*blocks[0]),
+        "coverage_2sigma_holdout": gating.coverage(*blocks[1]) if holdout is not None else None,
         "n_validation": validation.n,
         "n_holdout": 0 if holdout is None else holdout.n,
         "sigma_noise_mm": (validation.gate.sigma_noise * 1e3).tolist(),
@@ -229,7 +229,7 @@ def sigma_check(blocks: list[tuple[Tensor, Tensor]]) -> dict:
     largest residual.
 
     ``suspect`` when it is not finite or more than :data:`SIGMA_CHECK_RATIO` times that residual. The widening
-    factor (:func:`~torchcal.effects.support.calibrate_factor`) is a quantile of what each residual component needs
+    factor (:func:`~torchcal.effects.region.calibrate_factor`) is a quantile of what each residual component needs
     from the near part of the variance; where that part is nearly zero (a gate almost closed) the need, and with it
     every other sample's sigma, grows until the factor's cap. Reported, not hidden.
 

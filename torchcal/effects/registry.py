@@ -9,14 +9,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from torchcal.effects.base import Acts, Effect
+from torchcal.effects.base import Acts, Effect, read_renamed
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
 from torchcal.effects.grouped import GroupedCorrection
 from torchcal.effects.joint import Backlash, Compliance, Coupling, Cyclic, LumpedCompliance, Transmission
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
-from torchcal.effects.support import SupportGate
+from torchcal.effects.region import RegionGate
 from torchcal.errors import OptionError
 
 
@@ -47,7 +47,7 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),
     EffectKind(
         "learned",
-        (LearnedEffect, KernelCorrection, GPCorrection, SupportGate, GroupedCorrection),
+        (LearnedEffect, KernelCorrection, GPCorrection, RegionGate, GroupedCorrection),
         (Acts.CARTESIAN,),
         False,
     ),
@@ -63,6 +63,8 @@ KINDS: tuple[str, ...] = tuple(k.name for k in KIND_TABLE)
 NAMED_KINDS: tuple[str, ...] = tuple(k.name for k in KIND_TABLE if k.named)
 #: effect classes by class name, for model.json
 CLASSES: dict[str, type[Effect]] = {c.__name__: c for k in KIND_TABLE for c in k.classes}
+#: class names model.json of earlier runs used, old -> new (their keys: :attr:`Effect.renamed`)
+RENAMED_CLASSES = {"SupportGate": "RegionGate"}
 
 
 def kind(name: str) -> EffectKind:
@@ -76,31 +78,33 @@ def kind(name: str) -> EffectKind:
 def effect_from_config(cfg: dict, robot=None) -> Effect:
     """Rebuild an effect from ``{"class": name, **config()}``; load its parameters with ``load_state_dict``.
 
-    ``robot``: the run's robot, the skeleton of a :class:`SupportGate`'s fallback geometry (its values come with
+    ``robot``: the run's robot, the skeleton of a :class:`RegionGate`'s fallback geometry (its values come with
     the state dict).
     """
     cfg = dict(cfg)
     name = cfg.pop("class")
+    name = RENAMED_CLASSES.get(name, name)
     if name not in CLASSES:
         raise OptionError(f"unknown effect class '{name}'; known: {', '.join(CLASSES)}")
+    read_renamed(cfg, CLASSES[name].renamed)  # a run written before a key's rename
     if name == "LearnedEffect":
         return LearnedEffect(CorrectionNet(cfg["dof"], cfg["hidden"]))
     if name == "GroupedCorrection":
         return GroupedCorrection(
             cfg["groups"], [effect_from_config(c, robot) for c in cfg["inner"]], cfg.get("regions")
         )
-    if name == "SupportGate":
+    if name == "RegionGate":
         if cfg.get("fallback") and robot is None:
-            raise OptionError("a SupportGate with a fallback geometry needs the run's robot to be rebuilt")
+            raise OptionError("a RegionGate with a fallback geometry needs the run's robot to be rebuilt")
         import copy
 
         import torch
 
-        return SupportGate(
+        return RegionGate(
             effect_from_config(cfg["inner"], robot),
-            torch.zeros(cfg["n_support"], cfg["dof"], dtype=torch.float64),
+            torch.zeros(cfg["n_region"], cfg["dof"], dtype=torch.float64),
             cfg["length"],
-            max_support=cfg["n_support"],
+            max_points=cfg["n_region"],
             fallback=copy.deepcopy(robot) if cfg.get("fallback") else None,
             predictive=cfg.get("predictive"),
             fallback_in_base=cfg.get("fallback_frame") == "base",

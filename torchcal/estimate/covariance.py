@@ -148,7 +148,7 @@ def learned_std(model: MeasurementModel, ctx: Context) -> Tensor | None:
     region; None where none has."""
     from torchcal.effects.gp import GPCorrection
     from torchcal.effects.grouped import GroupedCorrection, row_groups
-    from torchcal.effects.support import predictive_sigma
+    from torchcal.effects.region import predictive_sigma
 
     def gp_std(e: GPCorrection, sub: Context) -> Tensor:
         return e.predict(sub, std=True)[1]  # robot base frame

@@ -216,10 +216,10 @@ def fade_weight(model: MeasurementModel, q: Tensor) -> Tensor:
 def without_fading(model: MeasurementModel) -> MeasurementModel:
     """A copy of ``model`` as it predicts far beyond its region: without its learned corrections and its open
     joint-angle forms (the parts that fade to the geometry there)."""
-    from torchcal.effects.joint import SupportedForm
+    from torchcal.effects.joint import RegionForm
 
     def fades(e) -> bool:
-        return e.kind == "learned" or (isinstance(e, SupportedForm) and e.support is not None and not e._unbounded())
+        return e.kind == "learned" or (isinstance(e, RegionForm) and e.region is not None and not e._unbounded())
 
     out = copy.deepcopy(model)
     out.effects = torch.nn.ModuleList([e for e in out.effects if not fades(e)])

@@ -53,7 +53,7 @@ from torchcal._method import Engine
 from torchcal.data import Measurements
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
 from torchcal.effects import predictive as P
-from torchcal.effects import support as sup
+from torchcal.effects import region as gating
 from torchcal.errors import EstimationError, OptionError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and_tool, solve
 from torchcal.estimate.joint_refinement import refine_jointly
@@ -455,7 +455,7 @@ def _nominal_copy(robot):
 #: order, so that the choice is judged on how a model predicts the *continuation* of the path it was fitted on,
 #: which is what the held-out samples (and a user's next program) ask of it
 VALIDATION_FRACTION = 0.2
-#: the longest support gate the paper's engine is tried behind (in units of the joints' training spread)
+#: the longest region gate the paper's engine is tried behind (in units of the joints' training spread)
 EKF_LONGEST_GATE = 0.5
 
 
@@ -470,12 +470,16 @@ class Setting:
 
     @property
     def gate_lengths(self) -> tuple[float, ...]:
-        """Support-gate lengths tried on validation. The paper's engine is kept only behind a finite gate: its
+        """Region-gate lengths tried on validation. The paper's engine is kept only behind a finite gate: its
         6-29-3 network, refined jointly with a geometry of its own, can beat geometry alone on every piece of the
         validation block and still extrapolate worse than geometry on the path's continuation, far from the joints
         it was fitted on; a gate bounds how far from them it acts (docs/integrated.md, *Paths it was not tuned
         on*)."""
-        return tuple(g for g in sup.GATE_LENGTHS if g <= EKF_LONGEST_GATE) if self.engine == "ekf" else sup.GATE_LENGTHS
+        return (
+            tuple(g for g in gating.GATE_LENGTHS if g <= EKF_LONGEST_GATE)
+            if self.engine == "ekf"
+            else gating.GATE_LENGTHS
+        )
 
     @property
     def name(self) -> str:
@@ -510,12 +514,12 @@ def _scratch(work: StageWork, model: MeasurementModel, train_idx: Tensor, holdou
     return trial
 
 
-def _gated(model: MeasurementModel, support: Tensor, length: float, fallback) -> MeasurementModel:
-    """``model`` with its last (learned) effect behind a support gate falling back to ``fallback``."""
+def _gated(model: MeasurementModel, region: Tensor, length: float, fallback) -> MeasurementModel:
+    """``model`` with its last (learned) effect behind a region gate falling back to ``fallback``."""
     # a new model around the same robot and effects (copy.copy of a Module would share its submodule table, and
     # replacing the effect there would wrap the original model's effect too)
     return MeasurementModel(
-        model.robot, [*model.effects[:-1], sup.SupportGate(model.effects[-1], support, length, fallback=fallback)]
+        model.robot, [*model.effects[:-1], gating.RegionGate(model.effects[-1], region, length, fallback=fallback)]
     )
 
 
@@ -544,8 +548,8 @@ def integrate_selected(
     The training samples are split in time: the first ``1 - VALIDATION_FRACTION`` fit, the last block validates.
     Geometry alone (the kinematic calibration refitted on the fitting samples) and every ``settings`` candidate
     (an engine with its capacity and prior, fitted on the fitting samples, the validation block its test phase)
-    predict the validation block. Each is also tried behind a :class:`~torchcal.effects.support.SupportGate` of
-    the lengths in :data:`~torchcal.effects.support.GATE_LENGTHS` (no gate among them), which fades the
+    predict the validation block. Each is also tried behind a :class:`~torchcal.effects.region.RegionGate` of
+    the lengths in :data:`~torchcal.effects.region.GATE_LENGTHS` (no gate among them), which fades the
     prediction back to the kinematic calibration where the path leaves the joints the filter was trained on. The
     candidate with the lowest validation RMSE is kept only if it beats geometry alone by a one-sided paired test
     at ``work.options.levels.validation``, with the standard error inflated for the autocorrelation of
@@ -603,7 +607,7 @@ def _validate_settings(
         except EstimationError as err:
             table.append({"candidate": setting.name, "failed": str(err)})
             continue
-        length, gates = sup.choose_gate_length(
+        length, gates = gating.choose_gate_length(
             lambda ell, m=trial.model: _gated(m, fit.q, ell, geo.robot),
             lambda m: _rmse(_errors(m, val)),
             setting.gate_lengths,
@@ -761,7 +765,7 @@ def _gate_on_holdout(
     ``evidence["gate_on_holdout"]``; with fewer held-out samples than validation pieces, ``length`` is kept."""
     if hold.n < VALIDATION_PIECES:
         return length
-    chosen, gates = sup.choose_gate_length(
+    chosen, gates = gating.choose_gate_length(
         lambda ell: _gated(model, train.q, ell, kinematic),
         lambda m: _rmse(_errors(m, hold)),
         setting.gate_lengths,
@@ -791,12 +795,12 @@ def _attach_predictive_sigma(
     hold: Measurements,
     length: float,
 ) -> dict:
-    """Put the final model's learned effect behind its support gate with a predictive standard deviation.
+    """Put the final model's learned effect behind its region gate with a predictive standard deviation.
 
     The scale factor is calibrated on the validation block with the candidate fitted on the fitting samples
     (``val_model``, ``val_filter``) behind the same gate falling back to geometry on the fitting samples (``geo``);
     the final gate falls back to the kinematic calibration on all training samples (``kinematic``). The network's
-    error far from the support tends to its gate's fallback's residual scale ``s_far``: geometry on the fitting
+    error far from the region tends to its gate's fallback's residual scale ``s_far``: geometry on the fitting
     samples on the validation block for the candidate's gate, the kinematic calibration on the held-out samples for
     the final gate (without held-out samples, the former for both). The fallback's error and its growth with
     distance come from geometry's own residuals (:func:`_growth_residuals`). Here the models are fitted and their
@@ -807,7 +811,7 @@ def _attach_predictive_sigma(
     """
     opts = work.options
     noise = P.observation_sigma(work.model.robot, train, opts.fit.sigma_tracker, opts.fit.sigma_joint)
-    # each fallback's residuals beyond its own support: geometry on the fitting samples on the validation block,
+    # each fallback's residuals beyond its own region: geometry on the fitting samples on the validation block,
     # the kinematic calibration (geometry on all training samples) on the held-out samples
     e_geo = P.residuals(geo, val)
     e_kin = P.residuals(MeasurementModel(kinematic, []), hold) if hold.n else None
@@ -818,7 +822,7 @@ def _attach_predictive_sigma(
     )
     e_growth, d_growth = _growth_residuals(work, kinematic, e_geo, val, train, val_gate)
     validation = P.GatedBlock(val_gate, val_model.robot, val.q, P.residuals(val_model, val, val_gate))
-    # each gate's far part is its own fallback's residual scale beyond that fallback's support: geometry's on the
+    # each gate's far part is its own fallback's residual scale beyond that fallback's region: geometry's on the
     # validation block for the candidate; the kinematic calibration's on the held-out samples for the final model
     # (a geometry on all training samples, better determined than the one on fewer)
     far_final = far if e_kin is None else P.residual_scale(e_kin)
@@ -847,12 +851,12 @@ def _growth_residuals(
     e_geo: Tensor,
     val: Measurements,
     train: Measurements,
-    val_gate: sup.SupportGate,
+    val_gate: gating.RegionGate,
 ) -> tuple[Tensor, Tensor]:
     """The residuals ``(N, 3)`` [m] and distances ``(N,)`` [spreads] the fallback's growth with distance is fitted
     on (:func:`~torchcal.effects.predictive.fallback_growth`): geometric models' residuals on samples after the ones
     each was fitted on, at their distance from those. Geometry on the fitting samples on the validation block
-    (``e_geo``) reaches only a short way from the support; a path's continuation can leave it much further (a random
+    (``e_geo``) reaches only a short way from the region; a path's continuation can leave it much further (a random
     walk), so geometry is also refitted on the first half of the training samples (from the kinematic calibration)
     and its residuals on the second half show how far geometry's residual grows over a longer stretch."""
     half = train.n // 2
@@ -861,7 +865,7 @@ def _growth_residuals(
     geo_half = MeasurementModel(copy.deepcopy(kinematic), [])
     stage = "integrated: geometry on the first half (sigma)"
     solve(geo_half, first, GEOMETRIC_GROUPS, work.options.fit, stage, trajectory=True, identifiability=ida)
-    half_gate = sup.SupportGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
+    half_gate = gating.RegionGate(val_gate.inner, first.q, math.inf)  # only its distance to the first half is used
     e = torch.cat([e_geo, P.residuals(geo_half, second)])
     d = torch.cat([val_gate.distance(val.q), half_gate.distance(second.q)])
     return e, d

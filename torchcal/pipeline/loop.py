@@ -53,7 +53,7 @@ from torchcal.diagnose.tracing import (
 )
 from torchcal.effects import Context, MeasurementModel, joint_function_check
 from torchcal.effects.drift import Drift
-from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, SupportedForm
+from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, RegionForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.holdout import at_edges
@@ -220,7 +220,7 @@ class _Search:
             cand,
             self.run.options.loop.max_joint_error,
         )
-        if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
+        if v.passed and isinstance(v.trial.effects[-1], RegionForm):
             _validate_edge(
                 v,
                 self.base,
@@ -406,7 +406,7 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         v.validation["edge"] = {"skipped": "the baseline's refit without the edge poses failed"}
         return
     trial = copy.deepcopy(base)
-    # the form as it continues (its support the whole range of the fitting poses, no fade at the edge poses): the
+    # the form as it continues (its region the whole range of the fitting poses, no fade at the edge poses): the
     # question is whether its shape holds there, and a form faded beyond the middle would lose to geometry that
     # absorbed part of it in any case
     trial.add(_made(v.candidate, fit_part))
@@ -438,12 +438,12 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
 
 def _made(cand, data: Measurements):
     """The candidate's effect, knowing where ``data`` put it: an open form the range its joint covers (beyond it, it
-    fades), a drift in time the span of the samples (beyond it, it holds)."""
+    fades), a drift in time the times of the samples (beyond them, it holds)."""
     eff = cand.make()
-    if isinstance(eff, SupportedForm):
-        eff.set_support(data.q)
+    if isinstance(eff, RegionForm):
+        eff.set_region(data.q)
     if isinstance(eff, Drift) and getattr(data, "t", None) is not None:
-        eff.set_span(data.t)
+        eff.set_region(data.t)
     return eff
 
 

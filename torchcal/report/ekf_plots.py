@@ -90,7 +90,7 @@ def ekf_section(run, out: Path) -> list[str]:
             else ""
         )
         lines += [
-            f"Chosen on the last {sel['n_validation']} training samples: {sel['chosen']}, support gate length "
+            f"Chosen on the last {sel['n_validation']} training samples: {sel['chosen']}, region gate length "
             f"{_length(gate)}{origin} (report.json: the candidates).",
             "",
         ]

@@ -445,8 +445,8 @@ def plot_joint_function(run: CalibrationRun, effect, path: Path) -> None:
         applied = (effect._terms(q, fade=True).sum(-1) * 1e3).cpu()
     grid = grid.cpu()
     fig, ax = subplots(figsize=(7, 3))
-    if effect.support is not None:
-        a, b = (float(v) for v in effect.support)
+    if effect.region is not None:
+        a, b = (float(v) for v in effect.region)
         ax.axvspan(a, b, color="tab:green", alpha=0.12, label="fitted range")
     ax.plot(grid.tolist(), raw.tolist(), "--", color="0.5", lw=1, label="as fitted, continued")
     ax.plot(grid.tolist(), applied.tolist(), color="tab:blue", lw=1.5, label="as applied (fades beyond)")
@@ -465,7 +465,7 @@ def plot_joint_function(run: CalibrationRun, effect, path: Path) -> None:
 
 def _region_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
     """Where the model holds: the calibrated region, what fades beyond it, each open form over its joint's range."""
-    from torchcal.effects.joint import FADE_LENGTH, SupportedForm
+    from torchcal.effects.joint import FADE_LENGTH, RegionForm
 
     reg = report.get("region")
     if not reg:
@@ -485,7 +485,7 @@ def _region_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
         lines.append(f"| q{j} | {a:.4g} | {b:.4g} |")
     lines.append("")
     for k, e in enumerate(run.model.effects):
-        if isinstance(e, SupportedForm):
+        if isinstance(e, RegionForm):
             name = f"joint_function_{k}_{e.kind}_{e.joint}.png"
             plot_joint_function(run, e, out / name)
             lines += [f"![{e.kind}:{e.joint} over its joint's range]({name})", ""]

@@ -346,26 +346,27 @@ def _write_geometric(rt, tmp: Path) -> None:
 
 def _region_report(model: MeasurementModel) -> dict | None:
     """report.json's ``region``: model.json's (:func:`_region_config`), the fade length, the fitted range of each
-    open joint form (by ``kind:joint``) and the time span a drift in time holds beyond."""
-    from torchcal.effects.joint import FADE_LENGTH, SupportedForm
+    open joint form (by ``kind:joint``) and the time region a drift in time holds beyond (its key
+    ``drift_time_span`` as report.json has always written it)."""
+    from torchcal.effects.joint import FADE_LENGTH, RegionForm
 
     cfg = _region_config(model)
     if cfg is None:
         return None
-    supports = {
-        f"{e.kind}:{e.joint}": [float(v) for v in e.support]
+    forms = {
+        f"{e.kind}:{e.joint}": [float(v) for v in e.region]
         for e in model.effects
-        if isinstance(e, SupportedForm) and e.support is not None
+        if isinstance(e, RegionForm) and e.region is not None
     }
-    spans = [[float(v) for v in e.span] for e in model.effects if e.kind == "drift" and e.span is not None]
+    times = [[float(v) for v in e.region] for e in model.effects if e.kind == "drift" and e.region is not None]
     return {
         "joint_min": cfg["joint_min"],
         "joint_max": cfg["joint_max"],
         "learned_fade": cfg["fade"],
         "fade_length": FADE_LENGTH,
-        "open_forms": supports,
-        # a drift in time holds its value beyond the span it was fitted on [s] (every drift in t is fitted on one)
-        "drift_time_span": spans[0] if spans else None,
+        "open_forms": forms,
+        # a drift in time holds its value beyond the times it was fitted on [s] (every drift in t is fitted on one)
+        "drift_time_span": times[0] if times else None,
     }
 
 

@@ -76,7 +76,7 @@ LEARNED_LENGTH = 0.1
 #: the kernel length of the spreading picks (:class:`SpreadTurns`), in joints scaled to the candidates' range [1]
 SPREAD_LENGTH = 0.25
 #: a design for a learned correction (module docstring): the picks left to the criterion before the spread picks
-#: take over, and the share of the edge picks (one in fifty: the learned correction's support reaches the region's
+#: take over, and the share of the edge picks (one in fifty: the learned correction's region reaches the joints'
 #: edges, and every edge pick is a pose less where the robot works)
 GEOMETRY_PICKS = 30
 LEARNED_EDGE_SHARE = 0.02

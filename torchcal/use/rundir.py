@@ -55,7 +55,15 @@ def _run_error(run_dir: Path, what: str) -> OptionError:
 #: Integer sizes an effect's config in model.json may carry, and the largest accepted: each becomes the size of
 #: tensors allocated when the effect is rebuilt, before model.pt is loaded into them. Any other integer in a
 #: config is bounded by :data:`MAX_CONFIG_INT`; ``joint`` must name a joint of the run's robot (1-based).
-SIZE_LIMITS = {"hidden": 100_000, "n_support": 200_000, "n_inducing": 100_000, "n_weights": 10_000_000, "dof": 256}
+#: (``n_support``: a kernel correction's points, and a region gate's in runs written before ``n_region``)
+SIZE_LIMITS = {
+    "hidden": 100_000,
+    "n_support": 200_000,
+    "n_region": 200_000,
+    "n_inducing": 100_000,
+    "n_weights": 10_000_000,
+    "dof": 256,
+}
 MAX_CONFIG_INT = 100_000
 #: Most effects (and effects nested in one another) a run may hold.
 MAX_EFFECTS = 1000

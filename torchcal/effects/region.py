@@ -2,15 +2,18 @@
 
 A network or kernel fitted along a trajectory has seen a thin tube of joint space around that path. Where a later
 path leaves the tube, its output is an extrapolation, and a tanh network extrapolates as confidently as it
-interpolates. :class:`SupportGate` wraps such an effect and fades its correction towards zero, i.e. back to the
+interpolates. :class:`RegionGate` wraps such an effect and fades its correction towards zero, i.e. back to the
 geometric model, with the distance from the training joints:
 
     ``dp_gated(q) = g(d(q)) * dp(q)``,  ``d(q) = min_i || (q - q_i) / s ||``,  ``g(d) = exp(-d^2 / (2 l^2))``
 
-with ``q_i`` the training joints (thinned to at most ``max_support`` of them), ``s`` the joints' spread on the
-training data (so one length fits all joints) and ``l`` the gate's length, chosen on validation data that continue
-the training path (:func:`choose_gate_length`). At a training sample ``d = 0`` and the gate is 1, so wrapping an
-already fitted effect leaves the training fit unchanged; ``l = inf`` switches the gate off.
+with ``q_i`` the training joints, the correction's calibrated region (thinned to at most ``max_points`` of them),
+``s`` the joints' spread on the training data (so one length fits all joints) and ``l`` the gate's length, chosen
+on validation data that continue the training path (:func:`choose_gate_length`). At a training sample ``d = 0`` and
+the gate is 1, so wrapping an already fitted effect leaves the training fit unchanged; ``l = inf`` switches the
+gate off. The gate is how the correction fades beyond its region, as an open joint form fades beyond its joint's
+(:data:`torchcal.effects.joint.FADE_LENGTH`); runs written when the region was called ``support`` (the class
+``SupportGate``, its config's ``n_support`` and its state's ``support``) load under the new names.
 
 With a ``fallback`` robot (the kinematic calibration's geometry) the whole prediction fades to that geometry, not
 only the learned correction: a filter that estimated its own geometry together with the network (the adaptive
@@ -21,7 +24,7 @@ engine) has a geometry that is only right together with its network, so away fro
 (tracker frame), which the gate writes as a position correction in the model's base frame. The model must then have
 no other effects (the integrated method's models have none).
 
-*Predictive standard deviation* (:meth:`SupportGate.set_predictive`, :func:`predictive_sigma`). Where the inner
+*Predictive standard deviation* (:meth:`RegionGate.set_predictive`, :func:`predictive_sigma`). Where the inner
 effect is a network whose weights a filter estimated (covariance ``P_w`` of the weights in its state), the
 gate predicts a standard deviation per sample and tracker axis ``a``. The gated prediction is ``g y_model +
 (1 - g) y_fallback``, so its error is ``g e_model + (1 - g) e_fallback`` exactly; with the two errors independent
@@ -37,7 +40,7 @@ little about the error along a new stretch of path (its shape is mostly the prio
 samples has a smaller ``P_w`` but not a smaller misfit: the floor carries the misfit the validation block showed.
 Both are then widened (never narrowed) to a target coverage, over the validation residuals and, where given, the
 refitted model's residuals on held-out samples (:func:`calibrate_factor`).
-The model's own error grows away from its support towards its fallback's residual scale on samples after that fallback's
+The model's own error grows away from its region towards its fallback's residual scale on samples after that fallback's
 fitting samples ``s_far`` (the integrated method: geometry's on its validation block, or the kinematic calibration's on
 the held-out samples), with ``h = exp(-d^2 / (2 l_s^2))`` of length ``sigma_length`` (the gate's own when it is finite):
 a network extrapolates no better than geometry does. The fallback's error ``s_fb (1 + c d^2)^(1/2)`` grows with the
@@ -45,7 +48,7 @@ distance too: fitted on the geometric model's residuals on samples after the one
 from those (:func:`fit_fallback_growth`), since geometry fitted along one stretch of path leaves less of the field there
 than further away; where the fallback itself (geometry on all training samples) has residuals on samples it was not
 fitted on, those size ``s_fb`` with the growth's shape kept (:func:`fit_fallback_scale`): it is better determined than
-the refits the growth comes from. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's support
+the refits the growth comes from. Without a fallback fit (``c = 0``, ``s_fb = s_far``), far from a finite gate's region
 the variance is ``s_far^2``. :mod:`torchcal.effects.predictive` calibrates these parts on a model's residuals.
 """
 
@@ -67,14 +70,15 @@ Tensor = torch.Tensor
 GATE_LENGTHS = (math.inf, 8.0, 4.0, 2.0, 1.0, 0.5, 0.25, 0.12, 0.06)
 
 
-class SupportGate(Effect):
+class RegionGate(Effect):
     """Wrap a Cartesian correction ``inner`` so that it fades to zero away from the training joints.
 
     Args:
         inner: the fitted effect (``acts_on`` must be ``"cartesian"``: a position correction).
-        support: training joints ``(M, dof)`` [rad]; thinned to ``max_support`` evenly spaced rows.
+        region: the training joints, the region the correction was fitted on ``(M, dof)`` [rad]; thinned to
+            ``max_points`` evenly spaced rows.
         length: gate length in units of the joints' spread (``inf`` or None: no gate).
-        max_support: most support points kept (the distance costs ``N * M * dof``).
+        max_points: most region points kept (the distance costs ``N * M * dof``).
         fallback: the robot the prediction fades to (module docstring), or None (the correction fades to zero).
         fallback_in_base: the fallback's instrument pose is its placement relative to this model's base frame
             (:meth:`fallback_to_base`: a re-stationed run), not a tracker pose.
@@ -84,27 +88,28 @@ class SupportGate(Effect):
 
     kind = "learned"
     acts_on = "cartesian"
+    renamed = {"support": "region", "n_support": "n_region"}
 
     def __init__(
         self,
         inner: Effect,
-        support: Tensor,
+        region: Tensor,
         length: float | None = math.inf,
         *,
-        max_support: int = 3000,
+        max_points: int = 3000,
         fallback=None,
         predictive: dict | None = None,
         fallback_in_base: bool = False,
     ):
         super().__init__(joint=None)
         if inner.acts_on != "cartesian":
-            raise ValueError(f"SupportGate wraps a position correction; {type(inner).__name__} acts on {inner.acts_on}")
-        if support.ndim != 2 or len(support) == 0:
-            raise ValueError(f"support must have shape (M, dof) with M > 0, got {tuple(support.shape)}")
+            raise ValueError(f"RegionGate wraps a position correction; {type(inner).__name__} acts on {inner.acts_on}")
+        if region.ndim != 2 or len(region) == 0:
+            raise ValueError(f"region must have shape (M, dof) with M > 0, got {tuple(region.shape)}")
         self.inner = inner
-        stride = max(1, math.ceil(len(support) / max_support))
-        kept = support[::stride].detach().clone()
-        self.register_buffer("support", kept)
+        stride = max(1, math.ceil(len(region) / max_points))
+        kept = region[::stride].detach().clone()
+        self.register_buffer("region", kept)
         spread = kept.std(dim=0) if len(kept) > 1 else torch.ones(kept.shape[1], dtype=kept.dtype, device=kept.device)
         self.register_buffer("spread", spread.clamp(min=1e-3))
         self.length = math.inf if length is None else float(length)  # None: no gate (how config() writes inf)
@@ -159,7 +164,7 @@ class SupportGate(Effect):
             sigma_length: the gate length the standard deviation fades with (finite).
             scale: the calibration factor ``k`` of the network's and the noise's variance.
             floor: the misfit floor ``f`` per tracker axis ``(3,)`` [m] (default 0).
-            fallback_sigma: the fallback's residual scale at the support ``s_fb`` per tracker axis ``(3,)`` [m]
+            fallback_sigma: the fallback's residual scale at the region ``s_fb`` per tracker axis ``(3,)`` [m]
                 (default ``sigma_far``).
             fallback_growth: its growth ``c`` with the squared distance [1 / spread^2] (default 0: constant).
         """
@@ -173,10 +178,10 @@ class SupportGate(Effect):
             )
         if not math.isfinite(sigma_length) or sigma_length <= 0:
             raise ValueError(f"sigma_length must be finite and positive, got {sigma_length}")
-        self.register_buffer("weight_cov", weight_cov.detach().clone().to(self.support))
-        self.register_buffer("weight_index", weight_index.detach().clone().long().to(self.support.device))
-        self.register_buffer("sigma_noise", sigma_noise.detach().clone().to(self.support))
-        self.register_buffer("sigma_far", sigma_far.detach().clone().to(self.support))
+        self.register_buffer("weight_cov", weight_cov.detach().clone().to(self.region))
+        self.register_buffer("weight_index", weight_index.detach().clone().long().to(self.region.device))
+        self.register_buffer("sigma_noise", sigma_noise.detach().clone().to(self.region))
+        self.register_buffer("sigma_far", sigma_far.detach().clone().to(self.region))
         self.sigma_length = float(sigma_length)
         self.sigma_scale = float(scale)
         self.sigma_floor = [0.0, 0.0, 0.0] if floor is None else [float(f) for f in floor]
@@ -241,8 +246,8 @@ class SupportGate(Effect):
         self.fallback_in_base = True
 
     def distance(self, q: Tensor) -> Tensor:
-        """``d(q)``: distance to the nearest support point in units of the spread ``(N,)``."""
-        s = self.support / self.spread
+        """``d(q)``: distance to the nearest region point in units of the spread ``(N,)``."""
+        s = self.region / self.spread
         x = q / self.spread
         out = torch.empty(len(q), dtype=q.dtype, device=q.device)
         for i in range(0, len(q), 2048):  # bounded memory: (2048, M) distances at a time
@@ -276,8 +281,8 @@ class SupportGate(Effect):
         return {
             "inner": {"class": type(self.inner).__name__, **self.inner.config()},
             "length": self.length if math.isfinite(self.length) else None,  # JSON has no inf
-            "n_support": int(len(self.support)),
-            "dof": int(self.support.shape[1]),
+            "n_region": int(len(self.region)),
+            "dof": int(self.region.shape[1]),
             "fallback": self.fallback is not None,
             **({"fallback_frame": "base"} if self.fallback_in_base else {}),  # absent: the tracker frame
             "predictive": {
@@ -295,7 +300,7 @@ class SupportGate(Effect):
     def describe(self) -> dict:
         return {
             "gate_length": self.length,
-            "support_points": int(len(self.support)),
+            "region_points": int(len(self.region)),
             "falls_back_to": "the kinematic calibration" if self.fallback is not None else "the model's geometry",
             "inner": self.inner.describe(),
         }
@@ -305,8 +310,8 @@ class SupportGate(Effect):
 
 
 def choose_gate_length(
-    make_gate: Callable[[float], SupportGate],
-    score: Callable[[SupportGate], float],
+    make_gate: Callable[[float], RegionGate],
+    score: Callable[[RegionGate], float],
     lengths: Sequence[float] = GATE_LENGTHS,
 ) -> tuple[float, list[dict]]:
     """The gate length with the lowest validation score, and the table of all tried.
@@ -331,11 +336,11 @@ def choose_gate_length(
 def predictive_sigma(model, q: Tensor) -> Tensor | None:
     """Predicted standard deviation ``(N, 3)`` [m] of ``model``'s positions at joints ``q``, or None.
 
-    Defined where the model's learned correction is a :class:`SupportGate` with a predictive standard deviation
+    Defined where the model's learned correction is a :class:`RegionGate` with a predictive standard deviation
     (the integrated method's filters); None for any other model (geometry alone, kernels, the closed loop's
     effects), which has no per-sample standard deviation.
     """
-    gates = [e for e in model.effects if isinstance(e, SupportGate) and e.has_predictive]
+    gates = [e for e in model.effects if isinstance(e, RegionGate) and e.has_predictive]
     if not gates:
         return None
     with torch.no_grad():
@@ -376,7 +381,7 @@ def fit_predictive_scale(
     that stays close to the training joints.
 
     Args:
-        e: validation residuals ``(N, 3)`` [m]; a, b, g2: the parts of :meth:`SupportGate.variance_parts` there.
+        e: validation residuals ``(N, 3)`` [m]; a, b, g2: the parts of :meth:`RegionGate.variance_parts` there.
         holdout: ``(e, a, b, g2)`` of the held-out samples ``(M, 3)`` each, or None.
 
     Returns:
@@ -461,7 +466,7 @@ def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:
 
     Args:
         e: residuals ``(N, 3)`` [m].
-        d: distances ``(N,)`` to the fitting samples [spreads] (:meth:`SupportGate.distance`).
+        d: distances ``(N,)`` to the fitting samples [spreads] (:meth:`RegionGate.distance`).
 
     Returns:
         ``(s_fb, c)``: the scale per axis [m] and the growth [1 / spread^2] (0 where the residuals do not grow).
@@ -488,18 +493,18 @@ def fit_fallback_growth(e: Tensor, d: Tensor) -> tuple[list[float], float]:
 
 def fit_fallback_scale(e: Tensor, d: Tensor, growth: float) -> list[float]:
     """The fallback's residual scale ``s_fb`` (per axis) of ``var_a(d) = s_fb_a^2 (1 + c d^2)`` with the growth ``c``
-    given, by maximum likelihood of residuals ``e`` of the fallback itself at their distances ``d`` from its support:
+    given, by maximum likelihood of residuals ``e`` of the fallback itself at their distances ``d`` from its region:
     ``s_fb_a^2 = mean_i e_ia^2 / (1 + c d_i^2)`` (Gaussian, independent components).
 
     :func:`fit_fallback_growth` learns the growth from geometric models refitted on parts of the training samples,
-    which reach further from their support than held-out samples do; but a geometry fitted on all training samples
+    which reach further from their region than held-out samples do; but a geometry fitted on all training samples
     (the fallback a prediction uses) is better determined than one fitted on half of them, and its error at the
     same distance is smaller. Its own residuals on samples it was not fitted on size the scale; the refits only the
     shape.
 
     Args:
         e: residuals of the fallback ``(N, 3)`` [m] on samples it was not fitted on.
-        d: their distances ``(N,)`` to its fitting samples [spreads] (:meth:`SupportGate.distance`).
+        d: their distances ``(N,)`` to its fitting samples [spreads] (:meth:`RegionGate.distance`).
         growth: ``c`` [1 / spread^2], e.g. from :func:`fit_fallback_growth`.
 
     Returns:

@@ -1,5 +1,6 @@
-"""Re-stationing a calibrated run (torchcal.report.station, ``torchcal station``): a simulated campaign calibrated,
-the same robot measured from another tracker placement with another tool, re-stationed on a few points."""
+"""Re-stationing a calibrated run (torchcal.use.station fits, torchcal.report.station writes, ``torchcal station``): a
+simulated campaign calibrated, the same robot measured from another tracker placement with another tool, re-stationed
+on a few points."""
 
 import copy
 import json
@@ -15,11 +16,12 @@ from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options
 from torchcal.report.rundir import write_run
-from torchcal.report.station import StationError, fit_station, placement_std, station_options, write_station
+from torchcal.report.station import write_station
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.sim import SimConfig, simulate
 from torchcal.use.rundir import load_covariance, load_model, predict
+from torchcal.use.station import StationError, fit_station, placement_std, restation, station_options
 
 F64 = torch.float64
 
@@ -55,6 +57,12 @@ def setup(tmp_path_factory):
     return {"campaign": campaign, "run": out, "new": new, "truth": truth, "idx": idx, "own": own}
 
 
+def _write(run, points, out, tool=False):
+    """Re-station ``run`` on ``points`` and write it to ``out`` as ``torchcal station`` does: (out, station)."""
+    model, meta, station = restation(run, points, tool=tool)
+    return write_station(run, model, meta, station, out), station
+
+
 def _rmse(e):
     return float(e.square().mean().sqrt())
 
@@ -62,7 +70,7 @@ def _rmse(e):
 def test_restation_with_the_lever_arm_recovers_the_calibrations_accuracy(setup, tmp_path):
     new, idx = setup["new"], setup["idx"]
     pts, rest = new.subset(idx[:6]), new.subset(idx[6:])
-    out, st = write_station(setup["run"], pts, tmp_path / "r", tool=True)
+    out, st = _write(setup["run"], pts, tmp_path / "r", tool=True)
     e = _rmse((predict(out, rest) - rest.p).norm(dim=1))
     own = _rmse(setup["own"])
     true = _rmse(errors(setup["truth"], rest, trajectory=False))
@@ -83,7 +91,7 @@ def test_restation_of_the_pose_alone_within_1_3_of_the_calibration(setup, tmp_pa
     new, _ = _placed(setup["campaign"], (0.0, 0.0, 0.0), seed=1)
     idx = setup["idx"]
     pts, rest = new.subset(idx[:6]), new.subset(idx[6:])
-    out, st = write_station(setup["run"], pts, tmp_path / "r")
+    out, st = _write(setup["run"], pts, tmp_path / "r")
     e = _rmse((predict(out, rest) - rest.p).norm(dim=1))
     assert e < 1.3 * _rmse(setup["own"])
     assert len(st.names) == 6 and st.chi_square["passed"]
@@ -206,8 +214,6 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
     got = predict(tmp_path / "run2", rest)
     assert _rmse((got - rest.p).norm(dim=-1)) < 1.3 * own
     assert load_covariance(tmp_path / "run2", load_model(tmp_path / "run2")[0]) is not None
-    from torchcal.report.station import restation
-
     with pytest.raises(StationError, match="not one of the run's"):
         restation(run_dir, points, probe="nope")
     bad = ["station", str(run_dir), str(tmp_path / "pts.csv"), "--out", str(tmp_path / "run3"), "--probe", "nope"]
@@ -220,8 +226,8 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
 def test_the_predicted_error_of_a_placement_is_predicts_sigma_over_the_region(setup, tmp_path):
     """station's model error is the run's predictive sigma (what predict writes) over the calibrated region, and the
     predicted error it gives is the error measured at the new placement to within a factor 1.5."""
-    from torchcal.report.station import REGION_POSES, restation
     from torchcal.use.rundir import row_trust
+    from torchcal.use.station import REGION_POSES
 
     new, idx = setup["new"], setup["idx"]
     model, meta, station = restation(setup["run"], new.subset(idx[:6]), tool=True)

@@ -1,4 +1,4 @@
-"""SupportGate: a learned correction fades back to geometry where it has seen no data."""
+"""RegionGate: a learned correction fades back to geometry where it has seen no data."""
 
 import math
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchcal.effects import Context, CorrectionNet, LearnedEffect, MeasurementModel
-from torchcal.effects.support import SupportGate, choose_gate_length
+from torchcal.effects.region import RegionGate, choose_gate_length
 from torchcal.robot import load_robot
 
 F64 = torch.float64
@@ -18,50 +18,69 @@ def _net(seed=0):
     return LearnedEffect(net)
 
 
-def test_gate_is_one_on_the_support_and_fades_away_from_it():
+def test_gate_is_one_on_the_region_and_fades_away_from_it():
     g = torch.Generator().manual_seed(1)
-    support = torch.rand(500, 6, generator=g, dtype=F64) * 0.4  # a small box of joint space
-    gate = SupportGate(_net(), support, length=0.1)
-    assert torch.allclose(gate.gate(support[::10]), torch.ones(50, dtype=F64))
-    far = support[:5] + 3.0
+    region = torch.rand(500, 6, generator=g, dtype=F64) * 0.4  # a small box of joint space
+    gate = RegionGate(_net(), region, length=0.1)
+    assert torch.allclose(gate.gate(region[::10]), torch.ones(50, dtype=F64))
+    far = region[:5] + 3.0
     assert float(gate.gate(far).max()) < 1e-6
     robot = load_robot("ur5")
     ctx = Context(q=far)
     with torch.no_grad():
         assert float(gate(robot, ctx).abs().max()) < 1e-12
-    ctx_in = Context(q=support[:7])
+    ctx_in = Context(q=region[:7])
     assert torch.allclose(gate(robot, ctx_in), gate.inner(robot, ctx_in))
 
 
 def test_infinite_length_is_no_gate_and_a_state_dict_round_trip_rebuilds_it():
-    support = torch.rand(100, 6, generator=torch.Generator().manual_seed(2), dtype=F64)
-    q = support + 2.0
+    region = torch.rand(100, 6, generator=torch.Generator().manual_seed(2), dtype=F64)
+    q = region + 2.0
     robot = load_robot("ur5")
-    open_gate = SupportGate(_net(), support)
+    open_gate = RegionGate(_net(), region)
     assert torch.equal(open_gate(robot, Context(q=q)), open_gate.inner(robot, Context(q=q)))
-    gate = SupportGate(_net(), support, length=0.3)
+    gate = RegionGate(_net(), region, length=0.3)
     cfg = gate.config()
-    assert cfg["inner"]["class"] == "LearnedEffect" and cfg["n_support"] == 100
-    rebuilt = SupportGate(
+    assert cfg["inner"]["class"] == "LearnedEffect" and cfg["n_region"] == 100
+    rebuilt = RegionGate(
         LearnedEffect(CorrectionNet(6, 29)),
-        torch.zeros(cfg["n_support"], cfg["dof"], dtype=F64),
+        torch.zeros(cfg["n_region"], cfg["dof"], dtype=F64),
         cfg["length"],
-        max_support=cfg["n_support"],
+        max_points=cfg["n_region"],
     )
     rebuilt.load_state_dict(gate.state_dict())
     assert torch.equal(rebuilt(robot, Context(q=q[:9])), gate(robot, Context(q=q[:9])))
 
 
-def test_thinning_keeps_at_most_max_support_points():
-    support = torch.rand(10_000, 6, dtype=F64)
-    assert len(SupportGate(_net(), support, max_support=3000).support) <= 3000
+def test_thinning_keeps_at_most_max_points():
+    region = torch.rand(10_000, 6, dtype=F64)
+    assert len(RegionGate(_net(), region, max_points=3000).region) <= 3000
+
+
+def test_a_gate_saved_as_a_support_gate_loads_as_a_region_gate():
+    """model.json and model.pt of a run written when the gate was ``SupportGate`` with ``n_support`` points in a
+    ``support`` buffer: rebuilt as a RegionGate that predicts the same; written again under the new names."""
+    from torchcal.effects import effect_from_config
+
+    gate = RegionGate(_net(), torch.rand(40, 6, generator=torch.Generator().manual_seed(3), dtype=F64), length=0.3)
+    cfg = {("n_support" if k == "n_region" else k): v for k, v in gate.config().items()}
+    state = {("support" if k == "region" else k): v for k, v in gate.state_dict().items()}
+    assert "n_support" in cfg and "support" in state and "region" not in state  # as the older run wrote them
+    old = effect_from_config({"class": "SupportGate", **cfg})
+    old.load_state_dict(state)  # strict: the old buffer name is read, nothing is left over
+    assert isinstance(old, RegionGate) and torch.equal(old.region, gate.region)
+    q = torch.rand(9, 6, generator=torch.Generator().manual_seed(4), dtype=F64) + 0.5
+    robot = load_robot("ur5")
+    with torch.no_grad():
+        assert torch.equal(old(robot, Context(q=q)), gate(robot, Context(q=q)))
+    assert old.config() == gate.config() and "n_region" in old.config()
 
 
 def test_refuses_effects_that_do_not_act_on_the_position():
     from torchcal.effects import Compliance
 
     with pytest.raises(ValueError, match="position correction"):
-        SupportGate(Compliance(2, k=1e-6), torch.zeros(3, 6, dtype=F64))
+        RegionGate(Compliance(2, k=1e-6), torch.zeros(3, 6, dtype=F64))
 
 
 def test_validation_chooses_a_gate_only_where_it_helps():
@@ -86,14 +105,14 @@ def test_validation_chooses_a_gate_only_where_it_helps():
     with torch.no_grad():
         truth_none = geometric(Context(q=valid_q))  # no field out there
         truth_all = model_of(inner)(Context(q=valid_q))  # the network is right everywhere
-    length, table = choose_gate_length(lambda ell: SupportGate(inner, train_q, ell), score_against(truth_none))
+    length, table = choose_gate_length(lambda ell: RegionGate(inner, train_q, ell), score_against(truth_none))
     assert math.isfinite(length) and len(table) >= 3
-    length, _ = choose_gate_length(lambda ell: SupportGate(inner, train_q, ell), score_against(truth_all))
+    length, _ = choose_gate_length(lambda ell: RegionGate(inner, train_q, ell), score_against(truth_all))
     assert math.isinf(length)
 
 
 def test_with_a_fallback_the_whole_prediction_fades_to_the_fallback_geometry_and_reloads():
-    """Away from the support, model(q) -> the fallback robot's prediction (tracker frame); on it, the model's own."""
+    """Away from the region, model(q) -> the fallback robot's prediction (tracker frame); on it, the model's own."""
     import copy
 
     from torchcal.effects import effect_from_config
@@ -105,14 +124,14 @@ def test_with_a_fallback_the_whole_prediction_fades_to_the_fallback_geometry_and
         fallback.instrument.delta.add_(
             torch.tensor([1e-3, 0, 0, 0, 0, 0], dtype=F64).reshape(fallback.instrument.delta.shape)
         )
-    support = torch.rand(300, 6, generator=torch.Generator().manual_seed(5), dtype=F64) * 0.4
-    gate = SupportGate(_net(6), support, length=0.1, fallback=copy.deepcopy(fallback))
+    region = torch.rand(300, 6, generator=torch.Generator().manual_seed(5), dtype=F64) * 0.4
+    gate = RegionGate(_net(6), region, length=0.1, fallback=copy.deepcopy(fallback))
     model = MeasurementModel(own, [gate])
-    far, near = Context(q=support[:4] + 2.5), Context(q=support[:4])
+    far, near = Context(q=region[:4] + 2.5), Context(q=region[:4])
     with torch.no_grad():
         assert torch.allclose(model(far), MeasurementModel(fallback, [])(far), atol=1e-12)
         assert torch.allclose(model(near), MeasurementModel(own, [gate.inner])(near), atol=1e-12)
-        cfg = {"class": "SupportGate", **gate.config()}
+        cfg = {"class": "RegionGate", **gate.config()}
         rebuilt = MeasurementModel(load_robot("ur5"), [effect_from_config(cfg, load_robot("ur5"))])
         rebuilt.load_state_dict(model.state_dict())
         assert torch.equal(rebuilt(far), model(far)) and torch.equal(rebuilt(near), model(near))

@@ -9,7 +9,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from tests.report.test_station import _placed, _rmse
+from tests.use.test_station import _placed, _rmse
 from torchcal.cli import main
 from torchcal.data import read_measurements, write_measurements
 from torchcal.estimate.fit import errors
@@ -120,10 +120,10 @@ def test_a_learned_corrections_fallback_moves_with_the_instrument():
 
     from torchcal.effects import Context, MeasurementModel
     from torchcal.effects.learned import CorrectionNet, LearnedEffect
-    from torchcal.effects.support import SupportGate
-    from torchcal.report.station import one_placement
+    from torchcal.effects.region import RegionGate
     from torchcal.robot import load_robot
     from torchcal.robot import transforms as tf
+    from torchcal.use.station import one_placement
 
     torch.manual_seed(0)
     robot = load_robot("ur5")
@@ -132,7 +132,7 @@ def test_a_learned_corrections_fallback_moves_with_the_instrument():
         fallback.geometry.delta.add_(1e-3 * torch.randn_like(fallback.geometry.delta))
         fallback.instrument.delta.add_(torch.tensor([1e-3, -2e-3, 1e-3, 1e-3, 0.0, -1e-3], dtype=torch.float64))
     q = (torch.rand(40, 6, dtype=torch.float64) - 0.5) * 4
-    gate = SupportGate(LearnedEffect(CorrectionNet(6, 8)), q[:10], 0.5, fallback=fallback)
+    gate = RegionGate(LearnedEffect(CorrectionNet(6, 8)), q[:10], 0.5, fallback=fallback)
     model = MeasurementModel(robot, [gate])
     one, meta, _ = one_placement(model, {"effects": []}, None)
     assert meta["effects"][0]["fallback_frame"] == "base"
