@@ -67,12 +67,12 @@ def test_holdout_count_rules():
 
 def test_paired_tests():
     e0 = torch.rand(400, dtype=F64, generator=torch.Generator().manual_seed(0)) + 0.5
-    assert S.paired_improvement(e0, 0.8 * e0)["p_value"] < 1e-6
-    assert S.paired_improvement(e0, e0)["p_value"] == pytest.approx(0.5)
+    assert S.paired_improvement(e0, 0.8 * e0).p_value < 1e-6
+    assert S.paired_improvement(e0, e0).p_value == pytest.approx(0.5)
     smooth = torch.sin(torch.linspace(0, 6, 400, dtype=F64)) * 0.01
     plain = S.paired_test(e0, e0 * 0.999 + smooth, ordered=False)
     ordered = S.paired_test(e0, e0 * 0.999 + smooth, ordered=True)
-    assert ordered["lag1_autocorrelation"] > 0.5 and abs(ordered["z"]) < abs(plain["z"])
+    assert ordered.lag1_autocorrelation > 0.5 and abs(ordered.z) < abs(plain.z)
     assert S.rmse(torch.tensor([3.0, 4.0], dtype=F64)) == pytest.approx(math.sqrt(12.5))
     assert math.isnan(S.rmse(torch.zeros(0, dtype=F64)))
 

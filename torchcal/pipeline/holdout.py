@@ -152,7 +152,7 @@ class _GuardView:
             return False
         e1, e0 = st.holdout_errors[self.edge], self.geo.holdout_errors[self.edge]
         alpha_val = self.run.options.levels.validation
-        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=self.run.trajectory)["p_value"] < alpha_val
+        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=self.run.trajectory).p_value < alpha_val
 
     def edge_rmse(self, st) -> float | None:
         return S.rmse(st.holdout_errors[self.edge]) * 1e3 if bool(self.edge.any()) else None

@@ -630,12 +630,12 @@ def _why_not_chosen(best: _Chosen | None, e_geo: Tensor, evidence: dict, alpha: 
     if best is None:
         return "no candidate beats geometry alone on the validation block with any one of its pieces left out"
     test = S.paired_test(e_geo, best.errors, ordered=True)
-    evidence.update(chosen=best.row["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
-    if _rmse(best.errors) < _rmse(e_geo) and test["p_value"] < alpha:
+    evidence.update(chosen=best.row["candidate"], test=test.to_dict())
+    if _rmse(best.errors) < _rmse(e_geo) and test.p_value < alpha:
         return None
     return (
         f"the best candidate, {best.row['candidate']}, does not beat geometry alone on the validation block "
-        f"({_rmse(e_geo) * 1e3:.4f} -> {best.row['validation_rmse_mm']:.4f} mm, p = {test['p_value']:.2g})"
+        f"({_rmse(e_geo) * 1e3:.4f} -> {best.row['validation_rmse_mm']:.4f} mm, p = {test.p_value:.2g})"
     )
 
 

@@ -314,14 +314,14 @@ def select_learned(
         "validation_rmse_before_mm": rmse0 * 1e3,
         "validation_rmse_after_mm": rmse1 * 1e3,
         "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0,
-        **test,
+        **test.to_dict(),
         "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}",
         "n_validation": len(va),
     }
-    accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
+    accepted = evidence["relative_gain"] >= min_gain and test.p_value < alpha
     work.note(
         f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
-        f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})"
+        f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test.p_value:.2g})"
     )
     if not accepted:
         work.rejections.append(Rejection("learned", None, evidence, cause=Cause.SELECTION))
@@ -586,21 +586,19 @@ def _prune_one(
     evidence = {
         "validation_rmse_with_mm": S.rmse(e_val) * 1e3,
         "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
-        "z": test["z"],
-        "p_value": test["p_value"],
-        "n": test["n"],
+        **test.to_dict(),
         "rule": f"kept when the model with it is better, one-sided paired p < {opts.levels.validation}",
     }
     entry = next((r for r in work.effects if r.label == eff.label()), None)
     if entry is not None:
         entry = work.amend(entry, with_learned_model=evidence)
-    if test["p_value"] < opts.levels.validation:
+    if test.p_value < opts.levels.validation:
         return False
     _adopt(model, trial)
     work.fits.append(fit)
     reason = (
         f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
-        f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})"
+        f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test.p_value:.2g})"
     )
     work.note(f"diagnosis: {eff.label()} dropped: {reason}")
     if entry is not None:

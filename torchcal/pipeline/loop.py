@@ -348,16 +348,14 @@ def _validate(
         "rmse_before_mm": r0 * 1e3,
         "rmse_after_mm": r1 * 1e3,
         "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0,
-        "z": test["z"],
-        "p_value": test["p_value"],
-        "n": test["n"],
+        **test.to_dict(),
         "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
     }
-    passed = r1 < r0 and test["p_value"] < alpha_val
+    passed = r1 < r0 and test.p_value < alpha_val
     reason = (
         ""
         if passed
-        else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
+        else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test.p_value:.2g})")
     )
     # the variance is estimated (n ln(RSS / n)), not taken as the tracker's: while structure is left, the
     # whitened SS is inflated by s0^2 and a known-variance BIC would let any extra parameter buy it down
@@ -423,16 +421,16 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         "share_per_side": EDGE_SHARE,
         "rmse_without_mm": r0 * 1e3,
         "rmse_with_mm": r1 * 1e3,
-        "p_worse": worse["p_value"],
+        "p_worse": worse.p_value,
         "rule": f"fitted on the middle of joint {eff.joint}'s range, not worse at its edges (one-sided paired p "
         f">= {alpha_val})",
     }
-    if r1 > r0 and worse["p_value"] < alpha_val:
+    if r1 > r0 and worse.p_value < alpha_val:
         v.passed, v.cause = False, Cause.EDGE
         v.reason = (
             f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
             f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
-            f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse['p_value']:.2g})"
+            f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse.p_value:.2g})"
         )
 
 
@@ -472,7 +470,7 @@ def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, work:
     tied = [best] + [
         v
         for v in passed
-        if v is not best and S.paired_test(v.errors, best.errors, ordered=trajectory)["p_value"] >= alpha_val
+        if v is not best and S.paired_test(v.errors, best.errors, ordered=trajectory).p_value >= alpha_val
     ]
     chosen = min(tied, key=lambda v: v.bic)
     if chosen is not best:
