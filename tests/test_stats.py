@@ -61,8 +61,9 @@ def test_last_rows_for_trajectories():
 
 def test_holdout_count_rules():
     assert S.holdout_count(160, 0.2) == 32 and S.holdout_count(7, 0.2) == 1
-    assert S.holdout_count(14, 0.2, minimum=3, rounding="floor") == 3
-    assert S.holdout_count(19, 0.2, rounding="floor") == 3 and S.holdout_count(19, 0.2) == 4
+    assert S.holdout_count(14, 0.2, minimum=3) == 3 and S.holdout_count(19, 0.2) == 4
+    # every validation split: a fifth rounded to the nearest, at least three
+    assert S.validation_count(160) == 32 and S.validation_count(19) == 4 and S.validation_count(7) == 3
 
 
 def test_paired_tests():

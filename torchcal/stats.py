@@ -194,11 +194,23 @@ def revisit_groups(q: Tensor, tol: float = GROUP_TOL) -> Tensor:
     return torch.tensor(out, dtype=torch.long)
 
 
-def holdout_count(n: int, fraction: float, *, minimum: int = 1, rounding: str = "round") -> int:
-    """How many of ``n`` rows a split holds out: ``fraction * n`` rounded (``"round"``) or truncated
-    (``"floor"``), at least ``minimum``."""
-    x = fraction * n
-    return max(minimum, int(round(x)) if rounding == "round" else int(x))
+def holdout_count(n: int, fraction: float, *, minimum: int = 1) -> int:
+    """How many of ``n`` rows a split holds out: ``fraction * n`` rounded to the nearest, at least ``minimum``."""
+    return max(minimum, int(round(fraction * n)))
+
+
+#: share of the training rows that validate a choice: the closed loop's candidates, the learned stage, the
+#: correction network's early stopping and the integrated method's block at the end of a path
+VALIDATION_FRACTION = 0.2
+#: the fewest validation rows: the paired test that judges on them has no standard error worth the name below
+#: three differences
+MIN_VALIDATION = 3
+
+
+def validation_count(n: int) -> int:
+    """How many of ``n`` training rows validate (the one rule of every validation split): :data:`VALIDATION_FRACTION`
+    of them rounded to the nearest, at least :data:`MIN_VALIDATION`."""
+    return holdout_count(n, VALIDATION_FRACTION, minimum=MIN_VALIDATION)
 
 
 def split(

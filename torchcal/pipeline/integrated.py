@@ -451,10 +451,6 @@ def _nominal_copy(robot):
     return out
 
 
-#: the last VALIDATION_FRACTION of the training samples choose the integrated model: a block at the end, in time
-#: order, so that the choice is judged on how a model predicts the *continuation* of the path it was fitted on,
-#: which is what the held-out samples (and a user's next program) ask of it
-VALIDATION_FRACTION = 0.2
 #: the longest support gate the paper's engine is tried behind (in units of the joints' training spread)
 EKF_LONGEST_GATE = 0.5
 
@@ -541,7 +537,10 @@ def integrate_selected(
 ) -> IntegratedFilter | None:
     """The ``integrated`` method that keeps only what validation supports: never worse than geometry by design.
 
-    The training samples are split in time: the first ``1 - VALIDATION_FRACTION`` fit, the last block validates.
+    The training samples are split in time: the last block (:func:`torchcal.stats.validation_count` samples)
+    validates, the samples before it fit; the block is at the end so that the choice is judged on how a model
+    predicts the *continuation* of the path it was fitted on, which is what the held-out samples (and a user's
+    next program) ask of it.
     Geometry alone (the kinematic calibration refitted on the fitting samples) and every ``settings`` candidate
     (an engine with its capacity and prior, fitted on the fitting samples, the validation block its test phase)
     predict the validation block. Each is also tried behind a :class:`~torchcal.effects.support.SupportGate` of
@@ -558,7 +557,7 @@ def integrate_selected(
     ``evidence["predictive_sigma"]``; ``predict`` writes it as ``sx, sy, sz``).
     """
     opts = work.options
-    n_fit = train.n - max(1, int(round(VALIDATION_FRACTION * train.n)))
+    n_fit = train.n - S.validation_count(train.n)
     fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
     geo = copy.deepcopy(work.model)
     solve(

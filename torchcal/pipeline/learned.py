@@ -40,8 +40,6 @@ Tensor = torch.Tensor
 
 #: LM iterations of a refit with the learned model in place (:func:`_refit_with_learned`)
 REFIT_MAX_ITER = 10
-#: share of the training poses that judge a learned model
-VALIDATION_FRACTION = 0.2
 #: the most fitting poses at which the dense kernel regression competes: beyond, its dozen dense solves cost more
 #: than the Gaussian process (exact up to 3000 rows, GPSettings.max_exact), which models the same smooth residual
 #: fields and uses every pose anyway (docs/methods.md, *The split and the methods*)
@@ -165,7 +163,7 @@ def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory:
     share their error, and a random share of them lets a learned model be judged on samples it has all but
     seen (it then wins validation and loses on the path's continuation).
     """
-    n_val = S.holdout_count(train.n, VALIDATION_FRACTION, minimum=3, rounding="floor")
+    n_val = S.validation_count(train.n)
     if trajectory:
         idx = torch.arange(train.n)
         return idx[: train.n - n_val], idx[train.n - n_val :]
@@ -649,7 +647,7 @@ def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -
     # the generator goes on to the network's initial weights and to the fit
     fit_i, val_i = S.split(
         train.n,
-        S.holdout_count(train.n, VALIDATION_FRACTION, rounding="floor"),
+        S.validation_count(train.n),
         generator=g,
         q=train.q,
         group_tol=opts.split.group_tol,

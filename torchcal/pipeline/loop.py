@@ -139,7 +139,7 @@ class _Search:
         cands, skipped = candidates(work.model.robot, ctx)
         fi, va = S.split(
             train.n,
-            S.holdout_count(train.n, 0.2),
+            S.validation_count(train.n),
             seed=opts.seed + S.Stream.VALIDATION,
             last=run.trajectory,
             q=train.q,
