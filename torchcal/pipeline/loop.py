@@ -56,7 +56,7 @@ from torchcal.effects.drift import Drift
 from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, SupportedForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
-from torchcal.pipeline.holdout import at_edges
+from torchcal.pipeline.holdout import GUARD_MIN_POSES, at_edges
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
 from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
 
@@ -387,7 +387,8 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
     numbers go to ``v.validation["edge"]``."""
     eff = v.trial.effects[-1]
     mid, edge = _edge_split(fit_part.q, eff.joint)
-    if len(edge) < 10 or len(mid) < 10:
+    # judged on as many poses as a held-out guard asks, and refitted on no fewer
+    if len(edge) < GUARD_MIN_POSES or len(mid) < GUARD_MIN_POSES:
         v.validation["edge"] = {"skipped": f"too few poses at the edges of joint {eff.joint} ({len(edge)})"}
         return
     middle, outer = fit_part.subset(mid), fit_part.subset(edge)
