@@ -339,9 +339,8 @@ def integrate_adaptive(
     filt = IntegratedFilter(
         _as_ekf_result(res), torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
     )
-    _record_adaptive(
-        work, filt, res, net, hold, after, {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
-    )
+    settings = {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
+    _record_adaptive(work, filt, res=res, net=net, hold=hold, after=after, settings=settings)
     return filt
 
 
@@ -400,7 +399,7 @@ def _as_ekf_result(res) -> EKFResult:
 
 
 def _record_adaptive(
-    work: StageWork, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
+    work: StageWork, filt: IntegratedFilter, *, res, net: CorrectionNet, hold: Measurements, after, settings: dict
 ) -> None:
     """The adaptive engine's effect record (settings, the geometry with its sigmas, the filter's health) and note."""
     n_train = filt.n_train
@@ -519,7 +518,7 @@ def _not_selected(evidence: dict, why: str) -> Rejection:
     return Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Chosen:
     """The best candidate on validation: its setting, the gate length chosen, its validation errors, its row of the
     selection table, and the model and filter fitted on the fitting samples."""
@@ -582,7 +581,7 @@ def integrate_selected(
     why = _why_not_chosen(best, e_geo, evidence, opts.levels.validation)
     if why is not None:
         return _keep_geometry(work, evidence, why)
-    return _fit_chosen(work, train, hold, best, geo, (fit, val), evidence)
+    return _fit_chosen(work, train, hold, best, geo=geo, fit_val=(fit, val), evidence=evidence)
 
 
 def _validate_settings(
@@ -652,6 +651,7 @@ def _fit_chosen(
     train: Measurements,
     hold: Measurements,
     best: _Chosen,
+    *,
     geo: MeasurementModel,
     fit_val: tuple[Measurements, Measurements],
     evidence: dict,
@@ -666,9 +666,23 @@ def _fit_chosen(
     n_effects, n_stages = len(work.effects), len(work.stages)
     filt = _run_setting(work, train, hold, setting)
     record = work.effects[-1]
-    length = _gate_on_holdout(work.model, train, hold, kinematic, setting, length, evidence)
+    length = _gate_on_holdout(
+        work.model, train, hold, kinematic=kinematic, setting=setting, length=length, evidence=evidence
+    )
     fit, val = fit_val
-    sigma = _attach_predictive_sigma(work, filt, kinematic, geo, best.model, best.filt, fit, val, train, hold, length)
+    sigma = _attach_predictive_sigma(
+        work,
+        filt,
+        kinematic=kinematic,
+        geo=geo,
+        val_model=best.model,
+        val_filter=best.filt,
+        fit=fit,
+        val=val,
+        train=train,
+        hold=hold,
+        length=length,
+    )
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
     record.evidence["predictive_sigma"] = sigma
@@ -744,6 +758,7 @@ def _gate_on_holdout(
     model: MeasurementModel,
     train: Measurements,
     hold: Measurements,
+    *,
     kinematic,
     setting: Setting,
     length: float,
@@ -780,6 +795,7 @@ def _gate_on_holdout(
 def _attach_predictive_sigma(
     work: StageWork,
     filt: IntegratedFilter,
+    *,
     kinematic,
     geo: MeasurementModel,
     val_model: MeasurementModel,

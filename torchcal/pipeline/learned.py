@@ -242,7 +242,7 @@ def _fit_candidates(
     with torch_threads(1), ThreadPoolExecutor(max_workers=1, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         gp_job = pool.submit(_fit_gp, work, train, corr, fi, va)
         init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
-        net, res = _fitted_network(model, opts, init, train.q, corr, fi, va)
+        net, res = _fitted_network(model, opts, init=init, q=train.q, corr=corr, fit_i=fi, val_i=va)
         with torch.no_grad():
             e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
         kernel = None
@@ -383,7 +383,7 @@ def _refit_learned_model(
     opts = work.options
     index = len(model.effects) - 1
     fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
-    model.effects[index], e_val = _refit_one(work, model.effects[index], train, corr, fi, va, gp)
+    model.effects[index], e_val = _refit_one(work, model.effects[index], train, corr, fi, va, gp=gp)
     return e_val
 
 
@@ -394,6 +394,7 @@ def _refit_one(
     corr: Tensor,
     fi: Tensor,
     va: Tensor,
+    *,
     gp: GPConditioner | dict | None = None,
 ) -> tuple[Effect, Tensor]:
     """A learned correction ``eff`` refitted to the corrections ``corr`` at the fitting rows ``fi``; the refitted
@@ -405,7 +406,9 @@ def _refit_one(
         inner = []
         for key, sub in zip(eff.groups, eff.inner):
             fg, vg, pos = _group_split(inverse, _group_index(keys, key), fi, va)
-            new, e_val[pos] = _refit_one(work, sub, train, corr, fg, vg, gp.get(key) if isinstance(gp, dict) else None)
+            new, e_val[pos] = _refit_one(
+                work, sub, train, corr, fg, vg, gp=gp.get(key) if isinstance(gp, dict) else None
+            )
             inner.append(new)
         return GroupedCorrection(eff.groups, inner, eff.regions), e_val
     if isinstance(eff, LearnedEffect):
@@ -528,7 +531,7 @@ def prune_named(
             except EstimationError as err:  # cannot judge it without the effect: the effect stays
                 work.note(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
                 continue
-            if _prune_one(work, model, eff, trial, fit, e_without, e_val):
+            if _prune_one(work, model, eff, trial=trial, fit=fit, e_without=e_without, e_val=e_val):
                 e_val = e_without
                 ahead = None  # refitted on the model with this effect: again on the model without it
 
@@ -572,6 +575,7 @@ def _prune_one(
     work: StageWork,
     model: MeasurementModel,
     eff: Effect,
+    *,
     trial: MeasurementModel,
     fit: Fit,
     e_without: Tensor,
@@ -653,7 +657,7 @@ def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -
         group_tol=opts.split.group_tol,
         sort=False,
     )
-    net, res = _fitted_network(model, opts, g, train.q, corr, fit_i, val_i, fit_generator=g)
+    net, res = _fitted_network(model, opts, init=g, q=train.q, corr=corr, fit_i=fit_i, val_i=val_i, fit_generator=g)
     work.note(
         f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
         f"best validation at {res.best_iteration}"
@@ -664,6 +668,7 @@ def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -
 def _fitted_network(
     model: MeasurementModel,
     opts: Options,
+    *,
     init: torch.Generator,
     q: Tensor,
     corr: Tensor,

@@ -176,7 +176,13 @@ class _Search:
         remaining = [c for c in self.cands if c.name not in self.tried and c.name not in self.accepted_names]
         scores = (
             score_candidates(
-                model, fit.result, self.ctx, train.p, fit.whitening, remaining, tol=self.run.options.fit.rank_tol
+                model,
+                fit.result,
+                self.ctx,
+                train.p,
+                fit.whitening,
+                cands=remaining,
+                tol=self.run.options.fit.rank_tol,
             )
             if remaining
             else []
@@ -210,15 +216,15 @@ class _Search:
         v = _validate(
             s,
             rnd,
-            self.base,
-            self.e_base,
-            self.fit_on,
-            self.fit_part,
-            self.val_part,
-            self.run.trajectory,
-            self.diag.alpha_validation,
-            cand,
-            self.run.options.loop.max_joint_error,
+            base=self.base,
+            e_base=self.e_base,
+            fit_on=self.fit_on,
+            fit_part=self.fit_part,
+            val_part=self.val_part,
+            trajectory=self.run.trajectory,
+            alpha_val=self.diag.alpha_validation,
+            cand=cand,
+            max_size=self.run.options.loop.max_joint_error,
         )
         if v.passed and isinstance(v.trial.effects[-1], SupportedForm):
             _validate_edge(
@@ -226,9 +232,9 @@ class _Search:
                 self.base,
                 self.fit_on,
                 self.fit_part,
-                self.run.trajectory,
-                self.diag.alpha_validation,
-                self.edge_bases,
+                trajectory=self.run.trajectory,
+                alpha_val=self.diag.alpha_validation,
+                cache=self.edge_bases,
             )
         if not v.passed:
             _reject(self.work, self.diag, v)
@@ -313,6 +319,7 @@ class _Validation:
 def _validate(
     s: Score,
     rnd: int,
+    *,
     base: MeasurementModel,
     e_base: Tensor,
     fit_on,
@@ -379,7 +386,9 @@ def _edge_split(q: Tensor, joint: int, share: float = EDGE_SHARE) -> tuple[Tenso
     return torch.nonzero(~edge)[:, 0], torch.nonzero(edge)[:, 0]
 
 
-def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, trajectory: bool, alpha_val: float, cache):
+def _validate_edge(
+    v: _Validation, base, fit_on, fit_part: Measurements, *, trajectory: bool, alpha_val: float, cache: dict
+):
     """An open joint form that passed validation on random poses is judged at the edges of its joint's range too:
     refitted without the outer :data:`EDGE_SHARE` of the fitting poses on each side of the range, its continuation
     must not predict them significantly worse than the model without it (one-sided paired test at ``alpha_val``).
