@@ -61,18 +61,19 @@ def test_last_rows_for_trajectories():
 
 def test_holdout_count_rules():
     assert S.holdout_count(160, 0.2) == 32 and S.holdout_count(7, 0.2) == 1
-    assert S.holdout_count(14, 0.2, minimum=3, rounding="floor") == 3
-    assert S.holdout_count(19, 0.2, rounding="floor") == 3 and S.holdout_count(19, 0.2) == 4
+    assert S.holdout_count(14, 0.2, minimum=3) == 3 and S.holdout_count(19, 0.2) == 4
+    # every validation split: a fifth rounded to the nearest, at least three
+    assert S.validation_count(160) == 32 and S.validation_count(19) == 4 and S.validation_count(7) == 3
 
 
 def test_paired_tests():
     e0 = torch.rand(400, dtype=F64, generator=torch.Generator().manual_seed(0)) + 0.5
-    assert S.paired_improvement(e0, 0.8 * e0)["p_value"] < 1e-6
-    assert S.paired_improvement(e0, e0)["p_value"] == pytest.approx(0.5)
+    assert S.paired_improvement(e0, 0.8 * e0).p_value < 1e-6
+    assert S.paired_improvement(e0, e0).p_value == pytest.approx(0.5)
     smooth = torch.sin(torch.linspace(0, 6, 400, dtype=F64)) * 0.01
     plain = S.paired_test(e0, e0 * 0.999 + smooth, ordered=False)
     ordered = S.paired_test(e0, e0 * 0.999 + smooth, ordered=True)
-    assert ordered["lag1_autocorrelation"] > 0.5 and abs(ordered["z"]) < abs(plain["z"])
+    assert ordered.lag1_autocorrelation > 0.5 and abs(ordered.z) < abs(plain.z)
     assert S.rmse(torch.tensor([3.0, 4.0], dtype=F64)) == pytest.approx(math.sqrt(12.5))
     assert math.isnan(S.rmse(torch.zeros(0, dtype=F64)))
 

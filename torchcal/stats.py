@@ -35,20 +35,49 @@ def normal_sf(z: float) -> float:
     return 0.5 * math.erfc(z / math.sqrt(2.0))
 
 
-def paired_improvement(e_before: Tensor, e_after: Tensor) -> dict:
+@dataclass(frozen=True)
+class PairedTest:
+    """The result of a one-sided paired test that one set of per-row errors is smaller than another.
+
+    Attributes:
+        z: the test statistic (standard normal under 'no improvement'); corrected for autocorrelation where
+            the rows were ordered.
+        p_value: its upper tail, ``P(Z > z)``.
+        n: the number of pairs.
+        lag1_autocorrelation: ``rho`` of the differences, clamped to [0, 0.99]; None where not corrected.
+        z_uncorrected: the statistic before the correction; None where not corrected.
+    """
+
+    z: float
+    p_value: float
+    n: int
+    lag1_autocorrelation: float | None = None
+    z_uncorrected: float | None = None
+
+    def to_dict(self) -> dict:
+        """The fields a report writes: ``z``, ``p_value`` and ``n`` (the correction is in the z it gives)."""
+        return {"z": self.z, "p_value": self.p_value, "n": self.n}
+
+
+def paired_improvement(e_before: Tensor, e_after: Tensor) -> PairedTest:
     """One-sided paired test that ``e_after`` (per-pose errors) is smaller than ``e_before``.
 
     Statistic: mean of ``e_before^2 - e_after^2`` over its standard error; with many poses it is
-    close to standard normal under 'no improvement'. Returns the z value, the p-value and the count.
+    close to standard normal under 'no improvement'.
     """
     d = e_before.square() - e_after.square()
     n = len(d)
     se = float(d.std(unbiased=True)) / math.sqrt(n) if n > 1 else float("inf")
     z = float(d.mean()) / se if se > 0 else (float("inf") if float(d.mean()) > 0 else 0.0)
-    return {"z": z, "p_value": normal_sf(z), "n": n}
+    return PairedTest(z, normal_sf(z), n)
 
 
-def paired_test(e_before: Tensor, e_after: Tensor, ordered: bool) -> dict:
+#: the fewest ordered pairs whose lag-one autocorrelation :func:`paired_test` estimates: with fewer, the lag-one
+#: sum has at most two terms, which estimate no correlation, and the plain test stands
+MIN_AUTOCORRELATION_PAIRS = 4
+
+
+def paired_test(e_before: Tensor, e_after: Tensor, ordered: bool) -> PairedTest:
     """One-sided paired test that ``e_after`` is smaller (:func:`paired_improvement`).
 
     With ``ordered`` samples (a trajectory: neighbours share their error) the differences are
@@ -57,14 +86,14 @@ def paired_test(e_before: Tensor, e_after: Tensor, ordered: bool) -> dict:
     autocorrelation of the differences (clamped to [0, 0.99]).
     """
     test = paired_improvement(e_before, e_after)
-    if not ordered or len(e_before) < 4:
+    if not ordered or len(e_before) < MIN_AUTOCORRELATION_PAIRS:
         return test
     d = e_before.square() - e_after.square()
     d = d - d.mean()
     rho = float((d[1:] * d[:-1]).sum() / d.square().sum().clamp(min=1e-300))
     rho = min(max(rho, 0.0), 0.99)
-    z = test["z"] / math.sqrt((1 + rho) / (1 - rho))
-    return {**test, "z": z, "p_value": normal_sf(z), "lag1_autocorrelation": rho, "z_uncorrected": test["z"]}
+    z = test.z / math.sqrt((1 + rho) / (1 - rho))
+    return PairedTest(z, normal_sf(z), test.n, lag1_autocorrelation=rho, z_uncorrected=test.z)
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -165,11 +194,23 @@ def revisit_groups(q: Tensor, tol: float = GROUP_TOL) -> Tensor:
     return torch.tensor(out, dtype=torch.long)
 
 
-def holdout_count(n: int, fraction: float, *, minimum: int = 1, rounding: str = "round") -> int:
-    """How many of ``n`` rows a split holds out: ``fraction * n`` rounded (``"round"``) or truncated
-    (``"floor"``), at least ``minimum``."""
-    x = fraction * n
-    return max(minimum, int(round(x)) if rounding == "round" else int(x))
+def holdout_count(n: int, fraction: float, *, minimum: int = 1) -> int:
+    """How many of ``n`` rows a split holds out: ``fraction * n`` rounded to the nearest, at least ``minimum``."""
+    return max(minimum, int(round(fraction * n)))
+
+
+#: share of the training rows that validate a choice: the closed loop's candidates, the learned stage, the
+#: correction network's early stopping and the integrated method's block at the end of a path
+VALIDATION_FRACTION = 0.2
+#: the fewest validation rows: the paired test that judges on them has no standard error worth the name below
+#: three differences
+MIN_VALIDATION = 3
+
+
+def validation_count(n: int) -> int:
+    """How many of ``n`` training rows validate (the one rule of every validation split): :data:`VALIDATION_FRACTION`
+    of them rounded to the nearest, at least :data:`MIN_VALIDATION`."""
+    return holdout_count(n, VALIDATION_FRACTION, minimum=MIN_VALIDATION)
 
 
 def split(

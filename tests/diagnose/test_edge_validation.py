@@ -44,7 +44,7 @@ def _check(data, cand_effect):
     trial = copy.deepcopy(base)
     trial.add(cand_effect)
     v = SimpleNamespace(trial=trial, candidate=cand, validation={}, passed=True, reason="")
-    _validate_edge(v, base, fit_on, data, False, 0.05, {})
+    _validate_edge(v, base, fit_on, data, trajectory=False, alpha_val=0.05, cache={})
     return v
 
 

@@ -88,7 +88,17 @@ def test_a_candidate_whose_refit_fails_is_rejected_with_the_reason_not_the_run()
     score = SimpleNamespace(candidate=cand, statistic=12.0, k=1, log10_p=-3.0)
     e_base = torch.full((5,), 1e-4, dtype=torch.float64)
     fit_part = SimpleNamespace(q=torch.zeros(5, 6, dtype=torch.float64))  # only its joint range is read
-    v = _validate(score, 1, MeasurementModel(load_robot("ur5")), e_base, failing_fit, fit_part, None, False, 0.05)
+    v = _validate(
+        score,
+        1,
+        base=MeasurementModel(load_robot("ur5")),
+        e_base=e_base,
+        fit_on=failing_fit,
+        fit_part=fit_part,
+        val_part=None,
+        trajectory=False,
+        alpha_val=0.05,
+    )
     assert not v.passed and "refit on the fitting poses failed" in v.reason and "singular" in v.reason
     assert torch.equal(v.errors, e_base)
 

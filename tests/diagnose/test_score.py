@@ -63,7 +63,7 @@ def test_score_statistic_predicts_the_refit_gain():
     geo = run.fits[-1]
     ctx = Context.from_measurements(train, trajectory=False)
     cand = Candidate("compliance", 3)
-    score = score_candidates(run.model, geo.result, ctx, train.p, geo.whitening, [cand])[0]
+    score = score_candidates(run.model, geo.result, ctx, train.p, geo.whitening, cands=[cand])[0]
     ss0 = float(geo.result.residuals.square().sum())
     run.model.add(cand.make())
     refit = solve(
@@ -93,7 +93,7 @@ def test_a_candidate_the_geometry_already_has_is_not_identifiable():
     train = m.subset(run.train_idx)
     geo = run.fits[-1]
     ctx = Context.from_measurements(train, trajectory=False)
-    s = score_candidates(run.model, geo.result, ctx, train.p, geo.whitening, [Candidate("cyclic", 6)])[0]
+    s = score_candidates(run.model, geo.result, ctx, train.p, geo.whitening, cands=[Candidate("cyclic", 6)])[0]
     assert not s.identifiable and s.independence < 1e-6 and not s.significant(0.01)
     # and the candidate list leaves it out in the first place
     assert "cyclic:6" not in {x.name for x in candidates(run.model.robot, ctx)[0]}

@@ -430,15 +430,16 @@ def test_the_held_out_samples_only_ever_shorten_the_gate():
     c = simulate(SimConfig(robot="ur5", trajectory=True, samples=400, train_samples=399, seed=2))
     run = calibrate("ur5", c.train, Options(method="kinematic", seed=0))
     kinematic, setting = copy.deepcopy(run.model.robot), I.Setting("adaptive")
+    gate = {"kinematic": kinematic, "setting": setting, "length": 4.0}
     wrong = MeasurementModel(run.model.robot, [_Shift(torch.tensor([[2e-4, 0.0, 0.0]], dtype=torch.float64))])
     ev = {}
-    assert I._gate_on_holdout(wrong, run.train, run.hold, kinematic, setting, 4.0, ev) == min(setting.gate_lengths)
+    assert I._gate_on_holdout(wrong, run.train, run.hold, **gate, evidence=ev) == min(setting.gate_lengths)
     assert ev["gate_on_holdout"]["validation_gate_length"] == 4.0 and len(ev["gate_on_holdout"]["gates"]) == 9
     e = (run.model(Context.from_measurements(run.hold, trajectory=True)) - run.hold.p).detach()
     right = MeasurementModel(run.model.robot, [_Offset(run.hold.q, -e)])
     ev = {}
-    assert I._gate_on_holdout(right, run.train, run.hold, kinematic, setting, 4.0, ev) == 4.0
+    assert I._gate_on_holdout(right, run.train, run.hold, **gate, evidence=ev) == 4.0
     assert math.isinf(ev["gate_on_holdout"]["holdout_gate_length"])
     ev = {}
     few = run.hold.subset(slice(0, I.VALIDATION_PIECES - 1))
-    assert I._gate_on_holdout(wrong, run.train, few, kinematic, setting, 4.0, ev) == 4.0 and not ev
+    assert I._gate_on_holdout(wrong, run.train, few, **gate, evidence=ev) == 4.0 and not ev

@@ -124,3 +124,21 @@ def test_too_few_held_out_poses_are_not_judged(auto_run):
     assert any("not judged, 3 held-out pose(s)" in n for n in run.notes)
     run, ev = guard_holdout(shrunk(GUARD_MIN_POSES))
     assert ev["judged"] is True and not ev["passed"] and ev["kept_stage"] == "compliance(joint 2)"
+
+
+def test_the_integrated_guard_judges_on_as_many_held_out_samples_as_the_auto_guard(auto_run):
+    """:func:`guard_against_geometry` (the integrated method's) passes a model 1 mm off everywhere unjudged on one
+    held-out sample fewer than :data:`GUARD_MIN_POSES`, as the auto guard does, and refuses it on that many."""
+    import copy
+
+    from torchcal.effects import MeasurementModel
+    from torchcal.pipeline.holdout import GUARD_MIN_POSES, guard_against_geometry
+
+    geometric = MeasurementModel(copy.deepcopy(auto_run.model.robot))
+    worse = copy.deepcopy(geometric)
+    with torch.no_grad():
+        worse.robot.tool.delta.add_(1e-3)
+    few = guard_against_geometry(worse, geometric, auto_run.hold.subset(slice(0, GUARD_MIN_POSES - 1)))
+    assert few == {"passed": True, "n": GUARD_MIN_POSES - 1, "rule": "too few held-out samples to judge"}
+    judged = guard_against_geometry(worse, geometric, auto_run.hold.subset(slice(0, GUARD_MIN_POSES)))
+    assert judged["passed"] is False and judged["rmse_mm"] > 10 * judged["geometry_rmse_mm"]

@@ -82,7 +82,7 @@ def test_pruning_with_the_next_refit_ahead_decides_as_one_effect_after_the_other
         except EstimationError as err:
             ref.note(f"diagnosis: {label} kept: the refit without it failed ({err})")
             continue
-        if L._prune_one(ref, ref.model, ref.model.effects[k], trial, fit, e_without, e_val):
+        if L._prune_one(ref, ref.model, ref.model.effects[k], trial=trial, fit=fit, e_without=e_without, e_val=e_val):
             e_val = e_without
     n = len(ref.notes)  # the learned stage's notes (a stage's work holds its own)
     assert [t for t in run.notes if t.stage == "learned"][:n] == ref.notes

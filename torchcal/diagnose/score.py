@@ -155,6 +155,7 @@ def score_candidates(
     ctx: Context,
     p: Tensor,
     W: Tensor,
+    *,
     cands: list[Candidate],
     tol: float = DEFAULT_TOL,
 ) -> list[Score]:

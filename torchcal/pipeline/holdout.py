@@ -38,6 +38,13 @@ def _rmse(e: Tensor) -> float:
 VALIDATION_PIECES = 4
 
 
+#: the fewest poses a guard judges a model on, poses that no model compared was fitted on: the held-out poses of
+#: :func:`guard_stages` (overall and at the edges), the held-out samples of :func:`guard_against_geometry`, a joint's
+#: edge poses in the closed loop's edge validation. The errors of fewer poses are noise about the model, and a step
+#: back on them would throw away what the validation poses confirmed
+GUARD_MIN_POSES = 10
+
+
 def leave_one_piece_out(e: Tensor, e_ref: Tensor, pieces: int = VALIDATION_PIECES) -> tuple[list, list]:
     """RMSE ratios of ``e`` to ``e_ref`` per consecutive piece, and over the block with each piece left out.
 
@@ -57,8 +64,9 @@ def guard_against_geometry(model: MeasurementModel, geometric: MeasurementModel,
     """Whether the final ``model`` is better than the kinematic calibration ``geometric`` on the held-out samples
     (the continuation of the path, fitted by neither): a lower RMSE there with any one of its
     :data:`VALIDATION_PIECES` pieces left out, as on validation (no significance asked: validation chose, this only
-    refuses a refit that made things worse). Passed when there are too few held-out samples to judge on."""
-    if hold.n < VALIDATION_PIECES:
+    refuses a refit that made things worse). Passed, not judged, on fewer than :data:`GUARD_MIN_POSES` held-out
+    samples (at least the :data:`VALIDATION_PIECES` pieces it cuts them into)."""
+    if hold.n < max(GUARD_MIN_POSES, VALIDATION_PIECES):
         return {"passed": True, "n": hold.n, "rule": "too few held-out samples to judge"}
     e, e_geo = errors(model, hold, True), errors(geometric, hold, True)
     _, left_out = leave_one_piece_out(e, e_geo)
@@ -112,9 +120,6 @@ def refit_kinematic(run: CalibrationRun) -> StageResult:
 
 #: the guard's edge: a held-out pose with a joint beyond this quantile of the training poses' (either side)
 HOLDOUT_EDGE = 0.025
-#: the fewest held-out poses the guard judges a model on, overall and at the edges: the errors of fewer poses are
-#: noise about the model, and a step back on them would throw away what the validation poses confirmed
-GUARD_MIN_POSES = 10
 
 
 def at_edges(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
@@ -152,7 +157,7 @@ class _GuardView:
             return False
         e1, e0 = st.holdout_errors[self.edge], self.geo.holdout_errors[self.edge]
         alpha_val = self.run.options.levels.validation
-        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=self.run.trajectory)["p_value"] < alpha_val
+        return S.rmse(e1) > S.rmse(e0) and S.paired_test(e1, e0, ordered=self.run.trajectory).p_value < alpha_val
 
     def edge_rmse(self, st) -> float | None:
         return S.rmse(st.holdout_errors[self.edge]) * 1e3 if bool(self.edge.any()) else None

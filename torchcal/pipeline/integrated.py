@@ -339,9 +339,8 @@ def integrate_adaptive(
     filt = IntegratedFilter(
         _as_ekf_result(res), torch.cat([train.p, hold.p]), kinematic, train.n, cfg, res.w, res.P[:nw, :nw], res.active
     )
-    _record_adaptive(
-        work, filt, res, net, hold, after, {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
-    )
+    settings = {"hidden": s.hidden, "feature_gain": s.gain, "sigma_field_m": s.sigma_field}
+    _record_adaptive(work, filt, res=res, net=net, hold=hold, after=after, settings=settings)
     return filt
 
 
@@ -400,7 +399,7 @@ def _as_ekf_result(res) -> EKFResult:
 
 
 def _record_adaptive(
-    work: StageWork, filt: IntegratedFilter, res, net: CorrectionNet, hold: Measurements, after, settings: dict
+    work: StageWork, filt: IntegratedFilter, *, res, net: CorrectionNet, hold: Measurements, after, settings: dict
 ) -> None:
     """The adaptive engine's effect record (settings, the geometry with its sigmas, the filter's health) and note."""
     n_train = filt.n_train
@@ -451,10 +450,6 @@ def _nominal_copy(robot):
     return out
 
 
-#: the last VALIDATION_FRACTION of the training samples choose the integrated model: a block at the end, in time
-#: order, so that the choice is judged on how a model predicts the *continuation* of the path it was fitted on,
-#: which is what the held-out samples (and a user's next program) ask of it
-VALIDATION_FRACTION = 0.2
 #: the longest region gate the paper's engine is tried behind (in units of the joints' training spread)
 EKF_LONGEST_GATE = 0.5
 
@@ -527,7 +522,7 @@ def _not_selected(evidence: dict, why: str) -> Rejection:
     return Rejection("learned", None, {"selection": evidence}, name="integrated", reason=why, cause=Cause.SELECTION)
 
 
-@dataclass
+@dataclass(frozen=True)
 class _Chosen:
     """The best candidate on validation: its setting, the gate length chosen, its validation errors, its row of the
     selection table, and the model and filter fitted on the fitting samples."""
@@ -545,7 +540,10 @@ def integrate_selected(
 ) -> IntegratedFilter | None:
     """The ``integrated`` method that keeps only what validation supports: never worse than geometry by design.
 
-    The training samples are split in time: the first ``1 - VALIDATION_FRACTION`` fit, the last block validates.
+    The training samples are split in time: the last block (:func:`torchcal.stats.validation_count` samples)
+    validates, the samples before it fit; the block is at the end so that the choice is judged on how a model
+    predicts the *continuation* of the path it was fitted on, which is what the held-out samples (and a user's
+    next program) ask of it.
     Geometry alone (the kinematic calibration refitted on the fitting samples) and every ``settings`` candidate
     (an engine with its capacity and prior, fitted on the fitting samples, the validation block its test phase)
     predict the validation block. Each is also tried behind a :class:`~torchcal.effects.region.RegionGate` of
@@ -562,7 +560,7 @@ def integrate_selected(
     ``evidence["predictive_sigma"]``; ``predict`` writes it as ``sx, sy, sz``).
     """
     opts = work.options
-    n_fit = train.n - max(1, int(round(VALIDATION_FRACTION * train.n)))
+    n_fit = train.n - S.validation_count(train.n)
     fit, val = train.subset(slice(0, n_fit)), train.subset(slice(n_fit, None))
     geo = copy.deepcopy(work.model)
     solve(
@@ -587,7 +585,7 @@ def integrate_selected(
     why = _why_not_chosen(best, e_geo, evidence, opts.levels.validation)
     if why is not None:
         return _keep_geometry(work, evidence, why)
-    return _fit_chosen(work, train, hold, best, geo, (fit, val), evidence)
+    return _fit_chosen(work, train, hold, best, geo=geo, fit_val=(fit, val), evidence=evidence)
 
 
 def _validate_settings(
@@ -634,12 +632,12 @@ def _why_not_chosen(best: _Chosen | None, e_geo: Tensor, evidence: dict, alpha: 
     if best is None:
         return "no candidate beats geometry alone on the validation block with any one of its pieces left out"
     test = S.paired_test(e_geo, best.errors, ordered=True)
-    evidence.update(chosen=best.row["candidate"], test={k: test[k] for k in ("z", "p_value", "n")})
-    if _rmse(best.errors) < _rmse(e_geo) and test["p_value"] < alpha:
+    evidence.update(chosen=best.row["candidate"], test=test.to_dict())
+    if _rmse(best.errors) < _rmse(e_geo) and test.p_value < alpha:
         return None
     return (
         f"the best candidate, {best.row['candidate']}, does not beat geometry alone on the validation block "
-        f"({_rmse(e_geo) * 1e3:.4f} -> {best.row['validation_rmse_mm']:.4f} mm, p = {test['p_value']:.2g})"
+        f"({_rmse(e_geo) * 1e3:.4f} -> {best.row['validation_rmse_mm']:.4f} mm, p = {test.p_value:.2g})"
     )
 
 
@@ -657,6 +655,7 @@ def _fit_chosen(
     train: Measurements,
     hold: Measurements,
     best: _Chosen,
+    *,
     geo: MeasurementModel,
     fit_val: tuple[Measurements, Measurements],
     evidence: dict,
@@ -671,9 +670,23 @@ def _fit_chosen(
     n_effects, n_stages = len(work.effects), len(work.stages)
     filt = _run_setting(work, train, hold, setting)
     record = work.effects[-1]
-    length = _gate_on_holdout(work.model, train, hold, kinematic, setting, length, evidence)
+    length = _gate_on_holdout(
+        work.model, train, hold, kinematic=kinematic, setting=setting, length=length, evidence=evidence
+    )
     fit, val = fit_val
-    sigma = _attach_predictive_sigma(work, filt, kinematic, geo, best.model, best.filt, fit, val, train, hold, length)
+    sigma = _attach_predictive_sigma(
+        work,
+        filt,
+        kinematic=kinematic,
+        geo=geo,
+        val_model=best.model,
+        val_filter=best.filt,
+        fit=fit,
+        val=val,
+        train=train,
+        hold=hold,
+        length=length,
+    )
     record.params["support_gate_length"] = length
     record.evidence["selection"] = evidence
     record.evidence["predictive_sigma"] = sigma
@@ -749,6 +762,7 @@ def _gate_on_holdout(
     model: MeasurementModel,
     train: Measurements,
     hold: Measurements,
+    *,
     kinematic,
     setting: Setting,
     length: float,
@@ -785,6 +799,7 @@ def _gate_on_holdout(
 def _attach_predictive_sigma(
     work: StageWork,
     filt: IntegratedFilter,
+    *,
     kinematic,
     geo: MeasurementModel,
     val_model: MeasurementModel,

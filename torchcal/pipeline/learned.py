@@ -40,8 +40,6 @@ Tensor = torch.Tensor
 
 #: LM iterations of a refit with the learned model in place (:func:`_refit_with_learned`)
 REFIT_MAX_ITER = 10
-#: share of the training poses that judge a learned model
-VALIDATION_FRACTION = 0.2
 #: the most fitting poses at which the dense kernel regression competes: beyond, its dozen dense solves cost more
 #: than the Gaussian process (exact up to 3000 rows, GPSettings.max_exact), which models the same smooth residual
 #: fields and uses every pose anyway (docs/methods.md, *The split and the methods*)
@@ -165,7 +163,7 @@ def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory:
     share their error, and a random share of them lets a learned model be judged on samples it has all but
     seen (it then wins validation and loses on the path's continuation).
     """
-    n_val = S.holdout_count(train.n, VALIDATION_FRACTION, minimum=3, rounding="floor")
+    n_val = S.validation_count(train.n)
     if trajectory:
         idx = torch.arange(train.n)
         return idx[: train.n - n_val], idx[train.n - n_val :]
@@ -244,7 +242,7 @@ def _fit_candidates(
     with torch_threads(1), ThreadPoolExecutor(max_workers=1, initializer=torch.set_num_threads, initargs=(1,)) as pool:
         gp_job = pool.submit(_fit_gp, work, train, corr, fi, va)
         init = torch.Generator().manual_seed(int(opts.seed) + S.Stream.NETWORK_INIT)
-        net, res = _fitted_network(model, opts, init, train.q, corr, fi, va)
+        net, res = _fitted_network(model, opts, init=init, q=train.q, corr=corr, fit_i=fi, val_i=va)
         with torch.no_grad():
             e_net = (corr[va] - net(train.q[va])).norm(dim=-1)
         kernel = None
@@ -314,14 +312,14 @@ def select_learned(
         "validation_rmse_before_mm": rmse0 * 1e3,
         "validation_rmse_after_mm": rmse1 * 1e3,
         "relative_gain": 1.0 - rmse1 / rmse0 if rmse0 > 0 else 0.0,
-        **test,
+        **test.to_dict(),
         "rule": f"relative gain >= {min_gain:.0%} and p < {alpha}",
         "n_validation": len(va),
     }
-    accepted = evidence["relative_gain"] >= min_gain and test["p_value"] < alpha
+    accepted = evidence["relative_gain"] >= min_gain and test.p_value < alpha
     work.note(
         f"learned residual model: {name} {'accepted' if accepted else 'rejected'} "
-        f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test['p_value']:.2g})"
+        f"(validation {rmse0 * 1e3:.4f} -> {rmse1 * 1e3:.4f} mm, p = {test.p_value:.2g})"
     )
     if not accepted:
         work.rejections.append(Rejection("learned", None, evidence, cause=Cause.SELECTION))
@@ -385,7 +383,7 @@ def _refit_learned_model(
     opts = work.options
     index = len(model.effects) - 1
     fi, va = _learned_split(train, opts.seed, opts.split.group_tol, trajectory)
-    model.effects[index], e_val = _refit_one(work, model.effects[index], train, corr, fi, va, gp)
+    model.effects[index], e_val = _refit_one(work, model.effects[index], train, corr, fi, va, gp=gp)
     return e_val
 
 
@@ -396,6 +394,7 @@ def _refit_one(
     corr: Tensor,
     fi: Tensor,
     va: Tensor,
+    *,
     gp: GPConditioner | dict | None = None,
 ) -> tuple[Effect, Tensor]:
     """A learned correction ``eff`` refitted to the corrections ``corr`` at the fitting rows ``fi``; the refitted
@@ -407,7 +406,9 @@ def _refit_one(
         inner = []
         for key, sub in zip(eff.groups, eff.inner):
             fg, vg, pos = _group_split(inverse, _group_index(keys, key), fi, va)
-            new, e_val[pos] = _refit_one(work, sub, train, corr, fg, vg, gp.get(key) if isinstance(gp, dict) else None)
+            new, e_val[pos] = _refit_one(
+                work, sub, train, corr, fg, vg, gp=gp.get(key) if isinstance(gp, dict) else None
+            )
             inner.append(new)
         return GroupedCorrection(eff.groups, inner, eff.regions), e_val
     if isinstance(eff, LearnedEffect):
@@ -530,7 +531,7 @@ def prune_named(
             except EstimationError as err:  # cannot judge it without the effect: the effect stays
                 work.note(f"diagnosis: {eff.label()} kept: the refit without it failed ({err})")
                 continue
-            if _prune_one(work, model, eff, trial, fit, e_without, e_val):
+            if _prune_one(work, model, eff, trial=trial, fit=fit, e_without=e_without, e_val=e_val):
                 e_val = e_without
                 ahead = None  # refitted on the model with this effect: again on the model without it
 
@@ -574,6 +575,7 @@ def _prune_one(
     work: StageWork,
     model: MeasurementModel,
     eff: Effect,
+    *,
     trial: MeasurementModel,
     fit: Fit,
     e_without: Tensor,
@@ -586,21 +588,19 @@ def _prune_one(
     evidence = {
         "validation_rmse_with_mm": S.rmse(e_val) * 1e3,
         "validation_rmse_without_mm": S.rmse(e_without) * 1e3,
-        "z": test["z"],
-        "p_value": test["p_value"],
-        "n": test["n"],
+        **test.to_dict(),
         "rule": f"kept when the model with it is better, one-sided paired p < {opts.levels.validation}",
     }
     entry = next((r for r in work.effects if r.label == eff.label()), None)
     if entry is not None:
         entry = work.amend(entry, with_learned_model=evidence)
-    if test["p_value"] < opts.levels.validation:
+    if test.p_value < opts.levels.validation:
         return False
     _adopt(model, trial)
     work.fits.append(fit)
     reason = (
         f"the learned model explains it as well (validation {evidence['validation_rmse_with_mm']:.4f} mm "
-        f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test['p_value']:.2g})"
+        f"with it, {evidence['validation_rmse_without_mm']:.4f} mm without, p = {test.p_value:.2g})"
     )
     work.note(f"diagnosis: {eff.label()} dropped: {reason}")
     if entry is not None:
@@ -651,13 +651,13 @@ def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -
     # the generator goes on to the network's initial weights and to the fit
     fit_i, val_i = S.split(
         train.n,
-        S.holdout_count(train.n, VALIDATION_FRACTION, rounding="floor"),
+        S.validation_count(train.n),
         generator=g,
         q=train.q,
         group_tol=opts.split.group_tol,
         sort=False,
     )
-    net, res = _fitted_network(model, opts, g, train.q, corr, fit_i, val_i, fit_generator=g)
+    net, res = _fitted_network(model, opts, init=g, q=train.q, corr=corr, fit_i=fit_i, val_i=val_i, fit_generator=g)
     work.note(
         f"correction network: {res.method} {res.status} after {res.iterations} iterations, "
         f"best validation at {res.best_iteration}"
@@ -668,6 +668,7 @@ def fit_correction_net(work: StageWork, train: Measurements, trajectory: bool) -
 def _fitted_network(
     model: MeasurementModel,
     opts: Options,
+    *,
     init: torch.Generator,
     q: Tensor,
     corr: Tensor,

@@ -56,7 +56,7 @@ from torchcal.effects.drift import Drift
 from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, RegionForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
-from torchcal.pipeline.holdout import at_edges
+from torchcal.pipeline.holdout import GUARD_MIN_POSES, at_edges
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
 from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
 
@@ -139,7 +139,7 @@ class _Search:
         cands, skipped = candidates(work.model.robot, ctx)
         fi, va = S.split(
             train.n,
-            S.holdout_count(train.n, 0.2),
+            S.validation_count(train.n),
             seed=opts.seed + S.Stream.VALIDATION,
             last=run.trajectory,
             q=train.q,
@@ -176,7 +176,13 @@ class _Search:
         remaining = [c for c in self.cands if c.name not in self.tried and c.name not in self.accepted_names]
         scores = (
             score_candidates(
-                model, fit.result, self.ctx, train.p, fit.whitening, remaining, tol=self.run.options.fit.rank_tol
+                model,
+                fit.result,
+                self.ctx,
+                train.p,
+                fit.whitening,
+                cands=remaining,
+                tol=self.run.options.fit.rank_tol,
             )
             if remaining
             else []
@@ -210,15 +216,15 @@ class _Search:
         v = _validate(
             s,
             rnd,
-            self.base,
-            self.e_base,
-            self.fit_on,
-            self.fit_part,
-            self.val_part,
-            self.run.trajectory,
-            self.diag.alpha_validation,
-            cand,
-            self.run.options.loop.max_joint_error,
+            base=self.base,
+            e_base=self.e_base,
+            fit_on=self.fit_on,
+            fit_part=self.fit_part,
+            val_part=self.val_part,
+            trajectory=self.run.trajectory,
+            alpha_val=self.diag.alpha_validation,
+            cand=cand,
+            max_size=self.run.options.loop.max_joint_error,
         )
         if v.passed and isinstance(v.trial.effects[-1], RegionForm):
             _validate_edge(
@@ -226,9 +232,9 @@ class _Search:
                 self.base,
                 self.fit_on,
                 self.fit_part,
-                self.run.trajectory,
-                self.diag.alpha_validation,
-                self.edge_bases,
+                trajectory=self.run.trajectory,
+                alpha_val=self.diag.alpha_validation,
+                cache=self.edge_bases,
             )
         if not v.passed:
             _reject(self.work, self.diag, v)
@@ -313,6 +319,7 @@ class _Validation:
 def _validate(
     s: Score,
     rnd: int,
+    *,
     base: MeasurementModel,
     e_base: Tensor,
     fit_on,
@@ -348,16 +355,14 @@ def _validate(
         "rmse_before_mm": r0 * 1e3,
         "rmse_after_mm": r1 * 1e3,
         "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0,
-        "z": test["z"],
-        "p_value": test["p_value"],
-        "n": test["n"],
+        **test.to_dict(),
         "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
     }
-    passed = r1 < r0 and test["p_value"] < alpha_val
+    passed = r1 < r0 and test.p_value < alpha_val
     reason = (
         ""
         if passed
-        else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test['p_value']:.2g})")
+        else (f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test.p_value:.2g})")
     )
     # the variance is estimated (n ln(RSS / n)), not taken as the tracker's: while structure is left, the
     # whitened SS is inflated by s0^2 and a known-variance BIC would let any extra parameter buy it down
@@ -381,7 +386,9 @@ def _edge_split(q: Tensor, joint: int, share: float = EDGE_SHARE) -> tuple[Tenso
     return torch.nonzero(~edge)[:, 0], torch.nonzero(edge)[:, 0]
 
 
-def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, trajectory: bool, alpha_val: float, cache):
+def _validate_edge(
+    v: _Validation, base, fit_on, fit_part: Measurements, *, trajectory: bool, alpha_val: float, cache: dict
+):
     """An open joint form that passed validation on random poses is judged at the edges of its joint's range too:
     refitted without the outer :data:`EDGE_SHARE` of the fitting poses on each side of the range, its continuation
     must not predict them significantly worse than the model without it (one-sided paired test at ``alpha_val``).
@@ -389,7 +396,8 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
     numbers go to ``v.validation["edge"]``."""
     eff = v.trial.effects[-1]
     mid, edge = _edge_split(fit_part.q, eff.joint)
-    if len(edge) < 10 or len(mid) < 10:
+    # judged on as many poses as a held-out guard asks, and refitted on no fewer
+    if len(edge) < GUARD_MIN_POSES or len(mid) < GUARD_MIN_POSES:
         v.validation["edge"] = {"skipped": f"too few poses at the edges of joint {eff.joint} ({len(edge)})"}
         return
     middle, outer = fit_part.subset(mid), fit_part.subset(edge)
@@ -423,16 +431,16 @@ def _validate_edge(v: _Validation, base, fit_on, fit_part: Measurements, traject
         "share_per_side": EDGE_SHARE,
         "rmse_without_mm": r0 * 1e3,
         "rmse_with_mm": r1 * 1e3,
-        "p_worse": worse["p_value"],
+        "p_worse": worse.p_value,
         "rule": f"fitted on the middle of joint {eff.joint}'s range, not worse at its edges (one-sided paired p "
         f">= {alpha_val})",
     }
-    if r1 > r0 and worse["p_value"] < alpha_val:
+    if r1 > r0 and worse.p_value < alpha_val:
         v.passed, v.cause = False, Cause.EDGE
         v.reason = (
             f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
             f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
-            f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse['p_value']:.2g})"
+            f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse.p_value:.2g})"
         )
 
 
@@ -472,7 +480,7 @@ def _choose(passed: list[_Validation], trajectory: bool, alpha_val: float, work:
     tied = [best] + [
         v
         for v in passed
-        if v is not best and S.paired_test(v.errors, best.errors, ordered=trajectory)["p_value"] >= alpha_val
+        if v is not best and S.paired_test(v.errors, best.errors, ordered=trajectory).p_value >= alpha_val
     ]
     chosen = min(tied, key=lambda v: v.bic)
     if chosen is not best:

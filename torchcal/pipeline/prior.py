@@ -271,9 +271,17 @@ def for_data(prior: Prior, data) -> Prior:
         return prior
     model = copy.deepcopy(prior.model)
     sigma, corrections, units = dict(prior.sigma), dict(prior.corrections), dict(prior.units)
-    st_map = _match(prior, robot.stations, stations, "station", sigma, corrections, units)
-    pr_map = _match(prior, robot.probes, probes, "probe", sigma, corrections, units)
-    _rebuild(model.robot, robot, st_map, pr_map, stations[0], probes[0], set(sigma))
+    st_map = _match(prior, robot.stations, stations, "station", sigma=sigma, corrections=corrections, units=units)
+    pr_map = _match(prior, robot.probes, probes, "probe", sigma=sigma, corrections=corrections, units=units)
+    _rebuild(
+        model.robot,
+        robot,
+        st_map=st_map,
+        pr_map=pr_map,
+        st_names=stations[0],
+        pr_names=probes[0],
+        free=set(sigma),
+    )
     _regroup(model, st_map, pr_map)
     _place_new(model.robot, data, st_map)
     # the geometry's held elements keep their names; a station's are renamed or new (fitted), so only those stay
@@ -296,7 +304,7 @@ def _element(names: tuple[str, ...], k: int | None, group: str, column: str) -> 
     return f"{group}[{names[k]}].{column}" if names else f"{group}.{column}"
 
 
-def _match(prior: Prior, old: tuple[str, ...], target, key: str, sigma, corrections, units) -> list[int | None]:
+def _match(prior: Prior, old: tuple[str, ...], target, key: str, *, sigma, corrections, units) -> list[int | None]:
     """For each new station (probe) the prior's index it matches by label (None: new), renaming the a-priori sigmas,
     corrections and units of the matched elements to the new names (and dropping the rest of the group's)."""
     names, single = target
@@ -325,7 +333,7 @@ def _match(prior: Prior, old: tuple[str, ...], target, key: str, sigma, correcti
     return mapping
 
 
-def _rebuild(robot: RobotModel, old: RobotModel, st_map, pr_map, st_names, pr_names, free: set[str]) -> None:
+def _rebuild(robot: RobotModel, old: RobotModel, *, st_map, pr_map, st_names, pr_names, free: set[str]) -> None:
     """The instrument and tool of ``robot`` for the new stations and probes: matched ones at the prior's values,
     their elements the prior held held still; new ones free (poses at the identity until :func:`_place_new`)."""
     from torchcal.robot.model import Instrument, Tool
