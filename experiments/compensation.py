@@ -60,6 +60,7 @@ class ExperimentConfig:
     path_targets: int = 1000
     method: str | None = None  # calibration method (None: the default)
     orientation_deg: float | None = None  # a 6-D probe's orientation noise [deg] (None: a reflector, positions only)
+    orientation_weight: float = 0.1  # the 6-D solve's [m/rad] (compensate's orientation_weight)
     extra: dict = field(default_factory=dict)
 
 
@@ -92,11 +93,12 @@ def _row(
     path: bool,
     R_target: torch.Tensor | None = None,
     six_d: bool = False,
+    weight: float = 0.1,
 ) -> tuple[dict, dict]:
     """Where the true robot puts the probe for the commands of ``model``'s compensation of ``targets`` (None: the
     program's own joints ``q_prog``); with the compensation's status, time and branch, and on a path its smoothness.
     With ``R_target`` (the program's tool orientations in the tracker frame ``(N, 3, 3)``) also how far the true
-    robot turns the probe from them; ``six_d`` compensates them too.
+    robot turns the probe from them; ``six_d`` compensates them too, an orientation error weighing ``weight`` [m/rad].
 
     Returns:
         The row's entry, and per target: ``turns`` ``(N,)`` [rad] (None without ``R_target``) and, for ``six_d``,
@@ -110,7 +112,8 @@ def _row(
             entry["orientation"] = _angles_deg(turns)
         return entry, {"turns": turns, "reached": None}
     t1 = time.perf_counter()
-    res = compensate(model, targets, q_prog, context={"trajectory": path}, orientations=R_target if six_d else None)
+    R = R_target if six_d else None
+    res = compensate(model, targets, q_prog, context={"trajectory": path}, orientations=R, orientation_weight=weight)
     secs = time.perf_counter() - t1
     q_cmd = res.q
     s0 = configuration_sign(nominal, q_prog)
@@ -140,6 +143,14 @@ def _row(
         entry["largest_joint_step_rad"] = float(torch.diff(q_cmd, dim=0).abs().max())
         entry["program_largest_joint_step_rad"] = float(torch.diff(q_prog, dim=0).abs().max())
     return entry, {"turns": turns, "reached": reached}
+
+
+def _rows(truth, nominal, models: dict, targets, q_prog, path: bool, R_target, weight: float) -> tuple[dict, dict]:
+    """:func:`_row` of each of ``models`` (name: (model, six_d)): the entries and the per-target values by name."""
+    rows, per_target = {}, {}
+    for name, (model, six) in models.items():
+        rows[name], per_target[name] = _row(truth, nominal, model, targets, q_prog, path, R_target, six, weight)
+    return rows, per_target
 
 
 def run(cfg: ExperimentConfig) -> dict:
@@ -196,6 +207,7 @@ def run(cfg: ExperimentConfig) -> dict:
             "effects": list(cfg.effects),
             "calibration_poses": cfg.poses,
             "method": calib.options.method,
+            "orientation_weight": cfg.orientation_weight if six_d else None,
         },
         "calibration_seconds": t_cal,
         "effects_found": [{"kind": e["kind"], "joint": e["joint"]} for e in calib.effects_report],
@@ -209,15 +221,25 @@ def run(cfg: ExperimentConfig) -> dict:
             T_prog = nominal.forward(q_prog)
             targets = tf.transform_points(T_true, tf.transform_points(T_prog, lever_true))
             R_target = T_true[:3, :3] @ T_prog[..., :3, :3] @ truth.robot.tool_rotation.matrix() if six_d else None
-        rows, per_target = {}, {}
-        for name, (model, six) in models.items():
-            rows[name], per_target[name] = _row(truth, nominal, model, targets, q_prog, kind == "path", R_target, six)
+        rows, per_target = _rows(
+            truth, nominal, models, targets, q_prog, kind == "path", R_target, cfg.orientation_weight
+        )
         out["targets"][kind] = {"n": len(q_prog), "rows": rows}
         if six_d:
-            out.setdefault("six_d", {})[kind] = six_d_summary(rows, per_target)
+            out.setdefault("six_d", {})[kind] = _six_d(
+                truth, rows, per_target, targets, R_target, q_prog, kind == "path"
+            )
     full = [out["targets"][k]["rows"][POSITION_ROW]["rmse_mm"] for k in programs]
     out["ratio_to_held_out"] = {k: v / out["held_out_prediction"]["rmse_mm"] for k, v in zip(programs, full)}
     out["branch_check"] = branch_check(calib.model, campaign)
+    return out
+
+
+def _six_d(truth, rows: dict, per_target: dict, targets, R_target, q_prog, path: bool) -> dict:
+    """:func:`six_d_summary` of one program, with :func:`true_pose_nearby` of the targets the true model misses."""
+    out = six_d_summary(rows, per_target)
+    missed = torch.nonzero(~per_target[TRUE_MODEL_ROW]["reached"]).flatten()
+    out["true_pose_within_check"] = true_pose_nearby(truth, targets, R_target, q_prog, missed, path)
     return out
 
 
@@ -248,6 +270,48 @@ def six_d_summary(rows: dict, per_target: dict) -> dict:
     if bool(reach.any()):
         out["cut_where_true_model_reaches"] = _rms(turns_pos[reach]) / _rms(turns_six[reach])
     return out
+
+
+def true_pose_nearby(
+    truth: MeasurementModel,
+    targets: torch.Tensor,
+    R_target: torch.Tensor,
+    q_prog: torch.Tensor,
+    rows: torch.Tensor,
+    path: bool,
+    starts: int = 32,
+    reach: float = 0.3,
+) -> int:
+    """How many of ``rows`` (targets whose full pose the true model's 6-D compensation misses) have one the true robot
+    reaches within :func:`compensate`'s configuration check of the program's joints after all: a solve that misses
+    only because it stalls is told apart from a pose that is not there.
+
+    Each row is solved with the true model from ``starts`` random joints within ``reach`` [rad] of the program's (no
+    check on the way, up to 100 iterations); a solution counts where it converged, lies within ``reach`` of the
+    program's joints and on their branch (the sign of ``det J``, or a move of at most 0.05 rad).
+    """
+    if not len(rows):
+        return 0
+    g = torch.Generator().manual_seed(len(rows))
+    q0 = q_prog[rows].repeat(starts, 1)
+    q0 = q0 + (torch.rand(q0.shape, generator=g, dtype=F64) - 0.5) * 2 * reach
+    context = {"direction": motion_direction(q_prog)[rows].repeat(starts, 1)} if path else None
+    res = compensate(
+        truth,
+        targets[rows].repeat(starts, 1),
+        q0,
+        context=context,
+        orientations=R_target[rows].repeat(starts, 1, 1),
+        max_iter=100,
+        max_joint_change=math.inf,
+        branch_tol=math.inf,
+    )
+    q_start = q_prog[rows].repeat(starts, 1)
+    moved = (res.q - q_start).abs().max(-1).values
+    same = configuration_sign(truth.robot, res.q) == configuration_sign(truth.robot, q_start)
+    converged = torch.tensor([s is Status.CONVERGED for s in res.status])
+    found = converged & (moved <= reach) & (same | (moved <= 0.05))
+    return int(found.reshape(starts, len(rows)).any(dim=0).sum())
 
 
 def _rms(a: torch.Tensor) -> float:

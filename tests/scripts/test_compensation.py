@@ -1,10 +1,15 @@
 """experiments/compensation.py's 6-D summary: the cut against position-only, and the bound the true model sets."""
 
+import copy
 import math
 
 import torch
 
-from experiments.compensation import POSITION_ROW, SIX_D_ROW, TRUE_MODEL_ROW, six_d_summary
+from experiments.compensation import POSITION_ROW, SIX_D_ROW, TRUE_MODEL_ROW, six_d_summary, true_pose_nearby
+from torchcal.effects.base import Context
+from torchcal.effects.model import MeasurementModel
+from torchcal.robot import load_robot
+from torchcal.robot import transforms as tf
 
 F64 = torch.float64
 
@@ -43,3 +48,24 @@ def test_six_d_summary_without_a_reached_target_says_none():
     out = six_d_summary(rows, per_target)
     assert out["true_model_reaches"] == 0 and out["cut_where_true_model_reaches"] is None
     assert math.isclose(out["true_model_cut"], 1.0, rel_tol=1e-12)
+
+
+def test_true_pose_nearby_tells_a_pose_out_of_reach_from_a_stalled_solve():
+    """The nominal UR5's poses at a stretched elbow (q3 = 0.01 rad: its wrist 10 um short of full reach) lie out of the
+    reach of an arm whose upper arm is 0.5 mm shorter: no start within 0.3 rad finds one (eight starts a row here). The
+    same arm reaches the nominal poses of a bent elbow (q3 = 0.8 rad) with a small move, and they are found."""
+    nominal = load_robot("ur5")
+    g = torch.Generator().manual_seed(3)
+    nominal.enable_orientation(tf.so3_exp(torch.randn(3, generator=g, dtype=F64)))
+    short = copy.deepcopy(nominal)
+    with torch.no_grad():
+        short.geometry.delta[1, 0] = -0.0005 * math.copysign(1.0, float(short.geometry.nominal[1, 0]))
+    q = (torch.rand(6, 6, generator=g, dtype=F64) * 2 - 1) * 2.5
+    q[:, 4] = torch.sign(q[:, 4]) * (0.5 + q[:, 4].abs() * 0.4)  # away from the wrist singularity
+    q[:3, 2], q[3:, 2] = 0.01, 0.8
+    plain = MeasurementModel(nominal, [])
+    with torch.no_grad():
+        targets, R = plain(Context(q=q)), plain.orientation(Context(q=q))
+    truth = MeasurementModel(short, [])
+    assert true_pose_nearby(truth, targets, R, q, torch.arange(3), False, starts=8) == 0
+    assert true_pose_nearby(truth, targets, R, q, torch.arange(3, 6), False, starts=8) == 3
