@@ -28,12 +28,22 @@ ap.add_argument(
     help="a 6-D probe with this orientation noise [deg]: also compensate position and orientation together and report "
     "the true robot's orientation error beside its position error (six_d: the ratios to position-only)",
 )
+ap.add_argument(
+    "--orientation-weight",
+    type=float,
+    default=0.1,
+    metavar="M_PER_RAD",
+    help="with --orientation: how much an orientation error weighs against a position error in the 6-D solve [m/rad] "
+    "(compensate's orientation_weight, default 0.1)",
+)
 
 
 def experiment(a):
     effects = tuple(a.effect) if a.effect else DEFAULT_EFFECTS
     kw = {k: getattr(a, k) for k in ("robot", "seed", "poses", "static_targets", "path_targets", "method")}
-    return run(ExperimentConfig(effects=effects, orientation_deg=a.orientation, **kw))
+    return run(
+        ExperimentConfig(effects=effects, orientation_deg=a.orientation, orientation_weight=a.orientation_weight, **kw)
+    )
 
 
 if __name__ == "__main__":
