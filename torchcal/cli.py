@@ -1301,24 +1301,10 @@ def cmd_convert(args) -> int:
 
 
 def cmd_export(args) -> int:
-    from torchcal.report.urdf import urdf_left_out
-    from torchcal.robot.export import write_text, write_urdf
-    from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml
-    from torchcal.use.rundir import load_model
+    from torchcal.use.export import export_run
 
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
-    model, _ = load_model(args.run)
-    left = urdf_left_out(model)
-    notes = (f"NOT in this file: {', '.join(left)} (torchcal compensate {args.run} applies them)",) if left else ()
-    text = None
-    if args.format != "urdf":
-        write = ur_ros2_yaml if args.format == "ur-ros2" else dh_yaml
-        text = f"# written_by: torchcal export\n{write(model.robot, notes)}"  # a refusal before any folder is made
-    out_file.parent.mkdir(parents=True, exist_ok=True)  # as predict and plan do: --out may name a new folder
-    if text is None:
-        write_urdf(model.robot, out_file, notes=list(notes))
-    else:
-        write_text(out_file, text)
+    export_run(args.run, args.format, out_file)
     _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
     return 0
 

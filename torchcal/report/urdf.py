@@ -8,13 +8,9 @@ import torch
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.robot import transforms as tf
+from torchcal.use.export import left_out
 
 Tensor = torch.Tensor
-
-
-def urdf_left_out(model: MeasurementModel) -> list[str]:
-    """Labels of the model's parts that a URDF (geometry, lever arm, tracker pose only) cannot carry."""
-    return [e.label() for e in model.effects]
 
 
 def urdf_gap(model: MeasurementModel, ctx: Context) -> dict:
@@ -33,7 +29,7 @@ def urdf_gap(model: MeasurementModel, ctx: Context) -> dict:
         "n_poses": int(d.shape[0]),
         "rms_mm": float(d.square().mean().sqrt()) * 1e3 if len(d) else 0.0,
         "max_mm": float(d.max()) * 1e3 if len(d) else 0.0,
-        "left_out": urdf_left_out(model),
+        "left_out": left_out(model),
     }
 
 
@@ -57,7 +53,7 @@ def urdf_fk_difference(path, model: MeasurementModel, ctx: Context) -> dict:
         "n_poses": int(d.shape[0]),
         "rms_mm": float(d.square().mean().sqrt()) * 1e3,
         "max_mm": float(d.max()) * 1e3,
-        "left_out": urdf_left_out(model),
+        "left_out": left_out(model),
     }
 
 
