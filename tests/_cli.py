@@ -108,14 +108,16 @@ def snapshot(root: Path) -> dict:
     return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
 
 
-@pytest.fixture(scope="module")
+# session-scoped: seven modules of tests/cli read the same campaign and run (they copy a run before changing it), and
+# computing them once per test process instead of once per module saves a simulation and a calibration per module
+@pytest.fixture(scope="session")
 def campaign(tmp_path_factory):
     root = tmp_path_factory.mktemp("campaign")
     assert cli_simulate(root / "sim", "--poses", "100", "--test-poses", "20", "--seed", "4") == 0
     return root / "sim"
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def run_dir(campaign, tmp_path_factory):
     out = tmp_path_factory.mktemp("run") / "cal"
     assert calibrate(campaign / "train.csv", out) == 0
