@@ -1,8 +1,6 @@
 """Greedy D-optimal pose selection (torchcal.estimate.design): the rank-one updates agree with the direct criterion,
 the design beats random candidates on it, and it is fast enough for 100 of 10,000 candidates."""
 
-import time
-
 import pytest
 import torch
 
@@ -91,12 +89,11 @@ def test_covariance_inverts_the_information(problem):
     torch.testing.assert_close(covariance(M, 2.0) @ M, 2.0 * torch.eye(len(M), dtype=M.dtype), rtol=0, atol=1e-8)
 
 
-def test_speed_100_of_10000():
+def test_100_of_10000_candidates_distinct_and_gaining():
+    """The planning scale of the command (its speed is measured by scripts/bench_plan.py, not here): 100 distinct
+    picks of 10,000 candidates, each one adding information."""
     model = MeasurementModel(load_robot("ur5"))
     q = sample_joints(model.robot, 10_000, torch.Generator().manual_seed(1))
-    t0 = time.perf_counter()
-    p = design_problem(model, q)
-    greedy_d_optimal(p, 100)
-    s = time.perf_counter() - t0
-    print(f"design problem and 100 greedy picks of 10,000 candidates: {s:.2f} s")
-    assert s < 30.0  # the issue asks for under a minute with the candidates' sampling; measured ~1 s on 2 cores
+    design = greedy_d_optimal(design_problem(model, q), 100)
+    assert len(design.order) == 100 and len(set(design.order.tolist())) == 100
+    assert bool((design.log_det[1:] > design.log_det[:-1]).all())
