@@ -11,7 +11,6 @@ import copy
 import json
 import math
 import os
-import time
 from pathlib import Path
 
 import pytest
@@ -153,14 +152,12 @@ def test_clean_campaign_names_nothing():
     assert family_wise_p(locs) > ALPHA, [(loc.name, loc.p_bonferroni) for loc in locs[:3]]
 
 
-def test_localise_is_fast_and_reports_its_smooth():
+def test_localise_reports_its_smooth():
     c = simulate_outside(
         [OutsideEffect("harmonic", joint=3, order=6, size=3e-5)], SimConfig(poses=800, test_poses=0, seed=7)
     )
     g = geometric_fit(c.train)
-    t0 = time.perf_counter()
     locs, _ = localise_fit(g)
-    assert time.perf_counter() - t0 < 2.0
     top = locs[0]
     assert top.name == "q3" and 0.3 < top.share <= 1.0 and top.edf > 1.0
     assert top.smooth.shape == top.grid.shape == top.smooth_se.shape
