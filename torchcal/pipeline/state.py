@@ -1,6 +1,7 @@
 """The typed state of a calibration run, and the frozen result a stage returns.
 
-A stage is a function ``CalibrationRun -> StageResult`` (:data:`StageFn`); what it leaves in the story is a :class:`Checkpoint`. It works on its own
+A stage is a function ``CalibrationRun -> StageResult`` (:data:`StageFn`); what it leaves in the story is a
+:class:`Checkpoint`. It works on its own
 :class:`StageWork` (a copy of the run's model and of the story so far) and never edits the run; only
 :func:`torchcal.pipeline.run.calibrate` applies a result (:meth:`CalibrationRun.apply`), which returns a new run.
 The result says what the stage changed: the model it ends with, the checkpoints of the before/after story it
