@@ -13,16 +13,21 @@ Two runs of ``torchcal calibrate DATA --robot R`` (the default method), each in 
   many small calls; the shares are what to read.
 
 :func:`simulated` makes the second data set: a simulated campaign of a 7-axis arm with orientations (a 6-D probe).
+:func:`compare` times the default method against a baseline source tree, alternating, as commands.
 """
 
 from __future__ import annotations
 
 import importlib
 import inspect
+import json
 import os
 import pstats
+import resource
+import statistics
 import subprocess
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -210,4 +215,63 @@ def profile(data: str, robot: str, method: str, work: Path) -> dict:
         "profiled_cpu_s": total,
         "kernels": kernel_table(stats, total),
         "own": own_times(stats, root),
+    }
+
+
+def calibrate_once(tree: Path, data: str, robot: str, method: str, out: Path) -> dict:
+    """One ``torchcal calibrate`` as a command with ``tree``'s torchcal (one torch thread): its wall and CPU seconds
+    (the CPU time counts beside other work, where the wall time counts the others too) and its report's held-out
+    RMSE and effects."""
+    env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
+    argv = ["calibrate", str(data), "--robot", robot, "--method", method, "--out", str(out), "--quiet"]
+    t0, c0 = time.perf_counter(), _child_cpu()
+    # run in the tree: ``python -m`` puts the working directory first on the path
+    done = subprocess.run([sys.executable, "-m", "torchcal", *argv], env=env, cwd=tree, capture_output=True, text=True)
+    wall, cpu = time.perf_counter() - t0, _child_cpu() - c0
+    if done.returncode != 0:
+        raise TorchcalError(f"{tree}: torchcal {' '.join(argv)} exited {done.returncode}: {done.stderr[-1000:]}")
+    report = json.loads((out / "report.json").read_text())
+    return {
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "rmse_holdout_mm": report["rmse_after_mm"],
+        "effects": [e["name"] for e in report["effects"]],
+    }
+
+
+def _child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def compare(data: str, robot: str, baseline: Path, repeat: int, work: Path) -> dict:
+    """This tree's default method against ``baseline``'s (a torchcal source tree, e.g. the commit before a speed-up)
+    on ``data``, ``repeat`` times alternating, then this tree's kinematic method once per round too: every run's
+    seconds, the medians, this tree's CPU and wall time over the baseline's and over its own kinematic calibration's,
+    and how far the two trees' held-out RMSEs are apart and whether their effects agree."""
+    ours_tree = Path(__file__).resolve().parents[1]
+    runs: dict[str, list[dict]] = {"ours": [], "baseline": [], "kinematic": []}
+    for k in range(repeat):
+        runs["ours"].append(calibrate_once(ours_tree, data, robot, "auto", work / f"ours{k}"))
+        runs["baseline"].append(calibrate_once(baseline, data, robot, "auto", work / f"base{k}"))
+        runs["kinematic"].append(calibrate_once(ours_tree, data, robot, "kinematic", work / f"kin{k}"))
+
+    def med(name: str, key: str) -> float:
+        return statistics.median(r[key] for r in runs[name])
+
+    return {
+        "data": str(data),
+        "robot": robot,
+        "baseline": str(baseline),
+        "runs": runs,
+        "cpu_ratio_to_baseline": med("ours", "cpu_s") / med("baseline", "cpu_s"),
+        "wall_ratio_to_baseline": med("ours", "wall_s") / med("baseline", "wall_s"),
+        "cpu_ratio_to_kinematic": med("ours", "cpu_s") / med("kinematic", "cpu_s"),
+        "baseline_cpu_ratio_to_kinematic": med("baseline", "cpu_s") / med("kinematic", "cpu_s"),
+        "wall_ratio_to_kinematic": med("ours", "wall_s") / med("kinematic", "wall_s"),
+        "same_effects": all(a["effects"] == b["effects"] for a, b in zip(runs["ours"], runs["baseline"])),
+        "rmse_holdout_max_diff_mm": max(
+            abs(a["rmse_holdout_mm"] - b["rmse_holdout_mm"]) for a, b in zip(runs["ours"], runs["baseline"])
+        ),
+        "rmse_holdout_mm": {n: runs[n][0]["rmse_holdout_mm"] for n in runs},
     }
