@@ -557,13 +557,32 @@ def orientation_function(
 
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
-        lin = linear_rotation(model, free, ctx, x) if linear else None
+        if not linear:
+            return _chunked(lambda c, Rm, WW: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
+        lin = linear_rotation(model, free, ctx, x)
+        at = free.params(x)
+        J = x.new_zeros(3 * ctx.q.shape[0], len(x))
+        for names, cols in _column_groups(free, x.device):
+            part = functools.partial(_group_residuals, x=x, cols=cols, names=names, at=at)
+            J[:, cols] = _chunked(lambda c, Rm, WW, p=part: functools.partial(p, c=c, Rm=Rm, WW=WW), x[cols], lin)
+        return J
+
+    def _group_residuals(z: Tensor, x, cols, names, at, c: Context, Rm: Tensor, WW: Tensor, rot) -> Tensor:
+        """The residuals as a function of the columns ``cols`` of x alone: the parameters outside their entries
+        ``names`` plain (no tangent), so that their computations (a compliance's torque through the chain, by the
+        geometry) stay plain where only other columns are differentiated."""
+        params = {k: v if k in names else at[k] for k, v in free.params(x.index_put((cols,), z)).items()}
+        R = torch.func.functional_call(model, params, (c,), {"orientation": True, "rot": rot})
+        return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
+
+    def _chunked(make, x: Tensor, lin=None) -> Tensor:
+        """``jacfwd`` of ``make(c, Rm, WW)`` (a function of ``x``) over ``chunk`` poses at a time."""
         n, parts = ctx.q.shape[0], []
         for lo in range(0, n, max(1, int(chunk))):
             sl = slice(lo, min(n, lo + max(1, int(chunk))))
-            rot = lin(sl) if lin is not None else None
-            part = functools.partial(residuals, c=ctx.subset(sl), Rm=R_meas[sl], WW=W[sl], rot=rot)
-            parts.append(torch.func.jacfwd(part)(x).detach())
+            f = make(ctx.subset(sl), R_meas[sl], W[sl])
+            f = functools.partial(f, rot=lin(sl)) if lin is not None else f
+            parts.append(torch.func.jacfwd(f)(x).detach())
         return torch.cat(parts) if parts else x.new_zeros(0, len(x))
 
     fun.jacobian = jacobian
@@ -615,6 +634,18 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
 
 #: the geometry's correction (the free elements :func:`linear_rotation` carries)
 _GEOMETRY = "robot.geometry.delta"
+
+
+def _column_groups(free: FreeParameters, dev) -> list[tuple[set[str], Tensor]]:
+    """The orientation Jacobian's column groups, each ``(entries, columns of x)``: the geometry's, whose tangents
+    reach the joint effects' torques through the chain, and all the others' (the instrument pose, the probe frame's
+    rotation, the effects' own parameters), for which that chain stays plain. A column's derivative is the same in
+    any group: the others are held at x in both."""
+    geo = [j for j, e, _ in _columns(free) if e.name == _GEOMETRY]
+    rest = [j for j, e, _ in _columns(free) if e.name != _GEOMETRY]
+    names = {e.name for e in free.entries}
+    groups = [({_GEOMETRY}, geo), (names - {_GEOMETRY}, rest)]
+    return [(n, torch.tensor(c, dtype=torch.long, device=dev)) for n, c in groups if c]
 
 
 def stack_functions(*funs):
