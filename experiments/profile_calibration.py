@@ -252,9 +252,11 @@ def compare(data: str, robot: str, baseline: Path, repeat: int, work: Path) -> d
     ours_tree = Path(__file__).resolve().parents[1]
     runs: dict[str, list[dict]] = {"ours": [], "baseline": [], "kinematic": []}
     for k in range(repeat):
-        runs["ours"].append(calibrate_once(ours_tree, data, robot, "auto", work / f"ours{k}"))
-        runs["baseline"].append(calibrate_once(baseline, data, robot, "auto", work / f"base{k}"))
-        runs["kinematic"].append(calibrate_once(ours_tree, data, robot, "kinematic", work / f"kin{k}"))
+        for name, tree, method in (("ours", ours_tree, "auto"), ("baseline", baseline, "auto")) + (
+            ("kinematic", ours_tree, "kinematic"),
+        ):
+            runs[name].append(calibrate_once(tree, data, robot, method, work / f"{name}{k}"))
+            print(f"round {k + 1}: {name}: {json.dumps(runs[name][-1])}", file=sys.stderr, flush=True)
 
     def med(name: str, key: str) -> float:
         return statistics.median(r[key] for r in runs[name])
