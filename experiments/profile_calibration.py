@@ -148,42 +148,39 @@ def _is_own(key: tuple[str, int, str], root: str) -> bool:
     return key[0].startswith(root)
 
 
-def own_times(stats: pstats.Stats, root: str, top: int = 20) -> list[dict]:
+def own_times(stats: pstats.Stats, root: str, top: int = 20, rounds: int = 500) -> list[dict]:
     """The torchcal functions (file under ``root``) that spend the most CPU: their own time plus that of the functions
-    outside torchcal they call, down to the next torchcal function. A function outside torchcal called from several
-    places is shared among its callers by the time each call edge took (as gprof does), recursively up to the first
-    torchcal caller; time with no torchcal caller (the imports) is ``(outside torchcal)``."""
+    outside torchcal they call, down to the next torchcal function. The own time of a function outside torchcal goes
+    to its callers in proportion to the time each call edge took (as gprof shares it), passed on from caller to
+    caller (a recursive call's own edge left out) until a torchcal function takes it, for at most ``rounds`` steps;
+    time with no torchcal caller (the imports) is ``(outside torchcal)``."""
     table = stats.stats
-    share_of: dict = {}
-    busy: set = set()  # on the path being resolved: a call cycle outside torchcal
-
-    def shares(key) -> dict:
-        """Where ``key``'s own time goes: torchcal function -> fraction."""
-        if key in share_of:
-            return share_of[key]
-        callers = table[key][4] if key in table else {}
-        weights = {c: e[3] for c, e in callers.items() if e[3] > 0 and c not in busy}
-        total = sum(weights.values())
-        out: dict = defaultdict(float)
-        busy.add(key)
-        if not total:
-            out[None] = 1.0
-        for c, w in weights.items():
-            for k, f in ({c: 1.0} if _is_own(c, root) else shares(c)).items():
-                out[k] += f * w / total
-        busy.discard(key)
-        share_of[key] = out
-        return out
-
     own: dict = defaultdict(float)
     calls: dict = {}
+    mass: dict = {}
     for key, (_, nc, tt, _, _) in table.items():
         if _is_own(key, root):
             own[key] += tt
             calls[key] = nc
-        else:
-            for k, f in shares(key).items():
-                own[k] += tt * f
+        elif tt > 0:
+            mass[key] = tt
+    for _ in range(rounds):
+        moved: dict = defaultdict(float)
+        for key, m in mass.items():
+            callers = {c: e[3] for c, e in table[key][4].items() if e[3] > 0 and c != key} if key in table else {}
+            total = sum(callers.values())
+            if not total:
+                own[None] += m
+                continue
+            for c, w in callers.items():
+                if _is_own(c, root):
+                    own[c] += m * w / total
+                else:
+                    moved[c] += m * w / total
+        mass = moved
+        if sum(mass.values()) < 1e-6:
+            break
+    own[None] += sum(mass.values())
     total = sum(own.values())
     rows = sorted(own.items(), key=lambda kv: -kv[1])[:top]
     return [
