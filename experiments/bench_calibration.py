@@ -115,14 +115,15 @@ PARTS = [
 _TOP = {"robot": "command/robot", "read": "command/read", "fit": "command/fit", "report": "command/report"}
 
 
-def stages(data: str, robot: str, method: str, work: Path) -> dict:
+def stages(data: str, robot: str, method: str, work: Path, *, parts: list[str] = PARTS) -> dict:
     """One ``torchcal calibrate`` in a fresh process (one torch thread) through the memory probe
     (:func:`~experiments.bench_memory.calibration`), stage by stage: ``stages`` import, robot, read, fit and
     report (wall and CPU seconds, each one's own peak resident memory), ``parts`` every stage inside the fit by name
     (the closed loop, its score tests and refits, the learned stage and its fits, every LM fit; summed where a name
-    comes at several depths), and the run's held-out errors and effects from its report.json."""
+    comes at several depths) and inside the report, and the run's held-out errors and effects from its report.json.
+    ``parts``: the nested stages to time besides the probe's own (default :data:`PARTS`)."""
     out_dir = work / "run"
-    res = bench_memory.calibration(data, robot, method, out_dir, targets=PARTS)
+    res = bench_memory.calibration(data, robot, method, out_dir, targets=parts)
     recs = res["stages"]
 
     def total(rows: list[dict]) -> dict:
@@ -135,7 +136,7 @@ def stages(data: str, robot: str, method: str, work: Path) -> dict:
 
     top = [{"stage": "import", **total([r for r in recs if r["stage"].startswith("command/import ")])}]
     top += [{"stage": name, **total([r for r in recs if r["stage"] == path])} for name, path in _TOP.items()]
-    inner = [r for r in recs if r["stage"].startswith("command/fit/")]
+    inner = [r for r in recs if r["stage"].startswith(("command/fit/", "command/report/"))]
     leaf = {r["stage"]: r["stage"].rsplit("/", 1)[1] for r in inner}
     parts = {name: total([r for r in inner if leaf[r["stage"]] == name]) for name in dict.fromkeys(leaf.values())}
     report = json.loads((out_dir / "report.json").read_text())

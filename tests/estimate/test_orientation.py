@@ -232,3 +232,30 @@ def test_orientation_joint_jacobian_equals_forward_mode(name):
         cols.append(torch.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], -1) @ R_tb.T)
     got = orientation_joint_jacobian(MeasurementModel(robot), Context(q=q))
     torch.testing.assert_close(got, torch.stack(cols, -1), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["ur5", "ur10_track"])
+def test_orientation_jacobian_with_the_chain_linearised_equals_forward_mode_through_it(name):
+    """Equivalent paths agree: the Jacobian with R_base_flange replaced by its tangent (linear_rotation) equals jacfwd
+    through the chain, with a compliance (its torque differentiated by the geometry in both) and a prismatic joint."""
+    robot = torchcal.load_robot(name)
+    g = torch.Generator().manual_seed(2)
+    lo, hi = robot.limits[:, 0].clamp(min=-2.0), robot.limits[:, 1].clamp(max=2.0)
+    q = lo + (hi - lo) * torch.rand(30, robot.dof, generator=g, dtype=F64)
+    robot.enable_orientation(tf.so3_exp(torch.tensor([0.3, -0.2, 0.5], dtype=F64)))
+    with torch.no_grad():
+        for grp in robot.groups().values():
+            grp.delta.copy_(1e-3 * torch.randn(grp.delta.shape, generator=g, dtype=F64))
+    model = MeasurementModel(robot, [Compliance(joint=3)])
+    with torch.no_grad():
+        model.effects[0].k.fill_(1e-5)
+    ctx = Context(q=q)
+    R_meas = tf.so3_exp(torch.randn(30, 3, generator=g, dtype=F64) * 0.01) @ model.orientation(ctx).detach()
+    sel, labels = selection(model, ("geometry", "instrument", "tool"), effects=True)
+    free = FreeParameters(model, sel, labels)
+    W = orientation_whitening(model, ctx, None, 1e-4, 1e-5)
+    x = free.vector() + 1e-4 * torch.randn(len(free), generator=g, dtype=F64)
+    through = orientation_function(model, free, ctx, R_meas, W, chunk=7, linear=False).jacobian(x)
+    linearised = orientation_function(model, free, ctx, R_meas, W, chunk=7).jacobian(x)
+    assert float(through.abs().amax()) > 0
+    torch.testing.assert_close(linearised, through, rtol=1e-10, atol=1e-10 * float(through.abs().amax()))

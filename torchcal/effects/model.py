@@ -123,11 +123,11 @@ class MeasurementModel(nn.Module):
             xi = _dual.add(xi, e(self.robot, ctx))
         return xi
 
-    def forward(self, ctx: Context, fk=None, *, orientation: bool = False) -> Tensor:
+    def forward(self, ctx: Context, fk=None, *, orientation: bool = False, rot=None) -> Tensor:
         """Probe position in the tracker frame ``(N, 3)`` [m] (``fk``: see :meth:`probe_in_base`); with
-        ``orientation`` the probe frame's orientation there instead (:meth:`orientation`)."""
+        ``orientation`` the probe frame's orientation there instead (:meth:`orientation`, ``rot``: see there)."""
         if orientation:
-            return self.orientation(ctx)
+            return self.orientation(ctx, rot=rot)
         p = self.probe_in_base(ctx, fk=fk)
         T = self._instrument(ctx)
         xi = self._instrument_offset(ctx)
@@ -135,16 +135,21 @@ class MeasurementModel(nn.Module):
             return tf.transform_points(T, p)
         return tf.transform_points(T @ tf.se3_from_vector(xi), p)
 
-    def orientation(self, ctx: Context) -> Tensor:
+    def orientation(self, ctx: Context, *, rot=None) -> Tensor:
         """The probe frame's orientation in the tracker frame ``(N, 3, 3)``:
         ``R_tracker_base(ctx) R_base_flange(q + dq) R_flange_probe``.
 
         Joint effects (``dq``) and instrument effects turn it; Cartesian effects (a position correction, a learned
         residual model) do not: they say nothing about orientation. Needs a robot with a probe orientation
-        (:meth:`~torchcal.robot.model.RobotModel.enable_orientation`).
+        (:meth:`~torchcal.robot.model.RobotModel.enable_orientation`). ``rot(robot, q) -> (N, 3, 3)`` replaces the
+        robot's ``R_base_flange`` (the estimators pass a linearisation of it,
+        :func:`torchcal.estimate.problem.orientation_function`).
         """
         q = _dual.add(ctx.q, self.joint_offsets(ctx))
-        R = self.robot.probe_rotation(q)
+        if rot is not None:
+            R = rot(self.robot, q) @ self.robot.tool_rotation.matrix()
+        else:
+            R = self.robot.probe_rotation(q)
         T = self._instrument(ctx)
         xi = self._instrument_offset(ctx)
         if xi is not None:
