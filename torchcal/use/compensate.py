@@ -151,14 +151,32 @@ def probe_in_base(model: MeasurementModel, ctx: Context) -> Tensor:
     return model.probe_in_base(ctx)
 
 
-def _value_and_jacobian(model: MeasurementModel, ctx: Context) -> tuple[Tensor, Tensor]:
-    """``p (N, 3)`` and ``dp/dq (N, 3, dof)``: rows are independent, so three backward passes suffice."""
-    q = ctx.q.detach().requires_grad_(True)
-    c = Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction)
+#: rows times residual components up to which the Jacobian is one backward pass over as many copies of the rows as
+#: the residual has components, each copy differentiated by its own component, instead of one pass per component:
+#: a pass over a few rows costs its graph's overhead, not its rows, and the solver's last iterations run on the few
+#: rows that converge slowly
+ONE_PASS_ROWS = 64
+
+
+def _residual_and_jacobian(
+    f: Callable[[Context, Tensor | None], Tensor], ctx: Context, m: int
+) -> tuple[Tensor, Tensor]:
+    """A residual ``r = f(ctx, None) (N, m)`` and the model's Jacobian ``-dr/dq (N, m, dof)`` by reverse mode; ``f``
+    also takes a context of copies of the rows with the index of each copy's row (:data:`ONE_PASS_ROWS`)."""
+    n = ctx.q.shape[0]
     with torch.enable_grad():
-        p = model.probe_in_base(c)
-        rows = [torch.autograd.grad(p[:, k].sum(), q, retain_graph=k < 2)[0] for k in range(3)]
-    return p.detach(), torch.stack(rows, dim=-2)
+        if 0 < n * m <= ONE_PASS_ROWS:
+            idx = torch.arange(n, device=ctx.q.device).repeat(m)
+            q = ctx.q.detach()[idx].requires_grad_(True)
+            t, temperature, direction = (None if v is None else v[idx] for v in (ctx.t, ctx.temperature, ctx.direction))
+            r = f(Context(q=q, t=t, temperature=temperature, direction=direction), idx)  # (m n, m)
+            own = r.reshape(m, n, m).diagonal(dim1=0, dim2=2)  # (n, m): copy k's component k
+            (g,) = torch.autograd.grad(own.sum(), q)
+            return r[:n].detach(), -g.reshape(m, n, -1).transpose(0, 1)
+        q = ctx.q.detach().requires_grad_(True)
+        r = f(Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction), None)
+        rows = [-torch.autograd.grad(r[:, k].sum(), q, retain_graph=k < m - 1)[0] for k in range(m)]
+    return r.detach(), torch.stack(rows, dim=-2)
 
 
 def rotation_in_base(model: MeasurementModel, ctx: Context) -> Tensor:
@@ -207,18 +225,23 @@ class _Goal:
         up to half a turn (``v`` alone, ``sin(angle)`` times the axis, would pull a start more than a quarter turn off
         towards the half turn)."""
         if self.R is None:
-            p, J = _value_and_jacobian(model, ctx)
-            r = self.p - p
+
+            def position(c: Context, idx: Tensor | None) -> Tensor:
+                return (self.p if idx is None else self.p[idx]) - model.probe_in_base(c)
+
+            r, J = _residual_and_jacobian(position, ctx, 3)
             return r, J, r.norm(dim=-1), None
-        q = ctx.q.detach().requires_grad_(True)
-        c = Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction)
-        with torch.enable_grad():
+        turned = {}  # the model's orientation, kept for the miss
+
+        def pose(c: Context, idx: Tensor | None) -> Tensor:
+            p_target, R_target = (self.p, self.R) if idx is None else (self.p[idx], self.R[idx])
             p = model.probe_in_base(c)
-            R = rotation_in_base(model, c)
-            r = torch.cat([self.p - p, self.weight * _rotation_vector(self.R @ R.transpose(-1, -2))], dim=-1)
-            rows = [-torch.autograd.grad(r[:, k].sum(), q, retain_graph=k < 5)[0] for k in range(6)]
-        r = r.detach()
-        return r, torch.stack(rows, dim=-2), r[:, :3].norm(dim=-1), rotation_miss(self.R, R.detach())
+            R = turned["R"] = rotation_in_base(model, c)
+            return torch.cat([p_target - p, self.weight * _rotation_vector(R_target @ R.transpose(-1, -2))], dim=-1)
+
+        r, J = _residual_and_jacobian(pose, ctx, 6)
+        R = turned["R"][: len(r)].detach()
+        return r, J, r[:, :3].norm(dim=-1), rotation_miss(self.R, R)
 
     def subset(self, rows: Tensor) -> _Goal:
         return _Goal(self.p[rows], None if self.R is None else self.R[rows], self.weight)
