@@ -155,7 +155,7 @@ def probe_in_base(model: MeasurementModel, ctx: Context) -> Tensor:
 #: the residual has components, each copy differentiated by its own component, instead of one pass per component:
 #: a pass over a few rows costs its graph's overhead, not its rows, and the solver's last iterations run on the few
 #: rows that converge slowly
-ONE_PASS_ROWS = 64
+ONE_PASS_ROWS = 24
 
 
 def _residual_and_jacobian(
@@ -233,10 +233,15 @@ class _Goal:
             return r, J, r.norm(dim=-1), None
         turned = {}  # the model's orientation, kept for the miss
 
+        def chain(robot: RobotModel, q: Tensor) -> Tensor:
+            # the position and the rotation from one pass along the chain at the joints with their effects
+            p, turned["R"] = robot.probe_pose(q)
+            return p
+
         def pose(c: Context, idx: Tensor | None) -> Tensor:
             p_target, R_target = (self.p, self.R) if idx is None else (self.p[idx], self.R[idx])
-            p = model.probe_in_base(c)
-            R = turned["R"] = rotation_in_base(model, c)
+            p = model.probe_in_base(c, fk=chain)
+            R = turned["R"]
             return torch.cat([p_target - p, self.weight * _rotation_vector(R_target @ R.transpose(-1, -2))], dim=-1)
 
         r, J = _residual_and_jacobian(pose, ctx, 6)
