@@ -10,7 +10,8 @@ Method: damped Gauss-Newton (Levenberg-Marquardt, one damping factor per row), b
 Each step is the minimum-norm solution of the damped linearised problem,
 ``dq = J^T (J J^T + lambda I)^-1 r``, so a position target, which leaves a 6-joint arm three redundant
 directions, ends at (to first order) the solution nearest the start. The Jacobian ``J (N, 3, dof)`` is
-the exact derivative of the model by autograd (three backward passes over the batch), except for
+the exact derivative of the model by autograd (a backward pass per residual component over the batch, or one
+over copies of a few rows, :data:`ONE_PASS_ROWS`; a Gaussian process's own in closed form), except for
 effects whose regressors are computed without gradients (compliance's gravity torque): their derivative
 is left out, which only slows convergence by a factor of the order of the effect's relative size.
 
