@@ -660,3 +660,27 @@ def test_six_d_next_to_a_singularity_falls_back_to_the_position():
     assert float((res.q - q0).abs().max()) <= 0.3  # on the start's branch
     with torch.no_grad():
         assert float((model.probe_in_base(Context(q=res.q)) - targets).norm(dim=-1).max()) <= 1e-9
+
+
+@pytest.mark.parametrize("six_d", [False, True])
+def test_jacobian_of_a_few_rows_in_one_pass_equals_one_pass_per_component(monkeypatch, six_d):
+    # the solver's residual of a few rows takes its Jacobian from one backward pass over copies of the rows: the
+    # residual, the Jacobian and the misses must be those of one pass per component
+    from torchcal.use import compensate as comp
+
+    model = _with_orientation(calibrated_model()) if six_d else calibrated_model()
+    q = poses(model.robot, 3)
+    with torch.no_grad():
+        ctx = Context(q=q)
+        p = model.probe_in_base(ctx)
+        R = comp.rotation_in_base(model, ctx) if six_d else None
+    g = torch.Generator().manual_seed(5)
+    goal = comp._Goal(p, R)
+    near = Context(q=q + 1e-2 * torch.randn(q.shape, generator=g, dtype=F64))
+    one = goal.residual(model, near)
+    monkeypatch.setattr(comp, "ONE_PASS_ROWS", 0)
+    per_component = goal.residual(model, near)
+    assert float(per_component[1].abs().max()) > 0.1
+    for a, b in zip(one, per_component):
+        if a is not None:
+            assert torch.allclose(a, b, rtol=1e-12, atol=1e-15)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import functools
 import json
 import math
 import sys
@@ -23,6 +24,7 @@ from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX
 from torchcal._device import resolve_device
 from torchcal._method import DEFAULT_METHOD, ENGINES, METHODS, Engine
 from torchcal._outdir import check_out_dir, check_out_file
+from torchcal._threads import torch_threads
 from torchcal._version import __version__
 from torchcal.errors import OptionError, TorchcalError
 
@@ -860,6 +862,25 @@ def warn_outside(path, lines, model, q, what: str) -> None:
         )
 
 
+def _one_torch_thread(command):
+    """Run a command that uses a run (``predict``, ``compensate``, ``plan``) with one torch thread.
+
+    Their work is a long series of small kernels (a model evaluated per parameter step, row blocks of a few hundred
+    rows, 3 x 3 factors per candidate): a second thread shortens none of them, and where other work shares the cores,
+    each kernel waits for the slowest member of torch's thread team, spinning meanwhile (docs/benchmarks.md, *Speed of
+    predict, compensate and plan*). The results are the same to rounding (a thread count may change the order of a
+    sum).
+    """
+
+    @functools.wraps(command)
+    def run(args) -> int:
+        with torch_threads(1):
+            return command(args)
+
+    return run
+
+
+@_one_torch_thread
 def cmd_predict(args) -> int:
     from dataclasses import replace
 
@@ -983,6 +1004,7 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
     return resolve
 
 
+@_one_torch_thread
 def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.use.compensate import Status, compensate_groups, orientation_mode, row_groups
@@ -1184,6 +1206,7 @@ def _plan_run(args):
     return model, meta["robot_file"], method, so.sigma_tracker, so.sigma_joint, s0_sq, tracker, lever
 
 
+@_one_torch_thread
 def cmd_plan(args) -> int:
     from torchcal.data import Measurements, read_measurements, write_measurements
     from torchcal.effects import MeasurementModel

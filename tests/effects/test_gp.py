@@ -277,3 +277,43 @@ def test_posterior_blocks_in_threads_give_the_same_bits(monkeypatch):
     three, _ = fit_gp_correction(Context(q=q), y, s)
     for name in ("weights", "chol_uu", "chol_b", "inducing"):
         assert torch.equal(getattr(one, name), getattr(three, name)), name
+
+
+def _hand_made_gp(additive: str, ard: bool, extras: tuple[str, ...], m: int = 50) -> GPCorrection:
+    """A GP whose buffers are set by hand (no fit): seeded inducing inputs, weights and hyperparameters."""
+    g = torch.Generator().manual_seed(11)
+    eff = GPCorrection(6, m, extras=extras, additive=additive, ard=ard, exact=True)
+    d = 6 + len(extras)
+    with torch.no_grad():
+        eff.inducing.copy_((torch.rand(m, d, generator=g, dtype=F64) * 2 - 1) * 2.0)
+        eff.weights.copy_(torch.randn(m, 3, generator=g, dtype=F64))
+        eff.add_var.copy_(torch.rand(d, generator=g, dtype=F64) * 0.3)
+        eff.add_len.copy_(0.3 + torch.rand(d, generator=g, dtype=F64))
+        eff.ard_var.fill_(0.4 if ard else 0.0)
+        eff.ard_len.copy_(0.5 + torch.rand(d, generator=g, dtype=F64))
+        eff.y_scale.copy_(torch.tensor([1e-4, 2e-4, 5e-5], dtype=F64))
+        eff.y_mean.copy_(torch.tensor([1e-5, -2e-5, 0.0], dtype=F64))
+        eff.x_offset[6:] = 100.0
+        eff.x_scale[6:] = 50.0
+    return eff
+
+
+@pytest.mark.parametrize("additive,ard", [("rbf", True), ("periodic", True), ("rbf", False)])
+def test_derivative_by_the_joints_in_closed_form_equals_autograd_through_the_kernel(additive, ard):
+    # compensation differentiates the mean by the joints: the closed form must be autograd's derivative through
+    # the kernel's own formula, and the value the mean without gradient
+    eff = _hand_made_gp(additive, ard, ("t",))
+    q0, g = _joints(70, 12, span=2.0)
+    t = 100.0 + 30.0 * torch.randn(70, generator=g, dtype=F64)
+    q = q0.clone().requires_grad_(True)
+    mean = eff(None, Context(q=q, t=t))
+    with torch.no_grad():
+        plain = eff(None, Context(q=q0, t=t))
+    assert torch.allclose(mean.detach(), plain, rtol=1e-13, atol=0.0)
+    J = torch.stack([torch.autograd.grad(mean[:, k].sum(), q, retain_graph=True)[0] for k in range(3)], 1)
+    q_ref = q0.clone().requires_grad_(True)
+    x = eff.inputs(Context(q=q_ref, t=t))
+    ref = gp._kern(gp._dist(x, eff.inducing, eff.periodic), eff.hyper(), ard) @ eff.weights * eff.y_scale
+    J_ref = torch.stack([torch.autograd.grad(ref[:, k].sum(), q_ref, retain_graph=True)[0] for k in range(3)], 1)
+    assert J_ref.abs().max() > 0
+    assert torch.allclose(J, J_ref, rtol=1e-10, atol=1e-12 * float(J_ref.abs().max()))

@@ -331,3 +331,16 @@ def test_no_poses_give_empty_results_of_the_right_shapes():
     assert robot.gravity_torques(q, payload=1.0).shape == (0, robot.dof)
     assert robot.tracker_jacobian(q, [("geometry", 0), ("instrument", 2), ("tool", 1)])[1].shape == (0, 3, 3)
     assert robot.joint_frames(q)[0].shape == (0, robot.dof, 4, 4)
+
+
+def test_probe_pose_is_probe_in_base_and_probe_rotation_from_one_chain():
+    robot = torchcal.load_robot("ur5")
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        robot.geometry.delta.copy_(torch.randn(robot.geometry.delta.shape, generator=g, dtype=torch.float64) * 1e-3)
+    with pytest.raises(Exception, match="no probe orientation"):
+        robot.probe_pose(torch.zeros(1, 6, dtype=torch.float64))
+    robot.enable_orientation(tf.so3_exp(torch.tensor([0.3, -0.2, 1.1], dtype=torch.float64)))
+    q = torch.randn(20, 6, generator=g, dtype=torch.float64)
+    p, R = robot.probe_pose(q)
+    assert torch.equal(p, robot.probe_in_base(q)) and torch.equal(R, robot.probe_rotation(q))

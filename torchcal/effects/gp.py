@@ -50,7 +50,7 @@ import torch
 
 from torchcal import _lbfgs
 from torchcal._threads import torch_threads
-from torchcal._torch import same_version, version_key
+from torchcal._torch import plain, same_version, version_key
 from torchcal.effects.base import Context, Effect
 from torchcal.errors import EstimationError, OptionError, ShapeError
 
@@ -63,6 +63,11 @@ _JITTER = 1e-8  # relative to the prior variance: keeps K_uu positive definite i
 _BLOCK = 256  # rows per block when streaming K_uf (memory O(m * block * variables))
 #: elements of the kernel's per-variable temporaries (:func:`_kernel` without gradient): 1 MB, cache-sized
 _KERNEL_CHUNK = 131_072
+#: the kernel's exponents are raised to this before ``exp``: torch's vectorised float64 ``exp`` leaves the arguments
+#: whose result is subnormal or zero (below about -708.4) to a scalar path 10 to 60 times slower, and most pairs of
+#: poses are that far apart under short length scales; ``exp(-708)`` = 3.3e-308 stands for them, a change of the
+#: kernel by at most 3.3e-308 of its variance
+_EXP_FLOOR = -708.0
 #: Python threads that compute the posterior's row blocks side by side (kernel, triangular solve and products: large
 #: torch ops on one torch thread each, which release the GIL); the blocks are summed in order, so the posterior is
 #: the same for any number of them
@@ -187,10 +192,102 @@ def _kernel(x: Tensor, z: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: b
             dr.square_()
             if ard:
                 Sr.add_(dr, alpha=ard_c[j])
-            Kr.add_(dr.mul_(add_c[j]).exp_(), alpha=add_v[j])
+            Kr.add_(dr.mul_(add_c[j]).clamp_(min=_EXP_FLOOR).exp_(), alpha=add_v[j])
         if ard:
-            Kr.add_(Sr.mul_(-0.5).exp_(), alpha=float(h["ard_var"]))
+            Kr.add_(Sr.mul_(-0.5).clamp_(min=_EXP_FLOOR).exp_(), alpha=float(h["ard_var"]))
     return K
+
+
+def _mean_and_input_jacobian(
+    x: Tensor, z: Tensor, W: Tensor, h: dict[str, Tensor], periodic: Tensor, ard: bool
+) -> tuple[Tensor, Tensor]:
+    """``k(x, z) @ W`` ``(n, p)`` and its derivative by the inputs ``x (n, d)``, ``(n, p, d)``, in closed form.
+
+    With ``s_j`` the squared distance of variable ``j`` (:func:`_squared`), ``E_j = exp(-s_j / (2 l_j^2))`` and
+    ``A = exp(-sum_j s_j / (2 L_j^2))``: ``dk/dx_j = (-s_add_j^2 E_j / (2 l_j^2) - s_0^2 A / (2 L_j^2)) ds_j/dx_j``,
+    ``ds_j/dx_j = 2 (x_j - z_j)``, or ``2 sin(x_j - z_j)`` where periodic. The kernel is summed as :func:`_kernel`
+    sums it (the same values), from the same exponentials. Row blocks keep the temporaries ``O(block * m * d)``:
+    reverse-mode autograd through :func:`_kern` instead holds ``(n, m, d)`` temporaries for every backward pass, and a
+    solve that takes several passes over thousands of rows spends its time there.
+    """
+    n, m, d = len(x), len(z), x.shape[1]
+    mean = torch.empty(n, W.shape[1], dtype=x.dtype, device=x.device)
+    J = torch.empty(n, W.shape[1], d, dtype=x.dtype, device=x.device)
+    rows = max(1, _KERNEL_CHUNK // 4 // max(m, 1))
+    E, G = torch.empty(2, d, min(rows, n), m, dtype=x.dtype, device=x.device)  # per variable, (_exponentials)
+    K, S = torch.empty(2, min(rows, n), m, dtype=x.dtype, device=x.device)
+    coef = _jacobian_coefficients(h, periodic, ard)
+    zT = z.T.contiguous()
+    for r in range(0, n, rows):
+        xr = x[r : r + rows]
+        b = len(xr)
+        Er, Gr, Kr, Sr = E[:, :b], G[:, :b], K[:b], S[:b]
+        _exponentials(xr, zT, coef, Er, Gr, Kr.zero_(), Sr.zero_(), ard)
+        mean[r : r + b] = Kr @ W
+        J[r : r + b] = (Gr.reshape(d * b, m) @ W).reshape(d, b, -1).permute(1, 2, 0)
+    return mean, J
+
+
+def _jacobian_coefficients(h: dict[str, Tensor], periodic: Tensor, ard: bool) -> dict[str, list]:
+    """The hyperparameters as Python numbers, per variable, for :func:`_exponentials`."""
+    c = -0.5 / h["add_len"].square()
+    e = 1.0 / h["ard_len"].square()
+    b = float(h["ard_var"]) if ard else 0.0
+    return {
+        "c": [float(v) for v in c],
+        "a": [float(v) for v in h["add_var"]],
+        "ac": [float(v) for v in h["add_var"] * c],
+        "e": [float(v) for v in e],
+        "be": [0.5 * b * float(v) for v in e],
+        "b": [b],
+        "periodic": [bool(v) for v in periodic],
+    }
+
+
+def _exponentials(
+    xr: Tensor, zT: Tensor, coef: dict[str, list], E: Tensor, G: Tensor, K: Tensor, S: Tensor, ard: bool
+) -> None:
+    """One row block of :func:`_mean_and_input_jacobian`, in place: the kernel ``K (b, m)`` and ``dk/dx_j`` in
+    ``G (d, b, m)``; ``E (d, b, m)`` and ``S (b, m)`` are work space."""
+    for j, per in enumerate(coef["periodic"]):
+        Ej, Gj = E[j], G[j]
+        torch.sub(xr[:, j : j + 1], zT[j].unsqueeze(0), out=Ej)
+        if per:  # ds/dx = 2 sin(diff), s = (2 sin(diff / 2))^2
+            torch.sin(Ej, out=Gj).mul_(2.0)
+            torch.sin(Ej.mul_(0.5), out=Ej).mul_(2.0)
+        else:
+            torch.mul(Ej, 2.0, out=Gj)
+        Ej.square_()
+        if ard:
+            S.add_(Ej, alpha=coef["e"][j])
+        K.add_(Ej.mul_(coef["c"][j]).clamp_(min=_EXP_FLOOR).exp_(), alpha=coef["a"][j])
+    if ard:
+        K.add_(S.mul_(-0.5).clamp_(min=_EXP_FLOOR).exp_(), alpha=coef["b"][0])
+    for j in range(len(coef["periodic"])):
+        t = E[j].mul_(coef["ac"][j])
+        if ard:
+            t.sub_(S, alpha=coef["be"][j])
+        G[j].mul_(t)
+
+
+class _MeanByInputs(torch.autograd.Function):
+    """The posterior mean ``(N, 3)`` [m] at standardised inputs ``x``, whose derivative by ``x`` is taken in closed
+    form (:func:`_mean_and_input_jacobian`, computed with the mean) instead of by autograd through the kernel's
+    temporaries; the value is the mean without gradient (:meth:`GPCorrection.predict`) to rounding. Once
+    differentiable: no caller needs the second derivative."""
+
+    @staticmethod
+    def forward(ctx, x: Tensor, eff: GPCorrection) -> Tensor:
+        with torch.no_grad():
+            mean, J = _mean_and_input_jacobian(x, eff.inducing, eff.weights, eff.hyper(), eff.periodic, eff.ard)
+        ctx.save_for_backward(J.mul_(eff.y_scale.unsqueeze(-1)))
+        return mean * eff.y_scale + eff.y_mean
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad: Tensor) -> tuple[Tensor, None]:
+        (J,) = ctx.saved_tensors
+        return (grad.unsqueeze(-2) @ J).squeeze(-2), None
 
 
 def _prior_var(h: dict[str, Tensor], ard: bool) -> Tensor:
@@ -349,34 +446,60 @@ class GPCorrection(Effect):
         """Posterior mean ``(N, 3)`` [m] and standard deviation ``(N, 3)`` [m] (of the function, or of a new
         observation with ``noise``), in row blocks so that memory stays ``O(block * m)``."""
         x = self.inputs(ctx)
+        if not std:
+            return self._mean(x), None
         means, stds = [], []
         kxx = _prior_var(self.hyper(), self.ard)
         for i in range(0, len(x), _BLOCK):
             Kxu = self._kxu(x[i : i + _BLOCK])
             means.append(Kxu @ self.weights * self.y_scale + self.y_mean)
-            if std:
-                var = _latent_var(kxx, Kxu, self.chol_uu, None if self.exact else self.chol_b)
-                if noise:
-                    var = var + self.noise
-                stds.append(var.sqrt().unsqueeze(1) * self.y_scale)
+            var = _latent_var(kxx, Kxu, self.chol_uu, None if self.exact else self.chol_b)
+            if noise:
+                var = var + self.noise
+            stds.append(var.sqrt().unsqueeze(1) * self.y_scale)
         mean = torch.cat(means) if means else torch.zeros(0, 3, dtype=F64, device=x.device)
-        return mean, (torch.cat(stds) if std and stds else (torch.zeros_like(mean) if std else None))
+        # the mean is the one forward() computes: keep it for the model's evaluation at the same rows that follows
+        # (the trust of a prediction takes both)
+        self._keep(self._key(ctx), mean)
+        return mean, (torch.cat(stds) if stds else torch.zeros_like(mean))
+
+    def _mean(self, x: Tensor) -> Tensor:
+        """Posterior mean ``(N, 3)`` [m] at the standardised inputs ``x``, in row blocks."""
+        means = [
+            self._kxu(x[i : i + _BLOCK]) @ self.weights * self.y_scale + self.y_mean for i in range(0, len(x), _BLOCK)
+        ]
+        return torch.cat(means) if means else torch.zeros(0, 3, dtype=F64, device=x.device)
+
+    def _key(self, ctx: Context) -> tuple | None:
+        """The key of the mean at ``ctx``: it depends on the context and the buffers only."""
+        if ctx.q.requires_grad:
+            return None
+        return version_key(ctx.q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
+
+    def _keep(self, key: tuple | None, mean: Tensor) -> None:
+        if key is not None and not mean.requires_grad:
+            self._cache = (key, mean)
 
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         q = ctx.q
         if len(self.inducing) == 0:
             return torch.zeros(q.shape[0], 3, dtype=q.dtype, device=q.device)
+        x = self.inputs(ctx)
+        if (
+            torch.is_grad_enabled()
+            and x.requires_grad
+            and plain(x)
+            and not any(b.requires_grad for b in self.buffers())
+        ):
+            # differentiated by the joints (compensation's Jacobian): the derivative in closed form
+            return _MeanByInputs.apply(x, self)
         # as KernelCorrection: the output depends on the context and the buffers only, and a least-squares
         # fit evaluates it at the same q dozens of times, so the last plain result is reused
-        inputs = (q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
-        key = None if q.requires_grad else version_key(*inputs)
-        if key is None:
-            return self.predict(ctx, std=False)[0]
-        if self._cache is not None and same_version(self._cache[0], key):
+        key = self._key(ctx)
+        if key is not None and self._cache is not None and same_version(self._cache[0], key):
             return self._cache[1]
-        out = self.predict(ctx, std=False)[0]
-        if not out.requires_grad:
-            self._cache = (key, out)
+        out = self._mean(x)
+        self._keep(key, out)
         return out
 
     def component_means(self, ctx: Context) -> Tensor:

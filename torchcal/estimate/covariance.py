@@ -183,8 +183,10 @@ def learned_std(model: MeasurementModel, ctx: Context) -> Tensor | None:
 def combined_std(model: MeasurementModel, ctx: Context, cov: ParameterCovariance | None) -> Tensor | None:
     """The predicted standard deviation ``(N, 3)`` [m]: the parameters' (:func:`prediction_std`) and the learned
     corrections' (:func:`learned_std`) added in quadrature; None where the model has neither."""
-    a = prediction_std(model, ctx, cov) if cov is not None else None
+    # the learned posterior first: a Gaussian process keeps the mean it computes beside its standard deviation, which
+    # the parameters' differences then evaluate the model with
     b = learned_std(model, ctx)
+    a = prediction_std(model, ctx, cov) if cov is not None else None
     if a is None:
         return b
     return a if b is None else (a.square() + b.square()).sqrt()

@@ -699,6 +699,22 @@ class RobotModel(nn.Module):
             return _poses_first(_rotate(Rt, lever) + t, q.shape[:-1])
         return _poses_first(_rotate_rows(Rt, lever) + t, q.shape[:-1])
 
+    def probe_pose(self, q: Tensor, probe: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """:meth:`probe_in_base` ``(..., 3)`` [m] and :meth:`probe_rotation` ``(..., 3, 3)`` (the same values) from one
+        pass along the chain.
+
+        Raises:
+            OptionError: the model has no probe orientation (:meth:`enable_orientation`).
+        """
+        if self.tool_rotation is None:
+            self.probe_rotation(q)  # raises
+        q = self._check_q(q)
+        _, _, Rt, t = self._chain_t(self.model_joints(q), self.geometry.origins(), frames=False)
+        lever = self._lever(self.tool.vector(), probe)
+        p = _rotate(Rt, lever) if lever.dim() == 1 else _rotate_rows(Rt, lever)
+        batch = q.shape[:-1]
+        return _poses_first(p + t, batch), _poses_first(Rt, batch) @ self.tool_rotation.matrix()
+
     def probe_jacobian(self, q: Tensor, probe: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Probe position in the base frame ``(..., 3)`` and its joint Jacobian ``(..., 3, dof)``.
 

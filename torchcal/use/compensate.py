@@ -10,7 +10,8 @@ Method: damped Gauss-Newton (Levenberg-Marquardt, one damping factor per row), b
 Each step is the minimum-norm solution of the damped linearised problem,
 ``dq = J^T (J J^T + lambda I)^-1 r``, so a position target, which leaves a 6-joint arm three redundant
 directions, ends at (to first order) the solution nearest the start. The Jacobian ``J (N, 3, dof)`` is
-the exact derivative of the model by autograd (three backward passes over the batch), except for
+the exact derivative of the model by autograd (a backward pass per residual component over the batch, or one
+over copies of a few rows, :data:`ONE_PASS_ROWS`; a Gaussian process's own in closed form), except for
 effects whose regressors are computed without gradients (compliance's gravity torque): their derivative
 is left out, which only slows convergence by a factor of the order of the effect's relative size.
 
@@ -151,14 +152,32 @@ def probe_in_base(model: MeasurementModel, ctx: Context) -> Tensor:
     return model.probe_in_base(ctx)
 
 
-def _value_and_jacobian(model: MeasurementModel, ctx: Context) -> tuple[Tensor, Tensor]:
-    """``p (N, 3)`` and ``dp/dq (N, 3, dof)``: rows are independent, so three backward passes suffice."""
-    q = ctx.q.detach().requires_grad_(True)
-    c = Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction)
+#: rows times residual components up to which the Jacobian is one backward pass over as many copies of the rows as
+#: the residual has components, each copy differentiated by its own component, instead of one pass per component:
+#: a pass over a few rows costs its graph's overhead, not its rows, and the solver's last iterations run on the few
+#: rows that converge slowly
+ONE_PASS_ROWS = 24
+
+
+def _residual_and_jacobian(
+    f: Callable[[Context, Tensor | None], Tensor], ctx: Context, m: int
+) -> tuple[Tensor, Tensor]:
+    """A residual ``r = f(ctx, None) (N, m)`` and the model's Jacobian ``-dr/dq (N, m, dof)`` by reverse mode; ``f``
+    also takes a context of copies of the rows with the index of each copy's row (:data:`ONE_PASS_ROWS`)."""
+    n = ctx.q.shape[0]
     with torch.enable_grad():
-        p = model.probe_in_base(c)
-        rows = [torch.autograd.grad(p[:, k].sum(), q, retain_graph=k < 2)[0] for k in range(3)]
-    return p.detach(), torch.stack(rows, dim=-2)
+        if 0 < n * m <= ONE_PASS_ROWS:
+            idx = torch.arange(n, device=ctx.q.device).repeat(m)
+            q = ctx.q.detach()[idx].requires_grad_(True)
+            t, temperature, direction = (None if v is None else v[idx] for v in (ctx.t, ctx.temperature, ctx.direction))
+            r = f(Context(q=q, t=t, temperature=temperature, direction=direction), idx)  # (m n, m)
+            own = r.reshape(m, n, m).diagonal(dim1=0, dim2=2)  # (n, m): copy k's component k
+            (g,) = torch.autograd.grad(own.sum(), q)
+            return r[:n].detach(), -g.reshape(m, n, -1).transpose(0, 1)
+        q = ctx.q.detach().requires_grad_(True)
+        r = f(Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction), None)
+        rows = [-torch.autograd.grad(r[:, k].sum(), q, retain_graph=k < m - 1)[0] for k in range(m)]
+    return r.detach(), torch.stack(rows, dim=-2)
 
 
 def rotation_in_base(model: MeasurementModel, ctx: Context) -> Tensor:
@@ -207,18 +226,28 @@ class _Goal:
         up to half a turn (``v`` alone, ``sin(angle)`` times the axis, would pull a start more than a quarter turn off
         towards the half turn)."""
         if self.R is None:
-            p, J = _value_and_jacobian(model, ctx)
-            r = self.p - p
+
+            def position(c: Context, idx: Tensor | None) -> Tensor:
+                return (self.p if idx is None else self.p[idx]) - model.probe_in_base(c)
+
+            r, J = _residual_and_jacobian(position, ctx, 3)
             return r, J, r.norm(dim=-1), None
-        q = ctx.q.detach().requires_grad_(True)
-        c = Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction)
-        with torch.enable_grad():
-            p = model.probe_in_base(c)
-            R = rotation_in_base(model, c)
-            r = torch.cat([self.p - p, self.weight * _rotation_vector(self.R @ R.transpose(-1, -2))], dim=-1)
-            rows = [-torch.autograd.grad(r[:, k].sum(), q, retain_graph=k < 5)[0] for k in range(6)]
-        r = r.detach()
-        return r, torch.stack(rows, dim=-2), r[:, :3].norm(dim=-1), rotation_miss(self.R, R.detach())
+        turned = {}  # the model's orientation, kept for the miss
+
+        def chain(robot: RobotModel, q: Tensor) -> Tensor:
+            # the position and the rotation from one pass along the chain at the joints with their effects
+            p, turned["R"] = robot.probe_pose(q)
+            return p
+
+        def pose(c: Context, idx: Tensor | None) -> Tensor:
+            p_target, R_target = (self.p, self.R) if idx is None else (self.p[idx], self.R[idx])
+            p = model.probe_in_base(c, fk=chain)
+            R = turned["R"]
+            return torch.cat([p_target - p, self.weight * _rotation_vector(R_target @ R.transpose(-1, -2))], dim=-1)
+
+        r, J = _residual_and_jacobian(pose, ctx, 6)
+        R = turned["R"][: len(r)].detach()
+        return r, J, r[:, :3].norm(dim=-1), rotation_miss(self.R, R)
 
     def subset(self, rows: Tensor) -> _Goal:
         return _Goal(self.p[rows], None if self.R is None else self.R[rows], self.weight)
