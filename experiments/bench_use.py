@@ -13,12 +13,12 @@ from __future__ import annotations
 import csv
 import math
 import os
-import resource
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
+
+from experiments import common
 
 #: outputs agree where every number does to this relative difference, or to ABS_FLOOR [m, rad]: compensate's miss
 #: and miss_angle are what the solver leaves below its tolerance (1e-10), and a miss of 2e-12 rad from one tree
@@ -71,24 +71,13 @@ def run_once(tree: Path, case: Case, out: Path, threads: str, cache: Path) -> tu
     """Wall and CPU seconds of one command of ``tree``'s torchcal (the CPU time of the child alone, where the wall
     time counts the other work of a shared machine too); raises where it fails."""
     argv = [a.replace("{out}", str(out)) for a in case.argv] + ["--quiet", "--force"]
-    c0, t0 = _child_cpu(), time.perf_counter()
     # run in the tree: ``python -m`` puts the working directory first on the path
-    done = subprocess.run(
+    return common.timed_command(
         [sys.executable, "-m", "torchcal", *argv],
         env=environment(tree, threads, cache),
         cwd=tree,
-        capture_output=True,
-        text=True,
+        what=f"{tree}: {case.name}",
     )
-    wall, cpu = time.perf_counter() - t0, _child_cpu() - c0
-    if done.returncode != 0:
-        raise RuntimeError(f"{tree}: {case.name} exited {done.returncode}: {done.stderr.strip()[-500:]}")
-    return wall, cpu
-
-
-def _child_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
 
 
 def agreement(a: Path, b: Path) -> dict:

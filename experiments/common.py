@@ -17,6 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
+import subprocess
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
@@ -120,3 +123,20 @@ def run_markdown(
     print(md)
     emit(result, args)
     return 0
+
+
+def child_cpu() -> float:
+    """CPU seconds (user and system) of this process's finished children."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def timed_command(argv: list[str], *, env: dict, cwd, what: str) -> tuple[float, float]:
+    """Wall and CPU seconds of one command (the CPU time of the child alone, where the wall time counts the other
+    work of a shared machine too); raises, naming ``what``, where it fails."""
+    c0, t0 = child_cpu(), time.perf_counter()
+    done = subprocess.run(argv, env=env, cwd=cwd, capture_output=True, text=True)
+    wall, cpu = time.perf_counter() - t0, child_cpu() - c0
+    if done.returncode != 0:
+        raise RuntimeError(f"{what} exited {done.returncode}: {done.stderr.strip()[-500:]}")
+    return wall, cpu

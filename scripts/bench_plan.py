@@ -11,11 +11,8 @@ The baseline is a torchcal source tree, e.g. the commit before the speed-up:
 """
 
 import os
-import resource
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
@@ -37,20 +34,9 @@ def plan_once(tree: Path, out: Path, n: int, pool: int, robot: str) -> tuple[flo
     work, where the wall time counts the others too); raises where it fails."""
     env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     cmd = [sys.executable, "-m", "torchcal", "plan", "--robot", robot, "--n", str(n), "--pool", str(pool)]
-    t0, c0 = time.perf_counter(), _child_cpu()
     # run in the tree: ``python -m`` puts the working directory first on the path
-    done = subprocess.run(
-        [*cmd, "--out", str(out), "--quiet", "--force"], env=env, cwd=tree, capture_output=True, text=True
-    )
-    wall, cpu = time.perf_counter() - t0, _child_cpu() - c0
-    if done.returncode != 0:
-        raise RuntimeError(f"{tree}: plan --n {n} exited {done.returncode}: {done.stderr.strip()[-500:]}")
-    return wall, cpu
-
-
-def _child_cpu() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
+    argv = [*cmd, "--out", str(out), "--quiet", "--force"]
+    return common.timed_command(argv, env=env, cwd=tree, what=f"{tree}: plan --n {n}")
 
 
 def case(base: Path | None, tmp: Path, n: int, pool: int, robot: str) -> dict:
