@@ -599,7 +599,7 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
     (a compliance's torque through the chain) are differentiated as they are without it."""
     at = free.params(x)
     geo = [e for e in free.entries if e.name == _GEOMETRY]
-    idx = geo[0].index if geo else torch.zeros(0, dtype=torch.long)
+    idx = geo[0].index if geo else torch.zeros(0, dtype=torch.long, device=x.device)
     out: dict[str, Tensor] = {}
 
     def record(rb, q: Tensor) -> Tensor:
