@@ -87,6 +87,15 @@ class DeadlineExceeded(BaseException):
     catch (reading a FIFO that blocks, then 'cannot read' the file), and the hang would pass as a refusal."""
 
 
+def refused(capsys, *needles) -> str:
+    """The command's stderr: an error holding every needle (as text), no traceback, no internal error."""
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and "internal error" not in err and "this is a bug" not in err, err
+    for n in needles:
+        assert str(n) in err, (n, err)
+    return err
+
+
 @contextmanager
 def deadline(seconds: int):
     """Fail instead of hanging (a cycle that loops forever would otherwise stall the suite)."""

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import test_hostile as hostile
 import torch
-from _cli import calibrate, cli_simulate, deadline, snapshot
+from _cli import calibrate, cli_simulate, deadline, refused, snapshot
 
 import torchcal
 import torchcal._outdir
@@ -23,15 +23,6 @@ from torchcal.cli import main
 from torchcal.use.rundir import load_model
 
 write = hostile.write
-
-
-def refused(capsys, *needles: str) -> str:
-    """The command's stderr: an error holding every needle, no traceback, no internal error."""
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and "internal error" not in err and "this is a bug" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 # ------------------------------------------------------- issue 34 item 7: a mimic whose source is off the chain

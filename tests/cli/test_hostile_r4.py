@@ -10,21 +10,12 @@ import json
 import math
 
 import pytest
-from _cli import cli_simulate, deadline, snapshot
+from _cli import cli_simulate, deadline, refused, snapshot
 
 from torchcal import fleet as F
 from torchcal.cli import main
 
 Q6 = [f"q{k}" for k in range(1, 7)]
-
-
-def refused(capsys, *needles: str) -> str:
-    """The command's stderr: an error holding every needle, no traceback, no internal error."""
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and "internal error" not in err and "this is a bug" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 def run_cli(argv, seconds=60) -> int:

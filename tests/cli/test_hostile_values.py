@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 import test_hostile as hostile
 import torch
-from _cli import calibrate
+from _cli import calibrate, refused
 
 import torchcal
 from torchcal.cli import calibration_module, main
@@ -56,15 +56,6 @@ def set_cell(row: int, column: str, value: str):
 def no_fitting(monkeypatch):
     """Make any fit fail the test: the refusal must come before it."""
     monkeypatch.setattr(calibration_module(), "calibrate", lambda *a, **k: pytest.fail("fitted before refusing"))
-
-
-def refused(capsys, *needles: str) -> str:
-    """The command's stderr: one error line holding every needle, no traceback."""
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and "internal error" not in err, err
-    for n in needles:
-        assert n in err, (n, err)
-    return err
 
 
 def predict(run, data, out, *extra) -> int:
