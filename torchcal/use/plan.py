@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchcal._method import Method
+from torchcal._threads import torch_threads
 from torchcal.effects import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
@@ -506,6 +507,7 @@ def _random_index(n: int, k: int, seed: int) -> Tensor:
     return torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:k]
 
 
+@torch_threads(1)  # greedy picks of 3 x 3 blocks per candidate: a second thread only waits
 def plan_poses(model: MeasurementModel, q: Tensor, opts: PlanOptions, work: Tensor | None = None) -> Plan:
     """Pick ``opts.k`` of the candidates ``q (N, dof)`` [rad] for ``model``'s robot (module docstring); the spread
     picks follow the poses ``work (M, dof)`` [rad] where given (where the robot will work), else the candidates."""

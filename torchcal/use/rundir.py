@@ -17,6 +17,7 @@ from pathlib import Path
 import torch
 
 from torchcal._inputs import load_json, read_bounded
+from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import MeasurementFileError, OptionError, TorchcalError
@@ -338,6 +339,7 @@ def _old_run_sigma(
     return (s.square() + noise**2).sqrt(), note
 
 
+@torch_threads(1)  # per-row sigmas from many small products: a second thread only waits
 def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, ctx: Context) -> RowTrust:
     """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx`` (CONTRACT §3): the standard
     deviation of a new measurement minus the prediction (:class:`~torchcal.estimate.trust.Trust`), and beyond the
@@ -497,6 +499,7 @@ def predict(run_dir: str | os.PathLike, data: Measurements, device: torch.device
     return predict_with(model, meta, data, device)
 
 
+@torch_threads(1)  # a series of small kernels: a second thread only waits (docs/benchmarks.md)
 def predict_with(
     model: MeasurementModel, meta: dict, data: Measurements, device: torch.device | str = "cpu"
 ) -> torch.Tensor:
