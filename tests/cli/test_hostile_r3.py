@@ -381,18 +381,25 @@ def oriented(tmp_path_factory):
 
 @pytest.mark.parametrize("deg", [0.0, 11.7])
 def test_an_orientation_gross_error_is_screened_out(oriented, tmp_path, deg):
+    """A row whose orientation is 11.7 deg off: kept with "0 outliers" before stop 39, rejected whole after it, now
+    its orientation alone is left out and its (sound) position fitted."""
     data, line = _turned_row(oriented / "train.csv", tmp_path / "train.csv", 9, deg)
     with deadline(300):
         assert calibrate(data, tmp_path / "c") == 0
-    rows = [
-        r
-        for part in ("training", "holdout")
-        for r in json.loads((tmp_path / "c" / "report.json").read_text())["outliers"][part]["rows"]
-    ]
-    if deg == 0.0:  # clean rows: nothing rejected
-        assert rows == []
-    else:  # kept and "0 outliers" before the fix
-        assert [r["line"] for r in rows] == [line] and "11.7 deg off" in rows[0]["hint"]
+    report = json.loads((tmp_path / "c" / "report.json").read_text())
+    outliers = report["outliers"]
+    dropped = [r for part in ("training", "holdout") for r in outliers[part]["orientation_dropped"]]
+    assert [r for part in ("training", "holdout") for r in outliers[part]["rows"]] == []  # no row lost
+    n_rows = report["n_train"] + report["n_holdout"]
+    assert n_rows == 60
+    if deg == 0.0:  # clean rows: nothing left out
+        assert dropped == []
+    else:
+        assert [r["line"] for r in dropped] == [line] and "11.7 deg off" in dropped[0]["hint"]
+        assert "position is used" in dropped[0]["hint"]
+        part = next(p for p in ("training", "holdout") if outliers[p]["orientation_dropped"])
+        if part == "training":
+            assert report["orientation"]["rows_fitted"] == report["n_train"] - 1
 
 
 # ------------------------------------------------ issue 35 item 4: orientations that are no rotation of the probe

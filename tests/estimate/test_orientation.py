@@ -109,6 +109,47 @@ def test_full_pose_recovers_the_tool_rotation(campaign):
     assert e_fp < 1.05 * e_po
 
 
+def _turned(m, rows, deg: float):
+    """``m`` with the orientation of ``rows`` turned ``deg`` about the tracker's z axis (a slipped frame)."""
+    import dataclasses
+
+    r = m.r.clone()
+    turn = tf.so3_exp(torch.tensor([0.0, 0.0, math.radians(deg)], dtype=F64))
+    r[rows] = tf.so3_log(turn @ tf.so3_exp(r[rows]))
+    return dataclasses.replace(m, r=r, meta=dict(m.meta))
+
+
+def test_a_block_of_gross_orientations_keeps_its_positions(campaign):
+    """A sixth of the rows with their orientation 14 deg off (Series A of the real UR10 has such a block): before,
+    the screening rejected those rows whole; now their orientations alone are left out, every position is fitted,
+    and the held-out errors are the clean campaign's."""
+    rows = torch.arange(0, 240, 6)
+    run = calibrate("ur5", _turned(campaign.train, rows, 14.0), Options(method="kinematic"))
+    clean = calibrate("ur5", campaign.train, Options(method="kinematic"))
+    sc = run.screening
+    assert sc.training.n_rejected == 0 and sc.holdout.n_rejected == 0
+    dropped = torch.cat(
+        [run.split.keep[sc.training.orientation_dropped_index], run.split.held[sc.holdout.orientation_dropped_index]]
+    )
+    assert sorted(dropped.tolist()) == rows.tolist()  # exactly the turned rows
+    assert len(run.train_idx) + len(run.holdout_idx) == 240
+    assert run.fits[-1].n_orientation == run.train.n - len(sc.training.orientation_dropped)
+    assert run.data.orientation_used is not None and int((~run.data.orientation_used).sum()) == len(rows)
+    for kind in (errors, orientation_errors):
+        e, e_clean = (kind(r.model, campaign.test, False).square().mean().sqrt() for r in (run, clean))
+        assert float(e) < 1.05 * float(e_clean), (kind.__name__, e, e_clean)
+
+
+def test_measurements_drop_orientation_carries_through_subsets(campaign):
+    m = campaign.train.drop_orientation(torch.tensor([1, 3]))
+    assert m.orientation_rows[:4].tolist() == [0, 2, 4, 5] and not m.all_orientations_used
+    part = m.subset([3, 4, 1])
+    assert part.orientation_used.tolist() == [False, True, False] and part.orientation_rows.tolist() == [1]
+    assert m.without_orientation().orientation_used is None and campaign.train.all_orientations_used
+    with pytest.raises(torchcal.errors.ShapeError, match="orientation_used"):
+        type(m)(q=m.q, p=m.p, orientation_used=m.orientation_used)  # without r
+
+
 def test_orientation_makes_theta5_estimable():
     # a probe on the flange axis (a T-Mac's frame 109 mm along z, as on the real UR10): its position does not
     # turn with theta5's zero offset in any way the instrument pose and the lever arm cannot take up; its frame does

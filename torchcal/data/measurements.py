@@ -90,6 +90,9 @@ class Measurements:
         station_names: the stations' names (the file's text), in order of first appearance.
         probe: (N,) int64 index into ``probe_names`` of the reflector each row measured, or None (one probe).
         probe_names: the probes' names, in order of first appearance.
+        orientation_used: (N,) bool, the rows whose orientation ``r`` a fit uses, or None (every row's). A row whose
+            orientation is a gross error but whose position is sound keeps its position this way
+            (:meth:`drop_orientation`); never read from a file.
     """
 
     q: torch.Tensor
@@ -107,6 +110,7 @@ class Measurements:
     station_names: tuple[str, ...] = ()
     probe: torch.Tensor | None = None
     probe_names: tuple[str, ...] = ()
+    orientation_used: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         q = self.q
@@ -134,6 +138,7 @@ class Measurements:
                 raise ShapeError(f"{name} is on {value.device} but q is on {q.device}")
         if self.sigma_r is not None and self.r is None:
             raise ShapeError("sigma_r (orientation standard deviations) needs r (the measured orientation)")
+        _check_orientation_used(self.orientation_used, self.r, q)
         for name in _LABELS:
             _check_label(name, getattr(self, name), getattr(self, f"{name}_names"), q)
         if len(self.lines) not in (0, n):
@@ -189,6 +194,7 @@ class Measurements:
             sigma_r=pick(self.sigma_r),
             station=pick(self.station),
             probe=pick(self.probe),
+            orientation_used=pick(self.orientation_used),
         )
 
     @property
@@ -220,6 +226,7 @@ class Measurements:
             sigma_r=move(self.sigma_r),
             station=move(self.station),
             probe=move(self.probe),
+            orientation_used=move(self.orientation_used),
         )
 
     def with_positions(self, p: torch.Tensor | None) -> Measurements:
@@ -228,7 +235,46 @@ class Measurements:
 
     def without_orientation(self) -> Measurements:
         """The same rows without the measured orientation (``r``, ``sigma_r`` dropped): a position-only set."""
-        return dataclasses.replace(self, r=None, sigma_r=None, meta=dict(self.meta), extra=dict(self.extra))
+        return dataclasses.replace(
+            self, r=None, sigma_r=None, orientation_used=None, meta=dict(self.meta), extra=dict(self.extra)
+        )
+
+    @property
+    def orientation_rows(self) -> torch.Tensor | None:
+        """Indices ``(M,)`` of the rows whose orientation a fit uses (every row's unless some were dropped), or None
+        without orientations."""
+        if self.r is None:
+            return None
+        if self.orientation_used is None:
+            return torch.arange(self.n, device=self.q.device)
+        return self.orientation_used.nonzero().squeeze(1)
+
+    @property
+    def all_orientations_used(self) -> bool:
+        """Whether every row's orientation is used (True also without orientations)."""
+        return self.orientation_used is None or bool(self.orientation_used.all())
+
+    def drop_orientation(self, rows: torch.Tensor) -> Measurements:
+        """The same rows with the orientation of ``rows`` (indices or a bool mask ``(N,)``) no longer used: their
+        positions stay, a fit reads their orientation as not measured."""
+        if self.r is None:
+            raise ShapeError("drop_orientation needs r (the measured orientation)")
+        used = self.orientation_used
+        used = torch.ones(self.n, dtype=torch.bool, device=self.q.device) if used is None else used.clone()
+        used[torch.as_tensor(rows, device=self.q.device)] = False
+        return dataclasses.replace(self, orientation_used=used, meta=dict(self.meta), extra=dict(self.extra))
+
+
+def _check_orientation_used(used: torch.Tensor | None, r: torch.Tensor | None, q: torch.Tensor) -> None:
+    """``orientation_used``: a bool ``(N,)`` on q's device, only with ``r``."""
+    if used is None:
+        return
+    if r is None:
+        raise ShapeError("orientation_used needs r (the measured orientation)")
+    if not isinstance(used, torch.Tensor) or used.dtype != torch.bool or tuple(used.shape) != (q.shape[0],):
+        raise ShapeError(f"orientation_used must be a bool tensor of shape ({q.shape[0]},), got {_describe(used)}")
+    if used.device != q.device:
+        raise ShapeError(f"orientation_used is on {used.device} but q is on {q.device}")
 
 
 def _check_label(name: str, index: torch.Tensor | None, names: tuple[str, ...], q: torch.Tensor) -> None:

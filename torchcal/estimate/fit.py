@@ -293,15 +293,14 @@ def errors(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor
 
 
 def orientation_errors(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor | None:
-    """Angle between the predicted and the measured probe orientation per pose ``(N,)`` [rad], or None where the
+    """Angle between the predicted and the measured probe orientation ``(M,)`` [rad] of each row whose orientation is
+    used (:attr:`Measurements.orientation_rows`: every row unless the screening left some out), or None where the
     data or the model carry no orientation."""
     if m.r is None or not model.robot.has_orientation:
         return None
-    from torchcal.robot import transforms as tf
-
     with torch.no_grad():
-        R = model.orientation(Context.from_measurements(m, trajectory=trajectory))
-        return orientation_angle(R, tf.so3_exp(m.r))
+        ctx_r, R_measured, _ = _orientation_data(Context.from_measurements(m, trajectory=trajectory), m)
+        return orientation_angle(model.orientation(ctx_r), R_measured)
 
 
 def corrections(model: MeasurementModel, m: Measurements, trajectory: bool) -> Tensor:
@@ -431,7 +430,7 @@ def solve(
         res, Wr, scale, lead = _orientation_component(model, free, ctx, m, W, Wr, opts, groups, stage, res, scale)
     if identifiability is None and ida is not None:
         res, free = _hold_weak(model, free, ida, ctx, m, W, Wr, opts, groups, stage, lead, res, effects)
-    n_orientation = m.n if Wr is not None else 0
+    n_orientation = Wr.shape[0] if Wr is not None else 0
     fit = Fit(stage, res, free, ida, global_test(res), W, orientation_only, n_orientation, scale)
     if ida is not None and ida.prior_held:
         fit.consider = considered(
@@ -480,7 +479,7 @@ def _analyse_fresh(model, free, ctx, m, W, Wr, opts: FitOptions, groups):
 def _orientation_component(model, free, ctx, m, W, Wr, opts: FitOptions, groups, stage, res, scale):
     """Estimate the orientation rows' variance component from ``res`` and refit with it where it moves the weights
     by more than :data:`ORIENTATION_SCALE_TOL`; stores it on the robot. Returns ``(res, Wr, scale, lead)``."""
-    vce = orientation_scale(res.residuals, m.n)
+    vce = orientation_scale(res.residuals, m.n, Wr.shape[0])
     factor = vce * ORIENTATION_LEAD
     # the sigmas as applied against the variance component's: the variance factor counts the orientation rows at
     # the component's weight (also where the given sigmas were close enough to the lead's to be kept)
@@ -490,7 +489,7 @@ def _orientation_component(model, free, ctx, m, W, Wr, opts: FitOptions, groups,
         res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
     else:
         lead = scale / vce
-        res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
+        res.variance_weights = _orientation_weights(res.residuals, Wr.shape[0], lead)
     model.robot.orientation_scale, model.robot.orientation_lead = scale, lead
     return res, Wr, scale, lead
 
@@ -592,9 +591,10 @@ ORIENTATION_SCALE_TOL = 1.5
 ORIENTATION_LEAD = 3.0
 
 
-def orientation_scale(residuals: Tensor, n: int) -> float:
+def orientation_scale(residuals: Tensor, n: int, n_r: int | None = None) -> float:
     """The factor for the orientation rows' sigmas that gives them the positions' variance factor: ``sqrt(s_r^2 /
-    s_p^2)`` of the whitened residuals ``(3 n [positions], priors, 3 n [orientations])``.
+    s_p^2)`` of the whitened residuals ``(3 n [positions], priors, 3 n_r [orientations])`` (``n_r``: ``n`` unless
+    some rows' orientations were left out).
 
     A 6-D probe reports its orientation's own noise (a T-Mac about 0.001 deg); what a calibration leaves is the model's
     error, in positions and orientations alike. Weighted by the instrument's sigmas alone, orientation rows then
@@ -603,7 +603,7 @@ def orientation_scale(residuals: Tensor, n: int) -> float:
     shared in proportion to the rows)."""
     r = residuals.detach()
     s_p = float(r[: 3 * n].square().mean())
-    s_r = float(r[-3 * n :].square().mean())
+    s_r = float(r[-3 * (n if n_r is None else n_r) :].square().mean())
     if not (s_p > 0 and s_r > 0 and math.isfinite(s_p) and math.isfinite(s_r)):
         return 1.0
     return math.sqrt(s_r / s_p)
@@ -612,10 +612,24 @@ def orientation_scale(residuals: Tensor, n: int) -> float:
 def _orientation_rows(model: MeasurementModel, ctx: Context, m: Measurements, opts: FitOptions) -> Tensor | None:
     """The whitening of the orientation rows ``(N, 3, 3)`` where the data and the model carry orientation (their
     own ``sigma_r``, else ``opts.sigma_orientation``, default :data:`SIGMA_ORIENTATION`), else None."""
-    if m.r is None or not model.robot.has_orientation:
+    if m.r is None or not model.robot.has_orientation or not len(m.orientation_rows):
         return None
     sigma = getattr(opts, "sigma_orientation", None) or SIGMA_ORIENTATION
-    return orientation_whitening(model, ctx, m.sigma_r, sigma, opts.sigma_joint)
+    ctx_r, _, sigma_r = _orientation_data(ctx, m, rotations=False)
+    return orientation_whitening(model, ctx_r, sigma_r, sigma, opts.sigma_joint)
+
+
+def _orientation_data(ctx: Context, m: Measurements, rotations: bool = True):
+    """The context, the measured rotations ``(M, 3, 3)`` (None unless ``rotations``) and the orientation sigmas of
+    the rows whose orientation is used (:attr:`Measurements.orientation_rows`: every row unless some were left
+    out)."""
+    from torchcal.robot import transforms as tf
+
+    if m.all_orientations_used:
+        return ctx, tf.so3_exp(m.r) if rotations else None, m.sigma_r
+    idx = m.orientation_rows
+    sigma_r = None if m.sigma_r is None else m.sigma_r[idx]
+    return ctx.subset(idx), tf.so3_exp(m.r[idx]) if rotations else None, sigma_r
 
 
 def _residuals(model, free, ctx: Context, m: Measurements, W: Tensor, Wr: Tensor | None, prior_sigma=None):
@@ -623,9 +637,8 @@ def _residuals(model, free, ctx: Context, m: Measurements, W: Tensor, Wr: Tensor
     fun = residual_function(model, free, ctx, m.p, W, prior_sigma)
     if Wr is None:
         return fun
-    from torchcal.robot import transforms as tf
-
-    return stack_functions(fun, orientation_function(model, free, ctx, tf.so3_exp(m.r), Wr))
+    ctx_r, R, _ = _orientation_data(ctx, m)
+    return stack_functions(fun, orientation_function(model, free, ctx_r, R, Wr))
 
 
 def _lm(
@@ -648,7 +661,7 @@ def _lm(
     if res.status in FAILED:
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}{_readings_hint(model)}")
     if Wr is not None and lead != 1.0 and res.residuals is not None:
-        res.variance_weights = _orientation_weights(res.residuals, m.n, lead)
+        res.variance_weights = _orientation_weights(res.residuals, Wr.shape[0], lead)
     free.assign(res.x)
     return res
 
@@ -666,7 +679,7 @@ def _readings_hint(model: MeasurementModel) -> str:
 
 
 def _orientation_weights(residuals: Tensor, n: int, lead: float) -> Tensor:
-    """``LMResult.variance_weights``: ``lead^2`` on the ``3 n`` orientation residuals that end the vector
+    """``LMResult.variance_weights``: ``lead^2`` on the ``3 n`` orientation residuals (``n`` rows) that end the vector
     (:func:`orientation_scale`), 1 elsewhere."""
     w = torch.ones_like(residuals)
     w[-3 * n :] = lead**2

@@ -135,6 +135,13 @@ class RobustResult:
     weights: Tensor  # (n,) the M-estimator's final weights in [0, 1]
     result: LMResult | None = None  # least squares of the kept rows
     rejected: list[Rejected] = field(default_factory=list)
+    #: kept rows whose orientation (rx, ry, rz) is a gross error: their position is used, their orientation not
+    orientation_dropped: list[Rejected] = field(default_factory=list)
+
+    @property
+    def orientation_dropped_index(self) -> Tensor:
+        """Indices of the rows in :attr:`orientation_dropped` (0-based, of the data screened)."""
+        return torch.tensor([x.index for x in self.orientation_dropped], dtype=torch.int64)
 
     @property
     def n_rejected(self) -> int:
@@ -371,9 +378,14 @@ class Screening:
     method: str
     gross: float = GROSS_FACTOR
     free: list[str] = field(default_factory=list)
+    orientations_tested: bool = False  # the data carried orientations (rx, ry, rz), each tested
 
     def to_dict(self) -> dict:
         def part(r: RobustResult) -> dict:
+            dropped = {
+                "n_orientation_dropped": len(r.orientation_dropped),
+                "orientation_dropped": [x.to_dict() for x in r.orientation_dropped],
+            }
             return {
                 "n": len(r.kept),
                 "n_rejected": r.n_rejected,
@@ -382,6 +394,7 @@ class Screening:
                 "status": r.status,
                 "iterations": r.iterations,
                 "rows": [x.to_dict() for x in r.rejected],
+                **(dropped if self.orientations_tested else {}),
             }
 
         return {
@@ -455,19 +468,50 @@ ORIENTATION_GROSS_DEG = 10.0
 
 
 def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Tensor, alpha: float, gross: float):
-    """Reject the rows whose measured orientation (rx, ry, rz) is a gross error, as the positions' screening does
-    (a row degrees off among rows within a fraction of one would otherwise be kept). Each row's probe frame in the
-    flange frame (:func:`_probe_frames`) against their robust centre: ``T_i = |log(R_c^T R_i)|^2 / sigma_i^2``,
-    scaled by ``s0^2 = max(1, median(T_i) / median(chi2_3))`` (the geometry's own orientation errors and joint noise
-    make the spread wider than the probe's sigma), rejected above the same bound as the positions (``chi2_3`` at
-    ``1 - alpha / n`` and ``gross^2``) and :data:`ORIENTATION_GROSS_DEG` off. Adds to ``res.kept`` and
-    ``res.rejected``; rows without orientation: nothing."""
+    """Find the kept rows whose measured orientation (rx, ry, rz) is a gross error, as the positions' screening does
+    (a row degrees off among rows within a fraction of one would otherwise pull the fit), and list them in
+    ``res.orientation_dropped``: their positions passed their own test, so the row stays and only its orientation is
+    left out (a tracker whose orientation frame slipped for part of a series measured the positions well). Each row's
+    probe frame in the flange frame (:func:`_probe_frames`) against their robust centre: ``T_i = |log(R_c^T R_i)|^2 /
+    sigma_i^2``, scaled by ``s0^2 = max(1, median(T_i) / median(chi2_3))`` (the geometry's own orientation errors and
+    joint noise make the spread wider than the probe's sigma), gross above the same bound as the positions (``chi2_3``
+    at ``1 - alpha / n`` and ``gross^2``) and :data:`ORIENTATION_GROSS_DEG` off. Rows without orientation: nothing."""
     if m.r is None or m.n < 4:
         return
+    e = _orientation_offsets(model, m)
+    sigma = m.sigma_r.mean(dim=-1) if m.sigma_r is not None else torch.full_like(e[:, 0], _sigma_orientation())
+    T = (e**2).sum(-1) / sigma.clamp(min=1e-12) ** 2
+    s0sq = max(float(T.median()) / _chi2_median(3), 1.0)
+    z = T / s0sq
+    far = e.norm(dim=-1) > math.radians(ORIENTATION_GROSS_DEG)
+    bad = (z > max(chi2_isf(alpha / max(m.n, 1), 3), gross**2)) & far & res.kept
+    size = (pred - m.p).norm(dim=-1)
+    for i in torch.nonzero(bad).flatten().tolist():
+        angle = math.degrees(float(e[i].norm()))
+        res.orientation_dropped.append(
+            Rejected(
+                index=i,
+                line=int(m.lines[i]),
+                statistic=float(z[i]),
+                p_value=chi2_sf(float(z[i]), 3),
+                size_mm=float(size[i]) * 1e3,
+                hint=f"the orientation (rx, ry, rz) is {angle:.3g} deg off the probe frame the other rows agree on; "
+                "its position is used",
+            )
+        )
+
+
+def _sigma_orientation() -> float:
     from torchcal.estimate.fit import SIGMA_ORIENTATION
 
+    return SIGMA_ORIENTATION
+
+
+def _orientation_offsets(model: MeasurementModel, m) -> Tensor:
+    """Each row's probe frame in the flange frame against their robust centre, as a rotation vector ``(N, 3)``
+    [rad]; refuses orientations that do not turn with the robot at all (:data:`MAX_ORIENTATION_SPREAD_DEG`)."""
     R = _probe_frames(model, m)
-    e = so3_log(_common_frame(R).transpose(-1, -2) @ R)  # (N, 3) rad
+    e = so3_log(_common_frame(R).transpose(-1, -2) @ R)
     spread = math.degrees(float(e.norm(dim=-1).median()))
     if spread > MAX_ORIENTATION_SPREAD_DEG:
         raise MeasurementFileError(
@@ -478,27 +522,7 @@ def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Ten
             hint="rx, ry, rz must be the probe frame's orientation in the tracker frame as a rotation vector [rad]; "
             "leave the columns out if the instrument did not measure it",
         )
-    sigma = m.sigma_r.mean(dim=-1) if m.sigma_r is not None else torch.full_like(e[:, 0], SIGMA_ORIENTATION)
-    T = (e**2).sum(-1) / sigma.clamp(min=1e-12) ** 2
-    s0sq = max(float(T.median()) / _chi2_median(3), 1.0)
-    z = T / s0sq
-    far = e.norm(dim=-1) > math.radians(ORIENTATION_GROSS_DEG)
-    bad = (z > max(chi2_isf(alpha / max(m.n, 1), 3), gross**2)) & far & res.kept
-    size = (pred - m.p).norm(dim=-1)
-    for i in torch.nonzero(bad).flatten().tolist():
-        angle = math.degrees(float(e[i].norm()))
-        res.rejected.append(
-            Rejected(
-                index=i,
-                line=int(m.lines[i]),
-                statistic=float(z[i]),
-                p_value=chi2_sf(float(z[i]), 3),
-                size_mm=float(size[i]) * 1e3,
-                hint=f"the orientation (rx, ry, rz) is {angle:.3g} deg off the probe frame the other rows agree on",
-            )
-        )
-    res.rejected.sort(key=lambda x: x.line)
-    res.kept = res.kept & ~bad
+    return e
 
 
 def screen_geometric(
@@ -556,8 +580,21 @@ def screen_geometric(
         "robust start (Tukey-reweighted rigid fit), M-estimation (Huber, then Tukey's biweight, robust scale "
         "from the median) of the geometric model, then Baarda's data snooping one pose at a time; held-out "
         "poses tested against the robust geometric model"
-    ) + ("; orientations (rx, ry, rz) tested against the probe frame the rows agree on" if train.r is not None else "")
-    return Screening(training=res, holdout=hres, model=model, method=method, gross=gross, free=free.names)
+    ) + (
+        "; orientations (rx, ry, rz) tested against the probe frame the rows agree on, a gross one left out and its "
+        "row's position kept"
+        if train.r is not None
+        else ""
+    )
+    return Screening(
+        training=res,
+        holdout=hres,
+        model=model,
+        method=method,
+        gross=gross,
+        free=free.names,
+        orientations_tested=train.r is not None,
+    )
 
 
 def _robust_start(model: MeasurementModel, train) -> Tensor:

@@ -65,8 +65,8 @@ def nominal(run: CalibrationRun) -> StageResult:
         station=train.station,
         probe=train.probe,
     )
-    if train.r is not None:  # a 6-D probe: its frame's rotation in the flange, from the orientations (closed form)
-        place_tool_rotation(work.robot, train.q, train.r)
+    if train.r is not None and len(rows := train.orientation_rows):  # a 6-D probe: its frame's rotation in the
+        place_tool_rotation(work.robot, train.q[rows], train.r[rows])  # flange, from the orientations (closed form)
     work.fits.append(
         solve(
             work.model,

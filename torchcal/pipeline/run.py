@@ -50,6 +50,7 @@ __all__ = [
     "is_trajectory",
     "min_poses",
     "prior_from_run",
+    "drop_gross_orientations",
     "screen_gross_errors",
 ]
 
@@ -196,6 +197,7 @@ def start(
     split = holdout_split(data, opts.split.holdout, opts.seed + S.Stream.HOLDOUT, trajectory, opts.split.group_tol)
     if prior is None:
         tr, ho, screening = screen_gross_errors(robot, data, *split, opts, trajectory)
+        data = drop_gross_orientations(data, split.keep, split.held, screening)
         model = MeasurementModel(robot)
         model.set_region(data.q[tr], fade=method.fades)
     else:  # the robust screening fits the geometry from scratch, which the few rows of an update cannot
@@ -254,6 +256,32 @@ def calibrate(
     return run
 
 
+def drop_gross_orientations(data: Measurements, tr: Tensor, ho: Tensor, screening) -> Measurements:
+    """``data`` with the orientations the screening found gross left out (their rows' positions stay); ``tr`` and
+    ``ho`` are the training and held-out indices the screening was given."""
+    if screening is None:
+        return data
+    rows = torch.cat(
+        [
+            tr[screening.training.orientation_dropped_index],
+            ho[screening.holdout.orientation_dropped_index],
+        ]
+    )
+    if not len(rows):
+        return data
+    for name, part in (("training", screening.training), ("held-out", screening.holdout)):
+        if part.orientation_dropped:
+            _console.info(
+                f"{len(part.orientation_dropped)} {name} rows' orientations left out as gross errors "
+                f"(their positions kept; file lines {_lines(part.orientation_dropped)})"
+            )
+    return data.drop_orientation(rows.to(data.q.device))
+
+
+def _lines(rows) -> str:
+    return ", ".join(str(r.line) for r in rows[:10]) + (" ..." if len(rows) > 10 else "")
+
+
 def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: Tensor, opts: Options, trajectory: bool):
     """The training and held-out rows without their gross errors (:func:`torchcal.estimate.robust.screen_geometric`).
 
@@ -280,6 +308,7 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
         )
     for name, part in (("training", sc.training), ("held-out", sc.holdout)):
         if part.rejected:
-            lines = ", ".join(str(r.line) for r in part.rejected[:10]) + (" ..." if len(part.rejected) > 10 else "")
-            _console.info(f"{len(part.rejected)} {name} rows rejected as gross errors (file lines {lines})")
+            _console.info(
+                f"{len(part.rejected)} {name} rows rejected as gross errors (file lines {_lines(part.rejected)})"
+            )
     return tr[sc.training.kept.cpu()], ho[sc.holdout.kept.cpu()], sc

@@ -123,11 +123,13 @@ def _orientation_report(run: CalibrationRun) -> dict | None:
     stages = []
     for s in run.stages:
         e = orientation_errors(s.model, run.hold, run.trajectory)
-        if e is None:
+        if e is None or not len(e):
             continue
         stages.append(
             {"name": s.name, "rms_holdout_deg": math.degrees(rmse(e)), "max_holdout_deg": math.degrees(float(e.max()))}
         )
+    if not stages:  # every held-out row's orientation left out as a gross error
+        return None
     by = {s["name"]: s for s in stages}
     final = stages[-1]
     only = next((f.orientation_only for f in run.fits if f.identifiability is not None and f.n_orientation), [])
