@@ -537,9 +537,12 @@ def orientation_function(
     ``e_i = orientation_error(R_pred,i(x), R_meas,i)`` (:func:`orientation_error`), and their Jacobian
     ``fun.jacobian``: ``torch.func.jacfwd`` of the model's :meth:`~torchcal.effects.model.MeasurementModel.
     orientation` over ``chunk`` poses at a time, with the chain's ``R_base_flange`` replaced by its tangent at ``x``
-    (:func:`linear_rotation`: the same value and first derivatives, so the same Jacobian, without pushing every
-    parameter's tangent through the chain of every pose; the effects see the parameters as before). A robot with a
-    readings map, or ``linear=False``, differentiates the chain itself.
+    (:func:`linear_rotation`: the same value and first derivatives, without pushing every parameter's tangent through
+    the chain of every pose). The geometry reaches the rotation through that tangent only: the effects see its plain
+    value, so what they compute from the robot under no_grad (a compliance's gravity torque) stays a constant, as in
+    the position rows (:func:`_linearised_jacobian`) and in reverse-mode autograd; forward mode ignores no_grad and
+    would push the geometry's tangents through the torque's chain. A robot with a readings map, or ``linear=False``,
+    differentiates the chain itself.
 
     Args:
         R_meas: measured orientations ``(N, 3, 3)`` (tracker frame).
@@ -558,31 +561,27 @@ def orientation_function(
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
         if not linear:
-            return _chunked(lambda c, Rm, WW: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
-        lin = linear_rotation(model, free, ctx, x)
-        at = free.params(x)
-        J = x.new_zeros(3 * ctx.q.shape[0], len(x))
-        for names, cols in _column_groups(free, x.device):
-            part = functools.partial(_group_residuals, x=x, cols=cols, names=names, at=at)
-            J[:, cols] = _chunked(lambda c, Rm, WW, p=part: functools.partial(p, c=c, Rm=Rm, WW=WW), x[cols], lin)
-        return J
+            return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
+        lin, at = linear_rotation(model, free, ctx, x), free.params(x)
+        return _chunked(
+            lambda c, Rm, WW, sl: functools.partial(_geometry_in_rotation, at=at, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl), x
+        )
 
-    def _group_residuals(z: Tensor, x, cols, names, at, c: Context, Rm: Tensor, WW: Tensor, rot) -> Tensor:
-        """The residuals as a function of the columns ``cols`` of x alone: the parameters outside their entries
-        ``names`` plain (no tangent), so that their computations (a compliance's torque through the chain, by the
-        geometry) stay plain where only other columns are differentiated."""
-        params = {k: v if k in names else at[k] for k, v in free.params(x.index_put((cols,), z)).items()}
-        R = torch.func.functional_call(model, params, (c,), {"orientation": True, "rot": rot})
+    def _geometry_in_rotation(z: Tensor, at, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice) -> Tensor:
+        """The residuals with the geometry ``z`` holds passed to the linearised rotation ``rot`` and its value at x
+        (plain) to the model, so the effects' computations from the robot stay constants."""
+        params = free.params(z)
+        d = params[_GEOMETRY] if _GEOMETRY in params else None
+        plain = {k: at[k] if k == _GEOMETRY else v for k, v in params.items()}
+        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, d)})
         return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
 
-    def _chunked(make, x: Tensor, lin=None) -> Tensor:
-        """``jacfwd`` of ``make(c, Rm, WW)`` (a function of ``x``) over ``chunk`` poses at a time."""
+    def _chunked(make, x: Tensor) -> Tensor:
+        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time."""
         n, parts = ctx.q.shape[0], []
         for lo in range(0, n, max(1, int(chunk))):
             sl = slice(lo, min(n, lo + max(1, int(chunk))))
-            f = make(ctx.subset(sl), R_meas[sl], W[sl])
-            f = functools.partial(f, rot=lin(sl)) if lin is not None else f
-            parts.append(torch.func.jacfwd(f)(x).detach())
+            parts.append(torch.func.jacfwd(make(ctx.subset(sl), R_meas[sl], W[sl], sl))(x).detach())
         return torch.cat(parts) if parts else x.new_zeros(0, len(x))
 
     fun.jacobian = jacobian
@@ -591,12 +590,12 @@ def orientation_function(
 
 def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor):
     """The chain's rotation ``R_base_flange`` linearised at ``x``, for :meth:`MeasurementModel.orientation
-    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``rows -> rot``, with ``rot(robot, q) = R0 +
+    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``(rows, d) -> rot``, with ``rot(robot, q) = R0 +
     sum_j dR/dq_j (q_j - q0_j) + sum_k dR/dd_k (d_k - d0_k)`` over the poses ``rows`` (a slice), ``q0`` the joint
-    angles with the joint effects applied at ``x``, ``d`` the free geometry elements
-    (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_jacobian`). Its value and first derivatives at ``x``
-    are the chain's, so ``jacfwd`` of the model with ``rot`` in place gives the exact Jacobian; the joint effects
-    (a compliance's torque through the chain) are differentiated as they are without it."""
+    angles with the joint effects applied at ``x``, ``d`` the free geometry elements of the geometry's correction
+    ``d`` (the robot's own where None) (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_jacobian`). Its
+    value and first derivatives at ``x`` are the chain's, so ``jacfwd`` of the model with ``rot`` in place gives the
+    chain's Jacobian."""
     at = free.params(x)
     geo = [e for e in free.entries if e.name == _GEOMETRY]
     idx = geo[0].index if geo else torch.zeros(0, dtype=torch.long, device=x.device)
@@ -612,7 +611,7 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
         torch.func.functional_call(model, at, (ctx,), {"orientation": True, "rot": record})
     d0 = at[_GEOMETRY].detach().reshape(-1)[idx.to(x.device)] if geo else None
 
-    def rows(sl: slice):
+    def rows(sl: slice, delta: Tensor | None = None):
         R0, q0 = out["R"][sl], out["q"][sl]
         n, dof, k = R0.shape[0], q0.shape[1], len(idx)
         Aq = out["dq"][sl].permute(0, 2, 3, 1).reshape(n, 9, dof)
@@ -623,7 +622,7 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
             # the constants meet the differentiated q and d through torchcal._dual (as in linear_kinematics)
             R = _dual.add(R0, (Aq @ _dual.sub(q, q0).unsqueeze(-1)).reshape(n, 3, 3))
             if k:
-                d = rb.geometry.delta.reshape(-1)[cols]
+                d = (rb.geometry.delta if delta is None else delta).reshape(-1)[cols]
                 R = _dual.add(R, (Ad @ _dual.sub(d, d0)).reshape(n, 3, 3))
             return R
 
@@ -634,18 +633,6 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
 
 #: the geometry's correction (the free elements :func:`linear_rotation` carries)
 _GEOMETRY = "robot.geometry.delta"
-
-
-def _column_groups(free: FreeParameters, dev) -> list[tuple[set[str], Tensor]]:
-    """The orientation Jacobian's column groups, each ``(entries, columns of x)``: the geometry's, whose tangents
-    reach the joint effects' torques through the chain, and all the others' (the instrument pose, the probe frame's
-    rotation, the effects' own parameters), for which that chain stays plain. A column's derivative is the same in
-    any group: the others are held at x in both."""
-    geo = [j for j, e, _ in _columns(free) if e.name == _GEOMETRY]
-    rest = [j for j, e, _ in _columns(free) if e.name != _GEOMETRY]
-    names = {e.name for e in free.entries}
-    groups = [({_GEOMETRY}, geo), (names - {_GEOMETRY}, rest)]
-    return [(n, torch.tensor(c, dtype=torch.long, device=dev)) for n, c in groups if c]
 
 
 def stack_functions(*funs):
