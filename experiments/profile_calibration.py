@@ -13,7 +13,8 @@ Two runs of ``torchcal calibrate DATA --robot R`` (the default method), each in 
   many small calls; the shares are what to read.
 
 :func:`simulated` makes the second data set: a simulated campaign of a 7-axis arm with orientations (a 6-D probe).
-:func:`compare` times the default method against a baseline source tree, alternating, as commands.
+:func:`compare` times the default method against a baseline source tree, alternating, as commands;
+:func:`compare_commits` times pairs of commits of this checkout (a change against the code before it) the same way.
 """
 
 from __future__ import annotations
@@ -274,3 +275,49 @@ def compare(data: str, robot: str, baseline: Path, repeat: int, work: Path) -> d
         ),
         "rmse_holdout_mm": {n: runs[n][0]["rmse_holdout_mm"] for n in runs},
     }
+
+
+def commit_tree(commit: str, work: Path) -> Path:
+    """The torchcal package and robot files of ``commit`` of this checkout, unpacked under ``work`` once."""
+    root = Path(__file__).resolve().parents[1]
+    tree = work / f"tree-{commit}"
+    if not tree.is_dir():
+        tree.mkdir(parents=True)
+        archive = subprocess.run(
+            ["git", "-C", str(root), "archive", commit, "torchcal", "robots"], capture_output=True, check=False
+        )
+        if archive.returncode != 0:
+            raise TorchcalError(f"git archive {commit}: {archive.stderr.decode(errors='replace').strip()}")
+        subprocess.run(["tar", "-x", "-C", str(tree)], input=archive.stdout, check=True)
+    return tree
+
+
+def compare_commits(data: str, robot: str, pairs: list[tuple[str, str]], repeat: int, work: Path) -> dict:
+    """Each pair ``(before, after)`` of commits: the default method of both on ``data`` as commands, ``repeat``
+    rounds, the order flipped every round (a machine that slows during a round charges both); per pair the CPU seconds,
+    the ratio of the medians, the ratio of each round, and whether the held-out RMSE and effects agree; and the
+    product of the pairs' ratios (a series of changes, each against the code before it)."""
+    out, product = [], 1.0
+    for before, after in pairs:
+        runs: dict[str, list[dict]] = {before: [], after: []}
+        for k in range(repeat):
+            for c in (before, after) if k % 2 == 0 else (after, before):
+                runs[c].append(calibrate_once(commit_tree(c, work), data, robot, "auto", work / f"run-{c}-{k}"))
+                print(f"round {k + 1}: {c}: {json.dumps(runs[c][-1])}", file=sys.stderr, flush=True)
+        cpu = {c: [r["cpu_s"] for r in runs[c]] for c in runs}
+        ratio = statistics.median(cpu[after]) / statistics.median(cpu[before])
+        product *= ratio
+        out.append(
+            {
+                "before": before,
+                "after": after,
+                "cpu_s": cpu,
+                "cpu_ratio": ratio,
+                "round_ratios": [a / b for a, b in zip(cpu[after], cpu[before])],
+                "same_results": all(
+                    (a["rmse_holdout_mm"], a["effects"]) == (b["rmse_holdout_mm"], b["effects"])
+                    for a, b in zip(runs[before], runs[after])
+                ),
+            }
+        )
+    return {"data": str(data), "robot": robot, "repeat": repeat, "pairs": out, "cpu_ratio_product": product}

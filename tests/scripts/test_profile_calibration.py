@@ -41,3 +41,19 @@ def test_the_profile_names_the_stages_the_kernels_and_the_costly_functions(campa
     own = res["own"]
     assert sum(r["share"] for r in own) <= 1.0 + 1e-9 and own == sorted(own, key=lambda r: -r["cpu_s"])
     assert any(r["function"].startswith("torchcal/") and r["calls"] for r in own)
+
+
+def test_commits_are_timed_in_pairs_with_their_results_compared(campaign, tmp_path):
+    """A commit against itself: each run once, the same results; an unknown commit is refused."""
+    from experiments.profile_calibration import compare_commits
+    from torchcal.errors import TorchcalError
+
+    git = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, check=False)
+    if git.returncode != 0:
+        pytest.skip("compare_commits archives commits of a git checkout; this is none")
+    head = git.stdout.strip()
+    res = compare_commits(str(campaign), "ur5", [(head, head)], 1, tmp_path)
+    (pair,) = res["pairs"]
+    assert len(pair["cpu_s"][head]) == 2 and pair["same_results"] and pair["cpu_ratio"] == 1.0
+    with pytest.raises(TorchcalError, match="git archive no-such-commit"):
+        compare_commits(str(campaign), "ur5", [("no-such-commit", head)], 1, tmp_path)
