@@ -51,6 +51,9 @@ def serial(manifest, tmp_path_factory):
         mp.setattr(F, "ray_available", lambda: False)
         assert main(["fleet", str(manifest), "--out", str(out)]) == 0
     assert "one after another" in err.getvalue()
+    # the missing file is told before any task runs, with the manifest's line and column
+    told = f"torchcal fleet: {manifest}: line 4, column 'data': "
+    assert told in err.getvalue() and err.getvalue().index(told) < err.getvalue().index("torchcal fleet: r1:")
     fleet = F.FleetResult("serial", json.loads((out / "report.json").read_text())["robots"], 0.0)
     return fleet, out
 
@@ -138,3 +141,22 @@ def test_verdicts():
     failed = {"status": "ok", "report": {"moved": [], "global_test_passed": False, "prior": "run"}}
     assert F.verdict(failed)[0] is True
     assert F.verdict({"status": "refused"})[0] is None
+
+
+def test_missing_inputs_name_the_manifest_line_and_column(manifest, tmp_path):
+    """Each line whose data file, robot or prior run is not there, found before any task (they still run, refused)."""
+    (tmp_path / "empty_run").mkdir()
+    m = tmp_path / "m.csv"
+    data = manifest.parent / "sim1" / "train.csv"
+    m.write_text(
+        f"name,data,robot,prior\nok,{data},ur5,\nnodata,nothere.csv,ur5,\nnorobot,{data},ur55,\n"
+        f"noprior,{data},ur5,empty_run\n"
+    )
+    problems = F.missing_inputs(m, F.read_manifest(m))
+    assert [p.split(": ")[1] for p in problems] == [
+        "line 3, column 'data'",
+        "line 4, column 'robot'",
+        "line 5, column 'prior'",
+    ]
+    assert "ur55" in problems[1] and "ur5" in problems[1].split("ur55", 1)[1]  # the valid names listed
+    assert "no model.json" in problems[2]

@@ -168,6 +168,27 @@ def inputs_of(manifest: str | os.PathLike, lines: list[Line]) -> list[str]:
     return out
 
 
+def missing_inputs(path: str | os.PathLike, lines: list[Line]) -> list[str]:
+    """Before any task of a fleet on this machine: each line whose data file, robot or prior run is not there, as
+    the manifest's line and column (a typo in line 57 told at the start, not when line 57's turn comes). Those lines
+    are still run and reported refused with their own error while the others go on; what the files hold is each
+    task's to check. Not for a cluster at ``--address``: its nodes, not this machine, must see the files."""
+    from torchcal.errors import RobotSpecError
+    from torchcal.robot.load import resolve_robot_spec
+
+    path, out = Path(path), []
+    for ln in lines:
+        if not Path(ln.data).is_file():
+            out.append(str(_bad(path, ln.number, "data", f"{ln.data}: no such file")))
+        try:
+            resolve_robot_spec(ln.robot)
+        except RobotSpecError as e:
+            out.append(str(_bad(path, ln.number, "robot", _console.one_line(str(e)))))
+        if ln.prior and not (Path(ln.prior) / "model.json").is_file():
+            out.append(str(_bad(path, ln.number, "prior", f"{ln.prior}: not a run directory (no model.json in it)")))
+    return out
+
+
 def _check_robot_line(data, spec: str, robot) -> None:
     """Refuse a file whose ``# robot:`` line names another robot (the rule of ``torchcal calibrate``: names compared
     without folder, extension and case)."""
@@ -406,6 +427,8 @@ def run_fleet(
         progress: called with each line's result as it finishes.
     """
     lines = read_manifest(manifest)
+    for problem in missing_inputs(manifest, lines) if address is None else []:
+        print(f"torchcal fleet: {problem}; that line will be reported refused, the others run", file=sys.stderr)
     inputs = inputs_of(manifest, lines)
     check_out_dir(out, inputs=inputs)  # before any task: refuse, touching nothing
     engine = engine or ("ray" if ray_available() else "serial")

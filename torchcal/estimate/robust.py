@@ -141,7 +141,7 @@ class RobustResult:
     @property
     def orientation_dropped_index(self) -> Tensor:
         """Indices of the rows in :attr:`orientation_dropped` (0-based, of the data screened)."""
-        return torch.tensor([x.index for x in self.orientation_dropped], dtype=torch.int64)
+        return torch.tensor([x.index for x in self.orientation_dropped], dtype=torch.int64, device=self.kept.device)
 
     @property
     def n_rejected(self) -> int:

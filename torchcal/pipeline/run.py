@@ -263,8 +263,8 @@ def drop_gross_orientations(data: Measurements, tr: Tensor, ho: Tensor, screenin
         return data
     rows = torch.cat(
         [
-            tr[screening.training.orientation_dropped_index],
-            ho[screening.holdout.orientation_dropped_index],
+            tr[screening.training.orientation_dropped_index.cpu()],
+            ho[screening.holdout.orientation_dropped_index.cpu()],
         ]
     )
     if not len(rows):
