@@ -405,9 +405,12 @@ def test_the_largest_seed_works(tmp_path):
 # --------------------------------------------------------------------------------- item 20: Ctrl-C at start
 
 
-# A real SIGINT, delivered while 'import torch' runs: a meta-path hook sends it when torch is first imported.
+# A real SIGINT, delivered while 'import torch' runs: a meta-path hook sends it when torch is first imported. Python
+# keeps SIGINT ignored where its parent ignored it (a test worker after Ray had its turn did), so the script takes
+# the handler a terminal's command gets.
 _INTERRUPT_AT_TORCH = """
 import os, runpy, signal, sys
+signal.signal(signal.SIGINT, signal.default_int_handler)
 class Hook:
     def find_spec(self, name, path=None, target=None):
         if name == "torch":
