@@ -18,7 +18,6 @@ from torchcal import _dual
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
-from torchcal.robot import transforms as tf
 
 Tensor = torch.Tensor
 
@@ -563,33 +562,22 @@ def orientation_function(
         x = x.detach()
         if not linear:
             return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
-        lin = linear_rotation(model, free, ctx, x)
-        geo = torch.tensor([j for j, e, _ in _columns(free) if e.name == _GEOMETRY], dtype=torch.long, device=x.device)
-        rest = torch.tensor([j for j, e, _ in _columns(free) if e.name != _GEOMETRY], dtype=torch.long, device=x.device)
-        part = functools.partial(_turned, x=x, rest=rest, lin=lin, at=free.params(x))
-        Jz = _chunked(lambda c, Rm, WW, sl: functools.partial(part, c=c, Rm=Rm, WW=WW, sl=sl), x.new_zeros(3), x[rest])
-        J = x.new_zeros(Jz.shape[0], len(x))
-        J[:, rest] = Jz[:, 3:]
-        if len(geo):  # G_i (3 x 3: a turn of the chain's rotation) times each geometry element's turn
-            n = ctx.q.shape[0]
-            J[:, geo] = (Jz[:, :3].reshape(n, 3, 3) @ lin.turns(slice(0, n))).reshape(3 * n, len(geo))
-        return J
+        lin, at = linear_rotation(model, free, ctx, x), free.params(x)
+        return _chunked(
+            lambda c, Rm, WW, sl: functools.partial(_geometry_in_rotation, at=at, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl), x
+        )
 
-    def _turned(zr: Tensor, x: Tensor, rest: Tensor, lin, at, c: Context, Rm: Tensor, WW: Tensor, sl: slice) -> Tensor:
-        """The residuals of the parameters ``rest`` (``zr[3:]``) and of a small turn ``zr[:3]`` of the chain's
-        rotation (base frame); the geometry its plain value at x, ``at``'s (not an entry of a vector with tangents:
-        what the effects compute from the robot stays a constant, and the geometry's columns come from the turn,
-        :meth:`_LinearRotation.turns`)."""
-        params = free.params(x.index_put((rest,), zr[3:]))
-        if _GEOMETRY in params:
-            params[_GEOMETRY] = at[_GEOMETRY]
-        R = torch.func.functional_call(model, params, (c,), {"orientation": True, "rot": lin.turned(sl, zr[:3])})
+    def _geometry_in_rotation(z: Tensor, at, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice) -> Tensor:
+        """The residuals with the geometry ``z`` holds passed to the linearised rotation ``rot`` and its value at x
+        (plain) to the model, so the effects' computations from the robot stay constants."""
+        params = free.params(z)
+        d = params[_GEOMETRY] if _GEOMETRY in params else None
+        plain = {k: at[k] if k == _GEOMETRY else v for k, v in params.items()}
+        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, d)})
         return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
 
-    def _chunked(make, *x: Tensor) -> Tensor:
-        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of the concatenated ``x``) over ``chunk`` poses at a
-        time."""
-        x = torch.cat(x)
+    def _chunked(make, x: Tensor) -> Tensor:
+        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time."""
         n, parts = ctx.q.shape[0], []
         for lo in range(0, n, max(1, int(chunk))):
             sl = slice(lo, min(n, lo + max(1, int(chunk))))
@@ -600,13 +588,14 @@ def orientation_function(
     return fun
 
 
-def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor) -> _LinearRotation:
+def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor):
     """The chain's rotation ``R_base_flange`` linearised at ``x``, for :meth:`MeasurementModel.orientation
-    <torchcal.effects.model.MeasurementModel.orientation>`: ``R0 + sum_j dR/dq_j (q_j - q0_j)``, ``q0`` the joint
-    angles with the joint effects applied at ``x``, and the free geometry elements' derivatives ``dR/dd_k``
-    (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_jacobian`); see :class:`_LinearRotation`. Its value and
-    first derivatives at ``x`` are the chain's, so ``jacfwd`` of the model with it in place gives the chain's
-    Jacobian."""
+    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``(rows, d) -> rot``, with ``rot(robot, q) = R0 +
+    sum_j dR/dq_j (q_j - q0_j) + sum_k dR/dd_k (d_k - d0_k)`` over the poses ``rows`` (a slice), ``q0`` the joint
+    angles with the joint effects applied at ``x``, ``d`` the free geometry elements of the geometry's correction
+    ``d`` (the robot's own where None) (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_jacobian`). Its
+    value and first derivatives at ``x`` are the chain's, so ``jacfwd`` of the model with ``rot`` in place gives the
+    chain's Jacobian."""
     at = free.params(x)
     geo = [e for e in free.entries if e.name == _GEOMETRY]
     idx = geo[0].index if geo else torch.zeros(0, dtype=torch.long, device=x.device)
@@ -620,42 +609,26 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
 
     with torch.no_grad():
         torch.func.functional_call(model, at, (ctx,), {"orientation": True, "rot": record})
-    return _LinearRotation(out["R"], out["q"], out["dq"], out["dd"])
+    d0 = at[_GEOMETRY].detach().reshape(-1)[idx.to(x.device)] if geo else None
 
-
-@dataclass
-class _LinearRotation:
-    """The chain's rotation linearised at x: ``R0 (N, 3, 3)`` at the joint angles ``q0 (N, dof)``, its derivatives by
-    the joints ``dq (N, dof, 3, 3)`` and by the free geometry elements ``dd (N, k, 3, 3)``."""
-
-    R0: Tensor
-    q0: Tensor
-    dq: Tensor
-    dd: Tensor
-
-    def turned(self, sl: slice, z: Tensor):
-        """``rot(robot, q) = R0 + sum_j dR/dq_j (q_j - q0_j) + [z]x R0`` over the poses ``sl``: the joints' tangent
-        and a small turn ``z (3,)`` of the whole rotation in the base frame, by which the geometry's columns follow
-        (:meth:`turns`)."""
-        R0, q0 = self.R0[sl], self.q0[sl]
-        n, dof = q0.shape
-        Aq = self.dq[sl].permute(0, 2, 3, 1).reshape(n, 9, dof)
+    def rows(sl: slice, delta: Tensor | None = None):
+        R0, q0 = out["R"][sl], out["q"][sl]
+        n, dof, k = R0.shape[0], q0.shape[1], len(idx)
+        Aq = out["dq"][sl].permute(0, 2, 3, 1).reshape(n, 9, dof)
+        Ad = out["dd"][sl].permute(0, 2, 3, 1).reshape(n * 9, k)
+        cols = idx.to(x.device)
 
         def rot(rb, q: Tensor) -> Tensor:
-            # the constants meet the differentiated q and z through torchcal._dual (as in linear_kinematics)
+            # the constants meet the differentiated q and d through torchcal._dual (as in linear_kinematics)
             R = _dual.add(R0, (Aq @ _dual.sub(q, q0).unsqueeze(-1)).reshape(n, 3, 3))
-            return _dual.add(R, tf.skew(z) @ R0)
+            if k:
+                d = (rb.geometry.delta if delta is None else delta).reshape(-1)[cols]
+                R = _dual.add(R, (Ad @ _dual.sub(d, d0)).reshape(n, 3, 3))
+            return R
 
         return rot
 
-    def turns(self, sl: slice) -> Tensor:
-        """Each free geometry element's turn of the chain's rotation ``(n, 3, k)`` (base frame): ``dR/dd_k R0^T``
-        is the cross-product matrix of it (the derivative of a rotation), so ``dR/dd_k = [w_k]x R0``."""
-        W = self.dd[sl] @ self.R0[sl].transpose(-1, -2).unsqueeze(1)  # (n, k, 3, 3), skew
-        w = 0.5 * torch.stack(
-            [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]], -1
-        )
-        return w.transpose(1, 2)
+    return rows
 
 
 #: the geometry's correction (the free elements :func:`linear_rotation` carries)
