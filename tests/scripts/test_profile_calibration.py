@@ -44,7 +44,8 @@ def test_the_profile_names_the_stages_the_kernels_and_the_costly_functions(campa
 
 
 def test_commits_are_timed_in_pairs_with_their_results_compared(campaign, tmp_path):
-    """A commit against itself: each run once, the same results; an unknown commit is refused."""
+    """A commit against itself under two names (two trees, two runs): the same results; an unknown commit is
+    refused."""
     from experiments.profile_calibration import compare_commits
     from torchcal.errors import TorchcalError
 
@@ -52,8 +53,9 @@ def test_commits_are_timed_in_pairs_with_their_results_compared(campaign, tmp_pa
     if git.returncode != 0:
         pytest.skip("compare_commits archives commits of a git checkout; this is none")
     head = git.stdout.strip()
-    res = compare_commits(str(campaign), "ur5", [(head, head)], 1, tmp_path)
+    res = compare_commits(str(campaign), "ur5", [("HEAD", head)], 1, tmp_path)
     (pair,) = res["pairs"]
-    assert len(pair["cpu_s"][head]) == 2 and pair["same_results"] and pair["cpu_ratio"] == 1.0
+    assert len(pair["cpu_s"]["HEAD"]) == len(pair["cpu_s"][head]) == 1 and len(pair["round_ratios"]) == 1
+    assert pair["same_results"] and pair["cpu_ratio"] > 0 and pair["cpu_ratio_of_minima"] == pair["cpu_ratio"]
     with pytest.raises(TorchcalError, match="git archive no-such-commit"):
         compare_commits(str(campaign), "ur5", [("no-such-commit", head)], 1, tmp_path)

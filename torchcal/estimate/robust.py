@@ -57,7 +57,7 @@ import torch
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError, MeasurementFileError
-from torchcal.estimate.fit import FAILED, FitOptions, selection
+from torchcal.estimate.fit import FAILED, SIGMA_ORIENTATION, FitOptions, selection
 from torchcal.estimate.identifiability import analyse, preference_order
 from torchcal.estimate.lm import LMResult, levenberg_marquardt
 from torchcal.estimate.problem import FreeParameters, jacobian_of, prior_sigmas, residual_function, whitening
@@ -479,7 +479,7 @@ def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Ten
     if m.r is None or m.n < 4:
         return
     e = _orientation_offsets(model, m)
-    sigma = m.sigma_r.mean(dim=-1) if m.sigma_r is not None else torch.full_like(e[:, 0], _sigma_orientation())
+    sigma = m.sigma_r.mean(dim=-1) if m.sigma_r is not None else torch.full_like(e[:, 0], SIGMA_ORIENTATION)
     T = (e**2).sum(-1) / sigma.clamp(min=1e-12) ** 2
     s0sq = max(float(T.median()) / _chi2_median(3), 1.0)
     z = T / s0sq
@@ -499,12 +499,6 @@ def _screen_orientation(res: RobustResult, model: MeasurementModel, m, pred: Ten
                 "its position is used",
             )
         )
-
-
-def _sigma_orientation() -> float:
-    from torchcal.estimate.fit import SIGMA_ORIENTATION
-
-    return SIGMA_ORIENTATION
 
 
 def _orientation_offsets(model: MeasurementModel, m) -> Tensor:
