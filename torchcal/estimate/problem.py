@@ -18,6 +18,7 @@ from torchcal import _dual
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
+from torchcal.robot import transforms as tf
 
 Tensor = torch.Tensor
 
@@ -558,34 +559,56 @@ def orientation_function(
 
     linear = linear and model.robot.readings.is_identity and "readings" not in model.robot.groups()
 
+    geo = torch.tensor([j for j, e, _ in _columns(free) if e.name == _GEOMETRY], dtype=torch.long)
+    rest = torch.tensor([j for j in range(len(free)) if j not in set(geo.tolist())], dtype=torch.long)
+
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
         if not linear:
             return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
         lin, at = linear_rotation(model, free, ctx, x), free.params(x)
+        # the geometry turns the chain's rotation about an axis per pose (dR/dd = [w_d]x R): three tangents, a small
+        # turn of R_base_flange, take its columns as d e / d turn @ w_d, where one tangent per element went before
+        z0 = torch.cat([x.new_zeros(3), x[rest.to(x.device)]])
         return _chunked(
-            lambda c, Rm, WW, sl: functools.partial(_geometry_in_rotation, at=at, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl), x
+            lambda c, Rm, WW, sl: functools.partial(_turned, at=at, x=x, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl),
+            z0,
+            lambda Jz, sl: _columns_of_turn(Jz, lin.spin(sl), x, geo, rest),
         )
 
-    def _geometry_in_rotation(z: Tensor, at, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice) -> Tensor:
-        """The residuals with the geometry ``z`` holds passed to the linearised rotation ``rot`` and its value at x
-        (plain) to the model, so the effects' computations from the robot stay constants."""
-        params = free.params(z)
-        d = params[_GEOMETRY] if _GEOMETRY in params else None
+    def _turned(z: Tensor, at, x: Tensor, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice) -> Tensor:
+        """The residuals of the parameters but the geometry (``z[3:]``) with the chain's rotation turned by
+        ``z[:3]``; the geometry at its value at x (plain), so the effects' computations from the robot stay
+        constants."""
+        params = free.params(x.index_put((rest.to(x.device),), z[3:]))
         plain = {k: at[k] if k == _GEOMETRY else v for k, v in params.items()}
-        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, d)})
+        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, turn=z[:3])})
         return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
 
-    def _chunked(make, x: Tensor) -> Tensor:
-        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time."""
+    def _chunked(make, x: Tensor, finish=None) -> Tensor:
+        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time, each part
+        passed through ``finish(J, sl)`` where given."""
         n, parts = ctx.q.shape[0], []
         for lo in range(0, n, max(1, int(chunk))):
             sl = slice(lo, min(n, lo + max(1, int(chunk))))
-            parts.append(torch.func.jacfwd(make(ctx.subset(sl), R_meas[sl], W[sl], sl))(x).detach())
-        return torch.cat(parts) if parts else x.new_zeros(0, len(x))
+            J = torch.func.jacfwd(make(ctx.subset(sl), R_meas[sl], W[sl], sl))(x).detach()
+            parts.append(J if finish is None else finish(J, sl))
+        return torch.cat(parts) if parts else x.new_zeros(0, len(free))
 
     fun.jacobian = jacobian
     return fun
+
+
+def _columns_of_turn(Jz: Tensor, w: Tensor, x: Tensor, geo: Tensor, rest: Tensor) -> Tensor:
+    """The orientation rows' Jacobian by ``x`` from that by a turn of the chain's rotation and the other columns
+    ``rest``, ``Jz (3n, 3 + len(rest))``: the geometry's columns ``geo`` are ``d e / d turn @ w``, ``w (n, 3, k)``
+    the axes by which they turn it (:func:`linear_rotation`'s ``spin``)."""
+    n = w.shape[0]
+    J = x.new_zeros(3 * n, len(x))
+    J[:, rest.to(x.device)] = Jz[:, 3:]
+    if len(geo):
+        J[:, geo.to(x.device)] = (Jz[:, :3].reshape(n, 3, 3) @ w).reshape(3 * n, -1)
+    return J
 
 
 def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor):
@@ -611,16 +634,20 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
         torch.func.functional_call(model, at, (ctx,), {"orientation": True, "rot": record})
     d0 = at[_GEOMETRY].detach().reshape(-1)[idx.to(x.device)] if geo else None
 
-    def rows(sl: slice, delta: Tensor | None = None):
+    def rows(sl: slice, delta: Tensor | None = None, turn: Tensor | None = None):
         R0, q0 = out["R"][sl], out["q"][sl]
         n, dof, k = R0.shape[0], q0.shape[1], len(idx)
         Aq = out["dq"][sl].permute(0, 2, 3, 1).reshape(n, 9, dof)
         Ad = out["dd"][sl].permute(0, 2, 3, 1).reshape(n * 9, k)
         cols = idx.to(x.device)
+        # a small turn [t]x R0 = sum_a t_a [e_a]x R0 of the rotation, linear in t
+        At = tf.skew(torch.eye(3, dtype=R0.dtype, device=R0.device)).unsqueeze(1) @ R0 if turn is not None else None
 
         def rot(rb, q: Tensor) -> Tensor:
             # the constants meet the differentiated q and d through torchcal._dual (as in linear_kinematics)
             R = _dual.add(R0, (Aq @ _dual.sub(q, q0).unsqueeze(-1)).reshape(n, 3, 3))
+            if turn is not None:  # the geometry's elements through the turn (its value at x being d0)
+                return _dual.add(R, (At.permute(1, 2, 3, 0).reshape(n * 9, 3) @ turn).reshape(n, 3, 3))
             if k:
                 d = (rb.geometry.delta if delta is None else delta).reshape(-1)[cols]
                 R = _dual.add(R, (Ad @ _dual.sub(d, d0)).reshape(n, 3, 3))
@@ -628,6 +655,14 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
 
         return rot
 
+    def spin(sl: slice) -> Tensor:
+        """The axes ``w (n, 3, k)`` by which the geometry's elements turn the rotation: ``dR/dd = [w]x R``."""
+        if not len(idx):
+            return out["R"].new_zeros(len(out["R"][sl]), 3, 0)
+        G = out["dd"][sl] @ out["R"][sl].transpose(-1, -2).unsqueeze(1)  # (n, k, 3, 3), skew
+        return torch.stack([G[..., 2, 1], G[..., 0, 2], G[..., 1, 0]], -1).transpose(1, 2)
+
+    rows.spin = spin
     return rows
 
 
