@@ -424,6 +424,9 @@ _TOOL_ROTATION = "robot.tool_rotation.delta"
 #: the instrument pose's correction, whose Jacobian columns :func:`residual_function` computes in closed form
 _INSTRUMENT = "robot.instrument.delta"
 
+#: the lever arm's correction (the probe's position in the flange frame: no part in its orientation)
+_LEVER_ARM = "robot.tool.delta"
+
 
 def _corrections(robot, params: dict[str, Tensor] | None = None) -> Tensor:
     """The geometry and lever-arm corrections of ``robot`` as one flat vector (``params``' values where given)."""
@@ -559,8 +562,7 @@ def orientation_function(
 
     linear = linear and model.robot.readings.is_identity and "readings" not in model.robot.groups()
 
-    geo = torch.tensor([j for j, e, _ in _columns(free) if e.name == _GEOMETRY], dtype=torch.long)
-    rest = torch.tensor([j for j in range(len(free)) if j not in set(geo.tolist())], dtype=torch.long)
+    plan = _orientation_plan(model, free)
 
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
@@ -568,46 +570,100 @@ def orientation_function(
             return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
         lin, at = linear_rotation(model, free, ctx, x), free.params(x)
         # the geometry turns the chain's rotation about an axis per pose (dR/dd = [w_d]x R): three tangents, a small
-        # turn of R_base_flange, take its columns as d e / d turn @ w_d, where one tangent per element went before
-        z0 = torch.cat([x.new_zeros(3), x[rest.to(x.device)]])
+        # turn of R_base_flange, take its columns as d e / d turn @ w_d, where one tangent per element went before;
+        # the instrument pose's columns are in closed form from the plain prediction, the lever arm's are zero
+        z0 = torch.cat([x.new_zeros(3), x[plan.rest.to(x.device)]])
+        inst = _instrument_turns(model, plan, at)
         return _chunked(
             lambda c, Rm, WW, sl: functools.partial(_turned, at=at, x=x, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl),
             z0,
-            lambda Jz, sl: _columns_of_turn(Jz, lin.spin(sl), x, geo, rest),
+            lambda Jz, R, sl: _columns_of_turn(Jz, R, lin.spin(sl), x, plan, inst, ctx.subset(sl), R_meas[sl], W[sl]),
         )
 
-    def _turned(z: Tensor, at, x: Tensor, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice) -> Tensor:
-        """The residuals of the parameters but the geometry (``z[3:]``) with the chain's rotation turned by
-        ``z[:3]``; the geometry at its value at x (plain), so the effects' computations from the robot stay
-        constants."""
-        params = free.params(x.index_put((rest.to(x.device),), z[3:]))
-        plain = {k: at[k] if k == _GEOMETRY else v for k, v in params.items()}
+    def _turned(z: Tensor, at, x: Tensor, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice):
+        """The residuals of the parameters but the geometry, the instrument pose and the lever arm (``z[3:]``) with
+        the chain's rotation turned by ``z[:3]``, and the predicted orientation; those held at their values at x
+        (plain), so the effects' computations from the robot stay constants."""
+        params = free.params(x.index_put((plan.rest.to(x.device),), z[3:]))
+        plain = {k: at[k] if k in plan.held else v for k, v in params.items()}
         R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, turn=z[:3])})
-        return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
+        return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1), R
 
     def _chunked(make, x: Tensor, finish=None) -> Tensor:
-        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time, each part
-        passed through ``finish(J, sl)`` where given."""
+        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time; where
+        ``finish`` is given, ``make``'s function also returns the predicted orientation ``R`` and each part is
+        ``finish(J, R, sl)``."""
         n, parts = ctx.q.shape[0], []
         for lo in range(0, n, max(1, int(chunk))):
             sl = slice(lo, min(n, lo + max(1, int(chunk))))
-            J = torch.func.jacfwd(make(ctx.subset(sl), R_meas[sl], W[sl], sl))(x).detach()
-            parts.append(J if finish is None else finish(J, sl))
+            f = make(ctx.subset(sl), R_meas[sl], W[sl], sl)
+            if finish is None:
+                parts.append(torch.func.jacfwd(f)(x).detach())
+                continue
+            J, R = torch.func.jacfwd(f, has_aux=True)(x)
+            parts.append(finish(J.detach(), R.detach(), sl))
         return torch.cat(parts) if parts else x.new_zeros(0, len(free))
 
     fun.jacobian = jacobian
     return fun
 
 
-def _columns_of_turn(Jz: Tensor, w: Tensor, x: Tensor, geo: Tensor, rest: Tensor) -> Tensor:
-    """The orientation rows' Jacobian by ``x`` from that by a turn of the chain's rotation and the other columns
-    ``rest``, ``Jz (3n, 3 + len(rest))``: the geometry's columns ``geo`` are ``d e / d turn @ w``, ``w (n, 3, k)``
-    the axes by which they turn it (:func:`linear_rotation`'s ``spin``)."""
+@dataclass(frozen=True)
+class _OrientationPlan:
+    """How the orientation rows' Jacobian computes each free column (:func:`orientation_function`)."""
+
+    geo: Tensor  # the geometry's columns: through a turn of the chain's rotation
+    inst: Tensor  # the instrument pose's, in closed form (empty where an effect reads the pose)
+    inst_d: list  # their flat indices in the instrument's correction
+    rest: Tensor  # the columns jacfwd differentiates (the lever arm's, which no orientation sees, are in none)
+    held: frozenset  # the parameters held at their values in that pass
+
+
+def _orientation_plan(model: MeasurementModel, free: FreeParameters) -> _OrientationPlan:
+    closed = not any(e.reads_instrument for e in model.effects)
+    cols = list(_columns(free))
+    geo = [j for j, e, _ in cols if e.name == _GEOMETRY]
+    inst = [(j, i) for j, e, i in cols if e.name == _INSTRUMENT] if closed else []
+    out = set(geo) | {j for j, _ in inst} | {j for j, e, _ in cols if e.name == _LEVER_ARM}
+    held = {_GEOMETRY, _LEVER_ARM} | ({_INSTRUMENT} if closed else set())
+    return _OrientationPlan(
+        geo=torch.tensor(geo, dtype=torch.long),
+        inst=torch.tensor([j for j, _ in inst], dtype=torch.long),
+        inst_d=[i for _, i in inst],
+        rest=torch.tensor([j for j, _, _ in cols if j not in out], dtype=torch.long),
+        held=frozenset(held),
+    )
+
+
+def _instrument_turns(model: MeasurementModel, plan: _OrientationPlan, at: dict) -> Tensor | None:
+    """The instrument columns' turns of every predicted orientation (:meth:`~torchcal.robot.model.Instrument.
+    rotation_turns`) at the values ``at``; None without such columns."""
+    if not plan.inst_d:
+        return None
+    instrument = model.robot.instrument
+    return instrument.rotation_turns(plan.inst_d, at.get(_INSTRUMENT, instrument.delta))
+
+
+def _columns_of_turn(
+    Jz: Tensor, R: Tensor, w: Tensor, x: Tensor, plan: _OrientationPlan, inst, c: Context, Rm: Tensor, WW: Tensor
+) -> Tensor:
+    """The orientation rows' Jacobian by ``x`` from that by a turn of the chain's rotation and the columns
+    ``plan.rest``, ``Jz (3n, 3 + len(rest))``: the geometry's are ``d e / d turn @ w``, ``w (n, 3, k)`` the axes by
+    which they turn it (:func:`linear_rotation`'s ``spin``); the instrument pose's ``W d e`` with ``dE = N_k E``,
+    ``E = R Rm^T`` (:func:`_instrument_turns`, ``R`` the predicted orientations)."""
     n = w.shape[0]
     J = x.new_zeros(3 * n, len(x))
-    J[:, rest.to(x.device)] = Jz[:, 3:]
-    if len(geo):
-        J[:, geo.to(x.device)] = (Jz[:, :3].reshape(n, 3, 3) @ w).reshape(3 * n, -1)
+    J[:, plan.rest.to(x.device)] = Jz[:, 3:]
+    if len(plan.geo):
+        J[:, plan.geo.to(x.device)] = (Jz[:, :3].reshape(n, 3, 3) @ w).reshape(3 * n, -1)
+    if inst is not None:
+        # (n or 1, k, 3, 3): each row's station's (no station column: the first station measured every row)
+        N = inst[c.station] if inst.dim() == 4 and c.station is not None else inst.reshape(-1, *inst.shape[-3:])[:1]
+        F = N @ (R @ Rm.transpose(-1, -2)).unsqueeze(1)  # (n, k, 3, 3)
+        de = 0.5 * torch.stack(
+            [F[..., 2, 1] - F[..., 1, 2], F[..., 0, 2] - F[..., 2, 0], F[..., 1, 0] - F[..., 0, 1]], -1
+        )
+        J[:, plan.inst.to(x.device)] = (WW @ de.transpose(1, 2)).reshape(3 * n, -1)
     return J
 
 

@@ -279,6 +279,16 @@ class Instrument(_Group):
         B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :], d, columns).reshape(3, 4, -1)
         return torch.einsum("abk,nb->nak", B[:, :3], points) + B[:, 3]
 
+    def rotation_turns(self, columns: Sequence[int], delta: Tensor | None = None) -> Tensor:
+        """``N_k = dR/dd_k R^T`` of the pose's rotation ``R`` for the flat ``columns`` of the correction ``(k, 3,
+        3)``, or ``(S, k, 3, 3)`` per station (zero for another station's columns), at ``delta``: each turns what
+        the pose maps, ``d(R M)/dd_k = N_k R M`` (skew-symmetric: R stays a rotation; no pose in it)."""
+        d = (self.delta if delta is None else delta).detach()
+        R = self.matrix(d)[..., :3, :3].detach()
+        B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :3], d, columns)
+        B = B.reshape(*R.shape[:-2], 3, 3, len(columns))
+        return torch.einsum("...abk,...cb->...kac", B, R)
+
     def rows_point_jacobian(
         self, points: Tensor, station: Tensor | None, columns: Sequence[int], delta: Tensor | None = None
     ) -> Tensor:
