@@ -137,6 +137,10 @@ def _whitening_of(
 #: residual functions differentiated by ``torch.func.jacfwd`` do so in chunks of this many poses: ``jacfwd`` keeps
 #: one copy of every intermediate of the forward pass per parameter, so its memory grows with poses x parameters
 JACOBIAN_CHUNK = 1024
+#: the tangents JACOBIAN_CHUNK is sized for (a 6-axis arm's free parameters); a pass that pushes fewer takes
+#: proportionally more poses per chunk, in the same memory (the orientation rows': its fixed cost per call is most of
+#: a chunk's time there)
+JACOBIAN_TANGENTS = 32
 
 _ROBOT_GROUPS = {
     "robot.geometry.delta": "geometry",
@@ -545,8 +549,11 @@ def orientation_function(
     the chain of every pose). The geometry reaches the rotation through that tangent only: the effects see its plain
     value, so what they compute from the robot under no_grad (a compliance's gravity torque) stays a constant, as in
     the position rows (:func:`_linearised_jacobian`) and in reverse-mode autograd; forward mode ignores no_grad and
-    would push the geometry's tangents through the torque's chain. A robot with a readings map, or ``linear=False``,
-    differentiates the chain itself.
+    would push the geometry's tangents through the torque's chain. Of the tangents, the geometry's are three: a
+    small turn of that rotation, each element's column the turn's times its axis (``dR/dd = [w_d]x R``); the instrument
+    pose's columns are in closed form from the prediction (:func:`_instrument_turns`, unless an effect reads the
+    pose) and the lever arm's are zero; so a chunk holds ``chunk * JACOBIAN_TANGENTS // tangents`` poses. A robot with
+    a readings map, or ``linear=False``, differentiates the chain itself.
 
     Args:
         R_meas: measured orientations ``(N, 3, 3)`` (tracker frame).
@@ -564,19 +571,24 @@ def orientation_function(
 
     plan = _orientation_plan(model, free)
 
+    def _chunked(make, z: Tensor, size: int, finish=None) -> Tensor:
+        return _chunked_jacfwd(make, ctx, R_meas, W, z, size, len(free), finish)
+
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
         if not linear:
-            return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
+            return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x, chunk)
         lin, at = linear_rotation(model, free, ctx, x), free.params(x)
         # the geometry turns the chain's rotation about an axis per pose (dR/dd = [w_d]x R): three tangents, a small
         # turn of R_base_flange, take its columns as d e / d turn @ w_d, where one tangent per element went before;
         # the instrument pose's columns are in closed form from the plain prediction, the lever arm's are zero
         z0 = torch.cat([x.new_zeros(3), x[plan.rest.to(x.device)]])
         inst = _instrument_turns(model, plan, at)
+        rows = max(1, int(chunk)) * max(1, JACOBIAN_TANGENTS // len(z0))
         return _chunked(
             lambda c, Rm, WW, sl: functools.partial(_turned, at=at, x=x, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl),
             z0,
+            rows,
             lambda Jz, R, sl: _columns_of_turn(Jz, R, lin.spin(sl), x, plan, inst, ctx.subset(sl), R_meas[sl], W[sl]),
         )
 
@@ -589,23 +601,24 @@ def orientation_function(
         R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, turn=z[:3])})
         return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1), R
 
-    def _chunked(make, x: Tensor, finish=None) -> Tensor:
-        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time; where
-        ``finish`` is given, ``make``'s function also returns the predicted orientation ``R`` and each part is
-        ``finish(J, R, sl)``."""
-        n, parts = ctx.q.shape[0], []
-        for lo in range(0, n, max(1, int(chunk))):
-            sl = slice(lo, min(n, lo + max(1, int(chunk))))
-            f = make(ctx.subset(sl), R_meas[sl], W[sl], sl)
-            if finish is None:
-                parts.append(torch.func.jacfwd(f)(x).detach())
-                continue
-            J, R = torch.func.jacfwd(f, has_aux=True)(x)
-            parts.append(finish(J.detach(), R.detach(), sl))
-        return torch.cat(parts) if parts else x.new_zeros(0, len(free))
-
     fun.jacobian = jacobian
     return fun
+
+
+def _chunked_jacfwd(make, ctx: Context, R_meas: Tensor, W: Tensor, z: Tensor, size: int, u: int, finish=None):
+    """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``z``) over ``size`` poses of ``ctx`` at a time; where
+    ``finish`` is given, ``make``'s function also returns the predicted orientation ``R`` and each part is
+    ``finish(J, R, sl)``. ``u``: the columns of an empty result."""
+    n, parts, size = ctx.q.shape[0], [], max(1, int(size))
+    for lo in range(0, n, size):
+        sl = slice(lo, min(n, lo + size))
+        f = make(ctx.subset(sl), R_meas[sl], W[sl], sl)
+        if finish is None:
+            parts.append(torch.func.jacfwd(f)(z).detach())
+            continue
+        J, R = torch.func.jacfwd(f, has_aux=True)(z)
+        parts.append(finish(J.detach(), R.detach(), sl))
+    return torch.cat(parts) if parts else z.new_zeros(0, u)
 
 
 @dataclass(frozen=True)
