@@ -598,7 +598,7 @@ def orientation_function(
         (plain), so the effects' computations from the robot stay constants."""
         params = free.params(x.index_put((plan.rest.to(x.device),), z[3:]))
         plain = {k: at[k] if k in plan.held else v for k, v in params.items()}
-        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, turn=z[:3])})
+        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, z[:3])})
         return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1), R
 
     fun.jacobian = jacobian
@@ -682,12 +682,13 @@ def _columns_of_turn(
 
 def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor):
     """The chain's rotation ``R_base_flange`` linearised at ``x``, for :meth:`MeasurementModel.orientation
-    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``(rows, d) -> rot``, with ``rot(robot, q) = R0 +
-    sum_j dR/dq_j (q_j - q0_j) + sum_k dR/dd_k (d_k - d0_k)`` over the poses ``rows`` (a slice), ``q0`` the joint
-    angles with the joint effects applied at ``x``, ``d`` the free geometry elements of the geometry's correction
-    ``d`` (the robot's own where None) (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_jacobian`). Its
-    value and first derivatives at ``x`` are the chain's, so ``jacfwd`` of the model with ``rot`` in place gives the
-    chain's Jacobian."""
+    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``(rows, turn) -> rot``, with ``rot(robot, q) =
+    R0 + [t]x R0``, ``t = sum_j z_j (q_j - q0_j) + turn`` over the poses ``rows`` (a slice), ``q0`` the joint angles
+    with the joint effects applied at ``x`` and ``z_j`` the joints' axes
+    (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_axes`). Its value and first derivatives by the joints
+    at ``x`` are the chain's; the geometry's elements turn it about the axes ``rows.spin(rows) (n, 3, k)``
+    (``dR/dd_k = [w_k]x R``), so ``jacfwd`` of the model with ``rot`` in place, by ``turn`` and the other
+    parameters, gives the chain's Jacobian."""
     at = free.params(x)
     geo = [e for e in free.entries if e.name == _GEOMETRY]
     idx = geo[0].index if geo else torch.zeros(0, dtype=torch.long, device=x.device)
@@ -695,43 +696,27 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
 
     def record(rb, q: Tensor) -> Tensor:
         q = q.detach()
-        R, dq, dd = rb.flange_rotation_jacobian(q, idx.tolist())
-        out.update(q=q, R=R, dq=dq, dd=dd)
+        R, z, w = rb.flange_rotation_axes(q, idx.tolist())
+        out.update(q=q, R=R, z=z, w=w)
         return R
 
     with torch.no_grad():
         torch.func.functional_call(model, at, (ctx,), {"orientation": True, "rot": record})
-    d0 = at[_GEOMETRY].detach().reshape(-1)[idx.to(x.device)] if geo else None
 
-    def rows(sl: slice, delta: Tensor | None = None, turn: Tensor | None = None):
-        R0, q0 = out["R"][sl], out["q"][sl]
-        n, dof, k = R0.shape[0], q0.shape[1], len(idx)
-        Aq = out["dq"][sl].permute(0, 2, 3, 1).reshape(n, 9, dof)
-        Ad = out["dd"][sl].permute(0, 2, 3, 1).reshape(n * 9, k)
-        cols = idx.to(x.device)
-        # a small turn [t]x R0 = sum_a t_a [e_a]x R0 of the rotation, linear in t
-        At = tf.skew(torch.eye(3, dtype=R0.dtype, device=R0.device)).unsqueeze(1) @ R0 if turn is not None else None
+    def rows(sl: slice, turn: Tensor):
+        R0, q0, zt = out["R"][sl], out["q"][sl], out["z"][sl].transpose(1, 2)  # zt (n, 3, dof)
+        n = R0.shape[0]
+        # [t]x R0 = sum_a t_a [e_a]x R0: linear in t
+        A = (tf.skew(torch.eye(3, dtype=R0.dtype, device=R0.device)).unsqueeze(1) @ R0).permute(1, 2, 3, 0)
 
         def rot(rb, q: Tensor) -> Tensor:
-            # the constants meet the differentiated q and d through torchcal._dual (as in linear_kinematics)
-            R = _dual.add(R0, (Aq @ _dual.sub(q, q0).unsqueeze(-1)).reshape(n, 3, 3))
-            if turn is not None:  # the geometry's elements through the turn (its value at x being d0)
-                return _dual.add(R, (At.permute(1, 2, 3, 0).reshape(n * 9, 3) @ turn).reshape(n, 3, 3))
-            if k:
-                d = (rb.geometry.delta if delta is None else delta).reshape(-1)[cols]
-                R = _dual.add(R, (Ad @ _dual.sub(d, d0)).reshape(n, 3, 3))
-            return R
+            # the constants meet the differentiated q and turn through torchcal._dual (as in linear_kinematics)
+            t = _dual.add((zt @ _dual.sub(q, q0).unsqueeze(-1)).squeeze(-1), turn)
+            return _dual.add(R0, (A.reshape(n, 9, 3) @ t.unsqueeze(-1)).reshape(n, 3, 3))
 
         return rot
 
-    def spin(sl: slice) -> Tensor:
-        """The axes ``w (n, 3, k)`` by which the geometry's elements turn the rotation: ``dR/dd = [w]x R``."""
-        if not len(idx):
-            return out["R"].new_zeros(len(out["R"][sl]), 3, 0)
-        G = out["dd"][sl] @ out["R"][sl].transpose(-1, -2).unsqueeze(1)  # (n, k, 3, 3), skew
-        return torch.stack([G[..., 2, 1], G[..., 0, 2], G[..., 1, 0]], -1).transpose(1, 2)
-
-    rows.spin = spin
+    rows.spin = lambda sl: out["w"][sl].transpose(1, 2)
     return rows
 
 
