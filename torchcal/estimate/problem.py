@@ -639,11 +639,12 @@ def _orientation_plan(model: MeasurementModel, free: FreeParameters) -> _Orienta
     inst = [(j, i) for j, e, i in cols if e.name == _INSTRUMENT] if closed else []
     out = set(geo) | {j for j, _ in inst} | {j for j, e, _ in cols if e.name == _LEVER_ARM}
     held = {_GEOMETRY, _LEVER_ARM} | ({_INSTRUMENT} if closed else set())
+    dev = free.vector().device
     return _OrientationPlan(
-        geo=torch.tensor(geo, dtype=torch.long),
-        inst=torch.tensor([j for j, _ in inst], dtype=torch.long),
+        geo=torch.tensor(geo, dtype=torch.long, device=dev),
+        inst=torch.tensor([j for j, _ in inst], dtype=torch.long, device=dev),
         inst_d=[i for _, i in inst],
-        rest=torch.tensor([j for j, _, _ in cols if j not in out], dtype=torch.long),
+        rest=torch.tensor([j for j, _, _ in cols if j not in out], dtype=torch.long, device=dev),
         held=frozenset(held),
     )
 
