@@ -312,3 +312,48 @@ def test_orientation_jacobian_with_the_chain_linearised_equals_forward_mode_thro
     geometry = torch.tensor([not n.startswith(("instrument.", "tool.", "compliance")) for n in free.names])
     torch.testing.assert_close(forward[:, ~geometry], reverse[:, ~geometry], rtol=1e-10, atol=1e-10)
     assert not torch.allclose(forward[:, geometry], reverse[:, geometry], rtol=1e-10, atol=1e-12)  # the torque's
+
+
+def test_orientation_jacobian_of_the_instrument_in_closed_form_equals_reverse_mode():
+    """The instrument pose's columns in closed form (dR_pred/dd = N R_pred) with each row's own station, a drift of
+    the pose and of the arm's scale beside it, and the lever arm's zero columns: the Jacobian equals reverse mode
+    through the model, and the free columns include every one of them."""
+    from torchcal.effects import Drift
+
+    robot = torchcal.load_robot("ur5")
+    g = torch.Generator().manual_seed(5)
+    robot.enable_orientation(tf.so3_exp(torch.tensor([0.3, -0.2, 0.5], dtype=F64)))
+    robot.set_stations(["east", "west"])
+    with torch.no_grad():
+        robot.instrument.set_matrix(
+            tf.homogeneous(tf.so3_exp(torch.tensor([0.1, 0.2, -1.0], dtype=F64)), torch.ones(3, dtype=F64)), station=1
+        )
+        for grp in robot.groups().values():
+            grp.delta.copy_(1e-3 * torch.randn(grp.delta.shape, generator=g, dtype=F64))
+    lo, hi = robot.limits[:, 0].clamp(min=-2.0), robot.limits[:, 1].clamp(max=2.0)
+    q = lo + (hi - lo) * torch.rand(30, robot.dof, generator=g, dtype=F64)
+    drifts = [
+        Drift("temperature", "instrument", rates=[1e-5, -2e-5, 3e-5, 1e-6, -2e-6, 3e-6]),
+        Drift("t", "scale", rates=[1e-7]),
+    ]
+    model = MeasurementModel(robot, [Compliance(joint=3), *drifts])
+    with torch.no_grad():
+        model.effects[0].k.fill_(1e-5)
+    ctx = Context(
+        q=q,
+        station=torch.arange(30) % 2,
+        t=torch.linspace(0.0, 3600.0, 30, dtype=F64),
+        temperature=torch.linspace(20.0, 23.0, 30, dtype=F64),
+    )
+    R_meas = tf.so3_exp(torch.randn(30, 3, generator=g, dtype=F64) * 0.01) @ model.orientation(ctx).detach()
+    sel, labels = selection(model, ("geometry", "instrument", "tool", "tool_rotation"), effects=True)
+    free = FreeParameters(model, sel, labels)
+    assert any(n.startswith("instrument[west]") for n in free.names) and "tool.x" in free.names
+    W = orientation_whitening(model, ctx, None, 1e-4, 1e-5)
+    x = free.vector() + 1e-4 * torch.randn(len(free), generator=g, dtype=F64)
+    fun = orientation_function(model, free, ctx, R_meas, W, chunk=7)
+    reverse = torch.autograd.functional.jacobian(fun, x)
+    got = fun.jacobian(x)
+    instrument = torch.tensor([n.startswith("instrument") for n in free.names])
+    assert float(reverse[:, instrument].abs().amax()) > 0
+    torch.testing.assert_close(got, reverse, rtol=1e-10, atol=1e-10 * float(reverse.abs().amax()))

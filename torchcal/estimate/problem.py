@@ -18,6 +18,7 @@ from torchcal import _dual
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import EstimationError
+from torchcal.robot import transforms as tf
 
 Tensor = torch.Tensor
 
@@ -136,6 +137,10 @@ def _whitening_of(
 #: residual functions differentiated by ``torch.func.jacfwd`` do so in chunks of this many poses: ``jacfwd`` keeps
 #: one copy of every intermediate of the forward pass per parameter, so its memory grows with poses x parameters
 JACOBIAN_CHUNK = 1024
+#: the tangents JACOBIAN_CHUNK is sized for (a 6-axis arm's free parameters); a pass that pushes fewer takes
+#: proportionally more poses per chunk, in the same memory (the orientation rows': its fixed cost per call is most of
+#: a chunk's time there)
+JACOBIAN_TANGENTS = 32
 
 _ROBOT_GROUPS = {
     "robot.geometry.delta": "geometry",
@@ -423,6 +428,9 @@ _TOOL_ROTATION = "robot.tool_rotation.delta"
 #: the instrument pose's correction, whose Jacobian columns :func:`residual_function` computes in closed form
 _INSTRUMENT = "robot.instrument.delta"
 
+#: the lever arm's correction (the probe's position in the flange frame: no part in its orientation)
+_LEVER_ARM = "robot.tool.delta"
+
 
 def _corrections(robot, params: dict[str, Tensor] | None = None) -> Tensor:
     """The geometry and lever-arm corrections of ``robot`` as one flat vector (``params``' values where given)."""
@@ -541,8 +549,11 @@ def orientation_function(
     the chain of every pose). The geometry reaches the rotation through that tangent only: the effects see its plain
     value, so what they compute from the robot under no_grad (a compliance's gravity torque) stays a constant, as in
     the position rows (:func:`_linearised_jacobian`) and in reverse-mode autograd; forward mode ignores no_grad and
-    would push the geometry's tangents through the torque's chain. A robot with a readings map, or ``linear=False``,
-    differentiates the chain itself.
+    would push the geometry's tangents through the torque's chain. Of the tangents, the geometry's are three: a
+    small turn of that rotation, each element's column the turn's times its axis (``dR/dd = [w_d]x R``); the instrument
+    pose's columns are in closed form from the prediction (:func:`_instrument_turns`, unless an effect reads the
+    pose) and the lever arm's are zero; so a chunk holds ``chunk * JACOBIAN_TANGENTS // tangents`` poses. A robot with
+    a readings map, or ``linear=False``, differentiates the chain itself.
 
     Args:
         R_meas: measured orientations ``(N, 3, 3)`` (tracker frame).
@@ -558,44 +569,127 @@ def orientation_function(
 
     linear = linear and model.robot.readings.is_identity and "readings" not in model.robot.groups()
 
+    plan = _orientation_plan(model, free)
+
+    def _chunked(make, z: Tensor, size: int, finish=None) -> Tensor:
+        return _chunked_jacfwd(make, ctx, R_meas, W, z, size, len(free), finish)
+
     def jacobian(x: Tensor) -> Tensor:
         x = x.detach()
         if not linear:
-            return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x)
+            return _chunked(lambda c, Rm, WW, sl: functools.partial(residuals, c=c, Rm=Rm, WW=WW), x, chunk)
         lin, at = linear_rotation(model, free, ctx, x), free.params(x)
+        # the geometry turns the chain's rotation about an axis per pose (dR/dd = [w_d]x R): three tangents, a small
+        # turn of R_base_flange, take its columns as d e / d turn @ w_d, where one tangent per element went before;
+        # the instrument pose's columns are in closed form from the plain prediction, the lever arm's are zero
+        z0 = torch.cat([x.new_zeros(3), x[plan.rest.to(x.device)]])
+        inst = _instrument_turns(model, plan, at)
+        rows = max(1, int(chunk)) * max(1, JACOBIAN_TANGENTS // len(z0))
         return _chunked(
-            lambda c, Rm, WW, sl: functools.partial(_geometry_in_rotation, at=at, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl), x
+            lambda c, Rm, WW, sl: functools.partial(_turned, at=at, x=x, c=c, Rm=Rm, WW=WW, rot=lin, sl=sl),
+            z0,
+            rows,
+            lambda Jz, R, sl: _columns_of_turn(Jz, R, lin.spin(sl), x, plan, inst, ctx.subset(sl), R_meas[sl], W[sl]),
         )
 
-    def _geometry_in_rotation(z: Tensor, at, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice) -> Tensor:
-        """The residuals with the geometry ``z`` holds passed to the linearised rotation ``rot`` and its value at x
-        (plain) to the model, so the effects' computations from the robot stay constants."""
-        params = free.params(z)
-        d = params[_GEOMETRY] if _GEOMETRY in params else None
-        plain = {k: at[k] if k == _GEOMETRY else v for k, v in params.items()}
-        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, d)})
-        return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1)
-
-    def _chunked(make, x: Tensor) -> Tensor:
-        """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``x``) over ``chunk`` poses at a time."""
-        n, parts = ctx.q.shape[0], []
-        for lo in range(0, n, max(1, int(chunk))):
-            sl = slice(lo, min(n, lo + max(1, int(chunk))))
-            parts.append(torch.func.jacfwd(make(ctx.subset(sl), R_meas[sl], W[sl], sl))(x).detach())
-        return torch.cat(parts) if parts else x.new_zeros(0, len(x))
+    def _turned(z: Tensor, at, x: Tensor, c: Context, Rm: Tensor, WW: Tensor, rot, sl: slice):
+        """The residuals of the parameters but the geometry, the instrument pose and the lever arm (``z[3:]``) with
+        the chain's rotation turned by ``z[:3]``, and the predicted orientation; those held at their values at x
+        (plain), so the effects' computations from the robot stay constants."""
+        params = free.params(x.index_put((plan.rest.to(x.device),), z[3:]))
+        plain = {k: at[k] if k in plan.held else v for k, v in params.items()}
+        R = torch.func.functional_call(model, plain, (c,), {"orientation": True, "rot": rot(sl, z[:3])})
+        return (WW @ orientation_error(R, Rm).unsqueeze(-1)).reshape(-1), R
 
     fun.jacobian = jacobian
     return fun
 
 
+def _chunked_jacfwd(make, ctx: Context, R_meas: Tensor, W: Tensor, z: Tensor, size: int, u: int, finish=None):
+    """``jacfwd`` of ``make(c, Rm, WW, sl)`` (a function of ``z``) over ``size`` poses of ``ctx`` at a time; where
+    ``finish`` is given, ``make``'s function also returns the predicted orientation ``R`` and each part is
+    ``finish(J, R, sl)``. ``u``: the columns of an empty result."""
+    n, parts, size = ctx.q.shape[0], [], max(1, int(size))
+    for lo in range(0, n, size):
+        sl = slice(lo, min(n, lo + size))
+        f = make(ctx.subset(sl), R_meas[sl], W[sl], sl)
+        if finish is None:
+            parts.append(torch.func.jacfwd(f)(z).detach())
+            continue
+        J, R = torch.func.jacfwd(f, has_aux=True)(z)
+        parts.append(finish(J.detach(), R.detach(), sl))
+    return torch.cat(parts) if parts else z.new_zeros(0, u)
+
+
+@dataclass(frozen=True)
+class _OrientationPlan:
+    """How the orientation rows' Jacobian computes each free column (:func:`orientation_function`)."""
+
+    geo: Tensor  # the geometry's columns: through a turn of the chain's rotation
+    inst: Tensor  # the instrument pose's, in closed form (empty where an effect reads the pose)
+    inst_d: list  # their flat indices in the instrument's correction
+    rest: Tensor  # the columns jacfwd differentiates (the lever arm's, which no orientation sees, are in none)
+    held: frozenset  # the parameters held at their values in that pass
+
+
+def _orientation_plan(model: MeasurementModel, free: FreeParameters) -> _OrientationPlan:
+    closed = not any(e.reads_instrument for e in model.effects)
+    cols = list(_columns(free))
+    geo = [j for j, e, _ in cols if e.name == _GEOMETRY]
+    inst = [(j, i) for j, e, i in cols if e.name == _INSTRUMENT] if closed else []
+    out = set(geo) | {j for j, _ in inst} | {j for j, e, _ in cols if e.name == _LEVER_ARM}
+    held = {_GEOMETRY, _LEVER_ARM} | ({_INSTRUMENT} if closed else set())
+    dev = free.vector().device
+    return _OrientationPlan(
+        geo=torch.tensor(geo, dtype=torch.long, device=dev),
+        inst=torch.tensor([j for j, _ in inst], dtype=torch.long, device=dev),
+        inst_d=[i for _, i in inst],
+        rest=torch.tensor([j for j, _, _ in cols if j not in out], dtype=torch.long, device=dev),
+        held=frozenset(held),
+    )
+
+
+def _instrument_turns(model: MeasurementModel, plan: _OrientationPlan, at: dict) -> Tensor | None:
+    """The instrument columns' turns of every predicted orientation (:meth:`~torchcal.robot.model.Instrument.
+    rotation_turns`) at the values ``at``; None without such columns."""
+    if not plan.inst_d:
+        return None
+    instrument = model.robot.instrument
+    return instrument.rotation_turns(plan.inst_d, at.get(_INSTRUMENT, instrument.delta))
+
+
+def _columns_of_turn(
+    Jz: Tensor, R: Tensor, w: Tensor, x: Tensor, plan: _OrientationPlan, inst, c: Context, Rm: Tensor, WW: Tensor
+) -> Tensor:
+    """The orientation rows' Jacobian by ``x`` from that by a turn of the chain's rotation and the columns
+    ``plan.rest``, ``Jz (3n, 3 + len(rest))``: the geometry's are ``d e / d turn @ w``, ``w (n, 3, k)`` the axes by
+    which they turn it (:func:`linear_rotation`'s ``spin``); the instrument pose's ``W d e`` with ``dE = N_k E``,
+    ``E = R Rm^T`` (:func:`_instrument_turns`, ``R`` the predicted orientations)."""
+    n = w.shape[0]
+    J = x.new_zeros(3 * n, len(x))
+    J[:, plan.rest.to(x.device)] = Jz[:, 3:]
+    if len(plan.geo):
+        J[:, plan.geo.to(x.device)] = (Jz[:, :3].reshape(n, 3, 3) @ w).reshape(3 * n, -1)
+    if inst is not None:
+        # (n or 1, k, 3, 3): each row's station's (no station column: the first station measured every row)
+        N = inst[c.station] if inst.dim() == 4 and c.station is not None else inst.reshape(-1, *inst.shape[-3:])[:1]
+        F = N @ (R @ Rm.transpose(-1, -2)).unsqueeze(1)  # (n, k, 3, 3)
+        de = 0.5 * torch.stack(
+            [F[..., 2, 1] - F[..., 1, 2], F[..., 0, 2] - F[..., 2, 0], F[..., 1, 0] - F[..., 0, 1]], -1
+        )
+        J[:, plan.inst.to(x.device)] = (WW @ de.transpose(1, 2)).reshape(3 * n, -1)
+    return J
+
+
 def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor):
     """The chain's rotation ``R_base_flange`` linearised at ``x``, for :meth:`MeasurementModel.orientation
-    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``(rows, d) -> rot``, with ``rot(robot, q) = R0 +
-    sum_j dR/dq_j (q_j - q0_j) + sum_k dR/dd_k (d_k - d0_k)`` over the poses ``rows`` (a slice), ``q0`` the joint
-    angles with the joint effects applied at ``x``, ``d`` the free geometry elements of the geometry's correction
-    ``d`` (the robot's own where None) (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_jacobian`). Its
-    value and first derivatives at ``x`` are the chain's, so ``jacfwd`` of the model with ``rot`` in place gives the
-    chain's Jacobian."""
+    <torchcal.effects.model.MeasurementModel.orientation>`: returns ``(rows, turn) -> rot``, with ``rot(robot, q) =
+    R0 + [t]x R0``, ``t = sum_j z_j (q_j - q0_j) + turn`` over the poses ``rows`` (a slice), ``q0`` the joint angles
+    with the joint effects applied at ``x`` and ``z_j`` the joints' axes
+    (:meth:`~torchcal.robot.model.RobotModel.flange_rotation_axes`). Its value and first derivatives by the joints
+    at ``x`` are the chain's; the geometry's elements turn it about the axes ``rows.spin(rows) (n, 3, k)``
+    (``dR/dd_k = [w_k]x R``), so ``jacfwd`` of the model with ``rot`` in place, by ``turn`` and the other
+    parameters, gives the chain's Jacobian."""
     at = free.params(x)
     geo = [e for e in free.entries if e.name == _GEOMETRY]
     idx = geo[0].index if geo else torch.zeros(0, dtype=torch.long, device=x.device)
@@ -603,31 +697,27 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
 
     def record(rb, q: Tensor) -> Tensor:
         q = q.detach()
-        R, dq, dd = rb.flange_rotation_jacobian(q, idx.tolist())
-        out.update(q=q, R=R, dq=dq, dd=dd)
+        R, z, w = rb.flange_rotation_axes(q, idx.tolist())
+        out.update(q=q, R=R, z=z, w=w)
         return R
 
     with torch.no_grad():
         torch.func.functional_call(model, at, (ctx,), {"orientation": True, "rot": record})
-    d0 = at[_GEOMETRY].detach().reshape(-1)[idx.to(x.device)] if geo else None
 
-    def rows(sl: slice, delta: Tensor | None = None):
-        R0, q0 = out["R"][sl], out["q"][sl]
-        n, dof, k = R0.shape[0], q0.shape[1], len(idx)
-        Aq = out["dq"][sl].permute(0, 2, 3, 1).reshape(n, 9, dof)
-        Ad = out["dd"][sl].permute(0, 2, 3, 1).reshape(n * 9, k)
-        cols = idx.to(x.device)
+    def rows(sl: slice, turn: Tensor):
+        R0, q0, zt = out["R"][sl], out["q"][sl], out["z"][sl].transpose(1, 2)  # zt (n, 3, dof)
+        n = R0.shape[0]
+        # [t]x R0 = sum_a t_a [e_a]x R0: linear in t
+        A = (tf.skew(torch.eye(3, dtype=R0.dtype, device=R0.device)).unsqueeze(1) @ R0).permute(1, 2, 3, 0)
 
         def rot(rb, q: Tensor) -> Tensor:
-            # the constants meet the differentiated q and d through torchcal._dual (as in linear_kinematics)
-            R = _dual.add(R0, (Aq @ _dual.sub(q, q0).unsqueeze(-1)).reshape(n, 3, 3))
-            if k:
-                d = (rb.geometry.delta if delta is None else delta).reshape(-1)[cols]
-                R = _dual.add(R, (Ad @ _dual.sub(d, d0)).reshape(n, 3, 3))
-            return R
+            # the constants meet the differentiated q and turn through torchcal._dual (as in linear_kinematics)
+            t = _dual.add((zt @ _dual.sub(q, q0).unsqueeze(-1)).squeeze(-1), turn)
+            return _dual.add(R0, (A.reshape(n, 9, 3) @ t.unsqueeze(-1)).reshape(n, 3, 3))
 
         return rot
 
+    rows.spin = lambda sl: out["w"][sl].transpose(1, 2)
     return rows
 
 

@@ -279,6 +279,16 @@ class Instrument(_Group):
         B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :], d, columns).reshape(3, 4, -1)
         return torch.einsum("abk,nb->nak", B[:, :3], points) + B[:, 3]
 
+    def rotation_turns(self, columns: Sequence[int], delta: Tensor | None = None) -> Tensor:
+        """``N_k = dR/dd_k R^T`` of the pose's rotation ``R`` for the flat ``columns`` of the correction ``(k, 3,
+        3)``, or ``(S, k, 3, 3)`` per station (zero for another station's columns), at ``delta``: each turns what
+        the pose maps, ``d(R M)/dd_k = N_k R M`` (skew-symmetric: R stays a rotation; no pose in it)."""
+        d = (self.delta if delta is None else delta).detach()
+        R = self.matrix(d)[..., :3, :3].detach()
+        B = _small_jacobian(lambda x: self.matrix(x)[..., :3, :3], d, columns)
+        B = B.reshape(*R.shape[:-2], 3, 3, len(columns))
+        return torch.einsum("...abk,...cb->...kac", B, R)
+
     def rows_point_jacobian(
         self, points: Tensor, station: Tensor | None, columns: Sequence[int], delta: Tensor | None = None
     ) -> Tensor:
@@ -621,16 +631,18 @@ class RobotModel(nn.Module):
             raise OptionError(f"robot '{self.name}' carries no probe orientation (enable_orientation)")
         return self(q)[..., :3, :3] @ self.tool_rotation.matrix()
 
-    def flange_rotation_jacobian(self, q: Tensor, columns: Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
-        """``R_base_flange (N, 3, 3)`` at joints ``q (N, dof)`` and its exact derivatives, by each joint
-        ``(N, dof, 3, 3)`` and by the geometry elements ``columns`` (flat indices into the geometry's delta)
-        ``(N, len(columns), 3, 3)``; a robot without a readings map (its readings are its joints).
+    def flange_rotation_axes(self, q: Tensor, columns: Sequence[int]) -> tuple[Tensor, Tensor, Tensor]:
+        """``R_base_flange (N, 3, 3)`` at joints ``q (N, dof)`` and the axes about which its exact derivatives turn
+        it, in the base frame: by each joint ``z (N, dof, 3)``, ``dR/dq_j = [z_j]x R``, and by the geometry elements
+        ``columns`` (flat indices into the geometry's delta) ``w (N, len(columns), 3)``, ``dR/dd_k = [w_k]x R``; a
+        robot without a readings map (its readings are its joints).
 
-        With ``F_j`` the frame of joint j (its rotation included) and ``z_j = F_j a_j`` its axis in the base frame,
-        ``dR/dq_j = [z_j]x R`` (zero for a prismatic joint). The chain ``R = P_i O_i S_i`` is linear in each origin's
-        rotation ``O_i``, ``P_i = F_(i-1)`` the frame in front of it (the identity for the first), so
-        ``dR/dd = P_i (dO_i/dd) O_i^T P_i^T R``, with the small ``dO_i/dd`` (no pose in it) by reverse mode on
-        :meth:`~torchcal.robot.geometry.Geometry.origins`, as :meth:`tracker_jacobian` takes them.
+        With ``F_j`` the frame of joint j (its rotation included) and ``a_j`` its axis, ``z_j = F_j a_j`` (zero for a
+        prismatic joint). The chain ``R = P_i O_i S_i`` is linear in each origin's rotation ``O_i``, ``P_i = F_(i-1)``
+        the frame in front of it (the identity for the first), so ``dR/dd = P_i (dO_i/dd) O_i^T P_i^T R``, and
+        ``(dO_i/dd) O_i^T = [s]x`` (``O_i`` stays a rotation) with ``s`` from the small ``dO_i/dd`` (no pose in it, by
+        reverse mode on :meth:`~torchcal.robot.geometry.Geometry.origins`, as :meth:`tracker_jacobian` takes them):
+        ``w = P_i s``.
         """
         if not self.readings.is_identity:
             raise ShapeError(f"robot '{self.name}' maps its readings to its joints: no rotation Jacobian by readings")
@@ -643,22 +655,18 @@ class RobotModel(nn.Module):
             frames = [Rt.expand(3, 3, n).permute(2, 1, 0) for Rt in Rts]  # (N, 3, 3) each
             z = torch.stack([F @ a for F, a in zip(frames, self.geometry.axes)], dim=1)  # (N, dof, 3)
             z = torch.where(self.geometry.prismatic[:, None], torch.zeros_like(z), z)
-            dq = tf.skew(z) @ R.unsqueeze(1)
             k = len(columns)
             A = _small_jacobian(lambda x: self.geometry.origins(x)[..., :3, :3], self.geometry.delta, columns)
             A = A.reshape(self.n_joints + 1, 3, 3, k)
-            G = R.new_zeros(n, k, 3, 3)
+            w = R.new_zeros(n, k, 3)
             for i in range(self.n_joints + 1):
                 nz = torch.nonzero(A[i].reshape(9, k).abs().amax(0)).flatten()
                 if len(nz) == 0:
                     continue
-                M = A[i][..., nz].permute(2, 0, 1) @ O[i, :3, :3].T  # (k_i, 3, 3): dO_i/dd O_i^T
-                if i > 0:
-                    P = frames[i - 1].unsqueeze(1)
-                    M = P @ M @ P.transpose(-1, -2)
-                G[:, nz] += M
-            dd = G @ R.unsqueeze(1)
-        return R, dq, dd
+                M = A[i][..., nz].permute(2, 0, 1) @ O[i, :3, :3].T  # (k_i, 3, 3): dO_i/dd O_i^T, skew
+                s = torch.stack([M[:, 2, 1], M[:, 0, 2], M[:, 1, 0]], -1)  # (k_i, 3)
+                w[:, nz] += s if i == 0 else (frames[i - 1] @ s.T).transpose(1, 2)
+        return R, z, w
 
     @property
     def stations(self) -> tuple[str, ...]:
