@@ -16,6 +16,9 @@ from torchcal.errors import OptionError
 MAX_SIGMA_TRACKER = 1e-2
 #: joint reading noise [rad]: encoders are good to millidegrees; 1 degree is not an encoder reading
 MAX_SIGMA_JOINT = math.radians(1.0)
+#: the joint reading noise a calibration assumes unless told [rad] (``FitSettings.sigma_joint``): here, not in the
+#: pipeline's options, so that the commands that use a finished run read it without importing the pipeline
+SIGMA_JOINT = math.radians(0.0005)
 #: identifiability tolerance (relative singular value): beyond 1 % the analysis fixes parameters the data determine
 MAX_RANK_TOL = 1e-2
 #: a known lever arm's elements and sigma [m]: probes sit within a metre or two of the flange; 5 m is mm given as m

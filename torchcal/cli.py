@@ -20,7 +20,14 @@ from pathlib import Path
 import torch
 
 from torchcal import _console
-from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_ANGLE, MAX_SIGMA_JOINT, MAX_SIGMA_LENGTH, MAX_SIGMA_TRACKER
+from torchcal._bounds import (
+    MAX_RANK_TOL,
+    MAX_SIGMA_ANGLE,
+    MAX_SIGMA_JOINT,
+    MAX_SIGMA_LENGTH,
+    MAX_SIGMA_TRACKER,
+    SIGMA_JOINT,
+)
 from torchcal._device import resolve_device
 from torchcal._method import DEFAULT_METHOD, ENGINES, METHODS, Engine
 from torchcal._outdir import check_out_dir, check_out_file
@@ -826,11 +833,9 @@ def outside_rows(model, q) -> list[tuple[int, str]]:
     """The rows of ``q (N, dof)`` worth a warning, with why: a joint beyond the range it covered in the calibration
     by more than the tolerance (:data:`OUTSIDE_TOL_SIGMAS`), or a joint the calibration held still (a range within
     the tolerance) moved away from where it was held."""
-    from torchcal.pipeline.options import FitSettings
-
     if model.region is None:
         return []
-    tol = OUTSIDE_TOL_SIGMAS * FitSettings.__dataclass_fields__["sigma_joint"].default
+    tol = OUTSIDE_TOL_SIGMAS * SIGMA_JOINT
     lo, hi = (x.detach().cpu() for x in model.region)
     beyond = torch.maximum(lo - q.detach().cpu(), q.detach().cpu() - hi).clamp(min=0)  # (N, dof)
     held = (hi - lo) <= tol

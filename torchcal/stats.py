@@ -266,3 +266,17 @@ def split(
     if sort:
         keep, out = torch.sort(keep).values, torch.sort(out).values
     return Split(keep, out, *merged)
+
+
+#: the guard's edge: a held-out pose with a joint beyond this quantile of the training poses' (either side)
+HOLDOUT_EDGE = 0.025
+
+
+def at_edges(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
+    """Which poses ``q_hold`` ``(M,)`` lie at the edges of the poses ``q_train``'s joint ranges: some joint below its
+    ``share`` quantile or above its ``1 - share`` quantile in ``q_train`` (or beyond their range)."""
+    if len(q_hold) == 0 or len(q_train) == 0:
+        return torch.zeros(len(q_hold), dtype=torch.bool, device=q_hold.device)
+    lo = torch.quantile(q_train, share, dim=0)
+    hi = torch.quantile(q_train, 1.0 - share, dim=0)
+    return ((q_hold < lo) | (q_hold > hi)).any(dim=1)

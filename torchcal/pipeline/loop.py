@@ -56,9 +56,10 @@ from torchcal.effects.drift import Drift
 from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, RegionForm
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
-from torchcal.pipeline.holdout import GUARD_MIN_POSES, at_edges
+from torchcal.pipeline.holdout import GUARD_MIN_POSES
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
 from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
+from torchcal.stats import at_edges
 
 Tensor = torch.Tensor
 GROUPS = GEOMETRIC_GROUPS

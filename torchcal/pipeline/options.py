@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchcal import stats as S
-from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_JOINT, MAX_SIGMA_TRACKER, MAX_TOOL, check_range
+from torchcal._bounds import MAX_RANK_TOL, MAX_SIGMA_JOINT, MAX_SIGMA_TRACKER, MAX_TOOL, SIGMA_JOINT, check_range
 from torchcal._device import resolve_device
 from torchcal._method import DEFAULT_METHOD, ENGINES, METHODS, Engine, Method
 from torchcal.effects import MAX_JOINT_ERROR
@@ -46,7 +46,7 @@ class FitSettings:
     solver's limits and the priors (docs/methods.md, *A-priori information*)."""
 
     sigma_tracker: float = 15e-6  # m per axis, when the data carry no sx, sy, sz
-    sigma_joint: float = math.radians(0.0005)  # rad, joint reading noise
+    sigma_joint: float = SIGMA_JOINT  # rad, joint reading noise
     # rad per axis: a 6-D probe's orientation noise when the data carry no srx, sry, srz (None: 0.01 deg,
     # torchcal.estimate.fit.SIGMA_ORIENTATION); each row's orientation is weighted by it, no metres-to-radians factor
     sigma_orientation: float | None = None

@@ -6,7 +6,7 @@ picks ``K`` greedily by the I-optimal criterion (the mean position variance over
 on the identifiable geometric, instrument and lever-arm parameters (:mod:`torchcal.estimate.design`), a share of the
 picks (``edge_share``, default 10 %) among the candidates at the edges of the region (some joint beyond the 2.5 % or
 97.5 % quantile of the candidates', as calibrate's held-out guard defines them,
-:func:`~torchcal.pipeline.holdout.at_edges`): an optimal design favours poses that separate parameters, which are not
+:func:`~torchcal.stats.at_edges`): an optimal design favours poses that separate parameters, which are not
 always those at the limits of where the robot will work, and a calibration is trusted there only if it was measured
 there.
 
@@ -63,9 +63,9 @@ from torchcal.estimate.design import (
     log_det,
     predicted_rmse,
 )
-from torchcal.pipeline.holdout import HOLDOUT_EDGE, at_edges
 from torchcal.robot import transforms as tf
 from torchcal.sim.poses import Scene, random_poses, sample_joints
+from torchcal.stats import HOLDOUT_EDGE, at_edges
 
 Tensor = torch.Tensor
 

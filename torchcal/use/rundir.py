@@ -13,6 +13,7 @@ import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -23,8 +24,10 @@ from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import MeasurementFileError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.trust import MIN_ROWS, Trust
-from torchcal.pipeline import Prior, prior_from_run
 from torchcal.robot import load_robot
+
+if TYPE_CHECKING:  # the pipeline is imported by load_prior alone: predict, compensate and plan do not load it
+    from torchcal.pipeline import Prior
 
 F64 = torch.float64
 Tensor = torch.Tensor
@@ -234,6 +237,8 @@ def load_prior(run_dir: str | os.PathLike) -> Prior:
         stat = rep.get("global_test", {}).get("statistic") if isinstance(rep, dict) else None
         if isinstance(stat, (int, float)) and math.isfinite(stat) and stat > 0:
             s0_sq = float(stat)
+    from torchcal.pipeline import prior_from_run
+
     return prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
 
 
