@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 import torch
 
 from torchcal import _console
+from torchcal._bounds import SIGMA_JOINT
 from torchcal.effects.base import Context
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
@@ -113,7 +114,7 @@ def design_problem(
     q: Tensor,
     *,
     sigma_tracker: float = 15e-6,
-    sigma_joint: float = math.radians(0.0005),
+    sigma_joint: float = SIGMA_JOINT,
     priors: Priors | None = None,
     rank_tol: float = DEFAULT_TOL,
 ) -> DesignProblem:

@@ -709,11 +709,12 @@ def linear_rotation(model: MeasurementModel, free: FreeParameters, ctx: Context,
         n = R0.shape[0]
         # [t]x R0 = sum_a t_a [e_a]x R0: linear in t
         A = (tf.skew(torch.eye(3, dtype=R0.dtype, device=R0.device)).unsqueeze(1) @ R0).permute(1, 2, 3, 0)
+        A = A.reshape(n, 9, 3)  # once: a copy (A is permuted), not one per evaluation
 
         def rot(rb, q: Tensor) -> Tensor:
             # the constants meet the differentiated q and turn through torchcal._dual (as in linear_kinematics)
             t = _dual.add((zt @ _dual.sub(q, q0).unsqueeze(-1)).squeeze(-1), turn)
-            return _dual.add(R0, (A.reshape(n, 9, 3) @ t.unsqueeze(-1)).reshape(n, 3, 3))
+            return _dual.add(R0, (A @ t.unsqueeze(-1)).reshape(n, 3, 3))
 
         return rot
 
