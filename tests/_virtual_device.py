@@ -92,9 +92,23 @@ def _is_virtual(device) -> bool:
     return device is not None and torch.device(device) == DEVICE
 
 
+def _check_indexed(func, args) -> None:
+    """Indices on the device into a CPU tensor raise, as on CUDA ("indices should be either on cpu or on the same
+    device as the indexed tensor"): only CPU indices into device tensors pass."""
+    target = args[0]
+    if isinstance(target, Virtual) or not isinstance(target, torch.Tensor) or target.dim() == 0:
+        return
+    if any(isinstance(i, Virtual) for i in _items(args[1:], {})):
+        raise RuntimeError(
+            f"{func}: indices on the {DEVICE.type} device into a CPU tensor of shape {tuple(target.shape)}"
+        )
+
+
 def _run(func, args, kwargs):
     virtual = any(isinstance(a, Virtual) for a in _items(args, kwargs))
     to_virtual = _is_virtual(kwargs.get("device"))
+    if virtual and func in _INDEX_OPS:
+        _check_indexed(func, args)
     if virtual and func is not aten.copy_.default and func is not aten._to_copy.default:
         for a in _items(args, kwargs):
             if isinstance(a, torch.Tensor) and not isinstance(a, Virtual) and a.dim() > 0:
@@ -215,22 +229,24 @@ class _Internal(TorchDispatchMode):
 
 
 def jacfwd(f, has_aux: bool = False):
-    """``torch.func.jacfwd`` on virtual tensors (module docstring); ``has_aux`` is not supported."""
-    if has_aux:
-        raise NotImplementedError("the virtual device's jacfwd has no has_aux")
+    """``torch.func.jacfwd`` on virtual tensors (module docstring); with ``has_aux``, ``f`` returns ``(out, aux)``
+    and the Jacobian of ``out`` comes with ``aux`` at ``x``."""
     own = getattr(f, "jacobian", None)
-    if own is not None:
+    if own is not None and not has_aux:
         return own
 
-    def jac(x: torch.Tensor) -> torch.Tensor:
+    def jac(x: torch.Tensor):
+        first = f(x)
+        out = first[0] if has_aux else first
         cols = []
         for k in range(x.numel()):
             v = torch.zeros_like(x).flatten()
             v[k] = 1.0
-            _, jv = torch.autograd.functional.jvp(f, x, v.reshape(x.shape))
+            _, jv = torch.autograd.functional.jvp((lambda y: f(y)[0]) if has_aux else f, x, v.reshape(x.shape))
             cols.append(jv.detach())
-        out = torch.stack(cols, dim=-1)
-        return out.reshape(*out.shape[:-1], *x.shape)
+        J = torch.stack(cols, dim=-1) if cols else out.new_zeros(*out.shape, 0)
+        J = J.reshape(*J.shape[:-1], *x.shape)
+        return (J, first[1].detach()) if has_aux else J
 
     return jac
 

@@ -172,7 +172,8 @@ def _learned_split(train: Measurements, seed: int, group_tol: float, trajectory:
 
 def _groups(train: Measurements) -> tuple[Tensor, Tensor] | None:
     """The groups ``(G, 2)`` and each training row's ``(station, probe)`` group index ``(N,)``, or None when the data
-    carry one group only."""
+    carry one group only. Both on the CPU, as the splits' row indices are: CPU indices index tensors on any device,
+    while indices on a GPU cannot index the CPU's."""
     st, pr = getattr(train, "station", None), getattr(train, "probe", None)
     if st is None and pr is None:
         return None
@@ -181,7 +182,7 @@ def _groups(train: Measurements) -> tuple[Tensor, Tensor] | None:
     keys, inverse = torch.unique(key, dim=0, return_inverse=True)
     if len(keys) < 2:
         return None
-    return keys, inverse
+    return keys.cpu(), inverse.cpu()
 
 
 def _group_index(keys: Tensor, key: tuple[int, int]) -> int:
