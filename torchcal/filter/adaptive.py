@@ -218,7 +218,9 @@ class BatchGeometry:
     status: str
 
 
-def random_features(dof: int = 6, hidden: int = 128, gain: float = 5.0, seed: int = 0) -> CorrectionNet:
+def random_features(
+    dof: int = 6, hidden: int = 128, gain: float = 5.0, seed: int = 0, device: torch.device | str = "cpu"
+) -> CorrectionNet:
     """The correction network the adaptive filter is meant for: a fixed random tanh layer and a zero output layer.
 
     With the hidden layer fixed (``sigma_hidden = 0``) the network is a linear model on ``hidden`` random
@@ -229,9 +231,10 @@ def random_features(dof: int = 6, hidden: int = 128, gain: float = 5.0, seed: in
     paper's 29 (``scripts/adaptive_geometry.py``).
 
     Args:
-        dof: joints; hidden: features; gain: Glorot gain of the hidden layer; seed: reproducible draw.
+        dof: joints; hidden: features; gain: Glorot gain of the hidden layer; seed: reproducible draw (on the CPU's
+            generator, so the same features on every device); device: where the network lives (the data's).
     """
-    net = CorrectionNet(dof, hidden)
+    net = CorrectionNet(dof, hidden, device=device)
     net.reset_parameters(torch.Generator().manual_seed(seed), gain=gain)
     with torch.no_grad():
         net.fc2.weight.zero_()

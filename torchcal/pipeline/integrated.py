@@ -360,7 +360,7 @@ def _adaptive_pass(
         rank_tol=opts.fit.rank_tol,
         sigma_field=sigma_field,
     )
-    net = random_features(dof=robot.dof, hidden=hidden, gain=gain, seed=int(opts.seed) + 1)
+    net = random_features(dof=robot.dof, hidden=hidden, gain=gain, seed=int(opts.seed) + 1, device=robot.device)
     flt = AdaptiveEKF(start, net, cfg)
     _console.info(
         f"integrated ANN-EKF (adaptive): geometry and a {robot.dof}-{hidden}-3 random-feature network "
