@@ -19,6 +19,7 @@ one left is right).
 from __future__ import annotations
 
 import ast
+import json
 import math
 import os
 from pathlib import Path
@@ -294,14 +295,21 @@ class _InlineExecutor:
         return [fn(*a) for a in zip(*iterables)]
 
 
-@pytest.mark.slow
-@pytest.mark.skipif(
-    os.environ.get("TORCHCAL_DEVICE_AUTO") != "1",
-    reason="the default method on the virtual device takes about 90 s; set TORCHCAL_DEVICE_AUTO=1 to run it",
-)
-def test_default_method_on_another_device(monkeypatch):
-    """The default method end to end (screening, kinematic, the closed loop's score tests and joint refits, the
-    Gaussian process, kernel and network of the learned stage) on the virtual device, against the CPU."""
+def test_adaptive_filters_features_on_the_data_device():
+    """The integrated method's adaptive filter draws its random features on the CPU's generator and places them on
+    the data's device: on a GPU they once stayed on the CPU, and the filter's first step failed."""
+    from torchcal.filter.adaptive import random_features
+
+    ref = random_features(dof=6, hidden=8, seed=3)
+    with virtual_device() as dev:
+        net = random_features(dof=6, hidden=8, seed=3, device=dev)
+        assert all(isinstance(p, Virtual) for p in net.parameters())
+    for a, b in zip(net.parameters(), ref.parameters(), strict=True):
+        torch.testing.assert_close(cpu(a), b, rtol=0, atol=0)
+
+
+def _default_method_on_virtual(monkeypatch) -> None:
+    """What the default method needs to run on the virtual device (module docstring)."""
     import torchcal.pipeline.options as pipeline_run
     from torchcal.effects import gp
     from torchcal.estimate import robust
@@ -323,6 +331,52 @@ def test_default_method_on_another_device(monkeypatch):
     monkeypatch.setattr(robust, "_weighted", with_jacobian)
     # Options re-checks its device when the learned stage copies it (dataclasses.replace): let the virtual one pass
     monkeypatch.setattr(pipeline_run, "resolve_device", lambda d: META if str(d) == "meta" else resolve(d))
+
+
+@pytest.mark.slow
+def test_chain_of_the_default_method_on_another_device(monkeypatch, tmp_path):
+    """The default method on two stations and two probes with a 6-D probe's orientation (the learned stage's
+    groups, the orientation rows' Jacobian), then predict and an update from the prior, on the virtual device:
+    on a GPU the learned stage's group split once indexed the CPU's row indices with the GPU's group labels."""
+    from torchcal.report.rundir import write_run
+    from torchcal.use.rundir import load_prior, predict
+
+    _default_method_on_virtual(monkeypatch)
+    camp = simulate(
+        SimConfig(
+            robot="ur5",
+            poses=80,
+            test_poses=24,
+            seed=3,
+            stations=2,
+            probes=2,
+            orientation_sigma_deg=0.01,
+            effects=[EffectSpec.parse("compliance:2=200um")],
+        )
+    )
+    ref = calibrate("ur5", camp.train, Options())
+    opts = Options()
+    with virtual_device(monkeypatch) as dev:
+        object.__setattr__(opts, "device", str(dev))
+        run = calibrate("ur5", camp.train, opts)
+        out = write_run(run, tmp_path / "run")
+        p = predict(out, camp.test, device=dev)
+        update = calibrate("ur5", camp.test.subset(torch.arange(0, 12)), opts, prior=load_prior(out))
+        assert isinstance(update.data.q, Virtual)
+    assert [s.name for s in run.stages] == [s.name for s in ref.stages]
+    assert run.stages[-1].rmse == pytest.approx(ref.stages[-1].rmse, rel=1e-6)
+    torch.testing.assert_close(p, predict(out, camp.test), rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(
+    os.environ.get("TORCHCAL_DEVICE_AUTO") != "1",
+    reason="the default method on the virtual device takes about 90 s; set TORCHCAL_DEVICE_AUTO=1 to run it",
+)
+def test_default_method_on_another_device(monkeypatch):
+    """The default method end to end (screening, kinematic, the closed loop's score tests and joint refits, the
+    Gaussian process, kernel and network of the learned stage) on the virtual device, against the CPU."""
+    _default_method_on_virtual(monkeypatch)
     effects = [EffectSpec.parse("compliance:2=60um"), EffectSpec.parse("field=0.05mm")]
     camp = simulate(SimConfig(robot="ur5", poses=150, test_poses=10, seed=2, effects=effects))
     ref = calibrate("ur5", camp.train, Options())
@@ -346,11 +400,14 @@ NO_CUDA = pytest.mark.skipif(
 
 
 @NO_CUDA
-@pytest.mark.parametrize("method", ["kinematic", "auto"])
+@pytest.mark.parametrize("method", ["kinematic", "auto", "pcm", "kinematic+ann", "integrated"])
 def test_calibrate_on_cuda_matches_cpu(method):
-    camp = simulate(
-        SimConfig(robot="ur5", poses=150, test_poses=30, seed=5, effects=[EffectSpec.parse("compliance:2=60um")])
-    )
+    effects = [EffectSpec.parse("compliance:2=60um")]
+    if method == "integrated":  # a continuous trajectory: the filter's samples in order
+        size = dict(trajectory=True, path="multisine", samples=200, train_samples=160)
+    else:
+        size = dict(poses=150, test_poses=30)
+    camp = simulate(SimConfig(robot="ur5", seed=5, effects=effects, **size))
     ref = calibrate("ur5", camp.train, Options(method=method))
     run = calibrate("ur5", camp.train, Options(method=method, device="cuda"))
     assert run.data.q.device.type == "cuda" and run.robot.device.type == "cuda"
@@ -358,7 +415,7 @@ def test_calibrate_on_cuda_matches_cpu(method):
     # the geometric fit to 1e-9; the learned stage's iterative fits (L-BFGS, network LM) carry the last-bit
     # differences of CUDA's reduction order further
     rel = 1e-9 if method == "kinematic" else 1e-6
-    for a, b in zip(run.stages, ref.stages):
+    for a, b in zip(run.stages, ref.stages, strict=True):
         assert a.rmse == pytest.approx(b.rmse, rel=rel)
         assert a.holdout_errors.dtype == F64 and a.holdout_errors.device.type == "cuda"
 
@@ -379,6 +436,70 @@ def test_cli_calibrate_and_predict_on_cuda(tmp_path):
         assert main([*pred, "--out", str(tmp_path / f"pred-{dev}.csv"), "--device", dev]) == 0
     a, b = (read_measurements(tmp_path / f"pred-{d}.csv", require_positions=True).p for d in ("cpu", "cuda"))
     torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-12)
+
+
+def _csv_numbers(path) -> dict[str, list[float]]:
+    """A torchcal CSV's numeric columns, by name (comment lines and text columns left out)."""
+    import csv
+
+    lines = [line for line in open(path) if not line.startswith("#")]
+    rows = list(csv.DictReader(lines))
+    out: dict[str, list[float]] = {}
+    for name in rows[0]:
+        try:
+            out[name] = [float(r[name]) for r in rows]
+        except ValueError:
+            continue
+    return out
+
+
+def _assert_same_numbers(a, b, what: str, atol: float) -> None:
+    got, ref = _csv_numbers(b), _csv_numbers(a)
+    assert got.keys() == ref.keys(), what
+    for name in ref:
+        torch.testing.assert_close(
+            torch.tensor(got[name]), torch.tensor(ref[name]), rtol=1e-6, atol=atol, msg=f"{what}: {name}"
+        )
+
+
+@NO_CUDA
+def test_chain_of_a_cuda_run_matches_cpu(tmp_path):
+    """A user's chain on a run calibrated on the GPU (the default method, two stations and two probes with a 6-D
+    probe's orientation): ``predict`` on the GPU, then ``compensate``, ``station`` and ``calibrate --prior`` (on
+    the GPU), each against the same chain of a CPU run: a run written from the GPU reads back as the CPU's."""
+    from torchcal.cli import main
+    from torchcal.data import read_measurements, write_measurements
+
+    sim = tmp_path / "sim"
+    args = ["simulate", "--robot", "ur5", "--out", str(sim), "--poses", "80", "--test-poses", "24", "--seed", "3"]
+    args += ["--stations", "2", "--probes", "2", "--orientation", "0.01", "--effect", "compliance:2=200um"]
+    assert main([*args, "--quiet"]) == 0
+    test = read_measurements(sim / "test.csv", require_positions=True)
+    first = test.subset(torch.arange(0, 12))
+    write_measurements(tmp_path / "points.csv", first)
+    write_measurements(tmp_path / "targets.csv", test.subset(torch.arange(12, 20)))
+    for dev in ("cpu", "cuda"):
+        run = tmp_path / f"cal-{dev}"
+        cal = ["calibrate", str(sim / "train.csv"), "--robot", "ur5", "--seed", "1", "--quiet", "--device", dev]
+        assert main([*cal, "--out", str(run)]) == 0
+        pred = ["predict", str(run), str(sim / "test.csv"), "--out", str(tmp_path / f"pred-{dev}.csv")]
+        assert main([*pred, "--device", dev, "--quiet"]) == 0
+        comp = ["compensate", str(run), str(tmp_path / "targets.csv"), "--out", str(tmp_path / f"q-{dev}.csv")]
+        assert main([*comp, "--quiet"]) == 0
+        st = ["station", str(run), str(tmp_path / "points.csv"), "--out", str(tmp_path / f"st-{dev}"), "--quiet"]
+        assert main(st) == 0
+        prior = ["calibrate", str(tmp_path / "points.csv"), "--robot", "ur5", "--prior", str(run), "--quiet"]
+        assert main([*prior, "--out", str(tmp_path / f"upd-{dev}"), "--device", dev]) == 0
+    reports = [json.loads((tmp_path / f"cal-{d}" / "report.json").read_text()) for d in ("cpu", "cuda")]
+    assert [e["name"] if isinstance(e, dict) else e for e in reports[1]["effects"]] == [
+        e["name"] if isinstance(e, dict) else e for e in reports[0]["effects"]
+    ]
+    assert reports[1]["rmse_after_mm"] == pytest.approx(reports[0]["rmse_after_mm"], rel=1e-6)
+    _assert_same_numbers(tmp_path / "pred-cpu.csv", tmp_path / "pred-cuda.csv", "predict", atol=1e-9)
+    _assert_same_numbers(tmp_path / "q-cpu.csv", tmp_path / "q-cuda.csv", "compensate", atol=1e-9)
+    for name in ("st", "upd"):
+        a, b = (json.loads((tmp_path / f"{name}-{d}" / "report.json").read_text()) for d in ("cpu", "cuda"))
+        assert b["rmse_after_mm"] == pytest.approx(a["rmse_after_mm"], rel=1e-6, abs=1e-9), name
 
 
 def test_device_option_errors():
