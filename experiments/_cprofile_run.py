@@ -4,6 +4,11 @@ the merged statistics (``python _cprofile_run.py OUT.prof -- calibrate DATA ...`
 The timer is each thread's own CPU time (``time.thread_time``): on a shared machine the wall time counts the other
 processes too, and the threads' CPU times add up to the process's (the learned stage fits its GP in a second thread,
 which a profiler of the main thread alone would not see). :mod:`experiments.profile_calibration` starts it.
+
+From Python 3.12 ``cProfile`` runs on ``sys.monitoring``: one profiler at a time sees the events of every thread, and
+a second one raises. There the main thread's profiler is the only one, timed by the process's CPU time
+(``time.process_time``, every thread's), so the functions' own times still add up to the process's CPU; where two
+threads overlap, the time of one is charged to what the other was running, so the per-function split is approximate.
 """
 
 from __future__ import annotations
@@ -37,9 +42,11 @@ def _profiled_run(run):
 
 def main(argv: list[str]) -> int:
     out, args = argv[0], argv[argv.index("--") + 1 :]
-    threading.Thread.run = _profiled_run(threading.Thread.run)
+    process_wide = sys.version_info >= (3, 12)  # cProfile on sys.monitoring (module docstring)
+    if not process_wide:
+        threading.Thread.run = _profiled_run(threading.Thread.run)
     sys.argv = ["torchcal", *args]
-    main_prof = cProfile.Profile(time.thread_time)
+    main_prof = cProfile.Profile(time.process_time if process_wide else time.thread_time)
     rc = 0
     main_prof.enable()
     try:

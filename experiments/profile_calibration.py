@@ -7,10 +7,11 @@ Two runs of ``torchcal calibrate DATA --robot R`` (the default method), each in 
   columns, URDF, report.md and its figures) and of the stages nested in them (:data:`STAGES` on top of
   :data:`~experiments.bench_calibration.PARTS`); a part's CPU time is the whole process's while it ran;
 * under ``cProfile`` (:mod:`experiments._cprofile_run`, every thread its own profiler, each thread's CPU time as the
-  timer): the kernels of :data:`KERNELS` (calls, CPU seconds including what they call, share of the process's CPU)
-  and the torchcal functions that spend the most CPU themselves, the time of what they call outside torchcal (torch,
-  matplotlib) charged to them (:func:`own_times`). The profiler's own cost inflates the CPU time of functions with
-  many small calls; the shares are what to read.
+  timer; from Python 3.12 one profiler for all threads on the process's CPU time): the kernels of :data:`KERNELS`
+  (calls, CPU seconds including what they call, share of the process's CPU) and the torchcal functions that spend
+  the most CPU themselves, the time of what they call outside torchcal (torch, matplotlib) charged to them
+  (:func:`own_times`). The profiler's own cost inflates the CPU time of functions with many small calls; the shares
+  are what to read.
 
 :func:`simulated` makes the second data set: a simulated campaign of a 7-axis arm with orientations (a 6-D probe).
 :func:`compare` times the default method against a baseline source tree, alternating, as commands;
