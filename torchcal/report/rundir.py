@@ -319,9 +319,26 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
         **({"probes": list(run.robot.probes)} if run.robot.probes else {}),
+        **_single_labels(run),
     }
     (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return tmp
+
+
+def _single_labels(run) -> dict:
+    """``model.json``'s ``labels``: the one station (probe) name of the rows, where the data name one and the robot
+    has a single instrument pose (lever arm). The run then knows which placement and probe it was fitted for, and
+    ``predict`` and ``compensate`` refuse rows that name another (:func:`torchcal.use.rundir.check_placement`)
+    instead of predicting them in this one's frame."""
+    labels = {}
+    for key, known in (("station", run.robot.stations), ("probe", run.robot.probes)):
+        index, names = getattr(run.data, key), getattr(run.data, f"{key}_names")
+        if known or index is None:
+            continue
+        used = sorted({names[int(i)] for i in torch.unique(index.cpu())})
+        if len(used) == 1:
+            labels[key] = used[0]
+    return {"labels": labels} if labels else {}
 
 
 def _trust_report(rt) -> dict:

@@ -445,19 +445,38 @@ def _label_error(data: Measurements, key: str, name: str, why: str) -> Measureme
     return MeasurementFileError(data.source or "the data", f"{key} {name!r} {why}", line=line, column=key)
 
 
-def check_placement(meta: dict, data: Measurements) -> None:
-    """Refuse rows that name another station than a re-stationed run's placement (``model.json``'s ``station``
-    ``label``: the station its points named); a run without that label leaves the column to :func:`rows_of`."""
-    label = (meta.get("station") or {}).get("label") if isinstance(meta.get("station"), dict) else None
-    if not isinstance(label, str) or data.station is None:
-        return
-    other = [n for n in data.station_names if n != label]
-    used = {data.station_names[int(i)] for i in torch.unique(data.station)}
-    other = [n for n in other if n in used]
-    if other:
-        raise _label_error(
-            data, "station", other[0], f"is not the run's placement: it was re-stationed on points of {label!r}"
-        )
+def check_placement(meta: dict, data: Measurements, keys: tuple[str, ...] = ("station", "probe")) -> None:
+    """Refuse rows that name another station or probe than the one a run of a single instrument pose (lever arm)
+    was fitted for: a re-stationed run's placement (``model.json``'s ``station`` ``label``: the station its points
+    named), or the one name of a calibration's rows (``labels``). Without them the model would predict those rows
+    in its own frame, with its own lever arm, metres off and without a word. A run without such a label leaves the
+    columns to :func:`rows_of`. ``keys``: the columns to check."""
+    for key, label, why in _run_labels(meta):
+        index = getattr(data, key)
+        if index is None or key not in keys:
+            continue
+        names = getattr(data, f"{key}_names")
+        used = {names[int(i)] for i in torch.unique(index.cpu())}
+        other = [n for n in names if n != label and n in used]
+        if other:
+            raise _label_error(data, key, other[0], why)
+
+
+def _run_labels(meta: dict) -> list[tuple[str, str, str]]:
+    """``(key, label, why another is refused)`` for the station and probe a run holds a single name of."""
+    placed = meta.get("station") if isinstance(meta.get("station"), dict) else {}
+    labels = meta.get("labels") if isinstance(meta.get("labels"), dict) else {}
+    out = []
+    if isinstance(placed.get("label"), str):
+        why = f"is not the run's placement: it was re-stationed on points of {placed['label']!r}"
+        out.append(("station", placed["label"], why))
+    elif isinstance(labels.get("station"), str):
+        why = f"is not the run's placement: it was calibrated on rows of station {labels['station']!r} only"
+        out.append(("station", labels["station"], why + " (re-station it for this one: torchcal station)"))
+    if isinstance(labels.get("probe"), str):
+        why = f"is not the run's probe: it was calibrated on rows of probe {labels['probe']!r} only"
+        out.append(("probe", labels["probe"], why + ", whose lever arm another probe does not share"))
+    return out
 
 
 def at_station(

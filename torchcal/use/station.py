@@ -55,7 +55,7 @@ from torchcal.estimate.lm import chi2_quantile
 from torchcal.estimate.problem import FreeParameters, jacobian_of, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool, rigid_fit
 from torchcal.robot import transforms as tf
-from torchcal.use.rundir import load_covariance, load_model, load_trust, rows_of
+from torchcal.use.rundir import check_placement, load_covariance, load_model, load_trust, rows_of
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -545,6 +545,7 @@ def restation(
     probe (their ``probe`` column, or ``probe`` for all of them; neither: the run's first) and at most one station (its
     label is kept: rows that name another station are then refused by ``predict``)."""
     model, meta = load_model(run_dir)
+    check_placement(meta, points, keys=("probe",))  # a new placement, the same probes
     cov = load_covariance(run_dir, model)
     points, label = _points_rows(model, points, probe, tool, run_dir)
     model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"))
@@ -647,6 +648,8 @@ def one_placement(
         if isinstance(e, RegionGate):
             e.fallback_to_base(T0, station=k)
     meta = {k_: v for k_, v in meta.items() if k_ != "stations"}
+    if isinstance(meta.get("labels"), dict):  # the new placement's label is the points' (meta["station"])
+        meta["labels"] = {k_: v for k_, v in meta["labels"].items() if k_ != "station"}
     if probe in robot.probes and robot.probes.index(probe):
         cov = _probe_first(one, cov, robot.probes.index(probe))
         meta["probes"] = list(one.robot.probes)
