@@ -1013,7 +1013,7 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
 def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.use.compensate import Status, compensate_groups, orientation_mode, row_groups
-    from torchcal.use.rundir import at_station, check_placement, load_model
+    from torchcal.use.rundir import at_station, check_placement, load_model, own_names
 
     out_file = check_out_file(
         args.out, inputs=[args.targets, args.run] + ([args.start] if args.start else []), force=args.force
@@ -1024,7 +1024,7 @@ def cmd_compensate(args) -> int:
     data = read_measurements(args.targets, require_joints=False, **kw)
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused
     # each row in its own station's frame with its own probe (the columns, else --station / --probe, else the first)
-    station, probe = row_groups(model, data, args.station, args.probe)
+    station, probe = row_groups(model, data, *own_names(meta, args.station, args.probe))
     q_start = data.q if data.dof > 0 else None
     if args.start is not None:
         start = read_measurements(args.start, **kw)
@@ -1195,11 +1195,12 @@ def _plan_run(args):
             "made for the run's calibrated robot: drop --robot, or plan for that robot without --run"
         )
     method = args.method or meta.get("method") or "auto"
-    if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
-        from torchcal.use.rundir import at_station
+    from torchcal.use.rundir import at_station, own_names
 
-        model, _, _ = at_station(model, args.station, args.probe)
-    elif args.station is not None or args.probe is not None:
+    station, probe = own_names(meta, args.station, args.probe)
+    if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
+        model, _, _ = at_station(model, station, probe)
+    elif station is not None or probe is not None:
         raise OptionError("--station and --probe name one of a run's several stations or probes; this run has one")
     so = station_options(args.run)
     s0_sq = 1.0

@@ -102,3 +102,19 @@ def test_an_update_on_one_stations_rows_refuses_the_other_stations(cell, tmp_pat
     assert main([*args, "--quiet"]) == 0
     out = tmp_path / "pred.csv"
     _refused(capsys, ["predict", str(upd), str(sim / "test.csv"), "--out", str(out)], out, "station", "S2")
+
+
+def test_the_runs_own_names_may_be_given(cell, tmp_path, capsys):
+    """``compensate`` and ``plan --run`` take ``--station S1 --probe P1`` on the run of S1 / P1 (its own names) and
+    refuse another's."""
+    _, _, run, files = cell
+    out = tmp_path / "q.csv"
+    args = ["compensate", str(run), str(files["S1P1"]), "--out", str(out), "--station", "S1", "--probe", "P1"]
+    assert main([*args, "--quiet"]) == 0 and out.exists()
+    out = tmp_path / "plan.csv"
+    args = ["plan", "--run", str(run), "--n", "12", "--pool", "200", "--seed", "0", "--out", str(out)]
+    assert main([*args, "--station", "S1", "--probe", "P1", "--quiet"]) == 0 and out.exists()
+    out2 = tmp_path / "plan2.csv"
+    args[-1] = str(out2)
+    assert main([*args, "--station", "S2", "--quiet"]) == 2 and not out2.exists()
+    assert "S2" in capsys.readouterr().err

@@ -479,6 +479,19 @@ def _run_labels(meta: dict) -> list[tuple[str, str, str]]:
     return out
 
 
+def own_names(meta: dict, station: str | None, probe: str | None) -> tuple[str | None, str | None]:
+    """``--station`` / ``--probe`` of a command on the run, None where they name the one station (probe) the run
+    holds (:func:`_run_labels`): that name is the run's own, not one of several to choose from; another name is
+    refused with the run's."""
+    own = {key: (label, why) for key, label, why in _run_labels(meta)}
+    out = []
+    for key, name in (("station", station), ("probe", probe)):
+        if key in own and name is not None and name != own[key][0]:
+            raise OptionError(f"--{key} {name!r} {own[key][1]}")
+        out.append(None if key in own and name == own[key][0] else name)
+    return out[0], out[1]
+
+
 def at_station(
     model: MeasurementModel, station: str | None = None, probe: str | None = None, *, groups: bool = True
 ) -> tuple[MeasurementModel, int, int]:
