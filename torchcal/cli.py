@@ -1335,6 +1335,12 @@ def cmd_export(args) -> int:
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
     export_run(args.run, args.format, out_file)
     _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
+    loads = {"dh": (".yaml", ".yml"), "urdf": (".urdf",)}.get(args.format)
+    if loads and Path(args.out).suffix.lower() not in loads:  # --robot tells a description's kind by its suffix
+        _console.info(
+            f"torchcal: note: --robot loads a {args.format} file by its name's ending ({' or '.join(loads)}); "
+            f"rename {args.out} to load it back"
+        )
     return 0
 
 

@@ -55,6 +55,16 @@ def test_help_texts_say_what_the_commands_do(monkeypatch):
     assert "trust columns sx,sy,sz [m] and extrapolation" in _help("predict")
 
 
+def test_export_under_a_name_robot_cannot_load_says_so(run_dir, tmp_path, capsys):
+    """``--robot`` tells a description's kind by its ending: a DH table written as ``cal.dh`` is written, and the
+    command says how to load it back (a file ending in .yaml is not told)."""
+    assert main(["export", str(run_dir), "--format", "dh", "--out", str(tmp_path / "cal.dh")]) == 0
+    err = capsys.readouterr().err
+    assert "rename" in err and ".yaml or .yml" in err and (tmp_path / "cal.dh").exists()
+    assert main(["export", str(run_dir), "--format", "dh", "--out", str(tmp_path / "cal.yaml")]) == 0
+    assert "rename" not in capsys.readouterr().err
+
+
 def test_export_writes_what_other_software_reads(run_dir, tmp_path):
     """A calibrated run exported for the UR ROS 2 driver and as a DH table, each refused where it cannot hold
     the robot, nothing written then."""
