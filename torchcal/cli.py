@@ -771,9 +771,10 @@ def cmd_calibrate(args) -> int:
     )
     prior = None
     if args.prior:
-        from torchcal.use.rundir import load_prior
+        from torchcal.use.rundir import check_prior_robot, load_prior
 
         prior = load_prior(args.prior)
+        check_prior_robot(args.prior, robot, args.robot)
     data = read_measurements(
         args.data,
         require_positions=True,

@@ -118,3 +118,26 @@ def test_the_runs_own_names_may_be_given(cell, tmp_path, capsys):
     args[-1] = str(out2)
     assert main([*args, "--station", "S2", "--quiet"]) == 2 and not out2.exists()
     assert "S2" in capsys.readouterr().err
+
+
+def test_an_update_refuses_another_robot_than_the_priors(cell, tmp_path, capsys):
+    """``calibrate --prior RUN --robot FILE`` where FILE is not the prior run's robot (its upper arm 0.5 m instead of
+    0.425, the name still ur5; or another arm): refused, nothing written. The update starts from the prior run's
+    robot, so the file was ignored while report.json named it."""
+    from pathlib import Path
+
+    import torchcal
+
+    _, _, run, files = cell
+    text = (Path(torchcal.__file__).resolve().parents[1] / "robots" / "ur5.yaml").read_text()
+    assert "a: -0.425," in text
+    (tmp_path / "ur5_other.yaml").write_text(text.replace("a: -0.425,", "a: -0.500,"))
+    for robot, why in ((str(tmp_path / "ur5_other.yaml"), "mm from the prior run"), ("panda", "7 joints")):
+        out = tmp_path / f"upd-{Path(robot).stem}"
+        args = ["calibrate", str(files["S1P1"]), "--robot", robot, "--prior", str(run), "--out", str(out), "--quiet"]
+        assert main(args) == 2 and not out.exists()
+        err = capsys.readouterr().err
+        assert "is not the robot of the prior run" in err and why in err, err
+    ok = tmp_path / "upd-ur5"
+    args = ["calibrate", str(files["S1P1"]), "--robot", "ur5", "--prior", str(run), "--out", str(ok), "--quiet"]
+    assert main(args) == 0

@@ -242,6 +242,34 @@ def load_prior(run_dir: str | os.PathLike) -> Prior:
     return prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
 
 
+def check_prior_robot(run_dir: str | os.PathLike, robot, given: str) -> None:
+    """Refuse ``--robot`` (``given``, loaded as ``robot``) where it is not the robot the prior run calibrated: an
+    update starts from the prior run's robot and its corrections, so another description would be ignored while
+    the report named it. Compared by joints and by the nominal forward kinematics at seeded joint angles inside the
+    limits (to 1 um)."""
+    run_dir = Path(run_dir)
+    meta = load_json(run_dir / "model.json", "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
+    theirs = load_robot(run_dir / meta["robot_file"], base_link=meta.get("base_link"), tip_link=meta.get("tip_link"))
+    why = None
+    if theirs.dof != robot.dof:
+        why = f"it has {robot.dof} joints, the prior run's robot {theirs.dof}"
+    else:
+        lo = theirs.limits[:, 0]
+        hi = torch.minimum(theirs.limits[:, 1], lo + 2 * math.pi)  # a +-10 m track or an unlimited joint: one span
+        u = torch.rand(64, theirs.dof, generator=torch.Generator().manual_seed(0), dtype=lo.dtype, device=lo.device)
+        q = lo + u * (hi - lo)
+        with torch.no_grad():
+            gap = float((robot.to(q.device)(q) - theirs(q)).norm(dim=-1).max())
+        if gap > 1e-6:
+            why = f"its flange is up to {gap * 1e3:.3f} mm from the prior run's robot's at the same joint angles"
+    if why is not None:
+        raise OptionError(
+            f"--robot {given} is not the robot of the prior run {run_dir} ({meta['robot_file']}): {why}. An update "
+            "starts from the prior run's robot and its corrections; give --robot that robot, or calibrate from scratch "
+            "without --prior"
+        )
+
+
 def load_trust(run_dir: str | os.PathLike, meta: dict, key: str = "trust") -> Trust | None:
     """model.json's predictive-sigma entry ``key`` (:class:`~torchcal.estimate.trust.Trust`); None where the run was
     written before it existed or measured it on too few held-out rows."""
