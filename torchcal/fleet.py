@@ -219,9 +219,10 @@ def _calibrate(line: Line, out: Path):
     opts = C.Options.of(**({} if line.method is None else {"method": line.method}))
     prior = None
     if line.prior:
-        from torchcal.use.rundir import load_prior
+        from torchcal.use.rundir import check_prior_robot, load_prior
 
         prior = load_prior(line.prior)
+        check_prior_robot(line.prior, robot, line.robot)
     data = read_measurements(
         line.data,
         require_positions=True,
