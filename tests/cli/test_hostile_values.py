@@ -77,6 +77,22 @@ def test_radians_declared_as_degrees_are_refused_by_calibrate(campaign, tmp_path
     assert not (tmp_path / "o").exists()
 
 
+def test_copied_rows_are_refused(campaign, tmp_path, capsys):
+    """own: a file whose rows were pasted twice fitted every row twice and shrank each standard deviation by
+    sqrt(2) without a word; a copy is named with its original (a measurement does not repeat to every digit)."""
+
+    def copy_row(header, body):
+        body.insert(3, list(body[2]))  # next to it: the file's t must not decrease
+
+    data = rewrite(campaign / "train.csv", tmp_path / "copied.csv", copy_row)
+    assert calibrate(data, tmp_path / "o") == 2
+    err = refused(capsys, "copied.csv, line", "repeat another row to the last digit", "remove the copies")
+    head, _, _ = rows(campaign / "train.csv")
+    first = len(head) + 2  # the header's line, then data row 0
+    assert f"the first at line {first + 3} (a copy of line {first + 2})" in err, err
+    assert not (tmp_path / "o").exists()
+
+
 def test_radians_declared_as_degrees_are_refused_by_predict_and_compensate(run_dir, campaign, tmp_path, capsys):
     assert predict(run_dir, campaign / "test.csv", tmp_path / "p.csv", "--angle-unit", "deg") == 2
     refused(capsys, "test.csv, line", "look like radians")

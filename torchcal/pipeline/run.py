@@ -22,7 +22,14 @@ from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import MeasurementFileError, OptionError
-from torchcal.pipeline.checks import MAX_PRIOR_RATIO, MIN_HOLDOUT, check_corrections, check_holdout, check_poses
+from torchcal.pipeline.checks import (
+    MAX_PRIOR_RATIO,
+    MIN_HOLDOUT,
+    check_corrections,
+    check_holdout,
+    check_poses,
+    check_repeated_rows,
+)
 from torchcal.pipeline.integrated import require_trajectory
 from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
 from torchcal.pipeline.options import DEFAULT_METHOD, METHODS, Options
@@ -189,6 +196,7 @@ def start(
     if data.dof != robot.dof:
         raise OptionError(f"data have {data.dof} joints but robot '{robot.name}' has {robot.dof}")
     check_poses(data)
+    check_repeated_rows(data)
     check_stations(data)
     method = METHOD_TABLE[opts.method]
     trajectory = is_trajectory(data) if opts.split.trajectory is None else bool(opts.split.trajectory)
