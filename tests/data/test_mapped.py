@@ -84,6 +84,11 @@ extra: {tau: 8-14}
     _close(out.p, m.p)
     _close(tf.so3_exp(out.r), R, 1e-12)
     _close(torch.stack([out.extra[f"tau{k + 1}"] for k in range(7)], 1), tau)
+    if suffix == ".txt":  # the same poses written column-major: refused on the first row, nothing written
+        rows[:, 14:30] = T.transpose(-1, -2).reshape(m.n, 16).numpy()
+        np.savetxt(tmp_path / "cm.txt", rows, fmt="%.17g", comments="% ")
+        assert convert(map_text, [tmp_path / "cm.txt"], tmp_path / "cm.csv", tmp_path) == 2
+        assert not (tmp_path / "cm.csv").exists()
 
 
 def test_c_yaml_with_one_block_per_placement(tmp_path):

@@ -414,6 +414,22 @@ def _rotation_rows(R: torch.Tensor, table: Table, cols: list[int]) -> torch.Tens
     return matrix_to_rotvec(R)
 
 
+def _check_bottom_row(M: torch.Tensor, table: Table, cols: list[int]) -> None:
+    """A 4x4 pose's last row must be ``0 0 0 1``: written column-major it holds the translation instead, and read
+    row-major every position would be zero and every rotation transposed."""
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=M.dtype)
+    bad = (M[:, 3, :] - bottom).abs().amax(-1) > ROTATION_TOLERANCE
+    if bool(bad.any()):
+        i = int(bad.nonzero()[0, 0])
+        row = " ".join(f"{float(x):g}" for x in M[i, 3])
+        raise MeasurementFileError(
+            table.path,
+            f"columns {cols[0] + 1}..{cols[-1] + 1} are read as a row-major 4x4 pose, whose last row must be "
+            f"0 0 0 1; it is {row} (a matrix written column-major? give its columns in row-major order)",
+            line=table.lines[i],
+        )
+
+
 def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: float):
     """``(p (N, 3) [m] or None, r (N, 3) [rad] or None)`` of one points table for ``position``, ``matrix`` (16 or
     12 values, row-major) or ``quaternion`` (``order: wxyz`` default, or ``xyzw``)."""
@@ -428,6 +444,8 @@ def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: floa
         return v * length, None
     if role_key == "matrix":
         M = v.reshape(-1, len(cols) // 4, 4)
+        if M.shape[1] == 4:
+            _check_bottom_row(M, table, cols)
         return M[:, :3, 3] * length, _rotation_rows(M[:, :3, :3], table, cols)
     order = role.get("order", "wxyz")
     if order not in ("wxyz", "xyzw"):
