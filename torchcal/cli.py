@@ -817,8 +817,9 @@ def _warn_global_test(run) -> None:
     if stat > GLOBAL_TEST_WARN * thr:
         _console.info(
             f"torchcal calibrate: warning: the global test failed by far: variance factor {stat:.4g} against "
-            f"{thr:.3g} ({stat / thr:.0f} x): the model does not describe the data (orientation columns that are "
-            "not the probe's? --tracker-noise far too small?); see report.md"
+            f"{thr:.3g} ({stat / thr:.0f} x): the model does not describe the data (a joint column in degrees "
+            "or another unit? a robot description with a wrong length or angle? orientation columns that are not "
+            "the probe's? --tracker-noise far too small?); see report.md"
         )
 
 
