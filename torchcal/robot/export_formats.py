@@ -106,7 +106,7 @@ def ur_chain_origins(robot: RobotModel) -> torch.Tensor:
         raise RobotSpecError(
             f"robot '{robot.name}': its flange is off the last joint's axis (offset {tip[:2, 3].tolist()} m, axis "
             f"tilted to {tip[:3, 2].tolist()}); the UR description fixes wrist_3_link -> tool0 and cannot hold it: "
-            "export --format urdf or dh"
+            + ("export --format urdf" if robot.kind == "urdf" else "export --format urdf or dh")
         )
     out[5] = out[5] @ tip
     return out
