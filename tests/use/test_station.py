@@ -129,8 +129,11 @@ def test_refuses_too_few_and_collinear_points_and_names_an_outlier(setup):
     with pytest.raises(StationError, match="at least 4 points"):
         fit_station(copy.deepcopy(model), new.subset(idx[:3]), station_options(setup["run"], tool=True))
     same = new.subset(torch.tensor([0, 0, 0, 0]))
-    with pytest.raises(StationError, match="collinear"):
+    with pytest.raises(StationError, match="one and the same point"):
         fit_station(copy.deepcopy(model), same, opts)
+    line = new.subset(torch.tensor([0, 1, 0, 1]))
+    with pytest.raises(StationError, match="collinear"):
+        fit_station(copy.deepcopy(model), line, opts)
     pts = new.subset(idx[:8])
     p = pts.p.clone()
     p[3] += torch.tensor([0.0, 0.0, 0.005], dtype=F64)  # 5 mm off

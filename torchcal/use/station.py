@@ -191,7 +191,7 @@ def placement_std(model: MeasurementModel, station: Station, ctx: Context) -> Te
 
 
 def _check_points(points: Measurements, tool: bool) -> None:
-    n = points.n
+    n, where = points.n, f"{points.source}: " if points.source else ""
     need = 4 if tool else 3
     if n < need:
         what = (
@@ -199,12 +199,14 @@ def _check_points(points: Measurements, tool: bool) -> None:
             if tool
             else "the instrument pose (6 parameters) needs at least 3 points"
         )
-        raise StationError(f"{n} point{'s' if n != 1 else ''} given; {what}")
+        raise StationError(f"{where}{n} point{'s' if n != 1 else ''} given; {what}")
     c = points.p - points.p.mean(0)
     S = torch.linalg.svdvals(c)
-    if float(S[0]) == 0.0 or float(S[1]) < COLLINEAR_RATIO * float(S[0]):
+    if float(S[0]) == 0.0:
+        raise StationError(f"{where}the {n} points are one and the same point: measure points that span a volume")
+    if float(S[1]) < COLLINEAR_RATIO * float(S[0]):
         raise StationError(
-            f"the {n} points are (nearly) collinear (spread {float(S[0]):.3g} along their line, "
+            f"{where}the {n} points are (nearly) collinear (spread {float(S[0]):.3g} along their line, "
             f"{float(S[1]):.3g} across it, singular values in m): a rotation about their line is not fixed; "
             "measure points that span a plane or a volume"
         )
