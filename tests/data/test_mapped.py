@@ -91,6 +91,36 @@ extra: {tau: 8-14}
         assert not (tmp_path / "cm.csv").exists()
 
 
+def test_one_file_per_station_each_with_its_own_joints(tmp_path, capsys):
+    """own: two vendor files, each one station's joints and points. Read with one joints input, the second
+    station's rows took the first file's joints without a word; that is refused now, and ``joints: {input: [1, 2]}``
+    reads each file's own."""
+    m = campaign(tmp_path, "--stations", "2")
+    for k in range(2):
+        rows = (m.station == k).nonzero()[:, 0]
+        body = torch.cat([m.q[rows] * DEG, m.p[rows] * 1e3], 1).tolist()
+        text = "A1;A2;A3;A4;A5;A6;X;Y;Z\n" + "".join(";".join(f"{v:.17g}" for v in r) + "\n" for r in body)
+        (tmp_path / f"s{k + 1}.csv").write_text(text, encoding="utf-8")
+    files = [tmp_path / "s1.csv", tmp_path / "s2.csv"]
+    one = """read: {delimiter: ";"}
+units: {length: mm, angle: deg}
+joints: {columns: [A1, A2, A3, A4, A5, A6]}
+position: {input: [1, 2], columns: [X, Y, Z]}
+station: [S1, S2]
+"""
+    assert convert(one, files, tmp_path / "one.csv", tmp_path) == 2 and not (tmp_path / "one.csv").exists()
+    assert "has its own joint columns A1, A2, A3, A4, A5, A6" in capsys.readouterr().err
+    own = one.replace("joints: {columns:", "joints: {input: [1, 2], columns:")
+    assert convert(own, files, tmp_path / "own.csv", tmp_path) == 0
+    out = torchcal.read_measurements(tmp_path / "own.csv")
+    order = torch.cat([(m.station == k).nonzero()[:, 0] for k in range(2)])
+    _close(out.q, m.q[order], 1e-12)
+    _close(out.p, m.p[order], 1e-12)
+    assert out.station_names == ("S1", "S2") and torch.equal(out.station, m.station[order])
+    swapped = own.replace("position: {input: [1, 2]", "position: {input: [2, 1]")
+    assert convert(swapped, files, tmp_path / "sw.csv", tmp_path) == 2 and not (tmp_path / "sw.csv").exists()
+
+
 def test_c_yaml_with_one_block_per_placement(tmp_path):
     m = campaign(tmp_path, "--stations", "2")
     blocks = [

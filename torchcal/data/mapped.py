@@ -13,7 +13,8 @@
 Columns are 1-based numbers, ranges ``"3-8"``, header names, or lists of them; a YAML row's list value ``q: [..]``
 is the columns ``q[1]``, ``q[2]``, ... and the name ``q`` takes them all. A model joint is ``sign * reading +
 offset`` (offset in the angle unit), in the order the columns are listed. Rows of separate joint and point files pair
-by their order. Every error names the file, line and column; nothing is written before every row has been read.
+by their order; ``joints: {input: [1, 2]}`` reads each points input's own joints. Every error names the file, line
+and column; nothing is written before every row has been read.
 """
 
 from __future__ import annotations
@@ -376,15 +377,23 @@ class _Inputs:
         return self.tables[k]
 
 
-def _joints(doc: dict, inputs: _Inputs, angle: float) -> tuple[Table, torch.Tensor]:
-    """The joints' table and the model joints ``(N, dof)`` [rad]: ``sign * reading + offset`` per listed column."""
+def _joints(doc: dict, inputs: _Inputs, angle: float) -> list[tuple[Table, torch.Tensor]]:
+    """Per joints input, its table and the model joints ``(N, dof)`` [rad]: ``sign * reading + offset`` per listed
+    column. One input pairs with every points input; several (``input: [1, 2]``) are each points input's own."""
     role = _role(doc["joints"], inputs.map_path, doc, "joints")
-    if len(role["input"]) != 1:
-        raise MeasurementFileError(inputs.map_path, "'joints' come from one input", line=_line(doc, "joints"))
-    table = inputs.table(role["input"][0], doc, "joints")
-    cols = columns_of(role["columns"], table, inputs.map_path, "joints.columns", role["line"])
-    raw = numbers(table, cols, inputs.read)
-    dof = len(cols)
+    out = []
+    for k in role["input"]:
+        table = inputs.table(k, doc, "joints")
+        cols = columns_of(role["columns"], table, inputs.map_path, "joints.columns", role["line"])
+        raw = numbers(table, cols, inputs.read)
+        sign, offset = _sign_offset(doc, role, len(cols), inputs)
+        out.append((table, (sign * raw + offset) * angle))
+    return out
+
+
+def _sign_offset(doc: dict, role: dict, dof: int, inputs: _Inputs) -> tuple[torch.Tensor, torch.Tensor]:
+    """``joints.sign`` and ``joints.offset`` (default 1 and 0), checked."""
+    out = []
     for key, default in (("sign", 1.0), ("offset", 0.0)):
         v = role.get(key, [default] * dof)
         ok = isinstance(v, list) and len(v) == dof and all(_to_float(x, {}) is not None for x in v)
@@ -395,8 +404,8 @@ def _joints(doc: dict, inputs: _Inputs, angle: float) -> tuple[Table, torch.Tens
                 line=_line(doc["joints"], key) if isinstance(doc["joints"], dict) else None,
                 column=key,
             )
-        role[key] = torch.tensor([float(x) for x in v], dtype=F64)
-    return table, (role["sign"] * raw + role["offset"]) * angle
+        out.append(torch.tensor([float(x) for x in v], dtype=F64))
+    return out[0], out[1]
 
 
 def _rotation_rows(R: torch.Tensor, table: Table, cols: list[int]) -> torch.Tensor:
@@ -469,9 +478,10 @@ def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: floa
     return None, matrix_to_rotvec(R)
 
 
-def _points(doc: dict, inputs: _Inputs, joints: Table, length: float) -> list[tuple[int, Table, dict]]:
+def _points(doc: dict, inputs: _Inputs, joint_tables: list[Table], length: float) -> list[tuple[int, Table, dict]]:
     """Per points input ``(input number, table, {"p": .., "r": ..})``; every table pairs row by row with the
-    joints' (the same table, or as many rows)."""
+    joints' (the same table, or as many rows): the one joints input's, or with several its own input's."""
+    joints = joint_tables[0]
     keys = [k for k in ("position", "matrix", "quaternion") if k in doc]
     if "matrix" in keys and len(keys) > 1:
         raise MeasurementFileError(inputs.map_path, "a 'matrix' holds position and orientation: give it alone")
@@ -480,9 +490,12 @@ def _points(doc: dict, inputs: _Inputs, joints: Table, length: float) -> list[tu
     if len(given) > 1:
         raise MeasurementFileError(inputs.map_path, f"{' and '.join(keys)} must read the same inputs")
     numbers_in = list(next(iter(given))) if given and next(iter(given)) else [inputs.paths.index(joints.path) + 1]
+    if len(joint_tables) > 1:
+        _check_own_joints(doc, inputs, joint_tables, numbers_in)
     out = []
-    for k in numbers_in:
+    for i, k in enumerate(numbers_in):
         table = inputs.table(k, doc, keys[0] if keys else "joints")
+        joints = joint_tables[i] if len(joint_tables) > 1 else joint_tables[0]
         if len(table.rows) != len(joints.rows):
             raise MeasurementFileError(
                 table.path,
@@ -495,6 +508,18 @@ def _points(doc: dict, inputs: _Inputs, joints: Table, length: float) -> list[tu
             pose["r"] = r if r is not None else pose["r"]
         out.append((k, table, pose))
     return out
+
+
+def _check_own_joints(doc: dict, inputs: _Inputs, joint_tables: list[Table], numbers_in: list[int]) -> None:
+    """Several joints inputs are each points input's own: the same inputs, in the same order."""
+    own = [inputs.paths.index(t.path) + 1 for t in joint_tables]
+    if own != numbers_in:
+        raise MeasurementFileError(
+            inputs.map_path,
+            f"'joints' reads inputs {own} and the points inputs {numbers_in}: several joints inputs are each points "
+            "input's own (list the same inputs in the same order), one joints input pairs with every points input",
+            line=_line(doc, "joints"),
+        )
 
 
 def _label_cell(cell) -> str:
@@ -595,6 +620,44 @@ def _distinct_inputs(doc: dict, numbers: list[int], inputs: _Inputs) -> None:
         seen[names] = i
 
 
+def _check_unpaired_joints(doc: dict, inputs: _Inputs, joints: tuple, points: list) -> None:
+    """Refuse a points input of its own that holds the joints' columns (by header name) with other values than the
+    one joints input: each such file carries its own joints, and pairing its rows with another file's joints
+    would give them the wrong poses without a word (``joints: {input: [..]}`` reads each input's own)."""
+    table, q = joints
+    role = _role(doc["joints"], inputs.map_path, doc, "joints")
+    names = role["columns"] if isinstance(role["columns"], list) else [role["columns"]]
+    if not all(isinstance(n, str) and not re.fullmatch(r"[\d\s-]+", n) for n in names):
+        return  # columns by number say nothing of what another file's columns are
+    for k, other, _ in points:
+        if other is table or other.header is None or not all(n in other.header for n in names):
+            continue
+        cols = columns_of(role["columns"], other, inputs.map_path, "joints.columns", role["line"])
+        raw = numbers(other, cols, inputs.read)
+        mine = numbers(table, columns_of(role["columns"], table, inputs.map_path, "joints.columns"), inputs.read)
+        if raw.shape == mine.shape and not torch.equal(raw, mine):
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"input {k} ({other.path}) has its own joint columns {', '.join(names)}, with other readings than "
+                f"the joints' input {table.path}, whose joints its rows would take: write 'joints: {{input: "
+                f"[..]}}' with each points input to read its own joints",
+                line=_line(doc, "joints"),
+                column="joints",
+            )
+
+
+def _paired_joints(doc: dict, inputs: _Inputs, joints: list, k: int) -> tuple[torch.Tensor, dict, tuple]:
+    """Every output row's joints, extra columns and source line: one joints input's for each of the ``k`` points
+    inputs in turn, or each points input's own."""
+    if len(joints) == 1:
+        table, q = joints[0]
+        extra = {n: v.repeat(k) for n, v in _extra(doc, table, inputs).items()}
+        return q.repeat(k, 1), extra, tuple(table.lines) * k
+    parts = [_extra(doc, table, inputs) for table, _ in joints]
+    extra = {n: torch.cat([part[n] for part in parts]) for n in parts[0]}
+    return torch.cat([q for _, q in joints]), extra, tuple(line for table, _ in joints for line in table.lines)
+
+
 def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements:
     """The measurements the MAP reads from ``paths`` (the INPUT files, numbered from 1), in SI units.
 
@@ -608,14 +671,15 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
     units = doc.get("units", {})
     length, angle = LENGTH[units.get("length", "m")], ANGLE[units.get("angle", "rad")]
     inputs = _Inputs(str(map_path), [str(p) for p in paths], doc.get("read", {}))
-    table, q = _joints(doc, inputs, angle)
-    points = _points(doc, inputs, table, length)
+    joints = _joints(doc, inputs, angle)
+    points = _points(doc, inputs, [t for t, _ in joints], length)
     if len(points) > 1 and doc.get("probe") is None and doc.get("station") is None:
         raise MeasurementFileError(
             inputs.map_path, "the points come from several inputs: name them, 'probe: [..]' or 'station: [..]'"
         )
-    k = len(points)
-    extra = {n: v.repeat(k) for n, v in _extra(doc, table, inputs).items()}
+    if len(joints) == 1:
+        _check_unpaired_joints(doc, inputs, joints[0], points)
+    q, extra, lines = _paired_joints(doc, inputs, joints, len(points))
     cat = [pose[key] for _, _, pose in points for key in ("p", "r")]
     p = torch.cat([pose["p"] for _, _, pose in points]) if cat[0] is not None else None
     r = torch.cat([pose["r"] for _, _, pose in points]) if cat[1] is not None else None
@@ -626,13 +690,13 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
             labels[key], labels[f"{key}_names"] = labels_of(names)
     _distinct_inputs(doc, [n for n, _, _ in points], inputs)  # after _labels: the lists' lengths are checked
     return Measurements(
-        q=q.repeat(k, 1),
+        q=q,
         p=p,
         r=r,
         t=extra.pop("t", None),
         temperature=extra.pop("temperature", None),
         extra=extra,
-        lines=tuple(table.lines) * k,
+        lines=lines,
         meta={"converted_from": ", ".join(Path(x).name for x in paths)},
         **labels,
     )
