@@ -190,6 +190,18 @@ def test_bad_input_names_file_line_and_column_and_writes_nothing(tmp_path, capsy
         assert not (tmp_path / "out.csv").exists()
     assert main(["convert", str(tmp_path / "data.csv"), "--out", str(tmp_path / "out.csv")]) == 2
     assert "one of --map" in capsys.readouterr().err
+    # own: each of these was converted, to a file without rows, from the first of two columns named alike, or with
+    # a delimiter that is also the decimal mark
+    files = {
+        "header.csv": ("J1,J2,X,Y,Z\n", good, "header.csv: a header and no rows"),
+        "twice.csv": ("J1,J1,X,Y,Z\n1,2,3,4,5\n", good, "column 'J1': joints.columns: the header names column 'J1' 2"),
+        "commas.csv": ("J1,J2,X,Y,Z\n1,2,3,4,5\n", 'read: {delimiter: ",", decimal: ","}\n' + good, "cannot be told"),
+    }
+    for name, (text, map_text, message) in files.items():
+        (tmp_path / name).write_text(text, encoding="utf-8")
+        assert convert(map_text, [tmp_path / name], tmp_path / "out.csv", tmp_path) == 2
+        assert message in capsys.readouterr().err, name
+        assert not (tmp_path / "out.csv").exists()
 
 
 def test_quaternions_in_either_order_and_a_probe_column(tmp_path):

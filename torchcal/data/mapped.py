@@ -140,6 +140,11 @@ def read_map(path: str | os.PathLike) -> dict:
                 line=_line(doc["read"], key),
                 column=key,
             )
+    read = doc.get("read", {})
+    if read.get("decimal") == "," and read.get("delimiter") == ",":
+        raise MeasurementFileError(
+            path, "read: a ',' delimiter with a ',' decimal mark cannot be told apart", line=_line(doc, "read")
+        )
     units = doc.get("units", {})
     for key, table in (("length", LENGTH), ("angle", ANGLE)):
         if units.get(key, "m" if key == "length" else "rad") not in table:
@@ -232,6 +237,8 @@ def _text_table(path: str, read: dict) -> Table:
         header = any(_to_float(c, read) is None for c in first)
     names = first if header else None
     rows = body[1:] if header else body
+    if not rows:
+        raise MeasurementFileError(path, "a header and no rows")
     return Table(path, names, [_split(ln, delimiter) for _, ln in rows], [k for k, _ in rows], [None] * len(rows))
 
 
@@ -321,6 +328,12 @@ def columns_of(spec, table: Table, map_path: str, where: str, line: int | None =
         return [c for s in spec for c in columns_of(s, table, map_path, where, line)]
     header = table.header or []
     if isinstance(spec, str) and spec in header:
+        if header.count(spec) > 1:  # the first would be taken without a word
+            raise MeasurementFileError(
+                table.path,
+                f"{where}: the header names column {spec!r} {header.count(spec)} times: rename them",
+                column=spec,
+            )
         return [header.index(spec)]
     if isinstance(spec, str) and any(h.startswith(f"{spec}[") for h in header):
         return [i for i, h in enumerate(header) if re.fullmatch(rf"{re.escape(spec)}\[\d+\]", h)]
