@@ -289,6 +289,18 @@ def test_export_into_a_missing_directory(oriented, tmp_path, fmt):
     assert out.read_text().startswith("# written_by: torchcal") or "<robot" in out.read_text()
 
 
+def test_compensate_and_convert_into_a_missing_directory(oriented, tmp_path):
+    """own: compensate and convert refused an --out in folders that do not exist yet, where predict, plan, export
+    and simulate make them; now every command makes them (at the end, when the work succeeded)."""
+    out = tmp_path / "no" / "such" / "joints.csv"
+    assert run_cli(["compensate", str(oriented / "cal"), str(oriented / "sim" / "test.csv"), "--out", str(out)]) == 0
+    assert out.is_file()
+    (tmp_path / "map.yaml").write_text("joints: 1-6\nposition: 7-9\n", encoding="utf-8")
+    out = tmp_path / "new" / "converted.csv"
+    argv = ["convert", "--map", str(tmp_path / "map.yaml"), str(oriented / "sim" / "test.csv"), "--out", str(out)]
+    assert run_cli(argv) == 0 and out.is_file()
+
+
 @pytest.mark.parametrize("damage", ["model.pt", "model.json", "robot"])
 def test_export_of_a_damaged_run(oriented, tmp_path, capsys, damage):
     import shutil

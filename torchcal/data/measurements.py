@@ -1165,6 +1165,7 @@ def _atomic_write(path: str, head: list[str], rows: list[list[float]]) -> None:
     target = Path(path)
     tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
     try:
+        target.parent.mkdir(parents=True, exist_ok=True)  # a new folder, as every command's --out makes it
         # os.open with 0o666 lets the umask decide the permissions, as for a plain open().
         fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
     except OSError as err:

@@ -1044,8 +1044,7 @@ def write_joints(
     lines.append(",".join([c for c, _ in text] + ["status"]) + "\n")
     for i, st in enumerate(result.status):
         lines.append(",".join(v[i] for _, v in text) + f",{st.value}\n")
-    if not path.parent.is_dir():
-        raise OptionError(f"{path}: cannot write, directory '{path.parent}' does not exist")
+    path.parent.mkdir(parents=True, exist_ok=True)  # as predict, plan and export make theirs: at the end, on success
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
