@@ -18,7 +18,7 @@ from torchcal.estimate.fit import errors
 from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline.prior import MOVED_SIGMAS
 from torchcal.report.rundir import write_run
-from torchcal.sim import SimConfig, simulate
+from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.use.rundir import load_prior
 
 SHIFT = 2e-3  # rad on joint 2's readings
@@ -167,3 +167,23 @@ def test_an_update_names_what_the_prior_run_held_as_what_it_cannot_tell(tmp_path
     assert "theta2" in held and "theta2" in up.to_dict()["confounded"] and "theta2" not in up.moved
     assert held["theta2"]["absorbed_by"] and all(n in prior.sigma for n in held["theta2"]["absorbed_by"])
     assert not {"d1", "theta1", "a6", "d6", "theta6"} & set(held)
+
+
+def test_an_update_reports_the_effects_it_carries(tmp_path):
+    """A default-method run that named a compliance, updated from 10 rows: the update's model carries the
+    compliance as it was fitted, and report.json's ``effects`` says so (it was empty, as if the model were
+    geometry alone), each marked ``carried_from_prior``; report.md's table too."""
+    effects = [EffectSpec.parse("compliance:2=200um")]
+    c = simulate(SimConfig(robot="ur5", poses=80, test_poses=20, seed=2, effects=effects))
+    run = calibrate("ur5", c.train, Options())
+    assert any(r.name.startswith("compliance") for r in run.effects), [r.name for r in run.effects]
+    d = write_run(run, tmp_path / "before")
+    write_measurements(tmp_path / "ten.csv", c.test.subset(torch.arange(10)))
+    out = tmp_path / "up"
+    assert main(["calibrate", str(tmp_path / "ten.csv"), "--robot", "ur5", "--prior", str(d), "--out", str(out)]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    before = json.loads((d / "report.json").read_text())["effects"]
+    assert [e["kind"] for e in rep["effects"]] == [e["kind"] for e in before]
+    assert rep["effects"][0]["kind"] == "compliance"
+    assert all(e["carried_from_prior"] == str(d) for e in rep["effects"])
+    assert "(the prior run's, held; its RMSE)" in (out / "report.md").read_text()

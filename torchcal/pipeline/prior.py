@@ -72,6 +72,8 @@ class Prior:
     #: the geometric elements the prior run held (free in its parameterisation, absent from its covariance): the
     #: update holds them too, so it cannot name their move (:func:`torchcal.pipeline.priorheld.held_untold`)
     held: tuple[str, ...] = ()
+    #: the prior run's report.json ``effects``: the update carries its effects, held as they were fitted
+    effects: tuple[dict, ...] = ()
 
     @property
     def fit_sigma(self) -> dict[str, float]:

@@ -335,8 +335,9 @@ def _effects_section(effects: list) -> list[str]:
             for k, v in e["params"].items()
             if isinstance(v, dict) and "value" in v
         )
+        kind = f"{e['kind']} (the prior run's, held; its RMSE)" if e.get("carried_from_prior") else e["kind"]
         lines.append(
-            f"| {e['kind']} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
+            f"| {kind} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
             f"{e['rmse_before_mm']:.4f} | {e['rmse_after_mm']:.4f} |"
         )
     return lines

@@ -190,7 +190,7 @@ def build_report(run: CalibrationRun) -> dict:
             "joint_sigma_rad": run.options.fit.sigma_joint,
         },
         "outliers": _json_safe(outliers),
-        "effects": _json_safe(run.effects_report),
+        "effects": _json_safe(run.effects_report + _carried_effects(run)),
         "rejected": _json_safe(run.rejected),
         "diagnosis": _json_safe(run.diagnosis.to_dict()) if run.diagnosis is not None else None,
         # structure the final model leaves (CONTRACT §4; empty when the global test passes or no loop ran)
@@ -323,6 +323,15 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     }
     (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return tmp
+
+
+def _carried_effects(run) -> list[dict]:
+    """A calibration from a prior run: the prior's effects, which its model carries as they were fitted, each marked
+    ``carried_from_prior`` (they were not found or refitted on these rows)."""
+    prior = getattr(run, "prior", None)
+    if prior is None:
+        return []
+    return [{**e, "carried_from_prior": prior.source} for e in prior.effects]
 
 
 def _single_labels(run) -> dict:

@@ -231,15 +231,19 @@ def load_prior(run_dir: str | os.PathLike) -> Prior:
             "fitted to the nominal geometry, which an update moves); calibrate the new rows with --method pcm, or "
             "use a kinematic or default-method run as the prior"
         )
-    s0_sq = 1.0
+    s0_sq, effects = 1.0, ()
     if (run_dir / "report.json").exists():
         rep = load_json(run_dir / "report.json", "report.json", lambda m: _run_error(run_dir, f"report.json {m}"))
         stat = rep.get("global_test", {}).get("statistic") if isinstance(rep, dict) else None
         if isinstance(stat, (int, float)) and math.isfinite(stat) and stat > 0:
             s0_sq = float(stat)
+        found = rep.get("effects") if isinstance(rep, dict) else None
+        if isinstance(found, list) and meta["effects"]:
+            effects = tuple(e for e in found if isinstance(e, dict))
     from torchcal.pipeline import prior_from_run
 
-    return prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
+    prior = prior_from_run(model, load_covariance(run_dir, model), str(run_dir), s0_sq)
+    return dataclasses.replace(prior, effects=effects)
 
 
 def check_prior_robot(run_dir: str | os.PathLike, robot, given: str) -> None:
