@@ -187,3 +187,18 @@ def test_an_update_reports_the_effects_it_carries(tmp_path):
     assert rep["effects"][0]["kind"] == "compliance"
     assert all(e["carried_from_prior"] == str(d) for e in rep["effects"])
     assert "(the prior run's, held; its RMSE)" in (out / "report.md").read_text()
+
+
+def test_a_move_no_poses_tell_from_a_held_element_names_both(before, tmp_path):
+    """Joint 1's zero shifted by 2 mrad: a turn of joint 1's zero is a turn of the base, so the prior run held theta1
+    (dependent on the instrument's rz) and the update moves instrument.rz. It says that theta1 may be what moved
+    (a user read "the tracker moved"), in report.json, report.md and the notes."""
+    c, _, d = before
+    q = c.train.q[:10].clone()
+    q[:, 0] += SHIFT
+    write_measurements(tmp_path / "j1.csv", dataclasses.replace(c.train.subset(torch.arange(10)), q=q))
+    out = tmp_path / "up"
+    assert main(["calibrate", str(tmp_path / "j1.csv"), "--robot", "ur10", "--prior", str(d), "--out", str(out)]) == 0
+    pr = json.loads((out / "report.json").read_text())["prior"]
+    assert pr["moved"] == ["instrument.rz"] and pr["moved_or_held_alike"] == {"instrument.rz": ["theta1"]}
+    assert "instrument.rz (or theta1, which no poses tell from it)" in (out / "report.md").read_text()

@@ -42,8 +42,8 @@ from torchcal.pipeline.holdout import guard_stages, refit_kinematic
 from torchcal.pipeline.integrated import integrated_stage
 from torchcal.pipeline.learned import correction_net_stage, learned_stage
 from torchcal.pipeline.loop import close_loop
-from torchcal.pipeline.prior import MAX_RELEASED, MOVED_SIGMAS, prior_update, release
-from torchcal.pipeline.priorheld import held_untold
+from torchcal.pipeline.prior import MAX_RELEASED, MOVED_SIGMAS, moved_words, prior_update, release
+from torchcal.pipeline.priorheld import held_alike, held_untold
 from torchcal.pipeline.records import Note, StageName
 from torchcal.pipeline.state import CalibrationRun, StageFn, StageResult, StageWork
 
@@ -195,8 +195,11 @@ def prior_moved(run: CalibrationRun) -> StageResult:
     """What the new poses changed of the prior run: each parameter's change in its prior sigmas, and the moved ones
     (:func:`~torchcal.pipeline.prior.prior_update`)."""
     update = prior_update(run.prior, run.model)
-    update = dataclasses.replace(update, detect=_detectability(run, update))
-    notes = [f"prior: moved beyond {update.threshold:g} prior sigma: {', '.join(update.moved) or 'none'}"]
+    alike = held_alike(run, list(run.fits[-1].free.names)) if update.moved else {}
+    alike = tuple((n, tuple(alike[n])) for n in update.moved if alike.get(n))
+    update = dataclasses.replace(update, detect=_detectability(run, update), alike=alike)
+    told = moved_words(update.moved, dict(alike)) or "none"
+    notes = [f"prior: moved beyond {update.threshold:g} prior sigma: {told}"]
     if update.detect is not None and update.detect.untold:
         notes[0] += " of what these rows can tell"
         notes += untold_messages(update.detect)

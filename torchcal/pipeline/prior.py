@@ -207,6 +207,8 @@ class PriorUpdate:
     threshold: float = MOVED_SIGMAS
     #: whether the rows could have told a move of each parameter (None: not analysed)
     detect: Detectability | None = None
+    #: per moved element, the elements the prior run held that no poses tell from it (any of them may have moved)
+    alike: tuple[tuple[str, tuple[str, ...]], ...] = ()
 
     @property
     def worst(self) -> str | None:
@@ -222,12 +224,19 @@ class PriorUpdate:
             "inflation": INFLATION,
             "s0": self.s0,
             "moved": list(self.moved),
+            **({"moved_or_held_alike": {n: list(a) for n, a in self.alike}} if self.alike else {}),
             "released": list(self.released),
             "parameters": [dict(r) for r in self.rows],
             # what the rows cannot tell and where its move would go, at the top: "moved" is the rest of the answer
             **({"confounded": self.detect.confounded} if self.detect is not None else {}),
             **({"detectability": self.detect.to_dict()} if self.detect is not None else {}),
         }
+
+
+def moved_words(moved, alike: dict) -> str:
+    """The moved elements in words, each with the held ones no poses tell from it (``alike``); empty: none."""
+    told = [n + (f" (or {', '.join(alike[n])}, which no poses tell from it)" if n in alike else "") for n in moved]
+    return ", ".join(told)
 
 
 def prior_update(prior: Prior, model: MeasurementModel) -> PriorUpdate:

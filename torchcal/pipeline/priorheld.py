@@ -59,6 +59,30 @@ def _spread(m, limits: Tensor):
     return dataclasses.replace(rows, q=limits[:, 0] + u * (limits[:, 1] - limits[:, 0]), t=None)
 
 
+def _structural(run, free: list[str], held: list[str]) -> dict[str, list[str]]:
+    """The held elements no poses tell from the free ones (the structural test over poses spread in the joint
+    limits), each with the free elements its move is (``depends_on``)."""
+    opts = run.options.fit
+    J, cols = _jacobian(run.model, free + held, _spread(run.train, run.model.robot.limits), opts, False)
+    ida = analyse(J, cols, [cols.index(n) for n in free] + [cols.index(n) for n in held], tol=opts.rank_tol)
+    return {f["name"]: list(f.get("depends_on") or []) for f in ida.fixed if f["independence"] <= opts.rank_tol}
+
+
+def held_alike(run, free_names: list[str]) -> dict[str, list[str]]:
+    """Per free element, the elements the prior run held that no poses tell from it (``theta1`` and the instrument's
+    ``rz``: a turn of joint 1's zero is a turn of the base): where it moved, any of them may have."""
+    prior = run.prior
+    group = {i.name: i.group for i in run.model.robot.parameter_info()}
+    free = [n for n in free_names if n in prior.sigma and group.get(n) in GEOMETRIC_GROUPS]
+    if not prior.held or not free:
+        return {}
+    out: dict[str, list[str]] = {}
+    for name, deps in _structural(run, free, list(prior.held)).items():
+        for d in deps:
+            out.setdefault(d, []).append(name)
+    return out
+
+
 def held_untold(run, free_names: list[str], k: float) -> list[dict]:
     """The elements the prior run held (:attr:`Prior.held`) whose move an update from it cannot see: each with the
     free elements a move of ``k`` a-priori sigmas of a calibration from scratch goes to (``absorbed_by``, at least
@@ -71,10 +95,7 @@ def held_untold(run, free_names: list[str], k: float) -> list[dict]:
     free = [n for n in free_names if n in prior.sigma and group.get(n) in GEOMETRIC_GROUPS]
     if not held or not free:
         return []
-    names = free + held
-    J, cols = _jacobian(run.model, names, _spread(run.train, run.model.robot.limits), opts, False)
-    ida = analyse(J, cols, [cols.index(n) for n in free] + [cols.index(n) for n in held], tol=opts.rank_tol)
-    structural = {f["name"] for f in ida.fixed if f["independence"] <= opts.rank_tol}
+    structural = set(_structural(run, free, held))
     held = [n for n in held if n not in structural]
     if not held:
         return []

@@ -8,6 +8,7 @@ from pathlib import Path
 import torch
 
 from torchcal.pipeline import CalibrationRun
+from torchcal.pipeline.prior import moved_words
 from torchcal.report._figures import TITLE_Y, save, subplots
 from torchcal.report.ekf_plots import ekf_section
 
@@ -348,7 +349,7 @@ def _prior_section(report: dict) -> list[str]:
     pr = report.get("prior")
     if pr is None:
         return []
-    moved = ", ".join(pr["moved"]) or "nothing"
+    moved = moved_words(pr["moved"], pr.get("moved_or_held_alike") or {}) or "nothing"
     if (pr.get("detectability") or {}).get("cannot_tell"):
         moved += " of what these rows can tell (below: what they cannot)"
     lines = [
