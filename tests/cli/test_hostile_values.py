@@ -93,6 +93,20 @@ def test_copied_rows_are_refused(campaign, tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_one_wrong_reading_in_data_of_two_stations_is_named(tmp_path, capsys):
+    """own: with several stations the gross-error screening does not run, and one joint reading of 0 for -1.2 rad
+    pulled the geometry into corrections hundreds of times their priors; the refusal spoke of a wrong robot alone.
+    It now names the row that stands out."""
+    from _cli import cli_simulate
+
+    assert cli_simulate(tmp_path / "sim", "--poses", "60", "--test-poses", "5", "--stations", "2", "--seed", "1") == 0
+    data = rewrite(tmp_path / "sim" / "train.csv", tmp_path / "bad.csv", set_cell(3, "q2", "0.0"))
+    head, _, _ = rows(data)
+    assert calibrate(data, tmp_path / "o") == 2
+    refused(capsys, "many times their a-priori size", f"Or one bad row: line {len(head) + 5} misses by")
+    assert not (tmp_path / "o").exists()
+
+
 def test_radians_declared_as_degrees_are_refused_by_predict_and_compensate(run_dir, campaign, tmp_path, capsys):
     assert predict(run_dir, campaign / "test.csv", tmp_path / "p.csv", "--angle-unit", "deg") == 2
     refused(capsys, "test.csv, line", "look like radians")

@@ -11,7 +11,7 @@ from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import EstimationError, MeasurementFileError, OptionError
-from torchcal.estimate.fit import Fit, prior_ratios, prior_scales
+from torchcal.estimate.fit import Fit, errors, prior_ratios, prior_scales
 from torchcal.pipeline.options import Options
 
 #: fewest held-out poses a run reports an error on
@@ -125,6 +125,28 @@ def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Me
         f"{data.source or 'the measurements'}: the geometric fit of robot '{model.robot.name}' needs corrections "
         f"many times their a-priori size: {', '.join(listed)} (limits: {MAX_PRIOR_RATIO['m']:g} x for lengths, "
         f"{MAX_PRIOR_RATIO['rad']:g} x for angles, {MAX_PRIOR_RATIO['1']:g} x for readings ratios). {cause}"
+        + _standing_out(model, data)
+    )
+
+
+#: a row whose miss after the failed fit is this many times the median row's is named as a likely gross error
+STANDS_OUT = 8.0
+
+
+def _standing_out(model: MeasurementModel, data: Measurements) -> str:
+    """The row the failed fit misses most, where it stands out from the rest (:data:`STANDS_OUT` x the median):
+    one wrong reading pulls the geometry too, and the gross-error screening does not run on several stations."""
+    e = errors(model, data, False).detach().cpu()
+    if len(e) < 3:
+        return ""
+    worst, med = int(e.argmax()), float(e.median())
+    if not float(e[worst]) > STANDS_OUT * max(med, 1e-12):
+        return ""
+    where = f"line {data.lines[worst]}" if data.lines else f"row {worst + 1}"
+    return (
+        f". Or one bad row: {where} misses by {float(e[worst]) * 1e3:.3g} mm, {float(e[worst]) / med:.0f} x the "
+        f"median row's {med * 1e3:.3g} mm (a wrong reading there? the gross-error screening does not run on data "
+        "of several stations)"
     )
 
 
