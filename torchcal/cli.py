@@ -1218,7 +1218,7 @@ def _plan_run(args):
 def cmd_plan(args) -> int:
     from torchcal.data import Measurements, read_measurements, write_measurements
     from torchcal.effects import MeasurementModel
-    from torchcal.use.plan import PlanOptions, plan_poses, sample_candidates
+    from torchcal.use.plan import PlanOptions, distinct_poses, plan_poses, sample_candidates
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
@@ -1253,7 +1253,9 @@ def cmd_plan(args) -> int:
     if args.candidates is not None:
         data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
         check_header_robot(data, robot_name, robot, f"--robot {robot_name}")
-        q = data.q
+        q = distinct_poses(data.q)  # a file of several probes has a row per probe and pose: a plan chooses poses
+        if len(q) < data.n:
+            _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
         source = args.candidates
     else:
         _console.info(f"sampling {args.pool} candidate poses the tracker sees (seed {args.seed})")

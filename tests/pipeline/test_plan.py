@@ -56,6 +56,20 @@ def test_plan_end_to_end_into_calibrate(campaign, tmp_path):
     assert code == 0 and read_measurements(out2, dof=6, require_positions=False).n == 20
 
 
+def test_candidates_of_several_probes_are_poses_once(tmp_path, capsys):
+    """own: a candidates file of 20 poses measured with two probes (a row per probe and pose) was planned as 40
+    poses, --n 30 giving 10 poses twice; each pose counts once, and --n 30 is refused as more than the 20 poses."""
+    q = sample_joints(load_robot("ur5"), 20, torch.Generator().manual_seed(0))
+    rows = Measurements(q=q.repeat_interleave(2, dim=0), probe=torch.tensor([0, 1] * 20), probe_names=("A", "B"))
+    write_measurements(tmp_path / "cand.csv", rows)
+    argv = ["plan", "--robot", "ur5", "--candidates", str(tmp_path / "cand.csv"), "--out", str(tmp_path / "p.csv")]
+    assert main([*argv, "--n", "30"]) == 2 and "more than the 20 candidates" in capsys.readouterr().err
+    assert main([*argv, "--n", "12"]) == 0
+    assert "20 candidate rows repeat another row's joints" in capsys.readouterr().err
+    planned = read_measurements(tmp_path / "p.csv", dof=6, require_positions=False)
+    assert planned.n == 12 and len(torch.unique(planned.q, dim=0)) == 12
+
+
 def test_plan_refuses_what_it_cannot_do(tmp_path):
     assert main(["plan", "--n", "5", "--out", str(tmp_path / "x.csv"), "--quiet"]) == 2  # no robot
     model = MeasurementModel(load_robot("ur5"))

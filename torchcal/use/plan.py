@@ -334,6 +334,15 @@ def identifying_prefix(
     return sizes[lo]
 
 
+def distinct_poses(q: Tensor) -> Tensor:
+    """The rows of ``q (N, dof)`` with joints no earlier row has, in their order."""
+    _, inverse = torch.unique(q, dim=0, return_inverse=True)
+    first: dict[int, int] = {}
+    for i, g in enumerate(inverse.tolist()):
+        first.setdefault(g, i)
+    return q[sorted(first.values())]
+
+
 def sample_candidates(
     model: MeasurementModel, n: int, seed: int, tracker_in_base: Tensor | None = None, lever: Tensor | None = None
 ) -> Tensor:
