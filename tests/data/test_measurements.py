@@ -561,8 +561,12 @@ def test_write_is_atomic(tmp_path, monkeypatch):
 
 
 def test_write_into_missing_directory(tmp_path):
+    """The folder is made, as every command's --out makes it; a path under a file cannot be written."""
+    write_measurements(tmp_path / "missing" / "out.csv", random_measurements())
+    assert read_measurements(tmp_path / "missing" / "out.csv").n == random_measurements().n
+    (tmp_path / "a_file").write_text("x\n")
     with pytest.raises(MeasurementFileError, match="cannot write"):
-        write_measurements(tmp_path / "missing" / "out.csv", random_measurements())
+        write_measurements(tmp_path / "a_file" / "out.csv", random_measurements())
 
 
 # --------------------------------------------------------------------------- the dataclass
