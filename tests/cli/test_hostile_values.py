@@ -222,7 +222,9 @@ def dh(tmp_path: Path, text: str, name: str = "r.yaml") -> Path:
         # item 22: YAML 1.2 floats are numbers (YAML 1.1 read 1.0e300 as text), then refused for their size
         ("d: 0.1,", "d: 1.0e300,", r"'d' = 1e\+300 m is beyond 1000 m"),
         # own: an angle of 1e300 (its sine is noise)
-        ("theta: 0.0}\n  - {a: 0.3", "theta: 1e300}\n  - {a: 0.3", "'theta' = 1e\\+300 rad is beyond 100 rad"),
+        ("theta: 0.0}\n  - {a: 0.3", "theta: 1e300}\n  - {a: 0.3", "'theta' = 1e\\+300 rad is beyond 6.283 rad"),
+        # own: an angle in degrees (alpha -90 for -pi/2 passed every check and bent the fit 26.6 deg)
+        ("alpha: 1.5707963267948966", "alpha: 90", r"'alpha' = 90 rad is beyond 6.283 rad.*\(a value in degrees\?\)"),
         # own: a NUL and a line break in the robot's name
         ("name: two", 'name: "t\\0wo"', r"robot name 't\\x00wo' holds control characters"),
         ("name: two", 'name: "two\\n# robot: ur10"', r"robot name 'two\\n# robot: ur10' holds control characters"),
@@ -285,7 +287,7 @@ JOINT = (
                 "extra_joint": '<joint name="j5" type="fixed"><parent link="tool"/><child link="l3"/>'
                 '<origin xyz="0 0 0" rpy="0 1e300 0"/></joint><link name="l3"/>'
             },
-            "joint 'j5': <origin rpy=\"0 1e300 0\"> is beyond 100 rad",
+            "joint 'j5': <origin rpy=\"0 1e300 0\"> is beyond 6.283 rad",
         ),
         # own: two links of one name
         ({"extra_joint": '<link name="l1"/>'}, "link name 'l1' occurs twice"),

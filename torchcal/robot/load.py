@@ -182,9 +182,10 @@ JOINT_TYPES = ("revolute", "prismatic")
 PRISMATIC_DEFAULT_REACH = 10.0
 
 #: Largest length [m] and angle [rad] a robot description may hold: a robot is not a kilometre long, and an angle
-#: beyond a few turns is a typo (its sine and cosine would be noise)
+#: beyond one turn is degrees written as radians (-90 for -pi/2: within 300 prior sigmas of nothing, it passed
+#: the wrong-robot stop and bent the fit) or a typo
 MAX_DESCRIPTION_LENGTH = 1000.0
-MAX_DESCRIPTION_ANGLE = 100.0
+MAX_DESCRIPTION_ANGLE = 2 * math.pi + 1e-9
 
 
 def _safe_name(path, what: str, name) -> str:
@@ -332,7 +333,9 @@ def _dh_joint(path: Path, i: int, j) -> _DHJoint:
         )
     beta = _number(path, where, "beta", j.get("beta", 0.0))
     if abs(beta) > MAX_DESCRIPTION_ANGLE:
-        raise RobotSpecError(f"{path}: {where}: 'beta' = {j['beta']!r} rad is beyond {MAX_DESCRIPTION_ANGLE:g} rad")
+        raise RobotSpecError(
+            f"{path}: {where}: 'beta' = {j['beta']!r} rad is beyond {MAX_DESCRIPTION_ANGLE:.4g} rad (in degrees?)"
+        )
     kind = j.get("type", "revolute")
     if kind not in JOINT_TYPES:
         raise RobotSpecError(f"{path}: {where}: type {kind!r} is not one of {', '.join(JOINT_TYPES)}")
@@ -345,8 +348,8 @@ def _dh_joint(path: Path, i: int, j) -> _DHJoint:
         if abs(dh[key]) > bound:
             unit = "m" if key in ("a", "d") else "rad"
             raise RobotSpecError(
-                f"{path}: {where}: '{key}' = {j[key]!r} {unit} is beyond {bound:g} {unit}; lengths are metres and "
-                "angles radians"
+                f"{path}: {where}: '{key}' = {j[key]!r} {unit} is beyond {bound:.4g} {unit}; lengths are metres and "
+                "angles radians" + (" (a value in degrees?)" if unit == "rad" else "")
             )
     reach = PRISMATIC_DEFAULT_REACH if kind == "prismatic" else 2 * math.pi
     lower = _number(path, where, "lower", j.get("lower", -reach))
@@ -869,8 +872,8 @@ def _urdf_numbers(path: Path, where: str, el, key: str, default: str, bound: flo
         raise RobotSpecError(f'{path}: {where}: <{el.tag} {key}="{shown}"> has non-finite values')
     if max(abs(v) for v in values) > bound:
         raise RobotSpecError(
-            f'{path}: {where}: <{el.tag} {key}="{shown}"> is beyond {bound:g} {unit}; URDF lengths are metres and '
-            "angles radians"
+            f'{path}: {where}: <{el.tag} {key}="{shown}"> is beyond {bound:.4g} {unit}; URDF lengths are metres and '
+            "angles radians" + (" (a value in degrees?)" if unit == "rad" else "")
         )
 
 
