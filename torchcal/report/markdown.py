@@ -210,6 +210,8 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
     lines += _stations_section(report)
     lines += _diagnosis_section(run, report, out)
     lines += _region_section(run, report, out)
+    note = (report.get("trust") or {}).get("note")
+    lines += ["", f"Predictive sigma (sx, sy, sz of predict and compensate) {note}.", ""] if note else []
     lines += _unexplained_section(report, out)
     lines += ekf_section(run, out)
     lines += _global_test_section(report)

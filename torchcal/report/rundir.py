@@ -279,7 +279,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     from torchcal.pipeline.trust import run_trust
 
     rtrust = run_trust(run)  # predict's sx, sy, sz: measured on the held-out rows (torchcal.estimate.trust)
-    report["trust"] = _trust_report(rtrust)
+    report["trust"] = _trust_report(rtrust, int(run.holdout_idx.numel()))
     # the URDF carries the geometry only: say what it leaves out and what that costs on the training poses
     from torchcal.report.urdf import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
 
@@ -350,13 +350,22 @@ def _single_labels(run) -> dict:
     return {"labels": labels} if labels else {}
 
 
-def _trust_report(rt) -> dict:
+def _trust_report(rt, n_holdout: int) -> dict:
     """report.json's ``trust``: what the predictive sigma adds to the parameters (:mod:`torchcal.estimate.trust`),
-    measured on the held-out rows, of the final model and of the kinematic calibration beside it."""
+    measured on the held-out rows, of the final model and of the kinematic calibration beside it; where too few rows
+    were held out to measure it, a note that says what predict's sigma then lacks."""
+    from torchcal.estimate.trust import MIN_ROWS
+
     out = {
         "definition": "sx, sy, sz: the standard deviation of a new measurement minus the prediction (docs/trust.md)",
         "model": None if rt.full is None else rt.full.to_dict(),
     }
+    if rt.full is None and n_holdout < MIN_ROWS:
+        out["note"] = (
+            f"not measured: {n_holdout} held-out rows, fewer than {MIN_ROWS}; predict's sx, sy, sz hold the "
+            "parameters' and the learned model's uncertainty only and understate the error (judge the run on a "
+            "separate check file)"
+        )
     if rt.geometric is not None:
         out["geometric"] = rt.geometric.to_dict()
     return out
