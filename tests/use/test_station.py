@@ -227,8 +227,10 @@ def test_a_run_of_several_stations_and_probes_is_restationed_as_one(tmp_path):
 
 
 def test_the_predicted_error_of_a_placement_is_predicts_sigma_over_the_region(setup, tmp_path):
-    """station's model error is the run's predictive sigma (what predict writes) over the calibrated region, and the
-    predicted error it gives is the error measured at the new placement to within a factor 1.5."""
+    """station's model error is the run's predictive sigma (what predict writes) over the calibrated region less the
+    run's own placement's uncertainty (the points replace that placement: counted again, a station of a station run
+    predicted 0.147 mm where a station of the run gave 0.133), and the predicted error it gives is the error
+    measured at the new placement to within a factor 1.5."""
     from torchcal.use.rundir import row_trust
     from torchcal.use.station import REGION_POSES
 
@@ -239,7 +241,16 @@ def test_the_predicted_error_of_a_placement_is_predicts_sigma_over_the_region(se
     q = region[0] + torch.rand(REGION_POSES, 6, generator=g, dtype=F64) * (region[1] - region[0])
     run_model, run_meta = load_model(setup["run"])  # as the run stands, before the placement is fitted
     sigma = row_trust(setup["run"], run_model, run_meta, Context(q=q)).sigma
-    assert station.run_rmse == pytest.approx(float(sigma.square().sum(1).mean().sqrt()), rel=1e-9)
+    full = float(sigma.square().sum(1).mean().sqrt())
+    assert 0.9 * full < station.run_rmse < full, (station.run_rmse, full)
+    # a station of a station run: the same placement error as a station of the run (the first placement is gone)
+    write_measurements(tmp_path / "pts.csv", new.subset(idx[:6]))
+    argv = ["station", str(setup["run"]), str(tmp_path / "pts.csv"), "--out", str(tmp_path / "st1"), "--tool"]
+    assert main([*argv, "--quiet"]) == 0
+    _, _, once = restation(setup["run"], new.subset(idx[6:12]), tool=True)
+    _, _, twice = restation(tmp_path / "st1", new.subset(idx[6:12]), tool=True)
+    # (to 2 %, not exactly: the station run starts from its own fitted lever arm; it was 16 % above with --tool)
+    assert twice.predicted_rmse == pytest.approx(once.predicted_rmse, rel=0.02)
     with torch.no_grad():
         placed = copy.deepcopy(model)
         placed.robot.instrument.set_matrix(station.T_tracker_base)

@@ -550,7 +550,7 @@ def restation(
     check_placement(meta, points, keys=("probe",))  # a new placement, the same probes
     cov = load_covariance(run_dir, model)
     points, label = _points_rows(model, points, probe, tool, run_dir)
-    model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"))
+    model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"), tool=tool)
     points = rows_of(model, points)  # each point's probe in the re-stationed run's order
     opts = station_options(run_dir, tool, seed)
     sigma = _run_sigma(run_dir, model, meta, cov, points, seed)
@@ -625,13 +625,15 @@ def one_placement(
     cov: ParameterCovariance | None,
     label: str | None = None,
     probe: str | None = None,
+    tool: bool = False,
 ) -> tuple[MeasurementModel, dict, ParameterCovariance | None]:
     """The run as a run of one instrument placement, to be re-stationed: the pose of station ``label`` (where the
     run has it, else its first) as the start (the points replace it), every probe's lever arm kept, no learned
     correction per station and probe (a new placement is none of theirs), and a fallback geometry that a learned
     correction fades to tied to the robot's base frame (:meth:`~torchcal.effects.region.RegionGate.fallback_to_base`:
     it moves with the instrument). The covariance keeps the geometry, the effects and the lever arms; the stations'
-    rows go (the points refit the placement). With ``probe`` (the one probe the points name) that probe comes first:
+    rows go (the points refit the placement), and with ``tool`` the lever arm's (the points refit it too). With
+    ``probe`` (the one probe the points name) that probe comes first:
     rows of a file without a ``probe`` column take the first, and at the new placement that is the points' probe."""
     from torchcal.effects.grouped import GroupedCorrection
     from torchcal.effects.region import RegionGate
@@ -662,21 +664,23 @@ def one_placement(
             "probes": list(robot.probes),
             "dropped": ["a learned correction per station and probe"] if dropped else [],
         }
-    if cov is None or not robot.stations:
-        return one, meta, cov
-    keep = [j for j, name in enumerate(cov.names) if name != "robot.instrument.delta"]
+    return one, meta, _without(cov, ("robot.instrument.delta", *(("robot.tool.delta",) if tool else ())))
+
+
+def _without(cov: ParameterCovariance | None, names: tuple[str, ...]) -> ParameterCovariance | None:
+    """``cov`` less the blocks ``names``: what the points fit again (the placement, with ``--tool`` the lever arm)
+    is theirs, not the run's; counted in the run's sigma too, it was counted twice."""
+    if cov is None or not any(n in cov.names for n in names):
+        return cov
+    keep = [j for j, name in enumerate(cov.names) if name not in names]
     starts = [sum(len(i) for i in cov.index[:j]) for j in range(len(cov.names))]
     rows = [starts[j] + i for j in keep for i in range(len(cov.index[j]))]
     r = torch.tensor(rows, dtype=torch.long, device=cov.matrix.device)
-    return (
-        one,
-        meta,
-        ParameterCovariance(
-            [cov.names[j] for j in keep],
-            [[int(i) for i in cov.index[j]] for j in keep],
-            [cov.labels[i] for i in rows],
-            cov.matrix[r][:, r].clone(),
-        ),
+    return ParameterCovariance(
+        [cov.names[j] for j in keep],
+        [[int(i) for i in cov.index[j]] for j in keep],
+        [cov.labels[i] for i in rows],
+        cov.matrix[r][:, r].clone(),
     )
 
 
