@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import sys
 import traceback
 from collections.abc import Callable, Iterable
@@ -134,6 +135,27 @@ def _ray_failure(index: int, item: Any, e: Exception) -> TaskFailure:
     return TaskFailure(index, _short(item), error, lost=True)
 
 
+#: seconds to wait for a cluster's address to accept a connection before Ray is asked to join it
+REACH_TIMEOUT = 5.0
+
+
+def _check_reachable(address: str) -> None:
+    """Refuse a ``HOST:PORT`` (or ``ray://HOST:PORT``) nothing answers at: Ray retries such an address for many
+    minutes, one warning after another, before it gives up. ``auto`` and other forms are left to Ray."""
+    import socket
+
+    m = re.fullmatch(r"(?:ray://)?\[?([^\[\]/]+?)\]?:(\d+)", address.strip())
+    if m is None:
+        return
+    try:
+        socket.create_connection((m.group(1), int(m.group(2))), timeout=REACH_TIMEOUT).close()
+    except OSError as e:
+        raise OptionError(
+            f"--address {address}: nothing answers there within {REACH_TIMEOUT:g} s ({e.strerror or e}); start the "
+            "cluster (ray start --head) or give its address"
+        ) from None
+
+
 def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, done: Callable[[int, Any], None]) -> list:
     """Every item's call on Ray: a local instance of ``cpus`` CPUs (one started here is stopped here; an instance
     already running is used as it is), or the cluster at ``address``. ``done(index, outcome)`` is called as each
@@ -142,6 +164,8 @@ def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, don
     from ray.exceptions import RayError
 
     started = not ray.is_initialized()
+    if started and address:
+        _check_reachable(address)
     if started:
         kw = {"address": address} if address else {"num_cpus": cpus or os.cpu_count() or 1}
         with worker_env():
