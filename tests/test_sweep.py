@@ -145,14 +145,10 @@ def test_on_ray_a_killed_worker_is_retried_and_an_error_is_the_item_own(local_ra
 def test_an_address_nothing_answers_at_is_refused_at_once():
     """own: fleet --address 127.0.0.1:1 ran over 10 minutes, Ray retrying with a warning every few seconds; nothing
     listening there is refused before Ray is asked (``auto`` is left to Ray)."""
-    import time
-
     from torchcal.errors import OptionError
     from torchcal.sweep import _check_reachable
 
-    t = time.perf_counter()
     for address in ("127.0.0.1:1", "ray://127.0.0.1:1"):
         with pytest.raises(OptionError, match="nothing answers there"):
             _check_reachable(address)
-    assert time.perf_counter() - t < 30
     _check_reachable("auto")
