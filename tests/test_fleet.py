@@ -6,6 +6,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import sys
 from pathlib import Path
 
@@ -160,3 +161,26 @@ def test_missing_inputs_name_the_manifest_line_and_column(manifest, tmp_path):
     ]
     assert "ur55" in problems[1] and "ur5" in problems[1].split("ur55", 1)[1]  # the valid names listed
     assert "no model.json" in problems[2]
+
+
+def test_manifests_as_spreadsheets_write_them_and_names_alike(tmp_path):
+    """own: a manifest saved as Excel's "CSV UTF-8" (a byte-order mark) was refused; a name with a line break in a
+    quoted cell became another name without a word; 'é' composed and decomposed were two robots in one folder name;
+    a data path that is a folder was called 'no such file'."""
+    from torchcal.errors import TorchcalError
+    from torchcal.fleet import missing_inputs, read_manifest
+
+    (tmp_path / "d.csv").write_text("x\n")
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes("\ufeffname,data,robot\nA,d.csv,ur5\n".encode())
+    assert [ln.name for ln in read_manifest(bom)] == ["A"]
+    cases = {
+        'name,data,robot\n"A\nB",d.csv,ur5\n': "line 3, column 'name': 'A\\nB' holds control characters",
+        "name,data,robot\n\u00e9,d.csv,ur5\ne\u0301,d.csv,ur5\n": "repeats line 2",
+    }
+    for k, (text, message) in enumerate(cases.items()):
+        (tmp_path / f"m{k}.csv").write_text(text, encoding="utf-8")
+        with pytest.raises(TorchcalError, match=re.escape(message)):
+            read_manifest(tmp_path / f"m{k}.csv")
+    (tmp_path / "folder.csv").write_text(f"name,data,robot\nA,{tmp_path},ur5\n")
+    assert "not a regular file" in missing_inputs(tmp_path / "folder.csv", read_manifest(tmp_path / "folder.csv"))[0]

@@ -23,6 +23,7 @@ gets no verdict: it is listed with its error.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -30,6 +31,7 @@ import sys
 import tempfile
 import time
 import traceback
+import unicodedata
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -93,14 +95,23 @@ def _robot(folder: Path, text: str) -> str:
 
 def _check_name(path: Path, number: int, name: str, seen: dict[str, int]) -> None:
     if not name or name in (".", "..") or any(c in name for c in '/\\\0:*?"<>|') or name.startswith("."):
-        raise _bad(path, number, "name", f"{name!r} is not a folder name (no separators, not hidden, not empty)")
+        raise _bad(
+            path,
+            number,
+            "name",
+            f"{name!r} is not a folder name (none of / \\ : * ? \" < > |, which folders or report.md's table cannot "
+            "hold; not hidden, not empty)",
+        )
+    if any(unicodedata.category(c).startswith("C") for c in name):
+        raise _bad(path, number, "name", f"{name!r} holds control characters (a line break in a quoted cell?)")
     if len(name.encode()) > 200:
         raise _bad(path, number, "name", "longer than 200 bytes")
     if name.lower() in {"report.json", "report.md"}:
         raise _bad(path, number, "name", f"{name!r} is the fleet summary's own file name")
-    if name.lower() in seen:
-        raise _bad(path, number, "name", f"{name!r} repeats line {seen[name.lower()]} (names must differ)")
-    seen[name.lower()] = number
+    key = unicodedata.normalize("NFC", name).lower()  # the same folder on a file system that normalises or folds
+    if key in seen:
+        raise _bad(path, number, "name", f"{name!r} repeats line {seen[key]} (names must differ)")
+    seen[key] = number
 
 
 def _header(path: Path, header: list[str] | None) -> list[str]:
@@ -125,10 +136,11 @@ def read_manifest(path: str | os.PathLike) -> list[Line]:
     """
     path = Path(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = path.read_text(encoding="utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
     except (OSError, UnicodeDecodeError) as e:
         raise TorchcalError(f"{path}: cannot read the manifest: {getattr(e, 'strerror', None) or e}") from None
-    rows = [(i + 1, r) for i, r in enumerate(csv.reader(text.splitlines())) if r and not r[0].startswith("#")]
+    reader = csv.reader(io.StringIO(text, newline=""))  # a quoted cell may hold a line break: lines as in the file
+    rows = [(reader.line_num, r) for r in reader if r and not r[0].startswith("#")]
     cols = _header(path, rows[0][1] if rows else None)
     folder, lines, seen = path.parent, [], {}
     if len(rows) - 1 > MAX_LINES:
@@ -179,7 +191,8 @@ def missing_inputs(path: str | os.PathLike, lines: list[Line]) -> list[str]:
     path, out = Path(path), []
     for ln in lines:
         if not Path(ln.data).is_file():
-            out.append(str(_bad(path, ln.number, "data", f"{ln.data}: no such file")))
+            what = "not a regular file" if Path(ln.data).exists() else "no such file"
+            out.append(str(_bad(path, ln.number, "data", f"{ln.data}: {what}")))
         try:
             resolve_robot_spec(ln.robot)
         except RobotSpecError as e:
