@@ -272,6 +272,15 @@ def split(
 HOLDOUT_EDGE = 0.025
 
 
+def first_alike(rows: Tensor) -> Tensor:
+    """``(N,)``: for each row of ``rows (N, k)`` the index of the first row equal to it to the last digit (its own
+    where none before it is)."""
+    _, inverse = torch.unique(rows, dim=0, return_inverse=True)
+    first = torch.full((int(inverse.max()) + 1 if len(inverse) else 0,), len(inverse), dtype=torch.long)
+    first = first.scatter_reduce(0, inverse.cpu(), torch.arange(len(inverse)), reduce="amin")
+    return first[inverse.cpu()]
+
+
 def at_edges(q_train: Tensor, q_hold: Tensor, share: float = HOLDOUT_EDGE) -> Tensor:
     """Which poses ``q_hold`` ``(M,)`` lie at the edges of the poses ``q_train``'s joint ranges: some joint below its
     ``share`` quantile or above its ``1 - share`` quantile in ``q_train`` (or beyond their range)."""

@@ -637,17 +637,18 @@ def _check_unpaired_joints(doc: dict, inputs: _Inputs, joints: tuple, points: li
     """Refuse a points input of its own that holds the joints' columns (by header name) with other values than the
     one joints input: each such file carries its own joints, and pairing its rows with another file's joints
     would give them the wrong poses without a word (``joints: {input: [..]}`` reads each input's own)."""
-    table, q = joints
+    table, _ = joints
     role = _role(doc["joints"], inputs.map_path, doc, "joints")
     names = role["columns"] if isinstance(role["columns"], list) else [role["columns"]]
     if not all(isinstance(n, str) and not re.fullmatch(r"[\d\s-]+", n) for n in names):
         return  # columns by number say nothing of what another file's columns are
+    mine = None
     for k, other, _ in points:
         if other is table or other.header is None or not all(n in other.header for n in names):
             continue
-        cols = columns_of(role["columns"], other, inputs.map_path, "joints.columns", role["line"])
-        raw = numbers(other, cols, inputs.read)
-        mine = numbers(table, columns_of(role["columns"], table, inputs.map_path, "joints.columns"), inputs.read)
+        raw = numbers(other, columns_of(role["columns"], other, inputs.map_path, "joints.columns"), inputs.read)
+        if mine is None:
+            mine = numbers(table, columns_of(role["columns"], table, inputs.map_path, "joints.columns"), inputs.read)
         if raw.shape == mine.shape and not torch.equal(raw, mine):
             raise MeasurementFileError(
                 inputs.map_path,

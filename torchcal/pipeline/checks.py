@@ -72,28 +72,23 @@ def check_repeated_rows(data: Measurements) -> None:
     """Refuse rows that repeat another row to the last digit (joints, position, station and probe): a measurement
     does not repeat itself to every digit, a copied row does, and it counts twice in every fit, so each standard
     deviation of the run shrinks as if the rows were new measurements. Names the first copy and its original."""
-    key = [data.q, data.p]
-    for index in (data.station, data.probe):
-        if index is not None:
-            key.append(index.to(data.q.dtype).unsqueeze(1))
-    rows = torch.cat(key, dim=1).detach().cpu()
-    _, inverse, counts = torch.unique(rows, dim=0, return_inverse=True, return_counts=True)
-    if bool((counts < 2).all()):
+    key = [data.q, data.p] + [i.to(data.q.dtype).unsqueeze(1) for i in (data.station, data.probe) if i is not None]
+    first = S.first_alike(torch.cat(key, dim=1).detach().cpu())
+    copies = torch.nonzero(first != torch.arange(len(first))).flatten()
+    if not len(copies):
         return
-    copies = torch.nonzero(counts[inverse] > 1).flatten()
-    first = {}
-    for r in copies.tolist():
-        original = first.setdefault(int(inverse[r]), r)
-        if original != r:
-            n = int((counts[counts > 1] - 1).sum())
-            where = (lambda i: f"line {data.lines[i]}") if data.lines else (lambda i: f"row {i + 1}")
-            raise MeasurementFileError(
-                data.source or "the measurements",
-                f"{n} row(s) repeat another row to the last digit (joints and position), the first at {where(r)} "
-                f"(a copy of {where(original)}); a copied row counts twice and makes every standard deviation too "
-                "small: remove the copies",
-                line=data.lines[r] if data.lines else None,
-            )
+    r, original = int(copies[0]), int(first[copies[0]])
+
+    def where(i: int) -> str:
+        return f"line {data.lines[i]}" if data.lines else f"row {i + 1}"
+
+    raise MeasurementFileError(
+        data.source or "the measurements",
+        f"{len(copies)} row(s) repeat another row to the last digit (joints and position), the first at {where(r)} "
+        f"(a copy of {where(original)}); a copied row counts twice and makes every standard deviation too small: "
+        "remove the copies",
+        line=data.lines[r] if data.lines else None,
+    )
 
 
 def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Measurements) -> None:

@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchcal import stats as S
 from torchcal._method import Method
 from torchcal._threads import torch_threads
 from torchcal.effects import Context
@@ -336,11 +337,8 @@ def identifying_prefix(
 
 def distinct_poses(q: Tensor) -> Tensor:
     """The rows of ``q (N, dof)`` with joints no earlier row has, in their order."""
-    _, inverse = torch.unique(q, dim=0, return_inverse=True)
-    first: dict[int, int] = {}
-    for i, g in enumerate(inverse.tolist()):
-        first.setdefault(g, i)
-    return q[sorted(first.values())]
+    first = S.first_alike(q.detach().cpu())
+    return q[(first == torch.arange(len(first))).to(q.device)]
 
 
 def sample_candidates(
