@@ -1,11 +1,11 @@
-# The two commands a user needs on a fresh clone: `make demo` and `make test`.
+# The two commands a user needs on a fresh clone: `make demo` and `make test` (`make test-all` for every test).
 # Both create the virtual environment when it is missing.
 PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint clean
+.PHONY: setup demo test test-all lint clean
 
 setup: $(STAMP)
 
@@ -29,7 +29,12 @@ lint: $(STAMP)
 # two workers: the suite is hundreds of small single-threaded fits, and a second process uses the second core; every
 # test is independent of the others' process. worksteal: a worker that runs out takes the other's queued tests, so
 # the long ones near the end do not leave a core idle
+# two tiers: `make test` skips the tests marked slow (the long end-to-end runs, the real-data studies, Ray, the wheel,
+# the tutorial's commands) and is what a change runs first; `make test-all` runs every test, as CI does
 test: $(STAMP) lint
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal -m "not slow"
+
+test-all: $(STAMP) lint
 	$(BIN)/python -m pytest -q -n 2 --dist worksteal
 
 clean:

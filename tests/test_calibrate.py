@@ -35,6 +35,7 @@ def ur5_run(ur5_campaign, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_kinematic_calibration_reaches_the_noise_floor(ur5_campaign, ur5_run):
     c, _ = ur5_campaign
     report = json.loads((ur5_run / "report.json").read_text())
@@ -83,6 +84,7 @@ def test_calibrated_urdf_reproduces_the_calibrated_geometry(ur5_run):
         assert (urdf(q) - model.robot(q)).abs().max() < 1e-9
 
 
+@pytest.mark.slow
 def test_millimetre_files_give_the_same_calibration(tmp_path):
     for unit in ("m", "mm"):
         assert cli_simulate(tmp_path / unit, "--seed", "5", "--poses", "300", "--length-unit", unit) == 0

@@ -423,6 +423,7 @@ def _table(path, columns):
 Q6 = [f"q{k}" for k in range(1, 7)]
 
 
+@pytest.mark.slow
 def test_cli_each_row_in_its_own_station_and_probe(two_stations, tmp_path):
     """bug before: every row was solved in the first station's frame with the first probe's lever arm (S2 rows
     unreachable by metres, P2 rows by 100 mm) and the columns were dropped from the output."""

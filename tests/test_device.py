@@ -232,6 +232,7 @@ def test_named_and_learned_effects_on_another_device(campaign, monkeypatch):
     torch.testing.assert_close(n, n_ref, rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_calibrate_and_predict_on_another_device(campaign, monkeypatch, tmp_path):
     """A whole kinematic calibration (gross-error screening, nominal and geometric fits, held-out errors),
     the run directory written from it, and ``predict`` on the same device; all equal to the CPU's."""

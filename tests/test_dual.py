@@ -96,6 +96,7 @@ print(json.dumps("torch._dynamo" in sys.modules))
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("how, imported", [("dual", False), ("plain", True)])
 def test_forward_mode_with_constants_stays_off_the_python_path(how, imported):
     # the plain expression is the control: torch 2.x takes its Python path there (if a torch release stops doing so,

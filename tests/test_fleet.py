@@ -63,6 +63,7 @@ def _numbers(fleet):
     return {r["name"]: (r["status"], r.get("report")) for r in fleet.results}
 
 
+@pytest.mark.slow
 def test_serial_fleet_writes_every_run_and_reports_the_refused_line(serial):
     fleet, out = serial
     d = json.loads((out / "report.json").read_text())
@@ -78,6 +79,7 @@ def test_serial_fleet_writes_every_run_and_reports_the_refused_line(serial):
     assert "| gone | refused |" in (out / "report.md").read_text()
 
 
+@pytest.mark.slow
 @needs_ray
 def test_ray_fleet_gives_the_serial_results(manifest, serial, tmp_path, capsys):
     """The CLI on a local Ray of 2 CPUs: every number as one after another."""
@@ -100,6 +102,7 @@ def _dies_once(line):
     return F.calibrate_line(line)
 
 
+@pytest.mark.slow
 @needs_ray
 def test_a_killed_worker_is_retried_or_reported(manifest, tmp_path):
     ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])  # the workers cannot import this test module

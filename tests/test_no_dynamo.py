@@ -11,6 +11,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 CODE = """
 import json, sys
 from torchcal._threads import torch_threads
@@ -28,6 +30,7 @@ print(json.dumps({"before": before, "after": "torch._dynamo" in sys.modules,
 """
 
 
+@pytest.mark.slow
 def test_default_calibration_does_not_import_dynamo():
     proc = subprocess.run([sys.executable, "-c", CODE], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -51,6 +54,7 @@ print(json.dumps({"after": "torch._dynamo" in sys.modules}))
 """
 
 
+@pytest.mark.slow
 def test_calibration_of_a_6d_probe_does_not_import_dynamo():
     """A 6-D probe's rows whiten their orientation with the joint noise turning the probe (its joint Jacobian),
     which a forward-mode pass through the chain computed, importing torch._dynamo."""

@@ -74,6 +74,7 @@ def test_every_block_has_a_known_language(path):
         assert lang in RUN | CHECK | NOT_RUN, f"{path.name}:{line}: unknown fence language {lang!r}"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", [f for f in FILES if any(lg == "python" for lg, _, _ in blocks(f))], ids=_id)
 def test_python_blocks_run(path, tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
@@ -94,6 +95,7 @@ def _env() -> dict:
     return env
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("path", [f for f in FILES if any(lg == "sh" for lg, _, _ in blocks(f))], ids=_id)
 def test_shell_blocks_run(path, tmp_path):
     assert shutil.which("torchcal", path=str(Path(sys.executable).parent)), "torchcal is not installed beside python"

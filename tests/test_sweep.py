@@ -101,6 +101,7 @@ def campaign():
     return simulate(SimConfig(robot="ur5", poses=60, test_poses=30, seed=5))
 
 
+@pytest.mark.slow
 @needs_ray
 def test_an_experiment_sweep_on_ray_gives_the_serial_results(local_ray, campaign, monkeypatch):
     """plan_poses' designs (each planned and calibrated, a random design calibrated): 2 seeds one after another,

@@ -125,6 +125,7 @@ def _on_a_terminal(args: list[str], cwd) -> str:
     return b"".join(chunks).decode("utf-8", "replace")
 
 
+@pytest.mark.slow
 def test_a_long_step_shows_progress_on_a_terminal_and_nothing_with_quiet(tmp_path):
     args = ["plan", "--robot", "ur5", "--n", "40", "--pool", "300", "--out"]
     shown = _on_a_terminal([*args, str(tmp_path / "a.csv")], tmp_path)

@@ -359,10 +359,9 @@ def test_yaml_alias_bomb_and_latin1_are_refused(tmp_path):
         bomb.append(f"{k}: &{k} [*{prev}, *{prev}, *{prev}, *{prev}, *{prev}, *{prev}, *{prev}, *{prev}, *{prev}]")
     bomb.append("name: *i\njoints: [{a: 0, alpha: 0, d: 0, theta: 0}]")
     f = write(tmp_path / "bomb.yaml", "\n".join(bomb) + "\n")
-    t0 = time.perf_counter()
-    with pytest.raises(RobotSpecError, match="aliases"):
+    # a hang guard, not a speed claim: expanding the aliases would take minutes and gigabytes before any check
+    with deadline(60), pytest.raises(RobotSpecError, match="aliases"):
         torchcal.load_robot(f)
-    assert time.perf_counter() - t0 < 5
     latin = "name: r\u00f6bot\njoints: [{a: 0, alpha: 0, d: 0, theta: 0}]\n".encode("latin-1")
     g = write(tmp_path / "latin.yaml", latin)
     with pytest.raises(RobotSpecError, match="not UTF-8"):

@@ -43,6 +43,7 @@ def _check(r, floor_factor=1.15):
         assert r["test_loop_mm"] <= floor_factor * r["test_oracle_mm"], r
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("robot,effects,seed", STATIC, ids=[c[1][0] for c in STATIC])
 def test_single_effect_is_named_and_reaches_the_noise_floor(robot, effects, seed):
     r = run_case(robot, effects, poses=400, seed=seed)
@@ -50,6 +51,7 @@ def test_single_effect_is_named_and_reaches_the_noise_floor(robot, effects, seed
     assert r["loop_mm"] < r["geometric_mm"]
 
 
+@pytest.mark.slow
 def test_three_effects_at_once():
     r = run_case("ur10", ["compliance:2=30um", "backlash:4=25um", "drift:t=30um"], poses=500, seed=17)
     _check(r)
@@ -69,6 +71,7 @@ def test_smooth_field_goes_to_the_learned_model_only():
     assert r["loop_mm"] < 0.3 * r["geometric_mm"] and r["loop_mm"] <= 1.3 * r["oracle_mm"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("robot,effects,seed", [("ur5", ["backlash:2=25um"], 21), ("ur10", [], 23)])
 def test_trajectories(robot, effects, seed):
     """Along a trajectory the backlash flank follows the motion; held out are the last 20 % of the samples.
@@ -80,6 +83,7 @@ def test_trajectories(robot, effects, seed):
     _check(r)
 
 
+@pytest.mark.slow
 def test_millimetre_files_through_the_command_line(tmp_path):
     sim, run_dir = tmp_path / "sim", tmp_path / "run"
     assert (
@@ -132,6 +136,7 @@ def test_millimetre_files_through_the_command_line(tmp_path):
     assert float((p - test.p).norm(dim=-1).square().mean().sqrt()) < 1.1 * floor
 
 
+@pytest.mark.slow
 def test_report_tells_the_story_and_the_model_reloads(tmp_path):
     c = simulate(
         SimConfig(

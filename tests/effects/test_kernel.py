@@ -66,6 +66,7 @@ def test_paired_improvement():
     assert paired_improvement(e0, e0).p_value == pytest.approx(0.5)
 
 
+@pytest.mark.slow
 def test_auto_adds_nothing_to_clean_data_and_a_kernel_reloads_exactly(tmp_path):
     from torchcal.sim import SimConfig, simulate
 
@@ -92,6 +93,7 @@ def test_auto_adds_nothing_to_clean_data_and_a_kernel_reloads_exactly(tmp_path):
     assert isinstance(model, MeasurementModel)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not IPA.is_dir(), reason=f"ur10-ipa data not found at {IPA}; set TORCHCAL_IPA_DATA")
 def test_real_ur10_series_c_default_method_beats_045mm():
     """The issue's real-data target. The search for named effects (``diagnose``) is switched off here: on

@@ -110,6 +110,7 @@ def test_a_robot_with_masses_keeps_the_mass_based_compliance():
     assert comp and all(type(c.make()) is Compliance for c in comp)
 
 
+@pytest.mark.slow
 def test_the_loop_names_lumped_compliance_of_a_massless_arm_and_matches_the_true_structure():
     c, run = _calibrated(EFFECTS, seed=1)
     named = {e["name"]: e for e in run.effects_report}

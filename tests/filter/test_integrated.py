@@ -76,6 +76,7 @@ def run_dir(trajectory, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_default_engine_is_chosen_on_validation_and_never_worse_than_geometry(trajectory, tmp_path):
     """``engine="auto"``: every engine setting and geometry alone judged on the last block of the training
     samples; the report carries the table, and what is kept is not worse than geometry on the held-out samples
@@ -264,6 +265,7 @@ def test_static_poses_with_t_and_a_decreasing_t_are_errors(trajectory):
         calibrate("ur5", Measurements(q=data.q, p=data.p, t=t), Options(method="integrated"))
 
 
+@pytest.mark.slow
 def test_both_engines_beat_geometry_alone(trajectory, run_dir):
     """The default engine and ``engine="ekf"`` on the same file, both below geometry alone.
 

@@ -148,14 +148,21 @@ XFAIL: dict[tuple[str, str], str] = {}
 STEPS = ("calibrate", "predict", "compensate", "station", "prior", "plan")
 
 
+#: the cells the fast tier (``make test``) runs: one kinematic, one default and one PCM run of the UR5, every step of
+#: each; the others (a trajectory, the track, the FANUC, orientations with the learned model) only in ``make test-all``
+FAST = {"ur5-kinematic-several+rx", "ur5-auto-one", "ur5-pcm-several"}
+
+
 def cells(step: str) -> list:
-    """The cells as parameters of ``step``'s test, those of :data:`XFAIL` marked strict."""
-    return [
-        pytest.param(name, marks=pytest.mark.xfail(strict=True, reason=XFAIL[name, step]))
-        if (name, step) in XFAIL
-        else name
-        for name in CELLS
-    ]
+    """The cells as parameters of ``step``'s test, those of :data:`XFAIL` marked strict, those not in :data:`FAST`
+    marked slow."""
+    out = []
+    for name in CELLS:
+        marks = [] if name in FAST else [pytest.mark.slow]
+        if (name, step) in XFAIL:
+            marks.append(pytest.mark.xfail(strict=True, reason=XFAIL[name, step]))
+        out.append(pytest.param(name, marks=marks))
+    return out
 
 
 # ------------------------------------------------------------------------------------------------- the cells

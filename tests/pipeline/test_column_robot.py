@@ -45,6 +45,7 @@ def test_the_vendor_description_loads_with_one_reading_for_the_column():
     torch.testing.assert_close(rise, torch.tensor([0.0, 0.0, 0.5], dtype=torch.float64))  # both segments move
 
 
+@pytest.mark.slow
 def test_the_loop_names_the_compliance_and_reaches_the_noise_floor(run):
     report = json.loads((run / "run" / "report.json").read_text())
     assert [e["name"] for e in report["effects"]] == ["compliance:3"]
@@ -82,6 +83,7 @@ def test_the_calibrated_urdf_keeps_the_mimic_segment(run):
     assert (again.dof, again.n_joints) == (7, 8)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["pcm", "kinematic+ann", "integrated"])
 def test_every_method_calibrates_the_column_robot_on_a_trajectory(method):
     from torchcal._threads import torch_threads

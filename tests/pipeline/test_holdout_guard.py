@@ -38,6 +38,7 @@ def guard_holdout(run):
     return run.apply(result), result.holdout_guard
 
 
+@pytest.mark.slow
 def test_a_run_below_geometry_passes_and_says_so(auto_run):
     names = [s.name for s in auto_run.stages]
     assert names == ["nominal", "geometric", "compliance(joint 2)", "learned"]

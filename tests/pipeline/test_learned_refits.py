@@ -32,6 +32,7 @@ def test_held_hyperparameters_are_the_selected_ones_and_refitted_ones_move():
         assert run.stages[-1].rmse < 0.8 * run.stage("geometric").rmse
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("drop_all", [False, True])
 def test_pruning_with_the_next_refit_ahead_decides_as_one_effect_after_the_other(monkeypatch, drop_all):
     """prune_named refits the geometry without the next effect while the GP refits (and again when the effect

@@ -112,6 +112,7 @@ def test_the_report_shows_where_an_open_form_was_fitted(tmp_path):
     assert "## Where the model holds" in md and len(pngs) == 1 and f"]({pngs[0]})" in md
 
 
+@pytest.mark.slow
 def test_exponential_warm_up_along_z_with_its_time_constant():
     c, run = _calibrate([OutsideEffect("warmup", axis=2, tau=1800.0, size=4e-5)], seed=12)
     named = _named(run)
@@ -121,6 +122,7 @@ def test_exponential_warm_up_along_z_with_its_time_constant():
     assert _ratio_to_true_form(c, run) <= RATIO
 
 
+@pytest.mark.slow
 def test_polynomial_joint_error_is_a_transmission_of_its_degree():
     c, run = _calibrate([OutsideEffect("polynomial", joint=2, coeffs=(0.4, 1.0), size=3e-5)], seed=13)
     named = _named(run)
@@ -130,6 +132,7 @@ def test_polynomial_joint_error_is_a_transmission_of_its_degree():
     assert _ratio_to_true_form(c, run) <= RATIO
 
 
+@pytest.mark.slow
 def test_horizontal_warm_up_with_its_time_constant():
     c, run = _calibrate([OutsideEffect("warmup", axis="horizontal", tau=600.0, size=4e-5)], seed=14)
     named = _named(run)
@@ -138,6 +141,7 @@ def test_horizontal_warm_up_with_its_time_constant():
     assert _ratio_to_true_form(c, run) <= RATIO
 
 
+@pytest.mark.slow
 def test_a_harmonic_and_a_warm_up_together():
     effects = [
         OutsideEffect("harmonic", joint=5, order=6, size=3e-5),
@@ -152,6 +156,7 @@ def test_a_harmonic_and_a_warm_up_together():
     assert _ratio_to_true_form(c, run) <= RATIO
 
 
+@pytest.mark.slow
 def test_a_joint_error_that_drifts_in_time_is_reported_with_both_variables():
     """A joint-3 offset growing linearly over the campaign: neither q3 nor t alone shows it; no effect class
     carries it, so the loop must say where it is (q3 and t, with its share) instead of stopping in silence."""

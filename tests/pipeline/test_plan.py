@@ -150,6 +150,7 @@ def test_spread_picks_follow_the_work_poses_where_given(campaign, tmp_path):
     assert main([*argv, "--quiet"]) == 2 and not out2.exists() and not (tmp_path / "other.plan.json").exists()
 
 
+@pytest.mark.slow
 def test_the_oracle_design_is_measured_beside_the_plan(campaign):
     res = compare("ur5", campaign.train, campaign.test, Protocol((30,), seeds=1, reference=None, oracle=True))
     (row,) = res["sizes"]
@@ -186,6 +187,7 @@ def test_learned_share_goes_where_the_learned_correction_is_least_certain(campai
     assert int(plan_poses(model, q, PlanOptions(k=20)).learned.sum()) == 0
 
 
+@pytest.mark.slow
 def test_predicted_holdout_error_within_25_percent(campaign):
     res = compare("ur5", campaign.train, campaign.test, Protocol((30, 100), seeds=1, reference=None))
     for row in res["sizes"]:
@@ -193,6 +195,7 @@ def test_predicted_holdout_error_within_25_percent(campaign):
         assert 0.75 < row["predicted_over_measured"] < 1.25, row
 
 
+@pytest.mark.slow
 def test_plan_with_a_run_whose_learned_correction_has_a_predictive_sigma(tmp_path):
     """A simulated campaign with a smooth field the geometry lacks: the default method learns it (a GP), and plan
     --run --learned-share 0.2 sends every fifth pick where that correction is least certain (none by default)."""

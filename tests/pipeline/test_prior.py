@@ -149,6 +149,7 @@ def test_a_prior_of_two_stations_and_probes_is_matched_by_label(tmp_path):
         calibrate("ur10", bare, Options.of(method="kinematic"), prior=load_prior(d))
 
 
+@pytest.mark.slow
 def test_an_update_names_what_the_prior_run_held_as_what_it_cannot_tell(tmp_path):
     """Issue 34 items 3 and 4 on a short trajectory's prior: its rows could not determine theta2 (held, absent from
     the covariance), so the update holds it and can never name its move: 10 samples with joint 2's readings shifted
@@ -169,6 +170,7 @@ def test_an_update_names_what_the_prior_run_held_as_what_it_cannot_tell(tmp_path
     assert not {"d1", "theta1", "a6", "d6", "theta6"} & set(held)
 
 
+@pytest.mark.slow
 def test_an_update_reports_the_effects_it_carries(tmp_path):
     """A default-method run that named a compliance, updated from 10 rows: the update's model carries the
     compliance as it was fitted, and report.json's ``effects`` says so (it was empty, as if the model were

@@ -36,6 +36,7 @@ def runs(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_simulated_track_campaign_biases_the_track_and_reads_it_in_metres(runs):
     truth = json.loads((runs / "sim" / "truth.json").read_text())
     names = truth["geometry"]["names"]

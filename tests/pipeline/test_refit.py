@@ -33,6 +33,7 @@ def test_refit_where_it_does_not_apply_is_an_option_error(kw):
         Options.of(refit=True, **kw)
 
 
+@pytest.mark.slow
 def test_a_kinematic_refit_is_the_geometry_fitted_on_all_samples_and_keeps_the_held_out_errors(campaign):
     """The refit starts from the fit on the training samples and solves on training and held-out samples together;
     the stages (what report.json's held-out errors come from) are those of the run without the refit, and the
@@ -65,6 +66,7 @@ def test_a_kinematic_refit_is_the_geometry_fitted_on_all_samples_and_keeps_the_h
     assert float(e_refit) < 1.5 * float(e_plain)  # a sanity bound: same geometry, more samples
 
 
+@pytest.mark.slow
 def test_cli_refit_flag_and_its_misuse(campaign, tmp_path, capsys):
     write_campaign(campaign, tmp_path / "c")
     out = tmp_path / "run"

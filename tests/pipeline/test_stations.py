@@ -97,6 +97,7 @@ def _cli(*args, cwd):
     return subprocess.run([sys.executable, "-m", "torchcal", *args], cwd=cwd, capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_cli_stations_and_probes_end_to_end(tmp_path):
     """simulate --stations 3 --probes 2, calibrate, predict: held-out and test errors within 1.2x those of the true
     model on the same poses; report.json names every station and probe."""
@@ -121,6 +122,7 @@ def test_cli_stations_and_probes_end_to_end(tmp_path):
     assert report["rmse_after_mm"] * 1e-3 < 1.2 * floor
 
 
+@pytest.mark.slow
 def test_stations_together_beat_alone_and_one_pose_fails():
     """Three placements with 60 poses each: calibrated together the shared geometry predicts each station's test
     poses better than each station calibrated alone; the same rows with one instrument pose (no station column) fail
@@ -200,6 +202,7 @@ def test_full_pose_from_two_stations_and_two_probes_within_1_2x_of_the_true_mode
     assert math.degrees(truth_ori) < 0.005
 
 
+@pytest.mark.slow
 def test_a_residual_field_of_one_station_gets_its_own_learned_correction(tmp_path):
     """Two placements of one robot, the second's rows carrying a residual field the first's do not (another day, the
     tracker's own error): the default method takes one learned correction per station, predict applies each row's,

@@ -120,6 +120,7 @@ def _write_model_joints(src: Path, dst: Path, A: torch.Tensor) -> None:
     dst.write_text("\n".join(lines[:head] + [",".join(r) for r in rows]) + "\n")
 
 
+@pytest.mark.slow
 def test_parallelogram_readings_match_the_hand_mapped_file_through_the_cli(tmp_path):
     """Fed its controller readings with a readings block, the arm reaches the held-out error of the same data mapped to
     model joints by hand and calibrated with the plain table; compensate writes readings that reach the targets."""

@@ -16,6 +16,7 @@ from experiments.bench_memory import calibration, measure, table
 HEAVY = ("matplotlib", "yourdfpy", "trimesh", "scipy", "pytorch_kinematics", "networkx")
 
 
+@pytest.mark.slow
 def test_importing_the_cli_and_the_package_imports_no_heavy_library():
     code = (
         "import sys, torchcal, torchcal.cli, torchcal.pipeline, torchcal.report; "
@@ -33,6 +34,7 @@ def campaign_dir(tmp_path_factory):
     return out, res
 
 
+@pytest.mark.slow
 def test_stages_nest_and_carry_their_own_peak(campaign_dir):
     _, res = campaign_dir
     by = {s["stage"]: s for s in res["stages"]}
@@ -54,6 +56,7 @@ def test_stages_nest_and_carry_their_own_peak(campaign_dir):
     assert "command/simulate" in table(res)
 
 
+@pytest.mark.slow
 def test_a_kinematic_calibration_imports_matplotlib_only_for_the_figures(campaign_dir, tmp_path):
     sim, _ = campaign_dir
     res = calibration(
@@ -78,6 +81,7 @@ def test_a_failing_command_raises_with_its_message(tmp_path):
         measure(["calibrate", str(tmp_path / "no-such.csv"), "--robot", "ur5", "--out", str(tmp_path / "run")])
 
 
+@pytest.mark.slow
 def test_the_calibration_bench_times_each_stage_through_the_probe(campaign_dir, tmp_path):
     from experiments.bench_calibration import compare
 

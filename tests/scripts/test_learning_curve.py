@@ -72,6 +72,7 @@ IPA = Path(
 )
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (IPA / "Series_C").is_dir(), reason=f"ur10-ipa data not found at {IPA}; set TORCHCAL_IPA_DATA")
 def test_the_default_is_never_far_worse_than_geometry_on_few_real_poses(one_thread):
     """On 100 Series C poses the closed loop once accepted cyclic terms of 35-50 rad that cancel over the narrow

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 
 from experiments import numpy_reference as ref
@@ -56,6 +57,7 @@ def test_the_reference_process_imports_numpy_and_not_torch():
     assert json.loads(out.strip().lower()) is False
 
 
+@pytest.mark.slow
 def test_the_bench_fits_both_on_calibrates_rows_and_times_both_commands(tmp_path):
     from experiments.bench_kinematic import commands, write_problem
 

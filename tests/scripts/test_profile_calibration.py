@@ -29,6 +29,7 @@ def campaign(tmp_path_factory):
     return out / "train.csv"
 
 
+@pytest.mark.slow
 def test_the_profile_names_the_stages_the_kernels_and_the_costly_functions(campaign, tmp_path):
     res = profile(str(campaign), "ur5", "kinematic", tmp_path)
     assert [s["stage"] for s in res["stages"]] == ["import", "robot", "read", "fit", "report"]
@@ -43,6 +44,7 @@ def test_the_profile_names_the_stages_the_kernels_and_the_costly_functions(campa
     assert any(r["function"].startswith("torchcal/") and r["calls"] for r in own)
 
 
+@pytest.mark.slow
 def test_commits_are_timed_in_pairs_with_their_results_compared(campaign, tmp_path):
     """A commit against itself under two names (two trees, two runs): the same results; an unknown commit is
     refused."""

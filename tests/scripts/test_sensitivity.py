@@ -34,6 +34,7 @@ def quick(tmp_path_factory):
     return json.loads(stdout.getvalue().strip().splitlines()[-1]), out, stdout.getvalue()
 
 
+@pytest.mark.slow
 def test_json_line_files_and_table(quick):
     result, out, stdout = quick
     assert result == json.loads((out / "sensitivity.json").read_text())

@@ -4,11 +4,13 @@ continuation, never worse than geometry alone, and the evidence of the choice.""
 import subprocess
 import sys
 
+import pytest
 from _cli import ROOT, run_script
 
 SCRIPT = ROOT / "scripts" / "trajectory_outside.py"
 
 
+@pytest.mark.slow
 def test_tiny_campaign(tmp_path):
     res, _ = run_script(
         "trajectory_outside.py",

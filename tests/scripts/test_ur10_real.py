@@ -21,6 +21,7 @@ def quick(tmp_path_factory):
     return res, out
 
 
+@pytest.mark.slow
 def test_quick_writes_both_files_and_the_json_line(quick):
     res, out = quick
     assert json.loads((out / "ur10_real.json").read_text())["within"] == res["within"]
@@ -29,6 +30,7 @@ def test_quick_writes_both_files_and_the_json_line(quick):
     assert "kept on one side (grouped)" in md
 
 
+@pytest.mark.slow
 def test_series_c_kinematic_calibration_beats_nominal(quick):
     res, _ = quick
     (row,) = [r for r in res["within"] if r["series"] == "C" and r["method"] == "kinematic"]

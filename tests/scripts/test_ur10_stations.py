@@ -18,6 +18,7 @@ DATA = Path(os.environ.get("TORCHCAL_IPA_DATA", ROOT.parent / "shared" / "data" 
     not (DATA / "Series_D").is_dir(),
     reason=f"the ipa-robot-accuracy UR10 data set is not at {DATA} (set TORCHCAL_IPA_DATA to its folder)",
 )
+@pytest.mark.slow
 def test_series_together_subset():
     """Series C and D together, kinematic: two stations and two probes, each series' held-out error near its own."""
     r = subprocess.run(

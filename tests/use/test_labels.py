@@ -88,6 +88,7 @@ def test_a_new_placement_is_restationed_with_the_same_probe_only(cell, tmp_path,
     _refused(capsys, ["station", str(run), str(tmp_path / "points-p2.csv"), "--out", str(out)], out, "probe", "P2")
 
 
+@pytest.mark.slow
 def test_an_update_on_one_stations_rows_refuses_the_other_stations(cell, tmp_path, capsys):
     """``calibrate --prior`` of a two-station run on 10 rows of S1: the update is a run of S1, and S2's rows are
     refused (they were predicted 3.3 m off)."""

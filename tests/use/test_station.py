@@ -67,6 +67,7 @@ def _rmse(e):
     return float(e.square().mean().sqrt())
 
 
+@pytest.mark.slow
 def test_restation_with_the_lever_arm_recovers_the_calibrations_accuracy(setup, tmp_path):
     new, idx = setup["new"], setup["idx"]
     pts, rest = new.subset(idx[:6]), new.subset(idx[6:])
@@ -97,6 +98,7 @@ def test_restation_of_the_pose_alone_within_1_3_of_the_calibration(setup, tmp_pa
     assert len(st.names) == 6 and st.chi_square["passed"]
 
 
+@pytest.mark.slow
 def test_placement_sigma_matches_the_spread_of_restationings(setup):
     """The placement's covariance against the spread of re-stationings on resampled points (and noise)."""
     campaign, run = setup["campaign"], setup["run"]
@@ -120,6 +122,7 @@ def test_placement_sigma_matches_the_spread_of_restationings(setup):
     assert 0.7 < spread / predicted < 1.3
 
 
+@pytest.mark.slow
 def test_refuses_too_few_and_collinear_points_and_names_an_outlier(setup):
     model, _ = load_model(setup["run"])
     new, idx = setup["new"], setup["idx"]

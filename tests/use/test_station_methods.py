@@ -43,6 +43,7 @@ def default_two_stations(tmp_path_factory):
     return c, run, write_run(run, tmp_path_factory.mktemp("station_auto") / "run")
 
 
+@pytest.mark.slow
 def test_a_default_run_with_effects_is_restationed_within_1_5x_of_its_own_error(default_two_stations, tmp_path):
     c, run, run_dir = default_two_stations
     assert any(e.kind != "learned" for e in run.model.effects) or run.model.has_learned  # not a kinematic run
@@ -64,6 +65,7 @@ def test_a_default_run_with_effects_is_restationed_within_1_5x_of_its_own_error(
     ]
 
 
+@pytest.mark.slow
 def test_a_restationed_run_keeps_every_probe_and_predict_keeps_the_columns(tmp_path):
     """Issue 34 item 2: 2 stations x 2 probes with orientation, kinematic; re-stationed on 6 points of S2 measured
     with P1, ``predict`` on S2's other rows gave P2 rows 100 mm off and dropped the probe column."""
