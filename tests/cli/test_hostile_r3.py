@@ -425,19 +425,43 @@ def test_random_orientations_are_refused(oriented, tmp_path, capsys):
     assert not (tmp_path / "c").exists()
 
 
-@pytest.mark.parametrize("statistic, warned", [(2607.0, True), (1.5, False), (0.9, False)])
-def test_a_global_test_failed_by_far_is_a_warning(capsys, monkeypatch, statistic, warned):
-    from types import SimpleNamespace
-
+@pytest.mark.parametrize(
+    "statistic, reading, said",
+    [
+        (2607.0, "mistake", "warning: the global test failed by far: variance factor 2607"),
+        (2607.0, "model", "note: the global test fails (variance factor 2607"),
+        (1.5, "model", None),
+        (0.9, "agrees", None),
+    ],
+)
+def test_a_global_test_failed_by_far_says_what_it_found(capsys, monkeypatch, statistic, reading, said):
+    """A real campaign fails the global test by far and is told what the model leaves against the instrument's noise
+    (a note, no unit hint); the unit and description hint is a warning only where the test reads as a mistake."""
     from torchcal import _console
     from torchcal.cli import _warn_global_test
 
     monkeypatch.setattr(_console, "_quiet", False)  # an earlier command of this process may have left --quiet on
-
-    test = {"statistic": statistic, "threshold": 1.06, "passed": statistic <= 1.06}
-    _warn_global_test(SimpleNamespace(fits=[SimpleNamespace(global_test=test)]))
+    gt = {
+        "statistic": statistic,
+        "threshold": 1.06,
+        "passed": statistic <= 1.06,
+        "alpha": 0.05,
+        "redundancy": 1000,
+        "noise": {"sigma_m": 1e-5, "unit": "m", "source": "stated", "dof": 0},
+        "unexplained_mm": 0.14,
+        "times_noise": 8.1,
+        "reach_m": 1.3,
+        "geometric_share_of_reach": 0.02 if reading == "mistake" else 3.8e-4,
+        "reading": reading,
+    }
+    _warn_global_test(gt)
     err = capsys.readouterr().err
-    assert ("warning: the global test failed by far: variance factor 2607" in err) is warned, err
+    if said is None:
+        assert err == ""
+    else:
+        assert said in err, err
+        assert ("joint column in degrees" in err) is (reading == "mistake"), err
+        assert "leaves 0.14" in err and "8.1 times the instrument's noise" in err, err
 
 
 # ------------------------------------------------------------- issue 35 item 10: name the cause

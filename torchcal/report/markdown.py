@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal.diagnose.score import named_p
 from torchcal.pipeline import CalibrationRun
 from torchcal.pipeline.prior import moved_words
 from torchcal.report._figures import TITLE_Y, save, subplots
@@ -267,14 +268,31 @@ def _global_test_section(report: dict) -> list[str]:
         "",
         f"Variance factor {gt['statistic']:.3f} against the bound {gt['threshold']:.3f} (chi-square, "
         f"alpha {gt['alpha']}, redundancy {gt['redundancy']}): **{'passed' if gt['passed'] else 'failed'}**. "
-        + (
-            "The functional and stochastic models agree with the data."
-            if gt["passed"]
-            else "The residuals are larger than the stochastic model allows: the model lacks something, or the "
-            "measurement precision is overstated."
-        ),
+        + ("The functional and stochastic models agree with the data." if gt["passed"] else global_test_finding(gt)),
         "",
     ]
+
+
+def global_test_finding(gt: dict) -> str:
+    """What a failed global test found, in words (report.json ``global_test``; :mod:`torchcal.diagnose.noise`): what
+    the model leaves against the instrument's noise, and whether it reads as structure an effect may explain or as a
+    unit or robot-description mistake. report.md and calibrate's warning say the same."""
+    from torchcal.diagnose.noise import MISTAKE_SHARE, NoiseLevel
+
+    noise = NoiseLevel(gt["noise"]["sigma_m"], gt["noise"]["source"], gt["noise"]["dof"])
+    times = "" if gt["times_noise"] is None else f", {gt['times_noise']:.3g} times the instrument's noise"
+    left = f"The final model leaves {gt['unexplained_mm']:.4f} mm (held-out RMSE){times} ({noise.words()}). "
+    if gt["reading"] == "mistake":
+        return left + (
+            f"The kinematic calibration alone leaves {gt['geometric_share_of_reach']:.2g} of the arm's reach "
+            f"({gt['reach_m']:.3g} m), more than {MISTAKE_SHARE:g}: this looks like a unit or robot-description "
+            "mistake (a joint column in degrees or another unit? a robot description with a wrong length or angle? "
+            "orientation columns that are not the probe's? --tracker-noise far too small?)."
+        )
+    return left + (
+        "The model lacks structure the data show: see the effects and the unexplained structure above; "
+        "predict's sigma includes what it leaves."
+    )
 
 
 def _outliers_section(report: dict) -> list[str]:
@@ -321,6 +339,16 @@ def _parameters_section(par: dict) -> list[str]:
     return lines
 
 
+def effect_params_words(params: dict) -> str:
+    """An effect's fitted parameters as report.md and the terminal print them: ``k = 2.49e-06 rad/(N m) ± 9.1e-08``
+    (the unit report.json gives beside the value; none for a parameter without one)."""
+    return ", ".join(
+        f"{k} = {v['value']:.3g}{' ' + v['unit'] if v.get('unit') else ''} ± {_g(v.get('std'), '.2g')}"
+        for k, v in params.items()
+        if isinstance(v, dict) and "value" in v
+    )
+
+
 def _effects_section(effects: list) -> list[str]:
     """The non-geometric effects fitted: their parameters and what each took off the held-out RMSE."""
     if not effects:
@@ -333,11 +361,7 @@ def _effects_section(effects: list) -> list[str]:
         "|---|---|---|---:|---:|",
     ]
     for e in effects:
-        params = ", ".join(
-            f"{k} = {v['value']:.3g} ± {_g(v['std'])}"
-            for k, v in e["params"].items()
-            if isinstance(v, dict) and "value" in v
-        )
+        params = effect_params_words(e["params"])
         kind = f"{e['kind']} (the prior run's, held; its RMSE)" if e.get("carried_from_prior") else e["kind"]
         lines.append(
             f"| {kind} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
@@ -519,7 +543,9 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             "",
             f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).",
             "",
-            "| candidate | k | chi2 | log10 p | Bonferroni p | BIC change | identifiable |",
+            "Score test of each named candidate at the current fit (the strongest six):",
+            "",
+            "| candidate | k | chi2 | score test: log10 p | score test: Bonferroni p | BIC change | identifiable |",
             "|---|---:|---:|---:|---:|---:|---|",
         ]
         for s in r["scores"][:6]:
@@ -532,7 +558,7 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             lines += [
                 "Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
                 + ", ".join(
-                    f"{loc['variable']} (share {loc['share']:.1%}, p = {loc['p_bonferroni']:.2g})"
+                    f"{loc['variable']} (share {loc['share']:.1%}, Bonferroni p = {loc['p_bonferroni']:.2g})"
                     for loc in r["localisation"][:3]
                 )
                 + ". Open candidates: "
@@ -546,8 +572,9 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             v = d.validation
             verdict = "**accepted**" if d.accepted else "**rejected**"
             lines += [
-                f"{d.candidate.name}: {verdict}: {d.reason}. Validation RMSE {v['rmse_before_mm']:.4f} -> "
-                f"{v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, p = {v['p_value']:.2g}).",
+                f"{d.candidate.name} ({named_p(d.score.to_dict())}): {verdict}: {d.reason}. Validation RMSE "
+                f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, "
+                f"p = {v['p_value']:.2g}).",
                 "",
             ]
             if d.models is not None:
@@ -598,7 +625,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
     ax.set_ylabel(f"residual smooth [{unit}]" + (" (tracker frame)" if not joint else ""))
     ax.set_title(
         f"unexplained: {entry['variable']} (share {entry['share']:.1%} of the residual, "
-        f"p = {entry['p_bonferroni']:.2g})",
+        f"Bonferroni p = {entry['p_bonferroni']:.2g})",
         fontsize=10,
         y=TITLE_Y,
     )
@@ -609,7 +636,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
 def _unexplained_section(report: dict, out: Path) -> list[str]:
     """What the final model leaves unexplained (``report["unexplained"]``), with a plot of the strongest."""
     entries = report.get("unexplained") or []
-    if not entries:
+    if not entries or report["global_test"]["passed"]:
         return []
     lines = [
         "## Unexplained structure",
