@@ -798,6 +798,8 @@ def cmd_calibrate(args) -> int:
         f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
         f"{st['geometric'].rmse * 1e3:.4f} mm, final {run.stages[-1].rmse * 1e3:.4f} mm"
     )
+    for e in run.effects_report:
+        _console.info("effect found: " + _effect_line(e))
     _console.info(f"wrote {out / 'report.json'} and {out / 'report.md'}")
     return 0
 
