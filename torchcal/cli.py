@@ -856,10 +856,14 @@ def outside_rows(model, q) -> list[tuple[int, str]]:
         if not far:
             continue
         k = max(far, key=lambda j: float(beyond[i, j]))
+        unit = "m" if model.robot.joint_types[k] == "prismatic" else "rad"
         if bool(held[k]):
-            why = f"q{k + 1} moved {float(beyond[i, k]):.3g} from where the calibration held it (it never moved there)"
+            why = (
+                f"q{k + 1} moved {float(beyond[i, k]):.3g} {unit} from where the calibration held it (it never moved "
+                "there)"
+            )
         else:
-            why = f"the pose lies {float(beyond[i, k]):.3g} beyond the calibrated region (q{k + 1}; rad or m)"
+            why = f"the pose lies {float(beyond[i, k]):.3g} {unit} beyond the calibrated region (q{k + 1})"
         out.append((i, why))
     return out
 

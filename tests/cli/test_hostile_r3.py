@@ -344,12 +344,12 @@ def test_a_joint_held_still_is_held_not_outside():
     from torchcal.cli import outside_rows
 
     region = torch.tensor([[-1.0, -1.0, -5e-5], [1.0, 1.0, 5e-5]], dtype=torch.float64)
-    model = SimpleNamespace(region=region)
+    model = SimpleNamespace(region=region, robot=SimpleNamespace(joint_types=("revolute",) * 3))
     q = torch.tensor([[0.5, 0.5, 1e-4], [0.5, 0.5, -1e-4], [0.5, 0.5, 0.4], [1.3, 0.0, 0.0]], dtype=torch.float64)
     rows = outside_rows(model, q)
     assert [i for i, _ in rows] == [2, 3]
-    assert "q3 moved 0.4 from where the calibration held it" in rows[0][1]
-    assert "0.3 beyond the calibrated region (q1" in rows[1][1]
+    assert "q3 moved 0.4 rad from where the calibration held it" in rows[0][1]
+    assert "0.3 rad beyond the calibrated region (q1)" in rows[1][1]
 
 
 # ------------------------------------------------ issue 34 item 9: orientation rows in the gross-error screening
@@ -518,4 +518,4 @@ def test_compensate_does_not_warn_about_its_own_solutions(run_dir, tmp_path, cap
     if quiet:
         assert err == ""
     else:
-        assert "line 2:" not in err and "line 3: the pose lies 0.3 beyond the calibrated region (q2" in err, err
+        assert "line 2:" not in err and "line 3: the pose lies 0.3 rad beyond the calibrated region (q2)" in err, err
