@@ -84,7 +84,7 @@ def noise_level(
     counts = torch.bincount(labels)
     dof = int((counts[counts > 1] - 1).sum())
     if dof >= MIN_REVISIT_DOF:
-        means = torch.zeros(len(counts), 3, dtype=torch.float64).index_add_(0, labels, r) / counts[:, None]
+        means = torch.zeros(len(counts), 3, dtype=r.dtype, device=r.device).index_add_(0, labels, r) / counts[:, None]
         ss = float((r - means[labels]).square().sum())
         return NoiseLevel(math.sqrt(ss / (3 * dof)), "revisits", dof)
     if sigma is not None:

@@ -18,7 +18,11 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     fig, ax = subplots(figsize=(9, 3.2))
     x = torch.arange(len(run.holdout_idx))
     colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
+    # from the kinematic calibration on: the nominal model's error (several times larger) would set the scale and
+    # hide the steps that follow; its RMSE is in the title
     for k, s in enumerate(run.stages):
+        if s.name == "nominal":
+            continue
         color = "tab:blue" if k == len(run.stages) - 1 and k > 1 else colors[k % len(colors)]
         ax.plot(
             x, (s.holdout_errors * 1e3).cpu(), ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)"
@@ -26,17 +30,24 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     ax.set_xlabel("held-out pose")
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)
-    ax.set_title("Held-out position error per pose", y=TITLE_Y)
+    ax.set_title(
+        f"Held-out position error per pose, from the kinematic calibration on (nominal: RMSE "
+        f"{run.stages[0].rmse * 1e3:.3f} mm)",
+        fontsize=10,
+        y=TITLE_Y,
+    )
     save(fig, path, margins={"left": 0.08, "right": 0.985, "bottom": 0.15, "top": 0.9})
 
 
 def plot_histograms(run: CalibrationRun, path: Path) -> None:
     fig, ax = subplots(figsize=(6, 3.2))
-    first, last = run.stages[0], run.stages[-1]
+    first, last = _geometric(run), run.stages[-1]
     hi = float(max(first.holdout_errors.max(), last.holdout_errors.max())) * 1e3
     bins = torch.linspace(0, hi, 40).tolist()
-    ax.hist((first.holdout_errors * 1e3).tolist(), bins=bins, alpha=0.6, color="0.5", label=f"before ({first.name})")
-    ax.hist((last.holdout_errors * 1e3).tolist(), bins=bins, alpha=0.7, color="tab:blue", label=f"after ({last.name})")
+    ax.hist((first.holdout_errors * 1e3).tolist(), bins=bins, alpha=0.6, color="0.5", label="kinematic calibration")
+    if last is not first:
+        e = (last.holdout_errors * 1e3).tolist()
+        ax.hist(e, bins=bins, alpha=0.7, color="tab:blue", label=f"final ({last.name})")
     ax.set_xlabel("|position error| [mm], held-out poses")
     ax.set_ylabel("poses")
     ax.legend(fontsize=8)
@@ -49,20 +60,38 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
     rows = math.ceil(dof / cols)
     fig, axes = subplots(rows, cols, figsize=(10, 2.6 * rows), squeeze=False)
     q = run.data.q[run.holdout_idx]
-    first, last = run.stages[0], run.stages[-1]
+    first, last = _geometric(run), run.stages[-1]
     for j in range(rows * cols):
         ax = axes[j // cols][j % cols]
         if j >= dof:
             ax.axis("off")
             continue
-        ax.plot(q[:, j].tolist(), (first.holdout_errors * 1e3).tolist(), ".", ms=2, color="0.6", label="before")
-        ax.plot(q[:, j].tolist(), (last.holdout_errors * 1e3).tolist(), ".", ms=2, color="tab:blue", label="after")
-        ax.set_xlabel(f"q{j + 1} [rad]")
+        ax.plot(q[:, j].tolist(), (first.holdout_errors * 1e3).tolist(), ".", ms=2, color="0.6", label="kinematic")
+        if last is not first:
+            ax.plot(q[:, j].tolist(), (last.holdout_errors * 1e3).tolist(), ".", ms=2, color="tab:blue", label="final")
+        ax.set_xlabel(f"q{j + 1} [{'m' if run.robot.joint_types[j] == 'prismatic' else 'rad'}]")
         if j % cols == 0:
             ax.set_ylabel("|error| [mm]")
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Held-out error against each joint")
-    save(fig, path, margins={"left": 0.07, "right": 0.985, "bottom": 0.2 / rows, "top": 1 - 0.2 / rows, "hspace": 0.45})
+    save(
+        fig,
+        path,
+        margins={
+            "left": 0.085,
+            "right": 0.985,
+            "bottom": 0.2 / rows,
+            "top": 1 - 0.2 / rows,
+            "hspace": 0.45,
+            "wspace": 0.3,
+        },
+    )
+
+
+def _geometric(run: CalibrationRun):
+    """The kinematic calibration's stage: where the figures of the held-out error start (the nominal model's error,
+    several times larger, would set their scale)."""
+    return next(s for s in run.stages if s.name == "geometric")
 
 
 def plot_error_map(run: CalibrationRun, path: Path) -> None:
@@ -99,8 +128,12 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     before, after = decision.models
     v = residual_view(decision.candidate, before, after, ctx, train.p)
     x = v["x"].tolist()
-    fig, axes = subplots(1, 2, figsize=(10, 3.6), sharey=True)
-    for ax, key, title in ((axes[0], "before", "before"), (axes[1], "after", "after")):
+    fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
+    panels = (
+        (axes[0], "before", "before: residual of the model without it"),
+        (axes[1], "after", "after: residual of the joint refit with it"),
+    )
+    for ax, key, title in panels:
         ax.plot(
             x,
             (v[key] * 1e6).tolist(),
@@ -120,12 +153,16 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
         )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(v["xlabel"])
-        ax.set_title(f"{decision.candidate.name} {title}", y=TITLE_Y)
+        ax.set_title(title, fontsize=9, y=TITLE_Y)
+        ax.legend(fontsize=7, loc="upper left")
     axes[0].set_ylabel("[um]")
-    axes[0].legend(fontsize=7)
     verdict = "accepted" if decision.accepted else "rejected"
-    fig.suptitle(f"{decision.candidate.name}: {verdict} (training poses)", fontsize=10)
-    save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.14, "top": 0.83, "wspace": 0.05})
+    fig.suptitle(
+        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect: the "
+        "fitted effect can exceed the trend\nthe geometry alone left, whose share of it the geometry had absorbed",
+        fontsize=9,
+    )
+    save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.13, "top": 0.8, "wspace": 0.05})
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -223,9 +260,18 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
         "## Plots",
         "",
+        "Each held-out pose's error at every step from the kinematic calibration on (the nominal model's, several "
+        "times larger, is in the title): look for poses the final model leaves far above the rest.",
+        "",
         "![errors per pose](errors_per_pose.png)",
         "",
+        "The held-out errors of the kinematic calibration and of the final model: the final one sits to the left, "
+        "with a shorter tail, where the effects helped.",
+        "",
         "![histogram](histogram.png)",
+        "",
+        "The held-out error against each joint, kinematic calibration and final model: a trend or a band along a "
+        "joint that the final model still shows is structure in that joint.",
         "",
         "![error against joints](error_vs_joints.png)",
         "",
@@ -255,6 +301,10 @@ def _story_section(run: CalibrationRun, report: dict) -> list[str]:
         "",
         f"Before: {report['rmse_before_mm']:.4f} mm; after the geometric fit: {report['rmse_geometric_mm']:.4f} mm; "
         f"final: {report['rmse_after_mm']:.4f} mm.",
+        "",
+        "The held-out probe positions from above (top) and from the side (bottom), coloured by their error after the "
+        "kinematic calibration (left) and with the final model (right), on one colour scale: look for regions "
+        "where the error stays high.",
         "",
         "![error map](error_map.png)",
         "",
@@ -580,7 +630,14 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             if d.models is not None:
                 name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
                 plot_decision(run, d, out / name)
-                lines += [f"![{d.candidate.name}]({name})", ""]
+                lines += [
+                    f"![{d.candidate.name}]({name})",
+                    "",
+                    "The training residual along the effect's direction against its variable, without the effect "
+                    "(left) and after the joint refit with it (right), with the fitted effect in red: an effect the "
+                    "data demand leaves the right panel flat.",
+                    "",
+                ]
     lines += [f"Stopped: {diag.stop}.", ""]
     learned = [e for e in report["effects"] if e["kind"] == "learned"]
     rejected = [e for e in report.get("rejected", []) if e["kind"] == "learned"]
