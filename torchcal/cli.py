@@ -134,6 +134,8 @@ REPLACED_HELP = (
     "else is refused"
 )
 OUT_HELP = "output directory; " + REPLACED_HELP
+#: the same, after a help text that already says what the directory is
+OUT_REPLACED = REPLACED_HELP[:1].upper() + REPLACED_HELP[1:]
 
 
 def _add_common(p: argparse.ArgumentParser) -> None:
@@ -187,9 +189,11 @@ def _add_units(p: argparse.ArgumentParser) -> None:
         "--length-unit",
         choices=["m", "mm"],
         default="m",
-        help="unit of x,y,z,sx,sy,sz and of prismatic joints' columns",
+        help="unit of x,y,z,sx,sy,sz and of prismatic joints' columns (default m)",
     )
-    p.add_argument("--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the revolute joints' columns")
+    p.add_argument(
+        "--angle-unit", choices=["rad", "deg"], default="rad", help="unit of the revolute joints' columns (default rad)"
+    )
 
 
 #: calibrate's methods and the integrated method's engines (declared once, in a module without torch)
@@ -302,7 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--length-unit",
         choices=["m", "mm"],
         default="m",
-        help="unit of x,y,z,sx,sy,sz and prismatic joints in the files",
+        help="unit of x,y,z,sx,sy,sz and prismatic joints in the files (default m)",
     )
     s.add_argument(
         "--fixed-tool-axis",
@@ -647,7 +651,7 @@ def build_parser() -> argparse.ArgumentParser:
         "report.md. A failed task is reported as its line's and the others go on.",
     )
     fl.add_argument("manifest", help="CSV: name,data,robot[,method][,prior], a header row first")
-    fl.add_argument("--out", required=True, help="fleet directory to write; " + OUT_HELP)
+    fl.add_argument("--out", required=True, help="fleet directory to write. " + OUT_REPLACED)
     fl.add_argument("--workers", type=_count, default=None, help="CPUs of the local Ray instance (default: all)")
     fl.add_argument(
         "--address", default=None, help="an existing Ray cluster (ray://HOST:PORT or auto) instead of a local one"
@@ -662,7 +666,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Simulate a UR5 campaign with effects the nominal model lacks (joint-2 compliance "
         "and a smooth field), close the loop and print the error before and after every step.",
     )
-    d.add_argument("--out", default="runs/demo", help="output directory (default runs/demo); " + OUT_HELP)
+    d.add_argument("--out", default="runs/demo", help="output directory (default runs/demo). " + OUT_REPLACED)
     d.add_argument("--seed", type=_seed, default=0, help="random seed, 0 to 2**63 - 1 (default 0)")
     _add_common(d)
     return parser

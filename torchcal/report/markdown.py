@@ -675,8 +675,16 @@ def plot_unexplained(entry: dict, path: Path) -> None:
     for c, name in enumerate(names):
         v, s = cols[0][:, c] * scale, cols[1][:, c] * scale
         style = "o-" if len(x) <= 2 else "-"
-        ax.plot(x.tolist(), v.tolist(), style, lw=1.2, label=name)
-        ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
+        # where the band is wider than the curve's whole variation, the smooth's level is not determined (a constant
+        # the geometry carries, a joint offset): its shape is drawn about zero, without a band the data do not support
+        shape_only = float(s.min()) > float(v.max() - v.min())
+        if shape_only:
+            v = v - v.mean()
+        ax.plot(
+            x.tolist(), v.tolist(), style, lw=1.2, label=name + (" (shape; level not determined)" if shape_only else "")
+        )
+        if not shape_only:
+            ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel(entry["label"])
     ax.set_ylabel(f"residual smooth [{unit}]" + (" (tracker frame)" if not joint else ""))
@@ -710,7 +718,17 @@ def _unexplained_section(report: dict, out: Path) -> list[str]:
             f"| {e['variable']} | {e['share']:.1%} | {e['p_bonferroni']:.2g} | {form.get('form', '-')} "
             f"(order {form.get('order')}) | {e.get('reason', '-')} |"
         )
+    if not entries[0].get("significant", True):  # a smooth no test supports: its curve and band would mislead
+        return lines + ["", "No variable is significant on its own, so no smooth is drawn.", ""]
     name = f"unexplained_{entries[0]['variable']}.png"
     plot_unexplained(entries[0], out / name)
-    lines += ["", f"![unexplained {entries[0]['variable']}]({name})", ""]
+    lines += [
+        "",
+        f"The smooth of the final model's training residual in {entries[0]['variable']}, with a band of two standard "
+        "errors: a curve that leaves zero by more than its band is what the model still lacks there (where its "
+        "level is not determined, only its shape is drawn, about zero and without a band).",
+        "",
+        f"![unexplained {entries[0]['variable']}]({name})",
+        "",
+    ]
     return lines
