@@ -827,12 +827,13 @@ def _warn_global_test(gt: dict) -> None:
     if gt.get("reading") == "mistake":
         _console.info(f"torchcal calibrate: warning: the global test failed by far: {head}. {global_test_finding(gt)}")
     elif stat > GLOBAL_TEST_WARN * thr:
-        noise = gt["noise"]
+        from torchcal.diagnose.noise import NoiseLevel
+
+        noise = NoiseLevel(gt["noise"]["sigma_m"], gt["noise"]["source"], gt["noise"]["dof"])
         _console.info(
             f"torchcal calibrate: note: the global test fails ({head}): the model leaves {gt['unexplained_mm']:.3g} mm "
-            f"unexplained (held-out RMSE), {gt['times_noise'] or float('nan'):.3g} times the instrument's noise "
-            f"({noise['sigma_m'] * 1e6:.3g} um per axis, {noise['source']}): see report.md's effects and unexplained "
-            "structure"
+            f"unexplained (held-out RMSE), {gt['times_noise'] or float('nan'):.3g} times the noise level "
+            f"({noise.words()}): see report.md's effects and unexplained structure"
         )
 
 

@@ -59,8 +59,8 @@ class NoiseLevel:
 
     def words(self) -> str:
         how = {
-            "revisits": f"measured: the scatter of the rows that revisit a pose, the instrument's noise with the "
-            f"robot's repeatability ({self.dof} degrees of freedom)",
+            "revisits": f"measured on the rows that revisit a pose: the instrument's noise with the robot's "
+            f"repeatability, {self.dof} degrees of freedom",
             "stated": "as the file's sx, sy, sz state it",
             "assumed": "assumed (--tracker-noise; the data repeat too few poses and carry no sx, sy, sz to tell it)",
         }[self.source]

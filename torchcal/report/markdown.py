@@ -330,7 +330,7 @@ def global_test_finding(gt: dict) -> str:
     from torchcal.diagnose.noise import MISTAKE_SHARE, NoiseLevel
 
     noise = NoiseLevel(gt["noise"]["sigma_m"], gt["noise"]["source"], gt["noise"]["dof"])
-    times = "" if gt["times_noise"] is None else f", {gt['times_noise']:.3g} times the instrument's noise"
+    times = "" if gt["times_noise"] is None else f", {gt['times_noise']:.3g} times the noise level"
     left = f"The final model leaves {gt['unexplained_mm']:.4f} mm (held-out RMSE){times} ({noise.words()}). "
     if gt["reading"] == "mistake":
         return left + (
