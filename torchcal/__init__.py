@@ -30,6 +30,7 @@ _LAZY = {
     "RobotModel": "torchcal.robot",
     "load_robot": "torchcal.robot",
     "calibrate": "torchcal.pipeline",  # the pipeline's entry point
+    "set_verbosity": "torchcal._console",  # the library's --quiet
 }
 
 __all__ = [
@@ -48,6 +49,7 @@ __all__ = [
     "ShapeError",
     "TorchcalError",
     "load_robot",
+    "set_verbosity",
 ]
 
 

@@ -40,7 +40,8 @@ def resolve_device(spec: str | torch.device | None) -> torch.device:
     if not torch.cuda.is_available():
         build = f"CUDA {torch.version.cuda}" if torch.version.cuda else "without CUDA"
         raise OptionError(
-            f"device '{text}': no CUDA device is available (torch {torch.__version__}, built {build}); use --device cpu"
+            f"device '{text}': no CUDA device is available (torch {torch.__version__}, built {build}); "
+            "use device 'cpu' (--device cpu)"
         )
     count = torch.cuda.device_count()
     index = torch.cuda.current_device() if dev.index is None else dev.index

@@ -67,12 +67,24 @@ def test_demo_runs_and_reports(tmp_path, capsys):
     rmse = [summary["holdout_rmse_mm"][s] for s in summary["stages"]]
     assert rmse == sorted(rmse, reverse=True) and rmse[1] > 1.5 * rmse[-1]
     assert summary["test_file_rmse_mm"] < 0.035
-    assert "+ compliance(joint 2)" in printed and "effects found: compliance (joint 2), learned" in printed
     report = json.loads((tmp_path / "demo" / "run" / "report.json").read_text())
-    # one p per candidate where a user reads it, its test named: the demo's line and the report's note agree
-    log10_p = report["effects"][0]["evidence"]["log10_p"]
-    assert f"(localisation p = 1e{log10_p:.0f})" in printed
-    assert any(n.startswith("diagnosis: compliance:2 added (localisation chi2") for n in report["notes"])
+    # one p per decision where a user reads it, its test named, and each parameter with its unit: the demo's line,
+    # report.json's value and unit and the report's note agree
+    k = report["effects"][0]["params"]["k"]
+    assert k["unit"] == "rad/(N m)"
+    p = report["effects"][0]["evidence"]["p_bonferroni"]
+    assert "+ compliance(joint 2)" in printed and "effects found:\n" in printed
+    assert (
+        f"  compliance (joint 2): k = {k['value']:.3g} rad/(N m) ± {k['std']:.2g}; localisation of tau2: "
+        f"Bonferroni p = {p:.2g}\n  learned\n"
+    ) in printed
+    assert any(
+        n.startswith(f"diagnosis: compliance:2 added (localisation of tau2: Bonferroni p = {p:.2g}")
+        for n in report["notes"]
+    )
+    from torchcal.report.consistency import contradictions
+
+    assert contradictions(tmp_path / "demo" / "run", printed) == []
     assert (
         report["effects"][0]["kind"] == "compliance"
         and report["effects"][0]["rmse_after_mm"] < report["effects"][0]["rmse_before_mm"]

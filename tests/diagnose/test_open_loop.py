@@ -85,7 +85,9 @@ def test_a_candidate_whose_refit_fails_is_rejected_with_the_reason_not_the_run()
     cand = SimpleNamespace(
         name="drift:temperature", make=lambda: __import__("torchcal").effects.Drift("temperature", "scale", rates=[0.0])
     )
-    score = SimpleNamespace(candidate=cand, statistic=12.0, k=1, log10_p=-3.0)
+    score = SimpleNamespace(
+        candidate=cand, statistic=12.0, k=1, log10_p=-3.0, to_dict=lambda: {"test": "score test", "p_bonferroni": 1e-3}
+    )
     e_base = torch.full((5,), 1e-4, dtype=torch.float64)
     fit_part = SimpleNamespace(q=torch.zeros(5, 6, dtype=torch.float64))  # only its joint range is read
     v = _validate(
@@ -95,7 +97,7 @@ def test_a_candidate_whose_refit_fails_is_rejected_with_the_reason_not_the_run()
         e_base=e_base,
         fit_on=failing_fit,
         fit_part=fit_part,
-        val_part=None,
+        val_part=SimpleNamespace(q=torch.zeros(2, 6, dtype=torch.float64)),  # only its size is said
         trajectory=False,
         alpha_val=0.05,
     )

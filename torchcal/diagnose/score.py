@@ -208,3 +208,19 @@ def score_candidates(
         )
     out.sort(key=lambda s: (not s.identifiable, s.log10_p, -s.statistic))
     return out
+
+
+def named_p(evidence: dict) -> str:
+    """The one p-value a decision rests on, with the test's name, as every report and message prints it:
+    ``"localisation of tau2: Bonferroni p = 3.8e-207"`` for an open candidate (admitted on the localisation of the
+    residual in that variable), ``"score test: Bonferroni p = 0.00071"`` for a named one.
+
+    Args:
+        evidence: a score's ``to_dict()`` (:class:`Score` or the localisation's), or a report's ``evidence`` of it.
+    """
+    p = evidence.get("p_bonferroni")
+    p_words = "-" if p is None else f"{p:.2g}"
+    if str(evidence.get("test", "")).startswith("localisation"):
+        var = (evidence.get("localisation") or {}).get("variable") or evidence.get("variable")
+        return f"localisation{f' of {var}' if var else ''}: Bonferroni p = {p_words}"
+    return f"score test: Bonferroni p = {p_words}"

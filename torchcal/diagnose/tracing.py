@@ -289,7 +289,11 @@ def effect_form_params(model: MeasurementModel, index: int, cand: OpenCandidate,
     lt = fitted.get("log_tau")
     if getattr(eff, "form", None) == "exponential" and isinstance(lt, dict):
         tau = math.exp(lt["value"])
-        out["tau"] = {"value": tau, "std": None if lt.get("std") is None else tau * lt["std"]}
+        out["tau"] = {
+            "value": tau,
+            "std": None if lt.get("std") is None else tau * lt["std"],
+            **({"unit": eff.param_units(model.robot)["tau"]} if hasattr(eff, "param_units") else {}),
+        }
     return out
 
 

@@ -185,6 +185,16 @@ class Effect(nn.Module):
         """The effect's parameters as plain numbers, for truth.json and reports."""
         return {name: p.detach().cpu().tolist() for name, p in self.named_parameters()}
 
+    def param_units(self, robot) -> dict[str, str | list[str]]:
+        """The unit of each fitted parameter (by attribute name; a list gives one per element), for the reports:
+        SI, ``rad`` for an angle, and a joint's own unit (``rad``, or ``m`` for a prismatic joint of ``robot``)
+        where the parameter is a joint error. Empty for effects with no physical parameters (learned ones)."""
+        return {}
+
+    def joint_unit(self, robot) -> str:
+        """``rad``, or ``m`` where this effect's joint of ``robot`` is prismatic."""
+        return "m" if robot.joint_types[self.j] == "prismatic" else "rad"
+
     def config(self) -> dict:
         """Constructor arguments (besides parameter values) to rebuild the module (see
         :func:`~torchcal.effects.registry.effect_from_config`)."""

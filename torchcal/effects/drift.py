@@ -132,6 +132,11 @@ class Drift(Effect):
             raise ValueError("scale drift needs the probe position in the base frame")
         return _dual.mul(p_base, _dual.mul(self.rates, dv)[:, None])
 
+    def param_units(self, robot) -> dict:
+        per = "s" if self.variable == "t" else "°C"
+        rates = [f"m/{per}"] * 3 + [f"rad/{per}"] * 3 if self.target == "instrument" else [f"1/{per}"]
+        return {"rates": rates, "log_tau": f"ln({per})", "tau": per}
+
     def config(self) -> dict:
         cfg = {"variable": self.variable, "target": self.target}
         if self.form != "linear":  # the linear default keeps the older config unchanged

@@ -131,6 +131,10 @@ class Compliance(Effect):
         # the torque is a constant of the estimators' forward-mode Jacobians: torchcal._dual keeps the product in C++
         return self._joint_delta(ctx, _dual.mul(self.k, self.regressor(robot, ctx)))
 
+    def param_units(self, robot) -> dict:
+        # the joint error per unit of its gravity torque (a prismatic joint: per newton of its gravity force)
+        return {"k": "rad/(N m)" if self.joint_unit(robot) == "rad" else "m/N"}
+
     def config(self) -> dict:
         return {"joint": self.joint, "payload": self.payload}
 
@@ -202,6 +206,9 @@ class LumpedCompliance(Effect):
         """The twist ``dq_j (N,)`` [rad] at the joints ``q`` ``(N, dof)``."""
         with torch.no_grad():
             return self.regressor(robot, Context(q=q)) @ self.mode
+
+    def param_units(self, robot) -> dict:
+        return {"mode": self.joint_unit(robot)}
 
     def config(self) -> dict:
         return {"joint": self.joint, "basis": self.basis.tolist()}
@@ -302,6 +309,9 @@ class Backlash(Effect):
         half_b = _dual.mul_scalar(self.b, 0.5)
         return self._joint_delta(ctx, _dual.mul(half_b, self.regressor(robot, ctx)))
 
+    def param_units(self, robot) -> dict:
+        return {"b": self.joint_unit(robot)}
+
     def config(self) -> dict:
         return {"joint": self.joint, "source": self.source}
 
@@ -358,6 +368,9 @@ class Cyclic(RegionForm):
     def _coef(self) -> Tensor:
         return torch.cat([self.a, self.b])
 
+    def param_units(self, robot) -> dict:
+        return {"a": self.joint_unit(robot), "b": self.joint_unit(robot)}
+
     def config(self) -> dict:
         return {"joint": self.joint, "harmonics": [int(k) for k in self.harmonics], **self._region_config()}
 
@@ -404,6 +417,10 @@ class Transmission(RegionForm):
     def _coef(self) -> Tensor:
         return self.c
 
+    def param_units(self, robot) -> dict:
+        u = self.joint_unit(robot)
+        return {"c": [f"{u}/{u}" if d == 1 else f"{u}/{u}^{d}" for d in range(1, self.degree + 1)]}
+
     def config(self) -> dict:
         return {"joint": self.joint, "degree": self.degree, **self._region_config()}
 
@@ -444,6 +461,10 @@ class Coupling(Effect):
 
     def forward(self, robot, ctx: Context) -> Tensor:
         return self._joint_delta(ctx, _dual.mul(self.c, self.regressor(robot, ctx)))
+
+    def param_units(self, robot) -> dict:
+        source = "m" if robot.joint_types[self.source - 1] == "prismatic" else "rad"
+        return {"c": f"{self.joint_unit(robot)}/{source}"}
 
     def config(self) -> dict:
         return {"joint": self.joint, "source": self.source}

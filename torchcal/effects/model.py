@@ -157,6 +157,14 @@ class MeasurementModel(nn.Module):
         return T[..., :3, :3] @ R
 
     def predict(self, q: Tensor, **kw) -> Tensor:
-        """Convenience: ``forward(Context(q, **kw))`` without gradients."""
+        """Predicted probe positions in the tracker frame ``(N, 3)`` [m], in memory and without gradients: a run's
+        ``run.model.predict(q)`` is what ``torchcal predict`` computes from its run directory (tests/use/
+        test_predict_in_memory.py).
+
+        Args:
+            q: joint readings ``(N, dof)`` [rad, or m for a prismatic joint].
+            **kw: the other fields of :class:`~torchcal.effects.base.Context`: ``t`` ``(N,)`` [s] for a drift in time,
+                ``temperature`` ``(N,)`` [degC], ``station`` and ``probe`` ``(N,)`` int64 indices for a run of several.
+        """
         with torch.no_grad():
             return self(Context(q=q, **kw))

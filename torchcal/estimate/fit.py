@@ -330,7 +330,8 @@ def effect_parameter_labels(model: MeasurementModel) -> tuple[dict[str, Tensor],
 
 
 def effect_parameters(model: MeasurementModel, index: int, fit: Fit) -> dict:
-    """Estimates with standard deviations of the parameters of ``model.effects[index]`` from ``fit``."""
+    """Estimates with standard deviations of the parameters of ``model.effects[index]`` from ``fit``: per element
+    ``value``, ``std`` and ``unit`` (the effect's :meth:`~torchcal.effects.base.Effect.param_units`)."""
     _, labels = effect_parameter_labels(model)
     res = fit.result
     std = res.std
@@ -341,12 +342,14 @@ def effect_parameters(model: MeasurementModel, index: int, fit: Fit) -> dict:
             continue
         pname = key.split(".")[-1]
         values = dict(model.named_parameters())[key].detach().flatten().tolist()
-        for name, v in zip(names, values):
+        unit = model.effects[index].param_units(model.robot).get(pname)
+        for k, (name, v) in enumerate(zip(names, values)):
             short = pname + name[len(f"{model.effects[index].label()}.{pname}") :]
             i = pos.get(name)
             out[short] = {
                 "value": v,
                 "std": float(std[i]) if i is not None else None,
+                **({} if unit is None else {"unit": unit[k] if isinstance(unit, list) else unit}),
                 **({} if i is not None else {"note": "held fixed: not identifiable"}),
             }
     return out

@@ -107,8 +107,8 @@ def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Me
         shown = {"m": f"{value * 1e3:+.4g} mm", "rad": f"{math.degrees(value):+.4g} deg"}.get(units[n], f"{value:+.4g}")
         listed.append(f"{n} {shown} ({r:.0f} x its prior)")
     cause = (
-        "Wrong robot (were the data measured on another model?), wrong units (--length-unit, --angle-unit), or a "
-        "description that is not this robot's"
+        "Wrong robot (were the data measured on another model?), wrong units (length_unit, angle_unit: "
+        "--length-unit, --angle-unit), or a description that is not this robot's"
     )
     if units[worst[0][2]] == "1":
         cause = (

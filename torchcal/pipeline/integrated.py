@@ -97,7 +97,7 @@ FORWARD_FRACTION = 0.1
 def require_trajectory(data: Measurements, trajectory: bool) -> None:
     """Raise :class:`OptionError` unless ``data`` is a continuous trajectory with a monotonic ``t`` column."""
     where = f"{data.source}: " if data.source else ""
-    other = "use --method kinematic, kinematic+ann or auto for static poses"
+    other = "use method kinematic, kinematic+ann or auto for static poses (--method)"
     if data.t is None:
         raise OptionError(
             f"{where}method 'integrated' needs a continuous trajectory with a monotonic t column "

@@ -42,7 +42,7 @@ from torchcal import _console
 from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.diagnose.candidates import Candidate, candidates
-from torchcal.diagnose.score import Score, score_candidates
+from torchcal.diagnose.score import Score, named_p, score_candidates
 from torchcal.diagnose.tracing import (
     LocalisationScore,
     OpenCandidate,
@@ -277,6 +277,11 @@ class _Search:
             remaining.remove(v)
         if accepted is None:
             return False
+        others = [v.candidate.name for v in passed if v is not accepted and not v.rejected]
+        _console.info(
+            f"diagnosis round {accepted.round}: {accepted.candidate.name} accepted"
+            + (f" (the best confirmed; {', '.join(others)} scored again next round)" if others else "")
+        )
         for v in passed:
             if v is not accepted and not v.rejected:
                 (self.tried_open if isinstance(v.candidate, OpenCandidate) else self.tried).discard(v.candidate.name)
@@ -334,9 +339,7 @@ def _validate(
     """Refit ``base`` with ``cand`` (default: the candidate of ``s``) on the fitting poses; compare on the
     validation poses."""
     cand = cand if cand is not None else s.candidate
-    _console.info(
-        f"diagnosis round {rnd}: {cand.name} (chi2 {s.statistic:.1f} on {s.k:.3g}, log10 p {s.log10_p:.1f}); validating"
-    )
+    _console.info(f"diagnosis round {rnd}: {cand.name} ({named_p(s.to_dict())}): validating on {len(val_part.q)} poses")
     trial = copy.deepcopy(base)
     trial.add(_made(cand, fit_part))
     try:
@@ -344,11 +347,13 @@ def _validate(
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
         reason = f"its joint refit on the fitting poses failed ({err})"
         validation = _untested(e_base, None, refit_failed=str(err))
+        _console.info(f"diagnosis round {rnd}: {cand.name}: rejected, {reason}")
         return _Validation(s, rnd, cand, base, trial, e_base, validation, False, reason, cause=Cause.REFIT_FAILED)
     e_trial = errors(trial, val_part, trajectory)
     unsure = joint_function_check(trial.effects[-1], fit_part.q, trial.robot, max_size)
     if unsure is not None:  # fits the poses, but explodes just beyond them: never better than without it
         validation = _untested(e_base, e_trial, ill_determined=unsure)
+        _console.info(f"diagnosis round {rnd}: {cand.name}: rejected, {unsure}")
         return _Validation(s, rnd, cand, base, trial, e_trial, validation, False, unsure, cause=Cause.ILL_DETERMINED)
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
@@ -372,6 +377,10 @@ def _validate(
         n_obs
     )
     validation["bic_fit"] = bic
+    _console.info(
+        f"diagnosis round {rnd}: {cand.name}: {'confirmed' if passed else 'not confirmed'} (validation RMSE "
+        f"{r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, paired p = {test.p_value:.2g})"
+    )
     return _Validation(s, rnd, cand, base, trial, e_trial, validation, passed, reason, bic)
 
 
@@ -499,13 +508,7 @@ def _reject(work: StageWork, diag: Diagnosis, v: _Validation) -> None:
     diag.decisions.append(Decision(v.round, cand, v.score, False, v.reason, v.validation, None, (v.base, v.trial)))
     evidence = {**v.score.to_dict(), "validation": v.validation}
     work.rejections.append(Rejection(cand.kind, cand.joint, evidence, name=cand.name, reason=v.reason, cause=v.cause))
-    work.note(f"diagnosis: {cand.name} rejected, {v.reason}")
-
-
-def _test_name(s: Score) -> str:
-    """Which test gave ``s`` its statistic: an open candidate is admitted on the localisation of the residual, a
-    named one on its score test (report.md's round table gives the score test of every candidate)."""
-    return "localisation" if str(s.to_dict().get("test", "")).startswith("localisation") else "score"
+    work.note(f"diagnosis: {cand.name} ({named_p(v.score.to_dict())}) rejected, {v.reason}")
 
 
 def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Measurements) -> bool:
@@ -574,8 +577,8 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
         )
     )
     work.note(
-        f"diagnosis: {cand.name} added ({_test_name(s)} chi2 {s.statistic:.1f} on {s.k:.3g} dof, "
-        f"Bonferroni p = {s.p_bonferroni:.2g}; validation {v.validation['rmse_before_mm']:.4f} -> "
+        f"diagnosis: {cand.name} added ({named_p(s.to_dict())}, chi2 {s.statistic:.1f} on {s.k:.3g} dof; "
+        f"validation {v.validation['rmse_before_mm']:.4f} -> "
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
     return True

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal.diagnose.score import named_p
 from torchcal.pipeline import CalibrationRun
 from torchcal.pipeline.prior import moved_words
 from torchcal.report._figures import TITLE_Y, save, subplots
@@ -17,7 +18,11 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     fig, ax = subplots(figsize=(9, 3.2))
     x = torch.arange(len(run.holdout_idx))
     colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
+    # from the kinematic calibration on: the nominal model's error (several times larger) would set the scale and
+    # hide the steps that follow; its RMSE is in the title
     for k, s in enumerate(run.stages):
+        if s.name == "nominal":
+            continue
         color = "tab:blue" if k == len(run.stages) - 1 and k > 1 else colors[k % len(colors)]
         ax.plot(
             x, (s.holdout_errors * 1e3).cpu(), ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)"
@@ -25,17 +30,24 @@ def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
     ax.set_xlabel("held-out pose")
     ax.set_ylabel("|position error| [mm]")
     ax.legend(fontsize=8)
-    ax.set_title("Held-out position error per pose", y=TITLE_Y)
+    ax.set_title(
+        f"Held-out position error per pose, from the kinematic calibration on (nominal: RMSE "
+        f"{run.stages[0].rmse * 1e3:.3f} mm)",
+        fontsize=10,
+        y=TITLE_Y,
+    )
     save(fig, path, margins={"left": 0.08, "right": 0.985, "bottom": 0.15, "top": 0.9})
 
 
 def plot_histograms(run: CalibrationRun, path: Path) -> None:
     fig, ax = subplots(figsize=(6, 3.2))
-    first, last = run.stages[0], run.stages[-1]
+    first, last = _geometric(run), run.stages[-1]
     hi = float(max(first.holdout_errors.max(), last.holdout_errors.max())) * 1e3
     bins = torch.linspace(0, hi, 40).tolist()
-    ax.hist((first.holdout_errors * 1e3).tolist(), bins=bins, alpha=0.6, color="0.5", label=f"before ({first.name})")
-    ax.hist((last.holdout_errors * 1e3).tolist(), bins=bins, alpha=0.7, color="tab:blue", label=f"after ({last.name})")
+    ax.hist((first.holdout_errors * 1e3).tolist(), bins=bins, alpha=0.6, color="0.5", label="kinematic calibration")
+    if last is not first:
+        e = (last.holdout_errors * 1e3).tolist()
+        ax.hist(e, bins=bins, alpha=0.7, color="tab:blue", label=f"final ({last.name})")
     ax.set_xlabel("|position error| [mm], held-out poses")
     ax.set_ylabel("poses")
     ax.legend(fontsize=8)
@@ -48,20 +60,38 @@ def plot_error_vs_joints(run: CalibrationRun, path: Path) -> None:
     rows = math.ceil(dof / cols)
     fig, axes = subplots(rows, cols, figsize=(10, 2.6 * rows), squeeze=False)
     q = run.data.q[run.holdout_idx]
-    first, last = run.stages[0], run.stages[-1]
+    first, last = _geometric(run), run.stages[-1]
     for j in range(rows * cols):
         ax = axes[j // cols][j % cols]
         if j >= dof:
             ax.axis("off")
             continue
-        ax.plot(q[:, j].tolist(), (first.holdout_errors * 1e3).tolist(), ".", ms=2, color="0.6", label="before")
-        ax.plot(q[:, j].tolist(), (last.holdout_errors * 1e3).tolist(), ".", ms=2, color="tab:blue", label="after")
-        ax.set_xlabel(f"q{j + 1} [rad]")
+        ax.plot(q[:, j].tolist(), (first.holdout_errors * 1e3).tolist(), ".", ms=2, color="0.6", label="kinematic")
+        if last is not first:
+            ax.plot(q[:, j].tolist(), (last.holdout_errors * 1e3).tolist(), ".", ms=2, color="tab:blue", label="final")
+        ax.set_xlabel(f"q{j + 1} [{'m' if run.robot.joint_types[j] == 'prismatic' else 'rad'}]")
         if j % cols == 0:
             ax.set_ylabel("|error| [mm]")
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Held-out error against each joint")
-    save(fig, path, margins={"left": 0.07, "right": 0.985, "bottom": 0.2 / rows, "top": 1 - 0.2 / rows, "hspace": 0.45})
+    save(
+        fig,
+        path,
+        margins={
+            "left": 0.085,
+            "right": 0.985,
+            "bottom": 0.2 / rows,
+            "top": 1 - 0.2 / rows,
+            "hspace": 0.45,
+            "wspace": 0.3,
+        },
+    )
+
+
+def _geometric(run: CalibrationRun):
+    """The kinematic calibration's stage: where the figures of the held-out error start (the nominal model's error,
+    several times larger, would set their scale)."""
+    return next(s for s in run.stages if s.name == "geometric")
 
 
 def plot_error_map(run: CalibrationRun, path: Path) -> None:
@@ -98,8 +128,12 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     before, after = decision.models
     v = residual_view(decision.candidate, before, after, ctx, train.p)
     x = v["x"].tolist()
-    fig, axes = subplots(1, 2, figsize=(10, 3.6), sharey=True)
-    for ax, key, title in ((axes[0], "before", "before"), (axes[1], "after", "after")):
+    fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
+    panels = (
+        (axes[0], "before", "before: residual of the model without it"),
+        (axes[1], "after", "after: residual of the joint refit with it"),
+    )
+    for ax, key, title in panels:
         ax.plot(
             x,
             (v[key] * 1e6).tolist(),
@@ -119,12 +153,16 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
         )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(v["xlabel"])
-        ax.set_title(f"{decision.candidate.name} {title}", y=TITLE_Y)
+        ax.set_title(title, fontsize=9, y=TITLE_Y)
+        ax.legend(fontsize=7, loc="upper left")
     axes[0].set_ylabel("[um]")
-    axes[0].legend(fontsize=7)
     verdict = "accepted" if decision.accepted else "rejected"
-    fig.suptitle(f"{decision.candidate.name}: {verdict} (training poses)", fontsize=10)
-    save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.14, "top": 0.83, "wspace": 0.05})
+    fig.suptitle(
+        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect: the "
+        "fitted effect can exceed the trend\nthe geometry alone left, whose share of it the geometry had absorbed",
+        fontsize=9,
+    )
+    save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.13, "top": 0.8, "wspace": 0.05})
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -222,9 +260,18 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
         "## Plots",
         "",
+        "Each held-out pose's error at every step from the kinematic calibration on (the nominal model's, several "
+        "times larger, is in the title): look for poses the final model leaves far above the rest.",
+        "",
         "![errors per pose](errors_per_pose.png)",
         "",
+        "The held-out errors of the kinematic calibration and of the final model: the final one sits to the left, "
+        "with a shorter tail, where the effects helped.",
+        "",
         "![histogram](histogram.png)",
+        "",
+        "The held-out error against each joint, kinematic calibration and final model: a trend or a band along a "
+        "joint that the final model still shows is structure in that joint.",
         "",
         "![error against joints](error_vs_joints.png)",
         "",
@@ -255,6 +302,10 @@ def _story_section(run: CalibrationRun, report: dict) -> list[str]:
         f"Before: {report['rmse_before_mm']:.4f} mm; after the geometric fit: {report['rmse_geometric_mm']:.4f} mm; "
         f"final: {report['rmse_after_mm']:.4f} mm.",
         "",
+        "The held-out probe positions from above (top) and from the side (bottom), coloured by their error after the "
+        "kinematic calibration (left) and with the final model (right), on one colour scale: look for regions "
+        "where the error stays high.",
+        "",
         "![error map](error_map.png)",
         "",
     ]
@@ -267,14 +318,31 @@ def _global_test_section(report: dict) -> list[str]:
         "",
         f"Variance factor {gt['statistic']:.3f} against the bound {gt['threshold']:.3f} (chi-square, "
         f"alpha {gt['alpha']}, redundancy {gt['redundancy']}): **{'passed' if gt['passed'] else 'failed'}**. "
-        + (
-            "The functional and stochastic models agree with the data."
-            if gt["passed"]
-            else "The residuals are larger than the stochastic model allows: the model lacks something, or the "
-            "measurement precision is overstated."
-        ),
+        + ("The functional and stochastic models agree with the data." if gt["passed"] else global_test_finding(gt)),
         "",
     ]
+
+
+def global_test_finding(gt: dict) -> str:
+    """What a failed global test found, in words (report.json ``global_test``; :mod:`torchcal.diagnose.noise`): what
+    the model leaves against the instrument's noise, and whether it reads as structure an effect may explain or as a
+    unit or robot-description mistake. report.md and calibrate's warning say the same."""
+    from torchcal.diagnose.noise import MISTAKE_SHARE, NoiseLevel
+
+    noise = NoiseLevel(gt["noise"]["sigma_m"], gt["noise"]["source"], gt["noise"]["dof"])
+    times = "" if gt["times_noise"] is None else f", {gt['times_noise']:.3g} times the noise level"
+    left = f"The final model leaves {gt['unexplained_mm']:.4f} mm (held-out RMSE){times} ({noise.words()}). "
+    if gt["reading"] == "mistake":
+        return left + (
+            f"The kinematic calibration alone leaves {gt['geometric_share_of_reach']:.2g} of the arm's reach "
+            f"({gt['reach_m']:.3g} m), more than {MISTAKE_SHARE:g}: this looks like a unit or robot-description "
+            "mistake (a joint column in degrees or another unit? a robot description with a wrong length or angle? "
+            "orientation columns that are not the probe's? --tracker-noise far too small?)."
+        )
+    return left + (
+        "The model lacks structure the data show: see the effects and the unexplained structure above; "
+        "predict's sigma includes what it leaves."
+    )
 
 
 def _outliers_section(report: dict) -> list[str]:
@@ -321,6 +389,16 @@ def _parameters_section(par: dict) -> list[str]:
     return lines
 
 
+def effect_params_words(params: dict) -> str:
+    """An effect's fitted parameters as report.md and the terminal print them: ``k = 2.49e-06 rad/(N m) ± 9.1e-08``
+    (the unit report.json gives beside the value; none for a parameter without one)."""
+    return ", ".join(
+        f"{k} = {v['value']:.3g}{' ' + v['unit'] if v.get('unit') else ''} ± {_g(v.get('std'), '.2g')}"
+        for k, v in params.items()
+        if isinstance(v, dict) and "value" in v
+    )
+
+
 def _effects_section(effects: list) -> list[str]:
     """The non-geometric effects fitted: their parameters and what each took off the held-out RMSE."""
     if not effects:
@@ -333,11 +411,7 @@ def _effects_section(effects: list) -> list[str]:
         "|---|---|---|---:|---:|",
     ]
     for e in effects:
-        params = ", ".join(
-            f"{k} = {v['value']:.3g} ± {_g(v['std'])}"
-            for k, v in e["params"].items()
-            if isinstance(v, dict) and "value" in v
-        )
+        params = effect_params_words(e["params"])
         kind = f"{e['kind']} (the prior run's, held; its RMSE)" if e.get("carried_from_prior") else e["kind"]
         lines.append(
             f"| {kind} | {e['joint'] if e['joint'] is not None else '-'} | {params or '-'} | "
@@ -519,7 +593,9 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             "",
             f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).",
             "",
-            "| candidate | k | chi2 | log10 p | Bonferroni p | BIC change | identifiable |",
+            "Score test of each named candidate at the current fit (the strongest six):",
+            "",
+            "| candidate | k | chi2 | score test: log10 p | score test: Bonferroni p | BIC change | identifiable |",
             "|---|---:|---:|---:|---:|---:|---|",
         ]
         for s in r["scores"][:6]:
@@ -532,7 +608,7 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             lines += [
                 "Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
                 + ", ".join(
-                    f"{loc['variable']} (share {loc['share']:.1%}, p = {loc['p_bonferroni']:.2g})"
+                    f"{loc['variable']} (share {loc['share']:.1%}, Bonferroni p = {loc['p_bonferroni']:.2g})"
                     for loc in r["localisation"][:3]
                 )
                 + ". Open candidates: "
@@ -546,14 +622,22 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
             v = d.validation
             verdict = "**accepted**" if d.accepted else "**rejected**"
             lines += [
-                f"{d.candidate.name}: {verdict}: {d.reason}. Validation RMSE {v['rmse_before_mm']:.4f} -> "
-                f"{v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, p = {v['p_value']:.2g}).",
+                f"{d.candidate.name} ({named_p(d.score.to_dict())}): {verdict}: {d.reason}. Validation RMSE "
+                f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, "
+                f"p = {v['p_value']:.2g}).",
                 "",
             ]
             if d.models is not None:
                 name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
                 plot_decision(run, d, out / name)
-                lines += [f"![{d.candidate.name}]({name})", ""]
+                lines += [
+                    f"![{d.candidate.name}]({name})",
+                    "",
+                    "The training residual along the effect's direction against its variable, without the effect "
+                    "(left) and after the joint refit with it (right), with the fitted effect in red: an effect the "
+                    "data demand leaves the right panel flat.",
+                    "",
+                ]
     lines += [f"Stopped: {diag.stop}.", ""]
     learned = [e for e in report["effects"] if e["kind"] == "learned"]
     rejected = [e for e in report.get("rejected", []) if e["kind"] == "learned"]
@@ -591,14 +675,22 @@ def plot_unexplained(entry: dict, path: Path) -> None:
     for c, name in enumerate(names):
         v, s = cols[0][:, c] * scale, cols[1][:, c] * scale
         style = "o-" if len(x) <= 2 else "-"
-        ax.plot(x.tolist(), v.tolist(), style, lw=1.2, label=name)
-        ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
+        # where the band is wider than the curve's whole variation, the smooth's level is not determined (a constant
+        # the geometry carries, a joint offset): its shape is drawn about zero, without a band the data do not support
+        shape_only = float(s.min()) > float(v.max() - v.min())
+        if shape_only:
+            v = v - v.mean()
+        ax.plot(
+            x.tolist(), v.tolist(), style, lw=1.2, label=name + (" (shape; level not determined)" if shape_only else "")
+        )
+        if not shape_only:
+            ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel(entry["label"])
     ax.set_ylabel(f"residual smooth [{unit}]" + (" (tracker frame)" if not joint else ""))
     ax.set_title(
         f"unexplained: {entry['variable']} (share {entry['share']:.1%} of the residual, "
-        f"p = {entry['p_bonferroni']:.2g})",
+        f"Bonferroni p = {entry['p_bonferroni']:.2g})",
         fontsize=10,
         y=TITLE_Y,
     )
@@ -609,7 +701,7 @@ def plot_unexplained(entry: dict, path: Path) -> None:
 def _unexplained_section(report: dict, out: Path) -> list[str]:
     """What the final model leaves unexplained (``report["unexplained"]``), with a plot of the strongest."""
     entries = report.get("unexplained") or []
-    if not entries:
+    if not entries or report["global_test"]["passed"]:
         return []
     lines = [
         "## Unexplained structure",
@@ -626,7 +718,17 @@ def _unexplained_section(report: dict, out: Path) -> list[str]:
             f"| {e['variable']} | {e['share']:.1%} | {e['p_bonferroni']:.2g} | {form.get('form', '-')} "
             f"(order {form.get('order')}) | {e.get('reason', '-')} |"
         )
+    if not entries[0].get("significant", True):  # a smooth no test supports: its curve and band would mislead
+        return lines + ["", "No variable is significant on its own, so no smooth is drawn.", ""]
     name = f"unexplained_{entries[0]['variable']}.png"
     plot_unexplained(entries[0], out / name)
-    lines += ["", f"![unexplained {entries[0]['variable']}]({name})", ""]
+    lines += [
+        "",
+        f"The smooth of the final model's training residual in {entries[0]['variable']}, with a band of two standard "
+        "errors: a curve that leaves zero by more than its band is what the model still lacks there (where its "
+        "level is not determined, only its shape is drawn, about zero and without a band).",
+        "",
+        f"![unexplained {entries[0]['variable']}]({name})",
+        "",
+    ]
     return lines

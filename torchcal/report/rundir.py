@@ -182,7 +182,10 @@ def build_report(run: CalibrationRun) -> dict:
         "max_before_mm": float(st["nominal"].holdout_errors.max()) * 1e3,
         "max_after_mm": float(final.holdout_errors.max()) * 1e3,
         "rmse_train_after_mm": rmse(final.train_errors) * 1e3,
-        "global_test": {k: last.global_test[k] for k in ("statistic", "threshold", "passed", "alpha", "redundancy")},
+        "global_test": {
+            **{k: last.global_test[k] for k in ("statistic", "threshold", "passed", "alpha", "redundancy")},
+            **_json_safe(_global_test_reading(run)),
+        },
         "stochastic_model": {
             "tracker_sigma_m": "per point (sx, sy, sz)"
             if run.data.sigma is not None
@@ -193,8 +196,12 @@ def build_report(run: CalibrationRun) -> dict:
         "effects": _json_safe(run.effects_report + _carried_effects(run)),
         "rejected": _json_safe(run.rejected),
         "diagnosis": _json_safe(run.diagnosis.to_dict()) if run.diagnosis is not None else None,
-        # structure the final model leaves (CONTRACT §4; empty when the global test passes or no loop ran)
-        "unexplained": _json_safe(getattr(run.diagnosis, "unexplained", None) or []),
+        # structure the final model leaves (CONTRACT §4; empty when the global test passes or no loop ran): the loop
+        # lists it when its last fit fails the test, and a later stage (the learned model, the held-out guard's
+        # choice) can pass it, so the report's own global test decides, and report.md says the same
+        "unexplained": []
+        if last.global_test.get("passed", True)
+        else _json_safe(getattr(run.diagnosis, "unexplained", None) or []),
         # the auto method: the final model against the kinematic calibration on the held-out poses (None otherwise)
         "holdout_guard": _json_safe(getattr(run, "holdout_guard", None)),
         "parameters": _param_table(run),
@@ -221,6 +228,20 @@ def build_report(run: CalibrationRun) -> dict:
         **({"orientation": _json_safe(o)} if (o := _orientation_report(run)) is not None else {}),
         **_stations_report(run),
     }
+
+
+def _global_test_reading(run: CalibrationRun) -> dict:
+    """What the last fit's global test found (:func:`torchcal.diagnose.noise.global_test_reading`): the instrument's
+    noise level from the final model's training residuals, what the model leaves in it, and how to read a failure."""
+    from torchcal.diagnose.noise import global_test_reading, noise_level
+
+    train = run.data.subset(run.train_idx)
+    with torch.no_grad():
+        r = train.p - run.model(Context.from_measurements(train, trajectory=run.trajectory))
+        reach = float(run.model.robot.probe_in_base(train.q).norm(dim=-1).max())
+    noise = noise_level(train.q, r, train.sigma, run.options.fit.sigma_tracker)
+    st = {s.name: s for s in run.stages}
+    return global_test_reading(run.fits[-1].global_test, noise, run.stages[-1].rmse, st["geometric"].rmse, reach)
 
 
 def _stations_report(run: CalibrationRun) -> dict:

@@ -86,16 +86,26 @@ def load_robot(
         spec: built-in name or path.
         base_link, tip_link: URDF only, pick the chain when the tree has several.
         dtype: must be float64 (the calibration path is float64).
+        device: ``cpu``, ``cuda`` or ``cuda:N``, checked to exist here.
         reader: how a URDF is read (:func:`load_urdf`).
 
     Returns:
         A :class:`RobotModel` with nominal geometry and zero corrections.
+
+    Raises:
+        OptionError: a device this machine or this torch build does not have (torch's own ``AssertionError`` of a
+            CPU-only build otherwise).
     """
+    from torchcal._device import resolve_device
+
+    device = resolve_device(device)
     path = resolve_robot_spec(spec)
     if path.suffix == ".urdf":
         return load_urdf(path, base_link=base_link, tip_link=tip_link, dtype=dtype, device=device, reader=reader)
     if base_link or tip_link:
-        raise RobotSpecError(f"{path}: --base-link/--tip-link apply to URDF robots only, this is a DH table")
+        raise RobotSpecError(
+            f"{path}: base_link/tip_link (--base-link/--tip-link) apply to URDF robots only, this is a DH table"
+        )
     return load_dh_yaml(path, dtype=dtype, device=device)
 
 
@@ -577,7 +587,9 @@ def _pick_base_link(path: Path, links: list[str], child_of: dict, base_link: str
     roots = [lk for lk in links if lk not in child_of]
     if base_link is None:
         if len(roots) != 1:
-            raise RobotSpecError(f"{path}: the URDF has {len(roots)} root links {roots}; pick one with --base-link")
+            raise RobotSpecError(
+                f"{path}: the URDF has {len(roots)} root links {roots}; pick one with base_link (--base-link)"
+            )
         return roots[0]
     if base_link not in links:
         raise RobotSpecError(f"{path}: base link '{base_link}' not found; links: {', '.join(links)}")
@@ -618,7 +630,7 @@ def _pick_tip_link(path: Path, links: list[str], children: dict, child_of: dict,
     if best == 0 or len(cands) != 1:
         raise RobotSpecError(
             f"{path}: cannot choose the tip link: leaves {cands} each end a chain of {best} "
-            "joints; pick one with --tip-link"
+            "joints; pick one with tip_link (--tip-link)"
         )
     return cands[0]
 
