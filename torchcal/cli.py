@@ -234,8 +234,34 @@ def _add_import_export(sub) -> None:
     ex.add_argument("run", help="run directory written by calibrate (or station)")
     ex.add_argument("--format", required=True, choices=("ur-ros2", "dh", "urdf"), help="the file to write")
     ex.add_argument("--out", required=True, help="file to write")
+    ex.add_argument(
+        "--geometry",
+        choices=("standalone", "cofitted"),
+        default="standalone",
+        help="for a run with effects, which no file can carry: standalone (default) writes the chain that predicts "
+        "best without them (the run's kinematic calibration or a refit to the full model, whichever is better on the "
+        "held-out rows); cofitted writes the geometry fitted together with the effects, for software that applies "
+        "them itself. The header and stderr give the held-out error of the file alone and of the full run",
+    )
     _add_force(ex)
     _add_common(ex)
+
+    ce = sub.add_parser(
+        "check-export",
+        help="load an exported DH or URDF file back and compare it with its run",
+        description="Load FILE (a DH YAML or URDF file written by torchcal export) as --robot loads it and print the "
+        "largest difference of its chain to the run's exported chain (flange and probe, at the run's held-out joints) "
+        "and the held-out RMSE of the file's chain with the run's instrument pose and lever arm.",
+    )
+    ce.add_argument("run", help="run directory written by calibrate (or station)")
+    ce.add_argument("file", help="the exported file (.yaml, .yml or .urdf)")
+    ce.add_argument(
+        "--geometry",
+        choices=("standalone", "cofitted"),
+        default=None,
+        help="compare with this chain of the run (default: whichever is closer to the file)",
+    )
+    _add_common(ce)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -1333,12 +1359,25 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def cmd_check_export(args) -> int:
+    from torchcal.use.export import check_export
+
+    c = check_export(args.run, args.file, geometry=args.geometry)
+    expected = "" if c.expected_mm is None else f" (the run recorded {c.expected_mm:.4f} mm for this chain)"
+    print(
+        f"{args.file} loaded to link '{c.tip}': largest difference to the run's {c.which} chain {c.fk_gap_mm:.3g} mm "
+        f"over {c.n} held-out poses; held-out RMSE with the run's instrument pose and lever arm "
+        f"{c.rmse_mm:.4f} mm{expected}"
+    )
+    return 0
+
+
 def cmd_export(args) -> int:
     from torchcal.use.export import export_run
 
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
-    export_run(args.run, args.format, out_file)
-    _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
+    ex = export_run(args.run, args.format, out_file, geometry=args.geometry)
+    _console.info(f"wrote the {args.format} file of {args.run} to {args.out}: {ex.summary}")
     loads = {"dh": (".yaml", ".yml"), "urdf": (".urdf",)}.get(args.format)
     if loads and Path(args.out).suffix.lower() not in loads:  # --robot tells a description's kind by its suffix
         _console.info(
@@ -1495,6 +1534,7 @@ COMMANDS = {
     "predict": cmd_predict,
     "convert": cmd_convert,
     "export": cmd_export,
+    "check-export": cmd_check_export,
     "compensate": cmd_compensate,
     "station": cmd_station,
     "plan": cmd_plan,

@@ -13,6 +13,9 @@ Layout::
     covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
     geometric.pt           a run with effects: its kinematic calibration (beside covariance_geometric.pt), which
                            predicts rows beyond the region where its sigma is far the smaller (model.json: trust)
+    standalone.pt          a run with effects: the geometry its exports carry, the one that predicts best without
+                           them (torchcal.pipeline.standalone; model.json: standalone)
+    holdout.pt             the held-out rows' joints and positions (check-export measures a file on them)
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
@@ -306,6 +309,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     if run.covariance is not None:  # predict's sx, sy, sz (absent: a fit without one; predict says so)
         torch.save(run.covariance.state(), tmp / "covariance.pt")
     _write_geometric(rtrust, tmp)
+    alone = _write_standalone(run, tmp)
     meta = {
         "format": "torchcal-run-1",
         "robot_file": f"robot/{src.name}",
@@ -317,6 +321,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "region": _region_config(run.model),
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
+        **({"standalone": alone} if alone is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
         **({"probes": list(run.robot.probes)} if run.robot.probes else {}),
         **_single_labels(run),
@@ -379,6 +384,25 @@ def _write_geometric(rt, tmp: Path) -> None:
     torch.save({k: v.cpu() for k, v in rt.geometric_model.state_dict().items()}, tmp / "geometric.pt")
     if rt.geometric_covariance is not None:
         torch.save(rt.geometric_covariance.state(), tmp / "covariance_geometric.pt")
+
+
+def _write_standalone(run: CalibrationRun, tmp: Path) -> dict | None:
+    """``holdout.pt`` (the held-out rows' joints, positions, station and probe: what ``check-export`` measures a file
+    on) and, for a model with effects, ``standalone.pt``: the geometry its exports carry
+    (:mod:`torchcal.pipeline.standalone`). Returns model.json's ``standalone`` (None without one)."""
+    from torchcal.pipeline.standalone import standalone
+
+    hold = run.hold.to("cpu")
+    if hold.p is None or hold.n == 0:
+        return None
+    rows = {"q": hold.q, "p": hold.p}
+    rows.update({k: getattr(hold, k) for k in ("station", "probe") if getattr(hold, k) is not None})
+    torch.save(rows, tmp / "holdout.pt")
+    alone = standalone(run)
+    if alone is None:
+        return None
+    torch.save({k: v.cpu() for k, v in alone.model.state_dict().items()}, tmp / "standalone.pt")
+    return alone.to_dict()
 
 
 def _region_report(model: MeasurementModel) -> dict | None:

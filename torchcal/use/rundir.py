@@ -315,6 +315,42 @@ def load_geometric(
     return geo, cov, geo_trust
 
 
+def load_standalone(run_dir: str | os.PathLike, model: MeasurementModel) -> MeasurementModel | None:
+    """The geometry a run with effects exports (``standalone.pt``, :mod:`torchcal.pipeline.standalone`): ``model``'s
+    robot with that state, no effects; None where the run keeps none (no effects, or written before it)."""
+    import copy
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "standalone.pt").exists():
+        return None
+    alone = MeasurementModel(copy.deepcopy(model.robot))
+    try:
+        alone.load_state_dict(_load_torch_file(run_dir, "standalone.pt"))
+    except (RuntimeError, TypeError, AttributeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"standalone.pt does not match model.json ({first})") from None
+    _check_state(run_dir, alone)
+    return alone
+
+
+def load_holdout(run_dir: str | os.PathLike, dof: int) -> dict[str, Tensor] | None:
+    """The held-out rows a run keeps (``holdout.pt``: ``q (N, dof)``, ``p (N, 3)`` and where the run has several
+    stations or probes their ``station``, ``probe`` indices), checked; None where the run keeps none."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "holdout.pt").exists():
+        return None
+    rows = _load_torch_file(run_dir, "holdout.pt")
+    ok = isinstance(rows, dict) and all(isinstance(rows.get(k), Tensor) for k in ("q", "p"))
+    n = rows["q"].shape[0] if ok and rows["q"].dim() == 2 else -1
+    ok = ok and n > 0 and tuple(rows["q"].shape) == (n, dof) and tuple(rows["p"].shape) == (n, 3)
+    ok = ok and all(
+        k not in rows or (isinstance(rows[k], Tensor) and tuple(rows[k].shape) == (n,)) for k in ("station", "probe")
+    )
+    if not ok or not all(bool(torch.isfinite(rows[k]).all()) for k in ("q", "p")):
+        raise _run_error(run_dir, f"holdout.pt must hold finite q (N, {dof}) and p (N, 3) tensors")
+    return rows
+
+
 #: the column predict and compensate write to say which model gave each row (RowTrust.which)
 MODEL_NAMES = ("full", "geometric")
 #: beyond the region the kinematic calibration predicts a row only where the run's model's sigma is more than this
