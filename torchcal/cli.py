@@ -1284,9 +1284,11 @@ def cmd_plan(args) -> int:
             _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
         source = args.candidates
     else:
-        _console.info(f"sampling {args.pool} candidate poses the tracker sees (seed {args.seed})")
-        q = sample_candidates(model, args.pool, args.seed, tracker, lever)
-        source = f"{args.pool} sampled (seed {args.seed})"
+        region = model.region if args.run is not None else None  # a run: where it was calibrated
+        within = " within the run's calibrated region" if region is not None else ""
+        _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
+        q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
+        source = f"{len(q)} sampled{within} (seed {args.seed})"
     if args.n > len(q):
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
     opts = PlanOptions.for_method(

@@ -132,7 +132,7 @@ def export_run(run: str | Path, fmt: str, out_file: Path, geometry: str = "stand
     if ex.left_out:
         notes.append(f"NOT in this file: {', '.join(ex.left_out)} (torchcal compensate {run} applies them)")
     if ex.which == "cofitted" and geometry == "standalone":
-        notes.append("this run keeps no stand-alone geometry (written before it existed): calibrate again for one")
+        notes.append(_no_standalone(Path(run)))
     text = None
     if fmt != "urdf":
         write = ur_ros2_yaml if fmt == "ur-ros2" else dh_yaml
@@ -150,6 +150,18 @@ def export_run(run: str | Path, fmt: str, out_file: Path, geometry: str = "stand
     else:
         write_text(out_file, text)
     return ex
+
+
+def _no_standalone(run: Path) -> str:
+    """Why a run with effects exports its co-fitted geometry though the stand-alone one was asked for."""
+    meta = load_json(run / "model.json", "model.json", lambda m: OptionError(f"{run}: model.json {m}"))
+    station = meta.get("station") if isinstance(meta, dict) else None
+    if isinstance(station, dict):
+        return (
+            f"this re-stationed run keeps no stand-alone geometry (that of {station.get('from_run')} is of the old "
+            "placement): the chain above is the co-fitted one; the chain of the run it came from stands alone"
+        )
+    return "this run keeps no stand-alone geometry (written before it existed): the co-fitted one; calibrate again"
 
 
 @dataclass(frozen=True)
