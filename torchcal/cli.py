@@ -532,7 +532,8 @@ def build_parser() -> argparse.ArgumentParser:
         "run directory that predict and compensate use at the new placement. Its report.json holds a station "
         "block: the new pose, its standard deviations and covariance, the points' residuals and leave-one-out "
         "errors, a chi-square test against the run's predicted error, and the placement's predicted effect on "
-        "accuracy over the calibrated region.",
+        "accuracy over poses like the points (their joint ranges, within the calibrated region). The points' station "
+        "column may name the new placement (one name, new or one of the run's): the re-stationed run keeps that name.",
     )
     st.add_argument("run", help="run directory written by calibrate (or by an earlier station)")
     st.add_argument("points", help="measurement file with q1..qN and x,y,z (optional sx,sy,sz) of three or more points")
@@ -1185,7 +1186,7 @@ def cmd_station(args) -> int:
         print(_console.one_line(f"torchcal station: warning: {w}"), file=sys.stderr)
     _console.info(
         f"re-stationed on {d['n_points']} points: residual RMS {d['rmse_points_mm']:.4f} mm; placement sigma "
-        f"{acc['placement_sigma_rms_mm']:.4f} mm RMS over the calibrated region, predicted error "
+        f"{acc['placement_sigma_rms_mm']:.4f} mm RMS over the points' region, predicted error "
         f"{acc['predicted_rmse_mm']:.4f} mm"
     )
     _console.info(f"wrote {out}")

@@ -27,10 +27,10 @@ The fit:
    the linear formula ``(I - H_ii)^-1 r_i``); a point whose leave-one-out error exceeds :data:`OUTLIER_FACTOR` times
    what the run predicts is named; a chi-square test of the residuals against what the run predicts per point
    (the run's held-out RMSE as an isotropic model error plus the measurement noise).
-6. The placement's predicted effect on accuracy: the placement's covariance carried to poses of the calibrated
-   region (:data:`REGION_POSES` poses drawn uniformly, seeded, in the joint ranges of ``model.json``'s region; the
-   points themselves where the run has none), RMS and max of the position sigma, added in quadrature to the run's
-   held-out RMSE.
+6. The placement's predicted effect on accuracy: the placement's covariance carried to poses like the points
+   (:data:`REGION_POSES` poses drawn uniformly, seeded, in the points' joint ranges within ``model.json``'s region,
+   :func:`points_region`; the points themselves where the run has none), RMS and max of the position sigma, added in
+   quadrature to the run's predictive sigma over the same poses.
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ F64 = torch.float64
 
 #: a point whose leave-one-out error exceeds this many times the run's predicted error per point is named
 OUTLIER_FACTOR = 5.0
-#: poses drawn in the calibrated region to carry the placement's covariance to
+#: poses drawn in the points' region (:func:`points_region`) to carry the placement's covariance to
 REGION_POSES = 500
 #: the points' spread: the second singular value of the centred points over the first below this is "collinear"
 COLLINEAR_RATIO = 1e-3
@@ -84,7 +84,7 @@ class StationOptions:
 
     ``sigma_tracker`` and ``sigma_joint`` weight the points where they carry no ``sx, sy, sz`` (the run's stochastic
     model by default); ``run_rmse`` is the run's model error [m] the points are tested against: the RMS over the
-    calibrated region of its predictive sigma (:mod:`torchcal.estimate.trust`), or its held-out RMSE for a run
+    points' region of its predictive sigma (:mod:`torchcal.estimate.trust`), or its held-out RMSE for a run
     written before that.
     """
 
@@ -119,7 +119,7 @@ class Station:
     fit_status: str
     iterations: int
     sigma0_sq: float
-    region_sigma_rms: float  # [m] RMS of the placement's position sigma over the calibrated region
+    region_sigma_rms: float  # [m] RMS of the placement's position sigma over the points' region (points_region)
     region_sigma_max: float  # [m]
     region_source: str
     run_rmse: float  # [m]
@@ -212,9 +212,26 @@ def _check_points(points: Measurements, tool: bool) -> None:
         )
 
 
-def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tuple[Context, str]:
-    """Poses of the calibrated region (uniform in its joint ranges, seeded), or the points where it has none."""
+def points_region(model: MeasurementModel, points: Measurements) -> Tensor | None:
+    """The joint ranges ``(2, dof)`` a placement's predicted error is over: those of its points, within the run's
+    calibrated region where the two overlap (a joint the points hold still stays where they hold it). A placement
+    predicts the poses like its points; over the whole calibrated region a parameter the run held at its prior (a lever
+    arm component the calibration never turned) spread its prior over poses the placement never makes: 760 mm
+    predicted for placements that missed by 2-8 mm. None where the run stores no region."""
     region = model.region
+    if region is None:
+        return None
+    q = points.q.to(region)
+    lo, hi = q.min(0).values, q.max(0).values
+    lo2, hi2 = torch.maximum(lo, region[0]), torch.minimum(hi, region[1])
+    ok = lo2 <= hi2
+    return torch.stack([torch.where(ok, lo2, lo), torch.where(ok, hi2, hi)])
+
+
+def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tuple[Context, str]:
+    """Poses of the points' region (:func:`points_region`: uniform in its joint ranges, seeded), or the points where
+    the run has no calibrated region."""
+    region = points_region(model, points)
     if region is None:
         return Context.from_measurements(points, trajectory=False), "the points (the run stores no calibrated region)"
     g = torch.Generator().manual_seed(int(seed))
@@ -225,7 +242,7 @@ def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tup
         return None if x is None else x.mean().expand(REGION_POSES).to(q)
 
     ctx = Context(q=q, t=mean(points.t), temperature=mean(points.temperature))
-    return ctx, f"{REGION_POSES} poses drawn uniformly in the calibrated region's joint ranges"
+    return ctx, f"{REGION_POSES} poses drawn uniformly in the points' joint ranges, within the calibrated region"
 
 
 def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
@@ -342,7 +359,7 @@ def fit_station(
     Js_w, C_s, run_cov = _carry_run_uncertainty(model, free, ctx, fit.whitening, C_noise, run_covariance)
     # 5. residuals, leave-one-out, chi-square against what the run predicts
     r, loo, chi = _point_checks(model, points, ctx, fit.whitening, Js_w, opts, warnings)
-    # 6. the placement's effect on accuracy over the calibrated region
+    # 6. the placement's effect on accuracy over the points' region
     rctx, source = _region_ctx(model, points, opts.seed)
     var_r = _placement_var(model, free, C_s, rctx)
     return Station(
@@ -562,7 +579,7 @@ def restation(
 
 
 def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measurements, seed: int) -> float | None:
-    """The RMS over the calibrated region of the run's predictive sigma ``|(sx, sy, sz)|`` [m]
+    """The RMS over the points' region (:func:`points_region`) of the run's predictive sigma ``|(sx, sy, sz)|`` [m]
     (:mod:`torchcal.estimate.trust`); None for a run written before it."""
     tr = load_trust(run_dir, meta)
     if tr is None:
@@ -602,9 +619,10 @@ def _points_rows(
             raise StationError(f"{run_dir}: probe {probe!r} is not one of the run's ({', '.join(known)})")
         idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
         points = dataclasses.replace(points, probe=idx, probe_names=(probe,))
-    none = {"station": None, "station_names": ()}
+    # the station the points name is the new placement's label, one of the run's or a new one (the help's example)
+    points = dataclasses.replace(points, meta=dict(points.meta), station=None, station_names=())
     rows_of(model, points)  # a probe the run lacks: refused with its file, line and column
-    return dataclasses.replace(points, meta=dict(points.meta), **none), label
+    return points, label
 
 
 def _names(points: Measurements, key: str) -> tuple[str, ...]:
