@@ -319,6 +319,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
         "method": run.options.method,
         "region": _region_config(run.model),
+        "tool_axis": _tool_axis_config(run),
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
         **({"standalone": alone} if alone is not None else {}),
@@ -429,6 +430,16 @@ def _region_report(model: MeasurementModel) -> dict | None:
         # a drift in time holds its value beyond the times it was fitted on [s] (every drift in t is fitted on one)
         "drift_time_span": times[0] if times else None,
     }
+
+
+def _tool_axis_config(run: CalibrationRun) -> dict | None:
+    """model.json's ``tool_axis``: the cone of the flange's z axis (the tool axis) in the base frame over the training
+    rows, as its mean direction and the largest angle of a row from it [rad]; predict and compensate flag rows beyond
+    it (a tool turned over, which joint ranges alone do not tell). None where the axes point every way."""
+    from torchcal.use.rundir import tool_axis_cone
+
+    with torch.no_grad():
+        return tool_axis_cone(run.robot, run.train.q)
 
 
 def _region_config(model: MeasurementModel) -> dict | None:
