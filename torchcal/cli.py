@@ -1385,8 +1385,9 @@ def cmd_check_export(args) -> int:
 
     c = check_export(args.run, args.file, geometry=args.geometry)
     expected = "" if c.expected_mm is None else f" (the run recorded {c.expected_mm:.4f} mm for this chain)"
+    chain = {"run": "own", "standalone": "stand-alone", "cofitted": "co-fitted"}[c.which]
     print(
-        f"{args.file} loaded to link '{c.tip}': largest difference to the run's {c.which} chain {c.fk_gap_mm:.3g} mm "
+        f"{args.file} loaded to link '{c.tip}': largest difference to the run's {chain} chain {c.fk_gap_mm:.3g} mm "
         f"over {c.n} held-out poses; held-out RMSE with the run's instrument pose and lever arm "
         f"{c.rmse_mm:.4f} mm{expected}"
     )
