@@ -127,3 +127,34 @@ def test_check_export_compares_the_file_with_the_run_not_with_itself(runs, tmp_p
     c = check_export(runs["auto"], f)
     assert c.fk_gap_mm == pytest.approx(1.0, rel=1e-6)
     assert torch.isfinite(torch.tensor(c.rmse_mm))
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".urdf"])
+def test_a_run_of_its_own_export_keeps_the_runs_sigma(runs, tmp_path, suffix):
+    """Issue 46 saw sigma 10-25x too large where --robot was a run's export; here the export of a kinematic run, used
+    as --robot for the same rows, gives the same held-out error and the same sigma at the test rows."""
+    from torchcal.effects import Context
+    from torchcal.robot.load import calibrated_flange
+    from torchcal.use.rundir import load_model, row_trust
+
+    f = tmp_path / f"own{suffix}"
+    export_run(runs["kinematic"], "dh" if suffix == ".yaml" else "urdf", f)
+    c = runs["campaign"]
+    again = write_run(
+        calibrate(
+            str(f),
+            c.train,
+            Options.of(method="kinematic", seed=0, holdout=0.25, trajectory=False),
+            tip_link=calibrated_flange(f),  # as --robot loads a torchcal URDF: to its flange (None for a DH file)
+        ),
+        tmp_path / "again",
+    )
+    ctx = Context.from_measurements(c.test, trajectory=False)
+    sig = {}
+    for name, rd in (("first", runs["kinematic"]), ("again", again)):
+        model, meta = load_model(rd)
+        sig[name] = row_trust(rd, model, meta, ctx).sigma
+        e = (model(ctx).detach() - c.test.p).abs()
+        assert float((e < 3 * sig[name]).all(dim=1).float().mean()) >= 0.95
+    ratio = (sig["again"] / sig["first"]).median()
+    assert 0.8 < float(ratio) < 1.25, float(ratio)
