@@ -573,9 +573,55 @@ def restation(
     sigma = _run_sigma(run_dir, model, meta, cov, points, seed)
     if sigma is not None:  # the run's model error at a new placement: predict's sigma over the region
         opts = dataclasses.replace(opts, run_rmse=sigma)
-    station = fit_station(model, points, opts, cov)
+    start = copy.deepcopy(model)
+    try:
+        station, refused = fit_station(model, points, opts, cov), None
+    except StationError as e:  # points far off the run: another tool is one of the reasons it names
+        if tool or model.robot.probes or "--tool" not in str(e):
+            raise
+        station, refused = None, e
+    if not tool and not model.robot.probes and (station is None or not station.chi_square["passed"]):
+        model, station = _try_new_tool(start, model, points, opts, cov, station, refused)
     station.label = label
     return model, meta, station
+
+
+def _try_new_tool(
+    start: MeasurementModel, model: MeasurementModel, points: Measurements, opts, cov, station, refused=None
+):
+    """The points fit worse than the run predicts with its lever arm (or so far off that the fit was ``refused``):
+    test the alternative of a changed tool (the lever arm fitted too, as with ``--tool``). Adopted where the points
+    then fit as predicted (its chi-square test passes), said in a warning; else the placement stands with a warning
+    that names what a new lever arm left (a refusal stands)."""
+    alt_model = copy.deepcopy(start)
+    try:
+        alt = fit_station(alt_model, points, dataclasses.replace(opts, tool=True), _without(cov, ("robot.tool.delta",)))
+    except StationError as e:  # too few points, or orientations that do not fix a lever arm
+        if station is None:
+            raise refused from None
+        station.warnings.append(f"a changed tool could not be tested ({e}); if the tool changed, give --tool")
+        return model, station
+    chi1 = alt.chi_square
+    if chi1["passed"]:
+        before = (
+            f"chi-square {station.chi_square['statistic']:.3g} > {station.chi_square['threshold']:.3g}"
+            if station is not None
+            else "too far off to fit"
+        )
+        alt.warnings.insert(
+            0,
+            f"the points fit worse than the run predicts with its lever arm ({before}) and as predicted with a new "
+            f"one (chi-square {chi1['statistic']:.3g} <= {chi1['threshold']:.3g}): the tool changed, its lever arm "
+            "was fitted too (as --tool does)",
+        )
+        return alt_model, alt
+    if station is None:
+        raise refused
+    station.warnings.append(
+        f"a new lever arm does not explain it either (chi-square {chi1['statistic']:.3g} > {chi1['threshold']:.3g}): "
+        "the robot, its load or its base changed beyond a new placement; calibrate again (calibrate --prior RUN)"
+    )
+    return model, station
 
 
 def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measurements, seed: int) -> float | None:
