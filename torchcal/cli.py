@@ -541,7 +541,9 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument(
         "--tool",
         action="store_true",
-        help="fit the lever arm too (another tool or probe than the run's; needs four or more points whose tool "
+        help="fit the lever arm too (another tool or probe than the run's; without it, a changed tool is tested and "
+        "fitted where the points fit worse than the run predicts and as predicted with a new lever arm; needs four "
+        "or more points whose tool "
         "orientations differ; refused on a run of several probes, whose lever arms are kept)",
     )
     st.add_argument(
