@@ -1208,6 +1208,12 @@ def cmd_station(args) -> int:
         f"re-stationed on {d['n_points']} points: residual RMS {d['rmse_points_mm']:.4f} mm; placement sigma "
         f"{acc['placement_sigma_rms_mm']:.4f} mm RMS over the points' region, predicted error "
         f"{acc['predicted_rmse_mm']:.4f} mm"
+        + (
+            " (the placement sigma alone carries a parameter the run held at its prior, which the placement absorbs at "
+            "these poses: together they cancel)"
+            if acc["placement_sigma_rms_mm"] > 2 * acc["predicted_rmse_mm"]
+            else ""
+        )
     )
     _console.info(f"wrote {out}")
     return 0

@@ -10,6 +10,7 @@ import torch
 
 from torchcal.cli import main
 from torchcal.data import write_measurements
+from torchcal.effects import Context
 from torchcal.pipeline import Options, calibrate
 from torchcal.report.rundir import write_run
 from torchcal.sim.campaign import SimConfig, simulate
@@ -59,3 +60,26 @@ def test_the_predicted_error_is_over_poses_like_the_points(setup):
     pts = dataclasses.replace(setup["points"], q=held)
     r = points_region(model, pts)
     assert float(r[0, 5]) == float(r[1, 5]) == 0.3
+
+
+def test_a_held_lever_arm_component_does_not_inflate_the_predicted_error(tmp_path):
+    """A campaign whose tool axis never turns (each station's axis faces its instrument) cannot see the lever arm
+    along it: the run holds that component at its prior. Re-stationed on 10 points naming a new placement, the
+    predicted error is that of predict's sigma with the placement's correlation to the held component (which it
+    absorbs at poses like the points): within 2x of the error measured at the placement's other rows, where the
+    placement's sigma alone is mm."""
+    c = simulate(SimConfig(robot="ur5", poses=240, test_poses=80, seed=3, stations=2, tool_axis_deg=0.03))
+    run = calibrate("ur5", c.train, Options.of(method="kinematic", seed=0, holdout=0.25, trajectory=False))
+    rd = write_run(run, tmp_path / "run")
+    second = c.test.subset(torch.nonzero(c.test.station == 1).flatten())
+    named = dataclasses.replace(second, station=torch.zeros_like(second.station), station_names=("newplace",))
+    model, _, station = restation(rd, named.subset(range(10)))
+    rest = named.subset(range(10, named.n))
+    with torch.no_grad():
+        measured = float((model(Context(q=rest.q)) - rest.p).norm(dim=1).square().mean().sqrt())
+    print(
+        f"predicted {station.predicted_rmse * 1e3:.4f} mm, measured {measured * 1e3:.4f} mm, placement sigma alone "
+        f"{station.region_sigma_rms * 1e3:.4f} mm"
+    )
+    assert station.region_sigma_rms > 10 * measured  # what the prediction was before: the held prior spread
+    assert measured / 2 < station.predicted_rmse < 2 * measured

@@ -64,6 +64,8 @@ F64 = torch.float64
 OUTLIER_FACTOR = 5.0
 #: poses drawn in the points' region (:func:`points_region`) to carry the placement's covariance to
 REGION_POSES = 500
+#: how far [rad] beyond the cone of the points' tool axes a pose drawn to predict the placement's error may turn (5 deg)
+CONE_MARGIN = math.radians(5.0)
 #: the points' spread: the second singular value of the centred points over the first below this is "collinear"
 COLLINEAR_RATIO = 1e-3
 #: significance level of the chi-square test
@@ -126,6 +128,9 @@ class Station:
     tool: bool
     run_covariance: ParameterCovariance | None = None  # RUN2's covariance.pt
     label: str | None = None  # the station the points' rows name (None: none)
+    #: [m] the RMS over the same poses of predict's sigma of the re-stationed run (its whole covariance: the
+    #: placement's correlation with the run's parameters included), where the run measured its trust; else None
+    predicted_sigma: float | None = None
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -134,7 +139,12 @@ class Station:
 
     @property
     def predicted_rmse(self) -> float:
-        """The run's held-out RMSE and the placement's RMS sigma in quadrature [m]."""
+        """What predict's sigma of the re-stationed run gives over poses like the points (:attr:`predicted_sigma`), or
+        where the run has no trust, the run's held-out RMSE and the placement's RMS sigma in quadrature [m]. The two
+        parts apart overstate it where the placement absorbs a parameter the run held at its prior (a lever-arm
+        component along a tool axis that never turned): each then carries that prior, and only together cancel."""
+        if self.predicted_sigma is not None:
+            return self.predicted_sigma
         return math.hypot(self.run_rmse, self.region_sigma_rms)
 
     def to_dict(self) -> dict:
@@ -168,6 +178,9 @@ class Station:
                 "placement_sigma_rms_mm": self.region_sigma_rms * 1e3,
                 "placement_sigma_max_mm": self.region_sigma_max * 1e3,
                 "predicted_rmse_mm": self.predicted_rmse * 1e3,
+                "predicted_from": "predict's sigma of the re-stationed run (its whole covariance)"
+                if self.predicted_sigma is not None
+                else "the run's held-out RMSE and the placement sigma in quadrature",
                 "over": self.region_source,
             },
             "warnings": list(self.warnings),
@@ -229,20 +242,35 @@ def points_region(model: MeasurementModel, points: Measurements) -> Tensor | Non
 
 
 def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tuple[Context, str]:
-    """Poses of the points' region (:func:`points_region`: uniform in its joint ranges, seeded), or the points where
-    the run has no calibrated region."""
+    """Poses like the points: drawn uniformly in the points' region (:func:`points_region`, seeded) whose tool axis
+    stays within the cone of the points' tool axes (:data:`CONE_MARGIN` beyond it; joints drawn each on its own turn
+    a tool that the points keep pointing one way, where a parameter the run could not see spreads its prior); the
+    points themselves where fewer than a tenth of the draws stay, or where the run has no calibrated region."""
+    from torchcal.use.rundir import tool_axis_cone
+
     region = points_region(model, points)
     if region is None:
         return Context.from_measurements(points, trajectory=False), "the points (the run stores no calibrated region)"
     g = torch.Generator().manual_seed(int(seed))
     u = torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64).to(region)  # CPU generator, moved
     q = region[0] + u * (region[1] - region[0])
+    cone = tool_axis_cone(model.robot, points.q)
+    if cone is not None:
+        axis = torch.tensor(cone["axis"], dtype=F64)
+        with torch.no_grad():
+            z = model.robot(q)[:, :3, 2].to("cpu", F64)
+        keep = torch.arccos((z @ axis).clamp(-1.0, 1.0)) <= cone["max_angle"] + CONE_MARGIN
+        if int(keep.sum()) < REGION_POSES // 10:
+            return Context.from_measurements(points, trajectory=False), (
+                "the points (poses drawn in their joint ranges turn the tool beyond the points' orientations)"
+            )
+        q = q[keep.to(q.device)]
 
     def mean(x):  # effects in time or temperature: at the points' mean
-        return None if x is None else x.mean().expand(REGION_POSES).to(q)
+        return None if x is None else x.mean().expand(len(q)).to(q)
 
     ctx = Context(q=q, t=mean(points.t), temperature=mean(points.temperature))
-    return ctx, f"{REGION_POSES} poses drawn uniformly in the points' joint ranges, within the calibrated region"
+    return ctx, f"{len(q)} poses drawn uniformly in the points' joint ranges and tool orientations"
 
 
 def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
@@ -583,6 +611,12 @@ def restation(
     if not tool and not model.robot.probes and (station is None or not station.chi_square["passed"]):
         model, station = _try_new_tool(start, model, points, opts, cov, station, refused)
     station.label = label
+    tr = load_trust(run_dir, meta)
+    if tr is not None and station.run_covariance is not None:
+        ctx, _ = _region_ctx(model, points, seed)
+        with torch.no_grad():
+            sigma = tr.std(model, ctx, station.run_covariance)
+        station.predicted_sigma = float(sigma.square().sum(1).mean().sqrt())
     return model, meta, station
 
 
