@@ -58,3 +58,25 @@ def test_a_region_outside_a_joints_limits_falls_back_to_the_limits(ur5):
     q = P.sample_candidates(ur5, 50, 0, region=region)
     assert bool((q[:, 1:] >= -1.0).all()) and bool((q[:, 1:] <= 1.0).all())
     assert float(q[:, 0].abs().max()) <= torch.pi
+
+
+@pytest.mark.slow
+def test_plan_run_samples_within_the_runs_region_and_plans_among_few_usable_ones(tmp_path, monkeypatch, capsys):
+    from torchcal.cli import main
+    from torchcal.data import read_measurements
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.report.rundir import write_run
+    from torchcal.sim.campaign import SimConfig, simulate
+    from torchcal.use.rundir import load_model
+
+    c = simulate(SimConfig(robot="ur5", poses=80, test_poses=10, seed=1))
+    rd = write_run(calibrate("ur5", c.train, Options.of(method="kinematic", seed=0, holdout=0.2)), tmp_path / "run")
+    region = load_model(rd)[0].region
+    monkeypatch.setattr(P.Scene, "visible", _rarely_seen(400))  # a tracker that sees one draw in 400
+    out = tmp_path / "plan.csv"
+    assert main(["plan", "--run", str(rd), "--n", "12", "--pool", "2000", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "within the run's calibrated region" in err and "planning among them" in err
+    q = read_measurements(out, require_positions=False).q
+    assert q.shape == (12, 6)
+    assert bool((q >= region[0] - 1e-12).all()) and bool((q <= region[1] + 1e-12).all())
