@@ -40,6 +40,7 @@ def _rarely_seen(one_in: int):
 
 def test_few_usable_poses_are_planned_among_not_refused(ur5, monkeypatch, capsys):
     monkeypatch.setattr(P.Scene, "visible", _rarely_seen(500))
+    monkeypatch.setattr(P._console, "_quiet", False)  # an earlier command's --quiet stays set in the process
     q = P.sample_candidates(ur5, 10_000, 0, need=12)
     assert 12 <= len(q) < 10_000
     err = capsys.readouterr().err
