@@ -377,7 +377,8 @@ def sample_candidates(
     lo, hi = _sample_box(robot, region)
     got, count, drawn, batch = [], 0, 0, max(4 * n, 256)
     while count < n and drawn < SAMPLE_DRAWS * n:
-        cand = lo + (hi - lo) * torch.rand(batch, robot.dof, generator=g, dtype=dt).to(robot.device)
+        # a CPU generator: the same candidates on every device
+        cand = lo + (hi - lo) * torch.rand(batch, robot.dof, generator=g, dtype=dt, device="cpu").to(robot.device)
         keep = cand[scene.visible(cand)]
         got.append(keep)
         count, drawn = count + len(keep), drawn + batch

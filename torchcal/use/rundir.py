@@ -75,7 +75,7 @@ def _tool_cone(cfg, run_dir: Path) -> tuple[Tensor, float] | None:
     if cfg is None:
         return None
     try:
-        axis = torch.tensor([float(v) for v in cfg["axis"]], dtype=torch.float64)
+        axis = torch.tensor([float(v) for v in cfg["axis"]], dtype=torch.float64, device="cpu")  # beside CPU axes
         cap = float(cfg["max_angle"])
     except (KeyError, TypeError, ValueError):
         raise _run_error(run_dir, "model.json: tool_axis must hold an axis (3 numbers) and a max_angle") from None
@@ -91,7 +91,7 @@ def tool_axis_beyond(model: MeasurementModel, q: Tensor) -> Tensor:
     covered (``model.tool_cone``, set by :func:`load_model`); 0 inside it and where the run recorded none."""
     cone = getattr(model, "tool_cone", None)
     if cone is None:
-        return torch.zeros(len(q), dtype=torch.float64)
+        return torch.zeros(len(q), dtype=torch.float64, device="cpu")  # as the CPU angles below
     axis, cap = cone
     with torch.no_grad():
         z = model.robot(q)[:, :3, 2].to("cpu", torch.float64)

@@ -256,7 +256,7 @@ def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tup
     q = region[0] + u * (region[1] - region[0])
     cone = tool_axis_cone(model.robot, points.q)
     if cone is not None:
-        axis = torch.tensor(cone["axis"], dtype=F64)
+        axis = torch.tensor(cone["axis"], dtype=F64, device="cpu")  # compared with the CPU tool axes z
         with torch.no_grad():
             z = model.robot(q)[:, :3, 2].to("cpu", F64)
         keep = torch.arccos((z @ axis).clamp(-1.0, 1.0)) <= cone["max_angle"] + CONE_MARGIN
