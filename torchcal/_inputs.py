@@ -27,6 +27,8 @@ LIMITS = {
     "covariance.pt": 64 * MiB,
     "geometric.pt": 64 * MiB,
     "covariance_geometric.pt": 64 * MiB,
+    "standalone.pt": 64 * MiB,
+    "holdout.pt": 256 * MiB,
     "marker": 1 * MiB,
 }
 #: Deepest nesting of lists and mappings accepted in a JSON or YAML input: real files nest a handful of levels.

@@ -238,8 +238,34 @@ def _add_import_export(sub) -> None:
     ex.add_argument("run", help="run directory written by calibrate (or station)")
     ex.add_argument("--format", required=True, choices=("ur-ros2", "dh", "urdf"), help="the file to write")
     ex.add_argument("--out", required=True, help="file to write")
+    ex.add_argument(
+        "--geometry",
+        choices=("standalone", "cofitted"),
+        default="standalone",
+        help="for a run with effects, which no file can carry: standalone (default) writes the chain that predicts "
+        "best without them (the run's kinematic calibration or a refit to the full model, whichever is better on the "
+        "held-out rows); cofitted writes the geometry fitted together with the effects, for software that applies "
+        "them itself. The header and stderr give the held-out error of the file alone and of the full run",
+    )
     _add_force(ex)
     _add_common(ex)
+
+    ce = sub.add_parser(
+        "check-export",
+        help="load an exported DH or URDF file back and compare it with its run",
+        description="Load FILE (a DH YAML or URDF file written by torchcal export) as --robot loads it and print the "
+        "largest difference of its chain to the run's exported chain (flange and probe, at the run's held-out joints) "
+        "and the held-out RMSE of the file's chain with the run's instrument pose and lever arm.",
+    )
+    ce.add_argument("run", help="run directory written by calibrate (or station)")
+    ce.add_argument("file", help="the exported file (.yaml, .yml or .urdf)")
+    ce.add_argument(
+        "--geometry",
+        choices=("standalone", "cofitted"),
+        default=None,
+        help="compare with this chain of the run (default: whichever is closer to the file)",
+    )
+    _add_common(ce)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -510,7 +536,8 @@ def build_parser() -> argparse.ArgumentParser:
         "run directory that predict and compensate use at the new placement. Its report.json holds a station "
         "block: the new pose, its standard deviations and covariance, the points' residuals and leave-one-out "
         "errors, a chi-square test against the run's predicted error, and the placement's predicted effect on "
-        "accuracy over the calibrated region.",
+        "accuracy over poses like the points (their joint ranges, within the calibrated region). The points' station "
+        "column may name the new placement (one name, new or one of the run's): the re-stationed run keeps that name.",
     )
     st.add_argument("run", help="run directory written by calibrate (or by an earlier station)")
     st.add_argument("points", help="measurement file with q1..qN and x,y,z (optional sx,sy,sz) of three or more points")
@@ -518,7 +545,9 @@ def build_parser() -> argparse.ArgumentParser:
     st.add_argument(
         "--tool",
         action="store_true",
-        help="fit the lever arm too (another tool or probe than the run's; needs four or more points whose tool "
+        help="fit the lever arm too (another tool or probe than the run's; without it, a changed tool is tested and "
+        "fitted where the points fit worse than the run predicts and as predicted with a new lever arm; needs four "
+        "or more points whose tool "
         "orientations differ; refused on a run of several probes, whose lever arms are kept)",
     )
     st.add_argument(
@@ -849,8 +878,13 @@ def outside_rows(model, q) -> list[tuple[int, str]]:
     """The rows of ``q (N, dof)`` worth a warning, with why: a joint beyond the range it covered in the calibration
     by more than the tolerance (:data:`OUTSIDE_TOL_SIGMAS`), or a joint the calibration held still (a range within
     the tolerance) moved away from where it was held."""
-    if model.region is None:
+    from torchcal.use.rundir import tool_axis_beyond
+
+    turned = tool_axis_beyond(model, q) if getattr(model, "tool_cone", None) is not None else None
+    if model.region is None and turned is None:
         return []
+    if model.region is None:
+        return [(i, _turned_why(float(turned[i]))) for i in range(len(q)) if float(turned[i]) > TURNED_TOL]
     tol = OUTSIDE_TOL_SIGMAS * SIGMA_JOINT
     lo, hi = (x.detach().cpu() for x in model.region)
     beyond = torch.maximum(lo - q.detach().cpu(), q.detach().cpu() - hi).clamp(min=0)  # (N, dof)
@@ -859,6 +893,8 @@ def outside_rows(model, q) -> list[tuple[int, str]]:
     for i in range(beyond.shape[0]):
         far = [k for k in range(beyond.shape[1]) if float(beyond[i, k]) > tol]
         if not far:
+            if turned is not None and float(turned[i]) > TURNED_TOL:
+                out.append((i, _turned_why(float(turned[i]))))
             continue
         k = max(far, key=lambda j: float(beyond[i, j]))
         unit = "m" if model.robot.joint_types[k] == "prismatic" else "rad"
@@ -871,6 +907,17 @@ def outside_rows(model, q) -> list[tuple[int, str]]:
             why = f"the pose lies {float(beyond[i, k]):.3g} {unit} beyond the calibrated region (q{k + 1})"
         out.append((i, why))
     return out
+
+
+#: how far [rad] a tool axis must lie beyond the cone the calibration's tool axes covered to be warned about (0.1 deg)
+TURNED_TOL = math.radians(0.1)
+
+
+def _turned_why(angle: float) -> str:
+    return (
+        f"the tool axis lies {math.degrees(angle):.3g} deg beyond the orientations the calibration saw (a tool turned "
+        "further over than any calibration pose)"
+    )
 
 
 def warn_outside(path, lines, model, q, what: str) -> None:
@@ -1177,8 +1224,14 @@ def cmd_station(args) -> int:
         print(_console.one_line(f"torchcal station: warning: {w}"), file=sys.stderr)
     _console.info(
         f"re-stationed on {d['n_points']} points: residual RMS {d['rmse_points_mm']:.4f} mm; placement sigma "
-        f"{acc['placement_sigma_rms_mm']:.4f} mm RMS over the calibrated region, predicted error "
+        f"{acc['placement_sigma_rms_mm']:.4f} mm RMS over the points' region, predicted error "
         f"{acc['predicted_rmse_mm']:.4f} mm"
+        + (
+            " (the placement sigma alone carries a parameter the run held at its prior, which the placement absorbs at "
+            "these poses: together they cancel)"
+            if acc["placement_sigma_rms_mm"] > 2 * acc["predicted_rmse_mm"]
+            else ""
+        )
     )
     _console.info(f"wrote {out}")
     return 0
@@ -1276,9 +1329,11 @@ def cmd_plan(args) -> int:
             _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
         source = args.candidates
     else:
-        _console.info(f"sampling {args.pool} candidate poses the tracker sees (seed {args.seed})")
-        q = sample_candidates(model, args.pool, args.seed, tracker, lever)
-        source = f"{args.pool} sampled (seed {args.seed})"
+        region = model.region if args.run is not None else None  # a run: where it was calibrated
+        within = " within the run's calibrated region" if region is not None else ""
+        _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
+        q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
+        source = f"{len(q)} sampled{within} (seed {args.seed})"
     if args.n > len(q):
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
     opts = PlanOptions.for_method(
@@ -1351,12 +1406,26 @@ def cmd_convert(args) -> int:
     return 0
 
 
+def cmd_check_export(args) -> int:
+    from torchcal.use.export import check_export
+
+    c = check_export(args.run, args.file, geometry=args.geometry)
+    expected = "" if c.expected_mm is None else f" (the run recorded {c.expected_mm:.4f} mm for this chain)"
+    chain = {"run": "own", "standalone": "stand-alone", "cofitted": "co-fitted"}[c.which]
+    print(
+        f"{args.file} loaded to link '{c.tip}': largest difference to the run's {chain} chain {c.fk_gap_mm:.3g} mm "
+        f"over {c.n} held-out poses; held-out RMSE with the run's instrument pose and lever arm "
+        f"{c.rmse_mm:.4f} mm{expected}"
+    )
+    return 0
+
+
 def cmd_export(args) -> int:
     from torchcal.use.export import export_run
 
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
-    export_run(args.run, args.format, out_file)
-    _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
+    ex = export_run(args.run, args.format, out_file, geometry=args.geometry)
+    _console.info(f"wrote the {args.format} file of {args.run} to {args.out}: {ex.summary}")
     loads = {"dh": (".yaml", ".yml"), "urdf": (".urdf",)}.get(args.format)
     if loads and Path(args.out).suffix.lower() not in loads:  # --robot tells a description's kind by its suffix
         _console.info(
@@ -1519,6 +1588,7 @@ COMMANDS = {
     "predict": cmd_predict,
     "convert": cmd_convert,
     "export": cmd_export,
+    "check-export": cmd_check_export,
     "compensate": cmd_compensate,
     "station": cmd_station,
     "plan": cmd_plan,

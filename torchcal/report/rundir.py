@@ -13,6 +13,9 @@ Layout::
     covariance.pt          the parameter covariance of the last fit (predict's and compensate's sx, sy, sz)
     geometric.pt           a run with effects: its kinematic calibration (beside covariance_geometric.pt), which
                            predicts rows beyond the region where its sigma is far the smaller (model.json: trust)
+    standalone.pt          a run with effects: the geometry its exports carry, the one that predicts best without
+                           them (torchcal.pipeline.standalone; model.json: standalone)
+    holdout.pt             the held-out rows' joints and positions (check-export measures a file on them)
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
@@ -327,6 +330,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     if run.covariance is not None:  # predict's sx, sy, sz (absent: a fit without one; predict says so)
         torch.save(run.covariance.state(), tmp / "covariance.pt")
     _write_geometric(rtrust, tmp)
+    alone = _write_standalone(run, tmp)
     meta = {
         "format": "torchcal-run-1",
         "robot_file": f"robot/{src.name}",
@@ -336,8 +340,10 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
         "method": run.options.method,
         "region": _region_config(run.model),
+        "tool_axis": _tool_axis_config(run),
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
+        **({"standalone": alone} if alone is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
         **({"probes": list(run.robot.probes)} if run.robot.probes else {}),
         **_single_labels(run),
@@ -402,6 +408,25 @@ def _write_geometric(rt, tmp: Path) -> None:
         torch.save(rt.geometric_covariance.state(), tmp / "covariance_geometric.pt")
 
 
+def _write_standalone(run: CalibrationRun, tmp: Path) -> dict | None:
+    """``holdout.pt`` (the held-out rows' joints, positions, station and probe: what ``check-export`` measures a file
+    on) and, for a model with effects, ``standalone.pt``: the geometry its exports carry
+    (:mod:`torchcal.pipeline.standalone`). Returns model.json's ``standalone`` (None without one)."""
+    from torchcal.pipeline.standalone import standalone
+
+    hold = run.hold.to("cpu")
+    if hold.p is None or hold.n == 0:
+        return None
+    rows = {"q": hold.q, "p": hold.p}
+    rows.update({k: getattr(hold, k) for k in ("station", "probe") if getattr(hold, k) is not None})
+    torch.save(rows, tmp / "holdout.pt")
+    alone = standalone(run)
+    if alone is None:
+        return None
+    torch.save({k: v.cpu() for k, v in alone.model.state_dict().items()}, tmp / "standalone.pt")
+    return alone.to_dict()
+
+
 def _region_report(model: MeasurementModel) -> dict | None:
     """report.json's ``region``: model.json's (:func:`_region_config`), the fade length, the fitted range of each
     open joint form (by ``kind:joint``) and the time region a drift in time holds beyond (its key
@@ -426,6 +451,16 @@ def _region_report(model: MeasurementModel) -> dict | None:
         # a drift in time holds its value beyond the times it was fitted on [s] (every drift in t is fitted on one)
         "drift_time_span": times[0] if times else None,
     }
+
+
+def _tool_axis_config(run: CalibrationRun) -> dict | None:
+    """model.json's ``tool_axis``: the cone of the flange's z axis (the tool axis) in the base frame over the training
+    rows, as its mean direction and the largest angle of a row from it [rad]; predict and compensate flag rows beyond
+    it (a tool turned over, which joint ranges alone do not tell). None where the axes point every way."""
+    from torchcal.use.rundir import tool_axis_cone
+
+    with torch.no_grad():
+        return tool_axis_cone(run.robot, run.train.q)
 
 
 def _region_config(model: MeasurementModel) -> dict | None:

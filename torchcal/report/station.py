@@ -60,7 +60,7 @@ def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
 
 
 #: run files of the old placement that a re-stationed run leaves out
-_OLD_PLACEMENT = ("geometric.pt", "covariance_geometric.pt")
+_OLD_PLACEMENT = ("geometric.pt", "covariance_geometric.pt", "standalone.pt", "holdout.pt")
 
 
 def write_station(
@@ -91,7 +91,8 @@ def write_station(
     if isinstance(params, dict):
         params["instrument"] = {"T_tracker_base": station.T_tracker_base.tolist()}
         params["tool"] = {"t_flange_probe_m": station.t_flange_probe.tolist()}
-    meta = {k: v for k, v in meta.items() if k != "geometric"}  # its kinematic calibration is of the old placement
+    # its kinematic calibration, stand-alone geometry and held-out rows are of the old placement
+    meta = {k: v for k, v in meta.items() if k not in ("geometric", "standalone")}
     meta["station"] = {k: block[k] for k in ("from_run", "points_file", "n_points", "lever_arm_fitted", "label")}
     with replace_dir(out, kind="station", inputs=inputs) as tmp:
         for entry in sorted(run_dir.iterdir()):

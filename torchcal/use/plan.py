@@ -48,6 +48,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from torchcal import _console
 from torchcal import stats as S
 from torchcal._method import Method
 from torchcal._threads import torch_threads
@@ -65,7 +66,7 @@ from torchcal.estimate.design import (
     predicted_rmse,
 )
 from torchcal.robot import transforms as tf
-from torchcal.sim.poses import Scene, random_poses, sample_joints
+from torchcal.sim.poses import Scene, sample_joints
 from torchcal.stats import HOLDOUT_EDGE, at_edges
 
 Tensor = torch.Tensor
@@ -341,12 +342,29 @@ def distinct_poses(q: Tensor) -> Tensor:
     return q[(first == torch.arange(len(first))).to(q.device)]
 
 
+#: how many poses :func:`sample_candidates` draws at most, in multiples of the candidates asked for, before it settles
+#: for the usable ones it has: a 7-axis arm in a tight scene sees one draw in a few hundred, and drawing on until the
+#: pool is full took minutes where a few thousand usable candidates were there
+SAMPLE_DRAWS = 40
+
+
 def sample_candidates(
-    model: MeasurementModel, n: int, seed: int, tracker_in_base: Tensor | None = None, lever: Tensor | None = None
+    model: MeasurementModel,
+    n: int,
+    seed: int,
+    tracker_in_base: Tensor | None = None,
+    lever: Tensor | None = None,
+    *,
+    need: int = 1,
+    region: Tensor | None = None,
 ) -> Tensor:
-    """``n`` random poses ``(n, dof)`` within the joint limits that a tracker at ``tracker_in_base`` ``(3,)`` [m]
-    (default :data:`DEFAULT_TRACKER`) sees with the lever arm ``lever`` ``(3,)`` [m] (default :data:`DEFAULT_LEVER`)
-    (:func:`~torchcal.sim.poses.random_poses`)."""
+    """Up to ``n`` random poses ``(M, dof)`` within the joint limits (and within ``region`` ``(2, dof)``, a run's
+    calibrated joint ranges, where given) that a tracker at ``tracker_in_base`` ``(3,)`` [m] (default
+    :data:`DEFAULT_TRACKER`) sees with the lever arm ``lever`` ``(3,)`` [m] (default :data:`DEFAULT_LEVER`), by
+    rejection sampling of at most :data:`SAMPLE_DRAWS` times ``n`` draws (seeded: the same poses every time).
+
+    Fewer than ``n`` where the draws run out: those, said on stderr, as long as there are at least ``need`` (the poses
+    the plan picks); refused only below that."""
     robot = model.robot
     dt = robot.dtype
     tb = (
@@ -355,10 +373,40 @@ def sample_candidates(
         else tracker_in_base.to(dt)
     )
     lv = torch.tensor(DEFAULT_LEVER, dtype=dt, device=robot.device) if lever is None else lever.to(dt)
-    try:
-        return random_poses(Scene(robot, tb, lv), n, torch.Generator().manual_seed(seed))
-    except RuntimeError as e:
-        raise OptionError(f"{e}; give candidates in a file instead") from None
+    scene, g = Scene(robot, tb, lv), torch.Generator().manual_seed(seed)
+    lo, hi = _sample_box(robot, region)
+    got, count, drawn, batch = [], 0, 0, max(4 * n, 256)
+    while count < n and drawn < SAMPLE_DRAWS * n:
+        # a CPU generator: the same candidates on every device
+        cand = lo + (hi - lo) * torch.rand(batch, robot.dof, generator=g, dtype=dt, device="cpu").to(robot.device)
+        keep = cand[scene.visible(cand)]
+        got.append(keep)
+        count, drawn = count + len(keep), drawn + batch
+    q = torch.cat(got)[:n]
+    where = "within the run's calibrated region" if region is not None else "within the joint limits"
+    if len(q) < max(need, 1):
+        raise OptionError(
+            f"only {len(q)} of {drawn} poses drawn {where} satisfy the line-of-sight rule, fewer than the {need} the "
+            "plan needs; move the tracker (--tracker), or give candidates in a file"
+        )
+    if len(q) < n:
+        _console.info(
+            f"plan: {len(q)} of {drawn} poses drawn {where} satisfy the line-of-sight rule (asked for {n}): planning "
+            "among them"
+        )
+    return q
+
+
+def _sample_box(robot, region: Tensor | None) -> tuple[Tensor, Tensor]:
+    """The joint box to draw from: the limits clipped to one turn, and to ``region`` where given (where a region
+    lies outside the limits, the limits)."""
+    lo, hi = robot.limits[:, 0].clamp(min=-math.pi), robot.limits[:, 1].clamp(max=math.pi)
+    if region is not None:
+        r = region.to(device=lo.device, dtype=lo.dtype)
+        lo2, hi2 = torch.maximum(lo, r[0]), torch.minimum(hi, r[1])
+        ok = lo2 <= hi2
+        lo, hi = torch.where(ok, lo2, lo), torch.where(ok, hi2, hi)
+    return lo, hi
 
 
 def scene_of(model: MeasurementModel) -> tuple[Tensor, Tensor]:

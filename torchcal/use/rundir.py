@@ -52,6 +52,52 @@ def _set_region(model: MeasurementModel, cfg, run_dir: Path) -> None:
     model.set_region(torch.tensor([lo, hi], dtype=torch.float64, device=model.robot.device), fade=fade)
 
 
+#: a cone of tool axes wider than this half-angle [rad] says nothing: the training rows turned the tool every way
+MAX_CONE = 0.9 * math.pi
+
+
+def tool_axis_cone(robot, q: Tensor) -> dict | None:
+    """The cone ``{"axis": (3,), "max_angle": rad}`` of the tool axes (the flange's z in the base frame) of poses
+    ``q (N, dof)``: their normalised mean direction and the largest angle of one from it; None where the mean is
+    near zero or the cone wider than :data:`MAX_CONE`."""
+    with torch.no_grad():
+        z = robot(q)[:, :3, 2].to("cpu", torch.float64)
+    m = z.mean(0)
+    if float(m.norm()) < 1e-6:
+        return None
+    m = m / m.norm()
+    cap = float(torch.arccos((z @ m).clamp(-1.0, 1.0)).max())
+    return None if cap > MAX_CONE else {"axis": m.tolist(), "max_angle": cap}
+
+
+def _tool_cone(cfg, run_dir: Path) -> tuple[Tensor, float] | None:
+    """model.json's ``tool_axis`` as ``(axis (3,), max_angle)``, checked (absent in runs written before it: None)."""
+    if cfg is None:
+        return None
+    try:
+        axis = torch.tensor([float(v) for v in cfg["axis"]], dtype=torch.float64, device="cpu")  # beside CPU axes
+        cap = float(cfg["max_angle"])
+    except (KeyError, TypeError, ValueError):
+        raise _run_error(run_dir, "model.json: tool_axis must hold an axis (3 numbers) and a max_angle") from None
+    if axis.shape != (3,) or not bool(torch.isfinite(axis).all()) or abs(float(axis.norm()) - 1) > 1e-6:
+        raise _run_error(run_dir, "model.json: tool_axis.axis must be a unit vector")
+    if not (math.isfinite(cap) and 0 <= cap <= math.pi):
+        raise _run_error(run_dir, "model.json: tool_axis.max_angle must be an angle in 0..pi")
+    return axis, cap
+
+
+def tool_axis_beyond(model: MeasurementModel, q: Tensor) -> Tensor:
+    """How far ``(N,)`` [rad] the tool axis of each pose ``q (N, dof)`` lies beyond the cone the run's training rows
+    covered (``model.tool_cone``, set by :func:`load_model`); 0 inside it and where the run recorded none."""
+    cone = getattr(model, "tool_cone", None)
+    if cone is None:
+        return torch.zeros(len(q), dtype=torch.float64, device="cpu")  # as the CPU angles below
+    axis, cap = cone
+    with torch.no_grad():
+        z = model.robot(q)[:, :3, 2].to("cpu", torch.float64)
+    return (torch.arccos((z @ axis).clamp(-1.0, 1.0)) - cap).clamp(min=0)
+
+
 def _run_error(run_dir: Path, what: str) -> OptionError:
     return OptionError(f"{run_dir}: {what}; expected a run directory written by 'torchcal calibrate'")
 
@@ -200,6 +246,7 @@ def load_model(run_dir: str | os.PathLike) -> tuple[MeasurementModel, dict]:
         raise _run_error(run_dir, f"model.pt does not match model.json ({first})") from None
     _check_state(run_dir, model)
     _set_region(model, meta.get("region"), run_dir)
+    model.tool_cone = _tool_cone(meta.get("tool_axis"), run_dir)
     return model, meta
 
 
@@ -315,6 +362,42 @@ def load_geometric(
     return geo, cov, geo_trust
 
 
+def load_standalone(run_dir: str | os.PathLike, model: MeasurementModel) -> MeasurementModel | None:
+    """The geometry a run with effects exports (``standalone.pt``, :mod:`torchcal.pipeline.standalone`): ``model``'s
+    robot with that state, no effects; None where the run keeps none (no effects, or written before it)."""
+    import copy
+
+    run_dir = Path(run_dir)
+    if not (run_dir / "standalone.pt").exists():
+        return None
+    alone = MeasurementModel(copy.deepcopy(model.robot))
+    try:
+        alone.load_state_dict(_load_torch_file(run_dir, "standalone.pt"))
+    except (RuntimeError, TypeError, AttributeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"standalone.pt does not match model.json ({first})") from None
+    _check_state(run_dir, alone)
+    return alone
+
+
+def load_holdout(run_dir: str | os.PathLike, dof: int) -> dict[str, Tensor] | None:
+    """The held-out rows a run keeps (``holdout.pt``: ``q (N, dof)``, ``p (N, 3)`` and where the run has several
+    stations or probes their ``station``, ``probe`` indices), checked; None where the run keeps none."""
+    run_dir = Path(run_dir)
+    if not (run_dir / "holdout.pt").exists():
+        return None
+    rows = _load_torch_file(run_dir, "holdout.pt")
+    ok = isinstance(rows, dict) and all(isinstance(rows.get(k), Tensor) for k in ("q", "p"))
+    n = rows["q"].shape[0] if ok and rows["q"].dim() == 2 else -1
+    ok = ok and n > 0 and tuple(rows["q"].shape) == (n, dof) and tuple(rows["p"].shape) == (n, 3)
+    ok = ok and all(
+        k not in rows or (isinstance(rows[k], Tensor) and tuple(rows[k].shape) == (n,)) for k in ("station", "probe")
+    )
+    if not ok or not all(bool(torch.isfinite(rows[k]).all()) for k in ("q", "p")):
+        raise _run_error(run_dir, f"holdout.pt must hold finite q (N, {dof}) and p (N, 3) tensors")
+    return rows
+
+
 #: the column predict and compensate write to say which model gave each row (RowTrust.which)
 MODEL_NAMES = ("full", "geometric")
 #: beyond the region the kinematic calibration predicts a row only where the run's model's sigma is more than this
@@ -383,7 +466,7 @@ def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, c
     calibrated region the kinematic calibration the run keeps beside its model where the model's sigma is far above
     that one's (:data:`SWITCH_RATIO`)."""
     run_dir = Path(run_dir)
-    ext = model.extrapolation(ctx.q).cpu()
+    ext = torch.maximum(model.extrapolation(ctx.q).cpu(), tool_axis_beyond(model, ctx.q).to(ctx.q.dtype))
     which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
     tr = load_trust(run_dir, meta)
     if tr is None:
@@ -413,7 +496,8 @@ def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> 
         sigma = _old_run_sigma(run_dir, model, ctx)[0]
     else:
         sigma = tr.std(model, ctx, load_covariance(run_dir, model))
-    return (None if sigma is None else sigma.cpu()), model.extrapolation(ctx.q).cpu()
+    ext = torch.maximum(model.extrapolation(ctx.q).cpu(), tool_axis_beyond(model, ctx.q).to(ctx.q.dtype))
+    return (None if sigma is None else sigma.cpu()), ext
 
 
 def _check_state(run_dir: Path, model: MeasurementModel) -> None:

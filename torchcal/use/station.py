@@ -27,10 +27,10 @@ The fit:
    the linear formula ``(I - H_ii)^-1 r_i``); a point whose leave-one-out error exceeds :data:`OUTLIER_FACTOR` times
    what the run predicts is named; a chi-square test of the residuals against what the run predicts per point
    (the run's held-out RMSE as an isotropic model error plus the measurement noise).
-6. The placement's predicted effect on accuracy: the placement's covariance carried to poses of the calibrated
-   region (:data:`REGION_POSES` poses drawn uniformly, seeded, in the joint ranges of ``model.json``'s region; the
-   points themselves where the run has none), RMS and max of the position sigma, added in quadrature to the run's
-   held-out RMSE.
+6. The placement's predicted effect on accuracy: the placement's covariance carried to poses like the points
+   (:data:`REGION_POSES` poses drawn uniformly, seeded, in the points' joint ranges within ``model.json``'s region,
+   :func:`points_region`; the points themselves where the run has none), RMS and max of the position sigma, added in
+   quadrature to the run's predictive sigma over the same poses.
 """
 
 from __future__ import annotations
@@ -62,8 +62,10 @@ F64 = torch.float64
 
 #: a point whose leave-one-out error exceeds this many times the run's predicted error per point is named
 OUTLIER_FACTOR = 5.0
-#: poses drawn in the calibrated region to carry the placement's covariance to
+#: poses drawn in the points' region (:func:`points_region`) to carry the placement's covariance to
 REGION_POSES = 500
+#: how far [rad] beyond the cone of the points' tool axes a pose drawn to predict the placement's error may turn (5 deg)
+CONE_MARGIN = math.radians(5.0)
 #: the points' spread: the second singular value of the centred points over the first below this is "collinear"
 COLLINEAR_RATIO = 1e-3
 #: significance level of the chi-square test
@@ -84,7 +86,7 @@ class StationOptions:
 
     ``sigma_tracker`` and ``sigma_joint`` weight the points where they carry no ``sx, sy, sz`` (the run's stochastic
     model by default); ``run_rmse`` is the run's model error [m] the points are tested against: the RMS over the
-    calibrated region of its predictive sigma (:mod:`torchcal.estimate.trust`), or its held-out RMSE for a run
+    points' region of its predictive sigma (:mod:`torchcal.estimate.trust`), or its held-out RMSE for a run
     written before that.
     """
 
@@ -119,13 +121,16 @@ class Station:
     fit_status: str
     iterations: int
     sigma0_sq: float
-    region_sigma_rms: float  # [m] RMS of the placement's position sigma over the calibrated region
+    region_sigma_rms: float  # [m] RMS of the placement's position sigma over the points' region (points_region)
     region_sigma_max: float  # [m]
     region_source: str
     run_rmse: float  # [m]
     tool: bool
     run_covariance: ParameterCovariance | None = None  # RUN2's covariance.pt
     label: str | None = None  # the station the points' rows name (None: none)
+    #: [m] the RMS over the same poses of predict's sigma of the re-stationed run (its whole covariance: the
+    #: placement's correlation with the run's parameters included), where the run measured its trust; else None
+    predicted_sigma: float | None = None
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -134,7 +139,12 @@ class Station:
 
     @property
     def predicted_rmse(self) -> float:
-        """The run's held-out RMSE and the placement's RMS sigma in quadrature [m]."""
+        """What predict's sigma of the re-stationed run gives over poses like the points (:attr:`predicted_sigma`), or
+        where the run has no trust, the run's held-out RMSE and the placement's RMS sigma in quadrature [m]. The two
+        parts apart overstate it where the placement absorbs a parameter the run held at its prior (a lever-arm
+        component along a tool axis that never turned): each then carries that prior, and only together cancel."""
+        if self.predicted_sigma is not None:
+            return self.predicted_sigma
         return math.hypot(self.run_rmse, self.region_sigma_rms)
 
     def to_dict(self) -> dict:
@@ -168,6 +178,9 @@ class Station:
                 "placement_sigma_rms_mm": self.region_sigma_rms * 1e3,
                 "placement_sigma_max_mm": self.region_sigma_max * 1e3,
                 "predicted_rmse_mm": self.predicted_rmse * 1e3,
+                "predicted_from": "predict's sigma of the re-stationed run (its whole covariance)"
+                if self.predicted_sigma is not None
+                else "the run's held-out RMSE and the placement sigma in quadrature",
                 "over": self.region_source,
             },
             "warnings": list(self.warnings),
@@ -212,20 +225,52 @@ def _check_points(points: Measurements, tool: bool) -> None:
         )
 
 
-def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tuple[Context, str]:
-    """Poses of the calibrated region (uniform in its joint ranges, seeded), or the points where it has none."""
+def points_region(model: MeasurementModel, points: Measurements) -> Tensor | None:
+    """The joint ranges ``(2, dof)`` a placement's predicted error is over: those of its points, within the run's
+    calibrated region where the two overlap (a joint the points hold still stays where they hold it). A placement
+    predicts the poses like its points; over the whole calibrated region a parameter the run held at its prior (a lever
+    arm component the calibration never turned) spread its prior over poses the placement never makes: 760 mm
+    predicted for placements that missed by 2-8 mm. None where the run stores no region."""
     region = model.region
+    if region is None:
+        return None
+    q = points.q.to(region)
+    lo, hi = q.min(0).values, q.max(0).values
+    lo2, hi2 = torch.maximum(lo, region[0]), torch.minimum(hi, region[1])
+    ok = lo2 <= hi2
+    return torch.stack([torch.where(ok, lo2, lo), torch.where(ok, hi2, hi)])
+
+
+def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tuple[Context, str]:
+    """Poses like the points: drawn uniformly in the points' region (:func:`points_region`, seeded) whose tool axis
+    stays within the cone of the points' tool axes (:data:`CONE_MARGIN` beyond it; joints drawn each on its own turn
+    a tool that the points keep pointing one way, where a parameter the run could not see spreads its prior); the
+    points themselves where fewer than a tenth of the draws stay, or where the run has no calibrated region."""
+    from torchcal.use.rundir import tool_axis_cone
+
+    region = points_region(model, points)
     if region is None:
         return Context.from_measurements(points, trajectory=False), "the points (the run stores no calibrated region)"
     g = torch.Generator().manual_seed(int(seed))
     u = torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64).to(region)  # CPU generator, moved
     q = region[0] + u * (region[1] - region[0])
+    cone = tool_axis_cone(model.robot, points.q)
+    if cone is not None:
+        axis = torch.tensor(cone["axis"], dtype=F64, device="cpu")  # compared with the CPU tool axes z
+        with torch.no_grad():
+            z = model.robot(q)[:, :3, 2].to("cpu", F64)
+        keep = torch.arccos((z @ axis).clamp(-1.0, 1.0)) <= cone["max_angle"] + CONE_MARGIN
+        if int(keep.sum()) < REGION_POSES // 10:
+            return Context.from_measurements(points, trajectory=False), (
+                "the points (poses drawn in their joint ranges turn the tool beyond the points' orientations)"
+            )
+        q = q[keep.to(q.device)]
 
     def mean(x):  # effects in time or temperature: at the points' mean
-        return None if x is None else x.mean().expand(REGION_POSES).to(q)
+        return None if x is None else x.mean().expand(len(q)).to(q)
 
     ctx = Context(q=q, t=mean(points.t), temperature=mean(points.temperature))
-    return ctx, f"{REGION_POSES} poses drawn uniformly in the calibrated region's joint ranges"
+    return ctx, f"{len(q)} poses drawn uniformly in the points' joint ranges and tool orientations"
 
 
 def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
@@ -342,7 +387,7 @@ def fit_station(
     Js_w, C_s, run_cov = _carry_run_uncertainty(model, free, ctx, fit.whitening, C_noise, run_covariance)
     # 5. residuals, leave-one-out, chi-square against what the run predicts
     r, loo, chi = _point_checks(model, points, ctx, fit.whitening, Js_w, opts, warnings)
-    # 6. the placement's effect on accuracy over the calibrated region
+    # 6. the placement's effect on accuracy over the points' region
     rctx, source = _region_ctx(model, points, opts.seed)
     var_r = _placement_var(model, free, C_s, rctx)
     return Station(
@@ -556,13 +601,65 @@ def restation(
     sigma = _run_sigma(run_dir, model, meta, cov, points, seed)
     if sigma is not None:  # the run's model error at a new placement: predict's sigma over the region
         opts = dataclasses.replace(opts, run_rmse=sigma)
-    station = fit_station(model, points, opts, cov)
+    start = copy.deepcopy(model)
+    try:
+        station, refused = fit_station(model, points, opts, cov), None
+    except StationError as e:  # points far off the run: another tool is one of the reasons it names
+        if tool or model.robot.probes or "--tool" not in str(e):
+            raise
+        station, refused = None, e
+    if not tool and not model.robot.probes and (station is None or not station.chi_square["passed"]):
+        model, station = _try_new_tool(start, model, points, opts, cov, station, refused)
     station.label = label
+    tr = load_trust(run_dir, meta)
+    if tr is not None and station.run_covariance is not None:
+        ctx, _ = _region_ctx(model, points, seed)
+        with torch.no_grad():
+            sigma = tr.std(model, ctx, station.run_covariance)
+        station.predicted_sigma = float(sigma.square().sum(1).mean().sqrt())
     return model, meta, station
 
 
+def _try_new_tool(
+    start: MeasurementModel, model: MeasurementModel, points: Measurements, opts, cov, station, refused=None
+):
+    """The points fit worse than the run predicts with its lever arm (or so far off that the fit was ``refused``):
+    test the alternative of a changed tool (the lever arm fitted too, as with ``--tool``). Adopted where the points
+    then fit as predicted (its chi-square test passes), said in a warning; else the placement stands with a warning
+    that names what a new lever arm left (a refusal stands)."""
+    alt_model = copy.deepcopy(start)
+    try:
+        alt = fit_station(alt_model, points, dataclasses.replace(opts, tool=True), _without(cov, ("robot.tool.delta",)))
+    except StationError as e:  # too few points, or orientations that do not fix a lever arm
+        if station is None:
+            raise refused from None
+        station.warnings.append(f"a changed tool could not be tested ({e}); if the tool changed, give --tool")
+        return model, station
+    chi1 = alt.chi_square
+    if chi1["passed"]:
+        before = (
+            f"chi-square {station.chi_square['statistic']:.3g} > {station.chi_square['threshold']:.3g}"
+            if station is not None
+            else "too far off to fit"
+        )
+        alt.warnings.insert(
+            0,
+            f"the points fit worse than the run predicts with its lever arm ({before}) and as predicted with a new "
+            f"one (chi-square {chi1['statistic']:.3g} <= {chi1['threshold']:.3g}): the tool changed, its lever arm "
+            "was fitted too (as --tool does)",
+        )
+        return alt_model, alt
+    if station is None:
+        raise refused
+    station.warnings.append(
+        f"a new lever arm does not explain it either (chi-square {chi1['statistic']:.3g} > {chi1['threshold']:.3g}): "
+        "the robot, its load or its base changed beyond a new placement; calibrate again (calibrate --prior RUN)"
+    )
+    return model, station
+
+
 def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measurements, seed: int) -> float | None:
-    """The RMS over the calibrated region of the run's predictive sigma ``|(sx, sy, sz)|`` [m]
+    """The RMS over the points' region (:func:`points_region`) of the run's predictive sigma ``|(sx, sy, sz)|`` [m]
     (:mod:`torchcal.estimate.trust`); None for a run written before it."""
     tr = load_trust(run_dir, meta)
     if tr is None:
@@ -602,9 +699,10 @@ def _points_rows(
             raise StationError(f"{run_dir}: probe {probe!r} is not one of the run's ({', '.join(known)})")
         idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
         points = dataclasses.replace(points, probe=idx, probe_names=(probe,))
-    none = {"station": None, "station_names": ()}
+    # the station the points name is the new placement's label, one of the run's or a new one (the help's example)
+    points = dataclasses.replace(points, meta=dict(points.meta), station=None, station_names=())
     rows_of(model, points)  # a probe the run lacks: refused with its file, line and column
-    return dataclasses.replace(points, meta=dict(points.meta), **none), label
+    return points, label
 
 
 def _names(points: Measurements, key: str) -> tuple[str, ...]:
