@@ -327,6 +327,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="P reflectors on a nest at the flange, every pose measured by each (a probe column P1..PP)",
     )
+    _add_load_options(s)
     _add_common(s)
 
     c = sub.add_parser(
@@ -887,6 +888,14 @@ def _one_torch_thread(command):
     return run
 
 
+def _has_load(data, meta: dict) -> bool:
+    """Whether predict's rows carry load columns or the run was fitted with them."""
+    load = meta.get("load") if isinstance(meta.get("load"), dict) else {}
+    return (
+        data.payload is not None or data.tau is not None or bool(load.get("payload_column")) or bool(load.get("tau_Nm"))
+    )
+
+
 @_one_torch_thread
 def cmd_predict(args) -> int:
     from dataclasses import replace
@@ -919,6 +928,8 @@ def cmd_predict(args) -> int:
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused
+    from torchcal.data.load import is_load_column
+
     labels = {k: getattr(data, k) for k in ("station", "station_names", "probe", "probe_names")}  # kept in the output
     data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
     # how far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
@@ -927,6 +938,13 @@ def cmd_predict(args) -> int:
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     rt = row_trust(args.run, model, meta, Context.from_measurements(data, trajectory=trajectory))
     sigma, ext = rt.sigma, rt.extrapolation
+    # a load the run was not fitted at: flagged, with its sigma and extrapolation grown (torchcal.use.conditions)
+    from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
+
+    lc = load_conditions(model, meta, data, str(args.data))
+    if lc.note is not None:
+        _console.info(lc.note)
+        sigma, ext = with_load_sigma(sigma, lc.sigma), torch.maximum(ext, lc.extrapolation.to(ext))
     p = predict_with(model, meta, data, device=device)
     if rt.geometric is not None and bool(rt.which.any()):
         rows = torch.nonzero(rt.which).flatten()
@@ -947,7 +965,13 @@ def cmd_predict(args) -> int:
         p=p,
         sigma=sigma,
         temperature=None,
-        extra={"extrapolation": ext, "model": rt.which.to(torch.float64)},
+        extra={
+            **{k: v for k, v in data.extra.items() if is_load_column(k)},  # the rows' load, kept
+            "extrapolation": ext,
+            "model": rt.which.to(torch.float64),
+            # where the rows carry a load (or the run was fitted at one): which lie beyond its training load
+            **({"conditions": lc.beyond.to(torch.float64)} if _has_load(data, meta) else {}),
+        },
         meta={"predicted_by": str(args.run)},
         r=r,
         sigma_r=None,
@@ -956,7 +980,9 @@ def cmd_predict(args) -> int:
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, model, data.q, fade)
     out_file.parent.mkdir(parents=True, exist_ok=True)
-    write_measurements(out_file, out, written_by="torchcal predict", labels={"model": MODEL_NAMES})
+    write_measurements(
+        out_file, out, written_by="torchcal predict", labels={"model": MODEL_NAMES, "conditions": CONDITIONS}
+    )
     _console.info(f"wrote {len(p)} predictions to {args.out}")
     return 0
 
@@ -1364,6 +1390,44 @@ def _simulate(cfg):
         ) from None
 
 
+def _load_levels(text: str) -> tuple[float, ...]:
+    """``--payload-levels 0,5,10``: payloads [kg], at least one."""
+    try:
+        levels = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected payloads in kg separated by ',', e.g. 0,5,10; got {text!r}"
+        ) from None
+    if not all(math.isfinite(v) and v >= 0 for v in levels):
+        raise argparse.ArgumentTypeError(f"payloads are masses >= 0 kg, got {text!r}")
+    return levels
+
+
+def _add_load_options(s) -> None:
+    """simulate's loads: the payload of the training and test rows, levels, measured torques."""
+    s.add_argument(
+        "--payload", type=NONNEG, default=0.0, metavar="KG", help="payload at the probe of the training rows"
+    )
+    s.add_argument(
+        "--test-payload", type=NONNEG, default=None, metavar="KG", help="payload of the test rows (default --payload)"
+    )
+    s.add_argument(
+        "--payload-levels",
+        type=_load_levels,
+        default=None,
+        metavar="KG,KG,..",
+        help="rows (training and test) cycle over these payloads, e.g. 0,5,10",
+    )
+    s.add_argument(
+        "--torques",
+        action="store_true",
+        help="write the joint torques the drives hold (tau1..tauN, N m) from the true static model plus noise",
+    )
+    s.add_argument(
+        "--torque-noise", type=NONNEG, default=0.5, metavar="NM", help="standard deviation of --torques (default 0.5)"
+    )
+
+
 def cmd_simulate(args) -> int:
     from torchcal._outdir import replace_dir
     from torchcal.sim import EffectSpec, SimConfig, write_campaign
@@ -1389,6 +1453,11 @@ def cmd_simulate(args) -> int:
         orientation_sigma_deg=args.orientation,
         stations=args.stations,
         probes=args.probes,
+        payload=args.payload,
+        test_payload=args.test_payload,
+        payload_levels=args.payload_levels,
+        torques=args.torques,
+        sigma_torque=args.torque_noise,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")

@@ -39,6 +39,7 @@ from torchcal.pipeline import CalibrationRun
 from torchcal.robot import resolve_robot_spec
 from torchcal.robot.load import MAX_DESCRIPTION_BYTES
 from torchcal.stats import rmse
+from torchcal.use.conditions import training_load
 
 F64 = torch.float64
 Tensor = torch.Tensor
@@ -315,6 +316,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "effects": [{"class": type(e).__name__, **e.config()} for e in run.model.effects],
         "method": run.options.method,
         "region": _region_config(run.model),
+        "load": training_load(run.data),  # the load conditions the run was fitted in (torchcal.use.conditions)
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
