@@ -63,6 +63,7 @@ DEFAULT_SIZES = {
 }
 EFFECT_NAMES = tuple(DEFAULT_SIZES)
 _UNITS = {"m": 1.0, "mm": 1e3, "um": 1e6}  # divisors to metres (exact for decimal input)
+MASS_STREAM = 45_000_001  # offset of the seed of the true masses' generator (torchcal.sim.load.true_masses)
 
 
 @dataclass
@@ -439,7 +440,11 @@ def simulate(cfg: SimConfig) -> Campaign:
     ]
     nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
 
-    masses = true_masses(truth_robot, g) if cfg.torques else None  # torques need the truth's masses
+    # torques need the truth's masses: drawn from a stream of their own, so that the poses and the noise are those
+    # of the same campaign without torques
+    masses = (
+        true_masses(truth_robot, torch.Generator().manual_seed(int(cfg.seed) + MASS_STREAM)) if cfg.torques else None
+    )
     ctx, n_train = _poses_and_times(cfg, nominal, tracker_in_base, lever_nominal, g, truth_robot)
     q_true, t, temperature = ctx.q, ctx.t, ctx.temperature
     # effects are sized on the arm's own weight: their truth (a compliance's k) does not depend on the test load
