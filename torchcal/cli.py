@@ -469,6 +469,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     cp.add_argument(
+        "--payload",
+        type=NONNEG,
+        default=None,
+        metavar="KG",
+        help="the program's payload at the flange (default: the targets' payload column, else 0): the calibrated "
+        "compliance carries it",
+    )
+    cp.add_argument(
         "--position-only",
         action="store_true",
         help="solve positions only (the tool free to turn), even with orientation targets (rx,ry,rz or program "
@@ -1037,6 +1045,25 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
     return resolve
 
 
+def _program_load(args, data) -> dict:
+    """The program's payload per row [kg] (``--payload KG``, else the targets' ``payload`` column), for the context
+    of the compensation: a compliance carries it; torques of poses not yet reached are not known, so a run whose
+    compliance reads measured torques cannot use them (said on stderr)."""
+    if data.tau is not None:
+        _console.info(
+            f"torchcal: warning: {args.targets}: the tau columns are not used: a command's torques are not known"
+        )
+    payload = _payload_of(args, data)
+    return {} if payload is None else {"payload": payload}
+
+
+def _payload_of(args, data) -> torch.Tensor | None:
+    """``--payload KG`` for every row, else the targets' ``payload`` column, else None (0 kg)."""
+    if args.payload is not None:
+        return torch.full((data.n,), float(args.payload), dtype=torch.float64)
+    return data.payload
+
+
 @_one_torch_thread
 def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
@@ -1067,7 +1094,7 @@ def cmd_compensate(args) -> int:
         _console.info(f"torchcal: warning: {args.targets}: the rx,ry,rz columns are not used: {mode}")
     _console.info(f"compensate: {mode}")
     trajectory = bool(meta.get("trajectory")) and data.t is not None
-    context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
+    context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory, **_program_load(args, data)}
     targets_of = _compensation_targets(data, six_d)
     res, ext, plain = compensate_groups(
         model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
@@ -1118,7 +1145,7 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     (model, meta), (station, probe), (plain, resolve) = run, groups, plain_resolve
     # how far to trust each command: the predicted standard deviation of a measurement there, and which model
     rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
-    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, **rows)
+    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, payload=_payload_of(args, data), **rows)
     sigma, which = _compensate_trust(args, model, meta, res, ctx, plain, resolve)
     joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
     extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}

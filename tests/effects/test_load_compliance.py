@@ -135,3 +135,22 @@ def test_rows_beyond_the_training_load_are_flagged_with_a_larger_sigma():
     assert "2 of 4 rows carry a load the run was not fitted at" in lc.note
     fitted = load_conditions(MeasurementModel(robot, [Compliance(j, k=1e-6) for j in (2, 3, 5)]), meta, rows, "r")
     assert bool((fitted.sigma[2] < lc.sigma[2]).all())  # joints whose compliance the model carries add nothing
+
+
+def test_compensation_carries_the_programs_payload():
+    """Commands solved with the program's payload put the loaded probe on the target; those solved at 0 kg miss
+    by the load's sag."""
+    from torchcal.use.compensate import compensate
+
+    robot = torchcal.load_robot("ur10")
+    model = MeasurementModel(robot, [Compliance(2, k=2e-6), Compliance(3, k=3e-6)])
+    q = poses(robot, n=5, seed=4)
+    payload = torch.full((5,), 10.0, dtype=F64)
+    with torch.no_grad():
+        targets = model(Context(q=q, payload=payload))
+    loaded = compensate(model, targets, q + 0.02, context={"payload": payload})  # from a seed off the answer
+    bare = compensate(model, targets, q + 0.02)
+    with torch.no_grad():
+        hit = (model(Context(q=loaded.q, payload=payload)) - targets).norm(dim=1)
+        sag = (model(Context(q=bare.q, payload=payload)) - targets).norm(dim=1)
+    assert float(hit.max()) < 1e-9 and float(sag.max()) > 1e-4
