@@ -1045,16 +1045,19 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
     return resolve
 
 
-def _program_load(args, data) -> dict:
-    """The program's payload per row [kg] (``--payload KG``, else the targets' ``payload`` column), for the context
-    of the compensation: a compliance carries it; torques of poses not yet reached are not known, so a run whose
-    compliance reads measured torques cannot use them (said on stderr)."""
-    if data.tau is not None:
-        _console.info(
-            f"torchcal: warning: {args.targets}: the tau columns are not used: a command's torques are not known"
+def _program_load(args, data, model) -> dict:
+    """The program's load per row for the context of the compensation: its payload [kg] (``--payload KG``, else the
+    targets' ``payload`` column) and the torques its poses hold (the targets' ``tau`` columns), which the run's
+    compliance carries. A run whose compliance reads measured torques needs them."""
+    from torchcal.effects import TorqueCompliance
+
+    if data.tau is None and any(isinstance(e, TorqueCompliance) for e in model.effects):
+        raise TorchcalError(
+            f"{args.targets}: the run's compliance reads the measured joint torques: give the targets the columns "
+            f"tau1..tau{model.robot.dof} (N m), the torques the program's poses hold"
         )
     payload = _payload_of(args, data)
-    return {} if payload is None else {"payload": payload}
+    return {**({} if payload is None else {"payload": payload}), **({} if data.tau is None else {"tau": data.tau})}
 
 
 def _payload_of(args, data) -> torch.Tensor | None:
@@ -1094,7 +1097,12 @@ def cmd_compensate(args) -> int:
         _console.info(f"torchcal: warning: {args.targets}: the rx,ry,rz columns are not used: {mode}")
     _console.info(f"compensate: {mode}")
     trajectory = bool(meta.get("trajectory")) and data.t is not None
-    context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory, **_program_load(args, data)}
+    context = {
+        "t": data.t,
+        "temperature": data.temperature,
+        "trajectory": trajectory,
+        **_program_load(args, data, model),
+    }
     targets_of = _compensation_targets(data, six_d)
     res, ext, plain = compensate_groups(
         model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
@@ -1145,7 +1153,8 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     (model, meta), (station, probe), (plain, resolve) = run, groups, plain_resolve
     # how far to trust each command: the predicted standard deviation of a measurement there, and which model
     rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
-    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, payload=_payload_of(args, data), **rows)
+    load = dict(payload=_payload_of(args, data), tau=data.tau)
+    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, **load, **rows)
     sigma, which = _compensate_trust(args, model, meta, res, ctx, plain, resolve)
     joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
     extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}

@@ -47,6 +47,7 @@ the tracker) move the instrument, not the robot, and are not compensated.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import math
 from collections.abc import Callable, Sequence
@@ -129,9 +130,9 @@ def _as_model(model) -> MeasurementModel:
 
 def _context(model: MeasurementModel, q: Tensor, context: dict | None) -> Context:
     ctx = dict(context or {})
-    unknown = set(ctx) - {"t", "temperature", "direction", "payload"}
+    unknown = set(ctx) - {"t", "temperature", "direction", "payload", "tau"}
     if unknown:
-        raise OptionError(f"context keys {sorted(unknown)} unknown; valid: t, temperature, direction, payload")
+        raise OptionError(f"context keys {sorted(unknown)} unknown; valid: t, temperature, direction, payload, tau")
     n = q.shape[0]
     for key in ("t", "temperature", "payload"):
         v = ctx.get(key)
@@ -150,6 +151,9 @@ def _context(model: MeasurementModel, q: Tensor, context: dict | None) -> Contex
         temperature=ctx.get("temperature"),
         direction=ctx.get("direction"),
         payload=ctx.get("payload"),  # the program's payload per row [kg]: the compliance carries it
+        # the torques the program's poses hold [N m]: a command differs from its pose by a fraction of a mrad, whose
+        # change of the static torque is far below a controller's torque noise
+        tau=ctx.get("tau"),
     )
 
 
@@ -175,15 +179,17 @@ def _residual_and_jacobian(
         if 0 < n * m <= ONE_PASS_ROWS:
             idx = torch.arange(n, device=ctx.q.device).repeat(m)
             q = ctx.q.detach()[idx].requires_grad_(True)
-            t, temperature, direction, payload = (
-                None if v is None else v[idx] for v in (ctx.t, ctx.temperature, ctx.direction, ctx.payload)
+            t, temperature, direction, payload, tau = (
+                None if v is None else v[idx] for v in (ctx.t, ctx.temperature, ctx.direction, ctx.payload, ctx.tau)
             )
-            r = f(Context(q=q, t=t, temperature=temperature, direction=direction, payload=payload), idx)  # (m n, m)
+            copies = Context(q=q, t=t, temperature=temperature, direction=direction, payload=payload, tau=tau)
+            r = f(copies, idx)  # (m n, m)
             own = r.reshape(m, n, m).diagonal(dim1=0, dim2=2)  # (n, m): copy k's component k
             (g,) = torch.autograd.grad(own.sum(), q)
             return r[:n].detach(), -g.reshape(m, n, -1).transpose(0, 1)
         q = ctx.q.detach().requires_grad_(True)
-        r = f(Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction, payload=ctx.payload), None)
+        whole = dataclasses.replace(ctx, q=q)
+        r = f(whole, None)
         rows = [-torch.autograd.grad(r[:, k].sum(), q, retain_graph=k < m - 1)[0] for k in range(m)]
     return r.detach(), torch.stack(rows, dim=-2)
 
@@ -449,7 +455,8 @@ def compensate(
             on the model's geometry without effects.
         frame: ``"instrument"`` (tracker frame, the default) or ``"base"``.
         context: per-row ``t`` ``(N,)`` [s], ``temperature`` ``(N,)`` [degC], ``payload`` ``(N,)`` [kg],
-            ``direction`` ``(N, dof)`` for effects that read them (module docstring).
+            ``tau`` ``(N, dof)`` [N m] (the torques the program's poses hold), ``direction`` ``(N, dof)`` for effects
+            that read them (module docstring).
         orientations: desired probe orientations ``R_frame_probe (N, 3, 3)`` in ``frame`` (a 6-D solve; the model's
             robot must carry the probe's orientation, :meth:`~torchcal.robot.model.RobotModel.enable_orientation`),
             or None (positions only: the tool is free to turn).
