@@ -79,12 +79,22 @@ def _config(robot: str, seed: int, poses: int, **load) -> SimConfig:
 
 
 def _compliance_report(run) -> list[dict]:
-    """The run's compliances: joint, form and k [rad/(N m)] with its standard deviation."""
+    """The run's compliances: joint, form and k [rad/(N m)] with its standard deviation as the report gives them
+    (fitted when the effect was accepted, before later effects joined), and ``k_final``, the final model's."""
+    final = {e.joint: float(e.k.detach()) for e in run.model.effects if getattr(e, "k", None) is not None}
     out = []
     for e in run.effects_report:
         if e["kind"] == "compliance":
             k = e["params"].get("k", {})
-            out.append({"joint": e["joint"], "form": e["params"].get("form"), "k": k.get("value"), "std": k.get("std")})
+            out.append(
+                {
+                    "joint": e["joint"],
+                    "form": e["params"].get("form"),
+                    "k": k.get("value"),
+                    "std": k.get("std"),
+                    "k_final": final.get(e["joint"]),
+                }
+            )
     return out
 
 
