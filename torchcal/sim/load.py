@@ -41,11 +41,15 @@ def has_load(cfg) -> bool:
 
 def row_payloads(cfg, n_train: int, n: int) -> Tensor:
     """Each row's payload ``(n,)`` [kg]: the training rows at ``cfg.payload``, the rest at ``cfg.test_payload``
-    (default the same), or both cycling over ``cfg.payload_levels``."""
+    (default the same), or both cycling over ``cfg.payload_levels`` (the test rows at ``cfg.test_payload`` where it
+    is given: a load the training never saw)."""
     if cfg.payload_levels is not None:
         levels = torch.tensor([float(v) for v in cfg.payload_levels], dtype=F64)
         idx = torch.cat([torch.arange(n_train), torch.arange(n - n_train)]) % len(levels)
-        return levels[idx]
+        out = levels[idx]
+        if cfg.test_payload is not None:
+            out[n_train:] = float(cfg.test_payload)
+        return out
     test = cfg.payload if cfg.test_payload is None else cfg.test_payload
     out = torch.full((n,), float(test), dtype=F64)
     out[:n_train] = float(cfg.payload)
