@@ -1063,7 +1063,7 @@ def _program_load(args, data, model) -> dict:
 def _payload_of(args, data) -> torch.Tensor | None:
     """``--payload KG`` for every row, else the targets' ``payload`` column, else None (0 kg)."""
     if args.payload is not None:
-        return torch.full((data.n,), float(args.payload), dtype=torch.float64)
+        return torch.full((data.n,), float(args.payload), dtype=torch.float64, device=data.q.device)
     return data.payload
 
 

@@ -64,12 +64,12 @@ class LoadConditions:
     note: str | None
 
 
-def _reference_compliance(model) -> Tensor:
-    """``k_ref (dof,)`` [rad/(N m)] per joint (module docstring)."""
+def _reference_compliance(model, device: torch.device) -> Tensor:
+    """``k_ref (dof,)`` [rad/(N m)] per joint on ``device`` (module docstring)."""
     from torchcal.effects.joint import Compliance, LumpedCompliance, TorqueCompliance
 
     dof = model.robot.dof
-    carried = torch.zeros(dof, dtype=torch.bool)
+    carried = torch.zeros(dof, dtype=torch.bool, device=device)
     fitted = []
     for e in model.effects:
         load_aware = isinstance(e, (Compliance, TorqueCompliance)) or (isinstance(e, LumpedCompliance) and e.load)
@@ -77,7 +77,7 @@ def _reference_compliance(model) -> Tensor:
             carried[e.j] = True
             fitted.append(abs(float(e.k.detach())))
     k = max(fitted) if fitted else DEFAULT_COMPLIANCE
-    return torch.where(carried, torch.zeros(dof, dtype=torch.float64), torch.full((dof,), k, dtype=torch.float64))
+    return torch.where(carried, 0.0, torch.full((dof,), k, dtype=torch.float64, device=device))
 
 
 def _beyond(value: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
@@ -88,26 +88,26 @@ def _beyond(value: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
 def load_conditions(model, meta: dict, data: Measurements, path: str) -> LoadConditions:
     """The rows of ``data`` (read by predict) against the load ``meta["load"]`` the run was fitted in."""
     n, dof = data.n, model.robot.dof
-    zero = torch.zeros(n, dtype=torch.float64)
+    q = data.q.detach().cpu()  # predict asks before its model moves to --device
+    f64 = dict(dtype=torch.float64, device=q.device)
+    zero = torch.zeros(n, **f64)
     load = meta.get("load") if isinstance(meta.get("load"), dict) else {"payload_kg": [0.0, 0.0], "tau_Nm": None}
     lo, hi = (float(v) for v in load.get("payload_kg", [0.0, 0.0]))
     payload = data.payload if data.payload is not None else zero
-    dm = _beyond(payload.cpu(), torch.tensor(lo), torch.tensor(hi))
-    q = data.q.detach().cpu()
+    dm = _beyond(payload.cpu(), torch.tensor(lo, **f64), torch.tensor(hi, **f64))
     robot = model.robot
     with torch.no_grad():
         com = None if data.payload_com is None else data.payload_com.cpu()
-        dtau = robot.payload_torques(q, dm, com) if bool((dm != 0).any()) else torch.zeros(n, dof)
-    dtau = dtau.to(torch.float64)
+        dtau = robot.payload_torques(q, dm, com) if bool((dm != 0).any()) else torch.zeros(n, dof, **f64)
     tau_range = load.get("tau_Nm")
     if tau_range is not None and data.tau is not None:
-        r = torch.tensor(tau_range, dtype=torch.float64)
+        r = torch.tensor(tau_range, **f64)
         dtau_measured = _beyond(data.tau.cpu(), r[:, 0], r[:, 1])
         dtau = torch.where(dtau_measured.abs() > dtau.abs(), dtau_measured, dtau)
     beyond = (dm != 0) | (dtau.abs() > 0).any(1) if tau_range is not None else dm != 0
-    twist = _reference_compliance(model) * dtau  # (N, dof) [rad]
+    twist = _reference_compliance(model, q.device) * dtau  # (N, dof) [rad]
     with torch.no_grad():
-        J = robot.probe_jacobian(q)[1] if bool(beyond.any()) else torch.zeros(n, 3, dof, dtype=torch.float64)
+        J = robot.probe_jacobian(q)[1] if bool(beyond.any()) else torch.zeros(n, 3, dof, **f64)
     d = (J @ twist.unsqueeze(-1)).squeeze(-1).norm(dim=1)  # [m]
     ext = twist.abs().max(1).values if dof else zero
     ext = torch.where(beyond, ext.clamp(min=1e-12), zero)  # a flagged row is never 0, however stiff
