@@ -1159,10 +1159,15 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
     extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}
     extra.update(data.extra)
+    sigma, ext, conditions = _compensate_load(args, (model, meta), data, res.q, sigma)
+    if load["payload"] is not None:  # the payload the commands were solved with (--payload wins over the column)
+        extra["payload"] = load["payload"]
     if sigma is not None:
         extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
-    extra["extrapolation"] = model.extrapolation(res.q)  # of the commands written
+    extra["extrapolation"] = ext  # of the commands written
     extra["model"] = [COMPENSATE_MODELS[int(i)] for i in which.tolist()]
+    if conditions is not None:
+        extra["conditions"] = conditions
     write_joints(
         out_file,
         dataclasses.replace(res, q=res.q * joint, miss=res.miss * length),
@@ -1179,6 +1184,28 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
         },
         written_by="torchcal compensate",
     )
+
+
+def _compensate_load(args, run, data, q, sigma):
+    """The commands' load against the run's training load (:mod:`torchcal.use.conditions`): the sigma and
+    extrapolation grown where it lies beyond, and the ``conditions`` column (None where neither the targets nor the
+    run carry load columns)."""
+    import dataclasses
+
+    from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
+
+    model, meta = run
+    ext = model.extrapolation(q)
+    payload = _payload_of(args, data)
+    extra = {k: v for k, v in data.extra.items() if k != "payload"}
+    rows = dataclasses.replace(data, q=q, extra=extra if payload is None else {**extra, "payload": payload})
+    lc = load_conditions(model, meta, rows, str(args.targets))
+    if lc.note is not None:
+        _console.info(lc.note)
+        sigma, ext = with_load_sigma(sigma, lc.sigma), torch.maximum(ext, lc.extrapolation.to(ext))
+    if not (_has_load(rows, meta) or args.payload is not None):
+        return sigma, ext, None
+    return sigma, ext, [CONDITIONS[int(b)] for b in lc.beyond.tolist()]
 
 
 def _row_labels(model, data, station, probe) -> dict[str, list[str]]:

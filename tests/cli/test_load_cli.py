@@ -33,6 +33,15 @@ def test_predict_flags_rows_beyond_the_training_load(tmp_path, capsys):
     assert main(["predict", str(run), str(sim / "train.csv"), "--out", str(tmp_path / "t.csv")]) == 0
     assert "not fitted at" not in capsys.readouterr().err
     assert (tmp_path / "t.csv").read_text().count(",trained") == 40
+    capsys.readouterr()
+    assert main(["compensate", str(run), str(sim / "test.csv"), "--out", str(tmp_path / "c.csv")]) == 0
+    assert "6 of 6 rows carry a load the run was not fitted at" in capsys.readouterr().err
+    assert (tmp_path / "c.csv").read_text().count(",load beyond training,") == 6
+    assert (
+        main(["compensate", str(run), str(sim / "test.csv"), "--payload", "0", "--out", str(tmp_path / "c0.csv")]) == 0
+    )
+    # --payload 0 is a trained payload, but the rows' torques (measured at 10 kg) still lie beyond the training ones
+    assert (tmp_path / "c0.csv").read_text().count(",load beyond training,") == 6
 
 
 def test_simulate_refuses_a_negative_payload(tmp_path, capsys):
