@@ -357,6 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="P",
         help="P reflectors on a nest at the flange, every pose measured by each (a probe column P1..PP)",
     )
+    _add_load_options(s)
     _add_common(s)
 
     c = sub.add_parser(
@@ -497,6 +498,14 @@ def build_parser() -> argparse.ArgumentParser:
         "the row), miss, miss_angle [rad] (6-D), status",
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
+    cp.add_argument(
+        "--payload",
+        type=NONNEG,
+        default=None,
+        metavar="KG",
+        help="the program's payload at the flange (default: the targets' payload column, else 0): the calibrated "
+        "compliance carries it",
+    )
     cp.add_argument(
         "--position-only",
         action="store_true",
@@ -952,6 +961,14 @@ def _one_torch_thread(command):
     return run
 
 
+def _has_load(data, meta: dict) -> bool:
+    """Whether predict's rows carry load columns or the run was fitted with them."""
+    load = meta.get("load") if isinstance(meta.get("load"), dict) else {}
+    return (
+        data.payload is not None or data.tau is not None or bool(load.get("payload_column")) or bool(load.get("tau_Nm"))
+    )
+
+
 @_one_torch_thread
 def cmd_predict(args) -> int:
     from dataclasses import replace
@@ -984,6 +1001,8 @@ def cmd_predict(args) -> int:
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused
+    from torchcal.data.load import is_load_column
+
     labels = {k: getattr(data, k) for k in ("station", "station_names", "probe", "probe_names")}  # kept in the output
     data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
     # how far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
@@ -992,6 +1011,13 @@ def cmd_predict(args) -> int:
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     rt = row_trust(args.run, model, meta, Context.from_measurements(data, trajectory=trajectory))
     sigma, ext = rt.sigma, rt.extrapolation
+    # a load the run was not fitted at: flagged, with its sigma and extrapolation grown (torchcal.use.conditions)
+    from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
+
+    lc = load_conditions(model, meta, data, str(args.data))
+    if lc.note is not None:
+        _console.info(lc.note)
+        sigma, ext = with_load_sigma(sigma, lc.sigma), torch.maximum(ext, lc.extrapolation.to(ext))
     p = predict_with(model, meta, data, device=device)
     if rt.geometric is not None and bool(rt.which.any()):
         rows = torch.nonzero(rt.which).flatten()
@@ -1012,7 +1038,13 @@ def cmd_predict(args) -> int:
         p=p,
         sigma=sigma,
         temperature=None,
-        extra={"extrapolation": ext, "model": rt.which.to(torch.float64)},
+        extra={
+            **{k: v for k, v in data.extra.items() if is_load_column(k)},  # the rows' load, kept
+            "extrapolation": ext,
+            "model": rt.which.to(torch.float64),
+            # where the rows carry a load (or the run was fitted at one): which lie beyond its training load
+            **({"conditions": lc.beyond.to(torch.float64)} if _has_load(data, meta) else {}),
+        },
         meta={"predicted_by": str(args.run)},
         r=r,
         sigma_r=None,
@@ -1021,7 +1053,9 @@ def cmd_predict(args) -> int:
     fade = "the learned corrections fade to the geometry there" if model.has_learned else ""
     warn_outside(args.data, data.lines, model, data.q, fade)
     out_file.parent.mkdir(parents=True, exist_ok=True)
-    write_measurements(out_file, out, written_by="torchcal predict", labels={"model": MODEL_NAMES})
+    write_measurements(
+        out_file, out, written_by="torchcal predict", labels={"model": MODEL_NAMES, "conditions": CONDITIONS}
+    )
     _console.info(f"wrote {len(p)} predictions to {args.out}")
     return 0
 
@@ -1076,6 +1110,28 @@ def _geometric_resolver(res, station, probe, targets_of, context, weight):
     return resolve
 
 
+def _program_load(args, data, model) -> dict:
+    """The program's load per row for the context of the compensation: its payload [kg] (``--payload KG``, else the
+    targets' ``payload`` column) and the torques its poses hold (the targets' ``tau`` columns), which the run's
+    compliance carries. A run whose compliance reads measured torques needs them."""
+    from torchcal.effects import TorqueCompliance
+
+    if data.tau is None and any(isinstance(e, TorqueCompliance) for e in model.effects):
+        raise TorchcalError(
+            f"{args.targets}: the run's compliance reads the measured joint torques: give the targets the columns "
+            f"tau1..tau{model.robot.dof} (N m), the torques the program's poses hold"
+        )
+    payload = _payload_of(args, data)
+    return {**({} if payload is None else {"payload": payload}), **({} if data.tau is None else {"tau": data.tau})}
+
+
+def _payload_of(args, data) -> torch.Tensor | None:
+    """``--payload KG`` for every row, else the targets' ``payload`` column, else None (0 kg)."""
+    if args.payload is not None:
+        return torch.full((data.n,), float(args.payload), dtype=torch.float64, device=data.q.device)
+    return data.payload
+
+
 @_one_torch_thread
 def cmd_compensate(args) -> int:
     from torchcal.data import read_measurements
@@ -1106,7 +1162,12 @@ def cmd_compensate(args) -> int:
         _console.info(f"torchcal: warning: {args.targets}: the rx,ry,rz columns are not used: {mode}")
     _console.info(f"compensate: {mode}")
     trajectory = bool(meta.get("trajectory")) and data.t is not None
-    context = {"t": data.t, "temperature": data.temperature, "trajectory": trajectory}
+    context = {
+        "t": data.t,
+        "temperature": data.temperature,
+        "trajectory": trajectory,
+        **_program_load(args, data, model),
+    }
     targets_of = _compensation_targets(data, six_d)
     res, ext, plain = compensate_groups(
         model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
@@ -1157,15 +1218,21 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     (model, meta), (station, probe), (plain, resolve) = run, groups, plain_resolve
     # how far to trust each command: the predicted standard deviation of a measurement there, and which model
     rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
-    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, **rows)
+    load = dict(payload=_payload_of(args, data), tau=data.tau)
+    ctx = Context(q=res.q, t=data.t, temperature=data.temperature, **load, **rows)
     sigma, which = _compensate_trust(args, model, meta, res, ctx, plain, resolve)
     joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
     extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}
     extra.update(data.extra)
+    sigma, ext, conditions = _compensate_load(args, (model, meta), data, res.q, sigma)
+    if load["payload"] is not None:  # the payload the commands were solved with (--payload wins over the column)
+        extra["payload"] = load["payload"]
     if sigma is not None:
         extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
-    extra["extrapolation"] = model.extrapolation(res.q)  # of the commands written
+    extra["extrapolation"] = ext  # of the commands written
     extra["model"] = [COMPENSATE_MODELS[int(i)] for i in which.tolist()]
+    if conditions is not None:
+        extra["conditions"] = conditions
     write_joints(
         out_file,
         dataclasses.replace(res, q=res.q * joint, miss=res.miss * length),
@@ -1182,6 +1249,28 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
         },
         written_by="torchcal compensate",
     )
+
+
+def _compensate_load(args, run, data, q, sigma):
+    """The commands' load against the run's training load (:mod:`torchcal.use.conditions`): the sigma and
+    extrapolation grown where it lies beyond, and the ``conditions`` column (None where neither the targets nor the
+    run carry load columns)."""
+    import dataclasses
+
+    from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
+
+    model, meta = run
+    ext = model.extrapolation(q)
+    payload = _payload_of(args, data)
+    extra = {k: v for k, v in data.extra.items() if k != "payload"}
+    rows = dataclasses.replace(data, q=q, extra=extra if payload is None else {**extra, "payload": payload})
+    lc = load_conditions(model, meta, rows, str(args.targets))
+    if lc.note is not None:
+        _console.info(lc.note)
+        sigma, ext = with_load_sigma(sigma, lc.sigma), torch.maximum(ext, lc.extrapolation.to(ext))
+    if not (_has_load(rows, meta) or args.payload is not None):
+        return sigma, ext, None
+    return sigma, ext, [CONDITIONS[int(b)] for b in lc.beyond.tolist()]
 
 
 def _row_labels(model, data, station, probe) -> dict[str, list[str]]:
@@ -1451,6 +1540,44 @@ def _simulate(cfg):
         ) from None
 
 
+def _load_levels(text: str) -> tuple[float, ...]:
+    """``--payload-levels 0,5,10``: payloads [kg], at least one."""
+    try:
+        levels = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected payloads in kg separated by ',', e.g. 0,5,10; got {text!r}"
+        ) from None
+    if not all(math.isfinite(v) and v >= 0 for v in levels):
+        raise argparse.ArgumentTypeError(f"payloads are masses >= 0 kg, got {text!r}")
+    return levels
+
+
+def _add_load_options(s) -> None:
+    """simulate's loads: the payload of the training and test rows, levels, measured torques."""
+    s.add_argument(
+        "--payload", type=NONNEG, default=0.0, metavar="KG", help="payload at the probe of the training rows"
+    )
+    s.add_argument(
+        "--test-payload", type=NONNEG, default=None, metavar="KG", help="payload of the test rows (default --payload)"
+    )
+    s.add_argument(
+        "--payload-levels",
+        type=_load_levels,
+        default=None,
+        metavar="KG,KG,..",
+        help="rows (training and test) cycle over these payloads, e.g. 0,5,10",
+    )
+    s.add_argument(
+        "--torques",
+        action="store_true",
+        help="write the joint torques the drives hold (tau1..tauN, N m) from the true static model plus noise",
+    )
+    s.add_argument(
+        "--torque-noise", type=NONNEG, default=0.5, metavar="NM", help="standard deviation of --torques (default 0.5)"
+    )
+
+
 def cmd_simulate(args) -> int:
     from torchcal._outdir import replace_dir
     from torchcal.sim import EffectSpec, SimConfig, write_campaign
@@ -1476,6 +1603,11 @@ def cmd_simulate(args) -> int:
         orientation_sigma_deg=args.orientation,
         stations=args.stations,
         probes=args.probes,
+        payload=args.payload,
+        test_payload=args.test_payload,
+        payload_levels=args.payload_levels,
+        torques=args.torques,
+        sigma_torque=args.torque_noise,
     )
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")

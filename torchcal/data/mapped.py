@@ -8,7 +8,9 @@
     joints: {input: 1, columns: 1-6, sign: [1, -1, 1, 1, 1, 1], offset: [0, 90, 0, 0, 0, 0]}
     position: {input: [2, 3], columns: 1-3}           # or matrix: (4x4 / 3x4 row-major), quaternion:
     probe: [A, B]                                      # one name per position input; or {column: ..}, {block: ..}
-    extra: {tau: 8-14, temperature: Temp}              # other columns, kept
+    extra: {temperature: Temp}                         # other columns, kept
+    payload: Load                                      # kg; or [Load, X, Y, Z]: with its centre of mass (flange)
+    torques: 8-14                                      # N m, one per joint: tau1..tauN
 
 Columns are 1-based numbers, ranges ``"3-8"``, header names, or lists of them; a YAML row's list value ``q: [..]``
 is the columns ``q[1]``, ``q[2]``, ... and the name ``q`` takes them all. A model joint is ``sign * reading +
@@ -38,7 +40,19 @@ from torchcal.data.measurements import (
 from torchcal.errors import MeasurementFileError, OptionError
 
 F64 = torch.float64
-MAP_KEYS = ("read", "units", "joints", "position", "matrix", "quaternion", "extra", "station", "probe")
+MAP_KEYS = (
+    "read",
+    "units",
+    "joints",
+    "position",
+    "matrix",
+    "quaternion",
+    "extra",
+    "station",
+    "probe",
+    "payload",
+    "torques",
+)
 READ_KEYS = ("delimiter", "header", "comment", "decimal", "blocks", "rows", "variable")
 #: how far a 4x4 pose's rotation may be from orthonormal, and a quaternion's norm from 1 (a pose printed to 6 digits)
 ROTATION_TOLERANCE = 1e-5
@@ -606,7 +620,55 @@ def _extra(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
                 column=str(name),
             )
         out.update({n: v[:, i].contiguous() for i, n in enumerate(names)})
+    out.update(_load(doc, table, inputs))
     return out
+
+
+def _load(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
+    """``payload: COL`` (kg) or ``[COL, X, Y, Z]`` (with its centre of mass in the flange frame, in the MAP's length
+    unit) and ``torques: COLS`` (N m, one per joint) of the joints' table, as the load columns, validated."""
+    from torchcal.data.load import PAYLOAD, PAYLOAD_COM, check_load
+
+    out = {}
+    for key in ("payload", "torques"):
+        if key not in doc:
+            continue
+        cols = columns_of(doc[key], table, inputs.map_path, key, _line(doc, key))
+        if key == "payload" and len(cols) not in (1, 4):
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"payload takes one column (kg) or four (kg, then the centre of mass x, y, z), got {len(cols)}",
+                line=_line(doc, key),
+                column=key,
+            )
+        v = numbers(table, cols, inputs.read)
+        names = (PAYLOAD, *PAYLOAD_COM)[: len(cols)] if key == "payload" else [f"tau{k + 1}" for k in range(len(cols))]
+        out.update({n: v[:, i].contiguous() for i, n in enumerate(names)})
+    clash = sorted(set(out) & set(doc.get("extra", {}) or {}))
+    if clash:
+        raise MeasurementFileError(
+            inputs.map_path,
+            f"extra names {clash[0]!r}, a load column 'payload:' or 'torques:' writes",
+            line=_line(doc, "extra"),
+        )
+    length = doc.get("units", {}).get("length", "m")
+    # the count of torques against the joints is checked on the rows (_check_torque_count), where both are known
+    return check_load(table.path, out, table.lines, 1, 0, length)
+
+
+def _check_torque_count(doc: dict, inputs: _Inputs, q: torch.Tensor, extra: dict) -> None:
+    """One torque per joint: ``torques:`` (or ``extra: {tau: ..}``) over as many columns as ``joints:``."""
+    from torchcal.data.load import torque_columns
+
+    names = torque_columns(list(extra))
+    if names and len(names) != q.shape[1]:
+        key = "torques" if "torques" in doc else "extra"
+        raise MeasurementFileError(
+            inputs.map_path,
+            f"{key}: {len(names)} torque columns (tau1..tau{len(names)}) for {q.shape[1]} joints: one torque per joint",
+            line=_line(doc, key),
+            column=key,
+        )
 
 
 def _distinct_inputs(doc: dict, numbers: list[int], inputs: _Inputs) -> None:
@@ -694,6 +756,7 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
     if len(joints) == 1:
         _check_unpaired_joints(doc, inputs, joints[0], points)
     q, extra, lines = _paired_joints(doc, inputs, joints, len(points))
+    _check_torque_count(doc, inputs, q, extra)
     cat = [pose[key] for _, _, pose in points for key in ("p", "r")]
     p = torch.cat([pose["p"] for _, _, pose in points]) if cat[0] is not None else None
     r = torch.cat([pose["r"] for _, _, pose in points]) if cat[1] is not None else None

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from torchcal.data.load import check_load, payload_com_of, payload_of, torques_of
 from torchcal.errors import MeasurementFileError, OptionError, ShapeError
 
 __all__ = ["ANGLE_UNITS", "LENGTH_UNITS", "Measurements", "read_measurements", "write_measurements"]
@@ -42,8 +43,9 @@ _ROTATION_SIGMA = ("srx", "sry", "srz")
 #: label columns: integers or names, stored as index tensors with the names in order of first appearance
 _LABELS = ("station", "probe")
 #: text columns that torchcal writes for the reader and ignores on reading (predict's ``model``: which model gave
-#: the row), so that its output reads back as measurements
-_IGNORED_TEXT = ("model",)
+#: the row; ``conditions``: whether its load was one the run was fitted at), so that its output reads back as
+#: measurements
+_IGNORED_TEXT = ("model", "conditions")
 _RESERVED = frozenset(_POSITION + _SIGMA + _ROTATION + _ROTATION_SIGMA + ("t", "temperature") + _LABELS)
 _JOINT_RE = re.compile(r"q([0-9]+)")
 _META_RE = re.compile(r"#\s*([A-Za-z_][A-Za-z0-9_.\-]*)\s*:\s*(.*?)\s*")
@@ -80,7 +82,9 @@ class Measurements:
         meta: metadata from the file's ``# key: value`` comment lines.
         source: the path the set was read from, or None.
         lines: 1-based file line of each row, for error messages downstream.
-        extra: other numeric columns, (N,) float64 each, in file order.
+        extra: other numeric columns, (N,) float64 each, in file order; the load columns (``payload``,
+            ``payload_x..z`` [m], ``tau1..tauN``) among them, read through :attr:`payload`, :attr:`payload_com` and
+            :attr:`tau` (:mod:`torchcal.data.load`).
         r: (N, 3) float64 measured orientation of the probe frame in the tracker frame as a rotation vector [rad]
             (a 6-D probe such as a T-Mac: columns rx, ry, rz), or None.
         sigma_r: (N, 3) float64 standard deviations of the orientation [rad] (srx, sry, srz): of a small rotation
@@ -196,6 +200,21 @@ class Measurements:
             probe=pick(self.probe),
             orientation_used=pick(self.orientation_used),
         )
+
+    @property
+    def payload(self) -> torch.Tensor | None:
+        """Each row's payload ``(N,)`` [kg] (the ``payload`` column), or None: no load column (0 kg)."""
+        return payload_of(self.extra)
+
+    @property
+    def payload_com(self) -> torch.Tensor | None:
+        """Each row's payload centre of mass in the flange frame ``(N, 3)`` [m], or None (at the probe)."""
+        return payload_com_of(self.extra)
+
+    @property
+    def tau(self) -> torch.Tensor | None:
+        """Each row's measured joint torques ``(N, dof)`` [N m, N for a prismatic joint], or None."""
+        return torques_of(self.extra)
 
     @property
     def n_stations(self) -> int:
@@ -411,6 +430,7 @@ def read_measurements(
     _check_units(path_str, c["q"], c["p"], c["sigma"], lines, layout, length_unit, angle_unit, joint_limits, linear)
     q, p, sigma = _to_si(c["q"], c["p"], c["sigma"], linear, length_unit, angle_unit)
     _check_ranges(path_str, p, sigma, c["temperature"], lines, layout, length_unit)
+    c["extra"] = check_load(path_str, c["extra"], lines, layout.header_line, len(layout.joints), length_unit)
     if joint_limits is not None and n and layout.joints:
         _check_joint_limits(path_str, q, lines, layout, joint_limits, angle_unit, robot_name, linear, length_unit)
 
@@ -444,6 +464,7 @@ def _read_table(path_str: str, dof, joint_limits, robot_name, require_positions:
     header_line = header_index + 1
     header = _parse_header(path_str, raw_lines[header_index], header_line)
     layout = _Layout.from_header(path_str, header, header_line, require_positions, require_joints)
+    layout.header_line = header_line
     if layout.joints or require_joints:
         _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
 
@@ -631,6 +652,7 @@ class _Layout:
     extra: list[str]
     has_rotation: bool = False
     has_rotation_sigma: bool = False
+    header_line: int = 1
 
     @classmethod
     def from_header(

@@ -31,7 +31,17 @@ from dataclasses import dataclass, field
 
 import torch
 
-from torchcal.effects import Backlash, Compliance, Context, Coupling, Cyclic, Drift, LumpedCompliance, Transmission
+from torchcal.effects import (
+    Backlash,
+    Compliance,
+    Context,
+    Coupling,
+    Cyclic,
+    Drift,
+    LumpedCompliance,
+    TorqueCompliance,
+    Transmission,
+)
 from torchcal.effects.base import Effect
 from torchcal.effects.joint import geometric_span, lumped_basis
 
@@ -54,6 +64,8 @@ class Candidate:
         reference: drift reference value (the variable at the first training sample).
         basis: a lumped compliance's identifiable directions ``(4 dof, r)`` on the training poses
             (:func:`~torchcal.effects.joint.lumped_basis`); None: the mass-based compliance.
+        form: a compliance's load form: ``"torque"`` (driven by the measured torques, :class:`TorqueCompliance`),
+            ``"load"`` (the lumped form plus the payload's own torque: rows at several payloads), or None.
     """
 
     kind: str
@@ -62,6 +74,7 @@ class Candidate:
     reference: float = 0.0
     source: int | None = None  # coupling: the 1-based joint whose reading drives joint ``joint``'s error
     basis: Tensor | None = field(default=None, compare=False, repr=False)
+    form: str | None = None
 
     @property
     def name(self) -> str:
@@ -76,8 +89,12 @@ class Candidate:
 
     def make(self) -> Effect:
         """A fresh effect of this form with zero parameters."""
+        if self.kind == "compliance" and self.form == "torque":
+            return TorqueCompliance(self.joint)
         if self.kind == "compliance":
-            return Compliance(self.joint) if self.basis is None else LumpedCompliance(self.joint, self.basis)
+            if self.basis is None:
+                return Compliance(self.joint)
+            return LumpedCompliance(self.joint, self.basis, load=self.form == "load")
         if self.kind == "backlash":
             return Backlash(self.joint, source="auto")
         if self.kind == "cyclic":
@@ -94,6 +111,8 @@ class Candidate:
     def regressor(self, robot, ctx: Context) -> tuple[Tensor, str]:
         """The variable the effect follows, one value per pose ``(N,)``, and its axis label (for plots)."""
         eff = self.make()
+        if self.kind == "compliance" and self.form == "torque":
+            return ctx.tau[:, self.joint - 1], f"measured torque at joint {self.joint} [N m]"
         if self.kind == "compliance" and self.basis is not None:
             return eff.regressor(robot, ctx)[:, 0], f"first lumped gravity mode at joint {self.joint} [rad/rad]"
         if self.kind == "compliance":
@@ -115,8 +134,10 @@ class Candidate:
         if self.source is not None:
             out["source"] = self.source
         if self.basis is not None:
-            out["form"] = "lumped (no link masses)"
+            out["form"] = "lumped (no link masses)" + (" + payload torque" if self.form == "load" else "")
             out["modes"] = int(self.basis.shape[1])
+        if self.form == "torque":
+            out["form"] = "measured torques"
         if self.variable is not None:
             out["variable"] = self.variable
             out["form"] = DRIFT_FORMS[self.variable][0]
@@ -132,6 +153,26 @@ def joint_levers(robot, q: Tensor) -> Tensor:
     from torchcal.effects.kernel import joint_metric
 
     return joint_metric(robot, q)
+
+
+def _compliance(robot, ctx: Context, j: int, tau: Tensor | None, span: Tensor | None):
+    """Joint ``j``'s compliance candidate, or None with the reason, and the geometry's span (computed once)."""
+    if ctx.tau is not None:
+        # measured torques: the load the joint holds, whatever carries it (no masses needed)
+        if _varies(ctx.tau[:, j - 1]):
+            return Candidate("compliance", j, form="torque"), None, span
+        return None, f"the measured torque tau{j} does not vary over the poses", span
+    if tau is None:
+        # no masses: the lumped form, in the directions these poses identify beyond the geometry
+        span = geometric_span(robot, ctx.q) if span is None else span
+        basis = lumped_basis(robot, ctx.q, j, span=span)
+        if basis.shape[1] == 0:
+            return None, f"no lumped gravity mode of joint {j} shows beyond the geometry on these poses", span
+        load = "load" if ctx.payload is not None and _varies(ctx.payload) else None
+        return Candidate("compliance", j, basis=basis, form=load), None, span
+    if not _varies(tau[:, j - 1]):
+        return None, f"the gravity torque at joint {j} does not vary over the poses", span
+    return Candidate("compliance", j), None, span
 
 
 def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
@@ -160,18 +201,11 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
                     f"joint {j} moves the probe by {float(levers[j - 1]) * 1e3:.2g} mm/{per} (< {MIN_LEVER * 1e3:g})",
                 )
             continue
-        if tau is None:
-            # no masses: the lumped form, in the directions these poses identify beyond the geometry
-            span = geometric_span(robot, ctx.q) if span is None else span
-            basis = lumped_basis(robot, ctx.q, j, span=span)
-            if basis.shape[1] == 0:
-                skip(f"compliance:{j}", f"no lumped gravity mode of joint {j} shows beyond the geometry on these poses")
-            else:
-                out.append(Candidate("compliance", j, basis=basis))
-        elif not _varies(tau[:, j - 1]):
-            skip(f"compliance:{j}", f"the gravity torque at joint {j} does not vary over the poses")
+        cand, reason, span = _compliance(robot, ctx, j, tau, span)
+        if cand is not None:
+            out.append(cand)
         else:
-            out.append(Candidate("compliance", j))
+            skip(f"compliance:{j}", reason)
         if ctx.direction is None and tau is None:
             skip(f"backlash:{j}", "static poses and no link masses: the loaded flank is unknown")
         elif ctx.direction is None and not _varies(tau[:, j - 1]):

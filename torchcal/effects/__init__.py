@@ -10,6 +10,7 @@ from torchcal.effects.joint import (
     Coupling,
     Cyclic,
     LumpedCompliance,
+    TorqueCompliance,
     Transmission,
     joint_function_check,
 )
@@ -37,4 +38,4 @@ __all__ = [
     "motion_direction",
 ]
 __all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction", "joint_function_check"]
-__all__ += ["MAX_JOINT_ERROR", "Coupling", "LumpedCompliance"]
+__all__ += ["MAX_JOINT_ERROR", "Coupling", "LumpedCompliance", "TorqueCompliance"]

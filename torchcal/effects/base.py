@@ -29,6 +29,9 @@ class Context:
         direction: sign of each joint's motion ``(N, dof)`` in {-1, 0, +1} (trajectories), or None.
         station: which instrument placement measured each row ``(N,)`` int64, or None (station 0 everywhere).
         probe: which probe each row measured ``(N,)`` int64, or None (probe 0 everywhere).
+        payload: the mass at the flange ``(N,)`` [kg], or None (no load column: 0 kg).
+        payload_com: the payload's centre of mass in the flange frame ``(N, 3)`` [m], or None (at the probe).
+        tau: the measured joint torques ``(N, dof)`` [N m, N for a prismatic joint], or None.
     """
 
     q: Tensor
@@ -37,6 +40,9 @@ class Context:
     direction: Tensor | None = None
     station: Tensor | None = None
     probe: Tensor | None = None
+    payload: Tensor | None = None
+    payload_com: Tensor | None = None
+    tau: Tensor | None = None
 
     @classmethod
     def from_measurements(cls, m, *, trajectory: bool | None = None) -> Context:
@@ -49,6 +55,9 @@ class Context:
             direction=motion_direction(m.q) if traj else None,
             station=getattr(m, "station", None),
             probe=getattr(m, "probe", None),
+            payload=getattr(m, "payload", None),
+            payload_com=getattr(m, "payload_com", None),
+            tau=getattr(m, "tau", None),
         )
 
     def subset(self, idx) -> Context:
@@ -62,6 +71,9 @@ class Context:
             direction=pick(self.direction),
             station=pick(self.station),
             probe=pick(self.probe),
+            payload=pick(self.payload),
+            payload_com=pick(self.payload_com),
+            tau=pick(self.tau),
         )
 
 

@@ -124,7 +124,10 @@ class Compliance(Effect):
 
     def regressor(self, robot, ctx: Context) -> Tensor:
         """The gravity torque at this joint ``(N,)`` [N m]: the term multiplied by ``k`` (held constant in
-        derivatives: :meth:`~torchcal.robot.model.RobotModel.static_torques`)."""
+        derivatives: :meth:`~torchcal.robot.model.RobotModel.static_torques`). Rows that carry their payload
+        (``ctx.payload``, the file's ``payload`` column) are loaded with it; else with ``payload``."""
+        if ctx.payload is not None:
+            return robot.static_torques(ctx.q, payload=ctx.payload, payload_com=ctx.payload_com)[:, self.j]
         return robot.static_torques(ctx.q, payload=self.payload)[:, self.j]
 
     def forward(self, robot, ctx: Context) -> Tensor:
@@ -172,8 +175,12 @@ class LumpedCompliance(Effect):
 
     kind = "compliance"
 
-    def __init__(self, joint: int, basis, mode=None):
+    def __init__(self, joint: int, basis, mode=None, load: bool = False, k: float = 0.0):
         super().__init__(joint)
+        # with rows at several loads the joint's compliance shows in the payload's own torque, which the
+        # description's kinematics give without link masses: dq_j += k * tau_payload,j (k [rad/(N m)])
+        self.load = bool(load)
+        self.k = nn.Parameter(torch.tensor(float(k), dtype=torch.float64)) if self.load else None
         B = torch.as_tensor(basis, dtype=torch.float64)
         if B.ndim != 2 or B.shape[0] % 4 or B.shape[0] // 4 < joint:
             from torchcal.errors import OptionError
@@ -200,7 +207,17 @@ class LumpedCompliance(Effect):
 
     def forward(self, robot, ctx: Context) -> Tensor:
         # the shapes are constants of the estimators' forward-mode Jacobians: torchcal._dual keeps the product in C++
-        return self._joint_delta(ctx, _dual.mul(self.regressor(robot, ctx), self.mode).sum(-1))
+        dq = _dual.mul(self.regressor(robot, ctx), self.mode).sum(-1)
+        if self.k is not None:
+            dq = dq + _dual.mul(self.k, self.payload_regressor(robot, ctx))
+        return self._joint_delta(ctx, dq)
+
+    def payload_regressor(self, robot, ctx: Context) -> Tensor:
+        """The payload's own torque at this joint ``(N,)`` [N m] (zero where the rows carry no payload)."""
+        if ctx.payload is None:
+            return torch.zeros_like(ctx.q[:, self.j])
+        with torch.no_grad():
+            return robot.payload_torques(ctx.q, ctx.payload, ctx.payload_com)[:, self.j]
 
     def deflection(self, robot, q: Tensor) -> Tensor:
         """The twist ``dq_j (N,)`` [rad] at the joints ``q`` ``(N, dof)``."""
@@ -211,15 +228,61 @@ class LumpedCompliance(Effect):
         return {"mode": self.joint_unit(robot)}
 
     def config(self) -> dict:
-        return {"joint": self.joint, "basis": self.basis.tolist()}
+        out = {"joint": self.joint, "basis": self.basis.tolist()}
+        return {**out, "load": True} if self.load else out
 
     def describe(self) -> dict:
+        load = {} if self.k is None else {"k_rad_per_Nm": float(self.k.detach())}
         return {
-            "form": LUMPED_FORM,
+            **load,
+            "form": LUMPED_FORM + (" + payload torque" if self.load else ""),
             "mode_rad": self.mode.detach().tolist(),
             # beta = B m: the mass moments over the stiffness [kg rad/(N m), kg m rad/(N m)], per link (m, mc_x..z)
             "moments_over_stiffness": (self.basis @ self.mode.detach()).reshape(-1, 4).tolist(),
         }
+
+
+#: the form a compliance driven by the measured torques reports (``report.json`` ``params["form"]``)
+TORQUE_FORM = "measured torques"
+
+
+class TorqueCompliance(Effect):
+    """Joint compliance read from the joint torques the controller measured: ``dq_j = -k tau_j`` [rad] with
+    ``tau_j`` the row's ``tau<j>`` column [N m], the torque the drive applies to hold the arm (the weight's moment
+    with the opposite sign, :mod:`torchcal.data.load`), and ``k > 0`` the joint's compliance [rad/(N m)].
+
+    It needs neither link masses nor the payload: the torque the drive holds is the load, whatever carries it, so a
+    campaign at one load identifies ``k`` from the arm's own weight and the model carries it to any other load.
+
+    Args:
+        joint: 1-based joint.
+        k: compliance [rad/(N m)] (or [m/N] for a prismatic joint).
+    """
+
+    kind = "compliance"
+
+    def __init__(self, joint: int, k: float = 0.0):
+        super().__init__(joint)
+        self.k = nn.Parameter(torch.tensor(float(k), dtype=torch.float64))
+
+    def regressor(self, robot, ctx: Context) -> Tensor:
+        """The measured torque at this joint ``(N,)`` [N m]: the term multiplied by ``k``."""
+        if ctx.tau is None:
+            from torchcal.errors import OptionError
+
+            raise OptionError(
+                f"the compliance of joint {self.joint} is driven by the measured torques: the rows need the "
+                f"columns tau1..tauN (N m)"
+            )
+        return ctx.tau[:, self.j]
+
+    def forward(self, robot, ctx: Context) -> Tensor:
+        # the drive's torque holds the weight's moment, so the twist runs against it: dq = -k tau with k > 0 the
+        # same compliance as :class:`Compliance`'s (whose torque is the weight's moment)
+        return self._joint_delta(ctx, _dual.mul(-self.k, self.regressor(robot, ctx)))
+
+    def describe(self) -> dict:
+        return {"k_rad_per_Nm": float(self.k.detach()), "form": TORQUE_FORM}
 
 
 def geometric_span(robot, q: Tensor) -> Tensor:
@@ -509,6 +572,8 @@ def joint_function_size(effect: Effect, robot, q: Tensor, reach: tuple[float, fl
             return abs(float(effect.k)) * float(effect.regressor(robot, Context(q=q)).abs().max())
         if isinstance(effect, LumpedCompliance):
             return float(effect.deflection(robot, q).abs().max())
+        if isinstance(effect, TorqueCompliance):
+            return 0.0  # the rows' torques are not known here: its size is judged by its fit
         if isinstance(effect, Coupling):  # linear in the source's reading: half its swing over the source's range
             lo, hi = joint_range(robot, effect.source)
             return abs(float(effect.c)) * (hi - lo) / 2
@@ -531,7 +596,9 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         so that the poses do not determine them and the function explodes beyond them; or it exceeds the bound
         somewhere on its joint's range.
     """
-    if not isinstance(effect, (Cyclic, Transmission, Compliance, LumpedCompliance, Backlash, Coupling)):
+    if not isinstance(
+        effect, (Cyclic, Transmission, Compliance, LumpedCompliance, TorqueCompliance, Backlash, Coupling)
+    ):
         return None
     qj = q[:, effect.j]
     seen = f"{float(qj.min()):.3f} to {float(qj.max()):.3f}"
@@ -546,6 +613,9 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
                 f"{peak:.3g} {unit}): the range of joint {effect.joint} seen ({seen} {unit}) does not determine them, "
                 "and beyond it the function would explode"
             )
+    stiffness = _load_stiffness_check(effect)
+    if stiffness is not None:
+        return stiffness
     if robot is None or max_size is None:
         return None
     reach = joint_range(robot, effect.joint)
@@ -567,6 +637,29 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         f"its size {size * 1e3:.3g} {small} {where} exceeds the physical bound of {bound * 1e3:.3g} {small}"
         f"{scaled} (max_joint_error): a joint error that large is not a transmission error, and it is only the sum "
         "of terms the joint range does not determine"
+    )
+
+
+#: the largest compliance [rad/(N m)] a load-driven form may take: 1e-4 is a twist of 0.1 rad under 1 kN m, ten
+#: times softer than the softest harmonic drive of a collaborative arm (about 1e-5); the load forms carry their
+#: compliance to loads never measured, so a value beyond it is a confounded fit, not a joint
+MAX_COMPLIANCE = 1e-4
+
+
+def _load_stiffness_check(effect: Effect) -> str | None:
+    """A load-driven compliance (measured torques, the lumped form's payload term) is positive and below
+    :data:`MAX_COMPLIANCE`; else the reason."""
+    if isinstance(effect, TorqueCompliance):
+        k = float(effect.k.detach())
+    elif isinstance(effect, LumpedCompliance) and effect.k is not None:
+        k = float(effect.k.detach())
+    else:
+        return None
+    if 0.0 < k <= MAX_COMPLIANCE:
+        return None
+    return (
+        f"its compliance k = {k:.3g} rad/(N m) is not physical (a joint twists with its load: 0 < k <= "
+        f"{MAX_COMPLIANCE:g} rad/(N m)); the fit is confounded with another effect"
     )
 
 

@@ -13,7 +13,15 @@ from torchcal.effects.base import Acts, Effect, read_renamed
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
 from torchcal.effects.grouped import GroupedCorrection
-from torchcal.effects.joint import Backlash, Compliance, Coupling, Cyclic, LumpedCompliance, Transmission
+from torchcal.effects.joint import (
+    Backlash,
+    Compliance,
+    Coupling,
+    Cyclic,
+    LumpedCompliance,
+    TorqueCompliance,
+    Transmission,
+)
 from torchcal.effects.kernel import KernelCorrection
 from torchcal.effects.learned import CorrectionNet, LearnedEffect
 from torchcal.effects.region import RegionGate
@@ -41,7 +49,8 @@ class EffectKind:
 
 KIND_TABLE: tuple[EffectKind, ...] = (
     # the mass-based form where the robot description has masses, the lumped one (no link masses) elsewhere
-    EffectKind("compliance", (Compliance, LumpedCompliance), (Acts.JOINT,), True),
+    # and the one read from the measured joint torques (tau1..tauN columns)
+    EffectKind("compliance", (Compliance, LumpedCompliance, TorqueCompliance), (Acts.JOINT,), True),
     EffectKind("backlash", (Backlash,), (Acts.JOINT,), True),
     EffectKind("cyclic", (Cyclic,), (Acts.JOINT,), True),
     EffectKind("drift", (Drift,), (Acts.INSTRUMENT, Acts.CARTESIAN), True),

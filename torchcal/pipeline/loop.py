@@ -53,7 +53,7 @@ from torchcal.diagnose.tracing import (
 )
 from torchcal.effects import Context, MeasurementModel, joint_function_check
 from torchcal.effects.drift import Drift
-from torchcal.effects.joint import LUMPED_FORM, LumpedCompliance, RegionForm
+from torchcal.effects.joint import LUMPED_FORM, MAX_COMPLIANCE, LumpedCompliance, RegionForm, TorqueCompliance
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.pipeline.holdout import GUARD_MIN_POSES
@@ -564,6 +564,7 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
         params = effect_form_params(model, index, cand, params)
     if isinstance(eff, LumpedCompliance):  # which compliance this is, and what its modes stand for
         params = {**params, "form": LUMPED_FORM, "moments_over_stiffness": eff.describe()["moments_over_stiffness"]}
+    params = _load_form(eff, params)
     work.effects.append(
         EffectRecord(
             cand.kind,
@@ -582,3 +583,13 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
     return True
+
+
+def _load_form(eff, params: dict) -> dict:
+    """A load-driven compliance's form and the unit of its compliance ``k`` [rad/(N m)] in its report entry."""
+    if not (isinstance(eff, TorqueCompliance) or getattr(eff, "load", False)):
+        return params
+    out = {**params, "form": eff.describe()["form"]}
+    if isinstance(out.get("k"), dict):
+        out["k"] = {**out["k"], "unit": "rad/(N m)", "bound": f"0 < k <= {MAX_COMPLIANCE:g} rad/(N m)"}
+    return out

@@ -42,6 +42,7 @@ from torchcal.pipeline import CalibrationRun
 from torchcal.robot import resolve_robot_spec
 from torchcal.robot.load import MAX_DESCRIPTION_BYTES
 from torchcal.stats import rmse
+from torchcal.use.conditions import training_load
 
 F64 = torch.float64
 Tensor = torch.Tensor
@@ -341,6 +342,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "method": run.options.method,
         "region": _region_config(run.model),
         "tool_axis": _tool_axis_config(run),
+        "load": training_load(run.data),  # the load conditions the run was fitted in (torchcal.use.conditions)
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
         **({"standalone": alone} if alone is not None else {}),

@@ -921,13 +921,14 @@ class RobotModel(nn.Module):
         return p, J.contiguous()
 
     # ---------------------------------------------------------------- gravity
-    def gravity_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
+    def gravity_torques(self, q: Tensor, payload: float | Tensor = 0.0, payload_com: Tensor | None = None) -> Tensor:
         """Static gravity torque at each joint reading ``(..., dof)`` [N m], robot base z pointing up.
 
         ``tau_j = z_j . sum_{k >= j} (c_k - o_j) x (m_k g)`` with ``z_j, o_j`` the axis and a point
-        of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] sits at the probe. A prismatic
-        joint's generalised force is ``z_j . sum_{k >= j} m_k g`` [N]. With a readings map the torques are the
-        generalised forces of the readings, ``A^T tau`` (virtual work: what the drive of each reading holds).
+        of joint j and ``c_k`` the centre of mass of link k; ``payload`` [kg] (a number, or one per pose ``(...,)``)
+        sits at the probe, or at ``payload_com`` ``(..., 3)`` [m, flange frame] (:meth:`payload_torques`). A
+        prismatic joint's generalised force is ``z_j . sum_{k >= j} m_k g`` [N]. With a readings map the torques are
+        the generalised forces of the readings, ``A^T tau`` (virtual work: what the drive of each reading holds).
         """
         r = self._check_q(q)
         q = self.model_joints(r)
@@ -939,10 +940,6 @@ class RobotModel(nn.Module):
         # sum_{k >= j} (c_k - o_j) x f_k = sum_{k >= j} c_k x f_k - o_j x sum_{k >= j} f_k with f_k = m_k g:
         # suffix sums over the links, linear in the joints instead of a (dof x dof) table per pose
         w = -GRAVITY * self.masses  # (dof,) z-components of the link weights
-        if payload:
-            p = _rotate(Rt_flange, self.t_flange_probe()) + t_flange
-            com = torch.cat([com, p.unsqueeze(0)])
-            w = torch.cat([w, w.new_tensor([-GRAVITY * payload])])
         # c x (0, 0, w) = w (c_y, -c_x, 0)
         m_xy = torch.stack([com[:, 1], -com[:, 0]], dim=1) * w[:, None, None]  # (links, 2, M)
         suffix = m_xy.flip(0).cumsum(0).flip(0)[: self.n_joints]  # (dof, 2, M)
@@ -951,36 +948,69 @@ class RobotModel(nn.Module):
         tau = (total_xy * axes_w[:, :2]).sum(1)  # (dof, M)
         if "prismatic" in self.geometry.joint_types:  # the weights beyond the joint along its axis (z-component)
             tau = torch.where(self.geometry.prismatic[:, None], axes_w[:, 2] * W[:, None], tau)
+        if isinstance(payload, Tensor) or payload:
+            tau = tau + self._payload_tau(origins_w, axes_w, Rt_flange, t_flange, payload, payload_com)
         if not self.readings.is_identity:
             tau = self.readings.matrix().T @ tau  # (readings, M)
         return tau.T.reshape(*r.shape[:-1], self.dof)
 
-    def static_torques(self, q: Tensor, payload: float = 0.0) -> Tensor:
+    def payload_torques(self, q: Tensor, payload: float | Tensor = 1.0, payload_com: Tensor | None = None) -> Tensor:
+        """The static torque ``(..., dof)`` [N m, N] of the payload alone: ``payload`` [kg] (a number or one per pose
+        ``(...,)``) at ``payload_com`` ``(..., 3)`` [m, flange frame], or at the probe where it is None. It needs no
+        link masses: a robot description without them (a DH table) still knows the payload's lever at each joint."""
+        r = self._check_q(q)
+        Rts, ts, Rt_flange, t_flange = self._chain_t(self.model_joints(r), self.geometry.origins(), frames=True)
+        axes_w = torch.stack([_rotate(R, a) for R, a in zip(Rts, self.geometry.axes)])
+        tau = self._payload_tau(torch.stack(ts), axes_w, Rt_flange, t_flange, payload, payload_com)
+        if not self.readings.is_identity:
+            tau = self.readings.matrix().T @ tau
+        return tau.T.reshape(*r.shape[:-1], self.dof)
+
+    def _payload_tau(self, origins_w, axes_w, Rt_flange, t_flange, payload, payload_com) -> Tensor:
+        """The payload's torque per joint ``(dof, M)`` in the chain's pose-last frames."""
+        m = t_flange.shape[-1]
+        mass = torch.as_tensor(payload, dtype=t_flange.dtype, device=t_flange.device).reshape(-1).expand(m)
+        if payload_com is None:
+            point = _rotate(Rt_flange, self.t_flange_probe()) + t_flange  # (3, M)
+        else:
+            point = _rotate_rows(Rt_flange, payload_com.reshape(m, 3).to(t_flange.dtype)) + t_flange
+        w = -GRAVITY * mass  # (M,)
+        # (c - o_j) x (0, 0, w) = w ((c - o_j)_y, -(c - o_j)_x, 0)
+        lever = point[None] - origins_w  # (dof, 3, M)
+        tau = (torch.stack([lever[:, 1], -lever[:, 0]], dim=1) * w * axes_w[:, :2]).sum(1)  # (dof, M)
+        if "prismatic" in self.geometry.joint_types:
+            tau = torch.where(self.geometry.prismatic[:, None], axes_w[:, 2] * w, tau)
+        return tau
+
+    def static_torques(self, q: Tensor, payload: float | Tensor = 0.0, payload_com: Tensor | None = None) -> Tensor:
         """:meth:`gravity_torques` without gradient, as the joint effects take them for their regressor, the last
         results reused ``(..., dof)`` [N m].
 
         A least-squares fit evaluates its effects at the same joint angles dozens of times, and its Jacobian twice
         at the same parameter values; the torque (a pass over the chain of every pose) is then computed once for
-        each joint-angle tensor (the same object, unchanged in place) and each geometry (and lever arm, with a
-        payload) by value, so the results are those of computing it every time.
+        each joint-angle tensor (the same object, unchanged in place; with a payload per pose, the same payload
+        tensors too) and each geometry (and lever arm, with a payload) by value, so the results are those of
+        computing it every time.
         """
         geo = self.geometry.delta
         if not self.readings.is_identity:  # the map moves the torques too: one key for both
             geo = torch.cat([geo.reshape(-1), self.readings.delta.reshape(-1)])
-        tool = self.tool.delta if payload else None
-        kq = None if q.is_meta or q.requires_grad else version_key(q)
+        rows = isinstance(payload, Tensor)
+        tool = self.tool.delta if rows or payload else None
+        kq = None if q.is_meta or q.requires_grad else version_key(q, *((payload, payload_com) if rows else ()))
+        kp = "rows" if rows else float(payload)  # a payload per row is keyed by its tensors' versions (in kq)
         if kq is None or not plain(geo) or (tool is not None and not plain(tool)):
             with torch.no_grad():
-                return self.gravity_torques(q, payload)
+                return self.gravity_torques(q, payload, payload_com)
         cache = self.__dict__.setdefault("_torque_cache", [])
-        for (k, kp, kg, kt), tau in cache:
-            if same_version(k, kq) and kp == payload and torch.equal(kg, geo) and (kt is None or torch.equal(kt, tool)):
+        for (k, kp0, kg, kt), tau in cache:
+            if same_version(k, kq) and kp0 == kp and torch.equal(kg, geo) and (kt is None or torch.equal(kt, tool)):
                 return tau
         with torch.no_grad():
-            tau = self.gravity_torques(q, payload)
+            tau = self.gravity_torques(q, payload, payload_com)
         if not plain(tau):  # a transform's tensor reached it through the robot's other values: not a plain result
             return tau
-        key = (kq, float(payload), geo.detach().clone(), None if tool is None else tool.detach().clone())
+        key = (kq, kp, geo.detach().clone(), None if tool is None else tool.detach().clone())
         cache.insert(0, (key, tau))
         del cache[_TORQUE_CACHE:]
         return tau

@@ -46,6 +46,7 @@ from torchcal.errors import OptionError
 from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
+from torchcal.sim.load import check_load_config, has_load, load_columns, measured_torques, row_payloads, true_masses
 from torchcal.sim.poses import PATHS, Scene, SightRule, fixed_axis_poses, path, random_poses
 
 Tensor = torch.Tensor
@@ -62,6 +63,7 @@ DEFAULT_SIZES = {
 }
 EFFECT_NAMES = tuple(DEFAULT_SIZES)
 _UNITS = {"m": 1.0, "mm": 1e3, "um": 1e6}  # divisors to metres (exact for decimal input)
+MASS_STREAM = 45_000_001  # offset of the seed of the true masses' generator (torchcal.sim.load.true_masses)
 
 
 @dataclass
@@ -152,6 +154,13 @@ class SimConfig:
     stations: int = 1  # instrument placements, each measuring an equal share of the (static) poses
     probes: int = 1  # reflectors on a nest at the flange; every pose is measured by each of them (one row each)
     nest_radius: float = 0.05  # m: the probes sit on a circle of this radius about the nominal lever arm
+    # loads (torchcal.sim.load): the training rows' payload at the probe [kg], the test rows' (None: the same), or
+    # levels both cycle over; measured joint torques (tau1..tauN) from the true static model plus noise [N m]
+    payload: float = 0.0
+    test_payload: float | None = None
+    payload_levels: tuple[float, ...] | None = None
+    torques: bool = False
+    sigma_torque: float = 0.5
 
     def __post_init__(self):
         if self.poses < 1 or self.test_poses < 0:
@@ -176,6 +185,7 @@ class SimConfig:
             raise OptionError(f"tool_axis_deg needs static poses and a positive angle, got {self.tool_axis_deg}")
         if self.orientation_sigma_deg is not None:
             check_range("orientation_sigma_deg", self.orientation_sigma_deg, 0.0, 5.0, unit="deg")
+        check_load_config(self)
 
 
 @dataclass
@@ -213,10 +223,10 @@ def _place_tracker(cfg: SimConfig, g: torch.Generator) -> Tensor:
     return tf.invert(T_base_tracker)
 
 
-def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator) -> Effect:
+def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator, load: bool = False) -> Effect:
     if spec.kind == "compliance":
         if not robot.has_masses:
-            return _lumped_truth(spec.joint, robot, g)
+            return _lumped_truth(spec.joint, robot, g, load)
         return Compliance(spec.joint, k=1e-6)
     if spec.kind == "backlash":
         return Backlash(spec.joint, b=1e-4, source="auto")
@@ -234,14 +244,16 @@ def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator) -> Eff
     return LearnedEffect(net)
 
 
-def _lumped_truth(joint: int, robot: RobotModel, g: torch.Generator) -> LumpedCompliance:
+def _lumped_truth(joint: int, robot: RobotModel, g: torch.Generator, load: bool = False) -> LumpedCompliance:
     """A compliance of a robot without masses: seeded link masses (1 to 5 kg) and centres of mass (0.1 m per axis
     in each link's frame) over a stiffness of 1e6 N m/rad, as the lumped form's full set of moments (identity
-    basis; the simulation scales it to the requested size)."""
+    basis; the simulation scales it to the requested size); with ``load`` the rows' payload twists the joint through
+    the same stiffness (scaled with the moments)."""
     m = 1.0 + 4.0 * torch.rand(robot.dof, generator=g, dtype=F64)
     c = torch.randn(robot.dof, 3, generator=g, dtype=F64) * 0.1
     moments = torch.cat([m[:, None], m[:, None] * c], dim=1).reshape(-1)
-    return LumpedCompliance(joint, torch.eye(4 * robot.dof, dtype=F64), mode=moments * 1e-6)
+    basis = torch.eye(4 * robot.dof, dtype=F64)
+    return LumpedCompliance(joint, basis, mode=moments * 1e-6, load=load, k=1e-6 if load else 0.0)
 
 
 def _rms_displacement(model: MeasurementModel, effect: Effect, ctx: Context) -> Tensor:
@@ -385,7 +397,7 @@ def _effects(
     model = MeasurementModel(truth_robot, [])
     effect_truth = []
     for spec in cfg.effects:
-        eff = _make_effect(spec, truth_robot, g)
+        eff = _make_effect(spec, truth_robot, g, has_load(cfg))
         if isinstance(eff, Drift):
             with torch.no_grad():
                 eff.reference.fill_(float((t if eff.variable == "t" else temperature)[0]))
@@ -428,12 +440,19 @@ def simulate(cfg: SimConfig) -> Campaign:
     ]
     nominal, truth_robot, T_tracker_base, tracker_in_base, lever_nominal = _true_robot(cfg, g, joints)
 
+    # torques need the truth's masses: drawn from a stream of their own, so that the poses and the noise are those
+    # of the same campaign without torques
+    masses = (
+        true_masses(truth_robot, torch.Generator().manual_seed(int(cfg.seed) + MASS_STREAM)) if cfg.torques else None
+    )
     ctx, n_train = _poses_and_times(cfg, nominal, tracker_in_base, lever_nominal, g, truth_robot)
     q_true, t, temperature = ctx.q, ctx.t, ctx.temperature
+    # effects are sized on the arm's own weight: their truth (a compliance's k) does not depend on the test load
     model, effect_truth = _effects(cfg, truth_robot, ctx, g)
+    payload = row_payloads(cfg, n_train, len(q_true)) if has_load(cfg) else None
 
     with torch.no_grad():
-        p_true = model(ctx)
+        p_true = model(dataclasses.replace(ctx, payload=payload))
     sigma_q = math.radians(cfg.sigma_joint_deg)
     part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
     n_test = n_train + cfg.test_poses if cfg.tool_axis_deg is not None else None
@@ -449,6 +468,9 @@ def simulate(cfg: SimConfig) -> Campaign:
         if turned is not None:
             turned = _with_orientation(turned, r, sigma_r, slice(n_test, None))
 
+    if has_load(cfg):  # the torques' noise is drawn last: the campaign without torques is the same
+        tau = measured_torques(truth_robot, q_true, payload, cfg.sigma_torque, g) if cfg.torques else None
+        train, test, turned = _with_load(train, test, turned, payload, tau, n_train, n_test)
     truth = {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
@@ -489,7 +511,32 @@ def simulate(cfg: SimConfig) -> Campaign:
     if turned is not None:
         truth["files"]["turned"] = {"n": turned.n}
         truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)
+    if has_load(cfg):
+        truth["load"] = _load_truth(cfg, payload, n_train, masses)
     return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _with_load(train, test, turned, payload, tau, n_train: int, n_test: int | None):
+    """The files with their rows' load columns (payload, and the measured torques where simulated)."""
+
+    def put(m: Measurements, rows: slice) -> Measurements:
+        return dataclasses.replace(m, meta=dict(m.meta), extra={**m.extra, **load_columns(payload, tau, rows)})
+
+    turned = None if turned is None else put(turned, slice(n_test, None))
+    return put(train, slice(0, n_train)), put(test, slice(n_train, n_test)), turned
+
+
+def _load_truth(cfg: SimConfig, payload: Tensor, n_train: int, masses: dict | None) -> dict:
+    """truth.json's ``load``: the payloads of the files [kg], where the payload sits, the torques' noise."""
+    return {
+        "payload_train_kg": sorted({float(v) for v in payload[:n_train]}),
+        "payload_test_kg": sorted({float(v) for v in payload[n_train:]}),
+        "payload_at": "the probe (t_flange_probe)",
+        "torques": {"sigma_Nm": cfg.sigma_torque, "sign": "drive torque holding the arm: -gravity torque"}
+        if cfg.torques
+        else None,
+        "masses": masses,
+    }
 
 
 def _geometry_truth(geo) -> dict:

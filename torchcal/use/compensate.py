@@ -47,6 +47,7 @@ the tracker) move the instrument, not the robot, and are not compensated.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import math
 from collections.abc import Callable, Sequence
@@ -129,11 +130,11 @@ def _as_model(model) -> MeasurementModel:
 
 def _context(model: MeasurementModel, q: Tensor, context: dict | None) -> Context:
     ctx = dict(context or {})
-    unknown = set(ctx) - {"t", "temperature", "direction"}
+    unknown = set(ctx) - {"t", "temperature", "direction", "payload", "tau"}
     if unknown:
-        raise OptionError(f"context keys {sorted(unknown)} unknown; valid: t, temperature, direction")
+        raise OptionError(f"context keys {sorted(unknown)} unknown; valid: t, temperature, direction, payload, tau")
     n = q.shape[0]
-    for key in ("t", "temperature"):
+    for key in ("t", "temperature", "payload"):
         v = ctx.get(key)
         if v is not None and (not isinstance(v, Tensor) or v.shape != (n,)):
             raise ShapeError(f"context['{key}'] must be a tensor of shape ({n},), got {getattr(v, 'shape', v)}")
@@ -144,7 +145,16 @@ def _context(model: MeasurementModel, q: Tensor, context: dict | None) -> Contex
                 f"the model has a {e.label()} in '{var}': give the targets a '{var}' column "
                 f"(context['{var}']) so that compensation knows its value per row"
             )
-    return Context(q=q, t=ctx.get("t"), temperature=ctx.get("temperature"), direction=ctx.get("direction"))
+    return Context(
+        q=q,
+        t=ctx.get("t"),
+        temperature=ctx.get("temperature"),
+        direction=ctx.get("direction"),
+        payload=ctx.get("payload"),  # the program's payload per row [kg]: the compliance carries it
+        # the torques the program's poses hold [N m]: a command differs from its pose by a fraction of a mrad, whose
+        # change of the static torque is far below a controller's torque noise
+        tau=ctx.get("tau"),
+    )
 
 
 def probe_in_base(model: MeasurementModel, ctx: Context) -> Tensor:
@@ -169,13 +179,17 @@ def _residual_and_jacobian(
         if 0 < n * m <= ONE_PASS_ROWS:
             idx = torch.arange(n, device=ctx.q.device).repeat(m)
             q = ctx.q.detach()[idx].requires_grad_(True)
-            t, temperature, direction = (None if v is None else v[idx] for v in (ctx.t, ctx.temperature, ctx.direction))
-            r = f(Context(q=q, t=t, temperature=temperature, direction=direction), idx)  # (m n, m)
+            t, temperature, direction, payload, tau = (
+                None if v is None else v[idx] for v in (ctx.t, ctx.temperature, ctx.direction, ctx.payload, ctx.tau)
+            )
+            copies = Context(q=q, t=t, temperature=temperature, direction=direction, payload=payload, tau=tau)
+            r = f(copies, idx)  # (m n, m)
             own = r.reshape(m, n, m).diagonal(dim1=0, dim2=2)  # (n, m): copy k's component k
             (g,) = torch.autograd.grad(own.sum(), q)
             return r[:n].detach(), -g.reshape(m, n, -1).transpose(0, 1)
         q = ctx.q.detach().requires_grad_(True)
-        r = f(Context(q=q, t=ctx.t, temperature=ctx.temperature, direction=ctx.direction), None)
+        whole = dataclasses.replace(ctx, q=q)
+        r = f(whole, None)
         rows = [-torch.autograd.grad(r[:, k].sum(), q, retain_graph=k < m - 1)[0] for k in range(m)]
     return r.detach(), torch.stack(rows, dim=-2)
 
@@ -440,8 +454,9 @@ def compensate(
         q_seed: start joints ``(N, dof)`` [rad] (the program's nominal joints); None: :func:`nominal_ik`
             on the model's geometry without effects.
         frame: ``"instrument"`` (tracker frame, the default) or ``"base"``.
-        context: per-row ``t`` ``(N,)`` [s], ``temperature`` ``(N,)`` [degC], ``direction`` ``(N, dof)``
-            for effects that read them (module docstring).
+        context: per-row ``t`` ``(N,)`` [s], ``temperature`` ``(N,)`` [degC], ``payload`` ``(N,)`` [kg],
+            ``tau`` ``(N, dof)`` [N m] (the torques the program's poses hold), ``direction`` ``(N, dof)`` for effects
+            that read them (module docstring).
         orientations: desired probe orientations ``R_frame_probe (N, 3, 3)`` in ``frame`` (a 6-D solve; the model's
             robot must carry the probe's orientation, :meth:`~torchcal.robot.model.RobotModel.enable_orientation`),
             or None (positions only: the tool is free to turn).
