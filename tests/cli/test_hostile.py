@@ -120,6 +120,7 @@ def test_an_unmarked_run_of_an_earlier_torchcal_is_replaced_but_not_with_foreign
     legacy = tmp_path / "legacy"
     shutil.copytree(run_dir, legacy)
     (legacy / _outdir.MARKER).unlink()
+    (legacy / "holdout.pt").unlink()  # an earlier torchcal wrote no held-out rows
     assert _outdir.is_marked(legacy)  # only its own files and model.json's format: an earlier run
     (legacy / "thesis.txt").write_text("draft")
     assert not _outdir.is_marked(legacy)

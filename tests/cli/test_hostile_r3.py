@@ -519,4 +519,8 @@ def test_compensate_does_not_warn_about_its_own_solutions(run_dir, tmp_path, cap
     if quiet:
         assert err == ""
     else:
-        assert "line 2:" not in err and "line 3: the pose lies 0.3 rad beyond the calibrated region (q2)" in err, err
+        # the middle of every joint's range may turn the tool beyond the cone of the calibration's tool axes: that
+        # flag is right; the region's flag at the edge is not
+        line2 = [line for line in err.splitlines() if "line 2:" in line]
+        assert not any("beyond the calibrated region" in line for line in line2), err
+        assert "line 3: the pose lies 0.3 rad beyond the calibrated region (q2)" in err, err

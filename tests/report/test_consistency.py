@@ -15,7 +15,11 @@ from tests._cli import _golden
 from torchcal.diagnose import named_p
 from torchcal.report.consistency import contradictions
 
-IPA = Path(os.environ.get("TORCHCAL_IPA", "/work/shared/data/real/ur10-ipa"))
+IPA = Path(
+    os.environ.get(
+        "TORCHCAL_IPA_DATA", Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real" / "ur10-ipa"
+    )
+)
 
 
 class _GoldenDirs(dict):
@@ -91,7 +95,7 @@ def test_a_real_series_c_run_tells_one_story(tmp_path, capsys):
     global test, failed by far as every real campaign's, reads as a model that leaves structure, not a mistake."""
     files = sorted((IPA / "Series_C").glob("measurements_*.csv"))
     if not files:
-        pytest.skip(f"the real UR10 data (ipa-robot-accuracy Series_C) is not at {IPA} (set TORCHCAL_IPA)")
+        pytest.skip(f"the real UR10 data (ipa-robot-accuracy Series_C) is not at {IPA} (set TORCHCAL_IPA_DATA)")
     from torchcal.cli import main
 
     data = tmp_path / "c.csv"
