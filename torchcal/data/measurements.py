@@ -1020,20 +1020,25 @@ def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, rob
     i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
     name = layout.joints[j]
     value, lo, hi = q[i, j].item(), lower[j].item(), upper[j].item()
+    # twelve digits and the excess: a reading a few micro-radians past a limit printed to six digits looked
+    # equal to the limit it was refused for
+    excess, side = (lo - value, "below") if value < lo else (value - hi, "above")
     if bool(linear[j]):  # a prismatic joint: metres, and the file's unit where it is another
         factor = LENGTH_UNITS[length_unit]
-        shown = f"{value:.6g} m" if factor == 1.0 else f"{value * factor:.6g} {length_unit} ({value:.6g} m)"
-        bounds = f"[{lo:.6g}, {hi:.6g}] m"
+        shown = f"{value:.12g} m" if factor == 1.0 else f"{value * factor:.12g} {length_unit} ({value:.12g} m)"
+        bounds, unit = f"[{lo:.12g}, {hi:.12g}] m", "m"
     elif angle_unit == "deg":
-        shown = f"{math.degrees(value):.6g} deg ({value:.6g} rad)"
-        bounds = f"[{math.degrees(lo):.6g}, {math.degrees(hi):.6g}] deg"
+        shown = f"{math.degrees(value):.12g} deg ({value:.12g} rad)"
+        bounds = f"[{math.degrees(lo):.12g}, {math.degrees(hi):.12g}] deg"
+        unit = f"deg ({excess:.3g} rad)"
+        excess = math.degrees(excess)
     else:
-        shown = f"{value:.6g} rad"
-        bounds = f"[{lo:.6g}, {hi:.6g}] rad"
+        shown = f"{value:.12g} rad"
+        bounds, unit = f"[{lo:.12g}, {hi:.12g}] rad", "rad"
     whose = f"robot '{robot_name}'" if robot_name else "the robot"
     raise MeasurementFileError(
         path,
-        f"{name} = {shown} is outside the limits of {whose}, {bounds}",
+        f"{name} = {shown} is outside the limits of {whose}, {bounds}: {excess:.3g} {unit} {side} it",
         line=lines[i],
         column=name,
     )
