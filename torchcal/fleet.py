@@ -134,11 +134,12 @@ def read_manifest(path: str | os.PathLike) -> list[Line]:
     Raises:
         TorchcalError: naming the file, line and column of the first bad cell.
     """
+    from torchcal._inputs import read_text_bounded
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
-    except (OSError, UnicodeDecodeError) as e:
-        raise TorchcalError(f"{path}: cannot read the manifest: {getattr(e, 'strerror', None) or e}") from None
+    # bounded, and a device or FIFO refused unopened (/dev/zero grew to 19.8 GB); a spreadsheet's "CSV UTF-8"
+    # starts with a byte-order mark, which is dropped
+    text = read_text_bounded(path, "fleet manifest", lambda m: TorchcalError(f"{path}: {m}"))
     reader = csv.reader(io.StringIO(text, newline=""))  # a quoted cell may hold a line break: lines as in the file
     rows = [(reader.line_num, r) for r in reader if r and not r[0].startswith("#")]
     cols = _header(path, rows[0][1] if rows else None)
@@ -188,11 +189,14 @@ def missing_inputs(path: str | os.PathLike, lines: list[Line]) -> list[str]:
     from torchcal.errors import RobotSpecError
     from torchcal.robot.load import resolve_robot_spec
 
+    from torchcal._inputs import check_regular
+
     path, out = Path(path), []
     for ln in lines:
-        if not Path(ln.data).is_file():
-            what = "not a regular file" if Path(ln.data).exists() else "no such file"
-            out.append(str(_bad(path, ln.number, "data", f"{ln.data}: {what}")))
+        try:
+            check_regular(ln.data, "measurement file", lambda m, d=ln.data: TorchcalError(f"{d}: {m}"))
+        except TorchcalError as e:
+            out.append(str(_bad(path, ln.number, "data", str(e))))
         try:
             resolve_robot_spec(ln.robot)
         except RobotSpecError as e:

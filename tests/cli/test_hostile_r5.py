@@ -71,3 +71,64 @@ def test_a_limit_message_in_degrees_shows_the_excess_in_both(tmp_path):
 
 def _unused():  # keep imports used while the module grows
     return torch, refuse
+
+
+# ---------------------------------------------------------------- 2: a device, FIFO or directory as any path argument
+
+MAP = (
+    "read: {delimiter: whitespace, header: false}\nunits: {length: mm, angle: deg}\n"
+    "joints: {input: 1, columns: 1-6}\nposition: {input: 2, columns: 1-3}\n"
+)
+JOINTS = "0 -90 90 0 90 0\n10 -80 85 5 90 0\n20 -70 80 10 85 5\n"
+POINTS = "812.1 -191.5 425.0\n790.3 -50.2 520.7\n700.9 90.4 610.2\n"
+
+
+@pytest.fixture
+def odd(tmp_path):
+    """A FIFO, a character device and a directory, by name, beside good convert inputs (all outside ``tmp_path/w``,
+    where the commands write)."""
+    import os
+
+    base = tmp_path / "odd"
+    base.mkdir()
+    os.mkfifo(base / "fifo.csv")
+    (base / "dir.csv").mkdir()
+    (base / "map.yaml").write_text(MAP)
+    (base / "j.txt").write_text(JOINTS)
+    (base / "p.txt").write_text(POINTS)
+    (tmp_path / "w").mkdir()
+    return (
+        {
+            "fifo": (base / "fifo.csv", "FIFO"),
+            "device": ("/dev/zero", "character device"),
+            "dir": (base / "dir.csv", "directory"),
+        },
+        base,
+        tmp_path / "w",
+    )
+
+
+FILE_ARGS = {
+    "calibrate DATA": lambda b, c, r, w: ["calibrate", b, "--robot", "ur5", "--out", f"{w}/o"],
+    "predict DATA": lambda b, c, r, w: ["predict", str(r), b, "--out", f"{w}/o.csv"],
+    "compensate TARGETS": lambda b, c, r, w: ["compensate", str(r), b, "--out", f"{w}/o.csv"],
+    "station POINTS": lambda b, c, r, w: ["station", str(r), b, "--out", f"{w}/o"],
+    "plan --candidates": lambda b, c, r, w: ["plan", "--run", str(r), "--candidates", b, "--n", "5", "--out", f"{w}/o"],
+    "fleet MANIFEST": lambda b, c, r, w: ["fleet", b, "--out", f"{w}/o"],
+    "convert --map": lambda b, c, r, w: ["convert", "--map", b, f"{c}/j.txt", f"{c}/p.txt", "--out", f"{w}/o.csv"],
+    "convert INPUT": lambda b, c, r, w: ["convert", "--map", f"{c}/map.yaml", f"{c}/j.txt", b, "--out", f"{w}/o.csv"],
+}
+
+
+@pytest.mark.parametrize("what", ["fifo", "device", "dir"])
+@pytest.mark.parametrize("arg", list(FILE_ARGS))
+def test_a_file_argument_that_is_no_file(odd, run_dir, capsys, arg, what):
+    """Issue 47 item 2: ``fleet /dev/zero`` grew to 19.8 GB, ``convert --map /dev/zero`` to 2.2 GB, a FIFO blocked;
+    a directory was 'no such file'. Every file argument is refused at once, saying what the path is."""
+    kinds, base, work = odd
+    bad, kind = kinds[what]
+    before = snapshot(work)
+    assert run_cli(FILE_ARGS[arg](str(bad), base, run_dir, work), seconds=20) == 2
+    err = refused(capsys, str(bad), kind)
+    assert "no such file" not in err.lower(), err
+    assert snapshot(work) == before

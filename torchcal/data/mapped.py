@@ -91,15 +91,16 @@ MAX_MAP_BYTES = 1 << 20
 def _load_yaml(path: str, what: str, max_bytes: int | None = None):
     import yaml
 
-    try:
-        size = os.stat(path).st_size
-        if max_bytes is not None and size > max_bytes:
-            raise MeasurementFileError(
-                path, f"{size} bytes; a {what} is a few lines (at most {max_bytes} bytes): is it the {what}?"
-            )
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        raise MeasurementFileError(path, f"cannot read the {what}: {e}") from None
+    from torchcal._inputs import check_regular, read_text_bounded
+
+    # one check for every input path: a device, FIFO or directory refused unopened (/dev/zero read 2.2 GB)
+    kind = "MAP" if what == "MAP" else "convert input"
+    size = check_regular(path, kind, lambda m: MeasurementFileError(path, m)).st_size
+    if max_bytes is not None and size > max_bytes:
+        raise MeasurementFileError(
+            path, f"{size} bytes; a {what} is a few lines (at most {max_bytes} bytes): is it the {what}?"
+        )
+    text = read_text_bounded(path, kind, lambda m: MeasurementFileError(path, m))
     try:
         return yaml.load(text, Loader=_yaml_loader())  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as e:
@@ -178,8 +179,9 @@ def _role(spec, map_path: str, doc: dict, key: str) -> dict:
 def read_table(path: str, read: dict) -> Table:
     """An input as a :class:`Table`: ``.mat`` through scipy.io, ``.yaml``/``.yml`` as rows of mappings or lists,
     anything else as delimited text."""
-    if not Path(path).is_file():
-        raise MeasurementFileError(path, "no such file (an INPUT of convert --map)")
+    from torchcal._inputs import check_regular
+
+    check_regular(path, "convert input", lambda m: MeasurementFileError(path, m))
     suffix = Path(path).suffix.lower()
     if suffix == ".mat":
         return _mat_table(path, read.get("variable"))
@@ -222,10 +224,9 @@ def _delimiter(first: str, read: dict) -> str:
 
 
 def _text_table(path: str, read: dict) -> Table:
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        raise MeasurementFileError(path, f"cannot read the file as UTF-8 text: {e}") from None
+    from torchcal._inputs import read_text_bounded
+
+    text = read_text_bounded(path, "convert input", lambda m: MeasurementFileError(path, m))
     comment = tuple(read.get("comment", "#%"))
     body = [(k + 1, ln) for k, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith(comment)]
     if not body:
