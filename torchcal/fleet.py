@@ -186,10 +186,9 @@ def missing_inputs(path: str | os.PathLike, lines: list[Line]) -> list[str]:
     the manifest's line and column (a typo in line 57 told at the start, not when line 57's turn comes). Those lines
     are still run and reported refused with their own error while the others go on; what the files hold is each
     task's to check. Not for a cluster at ``--address``: its nodes, not this machine, must see the files."""
+    from torchcal._inputs import check_regular
     from torchcal.errors import RobotSpecError
     from torchcal.robot.load import resolve_robot_spec
-
-    from torchcal._inputs import check_regular
 
     path, out = Path(path), []
     for ln in lines:
