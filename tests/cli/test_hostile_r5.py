@@ -132,3 +132,76 @@ def test_a_file_argument_that_is_no_file(odd, run_dir, capsys, arg, what):
     err = refused(capsys, str(bad), kind)
     assert "no such file" not in err.lower(), err
     assert snapshot(work) == before
+
+
+# --------------------------------------------------------------------------- 6: convert's silent wrong results
+
+
+def _convert(tmp_path, map_text, joints=JOINTS, points=POINTS, extra=(), inputs=None):
+    """``convert --map`` of files written under ``tmp_path/in``; ``inputs`` replaces the INPUT list."""
+    (tmp_path / "in").mkdir(exist_ok=True)
+    (tmp_path / "in" / "map.yaml").write_text(map_text)
+    (tmp_path / "in" / "joints.txt").write_text(joints)
+    (tmp_path / "in" / "points.txt").write_text(points)
+    files = inputs or [tmp_path / "in" / "joints.txt", tmp_path / "in" / "points.txt", *extra]
+    return ["convert", "--map", str(tmp_path / "in" / "map.yaml"), *map(str, files), "--out", str(tmp_path / "o.csv")]
+
+
+TWO = MAP.replace("position: {input: 2, columns: 1-3}", "position: {input: [2, 3], columns: 1-3}\nprobe: [A, B]")
+
+
+def test_the_same_points_file_twice(tmp_path, capsys):
+    """It became two probes of identical rows, and calibrate's sigmas came out 1/sqrt(2) too small."""
+    argv = _convert(tmp_path, TWO)
+    argv.insert(5, argv[4])  # joints.txt points.txt points.txt
+    refuse(capsys, tmp_path, argv, "points.txt", "INPUTs 2 and 3 are the same file")
+
+
+def test_a_copy_of_the_points_file(tmp_path, capsys):
+    (tmp_path / "copy.txt").write_text(POINTS)
+    refuse(capsys, tmp_path, _convert(tmp_path, TWO, extra=[tmp_path / "copy.txt"]), "copy.txt", "INPUT 2")
+
+
+def test_one_input_listed_twice_in_a_role(tmp_path, capsys):
+    bad = MAP.replace("position: {input: 2, columns: 1-3}", "position: {input: [2, 2], columns: 1-3}\nprobe: [A, B]")
+    refuse(capsys, tmp_path, _convert(tmp_path, bad), "map.yaml", "input 2 twice")
+
+
+def test_a_map_key_given_twice(tmp_path, capsys):
+    """The last 'joints:' won: the first's signs and offsets were dropped (q2 off by 7.7 rad), exit 0."""
+    bad = MAP.replace(
+        "joints: {input: 1, columns: 1-6}", "joints: {input: 1, columns: 1-6, offset: [0, 90, 0, 0, 0, 0]}"
+    )
+    bad += "joints: {input: 1, columns: 1-6}\n"
+    refuse(capsys, tmp_path, _convert(tmp_path, bad), "map.yaml", "'joints' appears twice", "line 5")
+
+
+def test_a_nested_map_key_given_twice(tmp_path, capsys):
+    bad = MAP.replace("{length: mm, angle: deg}", "{length: mm, angle: deg, length: m}")
+    refuse(capsys, tmp_path, _convert(tmp_path, bad), "map.yaml", "'length' appears twice")
+
+
+@pytest.mark.parametrize("cell", ["0_1", "\u0668\u0661\u0662.\u0661"])  # an underscore; Arabic-Indic 812.1
+def test_cells_calibrate_would_refuse_as_numbers(tmp_path, capsys, cell):
+    pts = POINTS.replace("812.1", cell)
+    refuse(capsys, tmp_path, _convert(tmp_path, MAP, points=pts), "points.txt", "line 1", "not a finite number")
+
+
+def test_degrees_read_as_radians_name_the_maps_units(tmp_path, capsys):
+    bad = MAP.replace("{length: mm, angle: deg}", "{length: mm}")
+    refuse(capsys, tmp_path, _convert(tmp_path, bad), "joints.txt", "look like degrees", "units: {angle: deg}")
+
+
+def test_radians_declared_as_degrees_name_the_maps_units(tmp_path, capsys):
+    rad = "".join(" ".join(f"{math.radians(float(v)):.6f}" for v in ln.split()) + "\n" for ln in JOINTS.splitlines())
+    refuse(capsys, tmp_path, _convert(tmp_path, MAP, joints=rad), "joints.txt", "look like radians", "units:")
+
+
+def test_millimetres_read_as_metres_name_the_maps_units(tmp_path, capsys):
+    bad = MAP.replace("{length: mm, angle: deg}", "{angle: deg}")
+    refuse(capsys, tmp_path, _convert(tmp_path, bad), "map.yaml", "look like millimetres", "units: {length: mm}")
+
+
+def test_metres_read_as_millimetres_name_the_maps_units(tmp_path, capsys):
+    pts = "".join(" ".join(f"{float(v) / 1000:.6f}" for v in ln.split()) + "\n" for ln in POINTS.splitlines())
+    refuse(capsys, tmp_path, _convert(tmp_path, MAP, points=pts), "map.yaml", "look like metres", "units: {length: m}")

@@ -74,6 +74,20 @@ def _yaml_loader():
         pass
 
     def mapping(loader, node):
+        seen = {}
+        for k, _ in node.value:
+            key = loader.construct_object(k)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                # PyYAML keeps the last of two equal keys: a second 'joints:' dropped the first's signs and offsets
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"key {key!r} appears twice (lines {seen[key]} and {k.start_mark.line + 1}); the second would "
+                    "replace the first without a word: keep one",
+                    k.start_mark,
+                )
+            if isinstance(key, (str, int, float, bool)):
+                seen[key] = k.start_mark.line + 1
         out = Lined(loader.construct_mapping(node, deep=True))
         out.where = {loader.construct_object(k): k.start_mark.line + 1 for k, _ in node.value}
         out.where[None] = node.start_mark.line + 1
@@ -166,9 +180,17 @@ def _role(spec, map_path: str, doc: dict, key: str) -> dict:
         raise MeasurementFileError(map_path, f"'{key}' needs 'columns'", line=_line(doc, key), column=key)
     given = role.get("input", 1)
     inputs = given if isinstance(given, list) else [given]
-    if not inputs or not all(isinstance(i, int) and i >= 1 for i in inputs):
+    if not inputs or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in inputs):
         raise MeasurementFileError(
             map_path, f"'{key}.input' must be input numbers from 1, got {given!r}", line=_line(doc, key), column=key
+        )
+    twice = next((i for k, i in enumerate(inputs) if i in inputs[:k]), None)
+    if twice is not None:  # input: [2, 2] made two probes of identical rows, counted twice by the fit
+        raise MeasurementFileError(
+            map_path,
+            f"'{key}.input' lists input {twice} twice ({given!r}): each input is read once",
+            line=_line(doc, key),
+            column=key,
         )
     role["input"] = inputs
     role["line"] = _line(doc, key)
@@ -308,6 +330,8 @@ def _to_float(cell, read: dict) -> float | None:
     text = str(cell).strip()
     if read.get("decimal", ".") == ",":
         text = text.replace(",", ".")
+    if "_" in text or not text.isascii():
+        return None  # float() reads '0_1' as 1 and Arabic-Indic digits; calibrate's reader refuses both
     try:
         return float(text)
     except ValueError:
@@ -673,6 +697,93 @@ def _paired_joints(doc: dict, inputs: _Inputs, joints: list, k: int) -> tuple[to
     return torch.cat([q for _, q in joints]), extra, tuple(line for table, _ in joints for line in table.lines)
 
 
+def _distinct_files(inputs: _Inputs) -> None:
+    """Refuse one file given as two INPUTs: its rows would become two probes (or stations) of identical readings,
+    and the fit would count each measurement twice (sigmas 1/sqrt(2) too small)."""
+    from torchcal._inputs import check_regular
+
+    stats = []
+    for k, path in enumerate(inputs.paths, start=1):
+        st = check_regular(path, "convert input", lambda m, path=path: MeasurementFileError(path, m))
+        same = next((j for j, other in stats if (other.st_dev, other.st_ino) == (st.st_dev, st.st_ino)), None)
+        if same is not None:
+            raise MeasurementFileError(
+                path,
+                f"INPUTs {same} and {k} are the same file: each input is read once (a MAP role reads one input "
+                "for several roles by its number)",
+            )
+        stats.append((k, st))
+
+
+def _distinct_poses(inputs: _Inputs, points: list) -> None:
+    """Refuse two points inputs whose every pose is the same: copies of one file, not two reflectors or placements."""
+    for a in range(len(points)):
+        for b in range(a):
+            pa, pb = points[a][2], points[b][2]
+            same = [
+                pa[key] is not None
+                and pb[key] is not None
+                and pa[key].shape == pb[key].shape
+                and torch.equal(pa[key], pb[key])
+                for key in ("p", "r")
+            ]
+            if all(s or pa[key] is None for s, key in zip(same, ("p", "r"))):
+                raise MeasurementFileError(
+                    points[a][1].path,
+                    f"INPUT {points[a][0]} has the very poses of INPUT {points[b][0]} ({points[b][1].path}), row for "
+                    "row: a copy, which the fit would count twice; give each measured file once",
+                )
+
+
+def _check_mapped_units(doc: dict, inputs: _Inputs, joints: list, points: list) -> None:
+    """What calibrate checks of the units, in the MAP's declared units, naming the MAP's ``units:`` as the fix
+    (degrees read as radians reached |q| = 169.5, mm read as m 2,641 m, and only calibrate said so, naming its own
+    flags)."""
+    from torchcal.data.measurements import (
+        _MAX_ABS_ANGLE_RAD,
+        _MAX_MEDIAN_DISTANCE_M,
+        _MIN_DEGREES_MOVED,
+        _MIN_MEDIAN_DISTANCE_MM,
+    )
+
+    units = doc.get("units", {})
+    length_unit, angle_unit = units.get("length", "m"), units.get("angle", "rad")
+    where = f"the MAP's line {_line(doc, 'units')}" if "units" in doc else "the MAP"
+    ps = [(table, pose["p"] / LENGTH[length_unit]) for _, table, pose in points if pose["p"] is not None]
+    if ps:
+        median = torch.cat([p for _, p in ps]).norm(dim=-1).median().item()
+        wrong = {"m": (median > _MAX_MEDIAN_DISTANCE_M, "mm", "millimetres", f"more than {_MAX_MEDIAN_DISTANCE_M:g}")}
+        wrong["mm"] = (median < _MIN_MEDIAN_DISTANCE_MM, "m", "metres", f"less than {_MIN_MEDIAN_DISTANCE_MM:g}")
+        bad, fix, looks, bound = wrong[length_unit]
+        if bad:
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"the positions of {ps[0][0].path} look like {looks}: read as {length_unit}, their median distance "
+                f"from the tracker is {median:.6g} {length_unit}, {bound} {length_unit}",
+                line=_line(doc, "units"),
+                hint=f"write 'units: {{length: {fix}}}' in the MAP ({where})",
+            )
+    for table, q in joints:
+        q = q / ANGLE[angle_unit]
+        if angle_unit == "rad" and bool((q.abs() > _MAX_ABS_ANGLE_RAD).any()):
+            i, j = (int(x) for x in (q.abs() > _MAX_ABS_ANGLE_RAD).nonzero()[0])
+            raise MeasurementFileError(
+                table.path,
+                f"joint {j + 1} = {q[i, j].item():.6g} rad is more than one turn (2*pi): the joint readings look like "
+                "degrees",
+                line=table.lines[i],
+                hint=f"write 'units: {{angle: deg}}' in the MAP ({where})",
+            )
+        largest = float(q.abs().max()) if q.numel() else 0.0
+        if angle_unit == "deg" and _MIN_DEGREES_MOVED < largest <= _MAX_ABS_ANGLE_RAD:
+            raise MeasurementFileError(
+                table.path,
+                f"the joint readings look like radians although the MAP declares degrees: every |q| is at most 2*pi "
+                f"(the largest {largest:.6g}), so as degrees the robot would never move more than 6.3 deg",
+                hint=f"write 'units: {{angle: rad}}' in the MAP, or leave 'angle' out ({where})",
+            )
+
+
 def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements:
     """The measurements the MAP reads from ``paths`` (the INPUT files, numbered from 1), in SI units.
 
@@ -686,6 +797,7 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
     units = doc.get("units", {})
     length, angle = LENGTH[units.get("length", "m")], ANGLE[units.get("angle", "rad")]
     inputs = _Inputs(str(map_path), [str(p) for p in paths], doc.get("read", {}))
+    _distinct_files(inputs)
     joints = _joints(doc, inputs, angle)
     points = _points(doc, inputs, [t for t, _ in joints], length)
     if len(points) > 1 and doc.get("probe") is None and doc.get("station") is None:
@@ -704,6 +816,8 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
         if names is not None:
             labels[key], labels[f"{key}_names"] = labels_of(names)
     _distinct_inputs(doc, [n for n, _, _ in points], inputs)  # after _labels: the lists' lengths are checked
+    _distinct_poses(inputs, points)
+    _check_mapped_units(doc, inputs, joints, points)
     return Measurements(
         q=q,
         p=p,
