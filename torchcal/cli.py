@@ -1051,12 +1051,12 @@ def cmd_compensate(args) -> int:
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, model, res.q, alone)
     for i in [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]:
-        turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.4f} deg"
+        turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.3g} deg"
         if res.position_only is not None and bool(res.position_only[i]):
             turn += " (the full pose is not reached on this arm configuration: commanded for the position alone)"
         print(
             f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
-            f"the target by {float(res.miss[i]) * 1e3:.4f} mm{turn}",
+            f"the target by {float(res.miss[i]) * 1e3:.3g} mm{turn}",  # 4 decimals printed a 1e-9 mm miss as 0
             file=sys.stderr,
         )
     _console.info(
@@ -1536,7 +1536,10 @@ def main(argv: list[str] | None = None) -> int:
             return _internal_error(args.command, e, debug)
         if debug:
             traceback.print_exc()
-        where = f"{e.filename}: " if e.filename else ""
+        # the output the user named: a failed write() carries no file name ("cannot write No space left on
+        # device"), and a failed copy names its source (station named the input run's report.json)
+        target = getattr(args, "out", None) or e.filename2 or e.filename
+        where = f"{target}: " if target else ""
         print(
             f"torchcal {args.command}: error: cannot write {where}{e.strerror or e}; nothing was written "
             "(the output was left as it was)",

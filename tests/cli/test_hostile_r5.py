@@ -205,3 +205,138 @@ def test_millimetres_read_as_metres_name_the_maps_units(tmp_path, capsys):
 def test_metres_read_as_millimetres_name_the_maps_units(tmp_path, capsys):
     pts = "".join(" ".join(f"{float(v) / 1000:.6f}" for v in ln.split()) + "\n" for ln in POINTS.splitlines())
     refuse(capsys, tmp_path, _convert(tmp_path, MAP, points=pts), "map.yaml", "look like metres", "units: {length: m}")
+
+
+# ------------------------------------------------------------------------------------------ 7: misleading messages
+
+Q6 = [f"q{k}" for k in range(1, 7)]
+
+
+def _rows(path):
+    lines = [ln for ln in path.read_text().splitlines() if ln and not ln.startswith("#")]
+    header = lines[0].split(",")
+    return header, [dict(zip(header, ln.split(","), strict=True)) for ln in lines[1:]]
+
+
+@pytest.fixture(scope="module")
+def oriented(tmp_path_factory):
+    """40 simulated UR5 poses with the probe's orientation (and 40 test poses), and their kinematic run."""
+    root = tmp_path_factory.mktemp("oriented")
+    assert (
+        cli_simulate(root / "sim", "--poses", "40", "--test-poses", "40", "--orientation", "0.01", "--seed", "3") == 0
+    )
+    cmd = ["calibrate", str(root / "sim" / "train.csv"), "--robot", "ur5", "--method", "kinematic"]
+    assert main([*cmd, "--out", str(root / "cal"), "--quiet"]) == 0
+    return root
+
+
+def _targets(oriented, tmp_path):
+    header, rows = _rows(oriented / "sim" / "test.csv")
+    cols = [*Q6, "x", "y", "z", "rx", "ry", "rz"]
+    text = ",".join(cols) + "\n" + "".join(",".join(r[c] for c in cols) + "\n" for r in rows)
+    (tmp_path / "t.csv").write_text(text)
+    return tmp_path / "t.csv"
+
+
+def test_a_heavy_orientation_weight_converges_as_the_default(oriented, tmp_path, capsys):
+    """``--orientation-weight 1e6`` (allowed) marked 0 of 40 rows converged, each 'unreachable, misses by 0.0000 mm
+    and 0.0000 deg' (1000: one row): the damped steps drowned the position rows. Now every weight converges where the
+    default does (39 of these 40 rows), and a miss is printed with its digits."""
+    t = _targets(oriented, tmp_path)
+    status = {}
+    for weight in ("0.1", "1000", "1e6"):
+        argv = ["compensate", str(oriented / "cal"), str(t), "--out", str(tmp_path / f"j{weight}.csv")]
+        assert run_cli([*argv, "--orientation-weight", weight], seconds=120) == 0
+        status[weight] = [r["status"] for r in _rows(tmp_path / f"j{weight}.csv")[1]]
+    assert status["0.1"].count("converged") >= 38
+    assert status["1000"] == status["1e6"] == status["0.1"], status
+    assert "0.0000 mm" not in capsys.readouterr().err
+
+
+def test_a_matrix_range_off_by_one_says_so(tmp_path, capsys):
+    """An off-by-one ``matrix:`` range was called 'a matrix written column-major?'."""
+    m = "read: {delimiter: whitespace, header: false}\nunits: {angle: deg}\njoints: {input: 1, columns: 1-6}\n"
+    m += "matrix: {input: 2, columns: 2-17}\n"
+    pose = "1 0 0 0.8 0 1 0 0.1 0 0 1 0.4 0 0 0 1"
+    pts = f"{pose} 7\n" * 3  # the pose in columns 1-16, a trailing column; the MAP says 2-17
+    err = refuse(capsys, tmp_path, _convert(tmp_path, m, points=pts), "points.txt")
+    assert "off by 1" in err and "1-16" in err and "column-major" not in err, err
+
+
+def test_a_matrix_written_column_major_still_says_so(tmp_path, capsys):
+    m = "read: {delimiter: whitespace, header: false}\njoints: {input: 1, columns: 1-6}\n"
+    m += "matrix: {input: 2, columns: 1-16}\n"
+    pose = "1 0 0 0 0 1 0 0 0 0 1 0 0.8 0.1 0.4 1"
+    err = refuse(capsys, tmp_path, _convert(tmp_path, m, points=f"{pose}\n" * 3), "points.txt", "column-major")
+    assert "off by" not in err
+
+
+def test_export_ur_ros2_of_a_readings_robot_names_the_readings(tmp_path):
+    """It said 'needs six revolute joints, this one has 6 joints (revolute x 6)'."""
+    from pathlib import Path
+
+    from torchcal.errors import RobotSpecError
+    from torchcal.robot.export_formats import ur_chain_origins
+
+    text = (Path(__file__).parents[1] / "robot" / "data" / "fanuc_like.yaml").read_text()
+    five = "[[1,0,0,0,0], [0,1,0,0,0], [0,-1,-1,0,0], [0,0,0,-1,0], [0,0,0,0,-1], [0,0,0,0,-1]]"
+    lines = []
+    for ln in text.splitlines():
+        key = ln.strip().split(":")[0]
+        if key == "coupling":
+            ln = f"  coupling: {five}"
+        elif key in ("lower", "upper"):
+            ln = ln.rsplit(",", 1)[0] + "]"  # five readings' limits
+        lines.append(ln)
+    (tmp_path / "r.yaml").write_text("\n".join(lines) + "\n")
+    robot = load_robot(tmp_path / "r.yaml")
+    assert robot.dof == 5
+    with pytest.raises(RobotSpecError) as info:
+        ur_chain_origins(robot)
+    assert "driven by 5 controller readings" in str(info.value), str(info.value)
+
+
+def _full_disk_copy(src, dst, *args, **kwargs):
+    """What ``shutil``'s sendfile copy raises on a full disk: the source as ``filename``, the target ``filename2``."""
+    import errno
+    import os
+
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(src), None, str(dst))
+
+
+def _full_disk(*_args, **_kwargs):
+    import errno
+    import os
+
+    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+
+def test_station_on_a_full_disk_names_its_output(oriented, tmp_path, monkeypatch, capsys):
+    """It named the input run's report.json as the file it could not write."""
+    import torchcal.report.station as S
+
+    monkeypatch.setattr(S.shutil, "copy2", _full_disk_copy)
+    _, rows = _rows(oriented / "sim" / "test.csv")
+    pts = "".join(",".join(r[c] for c in [*Q6, "x", "y", "z"]) + "\n" for r in rows[:6])
+    (tmp_path / "p.csv").write_text(",".join([*Q6, "x", "y", "z"]) + "\n" + pts)
+    err = refuse(
+        capsys,
+        tmp_path,
+        ["station", str(oriented / "cal"), str(tmp_path / "p.csv"), "--out", str(tmp_path / "st")],
+        f"{tmp_path / 'st'}: No space left on device",
+    )
+    assert "report.json" not in err
+
+
+@pytest.mark.parametrize("command", ["compensate", "export"])
+def test_a_full_disk_names_the_output(oriented, tmp_path, monkeypatch, capsys, command):
+    """'cannot write No space left on device' named no file."""
+    import os
+
+    out = tmp_path / "o.yaml"
+    if command == "compensate":
+        argv = ["compensate", str(oriented / "cal"), str(_targets(oriented, tmp_path)), "--out", str(out)]
+    else:
+        argv = ["export", str(oriented / "cal"), "--format", "dh", "--out", str(out)]
+    monkeypatch.setattr(os, "replace", _full_disk)
+    refuse(capsys, tmp_path, argv, f"{out}: No space left on device", seconds=120)

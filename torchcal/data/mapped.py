@@ -461,20 +461,40 @@ def _rotation_rows(R: torch.Tensor, table: Table, cols: list[int]) -> torch.Tens
     return matrix_to_rotvec(R)
 
 
-def _check_bottom_row(M: torch.Tensor, table: Table, cols: list[int]) -> None:
-    """A 4x4 pose's last row must be ``0 0 0 1``: written column-major it holds the translation instead, and read
-    row-major every position would be zero and every rotation transposed."""
+def _check_bottom_row(M: torch.Tensor, table: Table, cols: list[int], read: dict) -> None:
+    """A 4x4 pose's last row must be ``0 0 0 1``. The refusal says what the columns look like instead: written
+    column-major (the last *column* is ``0 0 0 1``), or the range off by one (the columns beside it hold the pose);
+    an off-by-one range was called column-major."""
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=M.dtype)
     bad = (M[:, 3, :] - bottom).abs().amax(-1) > ROTATION_TOLERANCE
-    if bool(bad.any()):
-        i = int(bad.nonzero()[0, 0])
-        row = " ".join(f"{float(x):g}" for x in M[i, 3])
-        raise MeasurementFileError(
-            table.path,
-            f"columns {cols[0] + 1}..{cols[-1] + 1} are read as a row-major 4x4 pose, whose last row must be "
-            f"0 0 0 1; it is {row} (a matrix written column-major? give its columns in row-major order)",
-            line=table.lines[i],
-        )
+    if not bool(bad.any()):
+        return
+    i = int(bad.nonzero()[0, 0])
+    row = " ".join(f"{float(x):g}" for x in M[i, 3])
+    if bool(((M[:, :, 3] - bottom).abs().amax(-1) <= ROTATION_TOLERANCE).all()):
+        why = "its last column is 0 0 0 1 in every row: a matrix written column-major? give its columns row-major"
+    else:
+        why = "check matrix.columns"
+        for shift in (-1, 1, -2, 2):
+            moved = [c + shift for c in cols]
+            if min(moved) < 0 or any(max(moved) >= len(r) for r in table.rows):
+                continue
+            try:
+                near = numbers(table, moved, read).reshape(-1, 4, 4)
+            except MeasurementFileError:
+                continue
+            if bool(((near[:, 3, :] - bottom).abs().amax(-1) <= ROTATION_TOLERANCE).all()):
+                why = (
+                    f"columns {moved[0] + 1}..{moved[-1] + 1} hold a row-major pose in every row: the range is off "
+                    f"by {abs(shift)}; write matrix.columns: {moved[0] + 1}-{moved[-1] + 1}"
+                )
+                break
+    raise MeasurementFileError(
+        table.path,
+        f"columns {cols[0] + 1}..{cols[-1] + 1} are read as a row-major 4x4 pose, whose last row must be "
+        f"0 0 0 1; it is {row} ({why})",
+        line=table.lines[i],
+    )
 
 
 def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: float):
@@ -492,7 +512,7 @@ def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: floa
     if role_key == "matrix":
         M = v.reshape(-1, len(cols) // 4, 4)
         if M.shape[1] == 4:
-            _check_bottom_row(M, table, cols)
+            _check_bottom_row(M, table, cols, inputs.read)
         return M[:, :3, 3] * length, _rotation_rows(M[:, :3, :3], table, cols)
     order = role.get("order", "wxyz")
     if order not in ("wxyz", "xyzw"):
@@ -748,7 +768,7 @@ def _check_mapped_units(doc: dict, inputs: _Inputs, joints: list, points: list) 
 
     units = doc.get("units", {})
     length_unit, angle_unit = units.get("length", "m"), units.get("angle", "rad")
-    where = f"the MAP's line {_line(doc, 'units')}" if "units" in doc else "the MAP"
+    where = f"the MAP's line {_line(doc, 'units')}" if "units" in doc else "a line of its own"
     ps = [(table, pose["p"] / LENGTH[length_unit]) for _, table, pose in points if pose["p"] is not None]
     if ps:
         median = torch.cat([p for _, p in ps]).norm(dim=-1).median().item()
