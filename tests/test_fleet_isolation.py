@@ -119,3 +119,55 @@ def test_ctrl_c_ends_the_fleet_and_its_workers_within_10_s(manifest, tmp_path):
     alive = [pid for pid in ray_procs if Path(f"/proc/{pid}").exists()]
     assert alive == [], f"Ray processes of the fleet outlived it: {[ray_procs[p][:80] for p in alive]}"
     assert not (tmp_path / "f").exists()
+
+
+def test_a_head_that_wants_a_token_is_refused_with_the_fix(manifest, tmp_path):
+    """A head with token authentication: 20 'Unauthenticated' warnings, then exit 1 'internal error ... this is a
+    bug'. Refused (exit 2) naming RAY_AUTH_MODE=token; with it set the same fleet runs there."""
+    import socket
+
+    from ray._private.services import get_node_ip_address
+
+    with socket.socket() as s:
+        s.bind(("", 0))
+        port = s.getsockname()[1]
+    import shutil
+    import tempfile
+
+    env = {**os.environ, "RAY_AUTH_MODE": "token", "OMP_NUM_THREADS": "1"}
+    root = tempfile.mkdtemp(prefix="tcray-head-", dir="/tmp")  # short: Ray's socket paths stay under 107 bytes
+    ray_bin = str(Path(sys.executable).parent / "ray")
+    head = subprocess.Popen(
+        [ray_bin, "start", "--head", "--block", "--port", str(port), "--num-cpus", "1", "--include-dashboard", "false"]
+        + ["--temp-dir", root],
+        env={**env, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    try:
+        address = f"{get_node_ip_address()}:{port}"
+        deadline, up = time.monotonic() + 120, False
+        while not up and time.monotonic() < deadline and head.poll() is None:
+            with socket.socket() as s:
+                up = s.connect_ex(("127.0.0.1", port)) == 0
+            time.sleep(0.5)
+        assert up, "the head did not start"
+        time.sleep(3)  # the head's raylet joins its GCS
+        base = {k: v for k, v in os.environ.items() if k != "RAY_AUTH_MODE"}
+        argv = [sys.executable, "-m", "torchcal", "fleet", str(manifest), "--address", address, "--quiet"]
+        for mode, code in ((None, 2), ("token", 0)):
+            run_env = {**base, "PYTHONPATH": str(ROOT), **({"RAY_AUTH_MODE": mode} if mode else {})}
+            out = tmp_path / f"f{mode}"
+            p = subprocess.run([*argv, "--out", str(out)], env=run_env, capture_output=True, text=True, timeout=300)
+            assert p.returncode == code, p.stderr[-2000:]
+            if code == 2:
+                assert "RAY_AUTH_MODE=token" in p.stderr and "this is a bug" not in p.stderr, p.stderr[-2000:]
+                assert "InvalidAuthToken" not in p.stderr  # Ray's retries are held back
+                assert not out.exists()
+            else:
+                assert (out / "r1" / "report.json").is_file()
+    finally:
+        os.killpg(head.pid, signal.SIGKILL)
+        head.wait()
+        shutil.rmtree(root, ignore_errors=True)

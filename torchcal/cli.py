@@ -650,7 +650,12 @@ def build_parser() -> argparse.ArgumentParser:
     fl.add_argument("--out", required=True, help="fleet directory to write; " + OUT_HELP)
     fl.add_argument("--workers", type=_count, default=None, help="CPUs of the local Ray instance (default: all)")
     fl.add_argument(
-        "--address", default=None, help="an existing Ray cluster (ray://HOST:PORT or auto) instead of a local one"
+        "--address",
+        default=None,
+        help="an existing Ray cluster instead of a private local instance: HOST:PORT, the head's address as "
+        "'ray start --head' prints it (port 6379 by default); auto, the cluster started on this machine; or "
+        "ray://HOST:10001, the head's Ray Client server where it runs one. A head with token authentication needs "
+        "RAY_AUTH_MODE=token and its token (RAY_AUTH_TOKEN or ~/.ray/auth_token) in this environment",
     )
     _add_common(fl)
 

@@ -153,10 +153,58 @@ def _check_reachable(address: str) -> None:
     try:
         socket.create_connection((m.group(1), int(m.group(2))), timeout=REACH_TIMEOUT).close()
     except OSError as e:
+        client = (
+            " (a ray:// address is the head's Ray Client server, port 10001 by default, which runs only where the head "
+            "was started with one; the address 'ray start --head' prints, HOST:PORT without ray://, needs none)"
+            if address.strip().startswith("ray://")
+            else ""
+        )
         raise OptionError(
-            f"--address {address}: nothing answers there within {REACH_TIMEOUT:g} s ({e.strerror or e}); start the "
-            "cluster (ray start --head) or give its address"
+            f"--address {address}: nothing answers there within {REACH_TIMEOUT:g} s ({e.strerror or e}){client}; "
+            "start the cluster (ray start --head) or give its address"
         ) from None
+
+
+#: what Ray's log says when the head wants a token this process did not send
+_AUTH_SIGNS = ("InvalidAuthToken", "Unauthenticated", "AuthenticationError", "auth token", "authentication token")
+
+
+@contextlib.contextmanager
+def _stderr_kept(into: list):
+    """Ray's C++ client writes to file descriptor 2 directly (20 lines of 'Unauthenticated ... InvalidAuthToken'
+    while it retries a head that wants a token): held in a file while it connects, the text put into ``into``."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as f:
+        os.dup2(f.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            f.seek(0)
+            into.append(f.read().decode(errors="replace"))
+
+
+def _join(address: str) -> None:
+    """``ray.init`` at a cluster's ``address``; a refusal that says why where it cannot join."""
+    import ray
+
+    log: list[str] = []
+    try:
+        with _stderr_kept(log):
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        text = "".join(log) + str(e)
+        if any(sign.lower() in text.lower() for sign in _AUTH_SIGNS):
+            raise OptionError(
+                f"--address {address}: the cluster wants an authentication token this process did not send (Ray "
+                "turns token authentication on for a head started where ~/.ray/auth_token exists); set "
+                "RAY_AUTH_MODE=token, with the head's token in RAY_AUTH_TOKEN or ~/.ray/auth_token, and run again"
+            ) from None
+        last = next((ln for ln in reversed(text.splitlines()) if ln.strip()), type(e).__name__)
+        raise OptionError(f"--address {address}: Ray could not join the cluster there: {last.strip()[:300]}") from None
 
 
 def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, done: Callable[[int, Any], None]) -> list:
@@ -171,9 +219,7 @@ def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, don
         _check_reachable(address)
     private = None
     if started:
-        if address:
-            kw = {"address": address}
-        else:
+        if not address:
             # a private instance whatever else runs: address "local" never joins another instance (another fleet,
             # another user's Ray, a stale ray_current_cluster file of a killed one: 'num_cpus must not be provided'),
             # and its own temp root shares no sockets, session or cluster file with them
@@ -183,7 +229,9 @@ def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, don
     pending: dict = {}
     watchdog = None
     try:
-        if started:  # within the try: Ctrl-C while Ray starts stops what has started
+        if started and address:
+            _join(address)
+        elif started:  # within the try: Ctrl-C while Ray starts stops what has started
             with worker_env():
                 ray.init(**kw, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
         remote = ray.remote(num_cpus=1, max_retries=RETRIES)(_ray_call)
