@@ -1331,7 +1331,18 @@ def cmd_convert(args) -> int:
         m = convert_mapped(args.map, args.inputs, out_file, written_by="torchcal convert")
         kinds = [k for k in ("station", "probe") if getattr(m, k) is not None]
         what = "".join(f", {len(getattr(m, f'{k}_names'))} {k}s" for k in kinds)
-        _console.info(f"wrote {m.n} rows of {m.dof} joints{what} to {args.out}")
+        cols = [
+            f"q1..q{m.dof}",
+            *(["x, y, z"] if m.p is not None else []),
+            *(["rx, ry, rz"] if m.r is not None else []),
+        ]
+        cols += [*(["t"] if m.t is not None else []), *(["temperature"] if m.temperature is not None else [])]
+        cols += [*m.extra, *kinds]
+        _console.info(f"wrote {m.n} rows of {m.dof} joints{what} to {args.out}: columns {', '.join(cols)}")
+        if m.r is not None:
+            from torchcal.data.mapped import orientation_note
+
+            _console.info(f"convert: note: {orientation_note(args.map)}")
         return 0
     m = convert_ipa(args.inputs[0], out_file, written_by="torchcal convert")
     _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")

@@ -851,6 +851,28 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
     )
 
 
+def orientation_note(map_path: str | os.PathLike) -> str:
+    """What an orientation read by the MAP (``matrix:`` or ``quaternion:``) does downstream, and the MAP that writes
+    positions alone: a 4x4 pose made every fit 6-D (3.3x the CPU of a position fit) without a word."""
+    doc = read_map(map_path)
+    key = "matrix" if "matrix" in doc else "quaternion"
+    role = _role(doc[key], str(map_path), doc, key)
+    where = f"input: {role['input'][0] if len(role['input']) == 1 else role['input']}, "
+    if key == "quaternion":
+        fix = "leave out 'quaternion:'"
+    else:
+        m = re.fullmatch(r"\s*(\d+)\s*-\s*(\d+)\s*", str(role["columns"]))
+        if m is not None and int(m.group(2)) - int(m.group(1)) + 1 in (12, 16):
+            a = int(m.group(1))
+            fix = f"write 'position: {{{where}columns: [{a + 3}, {a + 7}, {a + 11}]}}' instead of 'matrix:'"
+        else:
+            fix = "write 'position:' with the matrix's translation columns (its 4th, 8th and 12th) instead of 'matrix:'"
+    return (
+        f"the rows carry the probe's orientation (rx, ry, rz from '{key}:'): calibrate fits position and orientation "
+        f"(6-D, about 3x the CPU of positions alone); for positions alone, {fix}"
+    )
+
+
 def convert_mapped(map_path, paths: list[str], out, *, written_by: str | None = None) -> Measurements:
     """:func:`import_mapped`, then the measurement file ``out`` written (atomically; nothing on an error)."""
     if not paths:
