@@ -368,3 +368,29 @@ def test_convert_of_positions_alone_names_no_orientation(tmp_path, capsys):
         assert main(_convert(tmp_path, MAP)) == 0
     err = capsys.readouterr().err
     assert "columns q1..q6, x, y, z" in err and "6-D" not in err and "rx" not in err, err
+
+
+# ------------------------------------------------------------------- 8: layouts convert --map could not express
+
+
+def test_several_reflectors_in_one_row(tmp_path):
+    """A FANUC campaign: three SMRs in columns 7-15 of each row were 'position.columns names 9 columns, 3
+    expected' (three MAPs and hand concatenation). Each triple is one probe's rows now."""
+    m = "read: {delimiter: whitespace, header: false}\nunits: {length: mm, angle: deg}\n"
+    m += "joints: {columns: 1-6}\nposition: {columns: 7-15}\nprobe: [A, B, C]\n"
+    rows = [ln.split() + [f"{800 + 10 * k + i}" for k in range(3) for i in range(3)] for ln in JOINTS.splitlines()]
+    (tmp_path / "one.txt").write_text("".join(" ".join(r) + "\n" for r in rows))
+    argv = _convert(tmp_path, m, inputs=[tmp_path / "one.txt"])
+    assert run_cli(argv) == 0
+    got = read_measurements(tmp_path / "o.csv")
+    assert got.n == 9 and got.probe_names == ("A", "B", "C")
+    assert got.p[got.probe == 1][0].tolist() == pytest.approx([0.810, 0.811, 0.812])
+    assert got.q[got.probe == 2][1].tolist() == pytest.approx(got.q[:3][1].tolist())
+
+
+def test_several_reflectors_with_an_orientation_are_refused(tmp_path, capsys):
+    m = "read: {delimiter: whitespace, header: false}\njoints: {columns: 1-6}\nunits: {angle: deg}\n"
+    m += "position: {columns: 7-12}\nquaternion: {columns: 13-16}\nprobe: [A, B]\n"
+    rows = [ln.split() + ["0.8", "0.1", "0.4", "0.9", "0.1", "0.4", "1", "0", "0", "0"] for ln in JOINTS.splitlines()]
+    (tmp_path / "one.txt").write_text("".join(" ".join(r) + "\n" for r in rows))
+    refuse(capsys, tmp_path, _convert(tmp_path, m, inputs=[tmp_path / "one.txt"]), "map.yaml", "several reflectors")

@@ -503,12 +503,15 @@ def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: floa
     cols = columns_of(role["columns"], table, inputs.map_path, f"{role_key}.columns", role["line"])
     v = numbers(table, cols, inputs.read)
     want = {"position": (3,), "matrix": (16, 12), "quaternion": (4,)}[role_key]
-    if len(cols) not in want:
+    several = role_key == "position" and len(cols) > 3 and len(cols) % 3 == 0  # reflectors side by side in a row
+    if len(cols) not in want and not several:
         raise MeasurementFileError(
-            inputs.map_path, f"{role_key}.columns names {len(cols)} columns, {' or '.join(map(str, want))} expected"
+            inputs.map_path,
+            f"{role_key}.columns names {len(cols)} columns, {' or '.join(map(str, want))} expected"
+            + (" (or 3 per reflector, several reflectors in one row)" if role_key == "position" else ""),
         )
     if role_key == "position":
-        return v * length, None
+        return (v * length).reshape(v.shape[0], -1, 3).squeeze(1), None
     if role_key == "matrix":
         M = v.reshape(-1, len(cols) // 4, 4)
         if M.shape[1] == 4:
@@ -564,7 +567,16 @@ def _points(doc: dict, inputs: _Inputs, joint_tables: list[Table], length: float
             p, r = _pose(key, role, table, inputs, length)
             pose["p"] = p if p is not None else pose["p"]
             pose["r"] = r if r is not None else pose["r"]
-        out.append((k, table, pose))
+        if pose["p"] is not None and pose["p"].dim() == 3:  # several reflectors per row: one points input each
+            if pose["r"] is not None:
+                raise MeasurementFileError(
+                    inputs.map_path,
+                    "position.columns names several reflectors per row: an orientation goes with one reflector",
+                    line=roles["position"]["line"],
+                )
+            out += [(k, table, {"p": pose["p"][:, j], "r": None}) for j in range(pose["p"].shape[1])]
+        else:
+            out.append((k, table, pose))
     return out
 
 
