@@ -921,6 +921,7 @@ def cmd_predict(args) -> int:
         require_positions=False,
         robot_name=robot.name,
         joint_types=robot.joint_types,
+        text_columns=True,  # notes beside the numbers ('stat: ok') were refused as 'not a number'
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused

@@ -394,3 +394,22 @@ def test_several_reflectors_with_an_orientation_are_refused(tmp_path, capsys):
     rows = [ln.split() + ["0.8", "0.1", "0.4", "0.9", "0.1", "0.4", "1", "0", "0", "0"] for ln in JOINTS.splitlines()]
     (tmp_path / "one.txt").write_text("".join(" ".join(r) + "\n" for r in rows))
     refuse(capsys, tmp_path, _convert(tmp_path, m, inputs=[tmp_path / "one.txt"]), "map.yaml", "several reflectors")
+
+
+def test_predict_ignores_text_columns_beside_the_numbers(campaign, run_dir, tmp_path):
+    """Notes beside the numbers in a file given to predict were refused: "'stat' is not a number"."""
+    lines = [ln for ln in (campaign / "test.csv").read_text().splitlines() if not ln.startswith("#")]
+    text = lines[0] + ",stat,note\n" + "".join(ln + ",ok,pose A\n" for ln in lines[1:])
+    (tmp_path / "d.csv").write_text(text)
+    plain = tmp_path / "plain.csv"
+    plain.write_text("\n".join(lines) + "\n")
+    assert run_cli(["predict", str(run_dir), str(tmp_path / "d.csv"), "--out", str(tmp_path / "p.csv")]) == 0
+    assert run_cli(["predict", str(run_dir), str(plain), "--out", str(tmp_path / "q.csv")]) == 0
+    assert _rows(tmp_path / "p.csv") == _rows(tmp_path / "q.csv")
+
+
+def test_calibrate_still_refuses_a_text_cell(campaign, tmp_path, capsys):
+    lines = [ln for ln in (campaign / "train.csv").read_text().splitlines() if not ln.startswith("#")]
+    (tmp_path / "d.csv").write_text(lines[0] + ",stat\n" + "".join(ln + ",ok\n" for ln in lines[1:]))
+    argv = ["calibrate", str(tmp_path / "d.csv"), "--robot", "ur5", "--method", "kinematic", "--out", f"{tmp_path}/c"]
+    refuse(capsys, tmp_path, argv, "d.csv", "stat", "not a number")
