@@ -69,10 +69,6 @@ def test_a_limit_message_in_degrees_shows_the_excess_in_both(tmp_path):
     assert "1e-05 rad) above" in str(info.value) and "0.000573 deg" in str(info.value), str(info.value)
 
 
-def _unused():  # keep imports used while the module grows
-    return torch, refuse
-
-
 # ---------------------------------------------------------------- 2: a device, FIFO or directory as any path argument
 
 MAP = (
@@ -413,3 +409,17 @@ def test_calibrate_still_refuses_a_text_cell(campaign, tmp_path, capsys):
     (tmp_path / "d.csv").write_text(lines[0] + ",stat\n" + "".join(ln + ",ok\n" for ln in lines[1:]))
     argv = ["calibrate", str(tmp_path / "d.csv"), "--robot", "ur5", "--method", "kinematic", "--out", f"{tmp_path}/c"]
     refuse(capsys, tmp_path, argv, "d.csv", "stat", "not a number")
+
+
+def test_a_singular_fit_names_the_joints_to_check():
+    """A wrong joint sign stopped with 'the normal matrix at the solution is singular (rank deficient)' alone."""
+    from torchcal.estimate.fit import null_space_hint
+    from torchcal.estimate.lm import FitStatus, LMResult
+
+    g = torch.Generator().manual_seed(0)
+    J = torch.randn(30, 4, generator=g, dtype=torch.float64)
+    J[:, 3] = 2.0 * J[:, 1]  # theta2 and a3 move the probe alike: no fit tells them apart
+    res = LMResult(FitStatus.FAILED_SOLVE, 3, torch.zeros(4), [], ["d1", "theta2", "alpha2", "a3"], 30, "", J.T @ J)
+    hint = null_space_hint(res)
+    assert "theta2, a3" in hint and "(joints 2, 3)" in hint and "signs" in hint, hint
+    assert "d1" not in hint and "alpha2" not in hint
