@@ -423,3 +423,16 @@ def test_a_singular_fit_names_the_joints_to_check():
     hint = null_space_hint(res)
     assert "theta2, a3" in hint and "(joints 2, 3)" in hint and "signs" in hint, hint
     assert "d1" not in hint and "alpha2" not in hint
+
+
+# ------------------------------------------------------------------------------------------ 10: leftovers
+
+
+@pytest.mark.parametrize("fmt", ["dh", "ur-ros2"])
+def test_export_into_the_run_directory_is_refused(oriented, tmp_path, capsys, fmt):
+    """``export --format dh --out RUN/x.yaml`` wrote a foreign file into the run directory."""
+    run = oriented / "cal"
+    before = snapshot(run)
+    assert run_cli(["export", str(run), "--format", fmt, "--out", str(run / "x.yaml")]) == 2
+    refused(capsys, "inside the run directory")
+    assert snapshot(run) == before
