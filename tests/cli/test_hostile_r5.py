@@ -436,3 +436,20 @@ def test_export_into_the_run_directory_is_refused(oriented, tmp_path, capsys, fm
     assert run_cli(["export", str(run), "--format", fmt, "--out", str(run / "x.yaml")]) == 2
     refused(capsys, "inside the run directory")
     assert snapshot(run) == before
+
+
+def test_fleet_reads_every_lines_files_before_any_task(campaign, tmp_path, monkeypatch, capsys):
+    """A line whose data calibrate refuses (text in a cell; data of another robot) was told only when its task ran."""
+    from torchcal import fleet as F
+
+    monkeypatch.setattr(F, "ray_available", lambda: False)
+    lines = (campaign / "train.csv").read_text().splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#")) + 1  # the first data row
+    lines[k] = "oops," + lines[k].split(",", 1)[1]
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    (tmp_path / "m.csv").write_text(f"name,data,robot\nA,bad.csv,ur5\nB,{campaign / 'train.csv'},ur10\n")
+    assert run_cli(["fleet", str(tmp_path / "m.csv"), "--out", str(tmp_path / "f")], seconds=120) == 0
+    err = capsys.readouterr().err
+    first = err.index("torchcal fleet: A: refused")
+    assert -1 < err.find("m.csv: line 2:") < first and "'oops'" in err[:first], err
+    assert -1 < err.find("m.csv: line 3:") < first and "ur10" in err[:first], err
