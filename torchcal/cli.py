@@ -1353,6 +1353,7 @@ def cmd_convert(args) -> int:
 def cmd_export(args) -> int:
     from torchcal.use.export import export_run
 
+    out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
     run = Path(args.run).resolve()
     if run.is_dir() and Path(args.out).resolve().is_relative_to(run):
         # a file added to a run directory is not the run's: the run is written and replaced as a whole
@@ -1360,7 +1361,6 @@ def cmd_export(args) -> int:
             f"--out {args.out} lies inside the run directory {args.run}, which torchcal writes and replaces as a "
             "whole: write the export beside it"
         )
-    out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
     export_run(args.run, args.format, out_file)
     _console.info(f"wrote the {args.format} file of {args.run} to {args.out}")
     loads = {"dh": (".yaml", ".yml"), "urdf": (".urdf",)}.get(args.format)
