@@ -453,3 +453,26 @@ def test_fleet_reads_every_lines_files_before_any_task(campaign, tmp_path, monke
     first = err.index("torchcal fleet: A: refused")
     assert -1 < err.find("m.csv: line 2:") < first and "'oops'" in err[:first], err
     assert -1 < err.find("m.csv: line 3:") < first and "ur10" in err[:first], err
+
+
+def test_yaml_nested_two_levels(tmp_path):
+    """Placements -> column heights -> stationing rows: 'expected a list of rows under solution_spaces'. A dotted
+    ``read.rows`` with ``*`` reads every height's rows into its placement's block."""
+    joints = [ln.split() for ln in JOINTS.splitlines()]
+    points = [ln.split() for ln in POINTS.splitlines()]
+
+    def rows(idx):
+        return "".join(f"          - {{q: [{', '.join(joints[i])}], p: [{', '.join(points[i])}]}}\n" for i in idx)
+
+    doc = "placements:\n"
+    for place, heights in (("P1", {"h1": [0], "h2": [1]}), ("P2", {"h1": [2]})):
+        doc += f"  {place}:\n    solution_spaces:\n"
+        for h, idx in heights.items():
+            doc += f"      {h}:\n        stationing:\n{rows(idx)}"
+    (tmp_path / "campaign.yaml").write_text(doc)
+    m = "read: {blocks: placements, rows: solution_spaces.*.stationing}\nunits: {length: mm, angle: deg}\n"
+    m += "joints: {columns: q}\nposition: {columns: p}\nstation: {block: placements}\n"
+    assert run_cli(_convert(tmp_path, m, inputs=[tmp_path / "campaign.yaml"])) == 0
+    got = read_measurements(tmp_path / "o.csv")
+    assert got.n == 3 and got.station_names == ("P1", "P2") and got.station.tolist() == [0, 0, 1]
+    assert got.p[2].tolist() == pytest.approx([0.7009, 0.0904, 0.6102])

@@ -281,8 +281,9 @@ def _yaml_blocks(path: str, doc, read: dict) -> list[tuple[str | None, object, i
     """``(block name, its rows' list, line)`` per block (one unnamed block without ``read.blocks``)."""
     key_blocks, key_rows = read.get("blocks"), read.get("rows")
     if key_blocks is None:
-        rows = doc.get(key_rows) if key_rows is not None and isinstance(doc, dict) else doc
-        return [(None, rows, _line(doc, key_rows))]
+        if key_rows is None or not isinstance(doc, dict):
+            return [(None, doc, None)]
+        return [(None, rows, line) for rows, line in _descend(doc, key_rows.split("."), _line(doc, key_rows))]
     blocks = doc.get(key_blocks) if isinstance(doc, dict) else None
     if isinstance(blocks, dict):  # name: block
         items = [(str(k), b, _line(blocks, k)) for k, b in blocks.items()]
@@ -294,9 +295,25 @@ def _yaml_blocks(path: str, doc, read: dict) -> list[tuple[str | None, object, i
     for k, (name, block, line) in enumerate(items):
         if not isinstance(block, dict) and (key_rows is not None or name is None):
             raise MeasurementFileError(path, f"block {k + 1} is not a mapping (with its rows under 'rows')", line=line)
-        rows = block.get(key_rows) if key_rows is not None else block
-        out.append((name if name is not None else block.get("name", f"B{k + 1}"), rows, line))
+        name = name if name is not None else block.get("name", f"B{k + 1}")
+        found = _descend(block, key_rows.split("."), line) if key_rows is not None else [(block, line)]
+        out += [(name, rows, where) for rows, where in found]
     return out
+
+
+def _descend(node, keys: list[str], line: int | None) -> list[tuple[object, int | None]]:
+    """The rows' lists under the dotted path ``read.rows`` (``a.b``: key b of key a; ``*``: every entry of a mapping
+    or list there): a YAML nested two levels (placements, column heights, then the stationing rows) reads as the
+    placements' blocks, each with all its heights' rows. A missing key gives None (refused by the caller)."""
+    if not keys:
+        return [(node, line)]
+    head, rest = keys[0], keys[1:]
+    if head == "*" and isinstance(node, (dict, list)):
+        entries = node.items() if isinstance(node, dict) else enumerate(node)
+        return [found for k, v in entries for found in _descend(v, rest, _line(node, k) or line)]
+    if not isinstance(node, dict) or head not in node:
+        return [(None, line)]
+    return _descend(node[head], rest, _line(node, head) or line)
 
 
 def _yaml_table(path: str, read: dict) -> Table:
