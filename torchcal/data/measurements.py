@@ -725,21 +725,31 @@ def _check_joint_count(path, layout: _Layout, line: int, dof, joint_limits, robo
 
 
 def _text_columns(data_lines: list[str], header: list[str], candidates: list[str]) -> list[str]:
-    """Those of ``candidates`` (extra columns) with a cell that is not an ASCII number in any row."""
+    """Those of ``candidates`` (extra columns) with a cell that is text in any row: not empty, not an ASCII number.
+    A load column (``payload``, ``tau1``..) is never text: predict honours it, and a text cell there is an error."""
+    candidates = [n for n in candidates if not re.fullmatch(r"payload|tau[0-9]+", n)]
     if not candidates:
         return []
     index = {header.index(n): n for n in candidates}
     found: set[str] = set()
     for row in csv.reader([ln for ln in data_lines if ln and not ln.isspace() and not ln.lstrip().startswith("#")]):
         for k, name in index.items():
-            cell = row[k].strip() if k < len(row) else ""
-            try:
-                bad = "_" in cell or not cell.isascii() or not math.isfinite(float(cell))
-            except ValueError:
-                bad = True
-            if bad:
+            if _is_text(row[k].strip() if k < len(row) else ""):
                 found.add(name)
     return [n for n in candidates if n in found]
+
+
+def _is_text(cell: str) -> bool:
+    """A cell that is no number at all (an empty cell or 'nan' is left to the reader's own refusals)."""
+    if not cell:
+        return False
+    if "_" in cell or not cell.isascii():
+        return True
+    try:
+        float(cell)
+    except ValueError:
+        return True
+    return False
 
 
 def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str], text: Sequence[str] = ()):
