@@ -17,4 +17,13 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("torchcal: interrupted while starting; nothing was written", file=sys.stderr)
         return 130
-    return cli_main(argv)
+    code = cli_main(argv)
+    if code == 130 and "ray" in sys.modules:
+        # interrupted with Ray loaded: its own instance is stopped by now (torchcal.sweep.on_ray), but Ray's core
+        # worker, cut off mid-start, crashed the interpreter's exit (SIGSEGV after 'interrupted'): end here
+        import os
+
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    return code

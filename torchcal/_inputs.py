@@ -30,6 +30,9 @@ LIMITS = {
     "standalone.pt": 64 * MiB,
     "holdout.pt": 256 * MiB,
     "marker": 1 * MiB,
+    "fleet manifest": 16 * MiB,
+    "MAP": 1 * MiB,
+    "convert input": 256 * MiB,
 }
 #: Deepest nesting of lists and mappings accepted in a JSON or YAML input: real files nest a handful of levels.
 MAX_DEPTH = 64
@@ -48,6 +51,35 @@ def kind_of(mode: int) -> str:
     return "not a regular file"
 
 
+def check_regular(path: str | os.PathLike, kind: str, error: Callable[[str], Exception]) -> os.stat_result:
+    """The ``os.stat`` of ``path`` if it is a regular file (links followed); the one check every input path takes.
+
+    Never opens the path: opening a FIFO with no writer blocks, and a device reads without end.
+
+    Raises:
+        Whatever ``error`` builds from a message that does not name the file: no such file, a directory, a FIFO,
+        a device, a socket, or a path that cannot be looked at.
+    """
+    try:
+        st = os.stat(path)  # stat never blocks, unlike opening a FIFO
+    except FileNotFoundError:
+        raise error(f"no such file (the {kind})") from None
+    except OSError as e:
+        raise error(f"cannot read the file: {e.strerror or e}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise error(f"is {kind_of(st.st_mode)}, not a regular file; give a {kind} saved as a file")
+    return st
+
+
+def read_text_bounded(path: str | os.PathLike, kind: str, error: Callable[[str], Exception]) -> str:
+    """The UTF-8 text (a byte-order mark dropped) of the regular file ``path``, read with :func:`read_bounded`."""
+    raw = read_bounded(path, kind, error)
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise error(f"is not UTF-8 text (byte 0x{raw[e.start]:02x} at offset {e.start})") from None
+
+
 def read_bounded(
     path: str | os.PathLike, kind: str, error: Callable[[str], Exception], *, limit: int | None = None
 ) -> bytes:
@@ -63,12 +95,7 @@ def read_bounded(
         Whatever ``error`` builds: the path is not a regular file, is larger than the limit, or cannot be read.
     """
     limit = LIMITS[kind] if limit is None else limit
-    try:
-        st = os.stat(path)  # stat never blocks, unlike opening a FIFO
-    except OSError as e:
-        raise error(f"cannot read the file: {e.strerror or e}") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise error(f"is {kind_of(st.st_mode)}, not a regular file; give a {kind} saved as a file")
+    st = check_regular(path, kind, error)
     if st.st_size > limit:
         raise error(f"{st.st_size} bytes is larger than a {kind} can be (at most {_size(limit)})")
     try:

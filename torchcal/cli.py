@@ -692,7 +692,12 @@ def build_parser() -> argparse.ArgumentParser:
     fl.add_argument("--out", required=True, help="fleet directory to write. " + OUT_REPLACED)
     fl.add_argument("--workers", type=_count, default=None, help="CPUs of the local Ray instance (default: all)")
     fl.add_argument(
-        "--address", default=None, help="an existing Ray cluster (ray://HOST:PORT or auto) instead of a local one"
+        "--address",
+        default=None,
+        help="an existing Ray cluster instead of a private local instance: HOST:PORT, the head's address as "
+        "'ray start --head' prints it (port 6379 by default); auto, the cluster started on this machine; or "
+        "ray://HOST:10001, the head's Ray Client server where it runs one. A head with token authentication needs "
+        "RAY_AUTH_MODE=token and its token (RAY_AUTH_TOKEN or ~/.ray/auth_token) in this environment",
     )
     _add_common(fl)
 
@@ -998,6 +1003,7 @@ def cmd_predict(args) -> int:
         require_positions=False,
         robot_name=robot.name,
         joint_types=robot.joint_types,
+        text_columns=True,  # notes beside the numbers ('stat: ok') were refused as 'not a number'
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused
@@ -1177,12 +1183,12 @@ def cmd_compensate(args) -> int:
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, model, res.q, alone)
     for i in [i for i, s in enumerate(res.status) if s is not Status.CONVERGED]:
-        turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.4f} deg"
+        turn = "" if res.miss_angle is None else f" and {math.degrees(float(res.miss_angle[i])):.3g} deg"
         if res.position_only is not None and bool(res.position_only[i]):
             turn += " (the full pose is not reached on this arm configuration: commanded for the position alone)"
         print(
             f"torchcal compensate: {args.targets}: line {data.lines[i]}: {res.status[i].value}, the model misses "
-            f"the target by {float(res.miss[i]) * 1e3:.4f} mm{turn}",
+            f"the target by {float(res.miss[i]) * 1e3:.3g} mm{turn}",  # 4 decimals printed a 1e-9 mm miss as 0
             file=sys.stderr,
         )
     _console.info(
@@ -1488,7 +1494,18 @@ def cmd_convert(args) -> int:
         m = convert_mapped(args.map, args.inputs, out_file, written_by="torchcal convert")
         kinds = [k for k in ("station", "probe") if getattr(m, k) is not None]
         what = "".join(f", {len(getattr(m, f'{k}_names'))} {k}s" for k in kinds)
-        _console.info(f"wrote {m.n} rows of {m.dof} joints{what} to {args.out}")
+        cols = [
+            f"q1..q{m.dof}",
+            *(["x, y, z"] if m.p is not None else []),
+            *(["rx, ry, rz"] if m.r is not None else []),
+        ]
+        cols += [*(["t"] if m.t is not None else []), *(["temperature"] if m.temperature is not None else [])]
+        cols += [*m.extra, *kinds]
+        _console.info(f"wrote {m.n} rows of {m.dof} joints{what} to {args.out}: columns {', '.join(cols)}")
+        if m.r is not None:
+            from torchcal.data.mapped import orientation_note
+
+            _console.info(f"convert: note: {orientation_note(args.map)}")
         return 0
     m = convert_ipa(args.inputs[0], out_file, written_by="torchcal convert")
     _console.info(f"wrote {m.n} poses to {args.out} (series {m.meta.get('series', '?')})")
@@ -1513,6 +1530,13 @@ def cmd_export(args) -> int:
     from torchcal.use.export import export_run
 
     out_file = check_out_file(args.out, inputs=[args.run], force=args.force)
+    run = Path(args.run).resolve()
+    if run.is_dir() and Path(args.out).resolve().is_relative_to(run):
+        # a file added to a run directory is not the run's: the run is written and replaced as a whole
+        raise OptionError(
+            f"--out {args.out} lies inside the run directory {args.run}, which torchcal writes and replaces as a "
+            "whole: write the export beside it"
+        )
     ex = export_run(args.run, args.format, out_file, geometry=args.geometry)
     _console.info(f"wrote the {args.format} file of {args.run} to {args.out}: {ex.summary}")
     loads = {"dh": (".yaml", ".yml"), "urdf": (".urdf",)}.get(args.format)
@@ -1762,7 +1786,10 @@ def main(argv: list[str] | None = None) -> int:
             return _internal_error(args.command, e, debug)
         if debug:
             traceback.print_exc()
-        where = f"{e.filename}: " if e.filename else ""
+        # the output the user named: a failed write() carries no file name ("cannot write No space left on
+        # device"), and a failed copy names its source (station named the input run's report.json)
+        target = getattr(args, "out", None) or e.filename2 or e.filename
+        where = f"{target}: " if target else ""
         print(
             f"torchcal {args.command}: error: cannot write {where}{e.strerror or e}; nothing was written "
             "(the output was left as it was)",

@@ -134,11 +134,12 @@ def read_manifest(path: str | os.PathLike) -> list[Line]:
     Raises:
         TorchcalError: naming the file, line and column of the first bad cell.
     """
+    from torchcal._inputs import read_text_bounded
+
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")  # a spreadsheet's "CSV UTF-8" starts with a byte-order mark
-    except (OSError, UnicodeDecodeError) as e:
-        raise TorchcalError(f"{path}: cannot read the manifest: {getattr(e, 'strerror', None) or e}") from None
+    # bounded, and a device or FIFO refused unopened (/dev/zero grew to 19.8 GB); a spreadsheet's "CSV UTF-8"
+    # starts with a byte-order mark, which is dropped
+    text = read_text_bounded(path, "fleet manifest", lambda m: TorchcalError(f"{path}: {m}"))
     reader = csv.reader(io.StringIO(text, newline=""))  # a quoted cell may hold a line break: lines as in the file
     rows = [(reader.line_num, r) for r in reader if r and not r[0].startswith("#")]
     cols = _header(path, rows[0][1] if rows else None)
@@ -183,22 +184,30 @@ def inputs_of(manifest: str | os.PathLike, lines: list[Line]) -> list[str]:
 def missing_inputs(path: str | os.PathLike, lines: list[Line]) -> list[str]:
     """Before any task of a fleet on this machine: each line whose data file, robot or prior run is not there, as
     the manifest's line and column (a typo in line 57 told at the start, not when line 57's turn comes). Those lines
-    are still run and reported refused with their own error while the others go on; what the files hold is each
-    task's to check. Not for a cluster at ``--address``: its nodes, not this machine, must see the files."""
+    are still run and reported refused with their own error while the others go on; so are lines whose files hold
+    what calibrate refuses (the data, robot and prior read as the task reads them). Not for a cluster at
+    ``--address``: its nodes, not this machine, must see the files."""
+    from torchcal._inputs import check_regular
     from torchcal.errors import RobotSpecError
     from torchcal.robot.load import resolve_robot_spec
 
     path, out = Path(path), []
     for ln in lines:
-        if not Path(ln.data).is_file():
-            what = "not a regular file" if Path(ln.data).exists() else "no such file"
-            out.append(str(_bad(path, ln.number, "data", f"{ln.data}: {what}")))
+        try:
+            check_regular(ln.data, "measurement file", lambda m, d=ln.data: TorchcalError(f"{d}: {m}"))
+        except TorchcalError as e:
+            out.append(str(_bad(path, ln.number, "data", str(e))))
         try:
             resolve_robot_spec(ln.robot)
         except RobotSpecError as e:
             out.append(str(_bad(path, ln.number, "robot", _console.one_line(str(e)))))
         if ln.prior and not (Path(ln.prior) / "model.json").is_file():
             out.append(str(_bad(path, ln.number, "prior", f"{ln.prior}: not a run directory (no model.json in it)")))
+        elif not any(f"line {ln.number}," in o for o in out):
+            try:  # what the files hold, as the task will read them: told now, not when the line's turn comes
+                _line_inputs(ln)
+            except TorchcalError as e:
+                out.append(f"{path}: line {ln.number}: {_console.one_line(str(e))}")
     return out
 
 
@@ -220,11 +229,10 @@ def _check_robot_line(data, spec: str, robot) -> None:
         )
 
 
-def _calibrate(line: Line, out: Path):
-    """``torchcal calibrate`` of one line into the run directory ``out`` (calibrate's defaults otherwise)."""
+def _line_inputs(line: Line):
+    """The robot, options, prior (or None) and data of one line, each checked as ``calibrate`` checks them."""
     from torchcal import pipeline as C
     from torchcal.data import read_measurements
-    from torchcal.report.rundir import write_run
     from torchcal.robot import load_robot
     from torchcal.robot.load import calibrated_flange
 
@@ -249,6 +257,15 @@ def _calibrate(line: Line, out: Path):
     _check_robot_line(data, line.robot, robot)
     if prior is None:
         C.check_holdout(data.n, opts.split.holdout)
+    return robot, opts, prior, data
+
+
+def _calibrate(line: Line, out: Path):
+    """``torchcal calibrate`` of one line into the run directory ``out`` (calibrate's defaults otherwise)."""
+    from torchcal import pipeline as C
+    from torchcal.report.rundir import write_run
+
+    robot, opts, prior, data = _line_inputs(line)
     run = C.calibrate(robot, data, opts, robot_spec=line.robot, prior=prior)
     write_run(run, out, inputs=[line.data, *([line.prior] if line.prior else [])])
 

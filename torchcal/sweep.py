@@ -18,10 +18,13 @@ then :func:`map_tasks` raises :class:`SweepError`, which names every failure and
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import os
 import re
+import shutil
 import sys
+import tempfile
 import traceback
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -150,10 +153,58 @@ def _check_reachable(address: str) -> None:
     try:
         socket.create_connection((m.group(1), int(m.group(2))), timeout=REACH_TIMEOUT).close()
     except OSError as e:
+        client = (
+            " (a ray:// address is the head's Ray Client server, port 10001 by default, which runs only where the head "
+            "was started with one; the address 'ray start --head' prints, HOST:PORT without ray://, needs none)"
+            if address.strip().startswith("ray://")
+            else ""
+        )
         raise OptionError(
-            f"--address {address}: nothing answers there within {REACH_TIMEOUT:g} s ({e.strerror or e}); start the "
-            "cluster (ray start --head) or give its address"
+            f"--address {address}: nothing answers there within {REACH_TIMEOUT:g} s ({e.strerror or e}){client}; "
+            "start the cluster (ray start --head) or give its address"
         ) from None
+
+
+#: what Ray's log says when the head wants a token this process did not send
+_AUTH_SIGNS = ("InvalidAuthToken", "Unauthenticated", "AuthenticationError", "auth token", "authentication token")
+
+
+@contextlib.contextmanager
+def _stderr_kept(into: list):
+    """Ray's C++ client writes to file descriptor 2 directly (20 lines of 'Unauthenticated ... InvalidAuthToken'
+    while it retries a head that wants a token): held in a file while it connects, the text put into ``into``."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as f:
+        os.dup2(f.fileno(), 2)
+        try:
+            yield
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            f.seek(0)
+            into.append(f.read().decode(errors="replace"))
+
+
+def _join(address: str) -> None:
+    """``ray.init`` at a cluster's ``address``; a refusal that says why where it cannot join."""
+    import ray
+
+    log: list[str] = []
+    try:
+        with _stderr_kept(log):
+            ray.init(address=address, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+    except (ConnectionError, RuntimeError, ValueError) as e:
+        text = "".join(log) + str(e)
+        if any(sign.lower() in text.lower() for sign in _AUTH_SIGNS):
+            raise OptionError(
+                f"--address {address}: the cluster wants an authentication token this process did not send (Ray "
+                "turns token authentication on for a head started where ~/.ray/auth_token exists); set "
+                "RAY_AUTH_MODE=token, with the head's token in RAY_AUTH_TOKEN or ~/.ray/auth_token, and run again"
+            ) from None
+        last = next((ln for ln in reversed(text.splitlines()) if ln.strip()), type(e).__name__)
+        raise OptionError(f"--address {address}: Ray could not join the cluster there: {last.strip()[:300]}") from None
 
 
 def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, done: Callable[[int, Any], None]) -> list:
@@ -166,11 +217,23 @@ def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, don
     started = not ray.is_initialized()
     if started and address:
         _check_reachable(address)
+    private = None
     if started:
-        kw = {"address": address} if address else {"num_cpus": cpus or os.cpu_count() or 1}
-        with worker_env():
-            ray.init(**kw, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
+        if not address:
+            # a private instance whatever else runs: address "local" never joins another instance (another fleet,
+            # another user's Ray, a stale ray_current_cluster file of a killed one: 'num_cpus must not be provided'),
+            # and its own temp root shares no sockets, session or cluster file with them
+            private = tempfile.mkdtemp(prefix="tcray-", dir="/tmp" if os.path.isdir("/tmp") else None)
+            kw = {"address": "local", "num_cpus": cpus or os.cpu_count() or 1, "_temp_dir": private}
+    earlier = _descendants(os.getpid()) if private is not None else {}
+    pending: dict = {}
+    watchdog = None
     try:
+        if started and address:
+            _join(address)
+        elif started:  # within the try: Ctrl-C while Ray starts stops what has started
+            with worker_env():
+                ray.init(**kw, include_dashboard=False, log_to_driver=False, logging_level="ERROR")
         remote = ray.remote(num_cpus=1, max_retries=RETRIES)(_ray_call)
         fn_ref = ray.put(fn)  # once, not with every task
         pending = {remote.remote(fn_ref, it): i for i, it in enumerate(items)}
@@ -184,9 +247,88 @@ def on_ray(fn: Callable, items: list, cpus: int | None, address: str | None, don
                 out[i] = _ray_failure(i, items[i], e)
             done(i, out[i])
         return out
+    except KeyboardInterrupt:
+        watchdog = _interrupted(ray, pending)
+        raise
     finally:
+        ours = {k: v for k, v in _descendants(os.getpid()).items() if earlier.get(k) != v} if private else {}
         if started:
-            ray.shutdown()
+            with contextlib.suppress(Exception):  # after an interrupted start there may be nothing to stop
+                ray.shutdown()
+        if private is not None:
+            _end(ours)
+            shutil.rmtree(private, ignore_errors=True)
+            # Ray's monitor and dashboard, stopping, may write a last log there: once more when this process ends
+            atexit.register(shutil.rmtree, private, ignore_errors=True)
+        if watchdog is not None:  # stopped in time
+            watchdog.cancel()
+
+
+def _descendants(pid: int) -> dict[int, str]:
+    """``{pid: start time}`` of the live processes below ``pid`` (Linux ``/proc``; elsewhere none)."""
+    parent, start = {}, {}
+    with contextlib.suppress(OSError):
+        for p in os.listdir("/proc"):
+            if p.isdigit():
+                try:
+                    fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)[1].split()
+                except (OSError, IndexError):
+                    continue
+                parent[int(p)], start[int(p)] = int(fields[1]), fields[19]
+    out, todo = {}, [pid]
+    while todo:
+        here = todo.pop()
+        for child, up in parent.items():
+            if up == here and child not in out:
+                out[child] = start[child]
+                todo.append(child)
+    return out
+
+
+def _end(procs: dict[int, str]) -> None:
+    """Kill what is left of a private instance's processes ``{pid: start time}`` once Ray has stopped it: its
+    dashboard and runtime-env agents outlived an interrupted fleet by minutes, holding its temp root."""
+    import signal
+    import time
+
+    deadline = time.monotonic() + 2.0
+    while procs and time.monotonic() < deadline:
+        procs = {pid: t for pid, t in procs.items() if _descendants_alive(pid, t)}
+        if procs:
+            time.sleep(0.1)
+    for pid in procs:
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGKILL)
+
+
+def _descendants_alive(pid: int, start: str) -> bool:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return False
+    return fields[19] == start and fields[0] != "Z"
+
+
+#: seconds an interrupted sweep is given to end its tasks and stop its instance before the process exits regardless
+INTERRUPT_GRACE = 8.0
+
+
+def _interrupted(ray, pending: dict):
+    """Ctrl-C: the running tasks are cancelled (their workers killed), and a watchdog ends this process with 130
+    should stopping Ray take longer than :data:`INTERRUPT_GRACE` s (under load it was still alive 290 s later)."""
+    import threading
+
+    def give_up() -> None:
+        print("interrupted; Ray did not stop in time: exiting", file=sys.stderr, flush=True)
+        os._exit(130)
+
+    timer = threading.Timer(INTERRUPT_GRACE, give_up)
+    timer.daemon = True
+    timer.start()
+    with contextlib.suppress(Exception):
+        for ref in pending:
+            ray.cancel(ref, force=True)
+    return timer
 
 
 def in_process(fn: Callable, items: list, done: Callable[[int, Any], None]) -> list:

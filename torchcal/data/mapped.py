@@ -88,6 +88,20 @@ def _yaml_loader():
         pass
 
     def mapping(loader, node):
+        seen = {}
+        for k, _ in node.value:
+            key = loader.construct_object(k)
+            if isinstance(key, (str, int, float, bool)) and key in seen:
+                # PyYAML keeps the last of two equal keys: a second 'joints:' dropped the first's signs and offsets
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"key {key!r} appears twice (lines {seen[key]} and {k.start_mark.line + 1}); the second would "
+                    "replace the first without a word: keep one",
+                    k.start_mark,
+                )
+            if isinstance(key, (str, int, float, bool)):
+                seen[key] = k.start_mark.line + 1
         out = Lined(loader.construct_mapping(node, deep=True))
         out.where = {loader.construct_object(k): k.start_mark.line + 1 for k, _ in node.value}
         out.where[None] = node.start_mark.line + 1
@@ -105,15 +119,16 @@ MAX_MAP_BYTES = 1 << 20
 def _load_yaml(path: str, what: str, max_bytes: int | None = None):
     import yaml
 
-    try:
-        size = os.stat(path).st_size
-        if max_bytes is not None and size > max_bytes:
-            raise MeasurementFileError(
-                path, f"{size} bytes; a {what} is a few lines (at most {max_bytes} bytes): is it the {what}?"
-            )
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        raise MeasurementFileError(path, f"cannot read the {what}: {e}") from None
+    from torchcal._inputs import check_regular, read_text_bounded
+
+    # one check for every input path: a device, FIFO or directory refused unopened (/dev/zero read 2.2 GB)
+    kind = "MAP" if what == "MAP" else "convert input"
+    size = check_regular(path, kind, lambda m: MeasurementFileError(path, m)).st_size
+    if max_bytes is not None and size > max_bytes:
+        raise MeasurementFileError(
+            path, f"{size} bytes; a {what} is a few lines (at most {max_bytes} bytes): is it the {what}?"
+        )
+    text = read_text_bounded(path, kind, lambda m: MeasurementFileError(path, m))
     try:
         return yaml.load(text, Loader=_yaml_loader())  # noqa: S506 (a SafeLoader subclass)
     except yaml.YAMLError as e:
@@ -179,9 +194,17 @@ def _role(spec, map_path: str, doc: dict, key: str) -> dict:
         raise MeasurementFileError(map_path, f"'{key}' needs 'columns'", line=_line(doc, key), column=key)
     given = role.get("input", 1)
     inputs = given if isinstance(given, list) else [given]
-    if not inputs or not all(isinstance(i, int) and i >= 1 for i in inputs):
+    if not inputs or not all(isinstance(i, int) and not isinstance(i, bool) and i >= 1 for i in inputs):
         raise MeasurementFileError(
             map_path, f"'{key}.input' must be input numbers from 1, got {given!r}", line=_line(doc, key), column=key
+        )
+    twice = next((i for k, i in enumerate(inputs) if i in inputs[:k]), None)
+    if twice is not None:  # input: [2, 2] made two probes of identical rows, counted twice by the fit
+        raise MeasurementFileError(
+            map_path,
+            f"'{key}.input' lists input {twice} twice ({given!r}): each input is read once",
+            line=_line(doc, key),
+            column=key,
         )
     role["input"] = inputs
     role["line"] = _line(doc, key)
@@ -192,8 +215,9 @@ def _role(spec, map_path: str, doc: dict, key: str) -> dict:
 def read_table(path: str, read: dict) -> Table:
     """An input as a :class:`Table`: ``.mat`` through scipy.io, ``.yaml``/``.yml`` as rows of mappings or lists,
     anything else as delimited text."""
-    if not Path(path).is_file():
-        raise MeasurementFileError(path, "no such file (an INPUT of convert --map)")
+    from torchcal._inputs import check_regular
+
+    check_regular(path, "convert input", lambda m: MeasurementFileError(path, m))
     suffix = Path(path).suffix.lower()
     if suffix == ".mat":
         return _mat_table(path, read.get("variable"))
@@ -236,10 +260,9 @@ def _delimiter(first: str, read: dict) -> str:
 
 
 def _text_table(path: str, read: dict) -> Table:
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as e:
-        raise MeasurementFileError(path, f"cannot read the file as UTF-8 text: {e}") from None
+    from torchcal._inputs import read_text_bounded
+
+    text = read_text_bounded(path, "convert input", lambda m: MeasurementFileError(path, m))
     comment = tuple(read.get("comment", "#%"))
     body = [(k + 1, ln) for k, ln in enumerate(text.splitlines()) if ln.strip() and not ln.lstrip().startswith(comment)]
     if not body:
@@ -272,8 +295,9 @@ def _yaml_blocks(path: str, doc, read: dict) -> list[tuple[str | None, object, i
     """``(block name, its rows' list, line)`` per block (one unnamed block without ``read.blocks``)."""
     key_blocks, key_rows = read.get("blocks"), read.get("rows")
     if key_blocks is None:
-        rows = doc.get(key_rows) if key_rows is not None and isinstance(doc, dict) else doc
-        return [(None, rows, _line(doc, key_rows))]
+        if key_rows is None or not isinstance(doc, dict):
+            return [(None, doc, None)]
+        return [(None, rows, line) for rows, line in _descend(doc, key_rows.split("."), _line(doc, key_rows))]
     blocks = doc.get(key_blocks) if isinstance(doc, dict) else None
     if isinstance(blocks, dict):  # name: block
         items = [(str(k), b, _line(blocks, k)) for k, b in blocks.items()]
@@ -285,9 +309,25 @@ def _yaml_blocks(path: str, doc, read: dict) -> list[tuple[str | None, object, i
     for k, (name, block, line) in enumerate(items):
         if not isinstance(block, dict) and (key_rows is not None or name is None):
             raise MeasurementFileError(path, f"block {k + 1} is not a mapping (with its rows under 'rows')", line=line)
-        rows = block.get(key_rows) if key_rows is not None else block
-        out.append((name if name is not None else block.get("name", f"B{k + 1}"), rows, line))
+        name = name if name is not None else block.get("name", f"B{k + 1}")
+        found = _descend(block, key_rows.split("."), line) if key_rows is not None else [(block, line)]
+        out += [(name, rows, where) for rows, where in found]
     return out
+
+
+def _descend(node, keys: list[str], line: int | None) -> list[tuple[object, int | None]]:
+    """The rows' lists under the dotted path ``read.rows`` (``a.b``: key b of key a; ``*``: every entry of a mapping
+    or list there): a YAML nested two levels (placements, column heights, then the stationing rows) reads as the
+    placements' blocks, each with all its heights' rows. A missing key gives None (refused by the caller)."""
+    if not keys:
+        return [(node, line)]
+    head, rest = keys[0], keys[1:]
+    if head == "*" and isinstance(node, (dict, list)):
+        entries = node.items() if isinstance(node, dict) else enumerate(node)
+        return [found for k, v in entries for found in _descend(v, rest, _line(node, k) or line)]
+    if not isinstance(node, dict) or head not in node:
+        return [(None, line)]
+    return _descend(node[head], rest, _line(node, head) or line)
 
 
 def _yaml_table(path: str, read: dict) -> Table:
@@ -321,6 +361,8 @@ def _to_float(cell, read: dict) -> float | None:
     text = str(cell).strip()
     if read.get("decimal", ".") == ",":
         text = text.replace(",", ".")
+    if "_" in text or not text.isascii():
+        return None  # float() reads '0_1' as 1 and Arabic-Indic digits; calibrate's reader refuses both
     try:
         return float(text)
     except ValueError:
@@ -450,20 +492,40 @@ def _rotation_rows(R: torch.Tensor, table: Table, cols: list[int]) -> torch.Tens
     return matrix_to_rotvec(R)
 
 
-def _check_bottom_row(M: torch.Tensor, table: Table, cols: list[int]) -> None:
-    """A 4x4 pose's last row must be ``0 0 0 1``: written column-major it holds the translation instead, and read
-    row-major every position would be zero and every rotation transposed."""
+def _check_bottom_row(M: torch.Tensor, table: Table, cols: list[int], read: dict) -> None:
+    """A 4x4 pose's last row must be ``0 0 0 1``. The refusal says what the columns look like instead: written
+    column-major (the last *column* is ``0 0 0 1``), or the range off by one (the columns beside it hold the pose);
+    an off-by-one range was called column-major."""
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=M.dtype)
     bad = (M[:, 3, :] - bottom).abs().amax(-1) > ROTATION_TOLERANCE
-    if bool(bad.any()):
-        i = int(bad.nonzero()[0, 0])
-        row = " ".join(f"{float(x):g}" for x in M[i, 3])
-        raise MeasurementFileError(
-            table.path,
-            f"columns {cols[0] + 1}..{cols[-1] + 1} are read as a row-major 4x4 pose, whose last row must be "
-            f"0 0 0 1; it is {row} (a matrix written column-major? give its columns in row-major order)",
-            line=table.lines[i],
-        )
+    if not bool(bad.any()):
+        return
+    i = int(bad.nonzero()[0, 0])
+    row = " ".join(f"{float(x):g}" for x in M[i, 3])
+    if bool(((M[:, :, 3] - bottom).abs().amax(-1) <= ROTATION_TOLERANCE).all()):
+        why = "its last column is 0 0 0 1 in every row: a matrix written column-major? give its columns row-major"
+    else:
+        why = "check matrix.columns"
+        for shift in (-1, 1, -2, 2):
+            moved = [c + shift for c in cols]
+            if min(moved) < 0 or any(max(moved) >= len(r) for r in table.rows):
+                continue
+            try:
+                near = numbers(table, moved, read).reshape(-1, 4, 4)
+            except MeasurementFileError:
+                continue
+            if bool(((near[:, 3, :] - bottom).abs().amax(-1) <= ROTATION_TOLERANCE).all()):
+                why = (
+                    f"columns {moved[0] + 1}..{moved[-1] + 1} hold a row-major pose in every row: the range is off "
+                    f"by {abs(shift)}; write matrix.columns: {moved[0] + 1}-{moved[-1] + 1}"
+                )
+                break
+    raise MeasurementFileError(
+        table.path,
+        f"columns {cols[0] + 1}..{cols[-1] + 1} are read as a row-major 4x4 pose, whose last row must be "
+        f"0 0 0 1; it is {row} ({why})",
+        line=table.lines[i],
+    )
 
 
 def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: float):
@@ -472,16 +534,19 @@ def _pose(role_key: str, role: dict, table: Table, inputs: _Inputs, length: floa
     cols = columns_of(role["columns"], table, inputs.map_path, f"{role_key}.columns", role["line"])
     v = numbers(table, cols, inputs.read)
     want = {"position": (3,), "matrix": (16, 12), "quaternion": (4,)}[role_key]
-    if len(cols) not in want:
+    several = role_key == "position" and len(cols) > 3 and len(cols) % 3 == 0  # reflectors side by side in a row
+    if len(cols) not in want and not several:
         raise MeasurementFileError(
-            inputs.map_path, f"{role_key}.columns names {len(cols)} columns, {' or '.join(map(str, want))} expected"
+            inputs.map_path,
+            f"{role_key}.columns names {len(cols)} columns, {' or '.join(map(str, want))} expected"
+            + (" (or 3 per reflector, several reflectors in one row)" if role_key == "position" else ""),
         )
     if role_key == "position":
-        return v * length, None
+        return (v * length).reshape(v.shape[0], -1, 3).squeeze(1), None
     if role_key == "matrix":
         M = v.reshape(-1, len(cols) // 4, 4)
         if M.shape[1] == 4:
-            _check_bottom_row(M, table, cols)
+            _check_bottom_row(M, table, cols, inputs.read)
         return M[:, :3, 3] * length, _rotation_rows(M[:, :3, :3], table, cols)
     order = role.get("order", "wxyz")
     if order not in ("wxyz", "xyzw"):
@@ -533,7 +598,16 @@ def _points(doc: dict, inputs: _Inputs, joint_tables: list[Table], length: float
             p, r = _pose(key, role, table, inputs, length)
             pose["p"] = p if p is not None else pose["p"]
             pose["r"] = r if r is not None else pose["r"]
-        out.append((k, table, pose))
+        if pose["p"] is not None and pose["p"].dim() == 3:  # several reflectors per row: one points input each
+            if pose["r"] is not None:
+                raise MeasurementFileError(
+                    inputs.map_path,
+                    "position.columns names several reflectors per row: an orientation goes with one reflector",
+                    line=roles["position"]["line"],
+                )
+            out += [(k, table, {"p": pose["p"][:, j], "r": None}) for j in range(pose["p"].shape[1])]
+        else:
+            out.append((k, table, pose))
     return out
 
 
@@ -734,6 +808,93 @@ def _paired_joints(doc: dict, inputs: _Inputs, joints: list, k: int) -> tuple[to
     return torch.cat([q for _, q in joints]), extra, tuple(line for table, _ in joints for line in table.lines)
 
 
+def _distinct_files(inputs: _Inputs) -> None:
+    """Refuse one file given as two INPUTs: its rows would become two probes (or stations) of identical readings,
+    and the fit would count each measurement twice (sigmas 1/sqrt(2) too small)."""
+    from torchcal._inputs import check_regular
+
+    stats = []
+    for k, path in enumerate(inputs.paths, start=1):
+        st = check_regular(path, "convert input", lambda m, path=path: MeasurementFileError(path, m))
+        same = next((j for j, other in stats if (other.st_dev, other.st_ino) == (st.st_dev, st.st_ino)), None)
+        if same is not None:
+            raise MeasurementFileError(
+                path,
+                f"INPUTs {same} and {k} are the same file: each input is read once (a MAP role reads one input "
+                "for several roles by its number)",
+            )
+        stats.append((k, st))
+
+
+def _distinct_poses(inputs: _Inputs, points: list) -> None:
+    """Refuse two points inputs whose every pose is the same: copies of one file, not two reflectors or placements."""
+    for a in range(len(points)):
+        for b in range(a):
+            pa, pb = points[a][2], points[b][2]
+            same = [
+                pa[key] is not None
+                and pb[key] is not None
+                and pa[key].shape == pb[key].shape
+                and torch.equal(pa[key], pb[key])
+                for key in ("p", "r")
+            ]
+            if all(s or pa[key] is None for s, key in zip(same, ("p", "r"))):
+                raise MeasurementFileError(
+                    points[a][1].path,
+                    f"INPUT {points[a][0]} has the very poses of INPUT {points[b][0]} ({points[b][1].path}), row for "
+                    "row: a copy, which the fit would count twice; give each measured file once",
+                )
+
+
+def _check_mapped_units(doc: dict, inputs: _Inputs, joints: list, points: list) -> None:
+    """What calibrate checks of the units, in the MAP's declared units, naming the MAP's ``units:`` as the fix
+    (degrees read as radians reached |q| = 169.5, mm read as m 2,641 m, and only calibrate said so, naming its own
+    flags)."""
+    from torchcal.data.measurements import (
+        _MAX_ABS_ANGLE_RAD,
+        _MAX_MEDIAN_DISTANCE_M,
+        _MIN_DEGREES_MOVED,
+        _MIN_MEDIAN_DISTANCE_MM,
+    )
+
+    units = doc.get("units", {})
+    length_unit, angle_unit = units.get("length", "m"), units.get("angle", "rad")
+    where = f"the MAP's line {_line(doc, 'units')}" if "units" in doc else "a line of its own"
+    ps = [(table, pose["p"] / LENGTH[length_unit]) for _, table, pose in points if pose["p"] is not None]
+    if ps:
+        median = torch.cat([p for _, p in ps]).norm(dim=-1).median().item()
+        wrong = {"m": (median > _MAX_MEDIAN_DISTANCE_M, "mm", "millimetres", f"more than {_MAX_MEDIAN_DISTANCE_M:g}")}
+        wrong["mm"] = (median < _MIN_MEDIAN_DISTANCE_MM, "m", "metres", f"less than {_MIN_MEDIAN_DISTANCE_MM:g}")
+        bad, fix, looks, bound = wrong[length_unit]
+        if bad:
+            raise MeasurementFileError(
+                inputs.map_path,
+                f"the positions of {ps[0][0].path} look like {looks}: read as {length_unit}, their median distance "
+                f"from the tracker is {median:.6g} {length_unit}, {bound} {length_unit}",
+                line=_line(doc, "units"),
+                hint=f"write 'units: {{length: {fix}}}' in the MAP ({where})",
+            )
+    for table, q in joints:
+        q = q / ANGLE[angle_unit]
+        if angle_unit == "rad" and bool((q.abs() > _MAX_ABS_ANGLE_RAD).any()):
+            i, j = (int(x) for x in (q.abs() > _MAX_ABS_ANGLE_RAD).nonzero()[0])
+            raise MeasurementFileError(
+                table.path,
+                f"joint {j + 1} = {q[i, j].item():.6g} rad is more than one turn (2*pi): the joint readings look like "
+                "degrees",
+                line=table.lines[i],
+                hint=f"write 'units: {{angle: deg}}' in the MAP ({where})",
+            )
+        largest = float(q.abs().max()) if q.numel() else 0.0
+        if angle_unit == "deg" and _MIN_DEGREES_MOVED < largest <= _MAX_ABS_ANGLE_RAD:
+            raise MeasurementFileError(
+                table.path,
+                f"the joint readings look like radians although the MAP declares degrees: every |q| is at most 2*pi "
+                f"(the largest {largest:.6g}), so as degrees the robot would never move more than 6.3 deg",
+                hint=f"write 'units: {{angle: rad}}' in the MAP, or leave 'angle' out ({where})",
+            )
+
+
 def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements:
     """The measurements the MAP reads from ``paths`` (the INPUT files, numbered from 1), in SI units.
 
@@ -747,6 +908,7 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
     units = doc.get("units", {})
     length, angle = LENGTH[units.get("length", "m")], ANGLE[units.get("angle", "rad")]
     inputs = _Inputs(str(map_path), [str(p) for p in paths], doc.get("read", {}))
+    _distinct_files(inputs)
     joints = _joints(doc, inputs, angle)
     points = _points(doc, inputs, [t for t, _ in joints], length)
     if len(points) > 1 and doc.get("probe") is None and doc.get("station") is None:
@@ -766,6 +928,8 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
         if names is not None:
             labels[key], labels[f"{key}_names"] = labels_of(names)
     _distinct_inputs(doc, [n for n, _, _ in points], inputs)  # after _labels: the lists' lengths are checked
+    _distinct_poses(inputs, points)
+    _check_mapped_units(doc, inputs, joints, points)
     return Measurements(
         q=q,
         p=p,
@@ -776,6 +940,28 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
         lines=lines,
         meta={"converted_from": ", ".join(Path(x).name for x in paths)},
         **labels,
+    )
+
+
+def orientation_note(map_path: str | os.PathLike) -> str:
+    """What an orientation read by the MAP (``matrix:`` or ``quaternion:``) does downstream, and the MAP that writes
+    positions alone: a 4x4 pose made every fit 6-D (3.3x the CPU of a position fit) without a word."""
+    doc = read_map(map_path)
+    key = "matrix" if "matrix" in doc else "quaternion"
+    role = _role(doc[key], str(map_path), doc, key)
+    where = f"input: {role['input'][0] if len(role['input']) == 1 else role['input']}, "
+    if key == "quaternion":
+        fix = "leave out 'quaternion:'"
+    else:
+        m = re.fullmatch(r"\s*(\d+)\s*-\s*(\d+)\s*", str(role["columns"]))
+        if m is not None and int(m.group(2)) - int(m.group(1)) + 1 in (12, 16):
+            a = int(m.group(1))
+            fix = f"write 'position: {{{where}columns: [{a + 3}, {a + 7}, {a + 11}]}}' instead of 'matrix:'"
+        else:
+            fix = "write 'position:' with the matrix's translation columns (its 4th, 8th and 12th) instead of 'matrix:'"
+    return (
+        f"the rows carry the probe's orientation (rx, ry, rz from '{key}:'): calibrate fits position and orientation "
+        f"(6-D, about 3x the CPU of positions alone); for positions alone, {fix}"
     )
 
 

@@ -387,6 +387,7 @@ def read_measurements(
     purpose: str | None = None,
     require_joints: bool = True,
     joint_types: Sequence[str] | None = None,
+    text_columns: bool = False,
 ) -> Measurements:
     """Read and validate a measurement file; return it in SI units.
 
@@ -405,6 +406,8 @@ def read_measurements(
             (compensation targets), with ``q`` of shape (N, 0).
         joint_types: ``"revolute"`` or ``"prismatic"`` per joint (default all revolute): a prismatic joint's
             reading is a length, in ``length_unit``, and its limits are metres.
+        text_columns: whether a column of the file's own (not of the format) that holds text is ignored (True:
+            predict's input, where notes beside the numbers change nothing) rather than refused.
 
     Returns:
         The measurements, with ``source`` set to ``str(path)``.
@@ -417,7 +420,7 @@ def read_measurements(
     joint_limits = _check_arguments(length_unit, angle_unit, dof, joint_limits)
     path_str = str(path)
     meta, layout, table, lines, labels = _read_table(
-        path_str, dof, joint_limits, robot_name, require_positions, require_joints
+        path_str, dof, joint_limits, robot_name, require_positions, require_joints, text_columns
     )
     c = _table_columns(table, layout)
     station, station_names, probe, probe_names = _label_columns(path_str, labels, lines)
@@ -453,7 +456,9 @@ def read_measurements(
     )
 
 
-def _read_table(path_str: str, dof, joint_limits, robot_name, require_positions: bool, require_joints: bool):
+def _read_table(
+    path_str: str, dof, joint_limits, robot_name, require_positions: bool, require_joints: bool, text_ok: bool = False
+):
     """The file's ``# key: value`` lines, its column layout, its values as an (N, columns) table, each row's line
     number and the label columns' cells; the header checked against the robot's joint count."""
     text = _read_text(path_str)
@@ -468,7 +473,10 @@ def _read_table(path_str: str, dof, joint_limits, robot_name, require_positions:
     if layout.joints or require_joints:
         _check_joint_count(path_str, layout, header_line, dof, joint_limits, robot_name)
 
-    values, lines, labels = _parse_rows(path_str, raw_lines, header_index + 1, header)
+    text = [n for n in layout.extra if n not in ("model",)] if text_ok else []
+    text = _text_columns(raw_lines[header_index + 1 :], header, text)
+    values, lines, labels = _parse_rows(path_str, raw_lines, header_index + 1, header, text)
+    layout.extra = [n for n in layout.extra if n not in text]
     table = torch.tensor(values, dtype=torch.float64).reshape(len(lines), len(header))
     return meta, layout, table, lines, labels
 
@@ -738,7 +746,35 @@ def _check_joint_count(path, layout: _Layout, line: int, dof, joint_limits, robo
         )
 
 
-def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
+def _text_columns(data_lines: list[str], header: list[str], candidates: list[str]) -> list[str]:
+    """Those of ``candidates`` (extra columns) with a cell that is text in any row: not empty, not an ASCII number.
+    A load column (``payload``, ``tau1``..) is never text: predict honours it, and a text cell there is an error."""
+    candidates = [n for n in candidates if not re.fullmatch(r"payload|tau[0-9]+", n)]
+    if not candidates:
+        return []
+    index = {header.index(n): n for n in candidates}
+    found: set[str] = set()
+    for row in csv.reader([ln for ln in data_lines if ln and not ln.isspace() and not ln.lstrip().startswith("#")]):
+        for k, name in index.items():
+            if _is_text(row[k].strip() if k < len(row) else ""):
+                found.add(name)
+    return [n for n in candidates if n in found]
+
+
+def _is_text(cell: str) -> bool:
+    """A cell that is no number at all (an empty cell or 'nan' is left to the reader's own refusals)."""
+    if not cell:
+        return False
+    if "_" in cell or not cell.isascii():
+        return True
+    try:
+        float(cell)
+    except ValueError:
+        return True
+    return False
+
+
+def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str], text: Sequence[str] = ()):
     """Parse every data row after the header; return (row-major values, line numbers, label column -> cells).
 
     A label column (``station``, ``probe``) holds integers or names: its cells are kept as text (stripped) and
@@ -746,7 +782,7 @@ def _parse_rows(path: str, raw_lines: list[str], start: int, header: list[str]):
     ncol = len(header)
     label_cols = {name: header.index(name) for name in _LABELS if name in header}
     labels: dict[str, list[str]] = {name: [] for name in label_cols}
-    ignored = [header.index(name) for name in _IGNORED_TEXT if name in header]
+    ignored = [header.index(name) for name in (*_IGNORED_TEXT, *text) if name in header]
     data_lines = []
     line_numbers = []
     for i in range(start, len(raw_lines)):
@@ -1042,20 +1078,25 @@ def _check_joint_limits(path, q, lines, layout: _Layout, limits, angle_unit, rob
     i, j = _first_bad(bad, [layout.index[c] for c in layout.joints])
     name = layout.joints[j]
     value, lo, hi = q[i, j].item(), lower[j].item(), upper[j].item()
+    # twelve digits and the excess: a reading a few micro-radians past a limit printed to six digits looked
+    # equal to the limit it was refused for
+    excess, side = (lo - value, "below") if value < lo else (value - hi, "above")
     if bool(linear[j]):  # a prismatic joint: metres, and the file's unit where it is another
         factor = LENGTH_UNITS[length_unit]
-        shown = f"{value:.6g} m" if factor == 1.0 else f"{value * factor:.6g} {length_unit} ({value:.6g} m)"
-        bounds = f"[{lo:.6g}, {hi:.6g}] m"
+        shown = f"{value:.12g} m" if factor == 1.0 else f"{value * factor:.12g} {length_unit} ({value:.12g} m)"
+        bounds, unit = f"[{lo:.12g}, {hi:.12g}] m", "m"
     elif angle_unit == "deg":
-        shown = f"{math.degrees(value):.6g} deg ({value:.6g} rad)"
-        bounds = f"[{math.degrees(lo):.6g}, {math.degrees(hi):.6g}] deg"
+        shown = f"{math.degrees(value):.12g} deg ({value:.12g} rad)"
+        bounds = f"[{math.degrees(lo):.12g}, {math.degrees(hi):.12g}] deg"
+        unit = f"deg ({excess:.3g} rad)"
+        excess = math.degrees(excess)
     else:
-        shown = f"{value:.6g} rad"
-        bounds = f"[{lo:.6g}, {hi:.6g}] rad"
+        shown = f"{value:.12g} rad"
+        bounds, unit = f"[{lo:.12g}, {hi:.12g}] rad", "rad"
     whose = f"robot '{robot_name}'" if robot_name else "the robot"
     raise MeasurementFileError(
         path,
-        f"{name} = {shown} is outside the limits of {whose}, {bounds}",
+        f"{name} = {shown} is outside the limits of {whose}, {bounds}: {excess:.3g} {unit} {side} it",
         line=lines[i],
         column=name,
     )

@@ -662,7 +662,8 @@ def _lm(
     fun = _residuals(model, free, ctx, m, W, Wr, _priors(model, free, opts, groups))
     res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
     if res.status in FAILED:
-        raise EstimationError(f"{stage}: least squares {res.status}: {res.message}{_readings_hint(model)}")
+        hint = _readings_hint(model) or null_space_hint(res)
+        raise EstimationError(f"{stage}: least squares {res.status}: {res.message}{hint}")
     if Wr is not None and lead != 1.0 and res.residuals is not None:
         res.variance_weights = _orientation_weights(res.residuals, Wr.shape[0], lead)
     free.assign(res.x)
@@ -678,6 +679,31 @@ def _readings_hint(model: MeasurementModel) -> str:
     return (
         " (hint: the robot maps its readings to its joints; a reading of the other sign than the readings: block says "
         "leaves the fit without a solution: try the sign of each reading in the block, as for a wrong robot)"
+    )
+
+
+def null_space_hint(res) -> str:
+    """Which parameters a singular normal matrix cannot fix, and the joints they belong to: a joint that turns the
+    other way than the description says (a sign, an axis) bends the chain where the data do not go, and the fit then
+    stops 'singular (rank deficient)' without naming a joint to check."""
+    import re
+
+    N = res.normal
+    if N is None or not len(res.names) or not bool(torch.isfinite(N).all()):
+        return ""
+    d = torch.diagonal(N).clamp(min=1e-300).sqrt()
+    Ns = N / d[:, None] / d[None, :]
+    w, V = torch.linalg.eigh(Ns)
+    tiny = w <= float(w[-1]) * 1e-10
+    null = V[:, tiny] if bool(tiny.any()) else V[:, :1]  # the flattest direction where none is exactly null
+    weight = null.square().sum(dim=1)
+    order = [int(i) for i in torch.argsort(weight, descending=True) if float(weight[i]) > 0.1][:6]
+    names = [res.names[i] for i in order] or [res.names[int(torch.argmax(weight))]]
+    joints = sorted({int(m.group(1)) for n in names if (m := re.search(r"(\d+)(?:_joint)?(?:\.\w+)?$", n))})
+    where = f" (joints {', '.join(map(str, joints))})" if joints else ""
+    return (
+        f" (hint: the data cannot fix {', '.join(names)}{where} together: check those joints' signs and axis "
+        "directions in the robot description, and that the data cover them)"
     )
 
 

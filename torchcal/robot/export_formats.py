@@ -79,10 +79,16 @@ def ur_chain_origins(robot: RobotModel) -> torch.Tensor:
             the last joint's axis (offset from it, or tilted: the description's ``wrist_3_link -> tool0`` is fixed).
     """
     g = robot.geometry
-    if g.dof != 6 or robot.dof != 6 or any(t != "revolute" for t in g.joint_types):
+    if g.dof != 6 or any(t != "revolute" for t in g.joint_types):
         raise RobotSpecError(
             f"robot '{robot.name}': the UR kinematics file holds a chain of six revolute joints, this one has "
             f"{g.dof} joints ({', '.join(g.joint_types)})"
+        )
+    if robot.dof != 6:  # six revolute model joints that fewer or more readings drive: it was 'has 6 joints' alone
+        raise RobotSpecError(
+            f"robot '{robot.name}': its six revolute joints are driven by {robot.dof} controller readings (a readings "
+            "map or mimic joints); the UR kinematics file takes one reading per joint: export --format "
+            + ("urdf" if robot.kind == "urdf" else "urdf or dh")
         )
     sign, offset = _readings_as_signs(robot)
     with torch.no_grad():

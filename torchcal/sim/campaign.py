@@ -303,12 +303,23 @@ def _true_robot(
 
 
 def _measured(
-    cfg: SimConfig, g: torch.Generator, q_true: Tensor, p_true: Tensor, t: Tensor, temperature: Tensor, generator: str
+    cfg: SimConfig,
+    g: torch.Generator,
+    q_true: Tensor,
+    p_true: Tensor,
+    t: Tensor,
+    temperature: Tensor,
+    generator: str,
+    limits: Tensor,
 ) -> Callable[[Tensor | slice, str], Measurements]:
     """Tracker noise on ``p_true`` (N, 3) [m], then joint noise on ``q_true`` (N, dof) [rad], drawn from ``g`` in
-    this order; returns ``part(rows, name)``, the measurements of those rows (``meta`` names ``generator``)."""
+    this order; returns ``part(rows, name)``, the measurements of those rows (``meta`` names ``generator``).
+
+    The readings stay within ``limits`` (dof, 2): a controller reports no angle past its limits, and a pose planned
+    at a limit would otherwise read a few micro-radians past it, which calibrate rightly refuses."""
     noise_p = torch.randn(p_true.shape, generator=g, dtype=F64) * cfg.sigma_tracker
     q_read = q_true + torch.randn(q_true.shape, generator=g, dtype=F64) * math.radians(cfg.sigma_joint_deg)
+    q_read = torch.minimum(torch.maximum(q_read, limits[:, 0].to(F64)), limits[:, 1].to(F64))
     p_meas = p_true + noise_p
     sigma = torch.full_like(p_meas, cfg.sigma_tracker) if cfg.write_sigma and cfg.sigma_tracker > 0 else None
 
@@ -454,7 +465,7 @@ def simulate(cfg: SimConfig) -> Campaign:
     with torch.no_grad():
         p_true = model(dataclasses.replace(ctx, payload=payload))
     sigma_q = math.radians(cfg.sigma_joint_deg)
-    part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
+    part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate", nominal.limits)
     n_test = n_train + cfg.test_poses if cfg.tool_axis_deg is not None else None
     train, test = part(slice(0, n_train), "train"), part(slice(n_train, n_test), "test")
     turned = part(slice(n_test, None), "turned") if n_test is not None else None
@@ -608,7 +619,7 @@ def _simulate_stations(cfg: SimConfig) -> Campaign:
     model, effect_truth = _effects(cfg, truth_robot, ctx, g)
     with torch.no_grad():
         p_true = model(ctx)
-    part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate")
+    part = _measured(cfg, g, q_true, p_true, t, temperature, "torchcal simulate", nominal.limits)
     # a 6-D probe: each row's orientation of the one probe frame, seen from the row's station
     r, sigma_r, orientation = (
         _orientations(cfg, g, model, ctx) if cfg.orientation_sigma_deg is not None else (None,) * 3

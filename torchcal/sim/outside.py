@@ -136,7 +136,7 @@ def simulate_outside(effects: list[OutsideEffect], cfg: SimConfig | None = None)
     for rec, e in zip(truth_effects, effects):
         rec["rms_m"] = e.size  # by construction (joint effects: to first order in the amplitude)
     total = (p_true - p0).norm(dim=-1)
-    part = _measured(cfg, g, q, p_true, t, temperature, "torchcal.sim.outside")
+    part = _measured(cfg, g, q, p_true, t, temperature, "torchcal.sim.outside", nominal.limits)
 
     truth = {
         "generator": "torchcal.sim.outside",
@@ -387,6 +387,7 @@ def simulate_outside_trajectory(spec: OutsideTrajectory | None = None) -> Campai
     p_true = tf.transform_points(T, p_base)
     p_meas = p_true + torch.randn(p_true.shape, generator=g, dtype=F64) * spec.sigma_tracker
     q_read = q + torch.randn(q.shape, generator=g, dtype=F64) * spec.sigma_joint
+    q_read = torch.minimum(torch.maximum(q_read, robot.limits[:, 0]), robot.limits[:, 1])  # as campaign._measured
     n_train = spec.train_samples
     meta = {"simulated": "torchcal.sim.outside trajectory", "robot": str(spec.robot), "seed": str(spec.seed)}
 
