@@ -482,7 +482,21 @@ def simulate(cfg: SimConfig) -> Campaign:
     if has_load(cfg):  # the torques' noise is drawn last: the campaign without torques is the same
         tau = measured_torques(truth_robot, q_true, payload, cfg.sigma_torque, g) if cfg.torques else None
         train, test, turned = _with_load(train, test, turned, payload, tau, n_train, n_test)
-    truth = {
+    truth = _truth(cfg, truth_robot, T_tracker_base, tracker_in_base, sigma_q, effect_truth, train, test)
+    if orientation is not None:
+        truth["orientation"] = orientation
+    if turned is not None:
+        truth["files"]["turned"] = {"n": turned.n}
+        truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)
+    if has_load(cfg):
+        truth["load"] = _load_truth(cfg, payload, n_train, masses)
+    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
+
+
+def _truth(cfg: SimConfig, truth_robot, T_tracker_base, tracker_in_base, sigma_q, effect_truth, train, test) -> dict:
+    """``truth.json`` of a one-station campaign: the configuration, the true robot, instrument, tool, noise, readings
+    map and effects, and what each file holds (the orientation, tool-axis and load blocks are added by the caller)."""
+    return {
         "generator": "torchcal simulate",
         "config": _config_dict(cfg),
         "robot": {
@@ -517,14 +531,6 @@ def simulate(cfg: SimConfig) -> Campaign:
             else "poses drawn independently; first `poses` train",
         },
     }
-    if orientation is not None:
-        truth["orientation"] = orientation
-    if turned is not None:
-        truth["files"]["turned"] = {"n": turned.n}
-        truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)
-    if has_load(cfg):
-        truth["load"] = _load_truth(cfg, payload, n_train, masses)
-    return Campaign(train=train, test=test, truth=truth, model=model, q_true=q_true, turned=turned)
 
 
 def _with_load(train, test, turned, payload, tau, n_train: int, n_test: int | None):
