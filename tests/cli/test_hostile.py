@@ -131,6 +131,7 @@ def test_an_unmarked_run_of_an_earlier_torchcal_is_replaced_but_not_with_foreign
     demo = tmp_path / "demo"  # an earlier demo output: data/, run/, summary.json
     shutil.copytree(run_dir, demo / "run")
     (demo / "run" / _outdir.MARKER).unlink()
+    (demo / "run" / "holdout.pt").unlink()
     (demo / "data").mkdir()
     for f in ("train.csv", "test.csv"):
         shutil.copy(campaign / f, demo / "data" / f)
