@@ -255,9 +255,21 @@ def _story_section(run: CalibrationRun, report: dict) -> list[str]:
         f"Before: {report['rmse_before_mm']:.4f} mm; after the geometric fit: {report['rmse_geometric_mm']:.4f} mm; "
         f"final: {report['rmse_after_mm']:.4f} mm.",
         "",
+        *_narrow_lines(report),
         "![error map](error_map.png)",
         "",
     ]
+
+
+def _narrow_lines(report: dict) -> list[str]:
+    """The story's word on joints the training poses hardly moved: what a prediction beyond them rests on."""
+    narrow = (report.get("region") or {}).get("narrow_joints") or []
+    if not narrow:
+        return []
+    from torchcal.pipeline.checks import NarrowJoint, narrow_note
+
+    note = narrow_note([NarrowJoint(**n) for n in narrow])
+    return [f"**{note[0].upper()}{note[1:]}.**", ""]
 
 
 def _global_test_section(report: dict) -> list[str]:
