@@ -3,6 +3,7 @@ calibration, and geometric corrections of a plausible size."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -13,7 +14,7 @@ from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import EstimationError, MeasurementFileError, OptionError
 from torchcal.estimate.fit import Fit, errors, prior_ratios, prior_scales
-from torchcal.pipeline.options import Options
+from torchcal.pipeline.options import PLAUSIBLE_ANGLE, PLAUSIBLE_LENGTH, Options
 
 Tensor = torch.Tensor
 
@@ -99,10 +100,14 @@ def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Me
     measured on another robot, in other units, or the description is not the robot's. A readings map's ratios count
     too (unit 1): a ratio that moves by 100 % absorbs a reading in another unit (a track in mm) or of the other
     sign, and the run would then predict in neither."""
-    ratios = {**prior_ratios(fit, model, opts.fit), **_readings_ratios(fit, model, opts)}
+    # counted in the plausible size, not in the fit's own prior (a manufacturing tolerance, ten times tighter, which
+    # weights the fit but says nothing of how large a correction the data determine can legitimately be)
+    scale = dataclasses.replace(opts.fit, prior_length=PLAUSIBLE_LENGTH, prior_angle=PLAUSIBLE_ANGLE)
+    ratios = {**prior_ratios(fit, model, scale), **_readings_ratios(fit, model, opts)}
     units = {i.name: i.unit for i in model.robot.parameter_info() if i.group in ("geometry", "readings")}
     worst = sorted(((r / MAX_PRIOR_RATIO[units[n]], r, n) for n, r in ratios.items()), reverse=True)
     if not worst or worst[0][0] <= 1.0:
+        _check_one_bad_row(fit, model, data)
         return
     listed = []
     for _, r, n in worst[:3]:
@@ -129,6 +134,23 @@ def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Me
 
 #: a row whose miss after the failed fit is this many times the median row's is named as a likely gross error
 STANDS_OUT = 8.0
+#: a geometric fit whose variance factor is this many times its global test's threshold, with one row standing out,
+#: stops the run naming that row: under the tolerance prior one wrong reading (a gross error the screening, which
+#: does not run on several stations, left in) no longer pulls the corrections to many times their plausible size
+FAR_OFF = 1e3
+
+
+def _check_one_bad_row(fit: Fit, model: MeasurementModel, data: Measurements) -> None:
+    test = fit.global_test or {}
+    stat, thr = test.get("statistic"), test.get("threshold")
+    if stat is None or thr is None or not float(stat) > FAR_OFF * float(thr):
+        return
+    row = _standing_out(model, data)
+    if row:
+        raise EstimationError(
+            f"{data.source or 'the measurements'}: the geometric fit of robot '{model.robot.name}' does not describe "
+            f"the data (variance factor {float(stat):.3g}, {float(stat) / float(thr):.0f} x its threshold)" + row
+        )
 
 
 def _standing_out(model: MeasurementModel, data: Measurements) -> str:
