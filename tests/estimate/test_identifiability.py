@@ -121,7 +121,9 @@ def _exact_gen3(tmp_path: Path) -> Path:
     return out
 
 
-def _geometric_fit(spec, train, **fit):
+def _geometric_fit(spec, train, tolerance=False, **fit):
+    """The geometric fit of ``spec`` to ``train``: under the refits' priors, or with ``tolerance`` the geometric
+    stage's (manufacturing tolerances, :meth:`~torchcal.pipeline.options.FitSettings.geometric`)."""
     robot = torchcal.load_robot(str(spec))
     model = MeasurementModel(robot)
     with torch.no_grad():
@@ -129,6 +131,7 @@ def _geometric_fit(spec, train, **fit):
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(t)
     opts = Options.of(method="kinematic", **fit).fit
+    opts = opts.geometric() if tolerance else opts
     return solve(model, train, ("geometry", "instrument", "tool"), opts, "geometric", trajectory=False)
 
 
@@ -170,17 +173,17 @@ def test_prior_tolerance_keeps_the_clean_ur_sets():
     # structural one keeps
     for robot_name in ("ur5", "ur10"):
         c = simulate(SimConfig(robot=robot_name, poses=200, test_poses=0, seed=21))
-        fit = _geometric_fit(robot_name, c.train, prior_length=1e-3, prior_angle=math.radians(0.1))
+        fit = _geometric_fit(robot_name, c.train)
         ida = fit.identifiability
         assert sorted(f["name"] for f in ida.fixed) == sorted(STRUCTURAL_UR)
         assert ida.prior_ratio == DEFAULT_PRIOR_RATIO == ida.to_dict()["prior_ratio"]
 
 
 def test_the_tolerance_prior_holds_near_nominal_what_the_rows_tell_no_better():
-    # the default prior (manufacturing tolerances, 0.1 mm and 0.01 deg) holds a wrist offset 200 poses tell no better
-    # than it at its nominal value, names it so and keeps its doubt in the run's covariance
+    # the geometric stage's prior (manufacturing tolerances, 0.1 mm and 0.01 deg) holds a wrist offset 200 poses
+    # tell no better than it at its nominal value, names it so and keeps its doubt in the run's covariance
     c = simulate(SimConfig(robot="ur5", poses=200, test_poses=0, seed=21))
-    ida = _geometric_fit("ur5", c.train).identifiability
+    ida = _geometric_fit("ur5", c.train, tolerance=True).identifiability
     by_prior = [f for f in ida.fixed if f["name"] not in STRUCTURAL_UR]
     assert by_prior, ida.fixed
     for f in by_prior:

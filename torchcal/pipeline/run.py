@@ -224,7 +224,8 @@ def start(
                 f"kept wholly on one side",
             ),
         )
-    narrow = narrow_note(narrow_joints(data.q[tr], robot.limits, robot.joint_types))
+    # an update's few rows move little; its model's region is the prior run's, which said its own narrow joints
+    narrow = None if prior is not None else narrow_note(narrow_joints(data.q[tr], robot.limits, robot.joint_types))
     if narrow is not None:  # said before any fitting: the user learns it even if the run stops
         _console.info(f"warning: {narrow}")
         notes += (Note("region", narrow),)

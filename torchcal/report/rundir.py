@@ -412,6 +412,8 @@ def _region_report(model: MeasurementModel, run: CalibrationRun | None = None) -
 def _narrow_report(run: CalibrationRun) -> list[dict]:
     from torchcal.pipeline.checks import narrow_joints
 
+    if run.prior is not None:  # an update's rows: the region is the prior run's (torchcal.pipeline.run.start)
+        return []
     robot = run.model.robot
     return [n.to_dict() for n in narrow_joints(run.data.q[run.train_idx], robot.limits, robot.joint_types)]
 
