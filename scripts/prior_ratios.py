@@ -12,12 +12,14 @@ One line per data set: its name and, per unit, the largest ratio and the paramet
 """
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 from torchcal.data import read_measurements
 from torchcal.estimate.fit import prior_ratios
 from torchcal.pipeline import Options
 from torchcal.pipeline import checks as P
+from torchcal.pipeline.options import PLAUSIBLE_ANGLE, PLAUSIBLE_LENGTH
 from torchcal.sim import EffectSpec, SimConfig, simulate
 
 
@@ -29,7 +31,8 @@ def largest(robot: str, m, **options) -> dict:
     finally:
         P.MAX_PRIOR_RATIO = limits
     fit = next(f for f in run.fits if f.stage == "geometric")
-    ratios = prior_ratios(fit, run.model, run.options.fit)
+    scale = dataclasses.replace(run.options.fit, prior_length=PLAUSIBLE_LENGTH, prior_angle=PLAUSIBLE_ANGLE)
+    ratios = prior_ratios(fit, run.model, scale)  # in the stop's units, not the fit's tolerance prior
     units = {i.name: i.unit for i in run.model.robot.parameter_info() if i.group == "geometry"}
     out = {}
     for u in ("m", "rad"):

@@ -117,8 +117,20 @@ def _seed(text: str) -> int:
     return v
 
 
+def _joint_numbers(text: str) -> tuple[int, ...]:
+    """A comma-separated list of 1-based joint numbers, e.g. ``1,4,5,6``."""
+    try:
+        joints = tuple(int(part) for part in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected joint numbers with commas, e.g. 1,4,5,6, got {text!r}") from None
+    if min(joints) < 1 or len(set(joints)) != len(joints):
+        raise argparse.ArgumentTypeError(f"expected distinct joint numbers from 1, got {text!r}")
+    return joints
+
+
 _count.__name__ = "count"
 _seed.__name__ = "seed"
+_joint_numbers.__name__ = "joints"
 POSITIVE, NONNEG, FRACTION = _number("positive"), _number("nonnegative"), _number("fraction")
 # the library's bounds (torchcal._bounds) in the command's units: um, deg, mm
 TRACKER_UM = _number("positive", MAX_SIGMA_TRACKER * 1e6)
@@ -358,6 +370,21 @@ def build_parser() -> argparse.ArgumentParser:
         help="P reflectors on a nest at the flange, every pose measured by each (a probe column P1..PP)",
     )
     _add_load_options(s)
+    s.add_argument(
+        "--narrow",
+        type=_joint_numbers,
+        default=(),
+        metavar="JOINTS",
+        help="a narrow campaign: these joints (e.g. 1,4,5,6) of the training poses stay within --width-deg of one "
+        "pose's while the others range; the test poses range over the whole workspace",
+    )
+    s.add_argument(
+        "--width-deg",
+        type=POSITIVE,
+        default=1.0,
+        metavar="W",
+        help="with --narrow: the width of each held joint's band [deg] (default 1)",
+    )
     _add_common(s)
 
     c = sub.add_parser(
@@ -1632,7 +1659,11 @@ def cmd_simulate(args) -> int:
         payload_levels=args.payload_levels,
         torques=args.torques,
         sigma_torque=args.torque_noise,
+        narrow=args.narrow,
+        narrow_width_deg=args.width_deg,
     )
+    if args.width_deg != 1.0 and not args.narrow:
+        raise OptionError("--width-deg needs --narrow JOINTS")
     what = "a trajectory" if cfg.trajectory else "static poses"
     _console.info(f"simulating {what} for '{cfg.robot}' (seed {cfg.seed})")
     campaign = _simulate(cfg)

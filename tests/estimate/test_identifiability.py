@@ -121,16 +121,18 @@ def _exact_gen3(tmp_path: Path) -> Path:
     return out
 
 
-def _geometric_fit(spec, train):
+def _geometric_fit(spec, train, tolerance=False, **fit):
+    """The geometric fit of ``spec`` to ``train``: under the refits' priors, or with ``tolerance`` the geometric
+    stage's (manufacturing tolerances, :meth:`~torchcal.pipeline.options.FitSettings.geometric`)."""
     robot = torchcal.load_robot(str(spec))
     model = MeasurementModel(robot)
     with torch.no_grad():
         T, t, _ = fit_instrument_and_tool(robot(train.q), train.p)
         robot.instrument.set_matrix(T)
         robot.tool.nominal.copy_(t)
-    return solve(
-        model, train, ("geometry", "instrument", "tool"), Options(method="kinematic").fit, "geometric", trajectory=False
-    )
+    opts = Options.of(method="kinematic", **fit).fit
+    opts = opts.geometric() if tolerance else opts
+    return solve(model, train, ("geometry", "instrument", "tool"), opts, "geometric", trajectory=False)
 
 
 def test_rounded_constants_keep_what_exact_constants_keep(tmp_path):
@@ -163,16 +165,30 @@ def test_rounded_constants_keep_what_exact_constants_keep(tmp_path):
     assert float(ratio[torch.isfinite(ps)].max()) < 0.9
 
 
+STRUCTURAL_UR = ["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6", "a6"]
+
+
 def test_prior_tolerance_keeps_the_clean_ur_sets():
-    # clean campaigns: the tolerance from noise and prior fixes nothing the structural one keeps
+    # clean campaigns under a wide prior (1 mm, 0.1 deg): the tolerance from noise and prior fixes nothing the
+    # structural one keeps
     for robot_name in ("ur5", "ur10"):
         c = simulate(SimConfig(robot=robot_name, poses=200, test_poses=0, seed=21))
         fit = _geometric_fit(robot_name, c.train)
         ida = fit.identifiability
-        assert sorted(f["name"] for f in ida.fixed) == sorted(
-            ["d1", "d3", "d4", "d6", "theta1", "theta6", "alpha6", "a6"]
-        )
+        assert sorted(f["name"] for f in ida.fixed) == sorted(STRUCTURAL_UR)
         assert ida.prior_ratio == DEFAULT_PRIOR_RATIO == ida.to_dict()["prior_ratio"]
+
+
+def test_the_tolerance_prior_holds_near_nominal_what_the_rows_tell_no_better():
+    # the geometric stage's prior (manufacturing tolerances, 0.1 mm and 0.01 deg) holds a wrist offset 200 poses
+    # tell no better than it at its nominal value, names it so and keeps its doubt in the run's covariance
+    c = simulate(SimConfig(robot="ur5", poses=200, test_poses=0, seed=21))
+    ida = _geometric_fit("ur5", c.train, tolerance=True).identifiability
+    by_prior = [f for f in ida.fixed if f["name"] not in STRUCTURAL_UR]
+    assert by_prior, ida.fixed
+    for f in by_prior:
+        assert "held near nominal by the prior" in f["reason"] and f["name"] in ida.prior_held
+    assert not any(n in ida.prior_held for n in STRUCTURAL_UR)  # structurally dependent: no doubt of their own
 
 
 def test_weak_after_fit_holds_a_parameter_its_prior_dominates():

@@ -476,7 +476,24 @@ def _analyse_fresh(model, free, ctx, m, W, Wr, opts: FitOptions, groups):
     _hold(model, [f["name"] for f in back])
     for f in back:
         f["reason"] = f["reason"].replace("held at its current value", "held at its prior value")
+    # a geometric element the rows tell no better than its tolerance prior stays at its nominal value, its prior's
+    # doubt kept in the run's covariance (:func:`considered`): a pose that moves it gets the tolerance's sigma
+    at_nominal = _at_nominal(model)
+    for f in ida.fixed:
+        if f["name"] in at_nominal and "no better than its prior" in f["reason"]:
+            f["reason"] = f["reason"].replace("held at its current value", "held near nominal by the prior")
+            ida.prior_held.append(f["name"])
     return ida, orientation_only
+
+
+def _at_nominal(model: MeasurementModel) -> set[str]:
+    """The geometric elements whose correction is zero (their nominal value)."""
+    geo = model.robot.groups().get("geometry")
+    return {
+        i.name
+        for i in model.robot.parameter_info()
+        if i.group == "geometry" and geo is not None and float(geo.delta.detach()[i.index]) == 0.0
+    }
 
 
 def _orientation_component(model, free, ctx, m, W, Wr, opts: FitOptions, groups, stage, res, scale):

@@ -3,7 +3,9 @@ calibration, and geometric corrections of a plausible size."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass
 
 import torch
 
@@ -12,7 +14,9 @@ from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import EstimationError, MeasurementFileError, OptionError
 from torchcal.estimate.fit import Fit, errors, prior_ratios, prior_scales
-from torchcal.pipeline.options import Options
+from torchcal.pipeline.options import PLAUSIBLE_ANGLE, PLAUSIBLE_LENGTH, Options
+
+Tensor = torch.Tensor
 
 #: fewest held-out poses a run reports an error on
 MIN_HOLDOUT = 3
@@ -96,10 +100,14 @@ def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Me
     measured on another robot, in other units, or the description is not the robot's. A readings map's ratios count
     too (unit 1): a ratio that moves by 100 % absorbs a reading in another unit (a track in mm) or of the other
     sign, and the run would then predict in neither."""
-    ratios = {**prior_ratios(fit, model, opts.fit), **_readings_ratios(fit, model, opts)}
+    # counted in the plausible size, not in the fit's own prior (a manufacturing tolerance, ten times tighter, which
+    # weights the fit but says nothing of how large a correction the data determine can legitimately be)
+    scale = dataclasses.replace(opts.fit, prior_length=PLAUSIBLE_LENGTH, prior_angle=PLAUSIBLE_ANGLE)
+    ratios = {**prior_ratios(fit, model, scale), **_readings_ratios(fit, model, opts)}
     units = {i.name: i.unit for i in model.robot.parameter_info() if i.group in ("geometry", "readings")}
     worst = sorted(((r / MAX_PRIOR_RATIO[units[n]], r, n) for n, r in ratios.items()), reverse=True)
     if not worst or worst[0][0] <= 1.0:
+        _check_one_bad_row(fit, model, data)
         return
     listed = []
     for _, r, n in worst[:3]:
@@ -126,6 +134,23 @@ def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Me
 
 #: a row whose miss after the failed fit is this many times the median row's is named as a likely gross error
 STANDS_OUT = 8.0
+#: a geometric fit whose variance factor is this many times its global test's threshold, with one row standing out,
+#: stops the run naming that row: under the tolerance prior one wrong reading (a gross error the screening, which
+#: does not run on several stations, left in) no longer pulls the corrections to many times their plausible size
+FAR_OFF = 1e3
+
+
+def _check_one_bad_row(fit: Fit, model: MeasurementModel, data: Measurements) -> None:
+    test = fit.global_test or {}
+    stat, thr = test.get("statistic"), test.get("threshold")
+    if stat is None or thr is None or not float(stat) > FAR_OFF * float(thr):
+        return
+    row = _standing_out(model, data)
+    if row:
+        raise EstimationError(
+            f"{data.source or 'the measurements'}: the geometric fit of robot '{model.robot.name}' does not describe "
+            f"the data (variance factor {float(stat):.3g}, {float(stat) / float(thr):.0f} x its threshold)" + row
+        )
 
 
 def _standing_out(model: MeasurementModel, data: Measurements) -> str:
@@ -156,3 +181,65 @@ def _readings_ratios(fit: Fit, model: MeasurementModel, opts: Options) -> dict[s
         for i, n in enumerate(fit.free.names)
         if n in readings and scales.get(n, 0.0) > 0.0
     }
+
+
+#: a revolute joint whose training poses span less than this [deg] is narrow: a few degrees tell the geometry of the
+#: joints beyond it only where they move, and nothing of what its own motion would reveal
+NARROW_DEG = 5.0
+#: a joint (of either kind) whose training range is below this share of its limits (a revolute joint's clipped to a
+#: turn) is narrow too: a track that moved 2 cm of its 3 m
+NARROW_SHARE = 0.03
+
+
+@dataclass(frozen=True)
+class NarrowJoint:
+    """A joint the training poses hardly moved (:func:`narrow_joints`): 1-based ``joint``, its training ``range`` and
+    its ``limits`` span in ``unit`` (deg for a revolute joint, m for a prismatic one)."""
+
+    joint: int
+    range: float
+    limits: float
+    unit: str
+
+    def to_dict(self) -> dict:
+        return {"joint": self.joint, "range": self.range, "limits": self.limits, "unit": self.unit}
+
+    def text(self) -> str:
+        whole = "a turn" if self.unit == "deg" and self.limits >= 360.0 else "its limits"
+        share = 100 * self.range / self.limits
+        return f"q{self.joint} moved {self.range:.3g} {self.unit} in the training poses ({share:.2g} % of {whole})"
+
+
+def narrow_joints(q: Tensor, limits: Tensor, joint_types: tuple[str, ...]) -> list[NarrowJoint]:
+    """The joints whose training range ``q (N, dof)`` is under :data:`NARROW_DEG` (revolute) or under
+    :data:`NARROW_SHARE` of their ``limits (dof, 2)`` span."""
+    q, limits = q.detach().cpu(), limits.detach().cpu()
+    spread = q.max(dim=0).values - q.min(dim=0).values
+    out = []
+    for j, kind in enumerate(joint_types):
+        span = float(limits[j, 1] - limits[j, 0])
+        if kind == "revolute":
+            span = min(span, 2 * math.pi)
+            small = math.degrees(float(spread[j])) < NARROW_DEG or float(spread[j]) < NARROW_SHARE * span
+            scale, unit = 180.0 / math.pi, "deg"
+        else:
+            small = float(spread[j]) < NARROW_SHARE * span
+            scale, unit = 1.0, "m"
+        if small:
+            out.append(NarrowJoint(j + 1, float(spread[j]) * scale, span * scale, unit))
+    return out
+
+
+def narrow_note(narrow: list[NarrowJoint]) -> str | None:
+    """The calibrate-time line naming the narrow joints and what they mean for predictions beyond them."""
+    if not narrow:
+        return None
+    names = "; ".join(n.text() for n in narrow)
+    return (
+        f"narrow training range: {names}. Geometry and effects that only the motion of "
+        + ("this joint" if len(narrow) == 1 else "these joints")
+        + " would reveal cannot be told from these poses: predictions where "
+        + ("it leaves its" if len(narrow) == 1 else "they leave their")
+        + " training range are extrapolations (predict's extrapolation column says how far, sx, sy, sz how sure); "
+        "measure poses that move " + ("it" if len(narrow) == 1 else "them") + " to calibrate there"
+    )

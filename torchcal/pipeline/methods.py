@@ -88,7 +88,12 @@ def geometric(run: CalibrationRun) -> StageResult:
     work = StageWork(run, StageName.GEOMETRIC)
     _console.info("kinematic calibration: identifiability analysis and weighted LM")
     fit = solve(
-        work.model, run.train, GEOMETRIC_GROUPS, run.options.fit, StageName.GEOMETRIC, trajectory=run.trajectory
+        work.model,
+        run.train,
+        GEOMETRIC_GROUPS,
+        run.options.fit.geometric(),
+        StageName.GEOMETRIC,
+        trajectory=run.trajectory,
     )
     check_corrections(fit, work.model, run.options, run.data)
     work.fits.append(fit)

@@ -40,6 +40,12 @@ class SplitOptions:
     trajectory: bool | None = None  # None: decide from a monotonic t column
 
 
+#: the a-priori size of a geometric change that is no manufacturing tolerance (1 mm, 0.1 deg): what the wrong-robot stop
+#: counts corrections in (torchcal.pipeline.checks.MAX_PRIOR_RATIO was measured against it), and the sigma an update
+#: from a prior run releases a changed element with (a crash moves a joint's zero by more than a tolerance)
+PLAUSIBLE_LENGTH, PLAUSIBLE_ANGLE = 1e-3, math.radians(0.1)
+
+
 @dataclass(frozen=True)
 class FitSettings:
     """What every least-squares fit reads (:class:`torchcal.estimate.fit.FitOptions`): the stochastic model, the
@@ -55,11 +61,23 @@ class FitSettings:
     stat_tol: float = 1e-2  # stop LM when a step gains less than 1 % of the variance factor
     prior_length: float | None = 1e-3  # m: a-priori sigma of the geometric length corrections (None: no prior)
     prior_angle: float | None = math.radians(0.1)  # rad: likewise for angles
+    # the kinematic calibration's (the geometric stage's) priors instead: a robot's manufacturing tolerances (MAP: a
+    # direction the poses barely excite, a joint that moved 1 deg, stays near nominal instead of taking up whatever
+    # the rows hold; docs/narrow-campaigns.md). The later refits keep prior_length / prior_angle: under the
+    # tolerance there the real Series B's default run lost 8.7 %; None: the geometric stage uses those too
+    tolerance_length: float | None = 1e-4  # m
+    tolerance_angle: float | None = math.radians(0.01)  # rad
     # the lever arm and the instrument pose: MAP where the data are weak, held where they add little
     prior_tool: float | None = 0.5  # m: a-priori sigma of the lever arm about the flange centre (None: no prior)
     prior_instrument: tuple[float, float] | None = (0.5, 0.1)  # m, rad: of the instrument pose about the start
     tool: tuple[float, float, float] | None = None  # m: a known lever arm (flange frame), the prior's centre
     tool_sigma: float = 1e-3  # m: the known lever arm's a-priori sigma
+
+    def geometric(self) -> FitSettings:
+        """The settings of the kinematic calibration (the geometric stage): the tolerance priors where set."""
+        if self.prior_length is None or self.tolerance_length is None or self.tolerance_angle is None:
+            return self
+        return dataclasses.replace(self, prior_length=self.tolerance_length, prior_angle=self.tolerance_angle)
 
     @property
     def prior_lever(self) -> float | None:

@@ -40,6 +40,7 @@ from torchcal.effects import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.identifiability import Detectability
+from torchcal.pipeline.options import PLAUSIBLE_ANGLE, PLAUSIBLE_LENGTH
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import DHGeometry, RobotModel
 
@@ -188,8 +189,9 @@ def release(prior: Prior, names: list[str], opts) -> dict[str, float]:
             s = opts.prior_instrument[0 if i.unit == "m" else 1]
         elif i.group == "tool" and opts.prior_lever is not None:
             s = opts.prior_lever
-        else:
+        else:  # a change is no tolerance: at least the plausible size (a crash moves a zero by more)
             s = opts.prior_length if i.unit == "m" else opts.prior_angle
+            s = None if s is None else max(s, PLAUSIBLE_LENGTH if i.unit == "m" else PLAUSIBLE_ANGLE)
         out[n] = float("inf") if s is None else float(s) / prior.scale
     return out
 

@@ -23,6 +23,7 @@ from torchcal.effects import Context
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, prior_scales, selection
 from torchcal.estimate.identifiability import analyse
 from torchcal.estimate.problem import FreeParameters, jacobian_of, residual_function, whitening
+from torchcal.pipeline.options import PLAUSIBLE_ANGLE, PLAUSIBLE_LENGTH
 from torchcal.pipeline.prior import FLOOR
 
 Tensor = torch.Tensor
@@ -110,6 +111,8 @@ def held_untold(run, free_names: list[str], k: float) -> list[dict]:
     out = []
     for n in held:
         base = opts.prior_length if units[n] == "m" else opts.prior_angle
+        if base is not None:  # a move of the size a change has, not a tolerance's (torchcal.pipeline.prior.release)
+            base = max(base, PLAUSIBLE_LENGTH if units[n] == "m" else PLAUSIBLE_ANGLE)
         size = k * float(base if base is not None else FLOOR[units[n]])
         jh = J[:, cols.index(n)] * size
         dx = torch.linalg.solve(N, Jf.T @ jh)  # the free elements' change that takes up the move (linearised)

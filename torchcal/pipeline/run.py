@@ -29,6 +29,8 @@ from torchcal.pipeline.checks import (
     check_holdout,
     check_poses,
     check_repeated_rows,
+    narrow_joints,
+    narrow_note,
 )
 from torchcal.pipeline.integrated import require_trajectory
 from torchcal.pipeline.methods import METHOD_TABLE, PRIOR_METHOD
@@ -211,10 +213,10 @@ def start(
     else:  # the robust screening fits the geometry from scratch, which the few rows of an update cannot
         tr, ho, screening = split.keep, split.held, None
         model = copy.deepcopy(prior.model).to(opts.device)
+    from torchcal.pipeline.records import Note
+
     notes = ()
     if split.merged_groups:
-        from torchcal.pipeline.records import Note
-
         notes = (
             Note(
                 "split",
@@ -222,6 +224,11 @@ def start(
                 f"kept wholly on one side",
             ),
         )
+    # an update's few rows move little; its model's region is the prior run's, which said its own narrow joints
+    narrow = None if prior is not None else narrow_note(narrow_joints(data.q[tr], robot.limits, robot.joint_types))
+    if narrow is not None:  # said before any fitting: the user learns it even if the run stops
+        _console.info(f"warning: {narrow}")
+        notes += (Note("region", narrow),)
     return CalibrationRun(
         spec, model, opts, data, tr, ho, trajectory, split=split, screening=screening, notes=notes, prior=prior
     )

@@ -11,6 +11,7 @@ import torch
 
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.fit import fit_covariance
 from torchcal.estimate.trust import Trust, fit_trust
 from torchcal.pipeline.records import StageName
 from torchcal.pipeline.state import CalibrationRun
@@ -51,7 +52,9 @@ def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> Param
     fit = next((f for f in run.fits if f.stage == StageName.GEOMETRIC), None)
     if fit is None:
         return None
-    return _of_model(ParameterCovariance.from_fit(fit.free, fit.result), model)
+    # with the elements it held near nominal by the prior (a consider covariance): their doubt is the kinematic
+    # calibration's own, where a pose moves them
+    return _of_model(fit_covariance(fit), model)
 
 
 def _of_model(cov: ParameterCovariance | None, model: MeasurementModel) -> ParameterCovariance | None:

@@ -306,9 +306,21 @@ def _story_section(run: CalibrationRun, report: dict) -> list[str]:
         "kinematic calibration (left) and with the final model (right), on one colour scale: look for regions "
         "where the error stays high.",
         "",
+        *_narrow_lines(report),
         "![error map](error_map.png)",
         "",
     ]
+
+
+def _narrow_lines(report: dict) -> list[str]:
+    """The story's word on joints the training poses hardly moved: what a prediction beyond them rests on."""
+    narrow = (report.get("region") or {}).get("narrow_joints") or []
+    if not narrow:
+        return []
+    from torchcal.pipeline.checks import NarrowJoint, narrow_note
+
+    note = narrow_note([NarrowJoint(**n) for n in narrow])
+    return [f"**{note[0].upper()}{note[1:]}.**", ""]
 
 
 def _global_test_section(report: dict) -> list[str]:

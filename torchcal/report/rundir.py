@@ -225,7 +225,7 @@ def build_report(run: CalibrationRun) -> dict:
             for f in run.fits
         ],
         "notes": run.notes,
-        "region": _region_report(run.model),
+        "region": _region_report(run.model, run),
         # a calibration from a prior run: each parameter's change in its prior sigmas, the ones that moved
         **({"prior": _json_safe(run.prior_update.to_dict())} if run.prior_update is not None else {}),
         # a 6-D probe's orientation (held-out errors in degrees per stage); absent for position-only data
@@ -429,7 +429,7 @@ def _write_standalone(run: CalibrationRun, tmp: Path) -> dict | None:
     return alone.to_dict()
 
 
-def _region_report(model: MeasurementModel) -> dict | None:
+def _region_report(model: MeasurementModel, run: CalibrationRun | None = None) -> dict | None:
     """report.json's ``region``: model.json's (:func:`_region_config`), the fade length, the fitted range of each
     open joint form (by ``kind:joint``) and the time region a drift in time holds beyond (its key
     ``drift_time_span`` as report.json has always written it)."""
@@ -452,6 +452,8 @@ def _region_report(model: MeasurementModel) -> dict | None:
         "open_forms": forms,
         # a drift in time holds its value beyond the times it was fitted on [s] (every drift in t is fitted on one)
         "drift_time_span": times[0] if times else None,
+        # the joints the training poses hardly moved (torchcal.pipeline.checks.narrow_joints)
+        **({"narrow_joints": _narrow_report(run)} if run is not None else {}),
     }
 
 
@@ -463,6 +465,15 @@ def _tool_axis_config(run: CalibrationRun) -> dict | None:
 
     with torch.no_grad():
         return tool_axis_cone(run.robot, run.train.q)
+
+
+def _narrow_report(run: CalibrationRun) -> list[dict]:
+    from torchcal.pipeline.checks import narrow_joints
+
+    if run.prior is not None:  # an update's rows: the region is the prior run's (torchcal.pipeline.run.start)
+        return []
+    robot = run.model.robot
+    return [n.to_dict() for n in narrow_joints(run.data.q[run.train_idx], robot.limits, robot.joint_types)]
 
 
 def _region_config(model: MeasurementModel) -> dict | None:

@@ -47,7 +47,7 @@ from torchcal.robot import load_robot
 from torchcal.robot import transforms as tf
 from torchcal.robot.model import RobotModel
 from torchcal.sim.load import check_load_config, has_load, load_columns, measured_torques, row_payloads, true_masses
-from torchcal.sim.poses import PATHS, Scene, SightRule, fixed_axis_poses, path, random_poses
+from torchcal.sim.poses import PATHS, Scene, SightRule, fixed_axis_poses, narrow_poses, path, random_poses
 
 Tensor = torch.Tensor
 F64 = torch.float64
@@ -76,15 +76,19 @@ class EffectSpec:
     variable: str | None = None
     size: float | None = None
     source: int | None = None
+    k: float | None = None  # a compliance given as its physical value [rad/(N m)] instead of a size
 
     @classmethod
     def parse(cls, text: str) -> EffectSpec:
         """Parse ``KIND[:JOINT|:VARIABLE][=SIZE UNIT]``.
 
         Examples: ``compliance:2=50um``, ``field=0.6mm``, ``drift:temperature``, ``coupling:3<-2=50um`` (joint 3's
-        reading error proportional to joint 2's reading).
+        reading error proportional to joint 2's reading), ``compliance:2=1.5e-5rad/Nm`` (a compliance by its value,
+        on a robot whose description has link masses).
         """
-        m = re.fullmatch(r"\s*([a-z]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um))?\s*", text)
+        m = re.fullmatch(
+            r"\s*([a-z]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um|rad/Nm))?\s*", text
+        )
         if not m:
             if re.fullmatch(r".*=\s*[0-9.eE+-]+\s*", text):
                 raise OptionError(f"effect '{text}': give the size with a unit, e.g. '=50um', '=0.05mm' or '=5e-5m'")
@@ -92,7 +96,14 @@ class EffectSpec:
         kind, arg, size, unit = m.groups()
         if kind not in EFFECT_NAMES:
             raise OptionError(f"effect kind '{kind}' is not one of {', '.join(EFFECT_NAMES)}")
-        spec = cls(kind=kind, size=None if size is None else float(size) / _UNITS[unit])
+        if unit == "rad/Nm":
+            if kind != "compliance":
+                raise OptionError(f"effect '{text}': only a compliance takes rad/Nm; give {kind} a size, e.g. '=50um'")
+            spec = cls(kind=kind, k=float(size))
+            if not spec.k > 0:
+                raise OptionError(f"effect '{text}': the compliance must be positive")
+        else:
+            spec = cls(kind=kind, size=None if size is None else float(size) / _UNITS[unit])
         if kind in ("compliance", "backlash", "cyclic"):
             if arg is None or not arg.isdigit():
                 raise OptionError(f"effect '{text}': {kind} needs a joint number, e.g. '{kind}:2'")
@@ -161,6 +172,10 @@ class SimConfig:
     payload_levels: tuple[float, ...] | None = None
     torques: bool = False
     sigma_torque: float = 0.5
+    # a narrow campaign: these joints (1-based, revolute) of the training poses stay within a band of
+    # narrow_width_deg about one pose's while the others range; the test poses range over the whole workspace
+    narrow: tuple[int, ...] = ()
+    narrow_width_deg: float = 1.0
 
     def __post_init__(self):
         if self.poses < 1 or self.test_poses < 0:
@@ -186,6 +201,17 @@ class SimConfig:
         if self.orientation_sigma_deg is not None:
             check_range("orientation_sigma_deg", self.orientation_sigma_deg, 0.0, 5.0, unit="deg")
         check_load_config(self)
+        if self.narrow:
+            self._check_narrow()
+
+    def _check_narrow(self) -> None:
+        self.narrow = tuple(int(j) for j in self.narrow)
+        if len(set(self.narrow)) != len(self.narrow) or min(self.narrow) < 1:
+            raise OptionError(f"narrow joints must be distinct 1-based joint numbers, got {list(self.narrow)}")
+        if not 0 < self.narrow_width_deg <= 360:
+            raise OptionError(f"narrow_width_deg must lie in (0, 360], got {self.narrow_width_deg}")
+        if self.trajectory or self.stations > 1 or self.probes > 1 or self.tool_axis_deg is not None:
+            raise OptionError("a narrow campaign takes static poses of one station and probe, no fixed tool axis")
 
 
 @dataclass
@@ -361,6 +387,8 @@ def _poses_and_times(
             true_scene = Scene(truth, tracker_in_base, lever_nominal, cfg.sight)
             fixed = fixed_axis_poses(true_scene, cfg.poses + cfg.test_poses, g, axis, cfg.tool_axis_deg)
             q_true = torch.cat([fixed, turned_poses(scene, cfg, tracker_in_base, g)])
+        elif cfg.narrow:
+            q_true = _narrow(cfg, scene, nominal, g)
         else:
             q_true = random_poses(scene, cfg.poses + cfg.test_poses, g)
         n_train = cfg.poses
@@ -372,6 +400,29 @@ def _poses_and_times(
     )
     direction = motion_direction(q_true) if cfg.trajectory else None
     return Context(q=q_true, t=t, temperature=temperature, direction=direction), n_train
+
+
+def _narrow(cfg: SimConfig, scene: Scene, nominal: RobotModel, g: torch.Generator) -> Tensor:
+    """A narrow campaign's poses: ``cfg.poses`` training poses with ``cfg.narrow`` in their band, then
+    ``cfg.test_poses`` over the whole workspace."""
+    for j in cfg.narrow:
+        if j > nominal.dof:
+            raise OptionError(f"narrow joint {j} is outside 1..{nominal.dof} of '{nominal.name}'")
+        if nominal.joint_types[j - 1] == "prismatic":
+            raise OptionError(f"narrow joint {j} of '{nominal.name}' is prismatic; a band in degrees needs a turn")
+    joints = tuple(j - 1 for j in cfg.narrow)
+    train = narrow_poses(scene, cfg.poses, g, joints, math.radians(cfg.narrow_width_deg))
+    return torch.cat([train, random_poses(scene, cfg.test_poses, g)]) if cfg.test_poses else train
+
+
+def _narrow_truth(cfg: SimConfig, q_true: Tensor, n_train: int) -> dict:
+    """truth.json's ``narrow``: the held joints, the band's width and each joint's training range [deg]."""
+    q = torch.rad2deg(q_true[:n_train])
+    return {
+        "joints": list(cfg.narrow),
+        "width_deg": cfg.narrow_width_deg,
+        "train_range_deg": [[float(a), float(b)] for a, b in zip(q.min(0).values, q.max(0).values)],
+    }
 
 
 def tool_axis(tracker_in_base: Tensor) -> Tensor:
@@ -417,9 +468,18 @@ def _effects(
         rms = float(disp.norm(dim=-1).square().mean().sqrt())
         if rms == 0.0:
             raise OptionError(f"effect {spec.kind} (joint {spec.joint}) does not move the probe in these poses")
+        if spec.k is not None:  # the physical value given: the size is what it moves
+            if not isinstance(eff, Compliance):
+                raise OptionError(
+                    f"effect compliance:{spec.joint}={spec.k:g}rad/Nm: robot '{truth_robot.name}' has no link masses; "
+                    "give the compliance as a size, e.g. '=50um'"
+                )
+            size = rms * spec.k / float(eff.k.detach())
         eff.scale_(size / rms)
         disp = _rms_displacement(model, eff, ctx)
         mag = disp.norm(dim=-1)
+        if spec.k is not None:  # a sag is not quite linear in k: the size is what the value moves
+            size = float(mag.square().mean().sqrt())
         model.add(eff)
         effect_truth.append(
             {
@@ -485,6 +545,8 @@ def simulate(cfg: SimConfig) -> Campaign:
     truth = _truth(cfg, truth_robot, T_tracker_base, tracker_in_base, sigma_q, effect_truth, train, test)
     if orientation is not None:
         truth["orientation"] = orientation
+    if cfg.narrow:
+        truth["narrow"] = _narrow_truth(cfg, q_true, n_train)
     if turned is not None:
         truth["files"]["turned"] = {"n": turned.n}
         truth["tool_axis"] = _axis_spread(truth_robot, q_true, n_train, n_test, tracker_in_base)

@@ -366,3 +366,35 @@ def fixed_axis_poses(
         f"only {count} of {n} poses with a fixed tool axis satisfy the line-of-sight rule; move the tracker or "
         "relax the rule"
     )
+
+
+def narrow_poses(
+    scene: Scene, n: int, generator: torch.Generator, joints: tuple[int, ...], width: float, max_tries: int = 200
+) -> Tensor:
+    """``n`` poses ``(n, dof)`` the tracker sees whose revolute ``joints`` (0-based) stay within a band of ``width``
+    [rad] centred on one visible pose, the other joints ranging over their limits: a campaign that
+    moves only the joints that matter most (a grid over joints 2 and 3, the wrist held still).
+
+    The centre is a random visible pose; its band is clipped to the joint limits. A centre whose band leaves too few
+    visible poses (a wrist turned so that most other joints hide the probe) is drawn again.
+    """
+    lo, hi = _joint_box(scene.robot)
+    idx = torch.tensor(joints, dtype=torch.long)
+    for _ in range(20):
+        centre = random_poses(scene, 1, generator, max_tries)[0]
+        c_lo = torch.maximum(centre[idx] - width / 2, lo[idx])
+        c_hi = torch.minimum(centre[idx] + width / 2, hi[idx])
+        got: list[Tensor] = []
+        count = 0
+        for _ in range(max_tries // 4):
+            cand = sample_joints(scene.robot, max(4 * n, 256), generator)
+            cand[:, idx] = c_lo + (c_hi - c_lo) * torch.rand(len(cand), len(idx), generator=generator, dtype=cand.dtype)
+            keep = cand[scene.visible(cand)]
+            got.append(keep)
+            count += len(keep)
+            if count >= n:
+                return torch.cat(got)[:n]
+    raise RuntimeError(
+        f"no centre of joints {[j + 1 for j in joints]} leaves {n} poses within {math.degrees(width):.3g} deg that "
+        "satisfy the line-of-sight rule; widen the band or move the tracker"
+    )
