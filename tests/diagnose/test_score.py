@@ -70,7 +70,7 @@ def test_score_statistic_predicts_the_refit_gain():
         run.model,
         train,
         ("geometry", "instrument", "tool"),
-        opts.fit,
+        opts.fit.geometric(),  # the priors of the fit the score is taken at (the kinematic calibration's)
         "x",
         trajectory=False,
         effects=True,
