@@ -143,7 +143,13 @@ CELLS = {
 SEVERAL = [name for name, cell in CELLS.items() if SETUPS[cell.setup].stations > 1]
 #: the bugs that fail cells today, each owned by another branch (issue 34); how to reproduce each: the report of
 #: the branch that added this module
-XFAIL: dict[tuple[str, str], str] = {}
+XFAIL: dict[tuple[str, str], str] = {
+    ("ur5-integrated-trajectory", "calibrate"): (
+        "issue 51 item 2: under the tolerance priors the kinematic calibration of this short trajectory continues "
+        "0.05679 mm against the nominal robot's 0.05660 (32 held-out samples), and no rule yet steps back to the "
+        "nominal robot where it extrapolates better (docs/narrow-campaigns.md)"
+    ),
+}
 
 STEPS = ("calibrate", "predict", "compensate", "station", "prior", "plan")
 
