@@ -117,6 +117,24 @@ def snapshot(root: Path) -> dict:
     return {str(p.relative_to(root)): (p.read_bytes() if p.is_file() else None) for p in sorted(root.rglob("*"))}
 
 
+def run_cli(argv, seconds=60) -> int:
+    """The command's exit status (argparse's refusals too), within ``seconds``."""
+    with deadline(seconds):
+        try:
+            return main([*argv, "--quiet"])
+        except SystemExit as e:
+            return e.code
+
+
+def refuse(capsys, tmp_path, argv, *needles, seconds=60):
+    """``argv`` exits 2 naming every needle, and ``tmp_path`` is as it was; returns what it printed on stderr."""
+    before = snapshot(tmp_path)
+    assert run_cli(argv, seconds) == 2
+    err = refused(capsys, *needles)
+    assert snapshot(tmp_path) == before
+    return err
+
+
 # session-scoped: seven modules of tests/cli read the same campaign and run (they copy a run before changing it), and
 # computing them once per test process instead of once per module saves a simulation and a calibration per module
 @pytest.fixture(scope="session")

@@ -10,29 +10,12 @@ import json
 import math
 
 import pytest
-from _cli import cli_simulate, deadline, refused, snapshot
+from _cli import cli_simulate, refuse, run_cli, snapshot
 
 from torchcal import fleet as F
 from torchcal.cli import main
 
 Q6 = [f"q{k}" for k in range(1, 7)]
-
-
-def run_cli(argv, seconds=60) -> int:
-    """The command's exit status (argparse's refusals too), within ``seconds``."""
-    with deadline(seconds):
-        try:
-            return main([*argv, "--quiet"])
-        except SystemExit as e:
-            return e.code
-
-
-def refuse(capsys, tmp_path, argv, *needles, seconds=60):
-    """``argv`` exits 2 naming every needle, and ``tmp_path`` is as it was."""
-    before = snapshot(tmp_path)
-    assert run_cli(argv, seconds) == 2
-    refused(capsys, *needles)
-    assert snapshot(tmp_path) == before
 
 
 @pytest.fixture(scope="module")

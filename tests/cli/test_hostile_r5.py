@@ -9,30 +9,11 @@ import math
 
 import pytest
 import torch
-from _cli import cli_simulate, deadline, refused, snapshot
+from _cli import cli_simulate, deadline, refuse, refused, run_cli, snapshot
 
 from torchcal.cli import main
 from torchcal.data.measurements import MeasurementFileError, read_measurements
 from torchcal.robot.load import load_robot
-
-
-def run_cli(argv, seconds=60) -> int:
-    """The command's exit status (argparse's refusals too), within ``seconds``."""
-    with deadline(seconds):
-        try:
-            return main([*argv, "--quiet"])
-        except SystemExit as e:
-            return e.code
-
-
-def refuse(capsys, tmp_path, argv, *needles, seconds=60):
-    """``argv`` exits 2 naming every needle, and ``tmp_path`` is as it was."""
-    before = snapshot(tmp_path)
-    assert run_cli(argv, seconds) == 2
-    err = refused(capsys, *needles)
-    assert snapshot(tmp_path) == before
-    return err
-
 
 # ------------------------------------------------------------------------------- 1: the simulator at joint limits
 
