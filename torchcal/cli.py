@@ -1001,25 +1001,12 @@ def _has_load(data, meta: dict) -> bool:
     )
 
 
-@_one_torch_thread
-def cmd_predict(args) -> int:
-    from dataclasses import replace
+def _prediction_rows(args, model, meta):
+    """``predict``'s rows: DATA read for the run's robot (text columns beside the numbers ignored), its header's robot
+    and its stations checked against the run's."""
+    from torchcal.data import read_measurements
+    from torchcal.use.rundir import check_placement
 
-    from torchcal.data import read_measurements, write_measurements
-    from torchcal.effects import Context
-    from torchcal.use.rundir import (
-        MODEL_NAMES,
-        check_placement,
-        load_model,
-        predict_orientation,
-        predict_with,
-        row_trust,
-        rows_of,
-    )
-
-    out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
-    device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
-    model, meta = load_model(args.run)
     robot = model.robot
     data = read_measurements(
         args.data,
@@ -1034,23 +1021,44 @@ def cmd_predict(args) -> int:
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused
-    from torchcal.data.load import is_load_column
+    return data
 
-    labels = {k: getattr(data, k) for k in ("station", "station_names", "probe", "probe_names")}  # kept in the output
-    data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
-    # how far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
-    # measurement minus the prediction, how far the pose lies outside the calibrated region, and which model
-    # predicts it (beyond the region, the one with the smaller sigma)
+
+def _prediction_trust(args, model, meta, data):
+    """How far to trust each row (on the CPU, before the model moves to --device): the standard deviation of a new
+    measurement minus the prediction, how far the pose lies outside the calibrated region, and which model predicts
+    it (beyond the region, the one with the smaller sigma); a load the run was not fitted at is flagged, its sigma and
+    extrapolation grown (:mod:`torchcal.use.conditions`). Returns ``(trust, sigma, extrapolation, load conditions)``."""
+    from torchcal.effects import Context
+    from torchcal.use.conditions import load_conditions, with_load_sigma
+    from torchcal.use.rundir import row_trust
+
     trajectory = bool(meta.get("trajectory")) and data.t is not None
     rt = row_trust(args.run, model, meta, Context.from_measurements(data, trajectory=trajectory))
     sigma, ext = rt.sigma, rt.extrapolation
-    # a load the run was not fitted at: flagged, with its sigma and extrapolation grown (torchcal.use.conditions)
-    from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
-
     lc = load_conditions(model, meta, data, str(args.data))
     if lc.note is not None:
         _console.info(lc.note)
         sigma, ext = with_load_sigma(sigma, lc.sigma), torch.maximum(ext, lc.extrapolation.to(ext))
+    return rt, sigma, ext, lc
+
+
+@_one_torch_thread
+def cmd_predict(args) -> int:
+    from dataclasses import replace
+
+    from torchcal.data import write_measurements
+    from torchcal.data.load import is_load_column
+    from torchcal.use.conditions import CONDITIONS
+    from torchcal.use.rundir import MODEL_NAMES, load_model, predict_orientation, predict_with, rows_of
+
+    out_file = check_out_file(args.out, inputs=[args.data, args.run], force=args.force)
+    device = resolve_device(args.device)  # before any work: an absent CUDA device is a usage error
+    model, meta = load_model(args.run)
+    data = _prediction_rows(args, model, meta)
+    labels = {k: getattr(data, k) for k in ("station", "station_names", "probe", "probe_names")}  # kept in the output
+    data = rows_of(model, data)  # each row's station and probe in the run's order (absent: the first)
+    rt, sigma, ext, lc = _prediction_trust(args, model, meta, data)
     p = predict_with(model, meta, data, device=device)
     if rt.geometric is not None and bool(rt.which.any()):
         rows = torch.nonzero(rt.which).flatten()

@@ -599,58 +599,72 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
     if diag.skipped:
         lines += ["Left out: " + "; ".join(f"{s['name']} ({s['reason']})" for s in diag.skipped), ""]
     for r in diag.rounds:
-        gt = r["global_test"]
-        lines += [
-            f"### Round {r['round']}",
-            "",
-            f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).",
-            "",
-            "Score test of each named candidate at the current fit (the strongest six):",
-            "",
-            "| candidate | k | chi2 | score test: log10 p | score test: Bonferroni p | BIC change | identifiable |",
-            "|---|---:|---:|---:|---:|---:|---|",
-        ]
-        for s in r["scores"][:6]:
-            lines.append(
-                f"| {s.candidate.name} | {s.k} | {s.statistic:.1f} | {s.log10_p:.1f} | {s.p_bonferroni:.2g} | "
-                f"{s.bic_change:.1f} | {'yes' if s.identifiable else 'no'} |"
-            )
-        lines.append("")
-        if r.get("localisation"):
-            lines += [
-                "Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
-                + ", ".join(
-                    f"{loc['variable']} (share {loc['share']:.1%}, Bonferroni p = {loc['p_bonferroni']:.2g})"
-                    for loc in r["localisation"][:3]
-                )
-                + ". Open candidates: "
-                + (", ".join(f"{c['name']} ({c['form']}, order {c['order']})" for c in r["open_candidates"]) or "none")
-                + ".",
-                "",
-            ]
-        for k, d in enumerate(diag.decisions):
-            if d.round != r["round"]:
-                continue
-            v = d.validation
-            verdict = "**accepted**" if d.accepted else "**rejected**"
-            lines += [
-                f"{d.candidate.name} ({named_p(d.score.to_dict())}): {verdict}: {d.reason}. Validation RMSE "
-                f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, "
-                f"p = {v['p_value']:.2g}).",
-                "",
-            ]
-            if d.models is not None:
-                name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
-                plot_decision(run, d, out / name)
-                lines += [
-                    f"![{d.candidate.name}]({name})",
-                    "",
-                    "The training residual along the effect's direction against its variable, without the effect "
-                    "(left) and after the joint refit with it (right), with the fitted effect in red: an effect the "
-                    "data demand leaves the right panel flat.",
-                    "",
-                ]
+        lines += _round_lines(run, r, out)
     lines += [f"Stopped: {diag.stop}.", ""]
+    return lines + _learned_lines(report)
+
+
+def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
+    """One round of the closed loop: its fit, the score tests, the localisation, each decision (with its figure)."""
+    diag = run.diagnosis
+    lines: list[str] = []
+    gt = r["global_test"]
+    lines += [
+        f"### Round {r['round']}",
+        "",
+        f"Current fit: variance factor {gt['statistic']:.3f} (bound {gt['threshold']:.3f}).",
+        "",
+        "Score test of each named candidate at the current fit (the strongest six):",
+        "",
+        "| candidate | k | chi2 | score test: log10 p | score test: Bonferroni p | BIC change | identifiable |",
+        "|---|---:|---:|---:|---:|---:|---|",
+    ]
+    for s in r["scores"][:6]:
+        lines.append(
+            f"| {s.candidate.name} | {s.k} | {s.statistic:.1f} | {s.log10_p:.1f} | {s.p_bonferroni:.2g} | "
+            f"{s.bic_change:.1f} | {'yes' if s.identifiable else 'no'} |"
+        )
+    lines.append("")
+    if r.get("localisation"):
+        lines += [
+            "Localisation of the residual (penalised smooth per variable, Bonferroni over the variables): "
+            + ", ".join(
+                f"{loc['variable']} (share {loc['share']:.1%}, Bonferroni p = {loc['p_bonferroni']:.2g})"
+                for loc in r["localisation"][:3]
+            )
+            + ". Open candidates: "
+            + (", ".join(f"{c['name']} ({c['form']}, order {c['order']})" for c in r["open_candidates"]) or "none")
+            + ".",
+            "",
+        ]
+    for k, d in enumerate(diag.decisions):
+        if d.round != r["round"]:
+            continue
+        v = d.validation
+        verdict = "**accepted**" if d.accepted else "**rejected**"
+        lines += [
+            f"{d.candidate.name} ({named_p(d.score.to_dict())}): {verdict}: {d.reason}. Validation RMSE "
+            f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, "
+            f"p = {v['p_value']:.2g}).",
+            "",
+        ]
+        if d.models is not None:
+            name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
+            plot_decision(run, d, out / name)
+            lines += [
+                f"![{d.candidate.name}]({name})",
+                "",
+                "The training residual along the effect's direction against its variable, without the effect "
+                "(left) and after the joint refit with it (right), with the fitted effect in red: an effect the "
+                "data demand leaves the right panel flat.",
+                "",
+            ]
+    return lines
+
+
+def _learned_lines(report: dict) -> list[str]:
+    """The learned residual model's verdict, from report.json's effects (or rejections)."""
+    lines: list[str] = []
     learned = [e for e in report["effects"] if e["kind"] == "learned"]
     rejected = [e for e in report.get("rejected", []) if e["kind"] == "learned"]
     if learned or rejected:
