@@ -153,16 +153,27 @@ def sample_joints(robot: RobotModel, n: int, generator: torch.Generator) -> Tens
 
 def random_poses(scene: Scene, n: int, generator: torch.Generator, max_tries: int = 200) -> Tensor:
     """``n`` random poses ``(n, dof)`` the tracker sees in ``scene``, by rejection sampling in batches."""
+    q, count = first_visible(scene, n, lambda: sample_joints(scene.robot, max(4 * n, 256), generator), max_tries)
+    if q is None:
+        raise RuntimeError(
+            f"only {count} of {n} poses satisfy the line-of-sight rule; move the tracker or relax the rule"
+        )
+    return q
+
+
+def first_visible(scene: Scene, n: int, draw, tries: int) -> tuple[Tensor | None, int]:
+    """The first ``n`` poses the tracker sees among up to ``tries`` batches ``draw()`` (rejection sampling), and how
+    many it saw: ``(None, count)`` when the batches held fewer."""
     got: list[Tensor] = []
     count = 0
-    for _ in range(max_tries):
-        cand = sample_joints(scene.robot, max(4 * n, 256), generator)
+    for _ in range(tries):
+        cand = draw()
         keep = cand[scene.visible(cand)]
         got.append(keep)
         count += len(keep)
         if count >= n:
-            return torch.cat(got)[:n]
-    raise RuntimeError(f"only {count} of {n} poses satisfy the line-of-sight rule; move the tracker or relax the rule")
+            return torch.cat(got)[:n], count
+    return None, count
 
 
 def trajectory(
@@ -336,9 +347,7 @@ def fixed_axis_poses(
         zm = robot((q[:, None, :] - eye).reshape(-1, robot.dof))[:, :3, 2].reshape(len(q), robot.dof, 3)
         return ((zp - zm) / 2e-6).transpose(1, 2)
 
-    got: list[Tensor] = []
-    count = 0
-    for _ in range(max_tries):
+    def draw() -> Tensor:
         m = max(2 * n, 64)
         q = sample_joints(robot, m, generator)
         # targets: the axis tilted by at most spread_deg about a random direction perpendicular to it
@@ -355,13 +364,11 @@ def fixed_axis_poses(
                 q = q + dq.clamp(-0.5, 0.5)
             miss = (robot(q)[:, :3, 2] - target).norm(dim=-1)
         lo, hi = robot.limits[:, 0], robot.limits[:, 1]
-        ok = (miss < 1e-9) & ((q >= lo) & (q <= hi)).all(dim=-1)
-        q = q[ok]
-        keep = q[scene.visible(q)]
-        got.append(keep)
-        count += len(keep)
-        if count >= n:
-            return torch.cat(got)[:n]
+        return q[(miss < 1e-9) & ((q >= lo) & (q <= hi)).all(dim=-1)]
+
+    q, count = first_visible(scene, n, draw, max_tries)
+    if q is not None:
+        return q
     raise RuntimeError(
         f"only {count} of {n} poses with a fixed tool axis satisfy the line-of-sight rule; move the tracker or "
         "relax the rule"
@@ -384,16 +391,15 @@ def narrow_poses(
         centre = random_poses(scene, 1, generator, max_tries)[0]
         c_lo = torch.maximum(centre[idx] - width / 2, lo[idx])
         c_hi = torch.minimum(centre[idx] + width / 2, hi[idx])
-        got: list[Tensor] = []
-        count = 0
-        for _ in range(max_tries // 4):
+
+        def draw(c_lo=c_lo, c_hi=c_hi) -> Tensor:
             cand = sample_joints(scene.robot, max(4 * n, 256), generator)
             cand[:, idx] = c_lo + (c_hi - c_lo) * torch.rand(len(cand), len(idx), generator=generator, dtype=cand.dtype)
-            keep = cand[scene.visible(cand)]
-            got.append(keep)
-            count += len(keep)
-            if count >= n:
-                return torch.cat(got)[:n]
+            return cand
+
+        q, _ = first_visible(scene, n, draw, max_tries // 4)
+        if q is not None:
+            return q
     raise RuntimeError(
         f"no centre of joints {[j + 1 for j in joints]} leaves {n} poses within {math.degrees(width):.3g} deg that "
         "satisfy the line-of-sight rule; widen the band or move the tracker"
