@@ -44,6 +44,8 @@ def truth_names(truth: dict) -> list[str]:
     def name(e):
         if e["kind"] == "learned":
             return "learned"
+        if e.get("source") is not None:  # a coupling, as the loop names it: joint <- source
+            return f"{e['kind']}:{e['joint']}<-{e['source']}"
         return f"{e['kind']}:{e['joint'] if e['joint'] is not None else e['variable']}"
 
     return [name(e) for e in truth["effects"]]
@@ -60,7 +62,8 @@ def true_form_candidates(truth: dict, reference: dict) -> list[Candidate] | None
         if e["kind"] not in NAMED:
             return None
         var = e.get("variable")
-        out.append(Candidate(e["kind"], e["joint"], var, reference.get(var, 0.0) if var else 0.0))
+        ref = reference.get(var, 0.0) if var else 0.0
+        out.append(Candidate(e["kind"], e["joint"], var, ref, source=e.get("source")))
     return out
 
 

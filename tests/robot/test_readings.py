@@ -203,15 +203,27 @@ def test_simulated_coupling_is_named_by_the_closed_loop():
     assert eff.source == 4
 
 
-def test_plain_arms_get_no_coupling_candidates():
-    from torchcal.diagnose.candidates import candidates
+def test_every_arm_gets_a_coupling_candidate_for_every_pair_of_moving_joints():
+    """Couplings are offered on every robot (not only where a readings map declares a mechanism), between every
+    ordered pair of joints that move; a joint that does not move drives none."""
+    from torchcal.diagnose.candidates import MIN_LEVER, bonferroni_factors, candidates, joint_levers
     from torchcal.effects import Context
 
     q = torch.rand(20, 6, generator=torch.Generator().manual_seed(0), dtype=F64)
-    names = [c.name for c in candidates(torchcal.load_robot("ur5"), Context(q=q))[0]]
-    assert not [n for n in names if n.startswith("coupling")]
-    names = [c.name for c in candidates(torchcal.load_robot(FANUC), Context(q=q))[0]]
-    assert "coupling:5<-4" in names and "coupling:5<-3" not in names
+    for robot in (torchcal.load_robot("ur5"), torchcal.load_robot(FANUC)):
+        cands, _ = candidates(robot, Context(q=q))
+        pairs = {(c.joint, c.source) for c in cands if c.kind == "coupling"}
+        # a joint that does not move the probe (the last one, with the probe on its axis) shows no error at all
+        moving = [j for j in range(1, 7) if float(joint_levers(robot, q)[j - 1]) >= MIN_LEVER]
+        assert len(moving) >= 5 and pairs == {(j, k) for j in moving for k in range(1, 7) if j != k}, robot.name
+        # the pairs share one member's level: the other candidates keep theirs
+        factors = dict(zip((c.name for c in cands), bonferroni_factors(cands)))
+        members = len(cands) - len(pairs) + 1
+        assert factors["coupling:5<-4"] == members * len(pairs) and factors["cyclic:1"] == members
+    q[:, 3] = 0.4  # joint 4 held still: nothing couples to it
+    cands, skipped = candidates(torchcal.load_robot("ur5"), Context(q=q))
+    assert not [c for c in cands if c.kind == "coupling" and c.source == 4]
+    assert {s["name"]: s["reason"] for s in skipped}["coupling:5<-4"] == "joint 4 does not move over the data"
 
 
 def test_coupling_spec_and_dataclass_round_trip():
@@ -222,22 +234,21 @@ def test_coupling_spec_and_dataclass_round_trip():
     assert dataclasses.asdict(spec)["source"] == 2
 
 
-def test_a_coupling_is_held_to_the_physical_bound_over_its_source_joints_range():
-    """A coupling continues linearly in its source's reading: its size is judged over that joint's whole range,
-    so a ratio that fits the poses but would turn the joint by degrees at the source's limits is refused."""
-    import math
-
+def test_a_coupling_is_held_to_a_physical_ratio_not_to_the_transmission_error_bound():
+    """A coupling is a linear law with one parameter: its ratio is bounded (MAX_COUPLING, 1 %), not its size over
+    the source's range, which for a 0.2 % ratio error over a wrist's turns is tens of mrad and real."""
     from torchcal.effects import Coupling
-    from torchcal.effects.joint import joint_function_check
+    from torchcal.effects.joint import MAX_COUPLING, MAX_JOINT_ERROR, joint_function_check
 
     robot = torchcal.load_robot("ur5")
     q = torch.zeros(20, 6, dtype=torch.float64)
     q[:, 1] = torch.linspace(-0.1, 0.1, 20, dtype=torch.float64)  # the source seen over a narrow range only
-    small, large = Coupling(3, 2, c=1e-4), Coupling(3, 2, c=0.01)
-    assert joint_function_check(small, q, robot) is None
-    why = joint_function_check(large, q, robot)
     lo, hi = (float(v) for v in robot.limits[1])
-    assert why is not None and "over joint 2's range" in why and f"{0.01 * (hi - lo) / 2 * 1e3:.3g} mrad" in why
-    assert 0.01 * 0.1 < 5e-3 < 0.01 * (hi - lo) / 2 and math.isfinite(
-        hi - lo
-    )  # small where fitted, large at the limits
+    real = Coupling(3, 2, c=2e-3)
+    assert 2e-3 * (hi - lo) / 2 > 2 * MAX_JOINT_ERROR  # beyond the open forms' bound over the source's range
+    assert joint_function_check(real, q, robot) is None
+    large = Coupling(3, 2, c=-2 * MAX_COUPLING)
+    why = joint_function_check(large, q, robot)
+    assert why is not None and "ratio -0.02 rad/rad exceeds the physical bound of 0.01" in why
+    assert f"{0.02 * (hi - lo) / 2 * 1e3:.3g} mrad over joint 2's range" in why
+    assert joint_function_check(large, q, robot, max_size=None) is None  # no bound asked for

@@ -155,6 +155,34 @@ def test_effect_spec_parsing():
         simulate(SimConfig(robot="ur5", poses=5, effects=[EffectSpec.parse("cyclic:7")]))
 
 
+def test_a_coupling_given_by_its_ratio_is_simulated_with_that_ratio():
+    """``coupling:J<-K=C`` (or ``C rad/rad``) puts ``dq_J = C q_K`` into the truth; truth.json gives the ratio and the
+    RMS displacement it made, and moving the source joint alone moves the probe as joint J turned by ``C dq_K``."""
+    spec = EffectSpec.parse("coupling:5<-4=-1.5e-3")
+    assert (spec.joint, spec.source, spec.ratio, spec.size) == (5, 4, -1.5e-3, None)
+    assert EffectSpec.parse("coupling:5<-4=1e-3rad/rad").ratio == 1e-3
+    for bad, msg in [
+        ("coupling:5<-4=0", "other than 0"),
+        ("cyclic:2=1e-3rad/rad", "only a coupling takes a ratio"),
+        ("compliance:2=5", "unit"),
+    ]:
+        with pytest.raises(OptionError, match=msg):
+            EffectSpec.parse(bad)
+    c = simulate(SimConfig(robot="ur5", poses=30, test_poses=0, seed=3, effects=[spec]))
+    (truth,) = c.truth["effects"]
+    assert truth["params"] == {"source": 4, "c": pytest.approx(-1.5e-3, rel=1e-12)}
+    assert truth["size_m"] == pytest.approx(truth["rms_m"]) and truth["size_m"] > 1e-5
+    q = c.train.q[:2].clone()
+    q[1, 3] += 0.3  # joint 4 turns by 0.3 rad
+    with torch.no_grad():
+        moved = c.model(Context(q=q))
+        geometric = c.model.robot.probe_position(q)
+        q_true = q.clone()
+        q_true[:, 4] += -1.5e-3 * q[:, 3]
+        expected = c.model.robot.probe_position(q_true)
+    assert torch.allclose(moved, expected, atol=1e-12) and not torch.allclose(moved, geometric, atol=1e-6)
+
+
 @pytest.mark.parametrize("kind", ["multisine", "randomwalk", "sweeps"])
 def test_trajectory_families_are_visible_continuous_paths_within_limits(kind):
     """Each family is a sampled path (mostly small steps; a gap only where the line of sight breaks), every

@@ -7,17 +7,18 @@ directions the poses identify beyond the geometry), ``backlash`` per joint whose
 the gravity torque for static poses, the direction of motion along a trajectory),
 ``cyclic`` per revolute joint (harmonics 1 and 2), ``transmission`` (degree 1: a scale error of the
 reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``coupling`` of each
-joint to its neighbours in the chain (``dq_j = c q_k``, ``|j - k| = 1``) on robots whose description declares a
-readings map, ``drift`` of the instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale
-with ``temperature``.
+joint to every other joint that moves (``dq_j = c q_k``, all ``dof (dof - 1)`` ordered pairs), ``drift`` of the
+instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
 A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
 
-Couplings are tried between neighbouring joints only, and only where the description declares a readings map (a
-``readings:`` block, mimic joints): a parallelogram, a cable routed through the next joint and a wrist differential
-join neighbours, and such mechanisms are what a readings map declares, so an undeclared coupling is plausible there.
-On an arm whose motors each drive their own joint no mechanism joins two joints; all ``dof (dof - 1)`` pairs would
-more than double the Bonferroni family there (30 pairs for a 6R arm against its 19 other candidates) and take power
-from every other test.
+Couplings are tried between every pair of joints, on every robot: a cable or belt routed through a joint, a wrist
+differential the controller compensates with the wrong ratio, join joints whether or not the description declares a
+readings map, and which pairs a mechanism joins is not written anywhere a calibration can read. Scoring all pairs
+costs one Jacobian column each (the validation refits only the significant ones); their number would take power
+from every other test under a plain Bonferroni (30 pairs for a 6R arm against its 20 other candidates), so the
+pairs together count as one member of the Bonferroni family and share its level
+(:func:`bonferroni_factors`). A pair the data cannot tell from the geometry (a coupling into a joint whose ratio the
+readings map calibrates) is marked not identifiable by the score test.
 
 A candidate is left out, with the reason recorded, where it cannot matter: a joint whose
 motion does not move the probe (less than 0.1 mm per radian, or per metre), a regressor that is constant
@@ -175,6 +176,30 @@ def _compliance(robot, ctx: Context, j: int, tau: Tensor | None, span: Tensor | 
     return Candidate("compliance", j), None, span
 
 
+def _couplings(robot, ctx: Context, j: int, out: list, skip) -> None:
+    """The couplings ``dq_j = c q_k`` into joint ``j`` from every other joint ``k`` that moves over the data."""
+    for k in range(1, robot.dof + 1):
+        if k == j:
+            continue  # a joint's error in its own reading is its transmission (cyclic, transmission)
+        if not _varies(ctx.q[:, k - 1]):
+            skip(f"coupling:{j}<-{k}", f"joint {k} does not move over the data")
+        else:
+            out.append(Candidate("coupling", j, source=k))
+
+
+def bonferroni_factors(cands: list) -> list[int]:
+    """The factor each candidate's p-value is multiplied by (module docstring: a weighted Bonferroni whose weights
+    sum to one, so the family-wise level holds over all candidates).
+
+    Every candidate but a coupling is one member of the family; the couplings together are one more member, split
+    evenly over their pairs: ``M`` for the first, ``M P`` for a coupling, with ``M`` the members and ``P`` the
+    coupling pairs. Objects without a ``kind`` (open forms) count as members.
+    """
+    pairs = sum(1 for c in cands if getattr(c, "kind", None) == "coupling")
+    members = len(cands) - pairs + (1 if pairs else 0)
+    return [members * pairs if getattr(c, "kind", None) == "coupling" else members for c in cands]
+
+
 def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
     """The candidate effects for ``robot`` at the samples of ``ctx`` (module docstring).
 
@@ -222,13 +247,7 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
             skip(f"{shape}:{j}", f"joint {j} does not move over the data")
         else:
             out.append(Candidate(shape, j))
-        for k in (j - 1, j + 1) if robot.has_readings_map else ():
-            if not 1 <= k <= robot.dof:
-                continue
-            if not _varies(ctx.q[:, k - 1]):
-                skip(f"coupling:{j}<-{k}", f"joint {k} does not move over the data")
-            else:
-                out.append(Candidate("coupling", j, source=k))
+        _couplings(robot, ctx, j, out, skip)
     for var in DRIFT_FORMS:
         v = ctx.t if var == "t" else ctx.temperature
         if v is None:

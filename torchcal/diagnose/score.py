@@ -11,7 +11,10 @@ Adding the candidate and refitting lowers the weighted sum of squares, to first 
 (the Lagrange multiplier or score test of the linearised model; Rao 1948, Breusch & Pagan
 1980). When the candidate is absent, ``dSS / s0^2`` is chi-square with ``k`` degrees of
 freedom. The ``K`` candidates are tested at once, so their p-values are Bonferroni-corrected
-(``min(1, K p)``) before any is compared with the level. The change of the Bayesian information
+(``min(1, K p)``) before any is compared with the level; the couplings between pairs of joints count as one
+member of that family, Bonferroni over the pairs within it (a weighted Bonferroni,
+:func:`~torchcal.diagnose.candidates.bonferroni_factors`), so that the ``dof (dof - 1)`` pairs do not take the
+power of the other tests. The change of the Bayesian information
 criterion ``-dSS / s0^2 + k ln n`` is reported next to it (negative: the candidate pays for its
 parameters).
 
@@ -28,7 +31,7 @@ from dataclasses import dataclass
 import torch
 
 from torchcal import _dual
-from torchcal.diagnose.candidates import Candidate
+from torchcal.diagnose.candidates import Candidate, bonferroni_factors
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.identifiability import DEFAULT_TOL, analyse
 from torchcal.estimate.lm import LMResult
@@ -53,6 +56,7 @@ class Score:
     independence: float  # smallest sine of a candidate column to the current span
     identifiable: bool
     n_candidates: int
+    factor: int = 0  # what p was multiplied by (weighted Bonferroni: candidates.bonferroni_factors); 0: n_candidates
 
     def significant(self, alpha: float) -> bool:
         return self.identifiable and self.p_bonferroni < alpha
@@ -69,6 +73,7 @@ class Score:
             "log10_p": self.log10_p,
             "p_bonferroni": self.p_bonferroni,
             "n_candidates": self.n_candidates,
+            "bonferroni_factor": self.factor or self.n_candidates,
             "bic_change": self.bic_change,
             "independence": self.independence,
             "identifiable": self.identifiable,
@@ -174,9 +179,10 @@ def score_candidates(
     Q, R1 = torch.linalg.qr(J / scale)
     u = J.shape[1]
     K = len(cands)
+    factors = bonferroni_factors(cands)
     out = []
     fk = linear_kinematics(model, ctx) if cands else None
-    for cand, C in zip(cands, all_candidate_columns(model, cands, ctx, p, W, fk)):
+    for cand, f, C in zip(cands, factors, all_candidate_columns(model, cands, ctx, p, W, fk)):
         if extra:
             C = torch.cat([C, torch.zeros(extra, C.shape[1], dtype=C.dtype, device=C.device)])
         k = C.shape[1]
@@ -204,9 +210,10 @@ def score_candidates(
         stat = dss / s0sq if s0sq > 0 else float("inf")
         pv, l10 = chi2_sf_log10(stat, k)
         out.append(
-            Score(cand, k, dss, stat, pv, l10, min(1.0, K * pv), -stat + k * math.log(n_obs), indep, identifiable, K)
+            Score(cand, k, dss, stat, pv, l10, min(1.0, f * pv), -stat + k * math.log(n_obs), indep, identifiable, K, f)
         )
-    out.sort(key=lambda s: (not s.identifiable, s.log10_p, -s.statistic))
+    # ranked by the corrected p (a coupling's weight is a share of one member's)
+    out.sort(key=lambda s: (not s.identifiable, s.log10_p + math.log10(s.factor), -s.statistic))
     return out
 
 

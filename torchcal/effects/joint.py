@@ -618,6 +618,8 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         return stiffness
     if robot is None or max_size is None:
         return None
+    if isinstance(effect, Coupling):
+        return _coupling_check(effect, robot)
     reach = joint_range(robot, effect.joint)
     size = joint_function_size(effect, robot, q, reach)
     bound = max_size * joint_bound_scale(robot, q, effect.joint)
@@ -627,9 +629,6 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
     unit, small = ("m", "mm") if robot.joint_types[effect.joint - 1] == "prismatic" else ("rad", "mrad")
     if isinstance(effect, RegionForm):
         where = f"over joint {effect.joint}'s range {reach[0]:.3f} to {reach[1]:.3f} {unit} (fitted on {seen})"
-    elif isinstance(effect, Coupling):
-        lo, hi = joint_range(robot, effect.source)
-        where = f"over joint {effect.source}'s range {lo:.3f} to {hi:.3f}, which drives it"
     else:
         where = "on the fitting poses"
     scaled = "" if bound == max_size else f" ({max_size * 1e3:.3g} mrad at a 1 m lever arm, scaled to this joint's)"
@@ -637,6 +636,30 @@ def joint_function_check(effect: Effect, q: Tensor, robot=None, max_size: float 
         f"its size {size * 1e3:.3g} {small} {where} exceeds the physical bound of {bound * 1e3:.3g} {small}"
         f"{scaled} (max_joint_error): a joint error that large is not a transmission error, and it is only the sum "
         "of terms the joint range does not determine"
+    )
+
+
+#: the largest ratio [rad/rad] an undeclared coupling may take: a mechanism that joins two joints (a belt through a
+#: hollow wrist, a differential) is declared in the readings map with its ratio, and what the calibration finds
+#: beyond it is that ratio's error or a cable's pull, tenths of a percent; 1 % is a readings map declared wrong, which
+#: the description should say. A coupling is a linear law with one parameter (no terms that cancel), so its size over
+#: the source joint's range (several turns of a wrist multiply a 0.2 % error into tens of mrad) is not bounded by
+#: ``max_joint_error``, which bounds the open forms' transmission errors.
+MAX_COUPLING = 1e-2
+
+
+def _coupling_check(effect: Coupling, robot) -> str | None:
+    """A coupling's ratio is within :data:`MAX_COUPLING` (its size over the source's range is said beside it)."""
+    c = float(effect.c.detach())
+    if abs(c) <= MAX_COUPLING:
+        return None
+    lo, hi = joint_range(robot, effect.source)
+    size = abs(c) * (hi - lo) / 2
+    return (
+        f"its ratio {c:.3g} rad/rad exceeds the physical bound of {MAX_COUPLING:g} (it would turn joint "
+        f"{effect.joint} by {size * 1e3:.3g} mrad over joint {effect.source}'s range {lo:.3f} to {hi:.3f}, which "
+        "drives it): a coupling that large is a readings map declared wrong, or the fit is confounded with another "
+        "effect"
     )
 
 

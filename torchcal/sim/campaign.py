@@ -77,17 +77,36 @@ class EffectSpec:
     size: float | None = None
     source: int | None = None
     k: float | None = None  # a compliance given as its physical value [rad/(N m)] instead of a size
+    ratio: float | None = None  # a coupling given as its ratio c [rad/rad] instead of a size
+
+    @classmethod
+    def _ratio(cls, text: str, kind: str, value: str) -> EffectSpec:
+        """A coupling given by its ratio (a number without a unit, or ``rad/rad``)."""
+        if kind != "coupling":
+            if text.rstrip().endswith("rad/rad"):
+                raise OptionError(
+                    f"effect '{text}': only a coupling takes a ratio (rad/rad); give {kind} a size, e.g. '=50um'"
+                )
+            raise OptionError(f"effect '{text}': give the size with a unit, e.g. '=50um', '=0.05mm' or '=5e-5m'")
+        try:
+            ratio = float(value)
+        except ValueError:
+            raise OptionError(f"effect '{text}': the ratio '{value}' is not a number") from None
+        if not (math.isfinite(ratio) and ratio != 0.0):
+            raise OptionError(f"effect '{text}': the coupling's ratio must be a finite number other than 0")
+        return cls(kind=kind, ratio=ratio)
 
     @classmethod
     def parse(cls, text: str) -> EffectSpec:
         """Parse ``KIND[:JOINT|:VARIABLE][=SIZE UNIT]``.
 
         Examples: ``compliance:2=50um``, ``field=0.6mm``, ``drift:temperature``, ``coupling:3<-2=50um`` (joint 3's
-        reading error proportional to joint 2's reading), ``compliance:2=1.5e-5rad/Nm`` (a compliance by its value,
-        on a robot whose description has link masses).
+        reading error proportional to joint 2's reading), ``coupling:5<-4=1e-3`` (the same by its ratio, ``dq_5 = 1e-3
+        q_4``; ``=1e-3rad/rad`` alike), ``compliance:2=1.5e-5rad/Nm`` (a compliance by its value, on a robot whose
+        description has link masses).
         """
         m = re.fullmatch(
-            r"\s*([a-z]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um|rad/Nm))?\s*", text
+            r"\s*([a-z]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um|rad/Nm|rad/rad)?)?\s*", text
         )
         if not m:
             if re.fullmatch(r".*=\s*[0-9.eE+-]+\s*", text):
@@ -96,7 +115,9 @@ class EffectSpec:
         kind, arg, size, unit = m.groups()
         if kind not in EFFECT_NAMES:
             raise OptionError(f"effect kind '{kind}' is not one of {', '.join(EFFECT_NAMES)}")
-        if unit == "rad/Nm":
+        if size is not None and unit in (None, "rad/rad"):
+            spec = cls._ratio(text, kind, size)
+        elif unit == "rad/Nm":
             if kind != "compliance":
                 raise OptionError(f"effect '{text}': only a compliance takes rad/Nm; give {kind} a size, e.g. '=50um'")
             spec = cls(kind=kind, k=float(size))
@@ -468,6 +489,8 @@ def _effects(
         rms = float(disp.norm(dim=-1).square().mean().sqrt())
         if rms == 0.0:
             raise OptionError(f"effect {spec.kind} (joint {spec.joint}) does not move the probe in these poses")
+        if spec.ratio is not None:  # the coupling's ratio given: the size is what it moves
+            size = rms * spec.ratio / float(eff.c.detach())
         if spec.k is not None:  # the physical value given: the size is what it moves
             if not isinstance(eff, Compliance):
                 raise OptionError(
@@ -475,10 +498,10 @@ def _effects(
                     "give the compliance as a size, e.g. '=50um'"
                 )
             size = rms * spec.k / float(eff.k.detach())
-        eff.scale_(size / rms)
+        eff.scale_(size / rms)  # a negative ratio's size flips the sign
         disp = _rms_displacement(model, eff, ctx)
         mag = disp.norm(dim=-1)
-        if spec.k is not None:  # a sag is not quite linear in k: the size is what the value moves
+        if spec.k is not None or spec.ratio is not None:  # not quite linear in k or c: the size is what it moves
             size = float(mag.square().mean().sqrt())
         model.add(eff)
         effect_truth.append(
