@@ -3,16 +3,23 @@ parameter file (``ur-ros2``) and a DH / MDH robot file that ``--robot`` loads ba
 against its run (:func:`check_export`).
 
 A file carries the geometry (the URDF also the lever arm and the tracker pose); none can carry the non-geometric
-effects. So for a run with effects the chain written is by default the run's stand-alone geometry
-(:mod:`torchcal.pipeline.standalone`: the one of its kinematic calibration and of a refit to the full model that
-predicts the held-out rows better alone), not the geometry fitted together with the effects, which leans on them;
-``geometry="cofitted"`` writes that one for users who apply the effects themselves. Every file's header (and
+effects but one: a coupling ``dq_j = c q_k`` is linear in the readings, so a DH file holds it in its ``readings:``
+block (model joints ``= A (I + C) r + b``, :func:`fold_couplings`), exactly. A URDF cannot (its joints are the
+actuated ones, and a ``<mimic>`` joint takes no reading of its own; the header of a URDF torchcal writes would carry
+the map for torchcal alone, not for the other loaders), nor can the UR driver's file (one reading per joint); their
+header and :attr:`Exported.summary` say so. So for a run with effects the chain written is by default the run's
+stand-alone geometry (:mod:`torchcal.pipeline.standalone`: the one of its kinematic calibration and of a refit to
+the full model that predicts the held-out rows better alone), not the geometry fitted together with the effects,
+which leans on them; ``geometry="cofitted"`` writes that one for users who apply the effects themselves (in a DH
+file with the couplings in its readings map; where the couplings are the run's only effects, the DH file is the full
+run). Every file's header (and
 :attr:`Exported.summary`, which the CLI prints) gives the held-out error of the chain in the file alone and of the full
 run.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -20,12 +27,14 @@ from pathlib import Path
 import torch
 
 from torchcal._inputs import load_json
+from torchcal.effects.joint import Coupling
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.robot import load_robot
 from torchcal.robot.export import write_text, write_urdf
 from torchcal.robot.export_formats import dh_yaml, ur_ros2_yaml
 from torchcal.robot.load import calibrated_flange
+from torchcal.robot.readings import Readings
 from torchcal.stats import rmse
 from torchcal.use.rundir import load_holdout, load_model, load_standalone
 
@@ -36,6 +45,12 @@ FORMATS = ("ur-ros2", "dh", "urdf")
 GEOMETRIES = ("standalone", "cofitted")
 #: the formats ``check-export`` reads back
 CHECKED_FORMATS = {".yaml": "dh", ".yml": "dh", ".urdf": "urdf"}
+#: the formats whose readings map holds the couplings (:func:`fold_couplings`), and why the others cannot
+HOLDS_COUPLINGS = ("dh",)
+NO_COUPLINGS = {
+    "urdf": "a URDF's joints are the actuated ones and a <mimic> joint takes no reading of its own",
+    "ur-ros2": "the UR driver's file reads one joint per reading",
+}
 
 
 @dataclass(frozen=True)
@@ -49,6 +64,8 @@ class Exported:
         rmse_mm: the held-out RMSE of the chain in the file alone [mm]; None where the run does not say.
         rmse_full_mm: the full run's held-out RMSE [mm]; None where the run does not say.
         left_out: labels of the run's effects the file lacks.
+        held: labels of the run's effects the file holds (couplings in a DH file's ``readings:`` block).
+        cannot_hold: the couplings the format cannot hold, with the reason; None where there are none.
     """
 
     model: MeasurementModel
@@ -57,6 +74,8 @@ class Exported:
     rmse_mm: float | None
     rmse_full_mm: float | None
     left_out: tuple[str, ...]
+    held: tuple[str, ...] = ()
+    cannot_hold: str | None = None
 
     @property
     def summary(self) -> str:
@@ -65,21 +84,67 @@ class Exported:
         def mm(v):
             return "not measured" if v is None else f"{v:.4f} mm held-out"
 
+        held = f"; {', '.join(self.held)} in its readings: block" if self.held else ""
+        cannot = f"; {self.cannot_hold}" if self.cannot_hold else ""
         if self.which == "run":
-            return f"this chain alone is the full run: {mm(self.rmse_mm)}"
+            return f"this chain alone is the full run{held}: {mm(self.rmse_mm)}{cannot}"
         what = {
             "standalone": f"the run's stand-alone geometry ({self.source}), the best of it without the effects",
             "cofitted": "the geometry fitted together with the effects: apply them yourself",
         }[self.which]
         return (
-            f"this chain alone: {mm(self.rmse_mm)} ({what}); the full run: {mm(self.rmse_full_mm)}; "
-            "torchcal compensate applies the rest"
+            f"this chain alone{held}: {mm(self.rmse_mm)} ({what}); the full run: {mm(self.rmse_full_mm)}; "
+            f"torchcal compensate applies the rest{cannot}"
         )
 
 
 def left_out(model: MeasurementModel) -> list[str]:
     """Labels of the model's parts that a robot file (geometry, lever arm, tracker pose only) cannot carry."""
     return [e.label() for e in model.effects]
+
+
+def fold_couplings(model: MeasurementModel) -> MeasurementModel:
+    """A copy of ``model`` whose robot's readings map holds the model's couplings, which it no longer lists.
+
+    Each coupling turns reading ``j`` by ``c`` times reading ``k``, all from the raw readings
+    (:meth:`~torchcal.effects.MeasurementModel.joint_offsets` sums them), so the readings become ``(I + C) r`` with
+    ``C[j, k] = c`` and the model joints ``A (I + C) r + b``: the same forward kinematics to round-off.
+    """
+    couplings = [e for e in model.effects if isinstance(e, Coupling)]
+    out = copy.deepcopy(model)
+    if not couplings:
+        return out
+    robot = out.robot
+    r = robot.readings
+    with torch.no_grad():
+        C = torch.eye(robot.dof, dtype=robot.dtype, device=robot.device)
+        for e in couplings:
+            C[e.joint - 1, e.source - 1] += e.c.detach()
+        A = r.matrix().detach() @ C
+    robot.readings = Readings(A, r.offset.detach(), r.mask, dtype=robot.dtype, device=robot.device)
+    return MeasurementModel(robot, [e for e in out.effects if not isinstance(e, Coupling)])
+
+
+def _cannot_hold(model: MeasurementModel, fmt: str | None) -> str | None:
+    """Why the format ``fmt`` leaves the model's couplings out, naming them; None where it holds them or there are
+    none."""
+    labels = [e.label() for e in model.effects if isinstance(e, Coupling)]
+    if not labels or fmt is None or fmt in HOLDS_COUPLINGS:
+        return None
+    return (
+        f"this format cannot hold {', '.join(labels)}: {NO_COUPLINGS.get(fmt, 'it has no readings map')}; "
+        "export --format dh writes a coupling into its readings: block"
+    )
+
+
+def _holdout_rmse(run: Path, chain: MeasurementModel) -> float | None:
+    """The held-out RMSE [mm] of ``chain`` alone on the rows the run keeps (``holdout.pt``); None: it keeps none."""
+    rows = load_holdout(run, chain.robot.dof)
+    if rows is None:
+        return None
+    with torch.no_grad():
+        p = _positions(chain, chain.robot(rows["q"]), rows)
+    return rmse((p - rows["p"]).norm(dim=-1)) * 1e3
 
 
 def _report_rmse(run: Path) -> float | None:
@@ -91,16 +156,30 @@ def _report_rmse(run: Path) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(v) else None
 
 
-def exported_model(run: str | Path, geometry: str = "standalone") -> Exported:
-    """The model whose chain an export of the run directory ``run`` carries, and its numbers (module docstring).
+def exported_model(run: str | Path, geometry: str = "standalone", fmt: str | None = None) -> Exported:
+    """The model whose chain an export of the run directory ``run`` in the format ``fmt`` carries, and its numbers
+    (module docstring).
 
-    A run written before stand-alone geometries were kept exports its co-fitted geometry, said so."""
+    A run written before stand-alone geometries were kept exports its co-fitted geometry, said so. In a format that
+    holds couplings (``dh``) the couplings go into the readings map with the co-fitted geometry: the full run where
+    they are its only effects, and with ``geometry="cofitted"`` beside the effects left out."""
     if geometry not in GEOMETRIES:
         raise OptionError(f"--geometry must be one of {', '.join(GEOMETRIES)}, got {geometry!r}")
     run = Path(run)
     model, meta = load_model(run)
-    left = tuple(left_out(model))
     full = _report_rmse(run)
+    cannot = _cannot_hold(model, fmt)
+    if fmt in HOLDS_COUPLINGS and any(isinstance(e, Coupling) for e in model.effects):
+        folded = fold_couplings(model)
+        if not folded.effects or geometry == "cofitted":
+            held = tuple(e.label() for e in model.effects if isinstance(e, Coupling))
+            rest = tuple(left_out(folded))
+            chain = MeasurementModel(folded.robot)
+            alone = _holdout_rmse(run, chain)
+            if not rest:
+                return Exported(chain, "run", None, alone, full, (), held)
+            return Exported(chain, "cofitted", None, alone, full, rest, held)
+    left = tuple(left_out(model))
     if not left:
         return Exported(MeasurementModel(model.robot), "run", None, full, full, ())
     info = meta.get("standalone") if isinstance(meta.get("standalone"), dict) else {}
@@ -112,9 +191,11 @@ def exported_model(run: str | Path, geometry: str = "standalone") -> Exported:
     cofitted = MeasurementModel(model.robot)
     alone = load_standalone(run, model) if geometry == "standalone" else None
     if alone is None:
-        return Exported(cofitted, "cofitted", None, num("rmse_cofitted_mm"), num("rmse_full_mm") or full, left)
+        rmse = num("rmse_cofitted_mm")
+        return Exported(cofitted, "cofitted", None, rmse, num("rmse_full_mm") or full, left, cannot_hold=cannot)
     source = info.get("source") if isinstance(info.get("source"), str) else "?"
-    return Exported(alone, "standalone", source, num("rmse_holdout_mm"), num("rmse_full_mm") or full, left)
+    rmse = num("rmse_holdout_mm")
+    return Exported(alone, "standalone", source, rmse, num("rmse_full_mm") or full, left, cannot_hold=cannot)
 
 
 def export_run(run: str | Path, fmt: str, out_file: Path, geometry: str = "standalone") -> Exported:
@@ -126,11 +207,17 @@ def export_run(run: str | Path, fmt: str, out_file: Path, geometry: str = "stand
     """
     if fmt not in FORMATS:
         raise ValueError(f"export format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    ex = exported_model(run, geometry)
+    ex = exported_model(run, geometry, fmt)
     robot = ex.model.robot
     notes = [ex.summary]
     if ex.left_out:
         notes.append(f"NOT in this file: {', '.join(ex.left_out)} (torchcal compensate {run} applies them)")
+    couplings = [n for n in ex.left_out if n.startswith("coupling(")]
+    if fmt in HOLDS_COUPLINGS and couplings:
+        notes.append(
+            f"--geometry cofitted writes {', '.join(couplings)} into the readings: block, with the geometry fitted "
+            "together with the effects"
+        )
     if ex.which == "cofitted" and geometry == "standalone":
         notes.append(_no_standalone(Path(run)))
     text = None
@@ -209,12 +296,13 @@ def check_export(run: str | Path, file: str | Path, geometry: str | None = None)
         raise OptionError(f"{file}: check-export reads DH files (.yaml, .yml) and URDF files (.urdf)")
     tip = calibrated_flange(file) if file.suffix.lower() == ".urdf" else None
     loaded = load_robot(file, tip_link=tip) if tip else load_robot(file)
-    checks = [_check_one(run, loaded, g) for g in ((geometry,) if geometry is not None else GEOMETRIES)]
+    fmt = CHECKED_FORMATS[file.suffix.lower()]
+    checks = [_check_one(run, loaded, g, fmt) for g in ((geometry,) if geometry is not None else GEOMETRIES)]
     return min(checks, key=lambda c: c.fk_gap_mm)
 
 
-def _check_one(run: Path, loaded, geometry: str) -> ExportCheck:
-    ex = exported_model(run, geometry)
+def _check_one(run: Path, loaded, geometry: str, fmt: str) -> ExportCheck:
+    ex = exported_model(run, geometry, fmt)
     rows = load_holdout(run, ex.model.robot.dof)
     if rows is None:
         raise OptionError(f"{run}: the run keeps no held-out rows (holdout.pt); calibrate again to check its exports")
@@ -242,5 +330,6 @@ __all__ = [
     "check_export",
     "export_run",
     "exported_model",
+    "fold_couplings",
     "left_out",
 ]
