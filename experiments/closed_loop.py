@@ -122,6 +122,7 @@ def run_case(
         "rejected": [r.get("name", r["kind"]) for r in run.rejected],
     }
     out["truth_names"], out["found_names"] = truth_names(c.truth), found_names(run)
+    out["truth_rms_um"] = [e["size_m"] * 1e6 for e in c.truth["effects"]]  # each effect's RMS probe displacement
     out["correct"] = sorted(out["truth_names"]) == sorted(out["found_names"])
     out["loop_mm"], out["test_loop_mm"] = run.stages[-1].rmse * 1e3, rmse(errors(run.model, c.test, traj)) * 1e3
     out["geometric_mm"], out["test_geometric_mm"] = geo.rmse * 1e3, rmse(errors(geo.model, c.test, traj)) * 1e3
