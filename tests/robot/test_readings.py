@@ -210,7 +210,8 @@ def test_every_arm_gets_a_coupling_candidate_for_every_pair_of_moving_joints():
     from torchcal.effects import Context
 
     q = torch.rand(20, 6, generator=torch.Generator().manual_seed(0), dtype=F64)
-    for robot in (torchcal.load_robot("ur5"), torchcal.load_robot(FANUC)):
+    urdf = str(Path(__file__).resolve().parents[2] / "robots" / "ur5.urdf")
+    for robot in (torchcal.load_robot("ur5"), torchcal.load_robot(FANUC), torchcal.load_robot(urdf)):
         cands, _ = candidates(robot, Context(q=q))
         pairs = {(c.joint, c.source) for c in cands if c.kind == "coupling"}
         # a joint that does not move the probe (the last one, with the probe on its axis) shows no error at all
