@@ -56,6 +56,7 @@ from torchcal.effects.drift import Drift
 from torchcal.effects.joint import LUMPED_FORM, MAX_COMPLIANCE, LumpedCompliance, RegionForm, TorqueCompliance
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
+from torchcal.estimate.identifiability import MAX_CORRELATION, weak_combinations
 from torchcal.pipeline.holdout import GUARD_MIN_POSES
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
 from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
@@ -102,6 +103,9 @@ def close_loop(
         for loc in localise_fit(work.model, search.ctx, run.train.p, work.fits[-1])[0] if open_forms else []:
             search.open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
     final = work.fits[-1]
+    search.diag.trades = effect_trades(work.model, final)
+    for t in search.diag.trades:
+        work.note(t["note"])
     if open_forms and not final.global_test.get("passed", True):
         search.diag.unexplained = unexplained_entries(
             work.model, search.ctx, run.train.p, final, run.options.levels.score, search.open_notes
@@ -289,6 +293,69 @@ class _Search:
         self.base, self.e_base = accepted.trial, accepted.errors
         self.edge_bases.clear()
         return True
+
+
+def effect_trades(model: MeasurementModel, fit, max_correlation: float = MAX_CORRELATION) -> list[dict]:
+    """The directions the final fit cannot tell between an effect's parameters and the geometry (or another
+    effect's): the weak combinations of its cofactor matrix with an effect parameter among their members
+    (:func:`~torchcal.estimate.identifiability.weak_combinations`, the after-fit rule of the geometry applied to
+    geometry and effects together: an eigenvalue of the unit-diagonal normal matrix below ``1 - max_correlation``).
+
+    The closed loop admits an effect only where its columns are independent of the current ones (the score test),
+    but the geometry is analysed once, before any effect, and an effect admitted later can leave a combination with
+    the geometry that only the joint fit shows (a joint's cosine harmonic over a narrow range and its offset, a
+    coupling and a ratio of the readings map). Such a direction is named, with its members and the move the data
+    hardly see; the values along it are the priors' and the start's, not the data's.
+
+    Returns:
+        One dict per combination: ``members``, ``effects`` and ``robot`` (its members by kind), ``correlation``
+        (``1 -`` the eigenvalue: a pair's ``|rho|``), ``direction`` (the move, scaled to its first member) and
+        ``note`` (the sentence the run's notes carry).
+    """
+    labels = [e.label() for e in model.effects]
+    names = list(fit.free.names)
+    if not labels or not names:
+        return []
+    is_effect = torch.tensor([any(n.startswith(f"{lab}.") for lab in labels) for n in names])
+    if not bool(is_effect.any()) or bool(is_effect.all()):
+        return []
+    try:
+        Q = fit.result.cofactor
+    except EstimationError as err:
+        return [
+            {
+                "members": [],
+                "effects": [],
+                "robot": [],
+                "correlation": 1.0,
+                "direction": "",
+                "note": (
+                    f"identifiability: the final fit's normal matrix is singular ({err}): some direction of the "
+                    "effects and the geometry together is not determined by the data"
+                ),
+            }
+        ]
+    out = []
+    for c in weak_combinations(names, Q, is_effect, max_correlation):
+        eff = [n for n, i in zip(c.names, c.indices) if bool(is_effect[i])]
+        rob = [n for n, i in zip(c.names, c.indices) if not bool(is_effect[i])]
+        rho = 1.0 - c.eigenvalue
+        other = f"from {', '.join(rob)}" if rob else "from each other"
+        note = (
+            f"identifiability: the data cannot tell {', '.join(eff)} {other} (a combination correlated at "
+            f"{rho:.5f}: {c.describe()} hardly changes the fit); the values along it are the priors' and the start's"
+        )
+        out.append(
+            {
+                "members": list(c.names),
+                "effects": eff,
+                "robot": rob,
+                "correlation": rho,
+                "direction": c.describe(),
+                "note": note,
+            }
+        )
+    return out
 
 
 def _no_candidate_reason(rnd: int, scores: list, locs: list, alpha: float) -> str:

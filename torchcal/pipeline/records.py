@@ -169,6 +169,7 @@ class Diagnosis:
     decisions: list[Decision] = field(default_factory=list)
     stop: str = ""
     unexplained: list[dict] = field(default_factory=list)  # tracing.unexplained_entries of the final model
+    trades: list[dict] = field(default_factory=list)  # loop.effect_trades of the final fit: effects vs geometry
 
     def to_dict(self) -> dict:
         return {
@@ -191,6 +192,7 @@ class Diagnosis:
             ],
             "decisions": [d.to_dict() for d in self.decisions],
             "stop": self.stop,
+            **({"trades": [{k: v for k, v in t.items() if k != "note"} for t in self.trades]} if self.trades else {}),
         }
 
     def copy(self) -> Diagnosis:

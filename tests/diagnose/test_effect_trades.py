@@ -1,0 +1,65 @@
+"""After the closed loop, identifiability over effects and geometry together: a direction the final fit cannot
+tell between an effect and the geometry is named (pipeline.loop.effect_trades), one it can is not."""
+
+import copy
+
+import pytest
+
+from torchcal.effects import Coupling, Cyclic
+from torchcal.estimate.fit import solve
+from torchcal.pipeline import Options, calibrate
+from torchcal.pipeline.loop import GROUPS, effect_trades
+from torchcal.sim import EffectSpec, SimConfig, simulate
+
+
+def _refit_with(run, train, effect):
+    """The run's geometric model with ``effect`` added, fitted jointly on ``train`` as the closed loop fits it."""
+    model = copy.deepcopy(run.model)
+    model.add(effect)
+    fit = solve(
+        model,
+        train,
+        GROUPS,
+        run.options.fit,
+        "trial",
+        trajectory=False,
+        effects=True,
+        identifiability=run.identifiability,
+    )
+    return model, fit
+
+
+@pytest.fixture(scope="module")
+def narrow_run():
+    """A UR5 campaign whose joint 2 stays within a band of 4 degrees: its kinematic calibration."""
+    c = simulate(SimConfig(robot="ur5", poses=150, test_poses=0, seed=4, narrow=(2,), narrow_width_deg=4.0))
+    run = calibrate("ur5", c.train, Options.of(method="kinematic", seed=0))
+    return run, c.train.subset(run.train_idx)
+
+
+def test_a_cosine_harmonic_over_a_narrow_range_is_named_as_trading_with_the_joint_offset(narrow_run):
+    """Over 4 degrees cos(q2) is a constant to 6e-4 of itself: the harmonic's cosine amplitude and the joint's offset
+    (theta of joint 2) move together, and the data cannot tell them apart."""
+    run, train = narrow_run
+    model, fit = _refit_with(run, train, Cyclic(2, harmonics=(1,)))
+    trades = effect_trades(model, fit)
+    assert trades, "the cosine term and joint 2's offset must be named"
+    t = trades[0]
+    assert any(n.endswith(".b") or ".b[" in n for n in t["effects"]) and t["robot"], t
+    assert any("theta" in n and "2" in n for n in t["robot"]), t["robot"]
+    assert t["correlation"] > 0.999 and "cannot tell" in t["note"]
+
+
+def test_a_coupling_the_data_determine_is_not_named(narrow_run):
+    run, train = narrow_run
+    model, fit = _refit_with(run, train, Coupling(5, 4))
+    assert effect_trades(model, fit) == []
+
+
+def test_a_run_that_names_a_coupling_reports_no_trade():
+    c = simulate(
+        SimConfig(robot="ur5", poses=150, test_poses=0, seed=2, effects=[EffectSpec.parse("coupling:5<-4=2e-3")])
+    )
+    run = calibrate("ur5", c.train, Options.of(seed=0))
+    assert [e.kind for e in run.model.effects] == ["coupling"]
+    assert run.diagnosis.trades == [] and "trades" not in run.diagnosis.to_dict()
