@@ -22,6 +22,16 @@ def test_simulate_writes_the_contract_files(tmp_path, capsys):
     assert capsys.readouterr().out == ""  # results go to files, messages to stderr
 
 
+def test_simulate_puts_in_a_coupling_by_its_ratio(tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert cli_simulate(out, "--seed", "1", "--poses", "30", "--effect", "coupling:5<-4=-1e-3") == 0
+    (effect,) = json.loads((out / "truth.json").read_text())["effects"]
+    assert (effect["kind"], effect["joint"], effect["source"]) == ("coupling", 5, 4)
+    assert effect["params"]["c"] == pytest.approx(-1e-3, rel=1e-12)
+    assert cli_simulate(tmp_path / "bad", "--effect", "cyclic:2=1e-3") == 2
+    assert "give the size with a unit" in capsys.readouterr().err and not (tmp_path / "bad").exists()
+
+
 def test_simulate_in_millimetres_reads_back_with_the_unit_option(tmp_path):
     cli_simulate(tmp_path / "m", "--seed", "2", "--poses", "50")
     cli_simulate(tmp_path / "mm", "--seed", "2", "--poses", "50", "--length-unit", "mm")

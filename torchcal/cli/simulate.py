@@ -65,7 +65,8 @@ def add_parser(sub) -> None:
         help="inject an effect; repeatable. KIND: compliance, backlash, cyclic (need :JOINT), "
         "coupling (:J<-K, joint J's reading picks up a share of joint K's), "
         "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
-        "displacement with a unit, e.g. compliance:2=50um, coupling:3<-2=50um, field=0.6mm",
+        "displacement with a unit, e.g. compliance:2=50um, coupling:3<-2=50um, field=0.6mm; a coupling may "
+        "instead be given by its ratio, coupling:5<-4=1e-3 (dq5 = 1e-3 q4)",
     )
     s.add_argument(
         "--tracker-noise", type=TRACKER_UM_SIM, default=15.0, help="tracker noise per axis [um], <= 10000 (default 15)"
