@@ -8,7 +8,9 @@ the gravity torque for static poses, the direction of motion along a trajectory)
 ``cyclic`` per revolute joint (harmonics 1 and 2), ``transmission`` (degree 1: a scale error of the
 reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``coupling`` of each
 joint to every other joint that moves (``dq_j = c q_k``, all ``dof (dof - 1)`` ordered pairs), ``drift`` of the
-instrument pose with the acquisition time ``t``, and ``drift`` of the arm's scale with ``temperature``.
+instrument pose with the acquisition time ``t``, ``drift`` of the arm's scale with ``temperature``, and the
+instrument's own errors (:mod:`torchcal.effects.instrument`): ``instrument:azimuth`` (the azimuth encoder's harmonics
+1 and 2) and ``instrument:range`` (a range offset and scale), one instrument for every station of the file.
 A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
 
 Couplings are tried between every pair of joints, on every robot: a cable or belt routed through a joint, a wrist
@@ -41,6 +43,7 @@ from torchcal.effects import (
     Drift,
     LumpedCompliance,
     TorqueCompliance,
+    TrackerError,
     Transmission,
 )
 from torchcal.effects.base import Effect
@@ -52,6 +55,9 @@ Tensor = torch.Tensor
 MIN_LEVER = 1e-4
 #: drift variables the data may carry, the effect form each one drives, and its unit
 DRIFT_FORMS = {"t": ("instrument", "s"), "temperature": ("scale", "degC")}
+#: the instrument's own error terms offered (effects.instrument): the azimuth encoder's harmonics 1 and 2, the
+#: range's offset and scale
+INSTRUMENT_TERMS = ("azimuth", "range")
 
 
 @dataclass(frozen=True)
@@ -59,9 +65,10 @@ class Candidate:
     """One effect the model could be missing.
 
     Attributes:
-        kind: effect kind (as report.json names it): compliance, backlash, cyclic, transmission or drift.
+        kind: effect kind (as report.json names it): compliance, backlash, cyclic, transmission, coupling, drift or
+            instrument.
         joint: 1-based joint, or None for drift.
-        variable: drift variable (``t`` or ``temperature``), else None.
+        variable: drift variable (``t`` or ``temperature``), an instrument term (``azimuth``, ``range``), else None.
         reference: drift reference value (the variable at the first training sample).
         basis: a lumped compliance's identifiable directions ``(4 dof, r)`` on the training poses
             (:func:`~torchcal.effects.joint.lumped_basis`); None: the mass-based compliance.
@@ -107,6 +114,8 @@ class Candidate:
             return Coupling(self.joint, self.source)
         if self.kind == "drift":
             return Drift(self.variable, DRIFT_FORMS[self.variable][0], reference=self.reference)
+        if self.kind == "instrument":
+            return TrackerError(self.variable, (1, 2)) if self.variable != "range" else TrackerError("range")
         raise ValueError(f"unknown candidate kind {self.kind!r}")
 
     def regressor(self, robot, ctx: Context) -> tuple[Tensor, str]:
@@ -128,6 +137,8 @@ class Candidate:
             return ctx.q[:, self.joint - 1], f"q{self.joint} [m]"
         if self.kind == "coupling":
             return ctx.q[:, self.source - 1], f"q{self.source} [rad] (error of joint {self.joint})"
+        if self.kind == "instrument":
+            return _spherical(robot, ctx, self.variable)
         return eff.regressor(robot, ctx), f"{self.variable} - {self.reference:g} [{DRIFT_FORMS[self.variable][1]}]"
 
     def to_dict(self) -> dict:
@@ -141,8 +152,19 @@ class Candidate:
             out["form"] = "measured torques"
         if self.variable is not None:
             out["variable"] = self.variable
-            out["form"] = DRIFT_FORMS[self.variable][0]
+            out["form"] = DRIFT_FORMS[self.variable][0] if self.kind == "drift" else self.make().label()
         return out
+
+
+def _spherical(robot, ctx: Context, term: str) -> tuple[Tensor, str]:
+    """The nominal measured points' azimuth [rad] or range [m] in the instrument frame ``(N,)``, and its label."""
+    from torchcal.effects.model import MeasurementModel
+
+    with torch.no_grad():
+        p = MeasurementModel(robot)(ctx)
+    if term == "range":
+        return p.norm(dim=-1), "range from the instrument [m]"
+    return torch.atan2(p[:, 1], p[:, 0]), f"{term} in the instrument frame [rad]"
 
 
 def _varies(x: Tensor, rel: float = 1e-9) -> bool:
@@ -248,6 +270,7 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
         else:
             out.append(Candidate(shape, j))
         _couplings(robot, ctx, j, out, skip)
+    out += [Candidate("instrument", None, term) for term in INSTRUMENT_TERMS]
     for var in DRIFT_FORMS:
         v = ctx.t if var == "t" else ctx.temperature
         if v is None:

@@ -5,7 +5,8 @@ Projecting the residual onto that direction gives one number per pose that a plo
 effect's regressor (gravity torque, loaded flank, joint angle, time, temperature) can show:
 
 * joint effects: the direction ``u_i = J_qj,i / |J_qj,i|`` in which joint j moves the probe;
-* drift: the direction of the fitted drift's displacement, signed with the drift variable.
+* drift: the direction of the fitted drift's displacement, signed with the drift variable;
+* the instrument's own errors: the direction of the fitted error's displacement.
 """
 
 from __future__ import annotations
@@ -50,6 +51,8 @@ def residual_view(cand: Candidate, before: MeasurementModel, after: MeasurementM
         e_before, e_after = p - before(ctx), p - pred_after
         if cand.joint is not None:
             u = probe_joint_jacobian(after, ctx)[:, :, cand.joint - 1]
+        elif cand.kind == "instrument":  # along the fitted error's own displacement
+            u = d
         else:
             dv = after.effects[idx].regressor(after.robot, ctx)
             u = d * torch.sign(dv)[:, None]

@@ -3,6 +3,7 @@
 from torchcal.effects.base import Acts, Context, Effect, motion_direction
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection, GPSettings, fit_gp_correction
+from torchcal.effects.instrument import TrackerError
 from torchcal.effects.joint import (
     MAX_JOINT_ERROR,
     Backlash,
@@ -38,4 +39,4 @@ __all__ = [
     "motion_direction",
 ]
 __all__ += ["GPCorrection", "GPSettings", "Transmission", "fit_gp_correction", "joint_function_check"]
-__all__ += ["MAX_JOINT_ERROR", "Coupling", "LumpedCompliance", "TorqueCompliance"]
+__all__ += ["MAX_JOINT_ERROR", "Coupling", "LumpedCompliance", "TorqueCompliance", "TrackerError"]

@@ -105,6 +105,7 @@ class Acts(str, Enum):
     JOINT = "joint"  #: adds a joint offset ``dq (N, dof)`` [rad] before the kinematics
     CARTESIAN = "cartesian"  #: adds a probe offset ``dp (N, 3)`` [m] in the base frame
     INSTRUMENT = "instrument"  #: perturbs the tracker pose by ``xi (N, 6)`` (se(3) vector)
+    TRACKER = "tracker"  #: adds ``dp (N, 3)`` [m] to the point in the tracker frame: the instrument's own errors
 
     def __str__(self) -> str:  # f-strings and str() give the value on every Python version
         return self.value

@@ -131,9 +131,11 @@ class MeasurementModel(nn.Module):
         p = self.probe_in_base(ctx, fk=fk)
         T = self._instrument(ctx)
         xi = self._instrument_offset(ctx)
-        if xi is None:
-            return tf.transform_points(T, p)
-        return tf.transform_points(T @ tf.se3_from_vector(xi), p)
+        p = tf.transform_points(T if xi is None else T @ tf.se3_from_vector(xi), p)
+        for e in self.effects:  # the instrument's own errors, on the point it measures (effects.instrument)
+            if e.acts_on == Acts.TRACKER:
+                p = _dual.add(p, e(self.robot, ctx, p_tracker=p))
+        return p
 
     def orientation(self, ctx: Context, *, rot=None) -> Tensor:
         """The probe frame's orientation in the tracker frame ``(N, 3, 3)``:

@@ -13,6 +13,7 @@ from torchcal.effects.base import Acts, Effect, read_renamed
 from torchcal.effects.drift import Drift
 from torchcal.effects.gp import GPCorrection
 from torchcal.effects.grouped import GroupedCorrection
+from torchcal.effects.instrument import TrackerError
 from torchcal.effects.joint import (
     Backlash,
     Compliance,
@@ -64,6 +65,8 @@ KIND_TABLE: tuple[EffectKind, ...] = (
     EffectKind("transmission", (Transmission,), (Acts.JOINT,), True),
     # one joint's reading error proportional to another joint's reading (an undeclared coupling, README)
     EffectKind("coupling", (Coupling,), (Acts.JOINT,), True),
+    # the instrument's own errors in its spherical coordinates: encoder harmonics, range offset and scale (README)
+    EffectKind("instrument", (TrackerError,), (Acts.TRACKER,), True),
 )
 
 #: effect kinds as named in report.json (CONTRACT §4)

@@ -39,6 +39,7 @@ from torchcal.effects import (
     Drift,
     LearnedEffect,
     LumpedCompliance,
+    TrackerError,
 )
 from torchcal.effects.base import Effect, motion_direction
 from torchcal.effects.model import MeasurementModel
@@ -60,9 +61,18 @@ DEFAULT_SIZES = {
     "drift": 5e-5,
     "field": 1.5e-4,
     "coupling": 5e-5,
+    # the instrument's own errors (torchcal.effects.instrument): an azimuth or elevation encoder harmonic of order H,
+    # a range offset, a range scale
+    "tracker_az": 2e-5,
+    "tracker_el": 2e-5,
+    "range_offset": 2e-5,
+    "range_scale": 2e-5,
 }
+#: the simulated instrument terms, and the term of torchcal.effects.instrument.TrackerError each one is
+INSTRUMENT_SPECS = {"tracker_az": "azimuth", "tracker_el": "elevation", "range_offset": "range", "range_scale": "range"}
 EFFECT_NAMES = tuple(DEFAULT_SIZES)
 _UNITS = {"m": 1.0, "mm": 1e3, "um": 1e6}  # divisors to metres (exact for decimal input)
+_VALUE_UNITS = {"urad": 1e6, "ppm": 1e6}  # divisors of an instrument term's value to rad and m/m
 MASS_STREAM = 45_000_001  # offset of the seed of the true masses' generator (torchcal.sim.load.true_masses)
 
 
@@ -78,6 +88,8 @@ class EffectSpec:
     source: int | None = None
     k: float | None = None  # a compliance given as its physical value [rad/(N m)] instead of a size
     ratio: float | None = None  # a coupling given as its ratio c [rad/rad] instead of a size
+    order: int | None = None  # an instrument encoder harmonic's order (tracker_az:H, tracker_el:H)
+    amount: float | None = None  # an instrument term by its value: a harmonic's amplitude [rad], a range scale [m/m]
 
     @classmethod
     def _ratio(cls, text: str, kind: str, value: str) -> EffectSpec:
@@ -97,6 +109,33 @@ class EffectSpec:
         return cls(kind=kind, ratio=ratio)
 
     @classmethod
+    def _instrument(cls, text: str, kind: str, arg: str | None, size: str | None, unit: str | None) -> EffectSpec:
+        """An instrument term: ``tracker_az:H`` / ``tracker_el:H`` (an encoder harmonic of order H, its amplitude in
+        urad or its size), ``range_offset`` (a size: the offset itself), ``range_scale`` (in ppm, or a size)."""
+        spec = cls(kind=kind, variable=INSTRUMENT_SPECS[kind])
+        if kind in ("tracker_az", "tracker_el"):
+            if arg is None or not arg.isdigit() or int(arg) < 1:
+                raise OptionError(f"effect '{text}': {kind} needs a harmonic order >= 1, e.g. '{kind}:1=40urad'")
+            spec.order = int(arg)
+        elif arg is not None:
+            raise OptionError(f"effect '{text}': {kind} takes no joint or order")
+        want = {"tracker_az": "urad", "tracker_el": "urad", "range_scale": "ppm"}.get(kind)
+        if size is None:
+            return spec
+        if unit in _VALUE_UNITS and unit == want:
+            spec.amount = float(size) / _VALUE_UNITS[unit]
+            if not (math.isfinite(spec.amount) and spec.amount != 0.0):
+                raise OptionError(f"effect '{text}': the value must be a finite number other than 0")
+        elif unit in _UNITS:
+            spec.size = float(size) / _UNITS[unit]
+            if not spec.size > 0:
+                raise OptionError(f"effect '{text}': size must be positive")
+        else:
+            units = f"{want} or " if want else ""
+            raise OptionError(f"effect '{text}': give {kind} in {units}a length (its RMS displacement, e.g. '=20um')")
+        return spec
+
+    @classmethod
     def parse(cls, text: str) -> EffectSpec:
         """Parse ``KIND[:JOINT|:VARIABLE][=SIZE UNIT]``.
 
@@ -106,7 +145,8 @@ class EffectSpec:
         description has link masses).
         """
         m = re.fullmatch(
-            r"\s*([a-z]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um|rad/Nm|rad/rad)?)?\s*", text
+            r"\s*([a-z_]+)(?::([A-Za-z0-9_]+(?:<-[0-9]+)?))?(?:=\s*([0-9.eE+-]+)\s*(m|mm|um|rad/Nm|rad/rad|urad|ppm)?)?\s*",
+            text,
         )
         if not m:
             if re.fullmatch(r".*=\s*[0-9.eE+-]+\s*", text):
@@ -115,6 +155,12 @@ class EffectSpec:
         kind, arg, size, unit = m.groups()
         if kind not in EFFECT_NAMES:
             raise OptionError(f"effect kind '{kind}' is not one of {', '.join(EFFECT_NAMES)}")
+        if kind in INSTRUMENT_SPECS:
+            return cls._instrument(text, kind, arg, size, unit)
+        if unit in _VALUE_UNITS:
+            raise OptionError(
+                f"effect '{text}': only an instrument term takes {unit}; give {kind} a size, e.g. '=50um'"
+            )
         if size is not None and unit in (None, "rad/rad"):
             spec = cls._ratio(text, kind, size)
         elif unit == "rad/Nm":
@@ -282,6 +328,8 @@ def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator, load: 
         return Cyclic(spec.joint, harmonics=(1, 2), a=ab[:2], b=ab[2:])
     if spec.kind == "coupling":
         return Coupling(spec.joint, spec.source, c=1e-3)
+    if spec.kind in INSTRUMENT_SPECS:
+        return _instrument_truth(spec, g)
     if spec.kind == "drift":
         if spec.variable == "t":
             return Drift("t", "instrument", rates=torch.randn(6, generator=g, dtype=F64) * 1e-8)
@@ -289,6 +337,18 @@ def _make_effect(spec: EffectSpec, robot: RobotModel, g: torch.Generator, load: 
     net = CorrectionNet(robot.dof, 29)
     net.reset_parameters(g, gain=2.0)
     return LearnedEffect(net)
+
+
+def _instrument_truth(spec: EffectSpec, g: torch.Generator) -> TrackerError:
+    """An instrument term (:data:`INSTRUMENT_SPECS`) at its value, or at 1e-5 to be scaled to its size; a harmonic's
+    phase is drawn from ``g``."""
+    if spec.kind == "range_offset":
+        return TrackerError("range", c=[1e-5, 0.0])
+    if spec.kind == "range_scale":
+        return TrackerError("range", c=[0.0, spec.amount if spec.amount is not None else 1e-5])
+    amp = spec.amount if spec.amount is not None else 1e-5
+    phase = 2 * math.pi * float(torch.rand(1, generator=g, dtype=F64))
+    return TrackerError(spec.variable, (spec.order,), a=[amp * math.cos(phase)], b=[amp * math.sin(phase)])
 
 
 def _lumped_truth(joint: int, robot: RobotModel, g: torch.Generator, load: bool = False) -> LumpedCompliance:
@@ -491,6 +551,8 @@ def _effects(
             raise OptionError(f"effect {spec.kind} (joint {spec.joint}) does not move the probe in these poses")
         if spec.ratio is not None:  # the coupling's ratio given: the size is what it moves
             size = rms * spec.ratio / float(eff.c.detach())
+        if spec.amount is not None:  # an instrument term made at its value
+            size = rms
         if spec.k is not None:  # the physical value given: the size is what it moves
             if not isinstance(eff, Compliance):
                 raise OptionError(
@@ -501,12 +563,16 @@ def _effects(
         eff.scale_(size / rms)  # a negative ratio's size flips the sign
         disp = _rms_displacement(model, eff, ctx)
         mag = disp.norm(dim=-1)
-        if spec.k is not None or spec.ratio is not None:  # not quite linear in k or c: the size is what it moves
+        if spec.k is not None or spec.ratio is not None or spec.amount is not None:  # the size is what it moves
             size = float(mag.square().mean().sqrt())
         model.add(eff)
         effect_truth.append(
             {
-                "kind": "learned" if spec.kind == "field" else spec.kind,
+                "kind": "learned"
+                if spec.kind == "field"
+                else "instrument"
+                if spec.kind in INSTRUMENT_SPECS
+                else spec.kind,
                 "spec": spec.kind,
                 "joint": spec.joint,
                 **({"source": spec.source} if spec.source is not None else {}),

@@ -1,0 +1,118 @@
+"""The instrument's own errors, in its spherical coordinates: encoder harmonics in azimuth and elevation, a range
+offset and scale.
+
+A laser tracker measures a point by two encoder angles and a distance: azimuth ``az = atan2(y, x)``, elevation
+``el = atan2(z, sqrt(x^2 + y^2))`` and range ``rho = |p|`` in its own frame. An encoder mounted off its axis, or a
+graduation error, reads the angle with a periodic error in that angle; the interferometer or ADM reads the range with
+an offset (the reflector's, a dead path) and a scale (the wavelength's compensation for the air). The terms of the
+tracker error models of the literature on tracker performance evaluation (ASME B89.4.19) in the tracker's own frame,
+to first order (the errors are microradians and micrometres):
+
+* azimuth: ``d_az = sum_k a_k sin(k az) + b_k cos(k az)`` [rad], which moves the point by ``d_az`` times its distance
+  from the vertical axis along the azimuth direction;
+* elevation: ``d_el = sum_k a_k sin(k el) + b_k cos(k el)`` [rad], by ``d_el rho`` along the elevation direction;
+* range: ``d_rho = c_0 + c_1 rho`` (``c_0`` [m], ``c_1`` [m/m]), along the line of sight.
+
+They live in the instrument's frame: where the instrument is re-stationed they move with it (a re-stationed run keeps
+them), and the constant parts are the instrument pose's (a constant azimuth error is a turn about its vertical axis),
+so harmonics start at order 1. A range scale over one station's points is the arm's scale about the instrument, which
+the geometry's lengths and the instrument's position take up exactly: the score test finds it not identifiable there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from torchcal import _dual
+from torchcal.effects.base import Acts, Context, Effect
+from torchcal.errors import OptionError
+
+Tensor = torch.Tensor
+
+#: the spherical coordinate each term acts on
+TERMS = ("azimuth", "elevation", "range")
+
+
+class TrackerError(Effect):
+    """One term of the instrument's own error model (module docstring), acting on the point in the tracker frame.
+
+    Args:
+        term: ``azimuth``, ``elevation`` (encoder harmonics) or ``range`` (offset and scale).
+        harmonics: an angle term's orders, distinct positive integers (default 1 and 2).
+        a, b: an angle term's sine and cosine amplitudes [rad], one per harmonic.
+        c: a range term's ``(offset [m], scale [m/m])``.
+    """
+
+    kind = "instrument"
+    acts_on = Acts.TRACKER
+    reads_instrument = True  # the point it acts on is placed by the instrument pose
+
+    def __init__(self, term: str, harmonics: Sequence[int] = (1, 2), a=None, b=None, c=None):
+        super().__init__(None)
+        if term not in TERMS:
+            raise OptionError(f"instrument term must be one of {', '.join(TERMS)}, got {term!r}")
+        self.term = term
+        if term == "range":
+            self.orders: tuple[int, ...] = ()
+            self.c = nn.Parameter(_init(c, 2))
+            return
+        orders = tuple(int(k) for k in harmonics)
+        if not orders or min(orders) < 1 or len(set(orders)) != len(orders):
+            raise OptionError(f"instrument {term} harmonics must be distinct positive integers, got {list(harmonics)}")
+        self.orders = orders
+        self.register_buffer("harmonics", torch.tensor(orders, dtype=torch.float64))
+        self.a = nn.Parameter(_init(a, len(orders)))
+        self.b = nn.Parameter(_init(b, len(orders)))
+
+    @property
+    def variable(self) -> str:
+        """The term, as the closed loop's candidate names it (``instrument:azimuth``)."""
+        return self.term
+
+    def angle_error(self, angle: Tensor) -> Tensor:
+        """An angle term's error ``(N,)`` [rad] at the angles ``angle`` ``(N,)`` [rad]."""
+        arg = angle.unsqueeze(-1) * self.harmonics
+        return (_dual.mul(torch.sin(arg), self.a) + _dual.mul(torch.cos(arg), self.b)).sum(-1)
+
+    def forward(self, robot, ctx: Context, p_tracker: Tensor | None = None) -> Tensor:
+        """The displacement ``(N, 3)`` [m] of the measured points ``p_tracker`` ``(N, 3)`` [m, tracker frame]."""
+        if p_tracker is None:
+            raise OptionError("an instrument error acts on the point in the tracker frame (p_tracker)")
+        x, y, z = p_tracker.unbind(-1)
+        rho_xy = torch.sqrt(x * x + y * y).clamp(min=1e-12)
+        rho = torch.sqrt(rho_xy * rho_xy + z * z)
+        if self.term == "range":
+            d = self.c[1] * rho + self.c[0]
+            return (d / rho).unsqueeze(-1) * p_tracker
+        az, el = torch.atan2(y, x), torch.atan2(z, rho_xy)
+        if self.term == "azimuth":  # along e_az = (-sin az, cos az, 0), by the distance from the vertical axis
+            d = self.angle_error(az) * rho_xy
+            return torch.stack([-torch.sin(az) * d, torch.cos(az) * d, torch.zeros_like(d)], dim=-1)
+        d = self.angle_error(el) * rho  # along e_el = (-sin el cos az, -sin el sin az, cos el)
+        s = torch.sin(el)
+        return torch.stack([-s * torch.cos(az) * d, -s * torch.sin(az) * d, torch.cos(el) * d], dim=-1)
+
+    def param_units(self, robot) -> dict:
+        return {"c": ["m", "m/m"]} if self.term == "range" else {"a": "rad", "b": "rad"}
+
+    def config(self) -> dict:
+        return {"term": self.term, **({"harmonics": list(self.orders)} if self.orders else {})}
+
+    def describe(self) -> dict:
+        if self.term == "range":
+            c = self.c.detach()
+            return {"term": "range", "offset_m": float(c[0]), "scale": float(c[1])}
+        a, b = self.a.detach().tolist(), self.b.detach().tolist()
+        return {"term": self.term, "harmonics": list(self.orders), "a_rad": a, "b_rad": b}
+
+    def label(self) -> str:
+        if self.term == "range":
+            return "instrument(range offset and scale)"
+        return f"instrument({self.term} harmonics {','.join(str(k) for k in self.orders)})"
+
+
+def _init(v, n: int) -> Tensor:
+    return torch.zeros(n, dtype=torch.float64) if v is None else torch.as_tensor(v, dtype=torch.float64).reshape(n)
