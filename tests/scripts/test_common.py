@@ -80,6 +80,7 @@ SWEEPS = {
     "false_positives": [],
     "detection_limits": [],
     "closed_loop": [],
+    "couplings": [],
 }
 
 
@@ -96,3 +97,23 @@ def test_the_seed_sweeps_run_one_after_another_unless_given_workers_or_an_addres
         assert (ap.parse_args(positional).workers, ap.parse_args(positional).address) == (None, None), name
         a = ap.parse_args([*positional, "--workers", "2", "--address", "auto"])
         assert (a.workers, a.address) == (2, "auto"), name
+
+
+def test_the_coupling_grid_covers_every_adjacent_pair_and_judges_name_and_error():
+    from experiments import couplings
+
+    quick = couplings.cases(False, 500, 2, 800)
+    assert [c["effects"] for c in quick[:5]] == [
+        ["coupling:2<-1=0.0002"],
+        ["coupling:3<-2=0.0006"],
+        ["coupling:4<-3=0.002"],
+        ["coupling:5<-4=0.0002"],
+        ["coupling:6<-5=0.0006"],
+    ]
+    assert [c["effects"] for c in quick[5:]] == [[], []] and len({c["seed"] for c in quick}) == 7
+    full = couplings.cases(True, 500, 20, 800)
+    assert len(full) == 10 * 3 + 20 and {e for c in full for e in c["effects"]} >= {"coupling:5<-6=0.002"}
+    row = {"effects": ["coupling:5<-4=0.001"], "correct": True, "loop_mm": 0.030, "true_form_mm": 0.025}
+    assert couplings.verdict(row) and not couplings.verdict({**row, "loop_mm": 0.0301})
+    assert not couplings.verdict({**row, "correct": False})
+    assert couplings.verdict({"effects": [], "found": []}) and not couplings.verdict({"effects": [], "found": [1]})
