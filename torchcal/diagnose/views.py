@@ -33,6 +33,8 @@ def _without(model: MeasurementModel, index: int) -> MeasurementModel:
 def _find(model: MeasurementModel, cand: Candidate) -> int:
     for i, e in enumerate(model.effects):
         if e.kind == cand.kind and e.joint == cand.joint and getattr(e, "variable", None) == cand.variable:
+            if e.kind == "coupling" and e.source != cand.source:  # two couplings into one joint: its source tells
+                continue
             return i
     raise ValueError(f"the model has no effect {cand.name}")
 
