@@ -21,7 +21,7 @@ from experiments.closed_loop import run_cases
 from torchcal._version import __version__
 
 #: the kinds a false positive is counted by (``by_kind``): the closed loop's named kinds and the learned residual
-FP_KINDS = ("compliance", "backlash", "cyclic", "transmission", "coupling", "drift", "learned")
+FP_KINDS = ("compliance", "backlash", "cyclic", "transmission", "coupling", "drift", "instrument", "learned")
 
 
 def binom_cdf(k: int, n: int, p: float) -> float:
