@@ -86,3 +86,30 @@ def test_the_loop_names_an_azimuth_harmonic_on_three_stations_and_the_run_reload
     ctx = Context.from_measurements(c.test, trajectory=False)
     with torch.no_grad():
         assert torch.allclose(model(ctx), run.model(ctx), atol=1e-12)
+
+
+def test_the_instrument_terms_are_offered_where_the_data_can_tell_them():
+    """One station seeing the arm over 40 degrees of azimuth: not offered, with the reason; three stations: offered;
+    one station whose points surround it (a span of 90 degrees or more): offered."""
+    from torchcal.diagnose.candidates import MIN_AZIMUTH_SPAN, candidates
+    from torchcal.sim import SimConfig, simulate
+
+    for stations, offered in ((1, False), (3, True)):
+        c = simulate(SimConfig(robot="ur5", poses=60, test_poses=0, seed=1, stations=stations))
+        cands, skipped = candidates(c.model.robot, Context.from_measurements(c.train, trajectory=False))
+        names = {x.name for x in cands}
+        assert ({"instrument:azimuth", "instrument:range"} <= names) == offered
+        reasons = {s["name"]: s["reason"] for s in skipped}
+        assert offered or "several stations or a wider span" in reasons["instrument:azimuth"]
+    # the instrument amid the arm's points: the same campaign's robot placed at the tracker's origin
+    robot = c.model.robot
+    one = torchcal.load_robot("ur5")
+    with torch.no_grad():
+        one.instrument.set_matrix(torch.eye(4, dtype=F64))
+    q = c.train.q
+    with torch.no_grad():
+        p = MeasurementModel(one)(Context(q=q))
+    span = torch.atan2(p[:, 1], p[:, 0])
+    assert float(span.max() - span.min()) > MIN_AZIMUTH_SPAN
+    names = {x.name for x in candidates(one, Context(q=q))[0]}
+    assert "instrument:azimuth" in names and robot.stations

@@ -10,7 +10,10 @@ reading) per prismatic joint, whose reading [m] has no turn for harmonics to rep
 joint to every other joint that moves (``dq_j = c q_k``, all ``dof (dof - 1)`` ordered pairs), ``drift`` of the
 instrument pose with the acquisition time ``t``, ``drift`` of the arm's scale with ``temperature``, and the
 instrument's own errors (:mod:`torchcal.effects.instrument`): ``instrument:azimuth`` (the azimuth encoder's harmonics
-1 and 2) and ``instrument:range`` (a range offset and scale), one instrument for every station of the file.
+1 and 2) and ``instrument:range`` (a range offset and scale), one instrument for every station of the file, offered
+where the data can tell them: several stations, or one whose points span 90 degrees or more in azimuth (on one
+station over the 30 degrees a tracker a few metres off sees the arm span, an azimuth harmonic of 40 urad, 86 um RMS,
+was taken up by the instrument pose and the geometry: its true form fitted no better than the geometry alone).
 A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
 
 Couplings are tried between every pair of joints, on every robot: a cable or belt routed through a joint, a wrist
@@ -30,6 +33,7 @@ has; a gravity torque of round-off size has no loaded flank either), a variable 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import torch
@@ -58,6 +62,8 @@ DRIFT_FORMS = {"t": ("instrument", "s"), "temperature": ("scale", "degC")}
 #: the instrument's own error terms offered (effects.instrument): the azimuth encoder's harmonics 1 and 2, the
 #: range's offset and scale
 INSTRUMENT_TERMS = ("azimuth", "range")
+#: the azimuth span [rad] of one station's points from which its instrument errors are offered (module docstring)
+MIN_AZIMUTH_SPAN = math.pi / 2
 
 
 @dataclass(frozen=True)
@@ -167,6 +173,26 @@ def _spherical(robot, ctx: Context, term: str) -> tuple[Tensor, str]:
     return torch.atan2(p[:, 1], p[:, 0]), f"{term} in the instrument frame [rad]"
 
 
+def _instrument_untold(robot, ctx: Context) -> str | None:
+    """Why the data cannot tell the instrument's own errors from its pose and the geometry (None: they can): one
+    station whose points span less than :data:`MIN_AZIMUTH_SPAN` in azimuth. A low encoder harmonic over a narrow span
+    is a turn and a stretch the instrument pose and the arm's lengths take up, and a range scale about one placement is
+    the arm's own scale; a second placement of the same instrument, or a wide span, sets them apart."""
+    if len(robot.stations) > 1:
+        return None
+    az, _ = _spherical(robot, ctx, "azimuth")
+    a = torch.sort(torch.remainder(az, 2 * math.pi)).values
+    gaps = torch.cat([a[1:] - a[:-1], (a[:1] + 2 * math.pi - a[-1:])]) if len(a) else a.new_ones(1) * 2 * math.pi
+    span = 2 * math.pi - float(gaps.max())
+    if span >= MIN_AZIMUTH_SPAN:
+        return None
+    return (
+        f"one station, whose points span {math.degrees(span):.0f} deg in azimuth "
+        f"(< {math.degrees(MIN_AZIMUTH_SPAN):.0f}): the instrument pose and the geometry take up its low encoder "
+        "harmonics and its range scale; several stations or a wider span tell them"
+    )
+
+
 def _varies(x: Tensor, rel: float = 1e-9) -> bool:
     return bool(len(x) > 1) and float(x.std()) > rel * (1.0 + float(x.abs().max()))
 
@@ -270,7 +296,12 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
         else:
             out.append(Candidate(shape, j))
         _couplings(robot, ctx, j, out, skip)
-    out += [Candidate("instrument", None, term) for term in INSTRUMENT_TERMS]
+    why = _instrument_untold(robot, ctx)
+    for term in INSTRUMENT_TERMS:
+        if why is None:
+            out.append(Candidate("instrument", None, term))
+        else:
+            skip(f"instrument:{term}", why)
     for var in DRIFT_FORMS:
         v = ctx.t if var == "t" else ctx.temperature
         if v is None:
