@@ -203,6 +203,26 @@ def test_simulated_coupling_is_named_by_the_closed_loop():
     assert eff.source == 4
 
 
+@pytest.mark.slow
+def test_a_urdf_arm_without_a_readings_map_has_its_coupling_named_and_its_urdf_export_says_it_cannot_hold_it(
+    tmp_path,
+):
+    """The same wrist coupling on a robot described by a URDF (no readings map, no mechanism declared): the default
+    method names it, and a URDF export says that the format cannot hold it."""
+    from torchcal.report.rundir import write_run
+    from torchcal.use.export import export_run
+
+    campaign = simulate(
+        SimConfig(robot="ur5.urdf", poses=200, test_poses=0, seed=3, effects=[EffectSpec.parse("coupling:5<-4=2e-3")])
+    )
+    run = torchcal.calibrate("ur5.urdf", campaign.train, Options())
+    assert [e["name"] for e in run.effects_report] == ["coupling:5<-4"], run.effects_report
+    eff = next(e for e in run.model.effects if e.kind == "coupling")
+    assert eff.source == 4 and float(eff.c.detach()) == pytest.approx(2e-3, rel=0.1)
+    ex = export_run(write_run(run, tmp_path / "run"), "urdf", tmp_path / "robot.urdf")
+    assert "cannot hold coupling(joint 5 <- 4)" in (tmp_path / "robot.urdf").read_text() and ex.cannot_hold
+
+
 def test_every_arm_gets_a_coupling_candidate_for_every_pair_of_moving_joints():
     """Couplings are offered on every robot (not only where a readings map declares a mechanism), between every
     ordered pair of joints that move; a joint that does not move drives none."""
