@@ -9,11 +9,11 @@ the gravity torque for static poses, the direction of motion along a trajectory)
 reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``coupling`` of each
 joint to every other joint that moves (``dq_j = c q_k``, all ``dof (dof - 1)`` ordered pairs), ``drift`` of the
 instrument pose with the acquisition time ``t``, ``drift`` of the arm's scale with ``temperature``, and the
-instrument's own errors (:mod:`torchcal.effects.instrument`): ``instrument:azimuth`` (the azimuth encoder's harmonics
-1 and 2) and ``instrument:range`` (a range offset and scale), one instrument for every station of the file, offered
-where the data can tell them: several stations, or one whose points span 90 degrees or more in azimuth (on one
-station over the 30 degrees a tracker a few metres off sees the arm span, an azimuth harmonic of 40 urad, 86 um RMS,
-was taken up by the instrument pose and the geometry: its true form fitted no better than the geometry alone).
+instrument's own errors (:mod:`torchcal.effects.instrument`): ``instrument:azimuth`` and ``instrument:elevation`` (the
+encoder's harmonics 1 and 2) and ``instrument:range`` (a range offset and scale), one instrument for every station of
+the file, offered where the data can tell them: several stations, or one whose points span 90 degrees or more in
+azimuth (over the few tens of degrees a tracker a few metres off sees the arm span, the instrument pose and the
+geometry take up a low harmonic: docs/closed-loop.md).
 A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
 
 Couplings are tried between every pair of joints, on every robot: a cable or belt routed through a joint, a wrist
@@ -59,9 +59,9 @@ Tensor = torch.Tensor
 MIN_LEVER = 1e-4
 #: drift variables the data may carry, the effect form each one drives, and its unit
 DRIFT_FORMS = {"t": ("instrument", "s"), "temperature": ("scale", "degC")}
-#: the instrument's own error terms offered (effects.instrument): the azimuth encoder's harmonics 1 and 2, the
-#: range's offset and scale
-INSTRUMENT_TERMS = ("azimuth", "range")
+#: the instrument's own error terms offered (effects.instrument): the azimuth and elevation encoders' harmonics 1
+#: and 2, the range's offset and scale
+INSTRUMENT_TERMS = ("azimuth", "elevation", "range")
 #: the azimuth span [rad] of one station's points from which its instrument errors are offered (module docstring)
 MIN_AZIMUTH_SPAN = math.pi / 2
 
@@ -74,7 +74,8 @@ class Candidate:
         kind: effect kind (as report.json names it): compliance, backlash, cyclic, transmission, coupling, drift or
             instrument.
         joint: 1-based joint, or None for drift.
-        variable: drift variable (``t`` or ``temperature``), an instrument term (``azimuth``, ``range``), else None.
+        variable: drift variable (``t`` or ``temperature``), an instrument term (``azimuth``, ``elevation``,
+            ``range``), else None.
         reference: drift reference value (the variable at the first training sample).
         basis: a lumped compliance's identifiable directions ``(4 dof, r)`` on the training poses
             (:func:`~torchcal.effects.joint.lumped_basis`); None: the mass-based compliance.
