@@ -56,6 +56,7 @@ def test_a_coupling_the_data_determine_is_not_named(narrow_run):
     assert effect_trades(model, fit) == []
 
 
+@pytest.mark.slow
 def test_a_run_that_names_a_coupling_reports_no_trade():
     c = simulate(
         SimConfig(robot="ur5", poses=150, test_poses=0, seed=2, effects=[EffectSpec.parse("coupling:5<-4=2e-3")])
