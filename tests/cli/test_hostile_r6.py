@@ -272,11 +272,12 @@ def test_check_export_of_another_robot(loaded, tmp_path, capsys):
 
 
 def test_check_export_with_an_upper_case_suffix(loaded, tmp_path, capsys):
-    """check-export took 'E.URDF' and load_robot then refused '.URDF' as unknown; both read it now."""
+    """check-export took 'E.URDF' and then said "unknown robot description type '.URDF'": it is refused at once, as
+    --robot would refuse it, with the name that loads."""
     assert run_cli(["export", str(loaded / "r"), "--format", "urdf", "--out", str(tmp_path / "e.urdf")]) == 0
     (tmp_path / "e.urdf").rename(tmp_path / "E.URDF")
     capsys.readouterr()
-    assert "E.URDF loaded" in main_out(["check-export", str(loaded / "r"), str(tmp_path / "E.URDF")], capsys)
+    refuse(capsys, tmp_path, ["check-export", str(loaded / "r"), str(tmp_path / "E.URDF")], "E.URDF", "rename", ".urdf")
 
 
 def test_check_export_of_an_empty_file(loaded, tmp_path, capsys):
