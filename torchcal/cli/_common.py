@@ -5,9 +5,11 @@ simulator with its failure in the command's words, a found effect in one line.""
 from __future__ import annotations
 
 import functools
+import json
 from pathlib import Path
 
 from torchcal import _console
+from torchcal._outdir import check_out_file
 from torchcal._threads import torch_threads
 from torchcal.errors import OptionError
 
@@ -109,3 +111,17 @@ def _effect_line(e: dict) -> str:
     words = effect_params_words(e["params"])
     ev = e["evidence"]
     return name + (f": {words}" if words else "") + (f"; {named_p(ev)}" if "p_bonferroni" in ev else "")
+
+
+def json_out_file(path: str, inputs: list, force: bool, written_by: str) -> Path:
+    """A JSON file to write: one an earlier ``written_by`` wrote (``"written_by": ...``; JSON has no comment line for
+    the usual mark) is replaced like a marked file; anything else as :func:`~torchcal._outdir.check_out_file` says."""
+    p = Path(path)
+    if p.is_file() and not p.is_symlink():
+        try:
+            earlier = json.loads(p.read_text(encoding="utf-8")).get("written_by") == written_by
+        except (ValueError, OSError, AttributeError):
+            earlier = False
+        if earlier:
+            return check_out_file(path, inputs=inputs, force=True)
+    return check_out_file(path, inputs=inputs, force=force)

@@ -24,7 +24,7 @@ from torchcal.cli._args import (
     _seed,
     _tool,
 )
-from torchcal.cli._common import _one_torch_thread, _reading, _robot_input
+from torchcal.cli._common import _one_torch_thread, _reading, _robot_input, json_out_file
 from torchcal.data.header import check_header_robot, robot_key
 from torchcal.errors import OptionError
 
@@ -145,16 +145,9 @@ def _add_design(pl) -> None:
 
 
 def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
-    """``plan``'s summary next to its poses: an earlier plan's JSON (``"written_by": "torchcal plan"``, JSON has no
-    comment line for the usual mark) is replaced like a marked file; anything else as :func:`check_out_file` says."""
-    p = Path(path)
-    if p.suffix == ".json" and p.is_file() and not p.is_symlink():
-        try:
-            earlier = json.loads(p.read_text(encoding="utf-8")).get("written_by") == "torchcal plan"
-        except (ValueError, OSError, AttributeError):
-            earlier = False
-        if earlier:
-            return check_out_file(path, inputs=inputs, force=True)
+    """``plan``'s summary next to its poses, replaced like a marked file where an earlier plan wrote it."""
+    if path.endswith(".json"):
+        return json_out_file(path, inputs, force, "torchcal plan")
     return check_out_file(path, inputs=inputs, force=force)
 
 
