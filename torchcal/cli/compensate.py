@@ -9,7 +9,7 @@ import torch
 
 from torchcal import _console
 from torchcal._outdir import check_out_file
-from torchcal.cli._args import NONNEG, _add_common, _add_force, _add_units, _number
+from torchcal.cli._args import PAYLOAD_KG, _add_common, _add_force, _add_units, _number
 from torchcal.cli._common import _has_load, _one_torch_thread, _reading, warn_outside
 from torchcal.errors import TorchcalError
 
@@ -44,7 +44,7 @@ def add_parser(sub) -> None:
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     cp.add_argument(
         "--payload",
-        type=NONNEG,
+        type=PAYLOAD_KG,
         default=None,
         metavar="KG",
         help="the program's payload at the flange (default: the targets' payload column, else 0): the calibrated "

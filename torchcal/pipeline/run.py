@@ -306,9 +306,6 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
     """
     if opts.levels.outlier is None:
         return tr, ho, None
-    if robot.stations or robot.probes:  # the robust start fits one tracker pose and one lever arm
-        _console.info("gross-error screening skipped: it fits a single instrument pose and lever arm")
-        return tr, ho, None
     from torchcal.estimate.robust import screen_geometric
 
     _console.info("screening for gross errors: robust geometric fit, data snooping")

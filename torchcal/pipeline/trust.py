@@ -12,7 +12,7 @@ import torch
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import fit_covariance
-from torchcal.estimate.trust import Trust, fit_trust
+from torchcal.estimate.trust import FewRows, Trust, few_rows, fit_trust
 from torchcal.pipeline.records import StageName
 from torchcal.pipeline.state import CalibrationRun
 
@@ -26,6 +26,7 @@ class RunTrust:
     geometric_model: MeasurementModel | None = None
     geometric_covariance: ParameterCovariance | None = None
     geometric: Trust | None = None
+    few: FewRows | None = None  # the final model's, where too few rows were held out to measure ``full``
 
 
 def noise_of(run: CalibrationRun) -> tuple[float, float, float]:
@@ -39,13 +40,16 @@ def noise_of(run: CalibrationRun) -> tuple[float, float, float]:
     return v, v, v
 
 
-def _held_out(run: CalibrationRun, model: MeasurementModel, cov: ParameterCovariance | None) -> Trust | None:
-    """``model``'s :class:`Trust` on the run's held-out rows, measured on the CPU (as predict computes it)."""
+def _held_out(
+    run: CalibrationRun, model: MeasurementModel, cov: ParameterCovariance | None, measure=fit_trust
+) -> Trust | FewRows | None:
+    """``model``'s :class:`Trust` (or what ``measure`` gives: :func:`few_rows`) on the run's held-out rows, measured
+    on the CPU (as predict computes it)."""
     hold = run.hold.to("cpu")
     if hold.p is None or hold.n == 0:
         return None
     ctx = Context.from_measurements(hold, trajectory=run.trajectory)
-    return fit_trust(model, cov, ctx, hold.p, noise_of(run))
+    return measure(model, cov, ctx, hold.p, noise_of(run))
 
 
 def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> ParameterCovariance | None:
@@ -69,10 +73,11 @@ def run_trust(run: CalibrationRun) -> RunTrust:
     with torch.no_grad():
         model = copy.deepcopy(run.model).to("cpu")
         full = _held_out(run, model, _of_model(run.covariance, model))
+        few = None if full is not None else _held_out(run, model, _of_model(run.covariance, model), few_rows)
         geo = next((s.model for s in run.stages if s.name == StageName.GEOMETRIC), None)
         if geo is None or (not run.model.effects and not geo.effects):
-            return RunTrust(full)
+            return RunTrust(full, few=few)
         geo = copy.deepcopy(geo).to("cpu")
         geo.set_region(run.model.region, fade=False)
         cov = _geometric_covariance(run, geo)
-        return RunTrust(full, geo, cov, _held_out(run, geo, cov))
+        return RunTrust(full, geo, cov, _held_out(run, geo, cov), few=few)

@@ -344,6 +344,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "tool_axis": _tool_axis_config(run),
         "load": training_load(run.data),  # the load conditions the run was fitted in (torchcal.use.conditions)
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
+        **({"trust_few_rows": rtrust.few.to_dict()} if rtrust.few is not None else {}),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
         **({"standalone": alone} if alone is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
@@ -389,7 +390,10 @@ def _trust_report(rt, n_holdout: int) -> dict:
         "definition": "sx, sy, sz: the standard deviation of a new measurement minus the prediction (docs/trust.md)",
         "model": None if rt.full is None else rt.full.to_dict(),
     }
-    if rt.full is None and n_holdout < MIN_ROWS:
+    if rt.full is None and rt.few is not None:
+        out["few_rows"] = rt.few.to_dict()
+        out["note"] = rt.few.note()
+    elif rt.full is None and n_holdout < MIN_ROWS:
         out["note"] = (
             f"not measured: {n_holdout} held-out rows, fewer than {MIN_ROWS}; predict's sx, sy, sz hold the "
             "parameters' and the learned model's uncertainty only and understate the error (judge the run on a "

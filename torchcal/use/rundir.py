@@ -23,7 +23,7 @@ from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import MeasurementFileError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.estimate.trust import MIN_ROWS, Trust
+from torchcal.estimate.trust import MIN_ROWS, FewRows, Trust
 from torchcal.robot import load_robot
 
 if TYPE_CHECKING:  # the pipeline is imported by load_prior alone: predict, compensate and plan do not load it
@@ -333,6 +333,27 @@ def load_trust(run_dir: str | os.PathLike, meta: dict, key: str = "trust") -> Tr
         raise _run_error(Path(run_dir), f"model.json: {key}: {e}") from None
 
 
+def load_few_rows(run_dir: str | os.PathLike, meta: dict) -> FewRows | None:
+    """model.json's bounds on the sigma's scale from too few held-out rows (:class:`~torchcal.estimate.trust.FewRows`);
+    None where the run measured a level, held out no row or was written before the bounds existed."""
+    d = meta.get("trust_few_rows")
+    if d is None:
+        return None
+    try:
+        return FewRows.from_dict(d)
+    except ValueError as e:
+        raise _run_error(Path(run_dir), f"model.json: trust_few_rows: {e}") from None
+
+
+def _unmeasured_sigma(run_dir: Path, model: MeasurementModel, meta: dict, ctx: Context) -> tuple[Tensor | None, str]:
+    """The sigma and its note of a run without a measured level: bounded by its few held-out rows where it kept them
+    (:func:`load_few_rows`), else :func:`_old_run_sigma`."""
+    few = load_few_rows(run_dir, meta)
+    if few is None:
+        return _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
+    return few.std(model, ctx, load_covariance(run_dir, model)), f"{run_dir}: the run's sigma {few.note()}"
+
+
 def load_geometric(
     run_dir: str | os.PathLike, model: MeasurementModel, meta: dict
 ) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
@@ -470,7 +491,7 @@ def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, c
     which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
     tr = load_trust(run_dir, meta)
     if tr is None:
-        sigma, note = _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
+        sigma, note = _unmeasured_sigma(run_dir, model, meta, ctx)
         return RowTrust(None if sigma is None else sigma.cpu(), ext, which, note=note)
     sigma = tr.std(model, ctx, load_covariance(run_dir, model)).cpu()
     alt = load_geometric(run_dir, model, meta)
@@ -491,9 +512,10 @@ def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> 
     choice of model; None where the run has none) and the extrapolation ``(N,)``."""
     run_dir = Path(run_dir)
     meta = load_json(run_dir / "model.json", "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
-    tr = load_trust(run_dir, meta if isinstance(meta, dict) else {})
+    meta = meta if isinstance(meta, dict) else {}
+    tr = load_trust(run_dir, meta)
     if tr is None:
-        sigma = _old_run_sigma(run_dir, model, ctx)[0]
+        sigma = _unmeasured_sigma(run_dir, model, meta, ctx)[0]
     else:
         sigma = tr.std(model, ctx, load_covariance(run_dir, model))
     ext = torch.maximum(model.extrapolation(ctx.q).cpu(), tool_axis_beyond(model, ctx.q).to(ctx.q.dtype))
