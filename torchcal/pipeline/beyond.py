@@ -195,59 +195,76 @@ def folds(run: CalibrationRun) -> list[torch.Tensor]:
     return out
 
 
-def _refit(run: CalibrationRun, name: str, model: MeasurementModel, rows: Rows) -> MeasurementModel:
-    """``model`` (a candidate) fitted again on the training rows ``rows`` as the run fitted it: the nominal one's
-    instrument pose and lever arm, the geometric one under the tolerance priors, the full one's geometry with its
-    named effects (its learned parts are not refitted: beyond the region they fade to that)."""
-    from torchcal.estimate.fit import GEOMETRIC_GROUPS, solve
+def _fit_setup(run: CalibrationRun, name: str, model: MeasurementModel):
+    """How the run fitted candidate ``name``: its groups, settings, free elements and whether its effects are free
+    (the nominal one: instrument pose and lever arm; the geometric one: under the tolerance priors, the elements the
+    kinematic calibration's identifiability analysis freed; the full one: that geometry with its named effects)."""
+    from torchcal.estimate.fit import GEOMETRIC_GROUPS
 
-    out = copy.deepcopy(model)
     geo_fit = next((f for f in run.fits if f.stage == StageName.GEOMETRIC), None)
-    ida = geo_fit.identifiability if geo_fit is not None else None
+    ida = None if geo_fit is None else geo_fit.identifiability
+    keep = None if ida is None else dict(zip(ida.names, ida.free.tolist()))
     if name == "nominal":
-        groups, settings, ida, effects = ("instrument", "tool"), run.options.fit, None, False
-    elif name == "geometric" or not out.effects:
-        groups, settings, effects = GEOMETRIC_GROUPS, run.options.fit.geometric(), False
-    else:
-        groups, settings, effects = GEOMETRIC_GROUPS, run.options.fit, True
-    solve(
-        out,
-        rows,
-        groups,
-        settings,
-        name,
-        trajectory=run.trajectory,
-        identify=False,
-        effects=effects,
-        identifiability=ida,
-    )
+        return ("instrument", "tool"), run.options.fit, None, False
+    if name == "geometric" or not model.effects:
+        return GEOMETRIC_GROUPS, run.options.fit.geometric(), keep, False
+    return GEOMETRIC_GROUPS, run.options.fit, keep, True
+
+
+def _left_out_errors(run: CalibrationRun, name: str, model: MeasurementModel, parts: list) -> list[torch.Tensor]:
+    """The candidate's errors ``(k, 3)`` [m] on each fold of ``parts``, fitted again without that fold to first
+    order: one Gauss-Newton step from its fitted values over the rows left in, with its priors (the fit is at its
+    optimum on all rows; leaving a share out moves it a little, along a model nearly linear in its corrections)."""
+    from torchcal.estimate.fit import _priors
+    from torchcal.estimate.problem import jacobian_of, residual_function, whitening
+
+    groups, settings, keep, effects = _fit_setup(run, name, model)
+    train = run.train.to("cpu")
+    ctx = Context.from_measurements(train, trajectory=run.trajectory)
+    sel, labels = selection(model, groups, keep, effects=effects)
+    free = FreeParameters(model, sel, labels)
+    if not len(free):
+        with torch.no_grad():
+            e = model(ctx) - train.p
+        return [e[h] for h in parts]
+    W = whitening(model, ctx, train.sigma, settings.sigma_tracker, settings.sigma_joint)
+    fun = residual_function(model, free, ctx, train.p, W, _priors(model, free, settings, groups))
+    x0 = free.vector()
+    with torch.no_grad():
+        r0 = fun(x0)
+    J = jacobian_of(fun)(x0).detach()
+    out = []
+    for held in parts:
+        rows = torch.ones(len(r0), dtype=torch.bool)
+        rows[(3 * held[:, None] + torch.arange(3)).flatten()] = False  # the fold's pose rows; the priors stay
+        dx = torch.linalg.lstsq(J[rows], -r0[rows].unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
+        m = copy.deepcopy(model)
+        FreeParameters(m, sel, labels).assign(x0 + dx)
+        sub = train.subset(held)
+        with torch.no_grad():
+            out.append(m(Context.from_measurements(sub, trajectory=run.trajectory)) - sub.p)
     return out
 
 
 def left_out(run: CalibrationRun, candidates: dict[str, MeasurementModel]) -> Choice:
     """Compare the candidates on the training rows left out region by region (:func:`folds`), each refitted on the
-    rest (:func:`_refit`); the full model stands for itself and for the physical one (its learned parts fade beyond
-    the region to the geometry and named effects refitted here)."""
+    rest (:func:`_left_out_errors`); the full model stands for itself and for the physical one (its learned parts
+    fade beyond the region to the geometry and named effects refitted here)."""
     tested = {n: m for n, m in candidates.items() if n != "physical"}
     if "physical" in candidates:
         tested["full"] = candidates["physical"]
     parts = folds(run)
     if not parts or len(tested) < 2:
         return Choice(None, 0, {}, 0.0)
+    errs = {n: _left_out_errors(run, n, m.to("cpu"), parts) for n, m in tested.items()}
     train = run.train.to("cpu")
-    errs: dict[str, list[torch.Tensor]] = {n: [] for n in tested}
     reach = 0.0
-    for held in parts:
+    for held in parts:  # how far each fold lies beyond the rows left in
         keep = torch.ones(train.n, dtype=torch.bool)
         keep[held] = False
-        rest, out = train.subset(torch.nonzero(keep).flatten()), train.subset(held)
-        ctx = Context.from_measurements(out, trajectory=run.trajectory)
-        for name, model in tested.items():
-            m = _refit(run, name, model.to("cpu"), rest)
-            m.set_region(rest.q, fade=False)
-            with torch.no_grad():
-                errs[name].append(m(ctx) - out.p)
-                reach = max(reach, float(m.extrapolation(out.q).max()))
+        lo, hi = train.q[keep].min(dim=0).values, train.q[keep].max(dim=0).values
+        q = train.q[held]
+        reach = max(reach, float(torch.maximum(lo - q, q - hi).clamp(min=0).max()))
     rmse = {n: _rmse_mm(torch.cat(e)) for n, e in errs.items()}
     n = sum(len(h) for h in parts)
     return Choice(_simplest_best(rmse), n, rmse, reach, "training rows left out region by region")
