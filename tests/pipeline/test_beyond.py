@@ -35,7 +35,8 @@ def test_a_richer_model_must_beat_a_simpler_one_by_more_than_the_tie():
 
 def test_the_sigma_beyond_is_bounded_by_the_tolerance_priors():
     """A geometric element held at the later fits' 1 mm prior is bounded to about the tolerance (0.1 mm): the
-    information of both, ``1 / (1/1e-6 + 1/1e-8)``; an element of the instrument, uncorrelated, keeps its variance."""
+    information of both, ``1 / (1/1e-6 + 1/1e-8)``; an element of the instrument, uncorrelated, keeps its variance,
+    and so does one already at its tolerance."""
 
     class Run:
         options = Options()
@@ -55,6 +56,9 @@ def test_the_sigma_beyond_is_bounded_by_the_tolerance_priors():
     assert float(out.matrix[0, 0]) == pytest.approx(1 / (1 / 1e-6 + 1 / tol**2), rel=1e-9)
     assert float(out.matrix[1, 1]) == pytest.approx(4e-8, rel=1e-12)
     assert float(out.matrix[0, 1]) == 0.0
+    # an element the kinematic calibration already held at its tolerance keeps it: the prior is not counted twice
+    held = ParameterCovariance(cov.names, cov.index, cov.labels, torch.diag(torch.tensor([tol**2, 4e-8], dtype=F64)))
+    assert torch.equal(bounded(held, model, Run()).matrix, held.matrix)
 
 
 @pytest.fixture(scope="module")

@@ -274,22 +274,31 @@ def bounded(
     cov: ParameterCovariance | None, model: MeasurementModel, run: CalibrationRun
 ) -> ParameterCovariance | None:
     """``cov`` with the geometry's tolerance prior (:meth:`FitSettings.geometric`) added as information on every
-    geometric element it holds: ``C - C H^T (H C H^T + P)^-1 H C`` (``H`` picks the geometric elements, ``P`` their
-    prior variances). The later fits of a run hold what the rows cannot tell at the wider prior of a geometric change
-    (1 mm, 0.1 deg), and beyond the region that doubt would be the sigma; a robot's geometry is no more uncertain than
-    its manufacturing, so the sigma beyond the region is bounded by the priors the kinematic calibration used."""
+    geometric element it holds with a variance above the prior's: ``C - C H^T (H C H^T + P)^-1 H C`` (``H`` picks
+    those elements, ``P`` their prior variances). The later fits of a run hold what the rows cannot tell at the
+    wider prior of a geometric change (1 mm, 0.1 deg), and beyond the region that doubt would be the sigma; a
+    robot's geometry is no more uncertain than its manufacturing, so the sigma beyond the region is bounded by the
+    priors the kinematic calibration used."""
     settings = run.options.fit.geometric()
     if cov is None or settings.prior_length is None or settings.prior_angle is None:
         return cov
     units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
     block = [name for name, idx in zip(cov.names, cov.index) for _ in idx]  # each element's parameter
-    sel = [k for k, label in enumerate(cov.labels) if block[k] == "robot.geometry.delta" and label in units]
+    C = cov.matrix
+
+    def tol(k: int) -> float:
+        return settings.prior_length if units[cov.labels[k]] == "m" else settings.prior_angle
+
+    # only the elements more uncertain than their tolerance: one the kinematic calibration already held at it (a
+    # consider covariance of the tolerance prior) would count that prior twice, and its sigma shrink below it
+    sel = [
+        k
+        for k, label in enumerate(cov.labels)
+        if block[k] == "robot.geometry.delta" and label in units and float(C[k, k]) > tol(k) ** 2
+    ]
     if not sel:
         return cov
-    C = cov.matrix
-    prior = torch.tensor(
-        [settings.prior_length if units[cov.labels[k]] == "m" else settings.prior_angle for k in sel], dtype=C.dtype
-    )
+    prior = torch.tensor([tol(k) for k in sel], dtype=C.dtype)
     idx = torch.tensor(sel)
     S = C[idx][:, idx] + torch.diag(prior.square())
     CH = C[:, idx]
