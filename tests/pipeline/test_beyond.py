@@ -116,3 +116,53 @@ def test_predict_gives_the_rows_beyond_to_the_chosen_model_with_its_own_sigma(na
     s = torch.tensor([[float(r[c]) for c in ("sx", "sy", "sz")] for r in rows], dtype=F64)
     assert torch.allclose(s[out], tr.std(nom, ctx.subset(out), cov), rtol=1e-6)
     assert math.isfinite(float(s.max()))
+
+
+def test_plan_with_a_narrow_run_proposes_poses_that_move_its_narrow_joints(narrow_run, tmp_path, capsys):
+    """``plan --run`` of a run whose joints 1, 4, 5, 6 moved 1 deg: the candidates span those joints' limits (not
+    the run's 1-deg band), so the planned poses move them; stderr names them."""
+    from torchcal.use.plan import candidate_region
+
+    model, _ = load_model(narrow_run / "run")
+    region, narrow = candidate_region(model)
+    assert narrow == [1, 4, 5, 6]
+    assert torch.equal(region[:, 1], model.region[:, 1])  # a joint the run moved keeps its calibrated range
+    assert torch.equal(region[:, 0], model.robot.limits[0])
+    out = tmp_path / "plan.csv"
+    assert main(["plan", "--run", str(narrow_run / "run"), "--n", "12", "--pool", "300", "--out", str(out)]) == 0
+    assert "q1, q4, q5, q6, narrow in the run, over their limits" in capsys.readouterr().err
+    rows = _rows(out)
+    q = torch.tensor([[float(r[f"q{j}"]) for j in range(1, 7)] for r in rows], dtype=F64)
+    spread = torch.rad2deg(q.max(dim=0).values - q.min(dim=0).values)
+    assert bool((spread[[0, 3, 4, 5]] > 20).all()), spread
+
+
+def test_compensate_commands_the_rows_beyond_with_the_chosen_model(narrow_run, tmp_path):
+    """The run made to choose the nominal model: compensate solves the targets beyond the region with it (the nominal
+    model puts the probe on each target at the commands) and its model column says ``nominal``."""
+    from torchcal.data import read_measurements
+
+    run = tmp_path / "run"
+    shutil.copytree(narrow_run / "run", run)
+    meta = json.loads((run / "model.json").read_text(encoding="utf-8"))
+    meta["beyond"]["model"] = "nominal"
+    (run / "model.json").write_text(json.dumps(meta), encoding="utf-8")
+    model, meta = load_model(run)
+    nom = load_nominal(run, model, meta)[0]
+    test = narrow_run / "sim" / "test.csv"
+    q = read_measurements(test).q[:6]
+    with torch.no_grad():
+        targets = nom(Context(q=q))
+    lines = ["x,y,z"] + [",".join(repr(float(v)) for v in row) for row in targets]
+    (tmp_path / "targets.csv").write_text("\n".join(lines) + "\n", encoding="utf-8")
+    start = tmp_path / "start.csv"
+    start.write_text("\n".join(["q1,q2,q3,q4,q5,q6"] + [",".join(repr(float(v)) for v in row) for row in q]) + "\n")
+    assert main(["compensate", str(run), str(tmp_path / "targets.csv"), "--start", str(start),
+                 "--out", str(tmp_path / "j.csv"), "--quiet"]) == 0  # fmt: skip
+    rows = _rows(tmp_path / "j.csv")
+    beyond = [k for k, r in enumerate(rows) if float(r["extrapolation"]) > 0]
+    assert beyond and all(rows[k]["model"] == "nominal" for k in beyond)
+    qj = torch.tensor([[float(r[f"q{j}"]) for j in range(1, 7)] for r in rows], dtype=F64)
+    with torch.no_grad():
+        miss = (nom(Context(q=qj)) - targets).norm(dim=1)
+    assert float(miss[beyond].max()) < 1e-6
