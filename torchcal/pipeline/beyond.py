@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal._method import CANDIDATES  # noqa: F401 (predict's model column names them)
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.covariance import ParameterCovariance
@@ -38,8 +39,6 @@ from torchcal.pipeline.state import CalibrationRun
 
 Rows = Measurements
 
-#: the column ``model`` of predict and compensate: which candidate predicts (or commands) a row, by index
-CANDIDATES = ("full", "geometric", "physical", "nominal")
 #: the fewest held-out rows beyond the region a choice is made on
 MIN_EVIDENCE = 10
 #: a richer candidate replaces a simpler one only where its RMSE on the evidence is below this share of that one's:

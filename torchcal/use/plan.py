@@ -399,13 +399,13 @@ def sample_candidates(
 
 def candidate_region(model: MeasurementModel) -> tuple[Tensor | None, list[int]]:
     """The box a plan with a run samples its candidates in: the run's calibrated region, with every joint the run's
-    training rows barely moved (narrow: :func:`~torchcal.pipeline.checks.narrow_joints`) opened to its limits; and
+    training rows barely moved (narrow: :func:`~torchcal.robot.ranges.narrow_joints`) opened to its limits; and
     those joints (1-based). Inside the region a plan adds what a new campaign there would tell; a narrow joint's
     geometry the run held near nominal by its prior, and only poses that move that joint tell it (issue 51).
 
     Returns:
         ``(region (2, dof) or None where the run records none, the narrow joints)``."""
-    from torchcal.pipeline.checks import narrow_joints
+    from torchcal.robot.ranges import narrow_joints
 
     region = model.region
     if region is None:

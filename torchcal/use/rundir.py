@@ -18,13 +18,13 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchcal._inputs import load_json, read_bounded
+from torchcal._method import CANDIDATES
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import MeasurementFileError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.trust import MIN_ROWS, Trust
-from torchcal.pipeline.beyond import CANDIDATES
 from torchcal.robot import load_robot
 
 if TYPE_CHECKING:  # the pipeline is imported by load_prior alone: predict, compensate and plan do not load it
