@@ -82,6 +82,7 @@ def test_the_run_keeps_the_nominal_model_and_says_what_it_chose(narrow_run):
     assert beyond["rmse_mm"][beyond["model"]] <= best / TIE + 1e-12
     report = json.loads((run / "report.json").read_text(encoding="utf-8"))
     assert report["trust"]["beyond"]["model"] == beyond["model"]
+    assert f"(`model` = {beyond['model']}) predicts every row" in (run / "report.md").read_text(encoding="utf-8")
     model, meta = load_model(run)
     nom, cov, tr = load_nominal(run, model, meta)
     assert cov is not None and tr.n > 0

@@ -10,7 +10,9 @@ from dataclasses import dataclass
 
 import torch
 
+from torchcal import _console
 from torchcal.effects import Context, MeasurementModel
+from torchcal.errors import EstimationError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import fit_covariance
 from torchcal.estimate.trust import Trust, fit_trust
@@ -105,7 +107,12 @@ def run_trust(run: CalibrationRun) -> RunTrust:
             out, nominal_model=nominal, nominal_covariance=ncov, nominal=_held_out(run, nominal, ncov)
         )
         candidates["nominal"] = nominal
-        out = dataclasses.replace(out, choice=choose(run, candidates))
+        try:
+            choice = choose(run, candidates)
+        except (RuntimeError, EstimationError) as e:  # a refit that cannot be solved: no choice, and it is said
+            _console.info(f"warning: no model chosen for the rows beyond the region ({type(e).__name__}: {e})")
+            choice = Choice(None, 0, {}, 0.0, f"none: the comparison failed ({type(e).__name__})")
+        out = dataclasses.replace(out, choice=choice)
         if out.choice.model not in ("full", "physical"):
             return out
         m = candidates[out.choice.model]
