@@ -11,13 +11,19 @@ carries it wrongly everywhere else). The candidates, by the names of ``predict``
 * ``nominal``: the nominal geometry with the fitted instrument pose and lever arm (the run's first stage), whose
   doubt is the geometry's tolerance prior: what not calibrating the robot gives.
 
-The evidence is what the run has of rows beyond its region and that no fit saw: its held-out rows that lie outside
-the training rows' joint ranges (a trajectory's continuation, the edge rows of a random split). Where there are at
-least :data:`MIN_EVIDENCE` of them the candidate with the smallest RMSE on them predicts every row beyond the region
-(ties, within :data:`TIE`, go to the simpler candidate: the nominal robot is the one a calibration must beat); with
-fewer the run keeps the rule that needs no such rows (:data:`torchcal.use.rundir.SWITCH_RATIO`). Each candidate's
-predictive sigma is its own (:class:`~torchcal.estimate.trust.Trust` measured on the held-out rows), so the sigma of a
-row beyond the region is the chosen model's.
+The evidence is rows beyond a region that no fit of the candidate saw: the run's held-out rows that lie outside the
+training rows' joint ranges (a trajectory's continuation) where there are at least :data:`MIN_EVIDENCE` of them (the
+candidates as fitted); else the training rows left out region by region (:func:`folds`: a trajectory's last samples,
+or the rows furthest along each joint that moved most), each candidate refitted without them to first order
+(:func:`_left_out_errors`). The candidate with the smallest RMSE there predicts every row beyond the region (a richer
+one must beat a simpler one by more than :data:`TIE`: the nominal robot is the one a calibration must beat). Where
+there is no such evidence the run chooses none and keeps the rule that needs none
+(:data:`torchcal.use.rundir.SWITCH_RATIO`). Each candidate's predictive sigma is its own
+(:class:`~torchcal.estimate.trust.Trust` measured on the held-out rows), so the sigma of a row beyond the region is the
+chosen model's; the run's own model's covariance there is bounded by the tolerance priors (:func:`bounded`).
+
+What the evidence cannot say: no training row tells how a model extrapolates along a joint that did not move. There
+the tolerance priors hold the geometry near nominal and bound its sigma.
 """
 
 from __future__ import annotations
@@ -28,7 +34,6 @@ from dataclasses import dataclass
 import torch
 
 from torchcal._method import CANDIDATES  # noqa: F401 (predict's model column names them)
-from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import fit_covariance, prior_scales, selection
@@ -37,7 +42,6 @@ from torchcal.estimate.trust import without_fading
 from torchcal.pipeline.records import StageName
 from torchcal.pipeline.state import CalibrationRun
 
-Rows = Measurements
 
 #: the fewest held-out rows beyond the region a choice is made on
 MIN_EVIDENCE = 10
