@@ -42,7 +42,6 @@ from torchcal.estimate.trust import without_fading
 from torchcal.pipeline.records import StageName
 from torchcal.pipeline.state import CalibrationRun
 
-
 #: the fewest held-out rows beyond the region a choice is made on
 MIN_EVIDENCE = 10
 #: a richer candidate replaces a simpler one only where its RMSE on the evidence is below this share of that one's:
