@@ -95,15 +95,11 @@ def check_repeated_rows(data: Measurements) -> None:
     )
 
 
-def check_corrections(
-    fit: Fit, model: MeasurementModel, opts: Options, data: Measurements, *, screened: bool = False
-) -> None:
+def check_corrections(fit: Fit, model: MeasurementModel, opts: Options, data: Measurements) -> None:
     """Stop a run whose geometric corrections are many times their priors (:data:`MAX_PRIOR_RATIO`): the data were
     measured on another robot, in other units, or the description is not the robot's. A readings map's ratios count
     too (unit 1): a ratio that moves by 100 % absorbs a reading in another unit (a track in mm) or of the other
-    sign, and the run would then predict in neither. ``screened``: the gross-error screening ran on ``data``, so a
-    row the far-off fit misses most is not a wrong reading but the misfit of a large effect (a coupling of 0.2 %
-    misses by millimetres where its source joint turns most), which the closed loop is there to find."""
+    sign, and the run would then predict in neither."""
     # counted in the plausible size, not in the fit's own prior (a manufacturing tolerance, ten times tighter, which
     # weights the fit but says nothing of how large a correction the data determine can legitimately be)
     scale = dataclasses.replace(opts.fit, prior_length=PLAUSIBLE_LENGTH, prior_angle=PLAUSIBLE_ANGLE)
@@ -111,8 +107,7 @@ def check_corrections(
     units = {i.name: i.unit for i in model.robot.parameter_info() if i.group in ("geometry", "readings")}
     worst = sorted(((r / MAX_PRIOR_RATIO[units[n]], r, n) for n, r in ratios.items()), reverse=True)
     if not worst or worst[0][0] <= 1.0:
-        if not screened:
-            _check_one_bad_row(fit, model, data)
+        _check_one_bad_row(fit, model, data)
         return
     listed = []
     for _, r, n in worst[:3]:
@@ -145,11 +140,20 @@ STANDS_OUT = 8.0
 FAR_OFF = 1e3
 
 
+#: the worst row is one wrong reading only where it misses by this many times the next worst row: a large effect the
+#: geometry lacks (a coupling of 0.2 %, millimetres where its source joint turns most) makes many rows miss alike
+#: (5.3 mm, then 4.8 and 4.6 mm on a UR5 campaign of 800 poses), a wrong reading one
+ALONE = 2.0
+
+
 def _check_one_bad_row(fit: Fit, model: MeasurementModel, data: Measurements) -> None:
     test = fit.global_test or {}
     stat, thr = test.get("statistic"), test.get("threshold")
     if stat is None or thr is None or not float(stat) > FAR_OFF * float(thr):
         return
+    e = torch.sort(errors(model, data, False).detach().cpu(), descending=True).values
+    if len(e) > 1 and not float(e[0]) > ALONE * float(e[1]):
+        return  # many rows miss alike: structure the closed loop is there to find, not one wrong reading
     row = _standing_out(model, data)
     if row:
         raise EstimationError(

@@ -95,7 +95,7 @@ def geometric(run: CalibrationRun) -> StageResult:
         StageName.GEOMETRIC,
         trajectory=run.trajectory,
     )
-    check_corrections(fit, work.model, run.options, run.data, screened=run.screening is not None)
+    check_corrections(fit, work.model, run.options, run.data)
     work.fits.append(fit)
     work.add_stage(StageName.GEOMETRIC)
     return work.result()
