@@ -32,3 +32,11 @@ def test_called_with_argv_it_returns_the_code(tmp_path):
     code = f"from torchcal import _entry; print(_entry.main({argv}))"
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path)
     assert r.returncode == 0 and r.stdout.strip() == "2", (r.stdout, r.stderr)
+
+
+def test_the_command_line_loads_without_torch():
+    """``torchcal --help`` and every command's parser need no torch (1.5-2.5 s of CPU to import): each handler
+    imports what it computes with."""
+    code = "import sys, torchcal.cli; torchcal.cli.build_parser(); print('torch' in sys.modules)"
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert r.returncode == 0 and r.stdout.strip() == "False", (r.stdout, r.stderr)
