@@ -140,13 +140,9 @@ def _program_load(args, data, model) -> dict:
     """The program's load per row for the context of the compensation: its payload [kg] (``--payload KG``, else the
     targets' ``payload`` column) and the torques its poses hold (the targets' ``tau`` columns), which the run's
     compliance carries. A run whose compliance reads measured torques needs them."""
-    from torchcal.effects import TorqueCompliance
+    from torchcal.use.conditions import require_torques
 
-    if data.tau is None and any(isinstance(e, TorqueCompliance) for e in model.effects):
-        raise TorchcalError(
-            f"{args.targets}: the run's compliance reads the measured joint torques: give the targets the columns "
-            f"tau1..tau{model.robot.dof} (N m), the torques the program's poses hold"
-        )
+    require_torques(model, data, str(args.targets))
     payload = _payload_of(args, data)
     return {**({} if payload is None else {"payload": payload}), **({} if data.tau is None else {"tau": data.tau})}
 

@@ -36,6 +36,7 @@ def _prediction_rows(args, model, meta):
     and its stations checked against the run's."""
     from torchcal.data import read_measurements
     from torchcal.data.header import check_header_robot
+    from torchcal.use.conditions import require_torques
     from torchcal.use.rundir import check_placement
 
     robot = model.robot
@@ -52,6 +53,7 @@ def _prediction_rows(args, model, meta):
     )
     check_header_robot(data, meta["robot_file"], robot, f"the run's robot {meta['robot_file']}")
     check_placement(meta, data)  # a re-stationed run: rows of another station are refused
+    require_torques(model, data, str(args.data))
     return data
 
 
