@@ -50,7 +50,8 @@ def add_parser(sub) -> None:
         "--run",
         default=None,
         help="run directory written by calibrate: plan with its calibrated model, instrument pose, lever arm, "
-        "stochastic model and variance factor",
+        "stochastic model and variance factor; candidates are sampled within its calibrated region, the joints it "
+        "barely moved (narrow) over their limits",
     )
     pl.add_argument(
         "--station",
@@ -193,12 +194,27 @@ def _given_scene(args, robot, tracker, lever):
     return (tracker if args.tracker is None else given(args.tracker), lever if args.tool is None else given(args.tool))
 
 
+def _sampled(args, model, tracker, lever):
+    """The candidates a plan samples (``--pool`` of them) and the words that say where: for a run where it was
+    calibrated, its narrow joints opened to their limits (only poses that move them tell what the run held near
+    nominal: :func:`torchcal.use.plan.candidate_region`)."""
+    from torchcal.use.plan import candidate_region, sample_candidates
+
+    region, narrow = candidate_region(model) if args.run is not None else (None, [])
+    within = " within the run's calibrated region" if region is not None else ""
+    if narrow:
+        within += f" ({', '.join(f'q{j}' for j in narrow)}, narrow in the run, over their limits)"
+    _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
+    q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
+    return q, f"{len(q)} sampled{within} (seed {args.seed})"
+
+
 @_one_torch_thread
 def handle(args) -> int:
     from torchcal.data import Measurements, read_measurements, write_measurements
     from torchcal.data.header import check_header_robot
     from torchcal.effects import MeasurementModel
-    from torchcal.use.plan import PlanOptions, distinct_poses, plan_poses, sample_candidates
+    from torchcal.use.plan import PlanOptions, distinct_poses, plan_poses
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
@@ -235,11 +251,7 @@ def handle(args) -> int:
             _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
         source = args.candidates
     else:
-        region = model.region if args.run is not None else None  # a run: where it was calibrated
-        within = " within the run's calibrated region" if region is not None else ""
-        _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
-        q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
-        source = f"{len(q)} sampled{within} (seed {args.seed})"
+        q, source = _sampled(args, model, tracker, lever)
     if args.n > len(q):
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
     opts = PlanOptions.for_method(

@@ -23,9 +23,9 @@ def add_parser(sub) -> None:
         "--out",
         required=True,
         help="CSV to write: x,y,z [m], the trust columns sx,sy,sz [m] and extrapolation (sx,sy,sz: the standard "
-        "deviation of a new measurement minus the prediction) and model (full, or geometric: the run's kinematic "
-        "calibration beyond the region where it is far surer), plus the q*, t, station and probe columns (never one "
-        "of the input files)",
+        "deviation of a new measurement minus the prediction) and model (full: the run's model; beyond the region "
+        "the model the run chose there: full, geometric, physical or nominal), plus the q*, t, station and probe "
+        "columns (never one of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
