@@ -19,7 +19,7 @@ def main(argv: list[str] | None = None) -> int:
     """Load the command line (:func:`torchcal.cli.main`) and run it; return its exit code.
 
     With ``argv`` None (the console script and ``python -m torchcal``: the process's own command line) the process
-    ends here with that code (:func:`_end`) unless another thread of Python's is still running."""
+    ends here with that code (:func:`_end`) unless another thread of Python's is still running or Ray is loaded."""
     try:
         from torchcal.cli import main as cli_main
     except KeyboardInterrupt:
@@ -28,9 +28,10 @@ def main(argv: list[str] | None = None) -> int:
     code = cli_main(argv)
     if code == 130 and "ray" in sys.modules:
         # interrupted with Ray loaded: its own instance is stopped by now (torchcal.sweep.on_ray), but Ray's core
-        # worker, cut off mid-start, crashed the interpreter's exit (SIGSEGV after 'interrupted'): end here
-        _end(code)
-    if argv is None and _alone():
+        # worker, cut off mid-start, crashed the interpreter's exit (SIGSEGV after 'interrupted'): end here, without
+        # its atexit handlers either (as before this ending was shared)
+        _end(code, handlers=False)
+    if argv is None and "ray" not in sys.modules and _alone():  # a fleet on Ray exits the usual way, as it was tried
         _end(code)
     return code
 
@@ -44,13 +45,14 @@ def _alone() -> bool:
     return not any(t is not main_thread and t.is_alive() and not t.daemon for t in threading.enumerate())
 
 
-def _end(code: int) -> None:
-    """End the process with ``code`` without the interpreter's teardown: the standard streams flushed and the
-    ``atexit`` handlers run first (logging's, Ray's, temporary files'), as the usual exit does."""
+def _end(code: int, *, handlers: bool = True) -> None:
+    """End the process with ``code`` without the interpreter's teardown: the standard streams flushed and, with
+    ``handlers``, the ``atexit`` handlers run first (logging's, Ray's, temporary files'), as the usual exit does."""
     import atexit
     import os
 
-    atexit._run_exitfuncs()
+    if handlers:
+        atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
