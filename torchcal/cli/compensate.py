@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import math
 import sys
-
-import torch
+from typing import TYPE_CHECKING
 
 from torchcal import _console
 from torchcal._outdir import check_out_file
 from torchcal.cli._args import PAYLOAD_KG, _add_common, _add_force, _add_units, _number
 from torchcal.cli._common import _has_load, _one_torch_thread, _reading, warn_outside
 from torchcal.errors import TorchcalError
+
+if TYPE_CHECKING:  # the command's module loads without torch (torchcal --help); its handler imports it
+    import torch
 
 
 def add_parser(sub) -> None:
@@ -90,6 +92,8 @@ def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
     ``physical``."""
     from dataclasses import replace
 
+    import torch
+
     from torchcal.use.rundir import row_trust
 
     rt = row_trust(args.run, model, meta, ctx)
@@ -108,6 +112,8 @@ def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
 def _geometric_resolver(res, station, probe, targets_of, context, weight):
     """``(geometric, rows) ->`` those rows of ``res`` solved again, in place, with the run's kinematic calibration
     ``geometric`` in each row's own station's frame with its own probe."""
+    import torch
+
     from torchcal.use.compensate import solve_rows_with
     from torchcal.use.rundir import at_station
 
@@ -142,6 +148,8 @@ def _program_load(args, data, model) -> dict:
 
 def _payload_of(args, data) -> torch.Tensor | None:
     """``--payload KG`` for every row, else the targets' ``payload`` column, else None (0 kg)."""
+    import torch
+
     if args.payload is not None:
         return torch.full((data.n,), float(args.payload), dtype=torch.float64, device=data.q.device)
     return data.payload
@@ -272,6 +280,8 @@ def _compensate_load(args, run, data, q, sigma):
     extrapolation grown where it lies beyond, and the ``conditions`` column (None where neither the targets nor the
     run carry load columns)."""
     import dataclasses
+
+    import torch
 
     from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
 

@@ -7,8 +7,6 @@ import math
 import sys
 from pathlib import Path
 
-import torch
-
 from torchcal import _console
 from torchcal._method import DEFAULT_METHOD
 from torchcal._outdir import check_out_file
@@ -25,7 +23,6 @@ from torchcal.cli._args import (
     _tool,
 )
 from torchcal.cli._common import _one_torch_thread, _reading, _robot_input, json_out_file
-from torchcal.data.header import check_header_robot, robot_key
 from torchcal.errors import OptionError
 
 
@@ -155,6 +152,7 @@ def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
 def _plan_run(args):
     """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
     and scene (tracker position, lever arm)."""
+    from torchcal.data.header import robot_key
     from torchcal.use.plan import scene_of
     from torchcal.use.rundir import load_model
     from torchcal.use.station import station_options
@@ -186,6 +184,16 @@ def _plan_run(args):
     return model, meta["robot_file"], method, so.sigma_tracker, so.sigma_joint, s0_sq, tracker, lever
 
 
+def _given_scene(args, robot, tracker, lever):
+    """The tracker position and lever arm: ``--tracker`` and ``--tool`` where given [m], else ``tracker``, ``lever``."""
+    import torch
+
+    def given(v):
+        return torch.tensor(v, dtype=torch.float64, device=robot.device)
+
+    return (tracker if args.tracker is None else given(args.tracker), lever if args.tool is None else given(args.tool))
+
+
 def _sampled(args, model, tracker, lever):
     """The candidates a plan samples (``--pool`` of them) and the words that say where: for a run where it was
     calibrated, its narrow joints opened to their limits (only poses that move them tell what the run held near
@@ -204,6 +212,7 @@ def _sampled(args, model, tracker, lever):
 @_one_torch_thread
 def handle(args) -> int:
     from torchcal.data import Measurements, read_measurements, write_measurements
+    from torchcal.data.header import check_header_robot
     from torchcal.effects import MeasurementModel
     from torchcal.use.plan import PlanOptions, distinct_poses, plan_poses
 
@@ -224,10 +233,7 @@ def handle(args) -> int:
         model = MeasurementModel(load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link))
         robot_name = args.robot
     robot = model.robot
-    if args.tracker is not None:
-        tracker = torch.tensor(args.tracker, dtype=torch.float64, device=robot.device)
-    if args.tool is not None:
-        lever = torch.tensor(args.tool, dtype=torch.float64, device=robot.device)
+    tracker, lever = _given_scene(args, robot, tracker, lever)
     if args.tracker_noise is not None:
         sigma_tracker = args.tracker_noise * 1e-6
     if args.joint_noise is not None:

@@ -6,8 +6,6 @@ import argparse
 import math
 from pathlib import Path
 
-import torch
-
 from torchcal import _console
 from torchcal._bounds import MAX_PAYLOAD_KG
 from torchcal._outdir import check_out_dir
@@ -268,6 +266,8 @@ def handle(args) -> int:
 def _to_mm(campaign):
     """The campaign's lengths in millimetres: positions, their standard deviations and prismatic joints' readings."""
     from dataclasses import replace
+
+    import torch
 
     robot = campaign.model.robot
     linear = torch.tensor([k == "prismatic" for k in robot.joint_types], dtype=torch.bool, device=robot.device)
