@@ -17,7 +17,7 @@ from pathlib import Path
 
 from torchcal.data import read_measurements
 from torchcal.estimate.fit import prior_ratios
-from torchcal.pipeline import Options
+from torchcal.pipeline import Options, calibrate
 from torchcal.pipeline import checks as P
 from torchcal.pipeline.options import PLAUSIBLE_ANGLE, PLAUSIBLE_LENGTH
 from torchcal.sim import EffectSpec, SimConfig, simulate
@@ -27,7 +27,7 @@ def largest(robot: str, m, **options) -> dict:
     """Per unit ('m', 'rad'): (largest ratio, its parameter) after the geometric fit of ``robot`` to ``m``."""
     limits, P.MAX_PRIOR_RATIO = P.MAX_PRIOR_RATIO, {"m": float("inf"), "rad": float("inf")}  # measure, do not stop
     try:
-        run = P.calibrate(robot, m, Options.of(method="kinematic", **options))
+        run = calibrate(robot, m, Options.of(method="kinematic", **options))
     finally:
         P.MAX_PRIOR_RATIO = limits
     fit = next(f for f in run.fits if f.stage == "geometric")

@@ -243,3 +243,13 @@ def test_a_loaded_robot_gives_the_same_report_as_its_name():
     got = json.loads(json.dumps(build_report(run)))
     assert got.pop("robot_spec") == str(robot.source) and by_name.pop("robot_spec") == "ur5"
     assert differences(json.loads(json.dumps(by_name)), got) == []
+
+
+def test_an_effects_reported_parameters_are_the_final_models():
+    """An effect is recorded when it is admitted; the fits after it (the learned stage's refits) move its values, and
+    report.json gives the final ones: the golden run's compliance k as its model holds it."""
+    run = golden.golden_run("auto")
+    (entry,) = [e for e in run.effects_report if e["kind"] == "compliance"]
+    (effect,) = [e for e in run.model.effects if e.label() == entry["label"]]
+    assert entry["params"]["k"]["value"] == float(effect.k.detach())
+    assert entry["params"]["k"]["unit"] == "rad/(N m)"

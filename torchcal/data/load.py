@@ -132,7 +132,8 @@ def _check_bound(path, extra, names, lines, bound: float, unit: str, what: str) 
         f"{names[j]} = {float(values[i, j])!r} {unit} is beyond {bound:g} {unit}, not {what}",
         line=lines[i],
         column=names[j],
-        hint="payload_x, payload_y, payload_z follow --length-unit; tau1..tauN are in N m (N for a prismatic joint)",
+        hint="payload_x, payload_y, payload_z follow the length unit (--length-unit, length_unit=); tau1..tauN are in "
+        "N m (N for a prismatic joint)",
     )
 
 

@@ -107,8 +107,9 @@ class CalibrationRun:
 
     @property
     def effects_report(self) -> list[dict]:
-        """The kept effects as ``report.json`` writes them."""
-        return [r.to_dict() for r in self.effects]
+        """The kept effects as ``report.json`` writes them, their parameters as the final model holds them (an effect
+        is recorded when it is admitted; later fits, with more effects beside it, move its values)."""
+        return [_final_values(r.to_dict(), self.model, self.fits) for r in self.effects]
 
     @property
     def rejected(self) -> list[dict]:
@@ -295,3 +296,22 @@ class StageWork:
             filter=self.filter,
             holdout_guard=self.holdout_guard,
         )
+
+
+def _final_values(entry: dict, model, fits) -> dict:
+    """``entry`` (an :class:`EffectRecord`'s dict) with each parameter's value and standard deviation from the final
+    ``model`` and the last fit that estimated it; an effect the final model no longer holds is left as recorded."""
+    from torchcal.estimate.fit import effect_parameters
+
+    effects = getattr(model, "effects", None) or []
+    index = next((i for i, e in enumerate(effects) if e.label() == entry.get("label")), None)
+    params = entry.get("params")
+    if index is None or not isinstance(params, dict):
+        return entry
+    prefix = f"{effects[index].label()}."
+    fit = next((f for f in reversed(fits) if any(n.startswith(prefix) for n in getattr(f.result, "names", ()))), None)
+    if fit is None:
+        return entry
+    final = effect_parameters(model, index, fit)
+    merged = {k: ({**v, **final[k]} if isinstance(v, dict) and k in final else v) for k, v in params.items()}
+    return {**entry, "params": merged}

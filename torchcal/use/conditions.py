@@ -137,3 +137,18 @@ def with_load_sigma(sigma: Tensor | None, extra: Tensor) -> Tensor | None:
 
 
 __all__ = ["CONDITIONS", "DEFAULT_COMPLIANCE", "LoadConditions", "load_conditions", "training_load", "with_load_sigma"]
+
+
+def require_torques(model, data: Measurements, path: str) -> None:
+    """Refuse rows without ``tau`` columns for a run whose compliance reads the measured joint torques: it has nothing
+    to carry their load by (the effect's own refusal names no file)."""
+    from torchcal.effects import TorqueCompliance
+    from torchcal.errors import MeasurementFileError
+
+    if data.tau is None and any(isinstance(e, TorqueCompliance) for e in model.effects):
+        raise MeasurementFileError(
+            path,
+            "the run's compliance reads the measured joint torques, and these rows have none",
+            hint=f"give the rows the columns tau1..tau{model.robot.dof} (N m; N for a prismatic joint): the torques "
+            "their poses hold",
+        )

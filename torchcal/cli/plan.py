@@ -1,0 +1,268 @@
+"""The ``plan`` command: the poses to measure for a calibration."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import torch
+
+from torchcal import _console
+from torchcal._method import DEFAULT_METHOD
+from torchcal._outdir import check_out_file
+from torchcal.cli._args import (
+    JOINT_DEG,
+    METHOD_CHOICES,
+    TRACKER_UM,
+    _add_common,
+    _add_force,
+    _add_units,
+    _count,
+    _number,
+    _seed,
+    _tool,
+)
+from torchcal.cli._common import _one_torch_thread, _reading, _robot_input, json_out_file
+from torchcal.data.header import check_header_robot, robot_key
+from torchcal.errors import OptionError
+
+
+def add_parser(sub) -> None:
+    pl = sub.add_parser(
+        "plan",
+        help="choose the poses to measure: the K that best serve the calibration method (default: the default "
+        "method's design; --method kinematic for a geometric calibration)",
+        description="Choose K poses from candidates (a file of joint configurations, or sampled within the joint "
+        "limits where the tracker sees the probe) by a greedy I-optimal (or D-optimal) criterion on the "
+        "identifiable geometric, instrument and lever-arm parameters, a share of them at the edges of the region. "
+        "Writes OUT (q1..qN, a measurement file without positions) and next to it OUT's name with .plan.json and "
+        ".plan.md: the predicted "
+        "parameter sigmas, the predicted held-out error for K (and for K random candidates) and a curve of "
+        "predicted error against K.",
+    )
+    pl.add_argument(
+        "--robot",
+        default=None,
+        help="built-in name (ur5, ur10, panda, ...), a URDF file or a DH YAML file (default: the --run's robot)",
+    )
+    pl.add_argument("--base-link", default=None, help="URDF: first link of the chain (default: the root)")
+    pl.add_argument("--tip-link", default=None, help="URDF: last link of the chain (default: the only deepest leaf)")
+    pl.add_argument(
+        "--run",
+        default=None,
+        help="run directory written by calibrate: plan with its calibrated model, instrument pose, lever arm, "
+        "stochastic model and variance factor",
+    )
+    pl.add_argument(
+        "--station",
+        default=None,
+        help="a --run calibrated from several stations: plan for this one's placement (default the first)",
+    )
+    pl.add_argument(
+        "--probe", default=None, help="a --run with several probes: plan for this one's lever arm (default the first)"
+    )
+    pl.add_argument("--candidates", default=None, help="file with q1..qN per row (other columns ignored)")
+    pl.add_argument(
+        "--work",
+        default=None,
+        help="file with q1..qN of the poses the robot will work at (other columns ignored): the spread picks follow "
+        "their density instead of the candidates' (the prediction stays over the candidates)",
+    )
+    pl.add_argument("--n", type=_count, required=True, help="poses to choose (K)")
+    pl.add_argument("--out", required=True, help="CSV to write: q1..qN [rad] of the chosen poses")
+    pl.add_argument(
+        "--pool", type=_count, default=10_000, help="candidates to sample without --candidates (default 10000)"
+    )
+    pl.add_argument("--seed", type=_seed, default=0, help="seed of the sampled candidates and the random reference")
+    _add_design(pl)
+    _add_force(pl)
+    _add_units(pl)
+    _add_common(pl)
+
+
+def _add_design(pl) -> None:
+    """plan's design: the criterion, the method planned for and its shares of picks, the scene and the noise levels."""
+    pl.add_argument(
+        "--criterion",
+        choices=("I", "D"),
+        default="I",
+        help="I (default): the least mean position variance over the candidates; D: the largest determinant of "
+        "the parameters' information",
+    )
+    pl.add_argument(
+        "--method",
+        default=None,
+        choices=METHOD_CHOICES,
+        help="the method the poses will be calibrated with (default: the --run's, else auto). kinematic: the "
+        "criterion's design with half the picks spread; any other method ends in a learned correction, which needs "
+        "poses where the robot works: the first 30 picks the criterion's, then the candidates' density",
+    )
+    pl.add_argument(
+        "--edge-share",
+        type=_number("nonnegative", 0.5),
+        default=None,
+        help="share of the picks made at the edges of the region (default 0.1 for kinematic, else 0.02)",
+    )
+    pl.add_argument(
+        "--learned-share",
+        type=_number("nonnegative", 0.5),
+        default=0.0,
+        help="with a --run whose learned correction has a predictive sigma (a GP): share of the picks made where it "
+        "is least certain (default 0: on the real UR10 they made a second campaign worse)",
+    )
+    pl.add_argument(
+        "--spread-share",
+        type=_number("nonnegative", 1.0),
+        default=None,
+        help="share of the picks that follow the candidates' spread (kernel herding) instead of the criterion: they "
+        "guard the geometry against the robot's non-geometric error (default 0.5 for kinematic, else 1 after the "
+        "first 30 picks; 0: the criterion alone)",
+    )
+    pl.add_argument(
+        "--tracker",
+        type=_tool,
+        default=None,
+        help="X,Y,Z [mm]: the tracker's position in the robot base frame, for the line of sight of sampled "
+        "candidates (default: the --run's, else 2500,0,200)",
+    )
+    pl.add_argument(
+        "--tool",
+        type=_tool,
+        default=None,
+        help="X,Y,Z [mm]: the probe's lever arm (default: the --run's, else 0,0,100)",
+    )
+    pl.add_argument(
+        "--tracker-noise",
+        type=TRACKER_UM,
+        default=None,
+        help="tracker sigma per axis [um] (default: the run's, else 15)",
+    )
+    pl.add_argument(
+        "--joint-noise", type=JOINT_DEG, default=None, help="joint sigma [deg] (default: the run's, else 0.0005)"
+    )
+
+
+def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
+    """``plan``'s summary next to its poses, replaced like a marked file where an earlier plan wrote it."""
+    if path.endswith(".json"):
+        return json_out_file(path, inputs, force, "torchcal plan")
+    return check_out_file(path, inputs=inputs, force=force)
+
+
+def _plan_run(args):
+    """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
+    and scene (tracker position, lever arm)."""
+    from torchcal.use.plan import scene_of
+    from torchcal.use.rundir import load_model
+    from torchcal.use.station import station_options
+
+    model, meta = load_model(args.run)
+    if args.robot is not None and robot_key(args.robot) not in {
+        robot_key(meta["robot_file"]),
+        robot_key(model.robot.name),
+    }:  # the run's model is what is planned for: another --robot would be ignored without a word
+        raise OptionError(
+            f"--robot {args.robot} is not the robot of the run {args.run} ({meta['robot_file']}); the plan is "
+            "made for the run's calibrated robot: drop --robot, or plan for that robot without --run"
+        )
+    method = args.method or meta.get("method") or "auto"
+    from torchcal.use.rundir import at_station, own_names
+
+    station, probe = own_names(meta, args.station, args.probe)
+    if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
+        model, _, _ = at_station(model, station, probe)
+    elif station is not None or probe is not None:
+        raise OptionError("--station and --probe name one of a run's several stations or probes; this run has one")
+    so = station_options(args.run)
+    s0_sq = 1.0
+    report = Path(args.run) / "report.json"
+    if report.exists():
+        s0 = json.loads(report.read_text(encoding="utf-8")).get("parameters", {}).get("sigma0_sq")
+        s0_sq = float(s0) if isinstance(s0, (int, float)) and math.isfinite(s0) and s0 > 0 else 1.0
+    tracker, lever = scene_of(model)
+    return model, meta["robot_file"], method, so.sigma_tracker, so.sigma_joint, s0_sq, tracker, lever
+
+
+@_one_torch_thread
+def handle(args) -> int:
+    from torchcal.data import Measurements, read_measurements, write_measurements
+    from torchcal.effects import MeasurementModel
+    from torchcal.use.plan import PlanOptions, distinct_poses, plan_poses, sample_candidates
+
+    inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
+    out_file = check_out_file(args.out, inputs=inputs, force=args.force)
+    stem = out_file.with_suffix("")
+    side = {ext: _plan_side_file(f"{stem}.plan.{ext}", inputs, args.force) for ext in ("json", "md")}
+    if args.run is None and args.robot is None:
+        raise OptionError("give --robot or --run (the robot to plan for)")
+    sigma_tracker, sigma_joint, s0_sq = 15e-6, math.radians(0.0005), 1.0
+    tracker = lever = None
+    method = args.method or DEFAULT_METHOD.value
+    if args.run is not None:
+        model, robot_name, method, sigma_tracker, sigma_joint, s0_sq, tracker, lever = _plan_run(args)
+    else:
+        from torchcal.robot import load_robot
+
+        model = MeasurementModel(load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link))
+        robot_name = args.robot
+    robot = model.robot
+    if args.tracker is not None:
+        tracker = torch.tensor(args.tracker, dtype=torch.float64, device=robot.device)
+    if args.tool is not None:
+        lever = torch.tensor(args.tool, dtype=torch.float64, device=robot.device)
+    if args.tracker_noise is not None:
+        sigma_tracker = args.tracker_noise * 1e-6
+    if args.joint_noise is not None:
+        sigma_joint = math.radians(args.joint_noise)
+    work = None
+    if args.work is not None:
+        wd = read_measurements(args.work, require_positions=False, **_reading(args, robot))
+        check_header_robot(wd, robot_name, robot, f"--robot {robot_name}")
+        work = wd.q
+    if args.candidates is not None:
+        data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
+        check_header_robot(data, robot_name, robot, f"--robot {robot_name}")
+        q = distinct_poses(data.q)  # a file of several probes has a row per probe and pose: a plan chooses poses
+        if len(q) < data.n:
+            _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
+        source = args.candidates
+    else:
+        region = model.region if args.run is not None else None  # a run: where it was calibrated
+        within = " within the run's calibrated region" if region is not None else ""
+        _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
+        q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
+        source = f"{len(q)} sampled{within} (seed {args.seed})"
+    if args.n > len(q):
+        raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
+    opts = PlanOptions.for_method(
+        method,
+        args.n,
+        criterion=args.criterion,
+        edge_share=args.edge_share,
+        learned_share=args.learned_share,
+        spread_share=args.spread_share,
+        sigma_tracker=sigma_tracker,
+        sigma_joint=sigma_joint,
+        s0_sq=s0_sq,
+        seed=args.seed,
+    )
+    plan = plan_poses(model, q, opts, work)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    meta_out = {"robot": Path(str(robot_name)).name, "planned_from": source}
+    write_measurements(out_file, Measurements(q=plan.q.detach().cpu()), meta=meta_out, written_by="torchcal plan")
+    summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": source, **plan.to_dict()}
+    side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+    if not plan.identifies:  # written for inspection, but no accuracy is promised
+        print(_console.one_line(f"torchcal plan: warning: {plan.degenerate_reason()}"), file=sys.stderr)
+        _console.info(f"planned {args.n} of {len(q)} poses, no accuracy predicted; wrote {args.out}")
+        return 0
+    _console.info(
+        f"planned {args.n} of {len(q)} poses: predicted held-out RMSE {plan.predicted_rmse * 1e3:.4f} mm "
+        f"({args.n} random: "
+        + ("not identified" if math.isnan(plan.random_rmse) else f"{plan.random_rmse * 1e3:.4f} mm")
+        + f"); wrote {args.out}, {side['json'].name}, {side['md'].name}"
+    )
+    return 0
