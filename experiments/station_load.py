@@ -1,5 +1,6 @@
 """Re-stationing after the load and the tool changed (issues 45 item 5 and 46 item 4): a simulated UR10 with link
-masses and joint compliance, calibrated at 0 kg, then measured again with a 5 kg payload and a tool 20 mm longer.
+masses and joint compliance (or ``robot``: ``arm7_dh``, a DH table without masses, with ``torques`` measured in every
+row), calibrated at 0 kg, then measured again with a 5 kg payload and the probe moved 20 mm.
 
 * ``station``: :func:`torchcal.use.station.restation` (what ``torchcal station RUN POINTS`` does, no ``--tool``) on
   ``points`` rows of the new condition; the rows carry their ``payload`` column, so the run's load-driven compliance
@@ -81,11 +82,11 @@ def _station(rd: Path, points: Measurements, rest: Measurements, seed: int) -> d
     }
 
 
-def _prior(rd: Path, points: Measurements, rest: Measurements, seed: int) -> dict:
+def _prior(rd: Path, points: Measurements, rest: Measurements, seed: int, robot: str = ROBOT) -> dict:
     """``calibrate --prior RUN`` on the points (refitted on all of them), judged on the next rows as predict does."""
     try:
         upd = calibrate(
-            ROBOT,
+            robot,
             points,
             Options.of(method="kinematic", seed=seed, trajectory=False, refit=True),
             prior=load_prior(rd),
@@ -95,40 +96,51 @@ def _prior(rd: Path, points: Measurements, rest: Measurements, seed: int) -> dic
     return predicted(upd, rest)
 
 
-def scenario(seed: int, poses: int, points: int, payload: float = 5.0, shift=TOOL_SHIFT) -> dict:
-    """One seed of the module docstring's comparison."""
+def scenario(
+    seed: int, poses: int, points: int, payload: float = 5.0, shift=TOOL_SHIFT, robot: str = ROBOT, torques=False
+) -> dict:
+    """One seed of the module docstring's comparison (``torques``: every row carries measured joint torques)."""
     specs = [EffectSpec.parse(e) for e in EFFECTS]
-    cfg = SimConfig(robot=ROBOT, poses=poses, test_poses=points + 100, seed=seed, effects=specs, test_payload=payload)
+    cfg = SimConfig(
+        robot=robot,
+        poses=poses,
+        test_poses=points + 100,
+        seed=seed,
+        effects=specs,
+        test_payload=payload,
+        torques=torques,
+    )
     c = simulate(cfg)
     dt = torch.tensor(shift, dtype=torch.float64)
     new = _moved_tool(c, c.test, dt)
     pts, rest = new.subset(range(points)), new.subset(range(points, new.n))
     # the same truth at the new condition (same seed): a whole campaign for the fresh calibration
     c_new = simulate(dataclasses.replace(cfg, payload=payload))
-    fresh = calibrate(load_robot(ROBOT), _moved_tool(c_new, c_new.train, dt), Options(method="kinematic", seed=seed))
+    fresh = calibrate(load_robot(robot), _moved_tool(c_new, c_new.train, dt), Options(method="kinematic", seed=seed))
     out: dict = {"seed": seed, "fresh_kinematic_mm": _rmse(fresh.model, rest), "oracle_mm": None, "methods": {}}
     out["unchanged_tool_oracle_mm"] = _rmse(c.model, c.test.subset(range(points, new.n)))
     with tempfile.TemporaryDirectory() as tmp:
         for method in ("auto", "kinematic"):
-            run = calibrate(load_robot(ROBOT), c.train, Options(method=method, seed=seed))
+            run = calibrate(load_robot(robot), c.train, Options(method=method, seed=seed))
             rd = write_run(run, Path(tmp) / method)
             r = {
                 "station": _station(rd, pts, rest, seed),
                 "station_no_payload": _station(rd, _no_load(pts), _no_load(rest), seed),
                 "effects": [e.get("name", e["kind"]) for e in run.effects_report],
             }
-            r["prior"] = _prior(rd, pts, rest, seed)
+            r["prior"] = _prior(rd, pts, rest, seed, robot)
             r["ratio_to_fresh_kinematic"] = r["station"].get("rmse_mm", float("inf")) / out["fresh_kinematic_mm"]
             out["methods"][method] = r
     return out
 
 
-def run(seeds=(1,), poses: int = 200, points: int = 10, shift=TOOL_SHIFT) -> dict:
+def run(seeds=(1,), poses: int = 200, points: int = 10, shift=TOOL_SHIFT, robot=ROBOT, torques=False) -> dict:
     """Each seed's scenario and the issue's targets on the default method's station."""
-    per = [scenario(s, poses, points, shift=shift) for s in seeds]
+    per = [scenario(s, poses, points, shift=shift, robot=robot, torques=torques) for s in seeds]
     st = [p["methods"]["auto"]["station"] for p in per]
     return {
-        "robot": ROBOT,
+        "robot": robot,
+        "torques": torques,
         "effects": list(EFFECTS),
         "tool_shift_mm": [v * MM for v in shift],
         "payload_kg": 5.0,
