@@ -38,7 +38,7 @@ from torchcal.robot import load_robot
 from torchcal.sim import EffectSpec, SimConfig, simulate
 from torchcal.stats import rmse
 from torchcal.use.rundir import load_prior
-from torchcal.use.station import StationError, restation
+from torchcal.use.station import restation
 
 EFFECTS = ("compliance:2=60um", "compliance:3=40um", "compliance:4=20um")
 #: the tool change in the flange frame [m]: |dt| = 20 mm
@@ -67,7 +67,7 @@ def _rmse(model, rows: Measurements) -> float:
 def _station(rd: Path, points: Measurements, rest: Measurements, seed: int) -> dict:
     try:
         model, _, st = restation(rd, points, seed=seed)
-    except StationError as e:
+    except TorchcalError as e:  # StationError, or points without the torques the run's compliance reads
         return {"refused": str(e)}
     measured = _rmse(model, rest)
     d = st.to_dict()

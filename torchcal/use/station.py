@@ -55,7 +55,7 @@ from torchcal.estimate.lm import chi2_quantile
 from torchcal.estimate.problem import FreeParameters, jacobian_of, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool, rigid_fit
 from torchcal.robot import transforms as tf
-from torchcal.use.conditions import load_conditions, with_load_sigma
+from torchcal.use.conditions import load_conditions, require_torques, with_load_sigma
 from torchcal.use.rundir import check_placement, load_covariance, load_model, load_trust, rows_of
 
 Tensor = torch.Tensor
@@ -628,6 +628,7 @@ def restation(
     fitted either way)."""
     model, meta = load_model(run_dir)
     check_placement(meta, points, keys=("probe",))  # a new placement, the same probes
+    require_torques(model, points, points.source or "the points")  # a compliance that reads them carries their load
     cov = load_covariance(run_dir, model)
     points, label = _points_rows(model, points, probe, tool, run_dir)
     model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"), tool=tool)
