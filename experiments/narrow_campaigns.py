@@ -11,8 +11,10 @@ three models fitted on the training file:
 * ``default``: ``calibrate`` (method auto).
 
 Each run is written and loaded back as ``predict`` loads it, and each test row predicted with its ``sx, sy, sz`` and
-``model`` (:func:`torchcal.use.rundir.row_trust`). The measures per model: the RMSE of the 3-D error [mm], the share
-of test rows whose three ``|error| / sigma`` are all <= 3 and the median ``|error| / sigma`` over rows and axes.
+``model`` (:func:`torchcal.use.rundir.row_trust`), and which model the run chose for its rows beyond the region, on
+what evidence (model.json's ``beyond``, :mod:`torchcal.pipeline.beyond`). The measures per model: the RMSE of the
+3-D error [mm], the share of test rows whose three ``|error| / sigma`` are all <= 3 and the median ``|error| / sigma``
+over rows and axes.
 """
 
 from __future__ import annotations
@@ -81,6 +83,8 @@ def calibrated(c, method: str, seed: int, tmp: Path) -> dict:
         p[rows] = predict_with(rt.geometric, meta, c.test.subset(rows))
     res = _measures(p - c.test.p, rt.sigma)
     res["models"] = {name: int((rt.which == k).sum()) for k, name in enumerate(MODEL_NAMES)}
+    chosen = meta.get("beyond") or {}  # which model the run chose for the rows beyond, on what evidence
+    res["beyond"] = {k: chosen.get(k) for k in ("model", "evidence", "n_evidence", "rmse_mm")}
     res["effects"] = [f"{e.kind}:{e.joint}" if e.joint is not None else e.kind for e in run.model.effects]
     return res
 

@@ -25,7 +25,7 @@ from torchcal.pipeline import Options, calibrate
 from torchcal.report.rundir import write_run
 from torchcal.robot import load_robot
 from torchcal.stats import revisit_groups
-from torchcal.use.rundir import load_covariance, load_model, predict_with, row_trust
+from torchcal.use.rundir import MODEL_NAMES, load_covariance, load_model, predict_with, row_trust
 
 SPLITS = ("grouped", "q2-central")
 
@@ -80,7 +80,10 @@ def run(path: Path, series: str, kind: str, *, seed: int = 0, method: str = "aut
         "n_train": len(tr),
         "n_test": len(te),
         "rows_beyond_region": int((rt.extrapolation > 0).sum()),
-        "rows_geometric": int(rt.which.sum()),
+        "rows_geometric": int((rt.which == MODEL_NAMES.index("geometric")).sum()),
+        # which model predicted the test rows, and what the run chose for beyond its region (torchcal.pipeline.beyond)
+        "models": {name: int((rt.which == k).sum()) for k, name in enumerate(MODEL_NAMES)},
+        "beyond": meta.get("beyond"),
         "rmse_mm": float(e.norm(dim=1).square().mean().sqrt()) * 1e3,
         "median_sigma_mm": float(rt.sigma.median()) * 1e3,
         **coverage(e, rt.sigma),
@@ -126,6 +129,6 @@ def probe_check(path: Path, series: str, *, seed: int = 0, per_side: int = 25) -
         max_sigma_default_mm=float(sigma["auto"].max()) * 1e3,
         max_sigma_kinematic_mm=float(sigma["kinematic"].max()) * 1e3,
         max_difference_mm=float((pred["auto"] - pred["kinematic"]).norm(dim=1).max()) * 1e3,
-        rows_geometric=int(which.sum()),
+        rows_geometric=int((which == MODEL_NAMES.index("geometric")).sum()),
     )
     return out

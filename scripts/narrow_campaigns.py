@@ -9,7 +9,9 @@ Each campaign holds joints 1, 4, 5 and 6 within --width-deg (default 1) while jo
 range over the whole workspace; with and without compliance of joints 2 and 3 (1.5e-5 and 1e-5 rad/(N m)). Printed
 per campaign: the test RMSE of the nominal robot with its instrument pose and lever arm fitted, of the kinematic
 method and of the default method, and for the two calibrations the share of test rows within 3 sigma, the median
-|error| / sigma and which model predicted each row; then whether issue 51's targets hold in every campaign.
+|error| / sigma, which model predicted each row (`models`) and which the run chose for its rows beyond the region,
+on what evidence (`beyond`: model, evidence, n_evidence, each candidate's RMSE there); then whether issue 51's
+targets hold in every campaign.
 """
 
 import sys

@@ -26,6 +26,11 @@ MAX_TOOL = 5.0
 #: simulated geometric biases: lengths [m] and angles [rad]
 MAX_SIGMA_LENGTH = 0.01
 MAX_SIGMA_ANGLE = math.radians(1.0)
+#: the largest payload a row may carry [kg]: beyond it the number is in grams (or a typo); the heaviest industrial
+#: arms carry about 2.3 t. The measurement files' payload column, compensate --payload and simulate's payloads
+MAX_PAYLOAD_KG = 3000.0
+#: simulated torque noise [N m]: drives measure torques to a fraction of a N m; 1000 N m is no measurement
+MAX_SIGMA_TORQUE = 1e3
 
 
 def check_range(

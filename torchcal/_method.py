@@ -36,3 +36,9 @@ DEFAULT_METHOD = Method.AUTO
 #: the methods' and the engines' names, in their declared order
 METHODS: tuple[str, ...] = tuple(m.value for m in Method)
 ENGINES: tuple[str, ...] = tuple(e.value for e in Engine)
+
+
+#: the models a run may predict (or command) a row with, by the names of predict's and compensate's ``model`` column
+#: and in its order: the run's model, its kinematic calibration, its geometry and physical effects alone, the nominal
+#: geometry with the fitted instrument pose and lever arm (:mod:`torchcal.pipeline.beyond`)
+CANDIDATES = ("full", "geometric", "physical", "nominal")

@@ -349,6 +349,12 @@ def check_out_file(
             raise OptionError(f"{where}: is the input file {f}; writing it would destroy the input. Name another file")
         if fr.is_dir() and _within(real, fr) and real.exists():
             raise OptionError(f"{where}: is a file of the input directory {f}; name a file outside it")
+        if fr.is_dir() and _within(real, fr) and (fr / MARKER).is_file():
+            # a run directory is written and replaced as a whole: a file added to it is lost with the next write
+            raise OptionError(
+                f"{where}: lies inside the run directory {f}, which torchcal replaces as a whole; "
+                "write it beside the run"
+            )
     if target.exists() and not target.is_file():
         raise OptionError(f"{where}: exists and is not a regular file")
     if target.exists() and not force and not written_by_torchcal(target):

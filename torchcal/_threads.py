@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import contextlib
 
-import torch
-
 
 @contextlib.contextmanager
 def torch_threads(n: int):
@@ -15,6 +13,8 @@ def torch_threads(n: int):
     small to share, so the threads only add synchronisation, and where several processes share a few cores their
     thread teams contend for the same cores and every call waits for its slowest thread.
     """
+    import torch  # here: the command line's modules import this one, and `torchcal --help` needs no torch
+
     before = torch.get_num_threads()
     torch.set_num_threads(max(1, n))
     try:

@@ -116,11 +116,16 @@ def test_a_damaged_marker_does_not_count(tmp_path):
         _outdir.check_out_dir(out)
 
 
+#: files of a run directory that torchcal writes since issue 51 (the models beyond the region), unknown to earlier ones
+NEWER_FILES = ("nominal.pt", "covariance_nominal.pt", "covariance_beyond.pt")
+
+
 def test_an_unmarked_run_of_an_earlier_torchcal_is_replaced_but_not_with_foreign_files(run_dir, campaign, tmp_path):
     legacy = tmp_path / "legacy"
     shutil.copytree(run_dir, legacy)
     (legacy / _outdir.MARKER).unlink()
-    (legacy / "holdout.pt").unlink()  # an earlier torchcal wrote no held-out rows
+    for name in ("holdout.pt", *NEWER_FILES):  # an earlier torchcal wrote no held-out rows, no models beyond
+        (legacy / name).unlink(missing_ok=True)
     assert _outdir.is_marked(legacy)  # only its own files and model.json's format: an earlier run
     (legacy / "thesis.txt").write_text("draft")
     assert not _outdir.is_marked(legacy)
@@ -131,7 +136,8 @@ def test_an_unmarked_run_of_an_earlier_torchcal_is_replaced_but_not_with_foreign
     demo = tmp_path / "demo"  # an earlier demo output: data/, run/, summary.json
     shutil.copytree(run_dir, demo / "run")
     (demo / "run" / _outdir.MARKER).unlink()
-    (demo / "run" / "holdout.pt").unlink()
+    for name in ("holdout.pt", *NEWER_FILES):
+        (demo / "run" / name).unlink(missing_ok=True)
     (demo / "data").mkdir()
     for f in ("train.csv", "test.csv"):
         shutil.copy(campaign / f, demo / "data" / f)

@@ -199,7 +199,8 @@ def test_the_marker_lists_what_was_written(run_dir):
 def test_a_version_1_marker_allows_only_the_files_of_its_kind(run_dir, campaign, tmp_path, capsys):
     run = copy_run(run_dir, tmp_path / "run")
     (run / _outdir.MARKER).write_text('{"format": "torchcal-run", "version": 1, "written_by": "calibrate"}\n')
-    (run / "holdout.pt").unlink()  # a run of a version-1 marker wrote no held-out rows
+    for name in ("holdout.pt", "nominal.pt", "covariance_nominal.pt", "covariance_beyond.pt"):
+        (run / name).unlink(missing_ok=True)  # a run of a version-1 marker wrote no held-out rows, no models beyond
     assert _outdir.foreign_entries(run) == []
     (run / "NOTES.txt").write_text("x")
     assert _outdir.foreign_entries(run) == ["NOTES.txt"]

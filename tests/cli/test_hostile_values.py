@@ -94,18 +94,17 @@ def test_copied_rows_are_refused(campaign, tmp_path, capsys):
 
 
 def test_one_wrong_reading_in_data_of_two_stations_is_named(tmp_path, capsys):
-    """own: with several stations the gross-error screening does not run, and one joint reading of 0 for -1.2 rad
+    """own: with several stations the gross-error screening did not run, and one joint reading of 0 for -1.2 rad
     pulled the geometry into corrections hundreds of times their priors; the refusal spoke of a wrong robot alone.
-    It now names the row that stands out."""
+    The screening runs per station now (issue 47 item 10): the row is rejected as a gross error, named by its file
+    line, and the calibration goes on without it."""
     from _cli import cli_simulate
 
     assert cli_simulate(tmp_path / "sim", "--poses", "60", "--test-poses", "5", "--stations", "2", "--seed", "1") == 0
     data = rewrite(tmp_path / "sim" / "train.csv", tmp_path / "bad.csv", set_cell(3, "q2", "0.0"))
     head, _, _ = rows(data)
-    assert calibrate(data, tmp_path / "o") == 2
-    # under the tolerance prior the row no longer pulls the corrections far: the fit is refused for its misfit
-    refused(capsys, "does not describe the data", f"Or one bad row: line {len(head) + 5} misses by")
-    assert not (tmp_path / "o").exists()
+    assert main(["calibrate", str(data), "--robot", "ur5", "--method", "kinematic", "--out", str(tmp_path / "o")]) == 0
+    assert f"rejected as gross errors (file lines {len(head) + 5})" in capsys.readouterr().err
 
 
 def test_radians_declared_as_degrees_are_refused_by_predict_and_compensate(run_dir, campaign, tmp_path, capsys):

@@ -253,7 +253,8 @@ def test_a_run_written_before_the_level_still_predicts_and_says_so(unexplained_r
 
 
 def test_beyond_the_region_the_model_with_the_smaller_sigma_predicts(kinematic_run, tmp_path):
-    """A run that keeps a kinematic calibration beside its model: beyond the region, where the model's own sigma is the
+    """A run that keeps a kinematic calibration beside its model and chose no model for beyond the region (too few
+    rows beyond to choose on: torchcal.pipeline.beyond): beyond the region, where the model's own sigma is the
     larger, the kinematic calibration predicts the row and the model column says so; inside, the model does."""
     import shutil
 
@@ -270,6 +271,7 @@ def test_beyond_the_region_the_model_with_the_smaller_sigma_predicts(kinematic_r
     level = Trust((15e-6,) * 3, (10e-6,) * 3, (10e-6,) * 3, 1.0, 30, 1.0, 0.6)
     meta["trust"] = {**level.to_dict(), "unexplained_far_m": [5e-3] * 3}  # sure inside, far less sure beyond
     meta["geometric"] = {"trust": {**level.to_dict(), "unexplained_m": [1e-4] * 3, "unexplained_far_m": [1e-4] * 3}}
+    meta.pop("beyond", None)  # no choice made: the sigma rule
     (run / "model.json").write_text(json.dumps(meta), encoding="utf-8")
     data = _push_beyond(kinematic_run, 0.3)
     _check_compensate_chooses(run, data, tmp_path)

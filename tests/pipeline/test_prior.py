@@ -191,9 +191,18 @@ def test_an_update_reports_the_effects_it_carries(tmp_path):
     assert rep["effects"][0]["kind"] == "compliance"
     assert all(e["carried_from_prior"] == str(d) for e in rep["effects"])
     assert "(the prior run's, held; its RMSE)" in (out / "report.md").read_text()
-    # 10 rows hold out 2: predict's sigma is not measured, and the report says what it lacks (it said nothing)
-    assert rep["n_holdout"] < 10 and rep["trust"]["model"] is None and "understate the error" in rep["trust"]["note"]
-    assert "Predictive sigma (sx, sy, sz of predict and compensate) not measured" in (out / "report.md").read_text()
+    # 10 rows hold out 2: too few for a measured level; the report says what they bound and which way (issue 46
+    # item 6: it said "understate" whichever way the rows showed)
+    few = rep["trust"]["few_rows"]
+    assert rep["n_holdout"] < 10 and rep["trust"]["model"] is None and few["n_holdout"] == rep["n_holdout"]
+    words = {"overstates": "overstate the error", "understates": "understate the error"}.get(
+        few["direction"], "neither"
+    )
+    assert "measured on only" in rep["trust"]["note"] and words in rep["trust"]["note"]
+    assert (
+        "Predictive sigma (sx, sy, sz of predict and compensate) was measured on only"
+        in (out / "report.md").read_text()
+    )
 
 
 def test_a_move_no_poses_tell_from_a_held_element_names_both(before, tmp_path):

@@ -6,10 +6,12 @@ import argparse
 import math
 
 from torchcal._bounds import (
+    MAX_PAYLOAD_KG,
     MAX_RANK_TOL,
     MAX_SIGMA_ANGLE,
     MAX_SIGMA_JOINT,
     MAX_SIGMA_LENGTH,
+    MAX_SIGMA_TORQUE,
     MAX_SIGMA_TRACKER,
 )
 from torchcal._method import METHODS
@@ -114,6 +116,8 @@ ORIENTATION_DEG = _number("positive", 5.0)
 RANK_TOL = _number("positive", MAX_RANK_TOL)
 LENGTH_BIAS_MM = _number("nonnegative", MAX_SIGMA_LENGTH * 1e3)
 ANGLE_BIAS_DEG = _number("nonnegative", math.degrees(MAX_SIGMA_ANGLE))
+PAYLOAD_KG = _number("nonnegative", MAX_PAYLOAD_KG)  # 5000 is grams: the payload column refuses it too
+TORQUE_NOISE_NM = _number("nonnegative", MAX_SIGMA_TORQUE)
 #: what happens to an existing --out directory, said once for every command that writes one
 REPLACED_HELP = (
     "an existing one is replaced only when it is an earlier torchcal output (marked by .torchcal-run), anything "

@@ -24,7 +24,6 @@ from torchcal.cli._args import (
     _tool,
 )
 from torchcal.cli._common import _effect_line, _reading, _robot_input, calibration_module
-from torchcal.data.header import check_header_robot
 
 
 def add_parser(sub) -> None:
@@ -151,6 +150,8 @@ CALIBRATE_FLAGS = {
 
 
 def handle(args) -> int:
+    from torchcal.data.header import check_header_robot
+
     C = calibration_module()
     from torchcal.data import read_measurements
     from torchcal.report.rundir import write_run

@@ -4,14 +4,16 @@ from __future__ import annotations
 
 import math
 import sys
-
-import torch
+from typing import TYPE_CHECKING
 
 from torchcal import _console
 from torchcal._outdir import check_out_file
-from torchcal.cli._args import NONNEG, _add_common, _add_force, _add_units, _number
+from torchcal.cli._args import PAYLOAD_KG, _add_common, _add_force, _add_units, _number
 from torchcal.cli._common import _has_load, _one_torch_thread, _reading, warn_outside
 from torchcal.errors import TorchcalError
+
+if TYPE_CHECKING:  # the command's module loads without torch (torchcal --help); its handler imports it
+    import torch
 
 
 def add_parser(sub) -> None:
@@ -38,13 +40,13 @@ def add_parser(sub) -> None:
         "--out",
         required=True,
         help="CSV to write: the commands q1..qN, the file's joints q1_program..qN_program, the targets, station, "
-        "probe, extra columns, sx,sy,sz, extrapolation, model (full, geometric or physical: which model commanded "
-        "the row), miss, miss_angle [rad] (6-D), status",
+        "probe, extra columns, sx,sy,sz, extrapolation, model (full, geometric, physical or nominal: which "
+        "model commanded the row), miss, miss_angle [rad] (6-D), status",
     )
     cp.add_argument("--start", default=None, help="CSV with q1..qN: start joints per row (x,y,z-only targets)")
     cp.add_argument(
         "--payload",
-        type=NONNEG,
+        type=PAYLOAD_KG,
         default=None,
         metavar="KG",
         help="the program's payload at the flange (default: the targets' payload column, else 0): the calibrated "
@@ -82,14 +84,15 @@ def add_parser(sub) -> None:
     _add_common(cp)
 
 
-COMPENSATE_MODELS = ("full", "geometric", "physical")
-
-
 def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
-    """compensate's ``sx, sy, sz`` and ``model`` per row: rows beyond the region where the run's model's sigma is far
-    above its kinematic calibration's are solved again with that (``resolve(geometric, rows)``, in place in
-    ``res``), with its sigma at the new commands."""
+    """compensate's ``sx, sy, sz`` and ``model`` per row: rows beyond the region that the run gives to another model
+    (the one it chose there, or its kinematic calibration where the model's sigma is far above that one's:
+    :func:`torchcal.use.rundir.row_trust`) are solved again with it (``resolve(other, rows)``, in place in ``res``),
+    with its sigma at the new commands; rows beyond that the run's model commands without its learned parts say
+    ``physical``."""
     from dataclasses import replace
+
+    import torch
 
     from torchcal.use.rundir import row_trust
 
@@ -102,13 +105,15 @@ def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
     sigma = rt.sigma.clone()
     sub = ctx.subset(rows.to(ctx.q.device))
     sigma[rows] = rt.geometric_sigma(replace(sub, q=res.q[rows.to(res.q.device)]))  # at the new commands
-    which[rows] = 1
+    which[rows] = rt.which[rows]
     return sigma, which
 
 
 def _geometric_resolver(res, station, probe, targets_of, context, weight):
     """``(geometric, rows) ->`` those rows of ``res`` solved again, in place, with the run's kinematic calibration
     ``geometric`` in each row's own station's frame with its own probe."""
+    import torch
+
     from torchcal.use.compensate import solve_rows_with
     from torchcal.use.rundir import at_station
 
@@ -143,6 +148,8 @@ def _program_load(args, data, model) -> dict:
 
 def _payload_of(args, data) -> torch.Tensor | None:
     """``--payload KG`` for every row, else the targets' ``payload`` column, else None (0 kg)."""
+    import torch
+
     if args.payload is not None:
         return torch.full((data.n,), float(args.payload), dtype=torch.float64, device=data.q.device)
     return data.payload
@@ -225,11 +232,12 @@ def _compensation_targets(data, six_d: bool):
 def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, mode) -> None:
     """Write ``compensate``'s file in the targets file's units: the commands, the program's own joints beside them
     (``q1_program..``), the targets, labels, extra columns, trust columns, the misses and the status. Rows where
-    the run's kinematic calibration is far surer are solved again with it first (:func:`_compensate_trust`)."""
+    the run gives another model (beyond the region) are solved again with it first (:func:`_compensate_trust`)."""
     import dataclasses
 
     from torchcal.effects import Context
     from torchcal.use.compensate import file_units, write_joints
+    from torchcal.use.rundir import MODEL_NAMES
 
     (model, meta), (station, probe), (plain, resolve) = run, groups, plain_resolve
     # how far to trust each command: the predicted standard deviation of a measurement there, and which model
@@ -246,7 +254,7 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     if sigma is not None:
         extra.update(sx=sigma[:, 0] * length, sy=sigma[:, 1] * length, sz=sigma[:, 2] * length)
     extra["extrapolation"] = ext  # of the commands written
-    extra["model"] = [COMPENSATE_MODELS[int(i)] for i in which.tolist()]
+    extra["model"] = [MODEL_NAMES[int(i)] for i in which.tolist()]
     if conditions is not None:
         extra["conditions"] = conditions
     write_joints(
@@ -272,6 +280,8 @@ def _compensate_load(args, run, data, q, sigma):
     extrapolation grown where it lies beyond, and the ``conditions`` column (None where neither the targets nor the
     run carry load columns)."""
     import dataclasses
+
+    import torch
 
     from torchcal.use.conditions import CONDITIONS, load_conditions, with_load_sigma
 

@@ -6,8 +6,6 @@ import argparse
 import json
 import math
 
-import torch
-
 from torchcal import _console
 from torchcal.cli._args import _add_common, _add_force, _add_robot, _add_units, _tool
 from torchcal.cli._common import _reading, _robot_input, json_out_file
@@ -45,6 +43,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def handle(args) -> int:
+    import torch
+
     from torchcal.data import read_measurements
     from torchcal.data.header import check_header_robot
     from torchcal.robot import load_robot

@@ -8,8 +8,6 @@ import math
 import sys
 from pathlib import Path
 
-import torch
-
 from torchcal import _console
 from torchcal._method import DEFAULT_METHOD
 from torchcal._outdir import check_out_file
@@ -26,7 +24,6 @@ from torchcal.cli._args import (
     _tool,
 )
 from torchcal.cli._common import _one_torch_thread, _reading, _robot_input, json_out_file
-from torchcal.data.header import check_header_robot, robot_key
 from torchcal.errors import OptionError
 
 
@@ -54,7 +51,8 @@ def add_parser(sub) -> None:
         "--run",
         default=None,
         help="run directory written by calibrate: plan with its calibrated model, instrument pose, lever arm, "
-        "stochastic model and variance factor",
+        "stochastic model and variance factor; candidates are sampled within its calibrated region, the joints it "
+        "barely moved (narrow) over their limits",
     )
     pl.add_argument(
         "--station",
@@ -169,6 +167,7 @@ def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
 def _plan_run(args):
     """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
     and scene (tracker position, lever arm)."""
+    from torchcal.data.header import robot_key
     from torchcal.use.plan import scene_of
     from torchcal.use.rundir import load_model
     from torchcal.use.station import station_options
@@ -236,12 +235,38 @@ def _write_plan(args, out_file: Path, side: dict, plan, meta_out: dict, loads: d
     side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
 
 
+def _given_scene(args, robot, tracker, lever):
+    """The tracker position and lever arm: ``--tracker`` and ``--tool`` where given [m], else ``tracker``, ``lever``."""
+    import torch
+
+    def given(v):
+        return torch.tensor(v, dtype=torch.float64, device=robot.device)
+
+    return (tracker if args.tracker is None else given(args.tracker), lever if args.tool is None else given(args.tool))
+
+
+def _sampled(args, model, tracker, lever):
+    """The candidates a plan samples (``--pool`` of them) and the words that say where: for a run where it was
+    calibrated, its narrow joints opened to their limits (only poses that move them tell what the run held near
+    nominal: :func:`torchcal.use.plan.candidate_region`)."""
+    from torchcal.use.plan import candidate_region, sample_candidates
+
+    region, narrow = candidate_region(model) if args.run is not None else (None, [])
+    within = " within the run's calibrated region" if region is not None else ""
+    if narrow:
+        within += f" ({', '.join(f'q{j}' for j in narrow)}, narrow in the run, over their limits)"
+    _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
+    q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
+    return q, f"{len(q)} sampled{within} (seed {args.seed})"
+
+
 @_one_torch_thread
 def handle(args) -> int:
     from torchcal.data import read_measurements
+    from torchcal.data.header import check_header_robot
     from torchcal.data.load import is_load_column
     from torchcal.effects import MeasurementModel
-    from torchcal.use.plan import PlanOptions, distinct_index, plan_poses, sample_candidates
+    from torchcal.use.plan import PlanOptions, distinct_index, plan_poses
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
@@ -260,10 +285,7 @@ def handle(args) -> int:
         model = MeasurementModel(load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link))
         robot_name = args.robot
     robot = model.robot
-    if args.tracker is not None:
-        tracker = torch.tensor(args.tracker, dtype=torch.float64, device=robot.device)
-    if args.tool is not None:
-        lever = torch.tensor(args.tool, dtype=torch.float64, device=robot.device)
+    tracker, lever = _given_scene(args, robot, tracker, lever)
     if args.tracker_noise is not None:
         sigma_tracker = args.tracker_noise * 1e-6
     if args.joint_noise is not None:
@@ -283,11 +305,7 @@ def handle(args) -> int:
             _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
         source = args.candidates
     else:
-        region = model.region if args.run is not None else None  # a run: where it was calibrated
-        within = " within the run's calibrated region" if region is not None else ""
-        _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
-        q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
-        source = f"{len(q)} sampled{within} (seed {args.seed})"
+        q, source = _sampled(args, model, tracker, lever)
     if args.n > len(q):
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
     opts = PlanOptions.for_method(

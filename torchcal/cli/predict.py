@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import torch
-
 from torchcal import _console
-from torchcal._device import resolve_device
 from torchcal._outdir import check_out_file
 from torchcal.cli._args import _add_computing, _add_force
 from torchcal.cli._common import _has_load, _one_torch_thread, warn_outside
-from torchcal.data.header import check_header_robot
 from torchcal.errors import OptionError
 
 
@@ -27,9 +23,9 @@ def add_parser(sub) -> None:
         "--out",
         required=True,
         help="CSV to write: x,y,z [m], the trust columns sx,sy,sz [m] and extrapolation (sx,sy,sz: the standard "
-        "deviation of a new measurement minus the prediction) and model (full, or geometric: the run's kinematic "
-        "calibration beyond the region where it is far surer), plus the q*, t, station and probe columns (never one "
-        "of the input files)",
+        "deviation of a new measurement minus the prediction) and model (full: the run's model; beyond the region "
+        "the model the run chose there: full, geometric, physical or nominal), plus the q*, t, station and probe "
+        "columns (never one of the input files)",
     )
     _add_force(pr)
     _add_computing(pr)
@@ -39,6 +35,7 @@ def _prediction_rows(args, model, meta):
     """``predict``'s rows: DATA read for the run's robot (text columns beside the numbers ignored), its header's robot
     and its stations checked against the run's."""
     from torchcal.data import read_measurements
+    from torchcal.data.header import check_header_robot
     from torchcal.use.conditions import require_torques
     from torchcal.use.rundir import check_placement
 
@@ -65,6 +62,8 @@ def _prediction_trust(args, model, meta, data):
     measurement minus the prediction, how far the pose lies outside the calibrated region, and which model predicts
     it (beyond the region, the one with the smaller sigma); a load the run was not fitted at is flagged, its sigma and
     extrapolation grown (:mod:`torchcal.use.conditions`). Returns ``(trust, sigma, extrapolation, load conditions)``."""
+    import torch
+
     from torchcal.effects import Context
     from torchcal.use.conditions import load_conditions, with_load_sigma
     from torchcal.use.rundir import row_trust
@@ -83,6 +82,9 @@ def _prediction_trust(args, model, meta, data):
 def handle(args) -> int:
     from dataclasses import replace
 
+    import torch
+
+    from torchcal._device import resolve_device
     from torchcal.data import write_measurements
     from torchcal.data.load import is_load_column
     from torchcal.use.conditions import CONDITIONS

@@ -6,18 +6,18 @@ import argparse
 import math
 from pathlib import Path
 
-import torch
-
 from torchcal import _console
+from torchcal._bounds import MAX_PAYLOAD_KG
 from torchcal._outdir import check_out_dir
 from torchcal.cli._args import (
     ANGLE_BIAS_DEG,
     JOINT_DEG,
     LENGTH_BIAS_MM,
-    NONNEG,
     ORIENTATION_DEG,
     OUT_HELP,
+    PAYLOAD_KG,
     POSITIVE,
+    TORQUE_NOISE_NM,
     TRACKER_UM_SIM,
     _add_common,
     _add_robot,
@@ -148,16 +148,22 @@ def _load_levels(text: str) -> tuple[float, ...]:
         ) from None
     if not all(math.isfinite(v) and v >= 0 for v in levels):
         raise argparse.ArgumentTypeError(f"payloads are masses >= 0 kg, got {text!r}")
+    if max(levels) > MAX_PAYLOAD_KG:  # grams: the payload column refuses it too
+        raise argparse.ArgumentTypeError(f"payloads are at most {MAX_PAYLOAD_KG:g} kg, got {text!r}")
     return levels
 
 
 def _add_load_options(s) -> None:
     """simulate's loads: the payload of the training and test rows, levels, measured torques."""
     s.add_argument(
-        "--payload", type=NONNEG, default=0.0, metavar="KG", help="payload at the probe of the training rows"
+        "--payload", type=PAYLOAD_KG, default=None, metavar="KG", help="payload at the probe of the training rows"
     )
     s.add_argument(
-        "--test-payload", type=NONNEG, default=None, metavar="KG", help="payload of the test rows (default --payload)"
+        "--test-payload",
+        type=PAYLOAD_KG,
+        default=None,
+        metavar="KG",
+        help="payload of the test rows (default --payload)",
     )
     s.add_argument(
         "--payload-levels",
@@ -172,8 +178,40 @@ def _add_load_options(s) -> None:
         help="write the joint torques the drives hold (tau1..tauN, N m) from the true static model plus noise",
     )
     s.add_argument(
-        "--torque-noise", type=NONNEG, default=0.5, metavar="NM", help="standard deviation of --torques (default 0.5)"
+        "--torque-noise",
+        type=TORQUE_NOISE_NM,
+        default=None,
+        metavar="NM",
+        help="standard deviation of --torques (default 0.5)",
     )
+
+
+def _check_load_options(args) -> None:
+    """Refuse load options that would be dropped without a word (--payload beside --payload-levels, --torque-noise
+    without --torques) or that the simulator cannot combine (loads and several stations or probes)."""
+    if args.payload is not None and args.payload_levels is not None:
+        raise OptionError(
+            "--payload and --payload-levels both give the training rows' payload: give one (--payload-levels "
+            "cycles the rows over its levels; --test-payload sets the test rows')"
+        )
+    if args.torque_noise is not None and not args.torques:
+        raise OptionError("--torque-noise is the noise of --torques: add --torques, or leave --torque-noise out")
+    loads = [
+        o
+        for o, given in (
+            ("--payload", args.payload),
+            ("--test-payload", args.test_payload),
+            ("--payload-levels", args.payload_levels),
+            ("--torques", args.torques or None),
+        )
+        if given is not None
+    ]
+    several = [f"{o} {v}" for o, v in (("--stations", args.stations), ("--probes", args.probes)) if v > 1]
+    if loads and several:
+        raise OptionError(
+            f"{', '.join(loads)} with {' and '.join(several)}: simulated loads take one station and one probe; "
+            "simulate the loads and the placements as separate campaigns"
+        )
 
 
 def handle(args) -> int:
@@ -186,6 +224,7 @@ def handle(args) -> int:
         raise OptionError(
             f"--train-samples {args.train_samples} must be below --samples {args.samples} (the rest is the test phase)"
         )
+    _check_load_options(args)
     same = ("robot", "poses", "test_poses", "trajectory", "path", "samples", "train_samples", "seed")
     cfg = SimConfig(
         **{name: getattr(args, name) for name in same},
@@ -201,11 +240,11 @@ def handle(args) -> int:
         orientation_sigma_deg=args.orientation,
         stations=args.stations,
         probes=args.probes,
-        payload=args.payload,
+        payload=0.0 if args.payload is None else args.payload,
         test_payload=args.test_payload,
         payload_levels=args.payload_levels,
         torques=args.torques,
-        sigma_torque=args.torque_noise,
+        sigma_torque=0.5 if args.torque_noise is None else args.torque_noise,
         narrow=args.narrow,
         narrow_width_deg=args.width_deg,
     )
@@ -226,6 +265,8 @@ def handle(args) -> int:
 def _to_mm(campaign):
     """The campaign's lengths in millimetres: positions, their standard deviations and prismatic joints' readings."""
     from dataclasses import replace
+
+    import torch
 
     robot = campaign.model.robot
     linear = torch.tensor([k == "prismatic" for k in robot.joint_types], dtype=torch.bool, device=robot.device)

@@ -9,7 +9,6 @@ from torchcal import _console
 from torchcal._outdir import check_out_dir
 from torchcal.cli._args import REPLACED_HELP, _add_common, _add_units
 from torchcal.cli._common import _reading
-from torchcal.data.header import check_header_robot
 
 
 def add_parser(sub) -> None:
@@ -53,6 +52,7 @@ def add_parser(sub) -> None:
 
 def handle(args) -> int:
     from torchcal.data import read_measurements
+    from torchcal.data.header import check_header_robot
     from torchcal.report.station import write_station
     from torchcal.use.rundir import load_model
     from torchcal.use.station import restation

@@ -19,6 +19,7 @@ from collections.abc import Mapping, Sequence
 
 import torch
 
+from torchcal._bounds import MAX_PAYLOAD_KG
 from torchcal.errors import MeasurementFileError
 
 Tensor = torch.Tensor
@@ -26,9 +27,6 @@ Tensor = torch.Tensor
 PAYLOAD = "payload"
 PAYLOAD_COM = ("payload_x", "payload_y", "payload_z")
 TAU_RE = re.compile(r"tau([0-9]+)")
-#: the largest payload a row may carry [kg]: beyond it the column is in grams (or a typo); the heaviest industrial
-#: arms carry about 2.3 t
-MAX_PAYLOAD_KG = 3000.0
 #: the farthest a payload's centre of mass may lie from the flange [m]: beyond it the unit is millimetres
 MAX_PAYLOAD_OFFSET_M = 5.0
 #: the largest joint torque a row may hold [N m]: beyond it the unit is N mm (or a typo); the largest arms' base

@@ -694,13 +694,13 @@ def _extra(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
                 column=str(name),
             )
         out.update({n: v[:, i].contiguous() for i, n in enumerate(names)})
-    out.update(_load(doc, table, inputs))
-    return out
+    return _load(doc, table, inputs, out)
 
 
-def _load(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
-    """``payload: COL`` (kg) or ``[COL, X, Y, Z]`` (with its centre of mass in the flange frame, in the MAP's length
-    unit) and ``torques: COLS`` (N m, one per joint) of the joints' table, as the load columns, validated."""
+def _load(doc: dict, table: Table, inputs: _Inputs, extra: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """``extra`` with ``payload: COL`` (kg) or ``[COL, X, Y, Z]`` (with its centre of mass in the flange frame, in
+    the MAP's length unit) and ``torques: COLS`` (N m, one per joint) of the joints' table, the load columns of both
+    validated together (a centre of mass from ``extra`` without a payload is refused as calibrate refuses it)."""
     from torchcal.data.load import PAYLOAD, PAYLOAD_COM, check_load
 
     out = {}
@@ -718,16 +718,56 @@ def _load(doc: dict, table: Table, inputs: _Inputs) -> dict[str, torch.Tensor]:
         v = numbers(table, cols, inputs.read)
         names = (PAYLOAD, *PAYLOAD_COM)[: len(cols)] if key == "payload" else [f"tau{k + 1}" for k in range(len(cols))]
         out.update({n: v[:, i].contiguous() for i, n in enumerate(names)})
-    clash = sorted(set(out) & set(doc.get("extra", {}) or {}))
+    # by the names extra writes (tau: 1-6 writes tau1..tau6): a second tau1 replaced torques:'s without a word, and
+    # extra's payload_x beside payload: left a centre of mass in part
+    clash = sorted(set(extra) & ({*out, *PAYLOAD_COM, PAYLOAD} if PAYLOAD in out else set(out)))
     if clash:
         raise MeasurementFileError(
             inputs.map_path,
-            f"extra names {clash[0]!r}, a load column 'payload:' or 'torques:' writes",
+            f"extra writes {clash[0]!r}, a load column that 'payload:' or 'torques:' writes: give it there alone",
             line=_line(doc, "extra"),
+            column="extra",
+        )
+    merged = {**extra, **out}
+    if any(c in extra for c in PAYLOAD_COM) and PAYLOAD not in merged:
+        raise MeasurementFileError(
+            inputs.map_path,
+            "extra writes the payload's centre of mass without the payload (kg): write 'payload: [KG, X, Y, Z]'",
+            line=_line(doc, "extra"),
+            column="extra",
         )
     length = doc.get("units", {}).get("length", "m")
     # the count of torques against the joints is checked on the rows (_check_torque_count), where both are known
-    return check_load(table.path, out, table.lines, 1, 0, length)
+    return check_load(table.path, merged, table.lines, 1, 0, length)
+
+
+def _check_overlap(doc: dict, inputs: _Inputs) -> None:
+    """Refuse a column that two roles read (``torques: 4-9`` over joints and x, y, z; ``payload: 7``, an x in mm,
+    read as 812 kg): one column is one quantity, and either reading would be wrong without a word."""
+    joints = _role(doc["joints"], inputs.map_path, doc, "joints")
+    claims: dict[tuple[int, int], str] = {}
+    for key in ("joints", "position", "matrix", "quaternion", "payload", "torques"):
+        if key not in doc:
+            continue
+        role = joints if key == "joints" else _role(doc[key], inputs.map_path, doc, key)
+        if key in ("joints", "payload", "torques"):  # the load columns are read from the joints' inputs
+            numbers_in = joints["input"]
+        elif isinstance(doc[key], dict) and "input" in doc[key]:
+            numbers_in = role["input"]
+        else:  # the points of the (first) joints input, as _points reads them
+            numbers_in = joints["input"][:1]
+        for k in numbers_in:
+            table = inputs.table(k, doc, key)
+            for c in columns_of(role["columns"], table, inputs.map_path, key, _line(doc, key)):
+                first = claims.setdefault((k, c), key)
+                if first != key:
+                    raise MeasurementFileError(
+                        inputs.map_path,
+                        f"'{key}' reads column {c + 1} of {table.path}, which '{first}' reads too: one column holds "
+                        "one quantity",
+                        line=_line(doc, key),
+                        column=key,
+                    )
 
 
 def _check_torque_count(doc: dict, inputs: _Inputs, q: torch.Tensor, extra: dict) -> None:
@@ -911,6 +951,7 @@ def import_mapped(map_path: str | os.PathLike, paths: list[str]) -> Measurements
     _distinct_files(inputs)
     joints = _joints(doc, inputs, angle)
     points = _points(doc, inputs, [t for t, _ in joints], length)
+    _check_overlap(doc, inputs)
     if len(points) > 1 and doc.get("probe") is None and doc.get("station") is None:
         raise MeasurementFileError(
             inputs.map_path, "the points come from several inputs: name them, 'probe: [..]' or 'station: [..]'"

@@ -445,9 +445,15 @@ def _name_rows(res: RobustResult, m, pred: Tensor, file_unit_hint: bool = True) 
 def _probe_frames(model: MeasurementModel, m) -> Tensor:
     """Each row's probe frame in the flange frame ``(N, 3, 3)`` as its measured orientation says: ``(R_tracker_base
     R_base_flange(q))^T R_measured``. One frame for every row of a rigid probe, up to the noise."""
-    R_tb = model.robot.T_tracker_base()[:3, :3]
-    R_tf = R_tb @ model.robot(m.q)[..., :3, :3]
+    robot = model.robot
+    R_tb = robot.instrument.rows(m.station if robot.stations else None)[..., :3, :3]  # each row's own station
+    R_tf = R_tb @ robot(m.q)[..., :3, :3]
     return R_tf.transpose(-1, -2) @ so3_exp(m.r)
+
+
+#: the fewest rows of one station and probe that :func:`_robust_start` fits robustly on their own: with fewer, one
+#: gross row among them is not outvoted
+MIN_GROUP_ROWS = 6
 
 
 def _common_frame(R: Tensor, rounds: int = 5) -> Tensor:
@@ -505,7 +511,13 @@ def _orientation_offsets(model: MeasurementModel, m) -> Tensor:
     """Each row's probe frame in the flange frame against their robust centre, as a rotation vector ``(N, 3)``
     [rad]; refuses orientations that do not turn with the robot at all (:data:`MAX_ORIENTATION_SPREAD_DEG`)."""
     R = _probe_frames(model, m)
-    e = so3_log(_common_frame(R).transpose(-1, -2) @ R)
+    probe = (
+        m.probe if model.robot.probes and m.probe is not None else torch.zeros(m.n, dtype=torch.long, device=m.q.device)
+    )
+    e = torch.empty(m.n, 3, dtype=R.dtype, device=R.device)
+    for k in torch.unique(probe).tolist():  # each reflector has a frame of its own in the flange frame
+        rows = torch.nonzero(probe == k).flatten()
+        e[rows] = so3_log(_common_frame(R[rows]).transpose(-1, -2) @ R[rows])
     spread = math.degrees(float(e.norm(dim=-1).median()))
     if spread > MAX_ORIENTATION_SPREAD_DEG:
         raise MeasurementFileError(
@@ -593,12 +605,32 @@ def screen_geometric(
 
 def _robust_start(model: MeasurementModel, train) -> Tensor:
     """Step 1 of :func:`screen_geometric`: set ``model``'s tracker pose and lever arm from a robust rigid fit with
-    the nominal geometry; returns that fit's row weights."""
+    the nominal geometry; returns that fit's row weights. With several stations or probes, each pair of a station
+    and a probe is one rigid body of its own (its rows: one pose and one lever arm), fitted robustly alone; the poses
+    of every station and the lever arms of every probe are then placed together on the rows those fits kept."""
     robot = model.robot
+    if not (robot.stations or robot.probes):
+        with torch.no_grad():
+            T, lever, _, w0 = robust_instrument_and_tool(robot(train.q), train.p)
+            robot.instrument.set_matrix(T)
+            robot.tool.nominal.copy_(lever)
+        return w0
+    from torchcal.estimate.fit import place_stations_and_probes
+
+    n = train.n
+    zeros = torch.zeros(n, dtype=torch.long, device=train.q.device)
+    st = train.station if train.station is not None and robot.stations else zeros
+    pr = train.probe if train.probe is not None and robot.probes else zeros
+    w0 = torch.ones(n, dtype=train.p.dtype, device=train.p.device)
     with torch.no_grad():
-        T, lever, _, w0 = robust_instrument_and_tool(robot(train.q), train.p)
-        robot.instrument.set_matrix(T)
-        robot.tool.nominal.copy_(lever)
+        Tf = robot(train.q)
+        for key in torch.unique(st * (int(pr.max()) + 1) + pr).tolist():
+            rows = torch.nonzero(st * (int(pr.max()) + 1) + pr == key).flatten()
+            if len(rows) < MIN_GROUP_ROWS:  # too few to tell a gross row from a good one: they weigh as given
+                continue
+            w0[rows] = robust_instrument_and_tool(Tf[rows], train.p[rows])[3]
+        kept = torch.nonzero(w0 > 0).flatten()
+        place_stations_and_probes(robot, train.q[kept], train.p[kept], st[kept], pr[kept])
     return w0
 
 

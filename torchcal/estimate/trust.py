@@ -235,6 +235,132 @@ def base_variance(
     return n if s is None else n + s.square()
 
 
+#: the level at which a few held-out rows bound the scale of the sigma (:class:`FewRows`): a scale outside the bounds
+#: would have given errors this unlikely (each tail)
+FEW_ROWS_ALPHA = 0.005
+
+
+@dataclass(frozen=True)
+class FewRows:
+    """What fewer than :data:`MIN_ROWS` held-out rows can tell of the sigma the parameters, the learned posterior and
+    the instrument's noise give (``sigma_0``): not a level, but bounds on its scale. With ``sigma = k sigma_0`` the
+    rows' ``T = sum e^2 / sigma_0^2`` over their ``3n`` axes is ``k^2 chi2_3n``; a ``k`` above ``sqrt(T / chi2_3n(a))``
+    (the lower ``a`` quantile, :data:`FEW_ROWS_ALPHA`) would have given errors that small with probability below
+    ``a``, one below ``sqrt(T / chi2_3n(1 - a))`` errors that large. The sigma uses the ``k`` nearest 1 within the
+    bounds: a covariance 50 times the errors (poorly determined parameters, seven held-out rows) comes down to the
+    most the rows allow, one the errors exceed goes up to the least they demand.
+
+    Attributes:
+        noise: the instrument's standard deviation per axis ``(3,)`` [m].
+        low, high: the bounds on ``k``.
+        n: the held-out rows.
+        median_ratio: the median ``|error| / sigma_0`` over their axes.
+    """
+
+    noise: tuple[float, float, float]
+    low: float
+    high: float
+    n: int
+    median_ratio: float
+
+    @property
+    def scale(self) -> float:
+        """The ``k`` the sigma uses: 1 where the bounds allow it, else the nearer bound."""
+        return min(max(1.0, self.low), self.high)
+
+    @property
+    def direction(self) -> str:
+        """``"overstates"`` (``sigma_0`` above what the rows allow), ``"understates"`` or ``"consistent"``."""
+        return "overstates" if self.high < 1.0 else "understates" if self.low > 1.0 else "consistent"
+
+    def note(self) -> str:
+        """What the sigma is and which way ``sigma_0`` is off, in words that agree with the rows."""
+        head = (
+            f"was measured on only {self.n} held-out rows (a level needs {MIN_ROWS}): the parameters' and the learned "
+            f"model's uncertainty with the instrument's noise"
+        )
+        if self.direction == "overstates":
+            words = (
+                f" overstate the error (the rows' errors are a median {self.median_ratio:.2g} of it); sx, sy, sz are "
+                f"scaled down by {self.scale:.3g}, the most the rows allow, and may still overstate it"
+            )
+        elif self.direction == "understates":
+            words = (
+                f" understate the error (the rows' errors are a median {self.median_ratio:.2g} of it); sx, sy, sz are "
+                f"scaled up by {self.scale:.3g}, the least the rows demand, and may still understate it"
+            )
+        else:
+            words = (
+                f", which the rows' errors (a median {self.median_ratio:.2g} of it) neither bound above nor below "
+                f"(scale {self.low:.3g} to {self.high:.3g}): sx, sy, sz are that sigma"
+            )
+        return head + words + f"; hold out {MIN_ROWS} rows or more for a measured sigma"
+
+    def std(self, model: MeasurementModel, ctx: Context, cov: ParameterCovariance | None) -> Tensor:
+        """The predictive standard deviation ``(N, 3)`` [m]: ``k sigma_0``."""
+        return self.scale * base_variance(model, ctx, cov, self.noise).sqrt()
+
+    def to_dict(self) -> dict:
+        return {
+            "noise_m": list(self.noise),
+            "scale": self.scale,
+            "scale_bounds": [self.low, self.high],
+            "direction": self.direction,
+            "n_holdout": self.n,
+            "median_ratio": self.median_ratio,
+        }
+
+    @classmethod
+    def from_dict(cls, d) -> FewRows:
+        """Rebuild from :meth:`to_dict`.
+
+        Raises:
+            ValueError: a key is missing or a value is not a finite number in range.
+        """
+        if not isinstance(d, dict):
+            raise ValueError("must be an object")
+        noise, bounds, n, med = d.get("noise_m"), d.get("scale_bounds"), d.get("n_holdout"), d.get("median_ratio")
+        if not (isinstance(noise, list) and len(noise) == 3 and all(_number(x, 0.0, MAX_LEVEL) for x in noise)):
+            raise ValueError(f"noise_m must be three numbers in 0..{MAX_LEVEL:g}")
+        if not (isinstance(bounds, list) and len(bounds) == 2 and all(_number(x, 0.0, 1e6) for x in bounds)):
+            raise ValueError("scale_bounds must be two numbers in 0..1e6")
+        if not (bounds[0] <= bounds[1] and bounds[1] > 0):
+            raise ValueError("scale_bounds must be [low, high] with 0 < high and low <= high")
+        if not (isinstance(n, int) and not isinstance(n, bool) and 0 < n < MIN_ROWS):
+            raise ValueError(f"n_holdout must be a whole number from 1 to {MIN_ROWS - 1}")
+        return cls(
+            (float(noise[0]), float(noise[1]), float(noise[2])),
+            float(bounds[0]),
+            float(bounds[1]),
+            n,
+            float(med) if _number(med, 0.0, math.inf) else math.nan,
+        )
+
+
+def few_rows(
+    model: MeasurementModel,
+    cov: ParameterCovariance | None,
+    ctx: Context,
+    p: Tensor,
+    noise: tuple[float, float, float],
+) -> FewRows | None:
+    """:class:`FewRows` on ``1 <= n < MIN_ROWS`` held-out rows (poses ``ctx``, measured positions ``p`` ``(n, 3)``
+    [m]); None for other counts (none to tell, or enough for :func:`fit_trust`)."""
+    from torchcal.stats import chi2_quantile
+
+    n = len(p)
+    if not 0 < n < MIN_ROWS:
+        return None
+    with torch.no_grad():
+        var = base_variance(model, ctx, cov, noise)
+        e = model(ctx) - p
+    z2 = e.square() / var.clamp(min=1e-300)
+    T, k = float(z2.sum()), 3 * n
+    low = math.sqrt(T / chi2_quantile(1.0 - FEW_ROWS_ALPHA, k))
+    high = math.sqrt(T / chi2_quantile(FEW_ROWS_ALPHA, k))
+    return FewRows(tuple(float(x) for x in noise), low, max(high, 1e-12), n, float(z2.sqrt().median()))
+
+
 def fit_trust(
     model: MeasurementModel,
     cov: ParameterCovariance | None,

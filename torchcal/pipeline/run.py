@@ -200,6 +200,7 @@ def start(
     check_poses(data)
     check_repeated_rows(data)
     check_stations(data)
+    opts = with_robot_tolerances(opts, robot)
     method = METHOD_TABLE[opts.method]
     trajectory = is_trajectory(data) if opts.split.trajectory is None else bool(opts.split.trajectory)
     if method.trajectory_only:
@@ -232,6 +233,17 @@ def start(
     return CalibrationRun(
         spec, model, opts, data, tr, ho, trajectory, split=split, screening=screening, notes=notes, prior=prior
     )
+
+
+def with_robot_tolerances(opts: Options, robot: RobotModel) -> Options:
+    """``opts`` with the kinematic calibration's tolerance priors the robot's file declares (``tolerances:`` of a DH
+    table, :func:`torchcal.robot.load.load_dh_yaml`): a robot's own manufacturing tolerances replace the defaults
+    (0.1 mm, 0.01 deg); options that switch the tolerance priors off (None) keep them off."""
+    tol = getattr(robot, "tolerances", None)
+    if tol is None or opts.fit.tolerance_length is None or opts.fit.tolerance_angle is None:
+        return opts
+    fit = dataclasses.replace(opts.fit, tolerance_length=tol[0], tolerance_angle=tol[1])
+    return dataclasses.replace(opts, fit=fit)
 
 
 def calibrate(
@@ -305,9 +317,6 @@ def screen_gross_errors(robot: RobotModel, data: Measurements, tr: Tensor, ho: T
     leave the rejected held-out rows out; on data without gross errors nothing changes.
     """
     if opts.levels.outlier is None:
-        return tr, ho, None
-    if robot.stations or robot.probes:  # the robust start fits one tracker pose and one lever arm
-        _console.info("gross-error screening skipped: it fits a single instrument pose and lever arm")
         return tr, ho, None
     from torchcal.estimate.robust import screen_geometric
 

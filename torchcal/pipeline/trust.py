@@ -5,14 +5,18 @@ with the far smaller sigma predicts)."""
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import dataclass
 
 import torch
 
+from torchcal import _console
 from torchcal.effects import Context, MeasurementModel
+from torchcal.errors import EstimationError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.fit import fit_covariance
-from torchcal.estimate.trust import Trust, fit_trust
+from torchcal.estimate.trust import FewRows, Trust, few_rows, fit_trust
+from torchcal.pipeline.beyond import Choice, bounded, choose, nominal_covariance, nominal_model, physical_model
 from torchcal.pipeline.records import StageName
 from torchcal.pipeline.state import CalibrationRun
 
@@ -20,12 +24,25 @@ from torchcal.pipeline.state import CalibrationRun
 @dataclass(frozen=True)
 class RunTrust:
     """The final model's :class:`Trust`, and the kinematic calibration's with its model and covariance where the
-    final model is not it (None otherwise: a kinematic run, or one whose guard stepped back to it)."""
+    final model is not it (None otherwise: a kinematic run, or one whose guard stepped back to it); the nominal
+    model's (the first stage's, with its covariance: :func:`~torchcal.pipeline.beyond.nominal_covariance`), the
+    physical model's (the final one without its fading parts, where it has some) and which of them predicts beyond
+    the region (:func:`~torchcal.pipeline.beyond.choose`); where that is the full or the physical model, its
+    covariance bounded by the tolerance priors (:func:`~torchcal.pipeline.beyond.bounded`) and its trust measured
+    with it: the sigma of the rows beyond."""
 
     full: Trust | None
     geometric_model: MeasurementModel | None = None
     geometric_covariance: ParameterCovariance | None = None
     geometric: Trust | None = None
+    few: FewRows | None = None  # the final model's, where too few rows were held out to measure ``full``
+    nominal_model: MeasurementModel | None = None
+    nominal_covariance: ParameterCovariance | None = None
+    nominal: Trust | None = None
+    physical: Trust | None = None
+    choice: Choice | None = None
+    beyond_covariance: ParameterCovariance | None = None
+    beyond: Trust | None = None
 
 
 def noise_of(run: CalibrationRun) -> tuple[float, float, float]:
@@ -39,13 +56,16 @@ def noise_of(run: CalibrationRun) -> tuple[float, float, float]:
     return v, v, v
 
 
-def _held_out(run: CalibrationRun, model: MeasurementModel, cov: ParameterCovariance | None) -> Trust | None:
-    """``model``'s :class:`Trust` on the run's held-out rows, measured on the CPU (as predict computes it)."""
+def _held_out(
+    run: CalibrationRun, model: MeasurementModel, cov: ParameterCovariance | None, measure=fit_trust
+) -> Trust | FewRows | None:
+    """``model``'s :class:`Trust` (or what ``measure`` gives: :func:`few_rows`) on the run's held-out rows, measured
+    on the CPU (as predict computes it)."""
     hold = run.hold.to("cpu")
     if hold.p is None or hold.n == 0:
         return None
     ctx = Context.from_measurements(hold, trajectory=run.trajectory)
-    return fit_trust(model, cov, ctx, hold.p, noise_of(run))
+    return measure(model, cov, ctx, hold.p, noise_of(run))
 
 
 def _geometric_covariance(run: CalibrationRun, model: MeasurementModel) -> ParameterCovariance | None:
@@ -69,10 +89,37 @@ def run_trust(run: CalibrationRun) -> RunTrust:
     with torch.no_grad():
         model = copy.deepcopy(run.model).to("cpu")
         full = _held_out(run, model, _of_model(run.covariance, model))
+        few = None if full is not None else _held_out(run, model, _of_model(run.covariance, model), few_rows)
+        out = RunTrust(full, few=few)
+        candidates = {"full": model}
         geo = next((s.model for s in run.stages if s.name == StageName.GEOMETRIC), None)
-        if geo is None or (not run.model.effects and not geo.effects):
-            return RunTrust(full)
-        geo = copy.deepcopy(geo).to("cpu")
-        geo.set_region(run.model.region, fade=False)
-        cov = _geometric_covariance(run, geo)
-        return RunTrust(full, geo, cov, _held_out(run, geo, cov))
+        if geo is not None and (run.model.effects or geo.effects):
+            geo = copy.deepcopy(geo).to("cpu")
+            geo.set_region(run.model.region, fade=False)
+            cov = _geometric_covariance(run, geo)
+            out = RunTrust(full, geo, cov, _held_out(run, geo, cov), few=few)
+            candidates["geometric"] = geo
+        physical = physical_model(model)
+        if physical is not None:
+            candidates["physical"] = physical
+            out = dataclasses.replace(out, physical=_held_out(run, physical, _of_model(run.covariance, physical)))
+    nominal = nominal_model(run)
+    if nominal is None or run.prior is not None:  # an update's first stage is the prior run's model, not nominal
+        return out
+    ncov = nominal_covariance(run, nominal)
+    with torch.no_grad():
+        out = dataclasses.replace(
+            out, nominal_model=nominal, nominal_covariance=ncov, nominal=_held_out(run, nominal, ncov)
+        )
+        candidates["nominal"] = nominal
+        try:
+            choice = choose(run, candidates)
+        except (RuntimeError, EstimationError) as e:  # a refit that cannot be solved: no choice, and it is said
+            _console.info(f"warning: no model chosen for the rows beyond the region ({type(e).__name__}: {e})")
+            choice = Choice(None, 0, {}, 0.0, f"none: the comparison failed ({type(e).__name__})")
+        out = dataclasses.replace(out, choice=choice)
+        if out.choice.model not in ("full", "physical"):
+            return out
+        m = candidates[out.choice.model]
+        cov = bounded(_of_model(run.covariance, m), m, run)
+        return dataclasses.replace(out, beyond_covariance=cov, beyond=_held_out(run, m, cov))

@@ -102,7 +102,10 @@ def plot_error_map(run: CalibrationRun, path: Path) -> None:
     geo = next(s for s in run.stages if s.name == "geometric")
     shown = [geo, run.stages[-1]] if run.stages[-1] is not geo else [geo]
     vmax = float(max(s.holdout_errors.max() for s in shown)) * 1e3
-    fig, axes = subplots(2, len(shown), figsize=(5.6 * len(shown), 8), squeeze=False, layout="constrained")
+    # fixed margins, the colour bar taking its room from the axes: the constrained layout measured every label's
+    # extent at each draw, half of this figure's time
+    fig, axes = subplots(2, len(shown), figsize=(5.6 * len(shown), 8), squeeze=False)
+    fig.subplots_adjust(left=0.1 if len(shown) == 1 else 0.06, right=0.97, bottom=0.07, top=0.96, hspace=0.25)
     radius = p[:, :2].norm(dim=-1)
     for k, s in enumerate(shown):
         e = (s.holdout_errors * 1e3).tolist()
@@ -573,13 +576,36 @@ def _region_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:
     ]
     for j, (a, b) in enumerate(zip(reg["joint_min"], reg["joint_max"]), start=1):
         lines.append(f"| q{j} | {a:.4g} | {b:.4g} |")
-    lines.append("")
+    lines += ["", *_beyond_lines((report.get("trust") or {}).get("beyond"))]
     for k, e in enumerate(run.model.effects):
         if isinstance(e, RegionForm):
             name = f"joint_function_{k}_{e.kind}_{e.joint}.png"
             plot_joint_function(run, e, out / name)
             lines += [f"![{e.kind}:{e.joint} over its joint's range]({name})", ""]
     return lines
+
+
+#: the words for each model that may predict the rows beyond the region (torchcal.pipeline.beyond)
+_BEYOND_WORDS = {
+    "full": "the run's model",
+    "geometric": "its kinematic calibration",
+    "physical": "its geometry and physical effects",
+    "nominal": "the nominal geometry with the fitted instrument pose and lever arm",
+}
+
+
+def _beyond_lines(beyond: dict | None) -> list[str]:
+    """Which model predicts the rows beyond the region, on what evidence (report.json's ``trust.beyond``)."""
+    if not beyond:
+        return []
+    if beyond.get("model") is None:
+        return [f"Beyond the region: no model chosen ({beyond.get('rule')}).", ""]
+    rmse = ", ".join(f"{k} {v:.4f} mm" for k, v in beyond["rmse_mm"].items())
+    return [
+        f"Beyond the region {_BEYOND_WORDS.get(beyond['model'], beyond['model'])} (`model` = {beyond['model']}) "
+        f"predicts every row: the smallest error on {beyond['n_evidence']} {beyond['evidence']} ({rmse}).",
+        "",
+    ]
 
 
 def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str]:

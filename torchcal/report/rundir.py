@@ -16,6 +16,10 @@ Layout::
     standalone.pt          a run with effects: the geometry its exports carry, the one that predicts best without
                            them (torchcal.pipeline.standalone; model.json: standalone)
     holdout.pt             the held-out rows' joints and positions (check-export measures a file on them)
+    nominal.pt             the nominal geometry with the fitted instrument pose and lever arm (the run's first stage,
+                           beside covariance_nominal.pt), a candidate for the rows beyond the region (model.json:
+                           beyond, torchcal.pipeline.beyond); covariance_beyond.pt: where the run's own model
+                           predicts there, its covariance bounded by the tolerance priors (the sigma beyond)
     robot/<file>           a copy of the robot description the run started from
 
 Everything is written into a temporary directory next to ``out`` and moved into place at the
@@ -331,6 +335,7 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     if run.covariance is not None:  # predict's sx, sy, sz (absent: a fit without one; predict says so)
         torch.save(run.covariance.state(), tmp / "covariance.pt")
     _write_geometric(rtrust, tmp)
+    _write_nominal(rtrust, tmp)
     alone = _write_standalone(run, tmp)
     meta = {
         "format": "torchcal-run-1",
@@ -344,7 +349,9 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         "tool_axis": _tool_axis_config(run),
         "load": training_load(run.data),  # the load conditions the run was fitted in (torchcal.use.conditions)
         "trust": None if rtrust.full is None else rtrust.full.to_dict(),
+        **({"trust_few_rows": rtrust.few.to_dict()} if rtrust.few is not None else {}),
         **({"geometric": {"trust": rtrust.geometric.to_dict()}} if rtrust.geometric is not None else {}),
+        **_beyond_config(rtrust),
         **({"standalone": alone} if alone is not None else {}),
         **({"stations": list(run.robot.stations)} if run.robot.stations else {}),
         **({"probes": list(run.robot.probes)} if run.robot.probes else {}),
@@ -389,7 +396,10 @@ def _trust_report(rt, n_holdout: int) -> dict:
         "definition": "sx, sy, sz: the standard deviation of a new measurement minus the prediction (docs/trust.md)",
         "model": None if rt.full is None else rt.full.to_dict(),
     }
-    if rt.full is None and n_holdout < MIN_ROWS:
+    if rt.full is None and rt.few is not None:
+        out["few_rows"] = rt.few.to_dict()
+        out["note"] = rt.few.note()
+    elif rt.full is None and n_holdout < MIN_ROWS:
         out["note"] = (
             f"not measured: {n_holdout} held-out rows, fewer than {MIN_ROWS}; predict's sx, sy, sz hold the "
             "parameters' and the learned model's uncertainty only and understate the error (judge the run on a "
@@ -397,6 +407,11 @@ def _trust_report(rt, n_holdout: int) -> dict:
         )
     if rt.geometric is not None:
         out["geometric"] = rt.geometric.to_dict()
+    for name in ("nominal", "physical"):
+        if getattr(rt, name) is not None:
+            out[name] = getattr(rt, name).to_dict()
+    if rt.choice is not None:
+        out["beyond"] = rt.choice.to_dict()
     return out
 
 
@@ -408,6 +423,33 @@ def _write_geometric(rt, tmp: Path) -> None:
     torch.save({k: v.cpu() for k, v in rt.geometric_model.state_dict().items()}, tmp / "geometric.pt")
     if rt.geometric_covariance is not None:
         torch.save(rt.geometric_covariance.state(), tmp / "covariance_geometric.pt")
+
+
+def _write_nominal(rt, tmp: Path) -> None:
+    """``nominal.pt`` (and ``covariance_nominal.pt``): the nominal geometry with the fitted instrument pose and lever
+    arm, a candidate for the rows beyond the region (:mod:`torchcal.pipeline.beyond`)."""
+    if rt.nominal_model is None or rt.nominal is None:
+        return
+    torch.save({k: v.cpu() for k, v in rt.nominal_model.state_dict().items()}, tmp / "nominal.pt")
+    if rt.nominal_covariance is not None:
+        torch.save(rt.nominal_covariance.state(), tmp / "covariance_nominal.pt")
+    if rt.beyond_covariance is not None and rt.beyond is not None:
+        torch.save(rt.beyond_covariance.state(), tmp / "covariance_beyond.pt")
+
+
+def _beyond_config(rt) -> dict:
+    """model.json's ``nominal`` and ``physical`` (each candidate's measured sigma) and ``beyond`` (which candidate
+    predicts the rows beyond the region, and on what evidence)."""
+    out = {}
+    if rt.nominal_model is not None and rt.nominal is not None:
+        out["nominal"] = {"trust": rt.nominal.to_dict()}
+    if rt.physical is not None:
+        out["physical"] = {"trust": rt.physical.to_dict()}
+    if rt.choice is not None:
+        out["beyond"] = rt.choice.to_dict()
+        if rt.beyond is not None:
+            out["beyond"]["trust"] = rt.beyond.to_dict()
+    return out
 
 
 def _write_standalone(run: CalibrationRun, tmp: Path) -> dict | None:

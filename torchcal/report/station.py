@@ -60,7 +60,15 @@ def _markdown(station: Station, run_dir: Path, points_file: str) -> str:
 
 
 #: run files of the old placement that a re-stationed run leaves out
-_OLD_PLACEMENT = ("geometric.pt", "covariance_geometric.pt", "standalone.pt", "holdout.pt")
+_OLD_PLACEMENT = (
+    "geometric.pt",
+    "covariance_geometric.pt",
+    "standalone.pt",
+    "holdout.pt",
+    "nominal.pt",
+    "covariance_nominal.pt",
+    "covariance_beyond.pt",
+)
 
 
 def write_station(

@@ -213,7 +213,9 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     ``theta`` is fixed), ``beta`` [rad] (a tilt about y after alpha, as a calibrated table written back by ``torchcal
     export --format dh`` holds it; default 0), ``lower``, ``upper`` [rad, m for a prismatic joint] (default +-2 pi
     rad, +-1 m), ``mass``
-    [kg] and ``com`` [m, in DH frame i] (all joints or none), ``name``.
+    [kg] and ``com`` [m, in DH frame i] (all joints or none), ``name``. Optional at the top: ``tolerances:
+    {length_mm, angle_deg}``, the robot's manufacturing tolerances (the priors of its kinematic calibration; the
+    robot's ``tolerances`` attribute, (m, rad), None without them).
     """
     path = Path(path)
     doc = _load_yaml_doc(path)
@@ -256,7 +258,7 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
     readings, reading_limits, reading_names = (None, None, None)
     if doc.get("readings") is not None:
         readings, reading_limits, reading_names = _readings_block(path, doc["readings"], dof, dtype)
-    return RobotModel(
+    robot = RobotModel(
         name=_safe_name(path, "robot name", doc.get("name", path.stem)),
         readings=readings,
         reading_limits=reading_limits,
@@ -273,7 +275,9 @@ def load_dh_yaml(path: str | os.PathLike, *, dtype=torch.float64, device="cpu") 
         tip_link="flange",
         dtype=dtype,
         device=device,
-    ).to(device)
+    )
+    robot.tolerances = _tolerances(path, doc.get("tolerances"))
+    return robot.to(device)
 
 
 def _load_yaml_doc(path: Path):
@@ -311,6 +315,28 @@ def _load_yaml_doc(path: Path):
 
 
 _DH_KEYS = {"a", "alpha", "d", "theta", "beta", "lower", "upper", "mass", "com", "name", "type"}
+#: the largest manufacturing tolerance a robot file may declare: beyond it the prior no longer holds a geometry the
+#: rows cannot tell near its nominal value, and 'tolerance' is likely in the wrong unit
+MAX_TOLERANCE_MM, MAX_TOLERANCE_DEG = 10.0, 1.0
+
+
+def _tolerances(path: Path, block) -> tuple[float, float] | None:
+    """A DH table's ``tolerances: {length_mm, angle_deg}``: the robot's manufacturing tolerances, the priors of its
+    kinematic calibration (:meth:`torchcal.pipeline.options.FitSettings.geometric`), as ``(m, rad)``; None where the
+    file gives none."""
+    if block is None:
+        return None
+    where = "tolerances"
+    if not isinstance(block, dict) or set(block) != {"length_mm", "angle_deg"}:
+        raise RobotSpecError(
+            f"{path}: '{where}' must be a mapping with length_mm and angle_deg (the manufacturing tolerances of the "
+            f"geometry, the priors of its kinematic calibration), got {block!r}"
+        )
+    length, angle = (_number(path, where, k, block[k]) for k in ("length_mm", "angle_deg"))
+    for key, value, cap in (("length_mm", length, MAX_TOLERANCE_MM), ("angle_deg", angle, MAX_TOLERANCE_DEG)):
+        if not 0 < value <= cap:
+            raise RobotSpecError(f"{path}: {where}: '{key}' = {value!r} must be above 0 and at most {cap}")
+    return length * 1e-3, math.radians(angle)
 
 
 @dataclass

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import torch
 
+from torchcal._bounds import MAX_PAYLOAD_KG, MAX_SIGMA_TORQUE
 from torchcal.errors import OptionError
 from torchcal.robot.model import RobotModel
 
@@ -24,12 +25,15 @@ def check_load_config(cfg) -> None:
     for name, value in [("payload", cfg.payload), ("test_payload", cfg.test_payload)] + [
         ("payload_levels", v) for v in levels
     ]:
-        if value is not None and not (float(value) >= 0.0 and float(value) < 3000.0):
-            raise OptionError(f"{name} must be a mass in kg, 0 <= m < 3000, got {value!r}")
+        if value is not None and not (0.0 <= float(value) <= MAX_PAYLOAD_KG):
+            raise OptionError(f"{name} must be a mass in kg, 0 <= m <= {MAX_PAYLOAD_KG:g}, got {value!r}")
     if cfg.payload_levels is not None and not levels:
         raise OptionError("payload_levels needs at least one level (kg)")
-    if not 0.0 <= float(cfg.sigma_torque) < 1e3:
-        raise OptionError(f"sigma_torque must be a standard deviation in N m, 0 <= s < 1000, got {cfg.sigma_torque!r}")
+    if not 0.0 <= float(cfg.sigma_torque) <= MAX_SIGMA_TORQUE:
+        raise OptionError(
+            f"sigma_torque must be a standard deviation in N m, 0 <= s <= {MAX_SIGMA_TORQUE:g}, "
+            f"got {cfg.sigma_torque!r}"
+        )
     if has_load(cfg) and (cfg.stations > 1 or cfg.probes > 1):
         raise OptionError("simulated loads (payload, torques) take one station and one probe")
 

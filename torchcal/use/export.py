@@ -14,12 +14,13 @@ run.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from torchcal._inputs import load_json
+from torchcal._inputs import check_regular, load_json, read_text_bounded
 from torchcal.effects.model import MeasurementModel
 from torchcal.errors import OptionError
 from torchcal.robot import load_robot
@@ -36,6 +37,10 @@ FORMATS = ("ur-ros2", "dh", "urdf")
 GEOMETRIES = ("standalone", "cofitted")
 #: the formats ``check-export`` reads back
 CHECKED_FORMATS = {".yaml": "dh", ".yml": "dh", ".urdf": "urdf"}
+#: the largest distance [mm] at which a file still reproduces a run's chain: the exports write every number in full
+#: (repr), so theirs is ~1e-13 mm; 1 um leaves room for a file rounded to micrometres by other software
+MATCH_TOLERANCE_MM = 1e-3
+_UR_ROS2 = re.compile(r"^kinematics\s*:", re.MULTILINE)
 
 
 @dataclass(frozen=True)
@@ -185,6 +190,11 @@ class ExportCheck:
     tip: str
     which: str
 
+    @property
+    def matches(self) -> bool:
+        """Whether the file reproduces the run's chain (within :data:`MATCH_TOLERANCE_MM`)."""
+        return self.fk_gap_mm <= MATCH_TOLERANCE_MM
+
 
 def _positions(model: MeasurementModel, T: Tensor, rows: dict[str, Tensor]) -> Tensor:
     """Probe positions ``(N, 3)`` [m] in the tracker frame of flange poses ``T (N, 4, 4)``, placed by ``model``'s
@@ -201,13 +211,29 @@ def check_export(run: str | Path, file: str | Path, geometry: str | None = None)
     chain ``geometry`` names (one of :data:`GEOMETRIES`), by default the one of them closest to the file.
 
     Raises:
-        OptionError: the file is not a DH YAML or URDF file, the run keeps no held-out rows, or the file's chain has
-            another number of joints.
+        OptionError: the file is no regular file, not a DH YAML or URDF file (by its exact ending, as ``--robot``
+            reads it; a UR ROS 2 file is named as such), the run keeps no held-out rows, or the file's chain has
+            another number of joints. A file whose chain differs is no error: see :attr:`ExportCheck.matches`.
     """
     file, run = Path(file), Path(run)
-    if file.suffix.lower() not in CHECKED_FORMATS:
-        raise OptionError(f"{file}: check-export reads DH files (.yaml, .yml) and URDF files (.urdf)")
-    tip = calibrated_flange(file) if file.suffix.lower() == ".urdf" else None
+
+    def error(m: str) -> OptionError:
+        return OptionError(f"{file}: {m}")
+
+    check_regular(file, "robot description", error)
+    if file.suffix not in CHECKED_FORMATS:
+        # --robot tells a description by its exact ending: a file that check-export read as '.URDF' would not load
+        rename = f"; rename it to end in {file.suffix.lower()}" if file.suffix.lower() in CHECKED_FORMATS else ""
+        raise OptionError(
+            f"{file}: check-export reads DH files (.yaml, .yml) and URDF files (.urdf), by their ending as --robot "
+            f"loads them{rename}"
+        )
+    if CHECKED_FORMATS[file.suffix] == "dh" and _UR_ROS2.search(read_text_bounded(file, "robot description", error)):
+        raise OptionError(
+            f"{file}: a UR ROS 2 kinematics file (export --format ur-ros2, a top-level 'kinematics' key), which "
+            "--robot does not load: check the run's DH or URDF export instead (export --format dh or urdf)"
+        )
+    tip = calibrated_flange(file) if file.suffix == ".urdf" else None
     loaded = load_robot(file, tip_link=tip) if tip else load_robot(file)
     checks = [_check_one(run, loaded, g) for g in ((geometry,) if geometry is not None else GEOMETRIES)]
     return min(checks, key=lambda c: c.fk_gap_mm)
@@ -237,6 +263,7 @@ __all__ = [
     "CHECKED_FORMATS",
     "FORMATS",
     "GEOMETRIES",
+    "MATCH_TOLERANCE_MM",
     "ExportCheck",
     "Exported",
     "check_export",

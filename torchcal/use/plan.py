@@ -421,6 +421,29 @@ def sample_candidates(
     return q
 
 
+def candidate_region(model: MeasurementModel) -> tuple[Tensor | None, list[int]]:
+    """The box a plan with a run samples its candidates in: the run's calibrated region, with every joint the run's
+    training rows barely moved (narrow: :func:`~torchcal.robot.ranges.narrow_joints`) opened to its limits; and
+    those joints (1-based). Inside the region a plan adds what a new campaign there would tell; a narrow joint's
+    geometry the run held near nominal by its prior, and only poses that move that joint tell it (issue 51).
+
+    Returns:
+        ``(region (2, dof) or None where the run records none, the narrow joints)``."""
+    from torchcal.robot.ranges import narrow_joints
+
+    region = model.region
+    if region is None:
+        return None, []
+    robot = model.robot
+    narrow = [n.joint for n in narrow_joints(region, robot.limits, robot.joint_types)]
+    if not narrow:
+        return region, []
+    out = region.clone()
+    for j in narrow:
+        out[0, j - 1], out[1, j - 1] = robot.limits[j - 1, 0], robot.limits[j - 1, 1]
+    return out, narrow
+
+
 def _sample_box(robot, region: Tensor | None) -> tuple[Tensor, Tensor]:
     """The joint box to draw from: the limits clipped to one turn, and to ``region`` where given (where a region
     lies outside the limits, the limits)."""

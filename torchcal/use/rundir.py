@@ -18,12 +18,13 @@ from typing import TYPE_CHECKING
 import torch
 
 from torchcal._inputs import load_json, read_bounded
+from torchcal._method import CANDIDATES
 from torchcal._threads import torch_threads
 from torchcal.data import Measurements
 from torchcal.effects import Context, MeasurementModel, effect_from_config
 from torchcal.errors import MeasurementFileError, OptionError, TorchcalError
 from torchcal.estimate.covariance import ParameterCovariance
-from torchcal.estimate.trust import MIN_ROWS, Trust
+from torchcal.estimate.trust import MIN_ROWS, FewRows, Trust
 from torchcal.robot import load_robot
 
 if TYPE_CHECKING:  # the pipeline is imported by load_prior alone: predict, compensate and plan do not load it
@@ -333,6 +334,27 @@ def load_trust(run_dir: str | os.PathLike, meta: dict, key: str = "trust") -> Tr
         raise _run_error(Path(run_dir), f"model.json: {key}: {e}") from None
 
 
+def load_few_rows(run_dir: str | os.PathLike, meta: dict) -> FewRows | None:
+    """model.json's bounds on the sigma's scale from too few held-out rows (:class:`~torchcal.estimate.trust.FewRows`);
+    None where the run measured a level, held out no row or was written before the bounds existed."""
+    d = meta.get("trust_few_rows")
+    if d is None:
+        return None
+    try:
+        return FewRows.from_dict(d)
+    except ValueError as e:
+        raise _run_error(Path(run_dir), f"model.json: trust_few_rows: {e}") from None
+
+
+def _unmeasured_sigma(run_dir: Path, model: MeasurementModel, meta: dict, ctx: Context) -> tuple[Tensor | None, str]:
+    """The sigma and its note of a run without a measured level: bounded by its few held-out rows where it kept them
+    (:func:`load_few_rows`), else :func:`_old_run_sigma`."""
+    few = load_few_rows(run_dir, meta)
+    if few is None:
+        return _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
+    return few.std(model, ctx, load_covariance(run_dir, model)), f"{run_dir}: the run's sigma {few.note()}"
+
+
 def load_geometric(
     run_dir: str | os.PathLike, model: MeasurementModel, meta: dict
 ) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
@@ -398,12 +420,78 @@ def load_holdout(run_dir: str | os.PathLike, dof: int) -> dict[str, Tensor] | No
     return rows
 
 
-#: the column predict and compensate write to say which model gave each row (RowTrust.which)
-MODEL_NAMES = ("full", "geometric")
-#: beyond the region the kinematic calibration predicts a row only where the run's model's sigma is more than this
-#: many times its own: within it the richer model's error stays the smaller though its sigma is not (it knows more of
-#: what it is unsure of), far above it the richer model is guessing
+#: the column predict and compensate write to say which model gave each row (RowTrust.which): the run's model, its
+#: kinematic calibration, its geometry and physical effects alone, or the nominal geometry with the fitted instrument
+#: pose and lever arm (:mod:`torchcal.pipeline.beyond`)
+MODEL_NAMES = CANDIDATES
+#: beyond the region, in a run that could not choose on held-out rows (:mod:`torchcal.pipeline.beyond`), the kinematic
+#: calibration predicts a row only where the run's model's sigma is more than this many times its own: within it the
+#: richer model's error stays the smaller though its sigma is not (it knows more of what it is unsure of), far above
+#: it the richer model is guessing
 SWITCH_RATIO = 2.0
+
+
+def load_nominal(
+    run_dir: str | os.PathLike, model: MeasurementModel, meta: dict
+) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
+    """The nominal geometry with the fitted instrument pose and lever arm a run keeps (``nominal.pt``), with its
+    covariance and :class:`~torchcal.estimate.trust.Trust`; None where the run keeps none (written before it, or
+    re-stationed: its instrument pose is the old placement's)."""
+    import copy
+
+    run_dir = Path(run_dir)
+    d = meta.get("nominal")
+    if not isinstance(d, dict) or d.get("trust") is None or not (run_dir / "nominal.pt").exists():
+        return None
+    try:
+        tr = Trust.from_dict(d["trust"])
+    except ValueError as e:
+        raise _run_error(run_dir, f"model.json: nominal: trust: {e}") from None
+    nom = MeasurementModel(copy.deepcopy(model.robot))
+    try:
+        nom.load_state_dict(_load_torch_file(run_dir, "nominal.pt"))
+    except (RuntimeError, TypeError, AttributeError) as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise _run_error(run_dir, f"nominal.pt does not match model.json ({first})") from None
+    _check_state(run_dir, nom)
+    nom.set_region(model.region, fade=False)
+    cov = None
+    if (run_dir / "covariance_nominal.pt").exists():
+        try:
+            cov = ParameterCovariance.from_state(_load_torch_file(run_dir, "covariance_nominal.pt"), nom)
+        except ValueError as e:
+            raise _run_error(run_dir, f"covariance_nominal.pt does not fit nominal.pt: it {e}") from None
+    return nom, cov, tr
+
+
+def load_physical(
+    run_dir: str | os.PathLike, model: MeasurementModel, meta: dict
+) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
+    """The run's model without the parts that fade beyond the region, with the part of the run's covariance that is
+    about it and its :class:`~torchcal.estimate.trust.Trust`; None where the run measured none."""
+    from torchcal.estimate.trust import without_fading
+
+    d = meta.get("physical")
+    if not isinstance(d, dict) or d.get("trust") is None:
+        return None
+    try:
+        tr = Trust.from_dict(d["trust"])
+    except ValueError as e:
+        raise _run_error(Path(run_dir), f"model.json: physical: trust: {e}") from None
+    phys = without_fading(model)
+    try:
+        cov = load_covariance(run_dir, phys)
+    except OptionError:  # the covariance is also about the learned parts: the calibration measured it without one
+        cov = None
+    return phys, cov, tr
+
+
+def beyond_choice(meta: dict) -> str | None:
+    """The candidate a run chose for its rows beyond the region (model.json's ``beyond``), None where it chose none
+    (too few held-out rows beyond, or a run written before the choice)."""
+    d = meta.get("beyond")
+    name = d.get("model") if isinstance(d, dict) else None
+    return name if name in MODEL_NAMES else None
 
 
 @dataclass
@@ -414,10 +502,12 @@ class RowTrust:
         sigma: the predictive standard deviation ``(N, 3)`` [m] of the model each row uses; None where the run has
             neither a covariance nor a measured level.
         extrapolation: ``(N,)`` how far each pose lies outside the calibrated region [rad or m].
-        which: ``(N,)`` 0 where the run's model predicts the row, 1 where its kinematic calibration does (beyond the
-            region, where the model's sigma is more than :data:`SWITCH_RATIO` times that one's): an index into
-            :data:`MODEL_NAMES`.
-        geometric: the kinematic calibration (None where the run keeps none).
+        which: ``(N,)`` which model predicts each row, an index into :data:`MODEL_NAMES`: 0 (the run's model) inside
+            the region; beyond it the candidate the run chose on its held-out rows (:mod:`torchcal.pipeline.beyond`),
+            or in a run that chose none its kinematic calibration (1) where the model's sigma is more than
+            :data:`SWITCH_RATIO` times that one's.
+        geometric: the model that predicts the rows whose ``which`` is not 0 (the kinematic calibration, or the
+            candidate the run chose; None where there is none).
         note: what the sigma lacks, for the user (a run written before the measured level), else None.
     """
 
@@ -426,7 +516,7 @@ class RowTrust:
     which: Tensor
     geometric: MeasurementModel | None = None
     note: str | None = None
-    geometric_sigma: Callable[[Context], Tensor] | None = None  # the kinematic calibration's sigma at other rows
+    geometric_sigma: Callable[[Context], Tensor] | None = None  # that model's sigma at other rows
 
 
 def _old_run_sigma(
@@ -462,28 +552,80 @@ def _old_run_sigma(
 @torch_threads(1)  # per-row sigmas from many small products: a second thread only waits
 def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, ctx: Context) -> RowTrust:
     """How far to trust the predictions of a run's loaded ``model`` at the rows ``ctx`` (CONTRACT §3): the standard
-    deviation of a new measurement minus the prediction (:class:`~torchcal.estimate.trust.Trust`), and beyond the
-    calibrated region the kinematic calibration the run keeps beside its model where the model's sigma is far above
-    that one's (:data:`SWITCH_RATIO`)."""
+    deviation of a new measurement minus the prediction (:class:`~torchcal.estimate.trust.Trust`) of the model that
+    predicts each row. Beyond the calibrated region that is the candidate the run chose on its held-out rows beyond
+    it (:mod:`torchcal.pipeline.beyond`), with its own sigma; in a run that chose none, the kinematic calibration the
+    run keeps beside its model where the model's sigma is far above that one's (:data:`SWITCH_RATIO`)."""
     run_dir = Path(run_dir)
     ext = torch.maximum(model.extrapolation(ctx.q).cpu(), tool_axis_beyond(model, ctx.q).to(ctx.q.dtype))
     which = torch.zeros(len(ext), dtype=torch.long, device=ext.device)
     tr = load_trust(run_dir, meta)
     if tr is None:
-        sigma, note = _old_run_sigma(run_dir, model, ctx, measured="trust" in meta)
+        sigma, note = _unmeasured_sigma(run_dir, model, meta, ctx)
         return RowTrust(None if sigma is None else sigma.cpu(), ext, which, note=note)
     sigma = tr.std(model, ctx, load_covariance(run_dir, model)).cpu()
-    alt = load_geometric(run_dir, model, meta)
+    chosen = beyond_choice(meta)
+    loader = {"geometric": load_geometric, "physical": load_physical, "nominal": load_nominal}.get(chosen or "")
+    alt = loader(run_dir, model, meta) if loader is not None else None
+    if chosen == "full":
+        return RowTrust(_sigma_beyond(run_dir, model, meta, ctx, ext, sigma), ext, which)
+    if chosen is not None and alt is None:  # a candidate not kept here (a re-stationed run: the old placement's)
+        return RowTrust(sigma, ext, which)
+    if alt is None:
+        alt = load_geometric(run_dir, model, meta)
+    elif chosen == "physical":  # its sigma beyond: its covariance bounded by the tolerance priors
+        alt = _bounded(run_dir, meta, *alt)
     out = ext > 0
     if alt is None or not bool(out.any()):
         return RowTrust(sigma, ext, which, None if alt is None else alt[0])
-    geo, cov, geo_trust = alt
+    m, cov, alt_trust = alt
     rows = torch.nonzero(out).flatten()
-    s_geo = geo_trust.std(geo, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
-    better = SWITCH_RATIO * s_geo.norm(dim=1) < sigma[rows].norm(dim=1)
-    sigma[rows[better]] = s_geo[better]
-    which[rows[better]] = 1
-    return RowTrust(sigma, ext, which, geo, geometric_sigma=lambda c: geo_trust.std(geo, c, cov).cpu())
+    s_alt = alt_trust.std(m, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
+    # a chosen candidate predicts every row beyond; else the kinematic calibration where the model's sigma is far above
+    take = (
+        torch.ones(len(rows), dtype=torch.bool)
+        if chosen is not None
+        else SWITCH_RATIO * s_alt.norm(dim=1) < (sigma[rows].norm(dim=1))
+    )
+    sigma[rows[take]] = s_alt[take]
+    which[rows[take]] = MODEL_NAMES.index(chosen or "geometric")
+    return RowTrust(sigma, ext, which, m, geometric_sigma=lambda c: alt_trust.std(m, c, cov).cpu())
+
+
+def _beyond_trust(
+    run_dir: Path, meta: dict, model: MeasurementModel
+) -> tuple[ParameterCovariance | None, Trust] | None:
+    """The covariance bounded by the tolerance priors (``covariance_beyond.pt``) and the trust measured with it of
+    the run's chosen model (full or physical) beyond the region; None where the run keeps none (a re-stationed run)."""
+    d = meta.get("beyond")
+    if not isinstance(d, dict) or d.get("trust") is None or not (run_dir / "covariance_beyond.pt").exists():
+        return None
+    try:
+        tr = Trust.from_dict(d["trust"])
+    except ValueError as e:
+        raise _run_error(run_dir, f"model.json: beyond: trust: {e}") from None
+    try:
+        cov = ParameterCovariance.from_state(_load_torch_file(run_dir, "covariance_beyond.pt"), model)
+    except ValueError as e:
+        raise _run_error(run_dir, f"covariance_beyond.pt does not fit the model: it {e}") from None
+    return cov, tr
+
+
+def _bounded(run_dir: Path, meta: dict, model: MeasurementModel, cov, tr):
+    """``(model, cov, trust)`` with the covariance and trust of the rows beyond where the run keeps them."""
+    got = _beyond_trust(run_dir, meta, model)
+    return (model, cov, tr) if got is None else (model, *got)
+
+
+def _sigma_beyond(run_dir: Path, model: MeasurementModel, meta: dict, ctx: Context, ext: Tensor, sigma: Tensor):
+    """``sigma`` with the rows beyond the region given the run's model's sigma beyond (:func:`_beyond_trust`)."""
+    got = _beyond_trust(run_dir, meta, model)
+    rows = torch.nonzero(ext > 0).flatten()
+    if got is None or not len(rows):
+        return sigma
+    cov, tr = got
+    sigma[rows] = tr.std(model, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
+    return sigma
 
 
 def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> tuple[Tensor | None, Tensor]:
@@ -491,9 +633,10 @@ def trust(run_dir: str | os.PathLike, model: MeasurementModel, ctx: Context) -> 
     choice of model; None where the run has none) and the extrapolation ``(N,)``."""
     run_dir = Path(run_dir)
     meta = load_json(run_dir / "model.json", "model.json", lambda m: _run_error(run_dir, f"model.json {m}"))
-    tr = load_trust(run_dir, meta if isinstance(meta, dict) else {})
+    meta = meta if isinstance(meta, dict) else {}
+    tr = load_trust(run_dir, meta)
     if tr is None:
-        sigma = _old_run_sigma(run_dir, model, ctx)[0]
+        sigma = _unmeasured_sigma(run_dir, model, meta, ctx)[0]
     else:
         sigma = tr.std(model, ctx, load_covariance(run_dir, model))
     ext = torch.maximum(model.extrapolation(ctx.q).cpu(), tool_axis_beyond(model, ctx.q).to(ctx.q.dtype))
