@@ -78,8 +78,11 @@ def run_case(
     samples: int = 3000,
     sigma_tracker: float = 15e-6,
     options: Options | None = None,
+    load: dict | None = None,
 ) -> dict:
-    """Simulate, calibrate with ``auto``, and compare (module docstring). Returns plain numbers [mm, s]."""
+    """Simulate, calibrate with ``auto``, and compare (module docstring). Returns plain numbers [mm, s]. ``load``:
+    a static campaign's load settings (:class:`~torchcal.sim.SimConfig`'s ``payload_levels``, ``torques``), so that
+    the closed loop offers its load candidates."""
     specs = [EffectSpec.parse(e) for e in effects]
     if trajectory:
         cfg = SimConfig(
@@ -93,7 +96,13 @@ def run_case(
         )
     else:
         cfg = SimConfig(
-            robot=robot, poses=poses, test_poses=test_poses, seed=seed, effects=specs, sigma_tracker=sigma_tracker
+            robot=robot,
+            poses=poses,
+            test_poses=test_poses,
+            seed=seed,
+            effects=specs,
+            sigma_tracker=sigma_tracker,
+            **(load or {}),
         )
     c = simulate(cfg)
     opts = options or Options(seed=seed)

@@ -3,7 +3,7 @@
 (experiments.false_positives).
 
     python scripts/false_positives.py [--seeds 100] [--poses 800] [--trajectories 10] [--workers 2] [--address ADDR]
-        [--json]
+        [--payload-levels 0,5,10] [--torques] [--json]
 """
 
 import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
@@ -19,6 +19,21 @@ ap.add_argument("--poses", type=int, default=800, help="poses per static campaig
 ap.add_argument("--trajectories", type=int, default=10, help="trajectory campaigns (default 10)")
 ap.add_argument("--samples", type=int, default=3000, help="samples per trajectory (default 3000)")
 ap.add_argument("--first-seed", type=int, default=1000)
+ap.add_argument(
+    "--payload-levels",
+    default=None,
+    help="the static campaigns' rows cycle over these payloads [kg] (load columns: the load candidates are offered)",
+)
+ap.add_argument("--torques", action="store_true", help="the static campaigns' rows carry measured joint torques")
+
+
+def _load(a) -> dict | None:
+    levels = None if a.payload_levels is None else tuple(float(v) for v in a.payload_levels.split(","))
+    if levels is None and not a.torques:
+        return None
+    return {"payload_levels": levels, "torques": a.torques}
+
+
 common.add_sweep_arguments(ap, "campaigns")
 
 
@@ -26,7 +41,9 @@ def main(argv=None) -> dict:
     _console.set_quiet(True)
     args, out = common.run(
         ap,
-        lambda a: run(a.robot, a.seeds, a.poses, a.trajectories, a.samples, a.first_seed, a.workers, a.address),
+        lambda a: run(
+            a.robot, a.seeds, a.poses, a.trajectories, a.samples, a.first_seed, a.workers, a.address, _load(a)
+        ),
         argv,
     )
     common.emit(out, args, plain={k: v for k, v in out.items() if k != "rows"})

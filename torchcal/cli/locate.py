@@ -61,7 +61,7 @@ def handle(args) -> int:
         **_reading(args, robot),
     )
     check_header_robot(data, args.robot, robot, f"--robot {args.robot}")
-    lever = None if args.tool is None else torch.tensor(args.tool, dtype=torch.float64)
+    lever = None if args.tool is None else torch.tensor(args.tool, dtype=torch.float64, device="cpu")
     found = locate(robot, data.q, data.p, lever=lever, fit_lever=args.fit_tool)
     xyz = [float(v) * 1e3 for v in found.tracker_in_base()]
     arm = ", ".join(f"{float(v) * 1e3:.1f}" for v in found.lever)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import sys
@@ -61,7 +62,21 @@ def add_parser(sub) -> None:
     pl.add_argument(
         "--probe", default=None, help="a --run with several probes: plan for this one's lever arm (default the first)"
     )
-    pl.add_argument("--candidates", default=None, help="file with q1..qN per row (other columns ignored)")
+    pl.add_argument(
+        "--candidates",
+        default=None,
+        help="file with q1..qN per row (other columns ignored, but for its load columns: payload, payload_x..z, "
+        "tau1..tauN are kept in the planned rows, each pose with its load)",
+    )
+    pl.add_argument(
+        "--payload-levels",
+        default=None,
+        type=_levels,
+        help="KG,KG,...: plan a campaign over these loads: the planned poses take them in turn, in the order they "
+        "were picked (every load an equal share of the rows, over the whole planned region), written as a payload "
+        "column; the plan's JSON names the loads and the rows each. Without link masses or measured torques, give "
+        "two loads or more: one load cannot tell a joint's stiffness from its links' weight",
+    )
     pl.add_argument(
         "--work",
         default=None,
@@ -184,6 +199,42 @@ def _plan_run(args):
     return model, meta["robot_file"], method, so.sigma_tracker, so.sigma_joint, s0_sq, tracker, lever
 
 
+def _levels(text: str) -> tuple[float, ...]:
+    from torchcal.use.plan import plan_loads
+
+    try:
+        levels = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected payloads in kg, comma-separated (0,5,10), got {text!r}") from None
+    try:
+        plan_loads(1, levels)
+    except OptionError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+    return levels
+
+
+def _write_plan(args, out_file: Path, side: dict, plan, meta_out: dict, loads: dict) -> None:
+    """The planned poses (with the candidates' load columns at the chosen poses, or ``--payload-levels`` in turn) and
+    the plan's JSON and Markdown side files."""
+    from torchcal.data import Measurements, write_measurements
+    from torchcal.use.plan import loads_summary, plan_loads
+
+    index = plan.index.detach().cpu()
+    extra = {k: v.detach().cpu()[index] for k, v in loads.items()}
+    if args.payload_levels is not None:  # the levels replace a payload the candidates had (and its centre of mass)
+        extra = {k: v for k, v in extra.items() if not k.startswith("payload")}
+        extra["payload"] = plan_loads(len(index), args.payload_levels)
+    out_file.parent.mkdir(parents=True, exist_ok=True)
+    poses = Measurements(q=plan.q.detach().cpu(), extra=extra)
+    write_measurements(out_file, poses, meta=meta_out, written_by="torchcal plan")
+    summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": meta_out["planned_from"]}
+    summary |= plan.to_dict()
+    if "payload" in extra:
+        summary["loads"] = loads_summary(extra["payload"])
+    side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+
+
 def _given_scene(args, robot, tracker, lever):
     """The tracker position and lever arm: ``--tracker`` and ``--tool`` where given [m], else ``tracker``, ``lever``."""
     import torch
@@ -211,10 +262,11 @@ def _sampled(args, model, tracker, lever):
 
 @_one_torch_thread
 def handle(args) -> int:
-    from torchcal.data import Measurements, read_measurements, write_measurements
+    from torchcal.data import read_measurements
     from torchcal.data.header import check_header_robot
+    from torchcal.data.load import is_load_column
     from torchcal.effects import MeasurementModel
-    from torchcal.use.plan import PlanOptions, distinct_poses, plan_poses
+    from torchcal.use.plan import PlanOptions, distinct_index, plan_poses
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
@@ -243,10 +295,12 @@ def handle(args) -> int:
         wd = read_measurements(args.work, require_positions=False, **_reading(args, robot))
         check_header_robot(wd, robot_name, robot, f"--robot {robot_name}")
         work = wd.q
+    loads = {}
     if args.candidates is not None:
         data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
         check_header_robot(data, robot_name, robot, f"--robot {robot_name}")
-        q = distinct_poses(data.q)  # a file of several probes has a row per probe and pose: a plan chooses poses
+        rows = distinct_index(data.q)  # a file of several probes has a row per probe and pose: a plan chooses poses
+        q, loads = data.q[rows.to(data.q.device)], {k: v[rows] for k, v in data.extra.items() if is_load_column(k)}
         if len(q) < data.n:
             _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
         source = args.candidates
@@ -267,12 +321,7 @@ def handle(args) -> int:
         seed=args.seed,
     )
     plan = plan_poses(model, q, opts, work)
-    out_file.parent.mkdir(parents=True, exist_ok=True)
-    meta_out = {"robot": Path(str(robot_name)).name, "planned_from": source}
-    write_measurements(out_file, Measurements(q=plan.q.detach().cpu()), meta=meta_out, written_by="torchcal plan")
-    summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": source, **plan.to_dict()}
-    side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-    side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+    _write_plan(args, out_file, side, plan, {"robot": Path(str(robot_name)).name, "planned_from": source}, loads)
     if not plan.identifies:  # written for inspection, but no accuracy is promised
         print(_console.one_line(f"torchcal plan: warning: {plan.degenerate_reason()}"), file=sys.stderr)
         _console.info(f"planned {args.n} of {len(q)} poses, no accuracy predicted; wrote {args.out}")

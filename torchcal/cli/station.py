@@ -21,7 +21,10 @@ def add_parser(sub) -> None:
         "block: the new pose, its standard deviations and covariance, the points' residuals and leave-one-out "
         "errors, a chi-square test against the run's predicted error, and the placement's predicted effect on "
         "accuracy over poses like the points (their joint ranges, within the calibrated region). The points' station "
-        "column may name the new placement (one name, new or one of the run's): the re-stationed run keeps that name.",
+        "column may name the new placement (one name, new or one of the run's): the re-stationed run keeps that name. "
+        "The points' load columns (payload, tau1..tauN) are read as calibrate reads them: the run's compliance carries "
+        "the load, never the placement or the lever arm; a load beyond the run's training widens the predicted error "
+        "by what the points bear out.",
     )
     st.add_argument("run", help="run directory written by calibrate (or by an earlier station)")
     st.add_argument("points", help="measurement file with q1..qN and x,y,z (optional sx,sy,sz) of three or more points")
@@ -30,9 +33,9 @@ def add_parser(sub) -> None:
         "--tool",
         action="store_true",
         help="fit the lever arm too (another tool or probe than the run's; without it, a changed tool is tested and "
-        "fitted where the points fit worse than the run predicts and as predicted with a new lever arm; needs four "
-        "or more points whose tool "
-        "orientations differ; refused on a run of several probes, whose lever arms are kept)",
+        "fitted where the points fit worse than the run predicts and a new lever arm explains most of that; needs "
+        "four or more points whose tool orientations differ; refused on a run of several probes, whose lever arms "
+        "are kept)",
     )
     st.add_argument(
         "--probe",

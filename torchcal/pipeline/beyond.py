@@ -134,7 +134,7 @@ def beyond_rows(run: CalibrationRun, model: MeasurementModel) -> tuple[torch.Ten
     """The indices into the run's held-out rows that lie beyond the calibrated region, and their extrapolation."""
     hold = run.hold.to("cpu")
     if hold.n == 0:
-        return torch.zeros(0, dtype=torch.long), torch.zeros(0, dtype=torch.float64)
+        return torch.zeros(0, dtype=torch.long, device="cpu"), torch.zeros(0, dtype=torch.float64, device="cpu")
     with torch.no_grad():
         ext = model.extrapolation(hold.q).cpu()
     rows = torch.nonzero(ext > 0).flatten()
@@ -237,8 +237,10 @@ def _left_out_errors(run: CalibrationRun, name: str, model: MeasurementModel, pa
     J = jacobian_of(fun)(x0).detach()
     out = []
     for held in parts:
-        rows = torch.ones(len(r0), dtype=torch.bool)
-        rows[(3 * held[:, None] + torch.arange(3)).flatten()] = False  # the fold's pose rows; the priors stay
+        rows = torch.ones(len(r0), dtype=torch.bool, device=r0.device)
+        rows[(3 * held[:, None] + torch.arange(3, device=held.device)).flatten()] = (
+            False  # the fold's pose rows; the priors stay
+        )
         dx = torch.linalg.lstsq(J[rows], -r0[rows].unsqueeze(-1), driver="gelsd").solution.squeeze(-1)
         m = copy.deepcopy(model)
         FreeParameters(m, sel, labels).assign(x0 + dx)
@@ -267,7 +269,7 @@ def left_out(run: CalibrationRun, candidates: dict[str, MeasurementModel]) -> Ch
     train = run.train.to("cpu")
     reach = 0.0
     for held in parts:  # how far each fold lies beyond the rows left in
-        keep = torch.ones(train.n, dtype=torch.bool)
+        keep = torch.ones(train.n, dtype=torch.bool, device=train.q.device)
         keep[held] = False
         lo, hi = train.q[keep].min(dim=0).values, train.q[keep].max(dim=0).values
         q = train.q[held]
@@ -305,8 +307,8 @@ def bounded(
     ]
     if not sel:
         return cov
-    prior = torch.tensor([tol(k) for k in sel], dtype=C.dtype)
-    idx = torch.tensor(sel)
+    prior = torch.tensor([tol(k) for k in sel], dtype=C.dtype, device=C.device)
+    idx = torch.tensor(sel, device=C.device)
     S = C[idx][:, idx] + torch.diag(prior.square())
     CH = C[:, idx]
     out = C - CH @ torch.linalg.solve(S, CH.T)

@@ -10,7 +10,9 @@ whose payload or torque lies outside that range is a condition the run never saw
 * its sigma grows by the probe displacement of that twist: ``d = J(q) (k_ref * dtau)`` with ``dtau`` the payload's
   torque beyond the range (:meth:`~torchcal.robot.RobotModel.payload_torques`, from the description's kinematics,
   no masses needed) or the measured torque's distance beyond its range, ``J`` the probe's joint Jacobian, added in
-  quadrature with ``|d|`` on every axis (the direction is not known, so each axis may hold all of it).
+  quadrature with ``|d|`` on every axis (the direction is not known, so each axis may hold all of it), times the
+  run's ``load.sigma_scale`` where a re-stationing at such a load measured how much of it its points bore out
+  (:func:`torchcal.use.station.restation`; 1 by default).
 
 The reference compliance ``k_ref`` of a joint is zero where the run's model carries the load at that joint
 (a compliance driven by the row's payload or torque, whose parameter uncertainty the sigma already propagates);
@@ -85,9 +87,11 @@ def _beyond(value: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     return torch.where(value > hi, value - hi, torch.where(value < lo, value - lo, torch.zeros_like(value)))
 
 
-def load_conditions(model, meta: dict, data: Measurements, path: str) -> LoadConditions:
-    """The rows of ``data`` (read by predict) against the load ``meta["load"]`` the run was fitted in."""
-    n, dof = data.n, model.robot.dof
+def load_conditions(model, meta: dict, data, path: str) -> LoadConditions:
+    """The rows of ``data`` (read by predict: :class:`~torchcal.data.Measurements`, or a
+    :class:`~torchcal.effects.Context` of poses with their load) against the load ``meta["load"]`` the run was fitted
+    in."""
+    n, dof = data.q.shape[0], model.robot.dof
     q = data.q.detach().cpu()  # predict asks before its model moves to --device
     f64 = dict(dtype=torch.float64, device=q.device)
     zero = torch.zeros(n, **f64)
@@ -108,7 +112,8 @@ def load_conditions(model, meta: dict, data: Measurements, path: str) -> LoadCon
     twist = _reference_compliance(model, q.device) * dtau  # (N, dof) [rad]
     with torch.no_grad():
         J = robot.probe_jacobian(q)[1] if bool(beyond.any()) else torch.zeros(n, 3, dof, **f64)
-    d = (J @ twist.unsqueeze(-1)).squeeze(-1).norm(dim=1)  # [m]
+    # a re-stationing measured at such a load says how much of the reference displacement its points bore out
+    d = (J @ twist.unsqueeze(-1)).squeeze(-1).norm(dim=1) * float(load.get("sigma_scale", 1.0))  # [m]
     ext = twist.abs().max(1).values if dof else zero
     ext = torch.where(beyond, ext.clamp(min=1e-12), zero)  # a flagged row is never 0, however stiff
     note = None

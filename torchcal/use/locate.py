@@ -89,7 +89,11 @@ def locate(robot, q: Tensor, p: Tensor, lever: Tensor | None = None, fit_lever: 
     with torch.no_grad():
         T = robot(q.to(device=robot.device, dtype=dt)).cpu()
     p = p.detach().to(device="cpu", dtype=dt)
-    centre = torch.tensor(NOMINAL_LEVER, dtype=dt) if lever is None else lever.detach().to(device="cpu", dtype=dt)
+    centre = (
+        torch.tensor(NOMINAL_LEVER, dtype=dt, device="cpu")
+        if lever is None
+        else lever.detach().to(device="cpu", dtype=dt)
+    )
     can = n >= 4 and tool_turn(T) >= MIN_TURN_RAD
     if fit_lever and not can:
         raise EstimationError(

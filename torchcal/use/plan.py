@@ -338,8 +338,32 @@ def identifying_prefix(
 
 def distinct_poses(q: Tensor) -> Tensor:
     """The rows of ``q (N, dof)`` with joints no earlier row has, in their order."""
+    return q[distinct_index(q).to(q.device)]
+
+
+def distinct_index(q: Tensor) -> Tensor:
+    """The indices ``(M,)`` of the rows of ``q (N, dof)`` with joints no earlier row has (:func:`distinct_poses`)."""
     first = S.first_alike(q.detach().cpu())
-    return q[(first == torch.arange(len(first))).to(q.device)]
+    return torch.nonzero(first == torch.arange(len(first))).flatten()
+
+
+def plan_loads(k: int, levels) -> Tensor:
+    """The payload ``(k,)`` [kg] of each of ``k`` planned poses over the loads ``levels``: the levels in turn, in the
+    order the poses were picked, so that every load takes an equal share (within one row) of the criterion's early
+    picks, of the spread picks and of the edge picks, and its rows cover the region the plan covers. One model fits
+    such a campaign (rows cycling over 0, 5 and 10 kg on a simulated UR10: 0.84-0.98x the error of a model fitted per
+    load, docs/reference.md, *Loads*); a description without link masses or measured torques needs rows at two loads or
+    more to tell a joint's stiffness from its links' weight."""
+    lv = [float(v) for v in levels]
+    if not lv or any(not (0.0 <= v < 3000.0) for v in lv):
+        raise OptionError(f"payload levels must be one or more masses in kg, 0 <= m < 3000, got {levels!r}")
+    return torch.tensor(lv, dtype=torch.float64)[torch.arange(k) % len(lv)]
+
+
+def loads_summary(payload: Tensor) -> dict:
+    """The plan's ``loads`` block: which payloads [kg] and how many planned rows each."""
+    levels = sorted({float(v) for v in payload})
+    return {"levels_kg": levels, "rows": [int((payload == v).sum()) for v in levels]}
 
 
 #: how many poses :func:`sample_candidates` draws at most, in multiples of the candidates asked for, before it settles

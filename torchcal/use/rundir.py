@@ -583,7 +583,7 @@ def row_trust(run_dir: str | os.PathLike, model: MeasurementModel, meta: dict, c
     s_alt = alt_trust.std(m, ctx.subset(rows.to(ctx.q.device)), cov).cpu()
     # a chosen candidate predicts every row beyond; else the kinematic calibration where the model's sigma is far above
     take = (
-        torch.ones(len(rows), dtype=torch.bool)
+        torch.ones(len(rows), dtype=torch.bool, device=rows.device)
         if chosen is not None
         else SWITCH_RATIO * s_alt.norm(dim=1) < (sigma[rows].norm(dim=1))
     )

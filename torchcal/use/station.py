@@ -55,6 +55,7 @@ from torchcal.estimate.lm import chi2_quantile
 from torchcal.estimate.problem import FreeParameters, jacobian_of, residual_function, whitening
 from torchcal.estimate.rigid import fit_instrument_and_tool, rigid_fit
 from torchcal.robot import transforms as tf
+from torchcal.use.conditions import load_conditions, require_torques, with_load_sigma
 from torchcal.use.rundir import check_placement, load_covariance, load_model, load_trust, rows_of
 
 Tensor = torch.Tensor
@@ -131,6 +132,10 @@ class Station:
     #: [m] the RMS over the same poses of predict's sigma of the re-stationed run (its whole covariance: the
     #: placement's correlation with the run's parameters included), where the run measured its trust; else None
     predicted_sigma: float | None = None
+    #: the share of the load's sigma beyond the run's training that the points bear out (None: no such load)
+    load_sigma_scale: float | None = None
+    #: the factor the points' leave-one-out errors put on the predicted error (:func:`_loo_scale`; 1: none)
+    loo_scale: float = 1.0
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -182,6 +187,8 @@ class Station:
                 if self.predicted_sigma is not None
                 else "the run's held-out RMSE and the placement sigma in quadrature",
                 "over": self.region_source,
+                "load_sigma_scale": self.load_sigma_scale,
+                "leave_one_out_scale": self.loo_scale,
             },
             "warnings": list(self.warnings),
         }
@@ -251,6 +258,8 @@ def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tup
     region = points_region(model, points)
     if region is None:
         return Context.from_measurements(points, trajectory=False), "the points (the run stores no calibrated region)"
+    if points.tau is not None:  # measured torques hold at the poses they were measured at, not at drawn ones
+        return Context.from_measurements(points, trajectory=False), "the points (their measured joint torques)"
     g = torch.Generator().manual_seed(int(seed))
     u = torch.rand(REGION_POSES, model.robot.dof, generator=g, dtype=F64).to(region)  # CPU generator, moved
     q = region[0] + u * (region[1] - region[0])
@@ -269,8 +278,18 @@ def _region_ctx(model: MeasurementModel, points: Measurements, seed: int) -> tup
     def mean(x):  # effects in time or temperature: at the points' mean
         return None if x is None else x.mean().expand(len(q)).to(q)
 
-    ctx = Context(q=q, t=mean(points.t), temperature=mean(points.temperature))
+    ctx = Context(q=q, t=mean(points.t), temperature=mean(points.temperature), **_drawn_load(points, len(q), g))
     return ctx, f"{len(q)} poses drawn uniformly in the points' joint ranges and tool orientations"
+
+
+def _drawn_load(points: Measurements, n: int, g: torch.Generator) -> dict:
+    """The payload (and its centre of mass) of ``n`` poses like the points: each a point's, drawn at random (seeded),
+    so that a run whose compliance reads the payload predicts them at the load the points carry."""
+    if points.payload is None:
+        return {}
+    pick = torch.randint(points.n, (n,), generator=g).to(points.payload.device)
+    com = points.payload_com
+    return {"payload": points.payload[pick], "payload_com": None if com is None else com[pick]}
 
 
 def _weak_directions(J: Tensor, names: list[str], k: int = 2) -> str:
@@ -348,6 +367,7 @@ def fit_station(
     points: Measurements,
     opts: StationOptions,
     run_covariance: ParameterCovariance | None = None,
+    load_sigma: Tensor | None = None,
 ) -> Station:
     """Fit the instrument pose (and with ``opts.tool`` the lever arm) of ``model`` to ``points``; module docstring.
 
@@ -357,6 +377,8 @@ def fit_station(
         points: ``q`` and ``p`` of three or more points (four with the lever arm), optional ``sigma``.
         opts: :class:`StationOptions`.
         run_covariance: the run's ``covariance.pt`` (None: the run's own uncertainty is left out).
+        load_sigma: ``(N, 3)`` [m] the standard deviation a load beyond the run's training adds at each point
+            (:func:`~torchcal.use.conditions.load_conditions`), in the chi-square test's expected error (None: 0).
 
     Raises:
         StationError: too few points, collinear points, or a direction of the placement they do not fix.
@@ -386,7 +408,7 @@ def fit_station(
     # 4. the run's own uncertainty carried into the placement
     Js_w, C_s, run_cov = _carry_run_uncertainty(model, free, ctx, fit.whitening, C_noise, run_covariance)
     # 5. residuals, leave-one-out, chi-square against what the run predicts
-    r, loo, chi = _point_checks(model, points, ctx, fit.whitening, Js_w, opts, warnings)
+    r, loo, chi = _point_checks(model, points, ctx, fit.whitening, Js_w, opts, warnings, load_sigma)
     # 6. the placement's effect on accuracy over the points' region
     rctx, source = _region_ctx(model, points, opts.seed)
     var_r = _placement_var(model, free, C_s, rctx)
@@ -463,6 +485,7 @@ def _point_checks(
     Js_w: Tensor,
     opts: StationOptions,
     warnings: list[str],
+    load_sigma: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, dict]:
     """Step 5 of the module docstring: the residuals ``(N, 3)`` [m], the leave-one-out errors ``(N,)`` [m] and the
     chi-square test against what the run predicts; points of another robot refused, outliers named in ``warnings``."""
@@ -482,6 +505,8 @@ def _point_checks(
             loo[i] = torch.linalg.solve(W[i], e_w).norm()
     sig = points.sigma if points.sigma is not None else torch.full_like(points.p, opts.sigma_tracker)
     var = sig.square() + opts.run_rmse**2 / 3.0  # the run's model error, isotropic, per axis
+    if load_sigma is not None:  # and what a load beyond its training adds
+        var = var + load_sigma.to(var).square()
     stat = float((r.square() / var).sum())
     dof = 3 * n - Js_w.shape[1]
     thr = chi2_quantile(1.0 - ALPHA, dof) if dof > 0 else float("nan")
@@ -494,11 +519,14 @@ def _point_checks(
         "against": "the run's held-out RMSE (isotropic model error) and the points' measurement sigma",
     }
     if dof > 0 and not chi["passed"]:
+        why = "the load or the robot changed"
+        if not opts.tool:
+            why = "another tool than the run's (--tool), or the robot moved"
         warnings.append(
             f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
-            "freedom): a point measured wrongly, another tool than the run's (--tool), or the robot moved"
+            f"freedom): a point measured wrongly, {why}"
         )
-    expected = math.sqrt(opts.run_rmse**2 + float(sig.square().sum(-1).mean()))
+    expected = math.sqrt(float(var.sum(-1).mean()))  # per point: the run's model error, the noise, the load's
     _refuse_foreign(points, r, expected)
     for i in range(n):
         if math.isfinite(float(loo[i])) and float(loo[i]) > OUTLIER_FACTOR * expected:
@@ -590,9 +618,17 @@ def restation(
     The run becomes a run of one placement (:func:`one_placement`): the new placement replaces all of its stations,
     every probe keeps its lever arm (a new placement moves the instrument, not the nest). The points' rows name their
     probe (their ``probe`` column, or ``probe`` for all of them; neither: the run's first) and at most one station (its
-    label is kept: rows that name another station are then refused by ``predict``)."""
+    label is kept: rows that name another station are then refused by ``predict``).
+
+    The points' load (``payload``, ``tau`` columns) is the run's compliance's to carry, as in ``calibrate``: it is never
+    absorbed into the placement or the lever arm. A load beyond the run's training widens the error the points are
+    tested against and the predicted error by what :func:`~torchcal.use.conditions.load_conditions` adds (scaled by
+    what the points bear out: :func:`_with_load_scale`). Points that fit worse than predicted test a changed tool
+    (:func:`_try_new_tool`); a moved robot base is the placement itself (one instrument pose, ``T_tracker_base``, is
+    fitted either way)."""
     model, meta = load_model(run_dir)
     check_placement(meta, points, keys=("probe",))  # a new placement, the same probes
+    require_torques(model, points, points.source or "the points")  # a compliance that reads them carries their load
     cov = load_covariance(run_dir, model)
     points, label = _points_rows(model, points, probe, tool, run_dir)
     model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"), tool=tool)
@@ -602,46 +638,92 @@ def restation(
     if sigma is not None:  # the run's model error at a new placement: predict's sigma over the region
         opts = dataclasses.replace(opts, run_rmse=sigma)
     start = copy.deepcopy(model)
+    # the points' load is the run's compliance's to carry (each row's payload and torques in the model's context);
+    # what it cannot carry beyond the run's training load widens the error expected per point, as predict's sigma
+    lc = load_conditions(model, meta, points, points.source or "the points")
+    load_sigma = lc.sigma if lc.note is not None else None
     try:
-        station, refused = fit_station(model, points, opts, cov), None
+        station, refused = fit_station(model, points, opts, cov, load_sigma), None
     except StationError as e:  # points far off the run: another tool is one of the reasons it names
         if tool or model.robot.probes or "--tool" not in str(e):
             raise
         station, refused = None, e
     if not tool and not model.robot.probes and (station is None or not station.chi_square["passed"]):
-        model, station = _try_new_tool(start, model, points, opts, cov, station, refused)
+        model, station = _try_new_tool(start, model, points, opts, cov, station, refused, load_sigma)
     station.label = label
+    if lc.note is not None:
+        station.warnings.append(lc.note.removeprefix("torchcal: warning: "))
+        meta = _with_load_scale(meta, station, points, opts, load_sigma)
     tr = load_trust(run_dir, meta)
     if tr is not None and station.run_covariance is not None:
         ctx, _ = _region_ctx(model, points, seed)
         with torch.no_grad():
             sigma = tr.std(model, ctx, station.run_covariance)
-        station.predicted_sigma = float(sigma.square().sum(1).mean().sqrt())
+            sigma = with_load_sigma(sigma, load_conditions(model, meta, ctx, "").sigma)
+            pctx = Context.from_measurements(points, trajectory=False)
+            at_points = with_load_sigma(
+                tr.std(model, pctx, station.run_covariance), load_conditions(model, meta, pctx, "").sigma
+            )
+        station.loo_scale = _loo_scale(station, at_points)
+        station.predicted_sigma = float(sigma.square().sum(1).mean().sqrt()) * station.loo_scale
     return model, meta, station
 
 
+def _loo_scale(station: Station, sigma: Tensor) -> float:
+    """How far the points' own leave-one-out errors (each point predicted by the placement fitted to the others: the
+    error at a pose like the points, measured) bear out the predicted sigma ``(N, 3)`` [m] at the points: 1 where
+    ``3 sum(loo^2 / |sigma|^2)`` lies within the two-sided ``ALPHA`` band of a chi-square of ``3 n`` degrees of freedom,
+    else the factor that brings it to the nearer end. The run's covariance carried to a new lever arm spreads what
+    the run held at its priors (a wrist element 0.3 deg uncertain moves a probe 20 mm further out by 0.1 mm) where the
+    robot may have none of that error: the points then say so (a 20 mm tool change on a simulated UR10: 0.12-0.15 mm
+    predicted, 0.04 measured at the next rows, before the scale)."""
+    ok = torch.isfinite(station.loo)
+    n = int(ok.sum())
+    if n < 5:  # too few to tell
+        return 1.0
+    t = 3.0 * float((station.loo[ok].square() / sigma[ok.to(sigma.device)].square().sum(-1).clamp(min=1e-300)).sum())
+    lo, hi = chi2_quantile(ALPHA / 2, 3 * n), chi2_quantile(1 - ALPHA / 2, 3 * n)
+    scale = math.sqrt(t / lo) if t < lo else math.sqrt(t / hi) if t > hi else 1.0
+    if scale != 1.0:
+        station.warnings.append(
+            f"the points' leave-one-out errors (RMS {float(station.loo[ok].square().mean().sqrt()) * 1e3:.3g} mm) "
+            f"are {'smaller' if scale < 1 else 'larger'} than the run predicts at them (RMS "
+            f"{float(sigma.square().sum(-1).mean().sqrt()) * 1e3:.3g} mm): the predicted error is scaled by "
+            f"{scale:.2g} to what they bear out (predict's sigma of the re-stationed run is the run's)"
+        )
+    return scale
+
+
 def _try_new_tool(
-    start: MeasurementModel, model: MeasurementModel, points: Measurements, opts, cov, station, refused=None
+    start: MeasurementModel,
+    model: MeasurementModel,
+    points: Measurements,
+    opts,
+    cov,
+    station,
+    refused=None,
+    load_sigma: Tensor | None = None,
 ):
     """The points fit worse than the run predicts with its lever arm (or so far off that the fit was ``refused``):
     test the alternative of a changed tool (the lever arm fitted too, as with ``--tool``). Adopted where the points
-    then fit as predicted (its chi-square test passes), said in a warning; else the placement stands with a warning
-    that names what a new lever arm left (a refusal stands)."""
+    then fit as predicted (its chi-square test passes), or where the new lever arm explains most of the misfit
+    (:func:`_tool_supported`: a load or a robot that also changed leaves the rest), said in a warning; else the
+    placement stands with a warning that names what a new lever arm left (a refusal stands)."""
     alt_model = copy.deepcopy(start)
     try:
-        alt = fit_station(alt_model, points, dataclasses.replace(opts, tool=True), _without(cov, ("robot.tool.delta",)))
+        alt = fit_station(
+            alt_model, points, dataclasses.replace(opts, tool=True), _without(cov, ("robot.tool.delta",)), load_sigma
+        )
     except StationError as e:  # too few points, or orientations that do not fix a lever arm
         if station is None:
             raise refused from None
         station.warnings.append(f"a changed tool could not be tested ({e}); if the tool changed, give --tool")
         return model, station
-    chi1 = alt.chi_square
+    chi0, chi1 = None if station is None else station.chi_square, alt.chi_square
+    before = "too far off to fit"
+    if chi0 is not None:
+        before = f"chi-square {chi0['statistic']:.3g} > {chi0['threshold']:.3g}"
     if chi1["passed"]:
-        before = (
-            f"chi-square {station.chi_square['statistic']:.3g} > {station.chi_square['threshold']:.3g}"
-            if station is not None
-            else "too far off to fit"
-        )
         alt.warnings.insert(
             0,
             f"the points fit worse than the run predicts with its lever arm ({before}) and as predicted with a new "
@@ -649,13 +731,93 @@ def _try_new_tool(
             "was fitted too (as --tool does)",
         )
         return alt_model, alt
+    if _tool_supported(chi0, chi1):
+        alt.warnings.insert(
+            0,
+            f"the points fit worse than the run predicts with its lever arm ({before}); a new lever arm explains most "
+            f"of it (chi-square {chi1['statistic']:.3g}, {chi1['threshold']:.3g} expected at most): the tool changed, "
+            "its lever arm was fitted too (as --tool does); the rest is more than a new placement and tool: "
+            f"{_what_else(start, points)}",
+        )
+        return alt_model, alt
     if station is None:
         raise refused
     station.warnings.append(
         f"a new lever arm does not explain it either (chi-square {chi1['statistic']:.3g} > {chi1['threshold']:.3g}): "
-        "the robot, its load or its base changed beyond a new placement; calibrate again (calibrate --prior RUN)"
+        f"{_what_else(start, points)}"
     )
     return model, station
+
+
+#: a new lever arm is supported by points that still fit worse than predicted where it removes at least this share of
+#: their chi-square's excess over its degrees of freedom (and significantly: a chi-square test of 3 degrees of freedom)
+TOOL_EXPLAINS = 0.9
+
+
+def _tool_supported(chi0: dict | None, chi1: dict) -> bool:
+    """Whether a new lever arm (chi-square ``chi1``) explains the misfit of the placement alone (``chi0``; None: so
+    far off that it was refused, which a lever arm that fits explains)."""
+    if chi0 is None:
+        return True
+    drop = chi0["statistic"] - chi1["statistic"]
+    excess = chi0["statistic"] - chi0["dof"]
+    return drop > chi2_quantile(1.0 - ALPHA, 3) and drop >= TOOL_EXPLAINS * excess
+
+
+def _what_else(model: MeasurementModel, points: Measurements) -> str:
+    """What a misfit beyond a new placement and tool may be, and what to give: the load where the points carry none
+    and the run's compliance reads it."""
+    from torchcal.effects.joint import Compliance, LumpedCompliance, TorqueCompliance
+
+    reads_load = any(
+        isinstance(e, (Compliance, TorqueCompliance)) or (isinstance(e, LumpedCompliance) and e.load)
+        for e in model.effects
+    )
+    if points.payload is None and points.tau is None and reads_load:
+        return (
+            "the robot's load (the run's compliance reads each row's payload: give the points' payload column, "
+            "kg, where the robot carries another load than in the calibration), its base or the robot itself "
+            "changed; calibrate again (calibrate --prior RUN) where that does not explain it"
+        )
+    return "the robot, its load or its base changed beyond a new placement; calibrate again (calibrate --prior RUN)"
+
+
+def _with_load_scale(meta: dict, station: Station, points: Measurements, opts, load_sigma: Tensor) -> dict:
+    """``meta`` whose ``load`` carries ``sigma_scale``: how much of the sigma a load beyond the run's training adds
+    (:func:`~torchcal.use.conditions.load_conditions`, a reference compliance where the run's model does not carry the
+    load) the points, measured at that load, bear out. The largest ``s <= 1`` whose chi-square of the points'
+    residuals against ``sigma^2 + run_rmse^2 / 3 + s^2 load_sigma^2`` is not below its lower ``ALPHA`` quantile (the
+    points would call a larger sigma too wide); 1 where they bear out all of it. The re-stationed run's ``predict``
+    and this placement's predicted error read it."""
+    r2 = station.residuals.square()
+    sig = points.sigma if points.sigma is not None else torch.full_like(r2, opts.sigma_tracker)
+    var0, vl = sig.to(r2).square() + opts.run_rmse**2 / 3.0, load_sigma.to(r2).square()
+    dof = int(station.chi_square["dof"])
+    lo = chi2_quantile(ALPHA, dof) if dof > 0 else float("nan")
+
+    def chi(lam: float) -> float:
+        return float((r2 / (var0 + lam * vl).clamp(min=1e-300)).sum())
+
+    if not math.isfinite(lo) or chi(1.0) >= lo:
+        scale = 1.0
+    elif chi(0.0) <= lo:
+        scale = 0.0
+    else:  # chi decreases with lam: bisect chi(lam) = lo
+        a, b = 0.0, 1.0
+        for _ in range(60):
+            m = 0.5 * (a + b)
+            a, b = (m, b) if chi(m) > lo else (a, m)
+        scale = math.sqrt(b)
+    if scale < 1.0:
+        station.warnings.append(
+            f"the points, measured at that load, fit as if the load moved the probe {scale:.2g} times as far as the "
+            "reference compliance allows: the load's part of the predicted error (and of predict's sigma in the "
+            "re-stationed run) is scaled by that"
+        )
+    load = dict(meta.get("load") or {"payload_kg": [0.0, 0.0], "payload_column": False, "tau_Nm": None})
+    load["sigma_scale"] = scale
+    station.load_sigma_scale = scale
+    return {**meta, "load": load}
 
 
 def _run_sigma(run_dir, model: MeasurementModel, meta: dict, cov, points: Measurements, seed: int) -> float | None:
