@@ -115,4 +115,7 @@ class TrackerError(Effect):
 
 
 def _init(v, n: int) -> Tensor:
-    return torch.zeros(n, dtype=torch.float64) if v is None else torch.as_tensor(v, dtype=torch.float64).reshape(n)
+    # a parameter's initial value: made on the CPU, moved with the module (.to) like every effect's
+    if v is None:
+        return torch.zeros(n, dtype=torch.float64, device="cpu")
+    return torch.as_tensor(v, dtype=torch.float64, device="cpu").reshape(n)

@@ -1,4 +1,4 @@
-"""Beyond the calibrated region, the model that travels (issue 51): which of a run's models predicts a row that lies
+"""Beyond the calibrated region, the model that travels: which of a run's models predicts a row that lies
 outside the joint ranges its training rows covered.
 
 A calibration fits its parameters where its rows were; beyond them each of its models extrapolates in its own way,

@@ -316,7 +316,7 @@ def effect_trades(model: MeasurementModel, fit, max_correlation: float = MAX_COR
     names = list(fit.free.names)
     if not labels or not names:
         return []
-    is_effect = torch.tensor([any(n.startswith(f"{lab}.") for lab in labels) for n in names])
+    is_effect = torch.tensor([any(n.startswith(f"{lab}.") for lab in labels) for n in names], device="cpu")
     if not bool(is_effect.any()) or bool(is_effect.all()):
         return []
     try:

@@ -1,4 +1,4 @@
-"""Joints a set of poses hardly moved (issue 51): named at calibrate time, and opened to their limits where a plan
+"""Joints a set of poses hardly moved: named at calibrate time, and opened to their limits where a plan
 samples candidates for a run (:func:`torchcal.use.plan.candidate_region`). Here, below both, so that planning does
 not load the pipeline."""
 

@@ -357,7 +357,7 @@ def plan_loads(k: int, levels) -> Tensor:
     lv = [float(v) for v in levels]
     if not lv or any(not (0.0 <= v < 3000.0) for v in lv):
         raise OptionError(f"payload levels must be one or more masses in kg, 0 <= m < 3000, got {levels!r}")
-    return torch.tensor(lv, dtype=torch.float64)[torch.arange(k) % len(lv)]
+    return torch.tensor(lv, dtype=torch.float64, device="cpu")[torch.arange(k, device="cpu") % len(lv)]
 
 
 def loads_summary(payload: Tensor) -> dict:
@@ -425,7 +425,7 @@ def candidate_region(model: MeasurementModel) -> tuple[Tensor | None, list[int]]
     """The box a plan with a run samples its candidates in: the run's calibrated region, with every joint the run's
     training rows barely moved (narrow: :func:`~torchcal.robot.ranges.narrow_joints`) opened to its limits; and
     those joints (1-based). Inside the region a plan adds what a new campaign there would tell; a narrow joint's
-    geometry the run held near nominal by its prior, and only poses that move that joint tell it (issue 51).
+    geometry the run held near nominal by its prior, and only poses that move that joint tell it.
 
     Returns:
         ``(region (2, dof) or None where the run records none, the narrow joints)``."""
