@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import cProfile
 import pstats
-import runpy
 import sys
 import threading
 import time
@@ -50,8 +49,12 @@ def main(argv: list[str]) -> int:
     rc = 0
     main_prof.enable()
     try:
-        runpy.run_module("torchcal", run_name="__main__", alter_sys=True)
-    except SystemExit as e:  # torchcal's __main__ exits with main()'s code
+        # the command's entry with its arguments given: as the process's own command it would end the process once
+        # it returned (torchcal._entry), before the statistics were written
+        from torchcal._entry import main as command
+
+        rc = command(args)
+    except SystemExit as e:  # argparse's --help and usage errors
         rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     finally:
         main_prof.disable()

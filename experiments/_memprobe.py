@@ -1,8 +1,8 @@
 """Run one ``torchcal`` command in this process and measure each of its stages: wall and CPU time, peak memory.
 
 Run as a script in a fresh interpreter (``python _memprobe.py [--no-reset] -- calibrate DATA ...``): it imports
-only the standard library, then runs ``python -m torchcal ARGS`` in this process (``runpy``), so the stages see
-every import the command makes (``import torchcal``: torch; ``import torchcal.cli``).
+only the standard library, then runs the command's entry (``torchcal._entry.main(ARGS)``) in this process, so
+the stages see every import the command makes (``import torchcal``: torch; ``import torchcal.cli``).
 :mod:`experiments.bench_memory` starts it and reads the JSON line it prints last.
 
 How: the functions of :data:`TARGETS` are wrapped as their modules are imported, and the imports of
@@ -23,7 +23,6 @@ import importlib.abc
 import importlib.util
 import json
 import resource
-import runpy
 import sys
 import threading
 import time
@@ -237,9 +236,12 @@ def main(argv: list[str]) -> int:
     sys.argv = ["torchcal", *args]
     meter.enter("command")
     try:
-        runpy.run_module("torchcal", run_name="__main__", alter_sys=True)
-        rc = 0
-    except SystemExit as e:  # torchcal's __main__ exits with main()'s code
+        # the command's entry with its arguments given: as the process's own command (python -m torchcal) it ends
+        # the process itself once it returns (torchcal._entry), and this probe's report would never be printed
+        from torchcal._entry import main as command
+
+        rc = command(args)
+    except SystemExit as e:  # argparse's --help and usage errors
         rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
     finally:
         meter.exit()
