@@ -84,57 +84,6 @@ def add_parser(sub) -> None:
     _add_common(cp)
 
 
-def _compensate_trust(args, model, meta, res, ctx, plain, resolve):
-    """compensate's ``sx, sy, sz`` and ``model`` per row: rows beyond the region that the run gives to another model
-    (the one it chose there, or its kinematic calibration where the model's sigma is far above that one's:
-    :func:`torchcal.use.rundir.row_trust`) are solved again with it (``resolve(other, rows)``, in place in ``res``),
-    with its sigma at the new commands; rows beyond that the run's model commands without its learned parts say
-    ``physical``."""
-    from dataclasses import replace
-
-    import torch
-
-    from torchcal.use.rundir import row_trust
-
-    rt = row_trust(args.run, model, meta, ctx)
-    which = torch.where(plain.cpu(), 2, 0)
-    if rt.geometric is None or not bool(rt.which.any()):
-        return rt.sigma, which
-    rows = torch.nonzero(rt.which).flatten()
-    resolve(rt.geometric, rows.to(res.q.device))
-    sigma = rt.sigma.clone()
-    sub = ctx.subset(rows.to(ctx.q.device))
-    sigma[rows] = rt.geometric_sigma(replace(sub, q=res.q[rows.to(res.q.device)]))  # at the new commands
-    which[rows] = rt.which[rows]
-    return sigma, which
-
-
-def _geometric_resolver(res, station, probe, targets_of, context, weight):
-    """``(geometric, rows) ->`` those rows of ``res`` solved again, in place, with the run's kinematic calibration
-    ``geometric`` in each row's own station's frame with its own probe."""
-    import torch
-
-    from torchcal.use.compensate import solve_rows_with
-    from torchcal.use.rundir import at_station
-
-    def resolve(geometric, rows):
-        robot, n = geometric.robot, len(res.q)
-        for s, p in sorted(set(zip(station[rows].tolist(), probe[rows].tolist(), strict=True))):
-            sel = rows[(station[rows] == s) & (probe[rows] == p)]
-            names = (robot.stations[s] if robot.stations else None, robot.probes[p] if robot.probes else None)
-            geo, *_ = at_station(geometric, *names)
-            pos, rot = targets_of(geo, sel)
-            targets = torch.zeros(n, 3, dtype=pos.dtype, device=pos.device)
-            targets[sel] = pos
-            kw = {"orientation_weight": weight}
-            if rot is not None:  # full-length, as the rows' context: solve_rows_with takes the rows of both
-                kw["orientations"] = torch.eye(3, dtype=rot.dtype, device=rot.device).repeat(n, 1, 1)
-                kw["orientations"][sel] = rot
-            solve_rows_with(geo, res, sel, targets, context=context, **kw)
-
-    return resolve
-
-
 def _program_load(args, data, model) -> dict:
     """The program's load per row for the context of the compensation: its payload [kg] (``--payload KG``, else the
     targets' ``payload`` column) and the torques its poses hold (the targets' ``tau`` columns), which the run's
@@ -158,6 +107,7 @@ def _payload_of(args, data) -> torch.Tensor | None:
 @_one_torch_thread
 def handle(args) -> int:
     from torchcal.data import read_measurements
+    from torchcal.use.beyond_commands import resolver, targets_of_file
     from torchcal.use.compensate import Status, compensate_groups, orientation_mode, row_groups
     from torchcal.use.rundir import at_station, check_placement, load_model, own_names
 
@@ -191,11 +141,11 @@ def handle(args) -> int:
         "trajectory": trajectory,
         **_program_load(args, data, model),
     }
-    targets_of = _compensation_targets(data, six_d)
+    targets_of = targets_of_file(data, six_d)
     res, ext, plain = compensate_groups(
         model, station, probe, targets_of, q_start, at=at_station, context=context, orientation_weight=args.weight
     )
-    resolve = _geometric_resolver(res, station, probe, targets_of, context, args.weight)
+    resolve = resolver(res, station, probe, targets_of, context, args.weight)
     _write_compensation(args, out_file, (model, meta), data, (station, probe), res, (plain, resolve), mode)
     alone = "commanded by the geometry and physical effects alone" if model.has_learned else ""
     warn_outside(args.targets, data.lines, model, res.q, alone)
@@ -214,28 +164,15 @@ def handle(args) -> int:
     return 0
 
 
-def _compensation_targets(data, six_d: bool):
-    """``(model, rows) -> (positions, orientations or None)`` of a targets file, in the instrument frame of ``model``
-    (the run at the rows' station and probe): the file's ``x,y,z`` (``rx,ry,rz``), or what a program's joints mean."""
-    from torchcal.robot import transforms as tf
-    from torchcal.use.compensate import program_orientations, program_targets
-
-    def targets_of(at, rows):
-        p = data.p[rows] if data.p is not None else program_targets(at, data.q[rows])
-        if not six_d:
-            return p, None
-        return p, tf.so3_exp(data.r[rows]) if data.r is not None else program_orientations(at, data.q[rows])
-
-    return targets_of
-
-
 def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, mode) -> None:
     """Write ``compensate``'s file in the targets file's units: the commands, the program's own joints beside them
     (``q1_program..``), the targets, labels, extra columns, trust columns, the misses and the status. Rows where
-    the run gives another model (beyond the region) are solved again with it first (:func:`_compensate_trust`)."""
+    the run gives another model (beyond the region) are solved again with it first
+    (:func:`~torchcal.use.beyond_commands.commanded_trust`)."""
     import dataclasses
 
     from torchcal.effects import Context
+    from torchcal.use.beyond_commands import commanded_trust
     from torchcal.use.compensate import file_units, write_joints
     from torchcal.use.rundir import MODEL_NAMES
 
@@ -244,7 +181,7 @@ def _write_compensation(args, out_file, run, data, groups, res, plain_resolve, m
     rows = dict(station=station if model.robot.stations else None, probe=probe if model.robot.probes else None)
     load = dict(payload=_payload_of(args, data), tau=data.tau)
     ctx = Context(q=res.q, t=data.t, temperature=data.temperature, **load, **rows)
-    sigma, which = _compensate_trust(args, model, meta, res, ctx, plain, resolve)
+    sigma, which = commanded_trust(args.run, model, meta, res, ctx, plain, resolve)
     joint, length = file_units(model.robot.joint_types, args.length_unit, args.angle_unit)
     extra = {f"q{k + 1}_program": data.q[:, k] * joint[k] for k in range(data.dof)}
     extra.update(data.extra)
