@@ -360,28 +360,35 @@ def load_geometric(
 ) -> tuple[MeasurementModel, ParameterCovariance | None, Trust] | None:
     """The kinematic calibration a run keeps beside a final model that is not it (``geometric.pt``), with its
     covariance and :class:`~torchcal.estimate.trust.Trust`; None where the run keeps none."""
-    import copy
-
     run_dir = Path(run_dir)
     geo_trust = load_trust(run_dir, meta, "geometric")
     if geo_trust is None or not (run_dir / "geometric.pt").exists():
         return None
-    state = _load_torch_file(run_dir, "geometric.pt")
-    geo = MeasurementModel(copy.deepcopy(model.robot))
+    geo, cov = _side_model(run_dir, model, "geometric")
+    return geo, cov, geo_trust
+
+
+def _side_model(
+    run_dir: Path, model: MeasurementModel, name: str
+) -> tuple[MeasurementModel, ParameterCovariance | None]:
+    """A model the run keeps beside its own (``NAME.pt``, no effects, on ``model``'s robot and region, not fading)
+    and its covariance (``covariance_NAME.pt``, None where absent); a file that does not fit is a damaged run."""
+    import copy
+
+    side = MeasurementModel(copy.deepcopy(model.robot))
     try:
-        geo.load_state_dict(state)
+        side.load_state_dict(_load_torch_file(run_dir, f"{name}.pt"))
     except (RuntimeError, TypeError, AttributeError) as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise _run_error(run_dir, f"geometric.pt does not match model.json ({first})") from None
-    _check_state(run_dir, geo)
-    geo.set_region(model.region, fade=False)
-    cov = None
-    if (run_dir / "covariance_geometric.pt").exists():
-        try:
-            cov = ParameterCovariance.from_state(_load_torch_file(run_dir, "covariance_geometric.pt"), geo)
-        except ValueError as e:
-            raise _run_error(run_dir, f"covariance_geometric.pt does not fit geometric.pt: it {e}") from None
-    return geo, cov, geo_trust
+        raise _run_error(run_dir, f"{name}.pt does not match model.json ({first})") from None
+    _check_state(run_dir, side)
+    side.set_region(model.region, fade=False)
+    if not (run_dir / f"covariance_{name}.pt").exists():
+        return side, None
+    try:
+        return side, ParameterCovariance.from_state(_load_torch_file(run_dir, f"covariance_{name}.pt"), side)
+    except ValueError as e:
+        raise _run_error(run_dir, f"covariance_{name}.pt does not fit {name}.pt: it {e}") from None
 
 
 def load_standalone(run_dir: str | os.PathLike, model: MeasurementModel) -> MeasurementModel | None:
@@ -437,8 +444,6 @@ def load_nominal(
     """The nominal geometry with the fitted instrument pose and lever arm a run keeps (``nominal.pt``), with its
     covariance and :class:`~torchcal.estimate.trust.Trust`; None where the run keeps none (written before it, or
     re-stationed: its instrument pose is the old placement's)."""
-    import copy
-
     run_dir = Path(run_dir)
     d = meta.get("nominal")
     if not isinstance(d, dict) or d.get("trust") is None or not (run_dir / "nominal.pt").exists():
@@ -447,20 +452,7 @@ def load_nominal(
         tr = Trust.from_dict(d["trust"])
     except ValueError as e:
         raise _run_error(run_dir, f"model.json: nominal: trust: {e}") from None
-    nom = MeasurementModel(copy.deepcopy(model.robot))
-    try:
-        nom.load_state_dict(_load_torch_file(run_dir, "nominal.pt"))
-    except (RuntimeError, TypeError, AttributeError) as e:
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise _run_error(run_dir, f"nominal.pt does not match model.json ({first})") from None
-    _check_state(run_dir, nom)
-    nom.set_region(model.region, fade=False)
-    cov = None
-    if (run_dir / "covariance_nominal.pt").exists():
-        try:
-            cov = ParameterCovariance.from_state(_load_torch_file(run_dir, "covariance_nominal.pt"), nom)
-        except ValueError as e:
-            raise _run_error(run_dir, f"covariance_nominal.pt does not fit nominal.pt: it {e}") from None
+    nom, cov = _side_model(run_dir, model, "nominal")
     return nom, cov, tr
 
 
