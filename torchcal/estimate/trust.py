@@ -367,15 +367,19 @@ def fit_trust(
     ctx: Context,
     p: Tensor,
     noise: tuple[float, float, float],
+    variogram: tuple[tuple, tuple] | None = None,
 ) -> Trust | None:
     """Measure :class:`Trust` on held-out rows: their poses ``ctx`` and measured positions ``p`` ``(N, 3)`` [m].
+
+    ``variogram``: :func:`correction_variogram` of this model at ``ctx`` where the caller has it (it depends on the
+    model and the poses only, not on ``cov``); computed here otherwise.
 
     Returns:
         None where fewer than :data:`MIN_ROWS` rows are given.
     """
     if len(p) < MIN_ROWS:
         return None
-    lags, rho = correction_variogram(model, ctx)
+    lags, rho = correction_variogram(model, ctx) if variogram is None else variogram
     with torch.no_grad():
         var = base_variance(model, ctx, cov, noise)
         e = model(ctx) - p

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -122,4 +123,8 @@ def run_trust(run: CalibrationRun) -> RunTrust:
             return out
         m = candidates[out.choice.model]
         cov = bounded(_of_model(run.covariance, m), m, run)
+        measured = out.full if m is model else out.physical
+        if isinstance(measured, Trust):  # the same model at the same rows: its variogram as measured, not again
+            measure = functools.partial(fit_trust, variogram=(measured.lags, measured.rho))
+            return dataclasses.replace(out, beyond_covariance=cov, beyond=_held_out(run, m, cov, measure))
         return dataclasses.replace(out, beyond_covariance=cov, beyond=_held_out(run, m, cov))
