@@ -36,8 +36,8 @@ def _check(data, cand_effect):
     base = MeasurementModel(load_robot("ur5"))
     place_instrument_and_tool(base.robot, data.q, data.p)
 
-    def fit_on(m, d, stage):
-        return solve(m, d, GEOMETRIC_GROUPS, opts.fit, stage, trajectory=False, effects=True)
+    def fit_on(m, d, stage, *, covariance=True):
+        return solve(m, d, GEOMETRIC_GROUPS, opts.fit, stage, trajectory=False, effects=True, covariance=covariance)
 
     fit_on(base, data, "base")
     cand = SimpleNamespace(name=f"{cand_effect.kind}:2", make=lambda: copy.deepcopy(cand_effect))

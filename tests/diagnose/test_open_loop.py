@@ -79,7 +79,7 @@ def test_a_candidate_whose_refit_fails_is_rejected_with_the_reason_not_the_run()
     from torchcal.pipeline.loop import _validate
     from torchcal.robot import load_robot
 
-    def failing_fit(model, data, stage):
+    def failing_fit(model, data, stage, **kw):
         raise EstimationError(f"{stage}: least squares failed_solve: singular")
 
     cand = SimpleNamespace(

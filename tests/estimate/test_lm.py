@@ -168,3 +168,37 @@ def test_a_fit_that_ends_where_no_step_helps_reuses_its_last_jacobian():
     res = levenberg_marquardt(lambda x: (1.0 + 1e20 * x.abs().sum()) * b, x0, jacobian=jac)
     assert res.message == "no step lowers the cost any more" and res.iterations == 1
     assert len(calls) == 1 and torch.equal(res.x, x0) and torch.equal(res.jacobian, jac(x0))
+
+
+def test_a_fit_judged_by_its_solution_alone_skips_the_solutions_jacobian():
+    """``solution_jacobian=False`` (the closed loop's validation refits): the same iterates, solution and residuals,
+    one Jacobian fewer, and no normal matrix returned as if it were the solution's; a rank-deficient problem still
+    fails."""
+    x = torch.linspace(0, 2, 50, dtype=F64)
+    y = 2.5 * torch.exp(-1.3 * x) + 0.4 + 0.001 * torch.sin(17 * x)
+
+    def fun(p):
+        return p[0] * torch.exp(-p[1] * x) + p[2] - y
+
+    calls = {True: 0, False: 0}
+
+    def counted(flag):
+        def jac(p):
+            calls[flag] += 1
+            return torch.func.jacfwd(fun)(p)
+
+        return jac
+
+    x0 = torch.tensor([1.0, 1.0, 0.0], dtype=F64)
+    full = levenberg_marquardt(fun, x0, jacobian=counted(True))
+    lean = levenberg_marquardt(fun, x0, jacobian=counted(False), solution_jacobian=False)
+    assert lean.status == full.status == "converged"
+    assert torch.equal(lean.x, full.x) and torch.equal(lean.residuals, full.residuals)
+    assert lean.cost_history == full.cost_history
+    assert calls[False] == calls[True] - 1 == full.iterations
+    assert full.normal is not None and lean.normal is None and lean.jacobian is None
+    A = torch.tensor([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]], dtype=F64)
+    b = torch.tensor([1.0, 2.0, 3.1], dtype=F64)
+    assert levenberg_marquardt(lambda v: A @ v - b, torch.zeros(2, dtype=F64), solution_jacobian=False).status == (
+        "failed_solve"
+    )

@@ -394,8 +394,13 @@ def solve(
     identify: bool = True,
     effects: bool = False,
     identifiability: Identifiability | None = None,
+    covariance: bool = True,
 ) -> Fit:
     """Weighted LM over the free elements of ``groups`` (identifiable ones only when ``identify``).
+
+    ``covariance`` False: a fit judged by its solution and residuals alone (the closed loop's validation refits),
+    whose result needs no normal matrix at the solution: one Jacobian fewer (``LMResult.normal`` is then None). A
+    fit that analyses its own identifiability, or whose prior-held elements are considered, computes it anyway.
 
     With ``effects`` the parameters of the model's named effects (:data:`NAMED_KINDS`) are estimated
     jointly with the groups; in the identifiability analysis they come after the geometry, so an effect
@@ -428,7 +433,8 @@ def solve(
         ida, orientation_only = _analyse_fresh(model, free, ctx, m, W, Wr, opts, groups)
         sel, labels = selection(model, groups, dict(zip(free.names, ida.free.tolist())), effects=effects)
         free = FreeParameters(model, sel, labels)
-    res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead)
+    covariance = covariance or identifiability is None or bool(ida is not None and ida.prior_held)
+    res = _lm(model, free, ctx, m, W, Wr, opts, groups, stage, lead, covariance=covariance)
     if Wr is not None and identifiability is None:
         res, Wr, scale, lead = _orientation_component(model, free, ctx, m, W, Wr, opts, groups, stage, res, scale)
     if identifiability is None and ida is not None:
@@ -672,12 +678,21 @@ def _lm(
     groups,
     stage: str,
     lead: float = 1.0,
+    *,
+    covariance: bool = True,
 ):
     """The weighted LM of :func:`solve` over ``free`` with its priors; the result is written into the model. With
     orientation rows weighed ``lead`` times below their variance component (:data:`ORIENTATION_LEAD`), their squared
     residuals count ``lead^2`` times in the variance factor (``LMResult.variance_weights``)."""
     fun = _residuals(model, free, ctx, m, W, Wr, _priors(model, free, opts, groups))
-    res = levenberg_marquardt(fun, free.vector(), names=free.names, max_iter=opts.max_iter, stat_tol=opts.stat_tol)
+    res = levenberg_marquardt(
+        fun,
+        free.vector(),
+        names=free.names,
+        max_iter=opts.max_iter,
+        stat_tol=opts.stat_tol,
+        solution_jacobian=covariance,
+    )
     if res.status in FAILED:
         hint = _readings_hint(model) or null_space_hint(res)
         raise EstimationError(f"{stage}: least squares {res.status}: {res.message}{hint}")

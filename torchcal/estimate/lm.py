@@ -180,6 +180,7 @@ def levenberg_marquardt(
     stat_tol: float = 0.0,
     callback=None,
     threads: int | None = 1,
+    solution_jacobian: bool = True,
 ) -> LMResult:
     """Minimise ``0.5 |fun(x)|^2`` by Levenberg-Marquardt.
 
@@ -202,17 +203,26 @@ def levenberg_marquardt(
         threads: torch threads for the solve (the caller's are restored after it); None keeps the caller's.
             The kernels are small (u x u solves, one pass over the poses), and a second thread on a
             shared machine multiplies the time instead of halving it.
+        solution_jacobian: False for a fit judged by its solution and residuals alone (a validation refit): no
+            Jacobian is evaluated at the solution after the last step; the result then carries no ``normal`` nor
+            ``jacobian`` (no covariance) and the rank check at the end uses the last iteration's.
 
     Returns:
         :class:`LMResult`; it never raises on numerical trouble, the status says what happened.
     """
     if threads is None:
-        return _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, stat_tol, callback)
+        return _levenberg_marquardt(
+            fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, stat_tol, callback, solution_jacobian
+        )
     with torch_threads(threads):
-        return _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, stat_tol, callback)
+        return _levenberg_marquardt(
+            fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, stat_tol, callback, solution_jacobian
+        )
 
 
-def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, stat_tol, callback) -> LMResult:
+def _levenberg_marquardt(
+    fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, stat_tol, callback, solution_jacobian=True
+) -> LMResult:
     jac = jacobian or getattr(fun, "jacobian", None) or torch.func.jacfwd(fun)
     x = x0.detach().clone()
     r = fun(x).detach()
@@ -227,6 +237,7 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
     eye = torch.eye(len(x), dtype=x.dtype, device=x.device)
     singular = 0  # iterations among the first SINGULAR_WINDOW with a singular normal matrix
     J_at_x = False  # whether J is the Jacobian at the current x (then the solution's needs no new evaluation)
+    J = N = None
     for it in range(1, max_iter + 1):
         J = jac(x).detach()
         J_at_x = True
@@ -280,10 +291,13 @@ def _levenberg_marquardt(fun, x0, names, max_iter, xtol, ftol, lam0, jacobian, s
                 else "cost reduction statistically invisible (stat_tol)"
             )
             break
-    if not J_at_x:  # a step was taken after the last Jacobian (or none was evaluated)
+    if not J_at_x and (solution_jacobian or J is None):  # a step was taken after the last Jacobian (or none was)
         J = jac(x).detach()
         N = J.T @ J
         s = _jacobi(N)
+        J_at_x = True
     if status != FitStatus.FAILED_SOLVE and int(torch.linalg.cholesky_ex(N * s[:, None] * s[None, :])[1]) != 0:
         status, message = FitStatus.FAILED_SOLVE, "the normal matrix at the solution is singular (rank deficient)"
+    if not J_at_x and status != FitStatus.FAILED_SOLVE:  # the last iteration's (not the solution's) names a failure
+        N = J = None
     return LMResult(status, it, x, history, names, len(r), message, N, r, J)

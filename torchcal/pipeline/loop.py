@@ -156,11 +156,13 @@ class _Search:
         search = cls(run, work, ctx, cands, train.subset(fi), train.subset(va), diag, open_forms)
         if cands:
             search.base = copy.deepcopy(work.model)
-            search.fit_on(search.base, search.fit_part, "validation baseline")
+            search.fit_on(search.base, search.fit_part, "validation baseline", covariance=False)
             search.e_base = errors(search.base, search.val_part, run.trajectory)
         return search
 
-    def fit_on(self, m: MeasurementModel, data: Measurements, stage: str):
+    def fit_on(self, m: MeasurementModel, data: Measurements, stage: str, *, covariance: bool = True):
+        """``m`` refitted on ``data`` (the geometry and the named effects); ``covariance`` False for a refit judged by
+        its solution alone (the validations': no Jacobian at the solution, :func:`~torchcal.estimate.fit.solve`)."""
         opts = self.run.options
         return solve(
             m,
@@ -171,6 +173,7 @@ class _Search:
             trajectory=self.run.trajectory,
             effects=True,
             identifiability=self.run.identifiability,
+            covariance=covariance,
         )
 
     def propose(self, rnd: int) -> tuple[list, list, list]:
@@ -410,7 +413,7 @@ def _validate(
     trial = copy.deepcopy(base)
     trial.add(_made(cand, fit_part))
     try:
-        res = fit_on(trial, fit_part, f"validation {cand.name}").result
+        res = fit_on(trial, fit_part, f"validation {cand.name}", covariance=False).result
     except EstimationError as err:  # a candidate the data cannot fit (rank deficient with it) is rejected, said why
         reason = f"its joint refit on the fitting poses failed ({err})"
         validation = _untested(e_base, None, refit_failed=str(err))
@@ -482,7 +485,7 @@ def _validate_edge(
     if key not in cache:
         ref = copy.deepcopy(base)
         try:
-            fit_on(ref, middle, "edge validation baseline")
+            fit_on(ref, middle, "edge validation baseline", covariance=False)
             cache[key] = errors(ref, outer, trajectory)
         except EstimationError:
             cache[key] = None
@@ -496,7 +499,7 @@ def _validate_edge(
     # absorbed part of it in any case
     trial.add(_made(v.candidate, fit_part))
     try:
-        fit_on(trial, middle, f"edge validation {v.candidate.name}")
+        fit_on(trial, middle, f"edge validation {v.candidate.name}", covariance=False)
     except EstimationError as err:
         v.validation["edge"] = {"skipped": f"its refit without the edge poses failed ({err})"}
         return
