@@ -245,3 +245,25 @@ def test_batched_origins_agree_with_one_at_a_time():
         assert O.shape == (3, robot.dof + 1, 4, 4)
         for k in range(3):
             assert torch.equal(O[k], robot.geometry.origins(d[k]))
+
+
+@pytest.mark.parametrize("with_effects", [False, True])
+def test_the_prediction_jacobian_of_the_trust_columns_equals_central_differences(with_effects):
+    """``covariance.model_jacobian`` (the fit's Jacobian, unwhitened), which carries the covariance to the trust
+    columns' sigma, against central differences of the whole model (what it replaced): the same to 1e-7 of each
+    column's largest element without effects; with a compliance, whose gravity torque the fit's Jacobian holds
+    constant (the covariance is the fit's, with that Jacobian), the geometry's columns differ by its share, 2e-4."""
+    from torchcal.estimate.covariance import central_jacobian, model_jacobian
+
+    effects = (Compliance(joint=2, k=2e-6), Cyclic(joint=3, harmonics=(1,))) if with_effects else ()
+    model, free, ctx, _, _ = _problem(_perturbed("ur10"), effects=effects)
+    x0 = free.vector()
+    J = model_jacobian(model, free, ctx, x0)
+    J_ref = central_jacobian(model, free, ctx, torch.full((len(x0),), 1e-6, dtype=F64))
+    assert J.shape == J_ref.shape == (len(ctx.q), 3, len(x0))
+    rel = (J - J_ref).abs().amax(dim=(0, 1)) / J_ref.abs().amax(dim=(0, 1)).clamp(min=1e-300)
+    assert float(rel.max()) <= (5e-4 if with_effects else 1e-7)
+    if with_effects:  # the effects' own columns are exact
+        own = torch.tensor([n.startswith("effects.") for n in free.names])
+        assert float(rel[own].max()) <= 1e-7
+    assert torch.equal(free.vector(), x0)

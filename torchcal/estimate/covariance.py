@@ -15,7 +15,7 @@ import torch
 
 from torchcal.effects import Context, MeasurementModel
 from torchcal.errors import EstimationError
-from torchcal.estimate.problem import FreeParameters
+from torchcal.estimate.problem import FreeParameters, residual_function
 
 Tensor = torch.Tensor
 
@@ -122,22 +122,32 @@ def central_jacobian(
     return J
 
 
+def model_jacobian(model: MeasurementModel, free: FreeParameters, ctx: Context, x: Tensor) -> Tensor:
+    """``d model(ctx) / d free`` ``(N, 3, u)`` at ``x`` (``free``'s current values), exact to rounding: the
+    least-squares fit's own Jacobian with identity whitening. Central differences (:func:`central_jacobian`) cost two
+    evaluations of the whole model per parameter (a learned correction's posterior each time)."""
+    n = len(ctx.q)
+    eye = torch.eye(3, dtype=x.dtype, device=x.device).expand(n, 3, 3)
+    fun = residual_function(model, free, ctx, ctx.q.new_zeros(n, 3), eye)
+    with torch.no_grad():
+        return fun.jacobian(x).reshape(n, 3, len(x))
+
+
 def prediction_std(model: MeasurementModel, ctx: Context, cov: ParameterCovariance) -> Tensor:
     """The standard deviation ``(N, 3)`` [m] of the model's predicted positions at ``ctx`` through its parameters.
 
-    The Jacobian by central differences, one step of each parameter's own standard deviation (the model is linear in
-    its parameters over that step to far better than the result needs; no derivative of the effects is required),
-    then ``sqrt(diag(J C J^T))`` per axis. The model's parameters are restored afterwards.
+    The Jacobian as the estimators compute it (:func:`~torchcal.estimate.problem.residual_function`'s, unwhitened:
+    analytic without effects, else the kinematics' tangent and forward mode through the effects), then
+    ``sqrt(diag(J C J^T))`` per axis. The model is not changed.
     """
     free = cov.free(model)
     x0 = free.vector()
     C = cov.matrix.to(x0)
-    sd = C.diagonal().sqrt()
     u = len(x0)
     n = len(ctx.q)
     if u == 0 or n == 0:
         return torch.zeros(n, 3, dtype=x0.dtype, device=x0.device)
-    J = central_jacobian(model, free, ctx, sd, zero_step=1e-12)
+    J = model_jacobian(model, free, ctx, x0)
     var = torch.einsum("nau,uv,nav->na", J, C, J)
     return var.clamp(min=0).sqrt()
 
