@@ -298,8 +298,14 @@ def _reweight(fun, x, w, group, names, huber_rounds, irls_rounds, round_iter, st
     rounds = 0
     for rnd in range(irls_rounds):
         rounds += 1
+        # a round gives its solution only (the weights come from the residuals there): no Jacobian at the solution
         res = levenberg_marquardt(
-            _weighted(fun, w.sqrt(), group), x, names=names, max_iter=round_iter, stat_tol=stat_tol
+            _weighted(fun, w.sqrt(), group),
+            x,
+            names=names,
+            max_iter=round_iter,
+            stat_tol=stat_tol,
+            solution_jacobian=False,
         )
         if res.status in FAILED:
             raise EstimationError(f"robust fit, reweighting round {rnd + 1}: least squares {res.status}: {res.message}")
