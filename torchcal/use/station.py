@@ -20,7 +20,8 @@ The fit:
    priors; its covariance ``s0^2 N^-1`` (scaled by the fit's own variance factor: on real data the robot's remaining
    model error, not the tracker noise, sets the scatter of a few points).
 4. The run's own parameter uncertainty carried into the new placement: with ``g`` the run's parameters that stay
-   (covariance ``C_gg`` from ``covariance.pt``) and ``A = -(J_s^T J_s)^-1 J_s^T J_g`` (whitened Jacobians at the
+   (covariance ``C_gg`` from ``covariance.pt``, the geometric elements its rows could not tell held at the robot's
+   manufacturing tolerance: :func:`held_at_tolerance`) and ``A = -(J_s^T J_s)^-1 J_s^T J_g`` (whitened Jacobians at the
    points), the placement is ``s = s_noise + A g``, so ``C_ss = C_noise + A C_gg A^T`` and ``C_gs = C_gg A^T``;
    RUN2's ``covariance.pt`` holds the whole matrix, so ``predict``'s ``sx, sy, sz`` include the placement.
 5. Checks: per-point residuals and leave-one-out errors (the point predicted by the placement fitted to the others,
