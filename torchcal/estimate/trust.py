@@ -252,8 +252,9 @@ class FewRows:
     ``a``, one below ``sqrt(T / chi2_3n(1 - a))`` errors that large: these bounds say which way ``sigma_0`` is off.
     The sigma uses ``k = sqrt(T / chi2_3n(c))`` (:data:`FEW_ROWS_COVER`), the largest scale the rows allow at ``c``:
     ``sigma_0`` holds no level for what the model leaves unexplained (too few rows to measure one), so it is a floor,
-    and a few rows that happen to miss little must not make it one; a covariance 50 times the errors (poorly
-    determined parameters, seven held-out rows) comes down to what the rows allow, one the errors exceed goes up.
+    and a few rows that happen to miss little must not make it one (``k >= 1`` unless the rows reject ``sigma_0`` as
+    too large); a covariance 50 times the errors (poorly determined parameters, seven held-out rows) comes down to
+    what the rows allow, one the errors exceed goes up.
     Where ``sigma_0`` is right the scale is about ``sqrt(3n / chi2_3n(c))`` (1.3 for 8 rows): the median
     ``|error| / sigma`` about 0.5.
 
@@ -278,7 +279,8 @@ class FewRows:
 
         k = 3 * self.n
         T = self.low**2 * chi2_quantile(1.0 - FEW_ROWS_ALPHA, k)
-        return max(math.sqrt(T / chi2_quantile(FEW_ROWS_COVER, k)), 1e-12)
+        upper = max(math.sqrt(T / chi2_quantile(FEW_ROWS_COVER, k)), 1e-12)
+        return upper if self.high < 1.0 else max(upper, 1.0)  # below the floor only where the rows reject it
 
     @property
     def direction(self) -> str:
