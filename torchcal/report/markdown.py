@@ -404,6 +404,16 @@ def _parameters_section(par: dict) -> list[str]:
     return lines
 
 
+def effect_line(e: dict) -> str:
+    """One found effect (an entry of the run's ``effects_report``) as the demo and ``calibrate`` print it: its name,
+    its parameters with their units and the one p-value it was admitted on (named: the localisation's or the score
+    test's, the same as report.md's)."""
+    name = e["kind"] + (f" (joint {e['joint']})" if e["joint"] is not None else "")
+    words = effect_params_words(e["params"])
+    ev = e["evidence"]
+    return name + (f": {words}" if words else "") + (f"; {named_p(ev)}" if "p_bonferroni" in ev else "")
+
+
 def effect_params_words(params: dict) -> str:
     """An effect's fitted parameters as report.md and the terminal print them: ``k = 2.49e-06 rad/(N m) ± 9.1e-08``
     (the unit report.json gives beside the value; none for a parameter without one)."""
