@@ -15,24 +15,26 @@ from torchcal.report.ekf_plots import ekf_section
 
 
 def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
+    """Each held-out pose's error after the kinematic calibration and with the final model, the poses sorted by the
+    former: what each pose gained, and the poses the final model leaves above the rest. The steps between are the
+    story table's (drawn here, their points lay over each other and hid both)."""
+    first, last = _geometric(run), run.stages[-1]
+    order = torch.argsort(first.holdout_errors.detach().cpu())
+    x = torch.arange(len(order)).tolist()
     fig, ax = subplots(figsize=(9, 3.2))
-    x = torch.arange(len(run.holdout_idx))
-    colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
     # from the kinematic calibration on: the nominal model's error (several times larger) would set the scale and
     # hide the steps that follow; its RMSE is in the title
-    for k, s in enumerate(run.stages):
-        if s.name == "nominal":
-            continue
-        color = "tab:blue" if k == len(run.stages) - 1 and k > 1 else colors[k % len(colors)]
-        ax.plot(
-            x, (s.holdout_errors * 1e3).cpu(), ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)"
-        )
-    ax.set_xlabel("held-out pose")
+    shown = [(first, "0.55", "kinematic calibration")]
+    if last is not first:
+        shown.append((last, "tab:blue", f"final ({last.name})"))
+    for s, color, name in shown:
+        e = (s.holdout_errors.detach().cpu()[order] * 1e3).tolist()
+        ax.plot(x, e, ".", ms=3, color=color, label=f"{name}: RMSE {s.rmse * 1e3:.3f} mm")
+    ax.set_xlabel("held-out pose, sorted by its error after the kinematic calibration")
     ax.set_ylabel("|position error| [mm]")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left")
     ax.set_title(
-        f"Held-out position error per pose, from the kinematic calibration on (nominal: RMSE "
-        f"{run.stages[0].rmse * 1e3:.3f} mm)",
+        f"Held-out position error per pose (nominal geometry: RMSE {run.stages[0].rmse * 1e3:.3f} mm)",
         fontsize=10,
         y=TITLE_Y,
     )
@@ -134,7 +136,7 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
     panels = (
         (axes[0], "before", "before: residual of the model without it"),
-        (axes[1], "after", "after: residual of the joint refit with it"),
+        (axes[1], "after", "after: residual with it, the geometry refitted jointly"),
     )
     for ax, key, title in panels:
         ax.plot(
@@ -263,8 +265,10 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
         "## Plots",
         "",
-        "Each held-out pose's error at every step from the kinematic calibration on (the nominal model's, several "
-        "times larger, is in the title): look for poses the final model leaves far above the rest.",
+        "Each held-out pose's error after the kinematic calibration (grey) and with the final model (blue), the "
+        "poses sorted by the former (the nominal model's RMSE, several times larger, is in the title; the steps "
+        "between are in the story's table): look for poses the final model leaves far above the rest, or above "
+        "their kinematic error.",
         "",
         "![errors per pose](errors_per_pose.png)",
         "",
@@ -691,7 +695,8 @@ def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
                 f"![{d.candidate.name}]({name})",
                 "",
                 "The training residual along the effect's direction against its variable, without the effect "
-                "(left) and after the joint refit with it (right), with the fitted effect in red: an effect the "
+                "(left) and after the geometry was refitted jointly with it (right), with the fitted effect in red "
+                "(it can exceed the trend on the left: the geometry alone had absorbed a share of it): an effect the "
                 "data demand leaves the right panel flat.",
                 "",
             ]
@@ -732,20 +737,25 @@ def plot_unexplained(entry: dict, path: Path) -> None:
     joint = sm["unit"] == "rad"
     scale, unit = (1e6, "urad") if joint else (1e6, "um")
     fig, ax = subplots(figsize=(7, 3.6))
-    cols = [f[:, None], se[:, None]] if f.dim() == 1 else [f, se]
+    se_shape = torch.tensor(sm["se_shape"], dtype=torch.float64) if "se_shape" in sm else None
+    cols = [f, se, se_shape]
+    if f.dim() == 1:
+        cols = [None if c is None else c[:, None] for c in cols]
     names = ["joint error"] if joint else ["x", "y", "z"]
     for c, name in enumerate(names):
         v, s = cols[0][:, c] * scale, cols[1][:, c] * scale
         style = "o-" if len(x) <= 2 else "-"
         # where the band is wider than the curve's whole variation, the smooth's level is not determined (a constant
-        # the geometry carries, a joint offset): its shape is drawn about zero, without a band the data do not support
+        # the geometry carries, a joint offset): its shape is drawn about zero, with the shape's own band (that of
+        # the smooth less its mean), and without a band where the report has none for it
         shape_only = float(s.min()) > float(v.max() - v.min())
         if shape_only:
             v = v - v.mean()
+            s = None if cols[2] is None else cols[2][:, c] * scale
         ax.plot(
             x.tolist(), v.tolist(), style, lw=1.2, label=name + (" (shape; level not determined)" if shape_only else "")
         )
-        if not shape_only:
+        if s is not None:
             ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel(entry["label"])
@@ -788,7 +798,8 @@ def _unexplained_section(report: dict, out: Path) -> list[str]:
         "",
         f"The smooth of the final model's training residual in {entries[0]['variable']}, with a band of two standard "
         "errors: a curve that leaves zero by more than its band is what the model still lacks there (where its "
-        "level is not determined, only its shape is drawn, about zero and without a band).",
+        "level is not determined, a joint offset the geometry carries, only its shape is drawn, about zero, with the "
+        "shape's band: look for where the curve leaves its band, not for its level).",
         "",
         f"![unexplained {entries[0]['variable']}]({name})",
         "",
