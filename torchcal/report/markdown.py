@@ -133,6 +133,9 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     before, after = decision.models
     v = residual_view(decision.candidate, before, after, ctx, train.p)
     x = v["x"].tolist()
+    # less its mean over the poses: a constant along the effect's direction is a joint offset or an instrument shift
+    # the geometry carries (a compliance under torques of one sign sat 1 mm below residuals about zero)
+    effect = v["effect"] - v["effect"].mean()
     fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
     panels = (
         (axes[0], "before", "before: residual of the model without it"),
@@ -150,21 +153,31 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
         order = torch.argsort(v["x"])
         ax.plot(
             [x[i] for i in order.tolist()],
-            (v["effect"][order] * 1e6).tolist(),
+            (effect[order] * 1e6).tolist(),
             ".",
             ms=2,
             color="tab:red",
-            label="fitted effect",
+            label="fitted effect, less its mean",
         )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(v["xlabel"])
         ax.set_title(title, fontsize=9, y=TITLE_Y)
         ax.legend(fontsize=7, loc="upper left")
     axes[0].set_ylabel("[um]")
+    # an effect far beyond the residuals (a candidate confounded with the geometry, which takes the rest: a rejected
+    # cyclic term on Series C reached 16 mm over residuals of 1 mm) would set the scale and hide them
+    lim = 1.15e6 * float(torch.cat([v["before"], v["after"]]).abs().max())
+    reach = 1e6 * float(effect.abs().max())
+    if reach > 1.5 * lim:
+        axes[0].set_ylim(-lim, lim)
+        for ax in axes:
+            ax.text(0.99, 0.02, f"fitted effect beyond the axis: up to {reach:.3g} um", transform=ax.transAxes,
+                    ha="right", va="bottom", fontsize=7, color="tab:red")  # fmt: skip
     verdict = "accepted" if decision.accepted else "rejected"
     fig.suptitle(
-        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect: the "
-        "fitted effect can exceed the trend\nthe geometry alone left, whose share of it the geometry had absorbed",
+        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect and "
+        "carries its mean: the fitted effect can exceed\nthe trend the geometry alone left, whose share of it the "
+        "geometry had absorbed",
         fontsize=9,
     )
     save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.13, "top": 0.8, "wspace": 0.05})
@@ -695,9 +708,9 @@ def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
                 f"![{d.candidate.name}]({name})",
                 "",
                 "The training residual along the effect's direction against its variable, without the effect "
-                "(left) and after the geometry was refitted jointly with it (right), with the fitted effect in red "
-                "(it can exceed the trend on the left: the geometry alone had absorbed a share of it): an effect the "
-                "data demand leaves the right panel flat.",
+                "(left) and after the geometry was refitted jointly with it (right), with the fitted effect less its "
+                "mean (a constant the geometry carries) in red (it can exceed the trend on the left: the geometry "
+                "alone had absorbed a share of it): an effect the data demand leaves the right panel flat.",
                 "",
             ]
     return lines
