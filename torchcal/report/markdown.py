@@ -695,10 +695,14 @@ def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
             continue
         v = d.validation
         verdict = "**accepted**" if d.accepted else "**rejected**"
+        # a candidate rejected on its form (terms that cancel) is not put to the paired test: no z, no p to print
+        tested = math.isfinite(v["z"]) and math.isfinite(v["p_value"])
+        paired = (
+            f"paired z = {v['z']:.2f}, p = {v['p_value']:.2g}" if tested else "no paired test: rejected on its form"
+        )
         lines += [
             f"{d.candidate.name} ({named_p(d.score.to_dict())}): {verdict}: {d.reason}. Validation RMSE "
-            f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, "
-            f"p = {v['p_value']:.2g}).",
+            f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm ({paired}).",
             "",
         ]
         if d.models is not None:
