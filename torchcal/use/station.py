@@ -522,7 +522,7 @@ def _point_checks(
     if dof > 0 and not chi["passed"]:
         why = "the load or the robot changed"
         if not opts.tool:
-            why = "another tool than the run's (--tool), or the robot moved"
+            why = "another tool than the run's (tool=True, --tool), or the robot moved"
         warnings.append(
             f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
             f"freedom): a point measured wrongly, {why}"
@@ -548,8 +548,9 @@ def _refuse_foreign(points: Measurements, r: Tensor, expected: float) -> None:
         raise StationError(
             f"{points.source or 'the points'}: the {points.n} points fit the run's robot with a median residual of "
             f"{med * 1e3:.4g} mm, {med / expected:.0f} times the {expected * 1e3:.3g} mm the run predicts per point "
-            f"(limit {MAX_RESIDUAL_FACTOR:g} x): points of another robot, in other units (--length-unit, "
-            "--angle-unit), joints in another order or sign, or another tool than the run's (--tool)"
+            f"(limit {MAX_RESIDUAL_FACTOR:g} x): points of another robot, in other units (length_unit=, "
+            "angle_unit=; --length-unit, --angle-unit), joints in another order or sign, or another tool than the "
+            "run's (tool=True, --tool)"
         )
 
 
@@ -646,7 +647,7 @@ def restation(
     try:
         station, refused = fit_station(model, points, opts, cov, load_sigma), None
     except StationError as e:  # points far off the run: another tool is one of the reasons it names
-        if tool or model.robot.probes or "--tool" not in str(e):
+        if tool or model.robot.probes or "another tool than the run's" not in str(e):
             raise
         station, refused = None, e
     if not tool and not model.robot.probes and (station is None or not station.chi_square["passed"]):
@@ -740,7 +741,9 @@ def _try_new_tool(
     except StationError as e:  # too few points, or orientations that do not fix a lever arm
         if station is None:
             raise refused from None
-        station.warnings.append(f"a changed tool could not be tested ({e}); if the tool changed, give --tool")
+        station.warnings.append(
+            f"a changed tool could not be tested ({e}); if the tool changed, give tool=True (--tool)"
+        )
         return model, station
     chi0, chi1 = None if station is None else station.chi_square, alt.chi_square
     before = "too far off to fit"
@@ -751,7 +754,7 @@ def _try_new_tool(
             0,
             f"the points fit worse than the run predicts with its lever arm ({before}) and as predicted with a new "
             f"one (chi-square {chi1['statistic']:.3g} <= {chi1['threshold']:.3g}): the tool changed, its lever arm "
-            "was fitted too (as --tool does)",
+            "was fitted too (as with tool=True, --tool)",
         )
         return alt_model, alt
     if _tool_supported(chi0, chi1):
@@ -759,7 +762,7 @@ def _try_new_tool(
             0,
             f"the points fit worse than the run predicts with its lever arm ({before}); a new lever arm explains most "
             f"of it (chi-square {chi1['statistic']:.3g}, {chi1['threshold']:.3g} expected at most): the tool changed, "
-            "its lever arm was fitted too (as --tool does); the rest is more than a new placement and tool: "
+            "its lever arm was fitted too (as with tool=True, --tool); the rest is more than a new placement and tool: "
             f"{_what_else(start, points)}",
         )
         return alt_model, alt
@@ -800,9 +803,12 @@ def _what_else(model: MeasurementModel, points: Measurements) -> str:
         return (
             "the robot's load (the run's compliance reads each row's payload: give the points' payload column, "
             "kg, where the robot carries another load than in the calibration), its base or the robot itself "
-            "changed; calibrate again (calibrate --prior RUN) where that does not explain it"
+            "changed; calibrate again from the run (prior=, --prior RUN) where that does not explain it"
         )
-    return "the robot, its load or its base changed beyond a new placement; calibrate again (calibrate --prior RUN)"
+    return (
+        "the robot, its load or its base changed beyond a new placement; calibrate again from the run (prior=, "
+        "--prior RUN)"
+    )
 
 
 def _with_load_scale(meta: dict, station: Station, points: Measurements, opts, load_sigma: Tensor) -> dict:
@@ -862,12 +868,14 @@ def _points_rows(
     where = points.source or "the points"
     known = model.robot.probes
     if probe is not None and not known:
-        raise StationError(f"{run_dir}: the run has a single probe (its lever arm is used); drop --probe {probe!r}")
+        raise StationError(
+            f"{run_dir}: the run has a single probe (its lever arm is used); drop probe={probe!r} (--probe)"
+        )
     if tool and known:
         raise StationError(
-            f"{run_dir}: the run has probes {', '.join(known)} on one nest, each with its lever arm; --tool fits one "
-            "new lever arm and cannot tell which probe it replaces: re-station without --tool (every probe's lever "
-            "arm is kept), or calibrate the new tool"
+            f"{run_dir}: the run has probes {', '.join(known)} on one nest, each with its lever arm; tool=True "
+            "(--tool) fits one new lever arm and cannot tell which probe it replaces: re-station without it (every "
+            "probe's lever arm is kept), or calibrate the new tool"
         )
     stations = _names(points, "station")
     if len(stations) > 1:
@@ -879,7 +887,9 @@ def _points_rows(
     if probe is not None:
         named = _names(points, "probe")
         if named and set(named) != {probe}:
-            raise StationError(f"{where}: --probe {probe!r} but the points' probe column names {', '.join(named)}")
+            raise StationError(
+                f"{where}: probe={probe!r} (--probe) but the points' probe column names {', '.join(named)}"
+            )
         if probe not in known:
             raise StationError(f"{run_dir}: probe {probe!r} is not one of the run's ({', '.join(known)})")
         idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
