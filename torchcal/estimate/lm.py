@@ -292,12 +292,19 @@ def _levenberg_marquardt(
             )
             break
     if not J_at_x and (solution_jacobian or J is None):  # a step was taken after the last Jacobian (or none was)
-        J = jac(x).detach()
+        J, J_at_x = jac(x).detach(), True
         N = J.T @ J
-        s = _jacobi(N)
-        J_at_x = True
-    if status != FitStatus.FAILED_SOLVE and int(torch.linalg.cholesky_ex(N * s[:, None] * s[None, :])[1]) != 0:
-        status, message = FitStatus.FAILED_SOLVE, "the normal matrix at the solution is singular (rank deficient)"
-    if not J_at_x and status != FitStatus.FAILED_SOLVE:  # the last iteration's (not the solution's) names a failure
-        N = J = None
-    return LMResult(status, it, x, history, names, len(r), message, N, r, J)
+    return _finish(LMResult(status, it, x, history, names, len(r), message, N, r, J), J_at_x)
+
+
+def _finish(res: LMResult, at_solution: bool) -> LMResult:
+    """``res`` failed where its normal matrix (the solution's, else the last iteration's) is singular; a normal
+    matrix and Jacobian not at the solution are dropped from it unless they name that failure."""
+    N = res.normal
+    s = _jacobi(N)
+    if res.status != FitStatus.FAILED_SOLVE and int(torch.linalg.cholesky_ex(N * s[:, None] * s[None, :])[1]) != 0:
+        res.status = FitStatus.FAILED_SOLVE
+        res.message = "the normal matrix at the solution is singular (rank deficient)"
+    if not at_solution and res.status != FitStatus.FAILED_SOLVE:
+        res.normal = res.jacobian = None
+    return res
