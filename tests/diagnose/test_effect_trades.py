@@ -64,3 +64,27 @@ def test_a_run_that_names_a_coupling_reports_no_trade():
     run = calibrate("ur5", c.train, Options.of(seed=0))
     assert [e.kind for e in run.model.effects] == ["coupling"]
     assert run.diagnosis.trades == [] and "trades" not in run.diagnosis.to_dict()
+
+
+def test_a_trade_with_the_geometry_is_held_at_the_effects_zero(narrow_run):
+    """Over 4 degrees the harmonic's cosine is joint 2's offset and its sine a bend the link lengths and offsets
+    make: both amplitudes are held at zero and the model refitted; the trades are gone from the refit, the
+    identifiability analysis names the held elements with their reason, and the fit is as good (the data could not
+    tell them apart)."""
+    from torchcal.estimate.fit import errors
+    from torchcal.pipeline.effect_holds import hold_trades
+    from torchcal.stats import rmse
+
+    run, train = narrow_run
+    model, fit = _refit_with(run, train, Cyclic(2, harmonics=(1,)))
+    trades = effect_trades(model, fit)
+    before = rmse(errors(model, train, False))
+    held_fit, names = hold_trades(model, train, run.identifiability, trades, run.options.fit, trajectory=False)
+    assert held_fit is not None and sorted(names) == ["cyclic(joint 2).a", "cyclic(joint 2).b"], names
+    assert float(model.effects[-1].b.detach().abs().max()) == 0.0 == float(model.effects[-1].a.detach().abs().max())
+    assert not set(names) & set(held_fit.result.names)
+    assert effect_trades(model, held_fit) == []
+    entry = next(f for f in held_fit.identifiability.fixed if f["name"] == "cyclic(joint 2).b")
+    assert "held at the effect's zero" in entry["reason"] and any("theta" in d for d in entry["depends_on"])
+    assert names[0] not in run.identifiability.names  # the run's own analysis is left as it was
+    assert rmse(errors(model, train, False)) <= before * 1.001

@@ -33,6 +33,7 @@ poses (a seeded random 20 %, or the last 20 % of a trajectory).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -57,6 +58,7 @@ from torchcal.effects.joint import LUMPED_FORM, MAX_COMPLIANCE, LumpedCompliance
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.estimate.identifiability import MAX_CORRELATION, weak_combinations
+from torchcal.pipeline.effect_holds import hold_trades
 from torchcal.pipeline.holdout import GUARD_MIN_POSES
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
 from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
@@ -102,10 +104,8 @@ def close_loop(
         search.diag.stop = f"reached the limit of {max_effects} effects"
         for loc in localise_fit(work.model, search.ctx, run.train.p, work.fits[-1])[0] if open_forms else []:
             search.open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
+    search.diag.trades = _hold_trades(work, effect_trades(work.model, work.fits[-1]))
     final = work.fits[-1]
-    search.diag.trades = effect_trades(work.model, final)
-    for t in search.diag.trades:
-        work.note(t["note"])
     if open_forms and not final.global_test.get("passed", True):
         search.diag.unexplained = unexplained_entries(
             work.model, search.ctx, run.train.p, final, run.options.levels.score, search.open_notes
@@ -293,6 +293,39 @@ class _Search:
         self.base, self.e_base = accepted.trial, accepted.errors
         self.edge_bases.clear()
         return True
+
+
+def _hold_trades(work: StageWork, trades: list[dict]) -> list[dict]:
+    """Hold the effect members of the trades with the geometry at zero and refit (:mod:`torchcal.pipeline.
+    effect_holds`); the last checkpoint and the effects' records then show the model so held. Each trade gets
+    ``held`` (the elements held, empty where it is only named) and its note, which the run's notes carry."""
+    run = work.run
+    fit, names = hold_trades(
+        work.model, run.train, run.identifiability, trades, run.options.fit, trajectory=run.trajectory
+    )
+    if fit is not None:
+        work.fits.append(fit)
+        name = work.stages.pop().name
+        after = work.add_stage(name)
+        labels = [e.label() for e in work.model.effects]
+        for i, r in enumerate(work.effects):
+            if r.label not in labels:
+                continue
+            params = {**r.params, **effect_parameters(work.model, labels.index(r.label), fit)}
+            for short, entry in params.items():
+                if f"{r.label}.{short}" in names:
+                    entry["note"] = "held at zero: the data cannot tell it from the geometry (identifiability)"
+            after_mm = after.rmse * 1e3 if r.label == name else r.rmse_after_mm
+            work.effects[i] = dataclasses.replace(r, params=params, rmse_after_mm=after_mm)
+    for t in trades:
+        t["held"] = [n for n in t["effects"] if n in names]
+        if t["held"]:
+            t["note"] = t["note"].replace(
+                "the values along it are the priors' and the start's",
+                f"held at the effect's zero ({', '.join(t['held'])}): the geometry keeps what both explain",
+            )
+        work.note(t["note"])
+    return trades
 
 
 def effect_trades(model: MeasurementModel, fit, max_correlation: float = MAX_CORRELATION) -> list[dict]:
