@@ -183,3 +183,59 @@ def test_each_instrument_term_scores_first_where_it_is_injected(effect, name):
 def test_no_instrument_term_is_significant_on_a_clean_campaign():
     scores = _instrument_scores([])
     assert not [s.candidate.name for s in scores if s.significant(0.05)]
+
+
+def _two_instruments(split: bool):
+    """A three-station UR5 campaign of 200 poses whose tracker has an azimuth harmonic 2 of 60 urad; with ``split``,
+    station S3 was measured by another tracker whose harmonic has the opposite sign. Returns the kinematic run with
+    the harmonic fitted jointly, its fit and its training data."""
+    import copy
+    import dataclasses
+
+    from torchcal.estimate.fit import GEOMETRIC_GROUPS, solve
+    from torchcal.pipeline import Options, calibrate
+    from torchcal.sim import EffectSpec, SimConfig, simulate
+
+    c = simulate(
+        SimConfig(
+            robot="ur5", poses=200, test_poses=0, seed=5, stations=3, effects=[EffectSpec.parse("tracker_az:2=60urad")]
+        )
+    )
+    data = c.train
+    if split:
+        other = copy.deepcopy(c.model)
+        with torch.no_grad():
+            other.effects[0].a.neg_()
+            other.effects[0].b.neg_()
+            ctx = Context.from_measurements(data, trajectory=False)
+            move = (other(ctx) - c.model(ctx)) * (data.station == data.station_names.index("S3")).unsqueeze(-1)
+        data = dataclasses.replace(data, p=data.p + move)
+    run = calibrate("ur5", data, Options.of(method="kinematic", seed=0))
+    train = data.subset(run.train_idx)
+    model = copy.deepcopy(run.model)
+    model.add(TrackerError("azimuth", (2,)))
+    fit = solve(
+        model,
+        train,
+        GEOMETRIC_GROUPS,
+        run.options.fit,
+        "t",
+        trajectory=False,
+        effects=True,
+        identifiability=run.identifiability,
+    )
+    return model, fit, train
+
+
+@pytest.mark.parametrize("split", [False, True])
+def test_a_station_whose_instrument_differs_is_named(split):
+    """One tracker re-stationed: no station differs from the shared fit; a second tracker at S3 (its harmonic
+    reversed): S3 differs (diagnose.stations)."""
+    from torchcal.diagnose.stations import station_consistency
+
+    model, fit, train = _two_instruments(split)
+    ctx = Context.from_measurements(train, trajectory=False)
+    tests = station_consistency(model, fit.result, ctx, train.p, fit.whitening, train.station_names, 0.05)
+    assert len(tests) == 3 and all(t["dof"] == 2 for t in tests)
+    differs = sorted(t["station"] for t in tests if t["differs"])
+    assert ("S3" in differs) if split else differs == [], tests

@@ -44,6 +44,7 @@ from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.diagnose.candidates import Candidate, candidates
 from torchcal.diagnose.score import Score, named_p, score_candidates
+from torchcal.diagnose.stations import station_consistency
 from torchcal.diagnose.tracing import (
     LocalisationScore,
     OpenCandidate,
@@ -106,6 +107,7 @@ def close_loop(
             search.open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
     search.diag.trades = _hold_trades(work, effect_trades(work.model, work.fits[-1]))
     final = work.fits[-1]
+    _stations(search, final)
     if open_forms and not final.global_test.get("passed", True):
         search.diag.unexplained = unexplained_entries(
             work.model, search.ctx, run.train.p, final, run.options.levels.score, search.open_notes
@@ -293,6 +295,28 @@ class _Search:
         self.base, self.e_base = accepted.trial, accepted.errors
         self.edge_bases.clear()
         return True
+
+
+def _stations(search: _Search, final) -> None:
+    """Whether the stations share the instrument whose errors the loop found (:mod:`torchcal.diagnose.stations`):
+    the tests go to the diagnosis, a station that differs to the run's notes."""
+    run = search.run
+    search.diag.stations = station_consistency(
+        search.work.model,
+        final.result,
+        search.ctx,
+        run.train.p,
+        final.whitening,
+        run.train.station_names,
+        search.diag.alpha,
+    )
+    for t in search.diag.stations:
+        if t["differs"]:
+            search.work.note(
+                f"instrument: {t['effect']} differs at station {t['station']} (score test chi2 {t['statistic']:.1f} "
+                f"on {t['dof']} dof, Bonferroni p = {t['p_bonferroni']:.2g}): the stations may not share one "
+                "instrument; a file per instrument calibrates each apart"
+            )
 
 
 def _hold_trades(work: StageWork, trades: list[dict]) -> list[dict]:
