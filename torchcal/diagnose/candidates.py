@@ -206,8 +206,8 @@ def _spherical(robot, ctx: Context, term: str) -> tuple[Tensor, str]:
 def _instrument_untold(robot, ctx: Context) -> str | None:
     """Why the data cannot tell the instrument's own errors from its pose and the geometry (None: they can): one
     station whose points span less than :data:`MIN_AZIMUTH_SPAN` in azimuth. A low encoder harmonic over a narrow span
-    is a turn and a stretch the instrument pose and the arm's lengths take up, and a range scale about one placement is
-    the arm's own scale; a second placement of the same instrument, or a wide span, sets them apart."""
+    is a turn and a stretch the instrument pose and the arm's lengths take up, a tilt a turn, a beam offset a shift; a
+    second placement of the same instrument, or a wide span, sets them apart."""
     if len(robot.stations) > 1:
         return None
     az, _ = _spherical(robot, ctx, "azimuth")
@@ -219,7 +219,7 @@ def _instrument_untold(robot, ctx: Context) -> str | None:
     return (
         f"one station, whose points span {math.degrees(span):.0f} deg in azimuth "
         f"(< {math.degrees(MIN_AZIMUTH_SPAN):.0f}): the instrument pose and the geometry take up its low encoder "
-        "harmonics and its range scale; several stations or a wider span tell them"
+        "harmonics, its axes' tilt and its beam's offset; several stations or a wider span tell them"
     )
 
 
