@@ -239,3 +239,30 @@ def test_a_station_whose_instrument_differs_is_named(split):
     assert len(tests) == 3 and all(t["dof"] == 2 for t in tests)
     differs = sorted(t["station"] for t in tests if t["differs"])
     assert ("S3" in differs) if split else differs == [], tests
+
+
+def test_simulate_takes_the_tilts_and_the_beam_offset_by_value_or_size():
+    from torchcal.sim import EffectSpec, SimConfig, simulate
+
+    spec = EffectSpec.parse("axis_tilt=40urad")
+    assert (spec.kind, spec.variable, spec.amount) == ("axis_tilt", "tilt", pytest.approx(4e-5))
+    assert EffectSpec.parse("beam_tilt=20urad").amount == pytest.approx(2e-5)
+    assert EffectSpec.parse("beam_offset=30um").size == pytest.approx(3e-5)
+    with pytest.raises(OptionError, match="urad or a length"):
+        EffectSpec.parse("axis_tilt=5ppm")
+    with pytest.raises(OptionError, match="takes no joint or order"):
+        EffectSpec.parse("beam_offset:2=30um")
+    c = simulate(
+        SimConfig(
+            robot="ur5",
+            poses=40,
+            test_poses=0,
+            seed=2,
+            stations=2,
+            effects=[EffectSpec.parse(e) for e in ("axis_tilt=40urad", "beam_offset=30um", "tracker_el:5=20urad")],
+        )
+    )
+    tilt, beam, el = c.truth["effects"]
+    assert tilt["params"] == {"term": "tilt", "trunnion_rad": pytest.approx(4e-5), "beam_rad": 0.0}
+    assert math.hypot(beam["params"]["azimuth_m"], beam["params"]["elevation_m"]) == pytest.approx(3e-5)
+    assert beam["size_m"] == pytest.approx(3e-5) and el["order"] == 5 and "order" not in tilt
