@@ -11,9 +11,13 @@ geometric error, or the reverse, and a prediction away from the training poses w
 The rule of the geometry's own after-fit check is applied to the effects: of each weak combination with a geometric
 member, the effect's members are held, here at zero (the effect's nominal value, as the geometry's is its nominal
 one): the geometry keeps what both explain, which is what the model without the effect would say, and the effect
-keeps what only it explains. The held elements join the run's identifiability analysis as ``fixed`` entries with their
-reason (report.json's ``parameters.identifiability``), so the later stages hold them too. A combination among effects
-alone is named, not held: neither side is the nominal one.
+keeps what only it explains. As there, a member whose fitted value the data put farther than the 0.999 quantile of
+chi-square with one degree of freedom from zero (in its own posterior sigma, which the correlation already inflates)
+is kept and named instead: the data reject its zero, so holding it would throw away what they tell (an azimuth
+harmonic 1 of 20 urad on three stations trades with the stations' poses at 0.999 yet is fitted many sigma from zero,
+and the true form's held-out error is the loop's only with it). The held elements join the run's identifiability
+analysis as ``fixed`` entries with their reason (report.json's ``parameters.identifiability``), so the later stages
+hold them too. A combination among effects alone is named, not held: neither side is the nominal one.
 """
 
 from __future__ import annotations
@@ -27,12 +31,25 @@ from torchcal.data import Measurements
 from torchcal.effects import MeasurementModel
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, Fit, FitOptions, effect_parameter_labels, solve
-from torchcal.estimate.identifiability import Identifiability
+from torchcal.estimate.identifiability import CHI2_1_999, Identifiability
 
 
-def held_analysis(ida: Identifiability, trades: list[dict]) -> tuple[Identifiability, list[str]]:
+def _z(fit: Fit | None, name: str) -> float:
+    """How many posterior sigmas the fitted value of ``name`` lies from zero (0 where ``fit`` does not estimate it);
+    the variance factor counts only where it exceeds one (:func:`~torchcal.estimate.identifiability.weak_after_fit`)."""
+    if fit is None or name not in fit.result.names:
+        return 0.0
+    i = fit.result.names.index(name)
+    s0 = fit.result.sigma0_sq if math.isfinite(fit.result.sigma0_sq) and fit.result.sigma0_sq > 1.0 else 1.0
+    return abs(float(fit.result.x[i])) / math.sqrt(s0 * float(fit.result.cofactor[i, i]))
+
+
+def held_analysis(
+    ida: Identifiability, trades: list[dict], fit: Fit | None = None
+) -> tuple[Identifiability, list[str]]:
     """A copy of the analysis ``ida`` with the effect members of every trade that has a geometric member marked
-    held (module docstring), and the names held."""
+    held (module docstring), and the names held; a member ``fit`` puts beyond :data:`CHI2_1_999` from zero is kept,
+    and its trade lists it under ``kept`` with its distance in sigmas."""
     out = copy.deepcopy(ida)
     held: list[str] = []
     for t in trades:
@@ -40,6 +57,10 @@ def held_analysis(ida: Identifiability, trades: list[dict]) -> tuple[Identifiabi
             continue
         for name in t["effects"]:
             if name in held or name in out.names:
+                continue
+            z = _z(fit, name)
+            if z * z > CHI2_1_999:
+                t.setdefault("kept", {})[name] = z
                 continue
             held.append(name)
             out.names.append(name)
@@ -82,21 +103,25 @@ def hold_trades(
     opts: FitOptions,
     *,
     trajectory: bool,
+    fit: Fit | None = None,
 ) -> tuple[Fit | None, list[str]]:
     """Hold the effect members of ``trades`` with a geometric member at zero and refit ``model`` on ``train`` with
     the analysis ``ida`` so extended (module docstring).
+
+    Args:
+        fit: the fit the trades come from: a member it puts beyond :data:`CHI2_1_999` from zero is kept.
 
     Returns:
         The new fit (its ``identifiability`` the extended analysis) and the names held; ``(None, [])`` where nothing
         is to be held, or where the refit fails (the model is then as it was).
     """
-    ida_held, names = held_analysis(ida, trades)
+    ida_held, names = held_analysis(ida, trades, fit)
     if not names:
         return None, []
     before = copy.deepcopy(model.state_dict())
     _zero(model, names)
     try:
-        fit = solve(
+        new = solve(
             model,
             train,
             GEOMETRIC_GROUPS,
@@ -109,4 +134,4 @@ def hold_trades(
     except EstimationError:
         model.load_state_dict(before)
         return None, []
-    return fit, names
+    return new, names

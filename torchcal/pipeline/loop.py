@@ -325,7 +325,13 @@ def _hold_trades(work: StageWork, trades: list[dict]) -> list[dict]:
     ``held`` (the elements held, empty where it is only named) and its note, which the run's notes carry."""
     run = work.run
     fit, names = hold_trades(
-        work.model, run.train, run.identifiability, trades, run.options.fit, trajectory=run.trajectory
+        work.model,
+        run.train,
+        run.identifiability,
+        trades,
+        run.options.fit,
+        trajectory=run.trajectory,
+        fit=work.fits[-1],
     )
     if fit is not None:
         work.fits.append(fit)
@@ -347,6 +353,12 @@ def _hold_trades(work: StageWork, trades: list[dict]) -> list[dict]:
             t["note"] = t["note"].replace(
                 "the values along it are the priors' and the start's",
                 f"held at the effect's zero ({', '.join(t['held'])}): the geometry keeps what both explain",
+            )
+        elif t.get("kept"):
+            far = ", ".join(f"{n} {z:.1f} sigma" for n, z in t["kept"].items())
+            t["note"] = t["note"].replace(
+                "the values along it are the priors' and the start's",
+                f"kept: the data put it far from zero ({far}), though along that direction it shares with the geometry",
             )
         work.note(t["note"])
     return trades
