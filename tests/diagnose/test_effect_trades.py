@@ -92,9 +92,10 @@ def test_a_trade_with_the_geometry_is_held_at_the_effects_zero(narrow_run):
 
 @pytest.mark.slow
 def test_the_closed_loop_holds_a_trade_and_reports_it(monkeypatch, tmp_path):
-    """Through the loop, the run directory and report.json: a range offset on three stations of 200 poses trades with
-    the stations' positions at 0.995 (the threshold lowered to 0.9 to see it): it is held at zero, named in the
-    identifiability analysis with its reason, and its record and note say so."""
+    """Through the loop, the run directory and report.json (the trade threshold lowered to 0.9 to see trades on 200
+    poses): an azimuth harmonic 1 of 60 urad on three stations trades with the stations' positions at 0.998; its cosine
+    amplitude, 7 sigma from zero, is kept and named, its sine amplitude, which the data do not tell from zero, is held
+    there, named in the identifiability analysis with its reason, and its record and the note say so."""
     import functools
     import json
 
@@ -104,16 +105,18 @@ def test_the_closed_loop_holds_a_trade_and_reports_it(monkeypatch, tmp_path):
     monkeypatch.setattr(L, "effect_trades", functools.partial(effect_trades, max_correlation=0.9))
     c = simulate(
         SimConfig(
-            robot="ur5", poses=200, test_poses=0, seed=3, stations=3, effects=[EffectSpec.parse("range_offset=60um")]
+            robot="ur5", poses=200, test_poses=0, seed=3, stations=3, effects=[EffectSpec.parse("tracker_az:1=60urad")]
         )
     )
     run = calibrate("ur5", c.train, Options.of(seed=0))
-    assert [e["name"] for e in run.effects_report] == ["instrument:range"]
-    (t,) = run.diagnosis.trades
-    assert t["held"] == ["instrument(range offset).c"] and all(n.startswith("instrument[S") for n in t["robot"])
+    assert [e["name"] for e in run.effects_report] == ["instrument:azimuth:1"]
+    t = run.diagnosis.trades[0]
+    a, b = "instrument(azimuth harmonic 1).a", "instrument(azimuth harmonic 1).b"
+    assert t["held"] == [a] and list(t["kept"]) == [b] and t["kept"][b] ** 2 > 10.828, t
+    assert all(n.startswith("instrument[S") for n in t["robot"])
     assert any("held at the effect's zero" in n for n in run.notes)
     rep = json.loads((write_run(run, tmp_path / "run") / "report.json").read_text())
     fixed = {f["name"]: f["reason"] for f in rep["parameters"]["identifiability"]["fixed"]}
-    assert "held at the effect's zero" in fixed["instrument(range offset).c"]
-    c0 = rep["effects"][0]["params"]["c"]
-    assert c0["value"] == 0.0 and "held at zero" in c0["note"]
+    assert "held at the effect's zero" in fixed[a] and b not in fixed
+    params = rep["effects"][0]["params"]
+    assert params["a"]["value"] == 0.0 and "held at zero" in params["a"]["note"] and params["b"]["value"] != 0.0
