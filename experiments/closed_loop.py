@@ -141,6 +141,8 @@ def run_case(
         "rejected": [r.get("name", r["kind"]) for r in run.rejected],
     }
     out["truth_names"], out["found_names"] = truth_names(c.truth), found_names(run)
+    # an encoder harmonic's other orders the data hardly told from the one named (pipeline.loop._alike_orders)
+    out["found_alike"] = [n for e in run.effects_report for n in e.get("evidence", {}).get("alike", [])]
     out["truth_rms_um"] = [e["size_m"] * 1e6 for e in c.truth["effects"]]  # each effect's RMS probe displacement
     out["correct"] = sorted(out["truth_names"]) == sorted(out["found_names"])
     out["loop_mm"], out["test_loop_mm"] = run.stages[-1].rmse * 1e3, rmse(errors(run.model, c.test, traj)) * 1e3

@@ -266,3 +266,24 @@ def test_simulate_takes_the_tilts_and_the_beam_offset_by_value_or_size():
     assert tilt["params"] == {"term": "tilt", "trunnion_rad": pytest.approx(4e-5), "beam_rad": 0.0}
     assert math.hypot(beam["params"]["azimuth_m"], beam["params"]["elevation_m"]) == pytest.approx(3e-5)
     assert beam["size_m"] == pytest.approx(3e-5) and el["order"] == 5 and "order" not in tilt
+
+
+def test_an_encoder_order_the_data_hardly_part_from_its_neighbours_is_named_a_guess():
+    """The orders whose score statistic lies within 2 ln 20 of the accepted order's are listed (the same encoder's,
+    identifiable ones); another encoder's, another kind's and a far one's are not."""
+    from types import SimpleNamespace
+
+    from torchcal.diagnose.candidates import Candidate
+    from torchcal.pipeline.loop import ALIKE_CHI2, _alike_orders
+
+    def score(c, stat, ok=True):
+        return SimpleNamespace(candidate=c, statistic=stat, identifiable=ok)
+
+    el = {k: Candidate("instrument", None, "elevation", order=k) for k in range(1, 9)}
+    az3 = Candidate("instrument", None, "azimuth", order=3)
+    scores = [score(el[4], 307.8), score(el[5], 306.4), score(el[3], 306.0), score(el[2], 300.0)]
+    scores += [score(el[6], 307.0, ok=False), score(az3, 307.5), score(Candidate("cyclic", 2), 307.7)]
+    diag = SimpleNamespace(rounds=[{"scores": scores}])
+    assert ALIKE_CHI2 == pytest.approx(5.99, abs=0.01)
+    assert _alike_orders(el[4], diag) == ["instrument:elevation:5", "instrument:elevation:3"]
+    assert _alike_orders(Candidate("instrument", None, "range"), diag) == []

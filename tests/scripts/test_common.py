@@ -147,6 +147,10 @@ def test_the_instrument_grid_covers_every_harmonic_and_term_and_judges_name_and_
     }
     assert ie._row(row)["meets_target"] and not ie._row({**row, "loop_mm": 0.0301})["meets_target"]
     assert not ie._row({**row, "found_names": ["instrument:azimuth:4"]})["meets_target"]
+    # a neighbouring order the run itself calls a guess among the true one: not named right, but among the alike
+    guess = ie._row({**row, "found_names": ["instrument:azimuth:4"], "found_alike": ["instrument:azimuth:3"]})
+    assert not guess["named_right"] and guess["named_among_alike"]
+    assert not ie._row({**row, "found_names": ["instrument:azimuth:4"], "found_alike": []})["named_among_alike"]
     # a range scale is held, never named: its target is no name and the error within 1.2 x
     held = {
         **row,

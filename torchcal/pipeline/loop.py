@@ -706,7 +706,7 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
             cand.kind,
             cand.joint,
             params,
-            {**s.to_dict(), "round": v.round, "validation": v.validation, "global_test_after": new_fit.global_test},
+            _evidence(work, diag, v, new_fit),
             name=cand.name,
             label=label,
             rmse_before_mm=st_before.rmse * 1e3,
@@ -719,6 +719,52 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
     return True
+
+
+#: an encoder order whose score statistic lies within this of the accepted order's is one the data hardly tell from
+#: it: 2 ln 20, a likelihood ratio under 20 between two forms of as many parameters
+ALIKE_CHI2 = 2.0 * math.log(20.0)
+
+
+def _evidence(work: StageWork, diag: Diagnosis, v: _Validation, new_fit) -> dict:
+    """An accepted candidate's evidence for its record: its score, round, validation and the global test after it; an
+    encoder harmonic's orders the data hardly tell from it (``alike``, also noted)."""
+    cand = v.candidate
+    alike = _alike_orders(cand, diag)
+    if alike:
+        work.note(
+            f"diagnosis: {cand.name}'s order is a guess among {', '.join([cand.name, *alike])}: their score tests lie "
+            f"within chi2 {ALIKE_CHI2:g} of each other (a likelihood ratio under 20; over the span of the angle the "
+            "data see, these orders hardly differ)"
+        )
+    return {
+        **v.score.to_dict(),
+        "round": v.round,
+        "validation": v.validation,
+        "global_test_after": new_fit.global_test,
+        **({"alike": alike} if alike else {}),
+    }
+
+
+def _alike_orders(cand, diag: Diagnosis) -> list[str]:
+    """The other orders of an accepted encoder harmonic whose score test in its round came within :data:`ALIKE_CHI2`
+    of its own (empty for any other candidate): over a narrow span of the angle neighbouring orders are nearly the
+    same function, and the name's order is then the data's best guess among them."""
+    if getattr(cand, "kind", None) != "instrument" or getattr(cand, "order", None) is None or not diag.rounds:
+        return []
+    scores = diag.rounds[-1]["scores"]
+    own = next((x.statistic for x in scores if x.candidate.name == cand.name), None)
+    if own is None:
+        return []
+    return [
+        x.candidate.name
+        for x in scores
+        if x.candidate.name != cand.name
+        and getattr(x.candidate, "order", None) is not None
+        and x.candidate.variable == cand.variable
+        and x.identifiable
+        and own - x.statistic < ALIKE_CHI2
+    ]
 
 
 def _load_form(eff, params: dict) -> dict:
