@@ -662,7 +662,7 @@ def _step_back_to_nominal(work: StageWork, evidence: dict) -> bool:
     work ends with the nominal model, refitted on all samples where asked. A method never ends worse than the
     simpler one it replaces: under the tolerance priors a short trajectory's kinematic calibration can hold every
     geometric element at nominal, and its instrument and lever arm, fitted again, differ from the nominal stage's
-    only by where the solver stopped (tests/paths' trajectory cell: 0.05679 against 0.05660 mm).
+    only by where the solver stopped (docs/narrow-campaigns.md).
     ``evidence["nominal_guard"]`` holds the comparison. Returns whether it stepped back."""
     run = work.run
     nominal = run.stage(StageName.NOMINAL)
