@@ -443,3 +443,29 @@ def test_the_held_out_samples_only_ever_shorten_the_gate():
     ev = {}
     few = run.hold.subset(slice(0, I.VALIDATION_PIECES - 1))
     assert I._gate_on_holdout(wrong, run.train, few, **gate, evidence=ev) == 4.0 and not ev
+
+
+@pytest.mark.parametrize("spoiled", [False, True])
+def test_geometry_alone_steps_back_to_the_nominal_model_where_that_is_better_on_the_held_out_samples(spoiled):
+    """Where the integrated method keeps geometry alone, the kinematic calibration must beat the nominal stage on
+    the held-out samples, else the run ends with the nominal model (a method never worse than the simpler one)."""
+    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=400, train_samples=399, seed=2))
+    run = calibrate("ur5", c.train, Options(method="kinematic", seed=0))
+    work = StageWork(run, "integrated")
+    if spoiled:  # a kinematic calibration that lost its way: 2 mm on a1
+        geo = work.model.robot.groups()["geometry"]
+        with torch.no_grad():
+            geo.delta[0] += 2e-3
+    evidence = {}
+    I._keep_geometry(work, evidence, "no candidate")
+    guard, nominal = evidence["nominal_guard"], run.stage("nominal")
+    assert guard["passed"] is not spoiled and guard["nominal_rmse_mm"] == pytest.approx(nominal.rmse * 1e3)
+    if not spoiled:
+        assert guard["kinematic_rmse_mm"] < guard["nominal_rmse_mm"] and work.stages[-1].name == "geometric"
+        return
+    assert work.stages[-1].name == "nominal" and work.stages[-1].rmse == pytest.approx(nominal.rmse)
+    assert work.fits[-1].stage == "nominal" and "the nominal geometry kept" in work.notes[-1]
+    torch.testing.assert_close(
+        work.model(Context.from_measurements(run.hold, trajectory=True)),
+        nominal.model(Context.from_measurements(run.hold, trajectory=True)),
+    )
