@@ -46,9 +46,16 @@ def truth_names(truth: dict) -> list[str]:
             return "learned"
         if e.get("source") is not None:  # a coupling, as the loop names it: joint <- source
             return f"{e['kind']}:{e['joint']}<-{e['source']}"
+        if e["kind"] == "instrument":  # as the loop's candidates name them: term, and an encoder's harmonic
+            return f"instrument:{_instrument_term(e)}" + (f":{e['order']}" if e.get("order") is not None else "")
         return f"{e['kind']}:{e['joint'] if e['joint'] is not None else e['variable']}"
 
     return [name(e) for e in truth["effects"]]
+
+
+def _instrument_term(e: dict) -> str:
+    """An injected instrument term's candidate variable: a range scale is ``scale`` (never offered: it is held)."""
+    return "scale" if e.get("spec") == "range_scale" else e["variable"]
 
 
 def found_names(run) -> list[str]:
@@ -61,9 +68,9 @@ def true_form_candidates(truth: dict, reference: dict) -> list[Candidate] | None
     for e in truth["effects"]:
         if e["kind"] not in NAMED:
             return None
-        var = e.get("variable")
+        var = _instrument_term(e) if e["kind"] == "instrument" else e.get("variable")
         ref = reference.get(var, 0.0) if var else 0.0
-        out.append(Candidate(e["kind"], e["joint"], var, ref, source=e.get("source")))
+        out.append(Candidate(e["kind"], e["joint"], var, ref, source=e.get("source"), order=e.get("order")))
     return out
 
 
@@ -79,10 +86,12 @@ def run_case(
     sigma_tracker: float = 15e-6,
     options: Options | None = None,
     load: dict | None = None,
+    stations: int = 1,
 ) -> dict:
     """Simulate, calibrate with ``auto``, and compare (module docstring). Returns plain numbers [mm, s]. ``load``:
     a static campaign's load settings (:class:`~torchcal.sim.SimConfig`'s ``payload_levels``, ``torques``), so that
-    the closed loop offers its load candidates."""
+    the closed loop offers its load candidates; ``stations``: a static campaign's instrument placements (several
+    tell the instrument's own errors from its pose and the geometry)."""
     specs = [EffectSpec.parse(e) for e in effects]
     if trajectory:
         cfg = SimConfig(
@@ -102,6 +111,7 @@ def run_case(
             seed=seed,
             effects=specs,
             sigma_tracker=sigma_tracker,
+            stations=stations,
             **(load or {}),
         )
     c = simulate(cfg)
@@ -131,6 +141,8 @@ def run_case(
         "rejected": [r.get("name", r["kind"]) for r in run.rejected],
     }
     out["truth_names"], out["found_names"] = truth_names(c.truth), found_names(run)
+    # an encoder harmonic's other orders the data hardly told from the one named (pipeline.loop._alike_orders)
+    out["found_alike"] = [n for e in run.effects_report for n in e.get("evidence", {}).get("alike", [])]
     out["truth_rms_um"] = [e["size_m"] * 1e6 for e in c.truth["effects"]]  # each effect's RMS probe displacement
     out["correct"] = sorted(out["truth_names"]) == sorted(out["found_names"])
     out["loop_mm"], out["test_loop_mm"] = run.stages[-1].rmse * 1e3, rmse(errors(run.model, c.test, traj)) * 1e3

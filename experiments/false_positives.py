@@ -85,17 +85,23 @@ def run(
     workers: int | None = None,
     address: str | None = None,
     load: dict | None = None,
+    stations: int = 1,
 ) -> dict:
     """Calibrate ``seeds`` static campaigns of ``poses`` poses and ``trajectories`` trajectory campaigns of
     ``samples`` samples, all clean, on ``workers`` Ray CPUs or the cluster at ``address``
     (:func:`~experiments.closed_loop.run_cases`; default one after another); each run is shown on stderr as it
     ends. ``load`` (``payload_levels``, ``torques``) gives the static campaigns load columns, so that the closed loop
-    offers its load candidates (clean still: the truth has no compliance; the payload moves nothing).
+    offers its load candidates (clean still: the truth has no compliance; the payload moves nothing); ``stations``
+    places the static campaigns' instrument that many times, so that the closed loop offers the instrument's own
+    error terms.
 
     Returns:
         The summaries (all, static, trajectory) and the rows of every run.
     """
-    cases = [{"robot": robot, "poses": poses, "seed": first_seed + i, "load": load} for i in range(seeds)]
+    cases = [
+        {"robot": robot, "poses": poses, "seed": first_seed + i, "load": load, "stations": stations}
+        for i in range(seeds)
+    ]
     cases += [
         {"robot": robot, "trajectory": True, "samples": samples, "seed": first_seed + 5000 + i}
         for i in range(trajectories)
@@ -111,6 +117,7 @@ def run(
         "poses": poses,
         "samples": samples,
         "load": load,
+        "stations": stations,
         "all": summarise(rows),
         "static": summarise(static),
         "trajectory": summarise(traj),

@@ -3,7 +3,7 @@
 (experiments.false_positives).
 
     python scripts/false_positives.py [--seeds 100] [--poses 800] [--trajectories 10] [--workers 2] [--address ADDR]
-        [--payload-levels 0,5,10] [--torques] [--json]
+        [--payload-levels 0,5,10] [--torques] [--stations 3] [--json]
 """
 
 import _checkout  # noqa: F401  (puts the checkout's experiments/ on the path)
@@ -25,6 +25,12 @@ ap.add_argument(
     help="the static campaigns' rows cycle over these payloads [kg] (load columns: the load candidates are offered)",
 )
 ap.add_argument("--torques", action="store_true", help="the static campaigns' rows carry measured joint torques")
+ap.add_argument(
+    "--stations",
+    type=int,
+    default=1,
+    help="instrument placements of each static campaign (default 1; several: the instrument terms are offered)",
+)
 
 
 def _load(a) -> dict | None:
@@ -42,7 +48,16 @@ def main(argv=None) -> dict:
     args, out = common.run(
         ap,
         lambda a: run(
-            a.robot, a.seeds, a.poses, a.trajectories, a.samples, a.first_seed, a.workers, a.address, _load(a)
+            a.robot,
+            a.seeds,
+            a.poses,
+            a.trajectories,
+            a.samples,
+            a.first_seed,
+            a.workers,
+            a.address,
+            _load(a),
+            a.stations,
         ),
         argv,
     )

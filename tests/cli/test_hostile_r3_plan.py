@@ -62,7 +62,7 @@ def test_plan_refuses_a_robot_that_is_not_the_runs(run_dir, tmp_path, capsys):
     out = tmp_path / "p.csv"
     code = main(["plan", "--run", str(run_dir), "--robot", "ur10", "--n", "5", "--pool", "200", "--out", str(out)])
     err = capsys.readouterr().err
-    assert code == 2 and "--robot ur10" in err and "ur5" in err
+    assert code == 2 and "robot ur10 (--robot)" in err and "ur5" in err  # the argument, then its flag
     assert snapshot(tmp_path) == before
     code = main(["plan", "--run", str(run_dir), "--robot", "ur5", "--n", "5", "--pool", "200", "--out", str(out)])
     assert code == 0 and out.exists()

@@ -448,7 +448,7 @@ def test_library_simulation_carries_the_bounds():
 def test_a_holdout_of_fewer_than_three_poses_is_refused(campaign, tmp_path, capsys, monkeypatch):
     no_fitting(monkeypatch)
     assert calibrate(campaign / "train.csv", tmp_path / "o", "--holdout", "0.0001") == 2
-    refused(capsys, "--holdout 0.0001 of 100 poses holds out 1; at least 3")
+    refused(capsys, "holdout 0.0001 (--holdout) of 100 poses holds out 1; at least 3")
     assert calibrate(campaign / "train.csv", tmp_path / "o", "--holdout", "0.02") == 2  # own: 2 poses
     refused(capsys, "holds out 2")
 

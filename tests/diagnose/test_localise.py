@@ -161,6 +161,9 @@ def test_localise_reports_its_smooth():
     top = locs[0]
     assert top.name == "q3" and 0.3 < top.share <= 1.0 and top.edf > 1.0
     assert top.smooth.shape == top.grid.shape == top.smooth_se.shape
+    # the shape's standard error (the smooth less its mean): here, with the level determined, about the pointwise one
+    assert top.smooth_se_shape.shape == top.smooth.shape
+    assert float(top.smooth_se_shape.mean()) == pytest.approx(float(top.smooth_se.mean()), rel=0.1)
     d = top.to_dict(with_smooth=True)
     assert d["variable"] == "q3" and len(d["smooth"]) == len(d["grid"])
     cart = next(loc for loc in locs if loc.name == "t")

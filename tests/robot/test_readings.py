@@ -273,3 +273,18 @@ def test_a_coupling_is_held_to_a_physical_ratio_not_to_the_transmission_error_bo
     assert why is not None and "ratio -0.02 rad/rad exceeds the physical bound of 0.01" in why
     assert f"{0.02 * (hi - lo) / 2 * 1e3:.3g} mrad over joint 2's range" in why
     assert joint_function_check(large, q, robot, max_size=None) is None  # no bound asked for
+
+
+def test_a_small_cross_term_is_a_coupling_and_a_reading_in_encoder_counts_is_refused():
+    """A readings map's bound is on each reading's scale (its largest entry): an exported run's folded coupling
+    dq_6 = 8e-6 q_5 loads, a reading that moves its joint by 1e-6 rad per unit (encoder counts) does not."""
+    from torchcal.robot.readings import check_coupling
+
+    A = torch.eye(6, dtype=torch.float64)
+    A[5, 4] = 8.25e-6  # the coupling's cross-term
+    assert check_coupling(A.tolist(), 6, "coupling") is None
+    B = torch.eye(6, dtype=torch.float64)
+    B[2, 2] = 1e-6
+    assert "ratio of size 1e-06" in check_coupling(B.tolist(), 6, "coupling")
+    B[2, 2] = 1e12
+    assert "ratio of size 1e+12" in check_coupling(B.tolist(), 6, "coupling")

@@ -81,6 +81,7 @@ SWEEPS = {
     "detection_limits": [],
     "closed_loop": [],
     "couplings": [],
+    "instrument_effects": [],
 }
 
 
@@ -117,3 +118,45 @@ def test_the_coupling_grid_covers_every_adjacent_pair_and_judges_name_and_error(
     assert couplings.verdict(row) and not couplings.verdict({**row, "loop_mm": 0.0301})
     assert not couplings.verdict({**row, "correct": False})
     assert couplings.verdict({"effects": [], "found": []}) and not couplings.verdict({"effects": [], "found": [1]})
+
+
+def test_the_instrument_grid_covers_every_harmonic_and_term_and_judges_name_and_error():
+    from experiments import instrument_effects as ie
+
+    full = ie.cases(ie.grid(True, None), 700, 20, 800, 3)
+    specs = {e for c in full for e in c["effects"]}
+    assert {f"tracker_{a}:{h}={u}urad" for a in ("az", "el") for h in range(1, 9) for u in (20, 40, 60)} <= specs
+    assert {
+        "range_offset=50um",
+        "range_scale=10ppm",
+        "axis_tilt=60urad",
+        "beam_tilt=20urad",
+        "beam_offset=50um",
+    } <= specs
+    assert sum(1 for c in full if not c["effects"]) == 20 and all(c["stations"] == 3 for c in full)
+    assert len({c["seed"] for c in full}) == len(full)
+    assert ie.grid(False, ["axis_tilt=20urad"]) == ["axis_tilt=20urad"]
+    row = {
+        "effects": ["tracker_az:3=40urad"],
+        "truth_names": ["instrument:azimuth:3"],
+        "found_names": ["instrument:azimuth:3"],
+        "found": [["instrument", None]],
+        "truth_rms_um": [40.0],
+        "loop_mm": 0.030,
+        "true_form_mm": 0.025,
+    }
+    assert ie._row(row)["meets_target"] and not ie._row({**row, "loop_mm": 0.0301})["meets_target"]
+    assert not ie._row({**row, "found_names": ["instrument:azimuth:4"]})["meets_target"]
+    # a neighbouring order the run itself calls a guess among the true one: not named right, but among the alike
+    guess = ie._row({**row, "found_names": ["instrument:azimuth:4"], "found_alike": ["instrument:azimuth:3"]})
+    assert not guess["named_right"] and guess["named_among_alike"]
+    assert not ie._row({**row, "found_names": ["instrument:azimuth:4"], "found_alike": []})["named_among_alike"]
+    # a range scale is held, never named: its target is no name and the error within 1.2 x
+    held = {
+        **row,
+        "effects": ["range_scale=10ppm"],
+        "truth_names": ["instrument:scale"],
+        "found_names": [],
+        "found": [],
+    }
+    assert ie._row(held)["meets_target"] and not ie._row({**held, "found_names": ["instrument:range"]})["meets_target"]

@@ -13,7 +13,7 @@ from _cli import cli_simulate
 
 from torchcal.cli import main
 from torchcal.effects import Context, MeasurementModel
-from torchcal.estimate.trust import FEW_ROWS_ALPHA, MIN_ROWS, FewRows, few_rows
+from torchcal.estimate.trust import FEW_ROWS_ALPHA, FEW_ROWS_COVER, MIN_ROWS, FewRows, few_rows
 from torchcal.robot import load_robot
 from torchcal.stats import chi2_quantile
 
@@ -32,30 +32,44 @@ def rows():
     return model, ctx, p
 
 
-def test_a_sigma_far_above_the_errors_comes_down_to_the_bound(rows):
-    """Declared 1 mm, errors 10 um: the scale is the most the rows allow, sqrt(T / chi2_24(alpha))."""
+def _T(model, ctx, p, declared: float) -> float:
+    with torch.no_grad():
+        return float(((model(ctx) - p) / declared).square().sum())
+
+
+def test_a_sigma_far_above_the_errors_comes_down_to_what_the_rows_allow(rows):
+    """Declared 1 mm, errors 10 um: the bound says 'overstates'; the scale is the largest the rows allow at 5 %,
+    sqrt(T / chi2_24(0.05)), below the 0.5 % bound."""
     model, ctx, p = rows
     fr = few_rows(model, None, ctx, p, (1e-3, 1e-3, 1e-3))
-    with torch.no_grad():
-        T = float(((model(ctx) - p) / 1e-3).square().sum())
+    T = _T(model, ctx, p, 1e-3)
     assert fr.high == pytest.approx(math.sqrt(T / chi2_quantile(FEW_ROWS_ALPHA, 24)), rel=1e-12)
-    assert fr.direction == "overstates" and fr.scale == fr.high and fr.scale < 0.05
+    assert fr.scale == pytest.approx(math.sqrt(T / chi2_quantile(FEW_ROWS_COVER, 24)), rel=1e-9)
+    assert fr.direction == "overstates" and fr.scale < fr.high < 0.05
     assert "overstate the error" in fr.note() and "understate" not in fr.note()
     s = fr.std(model, ctx, None)
-    assert torch.allclose(s, torch.full_like(s, 1e-3 * fr.high))
+    assert torch.allclose(s, torch.full_like(s, 1e-3 * fr.scale))
 
 
-def test_a_sigma_the_errors_agree_with_stays(rows):
+def test_a_sigma_the_errors_agree_with_is_taken_at_the_largest_scale_they_allow(rows):
+    """Declared as the errors are: no direction; with no level measured the sigma is not taken below what the rows
+    allow at 5 % (about sqrt(24 / chi2_24(0.05)) = 1.3 times a right sigma)."""
     model, ctx, p = rows
     fr = few_rows(model, None, ctx, p, (1e-5, 1e-5, 1e-5))
-    assert fr.direction == "consistent" and fr.scale == 1.0 and fr.low < 1.0 < fr.high
+    assert fr.direction == "consistent" and fr.low < 1.0 < fr.high
+    upper = math.sqrt(_T(model, ctx, p, 1e-5) / chi2_quantile(FEW_ROWS_COVER, 24))
+    assert fr.scale == pytest.approx(max(upper, 1.0), rel=1e-9) and fr.low < fr.scale < fr.high
+    # rows that happen to miss little do not take the sigma below the parameters' and the noise's
+    declared = math.sqrt(_T(model, ctx, p, 1.0) / 11.8)  # T = 11.8: within chi2_24(0.005) = 9.9 .. chi2_24(0.05) = 13.8
+    small = few_rows(model, None, ctx, p, (declared,) * 3)
+    assert small.direction == "consistent" and small.scale == 1.0, (small.low, small.high)
     assert "overstate" not in fr.note() and "understate" not in fr.note()
 
 
-def test_a_sigma_far_below_the_errors_goes_up_to_the_bound(rows):
+def test_a_sigma_far_below_the_errors_goes_up(rows):
     model, ctx, p = rows
     fr = few_rows(model, None, ctx, p, (1e-7, 1e-7, 1e-7))
-    assert fr.direction == "understates" and fr.scale == fr.low and fr.scale > 20
+    assert fr.direction == "understates" and fr.scale > fr.low > 20
     assert "understate the error" in fr.note()
 
 

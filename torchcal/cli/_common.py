@@ -101,18 +101,6 @@ def _simulate(cfg):
         ) from None
 
 
-def _effect_line(e: dict) -> str:
-    """One found effect as the demo prints it: its name, its parameters with their units and the one p-value it was
-    admitted on (named: the localisation's or the score test's, the same as report.md's)."""
-    from torchcal.diagnose import named_p
-    from torchcal.report.markdown import effect_params_words
-
-    name = e["kind"] + (f" (joint {e['joint']})" if e["joint"] is not None else "")
-    words = effect_params_words(e["params"])
-    ev = e["evidence"]
-    return name + (f": {words}" if words else "") + (f"; {named_p(ev)}" if "p_bonferroni" in ev else "")
-
-
 def json_out_file(path: str, inputs: list, force: bool, written_by: str) -> Path:
     """A JSON file to write: one an earlier ``written_by`` wrote (``"written_by": ...``; JSON has no comment line for
     the usual mark) is replaced like a marked file; anything else as :func:`~torchcal._outdir.check_out_file` says."""

@@ -23,7 +23,7 @@ from torchcal.cli._args import (
     _seed,
     _tool,
 )
-from torchcal.cli._common import _effect_line, _reading, _robot_input, calibration_module
+from torchcal.cli._common import _reading, _robot_input, calibration_module
 
 
 def add_parser(sub) -> None:
@@ -197,8 +197,10 @@ def handle(args) -> int:
         f"held-out RMSE: nominal {st['nominal'].rmse * 1e3:.4f} mm, geometric "
         f"{st['geometric'].rmse * 1e3:.4f} mm, final {run.stages[-1].rmse * 1e3:.4f} mm"
     )
+    from torchcal.report.markdown import effect_line
+
     for e in run.effects_report:
-        _console.info("effect found: " + _effect_line(e))
+        _console.info("effect found: " + effect_line(e))
     _console.info(f"wrote {out / 'report.json'} and {out / 'report.md'}")
     return 0
 

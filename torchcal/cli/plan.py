@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
 
 from torchcal import _console
-from torchcal._method import DEFAULT_METHOD
 from torchcal._outdir import check_out_file
 from torchcal.cli._args import (
     JOINT_DEG,
@@ -157,46 +155,11 @@ def _add_design(pl) -> None:
     )
 
 
-def _plan_side_file(path: str, inputs: list, force: bool) -> Path:
+def _plan_side_file(path: Path, inputs: list, force: bool) -> Path:
     """``plan``'s summary next to its poses, replaced like a marked file where an earlier plan wrote it."""
-    if path.endswith(".json"):
-        return json_out_file(path, inputs, force, "torchcal plan")
-    return check_out_file(path, inputs=inputs, force=force)
-
-
-def _plan_run(args):
-    """``plan --run``: the run's model (at ``--station`` / ``--probe``), robot file, method, noise, variance factor
-    and scene (tracker position, lever arm)."""
-    from torchcal.data.header import robot_key
-    from torchcal.use.plan import scene_of
-    from torchcal.use.rundir import load_model
-    from torchcal.use.station import station_options
-
-    model, meta = load_model(args.run)
-    if args.robot is not None and robot_key(args.robot) not in {
-        robot_key(meta["robot_file"]),
-        robot_key(model.robot.name),
-    }:  # the run's model is what is planned for: another --robot would be ignored without a word
-        raise OptionError(
-            f"--robot {args.robot} is not the robot of the run {args.run} ({meta['robot_file']}); the plan is "
-            "made for the run's calibrated robot: drop --robot, or plan for that robot without --run"
-        )
-    method = args.method or meta.get("method") or "auto"
-    from torchcal.use.rundir import at_station, own_names
-
-    station, probe = own_names(meta, args.station, args.probe)
-    if model.robot.stations or model.robot.probes:  # plan for one placement and probe of a several-station run
-        model, _, _ = at_station(model, station, probe)
-    elif station is not None or probe is not None:
-        raise OptionError("--station and --probe name one of a run's several stations or probes; this run has one")
-    so = station_options(args.run)
-    s0_sq = 1.0
-    report = Path(args.run) / "report.json"
-    if report.exists():
-        s0 = json.loads(report.read_text(encoding="utf-8")).get("parameters", {}).get("sigma0_sq")
-        s0_sq = float(s0) if isinstance(s0, (int, float)) and math.isfinite(s0) and s0 > 0 else 1.0
-    tracker, lever = scene_of(model)
-    return model, meta["robot_file"], method, so.sigma_tracker, so.sigma_joint, s0_sq, tracker, lever
+    if path.suffix == ".json":
+        return json_out_file(str(path), inputs, force, "torchcal plan")
+    return check_out_file(str(path), inputs=inputs, force=force)
 
 
 def _levels(text: str) -> tuple[float, ...]:
@@ -213,115 +176,91 @@ def _levels(text: str) -> tuple[float, ...]:
     return levels
 
 
-def _write_plan(args, out_file: Path, side: dict, plan, meta_out: dict, loads: dict) -> None:
-    """The planned poses (with the candidates' load columns at the chosen poses, or ``--payload-levels`` in turn) and
-    the plan's JSON and Markdown side files."""
-    from torchcal.data import Measurements, write_measurements
-    from torchcal.use.plan import loads_summary, plan_loads
+def _setting(args):
+    """What the plan is made for (``--run`` or ``--robot``), with ``--tracker``, ``--tool`` and the noise options
+    where given."""
+    from torchcal.use.planning import robot_setting, run_setting
 
-    index = plan.index.detach().cpu()
-    extra = {k: v.detach().cpu()[index] for k, v in loads.items()}
-    if args.payload_levels is not None:  # the levels replace a payload the candidates had (and its centre of mass)
-        extra = {k: v for k, v in extra.items() if not k.startswith("payload")}
-        extra["payload"] = plan_loads(len(index), args.payload_levels)
-    out_file.parent.mkdir(parents=True, exist_ok=True)
-    poses = Measurements(q=plan.q.detach().cpu(), extra=extra)
-    write_measurements(out_file, poses, meta=meta_out, written_by="torchcal plan")
-    summary = {"written_by": "torchcal plan", "poses": str(args.out), "candidates": meta_out["planned_from"]}
-    summary |= plan.to_dict()
-    if "payload" in extra:
-        summary["loads"] = loads_summary(extra["payload"])
-    side["json"].write_text(json.dumps(summary, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-    side["md"].write_text("# written_by: torchcal plan\n\n" + plan.markdown(), encoding="utf-8")
+    if args.run is not None:
+        setting = run_setting(args.run, args.robot, args.method, args.station, args.probe)
+    else:
+        setting = robot_setting(args.robot, args.base_link, args.tip_link, args.method)
+    setting = setting.with_scene(args.tracker, args.tool)
+    if args.tracker_noise is not None:
+        setting.sigma_tracker = args.tracker_noise * 1e-6
+    if args.joint_noise is not None:
+        setting.sigma_joint = math.radians(args.joint_noise)
+    return setting
 
 
-def _given_scene(args, robot, tracker, lever):
-    """The tracker position and lever arm: ``--tracker`` and ``--tool`` where given [m], else ``tracker``, ``lever``."""
-    import torch
+def _candidates(args, setting):
+    """The candidate poses, their load columns and the words that say where they came from: the ``--candidates``
+    file's distinct poses, else ``--pool`` sampled ones."""
+    from torchcal.data import read_measurements
+    from torchcal.data.header import check_header_robot
+    from torchcal.use.plan import sample_candidates
+    from torchcal.use.planning import file_candidates, sampling_region
 
-    def given(v):
-        return torch.tensor(v, dtype=torch.float64, device=robot.device)
-
-    return (tracker if args.tracker is None else given(args.tracker), lever if args.tool is None else given(args.tool))
-
-
-def _sampled(args, model, tracker, lever):
-    """The candidates a plan samples (``--pool`` of them) and the words that say where: for a run where it was
-    calibrated, its narrow joints opened to their limits (only poses that move them tell what the run held near
-    nominal: :func:`torchcal.use.plan.candidate_region`)."""
-    from torchcal.use.plan import candidate_region, sample_candidates
-
-    region, narrow = candidate_region(model) if args.run is not None else (None, [])
-    within = " within the run's calibrated region" if region is not None else ""
-    if narrow:
-        within += f" ({', '.join(f'q{j}' for j in narrow)}, narrow in the run, over their limits)"
+    robot, name = setting.model.robot, setting.robot_name
+    if args.candidates is not None:
+        data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
+        check_header_robot(data, name, robot, f"--robot {name}")
+        q, loads, repeated = file_candidates(data)
+        if repeated:
+            _console.info(f"plan: {repeated} candidate rows repeat another row's joints: each pose counted once")
+        return q, loads, args.candidates
+    region, within = sampling_region(setting, args.run is not None)
     _console.info(f"sampling {args.pool} candidate poses the tracker sees{within} (seed {args.seed})")
-    q = sample_candidates(model, args.pool, args.seed, tracker, lever, need=args.n, region=region)
-    return q, f"{len(q)} sampled{within} (seed {args.seed})"
+    q = sample_candidates(
+        setting.model, args.pool, args.seed, setting.tracker, setting.lever, need=args.n, region=region
+    )
+    return q, {}, f"{len(q)} sampled{within} (seed {args.seed})"
 
 
 @_one_torch_thread
 def handle(args) -> int:
     from torchcal.data import read_measurements
     from torchcal.data.header import check_header_robot
-    from torchcal.data.load import is_load_column
-    from torchcal.effects import MeasurementModel
-    from torchcal.use.plan import PlanOptions, distinct_index, plan_poses
+    from torchcal.use.plan import PlanOptions, plan_poses
+    from torchcal.use.planning import side_paths, write_plan
 
     inputs = [p for p in (args.candidates, args.work, args.run) if p] + (_robot_input(args.robot) if args.robot else [])
     out_file = check_out_file(args.out, inputs=inputs, force=args.force)
-    stem = out_file.with_suffix("")
-    side = {ext: _plan_side_file(f"{stem}.plan.{ext}", inputs, args.force) for ext in ("json", "md")}
+    side = {k: _plan_side_file(p, inputs, args.force) for k, p in side_paths(out_file).items()}
     if args.run is None and args.robot is None:
         raise OptionError("give --robot or --run (the robot to plan for)")
-    sigma_tracker, sigma_joint, s0_sq = 15e-6, math.radians(0.0005), 1.0
-    tracker = lever = None
-    method = args.method or DEFAULT_METHOD.value
-    if args.run is not None:
-        model, robot_name, method, sigma_tracker, sigma_joint, s0_sq, tracker, lever = _plan_run(args)
-    else:
-        from torchcal.robot import load_robot
-
-        model = MeasurementModel(load_robot(args.robot, base_link=args.base_link, tip_link=args.tip_link))
-        robot_name = args.robot
-    robot = model.robot
-    tracker, lever = _given_scene(args, robot, tracker, lever)
-    if args.tracker_noise is not None:
-        sigma_tracker = args.tracker_noise * 1e-6
-    if args.joint_noise is not None:
-        sigma_joint = math.radians(args.joint_noise)
+    setting = _setting(args)
     work = None
     if args.work is not None:
+        robot, name = setting.model.robot, setting.robot_name
         wd = read_measurements(args.work, require_positions=False, **_reading(args, robot))
-        check_header_robot(wd, robot_name, robot, f"--robot {robot_name}")
+        check_header_robot(wd, name, robot, f"--robot {name}")
         work = wd.q
-    loads = {}
-    if args.candidates is not None:
-        data = read_measurements(args.candidates, require_positions=False, **_reading(args, robot))
-        check_header_robot(data, robot_name, robot, f"--robot {robot_name}")
-        rows = distinct_index(data.q)  # a file of several probes has a row per probe and pose: a plan chooses poses
-        q, loads = data.q[rows.to(data.q.device)], {k: v[rows] for k, v in data.extra.items() if is_load_column(k)}
-        if len(q) < data.n:
-            _console.info(f"plan: {data.n - len(q)} candidate rows repeat another row's joints: each pose counted once")
-        source = args.candidates
-    else:
-        q, source = _sampled(args, model, tracker, lever)
+    q, loads, source = _candidates(args, setting)
     if args.n > len(q):
         raise OptionError(f"--n {args.n} is more than the {len(q)} candidates")
     opts = PlanOptions.for_method(
-        method,
+        setting.method,
         args.n,
         criterion=args.criterion,
         edge_share=args.edge_share,
         learned_share=args.learned_share,
         spread_share=args.spread_share,
-        sigma_tracker=sigma_tracker,
-        sigma_joint=sigma_joint,
-        s0_sq=s0_sq,
+        sigma_tracker=setting.sigma_tracker,
+        sigma_joint=setting.sigma_joint,
+        s0_sq=setting.s0_sq,
         seed=args.seed,
     )
-    plan = plan_poses(model, q, opts, work)
-    _write_plan(args, out_file, side, plan, {"robot": Path(str(robot_name)).name, "planned_from": source}, loads)
+    plan = plan_poses(setting.model, q, opts, work)
+    write_plan(
+        out_file,
+        plan,
+        robot_name=setting.robot_name,
+        source=source,
+        loads=loads,
+        payload_levels=args.payload_levels,
+        poses_label=args.out,
+    )
     if not plan.identifies:  # written for inspection, but no accuracy is promised
         print(_console.one_line(f"torchcal plan: warning: {plan.degenerate_reason()}"), file=sys.stderr)
         _console.info(f"planned {args.n} of {len(q)} poses, no accuracy predicted; wrote {args.out}")

@@ -66,7 +66,9 @@ def add_parser(sub) -> None:
         "coupling (:J<-K, joint J's reading picks up a share of joint K's), "
         "drift (:t or :temperature), field (smooth 6-29-3 network field). SIZE is the RMS probe "
         "displacement with a unit, e.g. compliance:2=50um, coupling:3<-2=50um, field=0.6mm; a coupling may "
-        "instead be given by its ratio, coupling:5<-4=1e-3 (dq5 = 1e-3 q4)",
+        "instead be given by its ratio, coupling:5<-4=1e-3 (dq5 = 1e-3 q4). The tracker's own errors: "
+        "tracker_az:H=40urad, tracker_el:H=40urad (encoder harmonic of order H), range_offset=20um, "
+        "range_scale=5ppm, axis_tilt=40urad (trunnion axis), beam_tilt=40urad, beam_offset=20um",
     )
     s.add_argument(
         "--tracker-noise", type=TRACKER_UM_SIM, default=15.0, help="tracker noise per axis [um], <= 10000 (default 15)"

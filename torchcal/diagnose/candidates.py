@@ -9,11 +9,19 @@ the gravity torque for static poses, the direction of motion along a trajectory)
 reading) per prismatic joint, whose reading [m] has no turn for harmonics to repeat over, ``coupling`` of each
 joint to every other joint that moves (``dq_j = c q_k``, all ``dof (dof - 1)`` ordered pairs), ``drift`` of the
 instrument pose with the acquisition time ``t``, ``drift`` of the arm's scale with ``temperature``, and the
-instrument's own errors (:mod:`torchcal.effects.instrument`): ``instrument:azimuth`` and ``instrument:elevation`` (the
-encoder's harmonics 1 and 2) and ``instrument:range`` (a range offset and scale), one instrument for every station of
-the file, offered where the data can tell them: several stations, or one whose points span 90 degrees or more in
-azimuth (over the few tens of degrees a tracker a few metres off sees the arm span, the instrument pose and the
-geometry take up a low harmonic: docs/closed-loop.md).
+instrument's own errors (:mod:`torchcal.effects.instrument`): ``instrument:azimuth:H`` and ``instrument:elevation:H``
+(the encoders' harmonic of order H, 1 to 8), ``instrument:range`` (a range offset), ``instrument:tilt`` (the trunnion
+axis's and the beam's tilt) and ``instrument:beam`` (the beam's offset), offered where the data can tell them: several
+stations, or one whose points span 90 degrees or more in azimuth (over the few tens of degrees a tracker a few metres
+off sees the arm span, the instrument pose and the geometry take up a low harmonic: docs/closed-loop.md).
+A range scale is never offered: it moves every point by ``s`` times its vector from the tracker, which is the arm's
+every length scaled by ``1 + s`` and each station's position with it, so the geometry takes it up exactly whatever
+the stations (``instrument:scale`` is listed as held at zero, with that reason; a length the data know, a scale bar,
+would tell it).
+
+All stations of a file are one instrument (a station column records where the one tracker stood): the file formats
+have no column that names the instrument, and one tracker re-stationed is how a cell is measured; its errors are then
+fitted once over every station, which is what makes them identifiable (one station alone seldom tells them).
 A prismatic joint's compliance and backlash act along its axis [m], driven by the weight it carries along it.
 
 Couplings are tried between every pair of joints, on every robot: a cable or belt routed through a joint, a wrist
@@ -59,9 +67,17 @@ Tensor = torch.Tensor
 MIN_LEVER = 1e-4
 #: drift variables the data may carry, the effect form each one drives, and its unit
 DRIFT_FORMS = {"t": ("instrument", "s"), "temperature": ("scale", "degC")}
-#: the instrument's own error terms offered (effects.instrument): the azimuth and elevation encoders' harmonics 1
-#: and 2, the range's offset and scale
-INSTRUMENT_TERMS = ("azimuth", "elevation", "range")
+#: the instrument's own error terms offered (effects.instrument): the azimuth and elevation encoders' harmonics (one
+#: candidate per order in :data:`INSTRUMENT_HARMONICS`), the range's offset, the axes' tilt, the beam's offset
+INSTRUMENT_TERMS = ("azimuth", "elevation", "range", "tilt", "beam")
+#: the encoder harmonics' orders tried; an order's candidate is the sine and cosine of that order alone
+INSTRUMENT_HARMONICS = tuple(range(1, 9))
+#: why a range scale is not a candidate (module docstring)
+SCALE_HELD = (
+    "held at zero: a range scale moves every point by s times its vector from the tracker, which is every length of "
+    "the arm scaled by 1 + s and each station's position with it; the geometry takes it up exactly (a known length "
+    "in the data, a scale bar, would tell it)"
+)
 #: the azimuth span [rad] of one station's points from which its instrument errors are offered (module docstring)
 MIN_AZIMUTH_SPAN = math.pi / 2
 
@@ -90,12 +106,16 @@ class Candidate:
     source: int | None = None  # coupling: the 1-based joint whose reading drives joint ``joint``'s error
     basis: Tensor | None = field(default=None, compare=False, repr=False)
     form: str | None = None
+    order: int | None = None  # an instrument encoder harmonic's order
 
     @property
     def name(self) -> str:
-        """Short name as the simulator spells it: ``compliance:2``, ``drift:t``, ``coupling:3<-2``."""
+        """Short name as the simulator spells it: ``compliance:2``, ``drift:t``, ``coupling:3<-2``; an encoder
+        harmonic ``instrument:azimuth:3``."""
         if self.kind == "coupling":
             return f"coupling:{self.joint}<-{self.source}"
+        if self.order is not None:
+            return f"{self.kind}:{self.variable}:{self.order}"
         return f"{self.kind}:{self.joint if self.joint is not None else self.variable}"
 
     @property
@@ -122,7 +142,11 @@ class Candidate:
         if self.kind == "drift":
             return Drift(self.variable, DRIFT_FORMS[self.variable][0], reference=self.reference)
         if self.kind == "instrument":
-            return TrackerError(self.variable, (1, 2)) if self.variable != "range" else TrackerError("range")
+            if self.variable in ("azimuth", "elevation"):
+                return TrackerError(self.variable, (self.order,) if self.order is not None else (1, 2))
+            if self.variable in ("range", "scale"):  # "scale": the true form of a range scale (never offered)
+                return TrackerError("range", scale=self.variable == "scale")
+            return TrackerError(self.variable)
         raise ValueError(f"unknown candidate kind {self.kind!r}")
 
     def regressor(self, robot, ctx: Context) -> tuple[Tensor, str]:
@@ -157,6 +181,8 @@ class Candidate:
             out["modes"] = int(self.basis.shape[1])
         if self.form == "torque":
             out["form"] = "measured torques"
+        if self.order is not None:
+            out["harmonic"] = self.order
         if self.variable is not None:
             out["variable"] = self.variable
             out["form"] = DRIFT_FORMS[self.variable][0] if self.kind == "drift" else self.make().label()
@@ -164,21 +190,24 @@ class Candidate:
 
 
 def _spherical(robot, ctx: Context, term: str) -> tuple[Tensor, str]:
-    """The nominal measured points' azimuth [rad] or range [m] in the instrument frame ``(N,)``, and its label."""
+    """The nominal measured points' azimuth or elevation [rad] or range [m] in the instrument frame ``(N,)`` (the
+    variable a term follows: a tilt the elevation, a beam offset the azimuth), and its label."""
     from torchcal.effects.model import MeasurementModel
 
     with torch.no_grad():
         p = MeasurementModel(robot)(ctx)
-    if term == "range":
+    if term in ("range", "scale"):
         return p.norm(dim=-1), "range from the instrument [m]"
-    return torch.atan2(p[:, 1], p[:, 0]), f"{term} in the instrument frame [rad]"
+    if term in ("elevation", "tilt"):
+        return torch.atan2(p[:, 2], p[:, :2].norm(dim=-1)), "elevation in the instrument frame [rad]"
+    return torch.atan2(p[:, 1], p[:, 0]), "azimuth in the instrument frame [rad]"
 
 
 def _instrument_untold(robot, ctx: Context) -> str | None:
     """Why the data cannot tell the instrument's own errors from its pose and the geometry (None: they can): one
     station whose points span less than :data:`MIN_AZIMUTH_SPAN` in azimuth. A low encoder harmonic over a narrow span
-    is a turn and a stretch the instrument pose and the arm's lengths take up, and a range scale about one placement is
-    the arm's own scale; a second placement of the same instrument, or a wide span, sets them apart."""
+    is a turn and a stretch the instrument pose and the arm's lengths take up, a tilt a turn, a beam offset a shift; a
+    second placement of the same instrument, or a wide span, sets them apart."""
     if len(robot.stations) > 1:
         return None
     az, _ = _spherical(robot, ctx, "azimuth")
@@ -190,8 +219,22 @@ def _instrument_untold(robot, ctx: Context) -> str | None:
     return (
         f"one station, whose points span {math.degrees(span):.0f} deg in azimuth "
         f"(< {math.degrees(MIN_AZIMUTH_SPAN):.0f}): the instrument pose and the geometry take up its low encoder "
-        "harmonics and its range scale; several stations or a wider span tell them"
+        "harmonics, its axes' tilt and its beam's offset; several stations or a wider span tell them"
     )
+
+
+def _instrument(robot, ctx: Context, out: list, skip) -> None:
+    """The instrument's own error terms where the data can tell them (:func:`_instrument_untold`); a range scale is
+    held (:data:`SCALE_HELD`)."""
+    why = _instrument_untold(robot, ctx)
+    for term in INSTRUMENT_TERMS:
+        if why is not None:
+            skip(f"instrument:{term}", why)
+        elif term in ("azimuth", "elevation"):
+            out.extend(Candidate("instrument", None, term, order=k) for k in INSTRUMENT_HARMONICS)
+        else:
+            out.append(Candidate("instrument", None, term))
+    skip("instrument:scale", SCALE_HELD)
 
 
 def _varies(x: Tensor, rel: float = 1e-9) -> bool:
@@ -240,13 +283,27 @@ def bonferroni_factors(cands: list) -> list[int]:
     """The factor each candidate's p-value is multiplied by (module docstring: a weighted Bonferroni whose weights
     sum to one, so the family-wise level holds over all candidates).
 
-    Every candidate but a coupling is one member of the family; the couplings together are one more member, split
-    evenly over their pairs: ``M`` for the first, ``M P`` for a coupling, with ``M`` the members and ``P`` the
-    coupling pairs. Objects without a ``kind`` (open forms) count as members.
+    Every candidate is one member of the family but those of a group: the couplings together are one member, split
+    evenly over their pairs, and so are each encoder's harmonics over their orders: ``M`` for a lone candidate,
+    ``M P`` for one of a group of ``P``, with ``M`` the members. Objects without a ``kind`` (open forms) count as
+    members.
     """
-    pairs = sum(1 for c in cands if getattr(c, "kind", None) == "coupling")
-    members = len(cands) - pairs + (1 if pairs else 0)
-    return [members * pairs if getattr(c, "kind", None) == "coupling" else members for c in cands]
+    keys = [_family(c) for c in cands]
+    sizes: dict[str, int] = {}
+    for k in keys:
+        if k is not None:
+            sizes[k] = sizes.get(k, 0) + 1
+    members = sum(1 for k in keys if k is None) + len(sizes)
+    return [members * (sizes[k] if k is not None else 1) for k in keys]
+
+
+def _family(c) -> str | None:
+    """The group a candidate shares one Bonferroni member with (:func:`bonferroni_factors`), None: its own."""
+    if getattr(c, "kind", None) == "coupling":
+        return "coupling"
+    if getattr(c, "kind", None) == "instrument" and getattr(c, "order", None) is not None:
+        return f"instrument:{c.variable}"
+    return None
 
 
 def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
@@ -297,12 +354,7 @@ def candidates(robot, ctx: Context) -> tuple[list[Candidate], list[dict]]:
         else:
             out.append(Candidate(shape, j))
         _couplings(robot, ctx, j, out, skip)
-    why = _instrument_untold(robot, ctx)
-    for term in INSTRUMENT_TERMS:
-        if why is None:
-            out.append(Candidate("instrument", None, term))
-        else:
-            skip(f"instrument:{term}", why)
+    _instrument(robot, ctx, out, skip)
     for var in DRIFT_FORMS:
         v = ctx.t if var == "t" else ctx.temperature
         if v is None:

@@ -303,6 +303,8 @@ class Localisation:
         smooth: the fitted function on the grid: ``(G,)`` [rad] for joint variables, ``(G, 3)`` [m]
             (tracker frame) for Cartesian ones.
         smooth_se: its pointwise standard error, same shape.
+        smooth_se_shape: the pointwise standard error of the smooth less its mean over the grid (its shape), same
+            shape; None where not computed.
     """
 
     variable: Variable
@@ -319,6 +321,7 @@ class Localisation:
     grid: Tensor = field(repr=False)
     smooth: Tensor = field(repr=False)
     smooth_se: Tensor = field(repr=False)
+    smooth_se_shape: Tensor | None = field(default=None, repr=False)
 
     @property
     def name(self) -> str:
@@ -430,19 +433,19 @@ def localise_variable(ws: Workspace, var: Variable, n_variables: int = 1) -> Loc
     Bg, _ = basis(var, grid)
     cov = fit["s2"] * fit["cov_unscaled"]
     beta = fit["beta"]
+    # the shape's standard error: that of the smooth less its mean over the grid, where a level the model's own span
+    # carries (a joint offset) leaves the pointwise one wide everywhere and says nothing of the shape
+    Bc = Bg - Bg.mean(0, keepdim=True)
     if var.kind == "cartesian":
         pb = Bg.shape[1]
         f = torch.stack([Bg @ beta[c * pb : (c + 1) * pb] for c in range(3)], dim=1)
-        se = torch.stack(
-            [
-                ((Bg @ cov[c * pb : (c + 1) * pb, c * pb : (c + 1) * pb]) * Bg).sum(1).clamp(min=0).sqrt()
-                for c in range(3)
-            ],
-            dim=1,
-        )
+        blocks = [cov[c * pb : (c + 1) * pb, c * pb : (c + 1) * pb] for c in range(3)]
+        se = torch.stack([((Bg @ C) * Bg).sum(1).clamp(min=0).sqrt() for C in blocks], dim=1)
+        se_shape = torch.stack([((Bc @ C) * Bc).sum(1).clamp(min=0).sqrt() for C in blocks], dim=1)
     else:
         f = Bg @ beta
         se = ((Bg @ cov) * Bg).sum(1).clamp(min=0).sqrt()
+        se_shape = ((Bc @ cov) * Bc).sum(1).clamp(min=0).sqrt()
     return Localisation(
         var,
         fit["edf"],
@@ -458,6 +461,7 @@ def localise_variable(ws: Workspace, var: Variable, n_variables: int = 1) -> Loc
         grid,
         f,
         se,
+        se_shape,
     )
 
 

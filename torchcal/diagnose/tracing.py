@@ -259,6 +259,7 @@ def unexplained_entries(
                     "grid": loc.grid.tolist(),
                     "value": loc.smooth.tolist(),
                     "se": loc.smooth_se.tolist(),
+                    **({} if loc.smooth_se_shape is None else {"se_shape": loc.smooth_se_shape.tolist()}),
                     "unit": "rad" if loc.variable.kind == "joint" else "m",
                 },
             }

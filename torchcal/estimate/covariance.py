@@ -190,3 +190,36 @@ def combined_std(model: MeasurementModel, ctx: Context, cov: ParameterCovariance
     if a is None:
         return b
     return a if b is None else (a.square() + b.square()).sqrt()
+
+
+def tolerance_bounded(
+    cov: ParameterCovariance, model: MeasurementModel, length: float, angle: float
+) -> ParameterCovariance:
+    """``cov`` with a robot's manufacturing tolerance (``length`` [m], ``angle`` [rad] per geometric element) added as
+    information on every geometric element it holds with a variance above the tolerance's: ``C - C H^T (H C H^T +
+    P)^-1 H C`` (``H`` picks those elements, ``P`` their tolerance variances). A fit that holds what its rows cannot
+    tell at a wider prior (a geometric change's 1 mm, 0.1 deg) says nothing of those elements but that prior; the
+    robot's geometry there is no more uncertain than its manufacturing. Only the elements above their tolerance: one
+    already held at it (the kinematic calibration's consider covariance) would count that prior twice."""
+    units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
+    block = [name for name, idx in zip(cov.names, cov.index) for _ in idx]  # each element's parameter
+    C = cov.matrix
+
+    def tol(k: int) -> float:
+        return length if units[cov.labels[k]] == "m" else angle
+
+    sel = [
+        k
+        for k, label in enumerate(cov.labels)
+        if block[k] == "robot.geometry.delta" and label in units and float(C[k, k]) > tol(k) ** 2
+    ]
+    if not sel:
+        return cov
+    prior = torch.tensor([tol(k) for k in sel], dtype=C.dtype, device=C.device)
+    idx = torch.tensor(sel, device=C.device)
+    S = C[idx][:, idx] + torch.diag(prior.square())
+    CH = C[:, idx]
+    out = C - CH @ torch.linalg.solve(S, CH.T)
+    out = 0.5 * (out + out.T)
+    out.diagonal().clamp_(min=0)
+    return ParameterCovariance(list(cov.names), [list(i) for i in cov.index], list(cov.labels), out)

@@ -236,8 +236,11 @@ def base_variance(
 
 
 #: the level at which a few held-out rows bound the scale of the sigma (:class:`FewRows`): a scale outside the bounds
-#: would have given errors this unlikely (each tail)
+#: would have given errors this unlikely (each tail); what the words on stderr say (over- or understated)
 FEW_ROWS_ALPHA = 0.005
+#: the level of the scale the sigma uses (:attr:`FewRows.scale`): the largest the rows allow at this level, a one-sided
+#: upper confidence bound (with no level measured, the parameters' sigma is a floor, not an estimate)
+FEW_ROWS_COVER = 0.05
 
 
 @dataclass(frozen=True)
@@ -246,9 +249,14 @@ class FewRows:
     the instrument's noise give (``sigma_0``): not a level, but bounds on its scale. With ``sigma = k sigma_0`` the
     rows' ``T = sum e^2 / sigma_0^2`` over their ``3n`` axes is ``k^2 chi2_3n``; a ``k`` above ``sqrt(T / chi2_3n(a))``
     (the lower ``a`` quantile, :data:`FEW_ROWS_ALPHA`) would have given errors that small with probability below
-    ``a``, one below ``sqrt(T / chi2_3n(1 - a))`` errors that large. The sigma uses the ``k`` nearest 1 within the
-    bounds: a covariance 50 times the errors (poorly determined parameters, seven held-out rows) comes down to the
-    most the rows allow, one the errors exceed goes up to the least they demand.
+    ``a``, one below ``sqrt(T / chi2_3n(1 - a))`` errors that large: these bounds say which way ``sigma_0`` is off.
+    The sigma uses ``k = sqrt(T / chi2_3n(c))`` (:data:`FEW_ROWS_COVER`), the largest scale the rows allow at ``c``:
+    ``sigma_0`` holds no level for what the model leaves unexplained (too few rows to measure one), so it is a floor,
+    and a few rows that happen to miss little must not make it one (``k >= 1`` unless the rows reject ``sigma_0`` as
+    too large); a covariance 50 times the errors (poorly determined parameters, seven held-out rows) comes down to
+    what the rows allow, one the errors exceed goes up.
+    Where ``sigma_0`` is right the scale is about ``sqrt(3n / chi2_3n(c))`` (1.3 for 8 rows): the median
+    ``|error| / sigma`` about 0.5.
 
     Attributes:
         noise: the instrument's standard deviation per axis ``(3,)`` [m].
@@ -265,8 +273,14 @@ class FewRows:
 
     @property
     def scale(self) -> float:
-        """The ``k`` the sigma uses: 1 where the bounds allow it, else the nearer bound."""
-        return min(max(1.0, self.low), self.high)
+        """The ``k`` the sigma uses: ``sqrt(T / chi2_3n(c))`` (class docstring), from the bounds (``T = low^2
+        chi2_3n(1 - a)``)."""
+        from torchcal.stats import chi2_quantile
+
+        k = 3 * self.n
+        T = self.low**2 * chi2_quantile(1.0 - FEW_ROWS_ALPHA, k)
+        upper = max(math.sqrt(T / chi2_quantile(FEW_ROWS_COVER, k)), 1e-12)
+        return upper if self.high < 1.0 else max(upper, 1.0)  # below the floor only where the rows reject it
 
     @property
     def direction(self) -> str:
@@ -279,20 +293,21 @@ class FewRows:
             f"was measured on only {self.n} held-out rows (a level needs {MIN_ROWS}): the parameters' and the learned "
             f"model's uncertainty with the instrument's noise"
         )
+        k = f"{self.scale:.3g}, the largest scale the rows allow at {FEW_ROWS_COVER:.0%} (no level measured)"
         if self.direction == "overstates":
             words = (
                 f" overstate the error (the rows' errors are a median {self.median_ratio:.2g} of it); sx, sy, sz are "
-                f"scaled down by {self.scale:.3g}, the most the rows allow, and may still overstate it"
+                f"scaled down by {k}"
             )
         elif self.direction == "understates":
             words = (
                 f" understate the error (the rows' errors are a median {self.median_ratio:.2g} of it); sx, sy, sz are "
-                f"scaled up by {self.scale:.3g}, the least the rows demand, and may still understate it"
+                f"scaled up by {k}"
             )
         else:
             words = (
                 f", which the rows' errors (a median {self.median_ratio:.2g} of it) neither bound above nor below "
-                f"(scale {self.low:.3g} to {self.high:.3g}): sx, sy, sz are that sigma"
+                f"(scale {self.low:.3g} to {self.high:.3g}): sx, sy, sz are scaled by {k}"
             )
         return head + words + f"; hold out {MIN_ROWS} rows or more for a measured sigma"
 

@@ -35,7 +35,7 @@ import torch
 
 from torchcal._method import CANDIDATES  # noqa: F401 (predict's model column names them)
 from torchcal.effects import Context, MeasurementModel
-from torchcal.estimate.covariance import ParameterCovariance
+from torchcal.estimate.covariance import ParameterCovariance, tolerance_bounded
 from torchcal.estimate.fit import fit_covariance, prior_scales, selection
 from torchcal.estimate.problem import FreeParameters, prior_sigmas
 from torchcal.estimate.trust import without_fading
@@ -291,27 +291,4 @@ def bounded(
     settings = run.options.fit.geometric()
     if cov is None or settings.prior_length is None or settings.prior_angle is None:
         return cov
-    units = {i.name: i.unit for i in model.robot.parameter_info() if i.group == "geometry"}
-    block = [name for name, idx in zip(cov.names, cov.index) for _ in idx]  # each element's parameter
-    C = cov.matrix
-
-    def tol(k: int) -> float:
-        return settings.prior_length if units[cov.labels[k]] == "m" else settings.prior_angle
-
-    # only the elements more uncertain than their tolerance: one the kinematic calibration already held at it (a
-    # consider covariance of the tolerance prior) would count that prior twice, and its sigma shrink below it
-    sel = [
-        k
-        for k, label in enumerate(cov.labels)
-        if block[k] == "robot.geometry.delta" and label in units and float(C[k, k]) > tol(k) ** 2
-    ]
-    if not sel:
-        return cov
-    prior = torch.tensor([tol(k) for k in sel], dtype=C.dtype, device=C.device)
-    idx = torch.tensor(sel, device=C.device)
-    S = C[idx][:, idx] + torch.diag(prior.square())
-    CH = C[:, idx]
-    out = C - CH @ torch.linalg.solve(S, CH.T)
-    out = 0.5 * (out + out.T)
-    out.diagonal().clamp_(min=0)
-    return ParameterCovariance(list(cov.names), [list(i) for i in cov.index], list(cov.labels), out)
+    return tolerance_bounded(cov, model, settings.prior_length, settings.prior_angle)

@@ -33,8 +33,8 @@ def check_holdout(n: int, holdout: float) -> None:
     n_hold = S.holdout_count(n, holdout)
     if n_hold < MIN_HOLDOUT:
         raise OptionError(
-            f"--holdout {holdout:g} of {n} poses holds out {n_hold}; at least {MIN_HOLDOUT} are needed for a "
-            f"held-out error (--holdout >= {MIN_HOLDOUT / n:.3g})"
+            f"holdout {holdout:g} (--holdout) of {n} poses holds out {n_hold}; at least {MIN_HOLDOUT} are needed for "
+            f"a held-out error (holdout >= {MIN_HOLDOUT / n:.3g})"
         )
 
 

@@ -33,6 +33,7 @@ poses (a seeded random 20 %, or the last 20 % of a trajectory).
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -43,6 +44,7 @@ from torchcal import stats as S
 from torchcal.data import Measurements
 from torchcal.diagnose.candidates import Candidate, candidates
 from torchcal.diagnose.score import Score, named_p, score_candidates
+from torchcal.diagnose.stations import station_consistency
 from torchcal.diagnose.tracing import (
     LocalisationScore,
     OpenCandidate,
@@ -57,6 +59,7 @@ from torchcal.effects.joint import LUMPED_FORM, MAX_COMPLIANCE, LumpedCompliance
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
 from torchcal.estimate.identifiability import MAX_CORRELATION, weak_combinations
+from torchcal.pipeline.effect_holds import hold_trades
 from torchcal.pipeline.holdout import GUARD_MIN_POSES
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
 from torchcal.pipeline.state import CalibrationRun, StageResult, StageWork
@@ -102,10 +105,9 @@ def close_loop(
         search.diag.stop = f"reached the limit of {max_effects} effects"
         for loc in localise_fit(work.model, search.ctx, run.train.p, work.fits[-1])[0] if open_forms else []:
             search.open_notes.setdefault(loc.name, f"the loop reached its limit of {max_effects} effects")
+    search.diag.trades = _hold_trades(work, effect_trades(work.model, work.fits[-1]))
     final = work.fits[-1]
-    search.diag.trades = effect_trades(work.model, final)
-    for t in search.diag.trades:
-        work.note(t["note"])
+    _stations(search, final)
     if open_forms and not final.global_test.get("passed", True):
         search.diag.unexplained = unexplained_entries(
             work.model, search.ctx, run.train.p, final, run.options.levels.score, search.open_notes
@@ -293,6 +295,73 @@ class _Search:
         self.base, self.e_base = accepted.trial, accepted.errors
         self.edge_bases.clear()
         return True
+
+
+def _stations(search: _Search, final) -> None:
+    """Whether the stations share the instrument whose errors the loop found (:mod:`torchcal.diagnose.stations`):
+    the tests go to the diagnosis, a station that differs to the run's notes."""
+    run = search.run
+    search.diag.stations = station_consistency(
+        search.work.model,
+        final.result,
+        search.ctx,
+        run.train.p,
+        final.whitening,
+        run.train.station_names,
+        search.diag.alpha,
+    )
+    for t in search.diag.stations:
+        if t["differs"]:
+            search.work.note(
+                f"instrument: {t['effect']} differs at station {t['station']} (score test chi2 {t['statistic']:.1f} "
+                f"on {t['dof']} dof, Bonferroni p = {t['p_bonferroni']:.2g}): the stations may not share one "
+                "instrument; a file per instrument calibrates each apart"
+            )
+
+
+def _hold_trades(work: StageWork, trades: list[dict]) -> list[dict]:
+    """Hold the effect members of the trades with the geometry at zero and refit (:mod:`torchcal.pipeline.
+    effect_holds`); the last checkpoint and the effects' records then show the model so held. Each trade gets
+    ``held`` (the elements held, empty where it is only named) and its note, which the run's notes carry."""
+    run = work.run
+    fit, names = hold_trades(
+        work.model,
+        run.train,
+        run.identifiability,
+        trades,
+        run.options.fit,
+        trajectory=run.trajectory,
+        fit=work.fits[-1],
+    )
+    if fit is not None:
+        work.fits.append(fit)
+        name = work.stages.pop().name
+        after = work.add_stage(name)
+        labels = [e.label() for e in work.model.effects]
+        for i, r in enumerate(work.effects):
+            if r.label not in labels:
+                continue
+            params = {**r.params, **effect_parameters(work.model, labels.index(r.label), fit)}
+            for short, entry in params.items():
+                if f"{r.label}.{short}" in names:
+                    entry["note"] = "held at zero: the data cannot tell it from the geometry (identifiability)"
+            after_mm = after.rmse * 1e3 if r.label == name else r.rmse_after_mm
+            work.effects[i] = dataclasses.replace(r, params=params, rmse_after_mm=after_mm)
+    for t in trades:
+        t["held"] = [n for n in t["effects"] if n in names]
+        if t["held"]:
+            t["note"] = t["note"].replace(
+                "the values along it are the priors' and the start's",
+                f"held at the effect's zero ({', '.join(t['held'])}): the geometry keeps what both explain",
+            )
+        elif t.get("kept"):
+            far = ", ".join(f"{n} {z:.1f} sigma" for n, z in t["kept"].items())
+            t["note"] = t["note"].replace(
+                "the values along it are the priors' and the start's",
+                f"kept: the data put it far from zero ({far}), though along that direction it shares with the geometry",
+            )
+        work.note(t["note"])
+    return trades
 
 
 def effect_trades(model: MeasurementModel, fit, max_correlation: float = MAX_CORRELATION) -> list[dict]:
@@ -637,7 +706,7 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
             cand.kind,
             cand.joint,
             params,
-            {**s.to_dict(), "round": v.round, "validation": v.validation, "global_test_after": new_fit.global_test},
+            _evidence(work, diag, v, new_fit),
             name=cand.name,
             label=label,
             rmse_before_mm=st_before.rmse * 1e3,
@@ -650,6 +719,52 @@ def _accept(work: StageWork, diag: Diagnosis, v: _Validation, fit_on, train: Mea
         f"{v.validation['rmse_after_mm']:.4f} mm, p = {v.validation['p_value']:.2g})"
     )
     return True
+
+
+#: an encoder order whose score statistic lies within this of the accepted order's is one the data hardly tell from
+#: it: 2 ln 20, a likelihood ratio under 20 between two forms of as many parameters
+ALIKE_CHI2 = 2.0 * math.log(20.0)
+
+
+def _evidence(work: StageWork, diag: Diagnosis, v: _Validation, new_fit) -> dict:
+    """An accepted candidate's evidence for its record: its score, round, validation and the global test after it; an
+    encoder harmonic's orders the data hardly tell from it (``alike``, also noted)."""
+    cand = v.candidate
+    alike = _alike_orders(cand, diag)
+    if alike:
+        work.note(
+            f"diagnosis: {cand.name}'s order is a guess among {', '.join([cand.name, *alike])}: their score tests lie "
+            f"within chi2 {ALIKE_CHI2:g} of each other (a likelihood ratio under 20; over the span of the angle the "
+            "data see, these orders hardly differ)"
+        )
+    return {
+        **v.score.to_dict(),
+        "round": v.round,
+        "validation": v.validation,
+        "global_test_after": new_fit.global_test,
+        **({"alike": alike} if alike else {}),
+    }
+
+
+def _alike_orders(cand, diag: Diagnosis) -> list[str]:
+    """The other orders of an accepted encoder harmonic whose score test in its round came within :data:`ALIKE_CHI2`
+    of its own (empty for any other candidate): over a narrow span of the angle neighbouring orders are nearly the
+    same function, and the name's order is then the data's best guess among them."""
+    if getattr(cand, "kind", None) != "instrument" or getattr(cand, "order", None) is None or not diag.rounds:
+        return []
+    scores = diag.rounds[-1]["scores"]
+    own = next((x.statistic for x in scores if x.candidate.name == cand.name), None)
+    if own is None:
+        return []
+    return [
+        x.candidate.name
+        for x in scores
+        if x.candidate.name != cand.name
+        and getattr(x.candidate, "order", None) is not None
+        and x.candidate.variable == cand.variable
+        and x.identifiable
+        and own - x.statistic < ALIKE_CHI2
+    ]
 
 
 def _load_form(eff, params: dict) -> dict:

@@ -170,6 +170,7 @@ class Diagnosis:
     stop: str = ""
     unexplained: list[dict] = field(default_factory=list)  # tracing.unexplained_entries of the final model
     trades: list[dict] = field(default_factory=list)  # loop.effect_trades of the final fit: effects vs geometry
+    stations: list[dict] = field(default_factory=list)  # diagnose.stations: each instrument effect at each station
 
     def to_dict(self) -> dict:
         return {
@@ -193,6 +194,7 @@ class Diagnosis:
             "decisions": [d.to_dict() for d in self.decisions],
             "stop": self.stop,
             **({"trades": [{k: v for k, v in t.items() if k != "note"} for t in self.trades]} if self.trades else {}),
+            **({"instrument_stations": self.stations} if self.stations else {}),
         }
 
     def copy(self) -> Diagnosis:

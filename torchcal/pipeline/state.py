@@ -313,5 +313,11 @@ def _final_values(entry: dict, model, fits) -> dict:
     if fit is None:
         return entry
     final = effect_parameters(model, index, fit)
-    merged = {k: ({**v, **final[k]} if isinstance(v, dict) and k in final else v) for k, v in params.items()}
+    # a held element keeps the note its record gave it (why it is held), not the final fit's generic one
+    merged = {
+        k: ({**v, **final[k], **{n: v[n] for n in ("note",) if n in v and n in final[k]}})
+        if isinstance(v, dict) and k in final
+        else v
+        for k, v in params.items()
+    }
     return {**entry, "params": merged}

@@ -15,24 +15,26 @@ from torchcal.report.ekf_plots import ekf_section
 
 
 def plot_errors_per_pose(run: CalibrationRun, path: Path) -> None:
+    """Each held-out pose's error after the kinematic calibration and with the final model, the poses sorted by the
+    former: what each pose gained, and the poses the final model leaves above the rest. The steps between are the
+    story table's (drawn here, their points lay over each other and hid both)."""
+    first, last = _geometric(run), run.stages[-1]
+    order = torch.argsort(first.holdout_errors.detach().cpu())
+    x = torch.arange(len(order)).tolist()
     fig, ax = subplots(figsize=(9, 3.2))
-    x = torch.arange(len(run.holdout_idx))
-    colors = ["0.6", "tab:orange", "tab:purple", "tab:red", "tab:brown", "tab:pink", "tab:olive", "tab:cyan"]
     # from the kinematic calibration on: the nominal model's error (several times larger) would set the scale and
     # hide the steps that follow; its RMSE is in the title
-    for k, s in enumerate(run.stages):
-        if s.name == "nominal":
-            continue
-        color = "tab:blue" if k == len(run.stages) - 1 and k > 1 else colors[k % len(colors)]
-        ax.plot(
-            x, (s.holdout_errors * 1e3).cpu(), ".", ms=3, color=color, label=f"{s.name} (RMSE {s.rmse * 1e3:.3f} mm)"
-        )
-    ax.set_xlabel("held-out pose")
+    shown = [(first, "0.55", "kinematic calibration")]
+    if last is not first:
+        shown.append((last, "tab:blue", f"final ({last.name})"))
+    for s, color, name in shown:
+        e = (s.holdout_errors.detach().cpu()[order] * 1e3).tolist()
+        ax.plot(x, e, ".", ms=3, color=color, label=f"{name}: RMSE {s.rmse * 1e3:.3f} mm")
+    ax.set_xlabel("held-out pose, sorted by its error after the kinematic calibration")
     ax.set_ylabel("|position error| [mm]")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper left")
     ax.set_title(
-        f"Held-out position error per pose, from the kinematic calibration on (nominal: RMSE "
-        f"{run.stages[0].rmse * 1e3:.3f} mm)",
+        f"Held-out position error per pose (nominal geometry: RMSE {run.stages[0].rmse * 1e3:.3f} mm)",
         fontsize=10,
         y=TITLE_Y,
     )
@@ -131,10 +133,13 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     before, after = decision.models
     v = residual_view(decision.candidate, before, after, ctx, train.p)
     x = v["x"].tolist()
+    # less its mean over the poses: a constant along the effect's direction is a joint offset or an instrument shift
+    # the geometry carries (a compliance under torques of one sign sat 1 mm below residuals about zero)
+    effect = v["effect"] - v["effect"].mean()
     fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
     panels = (
         (axes[0], "before", "before: residual of the model without it"),
-        (axes[1], "after", "after: residual of the joint refit with it"),
+        (axes[1], "after", "after: residual with it, the geometry refitted jointly"),
     )
     for ax, key, title in panels:
         ax.plot(
@@ -148,21 +153,31 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
         order = torch.argsort(v["x"])
         ax.plot(
             [x[i] for i in order.tolist()],
-            (v["effect"][order] * 1e6).tolist(),
+            (effect[order] * 1e6).tolist(),
             ".",
             ms=2,
             color="tab:red",
-            label="fitted effect",
+            label="fitted effect, less its mean",
         )
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_xlabel(v["xlabel"])
         ax.set_title(title, fontsize=9, y=TITLE_Y)
         ax.legend(fontsize=7, loc="upper left")
     axes[0].set_ylabel("[um]")
+    # an effect far beyond the residuals (a candidate confounded with the geometry, which takes the rest: a rejected
+    # cyclic term on Series C reached 16 mm over residuals of 1 mm) would set the scale and hide them
+    lim = 1.15e6 * float(torch.cat([v["before"], v["after"]]).abs().max())
+    reach = 1e6 * float(effect.abs().max())
+    if reach > 1.5 * lim:
+        axes[0].set_ylim(-lim, lim)
+        for ax in axes:
+            ax.text(0.99, 0.02, f"fitted effect beyond the axis: up to {reach:.3g} um", transform=ax.transAxes,
+                    ha="right", va="bottom", fontsize=7, color="tab:red")  # fmt: skip
     verdict = "accepted" if decision.accepted else "rejected"
     fig.suptitle(
-        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect: the "
-        "fitted effect can exceed the trend\nthe geometry alone left, whose share of it the geometry had absorbed",
+        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect and "
+        "carries its mean: the fitted effect can exceed\nthe trend the geometry alone left, whose share of it the "
+        "geometry had absorbed",
         fontsize=9,
     )
     save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.13, "top": 0.8, "wspace": 0.05})
@@ -263,8 +278,10 @@ def write_markdown(run: CalibrationRun, report: dict, out: Path) -> None:
         "",
         "## Plots",
         "",
-        "Each held-out pose's error at every step from the kinematic calibration on (the nominal model's, several "
-        "times larger, is in the title): look for poses the final model leaves far above the rest.",
+        "Each held-out pose's error after the kinematic calibration (grey) and with the final model (blue), the "
+        "poses sorted by the former (the nominal model's RMSE, several times larger, is in the title; the steps "
+        "between are in the story's table): look for poses the final model leaves far above the rest, or above "
+        "their kinematic error.",
         "",
         "![errors per pose](errors_per_pose.png)",
         "",
@@ -402,6 +419,16 @@ def _parameters_section(par: dict) -> list[str]:
         for c in par["largest_correlations"][:5]:
             lines.append(f"- {c['a']} / {c['b']}: {c['rho']:+.3f}")
     return lines
+
+
+def effect_line(e: dict) -> str:
+    """One found effect (an entry of the run's ``effects_report``) as the demo and ``calibrate`` print it: its name,
+    its parameters with their units and the one p-value it was admitted on (named: the localisation's or the score
+    test's, the same as report.md's)."""
+    name = e["kind"] + (f" (joint {e['joint']})" if e["joint"] is not None else "")
+    words = effect_params_words(e["params"])
+    ev = e["evidence"]
+    return name + (f": {words}" if words else "") + (f"; {named_p(ev)}" if "p_bonferroni" in ev else "")
 
 
 def effect_params_words(params: dict) -> str:
@@ -668,10 +695,14 @@ def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
             continue
         v = d.validation
         verdict = "**accepted**" if d.accepted else "**rejected**"
+        # a candidate rejected on its form (terms that cancel) is not put to the paired test: no z, no p to print
+        tested = math.isfinite(v["z"]) and math.isfinite(v["p_value"])
+        paired = (
+            f"paired z = {v['z']:.2f}, p = {v['p_value']:.2g}" if tested else "no paired test: rejected on its form"
+        )
         lines += [
             f"{d.candidate.name} ({named_p(d.score.to_dict())}): {verdict}: {d.reason}. Validation RMSE "
-            f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm (paired z = {v['z']:.2f}, "
-            f"p = {v['p_value']:.2g}).",
+            f"{v['rmse_before_mm']:.4f} -> {v['rmse_after_mm']:.4f} mm ({paired}).",
             "",
         ]
         if d.models is not None:
@@ -681,8 +712,9 @@ def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
                 f"![{d.candidate.name}]({name})",
                 "",
                 "The training residual along the effect's direction against its variable, without the effect "
-                "(left) and after the joint refit with it (right), with the fitted effect in red: an effect the "
-                "data demand leaves the right panel flat.",
+                "(left) and after the geometry was refitted jointly with it (right), with the fitted effect less its "
+                "mean (a constant the geometry carries) in red (it can exceed the trend on the left: the geometry "
+                "alone had absorbed a share of it): an effect the data demand leaves the right panel flat.",
                 "",
             ]
     return lines
@@ -722,20 +754,25 @@ def plot_unexplained(entry: dict, path: Path) -> None:
     joint = sm["unit"] == "rad"
     scale, unit = (1e6, "urad") if joint else (1e6, "um")
     fig, ax = subplots(figsize=(7, 3.6))
-    cols = [f[:, None], se[:, None]] if f.dim() == 1 else [f, se]
+    se_shape = torch.tensor(sm["se_shape"], dtype=torch.float64) if "se_shape" in sm else None
+    cols = [f, se, se_shape]
+    if f.dim() == 1:
+        cols = [None if c is None else c[:, None] for c in cols]
     names = ["joint error"] if joint else ["x", "y", "z"]
     for c, name in enumerate(names):
         v, s = cols[0][:, c] * scale, cols[1][:, c] * scale
         style = "o-" if len(x) <= 2 else "-"
         # where the band is wider than the curve's whole variation, the smooth's level is not determined (a constant
-        # the geometry carries, a joint offset): its shape is drawn about zero, without a band the data do not support
+        # the geometry carries, a joint offset): its shape is drawn about zero, with the shape's own band (that of
+        # the smooth less its mean), and without a band where the report has none for it
         shape_only = float(s.min()) > float(v.max() - v.min())
         if shape_only:
             v = v - v.mean()
+            s = None if cols[2] is None else cols[2][:, c] * scale
         ax.plot(
             x.tolist(), v.tolist(), style, lw=1.2, label=name + (" (shape; level not determined)" if shape_only else "")
         )
-        if not shape_only:
+        if s is not None:
             ax.fill_between(x.tolist(), (v - 2 * s).tolist(), (v + 2 * s).tolist(), alpha=0.2)
     ax.axhline(0.0, color="k", lw=0.5)
     ax.set_xlabel(entry["label"])
@@ -778,7 +815,8 @@ def _unexplained_section(report: dict, out: Path) -> list[str]:
         "",
         f"The smooth of the final model's training residual in {entries[0]['variable']}, with a band of two standard "
         "errors: a curve that leaves zero by more than its band is what the model still lacks there (where its "
-        "level is not determined, only its shape is drawn, about zero and without a band).",
+        "level is not determined, a joint offset the geometry carries, only its shape is drawn, about zero, with the "
+        "shape's band: look for where the curve leaves its band, not for its level).",
         "",
         f"![unexplained {entries[0]['variable']}]({name})",
         "",

@@ -62,14 +62,27 @@ DEFAULT_SIZES = {
     "field": 1.5e-4,
     "coupling": 5e-5,
     # the instrument's own errors (torchcal.effects.instrument): an azimuth or elevation encoder harmonic of order H,
-    # a range offset, a range scale
+    # a range offset, a range scale, a tilt of the trunnion axis or of the beam, the beam's offset
     "tracker_az": 2e-5,
     "tracker_el": 2e-5,
     "range_offset": 2e-5,
     "range_scale": 2e-5,
+    "axis_tilt": 2e-5,
+    "beam_tilt": 2e-5,
+    "beam_offset": 2e-5,
 }
 #: the simulated instrument terms, and the term of torchcal.effects.instrument.TrackerError each one is
-INSTRUMENT_SPECS = {"tracker_az": "azimuth", "tracker_el": "elevation", "range_offset": "range", "range_scale": "range"}
+INSTRUMENT_SPECS = {
+    "tracker_az": "azimuth",
+    "tracker_el": "elevation",
+    "range_offset": "range",
+    "range_scale": "range",
+    "axis_tilt": "tilt",
+    "beam_tilt": "tilt",
+    "beam_offset": "beam",
+}
+#: the unit an instrument term takes its value in (the others take a length: the offset itself, or its RMS size)
+_VALUE_OF = {"tracker_az": "urad", "tracker_el": "urad", "range_scale": "ppm", "axis_tilt": "urad", "beam_tilt": "urad"}
 EFFECT_NAMES = tuple(DEFAULT_SIZES)
 _UNITS = {"m": 1.0, "mm": 1e3, "um": 1e6}  # divisors to metres (exact for decimal input)
 _VALUE_UNITS = {"urad": 1e6, "ppm": 1e6}  # divisors of an instrument term's value to rad and m/m
@@ -111,7 +124,9 @@ class EffectSpec:
     @classmethod
     def _instrument(cls, text: str, kind: str, arg: str | None, size: str | None, unit: str | None) -> EffectSpec:
         """An instrument term: ``tracker_az:H`` / ``tracker_el:H`` (an encoder harmonic of order H, its amplitude in
-        urad or its size), ``range_offset`` (a size: the offset itself), ``range_scale`` (in ppm, or a size)."""
+        urad or its size), ``range_offset`` (a size: the offset itself), ``range_scale`` (in ppm, or a size),
+        ``axis_tilt`` / ``beam_tilt`` (the trunnion axis's or the beam's tilt in urad, or a size), ``beam_offset`` (a
+        size: the offset itself, in a seeded direction across the beam)."""
         spec = cls(kind=kind, variable=INSTRUMENT_SPECS[kind])
         if kind in ("tracker_az", "tracker_el"):
             if arg is None or not arg.isdigit() or int(arg) < 1:
@@ -119,7 +134,7 @@ class EffectSpec:
             spec.order = int(arg)
         elif arg is not None:
             raise OptionError(f"effect '{text}': {kind} takes no joint or order")
-        want = {"tracker_az": "urad", "tracker_el": "urad", "range_scale": "ppm"}.get(kind)
+        want = _VALUE_OF.get(kind)
         if size is None:
             return spec
         if unit in _VALUE_UNITS and unit == want:
@@ -346,6 +361,12 @@ def _instrument_truth(spec: EffectSpec, g: torch.Generator) -> TrackerError:
         return TrackerError("range", c=[1e-5, 0.0])
     if spec.kind == "range_scale":
         return TrackerError("range", c=[0.0, spec.amount if spec.amount is not None else 1e-5])
+    if spec.kind in ("axis_tilt", "beam_tilt"):
+        amp = spec.amount if spec.amount is not None else 1e-5
+        return TrackerError("tilt", t=[amp, 0.0] if spec.kind == "axis_tilt" else [0.0, amp])
+    if spec.kind == "beam_offset":  # the offset itself (scaled to the size), across the beam in a seeded direction
+        phase = 2 * math.pi * float(torch.rand(1, generator=g, dtype=F64))
+        return TrackerError("beam", e=[1e-5 * math.cos(phase), 1e-5 * math.sin(phase)])
     amp = spec.amount if spec.amount is not None else 1e-5
     phase = 2 * math.pi * float(torch.rand(1, generator=g, dtype=F64))
     return TrackerError(spec.variable, (spec.order,), a=[amp * math.cos(phase)], b=[amp * math.sin(phase)])
@@ -576,6 +597,7 @@ def _effects(
                 "spec": spec.kind,
                 "joint": spec.joint,
                 **({"source": spec.source} if spec.source is not None else {}),
+                **({"order": spec.order} if spec.order is not None else {}),  # an encoder harmonic's
                 "variable": spec.variable,
                 "size_m": size,
                 "rms_m": float(mag.square().mean().sqrt()),

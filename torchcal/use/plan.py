@@ -282,8 +282,9 @@ class Plan:
         need = self.n_identifiable - weak_allowance(self.n_identifiable)
         return (
             f"the {k} planned poses cannot identify {need} of the {self.n_identifiable} parameters of the geometry, "
-            f"instrument pose and lever arm that poses spread over the joint ranges identify ({fewer}); a calibration "
-            "of them would be refused or would hold parameters it needs: give more distinct candidates or a larger --n"
+            f"instrument pose and lever arm that poses spread over the joint ranges identify ({fewer}); a "
+            "calibration of them would be refused or would hold parameters it needs: give more distinct candidates or "
+            "a larger n (--n)"
         )
 
 
@@ -411,7 +412,7 @@ def sample_candidates(
     if len(q) < max(need, 1):
         raise OptionError(
             f"only {len(q)} of {drawn} poses drawn {where} satisfy the line-of-sight rule, fewer than the {need} the "
-            "plan needs; move the tracker (--tracker), or give candidates in a file"
+            "plan needs; move the tracker (tracker, --tracker), or give candidates in a file"
         )
     if len(q) < n:
         _console.info(

@@ -316,9 +316,9 @@ def check_prior_robot(run_dir: str | os.PathLike, robot, given: str) -> None:
             why = f"its flange is up to {gap * 1e3:.3f} mm from the prior run's robot's at the same joint angles"
     if why is not None:
         raise OptionError(
-            f"--robot {given} is not the robot of the prior run {run_dir} ({meta['robot_file']}): {why}. An update "
-            "starts from the prior run's robot and its corrections; give --robot that robot, or calibrate from scratch "
-            "without --prior"
+            f"robot {given} (--robot) is not the robot of the prior run {run_dir} ({meta['robot_file']}): {why}. An "
+            "update starts from the prior run's robot and its corrections; give that robot, or calibrate from scratch "
+            "without the prior (--prior)"
         )
 
 
@@ -738,7 +738,7 @@ def own_names(meta: dict, station: str | None, probe: str | None) -> tuple[str |
     out = []
     for key, name in (("station", station), ("probe", probe)):
         if key in own and name is not None and name != own[key][0]:
-            raise OptionError(f"--{key} {name!r} {own[key][1]}")
+            raise OptionError(f"{key} {name!r} (--{key}) {own[key][1]}")
         out.append(None if key in own and name == own[key][0] else name)
     return out[0], out[1]
 

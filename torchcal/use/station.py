@@ -20,7 +20,8 @@ The fit:
    priors; its covariance ``s0^2 N^-1`` (scaled by the fit's own variance factor: on real data the robot's remaining
    model error, not the tracker noise, sets the scatter of a few points).
 4. The run's own parameter uncertainty carried into the new placement: with ``g`` the run's parameters that stay
-   (covariance ``C_gg`` from ``covariance.pt``) and ``A = -(J_s^T J_s)^-1 J_s^T J_g`` (whitened Jacobians at the
+   (covariance ``C_gg`` from ``covariance.pt``, the geometric elements its rows could not tell held at the robot's
+   manufacturing tolerance: :func:`held_at_tolerance`) and ``A = -(J_s^T J_s)^-1 J_s^T J_g`` (whitened Jacobians at the
    points), the placement is ``s = s_noise + A g``, so ``C_ss = C_noise + A C_gg A^T`` and ``C_gs = C_gg A^T``;
    RUN2's ``covariance.pt`` holds the whole matrix, so ``predict``'s ``sx, sy, sz`` include the placement.
 5. Checks: per-point residuals and leave-one-out errors (the point predicted by the placement fitted to the others,
@@ -521,7 +522,7 @@ def _point_checks(
     if dof > 0 and not chi["passed"]:
         why = "the load or the robot changed"
         if not opts.tool:
-            why = "another tool than the run's (--tool), or the robot moved"
+            why = "another tool than the run's (tool=True, --tool), or the robot moved"
         warnings.append(
             f"the points fit worse than the run predicts (chi-square {stat:.3g} > {thr:.3g} with {dof} degrees of "
             f"freedom): a point measured wrongly, {why}"
@@ -547,8 +548,9 @@ def _refuse_foreign(points: Measurements, r: Tensor, expected: float) -> None:
         raise StationError(
             f"{points.source or 'the points'}: the {points.n} points fit the run's robot with a median residual of "
             f"{med * 1e3:.4g} mm, {med / expected:.0f} times the {expected * 1e3:.3g} mm the run predicts per point "
-            f"(limit {MAX_RESIDUAL_FACTOR:g} x): points of another robot, in other units (--length-unit, "
-            "--angle-unit), joints in another order or sign, or another tool than the run's (--tool)"
+            f"(limit {MAX_RESIDUAL_FACTOR:g} x): points of another robot, in other units (length_unit=, "
+            "angle_unit=; --length-unit, --angle-unit), joints in another order or sign, or another tool than the "
+            "run's (tool=True, --tool)"
         )
 
 
@@ -629,7 +631,7 @@ def restation(
     model, meta = load_model(run_dir)
     check_placement(meta, points, keys=("probe",))  # a new placement, the same probes
     require_torques(model, points, points.source or "the points")  # a compliance that reads them carries their load
-    cov = load_covariance(run_dir, model)
+    cov = held_at_tolerance(model, load_covariance(run_dir, model))
     points, label = _points_rows(model, points, probe, tool, run_dir)
     model, meta, cov = one_placement(model, meta, cov, label, _only(points, "probe"), tool=tool)
     points = rows_of(model, points)  # each point's probe in the re-stationed run's order
@@ -645,7 +647,7 @@ def restation(
     try:
         station, refused = fit_station(model, points, opts, cov, load_sigma), None
     except StationError as e:  # points far off the run: another tool is one of the reasons it names
-        if tool or model.robot.probes or "--tool" not in str(e):
+        if tool or model.robot.probes or "another tool than the run's" not in str(e):
             raise
         station, refused = None, e
     if not tool and not model.robot.probes and (station is None or not station.chi_square["passed"]):
@@ -667,6 +669,28 @@ def restation(
         station.loo_scale = _loo_scale(station, at_points)
         station.predicted_sigma = float(sigma.square().sum(1).mean().sqrt()) * station.loo_scale
     return model, meta, station
+
+
+def held_at_tolerance(model: MeasurementModel, cov: ParameterCovariance | None) -> ParameterCovariance | None:
+    """The run's covariance with the geometric elements its rows could not tell held at the robot's manufacturing
+    tolerance (its file's ``tolerances:``, else the kinematic calibration's defaults), not at the wider prior of a
+    geometric change (1 mm, 0.1 deg) the closed loop's fits hold them at
+    (:func:`~torchcal.estimate.covariance.tolerance_bounded`). A placement with a new lever arm carries what the run
+    held to poses it never saw in those directions: a wrist element at the loop's 0.1 deg moved a probe 20 mm further
+    out by 0.1 mm on a simulated UR10 whose geometry was off by its tolerance, and the predicted error was twice the
+    measured one. A kinematic run's covariance already holds them at the tolerance and is unchanged."""
+    from torchcal.estimate.covariance import tolerance_bounded
+    from torchcal.pipeline.options import FitSettings
+
+    if cov is None:
+        return None
+    tol = getattr(model.robot, "tolerances", None)
+    if tol is None:
+        d = FitSettings()
+        tol = (d.tolerance_length, d.tolerance_angle)
+    if tol[0] is None or tol[1] is None:
+        return cov
+    return tolerance_bounded(cov, model, tol[0], tol[1])
 
 
 def _loo_scale(station: Station, sigma: Tensor) -> float:
@@ -717,7 +741,9 @@ def _try_new_tool(
     except StationError as e:  # too few points, or orientations that do not fix a lever arm
         if station is None:
             raise refused from None
-        station.warnings.append(f"a changed tool could not be tested ({e}); if the tool changed, give --tool")
+        station.warnings.append(
+            f"a changed tool could not be tested ({e}); if the tool changed, give tool=True (--tool)"
+        )
         return model, station
     chi0, chi1 = None if station is None else station.chi_square, alt.chi_square
     before = "too far off to fit"
@@ -728,7 +754,7 @@ def _try_new_tool(
             0,
             f"the points fit worse than the run predicts with its lever arm ({before}) and as predicted with a new "
             f"one (chi-square {chi1['statistic']:.3g} <= {chi1['threshold']:.3g}): the tool changed, its lever arm "
-            "was fitted too (as --tool does)",
+            "was fitted too (as with tool=True, --tool)",
         )
         return alt_model, alt
     if _tool_supported(chi0, chi1):
@@ -736,7 +762,7 @@ def _try_new_tool(
             0,
             f"the points fit worse than the run predicts with its lever arm ({before}); a new lever arm explains most "
             f"of it (chi-square {chi1['statistic']:.3g}, {chi1['threshold']:.3g} expected at most): the tool changed, "
-            "its lever arm was fitted too (as --tool does); the rest is more than a new placement and tool: "
+            "its lever arm was fitted too (as with tool=True, --tool); the rest is more than a new placement and tool: "
             f"{_what_else(start, points)}",
         )
         return alt_model, alt
@@ -777,9 +803,12 @@ def _what_else(model: MeasurementModel, points: Measurements) -> str:
         return (
             "the robot's load (the run's compliance reads each row's payload: give the points' payload column, "
             "kg, where the robot carries another load than in the calibration), its base or the robot itself "
-            "changed; calibrate again (calibrate --prior RUN) where that does not explain it"
+            "changed; calibrate again from the run (prior=, --prior RUN) where that does not explain it"
         )
-    return "the robot, its load or its base changed beyond a new placement; calibrate again (calibrate --prior RUN)"
+    return (
+        "the robot, its load or its base changed beyond a new placement; calibrate again from the run (prior=, "
+        "--prior RUN)"
+    )
 
 
 def _with_load_scale(meta: dict, station: Station, points: Measurements, opts, load_sigma: Tensor) -> dict:
@@ -839,12 +868,14 @@ def _points_rows(
     where = points.source or "the points"
     known = model.robot.probes
     if probe is not None and not known:
-        raise StationError(f"{run_dir}: the run has a single probe (its lever arm is used); drop --probe {probe!r}")
+        raise StationError(
+            f"{run_dir}: the run has a single probe (its lever arm is used); drop probe={probe!r} (--probe)"
+        )
     if tool and known:
         raise StationError(
-            f"{run_dir}: the run has probes {', '.join(known)} on one nest, each with its lever arm; --tool fits one "
-            "new lever arm and cannot tell which probe it replaces: re-station without --tool (every probe's lever "
-            "arm is kept), or calibrate the new tool"
+            f"{run_dir}: the run has probes {', '.join(known)} on one nest, each with its lever arm; tool=True "
+            "(--tool) fits one new lever arm and cannot tell which probe it replaces: re-station without it (every "
+            "probe's lever arm is kept), or calibrate the new tool"
         )
     stations = _names(points, "station")
     if len(stations) > 1:
@@ -856,7 +887,9 @@ def _points_rows(
     if probe is not None:
         named = _names(points, "probe")
         if named and set(named) != {probe}:
-            raise StationError(f"{where}: --probe {probe!r} but the points' probe column names {', '.join(named)}")
+            raise StationError(
+                f"{where}: probe={probe!r} (--probe) but the points' probe column names {', '.join(named)}"
+            )
         if probe not in known:
             raise StationError(f"{run_dir}: probe {probe!r} is not one of the run's ({', '.join(known)})")
         idx = torch.zeros(points.n, dtype=torch.long, device=points.q.device)
