@@ -656,16 +656,21 @@ def _keep_geometry(work: StageWork, evidence: dict, why: str) -> None:
 
 
 def _step_back_to_nominal(work: StageWork, evidence: dict) -> bool:
-    """Where geometry alone is kept, it must also beat the nominal geometry with the fitted instrument pose and
-    lever arm (the ``nominal`` stage) on the held-out samples, by the rule of the default method's guard (a lower
-    held-out RMSE, judged on :data:`~torchcal.pipeline.holdout.GUARD_MIN_POSES` samples or more); otherwise the
-    work ends with the nominal model, refitted on all samples where asked. A method never ends worse than the
-    simpler one it replaces: under the tolerance priors a short trajectory's kinematic calibration can hold every
-    geometric element at nominal, and its instrument and lever arm, fitted again, differ from the nominal stage's
-    only by where the solver stopped (docs/narrow-campaigns.md).
-    ``evidence["nominal_guard"]`` holds the comparison. Returns whether it stepped back."""
+    """Where geometry alone is kept and the kinematic calibration moved no geometric element (under the tolerance
+    priors a short or narrow trajectory can hold them all at nominal), it is the nominal geometry with its instrument
+    pose and lever arm fitted again, different from the ``nominal`` stage's only by where the solver stopped; it is
+    kept only where it beats that stage on the held-out samples (a lower RMSE, judged on
+    :data:`~torchcal.pipeline.holdout.GUARD_MIN_POSES` samples or more), else the work ends with the nominal model,
+    refitted on all samples where asked: a method never ends worse than the simpler one it replaces. A kinematic
+    calibration that moved its geometry is not judged so: the held-out samples of a path are one stretch of it, and
+    on them the nominal robot can win where the calibrated geometry continues the path several times better
+    (docs/narrow-campaigns.md). ``evidence["nominal_guard"]`` holds the comparison. Returns whether it stepped back."""
     run = work.run
     nominal = run.stage(StageName.NOMINAL)
+    geometry = work.model.robot.groups().get("geometry")
+    if geometry is not None and bool((geometry.delta.detach() != 0).any()):
+        evidence["nominal_guard"] = {"passed": True, "rule": "not judged: the kinematic calibration moved its geometry"}
+        return False
     if run.hold.n < GUARD_MIN_POSES:
         evidence["nominal_guard"] = {"passed": True, "n": run.hold.n, "rule": "too few held-out samples to judge"}
         return False
