@@ -38,6 +38,7 @@ The last stdout line is one JSON object: {"seeds": {"0": {...}, ...}, "mean": {.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 
@@ -92,12 +93,27 @@ def field_for(samples: int, seed: int, target_mm: float, probe: str = "0.26mm") 
     return f"{size:.4f}mm"
 
 
-def one_seed(samples: int, field: str, seed: int, engine: str = "adaptive") -> dict:
+def one_seed(
+    samples: int,
+    field: str,
+    seed: int,
+    engine: str = "adaptive",
+    *,
+    run_seed: int | None = None,
+    tolerance: bool = True,
+) -> dict:
+    """One trajectory of seed ``seed`` calibrated with ``engine``; ``run_seed`` is the calibration's own seed (default
+    ``seed``; tests/filter/test_integrated.py runs its trajectory of seed 4 with 0), and ``tolerance=False`` fits the
+    kinematic calibration under the wide priors instead of the tolerance priors (what the integrated method seeded
+    its filter with before issue 51)."""
     t0 = time.perf_counter()
     if field.startswith("auto"):
         field = field_for(samples, seed, float(field.split(":")[1]) if ":" in field else 0.19)
     c, data = trajectory_data(samples, field, seed)
-    run = calibrate("ur5", data, Options.of(method="integrated", seed=seed, engine=engine))
+    opts = Options.of(method="integrated", seed=seed if run_seed is None else run_seed, engine=engine)
+    if not tolerance:
+        opts = dataclasses.replace(opts, fit=dataclasses.replace(opts.fit, tolerance_length=None))
+    run = calibrate("ur5", data, opts)
     hold = data.subset(run.holdout_idx)
     with torch.no_grad():
         oracle = (c.model(Context.from_measurements(hold, trajectory=True)) - hold.p).norm(dim=-1)

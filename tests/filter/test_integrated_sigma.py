@@ -443,3 +443,36 @@ def test_the_held_out_samples_only_ever_shorten_the_gate():
     ev = {}
     few = run.hold.subset(slice(0, I.VALIDATION_PIECES - 1))
     assert I._gate_on_holdout(wrong, run.train, few, **gate, evidence=ev) == 4.0 and not ev
+
+
+@pytest.mark.parametrize("spoiled", [False, True])
+def test_geometry_alone_at_nominal_steps_back_to_the_nominal_model_where_that_is_better_on_the_held_out_samples(
+    spoiled,
+):
+    """Where the integrated method keeps geometry alone and the kinematic calibration moved no geometric element, it
+    must beat the nominal stage on the held-out samples, else the run ends with the nominal model (a method never
+    worse than the simpler one); a calibration that moved its geometry is not judged so."""
+    c = simulate(SimConfig(robot="ur5", trajectory=True, samples=400, train_samples=399, seed=2))
+    run = calibrate("ur5", c.train, Options(method="kinematic", seed=0))
+    work = StageWork(run, "integrated")
+    if spoiled:  # every geometric element at nominal, and an instrument pose 0.5 mm off the nominal stage's
+        robot = work.model.robot
+        with torch.no_grad():
+            robot.groups()["geometry"].delta.zero_()
+            robot.load_state_dict(run.stage("nominal").model.robot.state_dict())
+            robot.groups()["instrument"].delta[0] += 5e-4
+    evidence = {}
+    I._keep_geometry(work, evidence, "no candidate")
+    guard, nominal = evidence["nominal_guard"], run.stage("nominal")
+    assert guard["passed"] is not spoiled
+    if not spoiled:
+        assert "moved its geometry" in guard["rule"] and work.stages[-1].name == "geometric"
+        return
+    assert guard["nominal_rmse_mm"] == pytest.approx(nominal.rmse * 1e3)
+    assert guard["nominal_rmse_mm"] < guard["kinematic_rmse_mm"]
+    assert work.stages[-1].name == "nominal" and work.stages[-1].rmse == pytest.approx(nominal.rmse)
+    assert work.fits[-1].stage == "nominal" and "the nominal geometry kept" in work.notes[-1]
+    torch.testing.assert_close(
+        work.model(Context.from_measurements(run.hold, trajectory=True)),
+        nominal.model(Context.from_measurements(run.hold, trajectory=True)),
+    )

@@ -143,15 +143,7 @@ CELLS = {
 SEVERAL = [name for name, cell in CELLS.items() if SETUPS[cell.setup].stations > 1]
 #: the bugs that fail cells today, each owned by another branch (issue 34); how to reproduce each: the report of
 #: the branch that added this module
-XFAIL: dict[tuple[str, str], str] = {
-    ("ur5-integrated-trajectory", "calibrate"): (
-        "issue 51: under the tolerance priors the kinematic calibration of this short trajectory continues "
-        "0.05679 mm against the nominal robot's 0.05660 (32 held-out samples). The rule beyond the region "
-        "(torchcal.pipeline.beyond) chooses the nominal robot here, but none of the 32 held-out samples lies beyond "
-        "the training joints' ranges (the multisine path revisits them): the 0.3 % is a cost inside the region, "
-        "which the held-out guard, not the rule beyond, would have to step back from (docs/narrow-campaigns.md)"
-    ),
-}
+XFAIL: dict[tuple[str, str], str] = {}
 
 STEPS = ("calibrate", "predict", "compensate", "station", "prior", "plan")
 

@@ -59,6 +59,7 @@ from torchcal.estimate.fit import GEOMETRIC_GROUPS, errors, place_instrument_and
 from torchcal.estimate.joint_refinement import refine_jointly
 from torchcal.filter.ekf import EKFConfig, EKFResult, EKFTrainer
 from torchcal.pipeline.holdout import (
+    GUARD_MIN_POSES,
     VALIDATION_PIECES,
     geometry_on_all,
     guard_against_geometry,
@@ -642,12 +643,64 @@ def _why_not_chosen(best: _Chosen | None, e_geo: Tensor, evidence: dict, alpha: 
 
 
 def _keep_geometry(work: StageWork, evidence: dict, why: str) -> None:
-    """The work ends with the geometric model: a rejection that says why, a note, the refit where asked."""
+    """The work ends with the geometric model: a rejection that says why, a note, the refit where asked; or with
+    the nominal one where the kinematic calibration is no better than it on the held-out samples
+    (:func:`_step_back_to_nominal`)."""
     work.rejections.append(_not_selected(evidence, why))
     work.note(f"integrated: geometry alone kept: {why}")
+    if _step_back_to_nominal(work, evidence):
+        return None
     if work.options.refits:
         evidence["refit"] = refit_geometry(work, work.identifiability)
     return None
+
+
+def _step_back_to_nominal(work: StageWork, evidence: dict) -> bool:
+    """Where geometry alone is kept and the kinematic calibration moved no geometric element (under the tolerance
+    priors a short or narrow trajectory can hold them all at nominal), it is the nominal geometry with its instrument
+    pose and lever arm fitted again, different from the ``nominal`` stage's only by where the solver stopped; it is
+    kept only where it beats that stage on the held-out samples (a lower RMSE, judged on
+    :data:`~torchcal.pipeline.holdout.GUARD_MIN_POSES` samples or more), else the work ends with the nominal model,
+    refitted on all samples where asked: a method never ends worse than the simpler one it replaces. A kinematic
+    calibration that moved its geometry is not judged so: the held-out samples of a path are one stretch of it, and
+    on them the nominal robot can win where the calibrated geometry continues the path several times better
+    (docs/narrow-campaigns.md). ``evidence["nominal_guard"]`` holds the comparison. Returns whether it stepped back."""
+    run = work.run
+    nominal = run.stage(StageName.NOMINAL)
+    geometry = work.model.robot.groups().get("geometry")
+    if geometry is not None and bool((geometry.delta.detach() != 0).any()):
+        evidence["nominal_guard"] = {"passed": True, "rule": "not judged: the kinematic calibration moved its geometry"}
+        return False
+    if run.hold.n < GUARD_MIN_POSES:
+        evidence["nominal_guard"] = {"passed": True, "n": run.hold.n, "rule": "too few held-out samples to judge"}
+        return False
+    kin, nom = _rmse(_errors(work.model, run.hold)), _rmse(_errors(nominal.model, run.hold))
+    guard = evidence["nominal_guard"] = {
+        "passed": kin < nom,
+        "n": run.hold.n,
+        "kinematic_rmse_mm": kin * 1e3,
+        "nominal_rmse_mm": nom * 1e3,
+        "rule": "the kinematic calibration's held-out RMSE below the nominal geometry's",
+    }
+    if guard["passed"]:
+        return False
+    work.model = copy.deepcopy(nominal.model)
+    work.fits.append(next(f for f in run.fits if f.stage == StageName.NOMINAL))
+    work.add_stage(StageName.NOMINAL)  # its held-out errors: the training fit's, before any refit sees them
+    if work.options.refits:
+        both = work.fitted_and_held_out
+        stage = "refit: instrument and lever arm on all samples"
+        fit = solve(work.model, both, ("instrument", "tool"), work.options.fit, stage, trajectory=True, identify=False)
+        work.fits.append(fit)
+        evidence["refit"] = {"n_samples": both.n, "model": "nominal", "status": fit.result.status}
+    text = (
+        f"integrated: the nominal geometry kept: the kinematic calibration is no better than it on the held-out "
+        f"samples ({guard['kinematic_rmse_mm']:.5f} mm against the nominal's "
+        f"{guard['nominal_rmse_mm']:.5f})"
+    )
+    work.note(text)
+    _console.info(text)
+    return True
 
 
 def _fit_chosen(
