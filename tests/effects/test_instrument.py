@@ -235,7 +235,7 @@ def test_a_station_whose_instrument_differs_is_named(split):
 
     model, fit, train = _two_instruments(split)
     ctx = Context.from_measurements(train, trajectory=False)
-    tests = station_consistency(model, fit.result, ctx, train.p, fit.whitening, train.station_names, 0.05)
+    tests = station_consistency(model, fit.result, ctx, train.p, fit.whitening, train.station_names, alpha=0.05)
     assert len(tests) == 3 and all(t["dof"] == 2 for t in tests)
     differs = sorted(t["station"] for t in tests if t["differs"])
     assert ("S3" in differs) if split else differs == [], tests

@@ -43,7 +43,7 @@ def effect_columns(model: MeasurementModel, index: int, ctx: Context, p: Tensor,
 
 
 def station_consistency(
-    model: MeasurementModel, result: LMResult, ctx: Context, p: Tensor, W: Tensor, station_names, alpha: float
+    model: MeasurementModel, result: LMResult, ctx: Context, p: Tensor, W: Tensor, station_names, *, alpha: float
 ) -> list[dict]:
     """The score test of every instrument effect of ``model`` at every station (module docstring).
 

@@ -311,7 +311,7 @@ def _stations(search: _Search, final) -> None:
         run.train.p,
         final.whitening,
         run.train.station_names,
-        search.diag.alpha,
+        alpha=search.diag.alpha,
     )
     for t in search.diag.stations:
         if t["differs"]:
