@@ -21,7 +21,7 @@ from torchcal.effects.registry import NAMED_KINDS
 from torchcal.errors import EstimationError
 from torchcal.estimate.covariance import ParameterCovariance
 from torchcal.estimate.identifiability import Identifiability, analyse, preference_order, weak_after_fit
-from torchcal.estimate.lm import FitStatus, LMResult, global_test, levenberg_marquardt
+from torchcal.estimate.lm import SINGULAR_EIGENVALUE, FitStatus, LMResult, global_test, levenberg_marquardt
 from torchcal.estimate.problem import (
     FreeParameters,
     jacobian_of,
@@ -446,6 +446,71 @@ def solve(
             model, fit, lambda f, ps: _residuals(model, f, ctx, m, W, Wr, ps), opts, groups, effects
         )
     return fit
+
+
+@dataclass
+class Step:
+    """One Gauss-Newton step of :func:`gauss_newton_step`: the whitened cost ``0.5 |r|^2`` before it, as its
+    linearisation predicts after it, and as the model gives after it; ``n_obs`` position rows and ``u`` parameters."""
+
+    cost_before: float
+    cost_predicted: float
+    cost_after: float
+    n_obs: int
+    u: int
+
+    @property
+    def agreement(self) -> float:
+        """The cost's actual decrease over the predicted one (1: the model is linear along the step)."""
+        gain = self.cost_before - self.cost_predicted
+        return (self.cost_before - self.cost_after) / gain if gain > 0 else float("nan")
+
+
+def gauss_newton_step(
+    model: MeasurementModel,
+    m: Measurements,
+    groups: tuple[str, ...],
+    opts: FitOptions,
+    *,
+    trajectory: bool,
+    identifiability: Identifiability,
+    effects: bool = True,
+) -> Step | None:
+    """One undamped Gauss-Newton step of the problem :func:`solve` would solve with ``identifiability`` (the same
+    free elements, whitening and priors), from the model's current values; written into the model.
+
+    A cheap stand-in for a refit that starts at the optimum of a nearby problem (a fitted model with an effect added
+    at zero): its step is nearly the refit's. Returns None, the model unchanged, where the Jacobi-scaled normal
+    matrix is singular (:data:`~torchcal.estimate.lm.SINGULAR_EIGENVALUE`) or the step's cost is not finite.
+    """
+    ctx = Context.from_measurements(m, trajectory=trajectory)
+    W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
+    Wr, _, _ = _scaled_orientation_rows(model, ctx, m, opts, identifiability)
+    keep = dict(zip(identifiability.names, identifiability.free.tolist()))
+    sel, labels = selection(model, groups, effects=effects)
+    keep.update({n: True for n in FreeParameters(model, sel, labels).names if n not in keep})
+    sel, labels = selection(model, groups, keep, effects=effects)
+    free = FreeParameters(model, sel, labels)
+    fun = _residuals(model, free, ctx, m, W, Wr, _priors(model, free, opts, groups))
+    x = free.vector().detach()
+    r = fun(x).detach()
+    J = jacobian_of(fun)(x).detach()
+    N = J.T @ J
+    d = N.diagonal()
+    s = torch.where(d > 0, d.clamp(min=1e-300).rsqrt(), torch.ones_like(d))
+    Ns = N * s[:, None] * s[None, :]
+    eye = torch.eye(len(x), dtype=x.dtype, device=x.device)
+    L, info = torch.linalg.cholesky_ex(Ns - SINGULAR_EIGENVALUE * eye)
+    if int(info) != 0:
+        return None
+    dx = s * -torch.cholesky_solve(((J.T @ r) * s)[:, None], L)[:, 0]
+    r_new = fun(x + dx).detach()
+    after = 0.5 * float(r_new.square().sum())
+    if not math.isfinite(after):
+        return None
+    free.assign(x + dx)
+    before, predicted = 0.5 * float(r.square().sum()), 0.5 * float((r + J @ dx).square().sum())
+    return Step(before, predicted, after, 3 * m.n, len(x))
 
 
 def _scaled_orientation_rows(model, ctx, m, opts: FitOptions, identifiability):

@@ -57,7 +57,7 @@ from torchcal.effects import Context, MeasurementModel, joint_function_check
 from torchcal.effects.drift import Drift
 from torchcal.effects.joint import LUMPED_FORM, MAX_COMPLIANCE, LumpedCompliance, RegionForm, TorqueCompliance
 from torchcal.errors import EstimationError
-from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, solve
+from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, gauss_newton_step, solve
 from torchcal.estimate.identifiability import MAX_CORRELATION, weak_combinations
 from torchcal.pipeline.effect_holds import hold_trades
 from torchcal.pipeline.holdout import GUARD_MIN_POSES
@@ -137,6 +137,9 @@ class _Search:
     # joint -> the current base refitted without that joint's edge poses: its errors there (None: the refit
     # failed); emptied when a new effect makes a new base
     edge_bases: dict[int, Tensor | None] = field(default_factory=dict)
+    # joint -> the current base stepped (one Gauss-Newton step) without that joint's edge poses: its errors there, for
+    # the screen (:func:`_screen_edge`); emptied with ``edge_bases``
+    edge_steps: dict[int, Tensor | None] = field(default_factory=dict)
 
     @classmethod
     def start(cls, run: CalibrationRun, work: StageWork, open_forms: bool) -> _Search:
@@ -176,6 +179,18 @@ class _Search:
             effects=True,
             identifiability=self.run.identifiability,
             covariance=covariance,
+        )
+
+    def step_on(self, m: MeasurementModel, data: Measurements):
+        """``m`` moved by one Gauss-Newton step of :meth:`fit_on`'s problem on ``data``
+        (:func:`~torchcal.estimate.fit.gauss_newton_step`); None where it cannot be taken."""
+        return gauss_newton_step(
+            m,
+            data,
+            GROUPS,
+            self.run.options.fit,
+            trajectory=self.run.trajectory,
+            identifiability=self.run.identifiability,
         )
 
     def propose(self, rnd: int) -> tuple[list, list, list]:
@@ -222,7 +237,14 @@ class _Search:
 
     def validate(self, rnd: int, cand, s) -> _Validation:
         """``cand`` refitted with the base on the fitting poses and judged on the validation poses (an open joint
-        form at the edges of its joint's range too); a candidate that fails is recorded as rejected."""
+        form at the edges of its joint's range too); a candidate that fails is recorded as rejected. The screen
+        (:func:`_screen`) rejects, without the refit, a candidate whose one-step prediction fails by a wide margin."""
+        v = self.screen(rnd, cand, s) if self.run.identifiability is not None else None
+        if v is not None:
+            _reject(self.work, self.diag, v)
+            if isinstance(cand, OpenCandidate):
+                self.open_notes[cand.choice.variable.name] = f"{cand.name} ({cand.choice.form}) rejected: {v.reason}"
+            return v
         v = _validate(
             s,
             rnd,
@@ -251,6 +273,16 @@ class _Search:
             if isinstance(cand, OpenCandidate):
                 self.open_notes[cand.choice.variable.name] = f"{cand.name} ({cand.choice.form}) rejected: {v.reason}"
         return v
+
+    def screen(self, rnd: int, cand, s) -> _Validation | None:
+        """``cand`` judged by one Gauss-Newton step from the base (:func:`_screen`, :func:`_screen_edge`): the rejected
+        :class:`_Validation` where the step says it fails by a wide margin, else None (it is refitted)."""
+        v = _screen(s, rnd, cand, self)
+        if v is None or not v.passed:
+            return v
+        if isinstance(v.trial.effects[-1], RegionForm):
+            v = _screen_edge(v, self)
+        return v if v is not None and not v.passed else None
 
     def validate_round(self, rnd: int, significant: list, opens: list, max_tries: int) -> list[_Validation]:
         """The round's confirmed candidates: the strongest open form, then the significant menu candidates in order
@@ -297,6 +329,7 @@ class _Search:
         self.accepted_names.add(accepted.candidate.name)
         self.base, self.e_base = accepted.trial, accepted.errors
         self.edge_bases.clear()
+        self.edge_steps.clear()
         return True
 
 
@@ -591,6 +624,130 @@ def _validate_edge(
             f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
             f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse.p_value:.2g})"
         )
+
+
+#: the screen trusts its step where the fitting poses' cost fell by this share of the linearised prediction or more,
+#: and by no more than its inverse (:attr:`~torchcal.estimate.fit.Step.agreement`): else the candidate is refitted
+SCREEN_AGREEMENT = 0.8
+#: the screen rejects a candidate without its refit only by this margin: a validation paired p of ``alpha_val`` times
+#: it or more (or no lower RMSE), an edge's p of ``alpha_val`` over it or less, a size of its bound times it or more
+SCREEN_MARGIN = 10.0
+#: the size margin of an ill-determined joint function (its parameters shrunk by this factor still fail the check)
+SCREEN_SIZE_MARGIN = 1.5
+SCREENED = "screened: one Gauss-Newton step from the base fit predicts it, not refitted"
+
+
+def _screen(s, rnd: int, cand, search: _Search) -> _Validation | None:
+    """``cand`` added to the base and moved by one Gauss-Newton step on the fitting poses (the base is at its optimum
+    there, so the step is nearly the refit's, :func:`_validate`), judged like the refit on the validation poses.
+
+    Returns the :class:`_Validation` of the step (``passed`` as it predicts) where the step is trusted (the cost fell
+    as its linearisation predicts, within :data:`SCREEN_AGREEMENT`; a candidate whose form is far from linear over
+    the step, or whose normal matrix is singular, is refitted instead: None), its rejection only where it fails by
+    the margins of :data:`SCREEN_MARGIN` and :data:`SCREEN_SIZE_MARGIN`; ``passed`` True otherwise.
+    """
+    trial = copy.deepcopy(search.base)
+    trial.add(_made(cand, search.fit_part))
+    step = search.step_on(trial, search.fit_part)
+    a = float("nan") if step is None else step.agreement
+    if not SCREEN_AGREEMENT <= a <= 1.0 / SCREEN_AGREEMENT:
+        return None
+    e_base, val, trajectory = search.e_base, search.val_part, search.run.trajectory
+    e_trial = errors(trial, val, trajectory)
+    base_v = dict(base=search.base, trial=trial, errors=e_trial)
+    unsure = joint_function_check(
+        trial.effects[-1], search.fit_part.q, trial.robot, search.run.options.loop.max_joint_error
+    )
+    if unsure is not None:
+        shrunk = copy.deepcopy(trial.effects[-1])
+        with torch.no_grad():
+            for par in shrunk.parameters():
+                par.div_(SCREEN_SIZE_MARGIN)
+        if (
+            joint_function_check(shrunk, search.fit_part.q, trial.robot, search.run.options.loop.max_joint_error)
+            is None
+        ):
+            return None
+        validation = {**_untested(e_base, e_trial, ill_determined=unsure), "screened": SCREENED}
+        reason = f"{unsure} ({SCREENED})"
+        _console.info(f"diagnosis round {rnd}: {cand.name}: rejected, {reason}")
+        return _Validation(
+            s, rnd, cand, **base_v, validation=validation, passed=False, reason=reason, cause=Cause.ILL_DETERMINED
+        )
+    alpha_val = search.diag.alpha_validation
+    test = S.paired_test(e_base, e_trial, ordered=trajectory)
+    r0, r1 = S.rmse(e_base), S.rmse(e_trial)
+    if r1 < r0 and test.p_value < SCREEN_MARGIN * alpha_val:
+        return _Validation(s, rnd, cand, **base_v, validation={}, passed=True, reason="")
+    validation = {
+        "rmse_before_mm": r0 * 1e3,
+        "rmse_after_mm": r1 * 1e3,
+        "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0,
+        **test.to_dict(),
+        "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
+        "screened": SCREENED,
+    }
+    reason = f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test.p_value:.2g}; {SCREENED})"
+    _console.info(f"diagnosis round {rnd}: {cand.name}: not confirmed ({reason})")
+    return _Validation(s, rnd, cand, **base_v, validation=validation, passed=False, reason=reason)
+
+
+def _screen_edge(v: _Validation, search: _Search) -> _Validation | None:
+    """:func:`_validate_edge` by one Gauss-Newton step from the base (of it alone and with the form) on the middle of
+    the joint's range: ``v`` rejected where the form predicts the edges worse by the margin of :data:`SCREEN_MARGIN`,
+    else None (it is refitted). The base's step is cached per joint (``search.edge_steps``)."""
+    eff = v.trial.effects[-1]
+    fit_part, trajectory = search.fit_part, search.run.trajectory
+    mid, edge = _edge_split(fit_part.q, eff.joint)
+    if len(edge) < GUARD_MIN_POSES or len(mid) < GUARD_MIN_POSES:
+        return None
+    middle, outer = fit_part.subset(mid), fit_part.subset(edge)
+    if eff.joint not in search.edge_steps:
+        ref = copy.deepcopy(search.base)
+        step = search.step_on(ref, middle)
+        trusted = step is not None and SCREEN_AGREEMENT <= step.agreement <= 1.0 / SCREEN_AGREEMENT
+        search.edge_steps[eff.joint] = errors(ref, outer, trajectory) if trusted else None
+    e_ref = search.edge_steps[eff.joint]
+    if e_ref is None:
+        return None
+    trial = copy.deepcopy(search.base)
+    trial.add(_made(v.candidate, fit_part))
+    step = search.step_on(trial, middle)
+    if step is None or not SCREEN_AGREEMENT <= step.agreement <= 1.0 / SCREEN_AGREEMENT:
+        return None
+    e_edge = errors(trial, outer, trajectory)
+    alpha_val = search.diag.alpha_validation
+    worse = S.paired_test(e_edge, e_ref, ordered=trajectory)
+    r0, r1 = S.rmse(e_ref), S.rmse(e_edge)
+    if not (r1 > r0 and worse.p_value < alpha_val / SCREEN_MARGIN):
+        return None
+    r_val0, r_val1 = S.rmse(search.e_base), S.rmse(v.errors)
+    test = S.paired_test(search.e_base, v.errors, ordered=trajectory)
+    v.validation = {
+        "rmse_before_mm": r_val0 * 1e3,
+        "rmse_after_mm": r_val1 * 1e3,
+        "relative_gain": 1.0 - r_val1 / r_val0 if r_val0 > 0 else 0.0,
+        **test.to_dict(),
+        "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
+        "screened": SCREENED,
+        "edge": {
+            "n": len(edge),
+            "share_per_side": EDGE_SHARE,
+            "rmse_without_mm": r0 * 1e3,
+            "rmse_with_mm": r1 * 1e3,
+            "p_worse": worse.p_value,
+            "rule": f"fitted on the middle of joint {eff.joint}'s range, not worse at its edges (one-sided paired p "
+            f">= {alpha_val})",
+        },
+    }
+    v.passed, v.cause = False, Cause.EDGE
+    v.reason = (
+        f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
+        f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
+        f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse.p_value:.2g}; {SCREENED})"
+    )
+    _console.info(f"diagnosis round {v.round}: {v.candidate.name}: rejected, {v.reason}")
+    return v
 
 
 def _made(cand, data: Measurements):
