@@ -451,13 +451,19 @@ def solve(
 @dataclass
 class Step:
     """One Gauss-Newton step of :func:`gauss_newton_step`: the whitened cost ``0.5 |r|^2`` before it, as its
-    linearisation predicts after it, and as the model gives after it; ``n_obs`` position rows and ``u`` parameters."""
+    linearisation predicts after it, and as the model gives after it; ``rows`` residuals and ``u`` parameters."""
 
     cost_before: float
     cost_predicted: float
     cost_after: float
-    n_obs: int
+    rows: int  # residual rows (observations and priors), as LMResult.n_obs counts them
     u: int
+
+    @property
+    def bic(self) -> float:
+        """The BIC of the stepped fit with the variance estimated, as the closed loop's refits give it."""
+        n = max(self.rows, 1)
+        return n * math.log(max(2.0 * self.cost_after, 1e-300) / n) + self.u * math.log(n)
 
     @property
     def agreement(self) -> float:
@@ -510,7 +516,7 @@ def gauss_newton_step(
         return None
     free.assign(x + dx)
     before, predicted = 0.5 * float(r.square().sum()), 0.5 * float((r + J @ dx).square().sum())
-    return Step(before, predicted, after, 3 * m.n, len(x))
+    return Step(before, predicted, after, len(r), len(x))
 
 
 def _scaled_orientation_rows(model, ctx, m, opts: FitOptions, identifiability):

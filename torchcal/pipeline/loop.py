@@ -678,13 +678,14 @@ def _screen(s, rnd: int, cand, search: _Search) -> _Validation | None:
     test = S.paired_test(e_base, e_trial, ordered=trajectory)
     r0, r1 = S.rmse(e_base), S.rmse(e_trial)
     if r1 < r0 and test.p_value < SCREEN_MARGIN * alpha_val:
-        return _Validation(s, rnd, cand, **base_v, validation={}, passed=True, reason="")
+        return _Validation(s, rnd, cand, **base_v, validation={}, passed=True, reason="", bic=step.bic)
     validation = {
         "rmse_before_mm": r0 * 1e3,
         "rmse_after_mm": r1 * 1e3,
         "relative_gain": 1.0 - r1 / r0 if r0 > 0 else 0.0,
         **test.to_dict(),
         "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
+        "bic_fit": step.bic,
         "screened": SCREENED,
     }
     reason = f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test.p_value:.2g}; {SCREENED})"
@@ -729,6 +730,7 @@ def _screen_edge(v: _Validation, search: _Search) -> _Validation | None:
         "relative_gain": 1.0 - r_val1 / r_val0 if r_val0 > 0 else 0.0,
         **test.to_dict(),
         "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
+        "bic_fit": v.bic,
         "screened": SCREENED,
         "edge": {
             "n": len(edge),
