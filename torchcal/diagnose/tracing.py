@@ -201,7 +201,14 @@ def open_candidates(
 
 
 def unexplained_entries(
-    model: MeasurementModel, ctx: Context, p: Tensor, fit, alpha: float, reasons: dict[str, str] | None = None
+    model: MeasurementModel,
+    ctx: Context,
+    p: Tensor,
+    fit,
+    alpha: float,
+    reasons: dict[str, str] | None = None,
+    *,
+    localised: tuple | None = None,
 ) -> list[dict]:
     """What the final model leaves in the training residual, strongest first (module docstring).
 
@@ -210,6 +217,7 @@ def unexplained_entries(
         fit: the last least-squares fit on those samples (its whitening and Jacobian).
         alpha: family-wise level of the localisation.
         reasons: per variable name, why the loop did not turn it into an effect (optional).
+        localised: :func:`localise_fit` of this ``fit`` where the caller has it (the closed loop's last round).
 
     Returns:
         Per significant variable: ``variable``, ``variables`` (the parts of a product such as ``q3_t``:
@@ -221,7 +229,7 @@ def unexplained_entries(
         strongest variable is still returned, with ``significant`` false and a reason that says so: the
         report never ends a failing global test in silence.
     """
-    locs, ws = localise_fit(model, ctx, p, fit)
+    locs, ws = localised if localised is not None else localise_fit(model, ctx, p, fit)
     out = []
     chosen = [loc for loc in locs if loc.significant(alpha)]
     weak = not chosen and bool(locs)

@@ -109,8 +109,16 @@ def close_loop(
     final = work.fits[-1]
     _stations(search, final)
     if open_forms and not final.global_test.get("passed", True):
+        # the last round localised this same fit where no hold refitted it since: its localisation is reused
+        last = search.localised
         search.diag.unexplained = unexplained_entries(
-            work.model, search.ctx, run.train.p, final, run.options.levels.score, search.open_notes
+            work.model,
+            search.ctx,
+            run.train.p,
+            final,
+            run.options.levels.score,
+            search.open_notes,
+            localised=last[1:] if last is not None and last[0] is final else None,
         )
     return work.result()
 
@@ -140,6 +148,7 @@ class _Search:
     # joint -> the current base stepped (one Gauss-Newton step) without that joint's edge poses: its errors there, for
     # the screen (:func:`_screen_edge`); emptied with ``edge_bases``
     edge_steps: dict[int, Tensor | None] = field(default_factory=dict)
+    localised: tuple | None = None  # (fit, localisations, workspace) of the last round's localisation
 
     @classmethod
     def start(cls, run: CalibrationRun, work: StageWork, open_forms: bool) -> _Search:
@@ -213,6 +222,7 @@ class _Search:
             else []
         )
         locs, ws = localise_fit(model, self.ctx, train.p, fit)
+        self.localised = (fit, locs, ws)
         opens, notes = (
             open_candidates(model, locs, ws, alpha, self.tried_open | self.accepted_names)
             if self.open_forms
