@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Protocol
 
 import torch
@@ -458,6 +459,14 @@ class Step:
     cost_after: float
     rows: int  # residual rows (observations and priors), as LMResult.n_obs counts them
     u: int
+    #: where the Jacobi-scaled normal matrix is singular (no step taken, the costs after it NaN): its smallest
+    #: eigenvalue; NaN otherwise
+    smallest: float = float("nan")
+    hint: str = ""  # there, which parameters it cannot fix (:func:`null_space_hint`)
+
+    @property
+    def singular(self) -> bool:
+        return not math.isnan(self.smallest)
 
     @property
     def bic(self) -> float:
@@ -486,8 +495,9 @@ def gauss_newton_step(
     free elements, whitening and priors), from the model's current values; written into the model.
 
     A cheap stand-in for a refit that starts at the optimum of a nearby problem (a fitted model with an effect added
-    at zero): its step is nearly the refit's. Returns None, the model unchanged, where the Jacobi-scaled normal
-    matrix is singular (:data:`~torchcal.estimate.lm.SINGULAR_EIGENVALUE`) or the step's cost is not finite.
+    at zero): its step is nearly the refit's. Where the Jacobi-scaled normal matrix is singular as the LM's first
+    iteration judges it (:data:`~torchcal.estimate.lm.SINGULAR_EIGENVALUE`) no step is taken (``Step.singular``);
+    None, the model unchanged, where the step's cost is not finite.
     """
     ctx = Context.from_measurements(m, trajectory=trajectory)
     W = whitening(model, ctx, m.sigma, opts.sigma_tracker, opts.sigma_joint)
@@ -506,7 +516,12 @@ def gauss_newton_step(
     s = torch.where(d > 0, d.clamp(min=1e-300).rsqrt(), torch.ones_like(d))
     Ns = N * s[:, None] * s[None, :]
     eye = torch.eye(len(x), dtype=x.dtype, device=x.device)
-    L, info = torch.linalg.cholesky_ex(Ns - SINGULAR_EIGENVALUE * eye)
+    before = 0.5 * float(r.square().sum())
+    if int(torch.linalg.cholesky_ex(Ns - SINGULAR_EIGENVALUE * eye)[1]) != 0:  # as the LM's first iteration judges it
+        nan = float("nan")
+        hint = null_space_hint(SimpleNamespace(normal=N, names=free.names))
+        return Step(before, nan, nan, len(r), len(x), smallest=float(torch.linalg.eigvalsh(Ns)[0]), hint=hint)
+    L, info = torch.linalg.cholesky_ex(Ns)
     if int(info) != 0:
         return None
     dx = s * -torch.cholesky_solve(((J.T @ r) * s)[:, None], L)[:, 0]
@@ -515,8 +530,7 @@ def gauss_newton_step(
     if not math.isfinite(after):
         return None
     free.assign(x + dx)
-    before, predicted = 0.5 * float(r.square().sum()), 0.5 * float((r + J @ dx).square().sum())
-    return Step(before, predicted, after, len(r), len(x))
+    return Step(before, 0.5 * float((r + J @ dx).square().sum()), after, len(r), len(x))
 
 
 def _scaled_orientation_rows(model, ctx, m, opts: FitOptions, identifiability):

@@ -59,6 +59,7 @@ from torchcal.effects.joint import LUMPED_FORM, MAX_COMPLIANCE, LumpedCompliance
 from torchcal.errors import EstimationError
 from torchcal.estimate.fit import GEOMETRIC_GROUPS, effect_parameters, errors, gauss_newton_step, solve
 from torchcal.estimate.identifiability import MAX_CORRELATION, weak_combinations
+from torchcal.estimate.lm import SINGULAR_EIGENVALUE
 from torchcal.pipeline.effect_holds import hold_trades
 from torchcal.pipeline.holdout import GUARD_MIN_POSES
 from torchcal.pipeline.records import Cause, Decision, Diagnosis, EffectRecord, Rejection
@@ -659,6 +660,8 @@ def _screen(s, rnd: int, cand, search: _Search) -> _Validation | None:
     trial = copy.deepcopy(search.base)
     trial.add(_made(cand, search.fit_part))
     step = search.step_on(trial, search.fit_part)
+    if step is not None and step.singular and step.smallest < SINGULAR_EIGENVALUE / SCREEN_MARGIN:
+        return _screened_singular(s, rnd, cand, search, trial, step)
     a = float("nan") if step is None else step.agreement
     if not SCREEN_AGREEMENT <= a <= 1.0 / SCREEN_AGREEMENT:
         return None
@@ -701,6 +704,32 @@ def _screen(s, rnd: int, cand, search: _Search) -> _Validation | None:
     reason = f"validation does not confirm it ({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {test.p_value:.2g}; {SCREENED})"
     _console.info(f"diagnosis round {rnd}: {cand.name}: not confirmed ({reason})")
     return _Validation(s, rnd, cand, **base_v, validation=validation, passed=False, reason=reason)
+
+
+def _screened_singular(s, rnd: int, cand, search: _Search, trial: MeasurementModel, step) -> _Validation:
+    """``cand`` rejected as a refit that fails: with it the normal matrix at the base fit has a null space at the
+    rounding level (its smallest eigenvalue under :data:`~torchcal.estimate.lm.SINGULAR_EIGENVALUE` by the screen's
+    margin), which the LM's first iterations would find singular too; the dependence is structural (columns of the
+    candidate that the poses cannot tell apart from each other or the geometry), not a matter of where it starts."""
+    err = (
+        "its normal matrix at the base fit is singular (rank deficient): smallest eigenvalue "
+        f"{step.smallest:.1e} of the unit-diagonal matrix{step.hint}"
+    )
+    reason = f"its joint refit on the fitting poses cannot be solved ({err}; {SCREENED})"
+    validation = {**_untested(search.e_base, None, refit_failed=err), "screened": SCREENED}
+    _console.info(f"diagnosis round {rnd}: {cand.name}: rejected, {reason}")
+    return _Validation(
+        s,
+        rnd,
+        cand,
+        search.base,
+        trial,
+        search.e_base,
+        validation,
+        False,
+        reason,
+        cause=Cause.REFIT_FAILED,
+    )
 
 
 def _screen_edge(v: _Validation, search: _Search) -> _Validation | None:
