@@ -14,7 +14,13 @@ After the geometric fit, repeat:
    when the other 20 % (the validation poses, never used to fit) confirm the gain: lower RMSE and a
    one-sided paired test (:func:`~torchcal.stats.paired_test`) below ``alpha_val``; an open joint form must
    besides hold at the edges of its joint's range: refitted without the outer 10 % of the fitting poses on each
-   side, it must not predict them significantly worse than the model without it (:func:`_validate_edge`);
+   side, it must not predict them significantly worse than the model without it (:func:`_validate_edge`).
+   Each candidate is screened first by one Gauss-Newton step from the base fit instead of the refit (the base is at
+   its optimum, so the step is nearly the refit's; :func:`_screen`, :func:`_screen_edge`): where the step is
+   trusted (the cost fell as its linearisation predicts) and fails a check by a wide margin (a validation p ten
+   times the level or no lower RMSE, an edge p a tenth of it, a joint function too large by half again, a normal
+   matrix singular at the rounding level), the candidate is rejected on the step's numbers, said so in its
+   record (``validation.screened``); every other candidate, and so every accepted one, is refitted as above;
 3. of those that passed, the one with the lowest validation RMSE (among those the paired test cannot tell
    apart on the validation poses, the lowest BIC of the fit on the fitting poses: the fewer-parameter form
    when two explain the same structure) is refitted jointly on all training poses and becomes a stage of
