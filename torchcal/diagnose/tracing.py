@@ -217,7 +217,7 @@ def unexplained_entries(
         fit: the last least-squares fit on those samples (its whitening and Jacobian).
         alpha: family-wise level of the localisation.
         reasons: per variable name, why the loop did not turn it into an effect (optional).
-        localised: :func:`localise_fit` of this ``fit`` where the caller has it (the closed loop's last round).
+        localised: :func:`localise_fit` of this ``fit`` where the caller has it (the closed loop's final search round).
 
     Returns:
         Per significant variable: ``variable``, ``variables`` (the parts of a product such as ``q3_t``:

@@ -116,7 +116,7 @@ def close_loop(
     final = work.fits[-1]
     _stations(search, final)
     if open_forms and not final.global_test.get("passed", True):
-        # the last round localised this same fit where no hold refitted it since: its localisation is reused
+        # the final search round localised this same fit where no hold refitted it since: its localisation is reused
         last = search.localised
         search.diag.unexplained = unexplained_entries(
             work.model,
@@ -155,7 +155,7 @@ class _Search:
     # joint -> the current base stepped (one Gauss-Newton step) without that joint's edge poses: its errors there, for
     # the screen (:func:`_screen_edge`); emptied with ``edge_bases``
     edge_steps: dict[int, Tensor | None] = field(default_factory=dict)
-    localised: tuple | None = None  # (fit, localisations, workspace) of the last round's localisation
+    localised: tuple | None = None  # (fit, localisations, workspace) of the latest localisation
 
     @classmethod
     def start(cls, run: CalibrationRun, work: StageWork, open_forms: bool) -> _Search:
