@@ -98,6 +98,9 @@ class GPSettings:
         coarse_rows: with more fitting rows than this, the restarts and ``iterations`` run on this many of them
             first, and ``refine_iterations`` on all of them follow.
         refine_iterations: L-BFGS iterations on all fitting rows after the coarse stage.
+        warm_tolerance: a warm refit's L-BFGS stops at the first iteration that raises the log evidence of the
+            fitting rows by less than this [nats] (its own resolution: hyperparameters whose evidence differs by a
+            Bayes factor under ``e^0.5`` are equally supported); the fits from scratch run all their iterations.
         kmeans_iterations: Lloyd iterations placing the inducing inputs.
         threads: torch threads while fitting (restored afterwards).
         seed: seeds the subsets and the k-means initialisation.
@@ -115,6 +118,7 @@ class GPSettings:
     restart_iterations: int = 15
     coarse_rows: int = 500
     refine_iterations: int = 15
+    warm_tolerance: float = 0.5
     kmeans_iterations: int = 10
     threads: int = 1
     seed: int = 0
@@ -733,6 +737,7 @@ def fit_hyperparameters(
     restarts: int = 1,
     restart_iterations: int = 6,
     generator: torch.Generator | None = None,
+    tolerance: float = 0.0,
 ) -> tuple[dict[str, Tensor], dict]:
     """Maximise the (collapsed) evidence over the log hyperparameters with L-BFGS, from several starts.
 
@@ -746,6 +751,8 @@ def fit_hyperparameters(
         start: hyperparameters to start from (a previous fit's :meth:`GPCorrection.hyper`), else a default;
             with a start there are no restarts.
         generator: draws the random starts (a fixed seed when None).
+        tolerance: stop at the first iteration that raises the log evidence by less than this [nats, all rows]
+            (0: run every iteration).
 
     Returns:
         The hyperparameters and ``{"log_evidence_per_row", "evaluations", "restart_log_evidence_per_row"}``
@@ -766,7 +773,7 @@ def fit_hyperparameters(
             with ThreadPoolExecutor(RESTART_WORKERS, initializer=torch.set_num_threads, initargs=(1,)) as pool:
                 tried = list(pool.map(lambda t0: evidence.run(t0, restart_iterations), starts))
         theta0 = min(tried, key=lambda r: r[0])[1] if tried else starts[0]
-    loss, theta, evaluations = evidence.run(theta0, iterations)
+    loss, theta, evaluations = evidence.run(theta0, iterations, tolerance / len(x))
     evaluations += sum(r[2] for r in tried)
     if tried:
         loss, theta = min([(loss, theta)] + [r[:2] for r in tried], key=lambda r: r[0])
@@ -838,8 +845,9 @@ class _Evidence:
         loss.backward()
         return loss
 
-    def run(self, theta0: Tensor, max_iter: int) -> tuple[float, Tensor, int]:
-        """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations."""
+    def run(self, theta0: Tensor, max_iter: int, tolerance: float = 0.0) -> tuple[float, Tensor, int]:
+        """L-BFGS from ``theta0``: the best loss any evaluation saw, its point and the number of evaluations;
+        ``tolerance``: the change of the loss (per row) below which it stops (0: L-BFGS's own 1e-9)."""
         theta = theta0.detach().to(self.x.device).clone().requires_grad_(True)
         best = [math.inf, theta0.detach().clone()]
         count = [0]  # per start: the starts run in threads
@@ -855,7 +863,8 @@ class _Evidence:
             return loss
 
         # torch.optim.LBFGS's method to the bit, without torch.optim (which imports torch._dynamo): torchcal._lbfgs
-        _lbfgs.minimize(closure, theta, max_iter=max_iter, history_size=20, tolerance_grad=1e-6, tolerance_change=1e-9)
+        tol = {"tolerance_grad": 1e-6, "tolerance_change": max(tolerance, 1e-9)}
+        _lbfgs.minimize(closure, theta, max_iter=max_iter, history_size=20, **tol)
         return best[0], best[1], count[0]
 
 
@@ -993,7 +1002,11 @@ def _fit(
             metric = 1.0 / eff.ard_len if s.ard else 1.0 / eff.add_len
             eff.inducing.copy_(kmeans(x * metric, s.max_inducing, g, s.kmeans_iterations) / metric)
         # 3. posterior over all rows
-        _posterior(eff, x, ys)
+        if _same_factor(warm, eff):  # a warm refit that kept the hyperparameters, on the same rows: the same factor
+            eff.weights.copy_(torch.cholesky_solve(ys, warm.chol_uu))
+            eff.chol_uu.copy_(warm.chol_uu)
+        else:
+            _posterior(eff, x, ys)
     out = {
         **eff.describe(),
         "log_evidence_per_row": info["log_evidence_per_row"],
@@ -1009,6 +1022,17 @@ def _fit(
     if ctx_val is not None and y_val is not None:
         out.update(_validation(eff, ctx_val, y_val, summary))
     return eff, out
+
+
+def _same_factor(warm: GPCorrection | None, eff: GPCorrection) -> bool:
+    """Whether ``eff`` (exact, its hyperparameters and inducing inputs set) has ``warm``'s factor of ``K + sigma^2
+    I``: the same inputs and hyperparameters to the bit. A warm refit whose evidence fit stopped at its start (the
+    evidence no longer moves, ``GPSettings.warm_tolerance``) on the rows of the fit it started from then needs only
+    the solve with the new outputs, not the ``n^3 / 3`` factorisation and the ``n^2`` kernel."""
+    if warm is None or not (warm.exact and eff.exact) or warm.inducing.shape != eff.inducing.shape:
+        return False
+    same = torch.equal(warm.inducing, eff.inducing) and torch.equal(warm.periodic, eff.periodic)
+    return same and all(torch.equal(v, eff.hyper()[k]) for k, v in warm.hyper().items())
 
 
 def _standardise(eff: GPCorrection, ctx: Context, y: Tensor, s: GPSettings) -> tuple[Tensor, Tensor]:
@@ -1041,7 +1065,10 @@ def _evidence_fit(eff: GPCorrection, xyz: tuple[Tensor, Tensor, Tensor], s: GPSe
         zc = xc if len(xc) <= s.m_fit else kmeans(xc, s.m_fit, g, s.kmeans_iterations)
         start, coarse = fit_hyperparameters(xc, yc, zc, **common, iterations=s.iterations, **restarts)
     iterations = (s.refine_iterations if coarse is not None else s.iterations) if warm is None else warm_iterations
-    h, info = fit_hyperparameters(xf, yf, zf, **common, iterations=iterations, start=start, **restarts)
+    tolerance = 0.0 if warm is None else s.warm_tolerance
+    h, info = fit_hyperparameters(
+        xf, yf, zf, **common, iterations=iterations, start=start, **restarts, tolerance=tolerance
+    )
     if coarse is not None:
         info["evaluations"] += coarse["evaluations"]
         info["restart_log_evidence_per_row"] = coarse["restart_log_evidence_per_row"]
