@@ -314,6 +314,20 @@ def _chol(K: Tensor, jitter: Tensor) -> Tensor:
     raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
 
 
+def _chol_lower(K: Tensor, jitter: Tensor) -> Tensor:
+    """:func:`_chol` of a ``K`` whose lower triangle alone is set, its jitter added on the diagonal in place (``K`` is
+    work space): no ``n^2`` copies beside the factor."""
+    diag = K.diagonal().clone()
+    scale = float(jitter.detach()) if float(jitter) > 0 else 0.0
+    for _ in range(5):
+        K.diagonal().copy_(diag).add_(scale)
+        L, info = torch.linalg.cholesky_ex(K)
+        if int(info) == 0:
+            return L
+        scale = max(scale * 10.0, 1e-10 * float(diag.mean()))
+    raise EstimationError(f"GP: covariance ({len(K)}x{len(K)}) is not positive definite with jitter {scale:.2g}")
+
+
 def _latent_var(kxx: Tensor, Kxu: Tensor, chol_uu: Tensor, chol_b: Tensor | None) -> Tensor:
     """Posterior variance of the latent function ``(b,)`` (standardised) at rows whose kernel against the inducing
     inputs is ``Kxu (b, m)``: ``k(x, x) - |L_uu^-1 k|^2 + |L_B^-1 L_uu^-1 k|^2`` (sparse), or with ``chol_b`` None
@@ -510,32 +524,29 @@ class GPCorrection(Effect):
         """Posterior mean of each additive component and of the ARD one ``(n_vars + 1, N, 3)`` [m].
 
         The components of a sum of kernels share the weights: component ``c``'s mean is ``k_c(x, Z) @ weights``.
+        Each variable's distances are computed once for all components (as :func:`_kernel` computes them, the same
+        values), in row blocks of :data:`_BLOCK`.
         """
         x = self.inputs(ctx)
         h = self.hyper()
-        out = []
-        for c in range(x.shape[1] + 1):
-            hc = dict(h)
-            if c < x.shape[1]:
-                hc["add_var"] = torch.zeros_like(h["add_var"])
-                hc["add_var"][c] = h["add_var"][c]
-                ard = False
-            else:
-                hc["add_var"] = torch.zeros_like(h["add_var"])
-                ard = self.ard
-            if c == x.shape[1] and not self.ard:
-                out.append(torch.zeros(len(x), 3, dtype=F64, device=x.device))
-                continue
-            out.append(
-                torch.cat(
-                    [
-                        _kernel(x[i : i + _BLOCK], self.inducing, hc, self.periodic, ard) @ self.weights
-                        for i in range(0, len(x), _BLOCK)
-                    ]
-                )
-                * self.y_scale
-            )
-        return torch.stack(out)
+        d, z = x.shape[1], self.inducing
+        add_c = [float(-0.5 / v.square()) for v in h["add_len"]]
+        add_v = [float(v) for v in h["add_var"]]
+        ard_c = [float(1.0 / v.square()) for v in h["ard_len"]]
+        out = torch.zeros(d + 1, len(x), 3, dtype=F64, device=x.device)
+        for i in range(0, len(x), _BLOCK):
+            xb = x[i : i + _BLOCK]
+            S = torch.zeros(len(xb), len(z), dtype=F64, device=x.device) if self.ard else None
+            for j in range(d):
+                dj = _squared(xb[:, j : j + 1] - z[:, j].unsqueeze(0), self.periodic[j : j + 1])
+                if self.ard:
+                    S.add_(dj, alpha=ard_c[j])
+                E = dj.mul_(add_c[j]).clamp_(min=_EXP_FLOOR).exp_()
+                out[j, i : i + len(xb)] = torch.zeros_like(E).add_(E, alpha=add_v[j]) @ self.weights
+            if self.ard:
+                E = S.mul_(-0.5).clamp_(min=_EXP_FLOOR).exp_()
+                out[d, i : i + len(xb)] = torch.zeros_like(E).add_(E, alpha=float(h["ard_var"])) @ self.weights
+        return out * self.y_scale
 
     def variable_names(self) -> list[str]:
         return [f"q{j + 1}" for j in range(self.dof)] + list(self.extras)
@@ -658,6 +669,8 @@ class _Pairs(NamedTuple):
     rows: Tensor  # (P,) a
     cols: Tensor  # (P,) b
     weight: Tensor  # (P,) 1 on the diagonal, 2 off it: a pair's share of a sum over all (a, b)
+    lower: Tensor  # (P,) the pair's element (b, a) of a row-major (n, n) matrix, in its lower triangle
+    upper: Tensor  # (P,) the pair's element (a, b)
 
 
 def pair_distances(x: Tensor, periodic: Tensor) -> _Pairs:
@@ -665,7 +678,7 @@ def pair_distances(x: Tensor, periodic: Tensor) -> _Pairs:
     n = len(x)
     rows, cols = torch.triu_indices(n, n, device=x.device)
     weight = torch.where(rows == cols, 1.0, 2.0).to(x.dtype)
-    return _Pairs(_squared(x[rows] - x[cols], periodic), rows, cols, weight)
+    return _Pairs(_squared(x[rows] - x[cols], periodic), rows, cols, weight, cols * n + rows, rows * n + cols)
 
 
 def _exact_loss_and_grad(
@@ -688,7 +701,7 @@ def _exact_loss_and_grad(
             which cost more than the exponential computed in it.
     """
     n, p = y.shape
-    D, rows, cols = pairs.D, pairs.rows, pairs.cols
+    D = pairs.D
     d = D.shape[-1]
     lo, hi = _bounds(d, theta.device)
     inside = ((theta >= lo) & (theta <= hi)).to(theta.dtype)
@@ -699,15 +712,15 @@ def _exact_loss_and_grad(
     if ard:
         G = torch.exp(-0.5 * (D @ (1.0 / h["ard_len"].square())))
         k = k + h["ard_var"] * G
-    K = torch.empty(n, n, dtype=k.dtype, device=k.device)
-    K[rows, cols] = k
-    K[cols, rows] = k
+    # the lower triangle alone: the Cholesky factorisation reads no other element
+    K = torch.zeros(n, n, dtype=k.dtype, device=k.device)
+    K.view(-1)[pairs.lower] = k
     K.diagonal().add_(h["noise"])
-    L = _chol(K, _JITTER * _prior_var(h, ard))
+    L = _chol_lower(K, _JITTER * _prior_var(h, ard))
     a = torch.cholesky_solve(y, L)
     ll = -0.5 * (p * (2.0 * torch.log(L.diagonal()).sum() + n * math.log(2 * math.pi)) + (y * a).sum())
-    W = a @ a.T - p * torch.cholesky_inverse(L)  # (n, n): d ll / d C = W / 2
-    w = W[rows, cols].mul_(pairs.weight)  # (P,): each pair's weight in the sums over all (a, b)
+    W = (a @ a.T).sub_(torch.cholesky_inverse(L).mul_(p))  # (n, n) a a^T - p C^-1: d ll / d C = W / 2
+    w = W.view(-1)[pairs.upper].mul_(pairs.weight)  # (P,): each pair's weight in the sums over all (a, b)
     g = torch.zeros_like(th)
     g[:d] = h["add_var"] * (w @ E)
     g[d : 2 * d] = h["add_var"] * (w @ E.mul_(D)) / h["add_len"].square()
