@@ -478,7 +478,7 @@ class GPCorrection(Effect):
         mean = torch.cat(means) if means else torch.zeros(0, 3, dtype=F64, device=x.device)
         # the mean is the one forward() computes: keep it for the model's evaluation at the same rows that follows
         # (the trust of a prediction takes both)
-        self._keep(self._key(ctx), mean)
+        self._keep(self._key(ctx), mean, x)
         return mean, (torch.cat(stds) if stds else torch.zeros_like(mean))
 
     def _mean(self, x: Tensor) -> Tensor:
@@ -494,9 +494,28 @@ class GPCorrection(Effect):
             return None
         return version_key(ctx.q, ctx.t, ctx.temperature, self.inducing, self.weights, self.y_scale)
 
-    def _keep(self, key: tuple | None, mean: Tensor) -> None:
+    def _mean_inputs(self) -> list[Tensor]:
+        """The buffers the posterior mean depends on (not the factors of its variance)."""
+        return [self.inducing, self.weights, self.y_scale, self.y_mean, self.periodic, *self.hyper().values()]
+
+    def _keep(self, key: tuple | None, mean: Tensor, x: Tensor) -> None:
         if key is not None and not mean.requires_grad:
-            self._cache = (key, mean)
+            self._cache = (key, mean, x, [b.clone() for b in self._mean_inputs()])
+
+    def _kept(self, key: tuple | None, x: Tensor) -> Tensor | None:
+        """The kept mean where ``key`` names its context, or where the standardised inputs ``x`` and the buffers
+        the mean depends on equal the kept ones (the same rows as another tensor: a stage that selects its training
+        rows anew, a copy of the model): the mean a new computation would give, to the bit."""
+        if key is None or self._cache is None:
+            return None
+        old_key, mean, old_x, buffers = self._cache
+        if same_version(old_key, key):
+            return mean
+        if old_x.shape == x.shape and torch.equal(old_x, x):
+            if all(torch.equal(a, b) for a, b in zip(buffers, self._mean_inputs())):
+                self._cache = (key, mean, old_x, buffers)
+                return mean
+        return None
 
     def forward(self, robot, ctx: Context, p_base: Tensor | None = None) -> Tensor:
         q = ctx.q
@@ -514,10 +533,11 @@ class GPCorrection(Effect):
         # as KernelCorrection: the output depends on the context and the buffers only, and a least-squares
         # fit evaluates it at the same q dozens of times, so the last plain result is reused
         key = self._key(ctx)
-        if key is not None and self._cache is not None and same_version(self._cache[0], key):
-            return self._cache[1]
+        kept = self._kept(key, x)
+        if kept is not None:
+            return kept
         out = self._mean(x)
-        self._keep(key, out)
+        self._keep(key, out, x)
         return out
 
     def component_means(self, ctx: Context) -> Tensor:
