@@ -179,25 +179,43 @@ def correction_variogram(model: MeasurementModel, ctx: Context) -> tuple[tuple, 
         var = float((c0 - c0.mean(0)).square().sum(1).mean())
         if not var > 0:
             return (), ()
-        lags, rhos = [], []
-        for j in range(ctx.q.shape[1]):
-            lag = [f * float(hi[j] - lo[j]) for f in LAGS]
+        lags = [[f * float(hi[j] - lo[j]) for f in LAGS] for j in range(ctx.q.shape[1])]
+        moves = {j: [_moved(ctx.q[:, j], h, lo[j], hi[j])[0] for h in lag[1:]] for j, lag in enumerate(lags)}
+        gps = _gp_means(model, ctx, moves)
+        rhos = []
+        for j, lag in enumerate(lags):
             rho = [0.0]
-            for h in lag[1:]:
-                q = ctx.q.clone()
-                up = q[:, j] + h <= hi[j]
-                q[:, j] = torch.where(up, q[:, j] + h, q[:, j] - h)
-                ok = up | (q[:, j] >= lo[j])
+            for k, h in enumerate(lag[1:]):
+                col, ok = _moved(ctx.q[:, j], h, lo[j], hi[j])
                 if not bool(ok.any()):
                     rho.append(rho[-1])
                     continue
                 rows = torch.nonzero(ok).flatten()
-                moved = dataclasses.replace(ctx.subset(rows), q=q[rows])
+                q = ctx.q[rows].clone()
+                q[:, j] = col[rows]
+                moved = dataclasses.replace(ctx.subset(rows), q=q)
+                for gp, means in gps:  # the learned GP's mean at the moved rows, from its kernel at ctx
+                    gp.prime(moved, means[j][k][rows])
                 g = 0.5 * float((c(moved) - c0[rows]).square().sum(1).mean())
                 rho.append(max(rho[-1], min(1.0, g / var)))
-            lags.append(tuple(lag))
             rhos.append(tuple(rho))
-    return tuple(lags), tuple(rhos)
+    return tuple(tuple(lag) for lag in lags), tuple(rhos)
+
+
+def _moved(q: Tensor, h: float, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """One joint's readings ``q`` ``(N,)`` moved by ``h``, up where that stays in ``lo..hi``, else down, and whether
+    the moved reading is in the region."""
+    up = q + h <= hi
+    col = torch.where(up, q + h, q - h)
+    return col, up | (col >= lo)
+
+
+def _gp_means(model: MeasurementModel, ctx: Context, moves: dict) -> list:
+    """Each learned GP of ``model`` with its means at the moved rows (:meth:`~torchcal.effects.gp.GPCorrection.
+    moved_means`): a few exponentials per move where evaluating the GP anew takes one per variable."""
+    from torchcal.effects.gp import GPCorrection
+
+    return [(e, e.moved_means(ctx, moves)) for e in model.effects if isinstance(e, GPCorrection) and len(e.inducing)]
 
 
 def _number(x, lo: float, hi: float) -> bool:
