@@ -180,26 +180,42 @@ def correction_variogram(model: MeasurementModel, ctx: Context) -> tuple[tuple, 
         if not var > 0:
             return (), ()
         lags = [[f * float(hi[j] - lo[j]) for f in LAGS] for j in range(ctx.q.shape[1])]
-        moves = {j: [_moved(ctx.q[:, j], h, lo[j], hi[j])[0] for h in lag[1:]] for j, lag in enumerate(lags)}
-        gps = _gp_means(model, ctx, moves)
+        moves = {j: [_moved(ctx.q[:, j], h, lo[j], hi[j]) for h in lag[1:]] for j, lag in enumerate(lags)}
+        g = _moved_gammas(model, ctx, moves, c, c0)
         rhos = []
         for j, lag in enumerate(lags):
             rho = [0.0]
-            for k, h in enumerate(lag[1:]):
-                col, ok = _moved(ctx.q[:, j], h, lo[j], hi[j])
-                if not bool(ok.any()):
-                    rho.append(rho[-1])
-                    continue
+            for k in range(len(lag) - 1):
+                rho.append(rho[-1] if g[j][k] is None else max(rho[-1], min(1.0, g[j][k] / var)))
+            rhos.append(tuple(rho))
+    return tuple(tuple(lag) for lag in lags), tuple(rhos)
+
+
+def _moved_gammas(model: MeasurementModel, ctx: Context, moves: dict, c, c0: Tensor) -> dict[int, list]:
+    """Half the mean squared change of ``c`` from ``c0`` (at ``ctx``) over each move's rows (``moves[j]``: per lag
+    the moved readings of joint ``j`` and which stay in the region; None where none does): every move's rows in one
+    evaluation of the model (each row's prediction is its own), a learned GP's mean there from its kernel at ctx."""
+    gps = _gp_means(model, ctx, {j: [col for col, _ in m] for j, m in moves.items()})
+    parts = []  # (j, k, rows, moved readings)
+    for j, m in moves.items():
+        for k, (col, ok) in enumerate(m):
+            if bool(ok.any()):
                 rows = torch.nonzero(ok).flatten()
                 q = ctx.q[rows].clone()
                 q[:, j] = col[rows]
-                moved = dataclasses.replace(ctx.subset(rows), q=q)
-                for gp, means in gps:  # the learned GP's mean at the moved rows, from its kernel at ctx
-                    gp.prime(moved, means[j][k][rows])
-                g = 0.5 * float((c(moved) - c0[rows]).square().sum(1).mean())
-                rho.append(max(rho[-1], min(1.0, g / var)))
-            rhos.append(tuple(rho))
-    return tuple(tuple(lag) for lag in lags), tuple(rhos)
+                parts.append((j, k, rows, q))
+    out: dict[int, list] = {j: [None] * len(m) for j, m in moves.items()}
+    if not parts:
+        return out
+    rows = torch.cat([r for _, _, r, _ in parts])
+    moved = dataclasses.replace(ctx.subset(rows), q=torch.cat([q for *_, q in parts]))
+    for gp, means in gps:
+        gp.prime(moved, torch.cat([means[j][k][r] for j, k, r, _ in parts]))
+    d = (c(moved) - c0[rows]).square().sum(1)
+    sizes = [len(r) for _, _, r, _ in parts]
+    for (j, k, _, _), dk in zip(parts, torch.split(d, sizes)):
+        out[j][k] = 0.5 * float(dk.mean())
+    return out
 
 
 def _moved(q: Tensor, h: float, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
@@ -239,8 +255,10 @@ def without_fading(model: MeasurementModel) -> MeasurementModel:
     def fades(e) -> bool:
         return e.kind == "learned" or (isinstance(e, RegionForm) and e.region is not None and not e._unbounded())
 
-    out = copy.deepcopy(model)
-    out.effects = torch.nn.ModuleList([e for e in out.effects if not fades(e)])
+    # the fading parts are not copied (a GP's posterior holds tens of megabytes): the copy's memo takes them as None
+    gone = [e for e in model.effects if fades(e)]
+    out = copy.deepcopy(model, {id(e): None for e in gone})
+    out.effects = torch.nn.ModuleList([e for e in out.effects if e is not None])
     return out
 
 
