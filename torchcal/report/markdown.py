@@ -197,7 +197,7 @@ class DecisionFigure:
             "carries its mean: the fitted effect can exceed\nthe trend the geometry alone left, whose share of it the "
             "geometry had absorbed"
         )
-        self.fig.savefig(path, dpi=100, pil_kwargs={"compress_level": 1})
+        save(self.fig, path, 100, tight=False)  # margins set once; not pyplot's, so it stays for the next decision
 
 
 def _fmt(v: float, unit: str) -> str:
