@@ -76,7 +76,9 @@ def _reference_variogram(model, ctx):
     return rhos
 
 
-def test_the_variogram_is_that_of_the_model_evaluated_at_the_moved_rows():
+@pytest.mark.parametrize("batch_rows", [trust.BATCH_ROWS, 150])  # all moves in one batch; batches of one or two
+def test_the_variogram_is_that_of_the_model_evaluated_at_the_moved_rows(monkeypatch, batch_rows):
+    monkeypatch.setattr(trust, "BATCH_ROWS", batch_rows)
     model = MeasurementModel(load_robot("ur5"))
     ctx = _ctx(120)
     model.add(_gp("rbf", True))

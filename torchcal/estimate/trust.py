@@ -42,6 +42,9 @@ COVERED = 0.99
 MAX_LEVEL = 10.0
 #: the variogram's lags, as shares of each joint's range in the region
 LAGS = (0.0, 0.01, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8)
+#: the most moved rows the variogram evaluates the model at in one batch (its memory; Series C's 42 moves of 555
+#: held-out rows are one batch)
+BATCH_ROWS = 32_768
 
 
 @dataclass(frozen=True)
@@ -205,16 +208,27 @@ def _moved_gammas(model: MeasurementModel, ctx: Context, moves: dict, c, c0: Ten
                 q[:, j] = col[rows]
                 parts.append((j, k, rows, q))
     out: dict[int, list] = {j: [None] * len(m) for j, m in moves.items()}
-    if not parts:
-        return out
-    rows = torch.cat([r for _, _, r, _ in parts])
-    moved = dataclasses.replace(ctx.subset(rows), q=torch.cat([q for *_, q in parts]))
-    for gp, means in gps:
-        gp.prime(moved, torch.cat([means[j][k][r] for j, k, r, _ in parts]))
-    d = (c(moved) - c0[rows]).square().sum(1)
-    sizes = [len(r) for _, _, r, _ in parts]
-    for (j, k, _, _), dk in zip(parts, torch.split(d, sizes)):
-        out[j][k] = 0.5 * float(dk.mean())
+    for batch in _batches(parts, BATCH_ROWS):
+        rows = torch.cat([r for _, _, r, _ in batch])
+        moved = dataclasses.replace(ctx.subset(rows), q=torch.cat([q for *_, q in batch]))
+        for gp, means in gps:
+            gp.prime(moved, torch.cat([means[j][k][r] for j, k, r, _ in batch]))
+        d = (c(moved) - c0[rows]).square().sum(1)
+        sizes = [len(r) for _, _, r, _ in batch]
+        for (j, k, _, _), dk in zip(batch, torch.split(d, sizes)):
+            out[j][k] = 0.5 * float(dk.mean())
+    return out
+
+
+def _batches(parts: list, rows: int) -> list[list]:
+    """``parts`` (each with its rows third) in consecutive batches of about ``rows`` rows (at least one part each)."""
+    out, n = [], rows
+    for p in parts:
+        if n + len(p[2]) > rows:
+            out.append([])
+            n = 0
+        out[-1].append(p)
+        n += len(p[2])
     return out
 
 
