@@ -568,6 +568,27 @@ class GPCorrection(Effect):
                 out[d, i : i + len(xb)] = torch.zeros_like(E).add_(E, alpha=float(h["ard_var"])) @ self.weights
         return out * self.y_scale
 
+    def moved_means(self, ctx: Context, moves: dict[int, list[Tensor]]) -> dict[int, list[Tensor]]:
+        """The posterior mean ``(N, 3)`` [m] at ``ctx`` with joint ``j``'s column replaced by each of ``moves[j]``
+        (``(N,)`` each), as :meth:`forward` gives it at those rows up to rounding.
+
+        A move changes one variable's term of the additive sum and the ARD component by one factor, so each costs
+        two exponentials per kernel entry where :meth:`forward` takes one per variable and the ARD's: the trust's
+        variogram (:func:`torchcal.estimate.trust.correction_variogram`) moves every joint by seven lags.
+        """
+        x = self.inputs(ctx)
+        out: dict[int, list[list[Tensor]]] = {j: [[] for _ in cols] for j, cols in moves.items()}
+        for i in range(0, len(x), _BLOCK):
+            for j, means in _moved_block(self, x[i : i + _BLOCK], i, moves).items():
+                for acc, m in zip(out[j], means):
+                    acc.append(m)
+        empty = torch.zeros(0, 3, dtype=F64, device=x.device)
+        return {j: [torch.cat(acc) if acc else empty for acc in accs] for j, accs in out.items()}
+
+    def prime(self, ctx: Context, mean: Tensor) -> None:
+        """Take ``mean`` (from :meth:`moved_means`) as the posterior mean at ``ctx`` for :meth:`forward` there."""
+        self._keep(self._key(ctx), mean)
+
     def variable_names(self) -> list[str]:
         return [f"q{j + 1}" for j in range(self.dof)] + list(self.extras)
 
@@ -1276,3 +1297,43 @@ class GPConditioner:
                 }
         new.train(eff.training)
         return new, out
+
+
+def _moved_block(gp: GPCorrection, xb: Tensor, i: int, moves: dict[int, list[Tensor]]) -> dict[int, list[Tensor]]:
+    """:meth:`GPCorrection.moved_means` on the rows ``i:i + len(xb)`` (standardised inputs ``xb``): the kernel's
+    terms at the rows once, then per move the changed variable's term and the ARD factor anew."""
+    h, z, per = gp.hyper(), gp.inducing, [bool(v) for v in gp.periodic]
+
+    def sq(d: Tensor, j: int) -> Tensor:
+        return torch.sin(d.mul_(0.5), out=d).mul_(2.0).square_() if per[j] else d.square_()
+
+    add_c = [float(-0.5 / v.square()) for v in h["add_len"]]
+    add_v = [float(v) for v in h["add_var"]]
+    D = [sq(xb[:, j : j + 1] - z[:, j].unsqueeze(0), j) for j in range(xb.shape[1])]
+    K = torch.zeros_like(D[0]) if D else torch.zeros(len(xb), len(z), dtype=F64, device=xb.device)
+    for j, Dj in enumerate(D):
+        K.add_((Dj * add_c[j]).clamp_(min=_EXP_FLOOR).exp_(), alpha=add_v[j])
+    if gp.ard:
+        ard_c = [float(1.0 / v.square()) for v in h["ard_len"]]
+        S = torch.zeros_like(K)
+        for j, Dj in enumerate(D):
+            S.add_(Dj, alpha=ard_c[j])
+        A = (S * -0.5).clamp_(min=_EXP_FLOOR).exp_()
+        K.add_(A, alpha=float(h["ard_var"]))
+    base = K @ gp.weights
+    out = {}
+    Dn, dK = torch.empty_like(K), torch.empty_like(K)  # reused: a fresh block per move is mapped and zeroed anew
+    for j, cols in moves.items():
+        Ej = (D[j] * add_c[j]).clamp_(min=_EXP_FLOOR).exp_()
+        zj = z[:, j].unsqueeze(0)
+        means = []
+        for col in cols:
+            xj = (col[i : i + len(xb)] - gp.x_offset[j]) / gp.x_scale[j]
+            sq(torch.sub(xj.unsqueeze(1), zj, out=Dn), j)
+            torch.mul(Dn, add_c[j], out=dK).clamp_(min=_EXP_FLOOR).exp_().sub_(Ej).mul_(add_v[j])
+            if gp.ard:
+                An = Dn.sub_(D[j]).mul_(ard_c[j]).add_(S).mul_(-0.5).clamp_(min=_EXP_FLOOR).exp_()
+                dK.add_(An.sub_(A), alpha=float(h["ard_var"]))
+            means.append((base + dK @ gp.weights) * gp.y_scale + gp.y_mean)
+        out[j] = means
+    return out
