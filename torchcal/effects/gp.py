@@ -587,7 +587,7 @@ class GPCorrection(Effect):
 
     def prime(self, ctx: Context, mean: Tensor) -> None:
         """Take ``mean`` (from :meth:`moved_means`) as the posterior mean at ``ctx`` for :meth:`forward` there."""
-        self._keep(self._key(ctx), mean)
+        self._keep(self._key(ctx), mean, self.inputs(ctx))
 
     def variable_names(self) -> list[str]:
         return [f"q{j + 1}" for j in range(self.dof)] + list(self.extras)
