@@ -53,7 +53,8 @@ STAGES = [
 #: function's CPU time includes what it calls
 KERNELS = {
     "least-squares fits (LM)": ["torchcal.estimate.lm:levenberg_marquardt"],
-    "LM: damping ladder (residuals)": ["torchcal.estimate.lm:_attempt"],
+    # _ladder: an iteration's trial points in one batched call; _attempt: one point (damping harder, or the fallback)
+    "LM: damping ladder (residuals)": ["torchcal.estimate.lm:_ladder", "torchcal.estimate.lm:_attempt"],
     "LM: position Jacobians": ["torchcal.estimate.problem:residual_function.jacobian"],
     "LM: orientation Jacobians": ["torchcal.estimate.problem:orientation_function.jacobian"],
     "identifiability analyses": ["torchcal.estimate.identifiability:analyse"],

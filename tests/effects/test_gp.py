@@ -132,6 +132,47 @@ def test_predictive_std_covers_held_out_data():
     assert torch.allclose(again.ard_len, eff.ard_len, rtol=0.2)
 
 
+def test_warm_refit_stops_where_the_evidence_no_longer_moves_and_keeps_the_factor():
+    q, g = _joints(300, 8)
+    y = 1e-4 * torch.stack([torch.sin(2 * q[:, 1]), torch.cos(q[:, 0]), torch.sin(3 * q[:, 5])], 1)
+    y = y + 2e-5 * torch.randn(300, 3, generator=g, dtype=F64)
+    eff, _ = fit_gp_correction(Context(q=q), y, GPSettings())
+    # the same rows, outputs 1 % larger: the standardised outputs and so the evidence are the same, and the fit stops
+    # at its start; the posterior then solves with the start's factor, the same as factorising anew
+    again, info = fit_gp_correction(Context(q=q), y * 1.01, GPSettings(), warm=eff)
+    assert info["evidence_evaluations"] == 1
+    assert torch.equal(again.chol_uu, eff.chol_uu)
+    with torch.no_grad():
+        assert torch.equal(gp._exact_factor(again, again.inducing), again.chol_uu)
+    # the tolerance is in nats of the whole subset's evidence: none runs every iteration it is given
+    _, info0 = fit_gp_correction(Context(q=q), y * 1.01 + 1e-5, GPSettings(warm_tolerance=0.0), warm=eff)
+    _, info1 = fit_gp_correction(Context(q=q), y * 1.01 + 1e-5, GPSettings(), warm=eff)
+    assert info1["evidence_evaluations"] < info0["evidence_evaluations"]
+
+
+def test_the_mean_is_kept_for_the_same_rows_in_another_tensor_and_recomputed_when_the_model_changes():
+    import copy
+
+    q, g = _joints(200, 12)
+    y = 1e-4 * torch.stack([torch.sin(2 * q[:, 1]), torch.cos(q[:, 0]), torch.sin(3 * q[:, 5])], 1)
+    eff, _ = fit_gp_correction(Context(q=q[:150]), y[:150], GPSettings(iterations=5, restart_iterations=3))
+    calls = []
+    mean = eff._mean
+    eff._mean = lambda x: calls.append(len(x)) or mean(x)
+    with torch.no_grad():
+        first = eff(None, Context(q=q))
+        again = eff(None, Context(q=q.clone()))  # the same rows, another tensor: kept
+        assert again is first and calls == [200]
+        twin = copy.deepcopy(eff)  # a copy keeps it too: its buffers are equal
+        assert torch.equal(twin(None, Context(q=q.clone())), first) and calls == [200]
+        eff.scale_(2.0)  # the buffers changed in place: computed anew
+        assert torch.allclose(eff(None, Context(q=q.clone())), 2.0 * first, rtol=1e-12) and calls == [200, 200]
+        moved = q.clone()
+        moved[0, 0] += 1e-3  # other rows: computed anew
+        eff(None, Context(q=moved))
+        assert calls == [200, 200, 200]
+
+
 def test_config_and_state_dict_round_trip_with_time_input():
     q, g = _joints(120, 7)
     t = torch.arange(120, dtype=F64) * 6.0

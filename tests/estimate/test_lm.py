@@ -202,3 +202,61 @@ def test_a_fit_judged_by_its_solution_alone_skips_the_solutions_jacobian():
     assert levenberg_marquardt(lambda v: A @ v - b, torch.zeros(2, dtype=F64), solution_jacobian=False).status == (
         "failed_solve"
     )
+
+
+def _exponential_fit():
+    x = torch.linspace(0, 2, 50, dtype=F64)
+    y = 2.5 * torch.exp(-1.3 * x) + 0.4 + 0.001 * torch.sin(17 * x)
+
+    def fun(p):
+        return p[0] * torch.exp(-p[1] * x) + p[2] - y
+
+    return fun
+
+
+def test_the_damping_ladder_is_one_batched_call_with_the_steps_of_single_trials():
+    # each iteration evaluates its five trial points in one torch.func.vmap call: the same iterates as evaluating
+    # them one by one (the same steps to the bit, residuals to rounding), one call instead of five
+    from torchcal.estimate import lm
+
+    fun = _exponential_fit()
+    calls = {"batched": 0, "single": 0}
+
+    def counted(p):
+        calls["batched" if p.dim() == 1 and torch._C._functorch.is_batchedtensor(p) else "single"] += 1
+        return fun(p)
+
+    res = levenberg_marquardt(counted, torch.tensor([1.0, 1.0, 0.0], dtype=F64))
+    assert res.status == "converged"
+    assert calls["batched"] == res.iterations  # one vmap call per iteration (the trace sees one batched tensor)
+    x = torch.tensor([1.0, 1.0, 0.0], dtype=F64)
+    J = torch.func.jacfwd(fun)(x)
+    N = J.T @ J
+    s = lm._jacobi(N)
+    Ns, gs, cost = N * s[:, None] * s[None, :], (J.T @ fun(x)) * s, 0.5 * float(fun(x).square().sum())
+    for lam in (1e-3, 1.0, 1e3):
+        single = [lm._attempt(fun, x, cost, Ns, gs, s, lam * f) for f in lm.LADDER]
+        single = min((t for t in single if t is not None), key=lambda t: t[0])
+        batched = lm._ladder(lm._Trials(fun), x, cost, Ns, gs, s, lam)
+        assert batched[1] == single[1] and torch.equal(batched[2], single[2])
+        assert batched[0] == pytest.approx(single[0], rel=1e-12)
+
+
+def test_a_residual_function_vmap_cannot_batch_falls_back_to_one_call_per_trial_point():
+    fun = _exponential_fit()
+    calls = []
+
+    def unbatchable(p):  # an in-place write of the parameters into a plain tensor: vmap raises
+        q = torch.zeros(3, dtype=F64)
+        calls.append(torch._C._functorch.is_batchedtensor(p))
+        q[:] = p
+        return fun(q)
+
+    x0 = torch.tensor([1.0, 1.0, 0.0], dtype=F64)
+    ref = levenberg_marquardt(fun, x0)
+    res = levenberg_marquardt(unbatchable, x0, jacobian=torch.func.jacfwd(fun))
+    assert res.status == ref.status and res.iterations == ref.iterations
+    assert torch.allclose(res.x, ref.x, rtol=1e-12, atol=1e-14)
+    # one failed vmap call (the first iteration's), then single calls only: five per iteration at least
+    assert calls.count(True) == 1 and calls.index(True) == 1
+    assert len(calls) >= 2 + 5 * res.iterations

@@ -10,6 +10,7 @@ import torch
 from experiments.gross_errors import contaminate, gross_error_trial
 from torchcal.cli import main
 from torchcal.data import read_measurements, write_measurements
+from torchcal.estimate.lm import levenberg_marquardt
 from torchcal.estimate.rigid import fit_instrument_and_tool, robust_instrument_and_tool
 from torchcal.estimate.robust import chi2_isf, chi2_sf, robust_least_squares
 from torchcal.pipeline import Options, calibrate
@@ -59,6 +60,23 @@ def test_linear_toy_finds_the_gross_errors_and_recovers_the_clean_fit():
     fun_all = torch.func.jacfwd(fun)(torch.zeros(4, dtype=F64))
     x_bad = torch.linalg.lstsq(fun_all, -fun(torch.zeros(4, dtype=F64)).unsqueeze(-1)).solution.squeeze(-1)
     assert float((x_bad - x_true).norm()) > 5 * float((res.result.x - x_true).norm())
+
+
+def test_screening_fits_stop_early_but_the_last_is_finished():
+    """The reweighting rounds and the deciding snooping fits stop at a loose stat_tol; the fit the result carries is
+    the least-squares fit of the kept groups at the caller's tolerance, with the normal matrix of those groups."""
+    lin, _ = _toy(2, outliers={5: 500.0, 30: -400.0})
+
+    def fun(x):  # mildly nonlinear, so that the loose and the tight stops fall on different iterations
+        return lin(x) + 3.0 * torch.sin(x).repeat(45)
+
+    res = robust_least_squares(fun, torch.zeros(4, dtype=F64), 60, gross=0.0, stat_tol=0.0)
+    assert res.status == "converged" and torch.nonzero(~res.kept).flatten().tolist() == [5, 30]
+    keep = res.kept.repeat_interleave(3).to(F64)
+    ref = levenberg_marquardt(lambda x: fun(x) * keep, torch.zeros(4, dtype=F64))
+    assert torch.allclose(res.result.x, ref.x, atol=1e-6)  # the loose fit alone stops 1.8 away
+    J = torch.func.jacfwd(fun)(res.result.x)[keep > 0]
+    assert torch.allclose(res.result.normal, J.T @ J, rtol=1e-10)
 
 
 def test_linear_toy_clean_data_rejects_at_most_the_stated_rate():

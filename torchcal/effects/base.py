@@ -217,6 +217,9 @@ class Effect(nn.Module):
         return self.kind if self.joint is None else f"{self.kind}(joint {self.joint})"
 
     def _joint_delta(self, ctx: Context, value: Tensor) -> Tensor:
-        dq = torch.zeros_like(ctx.q)
-        dq[:, self.j] = value
-        return dq
+        # built out of place: the least squares evaluate their trial points in one torch.func.vmap call, where a
+        # batched value cannot be written into an unbatched tensor
+        q, j = ctx.q, self.j
+        return torch.cat(
+            [q.new_zeros(len(q), j), value.expand(len(q)).unsqueeze(-1), q.new_zeros(len(q), q.shape[1] - j - 1)], -1
+        )

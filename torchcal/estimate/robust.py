@@ -176,6 +176,16 @@ def _weighted(fun: Callable[[Tensor], Tensor], sqrt_w: Tensor, group: int) -> Ca
     return f
 
 
+#: the ``stat_tol`` of a reweighting round (:func:`robust_least_squares`): a round only sets the weights, which read
+#: each row's residual to about a tenth of the robust scale; a step that lowers the cost by less than this times the
+#: variance factor moves the residuals by about ``sqrt(2 * ROUND_STAT_TOL)`` robust scales in all (spread over the
+#: rows), and the next round goes on from there
+ROUND_STAT_TOL = 1.0
+#: the ``stat_tol`` of a snooping fit whose statistics only decide which row goes or comes back; once nothing changes
+#: the fit is finished with the caller's ``stat_tol`` and the decision checked again on that solution
+SNOOP_STAT_TOL = 1.0
+
+
 def _chi2_median(k: int) -> float:
     return chi2_isf(0.5, k)
 
@@ -198,6 +208,12 @@ def snooping_statistics(
     Returns:
         ``T (n,)`` unscaled, and ``median(T[kept]) / median(chi2_group)``.
     """
+    T, med, _ = _statistics(fun, x, kept, group, jacobian)
+    return T, med
+
+
+def _statistics(fun, x: Tensor, kept: Tensor, group: int, jacobian=None) -> tuple[Tensor, float, Tensor]:
+    """:func:`snooping_statistics` and the normal matrix ``N`` of the kept rows at ``x``."""
     n = len(kept)
     m = n * group
     J = (jacobian or jacobian_of(fun))(x).detach()
@@ -221,7 +237,7 @@ def snooping_statistics(
     z = torch.linalg.solve_triangular(Lq, rp, upper=False)
     T = torch.where(info == 0, z.square().sum((1, 2)), torch.zeros(n, dtype=F64, device=z.device))
     med = float(T[kept].median()) / _chi2_median(group) if bool(kept.any()) else float("nan")
-    return T, med
+    return T, med, N
 
 
 def robust_least_squares(
@@ -258,7 +274,8 @@ def robust_least_squares(
             same and no weight moves by 0.05 (the weights only choose where the snooping starts).
         max_rounds: snooping rounds at most.
         max_iter: LM iterations of a snooping fit; ``round_iter`` those of a reweighting round.
-        stat_tol: passed to :func:`levenberg_marquardt`.
+        stat_tol: the :func:`levenberg_marquardt` stop of the last snooping fit; the reweighting rounds stop at
+            :data:`ROUND_STAT_TOL` and the snooping fits that only decide at :data:`SNOOP_STAT_TOL` (when larger).
         sigma0_floor: the smallest variance factor the statistics are scaled by (module docstring).
         max_reject_fraction: stop rejecting (status ``too_many_rejected``) past this share of the groups.
         gross: the smallest ``sqrt(T_i)`` of a rejected group (module docstring); 0 for the test alone.
@@ -304,7 +321,7 @@ def _reweight(fun, x, w, group, names, huber_rounds, irls_rounds, round_iter, st
             x,
             names=names,
             max_iter=round_iter,
-            stat_tol=stat_tol,
+            stat_tol=max(stat_tol, ROUND_STAT_TOL),
             solution_jacobian=False,
         )
         if res.status in FAILED:
@@ -341,29 +358,43 @@ class _Snooping:
 
 def _snoop(fun, x, kept, group, names, threshold, max_rounds, max_iter, stat_tol, sigma0_floor, max_reject_fraction):
     """Data snooping from the rows the M-estimator kept: refit, reject the worst row over ``threshold`` and take
-    back the rejected rows now under it, until neither happens."""
+    back the rejected rows now under it, until neither happens. The fits stop at :data:`SNOOP_STAT_TOL` while they
+    decide; the last one is then finished at ``stat_tol`` (the same rows: not a round of its own) and its statistics
+    decide once more."""
     n = len(kept)
     status, res, T, s0sq = "max_iterations", None, torch.zeros(n, dtype=F64, device=x.device), float("nan")
-    rounds = 0
-    for _ in range(max_rounds):
-        rounds += 1
+    loose = max(stat_tol, SNOOP_STAT_TOL)
+    rounds, finish = 0, False
+    while finish or rounds < max_rounds:
+        rounds += not finish
         if int((~kept).sum()) > max_reject_fraction * n:
             status = "too_many_rejected"
             break
+        # no Jacobian at the solution from the fit: the statistics evaluate it there, and the normal matrix with it
         res = levenberg_marquardt(
-            _weighted(fun, kept.to(F64), group), x, names=names, max_iter=max_iter, stat_tol=stat_tol
+            _weighted(fun, kept.to(F64), group),
+            x,
+            names=names,
+            max_iter=max_iter,
+            stat_tol=stat_tol if finish else loose,
+            solution_jacobian=False,
         )
         if res.status in FAILED:
             raise EstimationError(f"robust fit, snooping: least squares {res.status}: {res.message}")
         x = res.x
-        T, s0sq = snooping_statistics(fun, x, kept, group)
+        T, s0sq, res.normal = _statistics(fun, x, kept, group)
         s0sq = max(s0sq, sigma0_floor)
         z = T / s0sq
         back = ~kept & (z <= threshold)
         bad = kept & (z > threshold)
         if not bool(back.any()) and not bool(bad.any()):
-            status = "converged"
-            break
+            # a loose fit that stopped for another reason than its stat_tol is where the tight one would stop
+            if finish or loose == stat_tol or "stat_tol" not in res.message:
+                status = "converged"
+                break
+            finish = True
+            continue
+        finish = False
         kept = kept | back
         if bool(bad.any()):
             kept[int(torch.argmax(torch.where(bad, z, torch.zeros_like(z))))] = False

@@ -42,6 +42,9 @@ COVERED = 0.99
 MAX_LEVEL = 10.0
 #: the variogram's lags, as shares of each joint's range in the region
 LAGS = (0.0, 0.01, 0.025, 0.05, 0.1, 0.2, 0.4, 0.8)
+#: the most moved rows the variogram evaluates the model at in one batch (its memory; Series C's 42 moves of 555
+#: held-out rows are one batch)
+BATCH_ROWS = 32_768
 
 
 @dataclass(frozen=True)
@@ -179,25 +182,70 @@ def correction_variogram(model: MeasurementModel, ctx: Context) -> tuple[tuple, 
         var = float((c0 - c0.mean(0)).square().sum(1).mean())
         if not var > 0:
             return (), ()
-        lags, rhos = [], []
-        for j in range(ctx.q.shape[1]):
-            lag = [f * float(hi[j] - lo[j]) for f in LAGS]
+        lags = [[f * float(hi[j] - lo[j]) for f in LAGS] for j in range(ctx.q.shape[1])]
+        moves = {j: [_moved(ctx.q[:, j], h, lo[j], hi[j]) for h in lag[1:]] for j, lag in enumerate(lags)}
+        g = _moved_gammas(model, ctx, moves, c, c0)
+        rhos = []
+        for j, lag in enumerate(lags):
             rho = [0.0]
-            for h in lag[1:]:
-                q = ctx.q.clone()
-                up = q[:, j] + h <= hi[j]
-                q[:, j] = torch.where(up, q[:, j] + h, q[:, j] - h)
-                ok = up | (q[:, j] >= lo[j])
-                if not bool(ok.any()):
-                    rho.append(rho[-1])
-                    continue
-                rows = torch.nonzero(ok).flatten()
-                moved = dataclasses.replace(ctx.subset(rows), q=q[rows])
-                g = 0.5 * float((c(moved) - c0[rows]).square().sum(1).mean())
-                rho.append(max(rho[-1], min(1.0, g / var)))
-            lags.append(tuple(lag))
+            for k in range(len(lag) - 1):
+                rho.append(rho[-1] if g[j][k] is None else max(rho[-1], min(1.0, g[j][k] / var)))
             rhos.append(tuple(rho))
-    return tuple(lags), tuple(rhos)
+    return tuple(tuple(lag) for lag in lags), tuple(rhos)
+
+
+def _moved_gammas(model: MeasurementModel, ctx: Context, moves: dict, c, c0: Tensor) -> dict[int, list]:
+    """Half the mean squared change of ``c`` from ``c0`` (at ``ctx``) over each move's rows (``moves[j]``: per lag
+    the moved readings of joint ``j`` and which stay in the region; None where none does): every move's rows in one
+    evaluation of the model (each row's prediction is its own), a learned GP's mean there from its kernel at ctx."""
+    gps = _gp_means(model, ctx, {j: [col for col, _ in m] for j, m in moves.items()})
+    parts = []  # (j, k, rows, moved readings)
+    for j, m in moves.items():
+        for k, (col, ok) in enumerate(m):
+            if bool(ok.any()):
+                rows = torch.nonzero(ok).flatten()
+                q = ctx.q[rows].clone()
+                q[:, j] = col[rows]
+                parts.append((j, k, rows, q))
+    out: dict[int, list] = {j: [None] * len(m) for j, m in moves.items()}
+    for batch in _batches(parts, BATCH_ROWS):
+        rows = torch.cat([r for _, _, r, _ in batch])
+        moved = dataclasses.replace(ctx.subset(rows), q=torch.cat([q for *_, q in batch]))
+        for gp, means in gps:
+            gp.prime(moved, torch.cat([means[j][k][r] for j, k, r, _ in batch]))
+        d = (c(moved) - c0[rows]).square().sum(1)
+        sizes = [len(r) for _, _, r, _ in batch]
+        for (j, k, _, _), dk in zip(batch, torch.split(d, sizes)):
+            out[j][k] = 0.5 * float(dk.mean())
+    return out
+
+
+def _batches(parts: list, rows: int) -> list[list]:
+    """``parts`` (each with its rows third) in consecutive batches of about ``rows`` rows (at least one part each)."""
+    out, n = [], rows
+    for p in parts:
+        if n + len(p[2]) > rows:
+            out.append([])
+            n = 0
+        out[-1].append(p)
+        n += len(p[2])
+    return out
+
+
+def _moved(q: Tensor, h: float, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor]:
+    """One joint's readings ``q`` ``(N,)`` moved by ``h``, up where that stays in ``lo..hi``, else down, and whether
+    the moved reading is in the region."""
+    up = q + h <= hi
+    col = torch.where(up, q + h, q - h)
+    return col, up | (col >= lo)
+
+
+def _gp_means(model: MeasurementModel, ctx: Context, moves: dict) -> list:
+    """Each learned GP of ``model`` with its means at the moved rows (:meth:`~torchcal.effects.gp.GPCorrection.
+    moved_means`): a few exponentials per move where evaluating the GP anew takes one per variable."""
+    from torchcal.effects.gp import GPCorrection
+
+    return [(e, e.moved_means(ctx, moves)) for e in model.effects if isinstance(e, GPCorrection) and len(e.inducing)]
 
 
 def _number(x, lo: float, hi: float) -> bool:
@@ -221,8 +269,10 @@ def without_fading(model: MeasurementModel) -> MeasurementModel:
     def fades(e) -> bool:
         return e.kind == "learned" or (isinstance(e, RegionForm) and e.region is not None and not e._unbounded())
 
-    out = copy.deepcopy(model)
-    out.effects = torch.nn.ModuleList([e for e in out.effects if not fades(e)])
+    # the fading parts are not copied (a GP's posterior holds tens of megabytes): the copy's memo takes them as None
+    gone = [e for e in model.effects if fades(e)]
+    out = copy.deepcopy(model, {id(e): None for e in gone})
+    out.effects = torch.nn.ModuleList([e for e in out.effects if e is not None])
     return out
 
 

@@ -123,8 +123,9 @@ def plot_error_map(run: CalibrationRun, path: Path) -> None:
     save(fig, path, 100, tight=False)
 
 
-def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
-    """Residual along the effect's direction against its regressor, before and after (one decision)."""
+def plot_decision(run: CalibrationRun, decision, path: Path, figure: DecisionFigure | None = None) -> None:
+    """Residual along the effect's direction against its regressor, before and after (one decision); drawn in
+    ``figure`` where a report draws several (:class:`DecisionFigure`)."""
     from torchcal.diagnose.views import residual_view
     from torchcal.effects import Context
 
@@ -132,55 +133,71 @@ def plot_decision(run: CalibrationRun, decision, path: Path) -> None:
     ctx = Context.from_measurements(train, trajectory=run.trajectory)
     before, after = decision.models
     v = residual_view(decision.candidate, before, after, ctx, train.p)
-    x = v["x"].tolist()
-    # less its mean over the poses: a constant along the effect's direction is a joint offset or an instrument shift
-    # the geometry carries (a compliance under torques of one sign sat 1 mm below residuals about zero)
-    effect = v["effect"] - v["effect"].mean()
-    fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
-    panels = (
-        (axes[0], "before", "before: residual of the model without it"),
-        (axes[1], "after", "after: residual with it, the geometry refitted jointly"),
+    (figure or DecisionFigure()).draw(v, decision, path)
+
+
+class DecisionFigure:
+    """The figure of :func:`plot_decision`, built once and drawn for each of a run's decisions: its axes, legends,
+    titles and ticks are the same in every one, and building them was half of each figure's time; each decision
+    sets its points, its variable's label, the limits and the suptitle, and what it drew is undone before the next
+    (the images are those of a figure built for it alone)."""
+
+    #: the panels: the residual drawn, its colour, the title
+    PANELS = (
+        ("before", "0.45", "before: residual of the model without it"),
+        ("after", "tab:blue", "after: residual with it, the geometry refitted jointly"),
     )
-    for ax, key, title in panels:
-        ax.plot(
-            x,
-            (v[key] * 1e6).tolist(),
-            ".",
-            ms=2.5,
-            color="0.45" if key == "before" else "tab:blue",
-            label="residual along the effect's direction",
+
+    def __init__(self) -> None:
+        fig, axes = subplots(1, 2, figsize=(10, 4.0), sharey=True)
+        self.fig, self.axes, self.lines, self.notes = fig, axes, [], []
+        for ax, (_, color, title) in zip(axes, self.PANELS):
+            (res,) = ax.plot([], [], ".", ms=2.5, color=color, label="residual along the effect's direction")
+            (eff,) = ax.plot([], [], ".", ms=2, color="tab:red", label="fitted effect, less its mean")
+            self.lines.append((res, eff))
+            ax.axhline(0.0, color="k", lw=0.5)
+            ax.set_title(title, fontsize=9, y=TITLE_Y)
+            ax.legend(fontsize=7, loc="upper left")
+            self.notes.append(
+                ax.text(0.99, 0.02, "", transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="tab:red")
+            )
+        axes[0].set_ylabel("[um]")
+        self.title = fig.suptitle("", fontsize=9)
+        fig.subplots_adjust(left=0.1, right=0.985, bottom=0.13, top=0.8, wspace=0.05)
+
+    def draw(self, v: dict, decision, path: Path) -> None:
+        """Draw one decision's view ``v`` (:func:`~torchcal.diagnose.views.residual_view`) into ``path``."""
+        x = v["x"].tolist()
+        # less its mean over the poses: a constant along the effect's direction is a joint offset or an instrument
+        # shift the geometry carries (a compliance under torques of one sign sat 1 mm below residuals about zero)
+        effect = v["effect"] - v["effect"].mean()
+        order = torch.argsort(v["x"]).tolist()
+        xs, ys = [x[i] for i in order], (effect[order] * 1e6).tolist()
+        for ax, (res, eff), (key, _, _) in zip(self.axes, self.lines, self.PANELS):
+            res.set_data(x, (v[key] * 1e6).tolist())
+            eff.set_data(xs, ys)
+            ax.set_xlabel(v["xlabel"])
+            ax.relim()
+            ax.set_autoscale_on(True)
+        for ax in self.axes:
+            ax.autoscale_view()
+        # an effect far beyond the residuals (a candidate confounded with the geometry, which takes the rest: a
+        # rejected cyclic term on Series C reached 16 mm over residuals of 1 mm) would set the scale and hide them
+        lim = 1.15e6 * float(torch.cat([v["before"], v["after"]]).abs().max())
+        reach = 1e6 * float(effect.abs().max())
+        beyond = reach > 1.5 * lim
+        if beyond:
+            self.axes[0].set_ylim(-lim, lim)
+        for note in self.notes:
+            note.set_text(f"fitted effect beyond the axis: up to {reach:.3g} um" if beyond else "")
+            note.set_visible(beyond)
+        verdict = "accepted" if decision.accepted else "rejected"
+        self.title.set_text(
+            f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect and "
+            "carries its mean: the fitted effect can exceed\nthe trend the geometry alone left, whose share of it the "
+            "geometry had absorbed"
         )
-        order = torch.argsort(v["x"])
-        ax.plot(
-            [x[i] for i in order.tolist()],
-            (effect[order] * 1e6).tolist(),
-            ".",
-            ms=2,
-            color="tab:red",
-            label="fitted effect, less its mean",
-        )
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.set_xlabel(v["xlabel"])
-        ax.set_title(title, fontsize=9, y=TITLE_Y)
-        ax.legend(fontsize=7, loc="upper left")
-    axes[0].set_ylabel("[um]")
-    # an effect far beyond the residuals (a candidate confounded with the geometry, which takes the rest: a rejected
-    # cyclic term on Series C reached 16 mm over residuals of 1 mm) would set the scale and hide them
-    lim = 1.15e6 * float(torch.cat([v["before"], v["after"]]).abs().max())
-    reach = 1e6 * float(effect.abs().max())
-    if reach > 1.5 * lim:
-        axes[0].set_ylim(-lim, lim)
-        for ax in axes:
-            ax.text(0.99, 0.02, f"fitted effect beyond the axis: up to {reach:.3g} um", transform=ax.transAxes,
-                    ha="right", va="bottom", fontsize=7, color="tab:red")  # fmt: skip
-    verdict = "accepted" if decision.accepted else "rejected"
-    fig.suptitle(
-        f"{decision.candidate.name}: {verdict} (training poses). The geometry was refitted with the effect and "
-        "carries its mean: the fitted effect can exceed\nthe trend the geometry alone left, whose share of it the "
-        "geometry had absorbed",
-        fontsize=9,
-    )
-    save(fig, path, 100, margins={"left": 0.1, "right": 0.985, "bottom": 0.13, "top": 0.8, "wspace": 0.05})
+        save(self.fig, path, 100, tight=False)  # margins set once; not pyplot's, so it stays for the next decision
 
 
 def _fmt(v: float, unit: str) -> str:
@@ -639,6 +656,8 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
     diag = run.diagnosis
     if diag is None:
         return []
+    # one figure for every decision's plot (DecisionFigure), built at the first
+    figure = _Lazy(DecisionFigure)
     lines = [
         "## Closing the loop",
         "",
@@ -652,12 +671,24 @@ def _diagnosis_section(run: CalibrationRun, report: dict, out: Path) -> list[str
     if diag.skipped:
         lines += ["Left out: " + "; ".join(f"{s['name']} ({s['reason']})" for s in diag.skipped), ""]
     for r in diag.rounds:
-        lines += _round_lines(run, r, out)
+        lines += _round_lines(run, r, out, figure)
     lines += [f"Stopped: {diag.stop}.", ""]
     return lines + _learned_lines(report)
 
 
-def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
+class _Lazy:
+    """``make()``, made at the first call and the same one after."""
+
+    def __init__(self, make) -> None:
+        self.make, self.made = make, None
+
+    def __call__(self):
+        if self.made is None:
+            self.made = self.make()
+        return self.made
+
+
+def _round_lines(run: CalibrationRun, r: dict, out: Path, figure: _Lazy) -> list[str]:
     """One round of the closed loop: its fit, the score tests, the localisation, each decision (with its figure)."""
     diag = run.diagnosis
     lines: list[str] = []
@@ -707,7 +738,7 @@ def _round_lines(run: CalibrationRun, r: dict, out: Path) -> list[str]:
         ]
         if d.models is not None:
             name = f"decision_{k + 1}_{d.candidate.name.replace(':', '_')}.png"
-            plot_decision(run, d, out / name)
+            plot_decision(run, d, out / name, figure())
             lines += [
                 f"![{d.candidate.name}]({name})",
                 "",

@@ -160,7 +160,9 @@ def _orientation_report(run: CalibrationRun) -> dict | None:
     }
 
 
-def build_report(run: CalibrationRun) -> dict:
+def build_report(run: CalibrationRun, train_ctx: Context | None = None) -> dict:
+    """report.json's fields; ``train_ctx``: the context of the training rows where the caller has one (the run
+    directory's writer evaluates the model there again: the learned corrections keep their last evaluation)."""
     st = {s.name: s for s in run.stages}
     final = run.stages[-1]
     last = run.fits[-1]
@@ -192,7 +194,7 @@ def build_report(run: CalibrationRun) -> dict:
         "rmse_train_after_mm": rmse(final.train_errors) * 1e3,
         "global_test": {
             **{k: last.global_test[k] for k in ("statistic", "threshold", "passed", "alpha", "redundancy")},
-            **_json_safe(_global_test_reading(run)),
+            **_json_safe(_global_test_reading(run, train_ctx)),
         },
         "stochastic_model": {
             "tracker_sigma_m": "per point (sx, sy, sz)"
@@ -238,14 +240,16 @@ def build_report(run: CalibrationRun) -> dict:
     }
 
 
-def _global_test_reading(run: CalibrationRun) -> dict:
+def _global_test_reading(run: CalibrationRun, ctx: Context | None = None) -> dict:
     """What the last fit's global test found (:func:`torchcal.diagnose.noise.global_test_reading`): the instrument's
     noise level from the final model's training residuals, what the model leaves in it, and how to read a failure."""
     from torchcal.diagnose.noise import global_test_reading, noise_level
 
     train = run.data.subset(run.train_idx)
+    if ctx is None:
+        ctx = Context.from_measurements(train, trajectory=run.trajectory)
     with torch.no_grad():
-        r = train.p - run.model(Context.from_measurements(train, trajectory=run.trajectory))
+        r = train.p - run.model(ctx)
         reach = float(run.model.robot.probe_in_base(train.q).norm(dim=-1).max())
     noise = noise_level(train.q, r, train.sigma, run.options.fit.sigma_tracker)
     st = {s.name: s for s in run.stages}
@@ -304,7 +308,10 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
         raise EstimationError(
             f"the calibrated model has non-finite values in {', '.join(bad[:5])}; the fit diverged, nothing was written"
         )
-    report = build_report(run)
+    # one context of the training rows for every evaluation of the final model there (report.json's global test
+    # reading, the URDF's gap and check): its learned corrections keep their last evaluation
+    ctx = Context.from_measurements(run.data.subset(run.train_idx), trajectory=run.trajectory)
+    report = build_report(run, ctx)
     from torchcal.pipeline.trust import run_trust
 
     rtrust = run_trust(run)  # predict's sx, sy, sz: measured on the held-out rows (torchcal.estimate.trust)
@@ -312,7 +319,6 @@ def write_run_files(run: CalibrationRun, directory: str | os.PathLike) -> Path:
     # the URDF carries the geometry only: say what it leaves out and what that costs on the training poses
     from torchcal.report.urdf import urdf_fk_difference, urdf_gap, urdf_markdown, urdf_notes
 
-    ctx = Context.from_measurements(run.data.subset(run.train_idx), trajectory=run.trajectory)
     write_urdf(run.robot, tmp / "robot_calibrated.urdf", notes=urdf_notes(urdf_gap(run.model, ctx)))
     report["urdf"] = {
         "file": "robot_calibrated.urdf",

@@ -38,7 +38,8 @@ from torchcal.robot.readings import Readings
 
 Tensor = torch.Tensor
 GRAVITY = 9.80665  # m/s^2, standard gravity, along -z of the robot base frame
-_TORQUE_CACHE = 8  # static torques a robot keeps: a fit's damping ladder tries five geometries before its next Jacobian
+_TORQUE_CACHE = 8  # static torques a robot keeps: a fit's damping ladder tries five geometries before its next
+# Jacobian (one by one where its residuals cannot be batched; a batched call's torques are not kept)
 
 
 class DHConvention(enum.Enum):
