@@ -101,6 +101,9 @@ class GPSettings:
         warm_tolerance: a warm refit's L-BFGS stops at the first iteration that raises the log evidence of the
             fitting rows by less than this [nats] (its own resolution: hyperparameters whose evidence differs by a
             Bayes factor under ``e^0.5`` are equally supported); the fits from scratch run all their iterations.
+            0, the default, runs every iteration: a warm refit's hyperparameters decide the pruning of named
+            effects (a one-sided paired test at the validation level), and a refit stopped early moves close
+            decisions there.
         kmeans_iterations: Lloyd iterations placing the inducing inputs.
         threads: torch threads while fitting (restored afterwards).
         seed: seeds the subsets and the k-means initialisation.
@@ -118,7 +121,7 @@ class GPSettings:
     restart_iterations: int = 15
     coarse_rows: int = 500
     refine_iterations: int = 15
-    warm_tolerance: float = 0.5
+    warm_tolerance: float = 0.0
     kmeans_iterations: int = 10
     threads: int = 1
     seed: int = 0
