@@ -60,6 +60,13 @@ def long_manifest(tmp_path_factory):
     return root / "manifest.csv"
 
 
+def _sigint_default() -> None:
+    """In the fleet's process before it starts: SIGINT's default action. A shell without job control starts its
+    background jobs with SIGINT ignored, and Python keeps an ignored SIGINT ignored, so under a test run started with
+    ``&`` the fleet would never see the Ctrl-C this test sends; a user's Ctrl-C reaches a foreground process."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _fleet(manifest, out, **kw):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     argv = [sys.executable, "-m", "torchcal", "fleet", str(manifest), "--out", str(out), "--workers", "1", "--quiet"]
@@ -118,7 +125,7 @@ def test_two_fleets_at_once_both_finish_as_calibrate(manifest, tmp_path):
 
 def test_ctrl_c_ends_the_fleet_and_its_workers_within_10_s(long_manifest, tmp_path):
     """Interrupted, a fleet printed 'interrupted' and was still alive 290 s later (once, under load)."""
-    proc = _fleet(long_manifest, tmp_path / "f")
+    proc = _fleet(long_manifest, tmp_path / "f", preexec_fn=_sigint_default)
     ray_procs = _wait_for_ray(proc)
     time.sleep(3)  # the task is submitted
     ray_procs.update(_descendants(proc.pid))
