@@ -256,6 +256,10 @@ class _Search:
         """``cand`` refitted with the base on the fitting poses and judged on the validation poses (an open joint
         form at the edges of its joint's range too); a candidate that fails is recorded as rejected. The screen
         (:func:`_screen`) rejects, without the refit, a candidate whose one-step prediction fails by a wide margin."""
+        # said before the screen: the terminal names every candidate's score where it is judged, screened or refitted
+        _console.info(
+            f"diagnosis round {rnd}: {cand.name} ({named_p(s.to_dict())}): validating on {len(self.val_part.q)} poses"
+        )
         v = self.screen(rnd, cand, s) if self.run.identifiability is not None else None
         if v is not None:
             _reject(self.work, self.diag, v)
@@ -528,7 +532,6 @@ def _validate(
     """Refit ``base`` with ``cand`` (default: the candidate of ``s``) on the fitting poses; compare on the
     validation poses."""
     cand = cand if cand is not None else s.candidate
-    _console.info(f"diagnosis round {rnd}: {cand.name} ({named_p(s.to_dict())}): validating on {len(val_part.q)} poses")
     trial = copy.deepcopy(base)
     trial.add(_made(cand, fit_part))
     try:
