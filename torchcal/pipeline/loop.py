@@ -628,22 +628,32 @@ def _validate_edge(
     e_edge = errors(trial, outer, trajectory)
     worse = S.paired_test(e_edge, e_ref, ordered=trajectory)  # small p: the model without it is better there
     r0, r1 = S.rmse(e_ref), S.rmse(e_edge)
-    v.validation["edge"] = {
-        "n": len(edge),
+    v.validation["edge"] = _edge_evidence(eff.joint, len(edge), r0, r1, worse.p_value, alpha_val)
+    if r1 > r0 and worse.p_value < alpha_val:
+        v.passed, v.cause = False, Cause.EDGE
+        v.reason = _edge_reason(eff.joint, len(edge), r0, r1, f"p = {worse.p_value:.2g}")
+
+
+def _edge_evidence(joint: int, n: int, r0: float, r1: float, p_worse: float, alpha_val: float) -> dict:
+    """The edge test's record: ``r0``, ``r1`` the RMSE [m] at the ``n`` edge poses without and with the form."""
+    return {
+        "n": n,
         "share_per_side": EDGE_SHARE,
         "rmse_without_mm": r0 * 1e3,
         "rmse_with_mm": r1 * 1e3,
-        "p_worse": worse.p_value,
-        "rule": f"fitted on the middle of joint {eff.joint}'s range, not worse at its edges (one-sided paired p "
+        "p_worse": p_worse,
+        "rule": f"fitted on the middle of joint {joint}'s range, not worse at its edges (one-sided paired p "
         f">= {alpha_val})",
     }
-    if r1 > r0 and worse.p_value < alpha_val:
-        v.passed, v.cause = False, Cause.EDGE
-        v.reason = (
-            f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
-            f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
-            f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse.p_value:.2g})"
-        )
+
+
+def _edge_reason(joint: int, n: int, r0: float, r1: float, tail: str) -> str:
+    """Why a form fails the edge test (``tail`` ends the parenthesis: its p, and how it was judged)."""
+    return (
+        f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
+        f"{joint}'s range on each side, it predicts those {n} poses worse than the model without it "
+        f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, {tail})"
+    )
 
 
 #: the screen trusts its step where the fitting poses' cost fell by this share of the linearised prediction or more,
@@ -780,22 +790,10 @@ def _screen_edge(v: _Validation, search: _Search) -> _Validation | None:
         "rule": f"lower validation RMSE and one-sided paired p < {alpha_val}",
         "bic_fit": v.bic,
         "screened": SCREENED,
-        "edge": {
-            "n": len(edge),
-            "share_per_side": EDGE_SHARE,
-            "rmse_without_mm": r0 * 1e3,
-            "rmse_with_mm": r1 * 1e3,
-            "p_worse": worse.p_value,
-            "rule": f"fitted on the middle of joint {eff.joint}'s range, not worse at its edges (one-sided paired p "
-            f">= {alpha_val})",
-        },
+        "edge": _edge_evidence(eff.joint, len(edge), r0, r1, worse.p_value, alpha_val),
     }
     v.passed, v.cause = False, Cause.EDGE
-    v.reason = (
-        f"it wins in the middle and loses at the edge: fitted without the outer {EDGE_SHARE:.0%} of joint "
-        f"{eff.joint}'s range on each side, it predicts those {len(edge)} poses worse than the model without it "
-        f"({r0 * 1e3:.4f} -> {r1 * 1e3:.4f} mm, p = {worse.p_value:.2g}; {SCREENED})"
-    )
+    v.reason = _edge_reason(eff.joint, len(edge), r0, r1, f"p = {worse.p_value:.2g}; {SCREENED}")
     _console.info(f"diagnosis round {v.round}: {v.candidate.name}: rejected, {v.reason}")
     return v
 
